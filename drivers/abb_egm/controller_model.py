@@ -1,0 +1,773 @@
+"""Shared state of the simulated ABB controller (no I/O).
+
+The RWS server simulator (``rws_server.py``) and the EGM simulator (``sim_egm.py``) both act on one
+``ControllerModel``: the RWS side turns motors on, starts the RAPID program, writes RAPID variables;
+the EGM side asks ``egm_wanted`` every cycle and reports the end of a session. The model is used from
+one asyncio loop and is not thread-safe (no locks: every method is short and never awaits).
+
+What the EGM simulator needs from here (the contract with ``sim_egm.py``):
+
+- ``egm_wanted`` -> bool: True while the RAPID program would sit in ``EGMRunJoint`` (motors on,
+  program running, program in its EGM phase, end variable ``egm_end`` false). Poll it every cycle.
+- ``egm_params`` -> ``EgmRunParams``: the arguments the RAPID module passes to EGMSetupUC /
+  EGMActJoint / EGMRunJoint, read from the RAPID variables when the program entered its EGM phase
+  (communication timeout, position-correction gain, speed / position deviation limits, ...).
+- ``egm_session_ended(reason, event_code)``: call it when the session ends on the EGM side
+  (communication timeout -> 41822, a guidance error such as a joint-limit or speed-deviation
+  violation -> its event code). The model logs the event, runs the module's error handler
+  (``egm_status`` := -event_code) and ends the program (RAPID stopped, PP back at main), as the
+  RAPID module in ``drivers/abb_egm/rapid/CellEgm.mod`` does.
+- ``set_position_source(fn)``: ``fn()`` returns ``(q_deg (6,), pos_mm (3,), quat_wxyz (4,))`` of the
+  flange in the base frame; the RWS position endpoints read through it.
+- ``subscribe(cb)``: ``cb(kind, data)`` on every change; kinds are ``"ctrlstate"``, ``"opmode"``,
+  ``"execution"``, ``"rapid-data"``, ``"signal"``, ``"elog"``, ``"egm"`` (``data["wanted"]``).
+- ``motors_off()`` / ``emergency_stop()`` / ``guard_stop()`` are the fault knobs' entry points.
+
+RAPID values travel as RAPID literal strings, the way RWS carries them (``"1.5"``, ``"TRUE"``,
+``"\\"text\\""``, ``"[[0,0,0,0,30,0],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]]"``); the literal codec
+functions below are shared by the RWS client and the server, so the two cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import structlog
+
+log = structlog.get_logger(__name__)
+
+CtrlState = Literal[
+    "init", "motoron", "motoroff", "guardstop", "emergencystop", "emergencystopreset", "sysfail"
+]
+OpMode = Literal["AUTO", "MANR", "MANF"]
+RapidState = Literal["running", "stopped"]
+Listener = Callable[[str, dict], None]
+PositionSource = Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+# Names of the RAPID module and its variables. They must match drivers/abb_egm/rapid/CellEgm.mod.
+RAPID_TASK = "T_ROB1"
+RAPID_MODULE = "CellEgm"
+VAR_END = "egm_end"
+VAR_STATUS = "egm_status"
+VAR_COMM_TIMEOUT = "egm_comm_timeout_s"
+VAR_POS_CORR_GAIN = "egm_pos_corr_gain"
+VAR_MAX_SPEED_DEV = "egm_max_speed_dev_dps"
+VAR_MAX_POS_DEV = "egm_max_pos_dev_deg"
+VAR_COND_TIME = "egm_cond_time_s"
+VAR_RAMP_IN = "egm_ramp_in_s"
+VAR_LP_FILTER = "egm_lp_filter_hz"
+VAR_SAMPLE_RATE = "egm_sample_rate_ms"
+
+# egm_status values written by the RAPID module (negative values are minus the event code).
+STATUS_IDLE = 0
+STATUS_RUNNING = 1
+STATUS_ENDED = 2
+
+# Event log codes. 41822 is documented (reference §2.5); 10010..10013 are the controller's
+# motors-off / motors-on / guard-stop / emergency-stop state messages as commonly seen in IRC5
+# event logs (from memory: UNVERIFIED, used for display only).
+EVENT_EGM_COMM_TIMEOUT = 41822
+EVENT_MOTORS_OFF = 10010
+EVENT_MOTORS_ON = 10011
+EVENT_GUARD_STOP = 10012
+EVENT_EMERGENCY_STOP = 10013
+
+# The one controller return code the reference documents (IO write refused by access level). The
+# other codes are the simulator's own, in a range the controller does not use, so nobody mistakes
+# them for real ones.
+RC_IO_ACCESS_DENIED = -1073445881
+RC_STATE_REFUSED = -7001
+RC_NOT_FOUND = -7002
+RC_BAD_VALUE = -7003
+RC_READ_ONLY = -7004
+
+
+class ControllerError(Exception):
+    """The simulated controller refuses a request.
+
+    Attributes: ``code`` (the controller's return code, negative), ``http_status`` (what RWS answers
+    with), ``message``.
+    """
+
+    http_status = 400
+
+    def __init__(self, message: str, *, code: int) -> None:
+        super().__init__(message)
+        self.message = message
+        self.code = code
+
+
+class StateRefused(ControllerError):
+    """The request is not allowed in the current controller / RAPID state (e.g. motors on during e-stop)."""
+
+    http_status = 409
+
+
+class SymbolNotFound(ControllerError):
+    """No RAPID variable or IO signal of that name."""
+
+    http_status = 404
+
+
+class RapidValueError(ControllerError, ValueError):
+    """A RAPID literal does not parse as the variable's type."""
+
+    http_status = 400
+
+
+class AccessDenied(ControllerError):
+    """Writing a constant or a signal whose access level forbids it."""
+
+    http_status = 403
+
+
+# --------------------------------------------------------------------------------------------------
+# RAPID literal codec (shared by the RWS client and server)
+# --------------------------------------------------------------------------------------------------
+
+_NUM_RE = re.compile(r"^\s*[-+]?(\d+(\.\d*)?|\.\d+)([eE][-+]?\d+)?\s*$")
+# RAPID uses 9E+09 for "axis not used" in the external axes of a jointtarget.
+EXTAX_UNUSED = 9e9
+
+
+def format_num(value: float) -> str:
+    """Format a RAPID ``num`` literal (RAPID num is a 32-bit float; 9 significant digits keep it)."""
+    if not math.isfinite(value):
+        raise RapidValueError(f"num value {value!r} is not finite", code=RC_BAD_VALUE)
+    if float(value).is_integer() and abs(value) < 1e9:
+        return str(int(value))
+    return f"{value:.9g}".replace("e", "E")
+
+
+def parse_num(text: str) -> float:
+    """Parse a RAPID ``num`` literal such as ``"1.5"`` or ``"9E+09"``."""
+    if not _NUM_RE.match(text):
+        raise RapidValueError(f"not a RAPID num literal: {text!r}", code=RC_BAD_VALUE)
+    return float(text)
+
+
+def format_bool(value: bool) -> str:
+    """Format a RAPID ``bool`` literal (``TRUE`` / ``FALSE``)."""
+    return "TRUE" if value else "FALSE"
+
+
+def parse_bool(text: str) -> bool:
+    """Parse a RAPID ``bool`` literal; RAPID accepts either case."""
+    t = text.strip().upper()
+    if t == "TRUE":
+        return True
+    if t == "FALSE":
+        return False
+    raise RapidValueError(f"not a RAPID bool literal: {text!r}", code=RC_BAD_VALUE)
+
+
+def format_string(value: str) -> str:
+    """Format a RAPID ``string`` literal: double quotes, ``"`` and ``\\`` doubled (RAPID's escaping)."""
+    if len(value) > 80:
+        raise RapidValueError(
+            f"RAPID strings hold at most 80 characters, got {len(value)}", code=RC_BAD_VALUE
+        )
+    return '"' + value.replace("\\", "\\\\").replace('"', '""') + '"'
+
+
+def parse_string(text: str) -> str:
+    """Parse a RAPID ``string`` literal (quoted, with doubled quotes / backslashes)."""
+    t = text.strip()
+    if len(t) < 2 or t[0] != '"' or t[-1] != '"':
+        raise RapidValueError(
+            f"not a RAPID string literal (needs double quotes): {text!r}", code=RC_BAD_VALUE
+        )
+    inner = t[1:-1]
+    # A lone quote inside is malformed; doubled quotes are one quote.
+    if re.search(r'(?<!")"(?!")', inner.replace('""', "")):
+        raise RapidValueError(f"unescaped quote in RAPID string literal: {text!r}", code=RC_BAD_VALUE)
+    return inner.replace('""', '"').replace("\\\\", "\\")
+
+
+@dataclass(frozen=True)
+class JointTarget:
+    """A RAPID ``jointtarget``: robot axes in degrees, external axes (deg or mm, 9E9 = unused)."""
+
+    robax_deg: np.ndarray  # (6,) float
+    extax: np.ndarray = field(default_factory=lambda: np.full(6, EXTAX_UNUSED))  # (6,) float
+
+
+def format_jointtarget(jt: JointTarget | np.ndarray) -> str:
+    """Format a ``jointtarget`` literal ``[[j1,..,j6],[e1,..,e6]]`` from a JointTarget or (6,) deg array."""
+    if not isinstance(jt, JointTarget):
+        jt = JointTarget(np.asarray(jt, dtype=float))
+    rob = np.asarray(jt.robax_deg, dtype=float)
+    ext = np.asarray(jt.extax, dtype=float)
+    if rob.shape != (6,) or ext.shape != (6,):
+        raise RapidValueError(
+            f"jointtarget needs 6 robot and 6 external axes, got {rob.shape} and {ext.shape}",
+            code=RC_BAD_VALUE,
+        )
+    return "[[" + ",".join(format_num(v) for v in rob) + "],[" + ",".join(format_num(v) for v in ext) + "]]"
+
+
+_JT_RE = re.compile(r"^\s*\[\s*\[([^\[\]]*)\]\s*,\s*\[([^\[\]]*)\]\s*\]\s*$")
+
+
+def parse_jointtarget(text: str) -> JointTarget:
+    """Parse a ``jointtarget`` literal ``[[j1,..,j6],[e1,..,e6]]``."""
+    m = _JT_RE.match(text)
+    if not m:
+        raise RapidValueError(f"not a RAPID jointtarget literal: {text!r}", code=RC_BAD_VALUE)
+    rob = [parse_num(v) for v in m.group(1).split(",")]
+    ext = [parse_num(v) for v in m.group(2).split(",")]
+    if len(rob) != 6 or len(ext) != 6:
+        raise RapidValueError(
+            f"jointtarget needs 6+6 values, got {len(rob)}+{len(ext)}: {text!r}", code=RC_BAD_VALUE
+        )
+    return JointTarget(np.array(rob), np.array(ext))
+
+
+_PARSERS: dict[str, Callable[[str], object]] = {
+    "num": parse_num,
+    "dnum": parse_num,
+    "bool": parse_bool,
+    "string": parse_string,
+    "jointtarget": parse_jointtarget,
+}
+
+
+def validate_literal(rapid_type: str, text: str) -> str:
+    """Check ``text`` parses as ``rapid_type``; return it normalised (types without a parser pass as is)."""
+    parser = _PARSERS.get(rapid_type)
+    if parser is None:
+        return text
+    value = parser(text)
+    if rapid_type in ("num", "dnum"):
+        return format_num(value)  # type: ignore[arg-type]
+    if rapid_type == "bool":
+        return format_bool(value)  # type: ignore[arg-type]
+    if rapid_type == "jointtarget":
+        return format_jointtarget(value)  # type: ignore[arg-type]
+    return text.strip()
+
+
+# --------------------------------------------------------------------------------------------------
+# Model
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class RapidVar:
+    """One RAPID data symbol: its type, storage class and current value as a literal."""
+
+    task: str
+    module: str
+    name: str
+    rapid_type: str
+    value: str
+    storage: Literal["PERS", "VAR", "CONST"] = "PERS"
+
+
+@dataclass
+class IoSignal:
+    """One IO signal. ``lvalue`` is 0/1 for digital, a number for analog / group signals."""
+
+    name: str
+    signal_type: Literal["DI", "DO", "AI", "AO", "GI", "GO"]
+    lvalue: float = 0.0
+    network: str = "Local"
+    device: str = "DRV_1"
+    writable: bool = True
+
+
+@dataclass(frozen=True)
+class ElogEvent:
+    """One event-log entry (domain 0). ``msgtype``: 1 info, 2 warning, 3 error."""
+
+    seqnum: int
+    msgtype: int
+    code: int
+    title: str
+    desc: str
+    tstamp: str
+
+
+@dataclass(frozen=True)
+class EgmRunParams:
+    """What the RAPID module hands to EGMSetupUC / EGMActJoint / EGMRunJoint (units in the names)."""
+
+    comm_timeout_s: float
+    pos_corr_gain: float
+    max_speed_deviation_dps: float
+    max_pos_deviation_deg: float
+    cond_time_s: float
+    ramp_in_time_s: float
+    lp_filter_hz: float
+    sample_rate_ms: float
+
+
+_SEVERITY = {"info": 1, "warning": 2, "error": 3}
+_ZERO_POSE_POS_MM = np.array([1580.0, 0.0, 1765.0])
+# tool0 at all-zero joints: rotated +90 deg about base y (URDF rpy (0, pi/2, 0)).
+_ZERO_POSE_QUAT_WXYZ = np.array([math.sqrt(0.5), 0.0, math.sqrt(0.5), 0.0])
+
+
+def _home_pose() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return np.zeros(6), _ZERO_POSE_POS_MM.copy(), _ZERO_POSE_QUAT_WXYZ.copy()
+
+
+class ControllerModel:
+    """State of one simulated IRC5 / OmniCore controller with the CellEgm RAPID program loaded.
+
+    State-changing methods raise ``StateRefused`` where the real controller refuses (motors on during
+    an emergency stop, starting RAPID with the motors off, ...), ``SymbolNotFound`` for unknown
+    variables / signals, ``RapidValueError`` for malformed literals and ``AccessDenied`` for writes to
+    constants or protected signals. Every change is reported to the subscribers.
+
+    ``end_var`` names the bool RAPID variable that ends the EGM session (default ``egm_end``).
+    """
+
+    def __init__(
+        self,
+        *,
+        opmode: OpMode = "AUTO",
+        ctrl_state: CtrlState = "motoroff",
+        end_var: str = VAR_END,
+        task: str = RAPID_TASK,
+        module: str = RAPID_MODULE,
+        elog_capacity: int = 1000,
+    ) -> None:
+        self._ctrl_state: CtrlState = ctrl_state
+        self._opmode: OpMode = opmode
+        self._rapid_state: RapidState = "stopped"
+        self.speed_ratio_pct = 100
+        self.task = task
+        self.module = module
+        self.end_var = end_var
+        # "main": PP at main; "egm": program inside EGMRunJoint (or stopped there).
+        self._phase: Literal["main", "egm"] = "main"
+        self._egm_params: EgmRunParams | None = None
+        self._vars: dict[tuple[str, str, str], RapidVar] = {}
+        self._signals: dict[str, IoSignal] = {}
+        self._events: deque[ElogEvent] = deque(maxlen=elog_capacity)
+        self._event_seq = 0
+        self._listeners: list[Listener] = []
+        self._position_source: PositionSource = _home_pose
+        self._egm_wanted_last = False
+        self._define_program_data()
+        self._define_signals()
+
+    # ---- program data -------------------------------------------------------------------------
+
+    def _define_program_data(self) -> None:
+        # Defaults equal the PERS initial values in CellEgm.mod.
+        t, m = self.task, self.module
+        for name, rtype, value in (
+            (self.end_var, "bool", "FALSE"),
+            (VAR_STATUS, "num", "0"),
+            (VAR_COMM_TIMEOUT, "num", "1"),
+            (VAR_POS_CORR_GAIN, "num", "1"),
+            (VAR_MAX_SPEED_DEV, "num", "1000"),
+            (VAR_MAX_POS_DEV, "num", "1000"),
+            (VAR_COND_TIME, "num", "1000000"),
+            (VAR_RAMP_IN, "num", "0.05"),
+            (VAR_LP_FILTER, "num", "20"),
+            (VAR_SAMPLE_RATE, "num", "4"),
+        ):
+            self.define_var(t, m, name, rtype, value)
+
+    def _define_signals(self) -> None:
+        # A DO the daemon may use instead of the variable, and a read-only DI (e.g. a bed sensor).
+        self.define_signal(IoSignal("DO_EGM_END", "DO"))
+        self.define_signal(IoSignal("DI_PLATE_PRESENT", "DI", writable=False))
+
+    def define_var(
+        self, task: str, module: str, name: str, rapid_type: str, value: str, storage: str = "PERS"
+    ) -> None:
+        """Declare a RAPID data symbol (as if the module declared it)."""
+        literal = validate_literal(rapid_type, value)
+        self._vars[(task, module, name)] = RapidVar(task, module, name, rapid_type, literal, storage)  # type: ignore[arg-type]
+
+    def define_signal(self, signal: IoSignal) -> None:
+        """Declare an IO signal (as the EIO configuration would)."""
+        self._signals[signal.name] = signal
+
+    # ---- subscription -------------------------------------------------------------------------
+
+    def subscribe(self, callback: Listener) -> Callable[[], None]:
+        """Register ``callback(kind, data)`` for every change; returns a function that unsubscribes."""
+        self._listeners.append(callback)
+
+        def unsubscribe() -> None:
+            if callback in self._listeners:
+                self._listeners.remove(callback)
+
+        return unsubscribe
+
+    def _notify(self, kind: str, data: dict) -> None:
+        for cb in list(self._listeners):
+            try:
+                cb(kind, data)
+            except Exception:  # a broken listener must not break the controller
+                log.exception("listener_failed", kind=kind)
+        wanted = self.egm_wanted
+        if wanted != self._egm_wanted_last:
+            self._egm_wanted_last = wanted
+            for cb in list(self._listeners):
+                try:
+                    cb("egm", {"wanted": wanted})
+                except Exception:
+                    log.exception("listener_failed", kind="egm")
+
+    # ---- panel --------------------------------------------------------------------------------
+
+    @property
+    def ctrl_state(self) -> CtrlState:
+        """Controller state as RWS reports it (``motoron``, ``motoroff``, ``guardstop``, ...)."""
+        return self._ctrl_state
+
+    @property
+    def opmode(self) -> OpMode:
+        """Operating mode: ``AUTO``, ``MANR`` (manual reduced speed) or ``MANF`` (manual full speed)."""
+        return self._opmode
+
+    @property
+    def rapid_state(self) -> RapidState:
+        """RAPID execution state: ``running`` or ``stopped``."""
+        return self._rapid_state
+
+    def _set_ctrl_state(self, state: CtrlState) -> None:
+        if state != self._ctrl_state:
+            self._ctrl_state = state
+            self._notify("ctrlstate", {"ctrlstate": state})
+
+    def set_opmode(self, mode: OpMode) -> None:
+        """Turn the mode key (cabinet, not RWS). Stops RAPID and the motors, as the real controller does."""
+        if mode not in ("AUTO", "MANR", "MANF"):
+            raise RapidValueError(f"unknown opmode {mode!r}", code=RC_BAD_VALUE)
+        if mode == self._opmode:
+            return
+        self._halt_program("opmode change")
+        if self._ctrl_state == "motoron":
+            self._set_ctrl_state("motoroff")
+        self._opmode = mode
+        self._notify("opmode", {"opmode": mode})
+
+    def motors_on(self) -> None:
+        """Switch the motors on (RWS ``ctrl-state=motoron``); only from motors off / e-stop reset, in AUTO."""
+        if self._ctrl_state == "motoron":
+            return
+        if self._ctrl_state in ("emergencystop", "guardstop", "sysfail", "init"):
+            raise StateRefused(
+                f"motors on refused: controller is in {self._ctrl_state}", code=RC_STATE_REFUSED
+            )
+        if self._opmode != "AUTO":
+            # In manual mode the enabling device on the pendant switches the motors on, not RWS.
+            raise StateRefused(f"motors on refused: operating mode is {self._opmode}", code=RC_STATE_REFUSED)
+        self._set_ctrl_state("motoron")
+        self.log_event(EVENT_MOTORS_ON, "Motors ON state", "Motors on requested through RWS.", "info")
+
+    def motors_off(self) -> None:
+        """Switch the motors off; a running program stops (as the real controller does in AUTO)."""
+        if self._ctrl_state in ("emergencystop", "guardstop", "sysfail"):
+            raise StateRefused(
+                f"motors off refused: controller is in {self._ctrl_state}", code=RC_STATE_REFUSED
+            )
+        if self._ctrl_state == "motoroff":
+            return
+        self._halt_program("motors off")
+        self._set_ctrl_state("motoroff")
+        self.log_event(EVENT_MOTORS_OFF, "Motors OFF state", "Motors switched off.", "info")
+
+    def emergency_stop(self) -> None:
+        """Press the emergency stop: motors off, RAPID stopped, EGM ends."""
+        if self._ctrl_state == "emergencystop":
+            return
+        self._halt_program("emergency stop")
+        self._set_ctrl_state("emergencystop")
+        self.log_event(
+            EVENT_EMERGENCY_STOP, "Emergency stop state", "The emergency stop circuit opened.", "error"
+        )
+
+    def reset_emergency_stop(self) -> None:
+        """Release and reset the emergency stop: the controller goes to ``emergencystopreset``."""
+        if self._ctrl_state != "emergencystop":
+            raise StateRefused(
+                f"no emergency stop to reset: controller is in {self._ctrl_state}", code=RC_STATE_REFUSED
+            )
+        self._set_ctrl_state("emergencystopreset")
+
+    def guard_stop(self) -> None:
+        """Open the safety guard (auto stop): motors off, RAPID stopped."""
+        if self._ctrl_state in ("emergencystop", "guardstop"):
+            return
+        self._halt_program("guard stop")
+        self._set_ctrl_state("guardstop")
+        self.log_event(
+            EVENT_GUARD_STOP, "Safety guard stop state", "The safety guard circuit opened.", "warning"
+        )
+
+    def reset_guard_stop(self) -> None:
+        """Close the safety guard again: the controller goes to ``motoroff``."""
+        if self._ctrl_state != "guardstop":
+            raise StateRefused(
+                f"no guard stop to reset: controller is in {self._ctrl_state}", code=RC_STATE_REFUSED
+            )
+        self._set_ctrl_state("motoroff")
+
+    # ---- RAPID execution ----------------------------------------------------------------------
+
+    def start_rapid(self) -> None:
+        """Start (or continue) the program. From PP at main this enters the EGM phase of CellEgm.mod."""
+        if self._rapid_state == "running":
+            return
+        if self._ctrl_state != "motoron":
+            raise StateRefused(
+                f"start refused: motors are not on (controller is {self._ctrl_state})", code=RC_STATE_REFUSED
+            )
+        if self._opmode != "AUTO":
+            raise StateRefused(
+                f"start refused: operating mode {self._opmode} needs the pendant (RMMP)",
+                code=RC_STATE_REFUSED,
+            )
+        self._rapid_state = "running"
+        if self._phase == "main":
+            self._enter_egm_phase()
+        self._notify("execution", {"ctrlexecstate": "running"})
+        # A session that was told to end while the program was stopped ends as soon as it runs.
+        if self._phase == "egm" and self._var_bool(self.end_var):
+            self._finish_program(STATUS_ENDED, "end variable set")
+
+    def stop_rapid(self) -> None:
+        """Stop the program. Inside EGMRunJoint the EGM state goes back to CONNECTED; a start resumes it."""
+        if self._rapid_state == "stopped":
+            return
+        self._rapid_state = "stopped"
+        self._notify("execution", {"ctrlexecstate": "stopped"})
+
+    def reset_pp(self) -> None:
+        """Set the program pointer to main (only with the program stopped); the EGM identity is released."""
+        if self._rapid_state == "running":
+            raise StateRefused("reset PP refused: the program is running", code=RC_STATE_REFUSED)
+        self._phase = "main"
+        self._egm_params = None
+        self._notify("execution", {"ctrlexecstate": "stopped", "pp": "main"})
+
+    def _enter_egm_phase(self) -> None:
+        # main(): egm_end := FALSE; read the settings; EGMGetId; EGMSetupUC; EGMActJoint; EGMRunJoint.
+        self._write_var_internal(self.end_var, "FALSE")
+        self._egm_params = EgmRunParams(
+            comm_timeout_s=self._var_num(VAR_COMM_TIMEOUT),
+            pos_corr_gain=self._var_num(VAR_POS_CORR_GAIN),
+            max_speed_deviation_dps=self._var_num(VAR_MAX_SPEED_DEV),
+            max_pos_deviation_deg=self._var_num(VAR_MAX_POS_DEV),
+            cond_time_s=self._var_num(VAR_COND_TIME),
+            ramp_in_time_s=self._var_num(VAR_RAMP_IN),
+            lp_filter_hz=self._var_num(VAR_LP_FILTER),
+            sample_rate_ms=self._var_num(VAR_SAMPLE_RATE),
+        )
+        self._phase = "egm"
+        self._write_var_internal(VAR_STATUS, str(STATUS_RUNNING))
+        log.info("rapid_egm_phase_entered", params=self._egm_params)
+
+    def _finish_program(self, status: int, reason: str) -> None:
+        # EGMStop / EGMReset, egm_status := status, main ends (run mode "once"): program stops, PP at main.
+        self._phase = "main"
+        self._egm_params = None
+        self._write_var_internal(VAR_STATUS, format_num(status))
+        was_running = self._rapid_state == "running"
+        self._rapid_state = "stopped"
+        log.info("rapid_program_finished", status=status, reason=reason)
+        if was_running:
+            self._notify("execution", {"ctrlexecstate": "stopped", "pp": "main"})
+
+    def _halt_program(self, reason: str) -> None:
+        if self._rapid_state == "running":
+            log.info("rapid_halted", reason=reason)
+            self.stop_rapid()
+
+    # ---- EGM program model --------------------------------------------------------------------
+
+    @property
+    def egm_wanted(self) -> bool:
+        """True while the program sits in EGMRunJoint: motors on, running, EGM phase, end variable false."""
+        return (
+            self._ctrl_state == "motoron"
+            and self._rapid_state == "running"
+            and self._phase == "egm"
+            and not self._var_bool(self.end_var)
+        )
+
+    @property
+    def egm_params(self) -> EgmRunParams | None:
+        """The EGM arguments of the current session (None outside the EGM phase)."""
+        return self._egm_params
+
+    def egm_session_ended(self, reason: str, event_code: int | None) -> None:
+        """The EGM side ended the session (41822 comm timeout, or a guidance error with its event code).
+
+        Logs the event, then does what CellEgm.mod's error handler does: ``egm_status := -code``,
+        EGMReset, main ends, program stopped with PP at main.
+        """
+        if event_code is not None:
+            title = "No data from the UdpUc device" if event_code == EVENT_EGM_COMM_TIMEOUT else "EGM error"
+            self.log_event(event_code, title, reason, "error")
+        if self._phase != "egm":
+            return
+        self._finish_program(-(event_code or 1), reason)
+
+    # ---- RAPID variables ----------------------------------------------------------------------
+
+    def _find(self, task: str, module: str | None, name: str) -> RapidVar:
+        if module:
+            var = self._vars.get((task, module, name))
+        else:
+            var = next((v for (t, _m, n), v in self._vars.items() if t == task and n == name), None)
+        if var is None:
+            where = f"{task}/{module}/{name}" if module else f"{task}/{name}"
+            raise SymbolNotFound(f"RAPID symbol not found: {where}", code=RC_NOT_FOUND)
+        return var
+
+    def var_info(self, task: str, module: str | None, name: str) -> RapidVar:
+        """Return the symbol record (type, storage, value literal)."""
+        return self._find(task, module, name)
+
+    def get_var(self, task: str, module: str | None, name: str) -> str:
+        """Read a RAPID variable as its literal string; ``module`` None searches all modules of the task."""
+        return self._find(task, module, name).value
+
+    def set_var(self, task: str, module: str | None, name: str, value: str) -> None:
+        """Write a RAPID variable from a literal string (validated against the variable's type)."""
+        var = self._find(task, module, name)
+        if var.storage == "CONST":
+            raise AccessDenied(f"RAPID symbol {name} is a CONST", code=RC_READ_ONLY)
+        var.value = validate_literal(var.rapid_type, value)
+        self._notify("rapid-data", {"task": var.task, "module": var.module, "name": name, "value": var.value})
+        if name == self.end_var and var.task == self.task:
+            self._on_end_var_written()
+
+    def _on_end_var_written(self) -> None:
+        # The module's IPers trap: egm_end TRUE -> EGMStop. Only takes effect while the program runs.
+        if self._phase == "egm" and self._rapid_state == "running" and self._var_bool(self.end_var):
+            self._finish_program(STATUS_ENDED, "end variable set")
+
+    def _write_var_internal(self, name: str, literal: str) -> None:
+        var = self._find(self.task, self.module, name)
+        var.value = validate_literal(var.rapid_type, literal)
+        self._notify("rapid-data", {"task": var.task, "module": var.module, "name": name, "value": var.value})
+
+    def _var_num(self, name: str) -> float:
+        return parse_num(self._find(self.task, self.module, name).value)
+
+    def _var_bool(self, name: str) -> bool:
+        return parse_bool(self._find(self.task, self.module, name).value)
+
+    def get_num(self, task: str, module: str | None, name: str) -> float:
+        """Typed read of a ``num``."""
+        return parse_num(self.get_var(task, module, name))
+
+    def set_num(self, task: str, module: str | None, name: str, value: float) -> None:
+        """Typed write of a ``num``."""
+        self.set_var(task, module, name, format_num(value))
+
+    def get_bool(self, task: str, module: str | None, name: str) -> bool:
+        """Typed read of a ``bool``."""
+        return parse_bool(self.get_var(task, module, name))
+
+    def set_bool(self, task: str, module: str | None, name: str, value: bool) -> None:
+        """Typed write of a ``bool``."""
+        self.set_var(task, module, name, format_bool(value))
+
+    def get_string(self, task: str, module: str | None, name: str) -> str:
+        """Typed read of a ``string``."""
+        return parse_string(self.get_var(task, module, name))
+
+    def set_string(self, task: str, module: str | None, name: str, value: str) -> None:
+        """Typed write of a ``string``."""
+        self.set_var(task, module, name, format_string(value))
+
+    def get_jointtarget(self, task: str, module: str | None, name: str) -> JointTarget:
+        """Typed read of a ``jointtarget``."""
+        return parse_jointtarget(self.get_var(task, module, name))
+
+    def set_jointtarget(
+        self, task: str, module: str | None, name: str, value: JointTarget | np.ndarray
+    ) -> None:
+        """Typed write of a ``jointtarget`` (a JointTarget or a (6,) array of degrees)."""
+        self.set_var(task, module, name, format_jointtarget(value))
+
+    # ---- IO -----------------------------------------------------------------------------------
+
+    def signal(self, name: str) -> IoSignal:
+        """The signal record; ``SymbolNotFound`` if the signal does not exist."""
+        sig = self._signals.get(name)
+        if sig is None:
+            raise SymbolNotFound(f"IO signal not found: {name}", code=RC_NOT_FOUND)
+        return sig
+
+    def get_io(self, name: str) -> float:
+        """Read a signal's value (0/1 for digital signals)."""
+        return self.signal(name).lvalue
+
+    def set_io(self, name: str, value: float, *, force: bool = False) -> None:
+        """Write a signal. Inputs and protected signals refuse unless ``force`` (simulator wiring)."""
+        sig = self.signal(name)
+        if not force and (not sig.writable or sig.signal_type in ("DI", "AI", "GI")):
+            raise AccessDenied(
+                f"IO signal {name} may not be written (access level)", code=RC_IO_ACCESS_DENIED
+            )
+        if sig.signal_type in ("DI", "DO") and value not in (0, 1):
+            raise RapidValueError(f"digital signal {name} takes 0 or 1, got {value!r}", code=RC_BAD_VALUE)
+        sig.lvalue = float(value)
+        self._notify("signal", {"name": name, "lvalue": sig.lvalue})
+        # CellEgm.mod also ends the session on a rising DO_EGM_END (a signal for cells that prefer IO).
+        if (
+            name == "DO_EGM_END"
+            and sig.lvalue == 1
+            and self._phase == "egm"
+            and self._rapid_state == "running"
+        ):
+            self._write_var_internal(self.end_var, "TRUE")
+            self._finish_program(STATUS_ENDED, "end signal set")
+
+    @property
+    def signals(self) -> list[IoSignal]:
+        """All signals."""
+        return list(self._signals.values())
+
+    # ---- event log ----------------------------------------------------------------------------
+
+    def log_event(self, code: int, title: str, desc: str, severity: str = "info") -> ElogEvent:
+        """Append an entry to event-log domain 0; ``severity`` is ``info`` / ``warning`` / ``error``."""
+        if severity not in _SEVERITY:
+            raise RapidValueError(f"unknown severity {severity!r}", code=RC_BAD_VALUE)
+        self._event_seq += 1
+        tstamp = time.strftime("%Y-%m-%d T  %H:%M:%S", time.gmtime())
+        ev = ElogEvent(self._event_seq, _SEVERITY[severity], int(code), title, desc, tstamp)
+        self._events.append(ev)
+        log.info("elog_event", code=code, title=title, severity=severity)
+        self._notify("elog", {"seqnum": ev.seqnum, "code": ev.code, "msgtype": ev.msgtype, "title": title})
+        return ev
+
+    @property
+    def events(self) -> list[ElogEvent]:
+        """Event log, newest first (as RWS lists it)."""
+        return list(reversed(self._events))
+
+    def clear_events(self) -> None:
+        """Clear the event log (RWS ``clear``)."""
+        self._events.clear()
+
+    # ---- position -----------------------------------------------------------------------------
+
+    def set_position_source(self, fn: PositionSource) -> None:
+        """``fn()`` -> ``(q_deg (6,), pos_mm (3,), quat_wxyz (4,))`` of the flange in the base frame."""
+        self._position_source = fn
+
+    def position(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Current ``(q_deg (6,), pos_mm (3,), quat_wxyz (4,))``; the all-zero pose until a source is set."""
+        q_deg, pos_mm, quat = self._position_source()
+        return np.asarray(q_deg, dtype=float), np.asarray(pos_mm, dtype=float), np.asarray(quat, dtype=float)
