@@ -1,0 +1,99 @@
+"""Triangle meshes in millimetres: the one mesh type the analysis passes around.
+
+A plain container of numpy arrays (trimesh's habit), with file I/O through open3d for
+PLY, STL and OBJ so that a design exported from a CAD package loads as it is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+class MeshError(ValueError):
+    """A mesh file that cannot be used: unreadable, empty, or of the wrong shape."""
+
+
+@dataclass(frozen=True)
+class TriMesh:
+    """A triangle mesh.
+
+    vertices_mm: (n, 3) float64, millimetres.
+    triangles: (m, 3) int64, indices into ``vertices_mm``.
+    """
+
+    vertices_mm: np.ndarray
+    triangles: np.ndarray
+
+    def __post_init__(self) -> None:
+        v = np.ascontiguousarray(self.vertices_mm, dtype=np.float64)
+        t = np.ascontiguousarray(self.triangles, dtype=np.int64)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise MeshError(f"vertices_mm must be (n, 3), got {v.shape}")
+        if t.ndim != 2 or t.shape[1] != 3:
+            raise MeshError(f"triangles must be (m, 3), got {t.shape}")
+        if t.size and (t.min() < 0 or t.max() >= len(v)):
+            raise MeshError("triangle index out of range of vertices_mm")
+        object.__setattr__(self, "vertices_mm", v)
+        object.__setattr__(self, "triangles", t)
+
+    @property
+    def triangle_vertices_mm(self) -> np.ndarray:
+        """(m, 3, 3) float64: the three corners of every triangle."""
+        return self.vertices_mm[self.triangles]
+
+    def triangle_normals(self) -> np.ndarray:
+        """(m, 3) float64 unit normals (right-hand rule on the vertex order)."""
+        tv = self.triangle_vertices_mm
+        n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        return n / np.where(length > 0, length, 1.0)
+
+    def triangle_areas_mm2(self) -> np.ndarray:
+        """(m,) float64 triangle areas in mm^2."""
+        tv = self.triangle_vertices_mm
+        return 0.5 * np.linalg.norm(np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0]), axis=1)
+
+    def transformed(self, T: np.ndarray) -> TriMesh:
+        """The mesh moved by the 4x4 homogeneous transform ``T`` (mm)."""
+        T = np.asarray(T, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise MeshError(f"transform must be 4x4, got {T.shape}")
+        return TriMesh(self.vertices_mm @ T[:3, :3].T + T[:3, 3], self.triangles)
+
+
+def load_mesh(path: str | Path) -> TriMesh:
+    """Read a triangle mesh (PLY, STL or OBJ, millimetres) with one clear error when unusable."""
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: no such file")
+    if path.suffix.lower() not in {".ply", ".stl", ".obj"}:
+        raise MeshError(f"{path}: unsupported mesh format {path.suffix!r} (use .ply, .stl or .obj)")
+    m = o3d.io.read_triangle_mesh(str(path))
+    v = np.asarray(m.vertices)
+    t = np.asarray(m.triangles)
+    if len(v) == 0 or len(t) == 0:
+        raise MeshError(f"{path}: no triangles in the file (empty or unreadable)")
+    if not np.isfinite(v).all():
+        raise MeshError(f"{path}: non-finite vertex coordinates")
+    return TriMesh(v, t)
+
+
+def save_mesh(mesh: TriMesh, path: str | Path) -> Path:
+    """Write ``mesh`` as PLY, STL or OBJ (by suffix); returns the path."""
+    import open3d as o3d
+
+    path = Path(path)
+    m = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(mesh.vertices_mm),
+        o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32)),
+    )
+    if path.suffix.lower() == ".stl":
+        m.compute_triangle_normals()
+    if not o3d.io.write_triangle_mesh(str(path), m, write_ascii=False):
+        raise MeshError(f"{path}: could not write mesh")
+    return path

@@ -1,0 +1,5 @@
+"""Sub-commands of `cellctl`; each module registers its own parser."""
+
+from cellctl.commands import config_cmd
+
+COMMAND_MODULES = [config_cmd]

@@ -1,0 +1,427 @@
+"""The cell's configuration: `cell.toml`, validated.
+
+One pydantic model per section, each owned by the part of the cell that reads it. All models are
+frozen and forbid unknown keys; units are in the field names. Values come from the TOML file, then
+environment variables override them: ``CELL_<SECTION>__<FIELD>`` (for example
+``CELL_ROBOT__EGM_PORT=6511``; lists and tables as JSON). Secrets (the RWS and Zenoh passwords) are
+never read from the file: the file names an environment variable or a secrets file.
+
+Load with :func:`load_config`; every problem is reported by :class:`ConfigError` with its TOML path,
+the offending value and what was expected.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+from urllib.parse import urlsplit
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+ENV_PREFIX = "CELL_"
+ENV_DELIMITER = "__"
+DEFAULT_CONFIG_PATH = Path("cell.toml")
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Port = Annotated[int, Field(ge=1, le=65535)]
+Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
+Joint6 = Annotated[list[Finite], Field(min_length=6, max_length=6)]
+PositiveJoint6 = Annotated[list[PositiveFloat], Field(min_length=6, max_length=6)]
+Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+
+_ZENOH_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/(\[[0-9a-fA-F:]+\]|[^/:\s]+):\d{1,5}$")
+_SECRET_WORDS = ("password", "passwd", "secret", "token")
+
+
+class Section(BaseModel):
+    """Base of every section: frozen, unknown keys rejected."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Pose(Section):
+    """A rigid transform: translation in mm, then rotation as roll-pitch-yaw (deg, fixed axes x, y, z)."""
+
+    pos_mm: Vec3 = [0.0, 0.0, 0.0]
+    rpy_deg: Vec3 = [0.0, 0.0, 0.0]
+
+
+class CellSection(Section):
+    id: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")] = "cell1"
+    data_dir: Path = Path("data")
+    designs_dir: Path = Path("designs")
+
+
+class RobotSection(Section):
+    # EGM (UDP): the controller sends to egm_host:egm_port and we answer to its source address.
+    egm_host: str = "127.0.0.1"
+    egm_port: Port = 6511
+    egm_comm_timeout_s: PositiveFloat = 1.0
+    egm_watchdog_s: PositiveFloat = 0.1
+    # RWS (HTTP/HTTPS)
+    rws_url: str = "http://127.0.0.1:8080"
+    rws_profile: Literal["rws1", "rws2"] = "rws1"
+    rws_user: str = "Default User"
+    rws_password_env: str = "CELL_RWS_PASSWORD"
+    rws_password_file: Path | None = None
+    rws_timeout_s: PositiveFloat = 5.0
+    rws_ca_file: Path | None = None
+    # Limits every commanded set-point is checked against (IRB 4600-40/2.55 defaults, with margins).
+    joint_lower_deg: Joint6 = [-180.0, -90.0, -180.0, -400.0, -125.0, -400.0]
+    joint_upper_deg: Joint6 = [180.0, 150.0, 75.0, 400.0, 120.0, 400.0]
+    joint_margin_deg: NonNegativeFloat = 2.0
+    joint_speed_max_deg_s: PositiveJoint6 = [175.0, 175.0, 175.0, 250.0, 250.0, 360.0]
+    joint_accel_max_deg_s2: PositiveJoint6 = [300.0, 300.0, 300.0, 600.0, 600.0, 800.0]
+    joint_jerk_max_deg_s3: PositiveJoint6 = [3000.0, 3000.0, 3000.0, 6000.0, 6000.0, 8000.0]
+    tcp_speed_max_mm_s: PositiveFloat = 250.0
+    workspace_min_mm: Vec3 = [-500.0, -2000.0, 100.0]
+    workspace_max_mm: Vec3 = [2600.0, 2000.0, 2400.0]
+    tracking_error_max_mm: PositiveFloat = 5.0
+    # Mounting: flange -> sensor (laser) frame, from the hand-eye calibration.
+    sensor_in_flange: Pose = Pose(pos_mm=[0.0, 0.0, 150.0])
+
+    @field_validator("rws_url")
+    @classmethod
+    def _url_parses(cls, v: str) -> str:
+        parts = urlsplit(v)
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise ValueError(f"expected an http:// or https:// URL with a host, got {v!r}")
+        if parts.port is not None and not 1 <= parts.port <= 65535:
+            raise ValueError(f"port out of range in {v!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _limits_ordered(self) -> RobotSection:
+        for i, (lo, hi) in enumerate(zip(self.joint_lower_deg, self.joint_upper_deg, strict=True)):
+            if not lo < hi:
+                raise ValueError(
+                    f"joint {i + 1}: joint_lower_deg ({lo}) must be below joint_upper_deg ({hi})"
+                )
+            if 2 * self.joint_margin_deg >= hi - lo:
+                raise ValueError(f"joint {i + 1}: joint_margin_deg leaves no usable range")
+        for axis, lo, hi in zip("xyz", self.workspace_min_mm, self.workspace_max_mm, strict=True):
+            if not lo < hi:
+                raise ValueError(
+                    f"workspace {axis}: workspace_min_mm ({lo}) must be below workspace_max_mm ({hi})"
+                )
+        if self.rws_profile == "rws2" and not self.rws_url.startswith("https://"):
+            raise ValueError(
+                "rws_profile 'rws2' (RobotWare 7) speaks HTTPS: rws_url must start with https://"
+            )
+        return self
+
+
+class LaserSection(Section):
+    host: str = "127.0.0.1"
+    control_port: Port = 3190
+    data_port: Port = 3196
+    line_width_mm: PositiveFloat = 50.0
+    points_per_profile: Annotated[int, Field(ge=2, le=4096)] = 500
+    rate_hz: PositiveFloat = 200.0
+    exposure_us: Annotated[float, Field(ge=10, le=100_000)] = 500.0
+    depth_min_mm: PositiveFloat = 70.0
+    depth_max_mm: PositiveFloat = 130.0
+    latency_ms: Finite = 0.0
+    watchdog_s: PositiveFloat = 0.5
+    buffer_profiles: Annotated[int, Field(ge=100)] = 20_000
+
+    @model_validator(mode="after")
+    def _range_ordered(self) -> LaserSection:
+        if not self.depth_min_mm < self.depth_max_mm:
+            raise ValueError(
+                f"depth_min_mm ({self.depth_min_mm}) must be below depth_max_mm ({self.depth_max_mm})"
+            )
+        if self.exposure_us * 1e-6 * self.rate_hz > 1.0:
+            raise ValueError(
+                f"exposure_us ({self.exposure_us}) does not fit in one profile period at rate_hz ({self.rate_hz})"
+            )
+        return self
+
+
+class ScanSection(Section):
+    standoff_mm: PositiveFloat = 100.0
+    overlap_fraction: Annotated[float, Field(ge=0, lt=0.9)] = 0.2
+    speed_mm_s: PositiveFloat | Literal["auto"] = "auto"
+    profile_spacing_mm: PositiveFloat = 0.5
+    transit_speed_mm_s: PositiveFloat = 250.0
+    edge_passes: bool = True
+    placement_uncertainty_mm: NonNegativeFloat = 30.0
+    placement_uncertainty_deg: NonNegativeFloat = 2.0
+
+
+class ZenohAccess(Section):
+    """Zenoh user/password authentication and access control (see docs/api.md)."""
+
+    enabled: bool = False
+    user: str = "cellctl"
+    password_env: str = "CELL_ZENOH_PASSWORD"
+    password_file: Path | None = None
+    dictionary_file: Path | None = None
+
+
+class ZenohSection(Section):
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = ["tcp/127.0.0.1:7447"]
+    connect: list[str] = []
+    multicast_scouting: bool = False
+    key_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-{}]+(/[A-Za-z0-9_\-{}]+)*$")] = "cell/{cell_id}"
+    trigger_timeout_s: PositiveFloat = 10.0
+    access: ZenohAccess = ZenohAccess()
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints_parse(cls, v: list[str]) -> list[str]:
+        for ep in v:
+            m = _ZENOH_ENDPOINT.match(ep)
+            if not m or not 0 <= int(ep.rsplit(":", 1)[1]) <= 65535:
+                raise ValueError(f"{ep!r} is not a Zenoh endpoint like 'tcp/127.0.0.1:7447'")
+        return v
+
+    @model_validator(mode="after")
+    def _client_connects(self) -> ZenohSection:
+        if self.mode == "client" and not self.connect:
+            raise ValueError("mode 'client' needs at least one 'connect' endpoint")
+        return self
+
+
+class Tolerances(Section):
+    """Template-to-plate tolerances: 'standard' range and absolute 'limit' (CSQS 2016 defaults)."""
+
+    standard: str = "CSQS 2016 (doubly curved plate)"
+    deviation_standard_mm: PositiveFloat = 2.0
+    deviation_limit_mm: PositiveFloat = 3.0
+    frame_gap_standard_mm: PositiveFloat = 4.0
+    frame_gap_limit_mm: PositiveFloat = 5.0
+    length_gap_standard_mm: PositiveFloat = 3.0
+    length_gap_limit_mm: PositiveFloat = 5.0
+
+    @model_validator(mode="after")
+    def _standard_within_limit(self) -> Tolerances:
+        for name in ("deviation", "frame_gap", "length_gap"):
+            std, lim = getattr(self, f"{name}_standard_mm"), getattr(self, f"{name}_limit_mm")
+            if std > lim:
+                raise ValueError(f"{name}_standard_mm ({std}) must not exceed {name}_limit_mm ({lim})")
+        return self
+
+
+class AnalysisSection(Section):
+    transverse_count: Annotated[int, Field(ge=0, le=500)] = 14
+    transverse_spacing_mm: PositiveFloat = 80.0
+    longitudinal_count: Annotated[int, Field(ge=0, le=500)] = 7
+    longitudinal_spacing_mm: PositiveFloat = 100.0
+    diagonals: bool = True
+    sample_step_mm: PositiveFloat = 1.0
+    icp_stop_mm: PositiveFloat = 0.1
+    workers: Annotated[int, Field(ge=1, le=64)] = 1
+    tolerances: Tolerances = Tolerances()
+
+
+class SimPlate(Section):
+    kind: Literal["sail", "saddle", "twisted", "cylindrical", "flat"] = "sail"
+    length_mm: PositiveFloat = 1200.0
+    width_mm: PositiveFloat = 800.0
+    thickness_mm: PositiveFloat = 15.0
+    radius_x_mm: PositiveFloat = 4000.0
+    radius_y_mm: PositiveFloat = 3000.0
+    forming_error: Literal["none", "default"] = "default"
+    seed: int = 7
+
+
+class SimPlacement(Section):
+    pos_mm: Vec3 = [1500.0, 0.0, 300.0]
+    angle_deg: Finite = 3.0
+
+
+class SimClocks(Section):
+    sensor_offset_ms: Finite = 30.0
+    sensor_drift_ppm: Finite = 50.0
+    sensor_counter_start_ms: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
+    network_jitter_ms: NonNegativeFloat = 0.3
+
+
+class SimFaults(Section):
+    egm_loss_fraction: Fraction = 0.0
+    egm_burst_ms: NonNegativeFloat = 0.0
+    egm_delay_ms: NonNegativeFloat = 0.0
+    egm_jitter_ms: NonNegativeFloat = 0.0
+    egm_duplicate_fraction: Fraction = 0.0
+    egm_reorder_fraction: Fraction = 0.0
+    egm_corrupt_fraction: Fraction = 0.0
+    laser_disconnect_after_frames: Annotated[int, Field(ge=0)] = 0
+    laser_corrupt_fraction: Fraction = 0.0
+    laser_drop_fraction: Fraction = 0.0
+
+
+class SimSection(Section):
+    egm_cycle_ms: PositiveFloat = 4.032
+    rws_port: Port = 8080
+    rws_users: dict[str, str] = {"Default User": "CELL_RWS_PASSWORD"}
+    depth_noise_mm: NonNegativeFloat = 0.02
+    outlier_fraction: Fraction = 0.0005
+    plate: SimPlate = SimPlate()
+    placement: SimPlacement = SimPlacement()
+    clocks: SimClocks = SimClocks()
+    faults: SimFaults = SimFaults()
+
+    @field_validator("rws_users")
+    @classmethod
+    def _users_name_env_vars(cls, v: dict[str, str]) -> dict[str, str]:
+        # Values are the *names* of environment variables holding the simulator's passwords.
+        for user, env in v.items():
+            if not re.fullmatch(r"[A-Z_][A-Z0-9_]*", env):
+                raise ValueError(f"user {user!r}: expected an environment variable name, got {env!r}")
+        return v
+
+
+class CellConfig(BaseSettings):
+    """The whole `cell.toml`."""
+
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX,
+        env_nested_delimiter=ENV_DELIMITER,
+        extra="forbid",
+        frozen=True,
+        nested_model_default_partial_update=True,
+    )
+
+    cell: CellSection = CellSection()
+    robot: RobotSection = RobotSection()
+    laser: LaserSection = LaserSection()
+    scan: ScanSection = ScanSection()
+    zenoh: ZenohSection = ZenohSection()
+    analysis: AnalysisSection = AnalysisSection()
+    sim: SimSection = SimSection()
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # The file's values arrive as init kwargs; the environment overrides them.
+        return (env_settings, init_settings)
+
+    @property
+    def key_prefix(self) -> str:
+        """The Zenoh key prefix with the cell id filled in."""
+        return self.zenoh.key_prefix.replace("{cell_id}", self.cell.id)
+
+
+class ConfigError(Exception):
+    """A configuration that cannot be used; ``problems`` holds one readable line per problem."""
+
+    def __init__(self, source: str, problems: list[str]) -> None:
+        self.source = source
+        self.problems = problems
+        super().__init__(f"{source}: " + "; ".join(problems))
+
+
+def _format_value(value: Any) -> str:
+    text = json.dumps(value, default=str) if not isinstance(value, str) else repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _looks_secret(key: str) -> bool:
+    k = key.lower()
+    return any(w in k for w in _SECRET_WORDS) and not k.endswith(("_env", "_file"))
+
+
+def _problems_from(err: ValidationError, env_keys: set[str]) -> list[str]:
+    problems = []
+    for e in err.errors(include_url=False):
+        loc = [str(p) for p in e["loc"] if not str(p).startswith(("function-", "literal["))]
+        path = ".".join(loc) or "(top level)"
+        msg = e["msg"].removeprefix("Value error, ")
+        origin = " (from the environment)" if path.split(".")[0] in env_keys else ""
+        if e["type"] == "extra_forbidden" and _looks_secret(loc[-1]):
+            # A password typed into cell.toml would end up in backups and version control.
+            problems.append(
+                f"{path}{origin}: secrets are never read from the configuration file; "
+                f"set '{loc[-1]}_env' (an environment variable name) or '{loc[-1]}_file' (a secrets file)"
+            )
+        elif e["type"] == "extra_forbidden":
+            problems.append(f"{path}{origin}: unknown key")
+        elif e["type"] == "missing":
+            problems.append(f"{path}{origin}: required key is missing")
+        elif (
+            isinstance(e.get("input"), dict)
+            or e["type"].startswith("value_error")
+            or e["type"] == "assertion_error"
+        ):
+            problems.append(f"{path}{origin}: {msg}")
+        else:
+            problems.append(f"{path}{origin} = {_format_value(e.get('input'))}: {msg}")
+    return problems
+
+
+def _env_sections() -> set[str]:
+    return {
+        k[len(ENV_PREFIX) :].split(ENV_DELIMITER)[0].lower()
+        for k in os.environ
+        if k.startswith(ENV_PREFIX) and ENV_DELIMITER in k
+    }
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>") -> CellConfig:
+    """Validate already-parsed TOML data (plus environment overrides)."""
+    try:
+        return CellConfig(**data)
+    except ValidationError as err:
+        raise ConfigError(source, _problems_from(err, _env_sections())) from None
+
+
+def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> CellConfig:
+    """Read and validate a `cell.toml`; raises :class:`ConfigError` with readable problems."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(str(path), ["no such file"]) from None
+    except IsADirectoryError:
+        raise ConfigError(str(path), ["is a directory, expected a TOML file"]) from None
+    except OSError as exc:
+        raise ConfigError(str(path), [f"cannot read: {exc.strerror}"]) from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(str(path), [f"not UTF-8 text (byte {exc.start})"]) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(path), [f"TOML syntax error: {exc}"]) from None
+    return parse_config(data, str(path))
+
+
+def resolve_secret(env_name: str, file: Path | None, *, what: str) -> SecretStr:
+    """A secret from its secrets file (first) or environment variable; never from cell.toml.
+
+    Raises ConfigError naming where the secret was looked for (never its value).
+    """
+    if file is not None:
+        try:
+            text = Path(file).read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            raise ConfigError(str(file), [f"{what}: cannot read secrets file: {exc.strerror}"]) from None
+        if not text:
+            raise ConfigError(str(file), [f"{what}: secrets file is empty"])
+        return SecretStr(text)
+    value = os.environ.get(env_name)
+    if not value:
+        raise ConfigError("environment", [f"{what}: environment variable {env_name} is not set"])
+    return SecretStr(value)

@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# One-command set-up of a fresh machine (Debian 12 / Python >= 3.11):
+# system libraries open3d links against, a virtualenv in .venv, the project and its tested versions.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PY=${PYTHON:-python3}
+VENV=${VENV:-.venv}
+SYSTEM_PACKAGES=(libgl1 libgomp1 libusb-1.0-0 libegl1 libx11-6)
+
+missing=()
+for pkg in "${SYSTEM_PACKAGES[@]}"; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+if ((${#missing[@]})); then
+    if [[ $(id -u) -ne 0 ]]; then
+        echo "setup: missing system packages: ${missing[*]}" >&2
+        echo "setup: run as root, or first: sudo apt-get update && sudo apt-get install -y ${missing[*]}" >&2
+        exit 1
+    fi
+    echo "setup: installing system packages: ${missing[*]}"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq
+    apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+if ! "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+    echo "setup: $PY is $("$PY" --version 2>&1); cellctl needs Python >= 3.11" >&2
+    exit 1
+fi
+if [[ ! -x "$VENV/bin/python" ]]; then
+    if ! "$PY" -m venv "$VENV" 2>/dev/null; then
+        if [[ $(id -u) -eq 0 ]]; then
+            apt-get update -qq && apt-get install -y -qq python3-venv >/dev/null
+            "$PY" -m venv "$VENV"
+        else
+            echo "setup: '$PY -m venv' failed; install python3-venv" >&2
+            exit 1
+        fi
+    fi
+fi
+"$VENV/bin/python" -m pip install -q --upgrade pip
+"$VENV/bin/python" -m pip install -q -c constraints.txt -e ".[dev]"
+"$VENV/bin/python" -c 'import open3d, pinocchio, zenoh, ruckig, toppra' \
+    || { echo "setup: the installed packages do not import (see above)" >&2; exit 1; }
+echo "setup: ok ($("$VENV/bin/cellctl" --version))"

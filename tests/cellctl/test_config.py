@@ -1,0 +1,172 @@
+"""cell.toml validation: the shipped file, each rule with a bad value, env overrides, secrets."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from cellctl.config import CellConfig, ConfigError, load_config, parse_config, resolve_secret
+
+
+@pytest.fixture()
+def shipped(repo_root: Path) -> dict:
+    return tomllib.loads((repo_root / "cell.toml").read_text())
+
+
+def _problems(data: dict) -> list[str]:
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, "test.toml")
+    return info.value.problems
+
+
+def _with(data: dict, section: str, **values) -> dict:
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items()}
+    node = out
+    for part in section.split("."):
+        node[part] = dict(node.get(part, {}))
+        node = node[part]
+    node.update(values)
+    return out
+
+
+def test_shipped_cell_toml_validates(repo_root: Path) -> None:
+    cfg = load_config(repo_root / "cell.toml")
+    assert cfg.cell.id == "sim1"
+    assert cfg.key_prefix == "cell/sim1"
+    assert cfg.zenoh.multicast_scouting is False
+    assert all(ep.startswith("tcp/127.0.0.1:") for ep in cfg.zenoh.listen)
+
+
+def test_shipped_cell_toml_sets_every_field_explicitly(shipped: dict) -> None:
+    # The shipped file documents the whole configuration: no section is left to defaults.
+    for name in CellConfig.model_fields:
+        assert name in shipped, f"[{name}] missing from cell.toml"
+
+
+def test_config_is_frozen(repo_root: Path) -> None:
+    cfg = load_config(repo_root / "cell.toml")
+    with pytest.raises(Exception):  # noqa: B017 - pydantic raises ValidationError for frozen instances
+        cfg.robot.egm_port = 1  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    ("section", "values", "expected"),
+    [
+        ("robot", {"egm_port": 0}, "robot.egm_port = 0"),
+        ("robot", {"egm_port": 70000}, "robot.egm_port = 70000"),
+        ("robot", {"joint_lower_deg": [0, 0, 0]}, "robot.joint_lower_deg"),
+        (
+            "robot",
+            {"joint_lower_deg": [190, -90, -180, -400, -125, -400]},
+            "joint 1: joint_lower_deg (190.0)",
+        ),
+        ("robot", {"joint_margin_deg": 200.0}, "joint_margin_deg leaves no usable range"),
+        ("robot", {"workspace_min_mm": [0, 0, 3000]}, "workspace z"),
+        ("robot", {"joint_speed_max_deg_s": [1, 1, 1, 1, 1, -1]}, "robot.joint_speed_max_deg_s.5 = -1"),
+        ("robot", {"tcp_speed_max_mm_s": 0}, "robot.tcp_speed_max_mm_s = 0"),
+        ("robot", {"rws_url": "ftp://controller"}, "expected an http:// or https:// URL"),
+        ("robot", {"rws_profile": "rws3"}, "robot.rws_profile = 'rws3'"),
+        ("robot", {"rws_profile": "rws2"}, "rws2' (RobotWare 7) speaks HTTPS"),
+        ("robot", {"tracking_error_max_mm": float("nan")}, "robot.tracking_error_max_mm"),
+        ("laser", {"depth_min_mm": 200.0}, "depth_min_mm (200.0) must be below depth_max_mm"),
+        ("laser", {"points_per_profile": 1}, "laser.points_per_profile = 1"),
+        ("laser", {"exposure_us": 9000.0}, "does not fit in one profile period"),
+        ("scan", {"overlap_fraction": 0.95}, "scan.overlap_fraction = 0.95"),
+        ("scan", {"speed_mm_s": "fast"}, "scan.speed_mm_s"),
+        ("zenoh", {"listen": ["tcp/localhost"]}, "'tcp/localhost' is not a Zenoh endpoint"),
+        ("zenoh", {"mode": "client", "connect": []}, "mode 'client' needs at least one 'connect'"),
+        ("zenoh", {"key_prefix": "cell//x"}, "zenoh.key_prefix"),
+        ("cell", {"id": "bad id!"}, "cell.id = 'bad id!'"),
+        ("analysis.tolerances", {"deviation_standard_mm": 4.0}, "must not exceed deviation_limit_mm"),
+        ("sim", {"rws_users": {"Default User": "robotics"}}, "expected an environment variable name"),
+        ("sim.faults", {"egm_loss_fraction": 1.5}, "sim.faults.egm_loss_fraction = 1.5"),
+    ],
+)
+def test_bad_value_is_reported_with_its_path(
+    shipped: dict, section: str, values: dict, expected: str
+) -> None:
+    problems = _problems(_with(shipped, section, **values))
+    assert any(expected in p for p in problems), problems
+
+
+def test_unknown_key_is_reported(shipped: dict) -> None:
+    assert _problems(_with(shipped, "laser", colour="red")) == ["laser.colour: unknown key"]
+
+
+def test_unknown_section_is_reported(shipped: dict) -> None:
+    assert _problems({**shipped, "printer": {"a": 1}}) == ["printer: unknown key"]
+
+
+def test_wrong_type_names_value_and_expectation(shipped: dict) -> None:
+    (problem,) = _problems(_with(shipped, "robot", egm_port="six"))
+    assert problem.startswith("robot.egm_port = 'six': Input should be a valid integer")
+
+
+def test_password_in_file_is_refused_with_guidance(shipped: dict) -> None:
+    (problem,) = _problems(_with(shipped, "robot", rws_password="robotics"))
+    assert "rws_password_env" in problem and "robotics" not in problem
+
+
+def test_every_error_is_reported_not_only_the_first(shipped: dict) -> None:
+    problems = _problems(_with(_with(shipped, "robot", egm_port=0), "laser", rate_hz=-1))
+    assert len(problems) == 2
+
+
+def test_environment_overrides_file(shipped: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CELL_ROBOT__EGM_PORT", "6599")
+    monkeypatch.setenv("CELL_SIM__PLATE__KIND", "saddle")
+    monkeypatch.setenv("CELL_ZENOH__LISTEN", '["tcp/127.0.0.1:7500"]')
+    cfg = parse_config(shipped)
+    assert cfg.robot.egm_port == 6599
+    assert cfg.sim.plate.kind == "saddle"
+    assert cfg.sim.plate.length_mm == shipped["sim"]["plate"]["length_mm"]  # the rest of the table kept
+    assert cfg.zenoh.listen == ["tcp/127.0.0.1:7500"]
+
+
+def test_bad_environment_override_is_reported_as_such(shipped: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CELL_ROBOT__EGM_PORT", "abc")
+    (problem,) = _problems(shipped)
+    assert problem.startswith("robot.egm_port (from the environment) = 'abc'")
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(tmp_path / "nope.toml")
+    assert info.value.problems == ["no such file"]
+
+
+def test_toml_syntax_error_gives_line_and_column(tmp_path: Path) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text("[cell]\nid = 'a'\n[robot\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(p)
+    (problem,) = info.value.problems
+    assert "TOML syntax error" in problem and "line 3" in problem and "column" in problem
+
+
+def test_non_utf8_file_is_refused(tmp_path: Path) -> None:
+    p = tmp_path / "c.toml"
+    p.write_bytes(b"[cell]\nid = '\xff'\n")
+    with pytest.raises(ConfigError, match="not UTF-8"):
+        load_config(p)
+
+
+def test_secret_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TEST_SECRET_X", "s3cret")
+    assert resolve_secret("TEST_SECRET_X", None, what="rws").get_secret_value() == "s3cret"
+    assert "s3cret" not in repr(resolve_secret("TEST_SECRET_X", None, what="rws"))
+
+
+def test_secret_file_wins_over_environment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TEST_SECRET_X", "from-env")
+    f = tmp_path / "s"
+    f.write_text("from-file\n")
+    assert resolve_secret("TEST_SECRET_X", f, what="rws").get_secret_value() == "from-file"
+
+
+def test_missing_secret_names_the_variable_not_a_value(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TEST_SECRET_MISSING", raising=False)
+    with pytest.raises(ConfigError, match="TEST_SECRET_MISSING is not set"):
+        resolve_secret("TEST_SECRET_MISSING", None, what="rws")
