@@ -1,0 +1,360 @@
+"""Kinematics of the ABB IRB 4600-40/2.55: forward kinematics, Jacobian, damped least-squares IK.
+
+The model is built in code with pinocchio from the joint origins, axes, limits and speeds of the
+public ros-industrial description (docs/reference/abb-egm-rws.md section 4); no URDF file.
+
+Units: the public API speaks the controller's units, degrees and millimetres; pinocchio speaks
+radians and metres. The conversion happens only in :func:`_q_rad`, :func:`_T_mm` and :func:`_T_m`.
+Frames: ``base`` (robot base), ``flange`` (ABB tool0), and named tool frames given as
+``T_flange_tool`` (4, 4) homogeneous transforms in mm.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+__all__ = [
+    "JOINT_NAMES",
+    "QD_MAX_DEG_S",
+    "Q_MAX_DEG",
+    "Q_MIN_DEG",
+    "IkResult",
+    "KinematicsError",
+    "Pose",
+    "RobotKinematics",
+    "fk_batch",
+    "matrix_from_quat_wxyz",
+    "quat_wxyz_from_matrix",
+]
+
+JOINT_NAMES = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6")
+#: joint origin in the parent link frame (m); all origin rotations are identity
+_JOINT_XYZ_M = np.array(
+    [
+        [0.0, 0.0, 0.495],
+        [0.175, 0.0, 0.0],
+        [0.0, 0.0, 1.095],
+        [0.0, 0.0, 0.175],
+        [1.270, 0.0, 0.0],
+        [0.135, 0.0, 0.0],
+    ]
+)
+_JOINT_AXES = "zyyxyx"
+Q_MIN_DEG = np.array([-180.0, -90.0, -180.0, -400.0, -125.0, -400.0])
+Q_MAX_DEG = np.array([180.0, 150.0, 75.0, 400.0, 120.0, 400.0])
+QD_MAX_DEG_S = np.array([175.0, 175.0, 175.0, 250.0, 250.0, 360.0])
+#: link_6 -> tool0 (the ABB flange): rpy (0, pi/2, 0), no offset
+_R_LINK6_FLANGE = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+
+
+class KinematicsError(ValueError):
+    """Bad input to a kinematics function (wrong shape, unknown frame, non-finite values)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Pose:
+    """A frame pose in the robot base frame: ``pos_mm`` (3,) mm, ``quat_wxyz`` (4,) scalar first,
+    ``T_base_frame`` (4, 4) homogeneous transform with translation in mm."""
+
+    pos_mm: np.ndarray
+    quat_wxyz: np.ndarray
+    T_base_frame: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class IkResult:
+    """Outcome of :meth:`RobotKinematics.ik`.
+
+    ``q_deg`` (6,) is the best configuration found (always within the joint limits), ``converged``
+    tells whether both tolerances were met, ``pos_err_mm`` / ``rot_err_deg`` are the remaining
+    errors, ``iterations`` the iterations used.
+    """
+
+    q_deg: np.ndarray
+    converged: bool
+    iterations: int
+    pos_err_mm: float
+    rot_err_deg: float
+
+
+# ---------------------------------------------------------------------------------------------
+# unit boundary
+
+
+def _q_rad(q_deg: np.ndarray) -> np.ndarray:
+    return np.deg2rad(q_deg)
+
+
+def _T_mm(M: pin.SE3) -> np.ndarray:
+    T = np.array(M.homogeneous)
+    T[:3, 3] *= 1000.0
+    return T
+
+
+def _T_m(T_mm: np.ndarray) -> pin.SE3:
+    return pin.SE3(np.array(T_mm[:3, :3]), np.array(T_mm[:3, 3]) / 1000.0)
+
+
+def _as_q(q_deg, n_joints: int = 6) -> np.ndarray:
+    q = np.asarray(q_deg, dtype=np.float64)
+    if q.shape != (n_joints,):
+        raise KinematicsError(f"q_deg must have shape ({n_joints},), got {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise KinematicsError(f"q_deg has non-finite values: {q}")
+    return q
+
+
+def _as_T(T, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise KinematicsError(f"{name} must be a finite (4, 4) transform, got shape {T.shape}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise KinematicsError(f"{name} rotation part is not a rotation matrix")
+    return T
+
+
+# ---------------------------------------------------------------------------------------------
+# rotations
+
+
+def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (4,) scalar first, with w >= 0, of a rotation matrix (3, 3)."""
+    q = pin.Quaternion(np.asarray(R, dtype=np.float64))
+    out = np.array([q.w, q.x, q.y, q.z])
+    out /= np.linalg.norm(out)
+    return -out if out[0] < 0 else out
+
+
+def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of a quaternion (4,) scalar first (normalised here)."""
+    w, x, y, z = np.asarray(quat_wxyz, dtype=np.float64) / np.linalg.norm(quat_wxyz)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# model
+
+
+def _build_model() -> tuple[pin.Model, int]:
+    model = pin.Model()
+    model.name = "irb4600_40_255"
+    joint_models = {"x": pin.JointModelRX, "y": pin.JointModelRY, "z": pin.JointModelRZ}
+    parent = 0
+    prev_frame = model.getFrameId("universe")
+    vmax_rad_s = np.deg2rad(QD_MAX_DEG_S)
+    lower, upper = np.deg2rad(Q_MIN_DEG), np.deg2rad(Q_MAX_DEG)
+    # The description has no inertias; a small nominal body keeps pinocchio's algorithms well defined.
+    inertia = pin.Inertia.FromSphere(1.0, 0.05)
+    for i, name in enumerate(JOINT_NAMES):
+        placement = pin.SE3(np.eye(3), _JOINT_XYZ_M[i])
+        jid = model.addJoint(
+            parent,
+            joint_models[_JOINT_AXES[i]](),
+            placement,
+            name,
+            np.zeros(1),
+            np.array([vmax_rad_s[i]]),
+            np.array([lower[i]]),
+            np.array([upper[i]]),
+        )
+        model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
+        jf = model.addJointFrame(jid, prev_frame)
+        prev_frame = model.addBodyFrame(f"link_{i + 1}", jid, pin.SE3.Identity(), jf)
+        parent = jid
+    flange = model.addFrame(
+        pin.Frame("flange", parent, prev_frame, pin.SE3(_R_LINK6_FLANGE, np.zeros(3)), pin.FrameType.OP_FRAME)
+    )
+    return model, flange
+
+
+class RobotKinematics:
+    """IRB 4600-40/2.55 kinematics with the flange and optional named tool frames.
+
+    Args:
+        tools: name -> ``T_flange_tool`` (4, 4), translation in mm (e.g. the laser sensor frame).
+
+    Not thread-safe: one pinocchio ``Data`` is reused by every call (create one instance per thread).
+    """
+
+    def __init__(self, tools: Mapping[str, np.ndarray] | None = None) -> None:
+        self.model, self._flange_id = _build_model()
+        self._frames: dict[str, int] = {"flange": self._flange_id}
+        self._T_flange_tool_mm: dict[str, np.ndarray] = {"flange": np.eye(4)}
+        for name, T in (tools or {}).items():
+            self.add_tool(name, T)
+        self.data = self.model.createData()
+        self.q_min_deg = Q_MIN_DEG.copy()
+        self.q_max_deg = Q_MAX_DEG.copy()
+        self.qd_max_deg_s = QD_MAX_DEG_S.copy()
+
+    def add_tool(self, name: str, T_flange_tool: np.ndarray) -> None:
+        """Add (or replace) a tool frame ``name`` fixed to the flange; ``T_flange_tool`` in mm."""
+        T = _as_T(T_flange_tool, "T_flange_tool")
+        placement = pin.SE3(_R_LINK6_FLANGE, np.zeros(3)) * _T_m(T)
+        flange = self.model.frames[self._flange_id]
+        if name in self._frames:
+            if name == "flange":
+                raise KinematicsError("the flange frame cannot be replaced")
+            self.model.frames[self._frames[name]].placement = placement
+        else:
+            self._frames[name] = self.model.addFrame(
+                pin.Frame(name, flange.parentJoint, self._flange_id, placement, pin.FrameType.OP_FRAME)
+            )
+        self._T_flange_tool_mm[name] = T.copy()
+        self.data = self.model.createData()
+
+    @property
+    def frames(self) -> tuple[str, ...]:
+        """Names of the frames FK can report (``flange`` and the tools)."""
+        return tuple(self._frames)
+
+    def _fid(self, frame: str) -> int:
+        try:
+            return self._frames[frame]
+        except KeyError:
+            raise KinematicsError(f"unknown frame {frame!r}; known: {sorted(self._frames)}") from None
+
+    def fk(self, q_deg: np.ndarray, frame: str = "flange") -> Pose:
+        """Pose of ``frame`` in the base frame at joint angles ``q_deg`` (6,) deg."""
+        fid = self._fid(frame)
+        q = _as_q(q_deg)
+        pin.framesForwardKinematics(self.model, self.data, _q_rad(q))
+        T = _T_mm(self.data.oMf[fid])
+        return Pose(pos_mm=T[:3, 3].copy(), quat_wxyz=quat_wxyz_from_matrix(T[:3, :3]), T_base_frame=T)
+
+    def jacobian(self, q_deg: np.ndarray, frame: str = "flange") -> np.ndarray:
+        """Geometric Jacobian (6, 6) of ``frame`` at ``q_deg`` (6,), base-aligned axes at the frame origin.
+
+        Rows 0..2 map joint rates in deg/s to linear velocity in mm/s (mm/deg); rows 3..5 map them
+        to angular velocity in deg/s (deg/deg).
+        """
+        fid = self._fid(frame)
+        q = _q_rad(_as_q(q_deg))
+        pin.computeJointJacobians(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+        J = pin.getFrameJacobian(self.model, self.data, fid, pin.LOCAL_WORLD_ALIGNED).copy()
+        J[:3] *= 1000.0 * np.pi / 180.0  # m/rad -> mm/deg
+        return J
+
+    def within_limits(self, q_deg: np.ndarray, margin_deg: float = 0.0) -> bool:
+        """True if every joint is inside its limits shrunk by ``margin_deg``."""
+        q = _as_q(q_deg)
+        return bool(np.all(q >= self.q_min_deg + margin_deg) and np.all(q <= self.q_max_deg - margin_deg))
+
+    def ik(
+        self,
+        T_base_target: np.ndarray,
+        q_seed_deg: np.ndarray,
+        frame: str = "flange",
+        *,
+        tol_mm: float = 1e-3,
+        tol_deg: float = 1e-4,
+        max_iterations: int = 200,
+        damping: float = 1e-6,
+        max_step_deg: float = 20.0,
+    ) -> IkResult:
+        """Damped least-squares inverse kinematics near a seed, within the joint limits.
+
+        Args:
+            T_base_target: target pose of ``frame`` (4, 4), translation in mm.
+            q_seed_deg: (6,) deg, the start; the solution is the branch nearest to it.
+            tol_mm, tol_deg: convergence tolerances on position and rotation error.
+            damping: lambda of the damped pseudo-inverse; keeps steps bounded near singularities.
+            max_step_deg: largest joint change per iteration, so the solver does not jump branches.
+        """
+        fid = self._fid(frame)
+        target = _T_m(_as_T(T_base_target, "T_base_target"))
+        q = _q_rad(np.clip(_as_q(q_seed_deg), self.q_min_deg, self.q_max_deg))
+        lo, hi = _q_rad(self.q_min_deg), _q_rad(self.q_max_deg)
+        max_step = np.deg2rad(max_step_deg)
+        tol_m, tol_rad = tol_mm / 1000.0, np.deg2rad(tol_deg)
+        best = (np.inf, q.copy(), np.inf, np.inf)
+        iterations = 0
+        for iterations in range(1, max_iterations + 1):  # noqa: B007 - used after the loop
+            pin.framesForwardKinematics(self.model, self.data, q)
+            current_to_target = self.data.oMf[fid].actInv(target)
+            err = pin.log6(current_to_target).vector  # (v, w) in the frame: m, rad
+            pos_err, rot_err = float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:]))
+            # Rank by a scale-free error (1 mm ~ 1 mrad) so the best-so-far is meaningful.
+            score = pos_err + rot_err
+            if score < best[0]:
+                best = (score, q.copy(), pos_err, rot_err)
+            if pos_err < tol_m and rot_err < tol_rad:
+                break
+            J = pin.computeFrameJacobian(self.model, self.data, q, fid, pin.LOCAL)
+            J = pin.Jlog6(current_to_target.inverse()) @ J
+            dq = J.T @ np.linalg.solve(J @ J.T + damping * np.eye(6), err)
+            step = np.max(np.abs(dq))
+            if step > max_step:
+                dq *= max_step / step
+            q = np.clip(q + dq, lo, hi)
+        _, q_best, pos_err, rot_err = best
+        return IkResult(
+            q_deg=np.rad2deg(q_best),
+            converged=bool(pos_err < tol_m and rot_err < tol_rad),
+            iterations=iterations,
+            pos_err_mm=pos_err * 1000.0,
+            rot_err_deg=float(np.rad2deg(rot_err)),
+        )
+
+    def fk_batch(self, q_deg: np.ndarray, frame: str = "flange") -> np.ndarray:
+        """Poses of ``frame`` for many configurations: ``q_deg`` (n, 6) deg -> (n, 4, 4), mm."""
+        return fk_batch(q_deg, self._T_flange_tool_mm[self._fid_name(frame)])
+
+    def _fid_name(self, frame: str) -> str:
+        self._fid(frame)
+        return frame
+
+
+def _rot_batch(axis: str, angle_rad: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    if axis == "x":
+        rows = [[one, zero, zero], [zero, c, -s], [zero, s, c]]
+    elif axis == "y":
+        rows = [[c, zero, s], [zero, one, zero], [-s, zero, c]]
+    else:
+        rows = [[c, -s, zero], [s, c, zero], [zero, zero, one]]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def fk_batch(q_deg: np.ndarray, T_flange_tool: np.ndarray | None = None) -> np.ndarray:
+    """Vectorised forward kinematics for many configurations (numpy only, no per-sample loop).
+
+    Args:
+        q_deg: (n, 6) joint angles, deg.
+        T_flange_tool: optional (4, 4) tool transform, mm; identity gives the flange.
+
+    Returns:
+        (n, 4, 4) ``T_base_tool`` with translations in mm. Agrees with :meth:`RobotKinematics.fk`.
+    """
+    q = np.asarray(q_deg, dtype=np.float64)
+    if q.ndim != 2 or q.shape[1] != 6:
+        raise KinematicsError(f"q_deg must have shape (n, 6), got {q.shape}")
+    q_rad = _q_rad(q)
+    n = q.shape[0]
+    R = np.broadcast_to(np.eye(3), (n, 3, 3))
+    p = np.zeros((n, 3))
+    xyz_mm = _JOINT_XYZ_M * 1000.0
+    for i in range(6):  # six joints: a loop over the chain, vectorised over the samples
+        p = p + R @ xyz_mm[i]
+        R = R @ _rot_batch(_JOINT_AXES[i], q_rad[:, i])
+    R = R @ _R_LINK6_FLANGE
+    T = np.zeros((n, 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = p
+    T[:, 3, 3] = 1.0
+    if T_flange_tool is not None:
+        T = T @ _as_T(T_flange_tool, "T_flange_tool")
+    return T
