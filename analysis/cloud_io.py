@@ -1,0 +1,275 @@
+"""Scan clouds on disk: PLY (with or without the scan organisation), PCD, XYZ/CSV text and NPZ.
+
+A scan cloud is ``points_mm`` (n, 3) plus, when the scanner recorded it, the organisation of every
+point: ``pass_id`` (raster or edge pass), ``profile`` (profile index within the pass) and ``point``
+(index along the laser line). ``segment`` triangulates organised clouds on their scan grid and
+falls back to Delaunay otherwise.
+
+File layouts written and read here:
+
+* PLY (binary little endian): vertex properties ``x, y, z`` float32 and, when organised,
+  ``pass``, ``profile``, ``point`` int32. Reading accepts float or double coordinates, ASCII or
+  binary, and ``pass_id`` as an alias of ``pass``.
+* PCD (ASCII or binary; ``binary_compressed`` is refused with a clear message): fields x y z.
+* Text (``.xyz``, ``.txt``, ``.csv``, ``.asc``): one point per line, comma/space/semicolon
+  separated, the first three columns are x y z; a header line with names ``x,y,z[,pass,profile,
+  point]`` is understood; ``#`` starts a comment.
+* NPZ: array ``points_mm`` (or ``points`` / ``xyz``) (n, 3) and optional ``pass_id``, ``profile``,
+  ``point`` (n,) integer arrays.
+
+Every failure raises :class:`CloudError` naming the file and what is wrong with it.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["CloudError", "ScanCloud", "read_cloud", "write_cloud_npz", "write_cloud_ply"]
+
+TEXT_SUFFIXES = {".xyz", ".txt", ".csv", ".asc", ".pts"}
+SUFFIXES = {".ply", ".pcd", ".npz", *TEXT_SUFFIXES}
+
+
+class CloudError(ValueError):
+    """A cloud file that cannot be used: missing, unreadable, empty, or of the wrong shape."""
+
+
+@dataclass(frozen=True)
+class ScanCloud:
+    """A scanned point cloud, optionally with its scan organisation.
+
+    points_mm: (n, 3) float64, millimetres (robot base / bed frame).
+    pass_id, profile, point: (n,) int32 each, or all None for an unorganised cloud.
+    """
+
+    points_mm: np.ndarray
+    pass_id: np.ndarray | None = None
+    profile: np.ndarray | None = None
+    point: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.points_mm, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise CloudError(f"points_mm must be (n, 3), got {p.shape}")
+        object.__setattr__(self, "points_mm", p)
+        org = [self.pass_id, self.profile, self.point]
+        if any(a is not None for a in org):
+            if any(a is None for a in org):
+                raise CloudError("pass_id, profile and point must be given together")
+            for name in ("pass_id", "profile", "point"):
+                a = np.asarray(getattr(self, name))
+                if a.shape != (len(p),):
+                    raise CloudError(f"{name} must be ({len(p)},), got {a.shape}")
+                if a.size and (not np.issubdtype(a.dtype, np.integer) and not np.all(a == np.round(a))):
+                    raise CloudError(f"{name} must hold integers")
+                if a.size and a.min() < 0:
+                    raise CloudError(f"{name} has negative indices")
+                object.__setattr__(self, name, a.astype(np.int32))
+
+    @property
+    def organised(self) -> bool:
+        """True when every point carries (pass_id, profile, point)."""
+        return self.pass_id is not None
+
+    def __len__(self) -> int:
+        return len(self.points_mm)
+
+    def subset(self, mask: np.ndarray) -> ScanCloud:
+        """The points where ``mask`` (bool (n,) or index array) selects, organisation kept."""
+        if not self.organised:
+            return ScanCloud(self.points_mm[mask])
+        return ScanCloud(self.points_mm[mask], self.pass_id[mask], self.profile[mask], self.point[mask])
+
+
+def read_cloud(path: str | Path) -> ScanCloud:
+    """Read a scan cloud (PLY, PCD, XYZ/CSV text, NPZ; see the module docstring).
+
+    Raises CloudError for a missing, unreadable or empty file, or non-finite coordinates.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CloudError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise CloudError(f"{path}: unsupported cloud format {suffix!r} (use {', '.join(sorted(SUFFIXES))})")
+    if path.stat().st_size == 0:
+        raise CloudError(f"{path}: empty file")
+    try:
+        if suffix == ".ply":
+            cloud = _read_ply(path)
+        elif suffix == ".pcd":
+            cloud = _read_pcd(path)
+        elif suffix == ".npz":
+            cloud = _read_npz(path)
+        else:
+            cloud = _read_text(path)
+    except CloudError:
+        raise
+    except Exception as exc:  # a parser's own error: say which file and why, in one line
+        raise CloudError(
+            f"{path}: unreadable {suffix[1:].upper()} file ({type(exc).__name__}: {exc})"
+        ) from exc
+    if len(cloud) == 0:
+        raise CloudError(f"{path}: the cloud holds no points")
+    if not np.isfinite(cloud.points_mm).all():
+        bad = int(np.count_nonzero(~np.isfinite(cloud.points_mm).all(axis=1)))
+        raise CloudError(f"{path}: {bad} points with non-finite coordinates")
+    return cloud
+
+
+def _read_ply(path: Path) -> ScanCloud:
+    from plyfile import PlyData
+
+    with path.open("rb") as f:
+        head = f.read(3)
+    if head != b"ply":
+        raise CloudError(f"{path}: not a PLY file (no 'ply' magic at the start)")
+    ply = PlyData.read(str(path))
+    if "vertex" not in ply:
+        raise CloudError(f"{path}: PLY has no 'vertex' element")
+    v = ply["vertex"].data
+    names = set(v.dtype.names or ())
+    missing = {"x", "y", "z"} - names
+    if missing:
+        raise CloudError(f"{path}: PLY vertex lacks properties {sorted(missing)}")
+    pts = np.column_stack([np.asarray(v[c], dtype=np.float64) for c in ("x", "y", "z")])
+    pass_name = "pass" if "pass" in names else ("pass_id" if "pass_id" in names else None)
+    if pass_name and {"profile", "point"} <= names:
+        return ScanCloud(pts, np.asarray(v[pass_name]), np.asarray(v["profile"]), np.asarray(v["point"]))
+    return ScanCloud(pts)
+
+
+_PCD_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "<i1", ("I", 2): "<i2", ("I", 4): "<i4",
+              ("I", 8): "<i8", ("U", 1): "<u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}  # fmt: skip
+
+
+def _read_pcd(path: Path) -> ScanCloud:
+    raw = path.read_bytes()
+    header: dict[str, list[str]] = {}
+    pos = 0
+    while True:
+        end = raw.find(b"\n", pos)
+        if end < 0:
+            raise CloudError(f"{path}: PCD header ends before DATA")
+        line = raw[pos:end].decode("ascii", errors="replace").strip()
+        pos = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *vals = line.split()
+        header[key.upper()] = vals
+        if key.upper() == "DATA":
+            break
+    for key in ("FIELDS", "SIZE", "TYPE", "POINTS", "DATA"):
+        if key not in header:
+            raise CloudError(f"{path}: PCD header lacks {key}")
+    fields = header["FIELDS"]
+    counts = [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
+    if not {"x", "y", "z"} <= set(fields):
+        raise CloudError(f"{path}: PCD fields {fields} lack x, y or z")
+    n = int(header["POINTS"][0])
+    data_kind = header["DATA"][0].lower()
+    if data_kind == "ascii":
+        table = np.loadtxt(io.BytesIO(raw[pos:]), ndmin=2) if n else np.zeros((0, sum(counts)))
+        cols, c0 = {}, 0
+        for f, c in zip(fields, counts, strict=True):
+            cols[f] = table[:, c0]
+            c0 += c
+        pts = np.column_stack([cols["x"], cols["y"], cols["z"]])
+    elif data_kind == "binary":
+        dtype = []
+        for f, s, t, c in zip(fields, header["SIZE"], header["TYPE"], counts, strict=True):
+            key = (t.upper(), int(s))
+            if key not in _PCD_TYPES:
+                raise CloudError(f"{path}: PCD field {f!r} has unsupported type {t}{s}")
+            name = f if f != "_" else f"_pad{len(dtype)}"
+            dtype.append((name, _PCD_TYPES[key], (c,)) if c > 1 else (name, _PCD_TYPES[key]))
+        dt = np.dtype(dtype)
+        if len(raw) - pos < n * dt.itemsize:
+            raise CloudError(
+                f"{path}: PCD binary data truncated ({len(raw) - pos} of {n * dt.itemsize} bytes)"
+            )
+        rec = np.frombuffer(raw, dtype=dt, count=n, offset=pos)
+        pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+    else:
+        raise CloudError(f"{path}: PCD DATA {data_kind!r} not supported (use ascii or binary)")
+    # NaN points are how PCD marks missing returns in organised clouds; they are not points.
+    return ScanCloud(pts[np.isfinite(pts).all(axis=1)])
+
+
+def _read_text(path: Path) -> ScanCloud:
+    text = path.read_text(errors="replace")
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith(("#", "//"))]
+    if not lines:
+        raise CloudError(f"{path}: the cloud holds no points")
+    split = re.compile(r"[,;\s]+")
+    first = [t for t in split.split(lines[0].strip()) if t]
+    names: list[str] | None = None
+    try:
+        [float(t) for t in first]
+    except ValueError:
+        names = [t.lower() for t in first]
+        lines = lines[1:]
+    if not lines:
+        raise CloudError(f"{path}: the cloud holds no points")
+    try:
+        table = np.loadtxt(io.StringIO("\n".join(split.sub(" ", ln.strip()) for ln in lines)), ndmin=2)
+    except ValueError as exc:
+        raise CloudError(f"{path}: not a table of numbers ({exc})") from exc
+    if table.shape[1] < 3:
+        raise CloudError(f"{path}: {table.shape[1]} columns per line, need at least x y z")
+    if names and len(names) == table.shape[1] and {"x", "y", "z"} <= set(names):
+        col = {n: i for i, n in enumerate(names)}
+        pts = table[:, [col["x"], col["y"], col["z"]]]
+        pname = "pass" if "pass" in col else ("pass_id" if "pass_id" in col else None)
+        if pname and "profile" in col and "point" in col:
+            return ScanCloud(pts, table[:, col[pname]], table[:, col["profile"]], table[:, col["point"]])
+        return ScanCloud(pts)
+    return ScanCloud(table[:, :3])
+
+
+def _read_npz(path: Path) -> ScanCloud:
+    with np.load(path, allow_pickle=False) as z:
+        key = next((k for k in ("points_mm", "points", "xyz") if k in z.files), None)
+        if key is None:
+            raise CloudError(f"{path}: NPZ has none of the arrays points_mm, points, xyz (has {z.files})")
+        pts = np.asarray(z[key], dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise CloudError(f"{path}: array {key!r} must be (n, 3), got {pts.shape}")
+        if all(k in z.files for k in ("pass_id", "profile", "point")):
+            return ScanCloud(pts, z["pass_id"], z["profile"], z["point"])
+        return ScanCloud(pts)
+
+
+def write_cloud_ply(cloud: ScanCloud, path: str | Path) -> Path:
+    """Write ``cloud`` as binary PLY: x, y, z float32 and, if organised, pass, profile, point int32."""
+    path = Path(path)
+    n = len(cloud)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if cloud.organised:
+        fields += [("pass", "<i4"), ("profile", "<i4"), ("point", "<i4")]
+    rec = np.empty(n, dtype=np.dtype(fields))
+    rec["x"], rec["y"], rec["z"] = cloud.points_mm.T
+    if cloud.organised:
+        rec["pass"], rec["profile"], rec["point"] = cloud.pass_id, cloud.profile, cloud.point
+    props = "".join(f"property {'float' if t == '<f4' else 'int'} {name}\n" for name, t in fields)
+    header = f"ply\nformat binary_little_endian 1.0\ncomment cellctl scan cloud, mm\nelement vertex {n}\n{props}end_header\n"
+    with path.open("wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rec.tobytes())
+    return path
+
+
+def write_cloud_npz(cloud: ScanCloud, path: str | Path) -> Path:
+    """Write ``cloud`` as NPZ (``points_mm`` and, if organised, ``pass_id``, ``profile``, ``point``)."""
+    path = Path(path)
+    arrays = {"points_mm": cloud.points_mm}
+    if cloud.organised:
+        arrays.update(pass_id=cloud.pass_id, profile=cloud.profile, point=cloud.point)
+    with path.open("wb") as f:
+        np.savez(f, **arrays)
+    return path

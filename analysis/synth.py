@@ -1,0 +1,627 @@
+"""Synthetic scans without a robot: a formed plate on the bed, scanned like the cell scans it.
+
+What the generator models, in the bed frame (x, y on the bed, z up, bed top at z = 0):
+
+* **Scene.** The bed plane, support beams (boxes standing on the bed, see :class:`BedScene`) and
+  the formed plate: top surface ``z = height + dz`` in the design frame (see ``plates``), bottom
+  ``thickness_mm`` below it, vertical thickness faces over the footprint's edges. The plate gets a
+  random placement: any yaw, an XY offset, a small tilt, then it is lowered onto the supports.
+  ``T_bed_design`` (design frame -> bed frame) is exact and written to the truth file.
+* **Raster passes.** Straight passes at a heading close to the plate's long axis (as a planner
+  working from the nominal placement would choose; ``heading_error_deg`` off), covering the
+  plate's footprint plus ``margin_mm`` so the bed and supports appear. Each profile is a laser line
+  of ``points_per_profile`` rays ``point_pitch_mm`` apart looking straight down (an orthographic
+  line, like the HD8's resampled output); profiles every ``profile_step_mm``; neighbouring passes
+  overlap by ``pass_overlap_mm``.
+* **Edge passes.** One pass along each plate edge with the line across the edge and the view
+  tilted ``edge_view_deg`` outward, so the thickness face is seen as well as the top edge and the
+  bed beyond it.
+* **Sensor effects.** Every ray is cast exactly (bed, support boxes, plate top by Newton on the
+  analytic surface, thickness faces), then: Gaussian range noise ``noise_mm`` along the ray;
+  missing returns where the incidence angle exceeds ``grazing_limit_deg`` and at random
+  (``dropout_fraction``); sparse outliers (``outlier_fraction``) displaced 1 mm to
+  ``outlier_range_mm`` along the ray.
+
+Organisation: ``pass_id`` numbers raster passes from 0 and the four edge passes after them,
+``profile`` counts profiles within a pass, ``point`` counts rays along the line. Missing returns
+are absent from the output, the indices of the others are kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import structlog
+
+from analysis.cloud_io import CloudError, ScanCloud, write_cloud_ply
+from analysis.mesh import TriMesh, save_mesh
+from analysis.plates import (
+    PLATE_KINDS,
+    EdgeSpringback,
+    FormingError,
+    GaussianBump,
+    PlateError,
+    PlateSpec,
+    canonical_corner_order,
+    default_forming_error,
+    design_mesh,
+    formed_corners,
+    plate_spec,
+    surface_gradient,
+)
+
+__all__ = [
+    "BedScene",
+    "Placement",
+    "ScanSettings",
+    "SupportBox",
+    "SynthError",
+    "SynthScan",
+    "parse_deform",
+    "random_placement",
+    "synth_main",
+    "synthesize_scan",
+    "write_synth",
+]
+
+log = structlog.get_logger(__name__)
+
+
+class SynthError(ValueError):
+    """Settings that cannot produce a scan (named field and value in the message)."""
+
+
+@dataclass(frozen=True)
+class SupportBox:
+    """An axis-aligned support standing on the bed (bed frame, mm)."""
+
+    x_min_mm: float
+    x_max_mm: float
+    y_min_mm: float
+    y_max_mm: float
+    height_mm: float
+
+
+@dataclass(frozen=True)
+class BedScene:
+    """The bed (plane z = 0) and its supports. Default: three 80 mm beams, 60 mm high, across y."""
+
+    supports: tuple[SupportBox, ...] = (
+        SupportBox(-490.0, -410.0, -1100.0, 1100.0, 60.0),
+        SupportBox(-40.0, 40.0, -1100.0, 1100.0, 60.0),
+        SupportBox(410.0, 490.0, -1100.0, 1100.0, 60.0),
+    )
+
+
+@dataclass(frozen=True)
+class ScanSettings:
+    """How the synthetic scan is taken. Defaults: HD8-0050W density (0.1 mm x 500 points, 0.5 mm)."""
+
+    point_pitch_mm: float = 0.1
+    points_per_profile: int = 500
+    profile_step_mm: float = 0.5
+    pass_overlap_mm: float = 5.0
+    margin_mm: float = 30.0
+    heading_error_deg: float = 3.0
+    edge_passes: bool = True
+    edge_view_deg: float = 30.0
+    noise_mm: float = 0.02
+    outlier_fraction: float = 1e-4
+    outlier_range_mm: float = 20.0
+    dropout_fraction: float = 0.002
+    grazing_limit_deg: float = 80.0
+
+    def __post_init__(self) -> None:
+        for name in ("point_pitch_mm", "profile_step_mm"):
+            if not getattr(self, name) > 0:
+                raise SynthError(f"{name}: must be positive, got {getattr(self, name)!r}")
+        if self.points_per_profile < 8:
+            raise SynthError(f"points_per_profile: need at least 8, got {self.points_per_profile}")
+        line = (self.points_per_profile - 1) * self.point_pitch_mm
+        if not 0 <= self.pass_overlap_mm < line:
+            raise SynthError(
+                f"pass_overlap_mm: must be in [0, {line}) (the line length), got {self.pass_overlap_mm}"
+            )
+        for name in ("noise_mm", "outlier_fraction", "dropout_fraction", "margin_mm"):
+            if getattr(self, name) < 0:
+                raise SynthError(f"{name}: must not be negative, got {getattr(self, name)!r}")
+        if not 0 < self.edge_view_deg < 80:
+            raise SynthError(f"edge_view_deg: must be in (0, 80), got {self.edge_view_deg}")
+
+    @classmethod
+    def coarse(cls, **overrides) -> ScanSettings:
+        """Test-speed settings: 1 mm points, 2 mm profiles (about 0.6 M points for the sail plate)."""
+        base = {"point_pitch_mm": 1.0, "points_per_profile": 50, "profile_step_mm": 2.0}
+        base.update(overrides)
+        return cls(**base)
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where the plate lies: yaw about bed z, XY offset of the design origin, tilt (deg, mm)."""
+
+    yaw_deg: float = 0.0
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    tilt_deg: float = 0.0
+    tilt_axis_deg: float = 0.0
+
+
+def random_placement(
+    rng: np.random.Generator, *, offset_mm: float = 100.0, tilt_max_deg: float = 0.5
+) -> Placement:
+    """Any yaw, an XY offset within +-offset_mm, a tilt up to tilt_max_deg about a random axis."""
+    return Placement(
+        yaw_deg=float(rng.uniform(0.0, 360.0)),
+        x_mm=float(rng.uniform(-offset_mm, offset_mm)),
+        y_mm=float(rng.uniform(-offset_mm, offset_mm)),
+        tilt_deg=float(rng.uniform(0.0, tilt_max_deg)),
+        tilt_axis_deg=float(rng.uniform(0.0, 360.0)),
+    )
+
+
+@dataclass
+class SynthScan:
+    """A synthetic scan with its ground truth.
+
+    points_mm: (n, 3) float64, bed frame.
+    pass_id, profile, point: (n,) int32 scan organisation.
+    T_bed_design: (4, 4) design frame -> bed frame (exact).
+    is_outlier: (n,) bool, points the generator displaced on purpose.
+    """
+
+    points_mm: np.ndarray
+    pass_id: np.ndarray
+    profile: np.ndarray
+    point: np.ndarray
+    T_bed_design: np.ndarray
+    spec: PlateSpec
+    error: FormingError
+    placement: Placement
+    settings: ScanSettings
+    scene: BedScene
+    seed: int | None
+    n_raster_passes: int
+    is_outlier: np.ndarray = field(repr=False)
+
+    @property
+    def cloud(self) -> ScanCloud:
+        """The scan as an organised :class:`ScanCloud`."""
+        return ScanCloud(self.points_mm, self.pass_id, self.profile, self.point)
+
+    def design_mesh(self, pitch_mm: float = 5.0) -> TriMesh:
+        """The design top surface (design frame) the plate was formed from."""
+        return design_mesh(self.spec, pitch_mm=pitch_mm)
+
+    def corners_bed_mm(self) -> np.ndarray:
+        """(4, 3) the formed plate's top corners in the bed frame, in ``boundary.find_corners`` order."""
+        c = formed_corners(self.spec, self.error)
+        cb = c @ self.T_bed_design[:3, :3].T + self.T_bed_design[:3, 3]
+        return canonical_corner_order(cb)
+
+    def truth_dict(self) -> dict:
+        """Everything needed to check an analysis of this scan (JSON-ready)."""
+        return {
+            "plate": self.spec.to_dict(),
+            "forming_error": self.error.to_dict(),
+            "T_bed_design": self.T_bed_design.tolist(),
+            "placement": asdict(self.placement),
+            "corners_bed_mm": self.corners_bed_mm().tolist(),
+            "settings": asdict(self.settings),
+            "scene": asdict(self.scene),
+            "seed": self.seed,
+            "n_points": len(self.points_mm),
+            "n_raster_passes": self.n_raster_passes,
+            "n_outliers": int(self.is_outlier.sum()),
+            "frames": "points in the bed frame; design frame per analysis.plates; T maps design -> bed",
+        }
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rot_axis(axis: np.ndarray, deg: float) -> np.ndarray:
+    axis = axis / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = np.deg2rad(deg)
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def _place(spec: PlateSpec, error: FormingError, placement: Placement, scene: BedScene) -> np.ndarray:
+    """T_bed_design: rotate, then lower the plate until its bottom touches the highest support under it."""
+    ta = np.deg2rad(placement.tilt_axis_deg)
+    R = _rot_axis(np.array([np.cos(ta), np.sin(ta), 0.0]), placement.tilt_deg) @ _rot_z(placement.yaw_deg)
+    u = np.linspace(-spec.length_mm / 2, spec.length_mm / 2, 241)
+    v = np.linspace(-spec.width_mm / 2, spec.width_mm / 2, 161)
+    U, V = np.meshgrid(u, v, indexing="ij")
+    Z, _, _ = surface_gradient(spec, error, U, V)
+    bottom = np.column_stack([U.ravel(), V.ravel(), Z.ravel() - spec.thickness_mm]) @ R.T
+    bottom[:, :2] += (placement.x_mm, placement.y_mm)
+    lift = -bottom[:, 2].min()  # no support under it: it lies on the bed
+    for s in scene.supports:
+        over = (
+            (bottom[:, 0] >= s.x_min_mm)
+            & (bottom[:, 0] <= s.x_max_mm)
+            & (bottom[:, 1] >= s.y_min_mm)
+            & (bottom[:, 1] <= s.y_max_mm)
+        )
+        if over.any():
+            lift = max(lift, s.height_mm - bottom[over, 2].min())
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = (placement.x_mm, placement.y_mm, lift)
+    return T
+
+
+@dataclass
+class _Hits:
+    t: np.ndarray
+    normal: np.ndarray  # bed frame, unit, facing any way
+
+
+def _cast(
+    o: np.ndarray, d: np.ndarray, spec: PlateSpec, error: FormingError, T: np.ndarray, scene: BedScene
+) -> _Hits:
+    """Exact first hit of rays o + t d (bed frame, d unit, pointing down) with the scene."""
+    n = len(o)
+    inf = np.full(n, np.inf)
+    # Bed plane z = 0.
+    t_best = np.where(d[:, 2] < 0, -o[:, 2] / np.minimum(d[:, 2], -1e-12), inf)
+    normal = np.zeros((n, 3))
+    normal[:, 2] = 1.0
+    # Support boxes, slab method.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        for s in scene.supports:
+            lo = np.array([s.x_min_mm, s.y_min_mm, 0.0])
+            hi = np.array([s.x_max_mm, s.y_max_mm, s.height_mm])
+            t1 = (lo - o) * inv
+            t2 = (hi - o) * inv
+            tmin = np.fmin(t1, t2)
+            tmax = np.fmax(t1, t2)
+            t_enter = np.nanmax(tmin, axis=1)
+            t_exit = np.nanmin(tmax, axis=1)
+            hit = (t_enter <= t_exit) & (t_enter > 0) & (t_enter < t_best)
+            if hit.any():
+                axis = np.nanargmax(tmin[hit], axis=1)
+                nrm = np.zeros((int(hit.sum()), 3))
+                nrm[np.arange(len(axis)), axis] = 1.0
+                t_best = np.where(hit, t_enter, t_best)
+                normal[hit] = nrm
+    # Plate, in the design frame.
+    R, p0 = T[:3, :3], T[:3, 3]
+    od = (o - p0) @ R
+    dd = d @ R
+    hl, hw, th = spec.length_mm / 2, spec.width_mm / 2, spec.thickness_mm
+    z0, _, _ = surface_gradient(spec, error, od[:, 0], od[:, 1])
+    t = (od[:, 2] - z0) / np.maximum(-dd[:, 2], 1e-9)
+    for _ in range(12):
+        x = od[:, 0] + t * dd[:, 0]
+        y = od[:, 1] + t * dd[:, 1]
+        z, gx, gy = surface_gradient(spec, error, x, y)
+        g = od[:, 2] + t * dd[:, 2] - z
+        dg = dd[:, 2] - gx * dd[:, 0] - gy * dd[:, 1]
+        step = g / np.where(np.abs(dg) > 1e-9, dg, -1e-9)
+        t = t - step
+        if np.max(np.abs(step)) < 1e-7:
+            break
+    x = od[:, 0] + t * dd[:, 0]
+    y = od[:, 1] + t * dd[:, 1]
+    z, gx, gy = surface_gradient(spec, error, x, y)
+    ok = (np.abs(od[:, 2] + t * dd[:, 2] - z) < 1e-5) & (np.abs(x) <= hl) & (np.abs(y) <= hw) & (t > 0)
+    hit = ok & (t < t_best)
+    if hit.any():
+        nd = np.column_stack([-gx[hit], -gy[hit], np.ones(int(hit.sum()))])
+        nd /= np.linalg.norm(nd, axis=1, keepdims=True)
+        t_best = np.where(hit, t, t_best)
+        normal[hit] = nd @ R.T
+    # Thickness faces: vertical planes x = +-L/2, y = +-W/2 in the design frame, facing the ray.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for axis, half, other_half in ((0, hl, hw), (1, hw, hl)):
+            for sign in (1.0, -1.0):
+                facing = dd[:, axis] * sign < 0
+                tw = (sign * half - od[:, axis]) / dd[:, axis]
+                q = od + tw[:, None] * dd
+                zt, _, _ = surface_gradient(spec, error, q[:, 0], q[:, 1])
+                inside = (
+                    facing
+                    & (tw > 0)
+                    & (np.abs(q[:, 1 - axis]) <= other_half)
+                    & (q[:, 2] <= zt)
+                    & (q[:, 2] >= zt - th)
+                )
+                hit = inside & (tw < t_best)
+                if hit.any():
+                    nd = np.zeros(3)
+                    nd[axis] = sign
+                    t_best = np.where(hit, tw, t_best)
+                    normal[hit] = R @ nd
+    return _Hits(t_best, normal)
+
+
+def _sense(
+    o: np.ndarray, d: np.ndarray, hits: _Hits, settings: ScanSettings, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Apply the sensor: returns (points (k, 3), kept mask (n,), outlier flags (k,))."""
+    n = len(o)
+    cos_inc = np.abs(np.einsum("ij,ij->i", hits.normal, d))
+    keep = np.isfinite(hits.t) & (cos_inc >= np.cos(np.deg2rad(settings.grazing_limit_deg)))
+    keep &= rng.random(n) >= settings.dropout_fraction
+    t = hits.t + rng.normal(0.0, settings.noise_mm, n) if settings.noise_mm > 0 else hits.t.copy()
+    outlier = rng.random(n) < settings.outlier_fraction
+    if outlier.any():
+        mag = rng.uniform(1.0, max(settings.outlier_range_mm, 1.0), int(outlier.sum()))
+        t[outlier] += mag * rng.choice([-1.0, 1.0], int(outlier.sum()))
+    pts = o[keep] + t[keep, None] * d[keep]
+    return pts, keep, outlier[keep]
+
+
+def synthesize_scan(
+    spec: PlateSpec | None = None,
+    error: FormingError | None = None,
+    *,
+    settings: ScanSettings | None = None,
+    placement: Placement | None = None,
+    scene: BedScene | None = None,
+    seed: int | None = 0,
+) -> SynthScan:
+    """Scan a formed plate lying on the bed; returns the organised cloud and its exact truth.
+
+    spec: the design (default: the paper's 1200 x 800 x 15 sail plate).
+    error: forming error (default: :func:`plates.default_forming_error`; pass ``FormingError()``
+        for a perfectly formed plate).
+    placement: where the plate lies (default: random from ``seed``, any yaw).
+    seed: seeds the placement, the heading error, noise, dropouts and outliers.
+    """
+    spec = spec or plate_spec()
+    error = default_forming_error(spec) if error is None else error
+    settings = settings or ScanSettings()
+    scene = scene or BedScene()
+    rng = np.random.default_rng(seed)
+    placement = placement or random_placement(rng)
+    T = _place(spec, error, placement, scene)
+    R = T[:3, :3]
+
+    # Footprint in the bed frame and the raster heading along the plate's long axis.
+    fc = formed_corners(spec, error) @ R.T + T[:3, 3]
+    axis_xy = R[:2, 0]
+    heading = np.arctan2(axis_xy[1], axis_xy[0]) + np.deg2rad(rng.normal(0.0, settings.heading_error_deg))
+    e_s = np.array([np.cos(heading), np.sin(heading)])
+    e_c = np.array([-np.sin(heading), np.cos(heading)])
+    s_vals, c_vals = fc[:, :2] @ e_s, fc[:, :2] @ e_c
+    s0, s1 = s_vals.min() - settings.margin_mm, s_vals.max() + settings.margin_mm
+    c0, c1 = c_vals.min() - settings.margin_mm, c_vals.max() + settings.margin_mm
+    line = (settings.points_per_profile - 1) * settings.point_pitch_mm
+    spacing = line - settings.pass_overlap_mm
+    n_pass = max(1, int(np.ceil((c1 - c0 - line) / spacing)) + 1)
+    c_start = 0.5 * (c0 + c1) - 0.5 * ((n_pass - 1) * spacing + line)
+    n_prof = int(np.floor((s1 - s0) / settings.profile_step_mm)) + 1
+    z_sensor = float(fc[:, 2].max() + 300.0)
+
+    j = np.arange(settings.points_per_profile)
+    k = np.arange(n_prof)
+    out_pts, out_pass, out_prof, out_point, out_outl = [], [], [], [], []
+    for p in range(n_pass):
+        S, Jg = np.meshgrid(s0 + k * settings.profile_step_mm, j, indexing="ij")
+        C = c_start + p * spacing + Jg * settings.point_pitch_mm
+        xy = S.reshape(-1, 1) * e_s + C.reshape(-1, 1) * e_c
+        o = np.column_stack([xy, np.full(len(xy), z_sensor)])
+        d = np.tile([0.0, 0.0, -1.0], (len(o), 1))
+        hits = _cast(o, d, spec, error, T, scene)
+        pts, keep, outl = _sense(o, d, hits, settings, rng)
+        out_pts.append(pts)
+        out_pass.append(np.full(len(pts), p, np.int32))
+        prof_idx, pt_idx = np.meshgrid(k, j, indexing="ij")
+        out_prof.append(prof_idx.ravel()[keep].astype(np.int32))
+        out_point.append(pt_idx.ravel()[keep].astype(np.int32))
+        out_outl.append(outl)
+
+    if settings.edge_passes:
+        alpha = np.deg2rad(settings.edge_view_deg)
+        corners_d = formed_corners(spec, error)
+        w = (j - (settings.points_per_profile - 1) / 2) * settings.point_pitch_mm
+        for e in range(4):
+            a_d, b_d = corners_d[e, :2], corners_d[(e + 1) % 4, :2]
+            along_d = (b_d - a_d) / np.linalg.norm(b_d - a_d)
+            out_d = np.array([along_d[1], -along_d[0]])  # right of a CCW edge = outward
+            length = float(np.linalg.norm(b_d - a_d))
+            s = np.arange(-settings.margin_mm, length + settings.margin_mm, settings.profile_step_mm)
+            exy = a_d + s[:, None] * along_d
+            ez, _, _ = surface_gradient(spec, error, exy[:, 0], exy[:, 1])
+            edge_bed = np.column_stack([exy, ez]) @ R.T + T[:3, 3]
+            n_out = R @ np.array([out_d[0], out_d[1], 0.0])
+            n_out[2] = 0.0
+            n_out /= np.linalg.norm(n_out)
+            d1 = -np.sin(alpha) * n_out + np.array([0.0, 0.0, -np.cos(alpha)])
+            u1 = np.cos(alpha) * n_out + np.array([0.0, 0.0, -np.sin(alpha)])
+            o = (edge_bed[:, None, :] + w[None, :, None] * u1 - 300.0 * d1).reshape(-1, 3)
+            d = np.tile(d1, (len(o), 1))
+            hits = _cast(o, d, spec, error, T, scene)
+            pts, keep, outl = _sense(o, d, hits, settings, rng)
+            out_pts.append(pts)
+            out_pass.append(np.full(len(pts), n_pass + e, np.int32))
+            prof_idx, pt_idx = np.meshgrid(np.arange(len(s)), j, indexing="ij")
+            out_prof.append(prof_idx.ravel()[keep].astype(np.int32))
+            out_point.append(pt_idx.ravel()[keep].astype(np.int32))
+            out_outl.append(outl)
+
+    scan = SynthScan(
+        points_mm=np.concatenate(out_pts),
+        pass_id=np.concatenate(out_pass),
+        profile=np.concatenate(out_prof),
+        point=np.concatenate(out_point),
+        T_bed_design=T,
+        spec=spec,
+        error=error,
+        placement=placement,
+        settings=settings,
+        scene=scene,
+        seed=seed,
+        n_raster_passes=n_pass,
+        is_outlier=np.concatenate(out_outl),
+    )
+    log.info(
+        "synth_scan", points=len(scan.points_mm), raster_passes=n_pass, profiles_per_pass=n_prof,
+        yaw_deg=round(placement.yaw_deg, 3), plate=spec.kind,
+    )  # fmt: skip
+    return scan
+
+
+def sibling_paths(out: str | Path) -> tuple[Path, Path, Path]:
+    """(scan, design mesh, truth JSON) paths for ``--out``: scan.ply -> scan-design.ply, scan-truth.json."""
+    out = Path(out)
+    return out, out.with_name(f"{out.stem}-design.ply"), out.with_name(f"{out.stem}-truth.json")
+
+
+def write_synth(scan: SynthScan, out: str | Path, *, design_pitch_mm: float = 5.0) -> tuple[Path, Path, Path]:
+    """Write the scan PLY, ``<stem>-design.ply`` (design frame) and ``<stem>-truth.json``; returns the paths."""
+    scan_path, design_path, truth_path = sibling_paths(out)
+    if scan_path.suffix.lower() != ".ply":
+        raise SynthError(f"out: the scan is written as PLY, got {scan_path.name!r}")
+    scan_path.parent.mkdir(parents=True, exist_ok=True)
+    write_cloud_ply(scan.cloud, scan_path)
+    save_mesh(scan.design_mesh(design_pitch_mm), design_path)
+    truth = scan.truth_dict()
+    truth["design_mesh"] = design_path.name
+    truth["design_pitch_mm"] = design_pitch_mm
+    truth_path.write_text(json.dumps(truth, indent=2))
+    return scan_path, design_path, truth_path
+
+
+def _kv(text: str, what: str) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for part in text.split(","):
+        if not part.strip():
+            continue
+        if "=" not in part:
+            raise PlateError(f"--deform {what}: expected key=value, got {part!r}")
+        k, v = part.split("=", 1)
+        try:
+            out[k.strip().lower()] = float(v)
+        except ValueError:
+            raise PlateError(f"--deform {what}: {k.strip()} is not a number: {v!r}") from None
+    return out
+
+
+def parse_deform(items: list[str] | None, spec: PlateSpec) -> FormingError:
+    """Parse ``--deform`` items into a :class:`FormingError`.
+
+    Items (repeatable): ``none``; ``default``; ``dent:x=200,y=-100,depth=2.5,sigma=60`` (down);
+    ``bump:x=..,y=..,height=1.5,sigma=..`` (up); ``springback:amp=1,decay=80``; ``bend:0.01``
+    (fraction); or a path to a JSON file holding :meth:`FormingError.to_dict`. No items: default.
+    """
+    if not items:
+        return default_forming_error(spec)
+    bumps: list[GaussianBump] = []
+    springback: EdgeSpringback | None = None
+    bend = 0.0
+    for item in items:
+        head, _, rest = item.partition(":")
+        head = head.strip().lower()
+        if head == "none":
+            continue
+        if head == "default":
+            d = default_forming_error(spec)
+            bumps.extend(d.bumps)
+            springback = d.springback
+            bend += d.bend_fraction
+        elif head in ("dent", "bump"):
+            kv = _kv(rest, head)
+            amp_key = "depth" if head == "dent" else "height"
+            missing = {"x", "y", amp_key, "sigma"} - set(kv)
+            if missing:
+                raise PlateError(f"--deform {head}: missing {', '.join(sorted(missing))}")
+            amp = -abs(kv[amp_key]) if head == "dent" else abs(kv[amp_key])
+            bumps.append(GaussianBump(kv["x"], kv["y"], amp, kv["sigma"]))
+        elif head == "springback":
+            kv = _kv(rest, head)
+            if "amp" not in kv:
+                raise PlateError("--deform springback: missing amp")
+            springback = EdgeSpringback(kv["amp"], kv.get("decay", 80.0))
+        elif head == "bend":
+            try:
+                bend += float(rest)
+            except ValueError:
+                raise PlateError(f"--deform bend: not a number: {rest!r}") from None
+        elif Path(item).suffix.lower() == ".json":
+            try:
+                return FormingError.from_dict(json.loads(Path(item).read_text()))
+            except (OSError, ValueError, TypeError) as exc:
+                raise PlateError(f"--deform {item}: unreadable forming-error JSON ({exc})") from exc
+        else:
+            raise PlateError(
+                f"--deform: unknown item {item!r} (none, default, dent:, bump:, springback:, bend:, FILE.json)"
+            )
+    return FormingError(bumps=tuple(bumps), springback=springback, bend_fraction=bend)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``cellctl synth`` argument parser."""
+    p = argparse.ArgumentParser(
+        prog="cellctl synth",
+        description="Make a synthetic scan of a formed plate lying on the bed, with its design and truth.",
+    )
+    p.add_argument("--plate", choices=PLATE_KINDS, default="sail")
+    p.add_argument("--length-mm", type=float, default=1200.0)
+    p.add_argument("--width-mm", type=float, default=800.0)
+    p.add_argument("--thickness-mm", type=float, default=15.0)
+    p.add_argument("--deform", action="append", metavar="ITEM",
+                   help="none | default | dent:x=,y=,depth=,sigma= | bump:x=,y=,height=,sigma= | "
+                   "springback:amp=,decay= | bend:FRACTION | FILE.json (repeatable; default: default)")  # fmt: skip
+    p.add_argument(
+        "--out", required=True, help="scan PLY path; writes <stem>-design.ply and <stem>-truth.json beside it"
+    )
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--yaw-deg", type=float, default=None, help="placement yaw (default: random from the seed)"
+    )
+    p.add_argument("--point-pitch-mm", type=float, default=0.1)
+    p.add_argument("--points-per-profile", type=int, default=500)
+    p.add_argument("--profile-step-mm", type=float, default=0.5)
+    p.add_argument("--noise-mm", type=float, default=0.02)
+    p.add_argument("--no-edge-passes", action="store_true")
+    return p
+
+
+def synth_main(argv: list[str] | None = None) -> int:
+    """``cellctl synth``: returns 0 on success, 2 on bad arguments or an unwritable output."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse already printed the message
+        return 0 if exc.code == 0 else 2
+    try:
+        spec = plate_spec(
+            args.plate, length_mm=args.length_mm, width_mm=args.width_mm, thickness_mm=args.thickness_mm
+        )
+        error = parse_deform(args.deform, spec)
+        settings = ScanSettings(
+            point_pitch_mm=args.point_pitch_mm,
+            points_per_profile=args.points_per_profile,
+            profile_step_mm=args.profile_step_mm,
+            noise_mm=args.noise_mm,
+            edge_passes=not args.no_edge_passes,
+        )
+        placement = None
+        if args.yaw_deg is not None:
+            rng = np.random.default_rng(args.seed)
+            pl = random_placement(rng)
+            placement = Placement(args.yaw_deg, pl.x_mm, pl.y_mm, pl.tilt_deg, pl.tilt_axis_deg)
+        scan = synthesize_scan(spec, error, settings=settings, placement=placement, seed=args.seed)
+        paths = write_synth(scan, args.out)
+    except (PlateError, SynthError, CloudError) as exc:
+        print(f"cellctl synth: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"cellctl synth: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {paths[0]} ({len(scan.points_mm)} points), {paths[1]}, {paths[2]}")
+    return 0
