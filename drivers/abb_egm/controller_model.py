@@ -107,7 +107,7 @@ class ControllerError(Exception):
 class StateRefused(ControllerError):
     """The request is not allowed in the current controller / RAPID state (e.g. motors on during e-stop)."""
 
-    http_status = 409
+    http_status = 400
 
 
 class SymbolNotFound(ControllerError):

@@ -1,0 +1,756 @@
+"""Asyncio Robot Web Services client, one interface for RWS 1.0 (RobotWare 6) and RWS 2.0 (RobotWare 7).
+
+- ``rws1``: HTTP, digest auth (RFC 2617 MD5, qop=auth, computed here: aiohttp has no digest client),
+  the controller's session cookies reused for every request (a new session per request exhausts the
+  controller's session limit and gives 503), ``json=1``, logout on close, state changes through a
+  websocket subscription (``robapi2_subscription``).
+- ``rws2``: HTTPS (the controller's self-signed certificate: not verified unless a CA file is given),
+  basic auth, ``;v=2.0`` media types, ``mastership=implicit`` on mutating calls, state changes by
+  polling (the RWS 2.0 websocket subprotocol is not verified on hardware).
+
+One ``aiohttp.ClientSession`` with a cookie jar holds the controller session. A 401 on a request made
+with a session cookie means the controller dropped the session (idle timeout, restart): the client
+logs in again once and repeats the request. Every request has a bounded timeout. A non-2xx answer
+raises ``RwsError`` carrying the HTTP status and the controller's return code and message.
+
+Usage::
+
+    async with RwsClient(RwsClientConfig(base_url="http://192.168.125.1", profile="rws1")) as rws:
+        await rws.motors_on()
+        await rws.set_rapid_bool("T_ROB1", "egm_end", False)
+        await rws.start_rapid()
+        async for change in rws.changes(execution=True):
+            ...
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import hashlib
+import html
+import re
+import secrets
+import ssl
+from collections.abc import AsyncIterator, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+from urllib.parse import quote, urlsplit
+
+import aiohttp
+import numpy as np
+import structlog
+
+from drivers.abb_egm.controller_model import (
+    JointTarget,
+    format_bool,
+    format_jointtarget,
+    format_num,
+    format_string,
+    parse_bool,
+    parse_jointtarget,
+    parse_num,
+    parse_string,
+)
+
+log = structlog.get_logger(__name__)
+
+Profile = Literal["rws1", "rws2"]
+_V2_JSON = "application/hal+json;v=2.0"
+_V2_FORM = "application/x-www-form-urlencoded;v=2.0"
+
+
+class RwsError(Exception):
+    """The controller (or the transport) refused a request.
+
+    ``status``: HTTP status (0 when no answer came); ``code``: the controller's return code from the
+    error body, when it gave one; ``method`` / ``path``: the request.
+    """
+
+    def __init__(
+        self, message: str, *, status: int = 0, code: int | None = None, method: str = "", path: str = ""
+    ) -> None:
+        super().__init__(f"{method} {path}: {message} (HTTP {status}, code {code})" if method else message)
+        self.message = message
+        self.status = status
+        self.code = code
+        self.method = method
+        self.path = path
+
+
+class RwsAuthError(RwsError):
+    """Login failed: wrong user name or password (the controller answered 401 to our credentials)."""
+
+
+class RwsBusyError(RwsError):
+    """The controller has no free session (503)."""
+
+
+class RwsTimeoutError(RwsError):
+    """No answer within the configured timeout."""
+
+
+@dataclass(frozen=True)
+class RwsClientConfig:
+    """Connection settings (these become the ``[robot.rws]`` table of ``cell.toml``).
+
+    ``base_url``: ``http://host[:port]`` (rws1) or ``https://host[:port]`` (rws2).
+    ``tls_ca_file``: a PEM file to verify the controller certificate against; None skips verification
+    (the controller's certificate is self-signed). ``timeout_s``: per request. ``poll_interval_s``: for
+    state-change polling (rws2).
+    """
+
+    base_url: str = "http://127.0.0.1:80"
+    profile: Profile = "rws1"
+    username: str = "Default User"
+    password: str = "robotics"
+    timeout_s: float = 5.0
+    tls_ca_file: str | None = None
+    poll_interval_s: float = 0.2
+    mechunit: str = "ROB_1"
+
+
+@dataclass(frozen=True)
+class ExecutionState:
+    """RAPID execution state: ``ctrlexecstate`` is ``running`` or ``stopped``."""
+
+    ctrlexecstate: str
+    cycle: str
+
+
+@dataclass(frozen=True)
+class ElogEntry:
+    """One event-log message. ``msgtype``: 1 info, 2 warning, 3 error."""
+
+    seqnum: int
+    msgtype: int
+    code: int
+    title: str
+    desc: str
+    tstamp: str
+
+
+@dataclass(frozen=True)
+class CartesianPose:
+    """Flange pose in the base frame: ``pos_mm`` (3,), ``quat_wxyz`` (4,) scalar first (RAPID q1..q4)."""
+
+    pos_mm: np.ndarray
+    quat_wxyz: np.ndarray
+
+
+@dataclass(frozen=True)
+class StateChange:
+    """One state-change notification.
+
+    ``kind``: ``ctrlstate`` | ``opmode`` | ``execution`` | ``rapid-data`` | ``signal`` | ``elog``;
+    ``name``: the variable / signal name (or the kind); ``value``: the new value as text (for ``elog``
+    the event code).
+    """
+
+    kind: str
+    name: str
+    value: str
+
+
+def _h(text: str) -> str:
+    return hashlib.md5(text.encode()).hexdigest()
+
+
+_AUTH_PARAM_RE = re.compile(r'(\w+)\s*=\s*(?:"((?:[^"\\]|\\.)*)"|([^,\s]+))')
+
+
+def _auth_params(value: str) -> dict[str, str]:
+    return {
+        m.group(1).lower(): m.group(2) if m.group(2) is not None else m.group(3)
+        for m in _AUTH_PARAM_RE.finditer(value)
+    }
+
+
+class _DigestState:
+    """One digest challenge and its nonce counter (RFC 2617, MD5, qop=auth)."""
+
+    def __init__(self, challenge: dict[str, str]) -> None:
+        qops = [q.strip() for q in challenge.get("qop", "auth").split(",")]
+        if "auth" not in qops:
+            raise RwsError(f"digest challenge offers no qop=auth: {challenge.get('qop')!r}")
+        algo = challenge.get("algorithm", "MD5").upper()
+        if algo != "MD5":
+            raise RwsError(f"digest algorithm {algo!r} not supported (only MD5)")
+        self.realm = challenge.get("realm", "")
+        self.nonce = challenge.get("nonce", "")
+        self.opaque = challenge.get("opaque")
+        self.nc = 0
+
+    def header(self, method: str, uri: str, username: str, password: str) -> str:
+        self.nc += 1
+        nc = f"{self.nc:08x}"
+        cnonce = secrets.token_hex(8)
+        ha1 = _h(f"{username}:{self.realm}:{password}")
+        ha2 = _h(f"{method}:{uri}")
+        response = _h(f"{ha1}:{self.nonce}:{nc}:{cnonce}:auth:{ha2}")
+        parts = [
+            f'username="{username}"',
+            f'realm="{self.realm}"',
+            f'nonce="{self.nonce}"',
+            f'uri="{uri}"',
+            "algorithm=MD5",
+            "qop=auth",
+            f"nc={nc}",
+            f'cnonce="{cnonce}"',
+            f'response="{response}"',
+        ]
+        if self.opaque is not None:
+            parts.append(f'opaque="{self.opaque}"')
+        return "Digest " + ", ".join(parts)
+
+
+def _states(body: Any) -> list[dict[str, Any]]:
+    """The state items of a JSON body, whichever profile shaped it."""
+    if not isinstance(body, dict):
+        return []
+    emb = body.get("_embedded") or {}
+    for key in ("_state", "resources"):
+        if isinstance(emb.get(key), list):
+            return emb[key]
+    if isinstance(body.get("state"), list):
+        return body["state"]
+    return []
+
+
+_LI_RE = re.compile(r'<li class="([^"]+)" title="([^"]*)">(.*?)</li>', re.S)
+_SPAN_RE = re.compile(r'<span class="([^"]+)">(.*?)</span>', re.S)
+
+
+def parse_event_xhtml(text: str) -> list[StateChange]:
+    """Parse an RWS 1.0 subscription event (XHTML fragment) into state changes."""
+    out: list[StateChange] = []
+    for cls, title, inner in _LI_RE.findall(text):
+        spans = {k: html.unescape(v) for k, v in _SPAN_RE.findall(inner)}
+        if cls == "pnl-ctrlstate-ev" and "ctrlstate" in spans:
+            out.append(StateChange("ctrlstate", "ctrlstate", spans["ctrlstate"]))
+        elif cls == "pnl-opmode-ev" and "opmode" in spans:
+            out.append(StateChange("opmode", "opmode", spans["opmode"]))
+        elif cls == "rap-ctrlexecstate-ev" and "ctrlexecstate" in spans:
+            out.append(StateChange("execution", "ctrlexecstate", spans["ctrlexecstate"]))
+        elif cls == "rap-data" and "value" in spans:
+            name = spans.get("name") or html.unescape(title).rstrip("/").split("/")[-1]
+            out.append(StateChange("rapid-data", name, spans["value"]))
+        elif cls == "ios-signalstate-ev" and "lvalue" in spans:
+            name = spans.get("name") or html.unescape(title).split("/")[-1]
+            out.append(StateChange("signal", name, spans["lvalue"]))
+        elif cls == "elog-message-ev":
+            out.append(StateChange("elog", spans.get("seqnum", ""), spans.get("code", "")))
+    return out
+
+
+class RwsClient:
+    """Robot Web Services client; use as ``async with RwsClient(cfg) as rws:`` (logs out on exit)."""
+
+    def __init__(self, config: RwsClientConfig) -> None:
+        if config.profile not in ("rws1", "rws2"):
+            raise ValueError(f"unknown RWS profile {config.profile!r} (use 'rws1' or 'rws2')")
+        if config.timeout_s <= 0:
+            raise ValueError(f"timeout_s must be > 0, got {config.timeout_s}")
+        self.config = config
+        self._base = config.base_url.rstrip("/")
+        self._http: aiohttp.ClientSession | None = None
+        self._digest: _DigestState | None = None
+        self._logged_in = False
+        self._login_lock = asyncio.Lock()
+        self.logins = 0  # how many times credentials were sent to create a session
+
+    # ---- lifecycle ----------------------------------------------------------------------------
+
+    async def __aenter__(self) -> RwsClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    def _session(self) -> aiohttp.ClientSession:
+        if self._http is None or self._http.closed:
+            ssl_arg: ssl.SSLContext | bool = True
+            if self.config.profile == "rws2" or self._base.startswith("https"):
+                if self.config.tls_ca_file:
+                    ssl_arg = ssl.create_default_context(cafile=self.config.tls_ca_file)
+                else:
+                    ssl_arg = False  # the controller's certificate is self-signed
+            # unsafe=True: the controller is addressed by IP, and aiohttp's default jar drops cookies
+            # set by IP hosts, which would open a new session per request.
+            self._http = aiohttp.ClientSession(
+                cookie_jar=aiohttp.CookieJar(unsafe=True),
+                timeout=aiohttp.ClientTimeout(total=self.config.timeout_s),
+                connector=aiohttp.TCPConnector(ssl=ssl_arg, limit=4),
+            )
+        return self._http
+
+    async def close(self) -> None:
+        """Log out (frees the controller session) and close the connection pool."""
+        if self._http is None or self._http.closed:
+            return
+        if self._logged_in:
+            try:
+                await self._request("GET", "/logout", relogin=False)
+            except RwsError as err:
+                log.warning("rws_logout_failed", error=str(err))
+        self._logged_in = False
+        await self._http.close()
+        self._http = None
+
+    # ---- transport ----------------------------------------------------------------------------
+
+    def _headers(self, method: str, has_body: bool) -> dict[str, str]:
+        if self.config.profile == "rws2":
+            h = {"Accept": _V2_JSON}
+            if has_body:
+                h["Content-Type"] = _V2_FORM
+            return h
+        return {"Content-Type": "application/x-www-form-urlencoded"} if has_body else {}
+
+    def _auth_header(self, method: str, path_qs: str) -> str | None:
+        if self.config.profile == "rws2":
+            token = base64.b64encode(f"{self.config.username}:{self.config.password}".encode()).decode()
+            return f"Basic {token}"
+        if self._digest is None:
+            return None
+        return self._digest.header(method, path_qs, self.config.username, self.config.password)
+
+    @staticmethod
+    def _encode_form(form: Sequence[tuple[str, str]] | dict[str, str] | None) -> str | None:
+        if form is None:
+            return None
+        items = form.items() if isinstance(form, dict) else form
+        return "&".join(f"{quote(k, safe='')}={quote(v, safe='')}" for k, v in items)
+
+    def _path_qs(self, path: str, query: dict[str, str] | None) -> str:
+        q = dict(query or {})
+        if self.config.profile == "rws1":
+            q.setdefault("json", "1")
+        if not q:
+            return path
+        return path + "?" + "&".join(f"{quote(k, safe='')}={quote(v, safe='')}" for k, v in q.items())
+
+    async def _request(
+        self,
+        method: str,
+        path: str,
+        *,
+        query: dict[str, str] | None = None,
+        form: Sequence[tuple[str, str]] | dict[str, str] | None = None,
+        relogin: bool = True,
+    ) -> tuple[int, Any, Mapping[str, str]]:
+        """Send one request; handles the 401 challenge, stale sessions and errors. Returns (status, body, headers)."""
+        if not self._logged_in:
+            # One login at a time: concurrent first requests would otherwise each open a session.
+            async with self._login_lock:
+                return await self._send(method, path, query, form, relogin)
+        return await self._send(method, path, query, form, relogin)
+
+    async def _send(
+        self,
+        method: str,
+        path: str,
+        query: dict[str, str] | None,
+        form: Sequence[tuple[str, str]] | dict[str, str] | None,
+        relogin: bool,
+    ) -> tuple[int, Any, Mapping[str, str]]:
+        http = self._session()
+        path_qs = self._path_qs(path, query)
+        body = self._encode_form(form)
+        url = self._base + path_qs
+        sent_credentials = False
+        for _attempt in range(3):
+            headers = self._headers(method, body is not None)
+            auth = None
+            if not self._logged_in or sent_credentials:
+                auth = self._auth_header(method, path_qs)
+            if auth is not None:
+                headers["Authorization"] = auth
+                sent_credentials = True
+            try:
+                async with http.request(method, url, data=body, headers=headers) as resp:
+                    status = resp.status
+                    text = await resp.text()
+                    if status == 401:
+                        challenge = resp.headers.get("WWW-Authenticate", "")
+                        stale = (
+                            "stale" in _auth_params(challenge) and _auth_params(challenge)["stale"] == "true"
+                        )
+                        if auth is not None and not stale:
+                            self._logged_in = False
+                            raise RwsAuthError(
+                                f"login as {self.config.username!r} refused (wrong user name or password?)",
+                                status=401, method=method, path=path,
+                            )  # fmt: skip
+                        if self._logged_in and not relogin:
+                            raise RwsError("session expired", status=401, method=method, path=path)
+                        if self._logged_in:
+                            log.info("rws_session_stale_relogin", path=path)
+                        self._logged_in = False
+                        if challenge.lower().startswith("digest "):
+                            self._digest = _DigestState(_auth_params(challenge[7:]))
+                        elif self.config.profile == "rws1":
+                            raise RwsError(
+                                f"expected a digest challenge, got {challenge!r}",
+                                status=401,
+                                method=method,
+                                path=path,
+                            )
+                        sent_credentials = True
+                        continue
+                    if sent_credentials:
+                        self._logged_in = True
+                        self.logins += 1
+                        sent_credentials = False
+                    elif 200 <= status < 300:
+                        self._logged_in = True
+                    parsed: Any = None
+                    if text and "json" in resp.headers.get("Content-Type", ""):
+                        try:
+                            parsed = await resp.json(content_type=None)
+                        except ValueError as err:
+                            raise RwsError(
+                                f"malformed JSON body: {text[:80]!r}", status=status, method=method, path=path
+                            ) from err
+                    if status >= 400:
+                        raise self._error_from(status, parsed, text, method, path)
+                    return status, parsed, resp.headers
+            except TimeoutError as err:
+                raise RwsTimeoutError(
+                    f"no answer within {self.config.timeout_s} s", method=method, path=path
+                ) from err
+            except aiohttp.ClientError as err:
+                raise RwsError(f"transport error: {err}", method=method, path=path) from err
+        raise RwsAuthError(
+            "login did not complete after repeated challenges", status=401, method=method, path=path
+        )
+
+    @staticmethod
+    def _error_from(status: int, parsed: Any, text: str, method: str, path: str) -> RwsError:
+        code: int | None = None
+        msg = text[:200]
+        if isinstance(parsed, dict):
+            st = parsed.get("status")
+            if isinstance(st, dict):
+                code = st.get("code")
+                msg = st.get("msg", msg)
+            else:
+                items = _states(parsed)
+                if items and "code" in items[0]:
+                    code, msg = items[0].get("code"), items[0].get("msg", msg)
+        if isinstance(code, str):
+            try:
+                code = int(code)
+            except ValueError:
+                code = None
+        cls = RwsBusyError if status == 503 else RwsError
+        return cls(msg, status=status, code=code, method=method, path=path)
+
+    async def _get_state(self, path: str, query: dict[str, str] | None = None) -> dict[str, Any]:
+        _, body, _ = await self._request("GET", path, query=query)
+        items = _states(body)
+        if not items:
+            raise RwsError("answer holds no state item", method="GET", path=path)
+        return items[0]
+
+    def _mutating_query(self) -> dict[str, str]:
+        return {"mastership": "implicit"} if self.config.profile == "rws2" else {}
+
+    async def _action(self, path1: str, action: str, path2: str, form: dict[str, str] | None = None) -> None:
+        if self.config.profile == "rws1":
+            await self._request("POST", path1, query={"action": action}, form=form or {})
+        else:
+            await self._request("POST", path2, query=self._mutating_query(), form=form or {})
+
+    # ---- panel --------------------------------------------------------------------------------
+
+    async def get_ctrl_state(self) -> str:
+        """Controller state: ``motoron``, ``motoroff``, ``guardstop``, ``emergencystop``, ..."""
+        path = "/rw/panel/ctrlstate" if self.config.profile == "rws1" else "/rw/panel/ctrl-state"
+        return str((await self._get_state(path))["ctrlstate"])
+
+    async def set_motors(self, on: bool) -> None:
+        """Motors on / off (the controller must be in AUTO)."""
+        form = {"ctrl-state": "motoron" if on else "motoroff"}
+        await self._action("/rw/panel/ctrlstate", "setctrlstate", "/rw/panel/ctrl-state", form)
+
+    async def motors_on(self) -> None:
+        """Switch the motors on."""
+        await self.set_motors(True)
+
+    async def motors_off(self) -> None:
+        """Switch the motors off."""
+        await self.set_motors(False)
+
+    async def get_opmode(self) -> str:
+        """Operating mode: ``AUTO``, ``MANR``, ``MANF``, ..."""
+        return str((await self._get_state("/rw/panel/opmode"))["opmode"])
+
+    # ---- RAPID execution ----------------------------------------------------------------------
+
+    async def get_execution_state(self) -> ExecutionState:
+        """RAPID execution state."""
+        item = await self._get_state("/rw/rapid/execution")
+        return ExecutionState(str(item["ctrlexecstate"]), str(item.get("cycle", "")))
+
+    async def start_rapid(self, cycle: Literal["once", "forever", "asis"] = "once") -> None:
+        """Start RAPID execution from the program pointer."""
+        form = {
+            "regain": "continue",
+            "execmode": "continue",
+            "cycle": cycle,
+            "condition": "none",
+            "stopatbp": "disabled",
+            "alltaskbytsp": "false",
+        }
+        await self._action("/rw/rapid/execution", "start", "/rw/rapid/execution/start", form)
+
+    async def stop_rapid(self) -> None:
+        """Stop RAPID execution."""
+        await self._action("/rw/rapid/execution", "stop", "/rw/rapid/execution/stop", {"stopmode": "stop"})
+
+    async def reset_pp(self) -> None:
+        """Program pointer to main (program must be stopped)."""
+        await self._action("/rw/rapid/execution", "resetpp", "/rw/rapid/execution/resetpp")
+
+    # ---- RAPID variables ----------------------------------------------------------------------
+
+    def _symbol_path(self, task: str, name: str, module: str | None) -> str:
+        parts = [task, module, name] if module else [task, name]
+        sym = "/".join(quote(p, safe="") for p in parts)
+        if self.config.profile == "rws1":
+            return f"/rw/rapid/symbol/data/RAPID/{sym}"
+        return f"/rw/rapid/symbol/RAPID/{sym}/data"
+
+    async def get_rapid_var(self, task: str, name: str, module: str | None = None) -> str:
+        """Read a RAPID variable as its literal string (e.g. ``"[[0,0,0,0,30,0],[9E+09,...]]"``)."""
+        return str((await self._get_state(self._symbol_path(task, name, module)))["value"])
+
+    async def set_rapid_var(self, task: str, name: str, literal: str, module: str | None = None) -> None:
+        """Write a RAPID variable from a literal string."""
+        path = self._symbol_path(task, name, module)
+        if self.config.profile == "rws1":
+            await self._request("POST", path, query={"action": "set"}, form={"value": literal})
+        else:
+            await self._request("POST", path, query=self._mutating_query(), form={"value": literal})
+
+    async def get_rapid_num(self, task: str, name: str, module: str | None = None) -> float:
+        """Read a ``num``."""
+        return parse_num(await self.get_rapid_var(task, name, module))
+
+    async def set_rapid_num(self, task: str, name: str, value: float, module: str | None = None) -> None:
+        """Write a ``num``."""
+        await self.set_rapid_var(task, name, format_num(value), module)
+
+    async def get_rapid_bool(self, task: str, name: str, module: str | None = None) -> bool:
+        """Read a ``bool``."""
+        return parse_bool(await self.get_rapid_var(task, name, module))
+
+    async def set_rapid_bool(self, task: str, name: str, value: bool, module: str | None = None) -> None:
+        """Write a ``bool``."""
+        await self.set_rapid_var(task, name, format_bool(value), module)
+
+    async def get_rapid_string(self, task: str, name: str, module: str | None = None) -> str:
+        """Read a ``string``."""
+        return parse_string(await self.get_rapid_var(task, name, module))
+
+    async def set_rapid_string(self, task: str, name: str, value: str, module: str | None = None) -> None:
+        """Write a ``string``."""
+        await self.set_rapid_var(task, name, format_string(value), module)
+
+    async def get_rapid_jointtarget(self, task: str, name: str, module: str | None = None) -> JointTarget:
+        """Read a ``jointtarget`` (degrees)."""
+        return parse_jointtarget(await self.get_rapid_var(task, name, module))
+
+    async def set_rapid_jointtarget(
+        self, task: str, name: str, value: JointTarget | np.ndarray, module: str | None = None
+    ) -> None:
+        """Write a ``jointtarget`` from a JointTarget or a (6,) array of degrees."""
+        await self.set_rapid_var(task, name, format_jointtarget(value), module)
+
+    # ---- IO -----------------------------------------------------------------------------------
+
+    @staticmethod
+    def _signal_path(signal: str, network: str | None, device: str | None) -> str:
+        parts = [p for p in (network, device, signal) if p]
+        return "/rw/iosystem/signals/" + "/".join(quote(p, safe="") for p in parts)
+
+    async def get_io(self, signal: str, network: str | None = None, device: str | None = None) -> float:
+        """Read an IO signal's value (0/1 for digital signals)."""
+        item = await self._get_state(self._signal_path(signal, network, device))
+        return float(item["lvalue"])
+
+    async def set_io(
+        self, signal: str, value: float, network: str | None = None, device: str | None = None
+    ) -> None:
+        """Write an IO signal (fails with the controller's code if the access level forbids it)."""
+        path = self._signal_path(signal, network, device)
+        form = {"lvalue": format_num(value)}
+        if self.config.profile == "rws1":
+            await self._request("POST", path, query={"action": "set"}, form=form)
+        else:
+            await self._request("POST", path + "/set-value", query=self._mutating_query(), form=form)
+
+    # ---- event log, position ------------------------------------------------------------------
+
+    async def read_event_log(self, domain: int = 0) -> list[ElogEntry]:
+        """Event-log messages of ``domain``, newest first."""
+        _, body, _ = await self._request("GET", f"/rw/elog/{domain}", query={"lang": "en"})
+        out = []
+        for it in _states(body):
+            seq = it.get("seqnum") or str(it.get("_title", "")).rsplit("/", 1)[-1]
+            out.append(
+                ElogEntry(
+                    seqnum=int(seq),
+                    msgtype=int(it.get("msgtype", 0)),
+                    code=int(it.get("code", 0)),
+                    title=str(it.get("title", "")),
+                    desc=str(it.get("desc", "")),
+                    tstamp=str(it.get("tstamp", "")),
+                )
+            )
+        return out
+
+    async def get_joint_position(self) -> np.ndarray:
+        """Robot joints, (6,) float, degrees."""
+        item = await self._get_state(f"/rw/motionsystem/mechunits/{self.config.mechunit}/jointtarget")
+        return np.array([float(item[f"rax_{i}"]) for i in range(1, 7)])
+
+    async def get_cartesian(self) -> CartesianPose:
+        """Flange pose (tool0) in the base frame."""
+        item = await self._get_state(
+            f"/rw/motionsystem/mechunits/{self.config.mechunit}/robtarget",
+            {"tool": "tool0", "wobj": "wobj0", "coordinate": "Base"},
+        )
+        pos = np.array([float(item[k]) for k in ("x", "y", "z")])
+        quat = np.array([float(item[f"q{i}"]) for i in range(1, 5)])
+        return CartesianPose(pos, quat)
+
+    # ---- state changes ------------------------------------------------------------------------
+
+    async def changes(
+        self,
+        *,
+        ctrl_state: bool = True,
+        opmode: bool = False,
+        execution: bool = True,
+        rapid_vars: Sequence[tuple[str, str]] = (),
+        signals: Sequence[str] = (),
+        elog: bool = False,
+    ) -> AsyncIterator[StateChange]:
+        """Yield state changes as they happen: websocket subscription (rws1) or polling (rws2).
+
+        ``rapid_vars``: ``(task, name)`` pairs. ``signals``: signal names. The iterator runs until the
+        consumer stops it; leaving it (``break`` / cancel) ends the subscription.
+        """
+        if self.config.profile == "rws1":
+            gen = self._ws_changes(ctrl_state, opmode, execution, rapid_vars, signals, elog)
+        else:
+            gen = self._poll_changes(ctrl_state, opmode, execution, rapid_vars, signals, elog)
+        try:
+            async for change in gen:
+                yield change
+        finally:
+            await gen.aclose()
+
+    async def _ws_changes(
+        self,
+        ctrl_state: bool,
+        opmode: bool,
+        execution: bool,
+        rapid_vars: Sequence[tuple[str, str]],
+        signals: Sequence[str],
+        elog: bool,
+    ) -> AsyncIterator[StateChange]:
+        resources = []
+        if ctrl_state:
+            resources.append("/rw/panel/ctrlstate")
+        if opmode:
+            resources.append("/rw/panel/opmode")
+        if execution:
+            resources.append("/rw/rapid/execution;ctrlexecstate")
+        resources += [f"/rw/rapid/symbol/data/RAPID/{t}/{n};value" for t, n in rapid_vars]
+        resources += [f"/rw/iosystem/signals/{s};state" for s in signals]
+        if elog:
+            resources.append("/rw/elog/0")
+        if not resources:
+            raise ValueError("changes(): nothing to subscribe to")
+        form: list[tuple[str, str]] = []
+        for i, res in enumerate(resources, start=1):
+            prio = "2" if res.endswith(";state") else "1"
+            form += [("resources", str(i)), (str(i), res), (f"{i}-p", prio)]
+        failures = 0
+        while True:
+            _, _, headers = await self._request("POST", "/subscription", form=form)
+            location = headers.get("Location", "")
+            if not location:
+                raise RwsError("subscription answer has no Location", method="POST", path="/subscription")
+            ws_path = urlsplit(location).path
+            ws_url = self._base.replace("http", "ws", 1) + ws_path
+            try:
+                async with self._session().ws_connect(
+                    ws_url,
+                    protocols=("robapi2_subscription",),
+                    heartbeat=None,
+                    timeout=aiohttp.ClientWSTimeout(ws_close=2.0),
+                ) as ws:
+                    failures = 0
+                    async for msg in ws:
+                        if msg.type == aiohttp.WSMsgType.TEXT:
+                            for change in parse_event_xhtml(msg.data):
+                                yield change
+                        elif msg.type in (aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.ERROR):
+                            break
+            except aiohttp.ClientError as err:
+                log.warning("rws_subscription_ws_failed", error=str(err))
+            finally:
+                with contextlib.suppress(RwsError, TimeoutError):
+                    await asyncio.wait_for(
+                        self._request("DELETE", f"/subscription/{ws_path.rsplit('/', 1)[-1]}", relogin=False),
+                        self.config.timeout_s,
+                    )
+            # The controller closed the socket (restart, session drop): subscribe again, with backoff.
+            failures += 1
+            if failures > 5:
+                raise RwsError("subscription websocket keeps closing", method="GET", path=ws_path)
+            await asyncio.sleep(min(0.1 * 2**failures, 2.0))
+
+    async def _poll_changes(
+        self,
+        ctrl_state: bool,
+        opmode: bool,
+        execution: bool,
+        rapid_vars: Sequence[tuple[str, str]],
+        signals: Sequence[str],
+        elog: bool,
+    ) -> AsyncIterator[StateChange]:
+        last: dict[tuple[str, str], str] = {}
+        last_seq: int | None = None
+        first = True
+        while True:
+            current: list[StateChange] = []
+            if ctrl_state:
+                current.append(StateChange("ctrlstate", "ctrlstate", await self.get_ctrl_state()))
+            if opmode:
+                current.append(StateChange("opmode", "opmode", await self.get_opmode()))
+            if execution:
+                ex = await self.get_execution_state()
+                current.append(StateChange("execution", "ctrlexecstate", ex.ctrlexecstate))
+            for task, name in rapid_vars:
+                current.append(StateChange("rapid-data", name, await self.get_rapid_var(task, name)))
+            for sig in signals:
+                current.append(StateChange("signal", sig, format_num(await self.get_io(sig))))
+            for ch in current:
+                key = (ch.kind, ch.name)
+                if not first and last.get(key) != ch.value:
+                    yield ch
+                last[key] = ch.value
+            if elog:
+                entries = await self.read_event_log()
+                if last_seq is not None:
+                    for e in reversed([e for e in entries if e.seqnum > last_seq]):
+                        yield StateChange("elog", str(e.seqnum), str(e.code))
+                last_seq = max([e.seqnum for e in entries], default=last_seq or 0)
+            first = False
+            await asyncio.sleep(self.config.poll_interval_s)
