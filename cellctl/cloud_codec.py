@@ -1,0 +1,296 @@
+"""The binary layout of a published cloud (daemon -> analysis worker), and its codec.
+
+One message is one scan. Chosen for speed: a small fixed header, a field table, a UTF-8 JSON
+metadata block, then each array as raw little-endian bytes, 8-byte aligned, so decoding is
+``np.frombuffer`` per field (no per-point work, no copy). Layout version 1::
+
+    offset  size  type     header
+    0       4     bytes    magic b"CCLD"
+    4       2     u16      version (1)
+    6       2     u16      header size in bytes (48)
+    8       8     u64      n_points
+    16      2     u16      n_fields
+    18      2     u16      reserved, 0
+    20      4     u32      meta_len: bytes of the metadata JSON
+    24      8     u64      data_offset: where the first array starts
+    32      8     u64      total_size: the whole message in bytes
+    40      4     u32      CRC-32 of bytes 0..39 + field table + metadata
+    44      4     u32      reserved, 0
+
+    then n_fields entries of 32 bytes:
+    0       16    ascii    field name, NUL padded
+    16      1     u8       dtype code (1 f32, 2 f64, 3 u8, 4 u16, 5 u32, 6 u64)
+    17      1     u8       components per point
+    18      6     -        reserved, 0
+    24      8     u64      offset of the array from the start of the message (multiple of 8)
+
+    then meta_len bytes of JSON: {"job_id": str, "plate_id": str, ...}
+
+Fields (fixed dtype each; ``xyz_mm`` required, the others optional):
+``xyz_mm`` f32 x3 (mm, robot base frame), ``pass_id`` u16, ``profile_index`` u32,
+``point_index`` u16, ``t_s`` f64 (s, cell clock). Arrays follow in table order, without overlap.
+The payload itself is not checksummed: Zenoh runs over TCP, which already is.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+MAGIC = b"CCLD"
+VERSION = 1
+HEADER = struct.Struct("<4sHHQHHIQQII")
+FIELD_ENTRY = struct.Struct("<16sBB6xQ")
+HEADER_SIZE = HEADER.size  # 48
+MAX_META_BYTES = 64 * 1024
+MAX_FIELDS = 16
+ALIGN = 8
+ENCODING = "application/x-cellctl-cloud"
+
+_DTYPE_CODES: dict[int, np.dtype] = {
+    1: np.dtype("<f4"),
+    2: np.dtype("<f8"),
+    3: np.dtype("u1"),
+    4: np.dtype("<u2"),
+    5: np.dtype("<u4"),
+    6: np.dtype("<u8"),
+}
+_CODE_OF = {dt: code for code, dt in _DTYPE_CODES.items()}
+# name -> (dtype, components)
+FIELDS: dict[str, tuple[np.dtype, int]] = {
+    "xyz_mm": (np.dtype("<f4"), 3),
+    "pass_id": (np.dtype("<u2"), 1),
+    "profile_index": (np.dtype("<u4"), 1),
+    "point_index": (np.dtype("<u2"), 1),
+    "t_s": (np.dtype("<f8"), 1),
+}
+OPTIONAL_FIELDS = ("pass_id", "profile_index", "point_index", "t_s")
+
+
+class CloudFormatError(ValueError):
+    """A cloud message (or a cloud to encode) that breaks the layout; names the field or byte offset."""
+
+    def __init__(self, message: str, *, field: str | None = None, offset: int | None = None) -> None:
+        self.field = field
+        self.offset = offset
+        where = []
+        if field is not None:
+            where.append(f"field {field!r}")
+        if offset is not None:
+            where.append(f"byte {offset}")
+        super().__init__(f"{message} ({', '.join(where)})" if where else message)
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """One assembled scan.
+
+    xyz_mm: (n, 3) float32, mm, robot base frame. Optional per-point arrays, each (n,):
+    pass_id uint16, profile_index uint32, point_index uint16 (index inside its profile),
+    t_s float64 (exposure time, s). ``meta`` holds further JSON-able metadata.
+    """
+
+    xyz_mm: np.ndarray
+    job_id: str
+    plate_id: str
+    pass_id: np.ndarray | None = None
+    profile_index: np.ndarray | None = None
+    point_index: np.ndarray | None = None
+    t_s: np.ndarray | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_points(self) -> int:
+        return int(self.xyz_mm.shape[0])
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The present per-point arrays by field name (xyz_mm first)."""
+        out = {"xyz_mm": self.xyz_mm}
+        for name in OPTIONAL_FIELDS:
+            arr = getattr(self, name)
+            if arr is not None:
+                out[name] = arr
+        return out
+
+
+def _pad(n: int) -> int:
+    return (n + ALIGN - 1) // ALIGN * ALIGN
+
+
+def _check_array(name: str, arr: Any, n: int | None) -> np.ndarray:
+    dtype, comps = FIELDS[name]
+    a = np.asarray(arr)
+    want = (a.shape[0] if n is None else n, comps) if comps > 1 else (a.shape[0] if n is None else n,)
+    if a.ndim != len(want) or a.shape != want:
+        raise CloudFormatError(f"expected shape {want}, got {a.shape}", field=name)
+    if a.dtype != dtype:
+        if dtype.kind in "ui" and a.dtype.kind not in "uib":
+            raise CloudFormatError(f"expected integers ({dtype}), got {a.dtype}", field=name)
+        if dtype.kind in "ui" and a.size and (a.min() < 0 or a.max() > np.iinfo(dtype).max):
+            raise CloudFormatError(f"values outside the range of {dtype}", field=name)
+        a = a.astype(dtype)
+    return a
+
+
+def encode_cloud(cloud: Cloud) -> bytearray:
+    """Serialise a cloud into one message (layout above). Raises CloudFormatError on bad arrays.
+
+    Cost: one copy of each array into the output buffer.
+    """
+    xyz = _check_array("xyz_mm", cloud.xyz_mm, None)
+    n = xyz.shape[0]
+    if not np.isfinite(xyz).all():
+        raise CloudFormatError("non-finite coordinates", field="xyz_mm")
+    arrays = {"xyz_mm": xyz}
+    for name in OPTIONAL_FIELDS:
+        arr = getattr(cloud, name)
+        if arr is not None:
+            arrays[name] = _check_array(name, arr, n)
+    if "t_s" in arrays and not np.isfinite(arrays["t_s"]).all():
+        raise CloudFormatError("non-finite times", field="t_s")
+    meta = {**cloud.meta, "job_id": str(cloud.job_id), "plate_id": str(cloud.plate_id)}
+    try:
+        meta_bytes = json.dumps(meta, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    except (TypeError, ValueError) as exc:
+        raise CloudFormatError(f"metadata is not JSON-serialisable: {exc}", field="meta") from None
+    if len(meta_bytes) > MAX_META_BYTES:
+        raise CloudFormatError(f"metadata is {len(meta_bytes)} bytes, limit {MAX_META_BYTES}", field="meta")
+
+    table_size = FIELD_ENTRY.size * len(arrays)
+    data_offset = _pad(HEADER_SIZE + table_size + len(meta_bytes))
+    offsets = {}
+    pos = data_offset
+    for name, arr in arrays.items():
+        offsets[name] = pos
+        pos = _pad(pos + arr.nbytes)
+    total = pos
+    out = bytearray(total)
+    table = b"".join(
+        FIELD_ENTRY.pack(name.encode("ascii"), _CODE_OF[arr.dtype], FIELDS[name][1], offsets[name])
+        for name, arr in arrays.items()
+    )
+    head = HEADER.pack(
+        MAGIC, VERSION, HEADER_SIZE, n, len(arrays), 0, len(meta_bytes), data_offset, total, 0, 0
+    )
+    crc = zlib.crc32(head[:40] + table + meta_bytes)
+    out[:HEADER_SIZE] = head[:40] + struct.pack("<II", crc, 0)
+    out[HEADER_SIZE : HEADER_SIZE + table_size] = table
+    out[HEADER_SIZE + table_size : HEADER_SIZE + table_size + len(meta_bytes)] = meta_bytes
+    for name, arr in arrays.items():
+        dst = np.frombuffer(out, dtype=arr.dtype, count=arr.size, offset=offsets[name])
+        dst[:] = arr.reshape(-1)
+    return out
+
+
+def decode_cloud(buf: bytes | bytearray | memoryview, *, check_finite: bool = True) -> Cloud:
+    """Parse one message into a Cloud; the arrays are views into ``buf`` (no copy).
+
+    Every header value is checked against the buffer before any array is built. Raises
+    CloudFormatError naming the field or byte offset of the first problem.
+    """
+    mv = memoryview(buf).cast("B")
+    size = mv.nbytes
+    if size < HEADER_SIZE:
+        raise CloudFormatError(
+            f"message is {size} bytes, shorter than the {HEADER_SIZE}-byte header", offset=0
+        )
+    (magic, version, header_size, n, n_fields, reserved, meta_len, data_offset, total, crc, reserved2) = (
+        HEADER.unpack_from(mv, 0)
+    )
+    if magic != MAGIC:
+        raise CloudFormatError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}", field="magic", offset=0)
+    if version != VERSION:
+        raise CloudFormatError(
+            f"unsupported version {version}, this reader speaks {VERSION}", field="version", offset=4
+        )
+    if header_size != HEADER_SIZE:
+        raise CloudFormatError(
+            f"header size {header_size}, expected {HEADER_SIZE}", field="header_size", offset=6
+        )
+    if reserved or reserved2:
+        raise CloudFormatError("reserved header bytes are not zero", field="reserved", offset=18)
+    if total != size:
+        raise CloudFormatError(
+            f"header says {total} bytes, message has {size}", field="total_size", offset=32
+        )
+    if not 1 <= n_fields <= MAX_FIELDS:
+        raise CloudFormatError(f"{n_fields} fields, expected 1..{MAX_FIELDS}", field="n_fields", offset=16)
+    if meta_len > MAX_META_BYTES:
+        raise CloudFormatError(
+            f"metadata length {meta_len} over {MAX_META_BYTES}", field="meta_len", offset=20
+        )
+    table_end = HEADER_SIZE + FIELD_ENTRY.size * n_fields
+    meta_end = table_end + meta_len
+    if meta_end > size or data_offset < meta_end or data_offset % ALIGN or data_offset > size:
+        raise CloudFormatError(
+            f"data offset {data_offset} inconsistent with table/metadata end {meta_end} and size {size}",
+            field="data_offset",
+            offset=24,
+        )
+    if zlib.crc32(bytes(mv[:40]) + bytes(mv[HEADER_SIZE:meta_end])) != crc:
+        raise CloudFormatError("header checksum mismatch", field="header_crc", offset=40)
+    try:
+        meta = json.loads(bytes(mv[table_end:meta_end]).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CloudFormatError(f"metadata is not UTF-8 JSON: {exc}", field="meta", offset=table_end) from None
+    if (
+        not isinstance(meta, dict)
+        or not isinstance(meta.get("job_id"), str)
+        or not isinstance(meta.get("plate_id"), str)
+    ):
+        raise CloudFormatError("metadata must be an object with string job_id and plate_id", field="meta")
+
+    arrays: dict[str, np.ndarray] = {}
+    cursor = data_offset
+    for i in range(n_fields):
+        at = HEADER_SIZE + i * FIELD_ENTRY.size
+        raw_name, code, comps, offset = FIELD_ENTRY.unpack_from(mv, at)
+        name = raw_name.rstrip(b"\0").decode("ascii", errors="replace")
+        if name not in FIELDS:
+            raise CloudFormatError(f"unknown field name {name!r}", field=name, offset=at)
+        if name in arrays:
+            raise CloudFormatError("field appears twice", field=name, offset=at)
+        dtype, want_comps = FIELDS[name]
+        if _DTYPE_CODES.get(code) != dtype or comps != want_comps:
+            raise CloudFormatError(
+                f"dtype code {code} x{comps}, expected {dtype} x{want_comps}", field=name, offset=at + 16
+            )
+        nbytes = n * comps * dtype.itemsize
+        if offset % ALIGN or offset < cursor or offset + nbytes > size:
+            raise CloudFormatError(
+                f"array at {offset}+{nbytes} overlaps, is unaligned, or runs past the {size}-byte message",
+                field=name,
+                offset=at + 24,
+            )
+        arr = np.frombuffer(mv, dtype=dtype, count=n * comps, offset=offset)
+        arrays[name] = arr.reshape(n, comps) if comps > 1 else arr
+        cursor = offset + nbytes
+    if "xyz_mm" not in arrays:
+        raise CloudFormatError("required field is missing", field="xyz_mm")
+    if check_finite and not np.isfinite(arrays["xyz_mm"]).all():
+        raise CloudFormatError("non-finite coordinates", field="xyz_mm")
+    extra = {k: v for k, v in meta.items() if k not in ("job_id", "plate_id")}
+    return Cloud(job_id=meta["job_id"], plate_id=meta["plate_id"], meta=extra, **arrays)
+
+
+def peek_meta(buf: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """Only the metadata (job_id, plate_id, ...) and n_points, without touching the arrays."""
+    mv = memoryview(buf).cast("B")
+    if mv.nbytes < HEADER_SIZE or bytes(mv[:4]) != MAGIC:
+        raise CloudFormatError("not a cloud message", field="magic", offset=0)
+    _, _, _, n, n_fields, _, meta_len, _, _, _, _ = HEADER.unpack_from(mv, 0)
+    start = HEADER_SIZE + FIELD_ENTRY.size * n_fields
+    if n_fields > MAX_FIELDS or meta_len > MAX_META_BYTES or start + meta_len > mv.nbytes:
+        raise CloudFormatError("header inconsistent with message size", field="meta_len", offset=20)
+    try:
+        meta = json.loads(bytes(mv[start : start + meta_len]).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CloudFormatError(f"metadata is not UTF-8 JSON: {exc}", field="meta", offset=start) from None
+    if not isinstance(meta, dict):
+        raise CloudFormatError("metadata must be a JSON object", field="meta", offset=start)
+    return {**meta, "n_points": int(n)}
