@@ -232,7 +232,7 @@ class AnalysisSection(Section):
 
 
 class SimPlate(Section):
-    kind: Literal["sail", "saddle", "twisted", "cylindrical", "flat"] = "sail"
+    kind: Literal["sail", "saddle", "twisted", "cylinder", "flat"] = "sail"
     length_mm: PositiveFloat = 1200.0
     width_mm: PositiveFloat = 800.0
     thickness_mm: PositiveFloat = 15.0
