@@ -15,8 +15,10 @@ What the EGM simulator needs from here (the contract with ``sim_egm.py``):
 - ``egm_session_ended(reason, event_code)``: call it when the session ends on the EGM side
   (communication timeout -> 41822, a guidance error such as a joint-limit or speed-deviation
   violation -> its event code). The model logs the event, runs the module's error handler
-  (``egm_status`` := -event_code) and ends the program (RAPID stopped, PP back at main), as the
-  RAPID module in ``drivers/abb_egm/rapid/CellEgm.mod`` does.
+  (``egm_status`` := -41822 for the timeout, -1 otherwise) and ends the program (RAPID stopped, PP
+  back at main), as the RAPID module in ``drivers/abb_egm/rapid/CellEgm.mod`` does. While the
+  program is merely stopped or the motors are off, ``egm_wanted`` is False and the session is
+  suspended (MCI stopped), not ended: a restart continues it.
 - ``set_position_source(fn)``: ``fn()`` returns ``(q_deg (6,), pos_mm (3,), quat_wxyz (4,))`` of the
   flange in the base frame; the RWS position endpoints read through it.
 - ``subscribe(cb)``: ``cb(kind, data)`` on every change; kinds are ``"ctrlstate"``, ``"opmode"``,
@@ -69,6 +71,8 @@ VAR_SAMPLE_RATE = "egm_sample_rate_ms"
 STATUS_IDLE = 0
 STATUS_RUNNING = 1
 STATUS_ENDED = 2
+STATUS_EGM_ERROR = -1
+SIGNAL_END = "DO_EGM_END"
 
 # Event log codes. 41822 is documented (reference §2.5); 10010..10013 are the controller's
 # motors-off / motors-on / guard-stop / emergency-stop state messages as commonly seen in IRC5
@@ -381,7 +385,7 @@ class ControllerModel:
 
     def _define_signals(self) -> None:
         # A DO the daemon may use instead of the variable, and a read-only DI (e.g. a bed sensor).
-        self.define_signal(IoSignal("DO_EGM_END", "DO"))
+        self.define_signal(IoSignal(SIGNAL_END, "DO"))
         self.define_signal(IoSignal("DI_PLATE_PRESENT", "DI", writable=False))
 
     def define_var(
@@ -578,6 +582,11 @@ class ControllerModel:
         self._phase = "main"
         self._egm_params = None
         self._write_var_internal(VAR_STATUS, format_num(status))
+        # CleanUp in CellEgm.mod clears the end signal.
+        end_sig = self._signals.get(SIGNAL_END)
+        if end_sig is not None and end_sig.lvalue != 0:
+            end_sig.lvalue = 0.0
+            self._notify("signal", {"name": SIGNAL_END, "lvalue": 0.0})
         was_running = self._rapid_state == "running"
         self._rapid_state = "stopped"
         log.info("rapid_program_finished", status=status, reason=reason)
@@ -609,15 +618,18 @@ class ControllerModel:
     def egm_session_ended(self, reason: str, event_code: int | None) -> None:
         """The EGM side ended the session (41822 comm timeout, or a guidance error with its event code).
 
-        Logs the event, then does what CellEgm.mod's error handler does: ``egm_status := -code``,
-        EGMReset, main ends, program stopped with PP at main.
+        Logs the event, then does what CellEgm.mod's error handler does: ``egm_status := -41822`` for a
+        communication timeout, ``-1`` for any other EGM error; EGMReset; the program stops with PP at
+        main. (While ``egm_wanted`` is False because the program was stopped or the motors went off,
+        the session is only suspended, as on the controller: do not call this then.)
         """
         if event_code is not None:
             title = "No data from the UdpUc device" if event_code == EVENT_EGM_COMM_TIMEOUT else "EGM error"
             self.log_event(event_code, title, reason, "error")
         if self._phase != "egm":
             return
-        self._finish_program(-(event_code or 1), reason)
+        status = -EVENT_EGM_COMM_TIMEOUT if event_code == EVENT_EGM_COMM_TIMEOUT else STATUS_EGM_ERROR
+        self._finish_program(status, reason)
 
     # ---- RAPID variables ----------------------------------------------------------------------
 
@@ -724,13 +736,7 @@ class ControllerModel:
         sig.lvalue = float(value)
         self._notify("signal", {"name": name, "lvalue": sig.lvalue})
         # CellEgm.mod also ends the session on a rising DO_EGM_END (a signal for cells that prefer IO).
-        if (
-            name == "DO_EGM_END"
-            and sig.lvalue == 1
-            and self._phase == "egm"
-            and self._rapid_state == "running"
-        ):
-            self._write_var_internal(self.end_var, "TRUE")
+        if name == SIGNAL_END and sig.lvalue == 1 and self._phase == "egm" and self._rapid_state == "running":
             self._finish_program(STATUS_ENDED, "end signal set")
 
     @property
