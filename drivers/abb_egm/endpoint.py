@@ -1,0 +1,687 @@
+"""EGM endpoint, sensor side: an asyncio datagram protocol that answers the controller in phase.
+
+The controller is the UDP client. It sends one ``EgmRobot`` every 4 ms (4.032 ms on a real
+robot); this endpoint learns the controller's address from the first packet and answers every valid
+``EgmRobot`` at once with one ``EgmSensor`` (``MSGTYPE_CORRECTION``, seqno + 1 per reply) carrying the
+current reference, in joint mode (planned joints, optional speed reference) or pose mode.
+
+Besides the reply it keeps:
+
+- the latest controller state (:class:`EgmState`) and the "ok to command" rule;
+- a bounded history of feedback samples stamped with the host receive time (``time.monotonic_ns``)
+  and the controller's own clock, exposed as numpy arrays for pose interpolation
+  (:class:`FeedbackHistory`);
+- statistics (:class:`EgmStatistics`): received, lost, duplicated, out-of-order, malformed, receive
+  interval jitter, reply latency histogram;
+- a watchdog that reports when the controller goes quiet and when it comes back.
+
+A malformed datagram is counted and logged (rate limited) and never ends the endpoint.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import structlog
+
+from drivers.abb_egm.codec import (
+    EgmDecodeError,
+    EgmEncodeError,
+    MciState,
+    MotorState,
+    RapidState,
+    RobotMessage,
+    SensorMessage,
+    decode_robot,
+    encode_sensor,
+)
+
+__all__ = [
+    "LATENCY_BIN_EDGES_US",
+    "EgmEndpoint",
+    "EgmEndpointConfig",
+    "EgmEndpointError",
+    "EgmState",
+    "EgmStatistics",
+    "FeedbackArrays",
+    "FeedbackHistory",
+    "HistoryRangeError",
+    "ok_to_command",
+]
+
+log = structlog.get_logger(__name__)
+
+_U32 = 2**32
+#: reply latency histogram bin edges (us); the last bin is open ended
+LATENCY_BIN_EDGES_US = np.array([0, 20, 50, 100, 200, 500, 1000, 2000, 4000, 10000], dtype=np.int64)
+
+
+class EgmEndpointError(Exception):
+    """The endpoint cannot do what was asked (not started, bad reference shape, ...)."""
+
+
+class HistoryRangeError(EgmEndpointError, ValueError):
+    """An interpolation time lies outside the feedback history that is still kept."""
+
+
+@dataclass(frozen=True)
+class EgmEndpointConfig:
+    """Settings of the sensor-side EGM endpoint (cell.toml ``[robot]`` egm_* keys).
+
+    ``watchdog_s``: no ``EgmRobot`` for this long raises the watchdog event.
+    ``history_len``: feedback samples kept (30 000 = 120 s at 250 Hz).
+    ``malformed_log_interval_s``: at most one log line per interval for malformed packets.
+    ``jitter_window``: receive intervals kept for the jitter figure.
+    ``n_axes``: joints in the reference (6 for the IRB 4600).
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 6511
+    watchdog_s: float = 0.1
+    history_len: int = 30_000
+    malformed_log_interval_s: float = 1.0
+    jitter_window: int = 2_500
+    n_axes: int = 6
+
+
+def ok_to_command(
+    motor_state: MotorState | None, mci_state: MciState | None, rapid_state: RapidState | None
+) -> bool:
+    """abb_libegm's rule: motors on, EGM running, and RAPID running or undefined.
+
+    RAPID_UNDEFINED is accepted because controllers report it after a restart while RAPID runs.
+    """
+    return (
+        motor_state == MotorState.ON
+        and mci_state == MciState.RUNNING
+        and rapid_state in (RapidState.RUNNING, RapidState.UNDEFINED, None)
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class EgmState:
+    """The latest ``EgmRobot`` as the endpoint saw it.
+
+    ``t_host_ns``: host receive time (``time.monotonic_ns``); ``feedback_time_us``: controller clock
+    (us since the epoch) or None; ``q_deg`` (n_axes,) deg; ``pos_mm`` (3,) and ``quat_wxyz`` (4,) or None.
+    """
+
+    seqno: int | None
+    tm_ms: int | None
+    t_host_ns: int
+    q_deg: np.ndarray
+    pos_mm: np.ndarray | None
+    quat_wxyz: np.ndarray | None
+    feedback_time_us: int | None
+    planned_q_deg: np.ndarray | None
+    motor_state: MotorState | None
+    mci_state: MciState | None
+    rapid_exec_state: RapidState | None
+    convergence_met: bool | None
+    utilization_pct: float | None
+
+    @property
+    def ok_to_command(self) -> bool:
+        """Motors on, EGM running, RAPID running (or undefined)."""
+        return ok_to_command(self.motor_state, self.mci_state, self.rapid_exec_state)
+
+
+@dataclass(frozen=True, slots=True)
+class FeedbackArrays:
+    """A chronological copy of the feedback history (n samples).
+
+    ``t_host_ns`` (n,) int64 host receive time, ``t_ctrl_us`` (n,) int64 controller clock (-1 where the
+    controller sent none), ``seqno`` (n,) int64, ``q_deg`` (n, n_axes) deg, ``pos_mm`` (n, 3) mm and
+    ``quat_wxyz`` (n, 4) (NaN where the controller sent no pose).
+    """
+
+    t_host_ns: np.ndarray
+    t_ctrl_us: np.ndarray
+    seqno: np.ndarray
+    q_deg: np.ndarray
+    pos_mm: np.ndarray
+    quat_wxyz: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t_host_ns.shape[0])
+
+
+class FeedbackHistory:
+    """Bounded ring buffer of feedback samples; appends are O(1), reads return numpy copies.
+
+    Thread-safe (a lock guards append and copy) so acquisition code in another thread can read it.
+    """
+
+    def __init__(self, capacity: int, n_axes: int = 6) -> None:
+        if capacity < 2:
+            raise ValueError(f"history capacity must be >= 2, got {capacity}")
+        self.capacity = capacity
+        self._t_host_ns = np.zeros(capacity, dtype=np.int64)
+        self._t_ctrl_us = np.full(capacity, -1, dtype=np.int64)
+        self._seqno = np.zeros(capacity, dtype=np.int64)
+        self._q_deg = np.zeros((capacity, n_axes))
+        self._pos_mm = np.full((capacity, 3), np.nan)
+        self._quat = np.full((capacity, 4), np.nan)
+        self._next = 0
+        self._count = 0
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return self._count
+
+    def append(
+        self,
+        t_host_ns: int,
+        t_ctrl_us: int | None,
+        seqno: int | None,
+        q_deg: np.ndarray,
+        pos_mm: np.ndarray | None,
+        quat_wxyz: np.ndarray | None,
+    ) -> None:
+        """Add one sample (called by the endpoint for every in-order ``EgmRobot``)."""
+        with self._lock:
+            i = self._next
+            self._t_host_ns[i] = t_host_ns
+            self._t_ctrl_us[i] = -1 if t_ctrl_us is None else t_ctrl_us
+            self._seqno[i] = -1 if seqno is None else seqno
+            n = min(q_deg.shape[0], self._q_deg.shape[1])
+            self._q_deg[i, :n] = q_deg[:n]
+            self._pos_mm[i] = np.nan if pos_mm is None else pos_mm
+            self._quat[i] = np.nan if quat_wxyz is None else quat_wxyz
+            self._next = (i + 1) % self.capacity
+            self._count = min(self._count + 1, self.capacity)
+
+    def clear(self) -> None:
+        """Forget every sample."""
+        with self._lock:
+            self._next = 0
+            self._count = 0
+
+    def arrays(self) -> FeedbackArrays:
+        """All kept samples, oldest first, as numpy copies."""
+        with self._lock:
+            if self._count < self.capacity:
+                idx = np.arange(self._count)
+            else:
+                idx = (np.arange(self.capacity) + self._next) % self.capacity
+            return FeedbackArrays(
+                t_host_ns=self._t_host_ns[idx],
+                t_ctrl_us=self._t_ctrl_us[idx],
+                seqno=self._seqno[idx],
+                q_deg=self._q_deg[idx],
+                pos_mm=self._pos_mm[idx],
+                quat_wxyz=self._quat[idx],
+            )
+
+    def q_deg_at(self, t: np.ndarray, *, time_base: str = "host") -> np.ndarray:
+        """Joint angles linearly interpolated at times ``t``.
+
+        Args:
+            t: (m,) times; int64 ns of ``time.monotonic_ns`` for ``time_base="host"``, int64 us of the
+                controller clock for ``time_base="controller"``.
+
+        Returns:
+            (m, n_axes) deg.
+
+        Raises:
+            HistoryRangeError: a time before the oldest or after the newest kept sample, or a
+                controller time base when the controller sent no clock.
+        """
+        a = self.arrays()
+        if time_base == "host":
+            ts = a.t_host_ns
+        elif time_base == "controller":
+            ts = a.t_ctrl_us
+            if len(a) and np.any(ts < 0):
+                raise HistoryRangeError("the controller sent no feedback time; use time_base='host'")
+        else:
+            raise ValueError(f"time_base must be 'host' or 'controller', got {time_base!r}")
+        return _interp_rows(np.asarray(t, dtype=np.int64), ts, a.q_deg)
+
+
+def _interp_rows(t: np.ndarray, ts: np.ndarray, values: np.ndarray) -> np.ndarray:
+    if ts.shape[0] < 2:
+        raise HistoryRangeError(f"need at least 2 samples to interpolate, have {ts.shape[0]}")
+    t = np.atleast_1d(t)
+    if t.size and (t.min() < ts[0] or t.max() > ts[-1]):
+        raise HistoryRangeError(f"times [{t.min()}, {t.max()}] outside the history [{ts[0]}, {ts[-1]}]")
+    # integer times: subtract the origin before going to float so ns precision survives
+    tf = (t - ts[0]).astype(np.float64)
+    tsf = (ts - ts[0]).astype(np.float64)
+    i = np.clip(np.searchsorted(tsf, tf, side="right") - 1, 0, tsf.shape[0] - 2)
+    span = tsf[i + 1] - tsf[i]
+    w = np.divide(tf - tsf[i], span, out=np.zeros_like(tf), where=span > 0)[:, None]
+    return values[i] * (1.0 - w) + values[i + 1] * w
+
+
+@dataclass
+class EgmStatistics:
+    """Counters of the endpoint. ``lost`` counts seqno gaps and shrinks when a late packet fills one."""
+
+    received: int = 0
+    replies_sent: int = 0
+    lost: int = 0
+    duplicated: int = 0
+    out_of_order: int = 0
+    malformed: int = 0
+    sessions: int = 0
+    watchdog_events: int = 0
+    send_errors: int = 0
+    latency_counts: np.ndarray = field(
+        default_factory=lambda: np.zeros(LATENCY_BIN_EDGES_US.shape[0], dtype=np.int64)
+    )
+    latency_max_us: float = 0.0
+    _intervals_us: deque = field(default_factory=lambda: deque(maxlen=2_500))
+
+    def receive_interval_us(self) -> np.ndarray:
+        """Recent receive intervals between consecutive in-order ``EgmRobot`` messages, us."""
+        return np.fromiter(self._intervals_us, dtype=np.float64, count=len(self._intervals_us))
+
+    def snapshot(self) -> dict:
+        """A plain dict for logs and status publications."""
+        iv = self.receive_interval_us()
+        return {
+            "received": self.received,
+            "replies_sent": self.replies_sent,
+            "lost": self.lost,
+            "duplicated": self.duplicated,
+            "out_of_order": self.out_of_order,
+            "malformed": self.malformed,
+            "sessions": self.sessions,
+            "watchdog_events": self.watchdog_events,
+            "send_errors": self.send_errors,
+            "interval_mean_us": float(iv.mean()) if iv.size else None,
+            "interval_jitter_us": float(iv.std()) if iv.size else None,
+            "interval_max_us": float(iv.max()) if iv.size else None,
+            "latency_bins_us": LATENCY_BIN_EDGES_US.tolist(),
+            "latency_counts": self.latency_counts.tolist(),
+            "latency_max_us": self.latency_max_us,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class _Reference:
+    mode: str  # "joint" | "pose"
+    q_deg: np.ndarray | None = None
+    speed_deg_s: np.ndarray | None = None
+    pos_mm: np.ndarray | None = None
+    quat_wxyz: np.ndarray | None = None
+    speed_cart: np.ndarray | None = None
+
+
+WatchdogCallback = Callable[[str, float], None]
+
+
+class EgmEndpoint(asyncio.DatagramProtocol):
+    """Sensor-side EGM server. Use ``await start()``, then ``command_joints`` / ``command_pose``.
+
+    Args:
+        config: address and sizes.
+        on_watchdog: ``cb(event, quiet_s)`` with event ``"quiet"`` when no ``EgmRobot`` came for
+            ``watchdog_s`` and ``"resumed"`` when traffic returns. Called on the event loop.
+        clock_ns: host clock, ``time.monotonic_ns`` (replaceable for tests of the history only).
+    """
+
+    def __init__(
+        self,
+        config: EgmEndpointConfig | None = None,
+        *,
+        on_watchdog: WatchdogCallback | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.config = config or EgmEndpointConfig()
+        self.stats = EgmStatistics(_intervals_us=deque(maxlen=self.config.jitter_window))
+        self.history = FeedbackHistory(self.config.history_len, self.config.n_axes)
+        self._on_watchdog = on_watchdog
+        self._clock_ns = clock_ns
+        self._transport: asyncio.DatagramTransport | None = None
+        self._controller_addr: tuple[str, int] | None = None
+        self._latest: EgmState | None = None
+        self._reference: _Reference | None = None
+        self._last_seqno: int | None = None
+        self._recent: deque[int] = deque(maxlen=256)
+        self._reply_seqno = 0
+        self._last_rx_ns: int | None = None
+        self._quiet = False
+        self._watchdog_handle: asyncio.TimerHandle | None = None
+        self._malformed_logged_ns = -(10**18)
+        self._malformed_suppressed = 0
+        self._feedback_waiters: list[asyncio.Future] = []
+
+    # ---- lifecycle ----------------------------------------------------------------------------
+
+    async def start(self) -> tuple[str, int]:
+        """Bind the configured host/port (port 0 picks a free one); returns the bound address."""
+        if self._transport is not None:
+            raise EgmEndpointError("endpoint already started")
+        loop = asyncio.get_running_loop()
+        await loop.create_datagram_endpoint(lambda: self, local_addr=(self.config.host, self.config.port))
+        self._schedule_watchdog()
+        addr = self.local_address
+        log.info("egm_endpoint_started", host=addr[0], port=addr[1])
+        return addr
+
+    async def close(self) -> None:
+        """Stop answering and release the socket."""
+        if self._watchdog_handle is not None:
+            self._watchdog_handle.cancel()
+            self._watchdog_handle = None
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+            log.info("egm_endpoint_closed", **self.stats.snapshot())
+        for fut in self._feedback_waiters:
+            if not fut.done():
+                fut.set_exception(EgmEndpointError("endpoint closed"))
+        self._feedback_waiters.clear()
+
+    async def __aenter__(self) -> EgmEndpoint:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        """(host, port) the endpoint listens on."""
+        if self._transport is None:
+            raise EgmEndpointError("endpoint not started")
+        return self._transport.get_extra_info("sockname")[:2]
+
+    @property
+    def controller_address(self) -> tuple[str, int] | None:
+        """Where the controller sends from (learnt from its first packet), or None."""
+        return self._controller_addr
+
+    @property
+    def latest(self) -> EgmState | None:
+        """The latest in-order controller state, or None before the first packet."""
+        return self._latest
+
+    @property
+    def ok_to_command(self) -> bool:
+        """True when the latest state has motors on, EGM running and RAPID running (or undefined)."""
+        return self._latest is not None and self._latest.ok_to_command
+
+    @property
+    def quiet(self) -> bool:
+        """True while the watchdog considers the controller silent."""
+        return self._quiet
+
+    async def wait_for_feedback(self, timeout_s: float) -> EgmState:
+        """Wait for the next in-order ``EgmRobot``; raises ``TimeoutError`` after ``timeout_s``."""
+        fut = asyncio.get_running_loop().create_future()
+        self._feedback_waiters.append(fut)
+        try:
+            return await asyncio.wait_for(fut, timeout_s)
+        finally:
+            if fut in self._feedback_waiters:
+                self._feedback_waiters.remove(fut)
+
+    # ---- references ---------------------------------------------------------------------------
+
+    def command_joints(self, q_deg: np.ndarray, speed_deg_s: np.ndarray | None = None) -> None:
+        """Joint mode: from the next reply on, send ``q_deg`` (n_axes,) deg and the optional feed-forward
+        ``speed_deg_s`` (n_axes,) deg/s as ``planned.joints`` / ``speedRef.joints``."""
+        q = self._vector(q_deg, self.config.n_axes, "q_deg")
+        qd = None if speed_deg_s is None else self._vector(speed_deg_s, self.config.n_axes, "speed_deg_s")
+        self._reference = _Reference("joint", q_deg=q, speed_deg_s=qd)
+
+    def command_pose(
+        self, pos_mm: np.ndarray, quat_wxyz: np.ndarray, speed_ref: np.ndarray | None = None
+    ) -> None:
+        """Pose mode: send ``pos_mm`` (3,) mm and ``quat_wxyz`` (4,) as ``planned.cartesian``, with an
+        optional ``speed_ref`` (6,) mm/s and deg/s as ``speedRef.cartesians``."""
+        p = self._vector(pos_mm, 3, "pos_mm")
+        quat = self._vector(quat_wxyz, 4, "quat_wxyz")
+        norm = float(np.linalg.norm(quat))
+        if norm < 1e-9:
+            raise EgmEndpointError("quat_wxyz must not be zero")
+        v = None if speed_ref is None else self._vector(speed_ref, 6, "speed_ref")
+        self._reference = _Reference("pose", pos_mm=p, quat_wxyz=quat / norm, speed_cart=v)
+
+    def hold(self) -> None:
+        """Reference := the latest feedback joints (the robot stops where it is)."""
+        if self._latest is None:
+            self._reference = None
+        else:
+            self._reference = _Reference("joint", q_deg=self._latest.q_deg.copy())
+
+    @property
+    def reference_q_deg(self) -> np.ndarray | None:
+        """The joint reference being sent (None in pose mode or before the first packet)."""
+        ref = self._reference
+        return None if ref is None or ref.mode != "joint" else ref.q_deg.copy()
+
+    @staticmethod
+    def _vector(values, n: int, name: str) -> np.ndarray:
+        arr = np.array(values, dtype=np.float64).reshape(-1)
+        if arr.shape != (n,):
+            raise EgmEndpointError(f"{name} must have {n} values, got {arr.shape[0]}")
+        if not np.all(np.isfinite(arr)):
+            raise EgmEndpointError(f"{name} has non-finite values: {arr}")
+        return arr
+
+    # ---- datagram protocol --------------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._transport = transport  # type: ignore[assignment]
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable after the controller went away etc.: note it, keep serving.
+        self.stats.send_errors += 1
+        log.warning("egm_socket_error", error=str(exc))
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if exc is not None:
+            log.warning("egm_socket_lost", error=str(exc))
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        t_rx_ns = self._clock_ns()
+        try:
+            msg = decode_robot(data)
+        except EgmDecodeError as exc:
+            self._malformed(exc, addr, t_rx_ns)
+            return
+        except Exception as exc:  # never let one datagram end the endpoint
+            self._malformed(exc, addr, t_rx_ns)
+            return
+        if self._controller_addr != addr:
+            if self._controller_addr is not None:
+                log.warning("egm_controller_address_changed", old=self._controller_addr, new=addr)
+            else:
+                log.info("egm_controller_seen", host=addr[0], port=addr[1])
+            self._controller_addr = addr
+        self.stats.received += 1
+        in_order = self._track_seqno(msg.seqno)
+        if in_order and self._reference is None:
+            # A new session starts from where the robot is: hold it until someone commands.
+            self._reference = _Reference("joint", q_deg=msg.feedback_q_deg[: self.config.n_axes].copy())
+        self._reply(msg, addr, t_rx_ns)
+        if self._quiet:
+            self._quiet = False
+            quiet_s = (t_rx_ns - (self._last_rx_ns or t_rx_ns)) / 1e9
+            log.info("egm_controller_resumed", quiet_s=round(quiet_s, 4))
+            if self._on_watchdog is not None:
+                self._call_watchdog("resumed", quiet_s)
+        if not in_order:
+            return
+        if self._last_rx_ns is not None:
+            self.stats._intervals_us.append((t_rx_ns - self._last_rx_ns) / 1000.0)
+        self._last_rx_ns = t_rx_ns
+        self._update_state(msg, t_rx_ns)
+
+    # ---- internals ----------------------------------------------------------------------------
+
+    def _track_seqno(self, seqno: int | None) -> bool:
+        """Classify ``seqno``; returns True for a new in-order message (state and history update)."""
+        if seqno is None:
+            return True  # a controller without seqno: nothing to check
+        last = self._last_seqno
+        if last is None or (seqno == 0 and last != 0):
+            # first packet, or the controller restarted its counter: a new EGM session
+            self._new_session(seqno)
+            return True
+        diff = (seqno - last) % _U32
+        if diff == 0 or seqno in self._recent:
+            self.stats.duplicated += 1
+            return False
+        if diff < _U32 // 2:
+            self.stats.lost += diff - 1
+            self._last_seqno = seqno
+            self._recent.append(seqno)
+            return True
+        # older than the newest: a packet overtaken by a later one; it filled a gap counted as lost
+        self.stats.out_of_order += 1
+        self.stats.lost = max(0, self.stats.lost - 1)
+        self._recent.append(seqno)
+        return False
+
+    def _new_session(self, seqno: int) -> None:
+        self.stats.sessions += 1
+        self._last_seqno = seqno
+        self._recent.clear()
+        self._recent.append(seqno)
+        # reply k answers robot message k while nothing is lost, which makes latency measurable
+        self._reply_seqno = seqno
+        # a stale reference from a previous session could make the robot jump: hold instead
+        self._reference = None
+        log.info("egm_session_seen", seqno=seqno, session=self.stats.sessions)
+
+    def _reply(self, msg: RobotMessage, addr: tuple[str, int], t_rx_ns: int) -> None:
+        ref = self._reference
+        seqno = self._reply_seqno
+        self._reply_seqno = (seqno + 1) % _U32
+        tm_ms = (self._clock_ns() // 1_000_000) % _U32
+        try:
+            if ref is None or ref.mode == "joint":
+                q = ref.q_deg if ref is not None else msg.feedback_q_deg
+                out = SensorMessage(
+                    seqno=seqno,
+                    tm_ms=tm_ms,
+                    planned_q_deg=q,
+                    speed_ref_q_deg_s=ref.speed_deg_s if ref is not None else None,
+                )
+            else:
+                out = SensorMessage(
+                    seqno=seqno,
+                    tm_ms=tm_ms,
+                    planned_pos_mm=ref.pos_mm,
+                    planned_quat_wxyz=ref.quat_wxyz,
+                    speed_ref_cart=ref.speed_cart,
+                )
+            payload = encode_sensor(out)
+        except EgmEncodeError as exc:  # only a programming error can get here; keep serving
+            log.error("egm_reply_encode_failed", error=str(exc))
+            return
+        transport = self._transport
+        if transport is None:
+            return
+        try:
+            transport.sendto(payload, addr)
+        except OSError as exc:
+            self.stats.send_errors += 1
+            log.warning("egm_reply_send_failed", error=str(exc))
+            return
+        latency_us = (self._clock_ns() - t_rx_ns) / 1000.0
+        self.stats.replies_sent += 1
+        b = int(np.searchsorted(LATENCY_BIN_EDGES_US, latency_us, side="right")) - 1
+        self.stats.latency_counts[max(b, 0)] += 1
+        if latency_us > self.stats.latency_max_us:
+            self.stats.latency_max_us = latency_us
+
+    def _update_state(self, msg: RobotMessage, t_rx_ns: int) -> None:
+        q = msg.feedback_q_deg
+        state = EgmState(
+            seqno=msg.seqno,
+            tm_ms=msg.tm_ms,
+            t_host_ns=t_rx_ns,
+            q_deg=q,
+            pos_mm=msg.feedback_pos_mm,
+            quat_wxyz=msg.feedback_quat_wxyz,
+            feedback_time_us=msg.feedback_time_us,
+            planned_q_deg=msg.planned_q_deg,
+            motor_state=msg.motor_state,
+            mci_state=msg.mci_state,
+            rapid_exec_state=msg.rapid_exec_state,
+            convergence_met=msg.mci_convergence_met,
+            utilization_pct=msg.utilization_pct,
+        )
+        previous = self._latest
+        self._latest = state
+        if q.shape[0] >= self.config.n_axes:
+            self.history.append(
+                t_rx_ns, msg.feedback_time_us, msg.seqno, q, msg.feedback_pos_mm, msg.feedback_quat_wxyz
+            )
+        if previous is None or (
+            previous.motor_state,
+            previous.mci_state,
+            previous.rapid_exec_state,
+        ) != (state.motor_state, state.mci_state, state.rapid_exec_state):
+            log.info(
+                "egm_controller_state",
+                motors=_name(state.motor_state),
+                mci=_name(state.mci_state),
+                rapid=_name(state.rapid_exec_state),
+                ok_to_command=state.ok_to_command,
+            )
+        if self._feedback_waiters:
+            waiters, self._feedback_waiters = self._feedback_waiters, []
+            for fut in waiters:
+                if not fut.done():
+                    fut.set_result(state)
+
+    def _malformed(self, exc: Exception, addr: tuple[str, int], t_rx_ns: int) -> None:
+        self.stats.malformed += 1
+        interval_ns = int(self.config.malformed_log_interval_s * 1e9)
+        if t_rx_ns - self._malformed_logged_ns >= interval_ns:
+            log.warning(
+                "egm_malformed_packet",
+                error=str(exc),
+                host=addr[0],
+                port=addr[1],
+                suppressed=self._malformed_suppressed,
+                total=self.stats.malformed,
+            )
+            self._malformed_logged_ns = t_rx_ns
+            self._malformed_suppressed = 0
+        else:
+            self._malformed_suppressed += 1
+
+    def _schedule_watchdog(self) -> None:
+        loop = asyncio.get_running_loop()
+        # check at a quarter of the timeout: the event comes at most 25 % late and costs nothing
+        period = max(self.config.watchdog_s / 4.0, 0.001)
+        self._watchdog_handle = loop.call_later(period, self._watchdog_tick)
+
+    def _watchdog_tick(self) -> None:
+        if self._transport is None:
+            return
+        self._schedule_watchdog()
+        if self._last_rx_ns is None or self._quiet:
+            return
+        quiet_s = (self._clock_ns() - self._last_rx_ns) / 1e9
+        if quiet_s >= self.config.watchdog_s:
+            self._quiet = True
+            self.stats.watchdog_events += 1
+            log.warning("egm_controller_quiet", quiet_s=round(quiet_s, 4), watchdog_s=self.config.watchdog_s)
+            self._call_watchdog("quiet", quiet_s)
+
+    def _call_watchdog(self, event: str, quiet_s: float) -> None:
+        if self._on_watchdog is None:
+            return
+        try:
+            self._on_watchdog(event, quiet_s)
+        except Exception:  # a broken callback must not stop the endpoint
+            log.exception("egm_watchdog_callback_failed", watchdog_event=event)
+
+
+def _name(value) -> str | None:
+    return None if value is None else value.name
