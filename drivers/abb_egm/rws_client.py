@@ -182,10 +182,11 @@ class _DigestState:
         self.opaque = challenge.get("opaque")
         self.nc = 0
 
-    def header(self, method: str, uri: str, username: str, password: str) -> str:
+    def header(self, method: str, uri: str, username: str, password: str, cnonce: str | None = None) -> str:
+        """The ``Authorization`` value for one request; ``cnonce`` is random unless given (tests)."""
         self.nc += 1
         nc = f"{self.nc:08x}"
-        cnonce = secrets.token_hex(8)
+        cnonce = cnonce or secrets.token_hex(8)
         ha1 = _h(f"{username}:{self.realm}:{password}")
         ha2 = _h(f"{method}:{uri}")
         response = _h(f"{ha1}:{self.nonce}:{nc}:{cnonce}:auth:{ha2}")
@@ -641,8 +642,10 @@ class RwsClient:
     ) -> AsyncIterator[StateChange]:
         """Yield state changes as they happen: websocket subscription (rws1) or polling (rws2).
 
-        ``rapid_vars``: ``(task, name)`` pairs. ``signals``: signal names. The iterator runs until the
-        consumer stops it; leaving it (``break`` / cancel) ends the subscription.
+        ``rapid_vars``: ``(task, name)`` pairs. ``signals``: signal names. Only changes after the
+        subscription is in place are reported. The iterator runs until the consumer stops it; close it
+        to end the subscription at once (``async with contextlib.aclosing(rws.changes()) as it:``).
+        A websocket the controller closes (restart) is subscribed again, with backoff.
         """
         if self.config.profile == "rws1":
             gen = self._ws_changes(ctrl_state, opmode, execution, rapid_vars, signals, elog)
@@ -692,7 +695,8 @@ class RwsClient:
                 async with self._session().ws_connect(
                     ws_url,
                     protocols=("robapi2_subscription",),
-                    heartbeat=None,
+                    # Pings find a dead controller (cable pulled) that would never close the socket.
+                    heartbeat=10.0,
                     timeout=aiohttp.ClientWSTimeout(ws_close=2.0),
                 ) as ws:
                     failures = 0

@@ -223,6 +223,7 @@ class RwsServer:
             "bad_requests": 0,
             "rejected_busy": 0,
             "events_dropped": 0,
+            "subscriptions_created": 0,
         }
         self.cert_path: str | None = None
         self._nonces: dict[str, float] = {}
@@ -312,6 +313,12 @@ class RwsServer:
     def expire_sessions(self) -> None:
         """Forget every session, as the controller does for idle sessions; clients must log in again."""
         self.sessions.clear()
+
+    async def close_subscriptions(self) -> None:
+        """Close every subscription websocket and forget the subscriptions (as a controller restart does)."""
+        self._subs.clear()
+        for ws in list(self._websockets):
+            await ws.close(code=1001, message=b"controller restarting")
 
     # ---- auth and sessions --------------------------------------------------------------------
 
@@ -809,6 +816,7 @@ class RwsServer:
                 raise RwsRequestError(400, f"priority 2 is allowed only for IO signals and RAPID data: {res}")
             resources[self._normalise_resource(res)] = prio
         self._sub_seq += 1
+        self.stats["subscriptions_created"] += 1
         sub = _Subscription(str(self._sub_seq), r.session.sid, resources)
         self._subs[sub.sid] = sub
         href = f"ws://{self.host}:{self.port}/poll/{sub.sid}"

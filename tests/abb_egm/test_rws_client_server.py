@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import base64
 from collections.abc import AsyncIterator, Awaitable, Callable
-from contextlib import asynccontextmanager
+from contextlib import aclosing, asynccontextmanager
 
 import aiohttp
 import numpy as np
@@ -447,10 +447,11 @@ def test_server_survives_malformed_form_bodies_and_counts_them() -> None:
 
 async def _collect(client: RwsClient, n: int, **kw: object) -> list[StateChange]:
     out: list[StateChange] = []
-    async for ch in client.changes(**kw):  # type: ignore[arg-type]
-        out.append(ch)
-        if len(out) >= n:
-            break
+    async with aclosing(client.changes(**kw)) as it:  # type: ignore[arg-type]
+        async for ch in it:
+            out.append(ch)
+            if len(out) >= n:
+                break
     return out
 
 
@@ -492,5 +493,117 @@ def test_rws1_subscription_uses_a_websocket_and_reports_signals_and_elog() -> No
             await asyncio.sleep(0.1)
             assert len(server._subs) == 0  # leaving the iterator deletes the subscription
             assert server.stats["sessions_created"] == 1
+
+    run(body)
+
+
+def test_rws1_subscription_is_renewed_when_the_controller_closes_the_websocket() -> None:
+    async def body() -> None:
+        async with cell("rws1") as (model, server, client):
+            task = asyncio.create_task(_collect(client, 1, ctrl_state=True, execution=False))
+            await asyncio.sleep(0.3)
+            await server.close_subscriptions()
+            for _ in range(100):  # wait for the client to subscribe again
+                if server.stats["subscriptions_created"] == 2 and server._websockets:
+                    break
+                await asyncio.sleep(0.02)
+            assert server.stats["subscriptions_created"] == 2
+            model.motors_on()
+            changes = await asyncio.wait_for(task, 5)
+            assert changes == [StateChange("ctrlstate", "ctrlstate", "motoron")]
+
+    run(body)
+
+
+# ---- wire details -----------------------------------------------------------------------------
+
+
+def test_rws1_without_json_answers_xhtml_shaped_like_the_controller() -> None:
+    async def body() -> None:
+        async with cell("rws1") as (_, server, client):
+            await client.get_ctrl_state()
+            async with client._session().get(server.base_url + "/rw/panel/ctrlstate") as resp:
+                text = await resp.text()
+                assert resp.status == 200 and "xhtml" in resp.headers["Content-Type"]
+            assert (
+                '<li class="pnl-ctrlstate" title="ctrlstate"><span class="ctrlstate">motoroff</span></li>'
+                in text
+            )
+            async with client._session().get(server.base_url + "/rw/panel/ctrlstate?json=1") as resp:
+                body = await resp.json()
+            assert body["_embedded"]["_state"][0] == {
+                "_type": "pnl-ctrlstate",
+                "_title": "ctrlstate",
+                "ctrlstate": "motoroff",
+            }
+
+    run(body)
+
+
+def test_rws2_json_uses_top_level_state_and_embedded_resources() -> None:
+    async def body() -> None:
+        async with cell("rws2") as (model, server, client):
+            model.log_event(80002, "note", "", "info")
+            await client.get_ctrl_state()
+            headers = {"Accept": "application/hal+json;v=2.0"}
+            http = client._session()
+            async with http.get(server.base_url + "/rw/panel/ctrl-state", headers=headers) as resp:
+                assert (await resp.json())["state"][0]["ctrlstate"] == "motoroff"
+            async with http.get(server.base_url + "/rw/elog/0", headers=headers) as resp:
+                assert (await resp.json())["_embedded"]["resources"][0]["code"] == "80002"
+            # RWS 1.0 paths do not exist on the RWS 2.0 profile.
+            with pytest.raises(RwsError) as err:
+                await client._request("GET", "/rw/panel/ctrlstate")
+            assert err.value.status == 404
+
+    run(body)
+
+
+def test_expired_digest_nonce_is_answered_with_stale_and_a_fresh_nonce() -> None:
+    async def body() -> None:
+        async with cell("rws1") as (_, server, _client), aiohttp.ClientSession() as http:
+            from drivers.abb_egm.rws_client import _auth_params, _DigestState
+
+            server.nonce_lifetime_s = 0.05
+            url = server.base_url + "/rw/panel/ctrlstate?json=1"
+            async with http.get(url) as resp:
+                state = _DigestState(_auth_params(resp.headers["WWW-Authenticate"][7:]))
+            await asyncio.sleep(0.1)
+            header = state.header("GET", "/rw/panel/ctrlstate?json=1", "Default User", "robotics")
+            async with http.get(url, headers={"Authorization": header}) as resp:
+                assert resp.status == 401
+                assert 'stale="true"' in resp.headers["WWW-Authenticate"]
+            assert server.stats["sessions_created"] == 0
+
+    run(body)
+
+
+def test_replayed_digest_nonce_count_is_refused() -> None:
+    async def body() -> None:
+        async with cell("rws1") as (_, server, _client):
+            from drivers.abb_egm.rws_client import _auth_params, _DigestState
+
+            url = server.base_url + "/rw/panel/ctrlstate?json=1"
+            async with aiohttp.ClientSession() as http, http.get(url) as resp:
+                state = _DigestState(_auth_params(resp.headers["WWW-Authenticate"][7:]))
+            header = state.header("GET", "/rw/panel/ctrlstate?json=1", "Default User", "robotics")
+            for expected in (200, 401):  # a fresh client each time, so no cookie helps
+                async with (
+                    aiohttp.ClientSession() as http,
+                    http.get(url, headers={"Authorization": header}) as r,
+                ):
+                    assert r.status == expected
+
+    run(body)
+
+
+def test_idle_session_expires_and_the_client_logs_in_again() -> None:
+    async def body() -> None:
+        async with cell("rws1") as (_, server, client):
+            server.session_idle_s = 0.1
+            await client.get_ctrl_state()
+            await asyncio.sleep(0.2)
+            await client.get_ctrl_state()
+            assert client.logins == 2 and len(server.sessions) == 1
 
     run(body)
