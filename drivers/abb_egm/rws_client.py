@@ -400,12 +400,11 @@ class RwsClient:
                             )
                         sent_credentials = True
                         continue
-                    if sent_credentials:
+                    # Credentials were accepted unless the controller had no session to give (503).
+                    if sent_credentials and status != 503:
                         self._logged_in = True
                         self.logins += 1
                         sent_credentials = False
-                    elif 200 <= status < 300:
-                        self._logged_in = True
                     parsed: Any = None
                     if text and "json" in resp.headers.get("Content-Type", ""):
                         try:

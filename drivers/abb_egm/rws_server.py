@@ -412,10 +412,18 @@ class RwsServer:
             if path.startswith(prefix):
                 await asyncio.sleep(delay)
                 break
+        created: list[Session] = []
+        resp = await self._handle(req, path, created)
+        if created and not resp.prepared:  # a prepared websocket answer has sent its headers already
+            # Also on an error answer: the session exists now, and the client must reuse it.
+            resp.set_cookie(SESSION_COOKIE, created[0].sid, httponly=True, path="/")
+            resp.set_cookie(ABBCX_COOKIE, secrets.token_hex(8), httponly=True, path="/")
+        return resp
+
+    async def _handle(self, req: web.Request, path: str, created: list[Session]) -> web.StreamResponse:
         try:
             self._prune_sessions()
             session = self._session_from_cookie(req)
-            new_session = False
             if session is None:
                 user, stale = self._check_authorization(req)
                 if user is None:
@@ -433,12 +441,8 @@ class RwsServer:
                 session = Session(secrets.token_hex(12), user, now, now)
                 self.sessions[session.sid] = session
                 self.stats["sessions_created"] += 1
-                new_session = True
-            resp = await self._route(req, session)
-            if new_session:
-                resp.set_cookie(SESSION_COOKIE, session.sid, httponly=True, path="/")
-                resp.set_cookie(ABBCX_COOKIE, secrets.token_hex(8), httponly=True, path="/")
-            return resp
+                created.append(session)
+            return await self._route(req, session)
         except RwsRequestError as err:
             return self._bad_request(req, err)
         except ControllerError as err:

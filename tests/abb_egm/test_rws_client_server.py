@@ -607,3 +607,16 @@ def test_idle_session_expires_and_the_client_logs_in_again() -> None:
             assert client.logins == 2 and len(server.sessions) == 1
 
     run(body)
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_session_opened_by_a_failing_first_request_is_reused(profile: str) -> None:
+    async def body() -> None:
+        async with cell(profile) as (_, server, client):
+            with pytest.raises(RwsError):
+                await client.start_rapid()  # refused: motors off; the login happened on this request
+            await client.get_ctrl_state()
+            await client.motors_on()
+            assert server.stats["sessions_created"] == 1 and client.logins == 1
+
+    run(body)
