@@ -1,0 +1,372 @@
+"""The cell's Zenoh API: the key space and the JSON payload models (documented in docs/api.md).
+
+Everything lives under ``CellConfig.key_prefix`` (default ``cell/<cell_id>``). Payloads are UTF-8
+JSON validated by the pydantic models below (unknown fields refused), except the cloud, which uses
+the binary layout of :mod:`cellctl.cloud_codec`. Inbound requests are parsed with
+:func:`parse_trigger`, which raises :class:`TriggerError` naming the offending field.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from enum import StrEnum
+from pathlib import Path, PurePosixPath
+from typing import Annotated, Any, Literal
+
+import structlog
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+log = structlog.get_logger(__name__)
+
+API_VERSION = 1
+MAX_TRIGGER_BYTES = 16 * 1024
+DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".npz", ".json")
+JSON = "application/json"
+
+_ID = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
+Ident = Annotated[str, Field(pattern=_ID)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
+
+
+@dataclass(frozen=True)
+class Keys:
+    """The key expressions of one cell, built from its prefix (``CellConfig.key_prefix``)."""
+
+    prefix: str
+
+    # daemon side
+    @property
+    def trigger(self) -> str:
+        """Queryable: JSON TriggerRequest in, TriggerAccepted or ApiError out."""
+        return f"{self.prefix}/scan/trigger"
+
+    def control(self, action: Literal["pause", "resume", "abort"]) -> str:
+        """Queryable: empty payload (or {"job_id"}), ControlReply or ApiError out."""
+        return f"{self.prefix}/control/{action}"
+
+    @property
+    def state(self) -> str:
+        """Publication: CellStatus JSON, on every change and periodically."""
+        return f"{self.prefix}/state"
+
+    @property
+    def daemon_alive(self) -> str:
+        """Liveliness token of the daemon."""
+        return f"{self.prefix}/alive/daemon"
+
+    # workers
+    def worker_alive(self, worker_id: str = "*") -> str:
+        """Liveliness token of one worker (``*``: all of them)."""
+        return f"{self.prefix}/alive/workers/{worker_id}"
+
+    def worker_info(self, worker_id: str = "*") -> str:
+        """Queryable on each worker: WorkerAnnouncement JSON."""
+        return f"{self.prefix}/workers/{worker_id}/info"
+
+    def worker_job(self, worker_id: str, job_id: str = "*") -> str:
+        """Publication to one worker: the cloud (binary) with the JobSpec JSON as attachment."""
+        return f"{self.prefix}/workers/{worker_id}/jobs/{job_id}"
+
+    def worker_cancel(self, worker_id: str, job_id: str = "*") -> str:
+        """Publication to one worker: stop analysing this job (it was given to another worker)."""
+        return f"{self.prefix}/workers/{worker_id}/cancel/{job_id}"
+
+    # jobs
+    def job_event(self, job_id: str = "*") -> str:
+        """Publication by the worker holding a job: JobEvent JSON (accepted, heartbeat, done, ...)."""
+        return f"{self.prefix}/jobs/{job_id}/event"
+
+    def report(self, job_id: str = "*") -> str:
+        """Publication: ReportEnvelope JSON (large, CongestionControl.BLOCK)."""
+        return f"{self.prefix}/reports/{job_id}"
+
+    @staticmethod
+    def last_chunk(key: str) -> str:
+        """The last chunk of a key expression (the job id of a job/report key, a worker id, ...)."""
+        return str(key).rsplit("/", 1)[-1]
+
+
+class Model(BaseModel):
+    """Base of every payload: unknown fields refused, JSON in and out."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    def to_json(self) -> bytes:
+        return self.model_dump_json().encode("utf-8")
+
+
+def now_utc() -> str:
+    """ISO-8601 UTC timestamp with milliseconds."""
+    t = time.time()
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t % 1 * 1000):03d}Z"
+
+
+def new_job_id() -> str:
+    """A sortable, unique job id: UTC time plus random hex."""
+    return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + os.urandom(4).hex()
+
+
+# --------------------------------------------------------------------------------------------- trigger
+
+
+class Placement(Model):
+    """Nominal placement of the plate on the bed: design frame -> robot base frame."""
+
+    pos_mm: Vec3
+    rpy_deg: Vec3 = [0.0, 0.0, 0.0]
+
+
+class TriggerRequest(Model):
+    """Start an inspection. ``design`` is a path relative to ``[cell] designs_dir``."""
+
+    plate_id: Ident
+    design: Annotated[str, Field(min_length=1, max_length=255)]
+    placement: Placement
+    note: Annotated[str, Field(max_length=500)] = ""
+
+    @field_validator("design")
+    @classmethod
+    def _relative_and_plain(cls, v: str) -> str:
+        if "\0" in v or "\\" in v:
+            raise ValueError("must not contain NUL or backslashes")
+        p = PurePosixPath(v)
+        if p.is_absolute():
+            raise ValueError("must be relative to designs_dir, not absolute")
+        if any(part in ("..", ".") for part in p.parts) or v.startswith("~"):
+            raise ValueError("must not contain '..', '.' or '~' components")
+        if p.suffix.lower() not in DESIGN_SUFFIXES:
+            raise ValueError(f"must end in one of {', '.join(DESIGN_SUFFIXES)}")
+        return v
+
+
+class TriggerError(ValueError):
+    """A trigger payload that is refused; ``field`` names the offending field (or 'payload')."""
+
+    def __init__(self, code: str, field: str, message: str) -> None:
+        self.code = code
+        self.field = field
+        self.message = message
+        super().__init__(f"{field}: {message}")
+
+    def to_api_error(self) -> ApiError:
+        return ApiError(code=self.code, field=self.field, message=self.message)
+
+
+def parse_trigger(payload: bytes | bytearray | str | None, designs_dir: Path) -> tuple[TriggerRequest, Path]:
+    """Validate a trigger payload; returns the request and the resolved design file.
+
+    The size is checked before parsing; the design path must resolve (symlinks followed) to an
+    existing file inside ``designs_dir``. Raises TriggerError with code ``too_large``,
+    ``malformed``, ``invalid`` or ``design_not_found``.
+    """
+    if payload is None or len(payload) == 0:
+        raise TriggerError("malformed", "payload", "empty; expected a JSON object")
+    if len(payload) > MAX_TRIGGER_BYTES:
+        raise TriggerError("too_large", "payload", f"{len(payload)} bytes, limit {MAX_TRIGGER_BYTES}")
+    try:
+        data = json.loads(payload)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise TriggerError("malformed", "payload", f"not UTF-8 JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise TriggerError("malformed", "payload", f"expected a JSON object, got {type(data).__name__}")
+    try:
+        req = TriggerRequest.model_validate(data)
+    except ValidationError as err:
+        e = err.errors(include_url=False)[0]
+        loc = ".".join(str(p) for p in e["loc"]) or "payload"
+        msg = "unknown field" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
+        raise TriggerError("invalid", loc, msg) from None
+    root = Path(designs_dir).resolve()
+    path = (root / req.design).resolve()
+    if not path.is_relative_to(root):
+        raise TriggerError("invalid", "design", "resolves outside designs_dir")
+    if not path.is_file():
+        raise TriggerError("design_not_found", "design", f"no such file in designs_dir: {req.design!r}")
+    return req, path
+
+
+class TriggerAccepted(Model):
+    """Reply of the trigger queryable when the scan is accepted."""
+
+    job_id: str
+    state: Literal["queued", "started"]
+    queue_position: Annotated[int, Field(ge=0)] = 0
+
+
+class ApiError(Model):
+    """Error reply (``query.reply_err``) of every queryable."""
+
+    code: Literal[
+        "too_large", "malformed", "invalid", "design_not_found", "busy", "not_allowed", "no_job", "internal"
+    ]
+    field: str = ""
+    message: str
+
+
+class ControlReply(Model):
+    """Reply of pause / resume / abort."""
+
+    action: Literal["pause", "resume", "abort"]
+    job_id: str | None
+    state: str
+
+
+# --------------------------------------------------------------------------------------------- state
+
+
+class CellState(StrEnum):
+    STARTING = "starting"
+    IDLE = "idle"
+    PLANNING = "planning"
+    SCANNING = "scanning"
+    PAUSED = "paused"
+    ANALYSING = "analysing"
+    STOPPING = "stopping"
+    FAULTED = "faulted"
+    EMERGENCY_STOPPED = "emergency_stopped"
+
+
+class JobState(StrEnum):
+    QUEUED = "queued"
+    PLANNING = "planning"
+    SCANNING = "scanning"
+    PAUSED = "paused"
+    WAITING_FOR_WORKER = "waiting_for_worker"
+    ANALYSING = "analysing"
+    DONE = "done"
+    FAILED = "failed"
+    ABORTED = "aborted"
+    INTERRUPTED = "interrupted"
+
+
+class JobProgress(Model):
+    """Where one job stands; ``fraction`` is 0..1 of the current stage."""
+
+    job_id: str
+    plate_id: str
+    state: JobState
+    stage: str = ""
+    fraction: Annotated[float, Field(ge=0, le=1)] = 0.0
+    profiles: Annotated[int, Field(ge=0)] = 0
+    points: Annotated[int, Field(ge=0)] = 0
+    worker_id: str | None = None
+    message: str = ""
+
+
+class CellStatus(Model):
+    """The state publication (``Keys.state``)."""
+
+    cell_id: str
+    state: CellState
+    t_utc: str
+    job: JobProgress | None = None
+    queued: Annotated[int, Field(ge=0)] = 0
+    workers: list[str] = []
+    message: str = ""
+
+
+# --------------------------------------------------------------------------------------------- workers
+
+
+class WorkerAnnouncement(Model):
+    """What a worker says about itself (``Keys.worker_info``)."""
+
+    worker_id: Ident
+    host: str
+    pid: int
+    api_version: int = API_VERSION
+    analysis: str
+    started_utc: str
+    busy_job: str | None = None
+    jobs_done: Annotated[int, Field(ge=0)] = 0
+
+
+def default_worker_id() -> str:
+    """host-pid, cleaned into a key-safe identifier."""
+    host = "".join(c if c.isalnum() or c in "-_" else "-" for c in socket.gethostname())[:40] or "host"
+    return f"{host}-{os.getpid()}"
+
+
+class JobSpec(Model):
+    """Sent with the cloud (as attachment) to the worker that is to analyse it."""
+
+    job_id: str
+    plate_id: str
+    attempt: Annotated[int, Field(ge=1)]
+    # Opaque to the dispatcher: design path, placement, analysis settings, tolerances.
+    params: dict[str, Any] = {}
+
+
+class JobEvent(Model):
+    """Worker -> dispatcher, on ``Keys.job_event``: the life of one attempt."""
+
+    job_id: str
+    worker_id: str
+    attempt: Annotated[int, Field(ge=1)]
+    event: Literal["accepted", "heartbeat", "done", "failed", "rejected", "cancelled"]
+    message: str = ""
+    t_utc: str = ""
+
+
+class ReportEnvelope(Model):
+    """The report publication: the analysis result (or its error) and where it came from."""
+
+    job_id: str
+    plate_id: str
+    worker_id: str
+    attempt: Annotated[int, Field(ge=1)]
+    ok: bool
+    report: dict[str, Any] | None = None
+    error: str | None = None
+    timings_s: dict[str, float] = {}
+    t_utc: str = ""
+
+
+class _TriggerLog:
+    """Refused triggers are counted; the log says so at most once per ``every_s``."""
+
+    def __init__(self, every_s: float = 5.0) -> None:
+        self.every_s = every_s
+        self.refused = 0
+        self._last = -1e9
+
+    def refused_one(self, err: TriggerError) -> None:
+        self.refused += 1
+        now = time.monotonic()
+        if now - self._last >= self.every_s:
+            self._last = now
+            log.warning(
+                "trigger_refused", code=err.code, field=err.field, error=err.message, total=self.refused
+            )
+
+
+TRIGGER_LOG = _TriggerLog()
+
+
+async def handle_trigger(
+    query: Any,
+    designs_dir: Path,
+    accept: Callable[[TriggerRequest, Path], Awaitable[TriggerAccepted]],
+) -> TriggerAccepted | None:
+    """Answer one trigger query (a ``zenoh.Query``): validate, call ``accept``, reply.
+
+    A refused payload gets ``reply_err`` with an ApiError JSON naming the field and changes
+    nothing; ``accept`` may raise TriggerError (for example ``busy``) to refuse as well. Returns
+    what was accepted, or None.
+    """
+    raw = query.payload.to_bytes() if query.payload is not None else None
+    try:
+        req, design_path = parse_trigger(raw, designs_dir)
+        accepted = await accept(req, design_path)
+    except TriggerError as err:
+        TRIGGER_LOG.refused_one(err)
+        query.reply_err(err.to_api_error().to_json(), encoding=JSON)
+        return None
+    query.reply(query.key_expr, accepted.to_json(), encoding=JSON)
+    return accepted

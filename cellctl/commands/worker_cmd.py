@@ -1,0 +1,50 @@
+"""`cellctl worker [--config cell.toml]`: an analysis worker for the cell named in the configuration."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "worker",
+        help="run an analysis worker (start one or many, anywhere Zenoh reaches the daemon)",
+        description="Serve analysis jobs of the cell over Zenoh until SIGTERM or Ctrl-C.",
+    )
+    p.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="cell.toml (default: ./cell.toml)")
+    p.add_argument("--worker-id", default="", help="key-safe id (default: <host>-<pid>)")
+    p.add_argument(
+        "--analysis",
+        default=None,
+        help="analysis callable as 'package.module:function' (default: analysis.pipeline:analyse_job)",
+    )
+    p.add_argument("--heartbeat-s", type=float, default=1.0, help="job heartbeat period (default 1 s)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    # Imported here: `cellctl --help` must not pay for Zenoh.
+    from cellctl.worker import DEFAULT_ANALYSIS, WorkerSettings, run_worker
+
+    try:
+        config = load_config(args.config)
+    except ConfigError as err:
+        for problem in err.problems:
+            print(f"{err.source}: {problem}", file=sys.stderr)
+        return 2
+    if args.worker_id and not all(c.isalnum() or c in "-_." for c in args.worker_id):
+        print(
+            f"cellctl worker: --worker-id {args.worker_id!r}: letters, digits, '-', '_', '.' only",
+            file=sys.stderr,
+        )
+        return 2
+    if not args.heartbeat_s > 0:
+        print("cellctl worker: --heartbeat-s must be positive", file=sys.stderr)
+        return 2
+    settings = WorkerSettings(
+        worker_id=args.worker_id, analysis=args.analysis or DEFAULT_ANALYSIS, heartbeat_s=args.heartbeat_s
+    )
+    return run_worker(config, settings)

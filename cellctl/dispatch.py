@@ -1,0 +1,361 @@
+"""The daemon-side job dispatcher: each cloud to exactly one live analysis worker, retried on loss.
+
+Protocol (keys in :class:`cellctl.api.Keys`, payloads in docs/api.md):
+
+1. Workers announce themselves with a liveliness token (``Keys.worker_alive``). The dispatcher
+   follows them with a liveliness subscriber (history on, so workers already running count).
+2. A job goes to one idle worker: the cloud is put on ``Keys.worker_job(worker, job)`` with
+   ``CongestionControl.BLOCK`` and the JobSpec as attachment. A worker holds one job at a time.
+3. The worker answers with JobEvents (``accepted``, then ``heartbeat`` every second) and finally
+   publishes the ReportEnvelope on ``Keys.report(job)``.
+4. The job is re-queued (attempt + 1, another worker preferred) when its worker's token goes
+   away (crash, SIGTERM, lost link), when no ``accepted`` arrives within ``ack_timeout_s``, when
+   heartbeats stop for ``heartbeat_timeout_s``, when the attempt exceeds ``job_timeout_s``, or
+   when the worker reports that its analysis process died. A worker that is busy ``rejected``
+   the job: re-queued without counting an attempt. After ``max_attempts`` the job fails.
+5. The first report of a job resolves it; a later one (from a worker it was taken from) is
+   ignored, and a worker still holding a job that was resolved elsewhere is told to cancel.
+
+No worker at all: jobs wait in the queue and go out when a worker appears. The dispatcher persists
+nothing; :class:`DispatchHooks` lets the daemon record every transition.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import structlog
+import zenoh
+from pydantic import ValidationError
+
+from cellctl.api import JobEvent, JobSpec, Keys, ReportEnvelope
+from cellctl.cloud_codec import ENCODING as CLOUD_ENCODING
+from cellctl.zenoh_session import subscribe
+
+log = structlog.get_logger(__name__)
+
+
+class JobFailed(Exception):
+    """A job that no worker could complete within ``max_attempts``; the reason of the last attempt."""
+
+    def __init__(self, job_id: str, reason: str) -> None:
+        self.job_id = job_id
+        self.reason = reason
+        super().__init__(f"job {job_id}: {reason}")
+
+
+@dataclass(frozen=True)
+class DispatchSettings:
+    """Timeouts and retries of the dispatcher (seconds)."""
+
+    ack_timeout_s: float = 10.0
+    heartbeat_timeout_s: float = 10.0
+    job_timeout_s: float | None = 900.0
+    max_attempts: int = 3
+    busy_backoff_s: float = 2.0
+    watchdog_period_s: float = 0.2
+
+
+@dataclass
+class DispatchHooks:
+    """Callbacks for the daemon (all optional, all run on the event loop, must not block)."""
+
+    on_queued: Callable[[str], None] | None = None  # job_id
+    on_assigned: Callable[[str, str, int], None] | None = None  # job_id, worker_id, attempt
+    on_retry: Callable[[str, str, str], None] | None = None  # job_id, worker_id, reason
+    on_report: Callable[[ReportEnvelope], None] | None = None
+    on_failed: Callable[[str, str], None] | None = None  # job_id, reason
+    on_workers: Callable[[list[str]], None] | None = None  # live worker ids, after every change
+
+
+@dataclass
+class _Worker:
+    worker_id: str
+    job_id: str | None = None
+    available_at: float = 0.0
+    last_assigned: float = 0.0
+
+
+@dataclass
+class _Job:
+    job_id: str
+    plate_id: str
+    cloud: bytes | bytearray
+    params: dict[str, Any]
+    future: asyncio.Future[ReportEnvelope]
+    attempt: int = 0
+    worker_id: str | None = None
+    assigned_at: float = 0.0
+    accepted: bool = False
+    last_seen: float = 0.0
+    tried: set[str] = field(default_factory=set)
+    last_reason: str = ""
+
+
+class Dispatcher:
+    """Hands jobs to workers over an open session. ``await start()``, ``submit(...)``, ``await close()``."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        settings: DispatchSettings | None = None,
+        hooks: DispatchHooks | None = None,
+    ) -> None:
+        self.session = session
+        self.keys = keys
+        self.settings = settings or DispatchSettings()
+        self.hooks = hooks or DispatchHooks()
+        self._workers: dict[str, _Worker] = {}
+        self._jobs: dict[str, _Job] = {}
+        self._queue: deque[str] = deque()
+        self._entities: list[Any] = []
+        self._watchdog: asyncio.Task[None] | None = None
+        self._sends: set[asyncio.Task[None]] = set()
+        self.malformed = 0
+
+    # ------------------------------------------------------------------------------------- public
+
+    @property
+    def workers(self) -> list[str]:
+        """Live workers, sorted."""
+        return sorted(self._workers)
+
+    @property
+    def pending(self) -> list[str]:
+        """Jobs not yet resolved (queued or being analysed)."""
+        return list(self._jobs)
+
+    def assignment(self, job_id: str) -> tuple[str | None, int]:
+        """(worker holding the job or None, attempt number) of a pending job."""
+        job = self._jobs[job_id]
+        return job.worker_id, job.attempt
+
+    async def start(self) -> None:
+        """Declare the liveliness, event and report subscribers and start the watchdog."""
+        self._entities.append(
+            subscribe(self.session, self.keys.worker_alive("*"), self._on_liveliness, liveliness=True)
+        )
+        self._entities.append(subscribe(self.session, self.keys.job_event("*"), self._on_event))
+        self._entities.append(subscribe(self.session, self.keys.report("*"), self._on_report))
+        self._watchdog = asyncio.get_running_loop().create_task(self._watch())
+
+    def submit(
+        self, job_id: str, plate_id: str, cloud: bytes | bytearray, params: dict[str, Any] | None = None
+    ) -> asyncio.Future[ReportEnvelope]:
+        """Queue a cloud (encoded by :func:`cellctl.cloud_codec.encode_cloud`) for analysis.
+
+        The future resolves with the first ReportEnvelope (``ok`` False when the analysis itself
+        raised), or fails with JobFailed after ``max_attempts`` lost attempts.
+        """
+        if job_id in self._jobs:
+            raise ValueError(f"job {job_id!r} is already pending")
+        fut: asyncio.Future[ReportEnvelope] = asyncio.get_running_loop().create_future()
+        self._jobs[job_id] = _Job(job_id, plate_id, cloud, dict(params or {}), fut)
+        self._queue.append(job_id)
+        log.info("job_queued", job_id=job_id, plate_id=plate_id, bytes=len(cloud), workers=len(self._workers))
+        self._call(self.hooks.on_queued, job_id)
+        self._pump()
+        return fut
+
+    async def close(self) -> None:
+        """Undeclare everything; pending futures are cancelled."""
+        if self._watchdog is not None:
+            self._watchdog.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._watchdog
+        for task in list(self._sends):
+            with contextlib.suppress(Exception):
+                await task
+        for ent in self._entities:
+            with contextlib.suppress(Exception):
+                ent.undeclare()
+        self._entities.clear()
+        for job in self._jobs.values():
+            if not job.future.done():
+                job.future.cancel()
+
+    # ------------------------------------------------------------------------------------ internals
+
+    def _call(self, hook: Callable[..., None] | None, *args: Any) -> None:
+        if hook is None:
+            return
+        try:
+            hook(*args)
+        except Exception:
+            log.exception("dispatch_hook_failed", hook=getattr(hook, "__name__", str(hook)))
+
+    def _pick_worker(self, job: _Job, now: float) -> _Worker | None:
+        idle = [w for w in self._workers.values() if w.job_id is None and w.available_at <= now]
+        if not idle:
+            return None
+        fresh = [w for w in idle if w.worker_id not in job.tried] or idle
+        return min(fresh, key=lambda w: w.last_assigned)
+
+    def _pump(self) -> None:
+        now = time.monotonic()
+        while self._queue:
+            job = self._jobs[self._queue[0]]
+            worker = self._pick_worker(job, now)
+            if worker is None:
+                return
+            self._queue.popleft()
+            self._assign(job, worker, now)
+
+    def _assign(self, job: _Job, worker: _Worker, now: float) -> None:
+        job.attempt += 1
+        job.worker_id = worker.worker_id
+        job.assigned_at = job.last_seen = now
+        job.accepted = False
+        job.tried.add(worker.worker_id)
+        worker.job_id = job.job_id
+        worker.last_assigned = now
+        spec = JobSpec(job_id=job.job_id, plate_id=job.plate_id, attempt=job.attempt, params=job.params)
+        log.info("job_assigned", job_id=job.job_id, worker_id=worker.worker_id, attempt=job.attempt)
+        self._call(self.hooks.on_assigned, job.job_id, worker.worker_id, job.attempt)
+        task = asyncio.get_running_loop().create_task(self._send(job, worker.worker_id, spec))
+        self._sends.add(task)
+        task.add_done_callback(self._sends.discard)
+
+    async def _send(self, job: _Job, worker_id: str, spec: JobSpec) -> None:
+        # put() blocks for about the transfer time of a large cloud: keep it off the loop.
+        try:
+            await asyncio.to_thread(
+                self.session.put,
+                self.keys.worker_job(worker_id, job.job_id),
+                job.cloud,
+                encoding=CLOUD_ENCODING,
+                attachment=spec.to_json(),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        except Exception as exc:
+            log.warning("job_send_failed", job_id=job.job_id, worker_id=worker_id, error=str(exc))
+            if job.worker_id == worker_id and job.attempt == spec.attempt:
+                self._requeue(job, f"send failed: {exc}", count=True)
+
+    def _release(self, job: _Job, backoff_s: float = 0.0) -> None:
+        worker = self._workers.get(job.worker_id or "")
+        if worker is not None and worker.job_id == job.job_id:
+            worker.job_id = None
+            worker.available_at = time.monotonic() + backoff_s
+        job.worker_id = None
+
+    def _requeue(self, job: _Job, reason: str, *, count: bool = True, backoff_s: float = 0.0) -> None:
+        """Take a job back from its worker and queue it again (first in line)."""
+        worker_id = job.worker_id or ""
+        self._release(job, backoff_s)
+        job.last_reason = reason
+        if not count:
+            job.attempt -= 1
+        if job.attempt >= self.settings.max_attempts:
+            self._fail(job, f"{job.attempt} attempts; last: {reason}")
+            return
+        log.warning("job_retry", job_id=job.job_id, worker_id=worker_id, reason=reason, attempt=job.attempt)
+        self._call(self.hooks.on_retry, job.job_id, worker_id, reason)
+        self._queue.appendleft(job.job_id)
+        self._pump()
+
+    def _fail(self, job: _Job, reason: str) -> None:
+        self._jobs.pop(job.job_id, None)
+        with contextlib.suppress(ValueError):
+            self._queue.remove(job.job_id)
+        log.error("job_failed", job_id=job.job_id, reason=reason)
+        self._call(self.hooks.on_failed, job.job_id, reason)
+        if not job.future.done():
+            job.future.set_exception(JobFailed(job.job_id, reason))
+
+    def _cancel_on(self, worker_id: str, job_id: str) -> None:
+        with contextlib.suppress(Exception):
+            self.session.put(self.keys.worker_cancel(worker_id, job_id), b"")
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        worker_id = Keys.last_chunk(str(sample.key_expr))
+        if sample.kind == zenoh.SampleKind.PUT:
+            if worker_id not in self._workers:
+                self._workers[worker_id] = _Worker(worker_id)
+                log.info("worker_appeared", worker_id=worker_id, workers=len(self._workers))
+                self._call(self.hooks.on_workers, self.workers)
+            self._pump()
+            return
+        worker = self._workers.pop(worker_id, None)
+        if worker is None:
+            return
+        log.warning("worker_gone", worker_id=worker_id, job_id=worker.job_id, workers=len(self._workers))
+        self._call(self.hooks.on_workers, self.workers)
+        job = self._jobs.get(worker.job_id or "")
+        if job is not None and job.worker_id == worker_id:
+            self._requeue(job, f"worker {worker_id} disappeared")
+
+    def _on_event(self, sample: zenoh.Sample) -> None:
+        try:
+            ev = JobEvent.model_validate_json(sample.payload.to_bytes())
+        except ValidationError as exc:
+            self._malformed("job_event_malformed", str(sample.key_expr), exc)
+            return
+        job = self._jobs.get(ev.job_id)
+        if job is None or job.worker_id != ev.worker_id or job.attempt != ev.attempt:
+            return  # an event of an attempt that was already taken back or resolved
+        job.last_seen = time.monotonic()
+        if ev.event in ("accepted", "heartbeat"):
+            job.accepted = True
+        elif ev.event == "rejected":
+            self._requeue(job, f"rejected: {ev.message}", count=False, backoff_s=self.settings.busy_backoff_s)
+        elif ev.event in ("failed", "cancelled"):
+            self._requeue(job, f"worker {ev.worker_id}: {ev.event}: {ev.message}")
+
+    def _on_report(self, sample: zenoh.Sample) -> None:
+        try:
+            env = ReportEnvelope.model_validate_json(sample.payload.to_bytes())
+        except ValidationError as exc:
+            self._malformed("report_malformed", str(sample.key_expr), exc)
+            return
+        job = self._jobs.pop(env.job_id, None)
+        if job is None:
+            log.info("report_ignored", job_id=env.job_id, worker_id=env.worker_id, reason="not pending")
+            return
+        if job.worker_id is not None and job.worker_id != env.worker_id:
+            # Resolved by an earlier attempt after all: the current holder can stop.
+            self._cancel_on(job.worker_id, job.job_id)
+        self._release(job)
+        with contextlib.suppress(ValueError):
+            self._queue.remove(job.job_id)
+        worker = self._workers.get(env.worker_id)
+        if worker is not None and worker.job_id == env.job_id:
+            worker.job_id = None
+        log.info("job_reported", job_id=env.job_id, worker_id=env.worker_id, attempt=env.attempt, ok=env.ok)
+        self._call(self.hooks.on_report, env)
+        if not job.future.done():
+            job.future.set_result(env)
+        self._pump()
+
+    def _malformed(self, event: str, key: str, exc: Exception) -> None:
+        self.malformed += 1
+        if self.malformed <= 10 or self.malformed % 100 == 0:  # rate limited
+            log.warning(event, key=key, count=self.malformed, error=str(exc)[:300])
+
+    async def _watch(self) -> None:
+        s = self.settings
+        while True:
+            await asyncio.sleep(s.watchdog_period_s)
+            now = time.monotonic()
+            for job in list(self._jobs.values()):
+                if job.worker_id is None:
+                    continue
+                reason = ""
+                if not job.accepted and now - job.assigned_at > s.ack_timeout_s:
+                    reason = f"no acknowledgement within {s.ack_timeout_s} s"
+                elif job.accepted and now - job.last_seen > s.heartbeat_timeout_s:
+                    reason = f"no heartbeat for {s.heartbeat_timeout_s} s"
+                elif s.job_timeout_s is not None and now - job.assigned_at > s.job_timeout_s:
+                    reason = f"attempt took longer than {s.job_timeout_s} s"
+                if reason:
+                    self._cancel_on(job.worker_id, job.job_id)
+                    # The worker is suspect: give it time to recover before it gets work again.
+                    self._requeue(job, reason, backoff_s=max(s.ack_timeout_s, s.heartbeat_timeout_s))
+            self._pump()

@@ -1,0 +1,501 @@
+"""The analysis worker (`cellctl worker`): receives clouds over Zenoh, analyses, publishes reports.
+
+Shape of one worker process:
+
+* the main process holds the Zenoh session and an asyncio loop: a liveliness token
+  (``Keys.worker_alive``), a subscriber for jobs addressed to it (``Keys.worker_job``), one for
+  cancellations, an info queryable, heartbeats while a job runs;
+* the analysis runs in a *spawned* child process (:class:`AnalysisProcess`), so neither Zenoh
+  callbacks nor heartbeats wait for it, and a crash or a cancellation kills only the child. The
+  child is spawned, never forked: Zenoh's threads must not be forked.
+
+The analysis callable is resolved from a dotted path ``"package.module:function"`` (default
+``analysis.pipeline:analyse_job``) and called in the child as
+``fn(cloud: dict[str, np.ndarray], job: dict) -> dict``: ``cloud`` holds the arrays of
+:class:`cellctl.cloud_codec.Cloud` by field name (``xyz_mm`` (n, 3) float32 mm, and optionally
+``pass_id``, ``profile_index``, ``point_index``, ``t_s``), ``job`` is the JobSpec's ``params`` plus
+``job_id``, ``plate_id``, ``attempt`` and the cloud's metadata under ``cloud_meta``. The returned
+dict (the report, architecture.md schema) must be JSON-serialisable; numpy scalars and arrays are
+converted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import importlib
+import json
+import multiprocessing as mp
+import os
+import signal
+import socket
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import structlog
+import zenoh
+
+from cellctl.api import (
+    JobEvent,
+    JobSpec,
+    Keys,
+    ReportEnvelope,
+    WorkerAnnouncement,
+    default_worker_id,
+    now_utc,
+)
+from cellctl.zenoh_session import (
+    ZenohSetupError,
+    build_zenoh_config,
+    close_session,
+    declare_async_queryable,
+    open_session,
+    subscribe,
+)
+
+log = structlog.get_logger(__name__)
+
+DEFAULT_ANALYSIS = "analysis.pipeline:analyse_job"
+
+
+class AnalysisLoadError(Exception):
+    """The analysis callable cannot be imported (bad dotted path, import error in its module)."""
+
+
+class AnalysisCrashed(Exception):
+    """The analysis child process died (signal, out of memory) before returning a result."""
+
+
+@dataclass(frozen=True)
+class WorkerSettings:
+    """How a worker behaves; defaults suit a worker beside the daemon on the cell PC."""
+
+    worker_id: str = ""
+    analysis: str = DEFAULT_ANALYSIS
+    heartbeat_s: float = 1.0
+    start_timeout_s: float = 120.0
+    connect_retry_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class AnalysisOutcome:
+    """What the child returned for one job."""
+
+    ok: bool
+    report: dict[str, Any] | None
+    error: str | None
+    timings_s: dict[str, float]
+
+
+def resolve_callable(path: str) -> Callable[..., Any]:
+    """``"pkg.module:function"`` -> the function; AnalysisLoadError says what failed."""
+    module_name, sep, attr = path.partition(":")
+    if not sep or not module_name or not attr:
+        raise AnalysisLoadError(f"analysis {path!r}: expected 'package.module:function'")
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as exc:
+        raise AnalysisLoadError(f"analysis {path!r}: cannot import {module_name}: {exc!r}") from None
+    fn: Any = module
+    for part in attr.split("."):
+        fn = getattr(fn, part, None)
+        if fn is None:
+            raise AnalysisLoadError(f"analysis {path!r}: {module_name} has no attribute {attr!r}")
+    if not callable(fn):
+        raise AnalysisLoadError(f"analysis {path!r}: {attr} is not callable")
+    return fn
+
+
+def _json_default(obj: Any) -> Any:
+    # numpy scalars and arrays, without importing numpy in this module's top level
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if hasattr(obj, "item"):
+        return obj.item()
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    return str(obj)
+
+
+def _watch_parent(parent_pid: int) -> None:
+    # A killed worker must not leave its analysis child behind.
+    while True:
+        time.sleep(0.5)
+        if os.getppid() != parent_pid:
+            os._exit(3)
+
+
+def _child_main(conn: Any, analysis: str, parent_pid: int) -> None:
+    """Entry point of the spawned analysis process: load the callable, then serve jobs from the pipe."""
+    threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when the child stops
+    try:
+        fn = resolve_callable(analysis)
+    except AnalysisLoadError as exc:
+        conn.send_bytes(json.dumps({"ready": False, "error": str(exc)}).encode())
+        return
+    from cellctl.cloud_codec import decode_cloud
+
+    conn.send_bytes(json.dumps({"ready": True}).encode())
+    while True:
+        try:
+            spec_raw = conn.recv_bytes()
+            cloud_raw = conn.recv_bytes()
+        except (EOFError, OSError):
+            return
+        t0 = time.perf_counter()
+        try:
+            job = json.loads(spec_raw)
+            cloud = decode_cloud(cloud_raw)
+            t1 = time.perf_counter()
+            job = {**job, "cloud_meta": cloud.meta}
+            report = fn(cloud.arrays(), job)
+            t2 = time.perf_counter()
+            text = json.dumps(
+                {
+                    "ok": True,
+                    "report": report,
+                    "timings_s": {"decode": t1 - t0, "analysis": t2 - t1},
+                },
+                default=_json_default,
+                allow_nan=False,
+            )
+        except Exception as exc:
+            text = json.dumps(
+                {
+                    "ok": False,
+                    "error": f"{type(exc).__name__}: {exc}",
+                    "traceback": traceback.format_exc(limit=8),
+                    "timings_s": {"total": time.perf_counter() - t0},
+                }
+            )
+        del cloud_raw
+        try:
+            conn.send_bytes(text.encode("utf-8"))
+        except (BrokenPipeError, OSError):
+            return
+
+
+class AnalysisProcess:
+    """One spawned child process running the analysis callable, one job at a time."""
+
+    def __init__(self, analysis: str, *, start_timeout_s: float = 120.0) -> None:
+        self.analysis = analysis
+        self.start_timeout_s = start_timeout_s
+        self._ctx = mp.get_context("spawn")
+        self._proc: Any = None
+        self._conn: Any = None
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    async def start(self) -> None:
+        """Spawn the child and wait until it has imported the callable (AnalysisLoadError if not)."""
+        parent, child = self._ctx.Pipe(duplex=True)
+        proc = self._ctx.Process(
+            target=_child_main, args=(child, self.analysis, os.getpid()), name="cellctl-analysis"
+        )
+        proc.start()
+        child.close()
+        self._proc, self._conn = proc, parent
+        ready = await asyncio.to_thread(parent.poll, self.start_timeout_s)
+        if not ready:
+            self.kill()
+            raise AnalysisLoadError(
+                f"analysis {self.analysis!r}: child not ready after {self.start_timeout_s} s"
+            )
+        try:
+            hello = json.loads(parent.recv_bytes())
+        except (EOFError, OSError):
+            self.kill()
+            raise AnalysisLoadError(f"analysis {self.analysis!r}: child exited while starting") from None
+        if not hello.get("ready"):
+            self.kill()
+            raise AnalysisLoadError(hello.get("error", "analysis child refused to start"))
+        log.info("analysis_process_ready", pid=proc.pid, analysis=self.analysis)
+
+    def _wait_result(self) -> bytes:
+        # Runs in a thread; polls so a dead child is noticed instead of waiting forever.
+        conn, proc = self._conn, self._proc
+        while True:
+            try:
+                if conn.poll(0.2):
+                    return conn.recv_bytes()
+            except (EOFError, OSError):
+                raise AnalysisCrashed(f"analysis process died (exit code {proc.exitcode})") from None
+            if not proc.is_alive():
+                proc.join(0.1)
+                raise AnalysisCrashed(f"analysis process died (exit code {proc.exitcode})")
+
+    async def run(self, job: dict[str, Any], cloud: bytes) -> AnalysisOutcome:
+        """Analyse one cloud in the child. AnalysisCrashed if the child dies meanwhile."""
+        if self._proc is None or not self._proc.is_alive():
+            raise AnalysisCrashed("analysis process is not running")
+        spec = json.dumps(job).encode("utf-8")
+
+        def send() -> None:
+            self._conn.send_bytes(spec)
+            self._conn.send_bytes(cloud)
+
+        try:
+            await asyncio.to_thread(send)
+        except (BrokenPipeError, OSError) as exc:
+            raise AnalysisCrashed(f"analysis process unreachable: {exc}") from None
+        raw = await asyncio.to_thread(self._wait_result)
+        out = json.loads(raw)
+        if not out["ok"]:
+            log.warning("analysis_failed", error=out["error"], traceback=out.get("traceback"))
+        return AnalysisOutcome(
+            ok=bool(out["ok"]), report=out.get("report"), error=out.get("error"), timings_s=out["timings_s"]
+        )
+
+    def kill(self) -> None:
+        """Stop the child now (cancellation, shutdown)."""
+        proc, self._proc = self._proc, None
+        if self._conn is not None:
+            with contextlib.suppress(OSError):
+                self._conn.close()
+            self._conn = None
+        if proc is not None and proc.is_alive():
+            proc.kill()
+            proc.join(5)
+
+
+class _RateLimitedLog:
+    """At most one warning per ``every_s`` for a noisy event, with the count of those suppressed."""
+
+    def __init__(self, every_s: float = 5.0) -> None:
+        self.every_s = every_s
+        self.count = 0
+        self._last = -1e9
+        self._suppressed = 0
+
+    def warn(self, event: str, **kw: Any) -> None:
+        self.count += 1
+        now = time.monotonic()
+        if now - self._last >= self.every_s:
+            log.warning(event, suppressed=self._suppressed, total=self.count, **kw)
+            self._last, self._suppressed = now, 0
+        else:
+            self._suppressed += 1
+
+
+class Worker:
+    """Serves analysis jobs for one cell over an open session. Use :meth:`serve` until ``stop`` is set."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        settings: WorkerSettings,
+        runner: AnalysisProcess | None = None,
+    ) -> None:
+        self.session = session
+        self.keys = keys
+        self.settings = settings
+        self.worker_id = settings.worker_id or default_worker_id()
+        self.runner = runner or AnalysisProcess(settings.analysis, start_timeout_s=settings.start_timeout_s)
+        self.jobs_done = 0
+        self.malformed = _RateLimitedLog()
+        self._current: JobSpec | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._started_utc = now_utc()
+        self._report_pub: Any = None
+        self._event_pub: Any = None
+
+    def announcement(self) -> WorkerAnnouncement:
+        return WorkerAnnouncement(
+            worker_id=self.worker_id,
+            host=socket.gethostname(),
+            pid=os.getpid(),
+            analysis=self.settings.analysis,
+            started_utc=self._started_utc,
+            busy_job=self._current.job_id if self._current else None,
+            jobs_done=self.jobs_done,
+        )
+
+    def _event(self, spec: JobSpec, event: str, message: str = "") -> None:
+        ev = JobEvent(
+            job_id=spec.job_id,
+            worker_id=self.worker_id,
+            attempt=spec.attempt,
+            event=event,  # type: ignore[arg-type]
+            message=message,
+            t_utc=now_utc(),
+        )
+        self.session.put(self.keys.job_event(spec.job_id), ev.to_json(), encoding="application/json")
+
+    async def serve(self, stop: asyncio.Event) -> None:
+        """Start the analysis child, declare the worker's entities, serve until ``stop``; undeclare all."""
+        if not self.runner.running:
+            await self.runner.start()
+        entities: list[Any] = []
+        try:
+            entities.append(subscribe(self.session, self.keys.worker_job(self.worker_id), self._on_job))
+            entities.append(subscribe(self.session, self.keys.worker_cancel(self.worker_id), self._on_cancel))
+            entities.append(
+                declare_async_queryable(self.session, self.keys.worker_info(self.worker_id), self._on_info)
+            )
+            # The token comes last: once the dispatcher sees it, the job subscriber already exists.
+            entities.append(self.session.liveliness().declare_token(self.keys.worker_alive(self.worker_id)))
+            log.info("worker_ready", worker_id=self.worker_id, analysis=self.settings.analysis)
+            await stop.wait()
+        finally:
+            if self._task is not None:
+                self._task.cancel()
+                with contextlib.suppress(BaseException):
+                    await self._task
+            for ent in reversed(entities):
+                with contextlib.suppress(Exception):
+                    ent.undeclare()
+            self.runner.kill()
+            log.info("worker_stopped", worker_id=self.worker_id, jobs_done=self.jobs_done)
+
+    async def _on_info(self, query: zenoh.Query) -> None:
+        query.reply(query.key_expr, self.announcement().to_json(), encoding="application/json")
+
+    def _on_job(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            if sample.attachment is None:
+                raise ValueError("no JobSpec attachment")
+            spec = JobSpec.model_validate_json(sample.attachment.to_bytes())
+            if spec.job_id != Keys.last_chunk(key):
+                raise ValueError(f"attachment job_id {spec.job_id!r} does not match the key")
+        except ValueError as exc:
+            self.malformed.warn("job_message_malformed", key=key, error=str(exc)[:300])
+            return
+        if self._current is not None:
+            if self._current.job_id != spec.job_id or self._current.attempt != spec.attempt:
+                self._event(spec, "rejected", f"busy with {self._current.job_id}")
+            return
+        self._current = spec
+        self._event(spec, "accepted")
+        self._task = asyncio.get_running_loop().create_task(self._run(spec, sample))
+
+    def _on_cancel(self, sample: zenoh.Sample) -> None:
+        job_id = Keys.last_chunk(str(sample.key_expr))
+        if self._current is not None and self._current.job_id == job_id and self._task is not None:
+            log.info("job_cancelled", job_id=job_id)
+            self._task.cancel()
+
+    async def _heartbeat(self, spec: JobSpec) -> None:
+        while True:
+            await asyncio.sleep(self.settings.heartbeat_s)
+            self._event(spec, "heartbeat")
+
+    async def _run(self, spec: JobSpec, sample: zenoh.Sample) -> None:
+        log.info("job_started", job_id=spec.job_id, attempt=spec.attempt)
+        hb = asyncio.get_running_loop().create_task(self._heartbeat(spec))
+        t0 = time.perf_counter()
+        try:
+            cloud = await asyncio.to_thread(sample.payload.to_bytes)
+            del sample
+            job = {**spec.params, "job_id": spec.job_id, "plate_id": spec.plate_id, "attempt": spec.attempt}
+            try:
+                outcome = await self.runner.run(job, cloud)
+            except AnalysisCrashed as exc:
+                log.error("analysis_crashed", job_id=spec.job_id, error=str(exc))
+                self._event(spec, "failed", str(exc))
+                await self._restart_runner()
+                return
+            del cloud
+            env = ReportEnvelope(
+                job_id=spec.job_id,
+                plate_id=spec.plate_id,
+                worker_id=self.worker_id,
+                attempt=spec.attempt,
+                ok=outcome.ok,
+                report=outcome.report,
+                error=outcome.error,
+                timings_s={**outcome.timings_s, "worker_total": time.perf_counter() - t0},
+                t_utc=now_utc(),
+            )
+            payload = env.to_json()
+            # Reports can be large (per-line curves): BLOCK, never silently dropped.
+            await asyncio.to_thread(
+                self.session.put,
+                self.keys.report(spec.job_id),
+                payload,
+                encoding="application/json",
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            self.jobs_done += 1
+            log.info(
+                "job_reported", job_id=spec.job_id, ok=outcome.ok, seconds=round(time.perf_counter() - t0, 3)
+            )
+        except asyncio.CancelledError:
+            self._event(spec, "cancelled")
+            await self._restart_runner()
+            raise
+        finally:
+            hb.cancel()
+            self._current = None
+            self._task = None
+
+    async def _restart_runner(self) -> None:
+        self.runner.kill()
+        try:
+            await self.runner.start()
+        except AnalysisLoadError as exc:
+            log.error("analysis_restart_failed", error=str(exc))
+
+
+async def run_worker_async(
+    section_zenoh: Any, key_prefix: str, settings: WorkerSettings, stop: asyncio.Event | None = None
+) -> int:
+    """Open a client session (retrying until the daemon or router is reachable), serve, close.
+
+    Returns the process exit code: 0 after a clean stop, 2 for configuration or analysis load errors.
+    """
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop.set)
+    try:
+        cfg_factory = lambda: build_zenoh_config(section_zenoh, role="connect", key_prefix=key_prefix)  # noqa: E731
+        cfg_factory()
+    except ZenohSetupError as exc:
+        log.error("worker_config_invalid", error=str(exc))
+        return 2
+    # The analysis callable is loaded first: a wrong dotted path fails now, not after connecting.
+    runner = AnalysisProcess(settings.analysis, start_timeout_s=settings.start_timeout_s)
+    try:
+        await runner.start()
+    except AnalysisLoadError as exc:
+        log.error("analysis_load_failed", error=str(exc))
+        return 2
+    session = None
+    try:
+        while session is None and not stop.is_set():
+            try:
+                session = await asyncio.to_thread(open_session, cfg_factory(), what="worker session")
+            except ZenohSetupError as exc:
+                log.warning("worker_connect_failed", error=str(exc), retry_s=settings.connect_retry_s)
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), settings.connect_retry_s)
+        if session is None:
+            return 0
+        await Worker(session, Keys(key_prefix), settings, runner).serve(stop)
+        return 0
+    finally:
+        runner.kill()
+        close_session(session)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.remove_signal_handler(sig)
+
+
+def run_worker(config: Any, settings: WorkerSettings) -> int:
+    """Blocking entry point used by `cellctl worker`: one worker for ``config`` (a CellConfig)."""
+    return asyncio.run(run_worker_async(config.zenoh, config.key_prefix, settings))

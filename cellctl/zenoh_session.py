@@ -1,0 +1,285 @@
+"""Zenoh sessions for the cell: configuration from ``[zenoh]``, safe open/close, an asyncio bridge.
+
+Measured pitfalls this module exists for (docs/reference libraries.md, section 1):
+
+* A peer listens on every interface by default and scouts by multicast: we always set ``listen``
+  and ``connect`` explicitly and turn multicast scouting off unless the configuration asks for it.
+* A star of peers with gossip off does not relay: the daemon serves (peer or router) and workers
+  and command-line tools connect to it as *clients*; gossip is on only for peers that connect to a
+  hub, where it is what makes them see each other.
+* Zenoh callbacks run on Zenoh's own threads and hold the GIL: they only hand the sample over to
+  the event loop with ``loop.call_soon_threadsafe``.
+* A process with callback subscribers hangs at exit unless the session is closed: every session is
+  closed in ``finally`` (:func:`session_scope`).
+* Never fork after opening a session: analysis runs in *spawned* processes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+from collections.abc import Awaitable, Callable, Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import structlog
+import zenoh
+
+from cellctl.config import ConfigError, ZenohSection, resolve_secret
+
+log = structlog.get_logger(__name__)
+
+Role = Literal["serve", "connect"]
+_ALL_MESSAGES = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "reply",
+    "declare_queryable",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+]
+
+
+class ZenohSetupError(Exception):
+    """A Zenoh session that cannot be configured or opened; says which setting or endpoint."""
+
+
+def _loopback_of(endpoint: str) -> str:
+    # A daemon listening on every interface is reached locally through loopback.
+    proto, rest = endpoint.split("/", 1)
+    host, port = rest.rsplit(":", 1)
+    if host in ("0.0.0.0", "[::]"):
+        host = "127.0.0.1" if host == "0.0.0.0" else "[::1]"
+    return f"{proto}/{host}:{port}"
+
+
+def _dictionary_users(path: Path) -> list[str]:
+    try:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise ZenohSetupError(f"zenoh.access.dictionary_file {path}: cannot read: {exc.strerror}") from None
+    users = [ln.split(":", 1)[0].strip() for ln in lines if ":" in ln and not ln.lstrip().startswith("#")]
+    if not users:
+        raise ZenohSetupError(f"zenoh.access.dictionary_file {path}: no 'user:password' lines")
+    return users
+
+
+def config_dict(
+    section: ZenohSection, *, role: Role = "serve", key_prefix: str | None = None
+) -> dict[str, Any]:
+    """The Zenoh configuration as a plain dict (secrets included; never log it).
+
+    role "serve": the daemon (or a router) as configured. role "connect": a worker or a command-line
+    tool reaching that daemon: mode client, connecting to ``connect`` if set, else to the
+    daemon's ``listen`` endpoints.
+    """
+    if role == "serve" or section.mode == "client":
+        mode, listen, connect = section.mode, list(section.listen), list(section.connect)
+    else:
+        mode, listen = "client", []
+        connect = list(section.connect) or [_loopback_of(ep) for ep in section.listen]
+        if not connect:
+            raise ZenohSetupError("zenoh: nothing to connect to (both 'connect' and 'listen' are empty)")
+    if mode == "client":
+        listen = []
+    cfg: dict[str, Any] = {
+        "mode": mode,
+        "listen": {"endpoints": listen},
+        "connect": {"endpoints": connect},
+        "scouting": {
+            "multicast": {"enabled": bool(section.multicast_scouting)},
+            # Peers meshed through a hub only learn about each other by gossip over their links.
+            "gossip": {"enabled": mode == "peer" and bool(connect)},
+        },
+    }
+    access = section.access
+    if access.enabled:
+        try:
+            password = resolve_secret(access.password_env, access.password_file, what="zenoh.access password")
+        except ConfigError as exc:
+            raise ZenohSetupError(str(exc)) from None
+        usrpwd: dict[str, Any] = {"user": access.user, "password": password.get_secret_value()}
+        if access.dictionary_file is not None and mode != "client":
+            usrpwd["dictionary_file"] = str(access.dictionary_file)
+            if key_prefix:
+                # Authenticated users may use this cell's key space and nothing else.
+                users = _dictionary_users(access.dictionary_file)
+                cfg["access_control"] = {
+                    "enabled": True,
+                    "default_permission": "deny",
+                    "rules": [
+                        {
+                            "id": "cell",
+                            "permission": "allow",
+                            "flows": ["ingress", "egress"],
+                            "messages": _ALL_MESSAGES,
+                            "key_exprs": [key_prefix, f"{key_prefix}/**"],
+                        }
+                    ],
+                    "subjects": [{"id": "users", "usernames": users}],
+                    "policies": [{"rules": ["cell"], "subjects": ["users"]}],
+                }
+        cfg["transport"] = {"auth": {"usrpwd": usrpwd}}
+    return cfg
+
+
+def build_zenoh_config(
+    section: ZenohSection, *, role: Role = "serve", key_prefix: str | None = None
+) -> zenoh.Config:
+    """A ``zenoh.Config`` for this role from the ``[zenoh]`` section (see :func:`config_dict`)."""
+    cfg = zenoh.Config()
+    for key, value in config_dict(section, role=role, key_prefix=key_prefix).items():
+        try:
+            cfg.insert_json5(key, json.dumps(value))
+        except Exception as exc:  # zenoh raises ZError, which names the key
+            raise ZenohSetupError(f"zenoh config key {key!r} refused: {exc}") from None
+    return cfg
+
+
+def open_session(cfg: zenoh.Config, *, what: str = "session") -> zenoh.Session:
+    """Open a session; a failure becomes ZenohSetupError naming what was being opened."""
+    try:
+        return zenoh.open(cfg)
+    except Exception as exc:
+        raise ZenohSetupError(f"cannot open Zenoh {what}: {exc}") from None
+
+
+def close_session(session: zenoh.Session | None) -> None:
+    """Close a session, never raising (it is called from ``finally``)."""
+    if session is None:
+        return
+    try:
+        if not session.is_closed():
+            session.close()
+    except Exception as exc:
+        log.warning("zenoh_close_failed", error=str(exc))
+
+
+@contextlib.contextmanager
+def session_scope(cfg: zenoh.Config, *, what: str = "session") -> Iterator[zenoh.Session]:
+    """``with session_scope(cfg) as s:``; the session is closed however the block ends."""
+    session = open_session(cfg, what=what)
+    try:
+        yield session
+    finally:
+        close_session(session)
+
+
+# ----------------------------------------------------------------------------------------- asyncio bridge
+
+
+def _hand_over(loop: asyncio.AbstractEventLoop, fn: Callable[..., Any], *args: Any) -> None:
+    # Runs on a Zenoh thread: never touch asyncio objects here, only schedule onto the loop.
+    with contextlib.suppress(RuntimeError):  # the loop is closed: the process is shutting down
+        loop.call_soon_threadsafe(fn, *args)
+
+
+def subscribe(
+    session: zenoh.Session,
+    key_expr: str,
+    on_sample: Callable[[zenoh.Sample], Any],
+    *,
+    liveliness: bool = False,
+) -> Any:
+    """Declare a (liveliness) subscriber whose samples are handed to ``on_sample`` on the running loop.
+
+    ``on_sample`` runs on the event loop thread, never on a Zenoh thread. For liveliness,
+    history is requested, so tokens alive before the subscriber appear as PUTs.
+    """
+    loop = asyncio.get_running_loop()
+
+    def cb(sample: zenoh.Sample) -> None:
+        _hand_over(loop, on_sample, sample)
+
+    if liveliness:
+        return session.liveliness().declare_subscriber(key_expr, cb, history=True)
+    return session.declare_subscriber(key_expr, cb)
+
+
+def declare_async_queryable(
+    session: zenoh.Session,
+    key_expr: str,
+    handler: Callable[[zenoh.Query], Awaitable[None]],
+    *,
+    on_error: Callable[[BaseException], None] | None = None,
+) -> Any:
+    """A queryable whose handler is a coroutine run on the loop; the query is finalised after it.
+
+    A handler exception is logged and answered with an internal error, never propagated, so one
+    bad request cannot stop the endpoint.
+    """
+    loop = asyncio.get_running_loop()
+
+    async def run(query: zenoh.Query) -> None:
+        try:
+            await handler(query)
+        except Exception as exc:
+            log.exception("queryable_handler_failed", key=key_expr)
+            with contextlib.suppress(Exception):
+                query.reply_err(json.dumps({"code": "internal", "field": "", "message": str(exc)}))
+            if on_error is not None:
+                on_error(exc)
+        finally:
+            with contextlib.suppress(Exception):
+                query.drop()
+
+    def start(query: zenoh.Query) -> None:
+        task = loop.create_task(run(query))
+        _TASKS.add(task)
+        task.add_done_callback(_TASKS.discard)
+
+    def cb(query: zenoh.Query) -> None:
+        _hand_over(loop, start, query)
+
+    return session.declare_queryable(key_expr, cb)
+
+
+_TASKS: set[asyncio.Task[Any]] = set()
+
+
+async def async_get(
+    session: zenoh.Session,
+    selector: str,
+    *,
+    payload: bytes | str | None = None,
+    timeout_s: float = 10.0,
+    attachment: bytes | None = None,
+    encoding: str | None = None,
+    congestion_control: zenoh.CongestionControl | None = None,
+    target: zenoh.QueryTarget | None = None,
+) -> list[zenoh.Reply]:
+    """Awaitable ``session.get``: every reply, collected when Zenoh finalises the query.
+
+    An empty list means no queryable answered within ``timeout_s``.
+    """
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[list[zenoh.Reply]] = loop.create_future()
+    replies: list[zenoh.Reply] = []
+
+    def on_reply(reply: zenoh.Reply) -> None:
+        replies.append(reply)  # list.append is atomic; the loop reads it only after on_done
+
+    def finish() -> None:
+        if not done.done():
+            done.set_result(list(replies))
+
+    def on_done() -> None:
+        _hand_over(loop, finish)
+
+    kwargs: dict[str, Any] = {"timeout": timeout_s}
+    if payload is not None:
+        kwargs["payload"] = payload
+    if attachment is not None:
+        kwargs["attachment"] = attachment
+    if encoding is not None:
+        kwargs["encoding"] = encoding
+    if congestion_control is not None:
+        kwargs["congestion_control"] = congestion_control
+    if target is not None:
+        kwargs["target"] = target
+    session.get(selector, zenoh.handlers.Callback(on_reply, on_done), **kwargs)
+    return await done

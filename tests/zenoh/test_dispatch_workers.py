@@ -1,0 +1,196 @@
+"""Dispatcher and workers end to end through Zenoh on loopback (workers are real `cellctl worker` processes)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cellctl.api import Keys
+from cellctl.cloud_codec import Cloud, encode_cloud
+from cellctl.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
+from cellctl.zenoh_session import build_zenoh_config, close_session, open_session
+
+pytestmark = pytest.mark.e2e
+FAST = DispatchSettings(ack_timeout_s=5.0, heartbeat_timeout_s=3.0, job_timeout_s=60.0, max_attempts=3)
+
+
+def _cloud_bytes(job_id: str, n: int = 2000, offset_mm: float = 0.0) -> tuple[bytearray, np.ndarray]:
+    rng = np.random.default_rng(abs(hash(job_id)) % 2**32)
+    xyz = (rng.normal(0, 100, (n, 3)) + offset_mm).astype(np.float32)
+    cloud = Cloud(xyz_mm=xyz, job_id=job_id, plate_id="P1", pass_id=(np.arange(n) % 4).astype(np.uint16))
+    return encode_cloud(cloud), xyz.astype(np.float64).mean(axis=0)
+
+
+async def _wait_for(pred, timeout_s: float, what: str) -> None:
+    t_end = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > t_end:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        await asyncio.sleep(0.05)
+
+
+def _run(hub, scenario, settings=FAST, hooks=None):
+    """Open the daemon-side session, run ``scenario(dispatcher)``, close everything."""
+
+    async def main():
+        session = open_session(build_zenoh_config(hub.section, role="serve"), what="test daemon")
+        disp = Dispatcher(session, Keys(hub.prefix), settings, hooks)
+        try:
+            await disp.start()
+            return await scenario(disp)
+        finally:
+            await disp.close()
+            close_session(session)
+
+    return asyncio.run(main())
+
+
+def _records(path: Path) -> list[tuple[str, str, int]]:
+    if not path.exists():
+        return []
+    return [(a, b, int(c)) for a, b, c in (ln.split() for ln in path.read_text().splitlines() if ln.strip())]
+
+
+def test_two_workers_ten_jobs_each_analysed_exactly_once(hub, start_worker):
+    record = hub.tmp / "calls.txt"
+    w1, w2 = start_worker("w1"), start_worker("w2")
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
+        futures, centroids = {}, {}
+        for i in range(10):
+            job_id = f"job{i:02d}"
+            payload, centroids[job_id] = _cloud_bytes(job_id, offset_mm=10.0 * i)
+            futures[job_id] = disp.submit(job_id, "P1", payload, {"record_path": str(record), "sleep_s": 0.2})
+        reports = dict(
+            zip(futures, await asyncio.wait_for(asyncio.gather(*futures.values()), 60), strict=True)
+        )
+        return reports, centroids
+
+    reports, centroids = _run(hub, scenario)
+    assert all(env.ok for env in reports.values()), [env.error for env in reports.values()]
+    for job_id, env in reports.items():
+        assert env.report["job_id"] == job_id and env.attempt == 1
+        assert env.report["n_points"] == 2000
+        np.testing.assert_allclose(env.report["centroid_mm"], centroids[job_id], atol=1e-3)
+        assert env.report["passes"] == [0, 1, 2, 3]
+    starts = Counter(job for kind, job, _ in _records(record) if kind == "start")
+    assert starts == Counter({f"job{i:02d}": 1 for i in range(10)})
+    assert {env.worker_id for env in reports.values()} == {"w1", "w2"}  # the work was shared
+    assert w1.proc.poll() is None and w2.proc.poll() is None
+
+
+def test_worker_killed_mid_analysis_the_other_completes_the_job(hub, start_worker):
+    record = hub.tmp / "calls.txt"
+    workers = {"w1": start_worker("w1"), "w2": start_worker("w2")}
+    assigned: list[tuple[str, str, int]] = []
+    retries: list[tuple[str, str, str]] = []
+    hooks = DispatchHooks(
+        on_assigned=lambda j, w, a: assigned.append((j, w, a)),
+        on_retry=lambda j, w, r: retries.append((j, w, r)),
+    )
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
+        payload, centroid = _cloud_bytes("jobK")
+        fut = disp.submit("jobK", "P1", payload, {"record_path": str(record), "sleep_s": 2.0})
+        await _wait_for(lambda: any(k == "start" for k, _, _ in _records(record)), 20, "analysis start")
+        victim = assigned[0][1]
+        child_pid = _records(record)[0][2]
+        workers[victim].proc.send_signal(signal.SIGKILL)
+        env = await asyncio.wait_for(fut, 30)
+        return env, victim, child_pid, centroid
+
+    env, victim, child_pid, centroid = _run(hub, scenario, hooks=hooks)
+    assert env.ok and env.attempt == 2 and env.worker_id != victim
+    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+    assert retries and retries[0][1] == victim and "disappeared" in retries[0][2]
+    # the killed worker's analysis process does not outlive it
+    t_end = time.monotonic() + 5
+    while _pid_alive(child_pid) and time.monotonic() < t_end:
+        time.sleep(0.1)
+    assert not _pid_alive(child_pid)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie (not yet reaped by init) counts as gone
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+def test_job_waits_without_workers_and_is_analysed_when_one_starts(hub, start_worker):
+    async def scenario(disp: Dispatcher):
+        payload, centroid = _cloud_bytes("jobW")
+        fut = disp.submit("jobW", "P1", payload, {})
+        await asyncio.sleep(1.0)
+        assert not fut.done() and disp.workers == [] and disp.pending == ["jobW"]
+        start_worker("late")
+        env = await asyncio.wait_for(fut, 30)
+        return env, centroid
+
+    env, centroid = _run(hub, scenario)
+    assert env.ok and env.worker_id == "late" and env.attempt == 1
+    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+
+
+def test_analysis_exception_is_reported_once_and_not_retried(hub, start_worker):
+    start_worker("w1", analysis="zworker_fns:always_raises")
+    retries: list = []
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
+        return await asyncio.wait_for(disp.submit("jobE", "P9", _cloud_bytes("jobE", n=7)[0]), 30)
+
+    env = _run(hub, scenario, hooks=DispatchHooks(on_retry=lambda *a: retries.append(a)))
+    assert not env.ok and env.report is None
+    assert "ValueError: plate P9: no plate surface in 7 points" in env.error
+    assert retries == []
+
+
+def test_job_fails_after_max_attempts_when_every_worker_dies(hub, start_worker):
+    workers = [start_worker("w1"), start_worker("w2")]
+    record = hub.tmp / "calls.txt"
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
+        fut = disp.submit("jobX", "P1", _cloud_bytes("jobX")[0], {"record_path": str(record), "sleep_s": 30})
+        for n in (1, 2):
+            await _wait_for(lambda n=n: len(_records(record)) >= n, 20, f"analysis start {n}")
+            holder = disp.assignment("jobX")[0]
+            next(w for w in workers if w.worker_id == holder).proc.send_signal(signal.SIGKILL)
+        with pytest.raises(JobFailed, match=r"2 attempts; last: worker w[12] disappeared"):
+            await asyncio.wait_for(fut, 30)
+
+    _run(hub, scenario, settings=DispatchSettings(ack_timeout_s=5, heartbeat_timeout_s=3, max_attempts=2))
+
+
+def test_worker_exits_zero_on_sigterm_and_its_token_goes_away(hub, start_worker):
+    w = start_worker("w1")
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
+        w.proc.send_signal(signal.SIGTERM)
+        await _wait_for(lambda: disp.workers == [], 10, "token removal")
+
+    _run(hub, scenario)
+    assert w.proc.wait(10) == 0, w.log()
+    assert "worker_stopped" in w.log()
+
+
+def test_worker_with_unknown_analysis_callable_exits_2_naming_it(hub, start_worker):
+    w = start_worker("w1", analysis="zworker_fns:no_such_function")
+    assert w.proc.wait(60) == 2
+    assert "has no attribute 'no_such_function'" in w.log()
