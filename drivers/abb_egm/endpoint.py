@@ -345,6 +345,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._latest: EgmState | None = None
         self._reference: _Reference | None = None
         self._last_seqno: int | None = None
+        self._last_tm: int | None = None
         self._recent: deque[int] = deque(maxlen=256)
         self._reply_seqno = 0
         self._last_rx_ns: int | None = None
@@ -500,7 +501,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 log.info("egm_controller_seen", host=addr[0], port=addr[1])
             self._controller_addr = addr
         self.stats.received += 1
-        in_order = self._track_seqno(msg.seqno)
+        in_order = self._track_seqno(msg.seqno, msg.tm_ms)
         if in_order and self._reference is None:
             # A new session starts from where the robot is: hold it until someone commands.
             self._reference = _Reference("joint", q_deg=msg.feedback_q_deg[: self.config.n_axes].copy())
@@ -520,13 +521,16 @@ class EgmEndpoint(asyncio.DatagramProtocol):
 
     # ---- internals ----------------------------------------------------------------------------
 
-    def _track_seqno(self, seqno: int | None) -> bool:
+    def _track_seqno(self, seqno: int | None, tm_ms: int | None) -> bool:
         """Classify ``seqno``; returns True for a new in-order message (state and history update)."""
         if seqno is None:
             return True  # a controller without seqno: nothing to check
-        last = self._last_seqno
-        if last is None or (seqno == 0 and last != 0):
-            # first packet, or the controller restarted its counter: a new EGM session
+        last, last_tm = self._last_seqno, self._last_tm
+        self._last_tm = tm_ms
+        # The controller restarts its counter at 0 per session. A 0 right after a 0 is a duplicate
+        # only if it carries the same send time; otherwise a session began right after the first.
+        restarted = seqno == 0 and (last != 0 or (tm_ms is not None and tm_ms != last_tm))
+        if last is None or restarted:
             self._new_session(seqno)
             return True
         diff = (seqno - last) % _U32

@@ -1,0 +1,397 @@
+"""Simulated controller (EGM side) against the real endpoint, over loopback UDP."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+from collections.abc import Awaitable, Callable
+
+import numpy as np
+import pytest
+
+from drivers.abb_egm.codec import MciState, MotorState
+from drivers.abb_egm.controller_model import ControllerModel
+from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
+from drivers.abb_egm.kinematics import RobotKinematics
+from drivers.abb_egm.sim_egm import (
+    EVENT_EGM_COMM_TIMEOUT,
+    EVENT_EGM_JOINT_LIMIT,
+    EVENT_EGM_SPEED_DEVIATION,
+    EgmControllerSim,
+    EgmFaults,
+    EgmSimConfig,
+    FaultError,
+    TrajectoryRangeError,
+    TrajectoryRecorder,
+    precise_event_loop,
+)
+
+CYCLE_S = 0.004032
+Q_START = np.array([0.0, 10.0, -10.0, 0.0, 30.0, 0.0])
+
+
+def run(coro_fn: Callable[[], Awaitable[None]]) -> None:
+    with asyncio.Runner(loop_factory=precise_event_loop) as runner:
+        runner.run(coro_fn())
+
+
+async def start_pair(sim_kwargs=None, cfg_kwargs=None, ep_kwargs=None):
+    ep = EgmEndpoint(EgmEndpointConfig(port=0, **(ep_kwargs or {})))
+    _, port = await ep.start()
+    cfg = EgmSimConfig(sensor_port=port, q_start_deg=tuple(Q_START), seed=1, **(cfg_kwargs or {}))
+    sim = EgmControllerSim(cfg, **(sim_kwargs or {}))
+    await sim.start()
+    await ep.wait_for_feedback(1.0)
+    return sim, ep
+
+
+async def stop_pair(sim, ep):
+    await sim.stop()
+    await ep.close()
+
+
+async def wait_until(pred: Callable[[], bool], timeout_s: float) -> None:
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while not pred():
+        if asyncio.get_running_loop().time() > deadline:
+            raise AssertionError(f"condition not met within {timeout_s} s")
+        await asyncio.sleep(0.005)
+
+
+def test_egm_round_trip_joint_step_converges_within_a_hundredth_of_a_degree():
+    async def main():
+        sim, ep = await start_pair()
+        target = Q_START + np.array([4.0, -3.0, 2.0, 10.0, -5.0, 20.0])
+        ep.command_joints(target)
+        await wait_until(lambda: np.abs(sim.q_deg - target).max() < 0.01, 3.0)
+        # the endpoint sees the same joints the simulator has (one cycle old at most)
+        await ep.wait_for_feedback(0.5)
+        np.testing.assert_allclose(ep.latest.q_deg, target, atol=0.02)
+        # cartesian feedback is the flange pose of those joints
+        np.testing.assert_allclose(ep.latest.pos_mm, RobotKinematics().fk(ep.latest.q_deg).pos_mm, atol=1e-6)
+        assert ep.latest.mci_state is MciState.RUNNING and ep.ok_to_command
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_egm_follows_a_ramp_with_speed_feed_forward_without_the_proportional_lag():
+    async def main():
+        sim, ep = await start_pair()
+        loop = asyncio.get_running_loop()
+        speed = np.array([20.0, -10.0, 5.0, 30.0, 0.0, -40.0])  # deg/s
+        t0 = loop.time()  # loop.time() and the simulator's default clock are both time.monotonic
+        while loop.time() - t0 < 1.0:
+            ep.command_joints(Q_START + speed * (loop.time() - t0), speed_deg_s=speed)
+            await ep.wait_for_feedback(0.5)
+        t, q = sim.trajectory.arrays()
+        keep = t > t0 + 0.4  # after the low-pass and the start transient
+        ramp = Q_START + speed * (t[keep, None] - t0)
+        lag_s = (ramp[:, 5] - q[keep, 5]) / speed[5]
+        # pure P control would lag 1/k = 200 ms; feed-forward leaves about one cycle of reference delay
+        assert np.median(lag_s) < 0.010, np.median(lag_s)
+        assert np.abs(lag_s).max() < 0.025, np.abs(lag_s).max()
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_egm_reply_keeps_last_reference_when_sensor_is_silent():
+    async def main():
+        sim, ep = await start_pair(cfg_kwargs={"comm_timeout_s": 2.0})
+        target = Q_START + np.array([6.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        ep.command_joints(target)
+        await wait_until(lambda: np.allclose(sim.reference_q_deg, target), 0.5)
+        sim.set_faults(rx_loss_fraction=1.0)  # the sensor's replies stop reaching the controller
+        moving = sim.q_deg
+        assert abs(moving[0] - target[0]) > 1.0  # still on the way
+        await wait_until(lambda: abs(sim.q_deg[0] - target[0]) < 0.01, 3.0)
+        assert sim.session_running  # silence shorter than the comm timeout does not end the session
+        assert sim.stats.sensor_dropped > 100
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_communication_timeout_ends_the_session_with_event_41822_in_the_model():
+    async def main():
+        model = ControllerModel()
+        model.set_num(model.task, model.module, "egm_comm_timeout_s", 0.2)
+        model.motors_on()
+        model.start_rapid()
+        assert model.egm_wanted
+        sim, ep = await start_pair(sim_kwargs={"model": model})
+        assert sim.session_running
+        sim.set_faults(rx_loss_fraction=1.0)
+        t0 = asyncio.get_running_loop().time()
+        await wait_until(lambda: not sim.session_running, 1.0)
+        elapsed = asyncio.get_running_loop().time() - t0
+        assert 0.19 < elapsed < 0.4, elapsed
+        assert [e.code for e in model.events if e.code == EVENT_EGM_COMM_TIMEOUT] == [41822]
+        assert model.rapid_state == "stopped" and not model.egm_wanted
+        assert model.get_num(model.task, model.module, "egm_status") == -41822
+        await wait_until(lambda: ep.latest.mci_state is MciState.STOPPED, 0.5)
+        assert not ep.ok_to_command
+        # no new session starts by itself
+        await asyncio.sleep(0.05)
+        assert not sim.session_running and sim.stats.sessions == 1
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_program_start_through_the_model_starts_a_session_with_seqno_from_zero():
+    async def main():
+        model = ControllerModel()
+        sim, ep = await start_pair(sim_kwargs={"model": model})
+        assert not sim.session_running
+        assert ep.latest.motor_state is MotorState.OFF and not ep.ok_to_command
+        model.motors_on()
+        model.start_rapid()
+        await wait_until(lambda: ep.ok_to_command, 0.5)
+        assert ep.stats.sessions == 2  # the idle stream, then the EGM session starting at seqno 0
+        assert ep.latest.seqno < 20
+        # position reads through RWS see the simulated arm
+        q, _pos, _quat = model.position()
+        np.testing.assert_allclose(q, sim.q_deg, atol=1.0)
+        # the end variable ends the session cleanly
+        model.set_bool(model.task, model.module, model.end_var, True)
+        await wait_until(lambda: ep.latest.mci_state is MciState.STOPPED, 0.5)
+        assert not sim.session_running and sim.mci_state is MciState.STOPPED
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_reference_beyond_joint_limit_puts_egm_in_error_and_the_arm_stays_inside():
+    async def main():
+        model = ControllerModel()
+        model.motors_on()
+        model.start_rapid()
+        sim, ep = await start_pair(sim_kwargs={"model": model})
+        ep.command_joints(np.array([185.0, 10.0, -10.0, 0.0, 30.0, 0.0]))
+        await wait_until(lambda: ep.latest.mci_state is MciState.ERROR, 0.5)
+        assert not sim.session_running
+        assert any(e.code == EVENT_EGM_JOINT_LIMIT for e in model.events)
+        assert "axis [1]" in sim.ended_sessions[-1][0]
+        assert np.all(sim.trajectory.arrays()[1][:, 0] <= 180.0)
+        np.testing.assert_allclose(sim.q_deg, Q_START, atol=1e-9)  # the bad reference was never used
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_reference_step_above_max_speed_deviation_puts_egm_in_error():
+    async def main():
+        sim, ep = await start_pair(cfg_kwargs={"max_speed_deviation_deg_s": 50.0})
+        ep.command_joints(Q_START + np.array([0.0, 0.0, 0.0, 5.0, 0.0, 0.0]))  # 5 deg x 5 /s = 25 deg/s: ok
+        await wait_until(lambda: abs(sim.q_deg[3] - 5.0) < 0.05, 2.0)
+        assert sim.session_running
+        ep.command_joints(Q_START + np.array([0.0, 0.0, 0.0, 25.0, 0.0, 0.0]))  # 20 deg x 5 /s = 100 deg/s
+        await wait_until(lambda: not sim.session_running, 0.5)
+        assert sim.mci_state is MciState.ERROR
+        assert sim.ended_sessions[-1][1] == EVENT_EGM_SPEED_DEVIATION
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_joint_speed_is_clamped_to_the_axis_rating():
+    async def main():
+        sim, ep = await start_pair(cfg_kwargs={"max_speed_deviation_deg_s": 5000.0})
+        ep.command_joints(Q_START + np.array([150.0, 0, 0, 0, 0, 0]))  # k e = 750 deg/s asked
+        await asyncio.sleep(0.3)
+        t, q = sim.trajectory.arrays()
+        speed = np.abs(np.diff(q[:, 0]) / np.diff(t))
+        assert speed.max() <= 175.0 * 1.0001
+        assert speed.max() > 170.0
+        await ep.wait_for_feedback(0.5)
+        assert ep.latest.utilization_pct > 100.0  # more asked than the axis can give
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_motors_off_stops_the_arm_and_is_reported_in_the_motor_state():
+    async def main():
+        model = ControllerModel()
+        model.motors_on()
+        model.start_rapid()
+        sim, ep = await start_pair(sim_kwargs={"model": model})
+        ep.command_joints(Q_START + np.array([30.0, 0, 0, 0, 0, 0]))
+        await asyncio.sleep(0.2)
+        model.emergency_stop()
+        await wait_until(lambda: ep.latest.motor_state is MotorState.OFF, 0.5)
+        q_stop = sim.q_deg
+        await asyncio.sleep(0.1)
+        np.testing.assert_array_equal(sim.q_deg, q_stop)  # a hard stop: not one more step
+        assert not ep.ok_to_command and not sim.session_running
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def _settle_counts(sim, ep):
+    async def inner():
+        # stop the faults, let every gap close, then freeze the traffic so both counters stand still
+        sim.set_faults(loss_fraction=0.0, burst_ms=0.0, duplicate_fraction=0.0, reorder_fraction=0.0)
+        await asyncio.sleep(0.05)
+        sim.set_faults(stop_sending=True)
+        await asyncio.sleep(0.02)
+
+    return inner()
+
+
+def test_statistics_match_injected_loss_duplicates_and_reordering():
+    async def main():
+        sim, ep = await start_pair()
+        await asyncio.sleep(0.05)
+        sim.set_faults(loss_fraction=0.05, duplicate_fraction=0.05, reorder_fraction=0.05)
+        await asyncio.sleep(1.0)
+        await _settle_counts(sim, ep)
+        assert sim.stats.dropped > 0 and sim.stats.duplicated > 0 and sim.stats.reordered > 0
+        assert ep.stats.duplicated == sim.stats.duplicated
+        assert ep.stats.out_of_order == sim.stats.reordered
+        assert ep.stats.lost == sim.stats.dropped
+        assert ep.stats.received == sim.stats.sent
+        assert sim.session_running  # replies kept the session alive throughout
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_burst_loss_drops_consecutive_packets_and_the_endpoint_counts_them():
+    async def main():
+        sim, ep = await start_pair()
+        sim.set_faults(loss_fraction=0.02, burst_ms=20.0)
+        await asyncio.sleep(1.0)
+        await _settle_counts(sim, ep)
+        assert sim.stats.dropped >= 5  # each loss lasts about five cycles
+        assert ep.stats.lost == sim.stats.dropped
+        seq = ep.history.arrays().seqno
+        assert np.diff(seq).max() >= 5
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_delay_and_jitter_reach_the_endpoint_as_receive_interval_jitter():
+    async def main():
+        sim, ep = await start_pair()
+        await asyncio.sleep(0.2)
+        quiet_jitter = ep.stats.snapshot()["interval_jitter_us"]
+        sim.set_faults(delay_ms=2.0, jitter_ms=3.0)
+        await asyncio.sleep(0.6)
+        jitter = np.std(ep.stats.receive_interval_us()[-100:])
+        assert jitter > 500.0 and jitter > quiet_jitter
+        assert sim.session_running
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_corrupted_packets_are_survived_and_the_session_keeps_running():
+    async def main():
+        sim, ep = await start_pair()
+        sim.set_faults(corrupt_fraction=0.3)
+        await asyncio.sleep(0.5)
+        sim.set_faults(corrupt_fraction=0.0)
+        replies_before = ep.stats.replies_sent
+        await asyncio.sleep(0.1)
+        assert sim.stats.corrupted > 20
+        assert ep.stats.malformed > 0  # some flips still decode: a double with other bits is valid
+        assert ep.stats.replies_sent > replies_before  # the endpoint still answers
+        assert sim.session_running
+        # garbage aimed at the controller is survived too
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for junk in (b"\x00", b"\xff" * 50, b"\x0a\x02\x18\x02"):
+            s.sendto(junk, sim.local_address)
+        s.close()
+        await asyncio.sleep(0.05)
+        assert sim.stats.sensor_malformed == 3
+        assert sim.session_running
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_stop_sending_makes_the_endpoint_watchdog_fire():
+    async def main():
+        events = []
+        ep = EgmEndpoint(
+            EgmEndpointConfig(port=0, watchdog_s=0.05), on_watchdog=lambda e, s: events.append(e)
+        )
+        _, port = await ep.start()
+        sim = EgmControllerSim(EgmSimConfig(sensor_port=port))
+        await sim.start()
+        await ep.wait_for_feedback(1.0)
+        sim.set_faults(stop_sending=True)
+        await wait_until(lambda: events == ["quiet"], 0.5)
+        sim.set_faults(stop_sending=False)
+        await wait_until(lambda: events == ["quiet", "resumed"], 0.5)
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_pose_guidance_reaches_the_commanded_flange_pose():
+    async def main():
+        sim, ep = await start_pair(cfg_kwargs={"guidance_mode": "pose"})
+        kin = RobotKinematics()
+        goal_q = Q_START + np.array([5.0, 3.0, -4.0, 2.0, 6.0, -3.0])
+        goal = kin.fk(goal_q)
+        ep.command_pose(goal.pos_mm, goal.quat_wxyz)
+        await wait_until(lambda: np.abs(kin.fk(sim.q_deg).pos_mm - goal.pos_mm).max() < 0.05, 3.0)
+        np.testing.assert_allclose(sim.q_deg, goal_q, atol=0.01)
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_fault_knobs_reject_unknown_names_and_bad_values():
+    sim = EgmControllerSim()
+    with pytest.raises(FaultError, match="loss_fractoin"):
+        sim.set_faults(loss_fractoin=0.1)
+    with pytest.raises(FaultError, match="loss_fraction"):
+        sim.set_faults(loss_fraction=1.5)
+    with pytest.raises(FaultError, match="delay_ms"):
+        EgmFaults(delay_ms=-1.0)
+    assert sim.set_faults(loss_fraction=0.25).loss_fraction == 0.25
+
+
+def test_trajectory_is_stamped_on_the_injected_true_clock_one_sample_per_cycle():
+    async def main():
+        import time as _time
+
+        offset = 1000.0 - _time.monotonic()  # a true time base that starts at 1000 s
+
+        def clock() -> float:
+            return _time.monotonic() + offset
+
+        sim, ep = await start_pair(sim_kwargs={"clock": clock})
+        await asyncio.sleep(0.2)
+        t, _q = sim.trajectory.arrays()
+        now = clock()
+        assert now - 0.05 < t[-1] <= now
+        np.testing.assert_allclose(np.median(np.diff(t)), CYCLE_S, rtol=1e-6)
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_trajectory_recorder_interpolates_and_forgets_the_oldest_samples():
+    rec = TrajectoryRecorder(capacity=100)
+    t = np.arange(250) * 0.004
+    for ti in t:
+        rec.append(ti, np.full(6, ti * 100.0))
+    ts, _qs = rec.arrays()
+    assert len(rec) == 100 and ts[0] == pytest.approx(t[150])
+    q = rec.q_deg_at(np.array([0.7, 0.8014, 0.996]))
+    np.testing.assert_allclose(q[:, 2], [70.0, 80.14, 99.6])
+    np.testing.assert_allclose(rec.q_deg_at(np.array([0.999]))[0, 0], 99.6)  # held past the newest
+    with pytest.raises(TrajectoryRangeError, match="outside the record"):
+        rec.q_deg_at(np.array([0.1]))
+    with pytest.raises(TrajectoryRangeError):
+        rec.q_deg_at(np.array([2.0]))
+    T = rec.T_base_frame_at(np.array([0.8]))
+    np.testing.assert_allclose(T[0], RobotKinematics().fk(np.full(6, 80.0)).T_base_frame, atol=1e-9)
