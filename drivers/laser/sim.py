@@ -397,10 +397,10 @@ class LaserSimulator:
         hd8_ms = self.hd8_counter_ms(sensor_us)
         status = np.zeros(n, dtype=np.uint32)
         if overrun:
-            status[0] |= P.StatusBits.OVERRUN
+            status[0] |= np.uint32(P.StatusBits.OVERRUN)
         if self.config.sensor_time_from_ms_counter:
             sensor_us = np.floor(sensor_us / 1000.0) * 1000.0
-            status |= P.StatusBits.TIME_FROM_MS_COUNTER
+            status |= np.uint32(P.StatusBits.TIME_FROM_MS_COUNTER)
         keep = self._keep_mask(n)
         self.stats.frames_acquired += n
         if not keep.any():

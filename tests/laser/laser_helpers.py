@@ -1,0 +1,67 @@
+"""Helpers for the HD8 driver tests: run a coroutine with a deadline, start a simulator on loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Coroutine
+from typing import Any
+
+import numpy as np
+
+from drivers.laser.client import HD8Client, HD8ClientConfig
+from drivers.laser.scene import Scene, plane_scene
+from drivers.laser.sim import LaserSimulator, SimConfig, fixed_pose
+
+
+def looking_down(standoff_mm: float, x_mm: float = 0.0, y_mm: float = 0.0) -> np.ndarray:
+    """T_world_sensor of a sensor ``standoff_mm`` above (x, y, 0), laser axis down, sensor x = world x."""
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = [x_mm, y_mm, standoff_mm]
+    return T
+
+
+def run(coro: Coroutine[Any, Any, Any], timeout_s: float = 20.0) -> Any:
+    """Run ``coro`` in a fresh event loop; fail the test instead of hanging."""
+
+    async def guarded() -> Any:
+        return await asyncio.wait_for(coro, timeout_s)
+
+    return asyncio.run(guarded())
+
+
+@contextlib.asynccontextmanager
+async def sim_and_client(
+    scene: Scene | None = None,
+    T_world_sensor: np.ndarray | None = None,
+    *,
+    config: SimConfig | None = None,
+    client_config: HD8ClientConfig | None = None,
+) -> AsyncIterator[tuple[LaserSimulator, HD8Client]]:
+    """A simulator on ephemeral loopback ports and a connected client; both closed afterwards."""
+    sim = LaserSimulator(
+        scene if scene is not None else plane_scene(0.0),
+        fixed_pose(T_world_sensor if T_world_sensor is not None else looking_down(100.0)),
+        config=config or SimConfig(),
+    )
+    ctl, dat = await sim.start()
+    client = HD8Client("127.0.0.1", ctl, dat, config=client_config)
+    try:
+        await client.connect()
+        yield sim, client
+    finally:
+        await client.close()
+        await sim.stop()
+
+
+async def collect(client: HD8Client, n_frames: int) -> list[Any]:
+    """Read batches until at least ``n_frames`` profiles arrived."""
+    out = []
+    got = 0
+    async for b in client:
+        out.append(b)
+        got += len(b)
+        if got >= n_frames:
+            break
+    return out

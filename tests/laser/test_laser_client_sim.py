@@ -1,0 +1,297 @@
+"""The HD8 client against the sensor simulator over loopback TCP: delivery, faults, control, clock."""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+
+import numpy as np
+import pytest
+from laser_helpers import collect, run, sim_and_client
+
+from drivers.laser import protocol as P
+from drivers.laser.client import HD8Client, HD8ClientConfig
+from drivers.laser.sim import SimConfig
+from drivers.laser.source import ProfileBatch, SourceEventKind
+
+FAST = SimConfig(rate_hz=1000.0, outlier_probability=0.0, seed=1)
+
+
+def frames_of(batches: list[ProfileBatch]) -> np.ndarray:
+    return np.concatenate([b.frame_index for b in batches]).astype(np.int64)
+
+
+def test_client_receives_every_frame_in_order_at_1khz() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (_sim, client):
+            await client.start()
+            batches = await collect(client, 1500)
+            fi = frames_of(batches)
+            assert fi[0] == 0
+            np.testing.assert_array_equal(fi, np.arange(len(fi)))
+            st = client.stats
+            assert st.gaps == 0 and st.decode_errors == 0 and st.duplicates_dropped == 0
+            assert st.overflow_frames == 0 and st.reconnects == 0
+            assert 800 < st.rate_hz < 1200
+            b = ProfileBatch.concat(batches)
+            assert b.x_mm.shape == (len(fi), 500) and b.x_mm.dtype == np.float32
+            assert np.all(np.diff(b.host_recv_ns) >= 0)
+
+    run(scenario())
+
+
+def test_disconnect_mid_stream_resumes_without_duplicates_or_reordering() -> None:
+    async def scenario() -> None:
+        cfg = HD8ClientConfig(reconnect_initial_s=0.02)
+        async with sim_and_client(config=FAST, client_config=cfg) as (sim, client):
+            events = []
+            client.add_listener(events.append)
+            await client.start()
+            first = await collect(client, 100)
+            sim.disconnect_after(150)
+            rest = await collect(client, 600)
+            fi = frames_of(first + rest)
+            np.testing.assert_array_equal(fi, np.arange(fi[0], fi[0] + len(fi)))  # no loss, no dup
+            assert client.stats.reconnects == 1
+            assert client.stats.gaps == 0
+            kinds = [e.kind for e in events]
+            assert SourceEventKind.DISCONNECTED in kinds and SourceEventKind.RECONNECTED in kinds
+            assert sim.stats.data_connections == 2
+
+    run(scenario())
+
+
+def test_corrupted_frame_group_is_skipped_and_counted() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            await client.start()
+            await collect(client, 50)
+            sim.corrupt_next(1, mode="payload")
+            batches = await collect(client, 300)
+            assert client.stats.decode_errors == 1
+            assert client.stats.reconnects == 0  # framing stayed intact: no reconnect needed
+            fi = frames_of(batches)
+            assert np.all(np.diff(fi) > 0)
+            assert client.stats.gaps == 1 and client.stats.missing_frames >= 1
+
+    run(scenario())
+
+
+def test_broken_framing_reconnects_and_replays_the_lost_frames() -> None:
+    async def scenario() -> None:
+        cfg = HD8ClientConfig(reconnect_initial_s=0.02)
+        async with sim_and_client(config=FAST, client_config=cfg) as (sim, client):
+            await client.start()
+            first = await collect(client, 50)
+            sim.corrupt_next(1, mode="framing")
+            rest = await collect(client, 400)
+            fi = frames_of(first + rest)
+            np.testing.assert_array_equal(fi, np.arange(fi[0], fi[0] + len(fi)))
+            assert client.stats.decode_errors == 0 and client.stats.reconnects == 1
+
+    run(scenario())
+
+
+def test_dropped_frames_show_up_as_a_counted_gap() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            events = []
+            client.add_listener(events.append)
+            await client.start()
+            await collect(client, 20)
+            sim.drop_next(7)
+            await collect(client, 200)
+            assert client.stats.gaps == 1 and client.stats.missing_frames == 7
+            gap = [e for e in events if e.kind == SourceEventKind.GAP]
+            assert gap and gap[0].detail["missing_frames"] == 7
+
+    run(scenario())
+
+
+def test_watchdog_reports_stall_and_resumption() -> None:
+    async def scenario() -> None:
+        cfg = HD8ClientConfig(watchdog_timeout_s=0.15)
+        async with sim_and_client(config=FAST, client_config=cfg) as (sim, client):
+            await client.start()
+            await collect(client, 20)
+            sim.stall(0.5, acquire=True)
+            kinds = []
+            while SourceEventKind.RESUMED not in kinds:
+                kinds.append((await asyncio.wait_for(client.events.get(), 3.0)).kind)
+            assert kinds.index(SourceEventKind.STALLED) < kinds.index(SourceEventKind.RESUMED)
+            batches = await collect(client, 300)
+            # Acquisition went on during the stall: late, but nothing lost.
+            assert client.stats.gaps == 0
+            assert len(batches) > 0
+
+    run(scenario())
+
+
+def test_buffer_overflow_is_counted_and_reported_not_silent() -> None:
+    async def scenario() -> None:
+        cfg = HD8ClientConfig(buffer_batches=3)
+        async with sim_and_client(config=FAST, client_config=cfg) as (_sim, client):
+            await client.start()
+            await asyncio.sleep(0.3)  # nobody reads
+            st = client.stats
+            assert st.overflow_batches > 0 and st.overflow_frames > 0
+            assert st.frames + st.overflow_frames >= 200
+            kinds = set()
+            while not client.events.empty():
+                kinds.add(client.events.get_nowait().kind)
+            assert SourceEventKind.OVERFLOW in kinds
+
+    run(scenario())
+
+
+def test_configure_applies_rate_and_rejects_changes_while_running() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            assert client.info is not None and client.info.width == 500 and client.info.x_pitch_nm == 100_000
+            await client.configure(rate_hz=250.0, exposure_ns=300_000, profile_format="uniform")
+            assert sim.settings.rate_hz == 250.0 and sim.settings.exposure_ns == 300_000
+            await client.start()
+            with pytest.raises(P.CommandError, match="INVALID_STATE"):
+                await client.configure(rate_hz=100.0)
+            with pytest.raises(P.CommandError, match=r"INVALID_PARAMETER.*exposure_ns"):
+                await client.configure(exposure_ns=50)
+            state = await client.get_state()
+            assert state.state == P.SensorState.RUNNING
+            await client.stop()
+            assert (await client.get_state()).state == P.SensorState.READY
+
+    run(scenario())
+
+
+def test_point_pair_format_delivers_unresampled_points() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (_sim, client):
+            await client.configure(profile_format=P.ProfileFormat.POINTS)
+            await client.start()
+            b = ProfileBatch.concat(await collect(client, 20))
+            x = b.x_mm[b.valid]
+            assert np.all(np.diff(b.x_mm[0][b.valid[0]]) > 0)  # the fan sweeps x monotonically
+            assert -40 < x.min() < -20 and 20 < x.max() < 40
+            np.testing.assert_allclose(np.nanmean(b.z_mm), 100.0, atol=0.01)
+
+    run(scenario())
+
+
+def test_simulator_answers_malformed_commands_and_keeps_serving() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            r, w = await asyncio.open_connection(client.host, client.control_port)
+            w.write(P.encode_command(0x4999))  # unknown command
+            w.write(P.encode_command(P.CommandId.SET_RATE, b"\x01"))  # short parameter
+            w.write(P.encode_command(P.CommandId.START, b"junk"))  # payload where none is allowed
+            await w.drain()
+            framer = P.MessageFramer()
+            replies: list[P.Message] = []
+            while len(replies) < 3:
+                replies += framer.feed(await asyncio.wait_for(r.read(4096), 2.0))
+            statuses = [P.decode_reply(m)[1] for m in replies]
+            assert statuses == [P.Status.UNKNOWN_COMMAND, P.Status.MALFORMED, P.Status.MALFORMED]
+            assert b"SET_RATE" in replies[1].data
+            w.write(struct.pack("<IH", 2, 0))  # broken framing: only this connection is dropped
+            await w.drain()
+            assert await asyncio.wait_for(r.read(), 2.0) == b""
+            w.close()
+            assert sim.stats.malformed_commands == 4
+            await client.command(P.CommandId.KEEP_ALIVE)  # the other connection still works
+            await client.start()
+            assert len(frames_of(await collect(client, 10))) >= 10
+
+    run(scenario())
+
+
+def test_simulator_drops_a_data_client_that_sends_no_subscribe() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            r, w = await asyncio.open_connection(client.host, client.data_port)
+            w.write(P.encode_command(P.CommandId.START))  # not a SUBSCRIBE
+            await w.drain()
+            assert await asyncio.wait_for(r.read(), 2.0) == b""
+            w.close()
+            assert sim.stats.malformed_commands == 1
+
+    run(scenario())
+
+
+def test_sensor_clock_has_offset_drift_and_mid_exposure_stamps() -> None:
+    cfg = SimConfig(
+        rate_hz=500.0, exposure_ns=1_000_000, clock_offset_us=5_000_000, clock_drift_ppm=200.0, seed=2
+    )
+
+    async def scenario() -> None:
+        async with sim_and_client(config=cfg) as (sim, client):
+            await client.start()
+            b = ProfileBatch.concat(await collect(client, 200))
+            t_us = b.sensor_time_us.astype(np.float64)
+            period_us = np.diff(t_us) / np.diff(b.frame_index.astype(np.float64))
+            # 2 ms period stretched by 200 ppm (the stamps are integer us)
+            np.testing.assert_allclose(period_us.mean(), 2000.0 * (1 + 200e-6), atol=0.01)
+            truth = sim.sensor_time_us(sim.exposure_mid_true_s(b.frame_index))
+            np.testing.assert_allclose(t_us, np.floor(truth), atol=1.0)
+            assert np.all(b.exposure_ns == 1_000_000)
+            ts = await client.get_timestamp()
+            assert ts.sensor_time_us > t_us[-1]
+
+    run(scenario())
+
+
+def test_hd8_millisecond_counter_wraps_mid_stream() -> None:
+    cfg = SimConfig(rate_hz=1000.0, hd8_counter_start_ms=2**32 - 150, seed=3)
+
+    async def scenario() -> None:
+        async with sim_and_client(config=cfg) as (_sim, client):
+            await client.start()
+            b = ProfileBatch.concat(await collect(client, 400))
+            ms = b.hd8_ms.astype(np.int64)
+            assert ms.max() > 2**32 - 100 and ms.min() < 100  # wrapped inside this stream
+            unwrapped = np.unwrap(ms, period=2**32)
+            assert np.all(np.diff(unwrapped) >= 0)
+            np.testing.assert_allclose(np.diff(unwrapped).mean(), 1.0, atol=0.05)
+            await client.reset_timestamp()
+            assert (await client.get_timestamp()).hd8_ms < 500  # counted from 0 again
+
+    run(scenario())
+
+
+def test_timestamp_jump_fault_steps_the_sensor_clock() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            await client.start()
+            a = ProfileBatch.concat(await collect(client, 30))
+            sim.jump_timestamp(250_000)
+            b = ProfileBatch.concat(await collect(client, 100))
+            d = np.diff(np.concatenate([a.sensor_time_us, b.sensor_time_us]).astype(np.int64))
+            assert d.max() > 250_000 and np.median(d) == pytest.approx(1000, abs=2)
+
+    run(scenario())
+
+
+def test_sensor_time_from_ms_counter_has_millisecond_resolution() -> None:
+    cfg = SimConfig(rate_hz=300.0, sensor_time_from_ms_counter=True, seed=4)
+
+    async def scenario() -> None:
+        async with sim_and_client(config=cfg) as (_sim, client):
+            await client.start()
+            b = ProfileBatch.concat(await collect(client, 30))
+            assert np.all(b.sensor_time_us % 1000 == 0)
+            assert np.all(b.status & P.StatusBits.TIME_FROM_MS_COUNTER)
+
+    run(scenario())
+
+
+def test_client_connect_to_closed_port_raises_connection_error() -> None:
+    async def scenario() -> None:
+        srv = await asyncio.start_server(lambda r, w: None, "127.0.0.1", 0)
+        port = srv.sockets[0].getsockname()[1]
+        srv.close()
+        await srv.wait_closed()
+        client = HD8Client("127.0.0.1", port, port)
+        with pytest.raises(OSError):
+            await client.connect()
+        await client.close()
+
+    run(scenario())
