@@ -172,6 +172,8 @@ def _cert_with_cryptography(cert_path: str, key_path: str, host: str) -> None:
         .not_valid_before(now - datetime.timedelta(minutes=5))
         .not_valid_after(now + datetime.timedelta(days=3650))
         .add_extension(x509.SubjectAlternativeName([alt]), critical=False)
+        # CA:TRUE, as `openssl req -x509` makes it: clients can pin the certificate as its own CA.
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
         .sign(key, hashes.SHA256())
     )
     with open(key_path, "wb") as f:

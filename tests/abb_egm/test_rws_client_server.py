@@ -620,3 +620,29 @@ def test_session_opened_by_a_failing_first_request_is_reused(profile: str) -> No
             assert server.stats["sessions_created"] == 1 and client.logins == 1
 
     run(body)
+
+
+@pytest.mark.parametrize("backend", ["cryptography", "openssl"])
+def test_certificate_generation_gives_a_loadable_cert_for_the_host(
+    backend: str, tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import shutil
+    import ssl
+
+    from drivers.abb_egm import rws_server
+
+    if backend == "openssl":
+        if shutil.which("openssl") is None:
+            pytest.skip("no openssl command on this machine")
+
+        def no_cryptography(*_a: object) -> None:
+            raise ImportError("cryptography hidden by the test")
+
+        monkeypatch.setattr(rws_server, "_cert_with_cryptography", no_cryptography)
+    else:
+        pytest.importorskip("cryptography")
+    cert, key = asyncio.run(rws_server.generate_self_signed_cert(str(tmp_path), "127.0.0.1"))
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.load_cert_chain(cert, key)  # raises if the pair does not match
+    client_ctx = ssl.create_default_context(cafile=cert)
+    assert client_ctx.cert_store_stats()["x509_ca"] == 1  # self-signed: usable as its own CA
