@@ -1,0 +1,232 @@
+"""The simulated ABB controller: EGM over UDP and RWS over HTTP(S) on one shared controller state.
+
+Composes :class:`~drivers.abb_egm.controller_model.ControllerModel` (panel, RAPID program, event
+log), :class:`~drivers.abb_egm.rws_server.RwsServer` and :class:`~drivers.abb_egm.sim_egm.EgmControllerSim`.
+Starting the RAPID program through RWS starts the EGM session; the end variable, motors off, an
+emergency stop or a communication timeout end it.
+
+Run it on its own::
+
+    python -m drivers.abb_egm.sim --egm-port 6511 --rws-port 8080 [--motors-on --start] [faults]
+
+It prints one JSON line with its addresses on stdout and runs until SIGINT or SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import structlog
+
+from drivers.abb_egm.controller_model import ControllerModel
+from drivers.abb_egm.rws_server import RwsServer
+from drivers.abb_egm.sim_egm import EgmControllerSim, EgmFaults, EgmSimConfig, precise_event_loop
+
+__all__ = ["ControllerSim", "ControllerSimConfig", "main"]
+
+log = structlog.get_logger(__name__)
+
+#: ABB's factory password of "Default User"; published in every RWS manual, not a secret
+ABB_DEFAULT_PASSWORD = "robotics"
+
+
+@dataclass(frozen=True)
+class ControllerSimConfig:
+    """Everything the simulated controller needs besides the EGM settings.
+
+    ``rws_users`` maps user name to password. ``motors_on`` / ``start_program`` put the controller
+    in that state at start (as an operator at the cabinet would).
+    """
+
+    rws_host: str = "127.0.0.1"
+    rws_port: int = 0
+    rws_profile: str = "rws1"
+    rws_users: tuple[tuple[str, str], ...] = (("Default User", ABB_DEFAULT_PASSWORD),)
+    rws_max_sessions: int = 70
+    motors_on: bool = False
+    start_program: bool = False
+
+
+class ControllerSim:
+    """One simulated controller. ``await start()``, use ``model`` / ``egm`` / ``rws``, ``await stop()``."""
+
+    def __init__(
+        self,
+        config: ControllerSimConfig | None = None,
+        egm_config: EgmSimConfig | None = None,
+        faults: EgmFaults | None = None,
+        *,
+        model: ControllerModel | None = None,
+        clock=None,
+    ) -> None:
+        self.config = config or ControllerSimConfig()
+        self.model = model or ControllerModel()
+        kwargs = {} if clock is None else {"clock": clock}
+        self.egm = EgmControllerSim(egm_config, faults=faults, model=self.model, **kwargs)
+        self.rws = RwsServer(
+            self.model,
+            profile=self.config.rws_profile,  # type: ignore[arg-type]
+            host=self.config.rws_host,
+            port=self.config.rws_port,
+            users=dict(self.config.rws_users),
+            max_sessions=self.config.rws_max_sessions,
+        )
+        self._started = False
+
+    async def start(self) -> dict:
+        """Start RWS, then EGM; returns the addresses (see :meth:`addresses`)."""
+        await self.rws.start()
+        try:
+            await self.egm.start()
+        except BaseException:
+            await self.rws.stop()
+            raise
+        self._started = True
+        if self.config.motors_on:
+            self.model.motors_on()
+        if self.config.start_program:
+            self.model.start_rapid()
+        return self.addresses()
+
+    async def stop(self) -> None:
+        """Stop EGM first (no more packets), then RWS."""
+        if not self._started:
+            return
+        self._started = False
+        await self.egm.stop()
+        await self.rws.stop()
+
+    def addresses(self) -> dict:
+        """``{"egm_local": [host, port], "egm_sensor": [host, port], "rws_url": str, "rws_profile": str}``."""
+        cfg = self.egm.config
+        return {
+            "egm_local": list(self.egm.local_address),
+            "egm_sensor": [cfg.sensor_host, cfg.sensor_port],
+            "rws_url": self.rws.base_url,
+            "rws_profile": self.rws.profile,
+        }
+
+    async def __aenter__(self) -> ControllerSim:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.stop()
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m drivers.abb_egm.sim",
+        description="Simulated ABB controller: EGM (UDP client) and RWS (HTTP/HTTPS server).",
+    )
+    p.add_argument("--egm-host", default="127.0.0.1", help="sensor host the controller sends EgmRobot to")
+    p.add_argument("--egm-port", type=int, required=True, help="sensor UDP port (the EGM endpoint)")
+    p.add_argument("--egm-local-port", type=int, default=0, help="controller's own UDP port (0: any)")
+    p.add_argument("--rws-host", default="127.0.0.1")
+    p.add_argument("--rws-port", type=int, default=0, help="RWS port (0: any free port)")
+    p.add_argument("--rws-profile", choices=("rws1", "rws2"), default="rws1")
+    p.add_argument("--rws-user", default="Default User")
+    p.add_argument(
+        "--rws-password-env",
+        default="CELL_RWS_PASSWORD",
+        help="environment variable holding the RWS password (ABB's factory default if unset)",
+    )
+    p.add_argument("--cycle-ms", type=float, default=4.032, help="EGM cycle (4.032 ms on a real robot)")
+    p.add_argument(
+        "--comm-timeout-s", type=float, default=1.0, help="used outside the RAPID program's values"
+    )
+    p.add_argument("--motors-on", action="store_true", help="switch the motors on at start")
+    p.add_argument("--start", action="store_true", help="start the RAPID program (EGM session) at start")
+    p.add_argument("--loss", type=float, default=0.0, help="EgmRobot loss fraction")
+    p.add_argument("--burst-ms", type=float, default=0.0, help="each loss lasts this long")
+    p.add_argument("--delay-ms", type=float, default=0.0)
+    p.add_argument("--jitter-ms", type=float, default=0.0)
+    p.add_argument("--duplicate", type=float, default=0.0, help="duplicate fraction")
+    p.add_argument("--reorder", type=float, default=0.0, help="reorder fraction")
+    p.add_argument("--corrupt", type=float, default=0.0, help="corrupted-bytes fraction")
+    p.add_argument("--seed", type=int, default=None)
+    return p
+
+
+async def _serve(args: argparse.Namespace) -> int:
+    password = os.environ.get(args.rws_password_env)
+    if password is None:
+        log.info("rws_default_password", user=args.rws_user, env=args.rws_password_env)
+        password = ABB_DEFAULT_PASSWORD
+    sim = ControllerSim(
+        ControllerSimConfig(
+            rws_host=args.rws_host,
+            rws_port=args.rws_port,
+            rws_profile=args.rws_profile,
+            rws_users=((args.rws_user, password),),
+            motors_on=args.motors_on or args.start,
+            start_program=args.start,
+        ),
+        EgmSimConfig(
+            sensor_host=args.egm_host,
+            sensor_port=args.egm_port,
+            local_port=args.egm_local_port,
+            cycle_s=args.cycle_ms / 1000.0,
+            comm_timeout_s=args.comm_timeout_s,
+            seed=args.seed,
+        ),
+        EgmFaults(
+            loss_fraction=args.loss,
+            burst_ms=args.burst_ms,
+            delay_ms=args.delay_ms,
+            jitter_ms=args.jitter_ms,
+            duplicate_fraction=args.duplicate,
+            reorder_fraction=args.reorder,
+            corrupt_fraction=args.corrupt,
+        ),
+    )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    addresses = await sim.start()
+    print(json.dumps(addresses), flush=True)
+    try:
+        await stop.wait()
+    finally:
+        await sim.stop()
+        log.info("controller_sim_shutdown", **{k: v for k, v in vars(sim.egm.stats).items()})
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``python -m drivers.abb_egm.sim``; returns the exit status."""
+    args = _parser().parse_args(argv)
+    if not structlog.is_configured():
+        # stdout carries the one machine-readable line with the addresses; logs go to stderr
+        structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
+    try:
+        EgmFaults(
+            loss_fraction=args.loss,
+            burst_ms=args.burst_ms,
+            delay_ms=args.delay_ms,
+            jitter_ms=args.jitter_ms,
+            duplicate_fraction=args.duplicate,
+            reorder_fraction=args.reorder,
+            corrupt_fraction=args.corrupt,
+        )
+    except ValueError as exc:  # a bad knob value: a clear message, not a traceback
+        print(f"controller simulator: {exc}", file=sys.stderr)
+        return 2
+    try:
+        with asyncio.Runner(loop_factory=precise_event_loop) as runner:
+            return runner.run(_serve(args))
+    except OSError as exc:  # e.g. a port in use: say so plainly instead of a traceback
+        print(f"controller simulator: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

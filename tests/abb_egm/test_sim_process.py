@@ -1,0 +1,99 @@
+"""The simulated controller as its own process: addresses on stdout, EGM and RWS served, clean exit."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import aiohttp
+import numpy as np
+import pytest
+
+from drivers.abb_egm.codec import MciState, MotorState
+from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
+from drivers.abb_egm.sim import ControllerSim, ControllerSimConfig
+from drivers.abb_egm.sim import main as sim_main
+from drivers.abb_egm.sim_egm import EgmSimConfig, precise_event_loop
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _spawn(*args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "drivers.abb_egm.sim", *args],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"},
+    )
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_sim_process_prints_its_ports_serves_egm_and_rws_and_exits_cleanly_on_signal(sig):
+    async def main():
+        ep = EgmEndpoint(EgmEndpointConfig(port=0))
+        _, port = await ep.start()
+        proc = _spawn("--egm-port", str(port), "--rws-port", "0", "--start")
+        try:
+            line = await asyncio.wait_for(asyncio.to_thread(proc.stdout.readline), 30.0)
+            addresses = json.loads(line)
+            assert addresses["egm_sensor"] == ["127.0.0.1", port]
+            state = await ep.wait_for_feedback(5.0)
+            assert state.motor_state is MotorState.ON
+            await ep.wait_for_feedback(1.0)
+            assert ep.latest.mci_state is MciState.RUNNING and ep.ok_to_command
+            assert list(ep.controller_address) == addresses["egm_local"]
+            url = addresses["rws_url"] + "/rw/panel/ctrlstate?json=1"
+            async with aiohttp.ClientSession() as http, http.get(url) as resp:
+                assert resp.status == 401
+                assert resp.headers["WWW-Authenticate"].startswith("Digest")
+            proc.send_signal(sig)
+            rc = await asyncio.wait_for(asyncio.to_thread(proc.wait), 10.0)
+            assert rc == 0, proc.stderr.read()
+            assert "controller_sim_shutdown" in proc.stderr.read()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            await ep.close()
+
+    asyncio.run(main())
+
+
+def test_sim_entry_point_rejects_a_bad_fault_value_with_a_clear_message(capsys):
+    assert sim_main(["--egm-port", "6511", "--loss", "1.5"]) == 2
+    err = capsys.readouterr().err
+    assert "loss_fraction" in err and "Traceback" not in err
+
+
+def test_composed_sim_starts_egm_when_the_program_starts_and_reports_positions_to_rws():
+    async def main():
+        ep = EgmEndpoint(EgmEndpointConfig(port=0))
+        _, port = await ep.start()
+        sim = ControllerSim(ControllerSimConfig(), EgmSimConfig(sensor_port=port))
+        addresses = await sim.start()
+        assert addresses["rws_url"].startswith("http://127.0.0.1:")
+        await ep.wait_for_feedback(1.0)
+        assert not ep.ok_to_command
+        sim.model.motors_on()
+        sim.model.start_rapid()
+        for _ in range(50):
+            await ep.wait_for_feedback(1.0)
+            if ep.ok_to_command:
+                break
+        assert ep.ok_to_command
+        ep.command_joints(sim.egm.q_deg + np.array([2.0, 0, 0, 0, 0, 0]))
+        await asyncio.sleep(0.3)
+        q, _pos, _quat = sim.model.position()
+        np.testing.assert_allclose(q, sim.egm.q_deg)
+        assert q[0] > 1.0
+        await sim.stop()
+        await ep.close()
+
+    with asyncio.Runner(loop_factory=precise_event_loop) as runner:
+        runner.run(main())
