@@ -204,9 +204,6 @@ async def _serve(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m drivers.abb_egm.sim``; returns the exit status."""
     args = _parser().parse_args(argv)
-    if not structlog.is_configured():
-        # stdout carries the one machine-readable line with the addresses; logs go to stderr
-        structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
     try:
         EgmFaults(
             loss_fraction=args.loss,
@@ -229,4 +226,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    if not structlog.is_configured():
+        # stdout carries the one machine-readable line with the addresses; logs go to stderr
+        structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
     sys.exit(main())
