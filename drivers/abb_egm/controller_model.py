@@ -305,12 +305,17 @@ class EgmRunParams:
 
     comm_timeout_s: float
     pos_corr_gain: float
-    max_speed_deviation_dps: float
+    max_speed_deviation_deg_s: float
     max_pos_deviation_deg: float
     cond_time_s: float
     ramp_in_time_s: float
     lp_filter_hz: float
     sample_rate_ms: float
+
+    @property
+    def max_speed_deviation_dps(self) -> float:
+        """Alias of ``max_speed_deviation_deg_s`` (the name of the first version of this contract)."""
+        return self.max_speed_deviation_deg_s
 
 
 _SEVERITY = {"info": 1, "warning": 2, "error": 3}
@@ -566,7 +571,7 @@ class ControllerModel:
         self._egm_params = EgmRunParams(
             comm_timeout_s=self._var_num(VAR_COMM_TIMEOUT),
             pos_corr_gain=self._var_num(VAR_POS_CORR_GAIN),
-            max_speed_deviation_dps=self._var_num(VAR_MAX_SPEED_DEV),
+            max_speed_deviation_deg_s=self._var_num(VAR_MAX_SPEED_DEV),
             max_pos_deviation_deg=self._var_num(VAR_MAX_POS_DEV),
             cond_time_s=self._var_num(VAR_COND_TIME),
             ramp_in_time_s=self._var_num(VAR_RAMP_IN),

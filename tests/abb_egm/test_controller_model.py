@@ -170,7 +170,7 @@ def test_egm_params_are_read_from_the_rapid_variables_at_start() -> None:
     m.start_rapid()
     p = m.egm_params
     assert p is not None
-    assert (p.comm_timeout_s, p.pos_corr_gain, p.max_speed_deviation_dps) == (2.5, 0.5, 200.0)
+    assert (p.comm_timeout_s, p.pos_corr_gain, p.max_speed_deviation_deg_s) == (2.5, 0.5, 200.0)
     m.set_num(T, None, "egm_comm_timeout_s", 9)  # changes during a session wait for the next one
     assert m.egm_params is not None and m.egm_params.comm_timeout_s == 2.5
 

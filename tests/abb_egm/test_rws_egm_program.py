@@ -44,7 +44,7 @@ def test_start_brings_the_program_into_egm_with_the_settings_and_end_stops_it_cl
         assert model.egm_wanted and model.ctrl_state == "motoron"
         p = model.egm_params
         assert p is not None
-        assert (p.comm_timeout_s, p.pos_corr_gain, p.max_speed_deviation_dps) == (0.5, 0.8, 300.0)
+        assert (p.comm_timeout_s, p.pos_corr_gain, p.max_speed_deviation_deg_s) == (0.5, 0.8, 300.0)
         assert await prog.status() == 1
         assert await prog.end() == 2
         assert model.rapid_state == "stopped" and not model.egm_wanted
