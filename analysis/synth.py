@@ -261,6 +261,15 @@ def _place(spec: PlateSpec, error: FormingError, placement: Placement, scene: Be
     return T
 
 
+def _height_range(spec: PlateSpec, error: FormingError) -> tuple[float, float]:
+    """Bounds of the formed top surface's height over the footprint (mm), with a safety margin."""
+    u = np.linspace(-spec.length_mm / 2, spec.length_mm / 2, 241)
+    v = np.linspace(-spec.width_mm / 2, spec.width_mm / 2, 161)
+    U, V = np.meshgrid(u, v, indexing="ij")
+    Z, _, _ = surface_gradient(spec, error, U, V)
+    return float(Z.min()) - 5.0, float(Z.max()) + 5.0
+
+
 @dataclass
 class _Hits:
     t: np.ndarray
@@ -277,73 +286,103 @@ def _cast(
     t_best = np.where(d[:, 2] < 0, -o[:, 2] / np.minimum(d[:, 2], -1e-12), inf)
     normal = np.zeros((n, 3))
     normal[:, 2] = 1.0
-    # Support boxes, slab method.
+    # Support boxes, slab method, on the rays whose path between the box's top and the bed
+    # crosses the box's XY extent.
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
         for s in scene.supports:
+            t_top = (o[:, 2] - s.height_mm) / -d[:, 2]
+            xa, xb = o[:, 0] + t_top * d[:, 0], o[:, 0] + t_best * d[:, 0]
+            ya, yb = o[:, 1] + t_top * d[:, 1], o[:, 1] + t_best * d[:, 1]
+            sub = np.flatnonzero(
+                (np.maximum(xa, xb) >= s.x_min_mm)
+                & (np.minimum(xa, xb) <= s.x_max_mm)
+                & (np.maximum(ya, yb) >= s.y_min_mm)
+                & (np.minimum(ya, yb) <= s.y_max_mm)
+            )
+            if len(sub) == 0:
+                continue
             lo = np.array([s.x_min_mm, s.y_min_mm, 0.0])
             hi = np.array([s.x_max_mm, s.y_max_mm, s.height_mm])
-            t1 = (lo - o) * inv
-            t2 = (hi - o) * inv
+            inv = 1.0 / d[sub]
+            t1 = (lo - o[sub]) * inv
+            t2 = (hi - o[sub]) * inv
             tmin = np.fmin(t1, t2)
-            tmax = np.fmax(t1, t2)
             t_enter = np.nanmax(tmin, axis=1)
-            t_exit = np.nanmin(tmax, axis=1)
-            hit = (t_enter <= t_exit) & (t_enter > 0) & (t_enter < t_best)
+            t_exit = np.nanmin(np.fmax(t1, t2), axis=1)
+            hit = (t_enter <= t_exit) & (t_enter > 0) & (t_enter < t_best[sub])
             if hit.any():
                 axis = np.nanargmax(tmin[hit], axis=1)
                 nrm = np.zeros((int(hit.sum()), 3))
                 nrm[np.arange(len(axis)), axis] = 1.0
-                t_best = np.where(hit, t_enter, t_best)
-                normal[hit] = nrm
-    # Plate, in the design frame.
+                t_best[sub[hit]] = t_enter[hit]
+                normal[sub[hit]] = nrm
+    # Plate, in the design frame. Only rays that can reach the plate's bounding slab are cast.
     R, p0 = T[:3, :3], T[:3, 3]
     od = (o - p0) @ R
     dd = d @ R
     hl, hw, th = spec.length_mm / 2, spec.width_mm / 2, spec.thickness_mm
-    z0, _, _ = surface_gradient(spec, error, od[:, 0], od[:, 1])
-    t = (od[:, 2] - z0) / np.maximum(-dd[:, 2], 1e-9)
+    z_lo, z_hi = _height_range(spec, error)
+    z_lo -= th
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_hi = (od[:, 2] - z_hi) / -dd[:, 2]
+        t_lo = (od[:, 2] - z_lo) / -dd[:, 2]
+    xa, xb = od[:, 0] + t_hi * dd[:, 0], od[:, 0] + t_lo * dd[:, 0]
+    ya, yb = od[:, 1] + t_hi * dd[:, 1], od[:, 1] + t_lo * dd[:, 1]
+    near = (
+        (dd[:, 2] < 0)
+        & (np.minimum(xa, xb) <= hl + 1.0)
+        & (np.maximum(xa, xb) >= -hl - 1.0)
+        & (np.minimum(ya, yb) <= hw + 1.0)
+        & (np.maximum(ya, yb) >= -hw - 1.0)
+    )
+    sub = np.flatnonzero(near)
+    if len(sub) == 0:
+        return _Hits(t_best, normal)
+    o_s, d_s = od[sub], dd[sub]
+    t = np.clip(t_hi[sub], 0.0, None)
     for _ in range(12):
-        x = od[:, 0] + t * dd[:, 0]
-        y = od[:, 1] + t * dd[:, 1]
+        x = o_s[:, 0] + t * d_s[:, 0]
+        y = o_s[:, 1] + t * d_s[:, 1]
         z, gx, gy = surface_gradient(spec, error, x, y)
-        g = od[:, 2] + t * dd[:, 2] - z
-        dg = dd[:, 2] - gx * dd[:, 0] - gy * dd[:, 1]
+        g = o_s[:, 2] + t * d_s[:, 2] - z
+        dg = d_s[:, 2] - gx * d_s[:, 0] - gy * d_s[:, 1]
         step = g / np.where(np.abs(dg) > 1e-9, dg, -1e-9)
         t = t - step
         if np.max(np.abs(step)) < 1e-7:
             break
-    x = od[:, 0] + t * dd[:, 0]
-    y = od[:, 1] + t * dd[:, 1]
+    x = o_s[:, 0] + t * d_s[:, 0]
+    y = o_s[:, 1] + t * d_s[:, 1]
     z, gx, gy = surface_gradient(spec, error, x, y)
-    ok = (np.abs(od[:, 2] + t * dd[:, 2] - z) < 1e-5) & (np.abs(x) <= hl) & (np.abs(y) <= hw) & (t > 0)
-    hit = ok & (t < t_best)
+    ok = (np.abs(o_s[:, 2] + t * d_s[:, 2] - z) < 1e-5) & (np.abs(x) <= hl) & (np.abs(y) <= hw) & (t > 0)
+    hit = ok & (t < t_best[sub])
     if hit.any():
         nd = np.column_stack([-gx[hit], -gy[hit], np.ones(int(hit.sum()))])
         nd /= np.linalg.norm(nd, axis=1, keepdims=True)
-        t_best = np.where(hit, t, t_best)
-        normal[hit] = nd @ R.T
+        t_best[sub[hit]] = t[hit]
+        normal[sub[hit]] = nd @ R.T
     # Thickness faces: vertical planes x = +-L/2, y = +-W/2 in the design frame, facing the ray.
     with np.errstate(divide="ignore", invalid="ignore"):
         for axis, half, other_half in ((0, hl, hw), (1, hw, hl)):
             for sign in (1.0, -1.0):
-                facing = dd[:, axis] * sign < 0
-                tw = (sign * half - od[:, axis]) / dd[:, axis]
-                q = od + tw[:, None] * dd
-                zt, _, _ = surface_gradient(spec, error, q[:, 0], q[:, 1])
-                inside = (
-                    facing
+                tw = (sign * half - o_s[:, axis]) / d_s[:, axis]
+                q = o_s + tw[:, None] * d_s
+                cand = np.flatnonzero(
+                    (d_s[:, axis] * sign < 0)
                     & (tw > 0)
                     & (np.abs(q[:, 1 - axis]) <= other_half)
-                    & (q[:, 2] <= zt)
-                    & (q[:, 2] >= zt - th)
+                    & (q[:, 2] <= z_hi)
+                    & (q[:, 2] >= z_lo)
                 )
-                hit = inside & (tw < t_best)
-                if hit.any():
+                if len(cand) == 0:
+                    continue
+                zt, _, _ = surface_gradient(spec, error, q[cand, 0], q[cand, 1])
+                inside = (q[cand, 2] <= zt) & (q[cand, 2] >= zt - th) & (tw[cand] < t_best[sub[cand]])
+                if inside.any():
                     nd = np.zeros(3)
                     nd[axis] = sign
-                    t_best = np.where(hit, tw, t_best)
-                    normal[hit] = R @ nd
+                    rows = sub[cand[inside]]
+                    t_best[rows] = tw[cand[inside]]
+                    normal[rows] = R @ nd
     return _Hits(t_best, normal)
 
 

@@ -1,0 +1,374 @@
+"""Boundary and corners of the plate's top surface (paper section 2.1.2), for any placement angle.
+
+Steps, on the top-surface points from ``segment``:
+
+1. **Plate axes in the base plane.** The minimum-area rectangle around the points' XY convex hull
+   gives the plate's long axis ``u`` and the perpendicular ``v`` (counter-clockwise from ``u``);
+   nothing assumes the plate lies square to the bed.
+2. **Boundary feature points.** The XY projection is rasterised (``pixel_mm``) in the (u, v)
+   frame; for each ``bin_mm`` strip across an edge, the outermost top-surface point is that
+   edge's feature point (where the scan leaves the plate). Strips within ``corner_margin_mm`` of
+   a corner are left out: corners are where the data is incomplete, and they are recovered by
+   intersection instead.
+3. **Outlier removal by curvature.** Along each edge, feature points where the discrete curvature
+   of the edge curve jumps (second difference beyond ``outlier_mad`` robust deviations) or that lie
+   off a cubic spline through the others are dropped, repeatedly.
+4. **Cubic splines per edge.** Each edge is a least-squares cubic spline (knots ``knot_mm`` apart)
+   of its cross-edge offset and
+   its height over the along-edge coordinate (the XY base-plane projection plus z).
+5. **Corners.** Neighbouring projected edges are intersected in the base plane; the corner's height
+   is the mean of the two edges' height splines at the intersection, as the paper takes it.
+
+Corner order is the project convention (see ``plates``): counter-clockwise seen from +z, corner 0
+starts a long edge, of the two long edges the one whose direction is closest to the bed's +x.
+Edge k runs from corner k to corner k+1. The design's ``plates.design_corners`` uses the same
+order, so design and measured corners correspond up to a half turn.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import structlog
+from scipy import ndimage
+from scipy.interpolate import make_lsq_spline
+from scipy.spatial import ConvexHull
+
+from analysis.plates import canonical_corner_order
+
+__all__ = ["BoundaryError", "BoundaryResult", "BoundarySettings", "EdgeFit", "find_corners"]
+
+log = structlog.get_logger(__name__)
+
+
+class BoundaryError(ValueError):
+    """The points do not outline a four-sided plate (too few points, an edge without data)."""
+
+
+@dataclass(frozen=True)
+class BoundarySettings:
+    """Knobs of :func:`find_corners` (mm)."""
+
+    pixel_mm: float = 1.0
+    bin_mm: float = 2.0
+    corner_margin_mm: float = 15.0
+    outlier_mad: float = 5.0
+    min_outlier_mm: float = 0.3
+    min_points_per_edge: int = 10
+    knot_mm: float = 100.0
+
+
+@dataclass
+class EdgeFit:
+    """One plate edge: its feature points and cubic splines, from corner k to corner k+1.
+
+    points_mm: (m, 3) float64 inlier boundary feature points (bed frame, mm).
+    n_outliers: feature points removed by the curvature / residual test.
+    rms_mm: RMS of the inliers' cross-edge offset about the spline (mm).
+    """
+
+    points_mm: np.ndarray
+    n_outliers: int
+    rms_mm: float
+    _origin: np.ndarray = field(repr=False)
+    _along: np.ndarray = field(repr=False)
+    _cross: np.ndarray = field(repr=False)
+    _cross_spline: object = field(repr=False)
+    _z_spline: object = field(repr=False)
+    _t0: float = field(repr=False, default=0.0)
+    _t1: float = field(repr=False, default=1.0)
+
+    def evaluate(self, s: np.ndarray) -> np.ndarray:
+        """(m, 3) points on the edge at s in [0, 1] (0: corner k, 1: corner k+1), bed frame, mm."""
+        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+        t = self._t0 + s * (self._t1 - self._t0)
+        c = self._cross_spline(t)
+        xy = self._origin + t[:, None] * self._along + c[:, None] * self._cross
+        return np.column_stack([xy, self._z_spline(t)])
+
+    def sample_mm(self, step_mm: float = 1.0) -> np.ndarray:
+        """(m, 3) points along the edge from corner k to corner k+1, about ``step_mm`` apart."""
+        n = max(2, int(np.ceil(abs(self._t1 - self._t0) / step_mm)) + 1)
+        return self.evaluate(np.linspace(0.0, 1.0, n))
+
+    @property
+    def length_mm(self) -> float:
+        """Length of the edge's 3-D curve between its corners (mm)."""
+        p = self.sample_mm(1.0)
+        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+@dataclass
+class BoundaryResult:
+    """Corners and edges of the plate's top surface.
+
+    corners_mm: (4, 3) float64, bed frame, mm, in the project's corner order.
+    edges: four :class:`EdgeFit`, edge k from corner k to corner k+1.
+    boundary_points_mm: (m, 3) all inlier feature points.
+    timings_s: seconds per step.
+    """
+
+    corners_mm: np.ndarray
+    edges: tuple[EdgeFit, EdgeFit, EdgeFit, EdgeFit]
+    boundary_points_mm: np.ndarray
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def size_mm(self) -> tuple[float, float]:
+        """(length, width): mean chord lengths of the long and of the short edges in XY (mm)."""
+        c = self.corners_mm[:, :2]
+        e = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)
+        return float((e[0] + e[2]) / 2), float((e[1] + e[3]) / 2)
+
+    def plate_frame(self) -> np.ndarray:
+        """T_bed_plate (4, 4): origin at the corners' mean, x along edges 0 and 2, z the diagonal normal.
+
+        z = (c2 - c0) x (c3 - c1), the paper's "diagonal normal", pointing up.
+        """
+        c = self.corners_mm
+        z = np.cross(c[2] - c[0], c[3] - c[1])
+        z /= np.linalg.norm(z)
+        if z[2] < 0:
+            z = -z
+        x = (c[1] - c[0]) + (c[2] - c[3])
+        x -= z * (x @ z)
+        x /= np.linalg.norm(x)
+        T = np.eye(4)
+        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+        T[:3, 3] = c.mean(axis=0)
+        return T
+
+
+def _min_area_axes(xy: np.ndarray) -> np.ndarray:
+    """Unit long axis (2,) of the minimum-area rectangle around the XY points."""
+    hull = xy[ConvexHull(xy).vertices]
+    e = np.roll(hull, -1, axis=0) - hull
+    ang = np.unique(np.mod(np.arctan2(e[:, 1], e[:, 0]), np.pi / 2))
+    c, s = np.cos(ang), np.sin(ang)
+    a = hull @ np.vstack([c, s])  # (h, k) coordinates along each candidate axis
+    b = hull @ np.vstack([-s, c])
+    ext_a = a.max(axis=0) - a.min(axis=0)
+    ext_b = b.max(axis=0) - b.min(axis=0)
+    k = int(np.argmin(ext_a * ext_b))
+    u = np.array([c[k], s[k]])
+    if ext_b[k] > ext_a[k]:
+        u = np.array([-s[k], c[k]])
+    # Keep the axis direction in (-90, 90] deg so "edge 0" is well defined.
+    ang_u = np.arctan2(u[1], u[0])
+    if not (-np.pi / 2 < ang_u <= np.pi / 2):
+        u = -u
+    return u
+
+
+def _edge_samples(
+    along: np.ndarray, cross: np.ndarray, idx: np.ndarray, bin_mm: float, lo: float, hi: float
+) -> np.ndarray:
+    """Per ``bin_mm`` bin of ``along`` in [lo, hi], the index (into idx) of the max ``cross`` point."""
+    keep = (along >= lo) & (along <= hi)
+    along, cross, idx = along[keep], cross[keep], idx[keep]
+    b = np.floor((along - lo) / bin_mm).astype(np.int64)
+    order = np.lexsort((-cross, b))
+    b_sorted = b[order]
+    first = np.flatnonzero(np.r_[True, b_sorted[1:] != b_sorted[:-1]])
+    return idx[order[first]]
+
+
+def _cubic_spline(t: np.ndarray, c: np.ndarray, knot_mm: float):
+    """Least-squares cubic B-spline c(t) with interior knots about ``knot_mm`` apart (t increasing)."""
+    lo, hi = float(t[0]), float(t[-1])
+    n_int = max(0, int((hi - lo) / knot_mm) - 1)
+    inner = np.linspace(lo, hi, n_int + 2)[1:-1]
+    knots = np.r_[[lo] * 4, inner, [hi] * 4]
+    return make_lsq_spline(t, c, knots, k=3)
+
+
+def _robust_spline_fit(
+    t: np.ndarray, c: np.ndarray, st: BoundarySettings
+) -> tuple[np.ndarray, object, float]:
+    """Inlier mask, cross-offset cubic spline and RMS after curvature / residual outlier removal."""
+    keep = np.ones(len(t), bool)
+    spline = None
+    for _ in range(4):
+        ti, ci = t[keep], c[keep]
+        if len(ti) < st.min_points_per_edge:
+            break
+        # Discrete curvature of the edge curve (second difference over the spacing squared).
+        h = np.diff(ti)
+        h = np.where(h > 0, h, 1e-9)
+        d2 = np.zeros(len(ti))
+        d2[1:-1] = 2 * ((ci[2:] - ci[1:-1]) / h[1:] - (ci[1:-1] - ci[:-2]) / h[:-1]) / (h[1:] + h[:-1])
+        mad2 = 1.4826 * np.median(np.abs(d2[1:-1] - np.median(d2[1:-1]))) + 1e-12
+        curv_bad = np.abs(d2) > st.outlier_mad * mad2 + st.min_outlier_mm / max(np.median(h), 1e-6) ** 2
+        spline = _cubic_spline(ti, ci, st.knot_mm)
+        res = ci - spline(ti)
+        mad = 1.4826 * np.median(np.abs(res - np.median(res))) + 1e-12
+        res_bad = np.abs(res) > max(st.outlier_mad * mad, st.min_outlier_mm)
+        bad = curv_bad & res_bad | (np.abs(res) > 4 * max(st.outlier_mad * mad, st.min_outlier_mm))
+        if not bad.any():
+            break
+        keep[np.flatnonzero(keep)[bad]] = False
+    ti, ci = t[keep], c[keep]
+    if len(ti) < st.min_points_per_edge:
+        raise BoundaryError(
+            f"an edge has only {len(ti)} usable feature points (need {st.min_points_per_edge})"
+        )
+    spline = _cubic_spline(ti, ci, st.knot_mm)
+    rms = float(np.sqrt(np.mean((ci - spline(ti)) ** 2)))
+    return keep, spline, rms
+
+
+def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None) -> BoundaryResult:
+    """Boundary feature points, per-edge cubic splines and the four corners of a plate's top surface.
+
+    points_mm: (n, 3) float64 top-surface points (``SegmentResult.points_mm``), bed frame, mm; the
+        plate lies roughly horizontal (any yaw).
+    Returns a :class:`BoundaryResult`; raises :class:`BoundaryError` when no four-sided outline
+    with enough points per edge is found.
+    """
+    st = settings or BoundarySettings()
+    t0 = time.perf_counter()
+    P = np.asarray(points_mm, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise BoundaryError(f"points_mm must be (n, 3), got {P.shape}")
+    if len(P) < 100:
+        raise BoundaryError(f"{len(P)} points: too few to outline a plate")
+    timings: dict[str, float] = {}
+    sub = P[:: max(1, len(P) // 200_000), :2]
+    centre = np.median(sub, axis=0)
+    u = _min_area_axes(sub - centre)
+    v = np.array([-u[1], u[0]])
+    timings["axes"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    xy = P[:, :2] - centre
+    a = xy @ u
+    b = xy @ v
+    px = st.pixel_mm
+    # Three empty pixels of margin: the closing below must not eat into the plate at the image border.
+    a0, b0 = a.min() - 3 * px, b.min() - 3 * px
+    ia = ((a - a0) / px).astype(np.int64)
+    ib = ((b - b0) / px).astype(np.int64)
+    na, nb = int(ia.max()) + 4, int(ib.max()) + 4
+    occ = np.bincount(ia * nb + ib, minlength=na * nb).reshape(na, nb) > 0
+    occ = ndimage.binary_closing(occ, iterations=2, border_value=0)
+    lab, nlab = ndimage.label(occ, structure=np.ones((3, 3)))
+    if nlab == 0:
+        raise BoundaryError("no occupied area in the base-plane projection")
+    biggest = 1 + int(np.argmax(ndimage.sum_labels(occ, lab, index=np.arange(1, nlab + 1))))
+    occ = ndimage.binary_fill_holes(lab == biggest)
+    on = occ[ia, ib]
+    rows_a = np.flatnonzero(occ.any(axis=1))
+    cols_b = np.flatnonzero(occ.any(axis=0))
+    a_lo, a_hi = a0 + rows_a[0] * px, a0 + (rows_a[-1] + 1) * px
+    b_lo, b_hi = b0 + cols_b[0] * px, b0 + (cols_b[-1] + 1) * px
+    # Per pixel column / row: the outermost occupied pixel; points within a pixel of it are candidates.
+    big = np.iinfo(np.int64).max // 4
+    col_min = np.where(occ.any(axis=1), np.argmax(occ, axis=1), big)
+    col_max = np.where(occ.any(axis=1), nb - 1 - np.argmax(occ[:, ::-1], axis=1), -big)
+    row_min = np.where(occ.any(axis=0), np.argmax(occ, axis=0), big)
+    row_max = np.where(occ.any(axis=0), na - 1 - np.argmax(occ[::-1], axis=0), -big)
+    timings["raster"] = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    m = st.corner_margin_mm
+    idx_all = np.flatnonzero(on)
+    ia_on, ib_on = ia[idx_all], ib[idx_all]
+    # Edge 0 (v min), edge 1 (u max), edge 2 (v max), edge 3 (u min): (along, outward-cross) coordinates.
+    specs = [
+        (ib_on <= col_min[ia_on] + 1, a, -b, a_lo + m, a_hi - m),
+        (ia_on >= row_max[ib_on] - 1, b, a, b_lo + m, b_hi - m),
+        (ib_on >= col_max[ia_on] - 1, a, b, a_lo + m, a_hi - m),
+        (ia_on <= row_min[ib_on] + 1, b, -a, b_lo + m, b_hi - m),
+    ]
+    fits = []
+    for k, (sel, along_all, outward_all, lo, hi) in enumerate(specs):
+        cand = idx_all[sel]
+        pick = _edge_samples(along_all[cand], outward_all[cand], cand, st.bin_mm, lo, hi)
+        if len(pick) < st.min_points_per_edge:
+            raise BoundaryError(f"edge {k}: {len(pick)} feature points (need {st.min_points_per_edge})")
+        t = along_all[pick]
+        order = np.argsort(t)
+        pick, t = pick[order], t[order]
+        distinct = np.r_[True, np.diff(t) > 1e-9]  # the spline needs increasing abscissae
+        pick, t = pick[distinct], t[distinct]
+        c = outward_all[pick]
+        keep, cs, rms = _robust_spline_fit(t, c, st)
+        zs = _cubic_spline(t[keep], P[pick[keep], 2], st.knot_mm)
+        fits.append((pick, keep, cs, zs, rms))
+    timings["edges"] = time.perf_counter() - t2
+
+    t3 = time.perf_counter()
+
+    # Each edge k: along coordinate t, outward offset c(t). In (a, b): edge 0 is b = -c0(a),
+    # edge 1 a = c1(b), edge 2 b = c2(a), edge 3 a = -c3(b).
+    def b_of(k: int, aa: float) -> float:
+        return float(-fits[0][2](aa)) if k == 0 else float(fits[2][2](aa))
+
+    def a_of(k: int, bb: float) -> float:
+        return float(fits[1][2](bb)) if k == 1 else float(-fits[3][2](bb))
+
+    # Corner j joins edge j-1 and edge j: c0 = e3 & e0, c1 = e0 & e1, c2 = e1 & e2, c3 = e2 & e3.
+    pairs = [(0, 3, a_lo, b_lo), (0, 1, a_hi, b_lo), (2, 1, a_hi, b_hi), (2, 3, a_lo, b_hi)]
+    corners_ab = []
+    heights = []
+    for long_k, short_k, aa, bb in pairs:
+        for _ in range(50):
+            bb_new = b_of(long_k, aa)
+            aa_new = a_of(short_k, bb_new)
+            done = abs(aa_new - aa) < 1e-6 and abs(bb_new - bb) < 1e-6
+            aa, bb = aa_new, bb_new
+            if done:
+                break
+        corners_ab.append((aa, bb))
+        heights.append(0.5 * (float(fits[long_k][3](aa)) + float(fits[short_k][3](bb))))
+    corners_ab = np.asarray(corners_ab)
+    corners_xy = centre + corners_ab[:, :1] * u + corners_ab[:, 1:] * v
+    corners = np.column_stack([corners_xy, heights])
+
+    # Edge objects, oriented from corner k to corner k+1.
+    axes = [(u, -v), (v, u), (u, v), (v, -u)]
+    t_ends = [
+        (corners_ab[0, 0], corners_ab[1, 0]),
+        (corners_ab[1, 1], corners_ab[2, 1]),
+        (corners_ab[2, 0], corners_ab[3, 0]),
+        (corners_ab[3, 1], corners_ab[0, 1]),
+    ]
+    edges = []
+    for k, (pick, keep, cs, zs, rms) in enumerate(fits):
+        along_v, out_v = axes[k]
+        edges.append(
+            EdgeFit(
+                points_mm=P[pick[keep]],
+                n_outliers=int((~keep).sum()),
+                rms_mm=rms,
+                _origin=centre,
+                _along=along_v,
+                _cross=out_v,
+                _cross_spline=cs,
+                _z_spline=zs,
+                _t0=float(t_ends[k][0]),
+                _t1=float(t_ends[k][1]),
+            )
+        )
+    # The (u, v) construction already follows the convention; canonical_corner_order decides by
+    # edge lengths, which matters only for a near-square plate. Roll edges with the corners.
+    canon = canonical_corner_order(corners)
+    shift = int(np.argmin([np.abs(np.roll(corners, -s, axis=0) - canon).sum() for s in range(4)]))
+    corners = np.roll(corners, -shift, axis=0)
+    edges = edges[shift:] + edges[:shift]
+    timings["corners"] = time.perf_counter() - t3
+    timings["total"] = time.perf_counter() - t0
+    result = BoundaryResult(
+        corners_mm=corners,
+        edges=tuple(edges),  # type: ignore[arg-type]
+        boundary_points_mm=np.concatenate([e.points_mm for e in edges]),
+        timings_s=timings,
+    )
+    log.info(
+        "boundary", points=len(P), feature_points=len(result.boundary_points_mm),
+        outliers=sum(e.n_outliers for e in edges), size_mm=[round(x, 2) for x in result.size_mm],
+        total_s=round(timings["total"], 3),
+    )  # fmt: skip
+    return result

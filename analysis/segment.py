@@ -1,0 +1,462 @@
+"""Surface extraction (paper section 2.1.1): keep the plate's top surface, drop everything else.
+
+A scan holds the bed, the supports, the plate's thickness faces (seen by the edge passes), sparse
+outliers and holes where returns are missing. The paper triangulates the scan and grows regions
+over triangle normals; the plate's top is the large smooth region. We do the same, at the speed of
+whole-array operations:
+
+1. **Triangulate on the scan grid.** An organised scan (pass, profile, point per point) is a grid
+   per pass: neighbouring profiles and neighbouring points are neighbours. We group the grid into
+   small cells (``cell_mm``, about 2 x 2 mm: 20 points x 4 profiles at HD8 density) and give each
+   cell its mean point and a normal from the neighbouring cells' means (the normal of the two
+   triangles of the cell's quad, averaged over the stencil, so 0.02 mm sensor noise no longer
+   dominates the normal). Points more than ``gross_outlier_mm`` off their cell's plane are dropped
+   and the cells recomputed, so a sparse outlier cannot tilt a cell.
+2. **Region growing by normals.** Two neighbouring cells belong to one region when their normals
+   differ by less than ``max_normal_angle_deg``; a cell is a growth cell when it agrees with all
+   four neighbours. The regions are the connected components of that adjacency, found per pass
+   with ``scipy.ndimage.label`` (the vectorised equivalent of seed-and-grow). Passes overlap, so
+   regions of different passes that share space (a ``link_voxel_mm`` voxel) with agreeing normals
+   are joined with ``scipy.sparse.csgraph.connected_components``.
+3. **Keep the plate's top.** The largest region (by cell count) is the plate's top surface. Its
+   cells' points, and the points of the cells just around it (the edge band, where the cell
+   stencil straddles the edge), are kept when they lie within ``inlier_sigmas`` noise levels of
+   the nearest plate cell's plane. The noise level is measured from the plate's own points and
+   reported (``noise_sigma_mm``): metrics use it to set their smoothing.
+
+Unorganised clouds (PCD, XYZ) take the paper's Delaunay route: 3-D cell means on a ``cell_mm``
+voxel grid, Delaunay triangulation of their XY projection, region growing over the triangle
+adjacency with the same normal-angle test, then the same point test.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import structlog
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from analysis.cloud_io import ScanCloud
+
+__all__ = ["NoPlateError", "SegmentError", "SegmentResult", "SegmentSettings", "segment_plate"]
+
+log = structlog.get_logger(__name__)
+
+
+class SegmentError(ValueError):
+    """The input cannot be segmented (wrong shape, too few points)."""
+
+
+class NoPlateError(SegmentError):
+    """No smooth surface large enough to be a plate was found in the cloud."""
+
+
+@dataclass(frozen=True)
+class SegmentSettings:
+    """Knobs of :func:`segment_plate` (defaults suit HD8 scans of 1-12 m plates)."""
+
+    cell_mm: float = 2.0
+    max_normal_angle_deg: float = 6.0
+    gross_outlier_mm: float = 1.0
+    inlier_sigmas: float = 6.0
+    min_inlier_tol_mm: float = 0.05
+    link_voxel_mm: float = 4.0
+    min_plate_area_mm2: float = 10_000.0
+    min_cell_fill: float = 0.5
+    edge_band_cells: int = 5
+
+
+@dataclass
+class SegmentResult:
+    """The plate's top surface found in a scan.
+
+    mask: (n,) bool over the input points, True for the plate's top surface.
+    points_mm: (k, 3) float64 the selected points (bed frame, mm).
+    cloud: the selected points as a ScanCloud (organisation kept when the input had it).
+    noise_sigma_mm: robust standard deviation of the top-surface points about their local plane.
+    inlier_tol_mm: the plane-distance tolerance used to accept points.
+    plate_area_mm2: area of the plate region (cells x cell area, projected on the cell planes).
+    n_regions: number of smooth regions found (after joining across passes).
+    region_cells: cell counts of the regions, largest first (at most 10).
+    method: "grid" (organised scan) or "delaunay".
+    timings_s: seconds per step.
+    """
+
+    mask: np.ndarray
+    points_mm: np.ndarray
+    cloud: ScanCloud
+    noise_sigma_mm: float
+    inlier_tol_mm: float
+    plate_area_mm2: float
+    n_regions: int
+    region_cells: list[int]
+    method: str
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | None = None) -> SegmentResult:
+    """Extract the plate's top surface from a scan cloud.
+
+    cloud: a :class:`ScanCloud` (organised or not) or an (n, 3) float array in mm.
+    Returns a :class:`SegmentResult`; raises :class:`NoPlateError` when no smooth region reaches
+    ``min_plate_area_mm2`` and :class:`SegmentError` on unusable input.
+    """
+    settings = settings or SegmentSettings()
+    if not isinstance(cloud, ScanCloud):
+        arr = np.asarray(cloud, dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != 3:
+            raise SegmentError(f"points must be (n, 3), got {arr.shape}")
+        cloud = ScanCloud(arr)
+    if len(cloud) < 100:
+        raise SegmentError(f"{len(cloud)} points: too few to hold a plate")
+    if not np.isfinite(cloud.points_mm).all():
+        raise SegmentError("points_mm holds non-finite coordinates")
+    if cloud.organised:
+        return _segment_grid(cloud, settings)
+    return _segment_delaunay(cloud, settings)
+
+
+# --------------------------------------------------------------------------------------------- grid
+
+
+@dataclass
+class _PassCells:
+    rows: np.ndarray  # (P,) profile index -> grid row (identity when profiles are dense)
+    idx: np.ndarray  # (P, W) int64 point index or -1
+    by: int
+    bx: int
+    mean: np.ndarray  # (Pc, Wc, 3)
+    normal: np.ndarray  # (Pc, Wc, 3), NaN where undefined
+    count: np.ndarray  # (Pc, Wc)
+    smooth: np.ndarray  # (Pc, Wc) bool
+    labels: np.ndarray  # (Pc, Wc) global region label or -1
+
+
+def _cells(X5: np.ndarray, V5: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cell sums of a (Pc, by, Wc, bx, 3) grid with validity (Pc, by, Wc, bx): (count, mean)."""
+    cnt = V5.sum(axis=(1, 3), dtype=np.float64)
+    s = np.where(V5[..., None], X5, 0.0).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = s / cnt[..., None]
+    return cnt, mean
+
+
+def _plane_residual(X5: np.ndarray, mean: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Signed distance (Pc, by, Wc, bx) of every grid point from its cell's plane (mean, normal)."""
+    d = X5 - mean[:, None, :, None, :]
+    n = normal[:, None, :, None, :]
+    return d[..., 0] * n[..., 0] + d[..., 1] * n[..., 1] + d[..., 2] * n[..., 2]
+
+
+def _normals(mean: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Cell normals from central differences of neighbouring cell means; NaN where a neighbour is missing."""
+    Pc, Wc, _ = mean.shape
+    normal = np.full((Pc, Wc, 3), np.nan)
+    if Pc < 3 or Wc < 3:
+        return normal
+    d_row = mean[2:, 1:-1] - mean[:-2, 1:-1]
+    d_col = mean[1:-1, 2:] - mean[1:-1, :-2]
+    n = np.cross(d_col, d_row)
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    good = ok[2:, 1:-1] & ok[:-2, 1:-1] & ok[1:-1, 2:] & ok[1:-1, :-2] & ok[1:-1, 1:-1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = n / length
+    n[~good] = np.nan
+    normal[1:-1, 1:-1] = n
+    return normal
+
+
+def _smooth(normal: np.ndarray, cos_max: float) -> np.ndarray:
+    """Cells whose normal agrees with all four neighbours' (the growth criterion)."""
+    Pc, Wc, _ = normal.shape
+    sm = np.zeros((Pc, Wc), bool)
+    if Pc < 3 or Wc < 3:
+        return sm
+    c = normal[1:-1, 1:-1]
+    agree = np.isfinite(c[..., 0])
+    for nb in (normal[2:, 1:-1], normal[:-2, 1:-1], normal[1:-1, 2:], normal[1:-1, :-2]):
+        with np.errstate(invalid="ignore"):
+            agree &= np.einsum("ijk,ijk->ij", c, nb) > cos_max
+    sm[1:-1, 1:-1] = agree
+    return sm
+
+
+def _grid_pitch(points: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
+    """Median spacing along the line (points) and across (profiles) of one pass grid, mm."""
+    P, W = idx.shape
+    rows = np.linspace(0, P - 1, min(P, 64)).astype(int)
+    a = idx[rows]
+    ok = (a[:, 1:] >= 0) & (a[:, :-1] >= 0)
+    d_pt = (
+        np.linalg.norm(points[a[:, 1:][ok]] - points[a[:, :-1][ok]], axis=1) if ok.any() else np.array([1.0])
+    )
+    cols = np.linspace(0, W - 1, min(W, 64)).astype(int)
+    b = idx[:, cols]
+    okb = (b[1:] >= 0) & (b[:-1] >= 0)
+    d_pr = np.linalg.norm(points[b[1:][okb]] - points[b[:-1][okb]], axis=1) if okb.any() else np.array([1.0])
+    return float(np.median(d_pt)), float(np.median(d_pr))
+
+
+def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    pts = cloud.points_mm
+    n = len(pts)
+    pass_id = cloud.pass_id.astype(np.int64)
+    n_pass = int(pass_id.max()) + 1
+    width = int(cloud.point.max()) + 1
+    n_rows = int(cloud.profile.max()) + 1
+    # One index grid for all passes: (pass, profile, point) -> point index. Duplicated indices
+    # (a malformed file) keep the last point, which is harmless for segmentation.
+    lin = (pass_id * n_rows + cloud.profile) * width + cloud.point
+    grid = np.full(n_pass * n_rows * width, -1, dtype=np.int64)
+    grid[lin] = np.arange(n)
+    grid = grid.reshape(n_pass, n_rows, width)
+    rows_per_pass = np.zeros(n_pass, np.int64)
+    np.maximum.at(rows_per_pass, pass_id, cloud.profile.astype(np.int64) + 1)
+    timings["grid"] = time.perf_counter() - t0
+
+    cos_max = float(np.cos(np.deg2rad(st.max_normal_angle_deg)))
+    passes: list[_PassCells | None] = []
+    next_label = 0
+    t1 = time.perf_counter()
+    for p in range(n_pass):
+        P = int(rows_per_pass[p])
+        if P < 3:
+            passes.append(None)
+            continue
+        idx = grid[p, :P]
+        pitch_pt, pitch_pr = _grid_pitch(pts, idx)
+        bx = max(1, round(st.cell_mm / max(pitch_pt, 1e-6)))
+        by = max(1, round(st.cell_mm / max(pitch_pr, 1e-6)))
+        Pp, Wp = -(-P // by) * by, -(-width // bx) * bx
+        idxp = np.full((Pp, Wp), -1, np.int64)
+        idxp[:P, :width] = idx
+        V = idxp >= 0
+        Pc, Wc = Pp // by, Wp // bx
+        X5 = pts[np.where(V, idxp, 0)].reshape(Pc, by, Wc, bx, 3)
+        V5 = V.reshape(Pc, by, Wc, bx)
+        min_count = st.min_cell_fill * by * bx
+        cnt, mean = _cells(X5, V5)
+        normal = _normals(mean, cnt >= min_count)
+        # Drop gross outliers against the first planes, then recompute: one outlier must not tilt a cell.
+        with np.errstate(invalid="ignore"):
+            V5 = V5 & ~(np.abs(_plane_residual(X5, mean, normal)) > st.gross_outlier_mm)
+        cnt, mean = _cells(X5, V5)
+        ok = cnt >= min_count
+        normal = _normals(mean, ok)
+        smooth = _smooth(normal, cos_max)
+        lab, nlab = ndimage.label(smooth)
+        labels = np.where(lab > 0, lab - 1 + next_label, -1)
+        next_label += nlab
+        passes.append(_PassCells(np.arange(P), idxp, by, bx, mean, normal, cnt, smooth, labels))
+    timings["cells_and_regions"] = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    if next_label == 0:
+        raise NoPlateError("no smooth surface in the cloud (every cell is an edge, a hole or noise)")
+    # Join regions across passes where they share space with agreeing normals.
+    keys, labs, nrms = [], [], []
+    v = st.link_voxel_mm
+    for pc in passes:
+        if pc is None:
+            continue
+        sel = pc.labels >= 0
+        keys.append(np.floor(pc.mean[sel] / v).astype(np.int64))
+        labs.append(pc.labels[sel])
+        nrms.append(pc.normal[sel])
+    K = np.concatenate(keys)
+    L = np.concatenate(labs)
+    N = np.concatenate(nrms)
+    K -= K.min(axis=0)
+    span = K.max(axis=0) + 1
+    key = (K[:, 0] * span[1] + K[:, 1]) * span[2] + K[:, 2]
+    order = np.argsort(key, kind="stable")
+    key, L, N = key[order], L[order], N[order]
+    same = (key[1:] == key[:-1]) & (L[1:] != L[:-1])
+    agree = np.abs(np.einsum("ij,ij->i", N[1:], N[:-1])) > cos_max
+    link = same & agree
+    a, b = L[:-1][link], L[1:][link]
+    adj = coo_matrix((np.ones(len(a)), (a, b)), shape=(next_label, next_label))
+    n_groups, group = connected_components(adj, directed=False)
+    cells_per_label = np.bincount(L, minlength=next_label)
+    cells_per_group = np.bincount(group, weights=cells_per_label, minlength=n_groups)
+    plate_group = int(np.argmax(cells_per_group))
+    ranking = np.sort(cells_per_group)[::-1]
+    timings["join_passes"] = time.perf_counter() - t2
+
+    # Select points: plate cells and the band around them, against the nearest plate cell's plane.
+    t3 = time.perf_counter()
+    cand_idx, cand_r, interior_r, area = [], [], [], 0.0
+    for pc in passes:
+        if pc is None:
+            continue
+        plate = (pc.labels >= 0) & (group[np.maximum(pc.labels, 0)] == plate_group)
+        if not plate.any():
+            continue
+        cell_area = _cell_area(pc.mean, plate)
+        area += cell_area
+        # The band: cells whose stencil reached over the edge are not growth cells, so the plate's
+        # last few millimetres sit in cells around the region; test their points individually.
+        band = ndimage.binary_dilation(plate, iterations=st.edge_band_cells) & (pc.count > 0)
+        _, (di, dj) = ndimage.distance_transform_edt(~plate, return_indices=True)
+        Pc, Wc = plate.shape
+        by, bx = pc.by, pc.bx
+        dn = pc.normal[di, dj]
+        dn[~band] = np.nan
+        X5 = pts[np.maximum(pc.idx, 0)].reshape(Pc, by, Wc, bx, 3)
+        with np.errstate(invalid="ignore"):
+            r5 = _plane_residual(X5, pc.mean[di, dj], dn)
+        sel5 = (pc.idx.reshape(Pc, by, Wc, bx) >= 0) & np.isfinite(r5)
+        cand_idx.append(pc.idx.reshape(Pc, by, Wc, bx)[sel5])
+        cand_r.append(r5[sel5])
+        inner5 = sel5 & plate[:, None, :, None]
+        interior_r.append(r5[inner5][::4])
+    if not cand_idx:
+        raise NoPlateError("no plate region in the cloud")
+    idx_all = np.concatenate(cand_idx)
+    r_all = np.concatenate(cand_r)
+    r_in = np.concatenate(interior_r)
+    r_in = r_in[np.abs(r_in) < st.gross_outlier_mm]
+    mean_fill = float(np.mean([pc.count[pc.count > 0].mean() for pc in passes if pc is not None]))
+    # Residuals about a cell mean that includes the point itself shrink by sqrt((c - 1) / c).
+    shrink = np.sqrt(mean_fill / max(mean_fill - 1.0, 1.0)) if mean_fill > 1.5 else 1.0
+    sigma = float(1.4826 * np.median(np.abs(r_in - np.median(r_in))) * shrink) if len(r_in) else 0.0
+    tol = max(st.inlier_sigmas * sigma, st.min_inlier_tol_mm)
+    mask = np.zeros(n, bool)
+    mask[idx_all[np.abs(r_all) < tol]] = True
+    timings["select_points"] = time.perf_counter() - t3
+    timings["total"] = time.perf_counter() - t0
+    if area < st.min_plate_area_mm2:
+        raise NoPlateError(
+            f"largest smooth region is {area:.0f} mm^2, below min_plate_area_mm2={st.min_plate_area_mm2:.0f}"
+        )
+    log.info(
+        "segment", method="grid", points=n, plate_points=int(mask.sum()), regions=n_groups,
+        noise_sigma_mm=round(sigma, 4), area_mm2=round(area), total_s=round(timings["total"], 3),
+    )  # fmt: skip
+    return SegmentResult(
+        mask=mask,
+        points_mm=pts[mask],
+        cloud=cloud.subset(mask),
+        noise_sigma_mm=sigma,
+        inlier_tol_mm=tol,
+        plate_area_mm2=area,
+        n_regions=int(n_groups),
+        region_cells=[int(c) for c in ranking[:10]],
+        method="grid",
+        timings_s=timings,
+    )
+
+
+def _cell_area(mean: np.ndarray, sel: np.ndarray) -> float:
+    """Approximate area (mm^2) of the selected cells from the spacing of neighbouring cell means."""
+    Pc, Wc, _ = mean.shape
+    d_row = np.full((Pc, Wc), np.nan)
+    d_col = np.full((Pc, Wc), np.nan)
+    if Pc > 1:
+        d_row[:-1] = np.linalg.norm(mean[1:] - mean[:-1], axis=-1)
+    if Wc > 1:
+        d_col[:, :-1] = np.linalg.norm(mean[:, 1:] - mean[:, :-1], axis=-1)
+    a = d_row[sel] * d_col[sel]
+    a = a[np.isfinite(a)]
+    if not len(a):
+        return 0.0
+    # Cells at the region's rim have one undefined spacing; count them at the median size.
+    return float(np.median(a) * sel.sum())
+
+
+# ----------------------------------------------------------------------------------------- delaunay
+
+
+def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
+    from scipy.spatial import Delaunay
+
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    pts = cloud.points_mm
+    n = len(pts)
+    v = st.cell_mm
+    # 3-D cells: the bed under an overhanging edge and the plate above it stay apart.
+    q = np.floor((pts - pts.min(axis=0)) / v).astype(np.int64)
+    span = q.max(axis=0) + 1
+    key = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
+    uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    m = len(uniq)
+    mean = (
+        np.column_stack([np.bincount(inv, weights=pts[:, k], minlength=m) for k in range(3)])
+        / counts[:, None]
+    )
+    timings["cells"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    if m < 4:
+        raise NoPlateError("too few distinct cells to triangulate")
+    tri = Delaunay(mean[:, :2])
+    simp = tri.simplices
+    tv = mean[simp]
+    nrm = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    ln = np.linalg.norm(nrm, axis=1)
+    nrm = nrm / np.where(ln > 0, ln, 1.0)[:, None]
+    nrm[nrm[:, 2] < 0] *= -1.0
+    edge_len = np.max(np.linalg.norm(tv - np.roll(tv, 1, axis=1), axis=2), axis=1)
+    # Long triangles bridge holes or jump between surfaces: they do not take part in growing.
+    good = (edge_len < 4.0 * v) & (ln > 0)
+    cos_max = float(np.cos(np.deg2rad(st.max_normal_angle_deg)))
+    nb = tri.neighbors
+    rows = np.repeat(np.arange(len(simp)), 3)
+    cols = nb.ravel()
+    keep = (cols >= 0) & good[rows] & good[np.maximum(cols, 0)]
+    rows, cols = rows[keep], cols[keep]
+    keep = np.einsum("ij,ij->i", nrm[rows], nrm[cols]) > cos_max
+    adj = coo_matrix((np.ones(int(keep.sum())), (rows[keep], cols[keep])), shape=(len(simp), len(simp)))
+    n_groups, group = connected_components(adj, directed=False)
+    area_tri = 0.5 * ln
+    area_group = np.bincount(group, weights=np.where(good, area_tri, 0.0), minlength=n_groups)
+    plate_group = int(np.argmax(area_group))
+    timings["triangulate_and_grow"] = time.perf_counter() - t1
+    area = float(area_group[plate_group])
+    if area < st.min_plate_area_mm2:
+        raise NoPlateError(
+            f"largest smooth region is {area:.0f} mm^2, below min_plate_area_mm2={st.min_plate_area_mm2:.0f}"
+        )
+    t2 = time.perf_counter()
+    plate_tri = (group == plate_group) & good
+    # Vertex normal of each plate cell: area-weighted mean of its plate triangles' normals.
+    vn = np.zeros((m, 3))
+    w = np.where(plate_tri, area_tri, 0.0)
+    for k in range(3):
+        np.add.at(vn, simp[:, k], nrm * w[:, None])
+    vlen = np.linalg.norm(vn, axis=1)
+    plate_cell = vlen > 0
+    vn = vn / np.where(plate_cell, vlen, 1.0)[:, None]
+    r = np.einsum("ij,ij->i", pts - mean[inv], vn[inv])
+    in_plate = plate_cell[inv]
+    r_in = r[in_plate & (np.abs(r) < st.gross_outlier_mm)]
+    mean_fill = float(counts[plate_cell].mean()) if plate_cell.any() else 1.0
+    shrink = np.sqrt(mean_fill / max(mean_fill - 1.0, 1.0)) if mean_fill > 1.5 else 1.0
+    sigma = float(1.4826 * np.median(np.abs(r_in - np.median(r_in))) * shrink) if len(r_in) else 0.0
+    tol = max(st.inlier_sigmas * sigma, st.min_inlier_tol_mm)
+    mask = in_plate & (np.abs(r) < tol)
+    timings["select_points"] = time.perf_counter() - t2
+    timings["total"] = time.perf_counter() - t0
+    ranking = np.sort(area_group)[::-1]
+    log.info(
+        "segment", method="delaunay", points=n, plate_points=int(mask.sum()), regions=n_groups,
+        noise_sigma_mm=round(sigma, 4), area_mm2=round(area), total_s=round(timings["total"], 3),
+    )  # fmt: skip
+    return SegmentResult(
+        mask=mask,
+        points_mm=pts[mask],
+        cloud=cloud.subset(mask),
+        noise_sigma_mm=sigma,
+        inlier_tol_mm=tol,
+        plate_area_mm2=area,
+        n_regions=int(n_groups),
+        region_cells=[round(c / (v * v)) for c in ranking[:10]],
+        method="delaunay",
+        timings_s=timings,
+    )
