@@ -646,3 +646,19 @@ def test_certificate_generation_gives_a_loadable_cert_for_the_host(
     ctx.load_cert_chain(cert, key)  # raises if the pair does not match
     client_ctx = ssl.create_default_context(cafile=cert)
     assert client_ctx.cert_store_stats()["x509_ca"] == 1  # self-signed: usable as its own CA
+
+
+def test_server_survives_garbage_bytes_on_its_socket() -> None:
+    async def body() -> None:
+        async with cell("rws1") as (_, server, client):
+            for junk in (b"\x00\xff\x13garbage\r\n\r\n", b"GET /rw/panel/ctrlstate HTTP/9.9\r\nHost\r\n\r\n"):
+                reader, writer = await asyncio.open_connection(server.host, server.port)
+                writer.write(junk)
+                await writer.drain()
+                answer = await asyncio.wait_for(reader.read(200), 2)
+                assert answer.startswith(b"HTTP/1.") and b" 400 " in answer.split(b"\r\n")[0] + b" "
+                writer.close()
+                await writer.wait_closed()
+            assert await client.get_ctrl_state() == "motoroff"
+
+    run(body)
