@@ -94,6 +94,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--points", type=int, default=10_000_000)
     ap.add_argument("--runs", type=int, default=3, help="timed runs after the first (warm-up) message")
+    ap.add_argument(
+        "--shm", action="store_true", help="put through an explicit shared-memory buffer (same host only)"
+    )
     ap.add_argument("--receiver", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--prefix", default="bench/zc", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -136,6 +139,7 @@ def run(args: argparse.Namespace) -> None:
         pub = session.declare_publisher(
             f"{prefix}/bench/cloud", encoding=ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
         )
+        provider = zenoh.shm.ShmProvider.default_backend(2 * args.points * 28 + 2**20) if args.shm else None
         runs = []
         for i in range(args.runs + 1):
             cloud = make_cloud(args.points, f"run{i}")
@@ -144,7 +148,13 @@ def run(args: argparse.Namespace) -> None:
             encode_s = time.perf_counter() - t0
             t_put = time.time()
             t1 = time.perf_counter()
-            pub.put(payload)
+            if provider is not None:
+                buf = provider.alloc(len(payload), zenoh.shm.BlockOn(zenoh.shm.GarbageCollect()))
+                buf[0 : len(payload)] = payload
+                pub.put(buf)
+                del buf
+            else:
+                pub.put(payload)
             put_s = time.perf_counter() - t1
             r = wait_timing(i + 1)
             runs.append(
@@ -189,7 +199,8 @@ def run(args: argparse.Namespace) -> None:
         "end_to_end_s": med("end_to_end_s"),
         "throughput_mb_s": round(runs[0]["payload_mb"] / med("transfer_s"), 1),
         "first_message_transfer_s": round(runs[0]["transfer_s"], 4),
-        "transport": "tcp loopback, CongestionControl.BLOCK, peer (daemon) -> client (worker)",
+        "transport": ("shared memory" if args.shm else "tcp loopback")
+        + ", CongestionControl.BLOCK, peer (daemon) -> client (worker)",
     }
     print(json.dumps(out))
 

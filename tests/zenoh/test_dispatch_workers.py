@@ -131,7 +131,8 @@ def _pid_alive(pid: int) -> bool:
         return False
 
 
-def test_job_waits_without_workers_and_is_analysed_when_one_starts(hub, start_worker):
+@pytest.mark.parametrize("shm_pool_mb", [0, 64], ids=["tcp", "shared-memory"])
+def test_job_waits_without_workers_and_is_analysed_when_one_starts(hub, start_worker, shm_pool_mb):
     async def scenario(disp: Dispatcher):
         payload, centroid = _cloud_bytes("jobW")
         fut = disp.submit("jobW", "P1", payload, {})
@@ -141,7 +142,7 @@ def test_job_waits_without_workers_and_is_analysed_when_one_starts(hub, start_wo
         env = await asyncio.wait_for(fut, 30)
         return env, centroid
 
-    env, centroid = _run(hub, scenario)
+    env, centroid = _run(hub, scenario, settings=DispatchSettings(shm_pool_mb=shm_pool_mb))
     assert env.ok and env.worker_id == "late" and env.attempt == 1
     np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
 
