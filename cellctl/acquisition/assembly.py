@@ -1,0 +1,200 @@
+"""Cloud assembly: stamped profiles + sensor poses -> organised base-frame points.
+
+The scan keeps its organisation: one row per profile (with its pass id, exposure time, frame
+index and a running profile index) and one column per point of the profile, so the analysis can
+triangulate it as a grid. Invalid points (no return, or no robot pose at that time) stay in the grid
+as NaN with ``valid`` False. All work is per batch on whole arrays.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from cellctl.acquisition.poses import sensor_poses, transform_profiles
+
+__all__ = [
+    "AssembledBatch",
+    "AssemblyError",
+    "PassSchedule",
+    "ScanCloud",
+    "assemble_batch",
+]
+
+
+class AssemblyError(ValueError):
+    """Inputs to assembly disagree in shape or are out of order."""
+
+
+class PassSchedule:
+    """Pass intervals on the host time base: ``begin(pass_id, t_ns)`` ... ``end(t_ns)``.
+
+    A profile belongs to the pass whose interval holds its exposure time, else to -1 (transit).
+    An open pass (begun, not ended yet) extends to infinity.
+    """
+
+    def __init__(self) -> None:
+        self._start_ns: list[int] = []
+        self._end_ns: list[int] = []
+        self._ids: list[int] = []
+
+    def begin(self, pass_id: int, t_ns: int) -> None:
+        """Open pass ``pass_id`` at ``t_ns`` (closes an open one there)."""
+        if self._ids and self._end_ns[-1] == np.iinfo(np.int64).max:
+            self._end_ns[-1] = t_ns
+        if self._start_ns and t_ns < self._start_ns[-1]:
+            raise AssemblyError(f"pass {pass_id} begins at {t_ns} ns, before the previous pass")
+        self._start_ns.append(int(t_ns))
+        self._end_ns.append(int(np.iinfo(np.int64).max))
+        self._ids.append(int(pass_id))
+
+    def end(self, t_ns: int) -> None:
+        """Close the open pass at ``t_ns``."""
+        if not self._ids or self._end_ns[-1] != np.iinfo(np.int64).max:
+            raise AssemblyError("end of pass without an open pass")
+        self._end_ns[-1] = int(t_ns)
+
+    def assign(self, t_ns: np.ndarray) -> np.ndarray:
+        """(n,) int64 times -> (n,) int32 pass ids (-1 outside every pass)."""
+        t = np.asarray(t_ns, dtype=np.int64)
+        if not self._ids:
+            return np.full(t.shape, -1, dtype=np.int32)
+        starts = np.asarray(self._start_ns, dtype=np.int64)
+        ends = np.asarray(self._end_ns, dtype=np.int64)
+        k = np.searchsorted(starts, t, side="right") - 1
+        kk = np.clip(k, 0, len(starts) - 1)
+        inside = (k >= 0) & (t < ends[kk])
+        return np.where(inside, np.asarray(self._ids, dtype=np.int32)[kk], -1).astype(np.int32)
+
+
+@dataclass(frozen=True, slots=True)
+class AssembledBatch:
+    """``n`` profiles of ``w`` points in the robot base frame.
+
+    Attributes:
+        profile_index: (n,) int64 running index of the profile in the scan.
+        frame_index: (n,) uint64 sensor frame index.
+        pass_id: (n,) int32 pass of each profile, -1 for transit.
+        t_ns: (n,) int64 exposure time on the host time base, ns.
+        xyz_mm: (n, w, 3) float32 base-frame points, mm; NaN where not valid.
+        valid: (n, w) bool.
+    """
+
+    profile_index: np.ndarray
+    frame_index: np.ndarray
+    pass_id: np.ndarray
+    t_ns: np.ndarray
+    xyz_mm: np.ndarray
+    valid: np.ndarray
+
+
+def assemble_batch(
+    *,
+    x_mm: np.ndarray,
+    z_mm: np.ndarray,
+    valid: np.ndarray,
+    frame_index: np.ndarray,
+    t_ns: np.ndarray,
+    sample_t_ns: np.ndarray,
+    sample_q_deg: np.ndarray,
+    T_flange_sensor: np.ndarray,
+    epoch_ns: int,
+    pass_id: np.ndarray,
+    first_profile_index: int,
+) -> AssembledBatch:
+    """Assemble one batch of profiles.
+
+    Args:
+        x_mm, z_mm: (n, w) sensor-frame profile coordinates, mm.
+        valid: (n, w) bool, sensor returns.
+        frame_index: (n,) sensor frame indices.
+        t_ns: (n,) exposure times on the host base, ns (clock fit applied, latency removed).
+        sample_t_ns, sample_q_deg: (m,), (m, 6) measured joints on the host base.
+        T_flange_sensor: (4, 4) hand-eye, mm.
+        epoch_ns: fixed float origin for the interpolation.
+        pass_id: (n,) int32.
+        first_profile_index: running index of the first profile.
+    """
+    n = len(t_ns)
+    if x_mm.shape != z_mm.shape or valid.shape != x_mm.shape or x_mm.shape[0] != n:
+        raise AssemblyError(
+            f"x_mm {x_mm.shape}, z_mm {z_mm.shape}, valid {valid.shape}, t_ns ({n},) disagree"
+        )
+    # only the samples around this batch: same bracketing pairs, far less work than the whole history
+    lo = max(int(np.searchsorted(sample_t_ns, t_ns.min(), side="right")) - 2, 0)
+    hi = min(int(np.searchsorted(sample_t_ns, t_ns.max(), side="left")) + 2, len(sample_t_ns))
+    if hi - lo < 2:
+        lo, hi = max(0, hi - 2), max(hi, min(2, len(sample_t_ns)))
+    poses = sensor_poses(sample_t_ns[lo:hi], sample_q_deg[lo:hi], t_ns, T_flange_sensor, epoch_ns)
+    ok = valid & poses.inside[:, None]
+    xyz = transform_profiles(poses.T_base_sensor, x_mm, np.where(ok, z_mm, np.nan)).astype(np.float32)
+    return AssembledBatch(
+        profile_index=np.arange(first_profile_index, first_profile_index + n, dtype=np.int64),
+        frame_index=np.asarray(frame_index, dtype=np.uint64),
+        pass_id=np.asarray(pass_id, dtype=np.int32),
+        t_ns=np.asarray(t_ns, dtype=np.int64),
+        xyz_mm=xyz,
+        valid=ok,
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class ScanCloud:
+    """The whole organised scan: the rows of every :class:`AssembledBatch`, concatenated.
+
+    Attributes: as :class:`AssembledBatch` with ``n`` = profiles in the scan.
+    """
+
+    profile_index: np.ndarray
+    frame_index: np.ndarray
+    pass_id: np.ndarray
+    t_ns: np.ndarray
+    xyz_mm: np.ndarray
+    valid: np.ndarray
+
+    @classmethod
+    def concat(cls, batches: Sequence[AssembledBatch], width: int = 0) -> ScanCloud:
+        """Concatenate batches (an empty scan of ``width`` points per profile if there are none)."""
+        if not batches:
+            return cls(
+                np.empty(0, np.int64),
+                np.empty(0, np.uint64),
+                np.empty(0, np.int32),
+                np.empty(0, np.int64),
+                np.empty((0, width, 3), np.float32),
+                np.empty((0, width), bool),
+            )
+        return cls(*(np.concatenate([getattr(b, f) for b in batches]) for f in cls.__slots__))
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    @property
+    def n_valid(self) -> int:
+        """Number of valid points."""
+        return int(self.valid.sum())
+
+    def points(self) -> dict[str, np.ndarray]:
+        """Valid points flattened: ``xyz_mm`` (k, 3) float32, ``pass_id``, ``profile_index``,
+        ``point_index`` (int32, column in the profile) and ``t_ns`` per point."""
+        r, c = np.nonzero(self.valid)
+        return {
+            "xyz_mm": self.xyz_mm[r, c],
+            "pass_id": self.pass_id[r],
+            "profile_index": self.profile_index[r],
+            "point_index": c.astype(np.int32),
+            "t_ns": self.t_ns[r],
+        }
+
+    def digest(self) -> str:
+        """SHA-256 over every array's bytes: equal digests mean bit-for-bit equal clouds."""
+        h = hashlib.sha256()
+        for f in self.__slots__:
+            a = np.ascontiguousarray(getattr(self, f))
+            h.update(f.encode())
+            h.update(str(a.shape).encode())
+            h.update(a.tobytes())
+        return h.hexdigest()

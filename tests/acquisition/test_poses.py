@@ -1,0 +1,76 @@
+"""Pose at exposure time: joint interpolation, forward kinematics, hand-eye, profile transform."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cellctl.acquisition.poses import (
+    PoseTimeError,
+    T_from_pos_rpy,
+    interpolate_joints,
+    pos_rpy_from_T,
+    sensor_poses,
+    transform_profiles,
+)
+from drivers.abb_egm.kinematics import RobotKinematics, fk_batch
+from tests.acquisition.synthetic import T_FLANGE_SENSOR, q_true_deg
+
+EPOCH = 1_000_000_000_000
+
+
+def test_pose_at_profile_times_matches_fk_of_the_true_joints_within_a_micrometre():
+    t_s = np.arange(0.0, 3.0, 0.004032)
+    ts_ns = EPOCH + np.rint(t_s * 1e9).astype(np.int64)
+    tq_s = np.random.default_rng(0).uniform(0.01, 2.9, 500)
+    tq_ns = EPOCH + np.rint(tq_s * 1e9).astype(np.int64)
+    got = sensor_poses(ts_ns, q_true_deg(t_s), tq_ns, T_FLANGE_SENSOR, EPOCH)
+    want = fk_batch(q_true_deg(tq_s), T_FLANGE_SENSOR)
+    assert got.inside.all()
+    assert np.max(np.abs(got.T_base_sensor[:, :3, 3] - want[:, :3, 3])) < 1e-3
+
+
+def test_hand_eye_transform_moves_the_sensor_along_the_flange_axis():
+    q = np.array([[0.0, 15.67, 28.77, 0.0, 45.56, 180.0]] * 2)
+    ts = np.array([EPOCH, EPOCH + 4_000_000])
+    p = sensor_poses(ts, q, ts[:1], T_FLANGE_SENSOR, EPOCH).T_base_sensor[0]
+    flange = RobotKinematics().fk(q[0]).T_base_frame
+    np.testing.assert_allclose(p[:3, 3], flange[:3, 3] + 150.0 * flange[:3, 2], atol=1e-9)
+
+
+def test_times_outside_the_history_are_flagged_not_extrapolated():
+    ts = EPOCH + np.array([0, 4_000_000, 8_000_000])
+    q = np.arange(18.0).reshape(3, 6)
+    qi, inside = interpolate_joints(ts, q, np.array([EPOCH - 1, EPOCH + 2_000_000, EPOCH + 9_000_000]), EPOCH)
+    assert inside.tolist() == [False, True, False]
+    np.testing.assert_allclose(qi[1], (q[0] + q[1]) / 2)
+    np.testing.assert_allclose(qi[2], q[2])  # held, not extrapolated
+
+
+def test_interpolation_rejects_unsorted_history():
+    with pytest.raises(PoseTimeError, match="strictly increasing"):
+        interpolate_joints(np.array([2, 1]), np.zeros((2, 6)), np.array([1]), 0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    pos=st.lists(st.floats(-2000, 2000), min_size=3, max_size=3),
+    rpy=st.tuples(st.floats(-179, 179), st.floats(-89, 89), st.floats(-179, 179)),
+)
+def test_pos_rpy_round_trips_through_the_matrix(pos, rpy):
+    T = T_from_pos_rpy(pos, rpy)
+    p, r = pos_rpy_from_T(T)
+    np.testing.assert_allclose(T_from_pos_rpy(p, r), T, atol=1e-9)
+
+
+def test_profile_transform_equals_the_matrix_product_per_point():
+    rng = np.random.default_rng(4)
+    T = fk_batch(q_true_deg(rng.uniform(0, 5, 7)), T_FLANGE_SENSOR)
+    x = rng.uniform(-25, 25, (7, 11))
+    z = rng.uniform(70, 130, (7, 11))
+    got = transform_profiles(T, x, z)
+    pts = np.stack([x, np.zeros_like(x), z, np.ones_like(x)], axis=-1)
+    want = np.einsum("nij,nwj->nwi", T, pts)[..., :3]
+    np.testing.assert_allclose(got, want, atol=1e-9)
