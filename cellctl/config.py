@@ -181,6 +181,7 @@ class ZenohSection(Section):
     multicast_scouting: bool = False
     key_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-{}]+(/[A-Za-z0-9_\-{}]+)*$")] = "cell/{cell_id}"
     trigger_timeout_s: PositiveFloat = 10.0
+    shm_pool_mb: Annotated[int, Field(ge=0, le=65536)] = 0
     access: ZenohAccess = ZenohAccess()
 
     @field_validator("listen", "connect")
@@ -229,6 +230,24 @@ class AnalysisSection(Section):
     icp_stop_mm: PositiveFloat = 0.1
     workers: Annotated[int, Field(ge=1, le=64)] = 1
     tolerances: Tolerances = Tolerances()
+    # Workers and the job dispatcher (docs/api.md, "Jobs and workers").
+    callable: Annotated[str, Field(pattern=r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")] = (
+        "analysis.pipeline:analyse_job"
+    )
+    heartbeat_s: PositiveFloat = 1.0
+    ack_timeout_s: PositiveFloat = 10.0
+    heartbeat_timeout_s: PositiveFloat = 10.0
+    job_timeout_s: PositiveFloat = 900.0
+    max_attempts: Annotated[int, Field(ge=1, le=10)] = 3
+
+    @model_validator(mode="after")
+    def _heartbeat_fits(self) -> AnalysisSection:
+        if self.heartbeat_timeout_s < 2 * self.heartbeat_s:
+            raise ValueError(
+                f"heartbeat_timeout_s ({self.heartbeat_timeout_s}) must be at least twice heartbeat_s "
+                f"({self.heartbeat_s}), or one late heartbeat costs a retry"
+            )
+        return self
 
 
 class SimPlate(Section):

@@ -64,6 +64,18 @@ class DispatchSettings:
     # Zenoh copies for remote workers). Cuts the daemon's put from ~1.2 s to ~0.1 s for 280 MB.
     shm_pool_mb: int = 0
 
+    @classmethod
+    def from_config(cls, config: Any) -> DispatchSettings:
+        """From ``[analysis]`` and ``[zenoh] shm_pool_mb`` of a CellConfig."""
+        a = config.analysis
+        return cls(
+            ack_timeout_s=a.ack_timeout_s,
+            heartbeat_timeout_s=a.heartbeat_timeout_s,
+            job_timeout_s=a.job_timeout_s,
+            max_attempts=a.max_attempts,
+            shm_pool_mb=config.zenoh.shm_pool_mb,
+        )
+
 
 @dataclass
 class DispatchHooks:

@@ -80,6 +80,14 @@ class WorkerSettings:
     start_timeout_s: float = 120.0
     connect_retry_s: float = 2.0
 
+    @classmethod
+    def from_config(cls, config: Any, **override: Any) -> WorkerSettings:
+        """From ``[analysis]`` of a CellConfig; keyword arguments override (the command line)."""
+        a = config.analysis
+        values = {"analysis": a.callable, "heartbeat_s": a.heartbeat_s}
+        values.update({k: v for k, v in override.items() if v is not None})
+        return cls(**values)
+
 
 @dataclass(frozen=True)
 class AnalysisOutcome:

@@ -19,15 +19,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--analysis",
         default=None,
-        help="analysis callable as 'package.module:function' (default: analysis.pipeline:analyse_job)",
+        help="analysis callable as 'package.module:function' (default: [analysis] callable)",
     )
-    p.add_argument("--heartbeat-s", type=float, default=1.0, help="job heartbeat period (default 1 s)")
+    p.add_argument(
+        "--heartbeat-s",
+        type=float,
+        default=None,
+        help="job heartbeat period (default: [analysis] heartbeat_s)",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     # Imported here: `cellctl --help` must not pay for Zenoh.
-    from cellctl.worker import DEFAULT_ANALYSIS, WorkerSettings, run_worker
+    from cellctl.worker import WorkerSettings, run_worker
 
     try:
         config = load_config(args.config)
@@ -41,10 +46,10 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    if not args.heartbeat_s > 0:
+    if args.heartbeat_s is not None and not args.heartbeat_s > 0:
         print("cellctl worker: --heartbeat-s must be positive", file=sys.stderr)
         return 2
-    settings = WorkerSettings(
-        worker_id=args.worker_id, analysis=args.analysis or DEFAULT_ANALYSIS, heartbeat_s=args.heartbeat_s
+    settings = WorkerSettings.from_config(
+        config, worker_id=args.worker_id, analysis=args.analysis, heartbeat_s=args.heartbeat_s
     )
     return run_worker(config, settings)
