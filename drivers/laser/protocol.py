@@ -14,6 +14,7 @@ Encoding and decoding work on whole batches of profiles with numpy (no per-point
 from __future__ import annotations
 
 import enum
+import functools
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -33,6 +34,7 @@ __all__ = [
     "CommandError",
     "CommandId",
     "DecodeError",
+    "DecodedGroups",
     "FramingError",
     "GroupAssembler",
     "Message",
@@ -44,14 +46,17 @@ __all__ = [
     "ProtocolTimeout",
     "SensorInfo",
     "SensorState",
+    "StateReply",
     "Status",
     "StatusBits",
     "TimestampReply",
     "TriggerMode",
     "decode_command",
     "decode_group",
+    "decode_groups",
     "decode_reply",
     "decode_subscribe",
+    "decode_u32_param",
     "encode_command",
     "encode_frame_group",
     "encode_reply",
@@ -383,39 +388,19 @@ def encode_frame_group(
     return b"".join(parts)
 
 
-def _decode_stamps(msg: Message) -> np.ndarray:
-    data = msg.data
-    if len(data) < STAMP_HEADER_SIZE:
-        raise DecodeError(
-            f"STAMP message of {len(data)} bytes is shorter than its header", field="size", data=data
-        )
-    size, _control, count, stamp_size, _reserved = STAMP_HEADER.unpack_from(data)
-    if stamp_size != STAMP_DTYPE.itemsize:
-        raise DecodeError(
-            f"STAMP stamp_size {stamp_size}, expected {STAMP_DTYPE.itemsize}", field="stamp_size", data=data
-        )
-    if count == 0 or count > MAX_PROFILES_PER_MESSAGE:
-        raise DecodeError(f"STAMP count {count} out of range", field="count", data=data)
-    expected = STAMP_HEADER_SIZE + count * stamp_size
-    if size != expected:
-        raise DecodeError(
-            f"STAMP size {size} does not match count {count} (expected {expected})", field="count", data=data
-        )
-    return np.frombuffer(data, dtype=STAMP_DTYPE, count=count, offset=STAMP_HEADER_SIZE)
+@dataclass(frozen=True)
+class _GroupView:
+    """A validated frame group: where its stamps and points are, and how to scale them."""
+
+    stamps: bytes
+    points: bytes
+    count: int
+    kind: int  # MessageType.PROFILE_UNIFORM or PROFILE_POINTS
+    layout: tuple[int, int, int, int, int]  # width, x_scale_nm, z_scale_nm, x_offset_um, z_offset_um
 
 
-def decode_group(messages: Sequence[Message], host_recv_ns: int) -> ProfileBatch:
-    """Decode one frame group (STAMP + PROFILE_UNIFORM or PROFILE_POINTS) into a :class:`ProfileBatch`.
-
-    Args:
-        messages: the group's messages in arrival order, the last one carrying the last flag.
-        host_recv_ns: ``time.monotonic_ns()`` when the group was received; copied to every profile.
-
-    Raises:
-        DecodeError: wrong message types or order, sizes that disagree with count and width, counts
-            that disagree between stamp and profile, frame indices that do not increase. The framing
-            itself is intact, so the caller can skip this group and carry on.
-    """
+def _validate_group(messages: Sequence[Message]) -> _GroupView:
+    """Check every header field of one frame group; raise :class:`DecodeError` naming the first bad one."""
     if len(messages) != 2:
         types = [f"0x{m.type:04x}" for m in messages]
         raise DecodeError(
@@ -434,7 +419,25 @@ def decode_group(messages: Sequence[Message], host_recv_ns: int) -> ProfileBatch
         raise DecodeError(
             f"unknown profile message type 0x{prof_msg.type:04x}", field="type", data=prof_msg.data
         )
-    stamps = _decode_stamps(stamp_msg)
+    sdata = stamp_msg.data
+    if len(sdata) < STAMP_HEADER_SIZE:
+        raise DecodeError(
+            f"STAMP message of {len(sdata)} bytes is shorter than its header", field="size", data=sdata
+        )
+    ssize, _control, scount, stamp_size, _reserved = STAMP_HEADER.unpack_from(sdata)
+    if stamp_size != STAMP_DTYPE.itemsize:
+        raise DecodeError(
+            f"STAMP stamp_size {stamp_size}, expected {STAMP_DTYPE.itemsize}", field="stamp_size", data=sdata
+        )
+    if scount == 0 or scount > MAX_PROFILES_PER_MESSAGE:
+        raise DecodeError(f"STAMP count {scount} out of range", field="count", data=sdata)
+    expected = STAMP_HEADER_SIZE + scount * stamp_size
+    if ssize != expected:
+        raise DecodeError(
+            f"STAMP size {ssize} does not match count {scount} (expected {expected})",
+            field="count",
+            data=sdata,
+        )
     data = prof_msg.data
     if len(data) < PROFILE_HEADER_SIZE:
         raise DecodeError(
@@ -447,8 +450,8 @@ def decode_group(messages: Sequence[Message], host_recv_ns: int) -> ProfileBatch
         raise DecodeError(
             f"profile attr_size {attr_size}, expected {PROFILE_ATTR_SIZE}", field="attr_size", data=data
         )
-    if count != len(stamps):
-        raise DecodeError(f"profile count {count} != stamp count {len(stamps)}", field="count", data=data)
+    if count != scount:
+        raise DecodeError(f"profile count {count} != stamp count {scount}", field="count", data=data)
     if not 0 < width <= MAX_WIDTH:
         raise DecodeError(f"profile width {width} out of range", field="width", data=data)
     if xs_nm == 0 or zs_nm == 0:
@@ -463,30 +466,57 @@ def decode_group(messages: Sequence[Message], host_recv_ns: int) -> ProfileBatch
             field="size",
             data=data,
         )
-    frame_index = stamps["frame_index"]
-    if first_frame != frame_index[0]:
+    first_stamp = _U64.unpack_from(sdata, STAMP_HEADER_SIZE)[0]
+    if first_frame != first_stamp:
         raise DecodeError(
-            f"profile first_frame_index {first_frame} != stamp frame_index {frame_index[0]}",
+            f"profile first_frame_index {first_frame} != stamp frame_index {first_stamp}",
             field="first_frame_index",
             data=data,
         )
-    if count > 1 and not np.all(frame_index[1:] > frame_index[:-1]):
-        raise DecodeError("stamp frame indices do not increase", field="frame_index", data=stamp_msg.data)
+    if count > 1:
+        fi = np.frombuffer(sdata, dtype=STAMP_DTYPE, count=count, offset=STAMP_HEADER_SIZE)["frame_index"]
+        if not np.all(fi[1:] > fi[:-1]):
+            raise DecodeError("stamp frame indices do not increase", field="frame_index", data=sdata)
+    return _GroupView(
+        stamps=sdata[STAMP_HEADER_SIZE:],
+        points=data[PROFILE_HEADER_SIZE:],
+        count=count,
+        kind=prof_msg.type,
+        layout=(width, xs_nm, zs_nm, xo_um, zo_um),
+    )
 
+
+_U64 = struct.Struct("<Q")
+
+
+@functools.lru_cache(maxsize=16)
+def _uniform_x_row(width: int, xs_nm: int, xo_um: int) -> np.ndarray:
+    row = (np.arange(width, dtype=np.float64) * (xs_nm * 1e-6) + xo_um * 1e-3).astype(np.float32)
+    row.flags.writeable = False
+    return row
+
+
+def _build_batch(views: Sequence[_GroupView], host_recv_ns: int) -> ProfileBatch:
+    """One numpy decode for consecutive groups that share format, width and scale."""
+    first = views[0]
+    width, xs_nm, zs_nm, xo_um, zo_um = first.layout
+    if len(views) == 1:
+        sbytes, pbytes = first.stamps, first.points
+    else:
+        sbytes = b"".join(v.stamps for v in views)
+        pbytes = b"".join(v.points for v in views)
+    stamps = np.frombuffer(sbytes, dtype=STAMP_DTYPE)
+    count = len(stamps)
     z_scale = np.float32(zs_nm * 1e-6)
     z_off = np.float32(zo_um * 1e-3)
-    if prof_msg.type == MessageType.PROFILE_UNIFORM:
-        raw = np.frombuffer(data, dtype="<i2", count=count * width, offset=PROFILE_HEADER_SIZE).reshape(
-            count, width
-        )
+    if first.kind == MessageType.PROFILE_UNIFORM:
+        raw = np.frombuffer(pbytes, dtype="<i2").reshape(count, width)
         valid = raw != INVALID_RAW
-        x_row = (np.arange(width, dtype=np.float64) * (xs_nm * 1e-6) + xo_um * 1e-3).astype(np.float32)
-        x_mm = np.broadcast_to(x_row, (count, width)).copy()
+        x_mm = np.empty((count, width), dtype=np.float32)
+        x_mm[:] = _uniform_x_row(width, xs_nm, xo_um)
         z_mm = raw * z_scale + z_off
     else:
-        raw = np.frombuffer(data, dtype="<i2", count=count * width * 2, offset=PROFILE_HEADER_SIZE).reshape(
-            count, width, 2
-        )
+        raw = np.frombuffer(pbytes, dtype="<i2").reshape(count, width, 2)
         xr = raw[:, :, 0]
         zr = raw[:, :, 1]
         valid = (zr != INVALID_RAW) & (xr != INVALID_RAW)
@@ -495,7 +525,7 @@ def decode_group(messages: Sequence[Message], host_recv_ns: int) -> ProfileBatch
         x_mm[~valid] = np.nan
     z_mm[~valid] = np.nan
     return ProfileBatch(
-        frame_index=frame_index.astype(np.uint64),
+        frame_index=stamps["frame_index"].astype(np.uint64),
         sensor_time_us=stamps["sensor_time_us"].astype(np.uint64),
         hd8_ms=stamps["hd8_ms"].astype(np.uint32),
         encoder=stamps["encoder"].astype(np.int64),
@@ -506,6 +536,54 @@ def decode_group(messages: Sequence[Message], host_recv_ns: int) -> ProfileBatch
         valid=valid,
         host_recv_ns=np.full(count, host_recv_ns, dtype=np.int64),
     )
+
+
+def decode_group(messages: Sequence[Message], host_recv_ns: int) -> ProfileBatch:
+    """Decode one frame group (STAMP + PROFILE_UNIFORM or PROFILE_POINTS) into a :class:`ProfileBatch`.
+
+    Args:
+        messages: the group's messages in arrival order, the last one carrying the last flag.
+        host_recv_ns: ``time.monotonic_ns()`` when the group was received; copied to every profile.
+
+    Raises:
+        DecodeError: wrong message types or order, sizes that disagree with count and width, counts
+            that disagree between stamp and profile, frame indices that do not increase. The framing
+            itself is intact, so the caller can skip this group and carry on.
+    """
+    return _build_batch([_validate_group(messages)], host_recv_ns)
+
+
+@dataclass(frozen=True)
+class DecodedGroups:
+    """Result of :func:`decode_groups`: the batches in arrival order and the groups that failed."""
+
+    batches: list[ProfileBatch]
+    errors: list[DecodeError]
+
+
+def decode_groups(groups: Sequence[Sequence[Message]], host_recv_ns: int) -> DecodedGroups:
+    """Decode many frame groups at once: one numpy pass per run of groups with the same layout.
+
+    This is the client's hot path: when data queues up, a single read holds many groups, and the
+    per-group Python cost shrinks to header validation. Invalid groups are reported in ``errors``
+    (each a :class:`DecodeError`) and left out; the others keep their order.
+    """
+    batches: list[ProfileBatch] = []
+    errors: list[DecodeError] = []
+    run: list[_GroupView] = []
+    for msgs in groups:
+        try:
+            view = _validate_group(msgs)
+        except DecodeError as exc:
+            errors.append(exc)
+            continue
+        if run and (view.kind != run[0].kind or view.layout != run[0].layout):
+            batches.append(_build_batch(run, host_recv_ns))
+            run = []
+        run.append(view)
+    if run:
+        batches.append(_build_batch(run, host_recv_ns))
+    return DecodedGroups(batches, errors)
 
 
 class GroupAssembler:

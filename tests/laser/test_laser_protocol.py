@@ -241,3 +241,22 @@ def test_subscribe_round_trip_and_live_marker() -> None:
 def test_command_error_message_names_command_and_status() -> None:
     err = P.CommandError(P.CommandId.SET_RATE, P.Status.INVALID_STATE, "stop first")
     assert "SET_RATE" in str(err) and "INVALID_STATE" in str(err) and "stop first" in str(err)
+
+
+def test_decode_groups_splits_runs_by_layout_and_skips_bad_groups() -> None:
+    other = P.ProfileScale(x_scale_nm=50_000, z_scale_nm=1000, x_offset_um=0, z_offset_um=0)
+    datas = [
+        P.encode_frame_group(scale=SCALE, z_raw=np.full((2, 4), 10, np.int16), **stamps(2, first=0)),
+        P.encode_frame_group(scale=SCALE, z_raw=np.full((1, 4), 20, np.int16), **stamps(1, first=2)),
+        P.encode_frame_group(scale=other, z_raw=np.full((1, 4), 30, np.int16), **stamps(1, first=3)),
+        P.encode_frame_group(scale=other, z_raw=np.full((1, 4), 40, np.int16), **stamps(1, first=4)),
+    ]
+    framer = P.MessageFramer()
+    groups = [framer.feed(d) for d in datas]
+    groups[3][1] = _patch(groups[3][1], 8, "<I", 2)  # count mismatch: this group must be dropped
+    out = P.decode_groups(groups, host_recv_ns=5)
+    assert [len(b) for b in out.batches] == [3, 1]  # the first two share a layout: one numpy pass
+    assert out.batches[0].frame_index.tolist() == [0, 1, 2]
+    np.testing.assert_allclose(out.batches[0].z_mm[:, 0], [100.02, 100.02, 100.04], atol=1e-5)
+    np.testing.assert_allclose(out.batches[1].x_mm[0], [0.0, 0.05, 0.1, 0.15], atol=1e-6)
+    assert len(out.errors) == 1 and out.errors[0].field == "count"

@@ -1,0 +1,186 @@
+"""HD8 ingest benchmark: client decode + delivery throughput, and the simulator's rendering rate.
+
+Client side: a realistic stream (profiles ray-cast by the simulator's optics onto a curved plate, with
+noise, quantised and encoded exactly as the simulator sends them) is served from memory over a
+loopback TCP socket to :class:`drivers.laser.client.HD8Client`, which frames, validates, decodes and
+queues it while a consumer drains the batches. ``profiles_per_s`` / ``points_per_s`` / ``cpu_s`` are
+for groups of ``--group`` profiles (10 by default; the HD8 SDK's batch callback hands over 200 to
+5000); the same figures for one profile per group (a sensor at 200 Hz sending every frame at once)
+are given under ``single_profile_groups``.
+
+Simulator side: ``sim_profiles_per_s`` is ray casting + resampling + noise + quantisation of
+500-point profiles on one thread (CPU time, groups of 5 as the simulator renders at 1 kHz), i.e. how
+many profiles per second the simulator can produce; ``encode_profiles_per_s`` is the wire encoding.
+
+Prints exactly one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import structlog
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from drivers.laser import protocol as P
+from drivers.laser.client import HD8Client
+from drivers.laser.optics import LaserOptics, render_uniform
+from drivers.laser.scene import SceneRaycaster, cell_scene
+from drivers.laser.sim import SimConfig
+
+
+def curved_plate() -> tuple[np.ndarray, np.ndarray]:
+    xs, ys = np.linspace(-600, 600, 61), np.linspace(-400, 400, 41)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    Z = 2000.0 - np.sqrt(2000.0**2 - X**2) + 0.001 * Y**2 * 0.01
+    v = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    idx = np.arange(len(xs) * len(ys)).reshape(len(xs), len(ys))
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return v, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def sweep_poses(n: int) -> np.ndarray:
+    """Sensor 100 mm above the plate, tilted 5 deg, sweeping along y."""
+    T = np.repeat(np.eye(4)[None], n, axis=0)
+    c, s = np.cos(np.radians(5)), np.sin(np.radians(5))
+    T[:, :3, :3] = np.array([[1, 0, 0], [0, -1, 0], [0, 0, -1]]) @ np.array(
+        [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    )
+    T[:, 0, 3] = 150.0
+    T[:, 1, 3] = np.linspace(-350, 350, n)
+    T[:, 2, 3] = 100.0 + 2000.0 - np.sqrt(2000.0**2 - 150.0**2)
+    return T
+
+
+def render_pool(raycaster: SceneRaycaster, n_frames: int, group: int) -> tuple[np.ndarray, float]:
+    """Render ``n_frames`` raw uniform profiles as the simulator does; return them and the CPU time."""
+    cfg = SimConfig()
+    optics: LaserOptics = cfg.optics()
+    rng = np.random.default_rng(0)
+    poses = sweep_poses(n_frames)
+    out = []
+    cpu0 = time.thread_time()
+    for k0 in range(0, n_frames, group):
+        r = render_uniform(raycaster, poses[k0 : k0 + group], optics, rng)
+        out.append(P.quantize_mm(r.z_mm, r.valid, cfg.z_scale_nm, 100_000))
+    return np.concatenate(out), time.thread_time() - cpu0
+
+
+def encode_stream(pool: np.ndarray, n_frames: int, group: int) -> bytes:
+    """Encode ``n_frames`` profiles (cycling through ``pool``) into frame groups of ``group``."""
+    scale = P.ProfileScale(100_000, 2000, -24_950, 100_000)
+    parts = []
+    for k0 in range(0, n_frames, group):
+        k1 = min(n_frames, k0 + group)
+        n = k1 - k0
+        idx = np.arange(k0, k1) % len(pool)
+        parts.append(
+            P.encode_frame_group(
+                frame_index=np.arange(k0, k1, dtype=np.uint64),
+                sensor_time_us=np.arange(k0, k1, dtype=np.uint64) * 5000,
+                hd8_ms=(np.arange(k0, k1) * 5).astype(np.uint32),
+                encoder=np.zeros(n, np.int64),
+                status=np.zeros(n, np.uint32),
+                exposure_ns=np.full(n, 500_000, np.uint32),
+                scale=scale,
+                z_raw=pool[idx],
+            )
+        )
+    return b"".join(parts)
+
+
+async def ingest(blob: bytes, n_frames: int) -> dict[str, float]:
+    """Serve ``blob`` on the data port of a minimal control/data pair; time the client end to end."""
+
+    async def control(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        framer = P.MessageFramer()
+        while chunk := await reader.read(4096):
+            for msg in framer.feed(chunk):
+                payload = P.SensorInfo(
+                    "BENCH", "0", 500, 100_000, -24_950, 70_000, 130_000, 10**6, 10**5, 3 * 10**6
+                )
+                writer.write(
+                    P.encode_reply(msg.type, P.Status.OK, payload.to_bytes() if msg.type == 0x4001 else b"")
+                )
+
+    go = asyncio.Event()
+
+    async def data(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await reader.read(14)  # SUBSCRIBE
+        await go.wait()
+        writer.write(blob)
+        await writer.drain()
+        await reader.read()  # until the client closes
+
+    ctl = await asyncio.start_server(control, "127.0.0.1", 0)
+    dat = await asyncio.start_server(data, "127.0.0.1", 0)
+    client = HD8Client("127.0.0.1", ctl.sockets[0].getsockname()[1], dat.sockets[0].getsockname()[1])
+    await client.connect()
+    await client.start()
+    got = points = 0
+    t0 = time.perf_counter()
+    cpu0 = time.process_time()
+    go.set()
+    async for batch in client:
+        got += len(batch)
+        points += batch.n_points
+        if got >= n_frames:
+            break
+    wall = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
+    assert client.stats.decode_errors == 0 and client.stats.gaps == 0 and got == n_frames
+    await client.close()
+    for srv in (ctl, dat):
+        srv.close()
+        await srv.wait_closed()
+    await asyncio.sleep(0.05)  # let the handlers see EOF and finish
+    return {
+        "profiles_per_s": round(got / cpu, 1),
+        "points_per_s": round(points / cpu, 1),
+        "cpu_s": round(cpu, 4),
+        "wall_s": round(wall, 4),
+        "profiles": got,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--frames", type=int, default=20_000)
+    ap.add_argument("--group", type=int, default=10)
+    args = ap.parse_args()
+    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.ERROR))
+    v, t = curved_plate()
+    rc = SceneRaycaster(cell_scene(v, t, thickness_mm=12.0))
+    sim_n = 2000
+    pool, sim_cpu = render_pool(rc, sim_n, 5)  # 5 per group: the simulator at 1 kHz
+    encode_cpu0 = time.process_time()
+    blob = encode_stream(pool, args.frames, args.group)
+    encode_cpu = time.process_time() - encode_cpu0
+    n_single = min(args.frames, 10_000)
+    blob1 = encode_stream(pool, n_single, 1)
+    grouped = asyncio.run(ingest(blob, args.frames))
+    single = asyncio.run(ingest(blob1, n_single))
+    out = {
+        "benchmark": "laser_ingest",
+        **grouped,
+        "group_profiles": args.group,
+        "points_per_profile": 500,
+        "single_profile_groups": single,
+        "sim_profiles_per_s": round(sim_n / sim_cpu, 1),
+        "encode_profiles_per_s": round(args.frames / encode_cpu, 1),
+        "sim_cpu_s_per_1000_profiles": round(sim_cpu / sim_n * 1000, 4),
+        "target_profiles_per_s": 50_000,
+    }
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
