@@ -156,7 +156,10 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=20_000)
     ap.add_argument("--group", type=int, default=10)
     args = ap.parse_args()
-    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.ERROR))
+    structlog.configure(
+        wrapper_class=structlog.make_filtering_bound_logger(logging.ERROR),
+        logger_factory=structlog.PrintLoggerFactory(sys.stderr),
+    )
     v, t = curved_plate()
     rc = SceneRaycaster(cell_scene(v, t, thickness_mm=12.0))
     sim_n = 2000

@@ -28,6 +28,7 @@ import contextlib
 import json
 import math
 import signal
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -756,6 +757,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rate", type=float, default=200.0, help="profile rate, Hz")
     ap.add_argument("--format", choices=("uniform", "points"), default="uniform")
     args = ap.parse_args(argv)
+    if not structlog.is_configured():
+        # stdout carries the one JSON line with the ports; logs go to stderr.
+        structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
     asyncio.run(_run(args))
 
 
