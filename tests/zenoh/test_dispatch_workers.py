@@ -195,3 +195,53 @@ def test_worker_with_unknown_analysis_callable_exits_2_naming_it(hub, start_work
     w = start_worker("w1", analysis="zworker_fns:no_such_function")
     assert w.proc.wait(60) == 2
     assert "has no attribute 'no_such_function'" in w.log()
+
+
+def test_frozen_worker_loses_its_job_to_the_other_after_heartbeat_timeout(hub, start_worker):
+    record = hub.tmp / "calls.txt"
+    workers = {"w1": start_worker("w1"), "w2": start_worker("w2")}
+    retries: list[tuple[str, str, str]] = []
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
+        fut = disp.submit("jobF", "P1", _cloud_bytes("jobF")[0], {"record_path": str(record), "sleep_s": 1.0})
+        await _wait_for(lambda: disp.assignment("jobF")[0] is not None, 10, "assignment")
+        holder = workers[disp.assignment("jobF")[0]]
+        holder.proc.send_signal(signal.SIGSTOP)  # alive to the OS and the link, silent to us
+        try:
+            env = await asyncio.wait_for(fut, 30)
+        finally:
+            holder.proc.send_signal(signal.SIGCONT)
+        await asyncio.sleep(1.5)  # the thawed worker's late report, if any, must change nothing
+        return env, holder.worker_id
+
+    settings = DispatchSettings(ack_timeout_s=1.5, heartbeat_timeout_s=1.5, max_attempts=3)
+    env, victim = _run(
+        hub, scenario, settings=settings, hooks=DispatchHooks(on_retry=lambda *a: retries.append(a))
+    )
+    assert env.ok and env.worker_id != victim and env.attempt == 2
+    assert retries[0][1] == victim
+    assert "no heartbeat" in retries[0][2] or "no acknowledgement" in retries[0][2]
+    assert len(retries) == 1
+
+
+def test_malformed_messages_are_counted_and_endpoints_keep_serving(hub, start_worker):
+    w = start_worker("w1")
+    keys = Keys(hub.prefix)
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
+        disp.session.put(keys.worker_job("w1", "jobZ"), b"garbage")  # no JobSpec attachment
+        disp.session.put(keys.worker_job("w1", "jobZ"), b"garbage", attachment=b"{not json")
+        disp.session.put(keys.report("jobZ"), b"\xff not a report")
+        disp.session.put(keys.job_event("jobZ"), b'{"job_id": "jobZ"}')
+        payload, centroid = _cloud_bytes("jobOK")
+        env = await asyncio.wait_for(disp.submit("jobOK", "P1", payload), 30)
+        return env, centroid, disp.malformed
+
+    env, centroid, malformed = _run(hub, scenario)
+    assert env.ok and env.attempt == 1
+    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+    assert malformed == 2
+    assert w.proc.poll() is None
+    assert "job_message_malformed" in w.log() and "no JobSpec attachment" in w.log()
