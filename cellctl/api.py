@@ -360,8 +360,12 @@ async def handle_trigger(
     nothing; ``accept`` may raise TriggerError (for example ``busy``) to refuse as well. Returns
     what was accepted, or None.
     """
-    raw = query.payload.to_bytes() if query.payload is not None else None
+    payload = query.payload
     try:
+        # Check the size before copying: a huge payload must not cost a huge copy.
+        if payload is not None and len(payload) > MAX_TRIGGER_BYTES:
+            raise TriggerError("too_large", "payload", f"{len(payload)} bytes, limit {MAX_TRIGGER_BYTES}")
+        raw = payload.to_bytes() if payload is not None else None
         req, design_path = parse_trigger(raw, designs_dir)
         accepted = await accept(req, design_path)
     except TriggerError as err:

@@ -14,8 +14,9 @@ import pytest
 
 from cellctl.api import Keys
 from cellctl.cloud_codec import Cloud, encode_cloud
+from cellctl.config import load_config
 from cellctl.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
-from cellctl.zenoh_session import build_zenoh_config, close_session, open_session
+from cellctl.zenoh_session import build_zenoh_config, close_session, open_session, subscribe
 
 pytestmark = pytest.mark.e2e
 FAST = DispatchSettings(ack_timeout_s=5.0, heartbeat_timeout_s=3.0, job_timeout_s=60.0, max_attempts=3)
@@ -40,7 +41,8 @@ def _run(hub, scenario, settings=FAST, hooks=None):
     """Open the daemon-side session, run ``scenario(dispatcher)``, close everything."""
 
     async def main():
-        session = open_session(build_zenoh_config(hub.section, role="serve"), what="test daemon")
+        cfg = build_zenoh_config(hub.section, role="serve", key_prefix=hub.prefix)
+        session = open_session(cfg, what="test daemon")
         disp = Dispatcher(session, Keys(hub.prefix), settings, hooks)
         try:
             await disp.start()
@@ -245,3 +247,35 @@ def test_malformed_messages_are_counted_and_endpoints_keep_serving(hub, start_wo
     assert malformed == 2
     assert w.proc.poll() is None
     assert "job_message_malformed" in w.log() and "no JobSpec attachment" in w.log()
+
+
+def test_jobs_flow_with_password_auth_and_access_control_on(hub, start_worker, monkeypatch):
+    """Liveliness, jobs, events and reports all pass the ACL; keys outside the cell prefix do not."""
+    users = hub.tmp / "users.txt"
+    users.write_text("cellctl:pw-123\n")
+    monkeypatch.setenv("TEST_CELL_ZENOH_PW", "pw-123")  # inherited by the worker process
+    with hub.toml.open("a") as f:
+        f.write(
+            f'\n[zenoh.access]\nenabled = true\npassword_env = "TEST_CELL_ZENOH_PW"\ndictionary_file = "{users}"\n'
+        )
+    cfg = load_config(hub.toml)
+    hub.section = cfg.zenoh
+    start_worker("w1")
+    outside: list = []
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
+        subscribe(disp.session, "other/**", outside.append)
+        client = open_session(build_zenoh_config(cfg.zenoh, role="connect", key_prefix=hub.prefix))
+        try:
+            client.put("other/x", b"must be filtered")
+            payload, centroid = _cloud_bytes("jobA")
+            env = await asyncio.wait_for(disp.submit("jobA", "P1", payload), 30)
+        finally:
+            close_session(client)
+        return env, centroid
+
+    env, centroid = _run(hub, scenario)
+    assert env.ok and env.worker_id == "w1"
+    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+    assert outside == []
