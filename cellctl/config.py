@@ -81,6 +81,18 @@ class RobotSection(Section):
     rws_password_file: Path | None = None
     rws_timeout_s: PositiveFloat = 5.0
     rws_ca_file: Path | None = None
+    rws_poll_interval_s: PositiveFloat = 0.2
+    rws_mechunit: str = "ROB_1"
+    # The RAPID module of drivers/abb_egm/rapid (CellEgm.mod) and the EGM settings written to it.
+    rapid_task: str = "T_ROB1"
+    rapid_module: str = "CellEgm"
+    egm_pos_corr_gain: Annotated[float, Field(ge=0, le=20)] = 1.0
+    egm_max_speed_deviation_deg_s: PositiveFloat = 1000.0
+    egm_max_pos_deviation_deg: PositiveFloat = 1000.0
+    egm_cond_time_s: PositiveFloat = 1e6
+    egm_ramp_in_s: PositiveFloat = 0.05
+    egm_lp_filter_hz: PositiveFloat = 20.0
+    egm_sample_rate_ms: Annotated[int, Field(ge=4, le=1000, multiple_of=4)] = 4
     # Limits every commanded set-point is checked against (IRB 4600-40/2.55 defaults, with margins).
     joint_lower_deg: Joint6 = [-180.0, -90.0, -180.0, -400.0, -125.0, -400.0]
     joint_upper_deg: Joint6 = [180.0, 150.0, 75.0, 400.0, 120.0, 400.0]
@@ -290,6 +302,9 @@ class SimSection(Section):
     egm_cycle_ms: PositiveFloat = 4.032
     rws_port: Port = 8080
     rws_users: dict[str, str] = {"Default User": "CELL_RWS_PASSWORD"}
+    rws_max_sessions: Annotated[int, Field(ge=1, le=1000)] = 70
+    rws_session_idle_s: PositiveFloat = 300.0
+    opmode: Literal["AUTO", "MANR", "MANF"] = "AUTO"
     depth_noise_mm: NonNegativeFloat = 0.02
     outlier_fraction: Fraction = 0.0005
     plate: SimPlate = SimPlate()
