@@ -48,7 +48,7 @@ def make_cloud(n: int, job_id: str) -> Cloud:
     return Cloud(
         xyz_mm=rng.uniform(-600, 600, (n, 3)).astype(np.float32),
         pass_id=(prof // 2000 % 60).astype(np.uint16),
-        profile_index=prof,
+        profile_index=prof % 2000,
         point_index=(np.arange(n) % 500).astype(np.uint16),
         t_s=prof.astype(np.float64) / 200.0,
         job_id=job_id,

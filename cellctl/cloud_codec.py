@@ -27,8 +27,10 @@ metadata block, then each array as raw little-endian bytes, 8-byte aligned, so d
     then meta_len bytes of JSON: {"job_id": str, "plate_id": str, ...}
 
 Fields (fixed dtype each; ``xyz_mm`` required, the others optional):
-``xyz_mm`` f32 x3 (mm, robot base frame), ``pass_id`` u16, ``profile_index`` u32,
-``point_index`` u16, ``t_s`` f64 (s, cell clock). Arrays follow in table order, without overlap.
+``xyz_mm`` f32 x3 (mm, robot base frame), ``pass_id`` u16, ``profile_index`` u32 (profile within
+its pass), ``point_index`` u16 (point along the laser line), ``t_s`` f64 (s, cell clock); pass,
+profile and point together are the point's place on the scan grid (``analysis.cloud_io.ScanCloud``
+calls them ``pass_id``, ``profile``, ``point``). Arrays follow in table order, without overlap.
 The payload itself is not checksummed: Zenoh runs over TCP, which already is.
 """
 
@@ -91,7 +93,7 @@ class Cloud:
     """One assembled scan.
 
     xyz_mm: (n, 3) float32, mm, robot base frame. Optional per-point arrays, each (n,):
-    pass_id uint16, profile_index uint32, point_index uint16 (index inside its profile),
+    pass_id uint16, profile_index uint32 (within its pass), point_index uint16 (along the line),
     t_s float64 (exposure time, s). ``meta`` holds further JSON-able metadata.
     """
 

@@ -279,3 +279,19 @@ def test_jobs_flow_with_password_auth_and_access_control_on(hub, start_worker, m
     assert env.ok and env.worker_id == "w1"
     np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
     assert outside == []
+
+
+def test_worker_started_before_the_daemon_connects_once_it_listens(hub, start_worker):
+    w = start_worker("early")
+    t_end = time.monotonic() + 30
+    while "worker_connect_failed" not in w.log():  # it is up and retrying its connection
+        assert time.monotonic() < t_end and w.proc.poll() is None, w.log()
+        time.sleep(0.1)
+
+    async def scenario(disp: Dispatcher):
+        payload, centroid = _cloud_bytes("jobE1")
+        return await asyncio.wait_for(disp.submit("jobE1", "P1", payload), 30), centroid
+
+    env, centroid = _run(hub, scenario)
+    assert env.ok and env.worker_id == "early"
+    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
