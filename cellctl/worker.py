@@ -317,8 +317,7 @@ class Worker:
         self._current: JobSpec | None = None
         self._task: asyncio.Task[None] | None = None
         self._started_utc = now_utc()
-        self._report_pub: Any = None
-        self._event_pub: Any = None
+        self._stopping = False
 
     def announcement(self) -> WorkerAnnouncement:
         return WorkerAnnouncement(
@@ -358,6 +357,7 @@ class Worker:
             log.info("worker_ready", worker_id=self.worker_id, analysis=self.settings.analysis)
             await stop.wait()
         finally:
+            self._stopping = True
             if self._task is not None:
                 self._task.cancel()
                 with contextlib.suppress(BaseException):
@@ -442,9 +442,17 @@ class Worker:
                 "job_reported", job_id=spec.job_id, ok=outcome.ok, seconds=round(time.perf_counter() - t0, 3)
             )
         except asyncio.CancelledError:
-            self._event(spec, "cancelled")
-            await self._restart_runner()
+            self._event(
+                spec, "cancelled", "worker stopping" if self._stopping else "cancelled by the dispatcher"
+            )
+            if not self._stopping:  # the analysis child may be mid-job: start a clean one
+                await self._restart_runner()
             raise
+        except Exception as exc:
+            # Anything else (a put refused, an unreadable result): the job goes elsewhere, we go on.
+            log.exception("job_error", job_id=spec.job_id)
+            with contextlib.suppress(Exception):
+                self._event(spec, "failed", f"{type(exc).__name__}: {exc}")
         finally:
             hb.cancel()
             self._current = None

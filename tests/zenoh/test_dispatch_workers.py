@@ -295,3 +295,26 @@ def test_worker_started_before_the_daemon_connects_once_it_listens(hub, start_wo
     env, centroid = _run(hub, scenario)
     assert env.ok and env.worker_id == "early"
     np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+
+
+def test_sigterm_mid_analysis_hands_the_job_back_and_exits_zero(hub, start_worker):
+    record = hub.tmp / "calls.txt"
+    workers = {"w1": start_worker("w1"), "w2": start_worker("w2")}
+    retries: list[tuple[str, str, str]] = []
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
+        fut = disp.submit("jobT", "P1", _cloud_bytes("jobT")[0], {"record_path": str(record), "sleep_s": 3.0})
+        await _wait_for(lambda: len(_records(record)) >= 1, 20, "analysis start")
+        holder = workers[disp.assignment("jobT")[0]]
+        t0 = time.monotonic()
+        holder.proc.send_signal(signal.SIGTERM)
+        env = await asyncio.wait_for(fut, 30)
+        return env, holder, time.monotonic() - t0
+
+    env, holder, _ = _run(hub, scenario, hooks=DispatchHooks(on_retry=lambda *a: retries.append(a)))
+    assert env.ok and env.worker_id != holder.worker_id and env.attempt == 2
+    assert holder.proc.wait(10) == 0, holder.log()
+    assert retries[0][1] == holder.worker_id
+    assert "worker stopping" in retries[0][2] or "disappeared" in retries[0][2]
+    assert "analysis_process_ready" in holder.log() and holder.log().count("analysis_process_ready") == 1
