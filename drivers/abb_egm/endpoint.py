@@ -31,15 +31,16 @@ import numpy as np
 import structlog
 
 from drivers.abb_egm.codec import (
-    EgmDecodeError,
     EgmEncodeError,
     MciState,
     MotorState,
     RapidState,
     RobotMessage,
     SensorMessage,
-    decode_robot,
     encode_sensor,
+    encode_sensor_header,
+    parse_robot_pb,
+    robot_from_pb,
 )
 
 __all__ = [
@@ -308,11 +309,18 @@ class EgmStatistics:
 @dataclass(frozen=True, slots=True)
 class _Reference:
     mode: str  # "joint" | "pose"
+    body: bytes  # EgmSensor without header, encoded once per command instead of once per cycle
     q_deg: np.ndarray | None = None
-    speed_deg_s: np.ndarray | None = None
-    pos_mm: np.ndarray | None = None
-    quat_wxyz: np.ndarray | None = None
-    speed_cart: np.ndarray | None = None
+
+
+def _joint_reference(q_deg: np.ndarray, speed_deg_s: np.ndarray | None = None) -> _Reference:
+    try:
+        body = encode_sensor(
+            SensorMessage(planned_q_deg=q_deg, speed_ref_q_deg_s=speed_deg_s), with_header=False
+        )
+    except EgmEncodeError as exc:
+        raise EgmEndpointError(str(exc)) from None
+    return _Reference("joint", body, q_deg=q_deg)
 
 
 WatchdogCallback = Callable[[str, float], None]
@@ -433,7 +441,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         ``speed_deg_s`` (n_axes,) deg/s as ``planned.joints`` / ``speedRef.joints``."""
         q = self._vector(q_deg, self.config.n_axes, "q_deg")
         qd = None if speed_deg_s is None else self._vector(speed_deg_s, self.config.n_axes, "speed_deg_s")
-        self._reference = _Reference("joint", q_deg=q, speed_deg_s=qd)
+        self._reference = _joint_reference(q, qd)
 
     def command_pose(
         self, pos_mm: np.ndarray, quat_wxyz: np.ndarray, speed_ref: np.ndarray | None = None
@@ -446,20 +454,25 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         if norm < 1e-9:
             raise EgmEndpointError("quat_wxyz must not be zero")
         v = None if speed_ref is None else self._vector(speed_ref, 6, "speed_ref")
-        self._reference = _Reference("pose", pos_mm=p, quat_wxyz=quat / norm, speed_cart=v)
+        msg = SensorMessage(planned_pos_mm=p, planned_quat_wxyz=quat / norm, speed_ref_cart=v)
+        try:
+            body = encode_sensor(msg, with_header=False)
+        except EgmEncodeError as exc:
+            raise EgmEndpointError(str(exc)) from None
+        self._reference = _Reference("pose", body)
 
     def hold(self) -> None:
         """Reference := the latest feedback joints (the robot stops where it is)."""
         if self._latest is None:
             self._reference = None
         else:
-            self._reference = _Reference("joint", q_deg=self._latest.q_deg.copy())
+            self._reference = _joint_reference(self._latest.q_deg.copy())
 
     @property
     def reference_q_deg(self) -> np.ndarray | None:
         """The joint reference being sent (None in pose mode or before the first packet)."""
         ref = self._reference
-        return None if ref is None or ref.mode != "joint" else ref.q_deg.copy()
+        return None if ref is None or ref.q_deg is None else ref.q_deg.copy()
 
     @staticmethod
     def _vector(values, n: int, name: str) -> np.ndarray:
@@ -487,13 +500,13 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         t_rx_ns = self._clock_ns()
         try:
-            msg = decode_robot(data)
-        except EgmDecodeError as exc:
+            pb = parse_robot_pb(data)  # about a microsecond; the full conversion waits for the reply
+        except Exception as exc:  # EgmDecodeError, or anything else: one datagram never ends us
             self._malformed(exc, addr, t_rx_ns)
             return
-        except Exception as exc:  # never let one datagram end the endpoint
-            self._malformed(exc, addr, t_rx_ns)
-            return
+        h = pb.header
+        seqno = h.seqno if h.HasField("seqno") else None
+        tm_ms = h.tm if h.HasField("tm") else None
         if self._controller_addr != addr:
             if self._controller_addr is not None:
                 log.warning("egm_controller_address_changed", old=self._controller_addr, new=addr)
@@ -501,11 +514,15 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 log.info("egm_controller_seen", host=addr[0], port=addr[1])
             self._controller_addr = addr
         self.stats.received += 1
-        in_order = self._track_seqno(msg.seqno, msg.tm_ms)
-        if in_order and self._reference is None:
+        in_order = self._track_seqno(seqno, tm_ms)
+        msg: RobotMessage | None = None
+        if self._reference is None:
             # A new session starts from where the robot is: hold it until someone commands.
-            self._reference = _Reference("joint", q_deg=msg.feedback_q_deg[: self.config.n_axes].copy())
-        self._reply(msg, addr, t_rx_ns)
+            msg = self._convert(pb, data, addr, t_rx_ns)
+            if msg is None:
+                return
+            self._reference = _joint_reference(msg.feedback_q_deg[: self.config.n_axes].copy())
+        self._reply(addr, t_rx_ns)
         if self._quiet:
             self._quiet = False
             quiet_s = (t_rx_ns - (self._last_rx_ns or t_rx_ns)) / 1e9
@@ -514,12 +531,24 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 self._call_watchdog("resumed", quiet_s)
         if not in_order:
             return
+        if msg is None:
+            msg = self._convert(pb, data, addr, t_rx_ns)
+            if msg is None:
+                return
         if self._last_rx_ns is not None:
             self.stats._intervals_us.append((t_rx_ns - self._last_rx_ns) / 1000.0)
         self._last_rx_ns = t_rx_ns
         self._update_state(msg, t_rx_ns)
 
     # ---- internals ----------------------------------------------------------------------------
+
+    def _convert(self, pb, data: bytes, addr: tuple[str, int], t_rx_ns: int) -> RobotMessage | None:
+        try:
+            return robot_from_pb(pb, data)
+        except Exception as exc:  # well-formed protobuf with unusable values (NaN, 8 axes, ...)
+            self.stats.received -= 1
+            self._malformed(exc, addr, t_rx_ns)
+            return None
 
     def _track_seqno(self, seqno: int | None, tm_ms: int | None) -> bool:
         """Classify ``seqno``; returns True for a new in-order message (state and history update)."""
@@ -559,32 +588,14 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._reference = None
         log.info("egm_session_seen", seqno=seqno, session=self.stats.sessions)
 
-    def _reply(self, msg: RobotMessage, addr: tuple[str, int], t_rx_ns: int) -> None:
+    def _reply(self, addr: tuple[str, int], t_rx_ns: int) -> None:
         ref = self._reference
+        if ref is None:
+            return
         seqno = self._reply_seqno
         self._reply_seqno = (seqno + 1) % _U32
         tm_ms = (self._clock_ns() // 1_000_000) % _U32
-        try:
-            if ref is None or ref.mode == "joint":
-                q = ref.q_deg if ref is not None else msg.feedback_q_deg
-                out = SensorMessage(
-                    seqno=seqno,
-                    tm_ms=tm_ms,
-                    planned_q_deg=q,
-                    speed_ref_q_deg_s=ref.speed_deg_s if ref is not None else None,
-                )
-            else:
-                out = SensorMessage(
-                    seqno=seqno,
-                    tm_ms=tm_ms,
-                    planned_pos_mm=ref.pos_mm,
-                    planned_quat_wxyz=ref.quat_wxyz,
-                    speed_ref_cart=ref.speed_cart,
-                )
-            payload = encode_sensor(out)
-        except EgmEncodeError as exc:  # only a programming error can get here; keep serving
-            log.error("egm_reply_encode_failed", error=str(exc))
-            return
+        payload = encode_sensor_header(seqno, tm_ms) + ref.body
         transport = self._transport
         if transport is None:
             return

@@ -262,7 +262,7 @@ class RobotKinematics:
         tol_deg: float = 1e-4,
         max_iterations: int = 200,
         damping: float = 1e-6,
-        max_step_deg: float = 20.0,
+        max_step_deg: float = 5.0,
     ) -> IkResult:
         """Damped least-squares inverse kinematics near a seed, within the joint limits.
 

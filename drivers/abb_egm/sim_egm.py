@@ -741,6 +741,10 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             if f.burst_ms > 0:
                 self._burst_until = now + f.burst_ms / 1000.0
             return
+        # The latency probe counts from the controller's send, before any injected network delay.
+        slot = seqno % self._send_t_ns.shape[0]
+        self._send_t_ns[slot] = time.monotonic_ns()
+        self._send_seq[slot] = seqno
         if f.corrupt_fraction > 0 and rng.random() < f.corrupt_fraction:
             payload = self._corrupt(payload)
             self.stats.corrupted += 1
@@ -757,21 +761,20 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         if self._held is not None:
             out.append(self._held)
             self._held = None
-        for i, p in enumerate(out):
+        for p in out:
             delay_s = (f.delay_ms + (rng.random() * f.jitter_ms if f.jitter_ms > 0 else 0.0)) / 1000.0
-            record = seqno if i == 0 else None
             if delay_s > 0 and self._loop is not None:
-                self._send_after(delay_s, p, record)
+                self._send_after(delay_s, p)
             else:
-                self._sendto(p, record)
+                self._sendto(p)
 
-    def _send_after(self, delay_s: float, payload: bytes, seqno: int | None) -> None:
+    def _send_after(self, delay_s: float, payload: bytes) -> None:
         assert self._loop is not None
         holder: list[asyncio.TimerHandle] = []
 
         def fire() -> None:
             self._pending.discard(holder[0])
-            self._sendto(payload, seqno)
+            self._sendto(payload)
 
         holder.append(self._loop.call_later(delay_s, fire))
         self._pending.add(holder[0])
@@ -783,7 +786,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             b[i] ^= int(self._rng.integers(1, 256))
         return bytes(b)
 
-    def _sendto(self, payload: bytes, seqno: int | None) -> None:
+    def _sendto(self, payload: bytes) -> None:
         if self._transport is None:
             return
         try:
@@ -792,10 +795,6 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             log.warning("egm_sim_send_failed", error=str(exc))
             return
         self.stats.sent += 1
-        if seqno is not None:
-            slot = seqno % self._send_t_ns.shape[0]
-            self._send_t_ns[slot] = time.monotonic_ns()
-            self._send_seq[slot] = seqno
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = transport  # type: ignore[assignment]

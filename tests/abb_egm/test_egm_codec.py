@@ -27,6 +27,7 @@ from drivers.abb_egm.codec import (
     decode_sensor,
     encode_robot,
     encode_sensor,
+    encode_sensor_header,
 )
 
 PKG = Path(__file__).resolve().parents[2] / "drivers" / "abb_egm"
@@ -294,3 +295,12 @@ def test_sensor_joint_message_round_trips(seqno, q, with_speed):
         np.testing.assert_array_equal(back.speed_ref_q_deg_s, qd)
     else:
         assert back.speed_ref_q_deg_s is None
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seqno=st.integers(0, 2**32 - 1), tm=st.integers(0, 2**32 - 1), q=st.lists(finite, min_size=6, max_size=6)
+)
+def test_header_plus_headerless_body_is_byte_identical_to_a_full_encode(seqno, tm, q):
+    msg = SensorMessage(seqno=seqno, tm_ms=tm, planned_q_deg=np.array(q), speed_ref_q_deg_s=np.array(q) / 2)
+    assert encode_sensor_header(seqno, tm) + encode_sensor(msg, with_header=False) == encode_sensor(msg)

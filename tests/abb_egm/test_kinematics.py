@@ -85,21 +85,22 @@ _offset = st.tuples(*[st.floats(-8.0, 8.0)] * 6)
 @given(q=_inner, offset=_offset)
 def test_ik_recovers_a_reachable_pose_from_a_nearby_seed(q, offset):
     q = np.array(q)
-    # keep away from the wrist singularity (q5 = 0), where the pose does not determine q4/q6
-    if abs(q[4]) < 5.0:
-        q[4] = 5.0 if q[4] >= 0 else -5.0
-    # and from the stretched-elbow singularity (forearm in line with the upper arm)
+    # Keep farther from the two singularities than the seed offset (8 deg): across one, the pose has a
+    # second solution as close to the seed, and either is correct. Wrist: q5 = 0.
+    if abs(q[4]) < 10.0:
+        q[4] = 10.0 if q[4] >= 0 else -10.0
+    # Elbow: forearm (wrist centre) in line with the upper arm.
     q3_stretched = -90.0 + np.rad2deg(np.arctan2(0.175, 1.270))
-    if abs(q[2] - q3_stretched) < 5.0:
-        q[2] = q3_stretched + (5.0 if q[2] >= q3_stretched else -5.0)
+    if abs(q[2] - q3_stretched) < 12.0:
+        q[2] = q3_stretched + (12.0 if q[2] >= q3_stretched else -12.0)
     target = KIN.fk(q, "flange").T_base_frame
     result = KIN.ik(target, q + np.array(offset))
     assert result.converged, result
     assert result.pos_err_mm < 1e-3 and result.rot_err_deg < 1e-3
     np.testing.assert_allclose(KIN.fk(result.q_deg).T_base_frame[:3, 3], target[:3, 3], atol=2e-3)
     assert KIN.within_limits(result.q_deg)
-    # the DLS solver stays on the seed's branch
-    np.testing.assert_allclose(result.q_deg, q, atol=1e-2)
+    # the DLS solver stays on the seed's branch (joint space is ill-conditioned near q5 = 0: 0.05 deg)
+    np.testing.assert_allclose(result.q_deg, q, atol=5e-2)
 
 
 def test_ik_for_a_tool_frame_round_trips():

@@ -275,15 +275,35 @@ def test_burst_loss_drops_consecutive_packets_and_the_endpoint_counts_them():
     run(main)
 
 
-def test_delay_and_jitter_reach_the_endpoint_as_receive_interval_jitter():
+def test_injected_delay_shows_in_every_reply_latency():
     async def main():
         sim, ep = await start_pair()
-        await asyncio.sleep(0.2)
-        quiet_jitter = ep.stats.snapshot()["interval_jitter_us"]
-        sim.set_faults(delay_ms=2.0, jitter_ms=3.0)
+        sim.set_faults(delay_ms=5.0)
+        await asyncio.sleep(0.1)
+        sim.reset_reply_latency()
+        await asyncio.sleep(0.4)
+        latency_us, missed = sim.reply_latency()
+        assert latency_us.size > 50
+        assert latency_us.min() >= 5000.0
+        assert missed.mean() > 0.9  # a 5 ms delay puts every reply after the next 4 ms send
+        assert sim.session_running
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_injected_jitter_spreads_transit_times_and_reorders_packets():
+    async def main():
+        sim, ep = await start_pair()
+        sim.set_faults(jitter_ms=20.0)
         await asyncio.sleep(0.6)
-        jitter = np.std(ep.stats.receive_interval_us()[-100:])
-        assert jitter > 500.0 and jitter > quiet_jitter
+        a = ep.history.arrays()
+        recent = a.t_ctrl_us > a.t_ctrl_us[-1] - 400_000
+        # host receive time minus controller send time: a constant offset plus the transit time
+        transit_us = a.t_host_ns[recent] / 1000.0 - a.t_ctrl_us[recent]
+        spread_us = np.percentile(transit_us, 90) - np.percentile(transit_us, 10)
+        assert spread_us > 8000.0, spread_us  # uniform 0..20 ms: 16 ms between p10 and p90
+        assert ep.stats.out_of_order > 10
         assert sim.session_running
         await stop_pair(sim, ep)
 
