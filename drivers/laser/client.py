@@ -221,7 +221,14 @@ class HD8Client(ProfileSource):
                 asyncio.create_task(self._watchdog(), name="hd8-watchdog"),
                 asyncio.create_task(self._keepalive(), name="hd8-keepalive"),
             ]
-            await opened  # subscribe before START, so the first frame is not missed
+            try:
+                await opened  # subscribe before START, so the first frame is not missed
+            except BaseException:
+                for t in self._tasks:
+                    t.cancel()
+                await asyncio.gather(*self._tasks, return_exceptions=True)
+                self._tasks = []
+                raise
         await self.command(P.CommandId.START)
 
     async def stop(self) -> None:
@@ -352,19 +359,22 @@ class HD8Client(ProfileSource):
         st = self.stats
         fi = batch.frame_index.astype(np.int64)
         last = st.last_frame_index
-        if fi[0] <= last:
-            fresh = fi > last
+        # A profile is new only if its index exceeds everything before it (delivered or earlier in
+        # this batch): replays after a reconnect, and groups a broken sensor repeats, are dropped.
+        before = np.maximum.accumulate(np.concatenate([[last], fi[:-1]]))
+        fresh = fi > before
+        if not fresh.all():
             st.duplicates_dropped += int(len(fi) - fresh.sum())
             if not fresh.any():
                 return
             batch = batch.select(fresh)
             fi = fi[fresh]
-        prev = np.concatenate([[last], fi[:-1]]) if last >= 0 else fi[:-1]
-        jumps = (fi - prev - 1) if last >= 0 else (fi[1:] - prev - 1)
-        missing = int(jumps[jumps > 0].sum())
+        steps = np.diff(fi) - 1
+        if last >= 0:  # joining a running stream is not a loss; a jump after that is
+            steps = np.concatenate([[fi[0] - last - 1], steps])
+        missing = int(steps.sum())
         if missing:
-            n_gaps = int((jumps > 0).sum())
-            st.gaps += n_gaps
+            st.gaps += int((steps > 0).sum())
             st.missing_frames += missing
             self._emit(SourceEventKind.GAP, missing_frames=missing, after_frame=last)
             self._ratelog.warning("hd8_frame_gap", missing_frames=missing, after_frame=last)

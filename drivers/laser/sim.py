@@ -36,7 +36,7 @@ from typing import Literal
 
 import numpy as np
 import structlog
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from drivers.laser import protocol as P
 from drivers.laser._ratelimit import RateLimitedLog
@@ -92,6 +92,18 @@ class SimConfig(BaseModel):
     z_scale_nm: int = Field(2000, gt=0)
     x_scale_nm_points: int = Field(2000, gt=0)
     seed: int | None = 0
+
+    @model_validator(mode="after")
+    def _consistent(self) -> SimConfig:
+        if not self.z_min_mm < self.z_max_mm:
+            raise ValueError(f"z_min_mm ({self.z_min_mm}) must be below z_max_mm ({self.z_max_mm})")
+        if self.rate_hz > self.max_rate_hz:
+            raise ValueError(f"rate_hz ({self.rate_hz}) exceeds max_rate_hz ({self.max_rate_hz})")
+        if self.exposure_ns >= 1e9 / self.rate_hz:
+            raise ValueError(
+                f"exposure_ns ({self.exposure_ns}) does not fit in one period at {self.rate_hz} Hz"
+            )
+        return self
 
     def optics(self) -> LaserOptics:
         return LaserOptics(

@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import asyncio
 import struct
+import time
 
 import numpy as np
 import pytest
-from laser_helpers import collect, run, sim_and_client
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from laser_helpers import collect, looking_down, run, sim_and_client
 
 from drivers.laser import protocol as P
 from drivers.laser.client import HD8Client, HD8ClientConfig
-from drivers.laser.sim import SimConfig
+from drivers.laser.scene import plane_scene
+from drivers.laser.sim import LaserSimulator, SimConfig
 from drivers.laser.source import ProfileBatch, SourceEventKind
 
 FAST = SimConfig(rate_hz=1000.0, outlier_probability=0.0, seed=1)
@@ -135,7 +139,7 @@ def test_buffer_overflow_is_counted_and_reported_not_silent() -> None:
             await asyncio.sleep(0.3)  # nobody reads
             st = client.stats
             assert st.overflow_batches > 0 and st.overflow_frames > 0
-            assert st.frames + st.overflow_frames >= 200
+            assert st.frames + st.overflow_frames > 100
             kinds = set()
             while not client.events.empty():
                 kinds.add(client.events.get_nowait().kind)
@@ -293,5 +297,163 @@ def test_client_connect_to_closed_port_raises_connection_error() -> None:
         with pytest.raises(OSError):
             await client.connect()
         await client.close()
+
+    run(scenario())
+
+
+def test_start_fails_cleanly_when_the_data_port_is_closed() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            srv = await asyncio.start_server(lambda r, w: None, "127.0.0.1", 0)
+            dead_port = srv.sockets[0].getsockname()[1]
+            srv.close()
+            await srv.wait_closed()
+            client.data_port = dead_port
+            with pytest.raises(OSError):
+                await client.start()
+            assert not sim.running  # START was never sent
+            client.data_port = sim._servers[1].sockets[0].getsockname()[1]
+            await client.start()  # a second attempt works
+            assert len(frames_of(await collect(client, 5))) >= 5
+
+    run(scenario())
+
+
+def test_producer_overrun_skips_frames_and_flags_them() -> None:
+    cfg = SimConfig(rate_hz=1000.0, max_backlog_s=0.05, outlier_probability=0.0, seed=8)
+    blocked = {"done": False}
+
+    def slow_pose(t: np.ndarray) -> np.ndarray:
+        if not blocked["done"] and t[0] - t0["t"] > 0.05:
+            blocked["done"] = True
+            time.sleep(0.2)  # the sensor's processing falls 200 frames behind once
+        return np.repeat(looking_down(100.0)[None], len(t), axis=0)
+
+    t0 = {"t": time.monotonic()}
+
+    async def scenario() -> None:
+        sim = LaserSimulator(plane_scene(0.0), slow_pose, config=cfg)
+        ctl, dat = await sim.start()
+        client = HD8Client("127.0.0.1", ctl, dat)
+        try:
+            await client.connect()
+            t0["t"] = time.monotonic()
+            await client.start()
+            b = ProfileBatch.concat(await collect(client, 300))
+            assert sim.stats.overrun_frames >= 100
+            d = np.diff(b.frame_index.astype(np.int64))
+            jumps = np.flatnonzero(d > 1)
+            assert d.max() >= 100  # the long block, 200 frames minus the 50 kept in the backlog
+            assert client.stats.missing_frames == int((d[jumps] - 1).sum())
+            # every frame after a skip carries the OVERRUN bit, and no other frame does
+            overrun = (b.status & P.StatusBits.OVERRUN) != 0
+            assert np.array_equal(np.flatnonzero(overrun[1:]), jumps)
+        finally:
+            await client.close()
+            await sim.stop()
+
+    run(scenario())
+
+
+def test_a_failing_pose_source_stops_acquisition_but_not_the_endpoint() -> None:
+    def bad_pose(t: np.ndarray) -> np.ndarray:
+        return np.zeros((len(t), 3, 3))  # wrong shape
+
+    async def scenario() -> None:
+        sim = LaserSimulator(plane_scene(0.0), bad_pose, config=FAST)
+        ctl, dat = await sim.start()
+        client = HD8Client("127.0.0.1", ctl, dat, config=HD8ClientConfig(watchdog_timeout_s=0.1))
+        try:
+            await client.connect()
+            await client.start()
+            event = await asyncio.wait_for(client.events.get(), 2.0)
+            assert event.kind == SourceEventKind.STALLED
+            assert (await client.get_state()).state == P.SensorState.READY  # the control port still answers
+        finally:
+            await client.close()
+            await sim.stop()
+
+    run(scenario())
+
+
+def test_close_ends_a_running_iteration() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (_sim, client):
+            await client.start()
+
+            async def consume() -> int:
+                n = 0
+                async for b in client:
+                    n += len(b)
+                return n
+
+            task = asyncio.create_task(consume())
+            await asyncio.sleep(0.1)
+            await client.close()
+            assert await asyncio.wait_for(task, 2.0) > 0
+
+    run(scenario())
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    runs=st.lists(st.tuples(st.integers(-5, 5), st.integers(1, 6)), min_size=1, max_size=12),
+)
+def test_client_delivers_strictly_increasing_frames_whatever_the_sensor_repeats_or_skips(
+    runs: list[tuple[int, int]],
+) -> None:
+    # Each run starts `offset` frames after the previous run's last frame (<= 0: a replay overlap).
+    groups = []
+    last = -1
+    for offset, n in runs:
+        first = max(0, last + offset)
+        groups.append(np.arange(first, first + n))
+        last = first + n - 1
+    scale = P.ProfileScale(100_000, 2000, 0, 100_000)
+    blob = b"".join(
+        P.encode_frame_group(
+            frame_index=g.astype(np.uint64),
+            sensor_time_us=g.astype(np.uint64),
+            hd8_ms=g.astype(np.uint32),
+            encoder=np.zeros(len(g), np.int64),
+            status=np.zeros(len(g), np.uint32),
+            exposure_ns=np.ones(len(g), np.uint32),
+            scale=scale,
+            z_raw=np.zeros((len(g), 3), np.int16),
+        )
+        for g in groups
+    )
+    sent = np.concatenate(groups)
+    # What must come out: each frame that is newer than everything sent before it, in order.
+    expected = sent[sent > np.maximum.accumulate(np.concatenate([[-1], sent[:-1]]))]
+    jumps = np.diff(np.concatenate([[expected[0] - 1], expected])) - 1
+
+    async def scenario() -> None:
+        async def control(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+            framer = P.MessageFramer()
+            while chunk := await r.read(4096):
+                for m in framer.feed(chunk):
+                    w.write(P.encode_reply(m.type, P.Status.OK))
+
+        async def data(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+            await r.read(14)
+            w.write(blob)
+            await w.drain()
+            await r.read()
+
+        ctl = await asyncio.start_server(control, "127.0.0.1", 0)
+        dat = await asyncio.start_server(data, "127.0.0.1", 0)
+        client = HD8Client("127.0.0.1", ctl.sockets[0].getsockname()[1], dat.sockets[0].getsockname()[1])
+        await client._open_control()
+        await client.start()
+        got = frames_of(await collect(client, len(expected)))
+        np.testing.assert_array_equal(got, expected)
+        assert client.stats.duplicates_dropped == len(sent) - len(expected)
+        # Joining a stream at frame k is not a loss: only jumps after the first frame count.
+        assert client.stats.missing_frames == int(jumps[1:].sum())
+        await client.close()
+        for s in (ctl, dat):
+            s.close()
+        await asyncio.sleep(0.01)
 
     run(scenario())

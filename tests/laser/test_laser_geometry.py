@@ -131,7 +131,7 @@ def test_profiles_are_rendered_at_the_pose_at_mid_exposure() -> None:
         T[:, 1, 3] = speed * (t - t0["t"])
         return T
 
-    cfg = SimConfig(rate_hz=500.0, exposure_ns=2_000_000, noise_sigma_mm=0.0, outlier_probability=0.0, seed=7)
+    cfg = SimConfig(rate_hz=500.0, exposure_ns=1_500_000, noise_sigma_mm=0.0, outlier_probability=0.0, seed=7)
 
     async def scenario() -> None:
         sim = LaserSimulator(ramp, pose_at, config=cfg)
