@@ -223,7 +223,10 @@ class LaserSimulator:
         self.settings = _Settings(rate_hz=cfg.rate_hz, exposure_ns=cfg.exposure_ns, fmt=fmt)
         self._optics = cfg.optics()
         self._raycaster = SceneRaycaster(self.scene)
-        self._rng = np.random.default_rng(cfg.seed)
+        # Two streams: noise is drawn in the render thread, faults in the event loop.
+        seeds = np.random.SeedSequence(cfg.seed).spawn(2)
+        self._noise_rng = np.random.default_rng(seeds[0])
+        self._fault_rng = np.random.default_rng(seeds[1])
         self._t_epoch_s = clock()
         self._offset_us = float(cfg.clock_offset_us)
         self._counter_base_ms = cfg.hd8_counter_start_ms
@@ -446,7 +449,7 @@ class LaserSimulator:
             keep[:d] = False
             f.drop_frames -= d
         if f.drop_probability > 0:
-            keep &= self._rng.random(n) >= f.drop_probability
+            keep &= self._fault_rng.random(n) >= f.drop_probability
         if f.stall_until_s > self.clock() and not f.stall_acquire:
             keep[:] = False
         self.stats.frames_dropped_fault += int(n - keep.sum())
@@ -456,11 +459,11 @@ class LaserSimulator:
         """Runs in the worker thread: ray cast, quantise, encode one group."""
         cfg = self.config
         if fmt == P.ProfileFormat.UNIFORM:
-            r = render_uniform(self._raycaster, poses, self._optics, self._rng)
+            r = render_uniform(self._raycaster, poses, self._optics, self._noise_rng)
             scale = self._uniform_scale()
             z_raw = P.quantize_mm(r.z_mm, r.valid, scale.z_scale_nm, scale.z_offset_um)
             return P.encode_frame_group(scale=scale, z_raw=z_raw, **stamps)
-        r = render_points(self._raycaster, poses, self._optics, self._rng)
+        r = render_points(self._raycaster, poses, self._optics, self._noise_rng)
         scale = P.ProfileScale(cfg.x_scale_nm_points, cfg.z_scale_nm, 0, self._z_offset_um())
         x_raw = P.quantize_mm(r.x_mm, r.valid, scale.x_scale_nm, scale.x_offset_um)
         z_raw = P.quantize_mm(r.z_mm, r.valid, scale.z_scale_nm, scale.z_offset_um)
@@ -501,7 +504,7 @@ class LaserSimulator:
     def _send_all(self, n: int, group: bytes) -> None:
         f = self.faults
         wire = group
-        random_hit = f.corrupt_probability > 0 and self._rng.random() < f.corrupt_probability
+        random_hit = f.corrupt_probability > 0 and self._fault_rng.random() < f.corrupt_probability
         if f.corrupt_groups > 0 or random_hit:
             f.corrupt_groups = max(0, f.corrupt_groups - (not random_hit))
             wire = _corrupt(group, f.corrupt_mode)

@@ -457,3 +457,19 @@ def test_client_delivers_strictly_increasing_frames_whatever_the_sensor_repeats_
         await asyncio.sleep(0.01)
 
     run(scenario())
+
+
+def test_random_drops_and_corruption_are_counted_and_never_break_order() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            sim.faults.drop_probability = 0.05
+            sim.faults.corrupt_probability = 0.1
+            await client.start()
+            b = ProfileBatch.concat(await collect(client, 500))
+            assert np.all(np.diff(b.frame_index.astype(np.int64)) > 0)
+            st = client.stats
+            assert st.decode_errors > 0 and st.missing_frames > 0
+            assert st.reconnects == 0 and st.duplicates_dropped == 0
+            assert sim.stats.frames_dropped_fault > 0
+
+    run(scenario())
