@@ -16,7 +16,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path, PurePosixPath
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -99,6 +99,9 @@ class Model(BaseModel):
 
     def to_json(self) -> bytes:
         return self.model_dump_json().encode("utf-8")
+
+
+M = TypeVar("M", bound=Model)
 
 
 def now_utc() -> str:
@@ -374,3 +377,40 @@ async def handle_trigger(
         return None
     query.reply(query.key_expr, accepted.to_json(), encoding=JSON)
     return accepted
+
+
+class ApiCallError(Exception):
+    """A query that got an error reply (``error`` holds the ApiError) or no reply at all."""
+
+    def __init__(self, key: str, error: ApiError | None, message: str) -> None:
+        self.key = key
+        self.error = error
+        super().__init__(f"{key}: {message}")
+
+
+async def call(
+    session: Any, key: str, payload: bytes | str | None, reply_model: type[M], *, timeout_s: float = 10.0
+) -> M:
+    """Query one of the cell's queryables and parse the reply (what `cellctl scan` and friends use).
+
+    Raises ApiCallError on an error reply (with the parsed ApiError), on no reply within
+    ``timeout_s`` (daemon not running or too slow), or on a reply that does not parse.
+    """
+    from cellctl.zenoh_session import async_get  # here: the models above must not need Zenoh
+
+    replies = await async_get(session, key, payload=payload, timeout_s=timeout_s)
+    if not replies:
+        raise ApiCallError(key, None, f"no reply within {timeout_s} s (is the daemon running?)")
+    reply = replies[0]
+    if reply.ok is None:
+        raw = reply.err.payload.to_bytes()
+        try:
+            err = ApiError.model_validate_json(raw)
+        except ValidationError:
+            raise ApiCallError(key, None, f"error reply: {raw[:200]!r}") from None
+        where = f"{err.field}: " if err.field else ""
+        raise ApiCallError(key, err, f"{err.code}: {where}{err.message}")
+    try:
+        return reply_model.model_validate_json(reply.ok.payload.to_bytes())
+    except ValidationError as exc:
+        raise ApiCallError(key, None, f"reply is not a {reply_model.__name__}: {exc}") from None

@@ -369,7 +369,11 @@ class Worker:
             log.info("worker_stopped", worker_id=self.worker_id, jobs_done=self.jobs_done)
 
     async def _on_info(self, query: zenoh.Query) -> None:
-        query.reply(query.key_expr, self.announcement().to_json(), encoding="application/json")
+        # Reply on our own key, not the (possibly wildcard) query key: replies on one key are
+        # consolidated into one, and every worker must be heard.
+        query.reply(
+            self.keys.worker_info(self.worker_id), self.announcement().to_json(), encoding="application/json"
+        )
 
     def _on_job(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)

@@ -12,16 +12,16 @@ from hypothesis import strategies as st
 
 from cellctl.api import (
     MAX_TRIGGER_BYTES,
-    ApiError,
+    ApiCallError,
     Keys,
     TriggerAccepted,
     TriggerError,
     TriggerRequest,
+    call,
     handle_trigger,
     parse_trigger,
 )
 from cellctl.zenoh_session import (
-    async_get,
     build_zenoh_config,
     close_session,
     declare_async_queryable,
@@ -120,14 +120,12 @@ def test_trigger_queryable_answers_errors_and_keeps_serving_over_zenoh(hub, desi
             client = open_session(build_zenoh_config(hub.section, role="connect"))
             out = []
             for payload in (b"{bad", _req(colour="red"), _req(design="../secret.stl"), b"y" * 20000, _req()):
-                replies = await async_get(client, keys.trigger, payload=payload, timeout_s=5)
-                assert len(replies) == 1
-                r = replies[0]
-                out.append(
-                    ApiError.model_validate_json(r.err.payload.to_bytes())
-                    if r.ok is None
-                    else TriggerAccepted.model_validate_json(r.ok.payload.to_bytes())
-                )
+                try:
+                    out.append(await call(client, keys.trigger, payload, TriggerAccepted, timeout_s=5))
+                except ApiCallError as exc:
+                    out.append(exc.error)
+            with pytest.raises(ApiCallError, match="no reply within 1 s"):
+                await call(client, keys.control("pause"), None, TriggerAccepted, timeout_s=1)
             return out
         finally:
             close_session(client)
