@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellctl.acquisition.poses import sensor_poses, transform_profiles
+from cellctl.acquisition.poses import interpolate_poses, transform_profiles
 
 __all__ = [
     "AssembledBatch",
@@ -99,8 +99,7 @@ def assemble_batch(
     frame_index: np.ndarray,
     t_ns: np.ndarray,
     sample_t_ns: np.ndarray,
-    sample_q_deg: np.ndarray,
-    T_flange_sensor: np.ndarray,
+    sample_T_base_sensor: np.ndarray,
     epoch_ns: int,
     pass_id: np.ndarray,
     first_profile_index: int,
@@ -112,8 +111,8 @@ def assemble_batch(
         valid: (n, w) bool, sensor returns.
         frame_index: (n,) sensor frame indices.
         t_ns: (n,) exposure times on the host base, ns (clock fit applied, latency removed).
-        sample_t_ns, sample_q_deg: (m,), (m, 6) measured joints on the host base.
-        T_flange_sensor: (4, 4) hand-eye, mm.
+        sample_t_ns: (m,) int64 robot sample times on the host base, ns.
+        sample_T_base_sensor: (m, 3, 4) sensor pose at each sample (measured joints, FK, hand-eye), mm.
         epoch_ns: fixed float origin for the interpolation.
         pass_id: (n,) int32.
         first_profile_index: running index of the first profile.
@@ -128,9 +127,12 @@ def assemble_batch(
     hi = min(int(np.searchsorted(sample_t_ns, t_ns.max(), side="left")) + 2, len(sample_t_ns))
     if hi - lo < 2:
         lo, hi = max(0, hi - 2), max(hi, min(2, len(sample_t_ns)))
-    poses = sensor_poses(sample_t_ns[lo:hi], sample_q_deg[lo:hi], t_ns, T_flange_sensor, epoch_ns)
-    ok = valid & poses.inside[:, None]
-    xyz = transform_profiles(poses.T_base_sensor, x_mm, np.where(ok, z_mm, np.nan)).astype(np.float32)
+    T, inside = interpolate_poses(sample_t_ns[lo:hi], sample_T_base_sensor[lo:hi], t_ns, epoch_ns)
+    all_inside = bool(inside.all())
+    ok = valid if all_inside else valid & inside[:, None]
+    # the source's z is NaN where it has no return; only profiles without a pose need masking here
+    z = z_mm if all_inside else np.where(ok, z_mm, np.float32(np.nan))
+    xyz = transform_profiles(T, x_mm, z)
     return AssembledBatch(
         profile_index=np.arange(first_profile_index, first_profile_index + n, dtype=np.int64),
         frame_index=np.asarray(frame_index, dtype=np.uint64),

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import structlog
+from scipy.spatial import ConvexHull, QhullError
 
 __all__ = [
     "ClockFit",
@@ -64,8 +65,8 @@ class ClockSyncConfig:
     """
 
     window_s: float = 120.0
-    bin_s: float = 0.05
-    refit_interval_s: float = 0.25
+    bin_s: float = 0.2
+    refit_interval_s: float = 2.0
     max_drift_ppm: float = 500.0
     min_pairs: int = 4
     spike_ms: float = 2.0
@@ -121,27 +122,26 @@ class ClockFit:
 
 
 def lower_hull(s: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Indices of the lower convex hull of points ``(s, d)``, sorted by ``s`` (monotone chain).
+    """Indices of the lower convex hull of points ``(s, d)``, in increasing ``s``.
 
     Args:
         s: (n,) float, strictly increasing.
         d: (n,) float.
 
     Returns:
-        (k,) int indices, first and last point included.
+        (k,) int indices from the first point to the last (qhull; collinear points are left out).
     """
-    hull: list[int] = []
-    # Python loop over the (already binned, a few thousand) points; numpy has no incremental hull.
-    for i in range(len(s)):
-        while len(hull) >= 2:
-            a, b = hull[-2], hull[-1]
-            cross = (s[b] - s[a]) * (d[i] - d[a]) - (d[b] - d[a]) * (s[i] - s[a])
-            if cross <= 0:
-                hull.pop()
-            else:
-                break
-        hull.append(i)
-    return np.asarray(hull, dtype=np.int64)
+    n = len(s)
+    if n <= 2:
+        return np.arange(n, dtype=np.int64)
+    try:
+        hull = ConvexHull(np.column_stack([s, d]))
+    except QhullError:  # all points on one line: its end points are the hull
+        return np.array([0, n - 1], dtype=np.int64)
+    v = hull.vertices  # counter-clockwise: from the leftmost point the walk runs along the bottom
+    v = np.roll(v, -int(np.argmin(s[v])))
+    right = int(np.argmax(s[v]))
+    return v[: right + 1].astype(np.int64)
 
 
 def fit_lower_envelope(s: np.ndarray, d: np.ndarray, max_slope: float) -> tuple[float, float]:
@@ -175,18 +175,34 @@ class ClockSync:
     Feed pairs with :meth:`add` as messages arrive (device stamp of the newest exposure in a message,
     host receive time of that message); read :attr:`fit` or map stamps with :meth:`to_host_ns`.
 
+    Pairs are reduced on arrival to the lowest one per ``bin_s`` of device time (only those can be on
+    the lower envelope), so memory and refit cost depend on the window length, not on the message
+    rate. The last ``report_pairs`` raw pairs are kept for the jitter figures of the quality report.
+
     Args:
         config: window, binning, refit cadence and bounds.
         name: which clock ("sensor", "controller"), for logs and reports.
+        report_pairs: raw pairs kept for the quality report.
     """
 
-    def __init__(self, config: ClockSyncConfig | None = None, name: str = "clock") -> None:
+    def __init__(
+        self, config: ClockSyncConfig | None = None, name: str = "clock", report_pairs: int = 4096
+    ) -> None:
         self.config = config or ClockSyncConfig()
         self.name = name
-        self._src_us = np.empty(0, dtype=np.int64)
-        self._host_ns = np.empty(0, dtype=np.int64)
+        self._report_pairs = report_pairs
+        self._bin_us = max(int(self.config.bin_s * 1e6), 1)
+        self._origin: tuple[int, int] | None = None  # (src_us, host_ns) of the first pair
+        # per bin of device time: id, device time of its lowest pair (us from origin), its d (ns), count
+        self._bin_id = np.empty(0, dtype=np.int64)
+        self._bin_s = np.empty(0, dtype=np.int64)
+        self._bin_d = np.empty(0, dtype=np.int64)
+        self._bin_n = np.empty(0, dtype=np.int64)
+        self._recent_s = np.empty(0, dtype=np.int64)
+        self._recent_d = np.empty(0, dtype=np.int64)
+        self._newest_s = 0
         self._fit: ClockFit | None = None
-        self._last_fit_src_us: int | None = None
+        self._last_fit_s: int | None = None
         self._n_fits = 0
 
     @property
@@ -196,8 +212,8 @@ class ClockSync:
 
     @property
     def n_pairs(self) -> int:
-        """Pairs currently in the window."""
-        return int(self._src_us.shape[0])
+        """Pairs that fell into the bins still in the window."""
+        return int(self._bin_n.sum())
 
     def add(self, src_us: np.ndarray, host_ns: np.ndarray) -> ClockFit | None:
         """Add pairs and refit if due. Returns the new fit when one was made, else None.
@@ -214,50 +230,69 @@ class ClockSync:
             )
         if src.size == 0:
             return None
-        self._src_us = np.concatenate([self._src_us, src])
-        self._host_ns = np.concatenate([self._host_ns, host])
-        newest = int(self._src_us.max())
-        cutoff = newest - int(self.config.window_s * 1e6)
-        if self._src_us[0] < cutoff:
-            keep = self._src_us >= cutoff
-            self._src_us, self._host_ns = self._src_us[keep], self._host_ns[keep]
+        if self._origin is None:
+            self._origin = (int(src[0]), int(host[0]))
+        s = src - self._origin[0]
+        d = (host - self._origin[1]) - s * 1000  # exact integers: host minus device time, ns
+        self._merge_bins(s, d)
+        self._recent_s = np.concatenate([self._recent_s, s])[-self._report_pairs :]
+        self._recent_d = np.concatenate([self._recent_d, d])[-self._report_pairs :]
+        self._newest_s = max(self._newest_s, int(s.max()))
+        cutoff_bin = (self._newest_s - int(self.config.window_s * 1e6)) // self._bin_us
+        if self._bin_id[0] < cutoff_bin:
+            k = int(np.searchsorted(self._bin_id, cutoff_bin))
+            self._bin_id, self._bin_s = self._bin_id[k:], self._bin_s[k:]
+            self._bin_d, self._bin_n = self._bin_d[k:], self._bin_n[k:]
         due = (
-            self._fit is None
-            or self._last_fit_src_us is None
-            or newest - self._last_fit_src_us >= self.config.refit_interval_s * 1e6
+            self._last_fit_s is None
+            or self._newest_s - self._last_fit_s >= self.config.refit_interval_s * 1e6
         )
         if not due or self.n_pairs < self.config.min_pairs:
             return None
         self._fit = self._refit()
-        self._last_fit_src_us = newest
+        self._last_fit_s = self._newest_s
         return self._fit
+
+    def _merge_bins(self, s: np.ndarray, d: np.ndarray) -> None:
+        b = s // self._bin_us
+        n = np.ones(len(b), dtype=np.int64)
+        append = not len(self._bin_id) or b.min() > self._bin_id[-1]
+        if not append:
+            # late pairs touch existing bins: merge everything (rare: pairs arrive in device order)
+            b = np.concatenate([self._bin_id, b])
+            s = np.concatenate([self._bin_s, s])
+            d = np.concatenate([self._bin_d, d])
+            n = np.concatenate([self._bin_n, n])
+        order = np.lexsort((d, b))
+        bs = b[order]
+        first = np.concatenate([[True], bs[1:] != bs[:-1]])
+        counts = np.add.reduceat(n[order], np.flatnonzero(first))
+        pick = order[first]  # the lowest pair of every bin
+        if append:
+            self._bin_id = np.concatenate([self._bin_id, b[pick]])
+            self._bin_s = np.concatenate([self._bin_s, s[pick]])
+            self._bin_d = np.concatenate([self._bin_d, d[pick]])
+            self._bin_n = np.concatenate([self._bin_n, counts])
+        else:
+            self._bin_id, self._bin_s, self._bin_d, self._bin_n = b[pick], s[pick], d[pick], counts
 
     def _refit(self) -> ClockFit:
         cfg = self.config
-        src_ref = int(self._src_us.min())
-        host_ref = int(self._host_ns[np.argmin(self._src_us)])
-        ds_us = self._src_us - src_ref
-        d_ns = ((self._host_ns - host_ref) - ds_us * 1000).astype(np.float64)
-        # lowest pair per bin of device time: hull cost stays bounded whatever the message rate
-        bins = ds_us // max(int(cfg.bin_s * 1e6), 1)
-        order = np.lexsort((d_ns, bins))
-        b_sorted = bins[order]
-        first = np.concatenate([[True], b_sorted[1:] != b_sorted[:-1]])
-        pick = order[first]  # the minimum d of each bin, in increasing bin order
-        s_s = ds_us[pick].astype(np.float64) * 1e-6
-        d_bin = d_ns[pick]
-        # several bins can share one device time only if bin_s < 1 us; keep s strictly increasing
-        uniq = np.concatenate([[True], np.diff(s_s) > 0])
-        a_ns, b_ns_per_s = fit_lower_envelope(s_s[uniq], d_bin[uniq], cfg.max_drift_ppm * 1e3)
-        above_ms = (d_ns - (a_ns + b_ns_per_s * ds_us.astype(np.float64) * 1e-6)) * 1e-6
-        span_s = float(ds_us.max()) * 1e-6
-        fit = ClockFit(
-            src_ref_us=src_ref,
-            host_ref_ns=host_ref,
+        assert self._origin is not None
+        s0, d0 = int(self._bin_s[0]), int(self._bin_d[0])
+        s_s = (self._bin_s - s0).astype(np.float64) * 1e-6
+        d_rel = (self._bin_d - d0).astype(np.float64)
+        uniq = np.concatenate([[True], np.diff(s_s) > 0])  # bins finer than 1 us could share a time
+        a_ns, b_ns_per_s = fit_lower_envelope(s_s[uniq], d_rel[uniq], cfg.max_drift_ppm * 1e3)
+        rs = (self._recent_s - s0).astype(np.float64) * 1e-6
+        above_ms = ((self._recent_d - d0).astype(np.float64) - (a_ns + b_ns_per_s * rs)) * 1e-6
+        return_fit = ClockFit(
+            src_ref_us=self._origin[0] + s0,
+            host_ref_ns=self._origin[1] + s0 * 1000 + d0,
             offset_ns=a_ns,
             drift_ppm=b_ns_per_s * 1e-3,
             n_pairs=self.n_pairs,
-            span_s=span_s,
+            span_s=float(self._bin_s[-1] - s0) * 1e-6,
             jitter_p50_ms=float(np.percentile(above_ms, 50)),
             jitter_p95_ms=float(np.percentile(above_ms, 95)),
             jitter_max_ms=float(above_ms.max()),
@@ -265,7 +300,7 @@ class ClockSync:
             fit_index=self._n_fits,
         )
         self._n_fits += 1
-        return fit
+        return return_fit
 
     def to_host_ns(self, src_us: np.ndarray) -> np.ndarray:
         """Map device times (n,) int64 us to host times (n,) int64 ns with the current fit."""

@@ -30,6 +30,7 @@ from cellctl.acquisition.clock_sync import (
 )
 from cellctl.acquisition.poses import T_from_pos_rpy
 from cellctl.acquisition.rawstore import RawWriter
+from drivers.abb_egm.kinematics import fk_batch
 from drivers.laser.source import ProfileBatch
 
 __all__ = [
@@ -169,7 +170,7 @@ class Acquisition:
         self._T_fs = settings.T_flange_sensor
         self._latency_ns = round(settings.latency_ms * 1e6)
         self._track_t = _Growable((), np.int64)
-        self._track_q = _Growable((6,), np.float64)
+        self._track_T = _Growable((3, 4), np.float64)
         self._pending: list[tuple[ProfileBatch, np.ndarray]] = []
         self._pending_profiles = 0
         self._unwrap = CounterUnwrapper()
@@ -213,8 +214,10 @@ class Acquisition:
         # a refit may move mapped times by microseconds; the track must stay strictly increasing
         keep = t > np.maximum.accumulate(np.concatenate([[last], t[:-1]]))
         self.stats.robot_samples_dropped += int((~keep).sum())
-        self._track_t.extend(t[keep])
-        self._track_q.extend(q[keep])
+        if keep.any():
+            # FK once per sample (250 Hz), not once per profile: profiles blend the bracketing poses
+            self._track_T.extend((fk_batch(q[keep]) @ self._T_fs)[:, :3, :])
+            self._track_t.extend(t[keep])
         return self._drain()
 
     def feed_profiles(self, batch: ProfileBatch) -> list[AssembledBatch]:
@@ -319,8 +322,7 @@ class Acquisition:
                 frame_index=batch.frame_index,
                 t_ns=t_ns,
                 sample_t_ns=self._track_t.view,
-                sample_q_deg=self._track_q.view,
-                T_flange_sensor=self._T_fs,
+                sample_T_base_sensor=self._track_T.view,
                 epoch_ns=self.settings.epoch_ns,
                 pass_id=self.schedule.assign(t_ns),
                 first_profile_index=self._next_profile,

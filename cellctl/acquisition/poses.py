@@ -26,6 +26,7 @@ __all__ = [
     "SensorPoses",
     "T_from_pos_rpy",
     "interpolate_joints",
+    "interpolate_poses",
     "pos_rpy_from_T",
     "sensor_poses",
     "transform_profiles",
@@ -72,7 +73,7 @@ def interpolate_joints(
     q = np.asarray(sample_q_deg, dtype=np.float64)
     t = np.asarray(t_ns, dtype=np.int64)
     if ts.ndim != 1 or q.ndim != 2 or q.shape[0] != ts.shape[0]:
-        raise PoseTimeError(f"sample_t_ns {ts.shape} and sample_q_deg {q.shape} must be (m,) and (m, k)")
+        raise PoseTimeError(f"sample_t_ns {ts.shape} and sample values {q.shape} must be (m,) and (m, k)")
     if ts.shape[0] < 2:
         raise PoseTimeError(f"need at least 2 joint samples, have {ts.shape[0]}")
     if np.any(np.diff(ts) <= 0):
@@ -121,21 +122,58 @@ def sensor_poses(
     return SensorPoses(T_base_sensor=fk_batch(q, T_flange_sensor), q_deg=q, inside=inside)
 
 
+def interpolate_poses(
+    sample_t_ns: np.ndarray, sample_T: np.ndarray, t_ns: np.ndarray, epoch_ns: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Blend the sensor poses of the two samples bracketing each time (the ingestion fast path).
+
+    The poses come from the measured joints through the forward kinematics once per sample (250 Hz),
+    not once per profile. Between samples 4 ms apart the rotation changes by well under a
+    milliradian, so the element-wise blend of the two matrices differs from joint-space interpolation
+    followed by FK (:func:`sensor_poses`) by far less than a micrometre at the profile
+    (``tests/acquisition/test_poses.py`` checks this).
+
+    Args:
+        sample_t_ns: (m,) int64 strictly increasing sample times, host ns.
+        sample_T: (m, 3, 4) ``T_base_sensor`` rows of each sample, mm.
+        t_ns: (n,) int64 query times, host ns.
+        epoch_ns: fixed float origin (see :func:`interpolate_joints`).
+
+    Returns:
+        ``(T (n, 3, 4), inside (n,) bool)``.
+    """
+    m = sample_T.shape[0]
+    T, inside = interpolate_joints(sample_t_ns, sample_T.reshape(m, 12), t_ns, epoch_ns)
+    return T.reshape(-1, 3, 4), inside
+
+
 def transform_profiles(T_base_sensor: np.ndarray, x_mm: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
     """Profile points (sensor x-z plane) into the base frame.
 
     Args:
-        T_base_sensor: (n, 4, 4) pose per profile, mm.
+        T_base_sensor: (n, 4, 4) or (n, 3, 4) pose per profile, mm.
         x_mm: (n, w) x across the line, mm.
         z_mm: (n, w) range along the laser axis, mm (NaN where invalid stays NaN).
 
     Returns:
-        (n, w, 3) float64 base-frame points, mm.
+        (n, w, 3) float32 base-frame points, mm. The arithmetic is float32 per axis (the hot path of
+        ingestion): rounding stays below 0.3 um for a 2.5 m reach, 1 % of the sensor's noise.
     """
     T = np.asarray(T_base_sensor, dtype=np.float64)
-    x = np.asarray(x_mm, dtype=np.float64)
-    z = np.asarray(z_mm, dtype=np.float64)
-    if T.ndim != 3 or T.shape[1:] != (4, 4) or x.shape != z.shape or x.shape[0] != T.shape[0]:
+    x = np.asarray(x_mm, dtype=np.float32)
+    z = np.asarray(z_mm, dtype=np.float32)
+    if T.ndim != 3 or T.shape[1:] not in ((4, 4), (3, 4)) or x.shape != z.shape or x.shape[0] != T.shape[0]:
         raise PoseTimeError(f"T_base_sensor {T.shape}, x_mm {x.shape}, z_mm {z.shape} do not match")
-    # y is 0 in the laser plane: p = x * R[:, 0] + z * R[:, 2] + t
-    return x[:, :, None] * T[:, None, :3, 0] + z[:, :, None] * T[:, None, :3, 2] + T[:, None, :3, 3]
+    R = T[:, :3, :3].astype(np.float32)
+    t = T[:, :3, 3].astype(np.float32)
+    out = np.empty((*x.shape, 3), dtype=np.float32)
+    tmp = np.empty(x.shape, dtype=np.float32)
+    acc = np.empty(x.shape, dtype=np.float32)
+    # y is 0 in the laser plane: p = x * R[:, 0] + z * R[:, 2] + t, one axis at a time on 2-D arrays
+    for k in range(3):
+        np.multiply(x, R[:, k, 0, None], out=acc)
+        np.multiply(z, R[:, k, 2, None], out=tmp)
+        acc += tmp
+        acc += t[:, k, None]
+        out[..., k] = acc
+    return out

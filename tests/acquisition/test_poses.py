@@ -11,6 +11,7 @@ from cellctl.acquisition.poses import (
     PoseTimeError,
     T_from_pos_rpy,
     interpolate_joints,
+    interpolate_poses,
     pos_rpy_from_T,
     sensor_poses,
     transform_profiles,
@@ -73,4 +74,17 @@ def test_profile_transform_equals_the_matrix_product_per_point():
     got = transform_profiles(T, x, z)
     pts = np.stack([x, np.zeros_like(x), z, np.ones_like(x)], axis=-1)
     want = np.einsum("nij,nwj->nwi", T, pts)[..., :3]
-    np.testing.assert_allclose(got, want, atol=1e-9)
+    np.testing.assert_allclose(got, want, atol=2e-4)  # float32 arithmetic
+
+
+def test_blending_sample_poses_agrees_with_joint_interpolation_and_fk_below_a_micrometre():
+    t_s = np.arange(0.0, 5.0, 0.004032)
+    ts_ns = EPOCH + np.rint(t_s * 1e9).astype(np.int64)
+    tq_ns = EPOCH + np.rint(np.random.default_rng(1).uniform(0.01, 4.9, 2000) * 1e9).astype(np.int64)
+    exact = sensor_poses(ts_ns, q_true_deg(t_s), tq_ns, T_FLANGE_SENSOR, EPOCH).T_base_sensor
+    T, inside = interpolate_poses(ts_ns, fk_batch(q_true_deg(t_s), T_FLANGE_SENSOR)[:, :3], tq_ns, EPOCH)
+    assert inside.all()
+    x, z = np.full((len(tq_ns), 2), [-25.0, 25.0]), np.full((len(tq_ns), 2), 130.0)
+    p_exact = transform_profiles(exact, x, z).astype(np.float64)
+    p_fast = transform_profiles(T, x, z).astype(np.float64)
+    assert np.max(np.abs(p_exact - p_fast)) < 1e-3

@@ -112,15 +112,18 @@ w = RawWriter(Path(sys.argv[1]), {"acquisition": s.to_json()}, flush_interval_s=
 acq = Acquisition(s, w)
 profiles = 0
 flushed = 0
+profiles_at_seq = {}
 for kind, payload in run.events:
-    chunks = w.chunks_written
+    seq = w.next_seq
     if kind == "robot":
         acq.feed_robot(*payload)
     else:
         acq.feed_profiles(payload)
         profiles += len(payload)
-    if w.chunks_written != chunks:  # a flush happened after this input: it is on disk
-        flushed = profiles
+    profiles_at_seq[seq] = profiles
+    durable = max((p for q, p in profiles_at_seq.items() if q <= w.durable_seq), default=0)
+    if durable > flushed:  # these profiles are fsync'ed: they must survive the kill
+        flushed = durable
         print(f"flushed {flushed}", flush=True)
     time.sleep(0.002)
 print("done", flush=True)
