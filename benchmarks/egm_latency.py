@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import resource
 import signal
 import subprocess
 import sys
@@ -61,9 +62,14 @@ async def _measure(port: int, seconds: float, cycle_ms: float, warmup_s: float) 
         sent0 = sim.stats.sent
         sim.reset_reply_latency()
         late_n0 = sim._late_n
+        cpu0 = resource.getrusage(resource.RUSAGE_SELF)
         await asyncio.sleep(seconds)
-        latency_us, missed = sim.reply_latency()
+        cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+        # silence the controller so the last cycle's reply can land before we count
+        sim.set_faults(stop_sending=True)
         cycles = sim.stats.sent - sent0
+        await asyncio.sleep(0.05)
+        latency_us, missed = sim.reply_latency()
         late_us = sim.tick_lateness_us()[-min(sim._late_n - late_n0, 4096) :]
     finally:
         await sim.stop()
@@ -83,6 +89,10 @@ async def _measure(port: int, seconds: float, cycle_ms: float, warmup_s: float) 
         "tick_late_p99_us": round(float(np.percentile(late_us, 99)), 1) if late_us.size else None,
         "tick_late_max_us": round(float(late_us.max()), 1) if late_us.size else None,
         "sim_overruns": sim.stats.overruns,
+        # the simulator sleeps between cycles: its CPU share must stay far below one core
+        "sim_cpu_fraction": round(
+            (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime) / seconds, 3
+        ),
     }
 
 

@@ -556,9 +556,13 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             return True  # a controller without seqno: nothing to check
         last, last_tm = self._last_seqno, self._last_tm
         self._last_tm = tm_ms
-        # The controller restarts its counter at 0 per session. A 0 right after a 0 is a duplicate
-        # only if it carries the same send time; otherwise a session began right after the first.
-        restarted = seqno == 0 and (last != 0 or (tm_ms is not None and tm_ms != last_tm))
+        # The controller restarts its counter at 0 per session. A 0 is a restart only if it was sent
+        # later than the previous packet (tm, modulo its wrap): a late or duplicated 0 of the current
+        # session carries an older or the same send time.
+        restarted = seqno == 0 and (
+            (last != 0 and (tm_ms is None or last_tm is None or _after(tm_ms, last_tm)))
+            or (last == 0 and tm_ms is not None and last_tm is not None and _after(tm_ms, last_tm))
+        )
         if last is None or restarted:
             self._new_session(seqno)
             return True
@@ -696,6 +700,12 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             self._on_watchdog(event, quiet_s)
         except Exception:  # a broken callback must not stop the endpoint
             log.exception("egm_watchdog_callback_failed", watchdog_event=event)
+
+
+def _after(tm_ms: int, other_ms: int) -> bool:
+    """True if ``tm_ms`` is later than ``other_ms`` on the controller's wrapping 32-bit ms clock."""
+    d = (tm_ms - other_ms) % _U32
+    return 0 < d < _U32 // 2
 
 
 def _name(value) -> str | None:

@@ -8,6 +8,8 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from structlog.testing import capture_logs
 
 from drivers.abb_egm.codec import (
@@ -32,12 +34,19 @@ Q0 = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
 
 
 def robot(
-    seqno: int, q=Q0, *, motors=MotorState.ON, mci=MciState.RUNNING, rapid=RapidState.RUNNING, t_us=None
+    seqno: int,
+    q=Q0,
+    *,
+    motors=MotorState.ON,
+    mci=MciState.RUNNING,
+    rapid=RapidState.RUNNING,
+    t_us=None,
+    tm_ms=None,
 ):
     return encode_robot(
         RobotMessage(
             seqno=seqno,
-            tm_ms=seqno * 4,
+            tm_ms=seqno * 4 if tm_ms is None else tm_ms,
             mtype=MessageType.DATA,
             feedback_q_deg=np.asarray(q, dtype=float),
             feedback_pos_mm=np.array([1500.0, 10.0, 1700.0]),
@@ -201,7 +210,7 @@ def test_controller_counter_restart_at_zero_is_a_new_session_that_holds_position
         ep.command_joints(Q0 + 30.0)
         ctl.send(robot(1))
         assert np.allclose((await ctl.recv()).planned_q_deg, Q0 + 30.0)
-        ctl.send(robot(0, q=Q0 + 2.0))  # a new EGM session on the controller
+        ctl.send(robot(0, q=Q0 + 2.0, tm_ms=1000))  # a new EGM session on the controller, sent later
         reply = await ctl.recv()
         np.testing.assert_array_equal(reply.planned_q_deg, Q0 + 2.0)  # no jump to the stale reference
         assert reply.seqno == 0
@@ -318,3 +327,43 @@ def test_feedback_history_is_bounded_and_keeps_the_newest_samples_in_order():
     assert a.seqno.tolist() == [7, 8, 9, 10, 11]
     assert np.all(np.isnan(a.pos_mm))
     np.testing.assert_allclose(h.q_deg_at(np.array([7500, 10_250]))[:, 3], [7.5, 10.25])
+
+
+class _NullTransport:
+    def __init__(self):
+        self.sent = 0
+
+    def sendto(self, payload, addr):
+        self.sent += 1
+
+    def get_extra_info(self, name):
+        return ("127.0.0.1", 0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(2, 120),
+    data=st.data(),
+)
+def test_seqno_statistics_account_for_every_packet_under_any_reordering_and_duplication(n, data):
+    # the controller's stream 0..n-1: 0 first (it opens the session), the rest shuffled within a
+    # window of 30 packets, some sent twice
+    rest = list(range(1, n))
+    keys = [i + data.draw(st.floats(0, 30)) for i in rest]
+    order = [0] + [s for _, s in sorted(zip(keys, rest, strict=True))]
+    dups = data.draw(st.lists(st.sampled_from(order), max_size=10))
+    for d in dups:
+        order.insert(data.draw(st.integers(order.index(d) + 1, len(order))), d)
+    ep = EgmEndpoint()
+    transport = _NullTransport()
+    ep.connection_made(transport)
+    for k in order:
+        ep.datagram_received(robot(k), ("127.0.0.1", 9))
+    s = ep.stats
+    assert s.received == len(order) and transport.sent == len(order)  # one reply per message
+    assert s.duplicated == len(dups)
+    assert s.lost == 0  # every gap was filled in the end
+    assert s.sessions == 1
+    in_order = len(ep.history)
+    assert in_order + s.out_of_order == n
+    assert ep.latest.seqno == max(order)
