@@ -539,8 +539,13 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         if not motors_on:
             # motors off / guard stop / e-stop: brakes, the arm stops hard
             self._v_deg_s[:] = 0.0
+        # Per cycle, as the manual describes it (p.26): sample the feedback, send it, then read the
+        # newest reference and move for one cycle. Only the last of several overdue cycles sends.
         for k in range(steps):
             t_k = t_true - (steps - 1 - k) * dt
+            self.trajectory.append(t_k, self._q_deg)
+            if k == steps - 1 and (self._running or cfg.stream_when_idle):
+                self._send_robot(t_k, motors_on, rapid_running)
             if self._running:
                 self._apply_newest_sensor()
                 if self._running:
@@ -550,10 +555,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             elif motors_on:
                 # outside a session the arm settles: commanded speed 0 through the same filter
                 self._filter_and_move(np.zeros(6), dt, params["lp_filter_hz"])
-            self.trajectory.append(t_k, self._q_deg)
         self.stats.cycles += steps
-        if self._running or cfg.stream_when_idle:
-            self._send_robot(t_true, motors_on, rapid_running)
 
     def _start_session(self, t: float) -> None:
         self._running = True
