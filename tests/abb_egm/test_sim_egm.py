@@ -113,6 +113,27 @@ def test_egm_reply_keeps_last_reference_when_sensor_is_silent():
     run(main)
 
 
+def test_pure_velocity_control_keeps_moving_at_the_last_speed_ref_while_the_sensor_is_silent():
+    async def main():
+        sim, ep = await start_pair(cfg_kwargs={"pos_corr_gain": 0.0, "comm_timeout_s": 0.5})
+        speed = np.array([10.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        ep.command_joints(Q_START, speed_deg_s=speed)
+        await asyncio.sleep(0.15)
+        sim.set_faults(rx_loss_fraction=1.0)
+        await asyncio.sleep(0.2)
+        # still moving at 10 deg/s although no reference arrives (abb_libegm #64)
+        t, q = sim.trajectory.arrays()
+        silent = t > t[-1] - 0.15
+        v = np.diff(q[silent, 0]) / np.diff(t[silent])
+        np.testing.assert_allclose(v, 10.0, rtol=0.02)
+        assert sim.session_running
+        await wait_until(lambda: not sim.session_running, 1.0)  # until the comm timeout
+        assert sim.ended_sessions[-1][1] == EVENT_EGM_COMM_TIMEOUT
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
 def test_communication_timeout_ends_the_session_with_event_41822_in_the_model():
     async def main():
         model = ControllerModel()
