@@ -337,6 +337,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self._running = False
         self._mci = MciState.STOPPED
         self._seqno = 0
+        self._cycle_count = 0
         self._move_index = 0
         self._session_t0 = 0.0
         self._session_q0 = q0.copy()
@@ -486,6 +487,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             "cond_time_s": cfg.cond_time_s,
             "ramp_in_time_s": cfg.ramp_in_time_s,
             "lp_filter_hz": cfg.lp_filter_hz,
+            "sample_rate_ms": 4.0,
         }
         m = self.model
         if m is None:
@@ -500,6 +502,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
                 cond_time_s=p.cond_time_s,
                 ramp_in_time_s=p.ramp_in_time_s,
                 lp_filter_hz=p.lp_filter_hz,
+                sample_rate_ms=p.sample_rate_ms,
             )
         return m.ctrl_state == "motoron", m.rapid_state == "running", bool(m.egm_wanted), params
 
@@ -544,7 +547,10 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         for k in range(steps):
             t_k = t_true - (steps - 1 - k) * dt
             self.trajectory.append(t_k, self._q_deg)
-            if k == steps - 1 and (self._running or cfg.stream_when_idle):
+            # \SampleRate is a multiple of 4 ms: a session sends every n-th servo cycle
+            every = max(1, round(params["sample_rate_ms"] / 4.0)) if self._running else 1
+            self._cycle_count += 1
+            if k == steps - 1 and (self._running or cfg.stream_when_idle) and self._cycle_count % every == 0:
                 self._send_robot(t_k, motors_on, rapid_running)
             if self._running:
                 self._apply_newest_sensor()
@@ -563,6 +569,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self._mci = MciState.RUNNING
         self._seqno = 0
         self._move_index += 1
+        self._cycle_count = -1  # the first cycle of a session sends
         self._session_t0 = t
         self._session_q0 = self._q_deg.copy()
         self._ref_q_deg = self._q_deg.copy()

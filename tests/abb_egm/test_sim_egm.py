@@ -184,6 +184,21 @@ def test_program_start_through_the_model_starts_a_session_with_seqno_from_zero()
     run(main)
 
 
+def test_rapid_sample_rate_of_8_ms_sends_every_second_servo_cycle():
+    async def main():
+        model = ControllerModel()
+        model.set_num(model.task, model.module, "egm_sample_rate_ms", 8)
+        model.motors_on()
+        model.start_rapid()
+        sim, ep = await start_pair(sim_kwargs={"model": model})
+        await asyncio.sleep(0.4)
+        interval_us = ep.stats.receive_interval_us()
+        assert np.median(interval_us) == pytest.approx(2 * CYCLE_S * 1e6, rel=0.05)
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
 def test_reference_beyond_joint_limit_puts_egm_in_error_and_the_arm_stays_inside():
     async def main():
         model = ControllerModel()
