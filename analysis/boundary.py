@@ -258,7 +258,9 @@ def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None
         raise BoundaryError("no occupied area in the base-plane projection")
     biggest = 1 + int(np.argmax(ndimage.sum_labels(occ, lab, index=np.arange(1, nlab + 1))))
     occ = ndimage.binary_fill_holes(lab == biggest)
-    on = occ[ia, ib]
+    # Only points near the outline can be feature points: a band a few pixels wide.
+    band_img = occ & ~ndimage.binary_erosion(occ, iterations=3, border_value=0)
+    idx_all = np.flatnonzero(band_img[ia, ib])
     rows_a = np.flatnonzero(occ.any(axis=1))
     cols_b = np.flatnonzero(occ.any(axis=0))
     a_lo, a_hi = a0 + rows_a[0] * px, a0 + (rows_a[-1] + 1) * px
@@ -273,7 +275,6 @@ def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None
 
     t2 = time.perf_counter()
     m = st.corner_margin_mm
-    idx_all = np.flatnonzero(on)
     ia_on, ib_on = ia[idx_all], ib[idx_all]
     # Edge 0 (v min), edge 1 (u max), edge 2 (v max), edge 3 (u min): (along, outward-cross) coordinates.
     specs = [

@@ -216,13 +216,20 @@ def _read_text(path: Path) -> ScanCloud:
         lines = lines[1:]
     if not lines:
         raise CloudError(f"{path}: the cloud holds no points")
+    n_cols = len([t for t in split.split(lines[0].strip()) if t])
+    if n_cols < 3:
+        raise CloudError(f"{path}: {n_cols} columns per line, need at least x y z")
+    named = names is not None and len(names) == n_cols and {"x", "y", "z"} <= set(names)
     try:
-        table = np.loadtxt(io.StringIO("\n".join(split.sub(" ", ln.strip()) for ln in lines)), ndmin=2)
+        # Without a header only x y z are read, so extra columns (intensity, ...) may vary per line.
+        table = np.loadtxt(
+            io.StringIO("\n".join(split.sub(" ", ln.strip()) for ln in lines)),
+            ndmin=2,
+            usecols=None if named else (0, 1, 2),
+        )
     except ValueError as exc:
         raise CloudError(f"{path}: not a table of numbers ({exc})") from exc
-    if table.shape[1] < 3:
-        raise CloudError(f"{path}: {table.shape[1]} columns per line, need at least x y z")
-    if names and len(names) == table.shape[1] and {"x", "y", "z"} <= set(names):
+    if named:
         col = {n: i for i, n in enumerate(names)}
         pts = table[:, [col["x"], col["y"], col["z"]]]
         pname = "pass" if "pass" in col else ("pass_id" if "pass_id" in col else None)

@@ -24,9 +24,11 @@ whole-array operations:
    the nearest plate cell's plane. The noise level is measured from the plate's own points and
    reported (``noise_sigma_mm``): metrics use it to set their smoothing.
 
-Unorganised clouds (PCD, XYZ) take the paper's Delaunay route: 3-D cell means on a ``cell_mm``
-voxel grid, Delaunay triangulation of their XY projection, region growing over the triangle
-adjacency with the same normal-angle test, then the same point test.
+Unorganised clouds (PCD, XYZ) take the paper's Delaunay route: 3-D cells (``cell_mm``, or larger
+so that each holds a dozen points) with a PCA plane each, Delaunay triangulation of the cell means'
+XY projection plus the cells' 3-D grid neighbours (where the bed shows under the plate's overhang
+two layers share the XY plane), region growing over those edges with the same normal-angle test,
+then the same point test against the nearest plate cell's plane.
 """
 
 from __future__ import annotations
@@ -76,7 +78,9 @@ class SegmentResult:
 
     mask: (n,) bool over the input points, True for the plate's top surface.
     points_mm: (k, 3) float64 the selected points (bed frame, mm).
-    cloud: the selected points as a ScanCloud (organisation kept when the input had it).
+    source: the input cloud.
+    cloud: the selected points as a ScanCloud (organisation kept when the input had it), made on
+        first use.
     noise_sigma_mm: robust standard deviation of the top-surface points about their local plane.
     inlier_tol_mm: the plane-distance tolerance used to accept points.
     plate_area_mm2: area of the plate region (cells x cell area, projected on the cell planes).
@@ -88,7 +92,7 @@ class SegmentResult:
 
     mask: np.ndarray
     points_mm: np.ndarray
-    cloud: ScanCloud
+    source: ScanCloud
     noise_sigma_mm: float
     inlier_tol_mm: float
     plate_area_mm2: float
@@ -96,6 +100,14 @@ class SegmentResult:
     region_cells: list[int]
     method: str
     timings_s: dict[str, float] = field(default_factory=dict)
+    _cloud: ScanCloud | None = field(default=None, repr=False)
+
+    @property
+    def cloud(self) -> ScanCloud:
+        """The selected points as a ScanCloud, organisation kept (built once, on first use)."""
+        if self._cloud is None:
+            self._cloud = self.source.subset(self.mask)
+        return self._cloud
 
 
 def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | None = None) -> SegmentResult:
@@ -216,8 +228,8 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     grid = np.full(n_pass * n_rows * width, -1, dtype=np.int64)
     grid[lin] = np.arange(n)
     grid = grid.reshape(n_pass, n_rows, width)
-    rows_per_pass = np.zeros(n_pass, np.int64)
-    np.maximum.at(rows_per_pass, pass_id, cloud.profile.astype(np.int64) + 1)
+    present = (grid >= 0).any(axis=2)
+    rows_per_pass = np.where(present.any(axis=1), n_rows - np.argmax(present[:, ::-1], axis=1), 0)
     timings["grid"] = time.perf_counter() - t0
 
     cos_max = float(np.cos(np.deg2rad(st.max_normal_angle_deg)))
@@ -342,7 +354,7 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     return SegmentResult(
         mask=mask,
         points_mm=pts[mask],
-        cloud=cloud.subset(mask),
+        source=cloud,
         noise_sigma_mm=sigma,
         inlier_tol_mm=tol,
         plate_area_mm2=area,
@@ -373,6 +385,20 @@ def _cell_area(mean: np.ndarray, sel: np.ndarray) -> float:
 # ----------------------------------------------------------------------------------------- delaunay
 
 
+def _point_spacing_mm(pts: np.ndarray) -> float:
+    """Distance to the 4th nearest neighbour (the coarser of the two scan pitches), at the XY median."""
+    from scipy.spatial import cKDTree
+
+    c = np.median(pts[:: max(1, len(pts) // 10_000), :2], axis=0)
+    for half in (20.0, 60.0, 200.0, 1e9):
+        win = pts[(np.abs(pts[:, 0] - c[0]) < half) & (np.abs(pts[:, 1] - c[1]) < half)]
+        if len(win) >= 200:
+            break
+    win = win[:50_000]
+    d, _ = cKDTree(win).query(win, k=5)
+    return float(np.median(d[:, 4]))
+
+
 def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     from scipy.spatial import Delaunay
 
@@ -380,70 +406,109 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     timings: dict[str, float] = {}
     pts = cloud.points_mm
     n = len(pts)
-    v = st.cell_mm
-    # 3-D cells: the bed under an overhanging edge and the plate above it stay apart.
-    q = np.floor((pts - pts.min(axis=0)) / v).astype(np.int64)
+    # Cells big enough for a dozen points over at least two scan lines each, so every cell has its
+    # own plane (PCA normal).
+    v = max(st.cell_mm, 2.5 * _point_spacing_mm(pts))
+    origin = pts.min(axis=0)
+    q = np.floor((pts - origin) / v).astype(np.int64)
     span = q.max(axis=0) + 1
     key = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
     uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
     m = len(uniq)
+    local = pts - origin  # moments about a nearby origin keep the covariances well conditioned
     mean = (
-        np.column_stack([np.bincount(inv, weights=pts[:, k], minlength=m) for k in range(3)])
+        np.column_stack([np.bincount(inv, weights=local[:, k], minlength=m) for k in range(3)])
         / counts[:, None]
     )
+    cov = np.empty((m, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            s_ab = np.bincount(inv, weights=local[:, a] * local[:, b], minlength=m) / counts
+            cov[:, a, b] = cov[:, b, a] = s_ab - mean[:, a] * mean[:, b]
+    vals, vecs = np.linalg.eigh(cov)
+    nrm = vecs[:, :, 0]
+    nrm[nrm[:, 2] < 0] *= -1.0
+    # Points along a single scan line define no plane: require a spread in two directions.
+    has_plane = (counts >= 5) & (vals[:, 1] > 0.05 * vals[:, 2])
+    mean += origin
     timings["cells"] = time.perf_counter() - t0
+
     t1 = time.perf_counter()
     if m < 4:
         raise NoPlateError("too few distinct cells to triangulate")
+    # Delaunay in the XY projection gives the cells' neighbours (bridging holes); grow over its edges.
     tri = Delaunay(mean[:, :2])
     simp = tri.simplices
-    tv = mean[simp]
-    nrm = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
-    ln = np.linalg.norm(nrm, axis=1)
-    nrm = nrm / np.where(ln > 0, ln, 1.0)[:, None]
-    nrm[nrm[:, 2] < 0] *= -1.0
-    edge_len = np.max(np.linalg.norm(tv - np.roll(tv, 1, axis=1), axis=2), axis=1)
-    # Long triangles bridge holes or jump between surfaces: they do not take part in growing.
-    good = (edge_len < 4.0 * v) & (ln > 0)
+    e = np.concatenate([simp[:, [0, 1]], simp[:, [1, 2]], simp[:, [2, 0]]])
+    # Where the edge passes see the bed under the plate's overhang, two layers share the XY plane
+    # and Delaunay interleaves them; the cells' 3-D grid neighbours keep each layer connected.
+    qc = np.column_stack([uniq // (span[1] * span[2]), (uniq // span[2]) % span[1], uniq % span[2]])
+    grid_edges = []
+    for off in (
+        (1, 0, 0),
+        (0, 1, 0),
+        (0, 0, 1),
+        (1, 1, 0),
+        (1, -1, 0),
+        (1, 0, 1),
+        (0, 1, 1),
+        (1, 0, -1),
+        (0, 1, -1),
+    ):
+        nq = qc + off
+        ok = (nq >= 0).all(axis=1) & (nq < span).all(axis=1)
+        nkey = (nq[:, 0] * span[1] + nq[:, 1]) * span[2] + nq[:, 2]
+        pos = np.clip(np.searchsorted(uniq, nkey), 0, m - 1)
+        found = ok & (uniq[pos] == nkey)
+        grid_edges.append(np.column_stack([np.flatnonzero(found), pos[found]]))
+    e = np.concatenate([e, *grid_edges])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    i, j = e[:, 0], e[:, 1]
     cos_max = float(np.cos(np.deg2rad(st.max_normal_angle_deg)))
-    nb = tri.neighbors
-    rows = np.repeat(np.arange(len(simp)), 3)
-    cols = nb.ravel()
-    keep = (cols >= 0) & good[rows] & good[np.maximum(cols, 0)]
-    rows, cols = rows[keep], cols[keep]
-    keep = np.einsum("ij,ij->i", nrm[rows], nrm[cols]) > cos_max
-    adj = coo_matrix((np.ones(int(keep.sum())), (rows[keep], cols[keep])), shape=(len(simp), len(simp)))
+    near = np.linalg.norm(mean[i] - mean[j], axis=1) < 2.0 * v
+    grow = near & has_plane[i] & has_plane[j] & (np.einsum("ij,ij->i", nrm[i], nrm[j]) > cos_max)
+    # A growth cell agrees with every neighbour it has; cells on creases and edges do not grow.
+    disagree = near & has_plane[i] & has_plane[j] & ~grow
+    bad = np.zeros(m, bool)
+    bad[i[disagree]] = True
+    bad[j[disagree]] = True
+    growth = has_plane & ~bad
+    link = grow & growth[i] & growth[j]
+    adj = coo_matrix((np.ones(int(link.sum())), (i[link], j[link])), shape=(m, m))
     n_groups, group = connected_components(adj, directed=False)
-    area_tri = 0.5 * ln
-    area_group = np.bincount(group, weights=np.where(good, area_tri, 0.0), minlength=n_groups)
-    plate_group = int(np.argmax(area_group))
+    group = np.where(growth, group, -1)
+    cells_per_group = np.bincount(group[growth], minlength=n_groups)
+    plate_group = int(np.argmax(cells_per_group))
+    plate = group == plate_group
+    area = float(plate.sum() * v * v)
     timings["triangulate_and_grow"] = time.perf_counter() - t1
-    area = float(area_group[plate_group])
     if area < st.min_plate_area_mm2:
         raise NoPlateError(
             f"largest smooth region is {area:.0f} mm^2, below min_plate_area_mm2={st.min_plate_area_mm2:.0f}"
         )
     t2 = time.perf_counter()
-    plate_tri = (group == plate_group) & good
-    # Vertex normal of each plate cell: area-weighted mean of its plate triangles' normals.
-    vn = np.zeros((m, 3))
-    w = np.where(plate_tri, area_tri, 0.0)
-    for k in range(3):
-        np.add.at(vn, simp[:, k], nrm * w[:, None])
-    vlen = np.linalg.norm(vn, axis=1)
-    plate_cell = vlen > 0
-    vn = vn / np.where(plate_cell, vlen, 1.0)[:, None]
-    r = np.einsum("ij,ij->i", pts - mean[inv], vn[inv])
-    in_plate = plate_cell[inv]
+    # Donor plane per cell: its own for plate cells, a neighbouring plate cell's for the ring around.
+    donor = np.where(plate, np.arange(m), -1)
+    for _ in range(3):  # growth stops a cell or two short of an edge: reach three cells out
+        has = donor >= 0
+        ring = near & (has[i] ^ has[j])
+        src = np.where(has[i[ring]], i[ring], j[ring])
+        dst = np.where(has[i[ring]], j[ring], i[ring])
+        donor[dst] = donor[src]
+    pd_ = donor[inv]
+    cand = pd_ >= 0
+    r = np.full(n, np.inf)
+    r[cand] = np.einsum("ij,ij->i", pts[cand] - mean[pd_[cand]], nrm[pd_[cand]])
+    in_plate = plate[inv]
     r_in = r[in_plate & (np.abs(r) < st.gross_outlier_mm)]
-    mean_fill = float(counts[plate_cell].mean()) if plate_cell.any() else 1.0
-    shrink = np.sqrt(mean_fill / max(mean_fill - 1.0, 1.0)) if mean_fill > 1.5 else 1.0
+    mean_fill = float(counts[plate].mean()) if plate.any() else 1.0
+    shrink = np.sqrt(mean_fill / max(mean_fill - 3.0, 1.0)) if mean_fill > 4 else 1.0
     sigma = float(1.4826 * np.median(np.abs(r_in - np.median(r_in))) * shrink) if len(r_in) else 0.0
     tol = max(st.inlier_sigmas * sigma, st.min_inlier_tol_mm)
-    mask = in_plate & (np.abs(r) < tol)
+    mask = np.abs(r) < tol
     timings["select_points"] = time.perf_counter() - t2
     timings["total"] = time.perf_counter() - t0
-    ranking = np.sort(area_group)[::-1]
+    ranking = np.sort(cells_per_group)[::-1]
     log.info(
         "segment", method="delaunay", points=n, plate_points=int(mask.sum()), regions=n_groups,
         noise_sigma_mm=round(sigma, 4), area_mm2=round(area), total_s=round(timings["total"], 3),
@@ -451,12 +516,12 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     return SegmentResult(
         mask=mask,
         points_mm=pts[mask],
-        cloud=cloud.subset(mask),
+        source=cloud,
         noise_sigma_mm=sigma,
         inlier_tol_mm=tol,
         plate_area_mm2=area,
         n_regions=int(n_groups),
-        region_cells=[round(c / (v * v)) for c in ranking[:10]],
+        region_cells=[int(c) for c in ranking[:10]],
         method="delaunay",
         timings_s=timings,
     )

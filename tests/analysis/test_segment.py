@@ -1,0 +1,124 @@
+"""Surface extraction: the plate's top and nothing else, from organised and unorganised scans."""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+
+from analysis.cloud_io import ScanCloud
+from analysis.plates import FormingError, GaussianBump, formed_height_mm, plate_spec
+from analysis.segment import NoPlateError, SegmentError, SegmentSettings, segment_plate
+from analysis.synth import Placement, ScanSettings, synthesize_scan
+
+COARSE = {"point_pitch_mm": 1.0, "points_per_profile": 50, "profile_step_mm": 2.0}
+
+
+@cache
+def _scan(kind: str = "sail", seed: int = 11, noise_mm: float = 0.02, length_mm: float = 1200.0):
+    spec = plate_spec(kind, length_mm=length_mm, width_mm=length_mm * 2 / 3)
+    return synthesize_scan(spec, settings=ScanSettings(noise_mm=noise_mm, **COARSE), seed=seed)
+
+
+def _truth_top(scan, tol_mm: float) -> np.ndarray:
+    """Points within tol of the formed top surface over the footprint, outliers excluded."""
+    T = scan.T_bed_design
+    q = (scan.points_mm - T[:3, 3]) @ T[:3, :3]
+    z = formed_height_mm(scan.spec, scan.error, q[:, 0], q[:, 1])
+    # The first hundredths of a millimetre of a thickness face are the top edge itself.
+    inside = (np.abs(q[:, 0]) <= scan.spec.length_mm / 2 + 0.05) & (
+        np.abs(q[:, 1]) <= scan.spec.width_mm / 2 + 0.05
+    )
+    return inside & (np.abs(q[:, 2] - z) < tol_mm) & ~scan.is_outlier
+
+
+def test_grid_segmentation_keeps_the_top_surface_and_drops_bed_supports_faces_and_outliers():
+    scan = _scan()
+    res = segment_plate(scan.cloud)
+    assert res.method == "grid"
+    wide = _truth_top(scan, 0.2)
+    # Nothing off the top surface: no bed, support, thickness face or outlier point.
+    assert not (res.mask & ~wide).any()
+    assert not (res.mask & scan.is_outlier).any()
+    # Nearly all of the top surface (the rest: 6-sigma tails and a few cells at holes).
+    assert res.mask.sum() >= 0.99 * _truth_top(scan, 0.12).sum()
+    np.testing.assert_array_equal(res.points_mm, scan.points_mm[res.mask])
+    assert res.cloud.organised and len(res.cloud) == res.mask.sum()
+
+
+def test_measured_noise_level_matches_the_sensor_noise():
+    res = segment_plate(_scan().cloud)
+    assert res.noise_sigma_mm == pytest.approx(0.02, rel=0.15)
+    assert res.inlier_tol_mm == pytest.approx(6 * res.noise_sigma_mm)
+
+
+def test_plate_area_is_the_design_top_area():
+    res = segment_plate(_scan().cloud)
+    assert res.plate_area_mm2 == pytest.approx(1200 * 800, rel=0.05)
+
+
+@pytest.mark.parametrize("kind", ["saddle", "twisted", "cylinder"])
+def test_other_plate_shapes_segment_without_foreign_points(kind):
+    scan = _scan(kind, seed=4, length_mm=450.0)
+    res = segment_plate(scan.cloud)
+    assert not (res.mask & ~_truth_top(scan, 0.2)).any()
+    assert res.mask.sum() >= 0.98 * _truth_top(scan, 0.12).sum()
+
+
+def test_a_deep_narrow_dent_stays_part_of_the_plate():
+    spec = plate_spec("sail", length_mm=600.0, width_mm=400.0)
+    err = FormingError(bumps=(GaussianBump(50.0, 20.0, -4.0, 35.0),))
+    scan = synthesize_scan(spec, err, settings=ScanSettings(**COARSE), seed=2)
+    res = segment_plate(scan.cloud)
+    T = scan.T_bed_design
+    q = (res.points_mm - T[:3, 3]) @ T[:3, :3]
+    in_dent = np.hypot(q[:, 0] - 50.0, q[:, 1] - 20.0) < 30.0
+    assert in_dent.sum() > 0.9 * np.pi * 30.0**2 / (1.0 * 2.0)
+
+
+def test_unorganised_cloud_takes_the_delaunay_route_with_the_same_result_quality():
+    scan = _scan("sail", seed=6, length_mm=450.0)
+    res = segment_plate(ScanCloud(scan.points_mm))
+    assert res.method == "delaunay"
+    assert not (res.mask & ~_truth_top(scan, 0.2)).any()
+    assert res.mask.sum() >= 0.95 * _truth_top(scan, 0.12).sum()
+    assert res.noise_sigma_mm == pytest.approx(0.02, rel=0.25)
+
+
+def test_plain_array_input_is_accepted():
+    scan = _scan("sail", seed=6, length_mm=450.0)
+    assert segment_plate(scan.points_mm).method == "delaunay"
+
+
+def test_noise_only_cloud_raises_no_plate():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-500, 500, (20_000, 3))
+    with pytest.raises(NoPlateError, match="min_plate_area_mm2"):
+        segment_plate(pts)
+
+
+def test_organised_cloud_of_a_too_small_surface_raises_no_plate():
+    spec = plate_spec("flat", length_mm=60.0, width_mm=40.0)
+    scan = synthesize_scan(
+        spec,
+        FormingError(),
+        settings=ScanSettings(**COARSE, margin_mm=5.0),
+        placement=Placement(),
+        seed=1,
+    )
+    with pytest.raises(NoPlateError):
+        segment_plate(scan.cloud, SegmentSettings(min_plate_area_mm2=50_000.0))
+
+
+@pytest.mark.parametrize(
+    ("points", "message"),
+    [
+        (np.zeros((10, 3)), "too few"),
+        (np.zeros((500, 2)), r"\(n, 3\)"),
+        (np.full((500, 3), np.nan), "non-finite"),
+    ],
+)
+def test_unusable_input_raises_segment_error(points, message):
+    with pytest.raises(SegmentError, match=message):
+        segment_plate(points)
