@@ -1,0 +1,242 @@
+"""The safety envelope: the last check every commanded joint set-point passes before it is sent.
+
+Four rules, from ``cell.toml [robot]``: joint limits shrunk by the margin, a workspace box for the
+sensor (the cell's TCP), a TCP speed cap, and a maximum joint step per EGM cycle (the joint speed
+limits times the cycle). A violation raises :class:`EnvelopeViolation`; the envelope never clamps a
+set-point into range, because a silently altered reference hides the fault that produced it. The
+executor answers a violation with a smooth stop.
+
+The same rules check a whole planned trajectory at once (:meth:`SafetyEnvelope.check_trajectory`),
+vectorised over its samples, so a plan that would trip the envelope is refused before it runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics, fk_batch
+
+__all__ = ["EnvelopeLimits", "EnvelopeViolation", "SafetyEnvelope"]
+
+#: a set-point may exceed a speed limit by this fraction before it is a violation (rounding, not slack)
+_SPEED_TOLERANCE = 1e-3
+
+
+class EnvelopeViolation(Exception):
+    """A set-point outside the envelope.
+
+    Attributes:
+        rule: ``"joint_limit"``, ``"workspace"``, ``"tcp_speed"``, ``"joint_step"`` or ``"input"``.
+        joint: 0-based joint index (joint rules) or None.
+        value: the offending value (deg, mm, mm/s or deg per step).
+        limit: the limit it broke, same unit.
+        sample: index into a checked trajectory, or None for a single set-point.
+    """
+
+    def __init__(
+        self, rule: str, message: str, *, joint: int | None = None, value: float = float("nan"),
+        limit: float = float("nan"), sample: int | None = None,
+    ) -> None:  # fmt: skip
+        self.rule = rule
+        self.joint = joint
+        self.value = float(value)
+        self.limit = float(limit)
+        self.sample = sample
+        super().__init__(message + (f" (sample {sample})" if sample is not None else ""))
+
+
+@dataclass(frozen=True)
+class EnvelopeLimits:
+    """The envelope's numbers.
+
+    q_min_deg / q_max_deg: (6,) usable joint range (hard limits already shrunk by the margin), deg.
+    workspace_min_mm / workspace_max_mm: (3,) box for the sensor origin, base frame, mm.
+    tcp_speed_max_mm_s: cap on the sensor origin's speed, mm/s.
+    joint_speed_max_deg_s: (6,) joint speed limits; the step per cycle is this times ``cycle_s``.
+    cycle_s: EGM cycle, s.
+    T_flange_tcp: (4, 4) flange -> TCP (sensor) transform, mm.
+    """
+
+    q_min_deg: np.ndarray
+    q_max_deg: np.ndarray
+    workspace_min_mm: np.ndarray
+    workspace_max_mm: np.ndarray
+    tcp_speed_max_mm_s: float
+    joint_speed_max_deg_s: np.ndarray
+    cycle_s: float
+    T_flange_tcp: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("q_min_deg", "q_max_deg", "joint_speed_max_deg_s"):
+            arr = np.asarray(getattr(self, name), dtype=np.float64)
+            if arr.shape != (6,) or not np.all(np.isfinite(arr)):
+                raise ValueError(f"EnvelopeLimits.{name}: expected 6 finite values, got {arr}")
+            object.__setattr__(self, name, arr)
+        for name in ("workspace_min_mm", "workspace_max_mm"):
+            arr = np.asarray(getattr(self, name), dtype=np.float64)
+            if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+                raise ValueError(f"EnvelopeLimits.{name}: expected 3 finite values, got {arr}")
+            object.__setattr__(self, name, arr)
+        if np.any(self.q_min_deg >= self.q_max_deg):
+            raise ValueError("EnvelopeLimits: q_min_deg must be below q_max_deg on every joint")
+        if not (self.cycle_s > 0 and self.tcp_speed_max_mm_s > 0):
+            raise ValueError("EnvelopeLimits: cycle_s and tcp_speed_max_mm_s must be positive")
+        object.__setattr__(self, "T_flange_tcp", np.asarray(self.T_flange_tcp, dtype=np.float64))
+
+    @classmethod
+    def from_settings(cls, settings, cycle_s: float = 0.004032) -> EnvelopeLimits:
+        """From :class:`cellctl.planning.PlannerSettings` (which mirrors ``cell.toml [robot]``)."""
+        return cls(
+            q_min_deg=settings.q_min_deg,
+            q_max_deg=settings.q_max_deg,
+            workspace_min_mm=np.asarray(settings.workspace_min_mm),
+            workspace_max_mm=np.asarray(settings.workspace_max_mm),
+            tcp_speed_max_mm_s=settings.tcp_speed_max_mm_s,
+            joint_speed_max_deg_s=np.asarray(settings.joint_speed_max_deg_s),
+            cycle_s=cycle_s,
+            T_flange_tcp=settings.T_flange_sensor,
+        )
+
+
+class SafetyEnvelope:
+    """Checks set-points against :class:`EnvelopeLimits`; keeps the last accepted one for the step rules."""
+
+    def __init__(self, limits: EnvelopeLimits) -> None:
+        self.limits = limits
+        # pinocchio for single set-points (tens of us); the vectorised numpy FK for whole trajectories
+        self._kin = RobotKinematics(tools={"tcp": limits.T_flange_tcp})
+        self._last_q: np.ndarray | None = None
+        self._last_p: np.ndarray | None = None
+        self.accepted = 0
+        self.violations = 0
+
+    def reset(self, q_deg: np.ndarray | None = None) -> None:
+        """Forget the last set-point, or set it to where the robot is (``q_deg`` (6,))."""
+        if q_deg is None:
+            self._last_q = self._last_p = None
+        else:
+            q = np.asarray(q_deg, dtype=np.float64)
+            self._last_q = q.copy()
+            self._last_p = self.tcp_mm(q)
+
+    @property
+    def last_q_deg(self) -> np.ndarray | None:
+        """The last accepted set-point (6,) deg, or None."""
+        return None if self._last_q is None else self._last_q.copy()
+
+    def tcp_mm(self, q_deg: np.ndarray) -> np.ndarray:
+        """TCP (sensor origin) position (3,) mm at one configuration ``q_deg`` (6,) deg."""
+        return self._kin.fk(q_deg, "tcp").pos_mm
+
+    def _tcp(self, q: np.ndarray) -> np.ndarray:
+        if q.shape[0] == 1:
+            return self.tcp_mm(q[0])[None]
+        return fk_batch(q, self.limits.T_flange_tcp)[:, :3, 3]
+
+    def check(self, q_deg: np.ndarray, cycles: int = 1) -> np.ndarray:
+        """Check one set-point ``q_deg`` (6,) deg, ``cycles`` EGM cycles after the last accepted one.
+
+        Returns the TCP position (3,) mm. Raises :class:`EnvelopeViolation` (the set-point is then
+        not accepted and the last accepted one is kept).
+        """
+        q = np.asarray(q_deg, dtype=np.float64)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            self.violations += 1
+            raise EnvelopeViolation("input", f"set-point must be 6 finite values, got {q!r}")
+        cycles = max(1, int(cycles))
+        lim = self.limits
+        # fast path (runs every EGM cycle): plain comparisons; the detailed check only to explain a failure
+        p = self.tcp_mm(q)
+        ok = bool(np.all(q >= lim.q_min_deg) and np.all(q <= lim.q_max_deg))
+        ok = ok and bool(np.all(p >= lim.workspace_min_mm) and np.all(p <= lim.workspace_max_mm))
+        if ok and self._last_q is not None:
+            dt = cycles * lim.cycle_s
+            ok = bool(
+                np.all(np.abs(q - self._last_q) <= lim.joint_speed_max_deg_s * dt * (1 + _SPEED_TOLERANCE))
+            )
+            ok = ok and float(np.linalg.norm(p - self._last_p)) <= lim.tcp_speed_max_mm_s * dt * (
+                1 + _SPEED_TOLERANCE
+            )
+        if not ok:
+            self.violations += 1
+            self._check_rows(q[None], self._last_q, self._last_p, cycles)
+            raise EnvelopeViolation("input", f"set-point {q.round(4).tolist()} rejected")  # not reached
+        self._last_q, self._last_p = q.copy(), p
+        self.accepted += 1
+        return p
+
+    def check_trajectory(self, t_s: np.ndarray, q_deg: np.ndarray) -> None:
+        """Check a sampled trajectory ``q_deg`` (n, 6) at times ``t_s`` (n,) s against every rule.
+
+        Sample it at the EGM cycle first (the executor sends one set-point per cycle): the step and
+        speed rules are then exactly the per-cycle rules.
+        """
+        q = np.asarray(q_deg, dtype=np.float64)
+        t = np.asarray(t_s, dtype=np.float64)
+        if q.ndim != 2 or q.shape[1] != 6 or t.shape != (q.shape[0],):
+            raise EnvelopeViolation(
+                "input", f"expected t_s (n,) and q_deg (n, 6), got {t.shape} and {q.shape}"
+            )
+        if q.shape[0] == 0:
+            return
+        dt = np.diff(t)
+        if np.any(dt <= 0):
+            raise EnvelopeViolation("input", "t_s must increase")
+        cycles = dt / self.limits.cycle_s
+        self._check_rows(q, None, None, cycles)
+
+    def _check_rows(
+        self, q: np.ndarray, q_prev: np.ndarray | None, p_prev: np.ndarray | None, cycles
+    ) -> np.ndarray:
+        lim = self.limits
+        below, above = q < lim.q_min_deg, q > lim.q_max_deg
+        if below.any() or above.any():
+            i, j = np.argwhere(below | above)[0]
+            side, bound = ("lower", lim.q_min_deg[j]) if below[i, j] else ("upper", lim.q_max_deg[j])
+            raise EnvelopeViolation(
+                "joint_limit",
+                f"{JOINT_NAMES[j]} at {q[i, j]:.3f} deg beyond its {side} limit {bound:.3f} deg (with margin)",
+                joint=int(j), value=q[i, j], limit=bound, sample=int(i) if q.shape[0] > 1 else None,
+            )  # fmt: skip
+        p = self._tcp(q)
+        out = (p < lim.workspace_min_mm) | (p > lim.workspace_max_mm)
+        if out.any():
+            i, k = np.argwhere(out)[0]
+            bound = lim.workspace_min_mm[k] if p[i, k] < lim.workspace_min_mm[k] else lim.workspace_max_mm[k]
+            raise EnvelopeViolation(
+                "workspace",
+                f"TCP {'xyz'[k]} = {p[i, k]:.2f} mm outside the workspace box (limit {bound:.1f} mm)",
+                value=p[i, k], limit=bound, sample=int(i) if q.shape[0] > 1 else None,
+            )  # fmt: skip
+        if q_prev is not None:
+            qq = np.vstack([q_prev[None], q])
+            pp = np.vstack([p_prev[None], p])
+            cyc = np.atleast_1d(np.asarray(cycles, dtype=np.float64))
+        else:
+            qq, pp = q, p
+            cyc = np.atleast_1d(np.asarray(cycles, dtype=np.float64))
+            if qq.shape[0] < 2:
+                return p
+        dq = np.abs(np.diff(qq, axis=0))
+        max_step = lim.joint_speed_max_deg_s[None] * lim.cycle_s * cyc[:, None] * (1 + _SPEED_TOLERANCE)
+        bad = dq > max_step
+        if bad.any():
+            i, j = np.argwhere(bad)[0]
+            raise EnvelopeViolation(
+                "joint_step",
+                f"{JOINT_NAMES[j]} steps {dq[i, j]:.4f} deg in {cyc[i]:.2f} cycle(s), above {max_step[i, j]:.4f} deg "
+                f"(speed limit {lim.joint_speed_max_deg_s[j]:.1f} deg/s)",
+                joint=int(j), value=dq[i, j], limit=max_step[i, j], sample=int(i) + 1 if q_prev is None else None,
+            )  # fmt: skip
+        speed = np.linalg.norm(np.diff(pp, axis=0), axis=1) / (cyc * lim.cycle_s)
+        fast = speed > lim.tcp_speed_max_mm_s * (1 + _SPEED_TOLERANCE)
+        if fast.any():
+            i = int(np.argmax(fast))
+            raise EnvelopeViolation(
+                "tcp_speed",
+                f"TCP speed {speed[i]:.1f} mm/s above the cap {lim.tcp_speed_max_mm_s:.1f} mm/s",
+                value=speed[i], limit=lim.tcp_speed_max_mm_s, sample=i + 1 if q_prev is None else None,
+            )  # fmt: skip
+        return p

@@ -1,0 +1,723 @@
+"""Execution over EGM: stream a timed joint trajectory in phase with the controller's packets.
+
+One reference per received ``EgmRobot``: the executor waits for each feedback packet from the
+:class:`~drivers.abb_egm.endpoint.EgmEndpoint`, advances by as many cycles as the controller's
+sequence number moved, and sets the reference the endpoint sends with its next reply.
+
+Two ruckig generators shape every reference:
+
+- a one-axis generator on the trajectory's *time* (its velocity is the playback rate, 1 when running,
+  0 when stopped). Pause, resume and abort ramp that rate jerk-limited, so the robot slows down and
+  stops *on the planned path* and a resume continues the pass where it paused;
+- a six-axis tracker that follows the (time-scaled) trajectory state with the joint velocity,
+  acceleration and jerk limits, which smooths toppra's acceleration steps; a fault stop switches it
+  to its velocity interface with target velocity zero (a jerk-limited stop from any state).
+
+Every reference passes the :class:`~cellctl.motion.envelope.SafetyEnvelope` last; a violation is a
+fault and leads to a smooth stop, never to a clamped reference. The tracking error (feedback TCP
+against the recently commanded TCP path) is monitored; above the threshold the executor stops
+smoothly. A silent controller (no feedback within ``feedback_timeout_s``) or motors off / EGM not
+running are faults too. Progress events (pass i of n, percent, time left) go to a callback and to an
+async iterator (:meth:`MotionExecutor.events`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import structlog
+from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
+
+from cellctl.motion.envelope import EnvelopeViolation, SafetyEnvelope
+from cellctl.planning.plan import TimedTrajectory
+from drivers.abb_egm.endpoint import EgmEndpoint
+from drivers.abb_egm.kinematics import fk_batch
+
+__all__ = [
+    "ExecState",
+    "ExecutionResult",
+    "ExecutorConfig",
+    "ExecutorError",
+    "MotionExecutor",
+    "ProgressEvent",
+]
+
+log = structlog.get_logger(__name__)
+
+_U32 = 2**32
+
+
+class ExecutorError(Exception):
+    """The executor cannot do what was asked (bad trajectory, started twice, no controller)."""
+
+
+class ExecState(enum.StrEnum):
+    """States of one execution. FINISHED, ABORTED and FAULTED are terminal."""
+
+    IDLE = "idle"
+    MOVING_TO_START = "moving_to_start"
+    RUNNING = "running"
+    PAUSING = "pausing"
+    PAUSED = "paused"
+    RESUMING = "resuming"
+    ABORTING = "aborting"
+    FAULT_STOPPING = "fault_stopping"
+    FINISHED = "finished"
+    ABORTED = "aborted"
+    FAULTED = "faulted"
+
+
+_TERMINAL = (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED)
+
+
+@dataclass(frozen=True)
+class ExecutorConfig:
+    """Executor settings (s, deg, mm).
+
+    cycle_s: EGM cycle of the controller. feedback_timeout_s: no feedback for this long is a stalled
+    controller. start_timeout_s: wait this long for the first commandable feedback.
+    tracking_error_max_mm: fault-stop threshold on the TCP tracking error; tracking_window_s: how far
+    back the commanded path is searched (covers the controller's lag). start_tolerance_deg: the robot
+    counts as at the plan's start within this; otherwise it first moves there at
+    move_to_start_speed_fraction of the joint speed limits. feedforward: send the joint speed
+    reference too. joint_*_max: limits of the tracker (deg/s, deg/s^2, deg/s^3).
+    rate_accel_per_s2 / rate_jerk_per_s3: limits of the playback-rate ramps for pause / resume / abort
+    (None: derived from the trajectory's speeds and the joint limits).
+    progress_interval_s: time between progress events while moving.
+    """
+
+    cycle_s: float = 0.004032
+    feedback_timeout_s: float = 0.1
+    start_timeout_s: float = 5.0
+    stall_give_up_s: float = 1.0
+    tracking_error_max_mm: float = 5.0
+    tracking_window_s: float = 0.3
+    start_tolerance_deg: float = 0.05
+    move_to_start_speed_fraction: float = 0.2
+    feedforward: bool = True
+    joint_speed_max_deg_s: tuple[float, ...] = (175.0, 175.0, 175.0, 250.0, 250.0, 360.0)
+    joint_accel_max_deg_s2: tuple[float, ...] = (300.0, 300.0, 300.0, 600.0, 600.0, 800.0)
+    joint_jerk_max_deg_s3: tuple[float, ...] = (3000.0, 3000.0, 3000.0, 6000.0, 6000.0, 8000.0)
+    rate_accel_per_s2: float | None = None
+    rate_jerk_per_s3: float | None = None
+    progress_interval_s: float = 0.25
+
+    @classmethod
+    def from_settings(cls, settings, **changes) -> ExecutorConfig:
+        """Limits from :class:`cellctl.planning.PlannerSettings` (``cell.toml [robot]``)."""
+        return cls(
+            joint_speed_max_deg_s=tuple(settings.joint_speed_max_deg_s),
+            joint_accel_max_deg_s2=tuple(settings.joint_accel_max_deg_s2),
+            joint_jerk_max_deg_s3=tuple(settings.joint_jerk_max_deg_s3),
+            **changes,
+        )
+
+
+@dataclass(frozen=True)
+class ProgressEvent:
+    """What the daemon publishes while a scan runs.
+
+    state: the executor state. segment: label of the current segment (``"scan 3"``, ``"link 2"``).
+    pass_index / pass_count: 1-based number of the current (or last started) sweep and how many there
+    are. percent: share of the trajectory time done. time_left_s: trajectory time left at full rate.
+    fault: the fault's reason, or None.
+    """
+
+    state: str
+    segment: str
+    pass_index: int
+    pass_count: int
+    percent: float
+    time_left_s: float
+    t_traj_s: float
+    fault: str | None = None
+
+
+@dataclass
+class ExecutionResult:
+    """How an execution ended, with the record of what was commanded.
+
+    state: FINISHED, ABORTED or FAULTED. fault: reason (FAULTED only). cycles: references sent.
+    max_tracking_error_mm: worst monitored tracking error. t_host_s (n,), q_ref_deg (n, 6),
+    qd_ref_deg_s (n, 6), t_traj_s (n,): one row per reference (host monotonic time of the packet it
+    answered, the reference, the trajectory time it came from).
+    """
+
+    state: ExecState
+    fault: str | None
+    cycles: int
+    max_tracking_error_mm: float
+    t_host_s: np.ndarray
+    q_ref_deg: np.ndarray
+    qd_ref_deg_s: np.ndarray
+    t_traj_s: np.ndarray
+    lost_cycles: int = 0
+    events: list[ProgressEvent] = field(default_factory=list)
+
+
+class _TimeScaler:
+    """Trajectory time tau with a jerk-limited playback rate (ruckig, one axis, velocity interface)."""
+
+    def __init__(self, cycle_s: float, accel: float, jerk: float) -> None:
+        self.otg = Ruckig(1, cycle_s)
+        self.inp = InputParameter(1)
+        self.out = OutputParameter(1)
+        self.inp.control_interface = ControlInterface.Velocity
+        self.inp.max_velocity = [2.0]
+        self.inp.max_acceleration = [accel]
+        self.inp.max_jerk = [jerk]
+        self.inp.current_position = [0.0]
+        self.inp.current_velocity = [1.0]
+        self.inp.current_acceleration = [0.0]
+        self.inp.target_velocity = [1.0]
+        self.inp.target_acceleration = [0.0]
+        self.cycle_s = cycle_s
+
+    @property
+    def tau(self) -> float:
+        return float(self.inp.current_position[0])
+
+    @property
+    def rate(self) -> float:
+        return float(self.inp.current_velocity[0])
+
+    @property
+    def rate_dot(self) -> float:
+        return float(self.inp.current_acceleration[0])
+
+    def set_tau(self, tau: float) -> None:
+        self.inp.current_position = [tau]
+
+    def target(self, rate: float) -> None:
+        self.inp.target_velocity = [rate]
+
+    @property
+    def settled(self) -> bool:
+        return abs(self.rate - self.inp.target_velocity[0]) < 1e-9 and abs(self.rate_dot) < 1e-9
+
+    def step(self) -> None:
+        if self.settled:
+            # steady rate: no generator call needed
+            self.inp.current_position = [self.tau + self.rate * self.cycle_s]
+            self.inp.current_velocity = [float(self.inp.target_velocity[0])]
+            self.inp.current_acceleration = [0.0]
+            return
+        res = self.otg.update(self.inp, self.out)
+        if res not in (Result.Working, Result.Finished):
+            raise ExecutorError(f"playback-rate generator failed: {res}")
+        self.out.pass_to_input(self.inp)
+        if res == Result.Finished:
+            self.inp.current_velocity = [float(self.inp.target_velocity[0])]
+            self.inp.current_acceleration = [0.0]
+
+
+class MotionExecutor:
+    """Streams a :class:`TimedTrajectory` over an EGM endpoint. Use ``await run()``; call
+    :meth:`pause`, :meth:`resume`, :meth:`abort` from the same event loop at any time.
+
+    Args:
+        endpoint: a started EGM endpoint (the controller sends to it).
+        trajectory: the timed joint trajectory (the plan's).
+        envelope: the safety envelope every reference passes last.
+        config: limits and thresholds.
+        segment_labels / segment_kinds: the plan's segments (for progress events); optional.
+        on_progress: ``cb(ProgressEvent)``, called on the event loop; errors in it are logged.
+    """
+
+    def __init__(
+        self,
+        endpoint: EgmEndpoint,
+        trajectory: TimedTrajectory,
+        envelope: SafetyEnvelope,
+        config: ExecutorConfig | None = None,
+        *,
+        segment_labels: Sequence[str] | None = None,
+        segment_kinds: Sequence[str] | None = None,
+        on_progress: Callable[[ProgressEvent], None] | None = None,
+    ) -> None:
+        if trajectory.t_s.size < 2 or trajectory.q_deg.shape != (trajectory.t_s.size, 6):
+            raise ExecutorError("trajectory needs at least 2 samples of 6 joints")
+        self.endpoint = endpoint
+        self.trajectory = trajectory
+        self.envelope = envelope
+        self.config = cfg = config or ExecutorConfig()
+        n_seg = int(trajectory.segment.max()) + 1
+        self.segment_labels = list(segment_labels or [f"segment {i + 1}" for i in range(n_seg)])
+        self.segment_kinds = list(segment_kinds or ["scan"] * n_seg)
+        sweeps = [i for i, k in enumerate(self.segment_kinds) if k in ("scan", "edge")]
+        self._pass_of_segment = np.searchsorted(
+            np.array(sweeps, dtype=np.int64), np.arange(n_seg), side="right"
+        )
+        self._pass_count = len(sweeps)
+        self._on_progress = on_progress
+        self._queue: asyncio.Queue[ProgressEvent | None] = asyncio.Queue(maxsize=1024)
+        self.state = ExecState.IDLE
+        self.fault: str | None = None
+        self._requests: deque[str] = deque()
+        self._vmax = np.asarray(cfg.joint_speed_max_deg_s, dtype=np.float64)
+        self._amax = np.asarray(cfg.joint_accel_max_deg_s2, dtype=np.float64)
+        self._jmax = np.asarray(cfg.joint_jerk_max_deg_s3, dtype=np.float64)
+        # The rate ramp must keep qd * rate_dot inside the joint accelerations and qd * rate_ddot
+        # inside the jerks on every joint, at the fastest point of the trajectory (half the budget:
+        # the path's own acceleration uses the rest).
+        qd_peak = np.maximum(np.abs(trajectory.qd_deg_s).max(axis=0), 1e-6)
+        qdd_peak = np.maximum(np.abs(trajectory.qdd_deg_s2).max(axis=0), 1e-6)
+        # joint jerk of the time-scaled plan: q''' r^3 + 3 q'' r r' + q' r''; the plan uses 80 % of
+        # the jerk budget, each rate term may use 10 %
+        a_r = cfg.rate_accel_per_s2 or float(
+            np.clip(
+                min(np.min(0.5 * self._amax / qd_peak), np.min(0.1 * self._jmax / (3 * qdd_peak))), 0.2, 50.0
+            )
+        )
+        j_r = cfg.rate_jerk_per_s3 or float(np.clip(np.min(0.1 * self._jmax / qd_peak), 1.0, 500.0))
+        self._scaler = _TimeScaler(cfg.cycle_s, a_r, j_r)
+        self._otg = Ruckig(6, cfg.cycle_s)
+        self._inp = InputParameter(6)
+        self._out = OutputParameter(6)
+        self._inp.synchronization = Synchronization.No
+        self._set_limits(1.0)
+        self._ref_q = np.zeros(6)
+        self._ref_qd = np.zeros(6)
+        self._last_seqno: int | None = None
+        self._last_t_ctrl_us: int | None = None
+        self._fb_count = 0
+        self._lost = 0
+        self._tcp_hist = deque(maxlen=max(2, int(cfg.tracking_window_s / cfg.cycle_s)))
+        self._max_track = 0.0
+        self._rec_t: list[float] = []
+        self._rec_q: list[np.ndarray] = []
+        self._rec_qd: list[np.ndarray] = []
+        self._rec_tau: list[float] = []
+        self._events: list[ProgressEvent] = []
+        self._last_progress_t = -1e9
+        self._started = False
+        self._held = False
+        self._joint_stop = False
+
+    # ---- control (call from the event loop) -------------------------------------------------------
+
+    def pause(self) -> None:
+        """Slow down along the path and hold (jerk-limited); a no-op unless running or resuming."""
+        self._requests.append("pause")
+
+    def resume(self) -> None:
+        """Continue from where the pause stopped, ramping the rate back up (jerk-limited)."""
+        self._requests.append("resume")
+
+    def abort(self) -> None:
+        """Stop smoothly along the path and end the execution (ABORTED)."""
+        self._requests.append("abort")
+
+    def fault_stop(self, reason: str) -> None:
+        """Stop smoothly (joint-space, jerk-limited) and end the execution (FAULTED)."""
+        self._requests.append("fault:" + reason)
+
+    async def events(self) -> AsyncIterator[ProgressEvent]:
+        """Progress events until the execution ends (the last one carries the terminal state)."""
+        while True:
+            ev = await self._queue.get()
+            if ev is None:
+                return
+            yield ev
+
+    # ---- the loop -----------------------------------------------------------------------------
+
+    async def run(self) -> ExecutionResult:
+        """Execute the trajectory; returns when FINISHED, ABORTED or FAULTED (never raises for faults).
+
+        Raises:
+            ExecutorError: called twice.
+        """
+        if self._started:
+            raise ExecutorError("an executor runs once; create a new one")
+        self._started = True
+        cfg = self.config
+        try:
+            first = await self._wait_commandable()
+        except ExecutorError as exc:
+            self._enter_fault(str(exc), hold=False)
+            return self._finish()
+        q_fb = first.q_deg[:6].astype(np.float64)
+        self._ref_q, self._ref_qd = q_fb.copy(), np.zeros(6)
+        self._inp.current_position = q_fb.tolist()
+        self._inp.current_velocity = [0.0] * 6
+        self._inp.current_acceleration = [0.0] * 6
+        self.envelope.reset(q_fb)
+        self._last_seqno, self._last_t_ctrl_us = first.seqno, first.feedback_time_us
+        q0 = self.trajectory.q_deg[0]
+        if np.max(np.abs(q_fb - q0)) > cfg.start_tolerance_deg:
+            self._set_state(ExecState.MOVING_TO_START)
+            self._set_start_limits(q_fb, q0)
+        else:
+            self._set_state(ExecState.RUNNING)
+        self._scaler.set_tau(0.0)
+        while self.state not in _TERMINAL:
+            try:
+                fb = await self.endpoint.wait_for_feedback(cfg.feedback_timeout_s)
+            except TimeoutError:
+                await self._stalled()
+                break
+            except Exception as exc:  # the endpoint closed under us
+                self._enter_fault(f"EGM endpoint failed: {exc}", hold=False)
+                break
+            cycles = self._cycles_since(fb.seqno, fb.feedback_time_us)
+            if not fb.ok_to_command:
+                self._enter_fault(
+                    f"controller stopped EGM (motors {_name(fb.motor_state)}, EGM {_name(fb.mci_state)}, "
+                    f"RAPID {_name(fb.rapid_exec_state)})",
+                    hold=True,
+                )
+                break
+            self._handle_requests()
+            self._fb_count += 1
+            if self._fb_count % 4 == 0:  # a monitor: 16 ms of latency costs nothing, the CPU does
+                self._monitor_tracking(fb.q_deg[:6])
+            for _ in range(cycles):
+                self._advance()
+                if self.state in _TERMINAL:
+                    break
+            if not self._held:
+                self._send(fb.t_host_ns, cycles)
+            self._maybe_progress()
+        return self._finish()
+
+    async def _wait_commandable(self):
+        deadline = time.monotonic() + self.config.start_timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ExecutorError(
+                    f"no commandable feedback from the controller within {self.config.start_timeout_s} s"
+                )
+            try:
+                fb = await self.endpoint.wait_for_feedback(min(left, 1.0))
+            except TimeoutError:
+                continue
+            if fb.ok_to_command and fb.q_deg.shape[0] >= 6:
+                return fb
+
+    def _cycles_since(self, seqno: int | None, t_ctrl_us: int | None) -> int:
+        """EGM cycles since the previous feedback: from the controller's clock when it sends one
+        (it also counts cycles the controller ran late and integrated at once), else the seqno."""
+        prev_seq, prev_t = self._last_seqno, self._last_t_ctrl_us
+        self._last_seqno, self._last_t_ctrl_us = seqno, t_ctrl_us
+        if t_ctrl_us is not None and prev_t is not None:
+            diff = round((t_ctrl_us - prev_t) / (self.config.cycle_s * 1e6))
+        elif seqno is not None and prev_seq is not None:
+            diff = (seqno - prev_seq) % _U32
+        else:
+            return 1
+        if diff <= 0 or diff > 250:  # duplicate, reordered or a new session: one cycle
+            return 1
+        self._lost += diff - 1
+        return int(diff)
+
+    def _set_limits(self, fraction: float) -> None:
+        self._inp.max_velocity = (self._vmax * fraction).tolist()
+        self._inp.max_acceleration = self._amax.tolist()
+        self._inp.max_jerk = self._jmax.tolist()
+
+    def _set_start_limits(self, q_from: np.ndarray, q_to: np.ndarray) -> None:
+        """Limits for the move to the plan's start: a straight line in joint space (phase-synchronised)
+        slow enough that the TCP stays well under the envelope's speed cap."""
+        dq = q_to - q_from
+        u = np.linspace(0.0, 1.0, 33)
+        p = fk_batch(q_from[None] + u[:, None] * dq[None], self.envelope.limits.T_flange_tcp)[:, :3, 3]
+        dp_du = float(np.max(np.linalg.norm(np.diff(p, axis=0), axis=1)) * (u.size - 1))
+        u_dot = np.min(self.config.move_to_start_speed_fraction * self._vmax / np.maximum(np.abs(dq), 1e-9))
+        if dp_du > 0:
+            u_dot = min(u_dot, 0.5 * self.envelope.limits.tcp_speed_max_mm_s / dp_du)
+        self._inp.max_velocity = np.maximum(np.abs(dq) * u_dot, 1e-3).tolist()
+        self._inp.max_acceleration = self._amax.tolist()
+        self._inp.max_jerk = self._jmax.tolist()
+        self._inp.synchronization = Synchronization.Phase
+
+    def _set_state(self, state: ExecState) -> None:
+        if state != self.state:
+            log.info(
+                "executor_state",
+                state=state.value,
+                previous=self.state.value,
+                t_traj_s=round(self._scaler.tau, 3),
+            )
+            self.state = state
+            self._emit(force=True)
+
+    def _handle_requests(self) -> None:
+        while self._requests:
+            req = self._requests.popleft()
+            s = self.state
+            if req.startswith("fault:"):
+                self._begin_fault_stop(req[6:])
+            elif req == "pause" and s in (ExecState.RUNNING, ExecState.RESUMING):
+                self._scaler.target(0.0)
+                self._set_state(ExecState.PAUSING)
+            elif req == "resume" and s in (ExecState.PAUSED, ExecState.PAUSING):
+                self._scaler.target(1.0)
+                self._set_state(ExecState.RESUMING)
+            elif req == "abort":
+                if s == ExecState.PAUSED:
+                    self._set_state(ExecState.ABORTED)
+                elif s == ExecState.MOVING_TO_START:
+                    self._begin_joint_stop(ExecState.ABORTING)
+                elif s in (ExecState.RUNNING, ExecState.PAUSING, ExecState.RESUMING):
+                    self._scaler.target(0.0)
+                    self._set_state(ExecState.ABORTING)
+            else:
+                log.info("executor_request_ignored", request=req, state=s.value)
+
+    def _begin_joint_stop(self, state: ExecState) -> None:
+        self._inp.control_interface = ControlInterface.Velocity
+        self._inp.target_velocity = [0.0] * 6
+        self._inp.target_acceleration = [0.0] * 6
+        self._inp.synchronization = Synchronization.No
+        self._set_limits(1.0)
+        self._joint_stop = True
+        self._set_state(state)
+
+    def _begin_fault_stop(self, reason: str) -> None:
+        if self.state in _TERMINAL or self.state == ExecState.FAULT_STOPPING:
+            return
+        self.fault = reason
+        log.warning(
+            "executor_fault", reason=reason, state=self.state.value, t_traj_s=round(self._scaler.tau, 3)
+        )
+        self._begin_joint_stop(ExecState.FAULT_STOPPING)
+
+    def _enter_fault(self, reason: str, *, hold: bool) -> None:
+        self.fault = self.fault or reason
+        log.warning(
+            "executor_fault", reason=reason, state=self.state.value, t_traj_s=round(self._scaler.tau, 3)
+        )
+        if hold and self.endpoint.latest is not None:
+            self.endpoint.hold()
+            self._held = True
+        self._set_state(ExecState.FAULTED)
+
+    async def _stalled(self) -> None:
+        cfg = self.config
+        reason = f"controller stalled: no feedback for {cfg.feedback_timeout_s} s"
+        # The controller keeps the last reference while silent; drop the speed feed-forward so the
+        # arm settles on it instead of drifting on, and wait to see whether the controller returns.
+        self.endpoint.command_joints(self._ref_q, np.zeros(6) if cfg.feedforward else None)
+        self.fault = reason
+        log.warning(
+            "executor_fault", reason=reason, state=self.state.value, t_traj_s=round(self._scaler.tau, 3)
+        )
+        try:
+            await self.endpoint.wait_for_feedback(cfg.stall_give_up_s)
+            self.endpoint.hold()  # back: stay where the arm settled
+        except Exception:  # still silent (TimeoutError) or the endpoint closed: nothing more to send
+            pass
+        self._set_state(ExecState.FAULTED)
+
+    def _advance(self) -> None:
+        """One cycle of the generators; updates the reference state."""
+        s = self.state
+        inp, _out = self._inp, self._out
+        traj = self.trajectory
+        if s == ExecState.FAULT_STOPPING or (s == ExecState.ABORTING and self._joint_stop):
+            res = self._otg_update()
+            if res == Result.Finished or np.all(np.abs(self._ref_qd) < 1e-9):
+                self._set_state(ExecState.FAULTED if s == ExecState.FAULT_STOPPING else ExecState.ABORTED)
+            return
+        if s == ExecState.MOVING_TO_START:
+            inp.control_interface = ControlInterface.Position
+            inp.target_position = traj.q_deg[0].tolist()
+            inp.target_velocity = [0.0] * 6
+            inp.target_acceleration = [0.0] * 6
+            res = self._otg_update()
+            fb = self.endpoint.latest
+            at_start = (
+                res == Result.Finished
+                and fb is not None
+                and np.max(np.abs(fb.q_deg[:6] - traj.q_deg[0])) <= max(self.config.start_tolerance_deg, 0.05)
+            )
+            if at_start:
+                self._set_limits(1.0)
+                self._inp.synchronization = Synchronization.No
+                self._set_state(ExecState.RUNNING)
+            return
+        if s == ExecState.PAUSED:
+            return
+        # on the path: advance the playback time and send the time-scaled plan state. The plan's
+        # time law is jerk-limited (ruckig, offline) and the playback rate ramps are jerk-limited
+        # (ruckig, online), so the reference needs no further filtering; an online replan towards
+        # a moving target would lag and then overshoot the speed.
+        self._scaler.step()
+        tau, rate, rate_dot = self._scaler.tau, self._scaler.rate, self._scaler.rate_dot
+        T = traj.duration_s
+        if tau >= T:
+            self._scaler.set_tau(T)
+            tau = T
+        q, qd, qdd, _ = traj.sample(tau)
+        self._ref_q = q
+        self._ref_qd = qd * rate
+        # keep the stop generator's state on the reference, so a fault stop starts from here
+        inp.current_position = q.tolist()
+        inp.current_velocity = self._ref_qd.tolist()
+        inp.current_acceleration = np.clip(
+            qdd * rate * rate + qd * rate_dot, -self._amax, self._amax
+        ).tolist()
+        moving = float(np.max(np.abs(self._ref_qd))) >= 1e-6
+        if s == ExecState.PAUSING and self._scaler.settled:
+            self._set_state(ExecState.PAUSED)
+        elif s == ExecState.RESUMING and self._scaler.settled:
+            self._set_state(ExecState.RUNNING)
+        elif s == ExecState.ABORTING and self._scaler.settled and not moving:
+            self._set_state(ExecState.ABORTED)
+        elif tau >= T:
+            self._set_state(ExecState.FINISHED)
+
+    def _otg_update(self) -> Result:
+        inp, out = self._inp, self._out
+        try:
+            res = self._otg.update(inp, out)
+        except Exception as exc:  # ruckig raises RuckigError on invalid input in some builds
+            res = Result.Error
+            log.warning("executor_ruckig_error", error=str(exc))
+        if res not in (Result.Working, Result.Finished) and not self._joint_stop:
+            # a target acceleration the limits cannot meet: track the velocity only
+            inp.target_acceleration = [0.0] * 6
+            try:
+                res = self._otg.update(inp, out)
+            except Exception:
+                res = Result.Error
+        if res not in (Result.Working, Result.Finished):
+            self._begin_fault_stop(f"trajectory generator failed ({res})")
+            if self._otg_stop_failed():
+                return Result.Finished
+            return Result.Working
+        out.pass_to_input(inp)
+        self._ref_q = np.asarray(out.new_position, dtype=np.float64)
+        self._ref_qd = np.asarray(out.new_velocity, dtype=np.float64)
+        return res
+
+    def _otg_stop_failed(self) -> bool:
+        try:
+            res = self._otg.update(self._inp, self._out)
+        except Exception:
+            res = Result.Error
+        if res in (Result.Working, Result.Finished):
+            self._out.pass_to_input(self._inp)
+            self._ref_q = np.asarray(self._out.new_position, dtype=np.float64)
+            self._ref_qd = np.asarray(self._out.new_velocity, dtype=np.float64)
+            return False
+        self._enter_fault("the stop generator failed; holding the last reference", hold=False)
+        return True
+
+    def _send(self, t_host_ns: int, cycles: int) -> None:
+        q, qd = self._ref_q, self._ref_qd
+        try:
+            p = self.envelope.check(q, cycles)
+        except EnvelopeViolation as exc:
+            last = self.envelope.last_q_deg
+            if self.state == ExecState.FAULT_STOPPING or last is None:
+                # the stop itself left the envelope: hold the last accepted reference
+                if last is not None:
+                    self.endpoint.command_joints(last, np.zeros(6) if self.config.feedforward else None)
+                self._enter_fault(f"envelope violated during the stop: {exc}", hold=False)
+                return
+            # fall back to the last accepted state and stop smoothly from it
+            self._inp.current_position = last.tolist()
+            self._ref_q = last
+            self._begin_fault_stop(f"envelope: {exc}")
+            self.endpoint.command_joints(last, self._ref_qd if self.config.feedforward else None)
+            return
+        self.endpoint.command_joints(q, qd if self.config.feedforward else None)
+        self._tcp_hist.append(p)
+        self._rec_t.append(t_host_ns / 1e9)
+        self._rec_q.append(q.copy())
+        self._rec_qd.append(qd.copy())
+        self._rec_tau.append(self._scaler.tau)
+
+    def _monitor_tracking(self, q_fb: np.ndarray) -> None:
+        if len(self._tcp_hist) < 2 or self.state in _TERMINAL:
+            return
+        p_fb = self.envelope.tcp_mm(np.asarray(q_fb[:6], dtype=np.float64))
+        hist = np.asarray(self._tcp_hist)
+        # distance to the commanded polyline of the last window (the controller lags the reference)
+        a, b = hist[:-1], hist[1:]
+        ab = b - a
+        u = np.clip(np.sum((p_fb - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0.0, 1.0)
+        err = float(np.min(np.linalg.norm(a + u[:, None] * ab - p_fb, axis=1)))
+        self._max_track = max(self._max_track, err)
+        if err > self.config.tracking_error_max_mm and self.state != ExecState.FAULT_STOPPING:
+            self._begin_fault_stop(
+                f"tracking error {err:.2f} mm above {self.config.tracking_error_max_mm} mm"
+            )
+
+    # ---- progress -----------------------------------------------------------------------------
+
+    def _progress(self) -> ProgressEvent:
+        traj = self.trajectory
+        tau = self._scaler.tau
+        T = traj.duration_s
+        _, _, _, seg = traj.sample(tau)
+        return ProgressEvent(
+            state=self.state.value,
+            segment=self.segment_labels[seg] if seg < len(self.segment_labels) else str(seg),
+            pass_index=int(self._pass_of_segment[seg]) if seg < len(self._pass_of_segment) else 0,
+            pass_count=self._pass_count,
+            percent=round(100.0 * tau / T, 3) if T > 0 else 100.0,
+            time_left_s=round(max(0.0, T - tau), 3),
+            t_traj_s=round(tau, 4),
+            fault=self.fault,
+        )
+
+    def _emit(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._last_progress_t < self.config.progress_interval_s:
+            return
+        self._last_progress_t = now
+        ev = self._progress()
+        self._events.append(ev)
+        if self._queue.full():
+            self._queue.get_nowait()  # the newest progress matters more than the oldest
+        self._queue.put_nowait(ev)
+        if self._on_progress is not None:
+            try:
+                self._on_progress(ev)
+            except Exception:
+                log.exception("executor_progress_callback_failed")
+
+    def _maybe_progress(self) -> None:
+        self._emit(force=False)
+
+    def _finish(self) -> ExecutionResult:
+        if self.state not in _TERMINAL:
+            self._set_state(ExecState.FAULTED)
+        if self._queue.full():
+            self._queue.get_nowait()
+        self._queue.put_nowait(None)
+        n = len(self._rec_t)
+        log.info(
+            "executor_done",
+            state=self.state.value,
+            fault=self.fault,
+            cycles=n,
+            lost_cycles=self._lost,
+            max_tracking_error_mm=round(self._max_track, 4),
+        )
+        return ExecutionResult(
+            state=self.state,
+            fault=self.fault,
+            cycles=n,
+            max_tracking_error_mm=self._max_track,
+            t_host_s=np.asarray(self._rec_t),
+            q_ref_deg=np.asarray(self._rec_q).reshape(n, 6),
+            qd_ref_deg_s=np.asarray(self._rec_qd).reshape(n, 6),
+            t_traj_s=np.asarray(self._rec_tau),
+            lost_cycles=self._lost,
+            events=list(self._events),
+        )
+
+
+def _name(value) -> str | None:
+    return None if value is None else getattr(value, "name", str(value))

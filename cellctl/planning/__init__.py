@@ -1,0 +1,29 @@
+"""Scan planning: coverage passes over a design surface, joint path, timing, the plan object.
+
+Entry point: :func:`plan_scan`. The pieces (``coverage``, ``joint_path``, ``timing``) are plain
+functions on numpy arrays and usable on their own.
+"""
+
+from cellctl.planning.plan import (
+    CoverageReport,
+    Placement,
+    PlanInputError,
+    PlanRefused,
+    ScanPlan,
+    Segment,
+    TimedTrajectory,
+)
+from cellctl.planning.planner import plan_scan
+from cellctl.planning.settings import PlannerSettings
+
+__all__ = [
+    "CoverageReport",
+    "Placement",
+    "PlanInputError",
+    "PlanRefused",
+    "PlannerSettings",
+    "ScanPlan",
+    "Segment",
+    "TimedTrajectory",
+    "plan_scan",
+]

@@ -1,0 +1,240 @@
+"""Joint path: inverse kinematics along the planned sensor poses, with continuity and margins.
+
+The first waypoint is solved from a few elbow-up seeds and the solution with the most room (wrist
+away from its singularity, joints away from their limits, little wrist roll) is kept; every later
+waypoint is solved warm-started from its predecessor, so the configuration cannot flip between
+neighbours. Each waypoint is checked against the configured joint limits shrunk by the margin, the
+wrist-singularity margin (|q5|), the joint jump between neighbours and the sensor workspace box; the
+first violation refuses the plan with the pass, the point and the limit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cellctl.planning.plan import PlanRefused, Segment, pose_matrix
+from cellctl.planning.settings import PlannerSettings
+from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics
+
+__all__ = ["JointPathResult", "check_reach", "first_configuration", "sensor_kinematics", "solve_joint_path"]
+
+#: IK must reach the pose this closely, or the point counts as unreachable
+_POS_TOL_MM = 0.05
+_ROT_TOL_DEG = 0.05
+#: elbow-up seeds (q2, q3, q5) for the first waypoint; q1 points at the target, q4 and q6 vary
+_SEEDS_235 = (
+    (30.0, 0.0, 60.0),
+    (10.0, 20.0, 60.0),
+    (50.0, -20.0, 60.0),
+    (0.0, 40.0, 50.0),
+    (60.0, 0.0, 30.0),
+)
+_SEEDS_46 = ((0.0, 0.0), (0.0, 90.0), (0.0, -90.0), (0.0, 180.0), (180.0, 0.0), (-180.0, 0.0))
+
+
+@dataclass(frozen=True)
+class JointPathResult:
+    """What the joint path found: the worst margins along the whole plan.
+
+    min_wrist_deg: smallest |q5| (distance from the wrist singularity), deg.
+    min_limit_margin_deg: smallest distance of any joint to its hard limit, deg.
+    max_step_deg: largest joint change between neighbouring waypoints, deg.
+    waypoints: how many poses were solved.
+    """
+
+    min_wrist_deg: float
+    min_limit_margin_deg: float
+    max_step_deg: float
+    waypoints: int
+
+
+def sensor_kinematics(settings: PlannerSettings) -> RobotKinematics:
+    """Robot kinematics with the laser sensor frame registered as tool ``"sensor"``."""
+    return RobotKinematics(tools={"sensor": np.asarray(settings.T_flange_sensor, dtype=np.float64)})
+
+
+def _unreachable(kin: RobotKinematics, q: np.ndarray, pos_err_mm: float, rot_err_deg: float) -> str:
+    at_lo = np.isclose(q, kin.q_min_deg, atol=0.05)
+    at_hi = np.isclose(q, kin.q_max_deg, atol=0.05)
+    for j in range(6):
+        if at_lo[j]:
+            return f"{JOINT_NAMES[j]} lower {kin.q_min_deg[j]:.1f} deg"
+        if at_hi[j]:
+            return f"{JOINT_NAMES[j]} upper {kin.q_max_deg[j]:.1f} deg"
+    return f"reach (IK residual {pos_err_mm:.2f} mm, {rot_err_deg:.2f} deg)"
+
+
+def _score(q: np.ndarray, settings: PlannerSettings) -> float:
+    room = np.minimum(q - settings.q_min_deg, settings.q_max_deg - q).min()
+    return min(abs(q[4]) - settings.wrist_margin_deg, 30.0) + min(room, 30.0) - 0.05 * (abs(q[3]) + abs(q[5]))
+
+
+def first_configuration(
+    kin: RobotKinematics, T_base_sensor: np.ndarray, settings: PlannerSettings
+) -> np.ndarray | None:
+    """The best IK solution for the first pose from the elbow-up seeds, or None if none converges
+    inside the margins."""
+    p = T_base_sensor[:3, 3]
+    q1 = float(np.rad2deg(np.arctan2(p[1], p[0])))
+    best: tuple[float, np.ndarray] | None = None
+    for q2, q3, q5 in _SEEDS_235:
+        for q4, q6 in _SEEDS_46:
+            seed = np.array([q1, q2, q3, q4, q5, q6])
+            r = kin.ik(T_base_sensor, seed, frame="sensor", max_iterations=150)
+            if not (r.converged or (r.pos_err_mm < _POS_TOL_MM and r.rot_err_deg < _ROT_TOL_DEG)):
+                continue
+            q = r.q_deg
+            if np.any(q < settings.q_min_deg) or np.any(q > settings.q_max_deg):
+                continue
+            s = _score(q, settings)
+            if best is None or s > best[0]:
+                best = (s, q)
+    return None if best is None else best[1]
+
+
+#: shoulder (joint 2 axis) offset and height, and the longest shoulder -> wrist-centre distance, mm
+_SHOULDER_X_MM, _SHOULDER_Z_MM = 175.0, 495.0
+_REACH_MM = 1095.0 + float(np.hypot(1270.0, 175.0))
+_WRIST_TO_FLANGE_MM = 135.0
+
+
+def check_reach(segments: list[Segment], settings: PlannerSettings) -> None:
+    """Refuse early, with the share of the sweeps in reach, when wrist centres lie beyond the arm.
+
+    The wrist centre sits 135 mm behind the flange along the flange's z axis; it must lie within
+    upper arm + forearm of the shoulder (joint 2 axis). This is a necessary condition only (IK
+    checks the rest), but it names the reason plainly for a plate too large for a rail-less cell.
+    """
+    T_sensor_flange = np.linalg.inv(np.asarray(settings.T_flange_sensor, dtype=np.float64))
+    dist_all = []
+    for seg in segments:
+        T = pose_matrix(seg.pos_mm, seg.R_base_sensor) @ T_sensor_flange
+        wrist = T[:, :3, 3] - _WRIST_TO_FLANGE_MM * T[:, :3, 2]
+        r_xy = np.hypot(wrist[:, 0], wrist[:, 1])
+        dist = np.hypot(r_xy - _SHOULDER_X_MM, wrist[:, 2] - _SHOULDER_Z_MM)
+        dist_all.append((seg, dist))
+    sweep_d = np.concatenate([d for seg, d in dist_all if seg.is_sweep] or [np.zeros(0)])
+    for seg, dist in dist_all:
+        far = dist > _REACH_MM
+        if far.any():
+            i = int(np.argmax(far))
+            share = float(np.mean(sweep_d <= _REACH_MM)) if sweep_d.size else 0.0
+            raise PlanRefused(
+                f"the wrist centre would be {dist[i]:.0f} mm from the shoulder, beyond the arm's "
+                f"{_REACH_MM:.0f} mm; {share:.0%} of the sweep waypoints are in reach: split the plate "
+                "into several placements or add a rail",
+                pass_label=seg.label,
+                point_index=i,
+                limit=f"reach {_REACH_MM:.0f} mm",
+                pos_mm=seg.pos_mm[i],
+            )
+
+
+def solve_joint_path(
+    segments: list[Segment],
+    settings: PlannerSettings,
+    kin: RobotKinematics | None = None,
+    q_start_deg: np.ndarray | None = None,
+) -> JointPathResult:
+    """Fill ``segment.q_deg`` for every segment, in order, with continuity.
+
+    Args:
+        segments: the plan's segments (base frame sensor poses).
+        settings: limits and margins.
+        kin: kinematics with the ``"sensor"`` tool (built from the settings when None).
+        q_start_deg: (6,) seed for the first waypoint; chosen from elbow-up seeds when None.
+
+    Raises:
+        PlanRefused: a waypoint is unreachable, outside the joint margins, too close to the wrist
+            singularity, outside the workspace box, or would need a configuration jump.
+    """
+    kin = kin or sensor_kinematics(settings)
+    check_reach(segments, settings)
+    ws_lo, ws_hi = np.asarray(settings.workspace_min_mm), np.asarray(settings.workspace_max_mm)
+    lo, hi = settings.q_min_deg, settings.q_max_deg
+    q_prev: np.ndarray | None = None
+    min_wrist, min_room, max_step, count = np.inf, np.inf, 0.0, 0
+    for seg in segments:
+        out = np.zeros((seg.pos_mm.shape[0], 6))
+        Ts = pose_matrix(seg.pos_mm, seg.R_base_sensor)
+        outside = np.any((seg.pos_mm < ws_lo) | (seg.pos_mm > ws_hi), axis=1)
+        if outside.any():
+            i = int(np.argmax(outside))
+            raise PlanRefused(
+                f"sensor position {np.round(seg.pos_mm[i], 1).tolist()} mm is outside the workspace box",
+                pass_label=seg.label,
+                point_index=i,
+                limit=f"workspace box {ws_lo.tolist()} .. {ws_hi.tolist()} mm",
+                pos_mm=seg.pos_mm[i],
+            )
+        for i, T in enumerate(Ts):
+            if q_prev is None:
+                q0 = q_start_deg if q_start_deg is not None else first_configuration(kin, T, settings)
+                if q0 is None:
+                    r = kin.ik(
+                        T,
+                        np.array([np.rad2deg(np.arctan2(T[1, 3], T[0, 3])), 30, 0, 0, 60, 0]),
+                        frame="sensor",
+                    )
+                    raise PlanRefused(
+                        "the first pose cannot be reached inside the joint margins",
+                        pass_label=seg.label,
+                        point_index=i,
+                        limit=_unreachable(kin, r.q_deg, r.pos_err_mm, r.rot_err_deg),
+                        pos_mm=T[:3, 3],
+                    )
+                q_prev = np.asarray(q0, dtype=np.float64)
+            r = kin.ik(T, q_prev, frame="sensor", max_iterations=60, max_step_deg=5.0)
+            q = r.q_deg
+            if r.pos_err_mm > _POS_TOL_MM or r.rot_err_deg > _ROT_TOL_DEG:
+                raise PlanRefused(
+                    "the pose is unreachable",
+                    pass_label=seg.label,
+                    point_index=i,
+                    limit=_unreachable(kin, q, r.pos_err_mm, r.rot_err_deg),
+                    pos_mm=T[:3, 3],
+                )
+            below, above = q < lo, q > hi
+            if below.any() or above.any():
+                j = int(np.argmax(below | above))
+                side, lim = ("lower", lo[j]) if below[j] else ("upper", hi[j])
+                raise PlanRefused(
+                    f"{JOINT_NAMES[j]} would be at {q[j]:.2f} deg, beyond its {side} limit with margin",
+                    pass_label=seg.label,
+                    point_index=i,
+                    limit=f"{JOINT_NAMES[j]} {side} {lim:.1f} deg (limit {settings.joint_margin_deg} deg inside)",
+                    pos_mm=T[:3, 3],
+                )
+            if abs(q[4]) < settings.wrist_margin_deg:
+                raise PlanRefused(
+                    f"the wrist would pass near its singularity (joint_5 at {q[4]:.2f} deg)",
+                    pass_label=seg.label,
+                    point_index=i,
+                    limit=f"wrist singularity margin |joint_5| >= {settings.wrist_margin_deg} deg",
+                    pos_mm=T[:3, 3],
+                )
+            step = float(np.max(np.abs(q - q_prev)))
+            if step > settings.max_waypoint_joint_step_deg:
+                j = int(np.argmax(np.abs(q - q_prev)))
+                raise PlanRefused(
+                    f"configuration jump of {step:.1f} deg on {JOINT_NAMES[j]} between neighbouring waypoints",
+                    pass_label=seg.label,
+                    point_index=i,
+                    limit=f"continuity {settings.max_waypoint_joint_step_deg} deg per waypoint",
+                    pos_mm=T[:3, 3],
+                )
+            out[i] = q
+            q_prev = q
+            max_step = max(max_step, step)
+            min_wrist = min(min_wrist, abs(q[4]))
+            room = float(
+                np.minimum(
+                    q - np.asarray(settings.joint_lower_deg), np.asarray(settings.joint_upper_deg) - q
+                ).min()
+            )
+            min_room = min(min_room, room)
+            count += 1
+        seg.q_deg = out
+    return JointPathResult(float(min_wrist), float(min_room), float(max_step), count)

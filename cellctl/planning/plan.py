@@ -1,0 +1,382 @@
+"""The scan plan: what the planner hands to the executor, the daemon and the ``cellctl plan`` command.
+
+A :class:`ScanPlan` is plain data (numpy arrays and numbers) and round-trips through JSON
+(:meth:`ScanPlan.to_json` / :meth:`ScanPlan.from_json`). Frames: ``base`` is the robot base frame
+(mm, z up), ``plate`` the design frame of the plate (see ``analysis.plates``), ``sensor`` the line
+laser's frame (rays along +z, the laser line along x, the pass along +/-y).
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+__all__ = [
+    "SEGMENT_KINDS",
+    "CoverageReport",
+    "Placement",
+    "PlanInputError",
+    "PlanRefused",
+    "ScanPlan",
+    "Segment",
+    "TimedTrajectory",
+    "pose_matrix",
+]
+
+SegmentKind = Literal["approach", "scan", "edge", "link", "retract"]
+SEGMENT_KINDS: tuple[str, ...] = ("approach", "scan", "edge", "link", "retract")
+#: segments during which the sensor records (constant TCP speed)
+SWEEP_KINDS: tuple[str, ...] = ("scan", "edge")
+
+
+class PlanInputError(ValueError):
+    """Input the planner cannot use (bad placement, empty design, inconsistent settings); names the field."""
+
+
+class PlanRefused(Exception):
+    """The plate cannot be scanned with this cell: the reason names the pass, the point and the limit.
+
+    Attributes:
+        reason: one readable sentence.
+        pass_label: e.g. ``"scan 3"``, ``"edge 1"``, ``"link 4"`` (None when not tied to a pass).
+        point_index: waypoint index inside that pass (None when not tied to a point).
+        limit: the limit that was hit, e.g. ``"joint_3 upper 73.0 deg"``, ``"reach"``, ``"depth range"``.
+        pos_mm: (3,) base-frame sensor position of the offending point, or None.
+    """
+
+    def __init__(
+        self,
+        reason: str,
+        *,
+        pass_label: str | None = None,
+        point_index: int | None = None,
+        limit: str | None = None,
+        pos_mm: np.ndarray | None = None,
+    ) -> None:
+        self.reason = reason
+        self.pass_label = pass_label
+        self.point_index = point_index
+        self.limit = limit
+        self.pos_mm = None if pos_mm is None else np.asarray(pos_mm, dtype=np.float64).copy()
+        where = ""
+        if pass_label is not None:
+            where = f"{pass_label}" + (f", point {point_index}" if point_index is not None else "") + ": "
+        super().__init__(where + reason + (f" [limit: {limit}]" if limit else ""))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description of the refusal."""
+        return {
+            "reason": self.reason,
+            "pass": self.pass_label,
+            "point": self.point_index,
+            "limit": self.limit,
+            "pos_mm": None if self.pos_mm is None else self.pos_mm.round(3).tolist(),
+            "message": str(self),
+        }
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Nominal placement of the plate frame in the base frame: origin (x, y, z) mm, rotation about z deg."""
+
+    x_mm: float
+    y_mm: float
+    z_mm: float
+    angle_deg: float
+
+    def __post_init__(self) -> None:
+        for name in ("x_mm", "y_mm", "z_mm", "angle_deg"):
+            value = getattr(self, name)
+            if not isinstance(value, int | float) or not np.isfinite(value):
+                raise PlanInputError(f"placement.{name}: expected a finite number, got {value!r}")
+
+    @property
+    def T_base_plate(self) -> np.ndarray:
+        """(4, 4) transform mapping plate-frame mm into base-frame mm."""
+        a = np.deg2rad(self.angle_deg)
+        T = np.eye(4)
+        T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+        T[:3, 3] = [self.x_mm, self.y_mm, self.z_mm]
+        return T
+
+
+def pose_matrix(pos_mm: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Stack positions (n, 3) mm and rotations (n, 3, 3) into transforms (n, 4, 4)."""
+    n = pos_mm.shape[0]
+    T = np.zeros((n, 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = pos_mm
+    T[:, 3, 3] = 1.0
+    return T
+
+
+@dataclass
+class Segment:
+    """One piece of the plan, in execution order.
+
+    kind: approach, scan (raster pass), edge (edge pass), link (between passes), retract.
+    label: e.g. ``"scan 3"`` (1-based pass numbers), used in refusals and progress events.
+    pos_mm: (n, 3) sensor origin waypoints, base frame, mm.
+    R_base_sensor: (n, 3, 3) sensor orientations, base frame.
+    q_deg: (n, 6) joint configurations (filled by the joint path), deg.
+    t_start_s / duration_s: when the segment runs in the timed trajectory (filled by the timing).
+    length_mm: path length of the sensor origin.
+    """
+
+    kind: str
+    label: str
+    pos_mm: np.ndarray
+    R_base_sensor: np.ndarray
+    q_deg: np.ndarray | None = None
+    t_start_s: float = 0.0
+    duration_s: float = 0.0
+    length_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in SEGMENT_KINDS:
+            raise PlanInputError(f"segment.kind: {self.kind!r} is not one of {SEGMENT_KINDS}")
+        if self.length_mm == 0.0 and self.pos_mm.shape[0] > 1:
+            self.length_mm = float(np.linalg.norm(np.diff(self.pos_mm, axis=0), axis=1).sum())
+
+    @property
+    def is_sweep(self) -> bool:
+        """True for segments during which the sensor records."""
+        return self.kind in SWEEP_KINDS
+
+
+@dataclass
+class TimedTrajectory:
+    """The timed joint trajectory, sampled: ``t_s`` (m,) s from the start, ``q_deg`` (m, 6) deg,
+    ``qd_deg_s`` (m, 6) deg/s, ``qdd_deg_s2`` (m, 6) deg/s^2, ``segment`` (m,) int index into the plan's
+    segments. Between samples the executor interpolates with quintic Hermite polynomials."""
+
+    t_s: np.ndarray
+    q_deg: np.ndarray
+    qd_deg_s: np.ndarray
+    qdd_deg_s2: np.ndarray
+    segment: np.ndarray
+
+    def __post_init__(self) -> None:
+        # a plain list makes the per-cycle lookup (bisect) cheap; the arrays stay the data
+        self._t_list: list[float] = np.asarray(self.t_s, dtype=np.float64).tolist()
+
+    @property
+    def duration_s(self) -> float:
+        """Total duration, s."""
+        return float(self.t_s[-1]) if self.t_s.size else 0.0
+
+    def sample(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """State at time ``t_s`` (clamped to the trajectory): ``(q_deg (6,), qd_deg_s (6,),
+        qdd_deg_s2 (6,), segment index)``.
+
+        Quintic Hermite interpolation between the samples (position, velocity and acceleration at
+        both ends), so the interpolated trajectory is continuous in acceleration and its jerk stays
+        bounded: a jerk-limited tracker can follow it without lag.
+        """
+        ts = self._t_list
+        t = min(max(float(t_s), ts[0]), ts[-1])
+        i = min(max(bisect.bisect_right(ts, t) - 1, 0), len(ts) - 2)
+        t0, t1 = ts[i], ts[i + 1]
+        h = t1 - t0
+        if h <= 0:
+            return (
+                self.q_deg[i].copy(),
+                self.qd_deg_s[i].copy(),
+                self.qdd_deg_s2[i].copy(),
+                int(self.segment[i]),
+            )
+        u = (t - t0) / h
+        p0, p1 = self.q_deg[i], self.q_deg[i + 1]
+        v0, v1 = self.qd_deg_s[i] * h, self.qd_deg_s[i + 1] * h
+        a0, a1 = self.qdd_deg_s2[i] * (h * h), self.qdd_deg_s2[i + 1] * (h * h)
+        u2, u3, u4, u5 = u * u, u**3, u**4, u**5
+        q = (
+            (1 - 10 * u3 + 15 * u4 - 6 * u5) * p0
+            + (u - 6 * u3 + 8 * u4 - 3 * u5) * v0
+            + (0.5 * u2 - 1.5 * u3 + 1.5 * u4 - 0.5 * u5) * a0
+            + (0.5 * u3 - u4 + 0.5 * u5) * a1
+            + (-4 * u3 + 7 * u4 - 3 * u5) * v1
+            + (10 * u3 - 15 * u4 + 6 * u5) * p1
+        )
+        qd = (
+            (-30 * u2 + 60 * u3 - 30 * u4) * (p0 - p1)
+            + (1 - 18 * u2 + 32 * u3 - 15 * u4) * v0
+            + (u - 4.5 * u2 + 6 * u3 - 2.5 * u4) * a0
+            + (1.5 * u2 - 4 * u3 + 2.5 * u4) * a1
+            + (-12 * u2 + 28 * u3 - 15 * u4) * v1
+        ) / h
+        qdd = (
+            (-60 * u + 180 * u2 - 120 * u3) * (p0 - p1)
+            + (-36 * u + 96 * u2 - 60 * u3) * v0
+            + (1 - 9 * u + 18 * u2 - 10 * u3) * a0
+            + (3 * u - 12 * u2 + 10 * u3) * a1
+            + (-24 * u + 84 * u2 - 60 * u3) * v1
+        ) / (h * h)
+        seg = int(self.segment[i] if u < 1.0 else self.segment[i + 1])
+        return q, qd, qdd, seg
+
+
+@dataclass
+class CoverageReport:
+    """Predicted coverage of the design's top surface by the plan (ray cast of the laser fans).
+
+    fraction: seen cells / surface cells at the nominal placement.
+    worst_fraction: the smallest fraction over the placement-uncertainty corners (shift and rotation).
+    cell_mm: size of the square cells the footprint is divided into.
+    profiles / rays: how many simulated profiles and rays were cast.
+    """
+
+    fraction: float
+    worst_fraction: float
+    cells_total: int
+    cells_seen: int
+    cell_mm: float
+    profiles: int
+    rays: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict."""
+        return dict(self.__dict__)
+
+
+@dataclass
+class ScanPlan:
+    """A complete, timed scan plan for one plate placement.
+
+    scan_speed_mm_s: TCP speed on sweep segments. sweep_length_mm: total length of the sweep
+    segments. sweep_time_s = sweep_length_mm / scan_speed_mm_s. scan_time_s: the whole timed
+    trajectory, approach to retract. sweep_ratio = scan_time_s / sweep_time_s.
+    """
+
+    placement: Placement
+    footprint_mm: tuple[float, float, float, float]
+    segments: list[Segment]
+    trajectory: TimedTrajectory
+    coverage: CoverageReport
+    scan_speed_mm_s: float
+    sweep_length_mm: float
+    sweep_time_s: float
+    scan_time_s: float
+    sweep_ratio: float
+    margin_mm: float
+    scan_speed_deviation: float
+    toppra_time_s: float = 0.0
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def passes(self) -> list[Segment]:
+        """The sweep segments (raster and edge passes), in execution order."""
+        return [s for s in self.segments if s.is_sweep]
+
+    def summary(self) -> dict[str, Any]:
+        """A short JSON-ready summary (what ``cellctl plan`` prints)."""
+        return {
+            "passes": sum(1 for s in self.segments if s.kind == "scan"),
+            "edge_passes": sum(1 for s in self.segments if s.kind == "edge"),
+            "coverage": round(self.coverage.fraction, 5),
+            "coverage_worst": round(self.coverage.worst_fraction, 5),
+            "scan_speed_mm_s": round(self.scan_speed_mm_s, 3),
+            "scan_speed_deviation": round(self.scan_speed_deviation, 5),
+            "toppra_time_s": round(self.toppra_time_s, 3),
+            "sweep_length_mm": round(self.sweep_length_mm, 1),
+            "sweep_time_s": round(self.sweep_time_s, 3),
+            "scan_time_s": round(self.scan_time_s, 3),
+            "sweep_ratio": round(self.sweep_ratio, 4),
+            "margin_mm": round(self.margin_mm, 2),
+            "timings_s": {k: round(v, 4) for k, v in self.timings_s.items()},
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        """Everything, as plain lists and numbers."""
+        tr = self.trajectory
+        return {
+            "format": "cellctl.scan_plan/1",
+            "placement": self.placement.__dict__,
+            "footprint_mm": list(self.footprint_mm),
+            "summary": self.summary(),
+            "coverage": self.coverage.to_dict(),
+            "segments": [
+                {
+                    "kind": s.kind,
+                    "label": s.label,
+                    "t_start_s": s.t_start_s,
+                    "duration_s": s.duration_s,
+                    "length_mm": s.length_mm,
+                    "pos_mm": s.pos_mm.round(4).tolist(),
+                    "R_base_sensor": s.R_base_sensor.round(9).tolist(),
+                    "q_deg": None if s.q_deg is None else s.q_deg.round(6).tolist(),
+                }
+                for s in self.segments
+            ],
+            "trajectory": {
+                "t_s": tr.t_s.round(6).tolist(),
+                "q_deg": tr.q_deg.round(6).tolist(),
+                "qd_deg_s": tr.qd_deg_s.round(6).tolist(),
+                "qdd_deg_s2": tr.qdd_deg_s2.round(5).tolist(),
+                "segment": tr.segment.tolist(),
+            },
+        }
+
+    def to_json(self, path: str | Path | None = None) -> str:
+        """Serialise to JSON; writes ``path`` when given. Returns the text."""
+        text = json.dumps(self.to_dict(), separators=(",", ":"))
+        if path is not None:
+            Path(path).write_text(text)
+        return text
+
+    @classmethod
+    def from_json(cls, text_or_path: str | Path) -> ScanPlan:
+        """Inverse of :meth:`to_json` (a JSON string or a file path)."""
+        text = str(text_or_path)
+        if not text.lstrip().startswith("{"):
+            text = Path(text_or_path).read_text()
+        try:
+            d = json.loads(text)
+            if d.get("format") != "cellctl.scan_plan/1":
+                raise PlanInputError(f"format: expected 'cellctl.scan_plan/1', got {d.get('format')!r}")
+            segs = [
+                Segment(
+                    kind=s["kind"],
+                    label=s["label"],
+                    pos_mm=np.asarray(s["pos_mm"], dtype=np.float64).reshape(-1, 3),
+                    R_base_sensor=np.asarray(s["R_base_sensor"], dtype=np.float64).reshape(-1, 3, 3),
+                    q_deg=None if s["q_deg"] is None else np.asarray(s["q_deg"], dtype=np.float64),
+                    t_start_s=float(s["t_start_s"]),
+                    duration_s=float(s["duration_s"]),
+                    length_mm=float(s["length_mm"]),
+                )
+                for s in d["segments"]
+            ]
+            tr = d["trajectory"]
+            sm = d["summary"]
+            return cls(
+                placement=Placement(**d["placement"]),
+                footprint_mm=tuple(d["footprint_mm"]),
+                segments=segs,
+                trajectory=TimedTrajectory(
+                    t_s=np.asarray(tr["t_s"], dtype=np.float64),
+                    q_deg=np.asarray(tr["q_deg"], dtype=np.float64).reshape(-1, 6),
+                    qd_deg_s=np.asarray(tr["qd_deg_s"], dtype=np.float64).reshape(-1, 6),
+                    qdd_deg_s2=np.asarray(tr["qdd_deg_s2"], dtype=np.float64).reshape(-1, 6),
+                    segment=np.asarray(tr["segment"], dtype=np.int64),
+                ),
+                coverage=CoverageReport(**d["coverage"]),
+                scan_speed_mm_s=float(sm["scan_speed_mm_s"]),
+                sweep_length_mm=float(sm["sweep_length_mm"]),
+                sweep_time_s=float(sm["sweep_time_s"]),
+                scan_time_s=float(sm["scan_time_s"]),
+                sweep_ratio=float(sm["sweep_ratio"]),
+                margin_mm=float(sm["margin_mm"]),
+                scan_speed_deviation=float(sm["scan_speed_deviation"]),
+                toppra_time_s=float(sm.get("toppra_time_s", 0.0)),
+                timings_s=dict(sm.get("timings_s", {})),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, PlanInputError):
+                raise
+            raise PlanInputError(f"not a scan plan: {exc}") from exc

@@ -1,0 +1,129 @@
+"""The scan planner's pipeline: design surface -> passes -> joint path -> timing -> predicted coverage.
+
+Reads like the issue: :func:`plan_scan` takes the design (plate frame), the nominal placement and
+the settings, and returns a :class:`~cellctl.planning.plan.ScanPlan` or raises
+:class:`~cellctl.planning.plan.PlanRefused` with the pass, the point and the limit.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import structlog
+
+from analysis.mesh import TriMesh
+from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
+from cellctl.planning.joint_path import first_configuration, sensor_kinematics, solve_joint_path
+from cellctl.planning.plan import (
+    CoverageReport,
+    Placement,
+    PlanInputError,
+    PlanRefused,
+    ScanPlan,
+    pose_matrix,
+)
+from cellctl.planning.settings import PlannerSettings
+from cellctl.planning.timing import time_segments
+
+__all__ = ["plan_scan"]
+
+log = structlog.get_logger(__name__)
+
+
+def plan_scan(
+    design: TriMesh,
+    placement: Placement,
+    settings: PlannerSettings | None = None,
+    *,
+    with_coverage: bool = True,
+) -> ScanPlan:
+    """Plan a coverage scan of ``design`` lying at ``placement``.
+
+    Args:
+        design: the design top surface, plate frame, mm.
+        placement: the plate frame's nominal pose on the bed (base frame).
+        settings: sensor, scan and robot numbers (defaults: the cell.toml defaults).
+        with_coverage: run the ray-cast coverage prediction (the plan's ``coverage`` is zero otherwise).
+
+    Raises:
+        PlanInputError: unusable design or settings.
+        PlanRefused: the plate cannot be scanned with these limits; names the pass, point and limit.
+    """
+    settings = settings or PlannerSettings()
+    if not isinstance(design, TriMesh):
+        raise PlanInputError(f"design: expected a TriMesh, got {type(design).__name__}")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    surface = design_surface(design)
+    kin = sensor_kinematics(settings)
+    timings["surface_s"] = time.perf_counter() - t0
+
+    # The sensor may look along the pass either way round; take the one the wrist likes better
+    # (less roll on joints 4 and 6), and fall back to the other when the first is refused.
+    t1 = time.perf_counter()
+    candidates = []
+    for sign in (1.0, -1.0):
+        segments, margin = build_segments(surface, placement, settings, sign=sign)
+        sweep = segments[1]
+        q0 = first_configuration(kin, pose_matrix(sweep.pos_mm[:1], sweep.R_base_sensor[:1])[0], settings)
+        cost = np.inf if q0 is None else abs(q0[3]) + abs(q0[5])
+        candidates.append((cost, sign, segments, margin))
+    candidates.sort(key=lambda c: c[0])
+    timings["passes_s"] = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    refusal: PlanRefused | None = None
+    for _, sign, segs_try, margin_try in candidates:
+        try:
+            path = solve_joint_path(segs_try, settings, kin)
+            segments, margin = segs_try, margin_try
+            break
+        except PlanRefused as exc:
+            log.info("plan_orientation_refused", sign=sign, reason=str(exc))
+            refusal = refusal or exc
+    else:
+        assert refusal is not None
+        raise refusal
+    timings["joint_path_s"] = time.perf_counter() - t2
+
+    t3 = time.perf_counter()
+    timing = time_segments(segments, settings)
+    timings["timing_s"] = time.perf_counter() - t3
+
+    t4 = time.perf_counter()
+    if with_coverage:
+        coverage = predict_coverage(segments, design, surface, placement, settings)
+    else:
+        coverage = CoverageReport(0.0, 0.0, 0, 0, settings.coverage_cell_mm, 0, 0)
+    timings["coverage_s"] = time.perf_counter() - t4
+    timings["total_s"] = time.perf_counter() - t0
+
+    plan = ScanPlan(
+        placement=placement,
+        footprint_mm=(surface.x_min_mm, surface.x_max_mm, surface.y_min_mm, surface.y_max_mm),
+        segments=segments,
+        trajectory=timing.trajectory,
+        coverage=coverage,
+        scan_speed_mm_s=settings.scan_speed_mm_s,
+        sweep_length_mm=timing.sweep_length_mm,
+        sweep_time_s=timing.sweep_time_s,
+        scan_time_s=timing.scan_time_s,
+        sweep_ratio=timing.sweep_ratio,
+        margin_mm=margin,
+        scan_speed_deviation=timing.scan_speed_deviation,
+        toppra_time_s=timing.toppra_time_s,
+        timings_s=timings,
+    )
+    log.info(
+        "scan_planned",
+        passes=sum(1 for s in segments if s.kind == "scan"),
+        edges=sum(1 for s in segments if s.kind == "edge"),
+        coverage=round(coverage.fraction, 4),
+        scan_time_s=round(timing.scan_time_s, 2),
+        sweep_ratio=round(timing.sweep_ratio, 4),
+        min_wrist_deg=round(path.min_wrist_deg, 2),
+        min_limit_margin_deg=round(path.min_limit_margin_deg, 2),
+        plan_s=round(timings["total_s"], 3),
+    )
+    return plan

@@ -1,0 +1,196 @@
+"""Planner settings: the numbers from ``cell.toml`` the planner needs, in one flat frozen record.
+
+Kept separate from the configuration models so the planner is callable from a notebook or a test
+without a configuration file; :meth:`PlannerSettings.from_config` builds one from a ``CellConfig``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+
+from cellctl.planning.plan import PlanInputError
+
+__all__ = ["PlannerSettings", "T_from_pos_rpy"]
+
+
+def T_from_pos_rpy(pos_mm, rpy_deg) -> np.ndarray:
+    """(4, 4) transform from a translation (mm) and roll-pitch-yaw (deg, fixed axes x, y, z)."""
+    r, p, y = np.deg2rad(np.asarray(rpy_deg, dtype=np.float64))
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3] = Rz @ Ry @ Rx
+    T[:3, 3] = np.asarray(pos_mm, dtype=np.float64)
+    return T
+
+
+def _default_T_flange_sensor() -> np.ndarray:
+    return T_from_pos_rpy([0.0, 0.0, 150.0], [0.0, 0.0, 0.0])
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    """Everything the coverage planner, the joint path and the timing need (mm, deg, s).
+
+    Sensor: ``line_width_mm`` (laser line length at the standoff), ``depth_min_mm`` /
+    ``depth_max_mm`` (measuring range along the sensor's +z), ``rate_hz`` (profiles per second).
+    Scan: ``standoff_mm`` along the surface normal, ``overlap_fraction`` between neighbouring
+    passes, ``speed_mm_s`` (None: as fast as the sensor rate allows at ``profile_spacing_mm``),
+    ``transit_speed_mm_s`` on links, edge passes (``edge_passes``, tilted ``edge_tilt_deg`` outward so
+    the thickness face is lit), placement uncertainty (``placement_uncertainty_mm`` shift,
+    ``placement_uncertainty_deg`` rotation), ``link_clearance_mm`` lift on links, ``approach_mm``
+    along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
+    Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
+    sensor origin, ``T_flange_sensor`` (4, 4) mm, ``wrist_margin_deg`` (min |q5|),
+    ``max_waypoint_joint_step_deg`` (a larger jump between neighbouring waypoints is a flip).
+    Coverage prediction: ``coverage_cell_mm``, ``coverage_profile_step_mm``, ``coverage_rays``,
+    ``max_incidence_deg``.
+    """
+
+    line_width_mm: float = 50.0
+    depth_min_mm: float = 70.0
+    depth_max_mm: float = 130.0
+    rate_hz: float = 200.0
+    standoff_mm: float = 100.0
+    overlap_fraction: float = 0.2
+    speed_mm_s: float | None = None
+    profile_spacing_mm: float = 0.5
+    transit_speed_mm_s: float = 250.0
+    edge_passes: bool = True
+    edge_tilt_deg: float = 30.0
+    placement_uncertainty_mm: float = 30.0
+    placement_uncertainty_deg: float = 2.0
+    link_clearance_mm: float = 30.0
+    approach_mm: float = 100.0
+    waypoint_step_mm: float = 20.0
+    joint_lower_deg: tuple[float, ...] = (-180.0, -90.0, -180.0, -400.0, -125.0, -400.0)
+    joint_upper_deg: tuple[float, ...] = (180.0, 150.0, 75.0, 400.0, 120.0, 400.0)
+    joint_margin_deg: float = 2.0
+    joint_speed_max_deg_s: tuple[float, ...] = (175.0, 175.0, 175.0, 250.0, 250.0, 360.0)
+    joint_accel_max_deg_s2: tuple[float, ...] = (300.0, 300.0, 300.0, 600.0, 600.0, 800.0)
+    joint_jerk_max_deg_s3: tuple[float, ...] = (3000.0, 3000.0, 3000.0, 6000.0, 6000.0, 8000.0)
+    tcp_speed_max_mm_s: float = 250.0
+    workspace_min_mm: tuple[float, ...] = (-500.0, -2000.0, 100.0)
+    workspace_max_mm: tuple[float, ...] = (2600.0, 2000.0, 2400.0)
+    T_flange_sensor: np.ndarray = field(default_factory=_default_T_flange_sensor)
+    wrist_margin_deg: float = 5.0
+    max_waypoint_joint_step_deg: float = 15.0
+    coverage_cell_mm: float = 5.0
+    coverage_profile_step_mm: float = 3.0
+    coverage_rays: int = 21
+    max_incidence_deg: float = 80.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            arr = np.asarray(v, dtype=np.float64) if f.name != "speed_mm_s" or v is not None else None
+            if arr is not None and not np.all(np.isfinite(arr)):
+                raise PlanInputError(f"settings.{f.name}: must be finite, got {v!r}")
+        positive = [
+            "line_width_mm",
+            "depth_min_mm",
+            "depth_max_mm",
+            "rate_hz",
+            "standoff_mm",
+            "profile_spacing_mm",
+            "transit_speed_mm_s",
+            "tcp_speed_max_mm_s",
+            "waypoint_step_mm",
+            "coverage_cell_mm",
+            "coverage_profile_step_mm",
+            "approach_mm",
+        ]
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise PlanInputError(f"settings.{name}: must be positive, got {getattr(self, name)!r}")
+        if self.speed_mm_s is not None and not self.speed_mm_s > 0:
+            raise PlanInputError(
+                f"settings.speed_mm_s: must be positive or None (auto), got {self.speed_mm_s!r}"
+            )
+        if not 0 <= self.overlap_fraction < 0.9:
+            raise PlanInputError(
+                f"settings.overlap_fraction: must be in [0, 0.9), got {self.overlap_fraction!r}"
+            )
+        if not self.depth_min_mm < self.standoff_mm < self.depth_max_mm:
+            raise PlanInputError(
+                f"settings.standoff_mm: {self.standoff_mm} is outside the depth range "
+                f"[{self.depth_min_mm}, {self.depth_max_mm}]"
+            )
+        if not 0 <= self.edge_tilt_deg < 80:
+            raise PlanInputError(f"settings.edge_tilt_deg: must be in [0, 80), got {self.edge_tilt_deg!r}")
+        if self.placement_uncertainty_mm < 0 or not 0 <= self.placement_uncertainty_deg < 45:
+            raise PlanInputError("settings.placement_uncertainty_mm/_deg: must be >= 0 (and deg < 45)")
+        if self.coverage_rays < 2:
+            raise PlanInputError(f"settings.coverage_rays: must be >= 2, got {self.coverage_rays}")
+        T = np.asarray(self.T_flange_sensor, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise PlanInputError(f"settings.T_flange_sensor: must be (4, 4), got {T.shape}")
+        for name in ("joint_lower_deg", "joint_upper_deg", "joint_speed_max_deg_s", "joint_accel_max_deg_s2"):
+            if len(getattr(self, name)) != 6:
+                raise PlanInputError(f"settings.{name}: needs 6 values")
+
+    @property
+    def scan_speed_mm_s(self) -> float:
+        """TCP speed on sweeps: the configured speed, or profile spacing x sensor rate ("auto"),
+        never above 90 % of the TCP speed cap (headroom for the executor's tracking)."""
+        v = self.speed_mm_s if self.speed_mm_s is not None else self.profile_spacing_mm * self.rate_hz
+        return float(min(v, 0.9 * self.tcp_speed_max_mm_s))
+
+    @property
+    def pass_step_mm(self) -> float:
+        """Largest distance between neighbouring raster passes."""
+        return self.line_width_mm * (1.0 - self.overlap_fraction)
+
+    @property
+    def q_min_deg(self) -> np.ndarray:
+        """(6,) lower joint limits shrunk by the margin, deg."""
+        return np.asarray(self.joint_lower_deg) + self.joint_margin_deg
+
+    @property
+    def q_max_deg(self) -> np.ndarray:
+        """(6,) upper joint limits shrunk by the margin, deg."""
+        return np.asarray(self.joint_upper_deg) - self.joint_margin_deg
+
+    def with_(self, **changes) -> PlannerSettings:
+        """A copy with some fields changed."""
+        return replace(self, **changes)
+
+    @classmethod
+    def from_config(cls, cfg) -> PlannerSettings:
+        """Settings from a :class:`cellctl.config.CellConfig` (``[robot]``, ``[laser]``, ``[scan]``)."""
+        r, laser, s = cfg.robot, cfg.laser, cfg.scan
+        extra = {}
+        for name in ("edge_tilt_deg", "link_clearance_mm", "approach_mm"):
+            if hasattr(s, name):
+                extra[name] = getattr(s, name)
+        if hasattr(r, "wrist_margin_deg"):
+            extra["wrist_margin_deg"] = r.wrist_margin_deg
+        return cls(
+            line_width_mm=laser.line_width_mm,
+            depth_min_mm=laser.depth_min_mm,
+            depth_max_mm=laser.depth_max_mm,
+            rate_hz=laser.rate_hz,
+            standoff_mm=s.standoff_mm,
+            overlap_fraction=s.overlap_fraction,
+            speed_mm_s=None if s.speed_mm_s == "auto" else float(s.speed_mm_s),
+            profile_spacing_mm=s.profile_spacing_mm,
+            transit_speed_mm_s=s.transit_speed_mm_s,
+            edge_passes=s.edge_passes,
+            placement_uncertainty_mm=s.placement_uncertainty_mm,
+            placement_uncertainty_deg=s.placement_uncertainty_deg,
+            joint_lower_deg=tuple(r.joint_lower_deg),
+            joint_upper_deg=tuple(r.joint_upper_deg),
+            joint_margin_deg=r.joint_margin_deg,
+            joint_speed_max_deg_s=tuple(r.joint_speed_max_deg_s),
+            joint_accel_max_deg_s2=tuple(r.joint_accel_max_deg_s2),
+            joint_jerk_max_deg_s3=tuple(r.joint_jerk_max_deg_s3),
+            tcp_speed_max_mm_s=r.tcp_speed_max_mm_s,
+            workspace_min_mm=tuple(r.workspace_min_mm),
+            workspace_max_mm=tuple(r.workspace_max_mm),
+            T_flange_sensor=T_from_pos_rpy(r.sensor_in_flange.pos_mm, r.sensor_in_flange.rpy_deg),
+            **extra,
+        )
