@@ -275,10 +275,10 @@ class HD8Client(ProfileSource):
                 if not opened.done():
                     opened.set_result(None)
                 if outage:
+                    await self._restart_if_needed()  # raises if control is unreachable: retry later
                     self.stats.reconnects += 1
                     self._emit(SourceEventKind.RECONNECTED, resume_from=self.stats.last_frame_index + 1)
                     log.info("hd8_reconnected", resume_from=self.stats.last_frame_index + 1)
-                    await self._restart_if_needed()
                     outage = False
                 self._data_seen = False
                 await self._read_data()
@@ -318,15 +318,32 @@ class HD8Client(ProfileSource):
         self._data_reader = reader
 
     async def _restart_if_needed(self) -> None:
-        """After an outage the sensor may have restarted: reopen control and START it again if needed."""
-        try:
-            if self._ctl is None:
-                await self._open_control()
-            state = await self.get_state()
-            if self._want_running and state.state != P.SensorState.RUNNING:
-                await self.command(P.CommandId.START)
-        except (OSError, P.ProtocolError) as exc:
-            log.warning("hd8_control_recover_failed", error=str(exc))
+        """After an outage the sensor may have restarted: reopen control and START it again if needed.
+
+        Raises:
+            OSError, ProtocolError: control is unreachable (the supervisor retries with backoff).
+        """
+        for attempt in range(2):
+            try:
+                if self._ctl is None:
+                    await self._open_control()
+                state = await self.get_state()
+                break
+            except (OSError, P.ProtocolError) as exc:
+                # The old control connection may be dead without having noticed yet: one fresh try.
+                await self._close_control()
+                if attempt == 1:
+                    log.warning("hd8_control_recover_failed", error=str(exc))
+                    raise
+        last = self.stats.last_frame_index
+        if state.next_frame_index <= last:
+            # The sensor's frame counter went backwards: it restarted. Its frames start again at 0
+            # and its clock restarted too; accept the new numbering and tell the consumer.
+            self.stats.last_frame_index = state.next_frame_index - 1
+            self._emit(SourceEventKind.RESTARTED, last_frame=last, next_frame=state.next_frame_index)
+            log.warning("hd8_sensor_restarted", last_frame=last, next_frame=state.next_frame_index)
+        if self._want_running and state.state != P.SensorState.RUNNING:
+            await self.command(P.CommandId.START)
 
     async def _read_data(self) -> None:
         reader = self._data_reader

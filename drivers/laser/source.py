@@ -117,6 +117,7 @@ class SourceEventKind(enum.StrEnum):
     RECONNECTED = "reconnected"
     OVERFLOW = "overflow"  # the bounded buffer was full and frames were dropped
     GAP = "gap"  # the frame index jumped: the sensor lost frames
+    RESTARTED = "restarted"  # the sensor restarted: frame index and sensor clock start afresh
 
 
 @dataclass(frozen=True)

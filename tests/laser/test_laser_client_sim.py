@@ -15,7 +15,7 @@ from laser_helpers import collect, looking_down, run, sim_and_client
 from drivers.laser import protocol as P
 from drivers.laser.client import HD8Client, HD8ClientConfig
 from drivers.laser.scene import plane_scene
-from drivers.laser.sim import LaserSimulator, SimConfig
+from drivers.laser.sim import LaserSimulator, SimConfig, fixed_pose
 from drivers.laser.source import ProfileBatch, SourceEventKind
 
 FAST = SimConfig(rate_hz=1000.0, outlier_probability=0.0, seed=1)
@@ -471,5 +471,35 @@ def test_random_drops_and_corruption_are_counted_and_never_break_order() -> None
             assert st.decode_errors > 0 and st.missing_frames > 0
             assert st.reconnects == 0 and st.duplicates_dropped == 0
             assert sim.stats.frames_dropped_fault > 0
+
+    run(scenario())
+
+
+def test_client_follows_a_sensor_that_restarted_on_the_same_ports() -> None:
+    async def scenario() -> None:
+        cfg = HD8ClientConfig(reconnect_initial_s=0.02, keepalive_interval_s=0.1)
+        async with sim_and_client(config=FAST, client_config=cfg) as (sim, client):
+            await client.start()
+            before = frames_of(await collect(client, 300))
+            ctl, dat = client.control_port, client.data_port
+            await sim.stop()
+            sim2 = LaserSimulator(
+                plane_scene(0.0),
+                fixed_pose(looking_down(100.0)),
+                config=FAST,
+                control_port=ctl,
+                data_port=dat,
+            )
+            await sim2.start()
+            try:
+                kinds = []
+                while SourceEventKind.RESTARTED not in kinds:
+                    kinds.append((await asyncio.wait_for(client.events.get(), 5.0)).kind)
+                after = frames_of(await collect(client, 50))
+                assert before[-1] >= 299 and after[0] < 50  # numbering restarted, frames accepted
+                assert np.all(np.diff(after) == 1)
+                assert sim2.running  # the client started the new sensor again
+            finally:
+                await sim2.stop()
 
     run(scenario())
