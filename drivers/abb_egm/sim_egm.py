@@ -544,9 +544,12 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             self._v_deg_s[:] = 0.0
         # Per cycle, as the manual describes it (p.26): sample the feedback, send it, then read the
         # newest reference and move for one cycle. Only the last of several overdue cycles sends.
+        # The trajectory gets the position at the end of the cycle at once: the motion over the
+        # cycle is fixed when the cycle starts, and readers then rarely ask beyond the newest sample.
         for k in range(steps):
             t_k = t_true - (steps - 1 - k) * dt
-            self.trajectory.append(t_k, self._q_deg)
+            if len(self.trajectory) == 0:
+                self.trajectory.append(t_k, self._q_deg)
             # \SampleRate is a multiple of 4 ms: a session sends every n-th servo cycle
             every = max(1, round(params["sample_rate_ms"] / 4.0)) if self._running else 1
             self._cycle_count += 1
@@ -561,6 +564,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             elif motors_on:
                 # outside a session the arm settles: commanded speed 0 through the same filter
                 self._filter_and_move(np.zeros(6), dt, params["lp_filter_hz"])
+            self.trajectory.append(t_k + dt, self._q_deg)
         self.stats.cycles += steps
 
     def _start_session(self, t: float) -> None:
