@@ -1,0 +1,90 @@
+"""`cellctl report JOB_OR_DIR [--open]`: regenerate a job's report (HTML, PDF, CSV) from its stored results."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import webbrowser
+from pathlib import Path
+
+from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help="regenerate report.html, report.pdf and report.csv from a job's stored results",
+        description=(
+            "Make the inspection report again from a results directory (report.json and results.npz). "
+            "JOB_OR_DIR is a directory, or a job id looked up in <[cell] data_dir>/jobs/<JOB>."
+        ),
+    )
+    p.add_argument("target", metavar="JOB_OR_DIR", help="results directory or job id")
+    p.add_argument("--open", action="store_true", help="open report.html in the desktop's browser")
+    p.add_argument(
+        "--config", default=str(DEFAULT_CONFIG_PATH), help="cell.toml for job ids (default: ./cell.toml)"
+    )
+    p.set_defaults(func=run)
+
+
+def resolve_results_dir(target: str, config_path: str) -> Path:
+    """The results directory a JOB_OR_DIR argument names.
+
+    An existing directory wins; otherwise ``target`` is a job id under ``<data_dir>/jobs/``.
+    Raises FileNotFoundError (with the places looked at) or ConfigError.
+    """
+    as_dir = Path(target)
+    if as_dir.is_dir():
+        return as_dir
+    if any(sep in target for sep in ("/", os.sep)) or target in (".", ".."):
+        raise FileNotFoundError(f"{target}: no such directory")
+    config = load_config(config_path)
+    job_dir = config.cell.data_dir / "jobs" / target
+    if not job_dir.is_dir():
+        raise FileNotFoundError(f"{target}: neither a directory nor a job in {config.cell.data_dir / 'jobs'}")
+    return job_dir
+
+
+def _open(path: Path) -> bool:
+    """Open ``path`` in the desktop's browser; False when there is no desktop to open it on."""
+    if sys.platform.startswith("linux") and not (
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    ):
+        return False
+    opener = shutil.which("xdg-open")
+    if opener:
+        # detached: the browser must outlive this command
+        subprocess.Popen(
+            [opener, str(path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+        )
+        return True
+    return webbrowser.open(path.resolve().as_uri())
+
+
+def run(args: argparse.Namespace) -> int:
+    # Imported here: `cellctl --help` must not pay for matplotlib.
+    from analysis.report import ReportError, write_report
+
+    try:
+        results_dir = resolve_results_dir(args.target, args.config)
+    except ConfigError as err:
+        for problem in err.problems:
+            print(f"{err.source}: {problem}", file=sys.stderr)
+        return 2
+    except FileNotFoundError as exc:
+        print(f"cellctl report: {exc}", file=sys.stderr)
+        return 2
+    try:
+        written = write_report(results_dir)
+    except ReportError as exc:
+        print(f"cellctl report: {exc}", file=sys.stderr)
+        return 2
+    for path in written:
+        print(path)
+    html_path = next(p for p in written if p.suffix == ".html")
+    if args.open and not _open(html_path):
+        print(f"no desktop browser available; open {html_path.resolve()}")
+    return 0
