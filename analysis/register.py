@@ -1,0 +1,946 @@
+"""Registration of the design surface to a measured plate: section 2.2 of the paper.
+
+Three stages, each a pure function returning a small result object:
+
+1. :func:`coarse_register` -- the paper's boundary fit (2.2.1): corner centroids, the diagonal
+   normals, the edge midpoints snapped to the data, Kabsch/SVD. The order of the measured corners
+   relative to the design's is only known up to a cyclic shift, so :func:`register` tries every
+   shift and keeps the one whose ICP fit is best (this resolves the 180 degree turn of a nearly
+   symmetric plate).
+2. :func:`icp_point_to_plane` -- point-to-plane ICP (2.2.2) of the measured points against the
+   design surface.
+3. :func:`nonpenetrating_fit` -- the one-sided fit (2.2.3): the design rests on the measured plate
+   like a worker's template, on or above every measured point in the deflection direction, as
+   close as possible in the least-squares sense. Solved on every surface point: linearised
+   rotation, six unknowns, one linear constraint per point with its exact Jacobian, an exact
+   active-set solution of that small quadratic programme, correspondences renewed in an outer loop.
+
+The design surface is used through a :class:`HeightField`: the design mesh (top surface, design
+plate frame, z up -- the convention of ``analysis.plates``) rasterised once onto a regular grid,
+so that a correspondence for a million points is a bilinear lookup (O(n) numpy, no k-d tree).
+
+Frames: every transform is a 4x4 homogeneous matrix in millimetres, ``T_meas_design`` maps design
+coordinates into the measurement (robot base) frame. The deflection direction is +z of the
+measurement frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import structlog
+
+from analysis.mesh import TriMesh
+
+log = structlog.get_logger(__name__)
+
+
+class RegistrationError(ValueError):
+    """Inputs that cannot be registered: wrong shapes, no overlap with the design, degenerate corners."""
+
+
+# --------------------------------------------------------------------------------------------------
+# small rigid-body helpers
+
+
+def _check_points(name: str, points: np.ndarray, min_count: int = 1) -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise RegistrationError(f"{name} must be (n, 3) mm, got shape {p.shape}")
+    if len(p) < min_count:
+        raise RegistrationError(f"{name} needs at least {min_count} points, got {len(p)}")
+    if not np.isfinite(p).all():
+        raise RegistrationError(f"{name} contains non-finite coordinates")
+    return p
+
+
+def _check_transform(name: str, T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise RegistrationError(f"{name} must be a finite 4x4 transform, got shape {T.shape}")
+    return T
+
+
+def make_transform(R: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
+    """The 4x4 homogeneous transform ``x -> R x + t_mm`` (R (3, 3), t_mm (3,) mm)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t_mm
+    return T
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (uses R^T, no general matrix inverse)."""
+    R = T[:3, :3]
+    return make_transform(R.T, -R.T @ T[:3, 3])
+
+
+def apply_transform(T: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
+    """Points (n, 3) mm moved by the 4x4 transform ``T``."""
+    # a contiguous 3x3 operand keeps matmul on its fast path (a transposed view is several times slower)
+    out = points_mm @ np.ascontiguousarray(T[:3, :3].T)
+    out += T[:3, 3]
+    return out
+
+
+def rotation_from_vector(omega_rad: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``omega_rad`` (3,) (exponential map, Rodrigues)."""
+    theta = float(np.linalg.norm(omega_rad))
+    if theta < 1e-15:
+        return np.eye(3)
+    k = omega_rad / theta
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking direction ``a`` (3,) onto direction ``b`` (3,)."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    v = np.cross(a, b)
+    s = float(np.linalg.norm(v))
+    c = float(a @ b)
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        # antiparallel: half turn about any axis perpendicular to a
+        perp = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        return rotation_from_vector(np.pi * perp / np.linalg.norm(perp))
+    return rotation_from_vector(v / s * np.arctan2(s, c))
+
+
+def kabsch(source_mm: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+    """Least-squares rigid transform (4x4) taking ``source_mm`` (n, 3) onto ``target_mm`` (n, 3).
+
+    SVD of the cross-covariance of the centred point sets, with the reflection guard.
+    """
+    cs = source_mm.mean(axis=0)
+    ct = target_mm.mean(axis=0)
+    H = (source_mm - cs).T @ (target_mm - ct)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d if d != 0 else 1.0]) @ U.T
+    return make_transform(R, ct - R @ cs)
+
+
+def pose_error(T_a: np.ndarray, T_b: np.ndarray, points_mm: np.ndarray) -> tuple[float, float]:
+    """(max displacement in mm over ``points_mm``, rotation angle in degrees) between two poses."""
+    d = apply_transform(T_a, points_mm) - apply_transform(T_b, points_mm)
+    R = T_a[:3, :3].T @ T_b[:3, :3]
+    angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(np.linalg.norm(d, axis=1).max()), float(angle)
+
+
+# --------------------------------------------------------------------------------------------------
+# the design surface as a height field
+
+
+@dataclass(frozen=True)
+class HeightField:
+    """The design's top surface z = f(x, y) on a regular grid, design plate frame, mm.
+
+    ``z_mm`` is (ny, nx): the height at node (j, i), which lies at
+    ``(x0_mm + i * step_mm, y0_mm + j * step_mm)``; NaN outside the design's footprint. Between
+    nodes the surface is the bilinear interpolant, and its slopes are that interpolant's exact
+    derivatives (so Newton steps and Jacobians agree with the surface the gaps are measured to).
+    """
+
+    x0_mm: float
+    y0_mm: float
+    step_mm: float
+    z_mm: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.z_mm.shape[0], self.z_mm.shape[1]
+
+    def points_mm(self, stride: int = 1) -> np.ndarray:
+        """(n, 3) the grid nodes on the surface (every ``stride``-th node per axis), mm."""
+        ny, nx = self.shape
+        j, i = np.mgrid[0:ny:stride, 0:nx:stride]
+        z = self.z_mm[j, i]
+        ok = np.isfinite(z)
+        return np.column_stack([self.x0_mm + i[ok] * self.step_mm, self.y0_mm + j[ok] * self.step_mm, z[ok]])
+
+    def evaluate(self, xy_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Bilinear lookup at (n, 2) positions, mm.
+
+        Returns ``(z_mm (n,), slope (n, 2) dz/dx and dz/dy, valid (n,) bool)``; invalid points (off
+        the footprint) have z = slope = 0.
+        """
+        ny, nx = self.shape
+        h = self.step_mm
+        fx = (xy_mm[:, 0] - self.x0_mm) / h
+        fy = (xy_mm[:, 1] - self.y0_mm) / h
+        ix = np.floor(fx)
+        iy = np.floor(fy)
+        valid = (ix >= 0) & (ix < nx - 1) & (iy >= 0) & (iy < ny - 1)
+        k = (np.where(valid, iy, 0) * nx + np.where(valid, ix, 0)).astype(np.intp)
+        ax = fx - ix
+        ay = fy - iy
+        flat = self.z_mm.reshape(-1)
+        z00 = np.take(flat, k)
+        z10 = np.take(flat, k + 1)
+        z01 = np.take(flat, k + nx)
+        z11 = np.take(flat, k + nx + 1)
+        zb = z00 + (z10 - z00) * ax  # along x at the cell's lower y
+        zt = z01 + (z11 - z01) * ax
+        z = zb + (zt - zb) * ay
+        slope = np.empty((len(z), 2))
+        slope[:, 0] = ((z10 - z00) * (1 - ay) + (z11 - z01) * ay) / h
+        slope[:, 1] = (zt - zb) / h
+        valid &= np.isfinite(z)
+        bad = ~valid
+        z[bad] = 0.0
+        slope[bad] = 0.0
+        return z, slope, valid
+
+
+def height_field_from_mesh(mesh: TriMesh, step_mm: float = 1.0) -> HeightField:
+    """Rasterise a design mesh (top surface, z up, design plate frame) onto a grid of ``step_mm``.
+
+    Every grid node inside a triangle's XY projection gets the triangle's linear interpolant, so the
+    field reproduces the mesh exactly at the nodes (and within kappa * step^2 / 8 between them).
+    Vectorised over (triangle, node) pairs. Raises :class:`RegistrationError` when the mesh is not a
+    height field over its footprint (no triangle faces up).
+    """
+    if step_mm <= 0:
+        raise RegistrationError(f"step_mm must be positive, got {step_mm}")
+    tv = mesh.triangle_vertices_mm
+    if len(tv) == 0:
+        raise RegistrationError("design mesh has no triangles")
+    lo = mesh.vertices_mm[:, :2].min(axis=0)
+    hi = mesh.vertices_mm[:, :2].max(axis=0)
+    nx = int(np.floor((hi[0] - lo[0]) / step_mm)) + 1
+    ny = int(np.floor((hi[1] - lo[1]) / step_mm)) + 1
+    if nx < 2 or ny < 2:
+        raise RegistrationError(f"design footprint {hi - lo} mm is smaller than two grid steps")
+    # barycentric set-up per triangle in XY
+    a, b, c = tv[:, 0], tv[:, 1], tv[:, 2]
+    det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+    keep = np.abs(det) > 1e-12  # vertical triangles (thickness faces) have no height
+    if not keep.any():
+        raise RegistrationError("design mesh has no triangle with an XY footprint (not a height field)")
+    a, b, c, det = a[keep], b[keep], c[keep], det[keep]
+    txy = np.stack([a[:, :2], b[:, :2], c[:, :2]], axis=1)
+    i0 = np.ceil((txy[:, :, 0].min(axis=1) - lo[0]) / step_mm - 1e-9).astype(np.int64)
+    i1 = np.floor((txy[:, :, 0].max(axis=1) - lo[0]) / step_mm + 1e-9).astype(np.int64)
+    j0 = np.ceil((txy[:, :, 1].min(axis=1) - lo[1]) / step_mm - 1e-9).astype(np.int64)
+    j1 = np.floor((txy[:, :, 1].max(axis=1) - lo[1]) / step_mm + 1e-9).astype(np.int64)
+    wi = np.maximum(i1 - i0 + 1, 0)
+    wj = np.maximum(j1 - j0 + 1, 0)
+    count = wi * wj
+    tri = np.repeat(np.arange(len(a)), count)
+    start = np.cumsum(count) - count
+    local = np.arange(count.sum()) - np.repeat(start, count)
+    gi = i0[tri] + local % wi[tri]
+    gj = j0[tri] + local // wi[tri]
+    px = lo[0] + gi * step_mm
+    py = lo[1] + gj * step_mm
+    at, bt, ct, dt = a[tri], b[tri], c[tri], det[tri]
+    w1 = ((px - at[:, 0]) * (ct[:, 1] - at[:, 1]) - (ct[:, 0] - at[:, 0]) * (py - at[:, 1])) / dt
+    w2 = ((bt[:, 0] - at[:, 0]) * (py - at[:, 1]) - (px - at[:, 0]) * (bt[:, 1] - at[:, 1])) / dt
+    w0 = 1.0 - w1 - w2
+    eps = 1e-9
+    inside = (w0 >= -eps) & (w1 >= -eps) & (w2 >= -eps)
+    z = w0 * at[:, 2] + w1 * bt[:, 2] + w2 * ct[:, 2]
+    height = np.full((ny, nx), np.nan)
+    # on shared edges both triangles give the same value; which one wins does not matter
+    height[gj[inside], gi[inside]] = z[inside]
+    if not np.isfinite(height).any():
+        raise RegistrationError("design mesh rasterised to an empty height field")
+    return HeightField(float(lo[0]), float(lo[1]), float(step_mm), height)
+
+
+# --------------------------------------------------------------------------------------------------
+# 1. coarse fit from the corners (2.2.1)
+
+
+@dataclass(frozen=True)
+class CoarseResult:
+    """The paper's boundary-based coarse fit for one corner correspondence.
+
+    transform: (4, 4) design -> measured, mm.
+    shift: measured corner ``(k + shift) % 4`` was matched with design corner ``k``.
+    corner_rms_mm: RMS distance of the moved design corners to the measured corners.
+    midpoint_rms_mm: RMS distance of the moved design edge midpoints to the measured ones.
+    """
+
+    transform: np.ndarray
+    shift: int
+    corner_rms_mm: float
+    midpoint_rms_mm: float
+
+
+def _check_corners(name: str, corners: np.ndarray) -> np.ndarray:
+    c = np.asarray(corners, dtype=np.float64)
+    if c.shape != (4, 3) or not np.isfinite(c).all():
+        raise RegistrationError(f"{name} must be a finite (4, 3) array of corners in mm, got shape {c.shape}")
+    n = np.cross(c[2] - c[0], c[3] - c[1])
+    if np.linalg.norm(n) < 1e-6 * max(1.0, float(np.ptp(c, axis=0).max()) ** 2):
+        raise RegistrationError(f"{name}: degenerate corners (diagonals are parallel)")
+    return c
+
+
+def _snap_to_cloud(query_mm: np.ndarray, cloud_mm: np.ndarray | None, normal: np.ndarray) -> np.ndarray:
+    """The cloud point under each of a few query points, seen along the plate normal.
+
+    The chord midpoint of a curved edge lies tens of millimetres off the surface, where the
+    nearest point in 3-D slides along a flat-bottomed edge; seen along the normal of the diagonal
+    plane the edge's midpoint is sharply defined. Brute force: a k-d tree for 4 points costs more.
+    """
+    if cloud_mm is None or len(cloud_mm) == 0:
+        return query_mm
+    n = normal / np.linalg.norm(normal)
+    out = np.empty_like(query_mm)
+    for k, q in enumerate(query_mm):  # 4 queries, each vectorised over the cloud
+        d = cloud_mm - q
+        d2 = (d**2).sum(axis=1) - (d @ n) ** 2
+        out[k] = cloud_mm[int(np.argmin(d2))]
+    return out
+
+
+def coarse_register(
+    design_corners_mm: np.ndarray,
+    measured_corners_mm: np.ndarray,
+    *,
+    design_points_mm: np.ndarray | None = None,
+    measured_points_mm: np.ndarray | None = None,
+    shift: int = 0,
+) -> CoarseResult:
+    """The paper's three-step coarse registration for one corner correspondence.
+
+    design_corners_mm, measured_corners_mm: (4, 3) mm, counter-clockwise seen from +z.
+    design_points_mm, measured_points_mm: optional (n, 3) clouds; the edge midpoints are snapped to
+    the cloud as the paper does (the chord midpoint of a curved edge is off the surface), nearest
+    as seen along the diagonal normal.
+    shift: measured corner ``(k + shift) % 4`` corresponds to design corner ``k``.
+
+    Steps: (1) corner centroid onto corner centroid (corners rather than the cloud centroid, which
+    moves with uneven sampling and missing returns); (2) rotate the design's diagonal normal
+    (cross product of the diagonals) onto the measured one; (3) Kabsch/SVD on the edge midpoints and
+    corners for the remaining in-plane rotation, translation from the centroid difference.
+    """
+    D = _check_corners("design_corners_mm", design_corners_mm)
+    M = np.roll(_check_corners("measured_corners_mm", measured_corners_mm), -int(shift), axis=0)
+    # (1) centroids
+    cD, cM = D.mean(axis=0), M.mean(axis=0)
+    # (2) diagonal normals
+    nD = np.cross(D[2] - D[0], D[3] - D[1])
+    nM = np.cross(M[2] - M[0], M[3] - M[1])
+    R1 = rotation_between(nD, nM)
+    T1 = make_transform(R1, cM - R1 @ cD)
+    # (3) edge midpoints snapped to the data, then SVD
+    mid_D = _snap_to_cloud(0.5 * (D + np.roll(D, -1, axis=0)), design_points_mm, nD)
+    mid_M = _snap_to_cloud(0.5 * (M + np.roll(M, -1, axis=0)), measured_points_mm, nM)
+    src = apply_transform(T1, np.vstack([mid_D, D]))
+    dst = np.vstack([mid_M, M])
+    T2 = kabsch(src, dst)
+    T = T2 @ T1
+    corner_rms = float(np.sqrt(((apply_transform(T, D) - M) ** 2).sum(axis=1).mean()))
+    mid_rms = float(np.sqrt(((apply_transform(T, mid_D) - mid_M) ** 2).sum(axis=1).mean()))
+    return CoarseResult(T, int(shift) % 4, corner_rms, mid_rms)
+
+
+# --------------------------------------------------------------------------------------------------
+# 2. point-to-plane ICP (2.2.2)
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    """Point-to-plane ICP of measured points against the design surface.
+
+    transform: (4, 4) design -> measured, mm.
+    rms_mm: RMS point-to-plane distance over the inliers at the end.
+    iterations: Gauss-Newton steps taken. converged: the last step was below the tolerance.
+    inliers: points used in the last step (on the footprint, within the rejection distance).
+    """
+
+    transform: np.ndarray
+    rms_mm: float
+    iterations: int
+    converged: bool
+    inliers: int
+
+
+def _corner_terms(
+    T_inv: np.ndarray,
+    corners: tuple[np.ndarray, np.ndarray] | None,
+    c: np.ndarray,
+    scale: float,
+    weight: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Linearised in-plane corner residuals (boundary anchoring), rows already weighted.
+
+    corners: (design (4, 3), matched measured (4, 3)) or None. The measured corners are taken into
+    the design frame and compared with the design corners in x and y only: a surface fit cannot
+    tell where on a nearly spherical plate it sits (sliding along the sphere costs almost nothing),
+    the boundary can; the heights stay with the surface, which is measured far better than the
+    corners. Returns ``(K (8, 6), e (8,))`` with the same parameter scaling as the surface rows,
+    or empty arrays.
+    """
+    if corners is None or weight <= 0.0:
+        return np.zeros((0, 6)), np.zeros(0)
+    d, m = corners
+    a = apply_transform(T_inv, m)
+    e = (a - d)[:, :2]
+    r = a - c
+    K = np.zeros((4, 2, 6))
+    # d/d(omega) of (p + omega x r) is -[r]x ; rows x and y of it
+    K[:, 0, 1], K[:, 0, 2] = r[:, 2], -r[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = -r[:, 2], r[:, 0]
+    K[:, :, :3] /= scale
+    K[:, 0, 3] = 1.0
+    K[:, 1, 4] = 1.0
+    w = np.sqrt(weight)
+    return w * K.reshape(8, 6), w * e.reshape(8)
+
+
+def _matched_corners(
+    design_corners_mm: np.ndarray | None, measured_corners_mm: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray] | None:
+    if design_corners_mm is None or measured_corners_mm is None:
+        return None
+    return (
+        _check_corners("design_corners_mm", design_corners_mm),
+        _check_corners("measured_corners_mm", measured_corners_mm),
+    )
+
+
+def _subsample(points: np.ndarray, max_points: int | None, seed: int) -> np.ndarray:
+    if max_points is None or len(points) <= max_points:
+        return points
+    idx = np.random.default_rng(seed).choice(len(points), size=max_points, replace=False)
+    return points[idx]
+
+
+def _surface_normals(slope: np.ndarray) -> np.ndarray:
+    n = np.column_stack([-slope[:, 0], -slope[:, 1], np.ones(len(slope))])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def icp_point_to_plane(
+    surface: HeightField,
+    measured_points_mm: np.ndarray,
+    T_init: np.ndarray,
+    *,
+    max_iterations: int = 50,
+    tolerance_mm: float = 1e-4,
+    max_distance_mm: float = 50.0,
+    min_distance_mm: float = 1.0,
+    max_points: int | None = 200_000,
+    seed: int = 0,
+    design_corners_mm: np.ndarray | None = None,
+    measured_corners_mm: np.ndarray | None = None,
+    boundary_weight: float = 1e-3,
+) -> IcpResult:
+    """Point-to-plane ICP, vectorised: correspondences by vertical projection onto the height field.
+
+    surface: the design top surface (design frame). measured_points_mm: (n, 3) mm, measured frame.
+    T_init: (4, 4) design -> measured start pose. Each step linearises the rotation about the
+    centroid and solves the 6x6 normal equations of sum (n . (p - q))^2. Points off the footprint
+    or farther than the rejection distance are dropped; the distance starts at ``max_distance_mm``
+    and shrinks to 3 robust sigmas (never below ``min_distance_mm``), so forming errors stay in and
+    stray points go. Stops when the step moves no point by more than ``tolerance_mm``.
+    ``max_points`` subsamples the cloud (seeded) -- ICP does not need every point; the
+    non-penetrating fit does.
+    design_corners_mm, measured_corners_mm: optional matched (4, 3) corners (design frame /
+    measured frame, same order) that anchor the plate in its own plane; their in-plane residuals
+    enter with total weight ``boundary_weight`` times the number of surface points.
+    """
+    corners = _matched_corners(design_corners_mm, measured_corners_mm)
+    P = _subsample(_check_points("measured_points_mm", measured_points_mm, 6), max_points, seed)
+    T_inv = invert_transform(_check_transform("T_init", T_init))
+    threshold = float(max_distance_mm)
+    rms, inl, converged, iterations = float("nan"), 0, False, 0
+    for it in range(1, max_iterations + 1):
+        iterations = it
+        p = apply_transform(T_inv, P)
+        z, slope, valid = surface.evaluate(p[:, :2])
+        n = _surface_normals(slope)
+        r = (p[:, 2] - z) * n[:, 2]  # signed distance to the tangent plane at the vertical projection
+        use = valid & (np.abs(r) < threshold)
+        inl = int(use.sum())
+        if inl < 6:
+            raise RegistrationError(
+                f"ICP: only {inl} measured points lie over the design within {threshold:.1f} mm; "
+                "the cloud does not overlap the design"
+            )
+        pu, nu, ru = p[use], n[use], r[use]
+        c = pu.mean(axis=0)
+        scale = float(np.sqrt(((pu - c) ** 2).sum(axis=1).mean())) or 1.0
+        J = np.hstack([np.cross(pu - c, nu) / scale, nu])
+        K, e = _corner_terms(T_inv, corners, c, scale, boundary_weight * inl / 8.0)
+        H = J.T @ J + K.T @ K
+        H[np.diag_indices(6)] += 1e-12 * np.trace(H)
+        x = np.linalg.solve(H, -(J.T @ ru + K.T @ e))
+        omega, t = x[:3] / scale, x[3:]
+        R = rotation_from_vector(omega)
+        T_inv = make_transform(R, c - R @ c + t) @ T_inv
+        rms = float(np.sqrt(np.mean(ru**2)))
+        sigma = 1.4826 * float(np.median(np.abs(ru)))
+        threshold = max(
+            min(threshold, 3.0 * sigma + 3.0 * np.linalg.norm(x[:3]) + np.linalg.norm(t)), min_distance_mm
+        )
+        step_mm = float(np.linalg.norm(x[:3]) + np.linalg.norm(t))
+        if step_mm < tolerance_mm:
+            converged = True
+            break
+    return IcpResult(invert_transform(T_inv), rms, iterations, converged, inl)
+
+
+# --------------------------------------------------------------------------------------------------
+# 3. non-penetrating fit (2.2.3)
+
+
+@dataclass(frozen=True)
+class NonPenetratingResult:
+    """One-sided (template-resting) fit of the design onto the measured surface.
+
+    transform: (4, 4) design -> measured, mm.
+    objective_mm2: sum of squared gaps (design minus measured, along +z of the measured frame).
+    rms_mm: sqrt(objective / points). min_gap_mm: smallest gap (>= 0 after the fit).
+    iterations: outer (correspondence) iterations. qp_iterations: active-set steps, all together.
+    points: measured points constrained (on the design's footprint, within the rejection distance).
+    penetrating_before / penetrating_after: points with a negative gap at the start / the end.
+    active_points: constraints active (gap 0) at the solution.
+    """
+
+    transform: np.ndarray
+    objective_mm2: float
+    rms_mm: float
+    min_gap_mm: float
+    iterations: int
+    qp_iterations: int
+    points: int
+    penetrating_before: int
+    penetrating_after: int
+    active_points: int
+    converged: bool
+
+
+def deflection_gaps(
+    surface: HeightField,
+    measured_points_mm: np.ndarray,
+    T_meas_design: np.ndarray,
+    up: np.ndarray = np.array([0.0, 0.0, 1.0]),
+    newton_steps: int = 2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Gap from each measured point to the moved design surface along the deflection direction.
+
+    measured_points_mm: (n, 3) mm, measured frame; up: (3,) deflection direction, measured frame.
+    Returns ``(gap_mm (n,), surface_point_mm (n, 3) design frame, normal (n, 3) design frame,
+    valid (n,) bool)``. The gap is positive when the design lies above the point (no penetration).
+    The intersection of the ray ``p + s * up`` with z = f(x, y) is found by Newton's method.
+    """
+    T_inv = invert_transform(T_meas_design)
+    p = apply_transform(T_inv, measured_points_mm)
+    u = T_inv[:3, :3] @ (np.asarray(up, dtype=np.float64) / np.linalg.norm(up))
+    # Newton on F(s) = f(p_xy + s u_xy) - (p_z + s u_z); the ray is within a few degrees of the
+    # design's z, so two steps leave an error of order slope change * tilt^2, far below a nanometre
+    s = np.zeros(len(p))
+    slope = np.zeros((len(p), 2))
+    valid = np.ones(len(p), dtype=bool)
+    for _ in range(newton_steps):
+        xy = p[:, :2] + s[:, None] * u[:2]
+        z, slope, ok = surface.evaluate(xy)
+        valid = ok if _ == 0 else valid & ok
+        F = z - (p[:, 2] + s * u[2])
+        s = s - F / (slope @ u[:2] - u[2])
+    q = p + s[:, None] * u
+    return s, q, _surface_normals(slope), valid
+
+
+def _active_set_qp(
+    H: np.ndarray, g: np.ndarray, A: np.ndarray, b: np.ndarray, x0: np.ndarray, max_iter: int = 200
+) -> tuple[np.ndarray, int, np.ndarray]:
+    """Exact primal active-set solution of min 1/2 x'Hx + g'x subject to A x >= b (Nocedal-Wright 16.3).
+
+    H (k, k) positive definite, A (m, k), b (m,), x0 (k,) feasible. k is 6 here and m may be 10^6:
+    each step solves a KKT system of at most 6 + 6 unknowns and scans all constraints once for the
+    blocking one. Returns ``(x, iterations, working set indices)``.
+    """
+    k = len(g)
+    x = x0.copy()
+    W: list[int] = []
+    for it in range(1, max_iter + 1):
+        grad = H @ x + g
+        # equality-constrained step in the null space of the working constraints: A_W p = 0 holds
+        # to round-off, which a full KKT solve of this badly scaled system does not guarantee
+        if W:
+            _, sv, Vt = np.linalg.svd(A[W])
+            rank = int((sv > 1e-12 * sv[0]).sum())
+            Z = Vt[rank:].T
+        else:
+            Z = np.eye(k)
+        if Z.shape[1]:
+            p = Z @ np.linalg.solve(Z.T @ H @ Z, -(Z.T @ grad))
+        else:
+            p = np.zeros(k)
+        # p is "zero" when it would not lower the objective measurably (scale-free test)
+        gain = -(grad @ p) - 0.5 * (p @ H @ p)
+        f = 0.5 * (x @ H @ x) + g @ x
+        if gain <= 1e-12 * (1.0 + abs(f)):
+            if not W:
+                return x, it, np.asarray(W, dtype=np.intp)
+            lam = np.linalg.lstsq(A[W].T, H @ (x + p) + g, rcond=None)[0]
+            if lam.min() >= -1e-9 * (1.0 + np.abs(lam).max()):
+                return x, it, np.asarray(W, dtype=np.intp)
+            W.pop(int(np.argmin(lam)))
+            continue
+        Ap = A @ p
+        slack = np.maximum(A @ x - b, 0.0)
+        blocking = Ap < 0.0
+        if W:
+            blocking[W] = False
+        alpha, j = 1.0, -1
+        if blocking.any():
+            idx = np.flatnonzero(blocking)
+            ratios = slack[idx] / -Ap[idx]
+            m = int(np.argmin(ratios))
+            if ratios[m] < 1.0:
+                alpha, j = float(ratios[m]), int(idx[m])
+        x = x + alpha * p
+        if j >= 0:
+            W.append(j)
+    raise RegistrationError(f"active-set QP did not converge in {max_iter} steps")
+
+
+def _solve_onesided_qp(
+    J: np.ndarray,
+    s: np.ndarray,
+    lift: np.ndarray,
+    damping: float,
+    K: np.ndarray | None = None,
+    e: np.ndarray | None = None,
+) -> tuple[np.ndarray, int, int]:
+    """min ||s + J x||^2 + ||e + K x||^2 + damping ||x||^2 subject to s + J x >= 0, exactly.
+
+    By constraint generation: the objective uses every row; the constraints start with the rows of smallest gap and grow by
+    the violated ones until none is violated -- then the solution of the reduced problem is the
+    solution of the full one (it is feasible for a relaxation's optimum). J (m, 6), s (m,).
+    lift (6,): the parameter vector that adds exactly 1 mm to every gap (a pure lift along the
+    deflection direction), which gives a feasible start. Returns ``(x, active-set steps, active constraints)``.
+    """
+    H = J.T @ J
+    H[np.diag_indices(6)] += damping
+    g = J.T @ s
+    if K is not None and e is not None and len(e):
+        H += K.T @ K
+        g += K.T @ e
+    m = len(s)
+    x0 = max(0.0, -float(s.min())) * lift
+    k0 = min(m, 256)
+    work = np.argpartition(s, k0 - 1)[:k0] if k0 < m else np.arange(m)
+    steps = 0
+    for _ in range(50):
+        x, it, active = _active_set_qp(H, g, J[work], -s[work], x0)
+        steps += it
+        viol = np.flatnonzero(s + J @ x < -1e-10 * (1.0 + np.abs(s).max()))
+        if len(viol) == 0:
+            return x, steps, len(active)
+        # add the worst violators (not all: a bad linearisation could violate many at once)
+        worst = viol[np.argsort((s + J @ x)[viol])[:256]]
+        work = np.union1d(work, worst)
+    raise RegistrationError("one-sided QP: constraint generation did not settle")
+
+
+# relative Levenberg-Marquardt damping of the one-sided step: without boundary anchoring the slide of a
+# nearly spherical plate along itself is almost free, and undamped steps along it overshoot and cycle
+DAMPING = 1e-6
+
+
+def nonpenetrating_fit(
+    surface: HeightField,
+    measured_points_mm: np.ndarray,
+    T_init: np.ndarray,
+    *,
+    up: np.ndarray = np.array([0.0, 0.0, 1.0]),
+    max_iterations: int = 30,
+    tolerance_mm: float = 1e-4,
+    max_distance_mm: float = 25.0,
+    design_corners_mm: np.ndarray | None = None,
+    measured_corners_mm: np.ndarray | None = None,
+    boundary_weight: float = 1e-3,
+    subsample: int = 50_000,
+) -> NonPenetratingResult:
+    """Rest the design on the measured surface: least squares with no point penetrating.
+
+    surface: design height field (design frame). measured_points_mm: (n, 3) mm, measured frame,
+    every surface point (no subsampling). T_init: (4, 4) design -> measured start (after ICP).
+    up: (3,) deflection direction in the measured frame.
+
+    Minimises sum_i gap_i^2 subject to gap_i >= 0, gap_i = distance from measured point i up to the
+    design surface. Outer loop: correspondences along ``up``, then the gaps are linearised in the
+    six motion parameters (rotation vector about the centroid, translation) with the exact
+    Jacobian -[(q_i - c) x n_i, n_i] / (n_i . u) of the ray/tangent-plane intersection, and the
+    resulting QP (6 unknowns, one linear constraint per point) is solved exactly by an active-set
+    method; the rotation is applied through the exponential map. Finally any round-off penetration
+    is removed by a pure lift along ``up`` (which raises every gap by exactly the same amount), so
+    the result has zero penetrating points. Points off the footprint or more than
+    ``max_distance_mm`` from the surface are not constrained (they are not on this plate).
+    With matched corners the in-plane corner residuals are added to the objective as in
+    :func:`icp_point_to_plane` (the QP stays exact; ``objective_mm2`` reports the gaps alone).
+    The first iterations run on a seeded ``subsample`` of the points, the last ones on all.
+    """
+    corners = _matched_corners(design_corners_mm, measured_corners_mm)
+    P = _check_points("measured_points_mm", measured_points_mm, 6)
+    T = _check_transform("T_init", T_init).copy()
+    up = np.asarray(up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    s, _, _, valid = deflection_gaps(surface, P, T, up)
+    use = valid & (np.abs(s) < max_distance_mm)
+    if use.sum() < 6:
+        raise RegistrationError(f"non-penetrating fit: only {int(use.sum())} points lie over the design")
+    Pu, s_all = P[use], s[use]
+    penetrating_before = int((s_all < 0).sum())
+    # coarse to fine: a seeded subsample walks most of the way cheaply, then every point decides
+    # the last steps (the solution and its zero penetration are those of the full problem)
+    sub = (
+        np.sort(np.random.default_rng(0).choice(len(Pu), size=subsample, replace=False))
+        if len(Pu) > 2 * subsample
+        else None
+    )
+    qp_steps, active, it_total, converged = 0, 0, 0, False
+    stages = [(Pu[sub], 10 * tolerance_mm)] if sub is not None else []
+    stages.append((Pu, tolerance_mm))
+    for stage_points, tol in stages:
+        T, steps, its, active, converged, kept = _onesided_iterations(
+            surface, stage_points, T, up, corners, boundary_weight, max_iterations, tol
+        )
+        qp_steps += steps
+        it_total += its
+    Pu = kept
+    for _ in range(3):
+        # the fit may have moved the design over points that were off its footprint at the start:
+        # they are plate points now and must not penetrate either
+        s, _, _, valid = deflection_gaps(surface, P, T, up)
+        now = valid & (np.abs(s) < max_distance_mm)
+        if len(Pu) == int(now.sum()) or not (s[now] < 0).any():
+            break
+        Pu = P[now]
+        T, steps, its, active, converged, Pu = _onesided_iterations(
+            surface, Pu, T, up, corners, boundary_weight, max_iterations, tolerance_mm
+        )
+        qp_steps += steps
+        it_total += its
+    # exact feasibility: a lift along `up` raises every gap by exactly the lift (the ray meets the
+    # surface at the same point), so the worst remaining round-off penetration is lifted away
+    s, _, _, valid = deflection_gaps(surface, Pu, T, up)
+    lift = -float(s[valid].min())
+    if lift > 0.0:
+        T = make_transform(np.eye(3), (lift + 1e-9) * up) @ T
+        s, _, _, valid = deflection_gaps(surface, Pu, T, up)
+    s = s[valid]
+    objective = float((s**2).sum())
+    result = NonPenetratingResult(
+        transform=T,
+        objective_mm2=objective,
+        rms_mm=float(np.sqrt(objective / len(s))),
+        min_gap_mm=float(s.min()),
+        iterations=it_total,
+        qp_iterations=qp_steps,
+        points=len(s),
+        penetrating_before=penetrating_before,
+        penetrating_after=int((s < 0).sum()),
+        active_points=active,
+        converged=converged,
+    )
+    log.debug(
+        "nonpenetrating_fit",
+        points=result.points,
+        iterations=it_total,
+        penetrating_before=penetrating_before,
+        penetrating_after=result.penetrating_after,
+        rms_mm=round(result.rms_mm, 5),
+    )
+    return result
+
+
+def _onesided_iterations(
+    surface: HeightField,
+    P: np.ndarray,
+    T: np.ndarray,
+    up: np.ndarray,
+    corners: tuple[np.ndarray, np.ndarray] | None,
+    boundary_weight: float,
+    max_iterations: int,
+    tolerance_mm: float,
+) -> tuple[np.ndarray, int, int, int, bool, np.ndarray]:
+    """Outer correspondence loop of the one-sided fit on the points ``P`` (measured frame).
+
+    Returns ``(T, active-set steps, iterations, active constraints, converged, points kept)``.
+    """
+    qp_steps, active, converged, it = 0, 0, False, 0
+    for it in range(1, max_iterations + 1):
+        s, q, n, valid = deflection_gaps(surface, P, T, up)
+        if not valid.all():
+            # a point slid off the footprint edge during the fit: keep it out from now on
+            P, s, q, n = P[valid], s[valid], q[valid], n[valid]
+        T_inv = invert_transform(T)
+        u = T_inv[:3, :3] @ up
+        c = q.mean(axis=0)
+        scale = float(np.sqrt(((q - c) ** 2).sum(axis=1).mean())) or 1.0
+        nu = n @ u
+        J = np.empty((len(s), 6))
+        J[:, :3] = np.cross(q - c, n) / (-scale * nu[:, None])
+        J[:, 3:] = n / -nu[:, None]
+        lift = np.concatenate([np.zeros(3), -u])  # moving the points down along u lifts every gap by 1
+        damping = DAMPING * float(np.einsum("ij,ij->", J, J)) / 6.0
+        K, e = _corner_terms(T_inv, corners, c, scale, boundary_weight * len(s) / 8.0)
+        x, steps, active = _solve_onesided_qp(J, s, lift, damping, K, e)
+        qp_steps += steps
+        omega, t = x[:3] / scale, x[3:]
+        R = rotation_from_vector(omega)
+        # the motion acts on the measured points in the design frame; the design moves by its inverse
+        T = invert_transform(make_transform(R, c - R @ c + t) @ T_inv)
+        log.debug(
+            "onesided_step", it=it, step_mm=float(np.linalg.norm(x[:3]) + np.linalg.norm(t)), points=len(s)
+        )
+        if float(np.linalg.norm(x[:3]) + np.linalg.norm(t)) < tolerance_mm:
+            converged = True
+            break
+    return T, qp_steps, it, active, converged, P
+
+
+# --------------------------------------------------------------------------------------------------
+# the whole registration
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """Coarse fit, ICP and non-penetrating fit of one design onto one measured plate.
+
+    transform: (4, 4) design -> measured, mm (the non-penetrating pose).
+    coarse: the coarse fit of the chosen corner correspondence; icp: the ICP from it.
+    nonpenetrating: the final one-sided fit. candidates: ICP RMS (mm) per corner shift tried.
+    """
+
+    transform: np.ndarray
+    coarse: CoarseResult
+    coarse_rms_mm: float
+    icp: IcpResult
+    nonpenetrating: NonPenetratingResult
+    candidates: dict[int, float] = field(default_factory=dict)
+
+    @property
+    def penetration_points(self) -> int:
+        return self.nonpenetrating.penetrating_after
+
+
+def coarse_candidates(
+    design_corners_mm: np.ndarray,
+    measured_corners_mm: np.ndarray,
+    *,
+    design_points_mm: np.ndarray | None = None,
+    measured_points_mm: np.ndarray | None = None,
+    max_corner_rms_mm: float | None = None,
+) -> list[CoarseResult]:
+    """Coarse fits for all four cyclic corner correspondences, best corner RMS first.
+
+    With ``max_corner_rms_mm`` the candidates whose corners cannot be matched (a 90 degree shift on
+    an oblong plate) are dropped; by default the bound is the best RMS plus 10 % of the plate's
+    shorter side, which always keeps the 180 degree twin of a rectangle.
+    """
+    cands = [
+        coarse_register(
+            design_corners_mm,
+            measured_corners_mm,
+            design_points_mm=design_points_mm,
+            measured_points_mm=measured_points_mm,
+            shift=k,
+        )
+        for k in range(4)
+    ]
+    cands.sort(key=lambda c: c.corner_rms_mm)
+    if max_corner_rms_mm is None:
+        D = np.asarray(design_corners_mm, dtype=np.float64)
+        side = float(min(np.linalg.norm(D[1] - D[0]), np.linalg.norm(D[2] - D[1])))
+        max_corner_rms_mm = cands[0].corner_rms_mm + 0.1 * side
+    return [c for c in cands if c.corner_rms_mm <= max_corner_rms_mm]
+
+
+def coarse_fit_rms(surface: HeightField, measured_points_mm: np.ndarray, T: np.ndarray) -> float:
+    """RMS vertical distance (mm) of the measured points to the design surface at pose ``T``."""
+    s, _, _, valid = deflection_gaps(surface, measured_points_mm, T)
+    return float(np.sqrt(np.mean(s[valid] ** 2))) if valid.any() else float("inf")
+
+
+def register(
+    design: TriMesh | HeightField,
+    measured_points_mm: np.ndarray,
+    design_corners_mm: np.ndarray,
+    measured_corners_mm: np.ndarray,
+    *,
+    up: np.ndarray = np.array([0.0, 0.0, 1.0]),
+    grid_step_mm: float = 1.0,
+    icp_points: int = 100_000,
+    boundary_weight: float = 1e-3,
+    seed: int = 0,
+) -> RegistrationResult:
+    """Coarse fit (all corner shifts), ICP per candidate, best ICP kept, then the non-penetrating fit.
+
+    design: the design mesh (top surface, design plate frame, z up) or its height field.
+    measured_points_mm: (n, 3) plate top-surface points, measured frame.
+    design_corners_mm, measured_corners_mm: (4, 3), counter-clockwise from +z.
+    The candidates' ICP runs on a 20,000-point subsample; the winner is refined on ``icp_points``.
+    ICP and the non-penetrating fit keep the plate anchored in its own plane by the matched corners
+    (``boundary_weight``, see :func:`icp_point_to_plane`); 0 turns that off.
+    """
+    P = _check_points("measured_points_mm", measured_points_mm, 6)
+    surface = design if isinstance(design, HeightField) else height_field_from_mesh(design, grid_step_mm)
+    design_vertices = surface.points_mm()
+    cands = coarse_candidates(
+        design_corners_mm, measured_corners_mm, design_points_mm=design_vertices, measured_points_mm=P
+    )
+    trials: dict[int, tuple[float, CoarseResult, IcpResult]] = {}
+    D = np.asarray(design_corners_mm, dtype=np.float64)
+    matched = {
+        c.shift: np.roll(np.asarray(measured_corners_mm, dtype=np.float64), -c.shift, axis=0) for c in cands
+    }
+    for cand in cands:
+        try:
+            icp = icp_point_to_plane(
+                surface,
+                P,
+                cand.transform,
+                max_points=20_000,
+                max_iterations=30,
+                seed=seed,
+                design_corners_mm=D,
+                measured_corners_mm=matched[cand.shift],
+                boundary_weight=boundary_weight,
+            )
+        except RegistrationError:
+            continue
+        trials[cand.shift] = (icp.rms_mm, cand, icp)
+    if not trials:
+        raise RegistrationError(
+            "no corner correspondence gives an ICP fit: the cloud does not match the design"
+        )
+    best_shift = min(trials, key=lambda k: trials[k][0])
+    _, coarse, icp0 = trials[best_shift]
+    anchor = dict(
+        design_corners_mm=D, measured_corners_mm=matched[best_shift], boundary_weight=boundary_weight
+    )
+    icp = icp_point_to_plane(surface, P, icp0.transform, max_points=icp_points, seed=seed, **anchor)
+    coarse_rms = coarse_fit_rms(surface, _subsample(P, 20_000, seed), coarse.transform)
+    npf = nonpenetrating_fit(surface, P, icp.transform, up=up, **anchor)
+    log.info(
+        "registered",
+        shift=best_shift,
+        candidates={k: round(v[0], 4) for k, v in trials.items()},
+        coarse_rms_mm=round(coarse_rms, 3),
+        icp_rms_mm=round(icp.rms_mm, 4),
+        penetrating_before=npf.penetrating_before,
+        penetrating_after=npf.penetrating_after,
+    )
+    return RegistrationResult(
+        transform=npf.transform,
+        coarse=coarse,
+        coarse_rms_mm=coarse_rms,
+        icp=icp,
+        nonpenetrating=npf,
+        candidates={k: v[0] for k, v in trials.items()},
+    )
