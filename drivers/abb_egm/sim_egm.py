@@ -546,6 +546,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         # newest reference and move for one cycle. Only the last of several overdue cycles sends.
         # The trajectory gets the position at the end of the cycle at once: the motion over the
         # cycle is fixed when the cycle starts, and readers then rarely ask beyond the newest sample.
+        send_due = False
         for k in range(steps):
             t_k = t_true - (steps - 1 - k) * dt
             if len(self.trajectory) == 0:
@@ -553,7 +554,8 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             # \SampleRate is a multiple of 4 ms: a session sends every n-th servo cycle
             every = max(1, round(params["sample_rate_ms"] / 4.0)) if self._running else 1
             self._cycle_count += 1
-            if k == steps - 1 and (self._running or cfg.stream_when_idle) and self._cycle_count % every == 0:
+            send_due = send_due or self._cycle_count % every == 0
+            if k == steps - 1 and (self._running or cfg.stream_when_idle) and send_due:
                 self._send_robot(t_k, motors_on, rapid_running)
             if self._running:
                 self._apply_newest_sensor()

@@ -193,8 +193,10 @@ def test_rapid_sample_rate_of_8_ms_sends_every_second_servo_cycle():
         model.start_rapid()
         sim, ep = await start_pair(sim_kwargs={"model": model})
         await asyncio.sleep(0.4)
-        interval_us = ep.stats.receive_interval_us()
-        assert np.median(interval_us) == pytest.approx(2 * CYCLE_S * 1e6, rel=0.05)
+        # the controller's own send times (feedBack.time) step by two servo cycles
+        a = ep.history.arrays()
+        session = a.t_ctrl_us[a.t_host_ns > a.t_host_ns[-1] - 300_000_000]
+        assert np.median(np.diff(session)) == pytest.approx(2 * CYCLE_S * 1e6, abs=1.0)
         await stop_pair(sim, ep)
 
     run(main)
@@ -429,7 +431,7 @@ def test_trajectory_is_stamped_on_the_injected_true_clock_one_sample_per_cycle()
         await asyncio.sleep(0.2)
         t, _q = sim.trajectory.arrays()
         now = clock()
-        assert now - 0.05 < t[-1] <= now
+        assert now - 0.05 < t[-1] <= now + CYCLE_S  # the end of the running cycle is known
         np.testing.assert_allclose(np.median(np.diff(t)), CYCLE_S, rtol=1e-6)
         await stop_pair(sim, ep)
 
