@@ -108,7 +108,7 @@ def test_worker_killed_mid_analysis_the_other_completes_the_job(hub, start_worke
     async def scenario(disp: Dispatcher):
         await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
         payload, centroid = _cloud_bytes("jobK")
-        fut = disp.submit("jobK", "P1", payload, {"record_path": str(record), "sleep_s": 2.0})
+        fut = disp.submit("jobK", "P1", payload, {"record_path": str(record), "sleep_s": 1.5})
         await _wait_for(lambda: any(k == "start" for k, _, _ in _records(record)), 20, "analysis start")
         victim = assigned[0][1]
         child_pid = _records(record)[0][2]
@@ -169,6 +169,7 @@ def test_analysis_exception_is_reported_once_and_not_retried(hub, start_worker):
     assert retries == []
 
 
+@pytest.mark.slow
 def test_job_fails_after_max_attempts_when_every_worker_dies(hub, start_worker):
     workers = [start_worker("w1"), start_worker("w2")]
     record = hub.tmp / "calls.txt"
@@ -205,6 +206,7 @@ def test_worker_with_unknown_analysis_callable_exits_2_naming_it(hub, start_work
     assert "has no attribute 'no_such_function'" in w.log()
 
 
+@pytest.mark.slow
 def test_frozen_worker_loses_its_job_to_the_other_after_heartbeat_timeout(hub, start_worker):
     record = hub.tmp / "calls.txt"
     workers = {"w1": start_worker("w1"), "w2": start_worker("w2")}
@@ -220,7 +222,7 @@ def test_frozen_worker_loses_its_job_to_the_other_after_heartbeat_timeout(hub, s
             env = await asyncio.wait_for(fut, 30)
         finally:
             holder.proc.send_signal(signal.SIGCONT)
-        await asyncio.sleep(1.5)  # the thawed worker's late report, if any, must change nothing
+        await asyncio.sleep(1.0)  # the thawed worker's late report, if any, must change nothing
         return env, holder.worker_id
 
     settings = DispatchSettings(ack_timeout_s=1.5, heartbeat_timeout_s=1.5, max_attempts=3)
@@ -303,6 +305,7 @@ def test_worker_started_before_the_daemon_connects_once_it_listens(hub, start_wo
     np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_sigterm_mid_analysis_hands_the_job_back_and_exits_zero(hub, start_worker):
     record = hub.tmp / "calls.txt"
     workers = {"w1": start_worker("w1"), "w2": start_worker("w2")}
@@ -310,7 +313,7 @@ def test_sigterm_mid_analysis_hands_the_job_back_and_exits_zero(hub, start_worke
 
     async def scenario(disp: Dispatcher):
         await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
-        fut = disp.submit("jobT", "P1", _cloud_bytes("jobT")[0], {"record_path": str(record), "sleep_s": 3.0})
+        fut = disp.submit("jobT", "P1", _cloud_bytes("jobT")[0], {"record_path": str(record), "sleep_s": 1.5})
         await _wait_for(lambda: len(_records(record)) >= 1, 20, "analysis start")
         holder = workers[disp.assignment("jobT")[0]]
         t0 = time.monotonic()
