@@ -38,8 +38,8 @@ class HD8ClientConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    #: batches held for the consumer; beyond that new batches are dropped and counted (overflow)
-    buffer_batches: int = Field(4096, gt=0)
+    #: profiles held for the consumer; a batch that would exceed it is dropped and counted (overflow)
+    buffer_profiles: int = Field(20_000, gt=0)
     connect_timeout_s: float = Field(2.0, gt=0)
     command_timeout_s: float = Field(2.0, gt=0)
     reconnect_initial_s: float = Field(0.05, gt=0)
@@ -78,6 +78,7 @@ class HD8Client(ProfileSource):
         self.config = config or HD8ClientConfig()
         self.info: P.SensorInfo | None = None
         self._queue: asyncio.Queue[Any] = asyncio.Queue()
+        self._queued_profiles = 0
         self._ctl: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
         self._ctl_framer = P.MessageFramer(max_message_size=4096)
         self._ctl_lock = asyncio.Lock()
@@ -176,16 +177,22 @@ class HD8Client(ProfileSource):
             profile_format: ``"uniform"`` / ``"points"`` or a :class:`~drivers.laser.protocol.ProfileFormat`.
         """
         u32 = P.U32.pack
-        # Rate before exposure would fail when shortening both; exposure first when lengthening the period.
-        if exposure_ns is not None and rate_hz is not None:
-            order = ["exposure", "rate"] if 1e9 / rate_hz > exposure_ns else ["rate", "exposure"]
-        else:
-            order = ["rate", "exposure"]
-        for name in order:
-            if name == "rate" and rate_hz is not None:
-                await self.command(P.CommandId.SET_RATE, u32(round(rate_hz * 1000)))
-            if name == "exposure" and exposure_ns is not None:
+        if rate_hz is not None and exposure_ns is not None:
+            # The sensor checks exposure < period at each step: a shorter period needs the shorter
+            # exposure first, a longer exposure needs the longer period first.
+            try:
                 await self.command(P.CommandId.SET_EXPOSURE, u32(int(exposure_ns)))
+            except P.CommandError as exc:
+                if exc.status != P.Status.INVALID_PARAMETER:
+                    raise
+                await self.command(P.CommandId.SET_RATE, u32(round(rate_hz * 1000)))
+                await self.command(P.CommandId.SET_EXPOSURE, u32(int(exposure_ns)))
+            else:
+                await self.command(P.CommandId.SET_RATE, u32(round(rate_hz * 1000)))
+        elif rate_hz is not None:
+            await self.command(P.CommandId.SET_RATE, u32(round(rate_hz * 1000)))
+        elif exposure_ns is not None:
+            await self.command(P.CommandId.SET_EXPOSURE, u32(int(exposure_ns)))
         if trigger_mode is not None:
             await self.command(P.CommandId.SET_TRIGGER_MODE, u32(int(trigger_mode)))
         if profile_format is not None:
@@ -261,6 +268,7 @@ class HD8Client(ProfileSource):
             if item is _CLOSED:
                 self._queue.put_nowait(_CLOSED)  # let other iterators end too
                 return
+            self._queued_profiles -= len(item)
             yield item
 
     # -------------------------------------------------------------------------------- tasks
@@ -401,7 +409,7 @@ class HD8Client(ProfileSource):
             self._stalled = False
             self._emit(SourceEventKind.RESUMED, frame=st.last_frame_index)
             log.info("hd8_frames_resumed", frame=st.last_frame_index)
-        if self._queue.qsize() >= self.config.buffer_batches:
+        if self._queued_profiles + len(batch) > self.config.buffer_profiles:
             st.overflow_batches += 1
             st.overflow_frames += len(batch)
             self._emit(SourceEventKind.OVERFLOW, dropped_frames=len(batch))
@@ -410,6 +418,7 @@ class HD8Client(ProfileSource):
             )
             return
         self._queue.put_nowait(batch)
+        self._queued_profiles += len(batch)
         st.batches += 1
         st.frames += len(batch)
         st.count_frames(len(batch), now_ns)

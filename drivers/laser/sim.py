@@ -80,6 +80,8 @@ class SimConfig(BaseModel):
     sensor_time_from_ms_counter: bool = False
     #: delay from end of exposure to the frame being ready to send
     processing_latency_s: float = Field(0.0005, ge=0)
+    #: extra send delay per group, |N(0, sigma)| seconds (order is kept), to make host stamps realistic
+    network_jitter_s: float = Field(0.0, ge=0)
     #: frames are sent in groups at most this often (at 200 Hz that is one frame per group)
     group_period_s: float = Field(0.005, gt=0)
     max_group_profiles: int = Field(64, gt=0, le=P.MAX_PROFILES_PER_MESSAGE)
@@ -243,6 +245,7 @@ class LaserSimulator:
         self._ring: collections.deque[tuple[int, int, bytes]] = collections.deque()
         self._ring_frames = 0
         self._held: list[tuple[int, bytes]] = []  # groups kept back during a stall
+        self._last_send_at = 0.0  # loop time of the last jitter-delayed send
         self._frames_since_disconnect_arm = 0
         # One worker thread: rendering releases the GIL inside Embree / numpy, and the event loop
         # stays free to serve the sockets while a batch is being rendered.
@@ -495,11 +498,19 @@ class LaserSimulator:
         if f.stall_until_s > self.clock():
             self._held.append((n, group))
             return
-        if self._held:
-            held, self._held = self._held, []
-            for hn, hg in held:
+        pending = [*self._held, (n, group)]
+        self._held = []
+        jitter = self.config.network_jitter_s
+        if jitter <= 0:
+            for hn, hg in pending:
                 self._send_all(hn, hg)
-        self._send_all(n, group)
+            return
+        # Delay each group by a random amount, never overtaking the group before it.
+        loop = asyncio.get_running_loop()
+        for hn, hg in pending:
+            t_send = max(self._last_send_at, loop.time() + abs(self._fault_rng.normal(0.0, jitter)))
+            self._last_send_at = t_send
+            loop.call_at(t_send, self._send_all, hn, hg)
 
     def _send_all(self, n: int, group: bytes) -> None:
         f = self.faults

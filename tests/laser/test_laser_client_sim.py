@@ -18,7 +18,9 @@ from drivers.laser.scene import plane_scene
 from drivers.laser.sim import LaserSimulator, SimConfig, fixed_pose
 from drivers.laser.source import ProfileBatch, SourceEventKind
 
-FAST = SimConfig(rate_hz=1000.0, outlier_probability=0.0, seed=1)
+# A long backlog: on a loaded CI machine the simulator may fall behind real time for a moment; it must
+# then deliver late rather than skip frames (skipping is tested separately, with a short backlog).
+FAST = SimConfig(rate_hz=1000.0, outlier_probability=0.0, seed=1, max_backlog_s=10.0)
 
 
 def frames_of(batches: list[ProfileBatch]) -> np.ndarray:
@@ -36,7 +38,7 @@ def test_client_receives_every_frame_in_order_at_1khz() -> None:
             st = client.stats
             assert st.gaps == 0 and st.decode_errors == 0 and st.duplicates_dropped == 0
             assert st.overflow_frames == 0 and st.reconnects == 0
-            assert 800 < st.rate_hz < 1200
+            assert 500 < st.rate_hz < 1500  # loose: the machine may be shared
             b = ProfileBatch.concat(batches)
             assert b.x_mm.shape == (len(fi), 500) and b.x_mm.dtype == np.float32
             assert np.all(np.diff(b.host_recv_ns) >= 0)
@@ -133,13 +135,14 @@ def test_watchdog_reports_stall_and_resumption() -> None:
 
 def test_buffer_overflow_is_counted_and_reported_not_silent() -> None:
     async def scenario() -> None:
-        cfg = HD8ClientConfig(buffer_batches=3)
+        cfg = HD8ClientConfig(buffer_profiles=30)
         async with sim_and_client(config=FAST, client_config=cfg) as (_sim, client):
             await client.start()
             await asyncio.sleep(0.3)  # nobody reads
             st = client.stats
             assert st.overflow_batches > 0 and st.overflow_frames > 0
             assert st.frames + st.overflow_frames > 100
+            assert st.frames <= 30  # the bound holds
             kinds = set()
             while not client.events.empty():
                 kinds.add(client.events.get_nowait().kind)
@@ -152,8 +155,10 @@ def test_configure_applies_rate_and_rejects_changes_while_running() -> None:
     async def scenario() -> None:
         async with sim_and_client(config=FAST) as (sim, client):
             assert client.info is not None and client.info.width == 500 and client.info.x_pitch_nm == 100_000
-            await client.configure(rate_hz=250.0, exposure_ns=300_000, profile_format="uniform")
-            assert sim.settings.rate_hz == 250.0 and sim.settings.exposure_ns == 300_000
+            await client.configure(rate_hz=250.0, exposure_ns=3_000_000, profile_format="uniform")
+            assert sim.settings.rate_hz == 250.0 and sim.settings.exposure_ns == 3_000_000  # rate first
+            await client.configure(rate_hz=2000.0 / 3.0, exposure_ns=300_000)  # exposure first
+            assert sim.settings.rate_hz == 666.667 and sim.settings.exposure_ns == 300_000
             await client.start()
             with pytest.raises(P.CommandError, match="INVALID_STATE"):
                 await client.configure(rate_hz=100.0)
@@ -244,7 +249,7 @@ def test_sensor_clock_has_offset_drift_and_mid_exposure_stamps() -> None:
 
 
 def test_hd8_millisecond_counter_wraps_mid_stream() -> None:
-    cfg = SimConfig(rate_hz=1000.0, hd8_counter_start_ms=2**32 - 150, seed=3)
+    cfg = SimConfig(rate_hz=1000.0, hd8_counter_start_ms=2**32 - 150, seed=3, max_backlog_s=10.0)
 
     async def scenario() -> None:
         async with sim_and_client(config=cfg) as (_sim, client):
@@ -501,5 +506,24 @@ def test_client_follows_a_sensor_that_restarted_on_the_same_ports() -> None:
                 assert sim2.running  # the client started the new sensor again
             finally:
                 await sim2.stop()
+
+    run(scenario())
+
+
+def test_network_jitter_delays_groups_without_reordering_them() -> None:
+    cfg = SimConfig(
+        rate_hz=500.0, network_jitter_s=0.002, outlier_probability=0.0, seed=9, max_backlog_s=10.0
+    )
+
+    async def scenario() -> None:
+        async with sim_and_client(config=cfg) as (sim, client):
+            await client.start()
+            b = ProfileBatch.concat(await collect(client, 200))
+            fi = b.frame_index.astype(np.int64)
+            np.testing.assert_array_equal(fi, np.arange(fi[0], fi[0] + len(fi)))
+            # receive time minus true mid-exposure time: latency spread grows with the jitter
+            true_ns = sim.exposure_mid_true_s(b.frame_index) * 1e9
+            latency_ms = (b.host_recv_ns - true_ns) / 1e6
+            assert latency_ms.min() > 0 and np.percentile(latency_ms, 90) - latency_ms.min() > 1.0
 
     run(scenario())
