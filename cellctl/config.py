@@ -104,6 +104,8 @@ class RobotSection(Section):
     workspace_min_mm: Vec3 = [-500.0, -2000.0, 100.0]
     workspace_max_mm: Vec3 = [2600.0, 2000.0, 2400.0]
     tracking_error_max_mm: PositiveFloat = 5.0
+    # Planning: smallest |joint 5| along a plan (distance from the wrist singularity).
+    wrist_margin_deg: Annotated[float, Field(ge=0, lt=90, allow_inf_nan=False)] = 5.0
     # Mounting: flange -> sensor (laser) frame, from the hand-eye calibration.
     sensor_in_flange: Pose = Pose(pos_mm=[0.0, 0.0, 150.0])
 
@@ -174,6 +176,10 @@ class ScanSection(Section):
     edge_passes: bool = True
     placement_uncertainty_mm: NonNegativeFloat = 30.0
     placement_uncertainty_deg: NonNegativeFloat = 2.0
+    placement_z_mm: Finite = 300.0
+    edge_tilt_deg: Annotated[float, Field(ge=0, lt=80, allow_inf_nan=False)] = 30.0
+    link_clearance_mm: NonNegativeFloat = 30.0
+    approach_mm: PositiveFloat = 100.0
 
 
 class ZenohAccess(Section):

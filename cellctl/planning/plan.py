@@ -170,6 +170,44 @@ class TimedTrajectory:
         """Total duration, s."""
         return float(self.t_s[-1]) if self.t_s.size else 0.0
 
+    def sample_many(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Vectorised :meth:`sample`: times (m,) s -> ``q_deg`` (m, 6), ``qd_deg_s`` (m, 6),
+        ``qdd_deg_s2`` (m, 6), segment (m,) int."""
+        t = np.clip(np.asarray(t_s, dtype=np.float64), self.t_s[0], self.t_s[-1])
+        i = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, self.t_s.size - 2)
+        h = self.t_s[i + 1] - self.t_s[i]
+        hs = np.where(h > 0, h, 1.0)
+        u = np.where(h > 0, (t - self.t_s[i]) / hs, 0.0)[:, None]
+        hh = hs[:, None]
+        p0, p1 = self.q_deg[i], self.q_deg[i + 1]
+        v0, v1 = self.qd_deg_s[i] * hh, self.qd_deg_s[i + 1] * hh
+        a0, a1 = self.qdd_deg_s2[i] * hh**2, self.qdd_deg_s2[i + 1] * hh**2
+        u2, u3, u4, u5 = u * u, u**3, u**4, u**5
+        q = (
+            (1 - 10 * u3 + 15 * u4 - 6 * u5) * p0
+            + (u - 6 * u3 + 8 * u4 - 3 * u5) * v0
+            + (0.5 * u2 - 1.5 * u3 + 1.5 * u4 - 0.5 * u5) * a0
+            + (0.5 * u3 - u4 + 0.5 * u5) * a1
+            + (-4 * u3 + 7 * u4 - 3 * u5) * v1
+            + (10 * u3 - 15 * u4 + 6 * u5) * p1
+        )
+        qd = (
+            (-30 * u2 + 60 * u3 - 30 * u4) * (p0 - p1)
+            + (1 - 18 * u2 + 32 * u3 - 15 * u4) * v0
+            + (u - 4.5 * u2 + 6 * u3 - 2.5 * u4) * a0
+            + (1.5 * u2 - 4 * u3 + 2.5 * u4) * a1
+            + (-12 * u2 + 28 * u3 - 15 * u4) * v1
+        ) / hh
+        qdd = (
+            (-60 * u + 180 * u2 - 120 * u3) * (p0 - p1)
+            + (-36 * u + 96 * u2 - 60 * u3) * v0
+            + (1 - 9 * u + 18 * u2 - 10 * u3) * a0
+            + (3 * u - 12 * u2 + 10 * u3) * a1
+            + (-24 * u + 84 * u2 - 60 * u3) * v1
+        ) / hh**2
+        seg = np.where(u[:, 0] < 1.0, self.segment[i], self.segment[i + 1])
+        return q, qd, qdd, seg
+
     def sample(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """State at time ``t_s`` (clamped to the trajectory): ``(q_deg (6,), qd_deg_s (6,),
         qdd_deg_s2 (6,), segment index)``.

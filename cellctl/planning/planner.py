@@ -13,6 +13,7 @@ import numpy as np
 import structlog
 
 from analysis.mesh import TriMesh
+from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
 from cellctl.planning.joint_path import first_configuration, sensor_kinematics, solve_joint_path
 from cellctl.planning.plan import (
@@ -21,14 +22,39 @@ from cellctl.planning.plan import (
     PlanInputError,
     PlanRefused,
     ScanPlan,
+    TimedTrajectory,
     pose_matrix,
 )
 from cellctl.planning.settings import PlannerSettings
 from cellctl.planning.timing import time_segments
 
-__all__ = ["plan_scan"]
+__all__ = ["check_plan_envelope", "plan_scan"]
 
 log = structlog.get_logger(__name__)
+
+
+def check_plan_envelope(
+    trajectory: TimedTrajectory, segments: list, settings: PlannerSettings, cycle_s: float = 0.004032
+) -> None:
+    """Sample ``trajectory`` at the EGM cycle and check every sample against the safety envelope.
+
+    Raises:
+        PlanRefused: naming the segment and the envelope rule that the plan would break.
+    """
+    envelope = SafetyEnvelope(EnvelopeLimits.from_settings(settings, cycle_s=cycle_s))
+    t = np.arange(0.0, trajectory.duration_s, cycle_s)
+    t = np.append(t, trajectory.duration_s) if t[-1] < trajectory.duration_s else t
+    q = trajectory.sample_many(t)[0]
+    try:
+        envelope.check_trajectory(t, q)
+    except EnvelopeViolation as exc:
+        k = exc.sample if exc.sample is not None else 0
+        seg = segments[trajectory.sample(t[k])[3]]
+        raise PlanRefused(
+            f"the timed plan leaves the safety envelope at t = {t[k]:.3f} s: {exc}",
+            pass_label=seg.label,
+            limit=f"envelope {exc.rule}",
+        ) from exc
 
 
 def plan_scan(
@@ -37,6 +63,7 @@ def plan_scan(
     settings: PlannerSettings | None = None,
     *,
     with_coverage: bool = True,
+    cycle_s: float = 0.004032,
 ) -> ScanPlan:
     """Plan a coverage scan of ``design`` lying at ``placement``.
 
@@ -45,6 +72,7 @@ def plan_scan(
         placement: the plate frame's nominal pose on the bed (base frame).
         settings: sensor, scan and robot numbers (defaults: the cell.toml defaults).
         with_coverage: run the ray-cast coverage prediction (the plan's ``coverage`` is zero otherwise).
+        cycle_s: EGM cycle the plan is checked against the safety envelope at.
 
     Raises:
         PlanInputError: unusable design or settings.
@@ -90,6 +118,11 @@ def plan_scan(
     t3 = time.perf_counter()
     timing = time_segments(segments, settings)
     timings["timing_s"] = time.perf_counter() - t3
+
+    # the plan must pass the same envelope every executed set-point passes, at the EGM cycle
+    t_env = time.perf_counter()
+    check_plan_envelope(timing.trajectory, segments, settings, cycle_s)
+    timings["envelope_s"] = time.perf_counter() - t_env
 
     t4 = time.perf_counter()
     if with_coverage:
