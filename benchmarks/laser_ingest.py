@@ -8,6 +8,10 @@ for groups of ``--group`` profiles (10 by default; the HD8 SDK's batch callback 
 5000); the same figures for one profile per group (a sensor at 200 Hz sending every frame at once)
 are given under ``single_profile_groups``.
 
+``sim_realtime_1khz`` runs the simulator at 1 kHz for 3 s over the plate with a moving pose and a
+client reading it in the same process: frames skipped for falling behind (``overrun_frames``, 0 when
+it keeps up) and CPU seconds per second.
+
 Simulator side: ``sim_profiles_per_s`` is ray casting + resampling + noise + quantisation of
 500-point profiles on one thread (CPU time, groups of 5 as the simulator renders at 1 kHz), i.e. how
 many profiles per second the simulator can produce; ``encode_profiles_per_s`` is the wire encoding.
@@ -34,7 +38,7 @@ from drivers.laser import protocol as P
 from drivers.laser.client import HD8Client
 from drivers.laser.optics import LaserOptics, render_uniform
 from drivers.laser.scene import SceneRaycaster, cell_scene
-from drivers.laser.sim import SimConfig
+from drivers.laser.sim import LaserSimulator, SimConfig
 
 
 def curved_plate() -> tuple[np.ndarray, np.ndarray]:
@@ -151,6 +155,41 @@ async def ingest(blob: bytes, n_frames: int) -> dict[str, float]:
     }
 
 
+async def sim_realtime(raycaster: SceneRaycaster, seconds: float) -> dict[str, float]:
+    """Run the simulator at 1 kHz over the plate with a moving pose and a client reading; report CPU."""
+    t_start = time.monotonic()
+    base = sweep_poses(2)[0]
+
+    def pose_at(t: np.ndarray) -> np.ndarray:
+        T = np.repeat(base[None], len(t), axis=0)
+        T[:, 1, 3] = -300.0 + 100.0 * (t - t_start)  # 100 mm/s along y
+        return T
+
+    sim = LaserSimulator(raycaster.scene, pose_at, config=SimConfig(rate_hz=1000.0, max_backlog_s=0.05))
+    ctl, dat = await sim.start()
+    client = HD8Client("127.0.0.1", ctl, dat)
+    await client.connect()
+    await client.start()
+    cpu0 = time.process_time()
+    t0 = time.perf_counter()
+    got = 0
+    async for batch in client:
+        got += len(batch)
+        if time.perf_counter() - t0 >= seconds:
+            break
+    wall = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
+    await client.close()
+    await sim.stop()
+    return {
+        "rate_hz": 1000.0,
+        "profiles": got,
+        "overrun_frames": sim.stats.overrun_frames,
+        "cpu_s_per_s": round(cpu / wall, 3),  # simulator + client in one process
+        "render_thread_s_per_s": round(sim.stats.render_s / wall, 3),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--frames", type=int, default=20_000)
@@ -171,6 +210,7 @@ def main() -> None:
     blob1 = encode_stream(pool, n_single, 1)
     grouped = asyncio.run(ingest(blob, args.frames))
     single = asyncio.run(ingest(blob1, n_single))
+    realtime = asyncio.run(sim_realtime(rc, 3.0))
     out = {
         "benchmark": "laser_ingest",
         **grouped,
@@ -179,6 +219,7 @@ def main() -> None:
         "single_profile_groups": single,
         "sim_profiles_per_s": round(sim_n / sim_cpu, 1),
         "encode_profiles_per_s": round(args.frames / encode_cpu, 1),
+        "sim_realtime_1khz": realtime,
         "sim_cpu_s_per_1000_profiles": round(sim_cpu / sim_n * 1000, 4),
         "target_profiles_per_s": 50_000,
     }
