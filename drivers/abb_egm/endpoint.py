@@ -438,7 +438,11 @@ class EgmEndpoint(asyncio.DatagramProtocol):
 
     def command_joints(self, q_deg: np.ndarray, speed_deg_s: np.ndarray | None = None) -> None:
         """Joint mode: from the next reply on, send ``q_deg`` (n_axes,) deg and the optional feed-forward
-        ``speed_deg_s`` (n_axes,) deg/s as ``planned.joints`` / ``speedRef.joints``."""
+        ``speed_deg_s`` (n_axes,) deg/s as ``planned.joints`` / ``speedRef.joints``.
+
+        When the controller starts a new session (seqno back to 0) the endpoint drops the reference
+        and holds the arm where the session found it, so a stale target never makes it jump.
+        """
         q = self._vector(q_deg, self.config.n_axes, "q_deg")
         qd = None if speed_deg_s is None else self._vector(speed_deg_s, self.config.n_axes, "speed_deg_s")
         self._reference = _joint_reference(q, qd)
