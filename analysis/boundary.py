@@ -7,7 +7,9 @@ Steps, on the top-surface points from ``segment``:
    nothing assumes the plate lies square to the bed.
 2. **Boundary feature points.** The XY projection is rasterised (``pixel_mm``) in the (u, v)
    frame; for each ``bin_mm`` strip across an edge, the outermost top-surface point is that
-   edge's feature point (where the scan leaves the plate). Strips within ``corner_margin_mm`` of
+   edge's feature point (where the scan leaves the plate); its height is extrapolated to it from
+   the points just inside (``z_window_mm``), as the outermost points may be the first hundredths
+   of the thickness face. Strips within ``corner_margin_mm`` of
    a corner are left out: corners are where the data is incomplete, and they are recovered by
    intersection instead.
 3. **Outlier removal by curvature.** Along each edge, feature points where the discrete curvature
@@ -58,6 +60,7 @@ class BoundarySettings:
     min_outlier_mm: float = 0.3
     min_points_per_edge: int = 10
     knot_mm: float = 100.0
+    z_window_mm: tuple[float, float] = (0.3, 4.0)
 
 
 @dataclass
@@ -163,16 +166,49 @@ def _min_area_axes(xy: np.ndarray) -> np.ndarray:
 
 
 def _edge_samples(
-    along: np.ndarray, cross: np.ndarray, idx: np.ndarray, bin_mm: float, lo: float, hi: float
-) -> np.ndarray:
-    """Per ``bin_mm`` bin of ``along`` in [lo, hi], the index (into idx) of the max ``cross`` point."""
+    along: np.ndarray,
+    cross: np.ndarray,
+    z: np.ndarray,
+    idx: np.ndarray,
+    bin_mm: float,
+    lo: float,
+    hi: float,
+    z_window_mm: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per ``bin_mm`` bin of ``along`` in [lo, hi]: the outermost point and the edge height.
+
+    Returns (indices into ``idx`` of the max-``cross`` point per bin, edge height per bin (mm)).
+    The height is a straight-line fit of z over the cross offset, on the points between
+    ``z_window_mm`` inside the outermost one, extrapolated to it: the outermost points themselves
+    may be the first hundredths of the thickness face, a little below the top edge.
+    """
     keep = (along >= lo) & (along <= hi)
-    along, cross, idx = along[keep], cross[keep], idx[keep]
+    along, cross, z, idx = along[keep], cross[keep], z[keep], idx[keep]
+    if len(along) == 0:
+        return idx, z
     b = np.floor((along - lo) / bin_mm).astype(np.int64)
     order = np.lexsort((-cross, b))
     b_sorted = b[order]
     first = np.flatnonzero(np.r_[True, b_sorted[1:] != b_sorted[:-1]])
-    return idx[order[first]]
+    out_pos = order[first]
+    nb = int(b.max()) + 1 if len(b) else 0
+    c_out = np.full(nb, np.nan)
+    c_out[b[out_pos]] = cross[out_pos]
+    depth = c_out[b] - cross
+    w = ((depth >= z_window_mm[0]) & (depth <= z_window_mm[1])).astype(np.float64)
+    s0 = np.bincount(b, w, nb)
+    s1 = np.bincount(b, w * depth, nb)
+    s2 = np.bincount(b, w * depth * depth, nb)
+    sz = np.bincount(b, w * z, nb)
+    s1z = np.bincount(b, w * depth * z, nb)
+    det = s0 * s2 - s1 * s1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z0 = (s2 * sz - s1 * s1z) / det  # intercept at depth 0 (the outermost point)
+    bins = b[out_pos]
+    z_edge = z[out_pos].copy()
+    good = (s0[bins] >= 3) & (np.abs(det[bins]) > 1e-9)
+    z_edge[good] = z0[bins][good]
+    return idx[out_pos], z_edge
 
 
 def _cubic_spline(t: np.ndarray, c: np.ndarray, knot_mm: float):
@@ -277,26 +313,29 @@ def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None
     m = st.corner_margin_mm
     ia_on, ib_on = ia[idx_all], ib[idx_all]
     # Edge 0 (v min), edge 1 (u max), edge 2 (v max), edge 3 (u min): (along, outward-cross) coordinates.
+    d = int(np.ceil(st.z_window_mm[1] / px)) + 1
     specs = [
-        (ib_on <= col_min[ia_on] + 1, a, -b, a_lo + m, a_hi - m),
-        (ia_on >= row_max[ib_on] - 1, b, a, b_lo + m, b_hi - m),
-        (ib_on >= col_max[ia_on] - 1, a, b, a_lo + m, a_hi - m),
-        (ia_on <= row_min[ib_on] + 1, b, -a, b_lo + m, b_hi - m),
+        (ib_on <= col_min[ia_on] + d, a, -b, a_lo + m, a_hi - m),
+        (ia_on >= row_max[ib_on] - d, b, a, b_lo + m, b_hi - m),
+        (ib_on >= col_max[ia_on] - d, a, b, a_lo + m, a_hi - m),
+        (ia_on <= row_min[ib_on] + d, b, -a, b_lo + m, b_hi - m),
     ]
     fits = []
     for k, (sel, along_all, outward_all, lo, hi) in enumerate(specs):
         cand = idx_all[sel]
-        pick = _edge_samples(along_all[cand], outward_all[cand], cand, st.bin_mm, lo, hi)
+        pick, z_edge = _edge_samples(
+            along_all[cand], outward_all[cand], P[cand, 2], cand, st.bin_mm, lo, hi, st.z_window_mm
+        )
         if len(pick) < st.min_points_per_edge:
             raise BoundaryError(f"edge {k}: {len(pick)} feature points (need {st.min_points_per_edge})")
         t = along_all[pick]
         order = np.argsort(t)
-        pick, t = pick[order], t[order]
+        pick, t, z_edge = pick[order], t[order], z_edge[order]
         distinct = np.r_[True, np.diff(t) > 1e-9]  # the spline needs increasing abscissae
-        pick, t = pick[distinct], t[distinct]
+        pick, t, z_edge = pick[distinct], t[distinct], z_edge[distinct]
         c = outward_all[pick]
         keep, cs, rms = _robust_spline_fit(t, c, st)
-        zs = _cubic_spline(t[keep], P[pick[keep], 2], st.knot_mm)
+        zs = _cubic_spline(t[keep], z_edge[keep], st.knot_mm)
         fits.append((pick, keep, cs, zs, rms))
     timings["edges"] = time.perf_counter() - t2
 
