@@ -60,3 +60,15 @@ def test_resolve_callable_finds_a_function():
     import json
 
     assert resolve_callable("json:dumps") is json.dumps
+
+
+def test_worker_command_refuses_bad_arguments_before_starting_anything(tmp_path, capsys):
+    from cellctl.cli import main
+
+    assert main(["worker", "--config", str(tmp_path / "missing.toml")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    (tmp_path / "cell.toml").write_text('[cell]\nid = "c1"\n')
+    assert main(["worker", "--config", str(tmp_path / "cell.toml"), "--worker-id", "bad/id"]) == 2
+    assert "--worker-id 'bad/id'" in capsys.readouterr().err
+    assert main(["worker", "--config", str(tmp_path / "cell.toml"), "--heartbeat-s", "0"]) == 2
+    assert "--heartbeat-s must be positive" in capsys.readouterr().err
