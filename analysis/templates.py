@@ -184,7 +184,7 @@ def cut_mesh(mesh: TriMesh, line: DetectionLine) -> Section:
 
     Each mesh edge whose ends lie on different sides of the plane (a vertex on the plane counts as
     the positive side, so a shared vertex or edge yields one point, not two) gives one intersection
-    point; shared edges are taken once. The points are ordered by their position along the line,
+    point; shared edges and vertices on the plane are taken once. The points are ordered by their position along the line,
     which is the polyline order for a plate surface (a graph over the line).
     Raises :class:`TemplateError` if the plane misses the mesh.
     """
@@ -203,6 +203,9 @@ def cut_mesh(mesh: TriMesh, line: DetectionLine) -> Section:
     da, db = d[edges[:, 0]], d[edges[:, 1]]
     w = (da / (da - db))[:, None]
     pts = V[edges[:, 0]] + w * (V[edges[:, 1]] - V[edges[:, 0]])
+    # a vertex lying on the plane ends several crossing edges: keep it once
+    _, first = np.unique(np.round(pts, 9), axis=0, return_index=True)
+    pts = pts[np.sort(first)]
     s = (pts - line.start_mm) @ line.direction
     order = np.argsort(s, kind="stable")
     pts, s = pts[order], s[order]
@@ -225,8 +228,8 @@ def sample_section(section: Section, step_mm: float = 1.0, max_gap_mm: float = 5
     """Resample a section every ``step_mm`` on the grid of integer multiples of the step.
 
     Heights are linear between polyline points (the mesh is linear there); samples inside a hole
-    of the polyline wider than ``max_gap_mm`` (missing returns in a scan) are NaN rather than a
-    straight bridge.
+    of the polyline (missing returns in a scan) are NaN rather than a straight bridge. A hole is a
+    step between polyline points wider than both ``max_gap_mm`` and three times the median step.
     """
     if step_mm <= 0:
         raise TemplateError(f"step_mm must be positive, got {step_mm}")
@@ -238,7 +241,9 @@ def sample_section(section: Section, step_mm: float = 1.0, max_gap_mm: float = 5
     grid = step_mm * np.arange(k0, k1 + 1)
     hs = np.interp(grid, s, h)
     j = np.clip(np.searchsorted(s, grid), 1, len(s) - 1)
-    hole = (s[j] - s[j - 1]) > max_gap_mm
+    spacing = np.diff(s)
+    # a coarse mesh has wide but regular spacing; a hole is wide against the allowance and the mesh
+    hole = (s[j] - s[j - 1]) > max(max_gap_mm, 3.0 * float(np.median(spacing)))
     hs[hole] = np.nan
     return SampledSection(grid, hs)
 
