@@ -157,6 +157,7 @@ class SimStats:
     frames_dropped_slow_client: int = 0
     overrun_frames: int = 0
     malformed_commands: int = 0
+    triggers_ignored: int = 0
     data_connections: int = 0
     control_connections: int = 0
     render_s: float = 0.0
@@ -245,6 +246,9 @@ class LaserSimulator:
         self._ring: collections.deque[tuple[int, int, bytes]] = collections.deque()
         self._ring_frames = 0
         self._held: list[tuple[int, bytes]] = []  # groups kept back during a stall
+        self._edges: collections.deque[float] = collections.deque()  # pending trigger edges, true time
+        self._edge_event = asyncio.Event()
+        self._last_edge_s = -math.inf
         self._last_send_at = 0.0  # loop time of the last jitter-delayed send
         self._frames_since_disconnect_arm = 0
         # One worker thread: rendering releases the GIL inside Embree / numpy, and the event loop
@@ -311,7 +315,7 @@ class LaserSimulator:
         return ((ticks.astype(np.int64) + self._counter_base_ms) & 0xFFFF_FFFF).astype(np.uint32)
 
     def exposure_mid_true_s(self, frame_index: np.ndarray | int) -> np.ndarray:
-        """True mid-exposure time (s, ``clock`` base) of frames of the current run."""
+        """True mid-exposure time (s, ``clock`` base) of frames of the current run (TIME trigger mode)."""
         k = np.asarray(frame_index, dtype=np.float64)
         return (
             self._run_t0_s + (k - self._run_k0) / self.settings.rate_hz + self.settings.exposure_ns * 0.5e-9
@@ -354,6 +358,7 @@ class LaserSimulator:
 
     async def _stop_acquisition(self) -> None:
         self._running = False
+        self._edges.clear()
         if self._producer is not None:
             self._producer.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -372,6 +377,9 @@ class LaserSimulator:
         last_group_s = -math.inf
         try:
             while self._running:
+                if self.settings.trigger == P.TriggerMode.EXTERNAL:
+                    await self._produce_triggered(loop)
+                    continue
                 now = self.clock()
                 ready = self._ready_count(now)
                 if ready > self._next_frame and now - last_group_s >= cfg.group_period_s * 0.999:
@@ -405,10 +413,60 @@ class LaserSimulator:
             log.exception("hd8sim_producer_failed")
             self._running = False
 
-    async def _produce(self, loop: asyncio.AbstractEventLoop, k0: int, k1: int, overrun: bool) -> None:
+    async def _produce_triggered(self, loop: asyncio.AbstractEventLoop) -> None:
+        """One step of external-trigger acquisition: render the edges whose frames are ready, or wait."""
+        s = self.settings
+        lag = s.exposure_ns * 1e-9 + self.config.processing_latency_s
+        now = self.clock()
+        ready: list[float] = []
+        while self._edges and self._edges[0] + lag <= now and len(ready) < self.config.max_group_profiles:
+            ready.append(self._edges.popleft())
+        if ready:
+            k0 = self._next_frame
+            self._next_frame += len(ready)
+            t_mid = np.asarray(ready) + s.exposure_ns * 0.5e-9
+            await self._produce(loop, k0, self._next_frame, False, t_mid)
+            return
+        self._edge_event.clear()
+        timeout = (self._edges[0] + lag - now) if self._edges else None
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._edge_event.wait(), timeout)
+
+    def trigger(self, t_true_s: float | None = None) -> bool:
+        """A rising edge on the trigger input (external-trigger mode); call it in the event loop.
+
+        Args:
+            t_true_s: when the edge happened (``clock`` base); default now. The exposure starts there.
+
+        Returns:
+            True if the edge starts a frame; False if the sensor is not running in EXTERNAL mode or
+            the edge comes sooner than ``1 / max_rate_hz`` after the previous one (such edges are
+            ignored and counted in ``stats.triggers_ignored``, like a sensor still busy with a frame).
+        """
+        t = self.clock() if t_true_s is None else float(t_true_s)
+        if not self._running or self.settings.trigger != P.TriggerMode.EXTERNAL:
+            self.stats.triggers_ignored += 1
+            return False
+        if t - self._last_edge_s < 1.0 / self.config.max_rate_hz:
+            self.stats.triggers_ignored += 1
+            return False
+        self._last_edge_s = t
+        self._edges.append(t)
+        self._edge_event.set()
+        return True
+
+    async def _produce(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        k0: int,
+        k1: int,
+        overrun: bool,
+        t_mid: np.ndarray | None = None,
+    ) -> None:
         frames = np.arange(k0, k1, dtype=np.uint64)
         n = len(frames)
-        t_mid = self.exposure_mid_true_s(frames)
+        if t_mid is None:
+            t_mid = self.exposure_mid_true_s(frames)
         poses = np.asarray(self.pose_at(t_mid), dtype=np.float64)
         if poses.shape != (n, 4, 4):
             raise ValueError(f"pose_at returned shape {poses.shape}, expected ({n}, 4, 4)")
@@ -712,11 +770,12 @@ class LaserSimulator:
             s.rate_hz = rate_hz
             return S.OK, b""
         if cmd == C.SET_TRIGGER_MODE:
-            if value != P.TriggerMode.TIME:
+            if value not in (P.TriggerMode.TIME, P.TriggerMode.EXTERNAL):
                 return (
                     S.INVALID_PARAMETER,
-                    f"trigger mode {value}: the simulator has no trigger input".encode(),
+                    f"trigger mode {value}: the simulator has no encoder input".encode(),
                 )
+            s.trigger = P.TriggerMode(value)
             return S.OK, b""
         if cmd == C.SET_PROFILE_FORMAT:
             try:

@@ -527,3 +527,27 @@ def test_network_jitter_delays_groups_without_reordering_them() -> None:
             assert latency_ms.min() > 0 and np.percentile(latency_ms, 90) - latency_ms.min() > 1.0
 
     run(scenario())
+
+
+def test_external_trigger_mode_gives_one_frame_per_edge_exposed_at_the_edge() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            with pytest.raises(P.CommandError, match="encoder"):
+                await client.configure(trigger_mode=P.TriggerMode.ENCODER)
+            await client.configure(trigger_mode=P.TriggerMode.EXTERNAL)
+            await client.start()
+            await asyncio.sleep(0.05)
+            assert client.stats.frames == 0  # no edge, no frame
+            edges = []
+            for _ in range(12):
+                t = time.monotonic()
+                assert sim.trigger(t)
+                assert not sim.trigger(t + 1e-4)  # too soon after the last edge: ignored
+                edges.append(t)
+                await asyncio.sleep(0.004)
+            b = ProfileBatch.concat(await collect(client, 12))
+            assert len(b) == 12 and sim.stats.triggers_ignored == 12
+            truth = sim.sensor_time_us(np.asarray(edges) + FAST.exposure_ns * 0.5e-9)
+            np.testing.assert_allclose(b.sensor_time_us.astype(np.float64), np.floor(truth), atol=1.0)
+
+    run(scenario())
