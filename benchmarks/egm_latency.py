@@ -8,7 +8,10 @@ arrived after the next ``EgmRobot`` went out, or never.
 Prints exactly one JSON object on stdout:
 ``{"p50_us", "p99_us", "p999_us", "max_us", "cycles", "missed_cycles", ...}``; logs go to stderr.
 
-    python benchmarks/egm_latency.py [--seconds 60] [--cycle-ms 4.032]
+    python benchmarks/egm_latency.py [--seconds 60] [--cycle-ms 4.032] [--realtime]
+
+``--realtime`` runs both processes under SCHED_FIFO (needs the privilege), as a cell PC would run
+its EGM process; without it the figures include whatever else the machine is doing.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import resource
 import signal
 import subprocess
@@ -30,6 +34,16 @@ sys.path.insert(0, str(REPO))
 
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig  # noqa: E402
 from drivers.abb_egm.sim_egm import EgmControllerSim, EgmSimConfig, precise_event_loop  # noqa: E402
+
+
+def _realtime(priority: int) -> bool:
+    """Put this process under SCHED_FIFO; False (and a note on stderr) when not permitted."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (PermissionError, AttributeError, OSError) as exc:
+        print(f"egm_latency: SCHED_FIFO not available ({exc}); running at normal priority", file=sys.stderr)
+        return False
+    return True
 
 
 def _quiet_logging() -> None:
@@ -101,14 +115,17 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--cycle-ms", type=float, default=4.032)
     p.add_argument("--warmup-s", type=float, default=1.0)
+    p.add_argument("--realtime", action="store_true", help="SCHED_FIFO for simulator and endpoint")
     p.add_argument("--endpoint-child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
     _quiet_logging()
+    realtime = _realtime(20) if args.realtime else False
     if args.endpoint_child:
         asyncio.run(_endpoint_child())
         return 0
     child = subprocess.Popen(
-        [sys.executable, str(Path(__file__).resolve()), "--endpoint-child"],
+        [sys.executable, str(Path(__file__).resolve()), "--endpoint-child"]
+        + (["--realtime"] if realtime else []),
         stdout=subprocess.PIPE,
         text=True,
     )
@@ -123,6 +140,7 @@ def main() -> int:
         except subprocess.TimeoutExpired:
             child.kill()
             child.wait()
+    result["realtime"] = realtime
     print(json.dumps(result))
     return 0
 

@@ -311,7 +311,8 @@ def _enum(cls, value: int):
     # proto2 keeps unknown enum values as unknown fields, so only known values reach here;
     # the guard is for descriptors that drift from this module. A dict lookup, not Enum(value),
     # because it runs on every cycle.
-    return cls._value2member_map_.get(value, cls(0))
+    member = cls._value2member_map_.get(value)
+    return member if member is not None else cls._value2member_map_[0]
 
 
 def decode_sensor(data: bytes, *, require_correction_mtype: bool = True) -> SensorMessage:
