@@ -6,7 +6,7 @@ error) the client reconnects with exponential backoff and SUBSCRIBEs from the fr
 it delivered, so the sensor's ring buffer fills the hole and nothing is duplicated or reordered
 (anything older that still arrives is dropped by frame index and counted).
 
-Decoding is whole-batch numpy (:func:`drivers.laser.protocol.decode_group`); a group that fails
+Decoding is whole-batch numpy (:func:`drivers.laser.protocol.decode_groups`); a group that fails
 validation is skipped, counted and logged (rate limited), and the stream carries on.
 """
 
@@ -293,7 +293,11 @@ class HD8Client(ProfileSource):
                 raise ConnectionError("HD8 data connection closed by the sensor")
             except asyncio.CancelledError:
                 raise
-            except (OSError, P.ProtocolError, asyncio.IncompleteReadError, TimeoutError) as exc:
+            except Exception as exc:
+                # OSError, ProtocolError, timeouts are the expected ones; anything else is a bug, but
+                # the acquisition must outlive it: log it with its traceback and reconnect.
+                if not isinstance(exc, (OSError, P.ProtocolError, asyncio.IncompleteReadError, TimeoutError)):
+                    log.exception("hd8_data_task_error")
                 if not opened.done():
                     opened.set_exception(exc)
                     return

@@ -577,7 +577,7 @@ class LaserSimulator:
         if f.corrupt_groups > 0 or random_hit:
             f.corrupt_groups = max(0, f.corrupt_groups - (not random_hit))
             wire = _corrupt(group, f.corrupt_mode)
-            log.info("hd8sim_corrupted_group", mode=f.corrupt_mode)
+            self._ratelog.warning("hd8sim_corrupted_group", mode=f.corrupt_mode)
         for c in self._data_clients:
             self._enqueue(c, n, wire)
         self.stats.groups_sent += 1
