@@ -8,6 +8,8 @@ from collections.abc import Awaitable, Callable
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.abb_egm.codec import MciState, MotorState
 from drivers.abb_egm.controller_model import ControllerModel
@@ -454,3 +456,25 @@ def test_trajectory_recorder_interpolates_and_forgets_the_oldest_samples():
         rec.q_deg_at(np.array([2.0]))
     T = rec.T_base_frame_at(np.array([0.8]))
     np.testing.assert_allclose(T[0], RobotKinematics().fk(np.full(6, 80.0)).T_base_frame, atol=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    steps=st.lists(st.floats(1e-4, 0.01), min_size=2, max_size=60),
+    capacity=st.integers(2, 80),
+    data=st.data(),
+)
+def test_trajectory_interpolation_is_exact_on_samples_and_between_them_for_linear_motion(
+    steps, capacity, data
+):
+    rec = TrajectoryRecorder(capacity=capacity)
+    t = 100.0 + np.cumsum(steps)
+    slope = np.array([1.0, -2.0, 0.5, 3.0, 0.0, -1.0])
+    for ti in t:
+        rec.append(ti, slope * ti)
+    ts, qs = rec.arrays()
+    assert len(ts) == min(capacity, len(t)) and np.all(np.diff(ts) > 0)
+    np.testing.assert_allclose(rec.q_deg_at(ts), qs)
+    u = np.array(data.draw(st.lists(st.floats(0.0, 1.0), min_size=1, max_size=20)))
+    query = ts[0] + u * (ts[-1] - ts[0])
+    np.testing.assert_allclose(rec.q_deg_at(query), slope * query[:, None], rtol=1e-9, atol=1e-6)
