@@ -272,9 +272,9 @@ def _tolerances(report: dict) -> tuple[float, float, str]:
 
 
 def _display_cell_mm(data: ResultsData) -> float:
-    # about four points per cell, so the map has no speckle of empty cells on a sparse subsample
+    # about nine points per cell, so a random subsample leaves (almost) no cell empty: e^-9
     n = max(len(data.plate_xy_mm), 1)
-    return float(np.clip(2.0 * math.sqrt(data.plate_size_mm.prod() / n), 2.0, 25.0))
+    return float(np.clip(3.0 * math.sqrt(data.plate_size_mm.prod() / n), 2.0, 25.0))
 
 
 def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: list[ReworkRegion]) -> Any:
@@ -286,7 +286,8 @@ def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: lis
     vmax = max(1.2 * lim, float(np.percentile(np.abs(finite), 99.5)) if finite.size else 0.0)
     nx, ny = mean.shape
     c = field.cell_mm
-    ax.add_patch(Rectangle((0, 0), L, W, facecolor="#d9d9d9", edgecolor="none", zorder=0))
+    footprint = Rectangle((0, 0), L, W, facecolor="#d9d9d9", edgecolor="none", zorder=0)
+    ax.add_patch(footprint)
     im = ax.imshow(
         np.ma.masked_invalid(mean.T),
         origin="lower",
@@ -296,6 +297,7 @@ def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: lis
         interpolation="nearest",
         zorder=1,
     )
+    im.set_clip_path(footprint)  # the last row and column of cells may reach past the plate's edge
     if finite.size and (np.nanmax(np.abs(mean)) > std):
         xc = (np.arange(nx) + 0.5) * c
         yc = (np.arange(ny) + 0.5) * c
@@ -435,12 +437,14 @@ def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
         at = float(line.get("zmax_at_mm", s[np.nanargmax(np.abs(series.deviation_mm))]))
         sign = np.sign(np.interp(at, s, np.nan_to_num(series.deviation_mm))) or 1.0
         ax_d.plot(at, sign * zmax, marker="v" if sign > 0 else "^", color=_COLOURS["fail"], markersize=6)
+        left = at > 0.5 * (float(s[0]) + float(s[-1]))  # keep the label inside the axes
         ax_d.annotate(
             f"Zmax {zmax:.2f} mm at {at:.0f} mm",
             (at, sign * zmax),
-            xytext=(6, -4 if sign > 0 else 4),
+            xytext=(-6 if left else 6, -4 if sign > 0 else 4),
             textcoords="offset points",
             fontsize=6.5,
+            ha="right" if left else "left",
             va="top" if sign > 0 else "bottom",
         )
         ax_d.set_xlim(float(s[0]), float(s[-1]))
@@ -454,20 +458,11 @@ def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
         ax.grid(True, linewidth=0.3, alpha=0.5)
 
 
-def _draw_coverage(ax: Any, data: ResultsData, field: GriddedField) -> None:
+def _draw_coverage(ax: Any, data: ResultsData) -> None:
     """Where the scan saw the plate (grey), holes in the design's coverage (red)."""
     L, W = (float(v) for v in data.plate_size_mm)
-    nx, ny = field.count.shape
-    c = field.cell_mm
-    ax.imshow(
-        np.where(field.seen.T, 1.0, np.nan),
-        origin="lower",
-        extent=(0, nx * c, 0, ny * c),
-        cmap="Greys",
-        vmin=0,
-        vmax=3,
-        interpolation="nearest",
-    )
+    # the holes are the pipeline's (computed on the whole cloud), not gaps of the stored subsample
+    ax.add_patch(Rectangle((0, 0), L, W, facecolor="#cfcfcf", edgecolor="none"))
     h = data.holes_xy_mm
     if len(h):
         # the unseen cells rasterised on their own 5 mm grid: one image, whatever their number
@@ -714,7 +709,7 @@ deviation as a scalar field).</p></section>
 """
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-        '<meta name="viewport" content="width=device-width, initial-scale=1">'
+        '<meta name="viewport" content="width=device-width, initial-scale=1"><link rel="icon" href="data:,">'
         f"<title>Inspection {_e(rep['plate_id'])}: {verdict.upper()}</title><style>{_CSS}</style></head>"
         f"<body>{head}<main>{body}</main></body></html>\n"
     )
@@ -843,7 +838,7 @@ def render_pdf(data: ResultsData, regions: list[ReworkRegion], field: GriddedFie
         else:
             fig.text(0.07, 0.86, "No region lies beyond the standard range.", fontsize=9)
         ax = fig.add_axes((0.09, 0.07, 0.84, 0.36))
-        _draw_coverage(ax, data, field)
+        _draw_coverage(ax, data)
         fig.text(
             0.07, 0.45, "Scan coverage (grey seen, red unseen 5 mm cells)", fontsize=11, fontweight="bold"
         )
@@ -933,12 +928,12 @@ def write_report(results_dir: str | Path) -> list[Path]:
     # Fixed axes positions, not constrained layout: layout solving redraws every tick label several
     # times and was a third of the render time.
     svgs: dict[str, str] = {}
-    fig = Figure(figsize=(9.0, 6.2))
+    fig = Figure(figsize=(9.0, 5.6))
     im = _draw_top_view(fig.add_axes((0.08, 0.08, 0.78, 0.9)), data, display, regions)
     _colorbar(fig, im, cax=fig.add_axes((0.88, 0.2, 0.018, 0.62)))
     svgs["top"] = _svg(fig)
     fig = Figure(figsize=(7.0, 4.4))
-    _draw_coverage(fig.add_axes((0.1, 0.12, 0.86, 0.8)), data, display)
+    _draw_coverage(fig.add_axes((0.1, 0.12, 0.86, 0.8)), data)
     svgs["coverage"] = _svg(fig)
     for k in range(len(data.report["lines"])):
         fig = Figure(figsize=(6.4, 3.4))

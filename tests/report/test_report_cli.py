@@ -1,0 +1,53 @@
+"""`cellctl report JOB_OR_DIR [--open]` as a user runs it: the installed command in a subprocess."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from analysis.templates import DetectionLayout
+from tests.report.results_fixture import write_synthetic_results
+
+TINY = DetectionLayout(transverse_offsets_mm=(900.0,), longitudinal_offsets_mm=(), diagonals=False)
+
+
+def _run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2])
+    return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=240)
+
+
+@pytest.mark.slow
+def test_report_regenerates_a_job_found_under_the_configured_data_dir(cellctl_exe, tmp_path: Path) -> None:
+    job_dir = tmp_path / "store" / "jobs" / "job-42"
+    write_synthetic_results(job_dir, n_points=3000, layout=TINY)
+    (tmp_path / "cell.toml").write_text(f'[cell]\nid = "c1"\ndata_dir = "{tmp_path / "store"}"\n')
+    # --open without a desktop prints where the page is instead
+    res = _run([*cellctl_exe, "report", "job-42", "--open", "--config", "cell.toml"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    out = res.stdout.splitlines()
+    assert out[:3] == [str(job_dir / n) for n in ("report.csv", "report.html", "report.pdf")]
+    assert out[3] == f"no desktop browser available; open {(job_dir / 'report.html').resolve()}"
+    html = (job_dir / "report.html").read_text(encoding="utf-8")
+    assert "T1" in html and "FAIL" in html  # the line through the 3.6 mm dent fails the 3 mm limit
+
+
+def test_report_refuses_an_unknown_job_and_a_broken_results_dir(cellctl_exe, tmp_path: Path) -> None:
+    (tmp_path / "cell.toml").write_text(f'[cell]\ndata_dir = "{tmp_path / "store"}"\n')
+    res = _run([*cellctl_exe, "report", "nope", "--config", "cell.toml"], tmp_path)
+    assert res.returncode == 2
+    assert "nope: neither a directory nor a job in" in res.stderr
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "report.json").write_text(
+        json.dumps({"plate_id": "P", "verdict": "pass", "lines": [{"family": "x"}]})
+    )
+    res = _run([*cellctl_exe, "report", str(bad)], tmp_path)
+    assert res.returncode == 2
+    assert "lines[0].index: required key is missing" in res.stderr
+    assert not (bad / "report.html").exists()
