@@ -107,6 +107,7 @@ class _Job:
     attempt: int = 0
     worker_id: str | None = None
     assigned_at: float = 0.0
+    sending: bool = False
     accepted: bool = False
     last_seen: float = 0.0
     tried: set[str] = field(default_factory=set)
@@ -234,6 +235,7 @@ class Dispatcher:
         job.worker_id = worker.worker_id
         job.assigned_at = job.last_seen = now
         job.accepted = False
+        job.sending = True
         job.tried.add(worker.worker_id)
         worker.job_id = job.job_id
         worker.last_assigned = now
@@ -268,6 +270,10 @@ class Dispatcher:
 
         try:
             await asyncio.to_thread(put)
+            if job.worker_id == worker_id and job.attempt == spec.attempt:
+                # The acknowledgement clock starts once the cloud is out, not while it is sent.
+                job.sending = False
+                job.last_seen = time.monotonic()
         except Exception as exc:
             log.warning("job_send_failed", job_id=job.job_id, worker_id=worker_id, error=str(exc))
             if job.worker_id == worker_id and job.attempt == spec.attempt:
@@ -379,10 +385,10 @@ class Dispatcher:
             await asyncio.sleep(s.watchdog_period_s)
             now = time.monotonic()
             for job in list(self._jobs.values()):
-                if job.worker_id is None:
+                if job.worker_id is None or job.sending:
                     continue
                 reason = ""
-                if not job.accepted and now - job.assigned_at > s.ack_timeout_s:
+                if not job.accepted and now - job.last_seen > s.ack_timeout_s:
                     reason = f"no acknowledgement within {s.ack_timeout_s} s"
                 elif job.accepted and now - job.last_seen > s.heartbeat_timeout_s:
                     reason = f"no heartbeat for {s.heartbeat_timeout_s} s"
