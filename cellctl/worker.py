@@ -463,7 +463,7 @@ class Worker:
             self._task = None
 
     async def _restart_runner(self) -> None:
-        self.runner.kill()
+        await asyncio.to_thread(self.runner.kill)  # kill() joins the child: not on the loop
         try:
             await self.runner.start()
         except AnalysisLoadError as exc:
