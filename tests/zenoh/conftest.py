@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import uuid
@@ -13,17 +12,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from zenoh_testutil import free_port
 
 from cellctl.config import ZenohSection
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass
