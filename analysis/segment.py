@@ -148,20 +148,19 @@ class _PassCells:
     labels: np.ndarray  # (Pc, Wc) global region label or -1
 
 
-def _cells(X5: np.ndarray, V5: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cell sums of a (Pc, by, Wc, bx, 3) grid with validity (Pc, by, Wc, bx): (count, mean)."""
+def _cells(X5: np.ndarray, V5: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cells of a (Pc, by, Wc, bx, 3) grid whose invalid entries are zero: (count, sum, mean)."""
     cnt = V5.sum(axis=(1, 3), dtype=np.float64)
-    s = np.where(V5[..., None], X5, 0.0).sum(axis=(1, 3))
+    s = X5.sum(axis=3).sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = s / cnt[..., None]
-    return cnt, mean
+    return cnt, s, mean
 
 
 def _plane_residual(X5: np.ndarray, mean: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """Signed distance (Pc, by, Wc, bx) of every grid point from its cell's plane (mean, normal)."""
-    d = X5 - mean[:, None, :, None, :]
-    n = normal[:, None, :, None, :]
-    return d[..., 0] * n[..., 0] + d[..., 1] * n[..., 1] + d[..., 2] * n[..., 2]
+    offset = np.einsum("ijk,ijk->ij", mean, normal)
+    return np.einsum("iajbk,ijk->iajb", X5, normal, optimize=False) - offset[:, None, :, None]
 
 
 def _normals(mean: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -225,8 +224,9 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     # One index grid for all passes: (pass, profile, point) -> point index. Duplicated indices
     # (a malformed file) keep the last point, which is harmless for segmentation.
     lin = (pass_id * n_rows + cloud.profile) * width + cloud.point
-    grid = np.full(n_pass * n_rows * width, -1, dtype=np.int64)
-    grid[lin] = np.arange(n)
+    itype = np.int32 if n < 2**31 - 1 else np.int64  # half the memory traffic for the usual sizes
+    grid = np.full(n_pass * n_rows * width, -1, dtype=itype)
+    grid[lin] = np.arange(n, dtype=itype)
     grid = grid.reshape(n_pass, n_rows, width)
     present = (grid >= 0).any(axis=2)
     rows_per_pass = np.where(present.any(axis=1), n_rows - np.argmax(present[:, ::-1], axis=1), 0)
@@ -250,15 +250,23 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
         idxp[:P, :width] = idx
         V = idxp >= 0
         Pc, Wc = Pp // by, Wp // bx
-        X5 = pts[np.where(V, idxp, 0)].reshape(Pc, by, Wc, bx, 3)
+        X = pts[np.where(V, idxp, 0)]
+        X[~V] = 0.0  # empty grid places add nothing to the cell sums
+        X5 = X.reshape(Pc, by, Wc, bx, 3)
         V5 = V.reshape(Pc, by, Wc, bx)
         min_count = st.min_cell_fill * by * bx
-        cnt, mean = _cells(X5, V5)
+        cnt, csum, mean = _cells(X5, V5)
         normal = _normals(mean, cnt >= min_count)
-        # Drop gross outliers against the first planes, then recompute: one outlier must not tilt a cell.
+        # Take gross outliers out of their cells' sums: one outlier must not tilt a cell. They are
+        # rare, so the cells are corrected rather than summed again.
         with np.errstate(invalid="ignore"):
-            V5 = V5 & ~(np.abs(_plane_residual(X5, mean, normal)) > st.gross_outlier_mm)
-        cnt, mean = _cells(X5, V5)
+            gross = V5 & (np.abs(_plane_residual(X5, mean, normal)) > st.gross_outlier_mm)
+        if gross.any():
+            gi, ga, gj, gb = np.nonzero(gross)
+            np.subtract.at(cnt, (gi, gj), 1.0)
+            np.subtract.at(csum, (gi, gj), X5[gi, ga, gj, gb])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean = np.where(cnt[..., None] > 0, csum / cnt[..., None], np.nan)
         ok = cnt >= min_count
         normal = _normals(mean, ok)
         smooth = _smooth(normal, cos_max)
