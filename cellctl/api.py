@@ -414,3 +414,23 @@ async def call(
         return reply_model.model_validate_json(reply.ok.payload.to_bytes())
     except ValidationError as exc:
         raise ApiCallError(key, None, f"reply is not a {reply_model.__name__}: {exc}") from None
+
+
+async def list_workers(session: Any, keys: Keys, *, timeout_s: float = 2.0) -> list[WorkerAnnouncement]:
+    """Every worker's announcement (for `cellctl status`), sorted by id; unreadable replies skipped."""
+    import zenoh
+
+    from cellctl.zenoh_session import async_get
+
+    replies = await async_get(
+        session, keys.worker_info("*"), timeout_s=timeout_s, target=zenoh.QueryTarget.ALL
+    )
+    out = []
+    for r in replies:
+        if r.ok is None:
+            continue
+        try:
+            out.append(WorkerAnnouncement.model_validate_json(r.ok.payload.to_bytes()))
+        except ValidationError:
+            log.warning("worker_announcement_malformed", key=str(r.ok.key_expr))
+    return sorted(out, key=lambda a: a.worker_id)

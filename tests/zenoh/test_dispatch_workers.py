@@ -11,13 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 
-from cellctl.api import Keys, WorkerAnnouncement
+from cellctl.api import Keys, list_workers
 from cellctl.cloud_codec import Cloud, encode_cloud
 from cellctl.config import load_config
 from cellctl.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
-from cellctl.zenoh_session import async_get, build_zenoh_config, close_session, open_session, subscribe
+from cellctl.zenoh_session import build_zenoh_config, close_session, open_session, subscribe
 
 pytestmark = pytest.mark.e2e
 FAST = DispatchSettings(ack_timeout_s=5.0, heartbeat_timeout_s=3.0, job_timeout_s=60.0, max_attempts=3)
@@ -75,13 +74,11 @@ def test_two_workers_ten_jobs_each_analysed_exactly_once(hub, start_worker):
         reports = dict(
             zip(futures, await asyncio.wait_for(asyncio.gather(*futures.values()), 60), strict=True)
         )
-        info_key = Keys(hub.prefix).worker_info("*")
-        infos = await async_get(disp.session, info_key, timeout_s=5, target=zenoh.QueryTarget.ALL)
-        announced = [WorkerAnnouncement.model_validate_json(r.ok.payload.to_bytes()) for r in infos]
+        announced = await list_workers(disp.session, Keys(hub.prefix))
         return reports, centroids, announced
 
     reports, centroids, announced = _run(hub, scenario)
-    assert sorted((a.worker_id, a.busy_job) for a in announced) == [("w1", None), ("w2", None)]
+    assert [(a.worker_id, a.busy_job) for a in announced] == [("w1", None), ("w2", None)]
     assert sum(a.jobs_done for a in announced) == 10
     assert all(env.ok for env in reports.values()), [env.error for env in reports.values()]
     for job_id, env in reports.items():
