@@ -249,14 +249,15 @@ def test_sensor_clock_has_offset_drift_and_mid_exposure_stamps() -> None:
 
 
 def test_hd8_millisecond_counter_wraps_mid_stream() -> None:
-    cfg = SimConfig(rate_hz=1000.0, hd8_counter_start_ms=2**32 - 150, seed=3, max_backlog_s=10.0)
+    # The counter starts 0.5 s before its wrap when the simulator is built; 1.2 s of frames cross it.
+    cfg = SimConfig(rate_hz=1000.0, hd8_counter_start_ms=2**32 - 500, seed=3, max_backlog_s=10.0)
 
     async def scenario() -> None:
         async with sim_and_client(config=cfg) as (_sim, client):
             await client.start()
-            b = ProfileBatch.concat(await collect(client, 400))
+            b = ProfileBatch.concat(await collect(client, 1200))
             ms = b.hd8_ms.astype(np.int64)
-            assert ms.max() > 2**32 - 100 and ms.min() < 100  # wrapped inside this stream
+            assert ms[0] > 2**31 and ms[-1] < 2**31  # wrapped inside this stream
             unwrapped = np.unwrap(ms, period=2**32)
             assert np.all(np.diff(unwrapped) >= 0)
             np.testing.assert_allclose(np.diff(unwrapped).mean(), 1.0, atol=0.05)
@@ -470,10 +471,13 @@ def test_random_drops_and_corruption_are_counted_and_never_break_order() -> None
             sim.faults.drop_probability = 0.05
             sim.faults.corrupt_probability = 0.1
             await client.start()
-            b = ProfileBatch.concat(await collect(client, 500))
-            assert np.all(np.diff(b.frame_index.astype(np.int64)) > 0)
             st = client.stats
-            assert st.decode_errors > 0 and st.missing_frames > 0
+            batches = []
+            # How many groups a run holds depends on the machine's load; read until both faults hit.
+            while st.decode_errors == 0 or st.missing_frames == 0 or len(batches) < 50:
+                batches += await collect(client, 1)
+            b = ProfileBatch.concat(batches)
+            assert np.all(np.diff(b.frame_index.astype(np.int64)) > 0)
             assert st.reconnects == 0 and st.duplicates_dropped == 0
             assert sim.stats.frames_dropped_fault > 0
 
