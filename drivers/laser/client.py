@@ -138,14 +138,16 @@ class HD8Client(ProfileSource):
             except (ConnectionError, P.FramingError, asyncio.IncompleteReadError):
                 await self._close_control()
                 raise
-        cmd, status, reply = P.decode_reply(msg)
-        if cmd != command:
+        reply = P.decode_reply(msg)
+        if reply.command != command:
             raise P.DecodeError(
-                f"reply to 0x{cmd:04x} while waiting for {command.name}", field="command", data=msg.data
+                f"reply to 0x{reply.command:04x} while waiting for {command.name}",
+                field="command",
+                data=msg.data,
             )
-        if status != P.Status.OK:
-            raise P.CommandError(command, status, reply.decode("ascii", "replace"))
-        return reply
+        if reply.status != P.Status.OK:
+            raise P.CommandError(command, reply.status, reply.payload.decode("ascii", "replace"))
+        return reply.payload
 
     async def _read_reply(self, reader: asyncio.StreamReader) -> P.Message:
         while True:

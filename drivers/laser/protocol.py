@@ -31,6 +31,7 @@ __all__ = [
     "PROFILE_HEADER_SIZE",
     "STAMP_DTYPE",
     "STAMP_HEADER_SIZE",
+    "Command",
     "CommandError",
     "CommandId",
     "DecodeError",
@@ -44,6 +45,7 @@ __all__ = [
     "ProfileScale",
     "ProtocolError",
     "ProtocolTimeout",
+    "Reply",
     "SensorInfo",
     "SensorState",
     "StateReply",
@@ -641,7 +643,24 @@ def encode_command(command: int, payload: bytes = b"") -> bytes:
     return _header(command, HEADER.size + len(payload), False) + payload
 
 
-def decode_command(msg: Message) -> tuple[CommandId, bytes]:
+@dataclass(frozen=True)
+class Command:
+    """A decoded control request."""
+
+    command: CommandId
+    payload: bytes
+
+
+@dataclass(frozen=True)
+class Reply:
+    """A decoded control reply; ``payload`` is the ASCII error text when ``status`` is not OK."""
+
+    command: int
+    status: int
+    payload: bytes
+
+
+def decode_command(msg: Message) -> Command:
     """Split a control request into its command id and payload.
 
     Raises:
@@ -651,7 +670,7 @@ def decode_command(msg: Message) -> tuple[CommandId, bytes]:
         cmd = CommandId(msg.type)
     except ValueError:
         raise DecodeError(f"unknown command 0x{msg.type:04x}", field="command", data=msg.data) from None
-    return cmd, msg.data[HEADER.size :]
+    return Command(cmd, msg.data[HEADER.size :])
 
 
 def encode_reply(command: int, status: int, payload: bytes = b"") -> bytes:
@@ -659,14 +678,14 @@ def encode_reply(command: int, status: int, payload: bytes = b"") -> bytes:
     return REPLY_HEADER.pack(REPLY_HEADER.size + len(payload), command & TYPE_MASK, status) + payload
 
 
-def decode_reply(msg: Message) -> tuple[int, int, bytes]:
-    """Return ``(command, status, payload)`` of a control reply."""
+def decode_reply(msg: Message) -> Reply:
+    """Decode a control reply (command id, status, payload)."""
     if len(msg.data) < REPLY_HEADER.size:
         raise DecodeError(
             f"reply of {len(msg.data)} bytes is shorter than its header", field="size", data=msg.data
         )
     _size, command, status = REPLY_HEADER.unpack_from(msg.data)
-    return command, status, msg.data[REPLY_HEADER.size :]
+    return Reply(command, status, msg.data[REPLY_HEADER.size :])
 
 
 U32 = struct.Struct("<I")

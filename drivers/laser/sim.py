@@ -700,7 +700,8 @@ class LaserSimulator:
 
     async def _dispatch(self, msg: P.Message, peer: object) -> bytes:
         try:
-            cmd, payload = P.decode_command(msg)
+            request = P.decode_command(msg)
+            cmd, payload = request.command, request.payload
         except P.DecodeError as exc:
             self.stats.malformed_commands += 1
             self._ratelog.warning("hd8sim_unknown_command", peer=peer, error=str(exc))

@@ -198,7 +198,7 @@ def test_simulator_answers_malformed_commands_and_keeps_serving() -> None:
             replies: list[P.Message] = []
             while len(replies) < 3:
                 replies += framer.feed(await asyncio.wait_for(r.read(4096), 2.0))
-            statuses = [P.decode_reply(m)[1] for m in replies]
+            statuses = [P.decode_reply(m).status for m in replies]
             assert statuses == [P.Status.UNKNOWN_COMMAND, P.Status.MALFORMED, P.Status.MALFORMED]
             assert b"SET_RATE" in replies[1].data
             w.write(struct.pack("<IH", 2, 0))  # broken framing: only this connection is dropped

@@ -196,12 +196,13 @@ def test_control_command_and_reply_round_trip() -> None:
     req = P.encode_command(P.CommandId.SET_RATE, P.U32.pack(200_000))
     assert req == struct.pack("<IHI", 10, 0x4003, 200_000)
     (msg,) = P.MessageFramer().feed(req)
-    cmd, payload = P.decode_command(msg)
-    assert cmd is P.CommandId.SET_RATE and P.decode_u32_param(cmd, payload) == 200_000
+    req_msg = P.decode_command(msg)
+    assert req_msg.command is P.CommandId.SET_RATE
+    assert P.decode_u32_param(req_msg.command, req_msg.payload) == 200_000
     rep = P.encode_reply(P.CommandId.SET_RATE, P.Status.INVALID_STATE, b"busy")
     assert rep == struct.pack("<IHi", 14, 0x4003, -4) + b"busy"
     (rmsg,) = P.MessageFramer().feed(rep)
-    assert P.decode_reply(rmsg) == (0x4003, -4, b"busy")
+    assert P.decode_reply(rmsg) == P.Reply(0x4003, -4, b"busy")
 
 
 def test_unknown_command_is_a_decode_error_naming_the_id() -> None:
