@@ -76,6 +76,18 @@ def test_missing_password_is_a_setup_error_naming_the_variable(monkeypatch):
         config_dict(ZenohSection(access=ZenohAccess(enabled=True, password_env="NO_SUCH_PW_VAR")))
 
 
+async def _put_until_received(session, key: str, payload: bytes, queue: asyncio.Queue, timeout_s: float = 15):
+    """Put until the subscriber has it: a new subscription takes a moment to reach the publisher."""
+    t_end = asyncio.get_running_loop().time() + timeout_s
+    while True:
+        session.put(key, payload)
+        try:
+            return await asyncio.wait_for(queue.get(), 0.5)
+        except TimeoutError:
+            if asyncio.get_running_loop().time() > t_end:
+                raise
+
+
 def test_callbacks_run_on_the_event_loop_thread_and_queryable_survives_a_failing_handler(hub):
     async def main():
         loop_thread = threading.get_ident()
@@ -105,14 +117,11 @@ def test_callbacks_run_on_the_event_loop_thread_and_queryable_survives_a_failing
             first = await async_get(a, f"{hub.prefix}/ping", timeout_s=5)
             second = await async_get(a, f"{hub.prefix}/ping", timeout_s=5)
             nothing = await async_get(a, f"{hub.prefix}/nobody", timeout_s=5)
-            a.put(f"{hub.prefix}/data", b"x")
-            sample = await asyncio.wait_for(got.get(), 5)
+            sample = await _put_until_received(a, f"{hub.prefix}/data", b"x", got)
             # one client to another through the daemon (a CLI watching what a worker publishes)
             relayed: asyncio.Queue = asyncio.Queue()
             subscribe(b, f"{hub.prefix}/reports/*", relayed.put_nowait)
-            await asyncio.sleep(0.2)
-            a.put(f"{hub.prefix}/reports/j1", b"report")
-            via_daemon = await asyncio.wait_for(relayed.get(), 5)
+            via_daemon = await _put_until_received(a, f"{hub.prefix}/reports/j1", b"report", relayed)
             return loop_thread, seen_threads, first, second, nothing, sample, via_daemon
         finally:
             close_session(a)
