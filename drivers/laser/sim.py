@@ -27,6 +27,7 @@ import concurrent.futures
 import contextlib
 import json
 import math
+import multiprocessing
 import signal
 import sys
 import time
@@ -93,6 +94,12 @@ class SimConfig(BaseModel):
     client_queue_frames: int = Field(20_000, gt=0)
     z_scale_nm: int = Field(2000, gt=0)
     x_scale_nm_points: int = Field(2000, gt=0)
+    #: render in a separate (spawned) process instead of a thread. open3d's ray casting holds the GIL,
+    #: so a render thread delays the other coroutines and threads of this process by up to a group's
+    #: cast time (about 0.1 ms per profile); a process isolates them, at the cost of 1-2 s start-up.
+    #: As with any spawn-based pool, the program's main module must be import-safe
+    #: (``if __name__ == "__main__":``).
+    render_process: bool = False
     seed: int | None = 0
 
     @model_validator(mode="after")
@@ -225,11 +232,9 @@ class LaserSimulator:
         fmt = P.ProfileFormat.UNIFORM if cfg.profile_format == "uniform" else P.ProfileFormat.POINTS
         self.settings = _Settings(rate_hz=cfg.rate_hz, exposure_ns=cfg.exposure_ns, fmt=fmt)
         self._optics = cfg.optics()
-        self._raycaster = SceneRaycaster(self.scene)
-        # Two streams: noise is drawn in the render thread, faults in the event loop.
-        seeds = np.random.SeedSequence(cfg.seed).spawn(2)
-        self._noise_rng = np.random.default_rng(seeds[0])
-        self._fault_rng = np.random.default_rng(seeds[1])
+        # Two random streams: noise is drawn by the renderer, faults in the event loop.
+        self._fault_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed).spawn(2)[1])
+        self._local: dict[str, object] = {}  # renderer state when rendering in a thread
         self._t_epoch_s = clock()
         self._offset_us = float(cfg.clock_offset_us)
         self._counter_base_ms = cfg.hd8_counter_start_ms
@@ -251,9 +256,20 @@ class LaserSimulator:
         self._last_edge_s = -math.inf
         self._last_send_at = 0.0  # loop time of the last jitter-delayed send
         self._frames_since_disconnect_arm = 0
-        # One worker thread: rendering releases the GIL inside Embree / numpy, and the event loop
-        # stays free to serve the sockets while a batch is being rendered.
-        self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="hd8sim")
+        # Rendering runs off the event loop: in a worker process (see SimConfig.render_process) or in
+        # one worker thread.
+        seeds = np.random.SeedSequence(cfg.seed).spawn(2)
+        self._executor: concurrent.futures.Executor
+        if cfg.render_process:
+            self._executor = concurrent.futures.ProcessPoolExecutor(
+                max_workers=1,
+                mp_context=multiprocessing.get_context("spawn"),  # no fork of a threaded process
+                initializer=_worker_init,
+                initargs=(self.scene.vertices_mm, self.scene.triangles, self._optics, seeds[0]),
+            )
+        else:
+            self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="hd8sim")
+            _worker_init(self.scene.vertices_mm, self.scene.triangles, self._optics, seeds[0], self._local)
         self._ratelog = RateLimitedLog(log)
         self.info = P.SensorInfo(
             model=cfg.model,
@@ -271,7 +287,9 @@ class LaserSimulator:
     # ------------------------------------------------------------------------------ lifecycle
 
     async def start(self) -> tuple[int, int]:
-        """Listen on the control and data ports; return ``(control_port, data_port)``."""
+        """Start the renderer, listen on the control and data ports; return ``(control_port, data_port)``."""
+        # A worker process imports open3d and builds the scene now, not when the first frame is due.
+        await asyncio.get_running_loop().run_in_executor(self._executor, _worker_ping)
         ctl = await asyncio.start_server(self._serve_control, self.host, self._ports[0])
         dat = await asyncio.start_server(self._serve_data, self.host, self._ports[1])
         self._servers = [ctl, dat]
@@ -295,7 +313,7 @@ class LaserSimulator:
         for srv in self._servers:
             await srv.wait_closed()
         self._servers = []
-        self._executor.shutdown(wait=True)
+        await asyncio.to_thread(self._executor.shutdown, True)
 
     @property
     def running(self) -> bool:
@@ -485,11 +503,14 @@ class LaserSimulator:
         fmt = self.settings.fmt
         exposure = np.full(n, self.settings.exposure_ns, dtype=np.uint32)
         t0 = time.perf_counter()
+        renderer = _render_in_worker if self.config.render_process else self._render_in_thread
         group = await loop.run_in_executor(
             self._executor,
-            self._render_encode,
+            renderer,
             poses[keep],
             fmt,
+            self._uniform_scale(),
+            self._points_scale(),
             dict(
                 frame_index=frames[keep],
                 sensor_time_us=sensor_us[keep].astype(np.uint64),
@@ -516,19 +537,18 @@ class LaserSimulator:
         self.stats.frames_dropped_fault += int(n - keep.sum())
         return keep
 
-    def _render_encode(self, poses: np.ndarray, fmt: P.ProfileFormat, stamps: dict[str, np.ndarray]) -> bytes:
-        """Runs in the worker thread: ray cast, quantise, encode one group."""
-        cfg = self.config
-        if fmt == P.ProfileFormat.UNIFORM:
-            r = render_uniform(self._raycaster, poses, self._optics, self._noise_rng)
-            scale = self._uniform_scale()
-            z_raw = P.quantize_mm(r.z_mm, r.valid, scale.z_scale_nm, scale.z_offset_um)
-            return P.encode_frame_group(scale=scale, z_raw=z_raw, **stamps)
-        r = render_points(self._raycaster, poses, self._optics, self._noise_rng)
-        scale = P.ProfileScale(cfg.x_scale_nm_points, cfg.z_scale_nm, 0, self._z_offset_um())
-        x_raw = P.quantize_mm(r.x_mm, r.valid, scale.x_scale_nm, scale.x_offset_um)
-        z_raw = P.quantize_mm(r.z_mm, r.valid, scale.z_scale_nm, scale.z_offset_um)
-        return P.encode_frame_group(scale=scale, z_raw=z_raw, x_raw=x_raw, **stamps)
+    def _render_in_thread(
+        self,
+        poses: np.ndarray,
+        fmt: P.ProfileFormat,
+        uniform: P.ProfileScale,
+        points: P.ProfileScale,
+        stamps: dict[str, np.ndarray],
+    ) -> bytes:
+        return _render_with(self._local, poses, fmt, uniform, points, stamps)
+
+    def _points_scale(self) -> P.ProfileScale:
+        return P.ProfileScale(self.config.x_scale_nm_points, self.config.z_scale_nm, 0, self._z_offset_um())
 
     def _z_offset_um(self) -> int:
         return round((self.config.z_min_mm + self.config.z_max_mm) * 500.0)  # range centre, um
@@ -785,6 +805,63 @@ class LaserSimulator:
                 return S.INVALID_PARAMETER, f"profile format {value} unknown".encode()
             return S.OK, b""
         return S.UNKNOWN_COMMAND, b""  # pragma: no cover - every CommandId is handled above
+
+
+# ------------------------------------------------------------------------------------- renderer
+
+_WORKER_STATE: dict[str, object] = {}  # the renderer's state inside a worker process
+
+
+def _worker_init(
+    vertices_mm: np.ndarray,
+    triangles: np.ndarray,
+    optics: LaserOptics,
+    seed: np.random.SeedSequence,
+    state: dict[str, object] | None = None,
+) -> None:
+    """Build the renderer's scene and noise source (in the worker process, or in ``state``)."""
+    state = _WORKER_STATE if state is None else state
+    state["raycaster"] = SceneRaycaster(Scene(vertices_mm, triangles))
+    state["optics"] = optics
+    state["rng"] = np.random.default_rng(seed)
+
+
+def _worker_ping() -> bool:
+    return True
+
+
+def _render_in_worker(
+    poses: np.ndarray,
+    fmt: P.ProfileFormat,
+    uniform: P.ProfileScale,
+    points: P.ProfileScale,
+    stamps: dict[str, np.ndarray],
+) -> bytes:
+    return _render_with(_WORKER_STATE, poses, fmt, uniform, points, stamps)
+
+
+def _render_with(
+    state: dict[str, object],
+    poses: np.ndarray,
+    fmt: P.ProfileFormat,
+    uniform: P.ProfileScale,
+    points: P.ProfileScale,
+    stamps: dict[str, np.ndarray],
+) -> bytes:
+    """Ray cast, quantise and encode one frame group (runs in the renderer)."""
+    raycaster = state["raycaster"]
+    optics = state["optics"]
+    rng = state["rng"]
+    assert isinstance(raycaster, SceneRaycaster) and isinstance(optics, LaserOptics)
+    assert isinstance(rng, np.random.Generator)
+    if fmt == P.ProfileFormat.UNIFORM:
+        r = render_uniform(raycaster, poses, optics, rng)
+        z_raw = P.quantize_mm(r.z_mm, r.valid, uniform.z_scale_nm, uniform.z_offset_um)
+        return P.encode_frame_group(scale=uniform, z_raw=z_raw, **stamps)
+    r = render_points(raycaster, poses, optics, rng)
+    x_raw = P.quantize_mm(r.x_mm, r.valid, points.x_scale_nm, points.x_offset_um)
+    z_raw = P.quantize_mm(r.z_mm, r.valid, points.z_scale_nm, points.z_offset_um)
+    return P.encode_frame_group(scale=points, z_raw=z_raw, x_raw=x_raw, **stamps)
 
 
 def _corrupt(group: bytes, mode: str) -> bytes:

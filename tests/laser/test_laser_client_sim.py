@@ -555,3 +555,19 @@ def test_external_trigger_mode_gives_one_frame_per_edge_exposed_at_the_edge() ->
             np.testing.assert_allclose(b.sensor_time_us.astype(np.float64), np.floor(truth), atol=1.0)
 
     run(scenario())
+
+
+@pytest.mark.slow  # spawns a process that imports open3d
+def test_rendering_in_a_worker_process_streams_the_same_scene() -> None:
+    cfg = SimConfig(rate_hz=500.0, render_process=True, outlier_probability=0.0, seed=10)
+
+    async def scenario() -> None:
+        async with sim_and_client(config=cfg) as (_sim, client):
+            await client.start()
+            b = ProfileBatch.concat(await collect(client, 100))
+            fi = b.frame_index.astype(np.int64)
+            np.testing.assert_array_equal(fi, np.arange(fi[0], fi[0] + len(fi)))
+            assert b.valid.mean() > 0.99
+            assert abs(float(np.nanmean(b.z_mm)) - 100.0) < 0.005
+
+    run(scenario(), timeout_s=60.0)
