@@ -83,11 +83,14 @@ def test_egm_follows_a_ramp_with_speed_feed_forward_without_the_proportional_lag
         loop = asyncio.get_running_loop()
         speed = np.array([20.0, -10.0, 5.0, 30.0, 0.0, -40.0])  # deg/s
         t0 = loop.time()  # loop.time() and the simulator's default clock are both time.monotonic
+        t_last = t0
         while loop.time() - t0 < 1.0:
-            ep.command_joints(Q_START + speed * (loop.time() - t0), speed_deg_s=speed)
+            t_last = loop.time()
+            ep.command_joints(Q_START + speed * (t_last - t0), speed_deg_s=speed)
             await ep.wait_for_feedback(0.5)
         t, q = sim.trajectory.arrays()
-        keep = t > t0 + 0.4  # after the low-pass and the start transient
+        # after the low-pass and the start transient, and before the reference stopped moving
+        keep = (t > t0 + 0.4) & (t < t_last)
         ramp = Q_START + speed * (t[keep, None] - t0)
         lag_s = (ramp[:, 5] - q[keep, 5]) / speed[5]
         # Pure P control would lag 1/k = 200 ms. Feed-forward leaves the reference's transport delay
