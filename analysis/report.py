@@ -36,6 +36,7 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.colors import ListedColormap, Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
+from matplotlib.ticker import MaxNLocator
 
 from analysis.rework import GriddedField, ReworkRegion, find_rework_regions, grid_deviation
 
@@ -396,10 +397,13 @@ def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
     if "start_plate_mm" in line and "end_plate_mm" in line:
         a, b = line["start_plate_mm"], line["end_plate_mm"]
         where = f"  ({a[0]:.0f}, {a[1]:.0f}) → ({b[0]:.0f}, {b[1]:.0f}) mm"
-    ax_z.set_title(
+    # a text, not set_title: the title's automatic placement measures every tick label again
+    ax_z.text(
+        0.0,
+        1.04,
         f"{line['name']}  {line['family']} {line['index']}  {verdict}{where}",
+        transform=ax_z.transAxes,
         fontsize=8,
-        loc="left",
         color=_COLOURS["pass"] if line["pass"] else _COLOURS["fail"],
         fontweight="bold",
     )
@@ -454,6 +458,7 @@ def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
     ax_d.set_ylabel("d (mm)", fontsize=7)
     ax_z.set_ylabel("height (mm)", fontsize=7)
     for ax in (ax_z, ax_d):
+        ax.yaxis.set_major_locator(MaxNLocator(5))
         ax.tick_params(labelsize=6.5)
         ax.grid(True, linewidth=0.3, alpha=0.5)
 
@@ -479,6 +484,7 @@ def _draw_coverage(ax: Any, data: ResultsData) -> None:
             vmin=0,
             vmax=1,
             interpolation="nearest",
+            zorder=2,  # over the footprint patch
         )
     ax.add_patch(Rectangle((0, 0), L, W, facecolor="none", edgecolor="k", linewidth=1.0))
     ax.plot(0, 0, marker="^", color="#6a1b9a", markersize=8, clip_on=False)
@@ -726,11 +732,20 @@ def _pdf_text_page(fig: Figure, y: float, lines: list[tuple[str, dict]]) -> floa
     return y
 
 
-def _pdf_table(ax: Any, header: list[str], rows: list[list[str]], colours: list[list[str]]) -> None:
+def _pdf_table(
+    ax: Any, header: list[str], rows: list[list[str]], colours: list[list[str]], widths: list[float]
+) -> None:
     ax.axis("off")
     if not rows:
         return
-    t = ax.table(cellText=rows, colLabels=header, cellColours=colours, loc="upper center", cellLoc="center")
+    t = ax.table(
+        cellText=rows,
+        colLabels=header,
+        cellColours=colours,
+        colWidths=widths,
+        loc="upper center",
+        cellLoc="center",
+    )
     t.auto_set_font_size(False)
     t.set_fontsize(6.5)
     t.scale(1.0, 1.25)
@@ -746,7 +761,7 @@ def render_pdf(data: ResultsData, regions: list[ReworkRegion], field: GriddedFie
     lines = rep["lines"]
     pages = 0
     with (
-        matplotlib.rc_context({"pdf.fonttype": 42}),
+        matplotlib.rc_context({"pdf.fonttype": 3}),
         PdfPages(path, metadata={"Title": "Inspection report"}) as pdf,
     ):
         # 1: summary and the deviation map
@@ -776,7 +791,7 @@ def render_pdf(data: ResultsData, regions: list[ReworkRegion], field: GriddedFie
                     f" regions to rework: {len(regions)}",
                     {},
                 ),
-                ("Registration: " + "; ".join(f"{k} {v}" for k, v in _registration_items(rep)), {"size": 7}),
+                *[(f"Registration, {k}: {v}", {"size": 7}) for k, v in _registration_items(rep)],
                 (
                     "Coverage: seen "
                     + (
@@ -793,9 +808,11 @@ def render_pdf(data: ResultsData, regions: list[ReworkRegion], field: GriddedFie
                 ),
             ],
         )
-        ax = fig.add_axes((0.09, 0.08, 0.74, min(0.5, y - 0.12)))
+        top = y - 0.04
+        ax = fig.add_axes((0.09, 0.06, 0.74, top - 0.06))
+        ax.set_anchor("N")  # the map's aspect is fixed: keep it under the text, not mid-page
         im = _draw_top_view(ax, data, field, regions)
-        _colorbar(fig, im, cax=fig.add_axes((0.86, 0.12, 0.02, 0.3)))
+        _colorbar(fig, im, cax=fig.add_axes((0.86, top - 0.32, 0.02, 0.3)))
         ax.set_title("Deviation map, top view (from the reference corner)", fontsize=9, loc="left")
         pdf.savefig(fig)
         pages += 1
@@ -834,7 +851,13 @@ def render_pdf(data: ResultsData, regions: list[ReworkRegion], field: GriddedFie
         ]
         colours = [["#fbd5d5" if r.beyond_limit else "#fff1cc"] * len(header) for r in regions[:30]]
         if rows:
-            _pdf_table(fig.add_axes((0.05, 0.5, 0.9, 0.38)), header, rows, colours)
+            _pdf_table(
+                fig.add_axes((0.05, 0.5, 0.9, 0.38)),
+                header,
+                rows,
+                colours,
+                [0.07, 0.25, 0.09, 0.09, 0.1, 0.13, 0.13, 0.1],
+            )
         else:
             fig.text(0.07, 0.86, "No region lies beyond the standard range.", fontsize=9)
         ax = fig.add_axes((0.09, 0.07, 0.84, 0.36))
@@ -851,7 +874,7 @@ def render_pdf(data: ResultsData, regions: list[ReworkRegion], field: GriddedFie
             fam_lines = [ln for ln in lines if ln["family"] == fam]
             if not fam_lines:
                 continue
-            body.append([title, *[""] * (len(header) - 1)])
+            body.append([title.split(" detection")[0], *[""] * (len(header) - 1)])
             colours.append(["#eeeeee"] * len(header))
             for ln in fam_lines:
                 body.append(
@@ -875,6 +898,7 @@ def render_pdf(data: ResultsData, regions: list[ReworkRegion], field: GriddedFie
                 header,
                 body[start : start + _TABLE_ROWS_PER_PDF_PAGE],
                 colours[start : start + _TABLE_ROWS_PER_PDF_PAGE],
+                [0.15, 0.11, 0.12, 0.1, 0.08, 0.12, 0.1, 0.1, 0.08],
             )
             pdf.savefig(fig)
             pages += 1
