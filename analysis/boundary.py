@@ -278,16 +278,17 @@ def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None
     timings["axes"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    xy = P[:, :2] - centre
-    a = xy @ u
-    b = xy @ v
+    # (u, v) coordinates about the centre, written out to avoid (n, 2) temporaries.
+    a = P[:, 0] * u[0] + P[:, 1] * u[1] - centre @ u
+    b = P[:, 0] * v[0] + P[:, 1] * v[1] - centre @ v
     px = st.pixel_mm
     # Three empty pixels of margin: the closing below must not eat into the plate at the image border.
     a0, b0 = a.min() - 3 * px, b.min() - 3 * px
-    ia = ((a - a0) / px).astype(np.int64)
-    ib = ((b - b0) / px).astype(np.int64)
+    ia = ((a - a0) * (1.0 / px)).astype(np.int32)
+    ib = ((b - b0) * (1.0 / px)).astype(np.int32)
     na, nb = int(ia.max()) + 4, int(ib.max()) + 4
-    occ = np.bincount(ia * nb + ib, minlength=na * nb).reshape(na, nb) > 0
+    lin = ia * np.int32(nb) + ib if na * nb < 2**31 else ia.astype(np.int64) * nb + ib
+    occ = np.bincount(lin, minlength=na * nb).reshape(na, nb) > 0
     occ = ndimage.binary_closing(occ, iterations=2, border_value=0)
     lab, nlab = ndimage.label(occ, structure=np.ones((3, 3)))
     if nlab == 0:
@@ -296,7 +297,7 @@ def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None
     occ = ndimage.binary_fill_holes(lab == biggest)
     # Only points near the outline can be feature points: a band a few pixels wide.
     band_img = occ & ~ndimage.binary_erosion(occ, iterations=3, border_value=0)
-    idx_all = np.flatnonzero(band_img[ia, ib])
+    idx_all = np.flatnonzero(band_img.ravel()[lin])
     rows_a = np.flatnonzero(occ.any(axis=1))
     cols_b = np.flatnonzero(occ.any(axis=0))
     a_lo, a_hi = a0 + rows_a[0] * px, a0 + (rows_a[-1] + 1) * px

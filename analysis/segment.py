@@ -159,8 +159,9 @@ def _cells(X5: np.ndarray, V5: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 def _plane_residual(X5: np.ndarray, mean: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """Signed distance (Pc, by, Wc, bx) of every grid point from its cell's plane (mean, normal)."""
-    offset = np.einsum("ijk,ijk->ij", mean, normal)
-    return np.einsum("iajbk,ijk->iajb", X5, normal, optimize=False) - offset[:, None, :, None]
+    offset = np.einsum("ijk,ijk->ij", mean, normal).astype(X5.dtype)[:, None, :, None]
+    n = normal.astype(X5.dtype)[:, None, :, None, :]  # one dtype: no upcast copy of X5
+    return X5[..., 0] * n[..., 0] + X5[..., 1] * n[..., 1] + X5[..., 2] * n[..., 2] - offset
 
 
 def _normals(mean: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -217,6 +218,9 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     timings: dict[str, float] = {}
     pts = cloud.points_mm
     n = len(pts)
+    # Cell statistics in float32 about the cloud's centre: half the memory traffic, and at
+    # +-2 m the rounding (0.1 um) is far below the sensor noise. The selection is exact per point.
+    p32 = (pts - pts[:: max(1, n // 1000)].mean(axis=0)).astype(np.float32)
     pass_id = cloud.pass_id.astype(np.int64)
     n_pass = int(pass_id.max()) + 1
     width = int(cloud.point.max()) + 1
@@ -250,7 +254,7 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
         idxp[:P, :width] = idx
         V = idxp >= 0
         Pc, Wc = Pp // by, Wp // bx
-        X = pts[np.where(V, idxp, 0)]
+        X = p32[np.where(V, idxp, 0)]
         X[~V] = 0.0  # empty grid places add nothing to the cell sums
         X5 = X.reshape(Pc, by, Wc, bx, 3)
         V5 = V.reshape(Pc, by, Wc, bx)
@@ -328,7 +332,7 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
         by, bx = pc.by, pc.bx
         dn = pc.normal[di, dj]
         dn[~band] = np.nan
-        X5 = pts[np.maximum(pc.idx, 0)].reshape(Pc, by, Wc, bx, 3)
+        X5 = p32[np.maximum(pc.idx, 0)].reshape(Pc, by, Wc, bx, 3)
         with np.errstate(invalid="ignore"):
             r5 = _plane_residual(X5, pc.mean[di, dj], dn)
         sel5 = (pc.idx.reshape(Pc, by, Wc, bx) >= 0) & np.isfinite(r5)

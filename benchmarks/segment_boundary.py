@@ -6,8 +6,10 @@ outliers, missing returns, a random placement), then timed through ``segment.seg
 ``boundary.find_corners`` (best of ``--repeat`` runs). Synthesis is not timed; ``--cache FILE.npz``
 keeps the scan between runs. numpy/scipy run with their default threads (2 cores here).
 
-Keys: points (raw), plate_points, segment_s, boundary_s, total_s, stages_s (per step of the best
-run), points_per_s, s_per_1e7_points, corner_error_max_mm (against the exact truth),
+Keys: points (raw), plate_points, segment_s, boundary_s, total_s (wall), cpu_s (process CPU time
+of the same run: on a shared machine, wall time includes waiting for a core), load_avg_1min
+(at the end: above 2 on this 2-core machine the wall times are inflated), stages_s (per step of the
+best run), points_per_s, s_per_1e7_points, corner_error_max_mm (against the exact truth),
 noise_sigma_mm (measured), profile_step_mm, synth_s.
 """
 
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -57,12 +60,21 @@ def main() -> int:
 
     best = None
     for _ in range(max(1, args.repeat)):
+        c0 = time.process_time()
         t0 = time.perf_counter()
         seg = segment_plate(cloud)
         t1 = time.perf_counter()
         bnd = find_corners(seg.points_mm)
         t2 = time.perf_counter()
-        run = {"segment_s": t1 - t0, "boundary_s": t2 - t1, "total_s": t2 - t0, "seg": seg, "bnd": bnd}
+        cpu = time.process_time() - c0
+        run = {
+            "segment_s": t1 - t0,
+            "boundary_s": t2 - t1,
+            "total_s": t2 - t0,
+            "cpu_s": cpu,
+            "seg": seg,
+            "bnd": bnd,
+        }
         if best is None or run["total_s"] < best["total_s"]:
             best = run
         del seg, bnd
@@ -76,6 +88,8 @@ def main() -> int:
         "segment_s": round(best["segment_s"], 3),
         "boundary_s": round(best["boundary_s"], 3),
         "total_s": round(best["total_s"], 3),
+        "cpu_s": round(best["cpu_s"], 3),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
         "stages_s": stages,
         "points_per_s": round(n / best["total_s"]),
         "s_per_1e7_points": round(best["total_s"] * 1e7 / n, 3),
