@@ -218,9 +218,11 @@ def declare_async_queryable(
         try:
             await handler(query)
         except Exception as exc:
-            log.exception("queryable_handler_failed", key=key_expr)
+            # Answer first: the caller must hear about it even if logging itself fails.
             with contextlib.suppress(Exception):
                 query.reply_err(json.dumps({"code": "internal", "field": "", "message": str(exc)}))
+            with contextlib.suppress(Exception):
+                log.exception("queryable_handler_failed", key=key_expr)
             if on_error is not None:
                 on_error(exc)
         finally:

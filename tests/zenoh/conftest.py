@@ -12,12 +12,22 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import structlog
 from zenoh_testutil import free_port
 
 from cellctl.config import ZenohSection
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
+
+
+@pytest.fixture(autouse=True)
+def _plain_structlog() -> Iterator[None]:
+    """Tests that run `cellctl.cli.main` in-process bind structlog to a captured stream that pytest
+    closes afterwards; in-process dispatchers and queryables here must not log into it."""
+    structlog.reset_defaults()
+    yield
+    structlog.reset_defaults()
 
 
 @dataclass

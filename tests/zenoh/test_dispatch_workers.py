@@ -222,7 +222,7 @@ def test_frozen_worker_loses_its_job_to_the_other_after_heartbeat_timeout(hub, s
         await asyncio.sleep(1.0)  # the thawed worker's late report, if any, must change nothing
         return env, holder.worker_id
 
-    settings = DispatchSettings(ack_timeout_s=1.5, heartbeat_timeout_s=1.5, max_attempts=3)
+    settings = DispatchSettings(ack_timeout_s=3.0, heartbeat_timeout_s=2.5, max_attempts=3)
     env, victim = _run(
         hub, scenario, settings=settings, hooks=DispatchHooks(on_retry=lambda *a: retries.append(a))
     )
