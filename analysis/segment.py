@@ -128,7 +128,13 @@ def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | Non
     if not np.isfinite(cloud.points_mm).all():
         raise SegmentError("points_mm holds non-finite coordinates")
     if cloud.organised:
-        return _segment_grid(cloud, settings)
+        n_grid = (
+            (int(cloud.pass_id.max()) + 1) * (int(cloud.profile.max()) + 1) * (int(cloud.point.max()) + 1)
+        )
+        if n_grid <= max(8 * len(cloud), 1_000_000):
+            return _segment_grid(cloud, settings)
+        # Indices this sparse are not a scan grid (a renumbered or merged file): do not allocate it.
+        log.warning("segment_sparse_organisation", points=len(cloud), grid_places=n_grid)
     return _segment_delaunay(cloud, settings)
 
 
