@@ -423,7 +423,15 @@ def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
     else:
         s = series.s_mm
         ax_z.plot(s, series.design_z_mm, color=_COLOURS["design"], linewidth=1.0, label="design (template)")
-        ax_z.plot(s, series.measured_z_mm, color=_COLOURS["measured"], linewidth=0.9, label="measured")
+        seen = float(np.mean(np.isfinite(series.measured_z_mm)))
+        # say how much of the line the scan covered: a curve with gaps is not a curve with data
+        ax_z.plot(
+            s,
+            series.measured_z_mm,
+            color=_COLOURS["measured"],
+            linewidth=0.9,
+            label="measured" if seen > 0.995 else f"measured ({100 * seen:.0f} % of the line)",
+        )
         ax_z.legend(fontsize=6, loc="best", frameon=False)
         finite = np.abs(series.deviation_mm[np.isfinite(series.deviation_mm)])
         if finite.size:

@@ -1,0 +1,99 @@
+"""The report made from the analysis pipeline's real output: a synthetic scan inspected end to end."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+
+import numpy as np
+import pytest
+from plyfile import PlyData
+
+from analysis.report import load_results, write_report
+from analysis.rework import find_rework_regions, grid_deviation
+from analysis.templates import DetectionLayout
+
+pipeline = pytest.importorskip("analysis.pipeline")
+synth = pytest.importorskip("analysis.synth")
+plates = pytest.importorskip("analysis.plates")
+
+
+@pytest.fixture(scope="module")
+def inspected(tmp_path_factory: pytest.TempPathFactory):
+    """A 600 x 400 mm sail plate with the default dent and bump, scanned coarsely and inspected."""
+    spec = plates.plate_spec("sail", length_mm=600.0, width_mm=400.0)
+    scan = synth.synthesize_scan(spec, settings=synth.ScanSettings.coarse(), seed=1)
+    settings = pipeline.InspectionSettings(
+        layout=DetectionLayout(
+            transverse_count=3,
+            transverse_spacing_mm=150.0,
+            longitudinal_count=2,
+            longitudinal_spacing_mm=150.0,
+        ),
+        grid_mm=2.0,  # the coarse scan's 2 mm profile step leaves every other 1 mm row empty
+    )
+    ins = pipeline.inspect_cloud(
+        scan.cloud, plates.design_mesh(spec, pitch_mm=5.0), settings, plate_id="P-pipe"
+    )
+    out = tmp_path_factory.mktemp("pipeline")
+    pipeline.write_results(ins, out)
+    return scan, ins, out, write_report(out)
+
+
+@pytest.mark.slow
+def test_pipeline_results_make_a_complete_report(inspected) -> None:
+    _, ins, out, written = inspected
+    assert [p.name for p in written] == ["report.csv", "report.html", "report.pdf"]
+    lines = ins.report["lines"]
+    html = (out / "report.html").read_text(encoding="utf-8")
+    for line in lines:
+        assert f'data-plot="line" data-line="{line["name"]}"' in html
+    text = subprocess.run(
+        ["pdftotext", "-layout", str(out / "report.pdf"), "-"], check=True, capture_output=True, text=True
+    ).stdout
+    pages = text.split("\f")[:-1]
+    assert len(pages) == 2 + 1 + math.ceil(len(lines) / 3)
+    assert "P-pipe" in pages[0] and ins.report["verdict"].upper() in pages[0]
+
+
+@pytest.mark.slow
+def test_pipeline_ply_deviation_read_back_matches_the_stored_results_and_line_figures(inspected) -> None:
+    _, ins, out, _ = inspected
+    v = PlyData.read(str(out / "cloud.ply"))["vertex"]
+    dev = np.asarray(v["deviation"])
+    assert dev.dtype == np.float32 and len(dev) == len(ins.deviation_mm)
+    stored = np.load(out / "results.npz")["plate_deviation_mm"]
+    # the map's points are a subsample of the cloud: every stored value is one of the cloud's
+    assert np.isin(stored, dev).all()
+    # every large Zmax is found again in the cloud's own deviations near where the line has it
+    xyz = np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64)
+    plate_xy = (xyz @ ins.T_plate_design[:3, :3].T + ins.T_plate_design[:3, 3])[:, :2]
+    ok = np.isfinite(dev)
+    for line in ins.report["lines"]:
+        if line["zmax_mm"] < 1.0:
+            continue
+        a, b = np.asarray(line["start_plate_mm"]), np.asarray(line["end_plate_mm"])
+        at = a + (b - a) * line["zmax_at_mm"] / np.linalg.norm(b - a)
+        near = ok & (np.hypot(*(plate_xy - at).T) < 3.0)
+        assert near.sum() >= 5, line["name"]
+        assert float(np.median(np.abs(dev[near]))) == pytest.approx(line["zmax_mm"], abs=0.2), line["name"]
+
+
+@pytest.mark.slow
+def test_pipeline_rework_region_sits_on_the_true_dent(inspected) -> None:
+    scan, ins, out, _ = inspected
+    dent = scan.error.bumps[0]
+    assert dent.amplitude_mm < 0
+    # the dent's true place: design frame -> bed (truth) -> registered design frame -> plate frame
+    p = np.array([dent.x_mm, dent.y_mm, 0.0, 1.0])
+    p[2] = plates.formed_height_mm(scan.spec, scan.error, dent.x_mm, dent.y_mm)
+    T = ins.T_plate_design @ np.linalg.inv(ins.T_measured_design) @ scan.T_bed_design
+    expected_xy = (T @ p)[:2]
+    data = load_results(out)
+    field = grid_deviation(data.plate_xy_mm, data.plate_deviation_mm, data.plate_size_mm, 5.0)
+    regions = find_rework_regions(field, 2.0, 3.0)
+    deepest = regions[0]
+    assert deepest.sign == "below"
+    assert np.hypot(*(np.asarray(deepest.peak_xy_mm) - expected_xy)) < 15.0
+    html = (out / "report.html").read_text(encoding="utf-8")
+    assert f"({deepest.peak_xy_mm[0]:.0f}, {deepest.peak_xy_mm[1]:.0f})" in html
