@@ -2,16 +2,19 @@
 
 One reference per received ``EgmRobot``: the executor waits for each feedback packet from the
 :class:`~drivers.abb_egm.endpoint.EgmEndpoint`, advances by as many cycles as the controller's
-sequence number moved, and sets the reference the endpoint sends with its next reply.
+clock (or, without one, its sequence number) moved, and sets the reference the endpoint sends with
+its next reply.
 
-Two ruckig generators shape every reference:
+The reference is the plan's state at a playback time tau. The plan's time law is already
+jerk-limited (ruckig, offline, in the timing), so streaming it needs no online filter; ruckig shapes
+every transition online:
 
-- a one-axis generator on the trajectory's *time* (its velocity is the playback rate, 1 when running,
-  0 when stopped). Pause, resume and abort ramp that rate jerk-limited, so the robot slows down and
-  stops *on the planned path* and a resume continues the pass where it paused;
-- a six-axis tracker that follows the (time-scaled) trajectory state with the joint velocity,
-  acceleration and jerk limits, which smooths toppra's acceleration steps; a fault stop switches it
-  to its velocity interface with target velocity zero (a jerk-limited stop from any state).
+- a one-axis generator on tau (its velocity is the playback rate, 1 when running, 0 when stopped):
+  pause, resume and abort ramp the rate jerk-limited, so the robot slows down and stops *on the
+  planned path* and a resume continues the pass where it paused;
+- a six-axis generator for the move from wherever the robot is to the plan's start (a straight line
+  in joint space, slow enough for the TCP speed cap) and for fault stops (velocity interface, target
+  velocity zero: a jerk-limited stop from any state).
 
 Every reference passes the :class:`~cellctl.motion.envelope.SafetyEnvelope` last; a violation is a
 fault and leads to a smooth stop, never to a clamped reference. The tracking error (feedback TCP
@@ -34,7 +37,7 @@ import numpy as np
 import structlog
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
 
-from cellctl.motion.envelope import EnvelopeViolation, SafetyEnvelope
+from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.planning.plan import TimedTrajectory
 from drivers.abb_egm.endpoint import EgmEndpoint
 from drivers.abb_egm.kinematics import fk_batch
@@ -86,7 +89,9 @@ class ExecutorConfig:
     back the commanded path is searched (covers the controller's lag). start_tolerance_deg: the robot
     counts as at the plan's start within this; otherwise it first moves there at
     move_to_start_speed_fraction of the joint speed limits. feedforward: send the joint speed
-    reference too. joint_*_max: limits of the tracker (deg/s, deg/s^2, deg/s^3).
+    reference too; feedforward_lead_s: how far ahead on the plan the speed reference is taken (the
+    time constant of the controller's low-pass filter, 1 / (2 pi 20 Hz) by default).
+    joint_*_max: limits of the move to the start and of the stops (deg/s, deg/s^2, deg/s^3).
     rate_accel_per_s2 / rate_jerk_per_s3: limits of the playback-rate ramps for pause / resume / abort
     (None: derived from the trajectory's speeds and the joint limits).
     progress_interval_s: time between progress events while moving.
@@ -98,9 +103,10 @@ class ExecutorConfig:
     stall_give_up_s: float = 1.0
     tracking_error_max_mm: float = 5.0
     tracking_window_s: float = 0.3
-    start_tolerance_deg: float = 0.05
+    start_tolerance_deg: float = 0.01
     move_to_start_speed_fraction: float = 0.2
     feedforward: bool = True
+    feedforward_lead_s: float = 0.008
     joint_speed_max_deg_s: tuple[float, ...] = (175.0, 175.0, 175.0, 250.0, 250.0, 360.0)
     joint_accel_max_deg_s2: tuple[float, ...] = (300.0, 300.0, 300.0, 600.0, 600.0, 800.0)
     joint_jerk_max_deg_s3: tuple[float, ...] = (3000.0, 3000.0, 3000.0, 6000.0, 6000.0, 8000.0)
@@ -145,8 +151,9 @@ class ExecutionResult:
 
     state: FINISHED, ABORTED or FAULTED. fault: reason (FAULTED only). cycles: references sent.
     max_tracking_error_mm: worst monitored tracking error. t_host_s (n,), q_ref_deg (n, 6),
-    qd_ref_deg_s (n, 6), t_traj_s (n,): one row per reference (host monotonic time of the packet it
-    answered, the reference, the trajectory time it came from).
+    qd_ref_deg_s (n, 6), t_traj_s (n,), cycle (n,) int: one row per reference (host monotonic time of
+    the packet it answered, the reference, the trajectory time it came from, the controller cycle
+    it is meant for, counted from the first feedback).
     """
 
     state: ExecState
@@ -157,6 +164,7 @@ class ExecutionResult:
     q_ref_deg: np.ndarray
     qd_ref_deg_s: np.ndarray
     t_traj_s: np.ndarray
+    cycle: np.ndarray
     lost_cycles: int = 0
     events: list[ProgressEvent] = field(default_factory=list)
 
@@ -263,20 +271,7 @@ class MotionExecutor:
         self._vmax = np.asarray(cfg.joint_speed_max_deg_s, dtype=np.float64)
         self._amax = np.asarray(cfg.joint_accel_max_deg_s2, dtype=np.float64)
         self._jmax = np.asarray(cfg.joint_jerk_max_deg_s3, dtype=np.float64)
-        # The rate ramp must keep qd * rate_dot inside the joint accelerations and qd * rate_ddot
-        # inside the jerks on every joint, at the fastest point of the trajectory (half the budget:
-        # the path's own acceleration uses the rest).
-        qd_peak = np.maximum(np.abs(trajectory.qd_deg_s).max(axis=0), 1e-6)
-        qdd_peak = np.maximum(np.abs(trajectory.qdd_deg_s2).max(axis=0), 1e-6)
-        # joint jerk of the time-scaled plan: q''' r^3 + 3 q'' r r' + q' r''; the plan uses 80 % of
-        # the jerk budget, each rate term may use 10 %
-        a_r = cfg.rate_accel_per_s2 or float(
-            np.clip(
-                min(np.min(0.5 * self._amax / qd_peak), np.min(0.1 * self._jmax / (3 * qdd_peak))), 0.2, 50.0
-            )
-        )
-        j_r = cfg.rate_jerk_per_s3 or float(np.clip(np.min(0.1 * self._jmax / qd_peak), 1.0, 500.0))
-        self._scaler = _TimeScaler(cfg.cycle_s, a_r, j_r)
+        self._scaler = _TimeScaler(cfg.cycle_s, *self._rate_limits_at(0.0))
         self._otg = Ruckig(6, cfg.cycle_s)
         self._inp = InputParameter(6)
         self._out = OutputParameter(6)
@@ -294,11 +289,69 @@ class MotionExecutor:
         self._rec_q: list[np.ndarray] = []
         self._rec_qd: list[np.ndarray] = []
         self._rec_tau: list[float] = []
+        self._rec_cycle: list[int] = []
+        self._cycle = 0
         self._events: list[ProgressEvent] = []
         self._last_progress_t = -1e9
         self._started = False
         self._held = False
         self._joint_stop = False
+        self._ff_qd: np.ndarray | None = None
+
+    #: trajectory time ahead of a ramp's start whose peaks bound the ramp (a ramp covers less)
+    _RAMP_WINDOW_S = 1.5
+
+    def _rate_limits_at(self, tau: float) -> tuple[float, float]:
+        """Playback-rate acceleration and jerk for a ramp starting at trajectory time ``tau``.
+
+        With the rate r(t) the joint jerk is q''' r^3 + 3 q'' r r' + q' r''. The plan uses 60 % of the
+        jerk budget; r' gets 25 % and r'' 15 %, bounded by the peaks of q' and q'' over the stretch of
+        trajectory the ramp can cover, so a pause on a slow pass stops in a short distance and keeps
+        the jerk and acceleration limits.
+        """
+        cfg, traj = self.config, self.trajectory
+        i0 = max(int(np.searchsorted(traj.t_s, tau, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(traj.t_s, tau + self._RAMP_WINDOW_S, side="right")) + 1
+        qd_peak = np.maximum(np.abs(traj.qd_deg_s[i0:i1]).max(axis=0), 1e-6)
+        qdd_peak = np.maximum(np.abs(traj.qdd_deg_s2[i0:i1]).max(axis=0), 1e-6)
+        a_r = cfg.rate_accel_per_s2 or float(
+            np.clip(
+                min(np.min(0.5 * self._amax / qd_peak), np.min(0.25 * self._jmax / (3 * qdd_peak))), 0.2, 50.0
+            )
+        )
+        j_r = cfg.rate_jerk_per_s3 or float(np.clip(np.min(0.15 * self._jmax / qd_peak), 1.0, 500.0))
+        return a_r, j_r
+
+    def _ramp_rate(self, rate: float) -> None:
+        """Start a playback-rate ramp to ``rate`` with the limits of the stretch ahead."""
+        a_r, j_r = self._rate_limits_at(self._scaler.tau)
+        self._scaler.inp.max_acceleration = [a_r]
+        self._scaler.inp.max_jerk = [j_r]
+        self._scaler.target(rate)
+
+    @classmethod
+    def for_plan(
+        cls,
+        endpoint: EgmEndpoint,
+        plan,
+        settings,
+        config: ExecutorConfig | None = None,
+        *,
+        on_progress: Callable[[ProgressEvent], None] | None = None,
+    ) -> MotionExecutor:
+        """An executor for a :class:`~cellctl.planning.ScanPlan` with the envelope and the limits of
+        ``settings`` (:class:`~cellctl.planning.PlannerSettings`)."""
+        config = config or ExecutorConfig.from_settings(settings)
+        envelope = SafetyEnvelope(EnvelopeLimits.from_settings(settings, cycle_s=config.cycle_s))
+        return cls(
+            endpoint,
+            plan.trajectory,
+            envelope,
+            config,
+            segment_labels=[s.label for s in plan.segments],
+            segment_kinds=[s.kind for s in plan.segments],
+            on_progress=on_progress,
+        )
 
     # ---- control (call from the event loop) -------------------------------------------------------
 
@@ -367,6 +420,7 @@ class MotionExecutor:
                 self._enter_fault(f"EGM endpoint failed: {exc}", hold=False)
                 break
             cycles = self._cycles_since(fb.seqno, fb.feedback_time_us)
+            self._cycle += cycles
             if not fb.ok_to_command:
                 self._enter_fault(
                     f"controller stopped EGM (motors {_name(fb.motor_state)}, EGM {_name(fb.mci_state)}, "
@@ -456,10 +510,10 @@ class MotionExecutor:
             if req.startswith("fault:"):
                 self._begin_fault_stop(req[6:])
             elif req == "pause" and s in (ExecState.RUNNING, ExecState.RESUMING):
-                self._scaler.target(0.0)
+                self._ramp_rate(0.0)
                 self._set_state(ExecState.PAUSING)
             elif req == "resume" and s in (ExecState.PAUSED, ExecState.PAUSING):
-                self._scaler.target(1.0)
+                self._ramp_rate(1.0)
                 self._set_state(ExecState.RESUMING)
             elif req == "abort":
                 if s == ExecState.PAUSED:
@@ -467,7 +521,7 @@ class MotionExecutor:
                 elif s == ExecState.MOVING_TO_START:
                     self._begin_joint_stop(ExecState.ABORTING)
                 elif s in (ExecState.RUNNING, ExecState.PAUSING, ExecState.RESUMING):
-                    self._scaler.target(0.0)
+                    self._ramp_rate(0.0)
                     self._set_state(ExecState.ABORTING)
             else:
                 log.info("executor_request_ignored", request=req, state=s.value)
@@ -537,7 +591,7 @@ class MotionExecutor:
             at_start = (
                 res == Result.Finished
                 and fb is not None
-                and np.max(np.abs(fb.q_deg[:6] - traj.q_deg[0])) <= max(self.config.start_tolerance_deg, 0.05)
+                and np.max(np.abs(fb.q_deg[:6] - traj.q_deg[0])) <= self.config.start_tolerance_deg
             )
             if at_start:
                 self._set_limits(1.0)
@@ -559,6 +613,10 @@ class MotionExecutor:
         q, qd, qdd, _ = traj.sample(tau)
         self._ref_q = q
         self._ref_qd = qd * rate
+        lead = self.config.feedforward_lead_s * rate
+        # the controller low-pass filters its speed command: the speed reference leads by the
+        # filter's time constant, so the arm does not overshoot where the plan slows down
+        self._ff_qd = traj.sample(min(tau + lead, T))[1] * rate if lead > 0 else self._ref_qd
         # keep the stop generator's state on the reference, so a fault stop starts from here
         inp.current_position = q.tolist()
         inp.current_velocity = self._ref_qd.tolist()
@@ -630,12 +688,15 @@ class MotionExecutor:
             self._begin_fault_stop(f"envelope: {exc}")
             self.endpoint.command_joints(last, self._ref_qd if self.config.feedforward else None)
             return
-        self.endpoint.command_joints(q, qd if self.config.feedforward else None)
+        ff = self._ff_qd if self._ff_qd is not None else qd
+        self.endpoint.command_joints(q, ff if self.config.feedforward else None)
+        self._ff_qd = None
         self._tcp_hist.append(p)
         self._rec_t.append(t_host_ns / 1e9)
         self._rec_q.append(q.copy())
         self._rec_qd.append(qd.copy())
         self._rec_tau.append(self._scaler.tau)
+        self._rec_cycle.append(self._cycle)
 
     def _monitor_tracking(self, q_fb: np.ndarray) -> None:
         if len(self._tcp_hist) < 2 or self.state in _TERMINAL:
@@ -655,7 +716,8 @@ class MotionExecutor:
 
     # ---- progress -----------------------------------------------------------------------------
 
-    def _progress(self) -> ProgressEvent:
+    def progress(self) -> ProgressEvent:
+        """The current progress (state, pass i of n, percent, time left)."""
         traj = self.trajectory
         tau = self._scaler.tau
         T = traj.duration_s
@@ -676,7 +738,7 @@ class MotionExecutor:
         if not force and now - self._last_progress_t < self.config.progress_interval_s:
             return
         self._last_progress_t = now
-        ev = self._progress()
+        ev = self.progress()
         self._events.append(ev)
         if self._queue.full():
             self._queue.get_nowait()  # the newest progress matters more than the oldest
@@ -714,6 +776,7 @@ class MotionExecutor:
             q_ref_deg=np.asarray(self._rec_q).reshape(n, 6),
             qd_ref_deg_s=np.asarray(self._rec_qd).reshape(n, 6),
             t_traj_s=np.asarray(self._rec_tau),
+            cycle=np.asarray(self._rec_cycle, dtype=np.int64),
             lost_cycles=self._lost,
             events=list(self._events),
         )

@@ -39,7 +39,7 @@ logging.getLogger("toppra").setLevel(logging.WARNING)
 
 _VEL_FACTOR = 0.95
 _ACC_FACTOR = 0.9
-_JERK_FACTOR = 0.8
+_JERK_FACTOR = 0.6
 #: weight of rotation in the path parameter (mm per rad), so pure reorientations still advance s
 _ROT_WEIGHT_MM_PER_RAD = 100.0
 _GRID_STEP_MM = 4.0
