@@ -363,25 +363,33 @@ def _cast(
     # Thickness faces: vertical planes x = +-L/2, y = +-W/2 in the design frame, facing the ray.
     with np.errstate(divide="ignore", invalid="ignore"):
         for axis, half, other_half in ((0, hl, hw), (1, hw, hl)):
+            lo_s, hi_s = (xa[sub], xb[sub]) if axis == 0 else (ya[sub], yb[sub])
             for sign in (1.0, -1.0):
-                tw = (sign * half - o_s[:, axis]) / d_s[:, axis]
-                q = o_s + tw[:, None] * d_s
-                cand = np.flatnonzero(
-                    (d_s[:, axis] * sign < 0)
-                    & (tw > 0)
-                    & (np.abs(q[:, 1 - axis]) <= other_half)
-                    & (q[:, 2] <= z_hi)
-                    & (q[:, 2] >= z_lo)
+                # Only rays whose path through the plate's height slab crosses the face's plane.
+                w = sign * half
+                cross = np.flatnonzero((np.minimum(lo_s, hi_s) <= w) & (np.maximum(lo_s, hi_s) >= w))
+                if len(cross) == 0:
+                    continue
+                tw_c = (w - o_s[cross, axis]) / d_s[cross, axis]
+                q_c = o_s[cross] + tw_c[:, None] * d_s[cross]
+                keep = (
+                    (d_s[cross, axis] * sign < 0)
+                    & (tw_c > 0)
+                    & (np.abs(q_c[:, 1 - axis]) <= other_half)
+                    & (q_c[:, 2] <= z_hi)
+                    & (q_c[:, 2] >= z_lo)
                 )
+                cand = cross[keep]
                 if len(cand) == 0:
                     continue
-                zt, _, _ = surface_gradient(spec, error, q[cand, 0], q[cand, 1])
-                inside = (q[cand, 2] <= zt) & (q[cand, 2] >= zt - th) & (tw[cand] < t_best[sub[cand]])
+                tw, q = tw_c[keep], q_c[keep]
+                zt, _, _ = surface_gradient(spec, error, q[:, 0], q[:, 1])
+                inside = (q[:, 2] <= zt) & (q[:, 2] >= zt - th) & (tw < t_best[sub[cand]])
                 if inside.any():
                     nd = np.zeros(3)
                     nd[axis] = sign
                     rows = sub[cand[inside]]
-                    t_best[rows] = tw[cand[inside]]
+                    t_best[rows] = tw[inside]
                     normal[rows] = R @ nd
     return _Hits(t_best, normal)
 
