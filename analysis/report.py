@@ -616,6 +616,19 @@ def _rework_html(regions: list[ReworkRegion], std: float) -> str:
     )
 
 
+EXPORTS = ("report.json", "report.csv", "report.pdf", "cloud.ply")
+
+
+def _export_links(results_dir: Path) -> str:
+    notes = {"cloud.ply": " (registered cloud, per-point deviation as a scalar field)"}
+    # report.pdf is written after the page, so list it whatever exists now
+    return ", ".join(
+        f'<a href="{name}">{name}</a>{notes.get(name, "")}'
+        for name in EXPORTS
+        if name == "report.pdf" or (results_dir / name).exists()
+    )
+
+
 def _kv_table(items: list[tuple[str, str]]) -> str:
     return (
         "<table>" + "".join(f'<tr><th class="t">{_e(k)}</th><td>{v}</td></tr>' for k, v in items) + "</table>"
@@ -718,8 +731,8 @@ reference corner (x along the length, y along the width).</p>{_rework_html(regio
 <section id="details"><h2>Timings and inputs</h2>
 {_kv_table([(k, _f(v, 2) + " s") for k, v in timings.items()])}
 {_kv_table([(k, _e(v)) for k, v in inputs.items()])}
-<p class="muted">Exports beside this page: report.json, report.csv, report.pdf, cloud.ply (per-point
-deviation as a scalar field).</p></section>
+<p class="muted">Exports beside this page (links to the files in the same folder, nothing is fetched
+when the page opens): {_export_links(data.results_dir)}.</p></section>
 """
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'

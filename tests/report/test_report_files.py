@@ -53,7 +53,13 @@ def test_html_fetches_nothing_and_runs_no_script(reported) -> None:
     text = (truth.results_dir / "report.html").read_text(encoding="utf-8")
     refs = re.findall(r'(?:src|href)\s*=\s*"([^"]*)"', text)
     assert refs, "the plots' raster parts are data: URLs"
-    assert [r for r in refs if not (r.startswith("data:") or r.startswith("#"))] == []
+    # besides data: URLs and in-page references, only links to the exports in the same folder
+    # (followed when clicked, never fetched on load)
+    links = re.findall(r'<a href="([^"]*)"', text)
+    assert sorted(links) == ["cloud.ply", "report.csv", "report.json", "report.pdf"]
+    assert all((truth.results_dir / name).exists() for name in links)
+    others = [r for r in refs if not (r.startswith("data:") or r.startswith("#")) and r not in links]
+    assert others == []
     assert "<script" not in text.lower()
     assert "@import" not in text and "@font-face" not in text
     assert re.findall(r"url\((?!#|data:)", text) == []
