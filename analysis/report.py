@@ -408,7 +408,7 @@ def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
         fontweight="bold",
     )
     zmax = float(line["zmax_mm"])
-    ymax = max(1.15 * lim, 1.1 * zmax)
+    ymax = max(1.15 * lim, 1.2 * zmax)
     if series is None or not len(series.s_mm):
         ax_z.text(
             0.5,
@@ -435,7 +435,7 @@ def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
         ax_z.legend(fontsize=6, loc="best", frameon=False)
         finite = np.abs(series.deviation_mm[np.isfinite(series.deviation_mm)])
         if finite.size:
-            ymax = max(ymax, 1.1 * float(finite.max()))
+            ymax = max(ymax, 1.2 * float(finite.max()))
     ax_d.axhspan(-std, std, color=_COLOURS["pass"], alpha=0.12, linewidth=0)
     for lo, hi in ((std, lim), (-lim, -std)):
         ax_d.axhspan(lo, hi, color=_COLOURS["warn"], alpha=0.15, linewidth=0)

@@ -199,3 +199,13 @@ def test_a_directory_without_results_is_refused_clearly(tmp_path) -> None:
     (tmp_path / "report.json").write_text("{not json")
     with pytest.raises(ReportError, match="not valid JSON"):
         write_report(tmp_path)
+
+
+def test_a_plate_without_detection_lines_still_gets_a_report_that_says_so(tmp_path) -> None:
+    none = DetectionLayout(transverse_count=0, longitudinal_count=0, diagonals=False)
+    truth = write_synthetic_results(tmp_path, n_points=2000, layout=none)
+    assert truth.report["verdict"] == "fail"  # no line judged is no pass
+    write_report(tmp_path)
+    html = (tmp_path / "report.html").read_text(encoding="utf-8")
+    assert "0 of 0" in html and 'data-plot="top-view"' in html and 'data-plot="line"' not in html
+    assert len(_pdf_pages(tmp_path / "report.pdf")) == 3
