@@ -78,10 +78,11 @@ def invert_transform(T: np.ndarray) -> np.ndarray:
 
 def apply_transform(T: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
     """Points (n, 3) mm moved by the 4x4 transform ``T``."""
-    # a contiguous 3x3 operand keeps matmul on its fast path (a transposed view is several times slower)
-    out = points_mm @ np.ascontiguousarray(T[:3, :3].T)
-    out += T[:3, 3]
-    return out
+    # (3, 3) @ (3, n) is one BLAS call; (n, 3) @ (3, 3) takes a slow small-matrix path (10x here).
+    # The result is the Fortran-ordered transpose: each coordinate column is contiguous.
+    out = T[:3, :3] @ points_mm.T
+    out += T[:3, 3:4]
+    return out.T
 
 
 def rotation_from_vector(omega_rad: np.ndarray) -> np.ndarray:
@@ -171,37 +172,47 @@ class HeightField:
         """
         ny, nx = self.shape
         h = self.step_mm
-        fx = (xy_mm[:, 0] - self.x0_mm) / h
-        fy = (xy_mm[:, 1] - self.y0_mm) / h
-        ix = np.floor(fx)
-        iy = np.floor(fy)
-        valid = (ix >= 0) & (ix < nx - 1) & (iy >= 0) & (iy < ny - 1)
-        k = (np.where(valid, iy, 0) * nx + np.where(valid, ix, 0)).astype(np.intp)
+        fx = (xy_mm[:, 0] - self.x0_mm) * (1.0 / h)
+        fy = (xy_mm[:, 1] - self.y0_mm) * (1.0 / h)
+        valid = (fx >= 0) & (fx < nx - 1) & (fy >= 0) & (fy < ny - 1)
+        # clip instead of masking: invalid points read a harmless cell and are zeroed below
+        ix = np.clip(fx, 0, nx - 2).astype(np.intp)
+        iy = np.clip(fy, 0, ny - 2).astype(np.intp)
         ax = fx - ix
         ay = fy - iy
+        k = iy * nx
+        k += ix
         flat = self.z_mm.reshape(-1)
         z00 = np.take(flat, k)
         z10 = np.take(flat, k + 1)
-        z01 = np.take(flat, k + nx)
-        z11 = np.take(flat, k + nx + 1)
-        zb = z00 + (z10 - z00) * ax  # along x at the cell's lower y
-        zt = z01 + (z11 - z01) * ax
-        z = zb + (zt - zb) * ay
-        slope = np.empty((len(z), 2))
-        slope[:, 0] = ((z10 - z00) * (1 - ay) + (z11 - z01) * ay) / h
-        slope[:, 1] = (zt - zb) / h
+        k += nx
+        z01 = np.take(flat, k)
+        z11 = np.take(flat, k + 1)
+        z10 -= z00  # now the x-differences along the cell's lower and upper edges
+        z11 -= z01
+        zb = z00 + z10 * ax
+        zt = z01 + z11 * ax
+        slope = np.empty((len(zb), 2))
+        slope[:, 0] = (z10 + (z11 - z10) * ay) * (1.0 / h)
+        zt -= zb
+        slope[:, 1] = zt * (1.0 / h)
+        z = zb + zt * ay
         valid &= np.isfinite(z)
         bad = ~valid
-        z[bad] = 0.0
-        slope[bad] = 0.0
+        if bad.any():
+            z[bad] = 0.0
+            slope[bad] = 0.0
         return z, slope, valid
 
 
-def height_field_from_mesh(mesh: TriMesh, step_mm: float = 1.0) -> HeightField:
+def height_field_from_mesh(mesh: TriMesh, step_mm: float = 1.0, pad_mm: float = 20.0) -> HeightField:
     """Rasterise a design mesh (top surface, z up, design plate frame) onto a grid of ``step_mm``.
 
     Every grid node inside a triangle's XY projection gets the triangle's linear interpolant, so the
     field reproduces the mesh exactly at the nodes (and within kappa * step^2 / 8 between them).
+    The field is extended by ``pad_mm`` beyond the footprint's bounding box by linear extrapolation:
+    a fit that slides a measured edge point just off the design would otherwise drop that point's
+    cost -- a discontinuity an iterative fit happily exploits by drifting.
     Vectorised over (triangle, node) pairs. Raises :class:`RegistrationError` when the mesh is not a
     height field over its footprint (no triangle faces up).
     """
@@ -250,7 +261,21 @@ def height_field_from_mesh(mesh: TriMesh, step_mm: float = 1.0) -> HeightField:
     height[gj[inside], gi[inside]] = z[inside]
     if not np.isfinite(height).any():
         raise RegistrationError("design mesh rasterised to an empty height field")
-    return HeightField(float(lo[0]), float(lo[1]), float(step_mm), height)
+    pad = max(int(np.ceil(pad_mm / step_mm)), 0)
+    if pad:
+        height = _pad_linear(height, pad)
+    return HeightField(float(lo[0] - pad * step_mm), float(lo[1] - pad * step_mm), float(step_mm), height)
+
+
+def _pad_linear(z: np.ndarray, pad: int) -> np.ndarray:
+    """``z`` (ny, nx) grown by ``pad`` cells on every side, extrapolating each border row/column linearly."""
+    k = np.arange(1, pad + 1, dtype=np.float64)
+    left = z[:, :1] + (z[:, :1] - z[:, 1:2]) * k[::-1]
+    right = z[:, -1:] + (z[:, -1:] - z[:, -2:-1]) * k
+    z = np.hstack([left, z, right])
+    low = z[:1, :] + (z[:1, :] - z[1:2, :]) * k[::-1, None]
+    high = z[-1:, :] + (z[-1:, :] - z[-2:-1, :]) * k[:, None]
+    return np.vstack([low, z, high])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -526,13 +551,16 @@ def deflection_gaps(
     T_meas_design: np.ndarray,
     up: np.ndarray = np.array([0.0, 0.0, 1.0]),
     newton_steps: int = 2,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    geometry: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
     """Gap from each measured point to the moved design surface along the deflection direction.
 
     measured_points_mm: (n, 3) mm, measured frame; up: (3,) deflection direction, measured frame.
     Returns ``(gap_mm (n,), surface_point_mm (n, 3) design frame, normal (n, 3) design frame,
     valid (n,) bool)``. The gap is positive when the design lies above the point (no penetration).
     The intersection of the ray ``p + s * up`` with z = f(x, y) is found by Newton's method.
+    ``geometry=False`` skips the surface points and normals (returned as None) when only the gaps
+    are wanted.
     """
     T_inv = invert_transform(T_meas_design)
     p = apply_transform(T_inv, measured_points_mm)
@@ -547,7 +575,9 @@ def deflection_gaps(
         z, slope, ok = surface.evaluate(xy)
         valid = ok if _ == 0 else valid & ok
         F = z - (p[:, 2] + s * u[2])
-        s = s - F / (slope @ u[:2] - u[2])
+        s = s - F / (slope[:, 0] * u[0] + slope[:, 1] * u[1] - u[2])
+    if not geometry:
+        return s, None, None, valid
     q = p + s[:, None] * u
     return s, q, _surface_normals(slope), valid
 
@@ -614,6 +644,7 @@ def _solve_onesided_qp(
     damping: float,
     K: np.ndarray | None = None,
     e: np.ndarray | None = None,
+    box: float | None = None,
 ) -> tuple[np.ndarray, int, int]:
     """min ||s + J x||^2 + ||e + K x||^2 + damping ||x||^2 subject to s + J x >= 0, exactly.
 
@@ -621,7 +652,8 @@ def _solve_onesided_qp(
     the violated ones until none is violated -- then the solution of the reduced problem is the
     solution of the full one (it is feasible for a relaxation's optimum). J (m, 6), s (m,).
     lift (6,): the parameter vector that adds exactly 1 mm to every gap (a pure lift along the
-    deflection direction), which gives a feasible start. Returns ``(x, active-set steps, active constraints)``.
+    deflection direction), which gives a feasible start. box: optional trust region, |x_i| <= box
+    for every parameter (12 more linear constraints, always in the working problem). Returns ``(x, active-set steps, active constraints)``.
     """
     H = J.T @ J
     H[np.diag_indices(6)] += damping
@@ -631,15 +663,23 @@ def _solve_onesided_qp(
         g += K.T @ e
     m = len(s)
     x0 = max(0.0, -float(s.min())) * lift
+    if box is not None:
+        box = max(box, 1.5 * float(np.abs(x0).max()))  # the lift itself must stay allowed
+        Abox = np.vstack([np.eye(6), -np.eye(6)])
+        bbox = np.full(12, -box)
+    else:
+        Abox, bbox = np.zeros((0, 6)), np.zeros(0)
     k0 = min(m, 256)
     work = np.argpartition(s, k0 - 1)[:k0] if k0 < m else np.arange(m)
     steps = 0
     for _ in range(50):
-        x, it, active = _active_set_qp(H, g, J[work], -s[work], x0)
+        A = np.vstack([J[work], Abox])
+        b = np.concatenate([-s[work], bbox])
+        x, it, active = _active_set_qp(H, g, A, b, x0)
         steps += it
         viol = np.flatnonzero(s + J @ x < -1e-10 * (1.0 + np.abs(s).max()))
         if len(viol) == 0:
-            return x, steps, len(active)
+            return x, steps, int((active < len(work)).sum())
         # add the worst violators (not all: a bad linearisation could violate many at once)
         worst = viol[np.argsort((s + J @ x)[viol])[:256]]
         work = np.union1d(work, worst)
@@ -663,7 +703,8 @@ def nonpenetrating_fit(
     design_corners_mm: np.ndarray | None = None,
     measured_corners_mm: np.ndarray | None = None,
     boundary_weight: float = 1e-3,
-    subsample: int = 50_000,
+    subsample: int = 20_000,
+    rel_tolerance: float = 1e-5,
 ) -> NonPenetratingResult:
     """Rest the design on the measured surface: least squares with no point penetrating.
 
@@ -683,13 +724,15 @@ def nonpenetrating_fit(
     With matched corners the in-plane corner residuals are added to the objective as in
     :func:`icp_point_to_plane` (the QP stays exact; ``objective_mm2`` reports the gaps alone).
     The first iterations run on a seeded ``subsample`` of the points, the last ones on all.
+    The outer loop stops when a step moves less than ``tolerance_mm`` or, with every point
+    feasible, lowers the objective by less than ``rel_tolerance`` of itself.
     """
     corners = _matched_corners(design_corners_mm, measured_corners_mm)
     P = _check_points("measured_points_mm", measured_points_mm, 6)
     T = _check_transform("T_init", T_init).copy()
     up = np.asarray(up, dtype=np.float64)
     up = up / np.linalg.norm(up)
-    s, _, _, valid = deflection_gaps(surface, P, T, up)
+    s, _, _, valid = deflection_gaps(surface, P, T, up, geometry=False)
     use = valid & (np.abs(s) < max_distance_mm)
     if use.sum() < 6:
         raise RegistrationError(f"non-penetrating fit: only {int(use.sum())} points lie over the design")
@@ -697,41 +740,44 @@ def nonpenetrating_fit(
     penetrating_before = int((s_all < 0).sum())
     # coarse to fine: a seeded subsample walks most of the way cheaply, then every point decides
     # the last steps (the solution and its zero penetration are those of the full problem)
-    sub = (
-        np.sort(np.random.default_rng(0).choice(len(Pu), size=subsample, replace=False))
-        if len(Pu) > 2 * subsample
-        else None
-    )
+    sub = None
+    if len(Pu) > 2 * subsample:
+        # a seeded random share carries the objective; the points standing highest above the design
+        # now are the ones likely to carry it at the end, so they come along as well
+        rand = np.random.default_rng(0).choice(len(Pu), size=subsample, replace=False)
+        high = np.argpartition(s_all, subsample // 4)[: subsample // 4]
+        sub = np.union1d(rand, high)
     qp_steps, active, it_total, converged = 0, 0, 0, False
-    stages = [(Pu[sub], 10 * tolerance_mm)] if sub is not None else []
-    stages.append((Pu, tolerance_mm))
-    for stage_points, tol in stages:
+    # the subsample walks all the way (cheap), the full set only polishes
+    stages = [(Pu[sub], tolerance_mm, rel_tolerance * 1e-3)] if sub is not None else []
+    stages.append((Pu, tolerance_mm, rel_tolerance))
+    for stage_points, tol, rel_tol in stages:
         T, steps, its, active, converged, kept = _onesided_iterations(
-            surface, stage_points, T, up, corners, boundary_weight, max_iterations, tol
+            surface, stage_points, T, up, corners, boundary_weight, max_iterations, tol, rel_tol
         )
         qp_steps += steps
         it_total += its
     Pu = kept
-    for _ in range(3):
+    for refit in range(4):
         # the fit may have moved the design over points that were off its footprint at the start:
         # they are plate points now and must not penetrate either
-        s, _, _, valid = deflection_gaps(surface, P, T, up)
+        s, _, _, valid = deflection_gaps(surface, P, T, up, geometry=False)
         now = valid & (np.abs(s) < max_distance_mm)
-        if len(Pu) == int(now.sum()) or not (s[now] < 0).any():
+        if refit == 3 or len(Pu) == int(now.sum()) or not (s[now] < 0).any():
             break
         Pu = P[now]
         T, steps, its, active, converged, Pu = _onesided_iterations(
-            surface, Pu, T, up, corners, boundary_weight, max_iterations, tolerance_mm
+            surface, Pu, T, up, corners, boundary_weight, max_iterations, tolerance_mm, rel_tolerance
         )
         qp_steps += steps
         it_total += its
     # exact feasibility: a lift along `up` raises every gap by exactly the lift (the ray meets the
     # surface at the same point), so the worst remaining round-off penetration is lifted away
-    s, _, _, valid = deflection_gaps(surface, Pu, T, up)
+    s, valid = s[now], valid[now]
     lift = -float(s[valid].min())
     if lift > 0.0:
         T = make_transform(np.eye(3), (lift + 1e-9) * up) @ T
-        s, _, _, valid = deflection_gaps(surface, Pu, T, up)
+        s, _, _, valid = deflection_gaps(surface, P[now], T, up, geometry=False)
     s = s[valid]
     objective = float((s**2).sum())
     result = NonPenetratingResult(
@@ -767,12 +813,19 @@ def _onesided_iterations(
     boundary_weight: float,
     max_iterations: int,
     tolerance_mm: float,
+    rel_tolerance: float,
+    trust_mm: float = 5.0,
 ) -> tuple[np.ndarray, int, int, int, bool, np.ndarray]:
     """Outer correspondence loop of the one-sided fit on the points ``P`` (measured frame).
 
+    Each step is confined to a trust region of ``trust_mm`` per parameter (translation in mm,
+    rotation in mm at the points' RMS radius): the correspondences are only valid near the current
+    pose, and a weakly determined direction (sliding along a nearly spherical plate) would
+    otherwise take steps of hundreds of millimetres on a linear model that is long wrong there.
     Returns ``(T, active-set steps, iterations, active constraints, converged, points kept)``.
     """
     qp_steps, active, converged, it = 0, 0, False, 0
+    trust, x_prev = float(trust_mm), np.zeros(6)
     for it in range(1, max_iterations + 1):
         s, q, n, valid = deflection_gaps(surface, P, T, up)
         if not valid.all():
@@ -782,23 +835,33 @@ def _onesided_iterations(
         u = T_inv[:3, :3] @ up
         c = q.mean(axis=0)
         scale = float(np.sqrt(((q - c) ** 2).sum(axis=1).mean())) or 1.0
-        nu = n @ u
+        nu = n[:, 0] * u[0] + n[:, 1] * u[1] + n[:, 2] * u[2]
         J = np.empty((len(s), 6))
         J[:, :3] = np.cross(q - c, n) / (-scale * nu[:, None])
         J[:, 3:] = n / -nu[:, None]
         lift = np.concatenate([np.zeros(3), -u])  # moving the points down along u lifts every gap by 1
         damping = DAMPING * float(np.einsum("ij,ij->", J, J)) / 6.0
         K, e = _corner_terms(T_inv, corners, c, scale, boundary_weight * len(s) / 8.0)
-        x, steps, active = _solve_onesided_qp(J, s, lift, damping, K, e)
+        x, steps, active = _solve_onesided_qp(J, s, lift, damping, K, e, box=trust)
         qp_steps += steps
+        # a step that turns back on the last one means the linear model is overreaching: shrink
+        # (never grow again: after ICP the fit has millimetres to go, not metres)
+        if x @ x_prev < 0.0:
+            trust *= 0.5
+        x_prev = x
         omega, t = x[:3] / scale, x[3:]
         R = rotation_from_vector(omega)
         # the motion acts on the measured points in the design frame; the design moves by its inverse
         T = invert_transform(make_transform(R, c - R @ c + t) @ T_inv)
-        log.debug(
-            "onesided_step", it=it, step_mm=float(np.linalg.norm(x[:3]) + np.linalg.norm(t)), points=len(s)
-        )
-        if float(np.linalg.norm(x[:3]) + np.linalg.norm(t)) < tolerance_mm:
+        step_mm = float(np.linalg.norm(x[:3]) + np.linalg.norm(t))
+        obj = float(s @ s) + float(e @ e)
+        r = s + J @ x
+        gain = (obj - float(r @ r) - float(np.sum((e + K @ x) ** 2))) / max(obj, 1e-300)
+        log.debug("onesided_step", it=it, step_mm=step_mm, relative_gain=gain, points=len(s))
+        # converged when the step is negligible, or when, already feasible, it no longer lowers the
+        # objective measurably: without boundary anchoring a nearly spherical plate can slide along
+        # itself for ever at no cost, and such sliding is not worth iterating for
+        if step_mm < tolerance_mm or (s.min() >= -10.0 * tolerance_mm and gain < rel_tolerance):
             converged = True
             break
     return T, qp_steps, it, active, converged, P
