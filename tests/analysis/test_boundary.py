@@ -155,3 +155,22 @@ def test_a_thin_line_of_points_has_no_four_edges():
     pts = np.column_stack([x, 0.001 * np.sin(x), np.zeros_like(x)])
     with pytest.raises(BoundaryError):
         find_corners(pts)
+
+
+@settings(max_examples=6, deadline=None)
+@given(
+    kind=st.sampled_from(["sail", "saddle", "twisted", "cylinder", "flat"]),
+    yaw=st.floats(0.0, 360.0),
+    tilt=st.floats(0.0, 1.0),
+    seed=st.integers(0, 1000),
+)
+def test_corners_of_any_small_scanned_plate_are_within_a_scan_pitch_of_the_truth(kind, yaw, tilt, seed):
+    spec = plate_spec(kind, length_mm=300.0, width_mm=200.0, radius_x_mm=1500.0, radius_y_mm=1200.0)
+    scan = synthesize_scan(
+        spec, settings=COARSE, placement=Placement(yaw, 20.0, -10.0, tilt, yaw / 2), seed=seed
+    )
+    res = find_corners(segment_plate(scan.cloud).points_mm)
+    truth = scan.corners_bed_mm()
+    # Corner order is defined up to the half turn only when edge 0 points almost along +-y.
+    d = min(np.abs(res.corners_mm - truth).max(), np.abs(np.roll(res.corners_mm, 2, axis=0) - truth).max())
+    assert d < 2.0

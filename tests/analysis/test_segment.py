@@ -6,6 +6,8 @@ from functools import cache
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from analysis.cloud_io import ScanCloud
 from analysis.plates import FormingError, GaussianBump, formed_height_mm, plate_spec
@@ -131,3 +133,23 @@ def test_organisation_too_sparse_to_be_a_scan_grid_falls_back_to_delaunay():
     res = segment_plate(sparse)
     assert res.method == "delaunay"
     assert res.mask.sum() >= 0.95 * _truth_top(scan, 0.12).sum()
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    kind=st.sampled_from(["sail", "saddle", "twisted", "cylinder", "flat"]),
+    yaw=st.floats(0.0, 360.0),
+    tilt=st.floats(0.0, 1.0),
+    seed=st.integers(0, 1000),
+)
+def test_any_small_plate_at_any_placement_segments_to_its_top_surface(kind, yaw, tilt, seed):
+    spec = plate_spec(kind, length_mm=300.0, width_mm=200.0, radius_x_mm=1500.0, radius_y_mm=1200.0)
+    scan = synthesize_scan(
+        spec,
+        settings=ScanSettings(**COARSE),
+        placement=Placement(yaw, 20.0, -10.0, tilt, yaw / 2),
+        seed=seed,
+    )
+    res = segment_plate(scan.cloud)
+    assert not (res.mask & ~_truth_top(scan, 0.2)).any()
+    assert res.mask.sum() >= 0.97 * _truth_top(scan, 0.12).sum()
