@@ -615,26 +615,33 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="cellctl synth",
         description="Make a synthetic scan of a formed plate lying on the bed, with its design and truth.",
+        epilog="example: cellctl synth --plate sail --deform dent:x=300,y=-100,depth=2.5,sigma=50 "
+        "--out scan.ply  (a quick test scan: add --point-pitch-mm 1 --points-per-profile 50 "
+        "--profile-step-mm 2)",
     )
-    p.add_argument("--plate", choices=PLATE_KINDS, default="sail")
-    p.add_argument("--length-mm", type=float, default=1200.0)
-    p.add_argument("--width-mm", type=float, default=800.0)
-    p.add_argument("--thickness-mm", type=float, default=15.0)
+    p.add_argument("--plate", choices=PLATE_KINDS, default="sail", help="design shape (default: sail)")
+    p.add_argument("--length-mm", type=float, default=1200.0, help="footprint length along x (default 1200)")
+    p.add_argument("--width-mm", type=float, default=800.0, help="footprint width along y (default 800)")
+    p.add_argument("--thickness-mm", type=float, default=15.0, help="plate thickness (default 15)")
     p.add_argument("--deform", action="append", metavar="ITEM",
                    help="none | default | dent:x=,y=,depth=,sigma= | bump:x=,y=,height=,sigma= | "
                    "springback:amp=,decay= | bend:FRACTION | FILE.json (repeatable; default: default)")  # fmt: skip
     p.add_argument(
         "--out", required=True, help="scan PLY path; writes <stem>-design.ply and <stem>-truth.json beside it"
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed", type=int, default=0, help="seeds placement, noise, dropouts, outliers (default 0)"
+    )
     p.add_argument(
         "--yaw-deg", type=float, default=None, help="placement yaw (default: random from the seed)"
     )
-    p.add_argument("--point-pitch-mm", type=float, default=0.1)
-    p.add_argument("--points-per-profile", type=int, default=500)
-    p.add_argument("--profile-step-mm", type=float, default=0.5)
-    p.add_argument("--noise-mm", type=float, default=0.02)
-    p.add_argument("--no-edge-passes", action="store_true")
+    p.add_argument(
+        "--point-pitch-mm", type=float, default=0.1, help="spacing along the laser line (HD8: 0.1)"
+    )
+    p.add_argument("--points-per-profile", type=int, default=500, help="points per laser line (HD8: 500)")
+    p.add_argument("--profile-step-mm", type=float, default=0.5, help="travel between profiles (default 0.5)")
+    p.add_argument("--noise-mm", type=float, default=0.02, help="range noise sigma (default 0.02)")
+    p.add_argument("--no-edge-passes", action="store_true", help="raster passes only (no thickness faces)")
     return p
 
 
