@@ -5,35 +5,60 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from analysis.templates import DetectionLayout
+from cellctl.commands import report_cmd
 from tests.report.results_fixture import write_synthetic_results
 
 TINY = DetectionLayout(transverse_offsets_mm=(900.0,), longitudinal_offsets_mm=(), diagonals=False)
 
 
-def _run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
+def _run(cmd: list[str], cwd: Path, **env_overrides: str) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2])
+    env.update(env_overrides)
     return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=240)
 
 
 @pytest.mark.slow
-def test_report_regenerates_a_job_found_under_the_configured_data_dir(cellctl_exe, tmp_path: Path) -> None:
+def test_report_regenerates_a_job_found_under_the_configured_data_dir_and_opens_it(
+    cellctl_exe, tmp_path: Path
+) -> None:
     job_dir = tmp_path / "store" / "jobs" / "job-42"
     write_synthetic_results(job_dir, n_points=3000, layout=TINY)
     (tmp_path / "cell.toml").write_text(f'[cell]\nid = "c1"\ndata_dir = "{tmp_path / "store"}"\n')
-    # --open without a desktop prints where the page is instead
-    res = _run([*cellctl_exe, "report", "job-42", "--open", "--config", "cell.toml"], tmp_path)
+    # a desktop whose xdg-open records what it was asked to open
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    opened = tmp_path / "opened.txt"
+    (bin_dir / "xdg-open").write_text(f'#!/bin/sh\nprintf "%s" "$1" > "{opened}"\n')
+    (bin_dir / "xdg-open").chmod(0o755)
+    res = _run(
+        [*cellctl_exe, "report", "job-42", "--open", "--config", "cell.toml"],
+        tmp_path,
+        DISPLAY=":0",
+        PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
+    )
     assert res.returncode == 0, res.stderr
-    out = res.stdout.splitlines()
-    assert out[:3] == [str(job_dir / n) for n in ("report.csv", "report.html", "report.pdf")]
-    assert out[3] == f"no desktop browser available; open {(job_dir / 'report.html').resolve()}"
+    assert res.stdout.splitlines() == [str(job_dir / n) for n in ("report.csv", "report.html", "report.pdf")]
     html = (job_dir / "report.html").read_text(encoding="utf-8")
     assert "T1" in html and "FAIL" in html  # the line through the 3.6 mm dent fails the 3 mm limit
+    deadline = time.monotonic() + 10.0  # the opener runs detached
+    while not opened.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert opened.read_text() == str(job_dir / "report.html")
+
+
+def test_open_without_a_desktop_declines_so_the_path_is_printed(monkeypatch, tmp_path: Path) -> None:
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    assert report_cmd._open(tmp_path / "report.html") is False
 
 
 def test_report_refuses_an_unknown_job_and_a_broken_results_dir(cellctl_exe, tmp_path: Path) -> None:
