@@ -333,6 +333,8 @@ def coarse_register(
     design_points_mm: np.ndarray | None = None,
     measured_points_mm: np.ndarray | None = None,
     shift: int = 0,
+    design_midpoints_mm: np.ndarray | None = None,
+    measured_midpoints_mm: np.ndarray | None = None,
 ) -> CoarseResult:
     """The paper's three-step coarse registration for one corner correspondence.
 
@@ -341,6 +343,8 @@ def coarse_register(
     the cloud as the paper does (the chord midpoint of a curved edge is off the surface), nearest
     as seen along the diagonal normal.
     shift: measured corner ``(k + shift) % 4`` corresponds to design corner ``k``.
+    design_midpoints_mm, measured_midpoints_mm: optional (4, 3) edge midpoints already snapped
+    (edge k from corner k to k + 1, in the corners' own order), to snap once for all shifts.
 
     Steps: (1) corner centroid onto corner centroid (corners rather than the cloud centroid, which
     moves with uneven sampling and missing returns); (2) rotate the design's diagonal normal
@@ -357,8 +361,14 @@ def coarse_register(
     R1 = rotation_between(nD, nM)
     T1 = make_transform(R1, cM - R1 @ cD)
     # (3) edge midpoints snapped to the data, then SVD
-    mid_D = _snap_to_cloud(0.5 * (D + np.roll(D, -1, axis=0)), design_points_mm, nD)
-    mid_M = _snap_to_cloud(0.5 * (M + np.roll(M, -1, axis=0)), measured_points_mm, nM)
+    if design_midpoints_mm is not None:
+        mid_D = np.asarray(design_midpoints_mm, dtype=np.float64)
+    else:
+        mid_D = _snap_to_cloud(0.5 * (D + np.roll(D, -1, axis=0)), design_points_mm, nD)
+    if measured_midpoints_mm is not None:
+        mid_M = np.roll(np.asarray(measured_midpoints_mm, dtype=np.float64), -int(shift), axis=0)
+    else:
+        mid_M = _snap_to_cloud(0.5 * (M + np.roll(M, -1, axis=0)), measured_points_mm, nM)
     src = apply_transform(T1, np.vstack([mid_D, D]))
     dst = np.vstack([mid_M, M])
     T2 = kabsch(src, dst)
@@ -906,15 +916,20 @@ def coarse_candidates(
     an oblong plate) are dropped; by default the bound is the best RMS plus 10 % of the plate's
     shorter side, which always keeps the 180 degree twin of a rectangle.
     """
+    D = _check_corners("design_corners_mm", design_corners_mm)
+    M = _check_corners("measured_corners_mm", measured_corners_mm)
+
+    def snapped(c: np.ndarray, cloud: np.ndarray | None) -> np.ndarray:
+        # the edge midpoints do not depend on the shift: snap them once; a 200,000-point share of
+        # the cloud places them to its spacing, which is all the coarse fit needs
+        if cloud is not None and len(cloud) > 200_000:
+            cloud = cloud[:: len(cloud) // 200_000]
+        n = np.cross(c[2] - c[0], c[3] - c[1])
+        return _snap_to_cloud(0.5 * (c + np.roll(c, -1, axis=0)), cloud, n)
+
+    mid_D, mid_M = snapped(D, design_points_mm), snapped(M, measured_points_mm)
     cands = [
-        coarse_register(
-            design_corners_mm,
-            measured_corners_mm,
-            design_points_mm=design_points_mm,
-            measured_points_mm=measured_points_mm,
-            shift=k,
-        )
-        for k in range(4)
+        coarse_register(D, M, shift=k, design_midpoints_mm=mid_D, measured_midpoints_mm=mid_M) for k in range(4)
     ]
     cands.sort(key=lambda c: c.corner_rms_mm)
     if max_corner_rms_mm is None:
