@@ -929,7 +929,8 @@ def coarse_candidates(
 
     mid_D, mid_M = snapped(D, design_points_mm), snapped(M, measured_points_mm)
     cands = [
-        coarse_register(D, M, shift=k, design_midpoints_mm=mid_D, measured_midpoints_mm=mid_M) for k in range(4)
+        coarse_register(D, M, shift=k, design_midpoints_mm=mid_D, measured_midpoints_mm=mid_M)
+        for k in range(4)
     ]
     cands.sort(key=lambda c: c.corner_rms_mm)
     if max_corner_rms_mm is None:

@@ -190,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
                 ransac_a=ar,
                 points=len(P),
                 **parts,
-            )  # fmt: skip
+            )
         )
 
     def mean(key: str) -> float:
