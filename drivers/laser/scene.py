@@ -154,6 +154,9 @@ def plate_solid(top_vertices_mm: np.ndarray, top_triangles: np.ndarray, thicknes
     t = np.asarray(top_triangles, dtype=np.int64)
     if thickness_mm <= 0:
         raise ValueError(f"thickness_mm must be > 0, got {thickness_mm}")
+    face_n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    if face_n[:, 2].sum() < 0:
+        t = t[:, ::-1]  # wound clockwise seen from above: the top must face up for the offset to go down
     bottom = v - _vertex_normals(v, t) * thickness_mm
     n = len(v)
     edges = _boundary_edges(t)

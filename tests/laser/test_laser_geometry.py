@@ -186,6 +186,12 @@ def test_plate_solid_is_closed_with_outward_normals_and_the_given_thickness() ->
     np.testing.assert_allclose([1000.0 - hits.t_mm[0], hits.t_mm[1]], [500.0, 488.0], atol=0.05)
 
 
+def test_plate_solid_accepts_a_top_wound_the_other_way() -> None:
+    v, t = _curved_top()
+    flipped = plate_solid(v, t[:, ::-1], thickness_mm=12.0)
+    assert _signed_volume(flipped) == pytest.approx(_signed_volume(plate_solid(v, t, thickness_mm=12.0)))
+
+
 def test_cell_scene_has_bed_and_supports_touching_the_plate_underside() -> None:
     v, t = _curved_top()
     scene = cell_scene(
