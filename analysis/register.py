@@ -877,6 +877,27 @@ def _onesided_iterations(
     return T, qp_steps, it, active, converged, P
 
 
+def grid_average(points_mm: np.ndarray, cell_mm: float = 1.0) -> np.ndarray:
+    """Mean point of every occupied ``cell_mm`` square of the XY plane: (m, 3) mm.
+
+    An HD8 scan puts about 20 points in every square millimetre; their cell means keep the shape,
+    cut sensor noise by the square root of the count (which a one-sided fit would otherwise turn
+    into a lift of the design by the noise's largest excursion) and make the non-penetrating fit
+    ten to twenty times cheaper. Vectorised: one sort, one pass of bincounts.
+    """
+    P = _check_points("points_mm", points_mm)
+    if cell_mm <= 0:
+        raise RegistrationError(f"cell_mm must be positive, got {cell_mm}")
+    ij = np.floor(P[:, :2] / cell_mm).astype(np.int64)
+    ij -= ij.min(axis=0)
+    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    _, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+    out = np.empty((len(count), 3))
+    for k in range(3):
+        out[:, k] = np.bincount(inv, weights=P[:, k]) / count
+    return out
+
+
 # --------------------------------------------------------------------------------------------------
 # the whole registration
 
@@ -956,6 +977,7 @@ def register(
     grid_step_mm: float = 1.0,
     icp_points: int = 100_000,
     boundary_weight: float = 1e-3,
+    nonpen_cell_mm: float | None = None,
     seed: int = 0,
 ) -> RegistrationResult:
     """Coarse fit (all corner shifts), ICP per candidate, best ICP kept, then the non-penetrating fit.
@@ -966,6 +988,9 @@ def register(
     The candidates' ICP runs on a 20,000-point subsample; the winner is refined on ``icp_points``.
     ICP and the non-penetrating fit keep the plate anchored in its own plane by the matched corners
     (``boundary_weight``, see :func:`icp_point_to_plane`); 0 turns that off.
+    ``nonpen_cell_mm``: None rests the design on every measured point; a cell size (1 mm for HD8
+    scans) rests it on the :func:`grid_average` cell means instead -- the noise no longer lifts
+    the design and 10^7 points cost what 10^6 do; penetration is then counted on the cell means.
     """
     P = _check_points("measured_points_mm", measured_points_mm, 6)
     surface = design if isinstance(design, HeightField) else height_field_from_mesh(design, grid_step_mm)
@@ -1005,7 +1030,8 @@ def register(
     )
     icp = icp_point_to_plane(surface, P, icp0.transform, max_points=icp_points, seed=seed, **anchor)
     coarse_rms = coarse_fit_rms(surface, _subsample(P, 20_000, seed), coarse.transform)
-    npf = nonpenetrating_fit(surface, P, icp.transform, up=up, **anchor)
+    P_np = P if nonpen_cell_mm is None else grid_average(P, nonpen_cell_mm)
+    npf = nonpenetrating_fit(surface, P_np, icp.transform, up=up, **anchor)
     log.info(
         "registered",
         shift=best_shift,
