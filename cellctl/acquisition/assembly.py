@@ -81,6 +81,8 @@ class AssembledBatch:
         t_ns: (n,) int64 exposure time on the host time base, ns.
         xyz_mm: (n, w, 3) float32 base-frame points, mm; NaN where not valid.
         valid: (n, w) bool.
+        sensor_pos_mm: (n, 3) float32 sensor origin at each exposure, base frame, mm (NaN without pose):
+            the viewpoint of the profile, and what the time-offset calibration differentiates.
     """
 
     profile_index: np.ndarray
@@ -89,6 +91,7 @@ class AssembledBatch:
     t_ns: np.ndarray
     xyz_mm: np.ndarray
     valid: np.ndarray
+    sensor_pos_mm: np.ndarray
 
 
 def assemble_batch(
@@ -140,6 +143,7 @@ def assemble_batch(
         t_ns=np.asarray(t_ns, dtype=np.int64),
         xyz_mm=xyz,
         valid=ok,
+        sensor_pos_mm=np.where(inside[:, None], T[:, :3, 3], np.nan).astype(np.float32),
     )
 
 
@@ -156,6 +160,7 @@ class ScanCloud:
     t_ns: np.ndarray
     xyz_mm: np.ndarray
     valid: np.ndarray
+    sensor_pos_mm: np.ndarray
 
     @classmethod
     def concat(cls, batches: Sequence[AssembledBatch], width: int = 0) -> ScanCloud:
@@ -168,6 +173,7 @@ class ScanCloud:
                 np.empty(0, np.int64),
                 np.empty((0, width, 3), np.float32),
                 np.empty((0, width), bool),
+                np.empty((0, 3), np.float32),
             )
         return cls(*(np.concatenate([getattr(b, f) for b in batches]) for f in cls.__slots__))
 

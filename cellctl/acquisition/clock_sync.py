@@ -60,6 +60,9 @@ class ClockSyncConfig:
         bin_s: pairs are reduced to the lowest one per bin of device time before the hull (cost bound).
         refit_interval_s: the fit is recomputed at most this often (device time).
         max_drift_ppm: bound on |drift|; real quartz clocks stay within about 100 ppm.
+        min_drift_span_s: below this window span the drift is held at 0 and only the offset is fitted:
+            over a short span the envelope's slope is dominated by how the minimum latency wanders
+            (milliseconds on a loaded host), while 50 ppm of drift adds only 1 ms over 20 s.
         min_pairs: no fit before this many pairs.
         spike_ms: a pair more than this above the envelope counts as a latency spike in the report.
     """
@@ -67,11 +70,16 @@ class ClockSyncConfig:
     window_s: float = 120.0
     bin_s: float = 0.2
     refit_interval_s: float = 2.0
-    max_drift_ppm: float = 500.0
+    max_drift_ppm: float = 200.0
+    min_drift_span_s: float = 20.0
     min_pairs: int = 4
     spike_ms: float = 2.0
 
     def __post_init__(self) -> None:
+        if self.min_drift_span_s < 0:
+            raise ClockSyncError(
+                f"ClockSyncConfig.min_drift_span_s must be >= 0, got {self.min_drift_span_s}"
+            )
         for name in ("window_s", "bin_s", "refit_interval_s", "max_drift_ppm", "spike_ms"):
             if not getattr(self, name) > 0:
                 raise ClockSyncError(f"ClockSyncConfig.{name} must be > 0, got {getattr(self, name)}")
@@ -86,7 +94,8 @@ class ClockFit:
     Attributes:
         src_ref_us: reference point on the device clock, us (integer, so no precision is lost).
         host_ref_ns: host time at the reference before the offset, ns.
-        offset_ns: envelope offset at the reference, ns (includes the link's minimum latency).
+        offset_ns: envelope offset at the reference, ns, relative to ``host_ref_ns`` (the report's
+            ``host_minus_device_ms`` is the whole offset, the link's minimum latency included).
         drift_ppm: device clock rate error seen from the host, parts per million.
         n_pairs: pairs in the window the fit used.
         span_s: device-time span of those pairs.
@@ -117,7 +126,8 @@ class ClockFit:
     def report(self) -> dict[str, float | int]:
         """The fit's quality as plain numbers (for logs, the job record and ``cellctl`` output)."""
         d = asdict(self)
-        d["offset_ms"] = self.offset_ns * 1e-6
+        # host minus device time at the reference point: the clock offset plus the minimum latency
+        d["host_minus_device_ms"] = (self.host_ref_ns - self.src_ref_us * 1000 + self.offset_ns) * 1e-6
         return d
 
 
@@ -163,7 +173,7 @@ def fit_lower_envelope(s: np.ndarray, d: np.ndarray, max_slope: float) -> tuple[
     # the supporting line at the mean abscissa is the hull edge spanning it
     k = int(np.clip(np.searchsorted(hs, s_mean, side="right") - 1, 0, len(h) - 2))
     b = float((hd[k + 1] - hd[k]) / (hs[k + 1] - hs[k]))
-    if abs(b) > max_slope:
+    if abs(b) > max_slope:  # (max_slope 0 fits the offset alone)
         b = float(np.clip(b, -max_slope, max_slope))
     a = float(np.min(d - b * s))  # keep every point on or above the line
     return a, b
@@ -283,7 +293,9 @@ class ClockSync:
         s_s = (self._bin_s - s0).astype(np.float64) * 1e-6
         d_rel = (self._bin_d - d0).astype(np.float64)
         uniq = np.concatenate([[True], np.diff(s_s) > 0])  # bins finer than 1 us could share a time
-        a_ns, b_ns_per_s = fit_lower_envelope(s_s[uniq], d_rel[uniq], cfg.max_drift_ppm * 1e3)
+        span_s = float(s_s[-1])
+        max_slope = cfg.max_drift_ppm * 1e3 if span_s >= cfg.min_drift_span_s else 0.0
+        a_ns, b_ns_per_s = fit_lower_envelope(s_s[uniq], d_rel[uniq], max_slope)
         rs = (self._recent_s - s0).astype(np.float64) * 1e-6
         above_ms = ((self._recent_d - d0).astype(np.float64) - (a_ns + b_ns_per_s * rs)) * 1e-6
         return_fit = ClockFit(
@@ -301,6 +313,14 @@ class ClockSync:
         )
         self._n_fits += 1
         return return_fit
+
+    def refit_now(self) -> ClockFit | None:
+        """Fit over every pair in the window now (e.g. once at the end of a scan); None if too few."""
+        if self.n_pairs < self.config.min_pairs:
+            return None
+        self._fit = self._refit()
+        self._last_fit_s = self._newest_s
+        return self._fit
 
     def to_host_ns(self, src_us: np.ndarray) -> np.ndarray:
         """Map device times (n,) int64 us to host times (n,) int64 ns with the current fit."""
@@ -348,14 +368,28 @@ class FrameTimeline:
 
     Args:
         window: frames kept for the regression.
+        line: a fixed line ``(f0, t0_us, intercept_us, us_per_frame)`` (from :meth:`line` over a
+            whole scan) to use instead of the running regression.
     """
 
-    def __init__(self, window: int = 4000) -> None:
+    def __init__(self, window: int = 4000, line: tuple[int, int, float, float] | None = None) -> None:
         if window < 2:
             raise ClockSyncError(f"FrameTimeline window must be >= 2, got {window}")
         self.window = window
         self._f = np.empty(0, dtype=np.int64)
         self._t_us = np.empty(0, dtype=np.int64)
+        self._fixed = line
+
+    def line(self) -> tuple[int, int, float, float] | None:
+        """The regression over the frames in the window: ``(f0, t0_us, intercept_us, us_per_frame)``."""
+        if len(self._f) < 2 or self._f[-1] == self._f[0]:
+            return None
+        f0, t0 = int(self._f[0]), int(self._t_us[0])
+        x = (self._f - f0).astype(np.float64)
+        y = (self._t_us - t0).astype(np.float64)
+        xm, ym = x.mean(), y.mean()
+        slope = float(np.dot(x - xm, y - ym) / np.dot(x - xm, x - xm))
+        return f0, t0, float(ym - slope * xm), slope
 
     def times_us(self, frame_index: np.ndarray, counter_us: np.ndarray) -> np.ndarray:
         """Add profiles and return their regressed device times.
@@ -369,14 +403,11 @@ class FrameTimeline:
         """
         f = np.asarray(frame_index, dtype=np.int64)
         t = np.asarray(counter_us, dtype=np.int64)
-        self._f = np.concatenate([self._f, f])[-self.window :]
-        self._t_us = np.concatenate([self._t_us, t])[-self.window :]
-        if len(self._f) < 2 or self._f[-1] == self._f[0]:
+        if self._fixed is None:
+            self._f = np.concatenate([self._f, f])[-self.window :]
+            self._t_us = np.concatenate([self._t_us, t])[-self.window :]
+        line = self._fixed or self.line()
+        if line is None:
             return t.copy()
-        f0, t0 = self._f[0], self._t_us[0]
-        x = (self._f - f0).astype(np.float64)
-        y = (self._t_us - t0).astype(np.float64)
-        xm, ym = x.mean(), y.mean()
-        slope = float(np.dot(x - xm, y - ym) / np.dot(x - xm, x - xm))
-        icpt = ym - slope * xm
+        f0, t0, icpt, slope = line
         return t0 + np.rint(icpt + slope * (f - f0).astype(np.float64)).astype(np.int64)

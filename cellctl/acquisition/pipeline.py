@@ -154,12 +154,24 @@ class Acquisition:
         writer: the job's raw writer, or None (replay, tests).
         keep_batches: keep assembled batches in memory for :meth:`cloud` (False for long soak runs
             where only the raw files and a consumer of :meth:`feed_profiles`' return value matter).
+        fixed_fits: ``{"sensor": ClockFit, "robot": ClockFit, "frames": line}`` to use instead of the
+            online fits (the final assembly after a scan, with fits over the whole scan; see
+            :mod:`.reassemble`); ``frames`` is a :meth:`FrameTimeline.line` for the ms counter.
+        clocks_only: only feed the clock estimators (the first pass of the final assembly).
     """
 
     def __init__(
-        self, settings: AcquisitionSettings, writer: RawWriter | None = None, *, keep_batches: bool = True
+        self,
+        settings: AcquisitionSettings,
+        writer: RawWriter | None = None,
+        *,
+        keep_batches: bool = True,
+        fixed_fits: dict | None = None,
+        clocks_only: bool = False,
     ) -> None:
         self.settings = settings
+        self.fixed_fits = dict(fixed_fits or {})
+        self.clocks_only = clocks_only
         self.writer = writer
         self.keep_batches = keep_batches
         self.stats = AcquisitionStats()
@@ -174,7 +186,8 @@ class Acquisition:
         self._pending: list[tuple[ProfileBatch, np.ndarray]] = []
         self._pending_profiles = 0
         self._unwrap = CounterUnwrapper()
-        self._timeline = FrameTimeline()
+        frames_line = self.fixed_fits.get("frames")
+        self._timeline = FrameTimeline(line=frames_line) if frames_line is not None else FrameTimeline()
         self._batches: list[AssembledBatch] = []
         self._next_profile = 0
         self._width = 0
@@ -204,11 +217,16 @@ class Acquisition:
             fit = self.robot_sync.add(t_ctrl, t_host)
             if fit is not None:
                 self._record_fit("robot", fit)
-            if self.robot_sync.fit is None:
+            robot_fit = self.fixed_fits.get("robot", self.robot_sync.fit)
+            if self.clocks_only:
+                return []
+            if robot_fit is None:
                 self.stats.robot_samples_dropped += len(t_host)
                 return []
-            t = self.robot_sync.fit.to_host_ns(t_ctrl)
+            t = robot_fit.to_host_ns(t_ctrl)
         else:
+            if self.clocks_only:
+                return []
             t = t_host
         last = self._track_t.view[-1] if self._track_t.n else np.iinfo(np.int64).min
         # a refit may move mapped times by microseconds; the track must stay strictly increasing
@@ -231,6 +249,8 @@ class Acquisition:
         fit = self.sensor_sync.add(src_us[-1:], batch.host_recv_ns[-1:])
         if fit is not None:
             self._record_fit("sensor", fit)
+        if self.clocks_only:
+            return []
         self._pending.append((batch, src_us))
         self._pending_profiles += len(batch)
         return self._drain()
@@ -294,7 +314,7 @@ class Acquisition:
 
     def _drain(self, force: bool = False) -> list[AssembledBatch]:
         out: list[AssembledBatch] = []
-        fit = self.sensor_sync.fit
+        fit = self.fixed_fits.get("sensor", self.sensor_sync.fit)
         while self._pending and (fit is not None or force or self.settings.sensor_sync != "envelope"):
             batch, src_us = self._pending[0]
             mode = self.settings.sensor_sync
@@ -336,6 +356,7 @@ class Acquisition:
                 t_ns=t_ns,
                 xyz_mm=np.full((n, w, 3), np.nan, np.float32),
                 valid=np.zeros((n, w), bool),
+                sensor_pos_mm=np.full((n, 3), np.nan, np.float32),
             )
         self._next_profile += len(t_ns)
         self.stats.profiles_assembled += len(t_ns)

@@ -26,6 +26,7 @@ def cloud():
         t_ns=10**12 + np.arange(n, dtype=np.int64) * 5_000_000,
         xyz_mm=xyz,
         valid=valid,
+        sensor_pos_mm=np.zeros((n, 3), np.float32),
     )
 
 

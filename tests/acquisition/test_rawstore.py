@@ -93,11 +93,15 @@ def test_reassembly_rebuilds_the_live_cloud_bit_for_bit(tmp_path):
         live.begin_pass(0, run.epoch_ns + 500_000_000)
         live.end_pass(run.epoch_ns + 2_000_000_000)
         feed(live, run)
-    res = reassemble(tmp_path / "job")
+    res = reassemble(tmp_path / "job", final=False)
     assert len(res.cloud) == len(live.cloud()) > 500
     assert res.cloud.digest() == live.cloud().digest()
     assert res.fits_recorded == res.fits_matching > 0
     assert set(np.unique(res.cloud.pass_id)) == {-1, 0}
+    # the final cloud (whole-scan clock fits) is deterministic in the files too
+    a, b = reassemble(tmp_path / "job"), reassemble(tmp_path / "job")
+    assert a.final and a.cloud.digest() == b.cloud.digest() != res.cloud.digest()
+    assert len(a.cloud) == len(res.cloud)
 
 
 _CHILD = r"""
@@ -154,7 +158,7 @@ def test_kill_9_mid_scan_loses_at_most_the_unflushed_chunk(tmp_path, repo_root):
         proc.wait(timeout=10)
         proc.stdout.close()
     assert proc.returncode == -signal.SIGKILL
-    res = reassemble(job)
+    res = reassemble(job, final=False)
     n = len(res.cloud)
     # everything flushed before the kill is there; at most one flush interval more may be
     assert n >= flushed
