@@ -436,6 +436,7 @@ class HD8Client(ProfileSource):
             now = time.monotonic_ns()
             if self._want_running and not self._stalled and now - self._last_frame_ns > timeout_ns:
                 self._stalled = True
+                self.stats.reset_rate()  # the rate window only refreshes when frames arrive
                 silent_s = (now - self._last_frame_ns) / 1e9
                 self._emit(SourceEventKind.STALLED, silent_s=silent_s, last_frame=self.stats.last_frame_index)
                 log.warning(

@@ -182,6 +182,12 @@ class SourceStats:
             self._window_start_ns = now_ns
             self._window_frames = 0
 
+    def reset_rate(self) -> None:
+        """Set :attr:`rate_hz` to 0 and restart its window (the source went silent)."""
+        self.rate_hz = 0.0
+        self._window_start_ns = 0
+        self._window_frames = 0
+
     def as_dict(self) -> dict[str, Any]:
         """Public counters as a plain dict (for logs and status publications)."""
         return {k: v for k, v in self.__dict__.items() if not k.startswith("_")}

@@ -125,6 +125,7 @@ def test_watchdog_reports_stall_and_resumption() -> None:
             while SourceEventKind.RESUMED not in kinds:
                 kinds.append((await asyncio.wait_for(client.events.get(), 3.0)).kind)
             assert kinds.index(SourceEventKind.STALLED) < kinds.index(SourceEventKind.RESUMED)
+            assert client.stats.rate_hz == 0.0  # not the stale rate from before the stall
             batches = await collect(client, 300)
             # Acquisition went on during the stall: late, but nothing lost.
             assert client.stats.gaps == 0
