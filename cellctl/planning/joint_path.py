@@ -66,6 +66,19 @@ def _unreachable(kin: RobotKinematics, q: np.ndarray, pos_err_mm: float, rot_err
     return f"reach (IK residual {pos_err_mm:.2f} mm, {rot_err_deg:.2f} deg)"
 
 
+def _margin_violation(q: np.ndarray, settings: PlannerSettings) -> str | None:
+    """The first joint outside its limits with margin, or the wrist singularity margin, or None."""
+    lo, hi = settings.q_min_deg, settings.q_max_deg
+    for j in range(6):
+        if q[j] < lo[j]:
+            return f"{JOINT_NAMES[j]} lower {lo[j]:.1f} deg (at {q[j]:.1f} deg, margin {settings.joint_margin_deg} deg)"
+        if q[j] > hi[j]:
+            return f"{JOINT_NAMES[j]} upper {hi[j]:.1f} deg (at {q[j]:.1f} deg, margin {settings.joint_margin_deg} deg)"
+    if abs(q[4]) < settings.wrist_margin_deg:
+        return f"wrist singularity margin |joint_5| >= {settings.wrist_margin_deg} deg (at {q[4]:.1f} deg)"
+    return None
+
+
 def _score(q: np.ndarray, settings: PlannerSettings) -> float:
     room = np.minimum(q - settings.q_min_deg, settings.q_max_deg - q).min()
     return min(abs(q[4]) - settings.wrist_margin_deg, 30.0) + min(room, 30.0) - 0.05 * (abs(q[3]) + abs(q[5]))
@@ -178,11 +191,15 @@ def solve_joint_path(
                         np.array([np.rad2deg(np.arctan2(T[1, 3], T[0, 3])), 30, 0, 0, 60, 0]),
                         frame="sensor",
                     )
+                    if r.pos_err_mm <= _POS_TOL_MM and r.rot_err_deg <= _ROT_TOL_DEG:
+                        limit = _margin_violation(r.q_deg, settings) or "joint margins"
+                    else:
+                        limit = _unreachable(kin, r.q_deg, r.pos_err_mm, r.rot_err_deg)
                     raise PlanRefused(
                         "the first pose cannot be reached inside the joint margins",
                         pass_label=seg.label,
                         point_index=i,
-                        limit=_unreachable(kin, r.q_deg, r.pos_err_mm, r.rot_err_deg),
+                        limit=limit,
                         pos_mm=T[:3, 3],
                     )
                 q_prev = np.asarray(q0, dtype=np.float64)
