@@ -15,7 +15,8 @@ Steps, on the top-surface points from ``segment``:
 3. **Outlier removal by curvature.** Along each edge, feature points where the discrete curvature
    of the edge curve jumps (second difference beyond ``outlier_mad`` robust deviations) or that lie
    off a cubic spline through the others are dropped, repeatedly.
-4. **Cubic splines per edge.** Each edge is a least-squares cubic spline (knots ``knot_mm`` apart)
+4. **Cubic splines per edge.** Each edge is a least-squares cubic spline (knots ``knot_mm`` apart
+   for the base-plane offset, whose curves are gentle, ``z_knot_mm`` for the height)
    of its cross-edge offset and
    its height over the along-edge coordinate (the XY base-plane projection plus z).
 5. **Corners.** Neighbouring projected edges are intersected in the base plane; the corner's height
@@ -59,7 +60,8 @@ class BoundarySettings:
     outlier_mad: float = 5.0
     min_outlier_mm: float = 0.3
     min_points_per_edge: int = 10
-    knot_mm: float = 100.0
+    knot_mm: float = 250.0
+    z_knot_mm: float = 100.0
     z_window_mm: tuple[float, float] = (0.3, 4.0)
 
 
@@ -211,13 +213,31 @@ def _edge_samples(
     return idx[out_pos], z_edge
 
 
-def _cubic_spline(t: np.ndarray, c: np.ndarray, knot_mm: float):
+class _EdgeSpline:
+    """A cubic B-spline over the data's range, continued by its end tangents beyond it.
+
+    The corners lie a little beyond the last feature points; a cubic's own extrapolation can
+    swing there, a straight continuation does not.
+    """
+
+    def __init__(self, spline) -> None:
+        self._s = spline
+        self._d = spline.derivative()
+        self._lo, self._hi = float(spline.t[0]), float(spline.t[-1])
+
+    def __call__(self, t):
+        t = np.asarray(t, dtype=np.float64)
+        tc = np.clip(t, self._lo, self._hi)
+        return self._s(tc) + self._d(tc) * (t - tc)
+
+
+def _cubic_spline(t: np.ndarray, c: np.ndarray, knot_mm: float) -> _EdgeSpline:
     """Least-squares cubic B-spline c(t) with interior knots about ``knot_mm`` apart (t increasing)."""
     lo, hi = float(t[0]), float(t[-1])
     n_int = max(0, int((hi - lo) / knot_mm) - 1)
     inner = np.linspace(lo, hi, n_int + 2)[1:-1]
     knots = np.r_[[lo] * 4, inner, [hi] * 4]
-    return make_lsq_spline(t, c, knots, k=3)
+    return _EdgeSpline(make_lsq_spline(t, c, knots, k=3))
 
 
 def _robust_spline_fit(
@@ -281,7 +301,10 @@ def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None
     # (u, v) coordinates about the centre, written out to avoid (n, 2) temporaries.
     a = P[:, 0] * u[0] + P[:, 1] * u[1] - centre @ u
     b = P[:, 0] * v[0] + P[:, 1] * v[1] - centre @ v
-    px = st.pixel_mm
+    # Pixels of pixel_mm, but no smaller than the points' spacing (the raster must be solid) and no
+    # more than about 2e7 of them (a 5 x 4 m plate at 1 mm).
+    extent = float((a.max() - a.min()) * (b.max() - b.min()))
+    px = max(st.pixel_mm, float(np.sqrt(extent / len(P))), float(np.sqrt(extent / 2e7)))
     # Three empty pixels of margin: the closing below must not eat into the plate at the image border.
     a0, b0 = a.min() - 3 * px, b.min() - 3 * px
     ia = ((a - a0) * (1.0 / px)).astype(np.int32)
@@ -325,7 +348,7 @@ def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None
     for k, (sel, along_all, outward_all, lo, hi) in enumerate(specs):
         cand = idx_all[sel]
         pick, z_edge = _edge_samples(
-            along_all[cand], outward_all[cand], P[cand, 2], cand, st.bin_mm, lo, hi, st.z_window_mm
+            along_all[cand], outward_all[cand], P[cand, 2], cand, max(st.bin_mm, px), lo, hi, st.z_window_mm
         )
         if len(pick) < st.min_points_per_edge:
             raise BoundaryError(f"edge {k}: {len(pick)} feature points (need {st.min_points_per_edge})")
@@ -336,7 +359,7 @@ def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None
         pick, t, z_edge = pick[distinct], t[distinct], z_edge[distinct]
         c = outward_all[pick]
         keep, cs, rms = _robust_spline_fit(t, c, st)
-        zs = _cubic_spline(t[keep], z_edge[keep], st.knot_mm)
+        zs = _cubic_spline(t[keep], z_edge[keep], st.z_knot_mm)
         fits.append((pick, keep, cs, zs, rms))
     timings["edges"] = time.perf_counter() - t2
 

@@ -174,3 +174,13 @@ def test_corners_of_any_small_scanned_plate_are_within_a_scan_pitch_of_the_truth
     # Corner order is defined up to the half turn only when edge 0 points almost along +-y.
     d = min(np.abs(res.corners_mm - truth).max(), np.abs(np.roll(res.corners_mm, 2, axis=0) - truth).max())
     assert d < 2.0
+
+
+def test_corners_of_a_ship_sized_plate_are_found_without_a_giant_raster():
+    rng = np.random.default_rng(8)
+    spec = plate_spec("saddle", length_mm=9000.0, width_mm=3000.0, radius_x_mm=40000.0, radius_y_mm=25000.0)
+    pitch_mm = 4.0  # a coarse sampling of 27 m^2: the raster follows the points' spacing
+    pts = _top_points(spec, FormingError(), pitch_mm, rng) @ _rot(21.0).T
+    res = find_corners(pts)
+    truth = canonical_corner_order(design_corners(spec) @ _rot(21.0).T)
+    assert np.linalg.norm(res.corners_mm - truth, axis=1).max() < 1.5 * pitch_mm
