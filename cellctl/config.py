@@ -151,6 +151,8 @@ class LaserSection(Section):
     depth_min_mm: PositiveFloat = 70.0
     depth_max_mm: PositiveFloat = 130.0
     latency_ms: Finite = 0.0
+    # which sensor stamp the acquisition uses: "us" (protocol's mid-exposure us) or "ms" (HD8 counter)
+    sensor_clock: Literal["us", "ms"] = "us"
     watchdog_s: PositiveFloat = 0.5
     buffer_profiles: Annotated[int, Field(ge=100)] = 20_000
 

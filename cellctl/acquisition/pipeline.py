@@ -30,6 +30,7 @@ from cellctl.acquisition.clock_sync import (
 )
 from cellctl.acquisition.poses import T_from_pos_rpy
 from cellctl.acquisition.rawstore import RawWriter
+from cellctl.config import CellConfig
 from drivers.abb_egm.kinematics import fk_batch
 from drivers.laser.source import ProfileBatch
 
@@ -89,6 +90,19 @@ class AcquisitionSettings:
     sensor_sync_config: ClockSyncConfig = field(default_factory=ClockSyncConfig)
     robot_sync_config: ClockSyncConfig = field(default_factory=ClockSyncConfig)
     max_pending_profiles: int = 4000
+
+    @classmethod
+    def from_config(cls, cfg: CellConfig, epoch_ns: int) -> AcquisitionSettings:
+        """The settings cell.toml implies: ``[robot.sensor_in_flange]``, ``[laser] latency_ms`` and
+        ``sensor_clock``."""
+        mount = cfg.robot.sensor_in_flange
+        return cls(
+            sensor_in_flange_pos_mm=tuple(mount.pos_mm),
+            sensor_in_flange_rpy_deg=tuple(mount.rpy_deg),
+            latency_ms=cfg.laser.latency_ms,
+            sensor_clock=cfg.laser.sensor_clock,
+            epoch_ns=epoch_ns,
+        )
 
     @property
     def T_flange_sensor(self) -> np.ndarray:
