@@ -1,0 +1,105 @@
+"""Scan planning benchmark: the 1200 x 800 sail plate and a 6000 x 2500 plate on a rail-less cell.
+
+For the sail plate at the cell.toml default placement (1500, 0, 300 mm, 3 deg) with the cell.toml
+scan settings (HD8: 50 mm line, 200 Hz, 0.5 mm profile spacing -> 100 mm/s): planning time
+(surface fit, passes, joint path, timing, envelope check, ray-cast coverage), planned scan time,
+the ratio of scan time to pure sweep time (sweep length / scan speed; target <= 1.2) and the
+predicted coverage of the top surface (target >= 0.99). Planning is repeated ``--repeat`` times and
+the median reported.
+
+For the large plate (6000 x 2500, a gentle sail) at a placement in front of the robot: the outcome
+(refused or planned) with the reason, and how long it took to decide.
+
+Usage: ``python benchmarks/plan.py [--repeat 3] [--config cell.toml]``. Prints one JSON object;
+logs go to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import structlog
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--repeat", type=int, default=3, help="planning runs of the sail plate (median reported)")
+    p.add_argument("--config", default=str(REPO / "cell.toml"), help="cell.toml with the scan settings")
+    args = p.parse_args()
+    structlog.configure(
+        wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING),
+        logger_factory=structlog.PrintLoggerFactory(sys.stderr),
+    )
+
+    from analysis.plates import design_mesh, plate_spec
+    from cellctl.config import load_config
+    from cellctl.planning import Placement, PlannerSettings, PlanRefused, plan_scan
+
+    cfg = load_config(args.config)
+    settings = PlannerSettings.from_config(cfg)
+    pl = cfg.sim.placement
+    placement = Placement(pl.pos_mm[0], pl.pos_mm[1], pl.pos_mm[2], pl.angle_deg)
+    sail = design_mesh(plate_spec("sail"), pitch_mm=10.0)
+
+    runs = []
+    plan = None
+    for _ in range(max(1, args.repeat)):
+        t0 = time.perf_counter()
+        plan = plan_scan(sail, placement, settings)
+        runs.append(time.perf_counter() - t0)
+    assert plan is not None
+    s = plan.summary()
+
+    large = design_mesh(
+        plate_spec("sail", length_mm=6000.0, width_mm=2500.0, radius_x_mm=20000.0, radius_y_mm=10000.0),
+        pitch_mm=25.0,
+    )
+    # long side across the robot, the near edge 750 mm in front of the base
+    large_placement = Placement(2000.0, 0.0, placement.z_mm, 90.0)
+    t0 = time.perf_counter()
+    try:
+        big = plan_scan(large, large_placement, settings)
+        large_out = {
+            "outcome": "planned",
+            "passes": big.summary()["passes"],
+            "scan_time_s": round(big.scan_time_s, 2),
+            "coverage": round(big.coverage.fraction, 5),
+        }
+    except PlanRefused as exc:
+        large_out = {"outcome": "refused", **{k: v for k, v in exc.to_dict().items() if k != "message"}}
+    large_out["decide_s"] = round(time.perf_counter() - t0, 3)
+    large_out["placement"] = large_placement.__dict__
+
+    result = {
+        "plate": "sail 1200 x 800 x 15",
+        "placement": placement.__dict__,
+        "plan_s": round(statistics.median(runs), 3),
+        "plan_runs_s": [round(r, 3) for r in runs],
+        "scan_time_s": round(plan.scan_time_s, 2),
+        "sweep_time_s": round(plan.sweep_time_s, 2),
+        "sweep_ratio": round(plan.sweep_ratio, 4),
+        "coverage": round(plan.coverage.fraction, 5),
+        "coverage_worst_over_uncertainty": round(plan.coverage.worst_fraction, 5),
+        "scan_speed_mm_s": plan.scan_speed_mm_s,
+        "scan_speed_deviation": round(plan.scan_speed_deviation, 5),
+        "toppra_time_optimal_s": round(plan.toppra_time_s, 2),
+        "passes": s["passes"],
+        "edge_passes": s["edge_passes"],
+        "stages_s": {k: round(v, 3) for k, v in plan.timings_s.items()},
+        "large": large_out,
+    }
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
