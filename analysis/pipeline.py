@@ -1,0 +1,504 @@
+"""The inspection pipeline, read like section 2 of the paper.
+
+    cloud --segment--> plate top surface --boundary--> corners
+          --register--> design resting on the plate (coarse, ICP, non-penetrating)
+          --templates--> detection lines cut through design and measurement
+          --metrics--> six figures per line, judged against the tolerances
+
+:func:`inspect_cloud` runs it on arrays and returns an :class:`Inspection`; :func:`write_results`
+stores it as a results directory (``report.json``, ``report.csv``, ``results.npz``, ``cloud.ply``),
+the input of the human-facing report (:mod:`analysis.report`). :func:`analyse_job` is the entry
+point analysis workers call.
+
+Frames: the measured frame is the scan's (robot base / bed, z up, mm). The design frame is the
+design mesh's own (x along the plate's length, y along its width, z up). The plate frame used for
+positions people look up on the plate has its origin at the reference corner (corner 0), x along
+edge 0->1 (the length), y along edge 0->3, both horizontal in the design frame.
+
+The measured surface is reconstructed as a height field on a grid of the measured frame's XY
+plane (the mean of the points in each cell; a plate lying on a bed is a graph over that plane),
+triangulated between neighbouring filled cells. The cell is sized so that it averages about 16
+scan points (about 1.6 mm at HD8 density), which divides the sensor noise by 4, and the grid keeps
+the cost linear in the number of points where a Delaunay triangulation of millions would not be.
+
+ICP and the non-penetrating fit run on that reconstructed surface, every cell of it. A template
+rests on the plate, not on the sensor's noise: fitted to raw points, the design would be lifted by
+the most negative noise sample (about 4 sigma, 0.08 mm at 0.02 mm noise) and every Zmax would read
+that much too high. ``penetration_points`` counts reconstructed-surface points below the design
+(0 after the fit); ``raw_points_below_4sigma`` reports raw points more than 4 noise sigmas below it.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from analysis.boundary import BoundaryResult, find_corners
+from analysis.cloud_io import ScanCloud
+from analysis.mesh import MeshError, TriMesh, load_mesh
+from analysis.metrics import LineMetrics, Tolerances, Verdict, judge, line_metrics
+from analysis.plates import canonical_corner_order
+from analysis.register import (
+    HeightField,
+    RegistrationResult,
+    deflection_gaps,
+    height_field_from_mesh,
+    invert_transform,
+    register,
+)
+from analysis.report import write_csv
+from analysis.segment import SegmentResult, segment_plate
+from analysis.templates import DetectionLayout, TemplateCut, cut_templates, detection_lines
+
+log = structlog.get_logger(__name__)
+
+FAMILY_LETTER = {"transverse": "T", "longitudinal": "L", "diagonal": "D"}
+MAX_MAP_POINTS = 300_000
+HOLE_CELL_MM = 5.0
+
+
+class InspectionError(ValueError):
+    """The inputs cannot be inspected: no plate, a design that does not fit the plate, no line."""
+
+
+@dataclass(frozen=True)
+class InspectionSettings:
+    """Everything the pipeline needs to know besides the data (filled from cell.toml by the app)."""
+
+    layout: DetectionLayout = field(default_factory=DetectionLayout)
+    tolerances: Tolerances = field(default_factory=Tolerances)
+    sample_step_mm: float = 1.0
+    grid_mm: float = 1.0  # finest cell of the reconstructed measured surface
+    min_points_per_cell: int = 16
+    size_tolerance: float = 0.05  # relative: a design more than 5 % off the plate's size is refused
+    design_grid_mm: float = 1.0
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> InspectionSettings:
+        """From a plain dict (a job's JSON): ``layout`` and ``tolerances`` sub-dicts plus scalars."""
+        d = dict(d or {})
+        layout = DetectionLayout(**d.pop("layout", {}))
+        tolerances = Tolerances(**d.pop("tolerances", {}))
+        return cls(layout=layout, tolerances=tolerances, **d)
+
+
+@dataclass
+class Inspection:
+    """One plate inspected: the report and the arrays behind it.
+
+    report: the report.json dict (architecture.md schema plus positions on the plate).
+    plate_points_mm: (n, 3) top-surface points in the measured frame; deviation_mm: (n,) their
+    signed deviation d = z_design - z_measured (>= 0: the plate lies below the template).
+    surface_points_mm, surface_deviation_mm: the same for the reconstructed surface (cell means).
+    cuts: one TemplateCut per judged line (measured frame), in report order.
+    """
+
+    report: dict[str, Any]
+    plate_points_mm: np.ndarray
+    deviation_mm: np.ndarray
+    surface_points_mm: np.ndarray
+    surface_deviation_mm: np.ndarray
+    T_measured_design: np.ndarray
+    T_plate_design: np.ndarray
+    plate_size_mm: tuple[float, float]
+    cuts: list[TemplateCut]
+    coverage_holes_xy_mm: np.ndarray
+    segment: SegmentResult
+    boundary: BoundaryResult
+    registration: RegistrationResult
+    verdict: Verdict
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------- helpers
+
+
+def design_corners_from_mesh(design: TriMesh) -> np.ndarray:
+    """(4, 3) corners of a design mesh's footprint in the project's order (corner 0 = reference).
+
+    The boundary vertices (on edges used by one triangle) are split by the footprint's principal
+    axes; each corner is the boundary vertex farthest out along one of the four diagonal directions.
+    """
+    tri = design.triangles
+    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    border = np.unique(uniq[counts == 1])
+    if len(border) < 4:
+        raise InspectionError(
+            "the design mesh has no open boundary: is it a closed solid, not a top surface?"
+        )
+    V = design.vertices_mm[border]
+    xy = V[:, :2] - V[:, :2].mean(axis=0)
+    _, _, axes = np.linalg.svd(xy, full_matrices=False)
+    uv = xy @ axes.T
+    uv /= np.abs(uv).max(axis=0)
+    picks = [int(np.argmax(uv @ np.array(s))) for s in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    if len(set(picks)) < 4:
+        raise InspectionError("cannot find four distinct corners on the design's boundary")
+    return canonical_corner_order(V[picks])
+
+
+def _side_lengths(corners: np.ndarray) -> tuple[float, float]:
+    xy = corners[:, :2]
+    d = np.linalg.norm(np.roll(xy, -1, axis=0) - xy, axis=1)
+    return float((d[0] + d[2]) / 2), float((d[1] + d[3]) / 2)
+
+
+def _check_size(design_c: np.ndarray, measured_c: np.ndarray, tol: float) -> None:
+    dl, dw = _side_lengths(design_c)
+    ml, mw = _side_lengths(measured_c)
+    if abs(ml - dl) > tol * dl or abs(mw - dw) > tol * dw:
+        raise InspectionError(
+            f"the design does not match the plate: the plate measures {ml:.0f} x {mw:.0f} mm, "
+            f"the design is {dl:.0f} x {dw:.0f} mm (more than {tol:.0%} apart)"
+        )
+
+
+def plate_frame(design_corners: np.ndarray) -> np.ndarray:
+    """4x4 transform design frame -> plate frame (origin corner 0, x along edge 0->1, z up)."""
+    x = design_corners[1, :2] - design_corners[0, :2]
+    x = np.array([x[0], x[1], 0.0]) / np.linalg.norm(x)
+    z = np.array([0.0, 0.0, 1.0])
+    y = np.cross(z, x)
+    R = np.vstack([x, y, z])  # rows: plate axes in design coordinates
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ np.array([*design_corners[0, :2], 0.0])
+    return T
+
+
+def _filled_cells(points_mm: np.ndarray, cell_mm: float) -> int:
+    ij = np.floor((points_mm[:, :2] - points_mm[:, :2].min(axis=0)) / cell_mm).astype(np.int64)
+    ny = int(ij[:, 1].max()) + 1
+    return int(np.count_nonzero(np.bincount(ij[:, 0] * ny + ij[:, 1])))
+
+
+def surface_cell_mm(
+    points_mm: np.ndarray, area_mm2: float, finest_mm: float, min_points: int = 16, fill: float = 0.95
+) -> float:
+    """The height-grid cell size for the measured surface.
+
+    Large enough that a cell averages about ``min_points`` scan points (the noise of a cell mean is
+    the sensor noise / sqrt(min_points), so the template rests on the plate, not on its noise), and
+    large enough that the scan fills ``fill`` of the plate's area (a coarse scan needs larger cells,
+    else section planes fall through holes). Never finer than ``finest_mm``.
+    """
+    density = len(points_mm) / max(area_mm2, 1.0)
+    cell = max(finest_mm, float(np.sqrt(min_points / max(density, 1e-9))))
+    for _ in range(12):
+        if _filled_cells(points_mm, cell) * cell * cell >= fill * area_mm2:
+            break
+        cell *= 1.25
+    return cell
+
+
+def height_grid_mesh(points_mm: np.ndarray, cell_mm: float) -> TriMesh:
+    """The measured surface as a height field: mean z per XY cell, triangulated between neighbours.
+
+    points_mm: (n, 3) top-surface points (z up). Two triangles per 2x2 block of filled cells.
+    """
+    xy0 = points_mm[:, :2].min(axis=0)
+    ij = np.floor((points_mm[:, :2] - xy0) / cell_mm).astype(np.int64)
+    nx, ny = int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1
+    flat = ij[:, 0] * ny + ij[:, 1]
+    count = np.bincount(flat, minlength=nx * ny)
+    filled = count > 0
+    mean = np.zeros((nx * ny, 3))
+    for k in range(3):
+        mean[:, k] = np.bincount(flat, weights=points_mm[:, k], minlength=nx * ny)
+    mean[filled] /= count[filled, None]
+    vid = np.full(nx * ny, -1, dtype=np.int64)
+    vid[filled] = np.arange(int(filled.sum()))
+    grid = vid.reshape(nx, ny)
+    a, b = grid[:-1, :-1].ravel(), grid[1:, :-1].ravel()
+    c, d = grid[1:, 1:].ravel(), grid[:-1, 1:].ravel()
+    tris = []
+    for t in (np.column_stack([a, b, c]), np.column_stack([a, c, d])):
+        tris.append(t[(t >= 0).all(axis=1)])
+    return TriMesh(mean[filled], np.concatenate(tris))
+
+
+def _coverage_holes(design: TriMesh, seen_xy_design: np.ndarray, cell_mm: float) -> tuple[float, np.ndarray]:
+    """Fraction of the design's footprint cells holding at least one measured point, and the holes."""
+    V = design.vertices_mm
+    lo = V[:, :2].min(axis=0)
+    shape = np.maximum(np.ceil((V[:, :2].max(axis=0) - lo) / cell_mm).astype(int), 1)
+    # Footprint cells: those a design triangle's centroid falls in (the design mesh is fine enough).
+    cen = design.triangle_vertices_mm[:, :, :2].mean(axis=1)
+    fp = np.zeros(shape, dtype=bool)
+    ij = np.clip(((cen - lo) / cell_mm).astype(int), 0, shape - 1)
+    fp[ij[:, 0], ij[:, 1]] = True
+    seen = np.zeros(shape, dtype=bool)
+    inside = np.all((seen_xy_design >= lo) & (seen_xy_design < lo + shape * cell_mm), axis=1)
+    ij = ((seen_xy_design[inside] - lo) / cell_mm).astype(int)
+    seen[np.clip(ij[:, 0], 0, shape[0] - 1), np.clip(ij[:, 1], 0, shape[1] - 1)] = True
+    holes = fp & ~seen
+    frac = float((fp & seen).sum() / max(fp.sum(), 1))
+    hi, hj = np.nonzero(holes)
+    centres = lo + (np.column_stack([hi, hj]) + 0.5) * cell_mm
+    return frac, centres
+
+
+def _subsample_index(n: int, k: int, seed: int = 0) -> np.ndarray:
+    if n <= k:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, size=k, replace=False))
+
+
+# --------------------------------------------------------------------------------------- pipeline
+
+
+def inspect_cloud(
+    cloud: ScanCloud,
+    design: TriMesh,
+    settings: InspectionSettings | None = None,
+    *,
+    plate_id: str = "",
+    job_id: str = "",
+    cell_id: str = "",
+    inputs: dict[str, Any] | None = None,
+) -> Inspection:
+    """Inspect one scanned plate against its design; see the module docstring for the stages.
+
+    Raises InspectionError (and the stages' own ValueError subclasses: NoPlateError,
+    BoundaryError, RegistrationError, TemplateError, MetricsError) with a message a user can act on.
+    """
+    settings = settings or InspectionSettings()
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal t
+        now = time.perf_counter()
+        timings[stage] = round(now - t, 4)
+        t = now
+
+    seg = segment_plate(cloud)
+    lap("segment")
+    bnd = find_corners(seg.points_mm)
+    lap("boundary")
+    design_c = design_corners_from_mesh(design)
+    _check_size(design_c, bnd.corners_mm, settings.size_tolerance)
+    surface: HeightField = height_field_from_mesh(design, settings.design_grid_mm)
+    cell_mm = surface_cell_mm(
+        seg.points_mm, seg.plate_area_mm2, settings.grid_mm, settings.min_points_per_cell
+    )
+    measured_mesh = height_grid_mesh(seg.points_mm, cell_mm)
+    lap("surface")
+    # The fits run on the reconstructed surface (cell means): every cell of the plate, denoised.
+    reg = register(surface, measured_mesh.vertices_mm, design_c, bnd.corners_mm)
+    lap("register")
+
+    T = reg.transform  # design -> measured
+    measured_c = np.roll(bnd.corners_mm, -reg.coarse.shift, axis=0)
+    lines = detection_lines(measured_c, settings.layout)
+    cuts = cut_templates(design.transformed(T), measured_mesh, lines, step_mm=settings.sample_step_mm)
+    if not cuts:
+        raise InspectionError("no detection line crosses both the design and the scanned plate")
+    lap("templates")
+
+    metrics: list[LineMetrics] = []
+    kept: list[TemplateCut] = []
+    for cut in cuts:
+        try:
+            m = line_metrics(
+                cut.s_mm, cut.design_h_mm, cut.measured_h_mm,
+                family=cut.line.family, index=cut.line.index, position_mm=cut.line.position_mm,
+            )  # fmt: skip
+        except ValueError as exc:
+            log.warning("line_skipped", family=cut.line.family, index=cut.line.index, reason=str(exc))
+            continue
+        metrics.append(m)
+        kept.append(cut)
+    if not metrics:
+        raise InspectionError("no detection line has enough scanned samples to be evaluated")
+    verdict = judge(metrics, settings.tolerances)
+    lap("metrics")
+
+    gaps, _, _, valid = deflection_gaps(surface, seg.points_mm, T)
+    deviation = np.where(valid, gaps, np.nan)
+    s_gaps, _, _, s_valid = deflection_gaps(surface, measured_mesh.vertices_mm, T)
+    surface_deviation = np.where(s_valid, s_gaps, np.nan)
+    sigma = max(seg.noise_sigma_mm, 1e-6)
+    raw_below = int(np.count_nonzero(valid & (gaps < -4.0 * sigma)))
+    T_design_measured = invert_transform(T)
+    pts_design = seg.points_mm @ T_design_measured[:3, :3].T + T_design_measured[:3, 3]
+    coverage, holes_design = _coverage_holes(design, pts_design[:, :2], HOLE_CELL_MM)
+    T_plate_design = plate_frame(design_c)
+    holes_plate = holes_design @ T_plate_design[:2, :2].T + T_plate_design[:2, 3]
+    lap("deviation_map")
+
+    T_plate_measured = T_plate_design @ T_design_measured
+    line_records = []
+    for m, cut in zip(verdict.lines, kept, strict=True):
+        ends = np.vstack([cut.line.start_mm, cut.line.end_mm])
+        ends_plate = ends @ T_plate_measured[:3, :3].T + T_plate_measured[:3, 3]
+        rec = m.as_dict()
+        rec.update(
+            name=f"{FAMILY_LETTER.get(m.family, '?')}{m.index}",
+            start_plate_mm=[round(float(v), 2) for v in ends_plate[0, :2]],
+            end_plate_mm=[round(float(v), 2) for v in ends_plate[1, :2]],
+            noise_mm=m.noise_mm,
+        )
+        line_records.append(rec)
+
+    plate_l, plate_w = _side_lengths(design_c)
+    report = {
+        "plate_id": plate_id,
+        "job_id": job_id,
+        "cell_id": cell_id,
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "verdict": verdict.verdict,
+        "standard": settings.tolerances.standard,
+        "registration": {
+            "coarse_rms_mm": reg.coarse_rms_mm,
+            "icp_rms_mm": reg.icp.rms_mm,
+            "nonpen_rms_mm": reg.nonpenetrating.rms_mm,
+            "penetration_points": reg.penetration_points,
+            "penetration_points_before": reg.nonpenetrating.penetrating_before,
+            "surface_points": len(measured_mesh.vertices_mm),
+            "surface_cell_mm": cell_mm,
+            "raw_points_below_4sigma": raw_below,
+            "transform": T.tolist(),
+            "corner_shift": reg.coarse.shift,
+            "candidates_icp_rms_mm": {str(k): v for k, v in reg.candidates.items()},
+        },
+        "corners_mm": measured_c.tolist(),
+        "plate_size_mm": [plate_l, plate_w],
+        "lines": line_records,
+        "tolerances": settings.tolerances.as_dict(),
+        "coverage": {
+            "fraction": coverage,
+            "holes_mm2": float(len(holes_design) * HOLE_CELL_MM**2),
+        },
+        "surface": {
+            "points": len(seg.points_mm),
+            "noise_sigma_mm": seg.noise_sigma_mm,
+            "max_deviation_mm": float(np.nanmax(deviation)) if np.isfinite(deviation).any() else None,
+        },
+        "inputs": {"points": len(cloud.points_mm), **(inputs or {})},
+        "timings_s": timings,
+    }
+    timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
+    log.info("inspected", verdict=verdict.verdict, lines=len(line_records), worst_zmax_mm=round(verdict.worst_zmax_mm, 3),
+             total_s=timings["total"])  # fmt: skip
+    return Inspection(
+        report=report,
+        plate_points_mm=seg.points_mm,
+        deviation_mm=deviation,
+        surface_points_mm=measured_mesh.vertices_mm,
+        surface_deviation_mm=surface_deviation,
+        T_measured_design=T,
+        T_plate_design=T_plate_design,
+        plate_size_mm=(plate_l, plate_w),
+        cuts=kept,
+        coverage_holes_xy_mm=holes_plate,
+        segment=seg,
+        boundary=bnd,
+        registration=reg,
+        verdict=verdict,
+        timings_s=timings,
+    )
+
+
+# ------------------------------------------------------------------------------------ results dir
+
+
+def write_cloud_ply_with_deviation(points_mm: np.ndarray, deviation_mm: np.ndarray, path: Path) -> Path:
+    """Binary PLY: float32 x, y, z (mm) and float32 ``deviation`` (mm; NaN where off the design)."""
+    n = len(points_mm)
+    rec = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("deviation", "<f4")])
+    rec["x"], rec["y"], rec["z"] = points_mm[:, 0], points_mm[:, 1], points_mm[:, 2]
+    rec["deviation"] = deviation_mm
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment cellctl registered cloud, design frame, mm\n"
+        f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
+        "property float deviation\nend_header\n"
+    )
+    with path.open("wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rec.tobytes())
+    return path
+
+
+def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
+    """Store an inspection as a results directory; returns the written files by name.
+
+    cloud.ply holds the plate's points in the design frame (registered), with their deviation.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files: dict[str, Path] = {}
+    T_dm = invert_transform(ins.T_measured_design)
+    pts_design = ins.plate_points_mm @ T_dm[:3, :3].T + T_dm[:3, 3]
+    files["cloud.ply"] = write_cloud_ply_with_deviation(pts_design, ins.deviation_mm, out / "cloud.ply")
+
+    # The map shows the reconstructed surface (denoised cell means), not single noisy points.
+    T_pm = ins.T_plate_design @ T_dm
+    surf_plate = ins.surface_points_mm @ T_pm[:3, :3].T + T_pm[:3, 3]
+    idx = _subsample_index(len(surf_plate), MAX_MAP_POINTS)
+    ok = np.isfinite(ins.surface_deviation_mm[idx])
+    arrays: dict[str, np.ndarray] = {
+        "plate_xy_mm": surf_plate[idx][ok, :2].astype(np.float32),
+        "plate_deviation_mm": ins.surface_deviation_mm[idx][ok].astype(np.float32),
+        "plate_size_mm": np.asarray(ins.plate_size_mm, dtype=np.float64),
+        "coverage_holes_xy_mm": ins.coverage_holes_xy_mm.astype(np.float32).reshape(-1, 2),
+    }
+    for k, cut in enumerate(ins.cuts):
+        arrays[f"line{k}_s_mm"] = cut.s_mm
+        arrays[f"line{k}_design_z_mm"] = cut.design_h_mm
+        arrays[f"line{k}_measured_z_mm"] = cut.measured_h_mm
+        arrays[f"line{k}_deviation_mm"] = cut.design_h_mm - cut.measured_h_mm
+    np.savez_compressed(out / "results.npz", **arrays)
+    files["results.npz"] = out / "results.npz"
+    files["report.csv"] = write_csv(ins.report, out / "report.csv")
+    # report.json last: its presence marks a complete results directory.
+    tmp = out / "report.json.tmp"
+    tmp.write_text(json.dumps(ins.report, indent=2, allow_nan=False, default=_json_default))
+    tmp.replace(out / "report.json")
+    files["report.json"] = out / "report.json"
+    return files
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+# ------------------------------------------------------------------------------------- worker API
+
+
+def analyse_job(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, Any]:
+    """Worker entry point: ``cloud`` arrays by field (``xyz_mm`` and the scan organisation), ``job``
+    the job's parameters (``design`` path, optional ``analysis`` settings dict and ``out_dir``).
+
+    Returns the report dict; with ``out_dir`` also writes the results directory there.
+    """
+    xyz = np.asarray(cloud["xyz_mm"], dtype=np.float64)
+    org = [cloud.get(k) for k in ("pass_id", "profile_index", "point_index")]
+    sc = ScanCloud(xyz, *org) if all(a is not None for a in org) else ScanCloud(xyz)
+    design_path = job.get("design")
+    if not design_path:
+        raise InspectionError("the job names no design mesh")
+    try:
+        design = load_mesh(design_path)
+    except MeshError as exc:
+        raise InspectionError(str(exc)) from None
+    ins = inspect_cloud(
+        sc, design, InspectionSettings.from_dict(job.get("analysis")),
+        plate_id=str(job.get("plate_id", "")), job_id=str(job.get("job_id", "")),
+        cell_id=str(job.get("cell_id", "")), inputs={"design": str(design_path)},
+    )  # fmt: skip
+    if job.get("out_dir"):
+        write_results(ins, job["out_dir"])
+    return ins.report
