@@ -73,6 +73,7 @@ class RobotSection(Section):
     egm_port: Port = 6511
     egm_comm_timeout_s: PositiveFloat = 1.0
     egm_watchdog_s: PositiveFloat = 0.1
+    egm_history_len: Annotated[int, Field(ge=1000, le=10_000_000)] = 30_000
     # RWS (HTTP/HTTPS)
     rws_url: str = "http://127.0.0.1:8080"
     rws_profile: Literal["rws1", "rws2"] = "rws1"
@@ -301,6 +302,8 @@ class SimFaults(Section):
     egm_duplicate_fraction: Fraction = 0.0
     egm_reorder_fraction: Fraction = 0.0
     egm_corrupt_fraction: Fraction = 0.0
+    egm_stop_sending: bool = False
+    egm_rx_loss_fraction: Fraction = 0.0
     laser_disconnect_after_frames: Annotated[int, Field(ge=0)] = 0
     laser_corrupt_fraction: Fraction = 0.0
     laser_drop_fraction: Fraction = 0.0
@@ -308,6 +311,8 @@ class SimFaults(Section):
 
 class SimSection(Section):
     egm_cycle_ms: PositiveFloat = 4.032
+    egm_q_start_deg: Joint6 = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]
+    egm_stream_when_idle: bool = True
     rws_port: Port = 8080
     rws_users: dict[str, str] = {"Default User": "CELL_RWS_PASSWORD"}
     rws_max_sessions: Annotated[int, Field(ge=1, le=1000)] = 70
