@@ -25,3 +25,17 @@ def cellctl_exe() -> list[str]:
         return [str(exe)]
     found = shutil.which("cellctl")
     return [found] if found else [sys.executable, "-m", "cellctl"]
+
+
+@pytest.fixture(autouse=True)
+def _fresh_logging():
+    """Each test starts and ends with default logging: a test that configured structlog onto a
+    stream pytest has since closed must not break the next one."""
+    import logging
+
+    import structlog
+
+    yield
+    structlog.reset_defaults()
+    structlog.contextvars.clear_contextvars()
+    logging.getLogger().handlers[:] = []
