@@ -163,12 +163,6 @@ class PlannerSettings:
     def from_config(cls, cfg) -> PlannerSettings:
         """Settings from a :class:`cellctl.config.CellConfig` (``[robot]``, ``[laser]``, ``[scan]``)."""
         r, laser, s = cfg.robot, cfg.laser, cfg.scan
-        extra = {}
-        for name in ("edge_tilt_deg", "link_clearance_mm", "approach_mm"):
-            if hasattr(s, name):
-                extra[name] = getattr(s, name)
-        if hasattr(r, "wrist_margin_deg"):
-            extra["wrist_margin_deg"] = r.wrist_margin_deg
         return cls(
             line_width_mm=laser.line_width_mm,
             depth_min_mm=laser.depth_min_mm,
@@ -192,5 +186,8 @@ class PlannerSettings:
             workspace_min_mm=tuple(r.workspace_min_mm),
             workspace_max_mm=tuple(r.workspace_max_mm),
             T_flange_sensor=T_from_pos_rpy(r.sensor_in_flange.pos_mm, r.sensor_in_flange.rpy_deg),
-            **extra,
+            wrist_margin_deg=r.wrist_margin_deg,
+            edge_tilt_deg=s.edge_tilt_deg,
+            link_clearance_mm=s.link_clearance_mm,
+            approach_mm=s.approach_mm,
         )
