@@ -70,6 +70,7 @@ class SegmentSettings:
     min_plate_area_mm2: float = 10_000.0
     min_cell_fill: float = 0.5
     edge_band_cells: int = 5
+    max_cell_sample: int = 3_000_000
 
 
 @dataclass
@@ -431,17 +432,27 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     q = np.floor((pts - origin) / v).astype(np.int64)
     span = q.max(axis=0) + 1
     key = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
-    uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    # Cell planes need a dozen points, not all of them: a dense cloud's cells are fitted on a
+    # regular subsample, then every point is looked up in the cells by binary search.
+    stride = max(1, n // st.max_cell_sample)
+    if stride > 1:
+        uniq, inv_s, counts = np.unique(key[::stride], return_inverse=True, return_counts=True)
+        pos = np.minimum(np.searchsorted(uniq, key), len(uniq) - 1)
+        inv = np.where(uniq[pos] == key, pos, -1)
+        local = pts[::stride] - origin
+    else:
+        uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+        inv_s = inv
+        local = pts - origin  # moments about a nearby origin keep the covariances well conditioned
     m = len(uniq)
-    local = pts - origin  # moments about a nearby origin keep the covariances well conditioned
     mean = (
-        np.column_stack([np.bincount(inv, weights=local[:, k], minlength=m) for k in range(3)])
+        np.column_stack([np.bincount(inv_s, weights=local[:, k], minlength=m) for k in range(3)])
         / counts[:, None]
     )
     cov = np.empty((m, 3, 3))
     for a in range(3):
         for b in range(a, 3):
-            s_ab = np.bincount(inv, weights=local[:, a] * local[:, b], minlength=m) / counts
+            s_ab = np.bincount(inv_s, weights=local[:, a] * local[:, b], minlength=m) / counts
             cov[:, a, b] = cov[:, b, a] = s_ab - mean[:, a] * mean[:, b]
     vals, vecs = np.linalg.eigh(cov)
     nrm = vecs[:, :, 0]
@@ -479,9 +490,9 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
         pos = np.clip(np.searchsorted(uniq, nkey), 0, m - 1)
         found = ok & (uniq[pos] == nkey)
         grid_edges.append(np.column_stack([np.flatnonzero(found), pos[found]]))
-    e = np.concatenate([e, *grid_edges])
-    e = np.unique(np.sort(e, axis=1), axis=0)
-    i, j = e[:, 0], e[:, 1]
+    e = np.sort(np.concatenate([e, *grid_edges]), axis=1).astype(np.int64)
+    ekey = np.unique(e[:, 0] * m + e[:, 1])  # 1-D keys: far faster than unique rows
+    i, j = ekey // m, ekey % m
     cos_max = float(np.cos(np.deg2rad(st.max_normal_angle_deg)))
     near = np.linalg.norm(mean[i] - mean[j], axis=1) < 2.0 * v
     grow = near & has_plane[i] & has_plane[j] & (np.einsum("ij,ij->i", nrm[i], nrm[j]) > cos_max)
@@ -513,14 +524,15 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
         src = np.where(has[i[ring]], i[ring], j[ring])
         dst = np.where(has[i[ring]], j[ring], i[ring])
         donor[dst] = donor[src]
-    pd_ = donor[inv]
+    pd_ = np.where(inv >= 0, donor[inv], -1)
     cand = pd_ >= 0
     r = np.full(n, np.inf)
     r[cand] = np.einsum("ij,ij->i", pts[cand] - mean[pd_[cand]], nrm[pd_[cand]])
-    in_plate = plate[inv]
+    in_plate = (inv >= 0) & plate[inv]
     r_in = r[in_plate & (np.abs(r) < st.gross_outlier_mm)]
     mean_fill = float(counts[plate].mean()) if plate.any() else 1.0
-    shrink = np.sqrt(mean_fill / max(mean_fill - 3.0, 1.0)) if mean_fill > 4 else 1.0
+    # A plane fitted through the point itself pulls its residual in; not so for subsampled cells.
+    shrink = np.sqrt(mean_fill / max(mean_fill - 3.0, 1.0)) if mean_fill > 4 and stride == 1 else 1.0
     sigma = float(1.4826 * np.median(np.abs(r_in - np.median(r_in))) * shrink) if len(r_in) else 0.0
     tol = max(st.inlier_sigmas * sigma, st.min_inlier_tol_mm)
     mask = np.abs(r) < tol

@@ -153,3 +153,12 @@ def test_any_small_plate_at_any_placement_segments_to_its_top_surface(kind, yaw,
     res = segment_plate(scan.cloud)
     assert not (res.mask & ~_truth_top(scan, 0.2)).any()
     assert res.mask.sum() >= 0.97 * _truth_top(scan, 0.12).sum()
+
+
+def test_dense_unorganised_cloud_fits_cell_planes_on_a_subsample_with_the_same_result():
+    scan = _scan("sail", seed=6, length_mm=450.0)
+    full = segment_plate(scan.points_mm)
+    sub = segment_plate(scan.points_mm, SegmentSettings(max_cell_sample=40_000))
+    assert not (sub.mask & ~_truth_top(scan, 0.2)).any()
+    assert sub.mask.sum() >= 0.97 * full.mask.sum()
+    assert sub.noise_sigma_mm == pytest.approx(0.02, rel=0.25)
