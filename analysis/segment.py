@@ -227,7 +227,7 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     n = len(pts)
     # Cell statistics in float32 about the cloud's centre: half the memory traffic, and at
     # +-2 m the rounding (0.1 um) is far below the sensor noise. The selection is exact per point.
-    p32 = (pts - pts[:: max(1, n // 1000)].mean(axis=0)).astype(np.float32)
+    p32 = np.subtract(pts, pts[:: max(1, n // 1000)].mean(axis=0), dtype=np.float32)  # no float64 temporary
     pass_id = cloud.pass_id.astype(np.int64)
     n_pass = int(pass_id.max()) + 1
     width = int(cloud.point.max()) + 1
@@ -429,7 +429,10 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     # own plane (PCA normal).
     v = max(st.cell_mm, 2.5 * _point_spacing_mm(pts))
     origin = pts.min(axis=0)
-    q = np.floor((pts - origin) / v).astype(np.int64)
+    rel = np.subtract(pts, origin, dtype=np.float32)  # float32: no (n, 3) float64 temporary
+    rel *= np.float32(1.0 / v)
+    q = rel.astype(np.int64)  # non-negative, so truncation is floor
+    del rel
     span = q.max(axis=0) + 1
     key = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
     # Cell planes need a dozen points, not all of them: a dense cloud's cells are fitted on a
