@@ -7,6 +7,7 @@ import shutil
 import numpy as np
 import plyfile
 import pytest
+import structlog
 
 from cellctl.acquisition.clock_sync import ClockSyncConfig
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
@@ -16,6 +17,14 @@ from cellctl.calibration.record import CalibrationWriteError, set_toml_values
 from cellctl.cli import main
 from cellctl.config import load_config
 from tests.acquisition.synthetic import feed, make_run
+
+
+@pytest.fixture(autouse=True)
+def _restore_logging():
+    # cellctl.cli.main configures structlog onto the captured stderr of one test; put it back
+    saved = structlog.get_config()
+    yield
+    structlog.configure(**saved)
 
 
 @pytest.fixture(scope="module")
