@@ -242,3 +242,41 @@ def test_full_sail_plate_plan_executes_on_the_simulator():
     dev = path_deviation_mm(sail_plan, settings, ex.true_q_deg[ex.true_t_s >= running])
     assert np.percentile(dev, 97) < 1.0 and np.median(dev) < 0.3
     within_limits_and_workspace(ex.true_q_deg, settings)
+
+
+def test_lost_controller_packets_advance_the_plan_by_the_controller_clock(small_plan):
+    async def control(executor, sim) -> None:
+        await wait_for_segment(executor, "scan 1", 0.1)
+        sim.set_faults(loss_fraction=0.2)
+        await wait_for_segment(executor, "scan 1", 0.7)
+        sim.set_faults(loss_fraction=0.0)
+        executor.abort()
+
+    ex = run_async(execute(small_plan, SMALL_SETTINGS, config=TOLERANT, control=control))
+    r = ex.result
+    assert r.state == ExecState.ABORTED, r.fault
+    assert r.lost_cycles > 0 and np.any(np.diff(r.cycle) > 1)
+    # the plan time moved with the controller's cycles, not with the packets that arrived
+    running = (r.t_traj_s > 0) & (np.diff(np.concatenate([[0.0], r.t_traj_s])) > 0)
+    dt = np.diff(r.t_traj_s[running]) / np.diff(r.cycle[running])
+    assert np.median(dt) == pytest.approx(CYCLE_S, rel=0.01)
+
+
+def test_progress_events_stream_to_an_async_consumer_until_the_end(small_plan):
+    got = []
+
+    async def control(executor, sim) -> None:
+        async def consume() -> None:
+            async for ev in executor.events():
+                got.append(ev)
+
+        task = asyncio.get_running_loop().create_task(consume())
+        await wait_for_segment(executor, "scan 1", 0.5)
+        executor.abort()
+        await task
+
+    ex = run_async(execute(small_plan, SMALL_SETTINGS, config=TOLERANT, control=control))
+    assert ex.result.state == ExecState.ABORTED
+    assert got and got[-1].state == "aborted"
+    assert all(0.0 <= e.percent <= 100.0 and e.time_left_s >= 0.0 for e in got)
+    assert {e.pass_count for e in got} == {sum(1 for s in small_plan.segments if s.is_sweep)}

@@ -8,6 +8,8 @@ import sys
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from analysis.mesh import TriMesh, save_mesh
 from analysis.plates import design_mesh, plate_spec
@@ -215,3 +217,17 @@ def _plan_args(register, argv: list[str], repo_root):
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers())
     return parser.parse_args(["plan", *argv, "--config", str(repo_root / "cell.toml")])
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.floats(0.0, 1.0), min_size=1, max_size=20))
+def test_vectorised_and_single_trajectory_samples_agree(small_plan, fractions):
+    tr = small_plan.trajectory
+    t = np.asarray(fractions) * tr.duration_s
+    q, qd, qdd, seg = tr.sample_many(t)
+    for k, tk in enumerate(t):
+        q1, qd1, qdd1, s1 = tr.sample(tk)
+        np.testing.assert_allclose(q[k], q1, atol=1e-9)
+        np.testing.assert_allclose(qd[k], qd1, atol=1e-9)
+        np.testing.assert_allclose(qdd[k], qdd1, atol=1e-7)
+        assert seg[k] == s1
