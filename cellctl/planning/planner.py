@@ -1,8 +1,11 @@
-"""The scan planner's pipeline: design surface -> passes -> joint path -> timing -> predicted coverage.
+"""The scan planner's pipeline: design surface -> passes -> joint path -> timing -> envelope ->
+predicted coverage.
 
 Reads like the issue: :func:`plan_scan` takes the design (plate frame), the nominal placement and
 the settings, and returns a :class:`~cellctl.planning.plan.ScanPlan` or raises
-:class:`~cellctl.planning.plan.PlanRefused` with the pass, the point and the limit.
+:class:`~cellctl.planning.plan.PlanRefused` with the pass, the point and the limit. Every plan it
+returns has passed the safety envelope at the EGM cycle. Planning takes seconds of CPU: call it
+from a worker thread or process, never on the event loop.
 """
 
 from __future__ import annotations
