@@ -88,6 +88,9 @@ class SegmentResult:
     n_regions: number of smooth regions found (after joining across passes).
     region_cells: cell counts of the regions, largest first (at most 10).
     method: "grid" (organised scan) or "delaunay".
+    point_spacing_mm: the scan's coarser sampling pitch (profile step or line pitch, median over
+        passes; for unorganised clouds the 4th-neighbour distance): a mesh or raster built on the
+        points needs cells at least this large to be free of holes.
     timings_s: seconds per step.
     """
 
@@ -100,6 +103,7 @@ class SegmentResult:
     n_regions: int
     region_cells: list[int]
     method: str
+    point_spacing_mm: float
     timings_s: dict[str, float] = field(default_factory=dict)
     _cloud: ScanCloud | None = field(default=None, repr=False)
 
@@ -245,6 +249,7 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
 
     cos_max = float(np.cos(np.deg2rad(st.max_normal_angle_deg)))
     passes: list[_PassCells | None] = []
+    pitches: list[float] = []
     next_label = 0
     t1 = time.perf_counter()
     for p in range(n_pass):
@@ -254,6 +259,7 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
             continue
         idx = grid[p, :P]
         pitch_pt, pitch_pr = _grid_pitch(pts, idx)
+        pitches.append(max(pitch_pt, pitch_pr))
         bx = max(1, round(st.cell_mm / max(pitch_pt, 1e-6)))
         by = max(1, round(st.cell_mm / max(pitch_pr, 1e-6)))
         Pp, Wp = -(-P // by) * by, -(-width // bx) * bx
@@ -380,6 +386,7 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
         n_regions=int(n_groups),
         region_cells=[int(c) for c in ranking[:10]],
         method="grid",
+        point_spacing_mm=float(np.median(pitches)),
         timings_s=timings,
     )
 
@@ -427,7 +434,8 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     n = len(pts)
     # Cells big enough for a dozen points over at least two scan lines each, so every cell has its
     # own plane (PCA normal).
-    v = max(st.cell_mm, 2.5 * _point_spacing_mm(pts))
+    spacing = _point_spacing_mm(pts)
+    v = max(st.cell_mm, 2.5 * spacing)
     origin = pts.min(axis=0)
     rel = np.subtract(pts, origin, dtype=np.float32)  # float32: no (n, 3) float64 temporary
     rel *= np.float32(1.0 / v)
@@ -556,5 +564,6 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
         n_regions=int(n_groups),
         region_cells=[int(c) for c in ranking[:10]],
         method="delaunay",
+        point_spacing_mm=spacing,
         timings_s=timings,
     )

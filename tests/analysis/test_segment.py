@@ -49,6 +49,13 @@ def test_grid_segmentation_keeps_the_top_surface_and_drops_bed_supports_faces_an
     assert res.cloud.organised and len(res.cloud) == res.mask.sum()
 
 
+def test_scan_pitch_is_reported_for_meshing_the_points():
+    # COARSE: 1 mm along the line, 2 mm between profiles; the coarser one bounds mesh cells.
+    assert segment_plate(_scan().cloud).point_spacing_mm == pytest.approx(2.0, rel=0.05)
+    small = _scan("sail", seed=6, length_mm=450.0)
+    assert segment_plate(small.points_mm).point_spacing_mm == pytest.approx(2.0, rel=0.1)
+
+
 def test_measured_noise_level_matches_the_sensor_noise():
     res = segment_plate(_scan().cloud)
     assert res.noise_sigma_mm == pytest.approx(0.02, rel=0.15)
