@@ -106,6 +106,7 @@ def assemble_batch(
     epoch_ns: int,
     pass_id: np.ndarray,
     first_profile_index: int,
+    max_gap_ns: int | None = None,
 ) -> AssembledBatch:
     """Assemble one batch of profiles.
 
@@ -119,6 +120,7 @@ def assemble_batch(
         epoch_ns: fixed float origin for the interpolation.
         pass_id: (n,) int32.
         first_profile_index: running index of the first profile.
+        max_gap_ns: profiles between robot samples further apart than this get no pose (invalid).
     """
     n = len(t_ns)
     if x_mm.shape != z_mm.shape or valid.shape != x_mm.shape or x_mm.shape[0] != n:
@@ -130,7 +132,7 @@ def assemble_batch(
     hi = min(int(np.searchsorted(sample_t_ns, t_ns.max(), side="left")) + 2, len(sample_t_ns))
     if hi - lo < 2:
         lo, hi = max(0, hi - 2), max(hi, min(2, len(sample_t_ns)))
-    T, inside = interpolate_poses(sample_t_ns[lo:hi], sample_T_base_sensor[lo:hi], t_ns, epoch_ns)
+    T, inside = interpolate_poses(sample_t_ns[lo:hi], sample_T_base_sensor[lo:hi], t_ns, epoch_ns, max_gap_ns)
     all_inside = bool(inside.all())
     ok = valid if all_inside else valid & inside[:, None]
     # the source's z is NaN where it has no return; only profiles without a pose need masking here

@@ -77,6 +77,9 @@ class AcquisitionSettings:
         sensor_sync_config, robot_sync_config: clock estimator settings.
         max_pending_profiles: profiles waiting for robot data beyond this are assembled without a
             pose (invalid) so a silent controller cannot grow memory without bound.
+        max_sample_gap_ms: a profile whose two bracketing feedback samples are further apart than
+            this (lost EGM packets: the controller sends every 4 ms) gets no pose: interpolating
+            across a gap during an acceleration would misplace it. Counted in the stats.
     """
 
     sensor_in_flange_pos_mm: tuple[float, float, float] = (0.0, 0.0, 150.0)
@@ -90,6 +93,7 @@ class AcquisitionSettings:
     sensor_sync_config: ClockSyncConfig = field(default_factory=ClockSyncConfig)
     robot_sync_config: ClockSyncConfig = field(default_factory=ClockSyncConfig)
     max_pending_profiles: int = 4000
+    max_sample_gap_ms: float = 25.0
 
     @classmethod
     def from_config(cls, cfg: CellConfig, epoch_ns: int) -> AcquisitionSettings:
@@ -360,6 +364,7 @@ class Acquisition:
                 epoch_ns=self.settings.epoch_ns,
                 pass_id=self.schedule.assign(t_ns),
                 first_profile_index=self._next_profile,
+                max_gap_ns=round(self.settings.max_sample_gap_ms * 1e6),
             )
         else:
             n, w = batch.x_mm.shape

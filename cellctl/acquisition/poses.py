@@ -55,7 +55,11 @@ def pos_rpy_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def interpolate_joints(
-    sample_t_ns: np.ndarray, sample_q_deg: np.ndarray, t_ns: np.ndarray, epoch_ns: int
+    sample_t_ns: np.ndarray,
+    sample_q_deg: np.ndarray,
+    t_ns: np.ndarray,
+    epoch_ns: int,
+    max_gap_ns: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Linear interpolation of joint samples at many times.
 
@@ -64,10 +68,11 @@ def interpolate_joints(
         sample_q_deg: (m, 6) measured joints, deg.
         t_ns: (n,) int64 query times, host ns.
         epoch_ns: fixed time origin for the float arithmetic (the job's start).
+        max_gap_ns: bracketing samples further apart than this (lost feedback) give no valid pose.
 
     Returns:
         ``(q_deg (n, 6), inside (n,) bool)``; outside the sample span the nearest sample is held and
-        ``inside`` is False.
+        ``inside`` is False; so it is inside a gap longer than ``max_gap_ns``.
     """
     ts = np.asarray(sample_t_ns, dtype=np.int64)
     q = np.asarray(sample_q_deg, dtype=np.float64)
@@ -84,6 +89,8 @@ def interpolate_joints(
     tf = (t - epoch_ns).astype(np.float64)
     w = np.clip((tf - t0) / (t1 - t0), 0.0, 1.0)[:, None]
     inside = (t >= ts[0]) & (t <= ts[-1])
+    if max_gap_ns is not None:
+        inside &= (ts[i + 1] - ts[i]) <= max_gap_ns
     return q[i] + (q[i + 1] - q[i]) * w, inside
 
 
@@ -123,7 +130,11 @@ def sensor_poses(
 
 
 def interpolate_poses(
-    sample_t_ns: np.ndarray, sample_T: np.ndarray, t_ns: np.ndarray, epoch_ns: int
+    sample_t_ns: np.ndarray,
+    sample_T: np.ndarray,
+    t_ns: np.ndarray,
+    epoch_ns: int,
+    max_gap_ns: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Blend the sensor poses of the two samples bracketing each time (the ingestion fast path).
 
@@ -138,12 +149,13 @@ def interpolate_poses(
         sample_T: (m, 3, 4) ``T_base_sensor`` rows of each sample, mm.
         t_ns: (n,) int64 query times, host ns.
         epoch_ns: fixed float origin (see :func:`interpolate_joints`).
+        max_gap_ns: see :func:`interpolate_joints`.
 
     Returns:
         ``(T (n, 3, 4), inside (n,) bool)``.
     """
     m = sample_T.shape[0]
-    T, inside = interpolate_joints(sample_t_ns, sample_T.reshape(m, 12), t_ns, epoch_ns)
+    T, inside = interpolate_joints(sample_t_ns, sample_T.reshape(m, 12), t_ns, epoch_ns, max_gap_ns)
     return T.reshape(-1, 3, 4), inside
 
 

@@ -88,3 +88,12 @@ def test_blending_sample_poses_agrees_with_joint_interpolation_and_fk_below_a_mi
     p_exact = transform_profiles(exact, x, z).astype(np.float64)
     p_fast = transform_profiles(T, x, z).astype(np.float64)
     assert np.max(np.abs(p_exact - p_fast)) < 1e-3
+
+
+def test_a_feedback_gap_longer_than_allowed_gives_no_pose():
+    ts = EPOCH + np.array([0, 4_000_000, 60_000_000, 64_000_000])
+    q = np.zeros((4, 6))
+    _, inside = interpolate_joints(
+        ts, q, EPOCH + np.array([2_000_000, 30_000_000, 62_000_000]), EPOCH, 25_000_000
+    )
+    assert inside.tolist() == [True, False, True]
