@@ -18,7 +18,7 @@ import structlog
 from analysis.mesh import TriMesh
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
-from cellctl.planning.joint_path import first_configuration, sensor_kinematics, solve_joint_path
+from cellctl.planning.joint_path import check_reach, first_configuration, sensor_kinematics, solve_joint_path
 from cellctl.planning.plan import (
     CoverageReport,
     Placement,
@@ -96,6 +96,9 @@ def plan_scan(
     candidates = []
     for sign in (1.0, -1.0):
         segments, margin = build_segments(surface, placement, settings, sign=sign)
+        if sign > 0:
+            # out of reach is out of reach either way round: say so before any inverse kinematics
+            check_reach(segments, settings)
         sweep = segments[1]
         q0 = first_configuration(kin, pose_matrix(sweep.pos_mm[:1], sweep.R_base_sensor[:1])[0], settings)
         cost = np.inf if q0 is None else abs(q0[3]) + abs(q0[5])

@@ -49,7 +49,7 @@ scan_settings = st.builds(
 )
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(spec=plates(), placement=placements, cfg=scan_settings)
 def test_every_plan_passes_the_envelope_and_every_refusal_has_a_reason(spec, placement, cfg):
     mesh = design_mesh(spec, pitch_mm=max(spec.length_mm / 60.0, 5.0))
@@ -69,7 +69,7 @@ def test_every_plan_passes_the_envelope_and_every_refusal_has_a_reason(spec, pla
     assert sum(1 for s in plan.segments if s.kind == "edge") == (4 if cfg.edge_passes else 0)
 
 
-@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     dx=st.floats(-150.0, 150.0),
     dy=st.floats(-300.0, 300.0),
