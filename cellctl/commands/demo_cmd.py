@@ -1,0 +1,300 @@
+"""`cellctl demo --out DIR`: the whole cell on this machine in one command.
+
+Starts `cellctl sim`, `cellctl run` and `cellctl worker` as separate processes with a configuration
+derived from cell.toml (free loopback ports, data under DIR, the demo plate), triggers the scan of
+the simulated formed plate over Zenoh, waits for the report, prints the per-line table and the
+report's path, stops every process and exits 0 (1 on a fail verdict is still a working demo: it
+exits 0 too; 2 when something did not work). No process is left behind, also on Ctrl-C or failure.
+
+The default demo plate is a 600 x 400 mm sail scanned at 1 mm profile spacing, so the demo fits in
+about two minutes on two cores; ``--full`` scans the paper's 1200 x 800 mm plate at cell.toml's
+settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
+
+EXIT_OK, EXIT_ERROR = 0, 2
+DEMO_DESIGN = "demo-plate.ply"
+
+
+class DemoError(Exception):
+    """A demo step that failed (names the step and where its log is)."""
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A free loopback port of the given socket kind (TCP or UDP)."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def demo_config(base: dict[str, Any], out_dir: Path, *, full: bool = False) -> dict[str, Any]:
+    """The demo's configuration: ``base`` (a CellConfig dump) with loopback ports, data under ``out_dir``
+    and, unless ``full``, the small demo plate with a coarser profile spacing."""
+    cfg = json.loads(json.dumps(base))
+    rws_port = free_port()
+    cfg["cell"].update(id="demo", data_dir=str(out_dir / "data"), designs_dir=str(out_dir / "designs"))
+    cfg["robot"].update(
+        egm_host="127.0.0.1", egm_port=free_port(socket.SOCK_DGRAM), rws_url=f"http://127.0.0.1:{rws_port}"
+    )
+    cfg["laser"].update(host="127.0.0.1", control_port=free_port(), data_port=free_port())
+    cfg["zenoh"].update(
+        mode="peer", listen=[f"tcp/127.0.0.1:{free_port()}"], connect=[], multicast_scouting=False
+    )
+    cfg["zenoh"]["access"]["enabled"] = False
+    cfg["sim"]["rws_port"] = rws_port
+    cfg["sim"]["faults"] = {}
+    if not full:
+        cfg["sim"]["plate"].update(kind="sail", length_mm=600.0, width_mm=400.0)
+        cfg["scan"].update(
+            profile_spacing_mm=1.0, placement_uncertainty_mm=10.0, placement_uncertainty_deg=1.0
+        )
+        cfg["analysis"].update(
+            transverse_count=6,
+            transverse_spacing_mm=80.0,
+            longitudinal_count=3,
+            longitudinal_spacing_mm=100.0,
+        )
+    return cfg
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def to_toml(data: dict[str, Any]) -> str:
+    """A small TOML writer for configuration dicts (tables of scalars, lists and nested tables)."""
+    out: list[str] = []
+
+    def table(name: str, d: dict[str, Any]) -> None:
+        scalars = {
+            k: v for k, v in d.items() if v is not None and not (isinstance(v, dict) and _is_table(k, v))
+        }
+        out.append(f"[{name}]")
+        out.extend(f"{k} = {_toml_value(v)}" for k, v in scalars.items())
+        out.append("")
+        for k, v in d.items():
+            if isinstance(v, dict) and _is_table(k, v):
+                table(f"{name}.{k}", v)
+
+    for name, section in data.items():
+        table(name, section)
+    return "\n".join(out)
+
+
+def _is_table(key: str, value: dict) -> bool:
+    # user -> secret-env maps stay inline tables; everything else nested is a sub-table
+    return key != "rws_users"
+
+
+class Processes:
+    """Child processes of the demo, stopped in reverse order with SIGTERM, SIGKILL after a grace time."""
+
+    def __init__(self, log_dir: Path, config: Path, env: dict[str, str]) -> None:
+        self.log_dir = log_dir
+        self.config = config
+        self.env = env
+        self.procs: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, *args: str) -> subprocess.Popen:
+        cmd = [sys.executable, "-m", "cellctl", "--log-format", "json", *args, "--config", str(self.config)]
+        out = open(self.log_dir / f"{name}.out", "wb")  # noqa: SIM115 - closed with the process
+        err = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115
+        p = subprocess.Popen(cmd, stdout=out, stderr=err, env=self.env, stdin=subprocess.DEVNULL)
+        out.close()
+        err.close()
+        self.procs.append((name, p))
+        return p
+
+    def check_alive(self) -> None:
+        for name, p in self.procs:
+            if p.poll() is not None:
+                raise DemoError(
+                    f"`cellctl {name}` exited with {p.returncode}; see {self.log_dir / (name + '.log')}"
+                )
+
+    def stop_all(self, grace_s: float = 30.0) -> dict[str, int | None]:
+        codes: dict[str, int | None] = {}
+        for name, p in reversed(self.procs):
+            if p.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    p.send_signal(signal.SIGTERM)
+            try:
+                codes[name] = p.wait(grace_s)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    p.kill()
+                codes[name] = p.wait()
+        self.procs.clear()
+        return codes
+
+
+def _wait_ready_line(path: Path, proc: subprocess.Popen, timeout_s: float) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise DemoError(
+                f"the simulated cell exited with {proc.returncode}; see {path.with_suffix('.log')}"
+            )
+        with contextlib.suppress(OSError, ValueError):
+            for line in path.read_text().splitlines():
+                if line.startswith("{") and json.loads(line).get("ready"):
+                    return json.loads(line)
+        time.sleep(0.2)
+    raise DemoError(f"the simulated cell was not ready within {timeout_s} s; see {path.with_suffix('.log')}")
+
+
+async def _drive(
+    cfg_dict: dict[str, Any], cfg: Any, procs: Processes, timeout_s: float
+) -> tuple[str, dict | None, str]:
+    from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+    from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
+    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, close_session, open_session
+
+    keys = Keys(cfg.key_prefix)
+    zcfg = lambda: build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)  # noqa: E731
+    session = None
+    deadline = time.monotonic() + 120.0
+    while session is None:  # the daemon listens once it has started; until then connecting fails
+        procs.check_alive()
+        try:
+            session = await asyncio.to_thread(open_session, zcfg(), what="demo session")
+        except ZenohSetupError as exc:
+            if time.monotonic() > deadline:
+                raise DemoError(f"cannot reach the daemon: {exc}") from None
+            await asyncio.sleep(0.5)
+    follower = StatusFollower(session, keys)
+    try:
+        deadline = time.monotonic() + 120.0
+        while True:
+            procs.check_alive()
+            st = follower.latest
+            if st is not None and st.state.value == "idle" and st.workers:
+                break
+            if time.monotonic() > deadline:
+                raise DemoError("the daemon and a worker did not come up within 120 s; see the logs")
+            await follower.next(0.5)
+        pl = cfg.sim.placement
+        req = {
+            "plate_id": "demo-sail" if cfg.sim.plate.length_mm < 1200 else "sail-1200x800",
+            "design": DEMO_DESIGN,
+            "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]},
+            "note": "cellctl demo",
+        }
+        try:
+            acc = await call(session, keys.trigger, json.dumps(req), TriggerAccepted, timeout_s=30.0)
+        except ApiCallError as exc:
+            raise DemoError(f"the trigger was refused: {exc}") from None
+        print(f"scan triggered: job {acc.job_id}", flush=True)
+        state, message, report = await wait_for_job(follower, acc.job_id, timeout_s, out=sys.stdout)
+        if state != "done":
+            raise DemoError(f"job {acc.job_id} ended {state}: {message}")
+        if report is None:  # the publication was missed: read the stored one
+            rp = Path(cfg.cell.data_dir) / "jobs" / acc.job_id / "report.json"
+            report = json.loads(rp.read_text()) if rp.exists() else None
+        return acc.job_id, report, message
+    finally:
+        follower.close()
+        await asyncio.to_thread(close_session, session)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "demo",
+        help="the whole simulated cell in one command: sim, daemon, worker, one scan, the report",
+        description=__doc__.split("\n\n")[0],
+    )
+    p.add_argument("--out", required=True, help="directory for the configuration, data, logs and the report")
+    p.add_argument(
+        "--full", action="store_true", help="the paper's 1200 x 800 mm plate at cell.toml's settings"
+    )
+    p.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="base cell.toml (default: ./cell.toml)")
+    p.add_argument("--timeout-s", type=float, default=900.0, help="give up on the scan after this")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from analysis.mesh import save_mesh
+    from analysis.plates import design_mesh, plate_spec
+    from cellctl.tables import line_table
+
+    t0 = time.monotonic()
+    try:
+        base = load_config(args.config)
+    except ConfigError as err:
+        for problem in err.problems:
+            print(f"{err.source}: {problem}", file=sys.stderr)
+        return EXIT_ERROR
+    out = Path(args.out).resolve()
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    (out / "designs").mkdir(parents=True, exist_ok=True)
+    cfg_dict = demo_config(base.model_dump(mode="json"), out, full=args.full)
+    cfg_path = out / "cell.toml"
+    cfg_path.write_text("# written by `cellctl demo`\n" + to_toml(cfg_dict), encoding="utf-8")
+    try:
+        cfg = load_config(cfg_path)
+    except ConfigError as err:
+        print(f"cellctl demo: error: derived configuration invalid: {err.problems}", file=sys.stderr)
+        return EXIT_ERROR
+    sp = cfg.sim.plate
+    spec = plate_spec(sp.kind, length_mm=sp.length_mm, width_mm=sp.width_mm, thickness_mm=sp.thickness_mm,
+                      radius_x_mm=sp.radius_x_mm, radius_y_mm=sp.radius_y_mm)  # fmt: skip
+    save_mesh(design_mesh(spec, pitch_mm=5.0), out / "designs" / DEMO_DESIGN)
+    env = dict(os.environ)
+    for env_name in {cfg.robot.rws_password_env, *cfg.sim.rws_users.values()}:
+        env.setdefault(env_name, "robotics")  # ABB's published factory password of the simulated controller
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    procs = Processes(out / "logs", cfg_path, env)
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    print(
+        f"demo: {sp.length_mm:.0f} x {sp.width_mm:.0f} mm {sp.kind} plate; logs in {out / 'logs'}", flush=True
+    )
+    try:
+        sim = procs.start("sim", "sim")
+        _wait_ready_line(out / "logs" / "sim.out", sim, 120.0)
+        procs.start("run", "run")
+        procs.start("worker", "worker")
+        job_id, report, message = asyncio.run(_drive(cfg_dict, cfg, procs, args.timeout_s))
+        if report is not None:
+            print(line_table(report))
+        print(f"report: {message}")
+        print(f"demo finished in {time.monotonic() - t0:.0f} s (job {job_id})", flush=True)
+        return EXIT_OK
+    except DemoError as exc:
+        print(f"cellctl demo: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("cellctl demo: interrupted; stopping everything", file=sys.stderr)
+        return 130
+    finally:
+        procs.stop_all()
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt

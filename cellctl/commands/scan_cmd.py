@@ -1,0 +1,301 @@
+"""`cellctl scan`, `cellctl status` and `cellctl watch`: the cell's Zenoh API from the command line.
+
+``scan`` triggers an inspection and, with ``--wait``, shows a progress bar fed by the daemon's state
+publication and prints the per-line verdict table (the paper's Tables 3-5) when the report arrives.
+Exit codes: 0 accepted / pass, 1 fail verdict, 2 refused or error, 3 no answer from the daemon.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import sys
+import time
+from typing import Any
+
+from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
+
+EXIT_OK, EXIT_FAIL, EXIT_ERROR, EXIT_NO_DAEMON = 0, 1, 2, 3
+_FINAL = ("done", "failed", "aborted", "interrupted")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("scan", help="trigger an inspection over Zenoh; --wait shows progress and the verdict")
+    p.add_argument("--plate", required=True, help="plate id (letters, digits, '-', '_', '.')")
+    p.add_argument("--design", required=True, help="design mesh, relative to [cell] designs_dir")
+    p.add_argument(
+        "--placement",
+        required=True,
+        help="X,Y,ANGLE_DEG or X,Y,Z,ANGLE_DEG of the plate frame on the bed (mm, deg)",
+    )
+    p.add_argument("--note", default="", help="free text stored with the job")
+    p.add_argument("--wait", action="store_true", help="wait for the report and print the verdict table")
+    p.add_argument(
+        "--timeout-s", type=float, default=1800.0, help="give up waiting after this (default 1800)"
+    )
+    p.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="cell.toml (default: ./cell.toml)")
+    p.set_defaults(func=run_scan)
+
+    s = sub.add_parser("status", help="state of the cell, its current job and its workers")
+    s.add_argument("--config", default=str(DEFAULT_CONFIG_PATH))
+    s.add_argument("--json", action="store_true", help="one JSON object")
+    s.add_argument("--timeout-s", type=float, default=3.0)
+    s.set_defaults(func=run_status)
+
+    w = sub.add_parser("watch", help="print every state publication of the cell until Ctrl-C")
+    w.add_argument("--config", default=str(DEFAULT_CONFIG_PATH))
+    w.add_argument("--json", action="store_true", help="raw JSON lines")
+    w.set_defaults(func=run_watch)
+
+
+def _config(path: str):
+    try:
+        return load_config(path)
+    except ConfigError as err:
+        for problem in err.problems:
+            print(f"{err.source}: {problem}", file=sys.stderr)
+        return None
+
+
+def placement_payload(text: str, default_z_mm: float) -> dict[str, Any]:
+    """``X,Y,ANGLE`` / ``X,Y,Z,ANGLE`` -> the trigger's ``placement`` object (ValueError if malformed)."""
+    from cellctl.commands.plan_cmd import parse_placement
+
+    p = parse_placement(text, default_z_mm)
+    return {"pos_mm": [p.x_mm, p.y_mm, p.z_mm], "rpy_deg": [0.0, 0.0, p.angle_deg]}
+
+
+class StatusFollower:
+    """Keeps the latest CellStatus and the reports of a key prefix (Zenoh callbacks -> the loop)."""
+
+    def __init__(self, session: Any, keys: Any) -> None:
+        from cellctl.zenoh_session import subscribe
+
+        self.latest: Any = None
+        self.reports: dict[str, Any] = {}
+        self.changed = asyncio.Event()
+        self._subs = [
+            subscribe(session, keys.state, self._on_state),
+            subscribe(session, keys.report("*"), self._on_report),
+        ]
+
+    def _on_state(self, sample: Any) -> None:
+        from pydantic import ValidationError
+
+        from cellctl.api import CellStatus
+
+        try:
+            self.latest = CellStatus.model_validate_json(sample.payload.to_bytes())
+        except ValidationError:
+            return
+        self.changed.set()
+
+    def _on_report(self, sample: Any) -> None:
+        from pydantic import ValidationError
+
+        from cellctl.api import ReportEnvelope
+
+        try:
+            env = ReportEnvelope.model_validate_json(sample.payload.to_bytes())
+        except ValidationError:
+            return
+        self.reports[env.job_id] = env
+        self.changed.set()
+
+    async def next(self, timeout_s: float) -> None:
+        self.changed.clear()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self.changed.wait(), timeout_s)
+
+    def close(self) -> None:
+        for s in self._subs:
+            with contextlib.suppress(Exception):
+                s.undeclare()
+
+
+def _bar(fraction: float, width: int = 30) -> str:
+    n = round(max(0.0, min(1.0, fraction)) * width)
+    return "[" + "#" * n + "-" * (width - n) + "]"
+
+
+async def wait_for_job(
+    follower: StatusFollower, job_id: str, timeout_s: float, out=sys.stderr
+) -> tuple[str, str, dict | None]:
+    """Follow the state publication until job ``job_id`` ends: ``(state, message, report or None)``.
+
+    Draws a one-line progress bar on ``out`` when it is a terminal (a line per stage otherwise).
+    """
+    deadline = time.monotonic() + timeout_s
+    tty = hasattr(out, "isatty") and out.isatty()
+    last_line = ""
+    while time.monotonic() < deadline:
+        await follower.next(1.0)
+        st = follower.latest
+        job = st.job if st is not None else None
+        if job is None or job.job_id != job_id:
+            continue
+        line = f"{job.state.value:<18} {_bar(job.fraction)} {job.fraction:6.1%} {job.stage[:40]:<40} profiles {job.profiles}"
+        if tty:
+            out.write("\r" + line)
+            out.flush()
+        elif job.state.value != last_line:
+            out.write(line + "\n")
+            out.flush()
+            last_line = job.state.value
+        if job.state.value in _FINAL:
+            if tty:
+                out.write("\n")
+            env = follower.reports.get(job_id)
+            # the daemon stores the report before it says done; the publication can trail it
+            for _ in range(20):
+                if env is not None or job.state.value != "done":
+                    break
+                await asyncio.sleep(0.1)
+                env = follower.reports.get(job_id)
+            return job.state.value, job.message, (env.report if env is not None else None)
+    return "timeout", f"no end of job {job_id} within {timeout_s} s", None
+
+
+async def _scan(args: argparse.Namespace, cfg) -> int:
+    from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+    from cellctl.tables import line_table
+    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, close_session, open_session
+
+    try:
+        placement = placement_payload(args.placement, cfg.scan.placement_z_mm)
+    except ValueError as exc:
+        print(f"cellctl scan: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    req = {"plate_id": args.plate, "design": args.design, "placement": placement, "note": args.note}
+    keys = Keys(cfg.key_prefix)
+    try:
+        session = await asyncio.to_thread(
+            open_session, build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)
+        )
+    except ZenohSetupError as exc:
+        print(f"cellctl scan: error: {exc}", file=sys.stderr)
+        return EXIT_NO_DAEMON
+    follower = StatusFollower(session, keys) if args.wait else None
+    try:
+        try:
+            acc = await call(
+                session, keys.trigger, json.dumps(req), TriggerAccepted, timeout_s=cfg.zenoh.trigger_timeout_s
+            )
+        except ApiCallError as exc:
+            print(f"cellctl scan: refused: {exc}", file=sys.stderr)
+            return EXIT_NO_DAEMON if exc.error is None else EXIT_ERROR
+        print(f"job {acc.job_id} {acc.state}")
+        if follower is None:
+            return EXIT_OK
+        state, message, report = await wait_for_job(follower, acc.job_id, args.timeout_s)
+        if state != "done":
+            print(f"job {acc.job_id} {state}: {message}", file=sys.stderr)
+            return EXIT_ERROR
+        if report is not None:
+            print(line_table(report))
+        print(f"report: {message}")
+        return EXIT_OK if (report or {}).get("verdict") == "pass" else EXIT_FAIL
+    finally:
+        if follower is not None:
+            follower.close()
+        await asyncio.to_thread(close_session, session)
+
+
+def run_scan(args: argparse.Namespace) -> int:
+    cfg = _config(args.config)
+    if cfg is None:
+        return EXIT_ERROR
+    return asyncio.run(_scan(args, cfg))
+
+
+async def _status(args: argparse.Namespace, cfg) -> int:
+    from cellctl.api import Keys, list_workers
+    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, close_session, open_session
+
+    keys = Keys(cfg.key_prefix)
+    try:
+        session = await asyncio.to_thread(
+            open_session, build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)
+        )
+    except ZenohSetupError as exc:
+        print(f"cellctl status: error: {exc}", file=sys.stderr)
+        return EXIT_NO_DAEMON
+    follower = StatusFollower(session, keys)
+    try:
+        workers = await list_workers(session, keys, timeout_s=min(args.timeout_s, 2.0))
+        deadline = time.monotonic() + args.timeout_s
+        while follower.latest is None and time.monotonic() < deadline:
+            await follower.next(0.2)
+        st = follower.latest
+        if args.json:
+            print(json.dumps({
+                "cell": None if st is None else json.loads(st.to_json()),
+                "workers": [json.loads(w.to_json()) for w in workers],
+            }))  # fmt: skip
+        else:
+            if st is None:
+                print(
+                    f"cell {cfg.cell.id}: no state publication within {args.timeout_s} s (daemon not running?)"
+                )
+            else:
+                print(f"cell {st.cell_id}: {st.state.value}  {st.message}")
+                if st.job is not None:
+                    j = st.job
+                    print(f"  job {j.job_id} ({j.plate_id}): {j.state.value} {j.fraction:.0%} {j.stage}")
+            print(f"workers: {len(workers)}")
+            for w in workers:
+                print(
+                    f"  {w.worker_id} on {w.host} pid {w.pid}: {'busy ' + w.busy_job if w.busy_job else 'idle'}, {w.jobs_done} done"
+                )
+        return EXIT_OK if st is not None else EXIT_NO_DAEMON
+    finally:
+        follower.close()
+        await asyncio.to_thread(close_session, session)
+
+
+def run_status(args: argparse.Namespace) -> int:
+    cfg = _config(args.config)
+    if cfg is None:
+        return EXIT_ERROR
+    return asyncio.run(_status(args, cfg))
+
+
+async def _watch(args: argparse.Namespace, cfg) -> int:
+    from cellctl.api import Keys
+    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, close_session, open_session
+
+    keys = Keys(cfg.key_prefix)
+    try:
+        session = await asyncio.to_thread(
+            open_session, build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)
+        )
+    except ZenohSetupError as exc:
+        print(f"cellctl watch: error: {exc}", file=sys.stderr)
+        return EXIT_NO_DAEMON
+    follower = StatusFollower(session, keys)
+    try:
+        while True:
+            await follower.next(5.0)
+            st = follower.latest
+            if st is None:
+                continue
+            if args.json:
+                print(st.to_json().decode(), flush=True)
+            else:
+                j = st.job
+                job = (
+                    "" if j is None else f"  job {j.job_id} {j.state.value} {_bar(j.fraction, 20)} {j.stage}"
+                )
+                print(f"{st.t_utc} {st.state.value:<12} workers {len(st.workers)}{job}", flush=True)
+    finally:
+        follower.close()
+        await asyncio.to_thread(close_session, session)
+
+
+def run_watch(args: argparse.Namespace) -> int:
+    cfg = _config(args.config)
+    if cfg is None:
+        return EXIT_ERROR
+    return asyncio.run(_watch(args, cfg))

@@ -1,0 +1,159 @@
+"""The job store: one directory per job under ``<data_dir>/jobs/<job_id>/``.
+
+Layout of a job directory::
+
+    job.json        this record: trigger, state, state history, results (rewritten atomically)
+    raw/            the acquisition's raw files (cellctl.acquisition.rawstore: job.json + *.craw)
+    cloud.ply       the published cloud (base frame, mm)
+    results/        the worker's results directory (report.json, report.csv, results.npz, cloud.ply)
+    report.json     the report as the daemon received it
+
+After a restart, :meth:`JobStore.recover` marks every job that was not finished ``interrupted``; its
+raw files are left as they are (they are append-only and fsync'ed), so the job can be re-analysed
+from them (:func:`cellctl.acquisition.reassemble.reassemble` on ``raw/``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from cellctl.api import JobState, now_utc
+
+log = structlog.get_logger(__name__)
+
+#: states a job can end in; any other state found at start-up means the daemon died during the job
+TERMINAL = frozenset({JobState.DONE, JobState.FAILED, JobState.ABORTED, JobState.INTERRUPTED})
+
+
+class JobStoreError(Exception):
+    """A job directory or record that cannot be read or written (names the path)."""
+
+
+@dataclass
+class JobRecord:
+    """What ``job.json`` holds.
+
+    Attributes:
+        job_id, plate_id: identity. design: the trigger's design path (relative to designs_dir);
+        design_path: resolved absolute path. placement: ``{"pos_mm": [...], "rpy_deg": [...]}``.
+        state: a :class:`cellctl.api.JobState` value. history: ``[{"state", "t_utc", "message"}]``.
+        info: counters and results (profiles, points, scan_s, verdict, report path, ...).
+    """
+
+    job_id: str
+    plate_id: str
+    design: str
+    design_path: str
+    placement: dict[str, Any]
+    note: str = ""
+    state: str = JobState.QUEUED.value
+    created_utc: str = field(default_factory=now_utc)
+    history: list[dict[str, str]] = field(default_factory=list)
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def terminal(self) -> bool:
+        return JobState(self.state) in TERMINAL
+
+
+class JobStore:
+    """Reads and writes job records under ``<data_dir>/jobs``."""
+
+    def __init__(self, data_dir: str | Path) -> None:
+        self.root = Path(data_dir) / "jobs"
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.root / job_id
+
+    def raw_dir(self, job_id: str) -> Path:
+        return self.root / job_id / "raw"
+
+    def results_dir(self, job_id: str) -> Path:
+        return self.root / job_id / "results"
+
+    def create(self, record: JobRecord) -> JobRecord:
+        """Make the job's directory and its first record (state queued)."""
+        d = self.job_dir(record.job_id)
+        d.mkdir(parents=True, exist_ok=False)
+        if not record.history:
+            record.history.append({"state": record.state, "t_utc": record.created_utc, "message": "accepted"})
+        self.save(record)
+        return record
+
+    def save(self, record: JobRecord) -> None:
+        """Write ``job.json`` atomically (temp file, fsync, rename): a crash leaves the old or the new."""
+        path = self.job_dir(record.job_id) / "job.json"
+        tmp = path.with_suffix(".json.tmp")
+        data = json.dumps(asdict(record), indent=2, default=_json_default)
+        try:
+            with open(tmp, "w", encoding="utf-8") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except OSError as exc:
+            raise JobStoreError(f"{path}: cannot write the job record: {exc.strerror or exc}") from None
+
+    def set_state(self, record: JobRecord, state: JobState, message: str = "", **info: Any) -> None:
+        """Record a state change (appended to the history) and any info, then save."""
+        record.state = JobState(state).value
+        record.history.append({"state": record.state, "t_utc": now_utc(), "message": message})
+        record.info.update(info)
+        self.save(record)
+        log.info("job_state", job_id=record.job_id, state=record.state, message=message)
+
+    def load(self, job_id: str) -> JobRecord:
+        """Read one record."""
+        path = self.job_dir(job_id) / "job.json"
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+            return JobRecord(**data)
+        except (OSError, ValueError, TypeError) as exc:
+            raise JobStoreError(f"{path}: unreadable job record: {exc}") from None
+
+    def list(self) -> list[JobRecord]:
+        """Every readable record, oldest first (job ids sort by time); unreadable ones are logged."""
+        out = []
+        for d in sorted(p for p in self.root.iterdir() if p.is_dir()):
+            if not (d / "job.json").exists():
+                continue
+            try:
+                out.append(self.load(d.name))
+            except JobStoreError as exc:
+                log.warning("job_record_unreadable", error=str(exc))
+        return out
+
+    def recover(self) -> list[JobRecord]:
+        """Mark every unfinished job interrupted (raw data left intact); returns those jobs."""
+        found = []
+        for rec in self.list():
+            if rec.terminal:
+                continue
+            raw = self.raw_dir(rec.job_id)
+            raw_files = sorted(p.name for p in raw.glob("*.craw")) if raw.is_dir() else []
+            self.set_state(
+                rec,
+                JobState.INTERRUPTED,
+                f"the daemon stopped during {rec.state}; raw data kept",
+                interrupted_in=rec.state,
+                raw_files=raw_files,
+            )
+            found.append(rec)
+        if found:
+            log.warning("jobs_interrupted", jobs=[r.job_id for r in found])
+        return found
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON-able: {type(obj).__name__}")

@@ -1,0 +1,709 @@
+"""`cellctl run`: the cell daemon, one asyncio service owning the EGM endpoint, RWS and the sensor.
+
+A job (one remote trigger): validate -> plan (in a thread) -> motors on and the EGM program started
+through RWS -> execute the plan over EGM while the HD8 client streams profiles into the acquisition
+(raw files first) -> EGM program ended -> the whole-scan cloud rebuilt from the raw files ->
+published to the analysis workers through the :class:`~cellctl.dispatch.Dispatcher` -> the report
+stored with the job. One scan at a time: a trigger while a scan holds the robot is refused with
+``busy``; the analysis of a finished scan runs while the next one scans.
+
+State (:class:`~cellctl.api.CellStatus`) is published on every change and every
+``status_period_s``; the daemon holds a liveliness token. SIGTERM / SIGINT: a scan in progress is
+stopped smoothly along its path, the raw files are flushed and the job is marked interrupted, then
+everything is closed and the process exits 0.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from cellctl.api import (
+    JSON,
+    CellState,
+    CellStatus,
+    ControlReply,
+    JobProgress,
+    JobState,
+    Keys,
+    TriggerAccepted,
+    TriggerError,
+    TriggerRequest,
+    handle_trigger,
+    new_job_id,
+    now_utc,
+)
+from cellctl.config import CellConfig, ConfigError, resolve_secret
+from cellctl.daemon.jobs import JobRecord, JobStore
+from cellctl.daemon.states import CellStateMachine, Transition
+from cellctl.logging import bind_context
+
+log = structlog.get_logger(__name__)
+
+
+class DaemonError(Exception):
+    """The daemon cannot start (configuration, ports, Zenoh)."""
+
+
+@dataclass(frozen=True)
+class DaemonSettings:
+    """Daemon knobs not (yet) in cell.toml.
+
+    status_period_s: periodic state publication. feedback_timeout_s: wait for the controller's first
+    EGM packet after the program started. marker_period_s: how often the pass markers are checked
+    against the executor's playback time and the feedback history is handed to the acquisition
+    (a pass boundary lands within this of its planned time, on a link where nothing is measured). write_html_report: render report.html / .pdf after the
+    worker's results arrive. realtime: run the event loop under SCHED_FIFO when permitted.
+    """
+
+    status_period_s: float = 1.0
+    feedback_timeout_s: float = 5.0
+    marker_period_s: float = 0.01
+    write_html_report: bool = True
+    realtime: bool = True
+
+
+class _Job:
+    """The running job's live objects (executor, counters) beside its stored record."""
+
+    def __init__(self, record: JobRecord) -> None:
+        self.record = record
+        self.executor: Any = None
+        self.profiles = 0
+        self.points = 0
+        self.fraction = 0.0
+        self.stage = "queued"
+        self.worker_id: str | None = None
+        self.stop_reason: str | None = None  # "shutdown" or "abort"
+        self.task: asyncio.Task | None = None
+
+
+class CellDaemon:
+    """The service. ``await run(stop)`` until ``stop`` is set; returns the exit code."""
+
+    def __init__(self, cfg: CellConfig, settings: DaemonSettings | None = None) -> None:
+        self.cfg = cfg
+        self.settings = settings or DaemonSettings()
+        self.keys = Keys(cfg.key_prefix)
+        self.store = JobStore(cfg.cell.data_dir)
+        self.designs_dir = Path(cfg.cell.designs_dir)
+        self.sm = CellStateMachine(self._on_transition)
+        self.session: Any = None
+        self.dispatcher: Any = None
+        self.endpoint: Any = None
+        self.rws: Any = None
+        self.program: Any = None
+        self._entities: list[Any] = []
+        self._current: _Job | None = None  # the job shown in the state publication
+        self._scan_job: _Job | None = None  # the job holding the robot
+        self._analyses: set[asyncio.Task] = set()
+        self._workers: list[str] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    # ------------------------------------------------------------------------- life cycle
+
+    async def run(self, stop: asyncio.Event) -> int:
+        """Start everything, serve until ``stop``, stop smoothly. Returns 0 (or 2 on a start failure)."""
+        import zenoh
+
+        from cellctl.dispatch import Dispatcher, DispatchHooks, DispatchSettings
+        from cellctl.zenoh_session import (
+            ZenohSetupError,
+            build_zenoh_config,
+            close_session,
+            declare_async_queryable,
+            open_session,
+        )
+        from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
+        from drivers.abb_egm.rws_client import CellEgmProgram, EgmProgramSettings, RwsClient, RwsClientConfig
+
+        self._loop = asyncio.get_running_loop()
+        cfg = self.cfg
+        bind_context(cell_id=cfg.cell.id)
+        interrupted = self.store.recover()
+        try:
+            password = resolve_secret(
+                cfg.robot.rws_password_env, cfg.robot.rws_password_file, what="robot.rws password"
+            ).get_secret_value()
+            zcfg = build_zenoh_config(cfg.zenoh, role="serve", key_prefix=cfg.key_prefix)
+        except (ConfigError, ZenohSetupError) as exc:
+            log.error("daemon_config_invalid", error=str(exc))
+            return 2
+        r = cfg.robot
+        self.endpoint = EgmEndpoint(
+            EgmEndpointConfig(
+                host=r.egm_host, port=r.egm_port, watchdog_s=r.egm_watchdog_s, history_len=r.egm_history_len
+            )
+        )
+        try:
+            await self.endpoint.start()
+        except OSError as exc:
+            log.error("egm_bind_failed", host=r.egm_host, port=r.egm_port, error=str(exc))
+            return 2
+        self.rws = RwsClient(
+            RwsClientConfig(
+                base_url=r.rws_url,
+                profile=r.rws_profile,
+                username=r.rws_user,
+                password=password,
+                timeout_s=r.rws_timeout_s,
+                tls_ca_file=None if r.rws_ca_file is None else str(r.rws_ca_file),
+                poll_interval_s=r.rws_poll_interval_s,
+                mechunit=r.rws_mechunit,
+            )
+        )
+        self.program = CellEgmProgram(
+            self.rws,
+            EgmProgramSettings(
+                comm_timeout_s=r.egm_comm_timeout_s,
+                pos_corr_gain=min(r.egm_pos_corr_gain, 1.0),
+                max_speed_deviation_deg_s=r.egm_max_speed_deviation_deg_s,
+                max_pos_deviation_deg=r.egm_max_pos_deviation_deg,
+                cond_time_s=r.egm_cond_time_s,
+                ramp_in_time_s=r.egm_ramp_in_s,
+                lp_filter_hz=r.egm_lp_filter_hz,
+                sample_rate_ms=float(r.egm_sample_rate_ms),
+                task=r.rapid_task,
+                module=r.rapid_module,
+            ),
+        )
+        try:
+            self.session = await asyncio.to_thread(open_session, zcfg, what="daemon session")
+        except ZenohSetupError as exc:
+            log.error("zenoh_open_failed", error=str(exc))
+            await self.endpoint.close()
+            await self.rws.close()
+            return 2
+        publisher = None
+        periodic = None
+        try:
+            s = self.session
+            self._entities.append(declare_async_queryable(s, self.keys.trigger, self._on_trigger))
+            for action in ("pause", "resume", "abort"):
+                self._entities.append(
+                    declare_async_queryable(s, self.keys.control(action), self._control_handler(action))
+                )
+            self._entities.append(
+                declare_async_queryable(s, f"{self.keys.prefix}/control/reanalyse", self._on_reanalyse)
+            )
+            self._entities.append(s.liveliness().declare_token(self.keys.daemon_alive))
+            publisher = s.declare_publisher(self.keys.state, encoding=zenoh.Encoding.APPLICATION_JSON)
+            self._publisher = publisher
+            self.dispatcher = Dispatcher(
+                s, self.keys, DispatchSettings.from_config(cfg), DispatchHooks(on_workers=self._on_workers)
+            )
+            await self.dispatcher.start()
+            msg = f"{len(interrupted)} interrupted job(s) recovered" if interrupted else "ready"
+            self.sm.to(CellState.IDLE, msg)
+            periodic = asyncio.create_task(self._publish_periodically(), name="state-publisher")
+            log.info("daemon_ready", key_prefix=self.keys.prefix, egm_port=self.endpoint_port)
+            await stop.wait()
+            await self._shutdown()
+        finally:
+            if periodic is not None:
+                periodic.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await periodic
+            if self.dispatcher is not None:
+                await self.dispatcher.close()
+            for ent in self._entities:
+                with contextlib.suppress(Exception):
+                    ent.undeclare()
+            if publisher is not None:
+                with contextlib.suppress(Exception):
+                    publisher.undeclare()
+            await asyncio.to_thread(close_session, self.session)
+            await self.endpoint.close()
+            await self.rws.close()
+        log.info("daemon_stopped")
+        return 0
+
+    @property
+    def endpoint_port(self) -> int | None:
+        addr = getattr(self.endpoint, "local_address", None)
+        return None if not addr else int(addr[1])
+
+    async def _shutdown(self) -> None:
+        """Stop a scan smoothly (job interrupted, raw flushed), stop waiting for reports."""
+        self.sm.to(CellState.STOPPING, "shutdown requested")
+        self._publish()
+        job = self._scan_job
+        if job is not None and job.task is not None:
+            job.stop_reason = "shutdown"
+            if job.executor is not None:
+                job.executor.abort()
+            with contextlib.suppress(Exception, asyncio.CancelledError):
+                await asyncio.wait_for(asyncio.shield(job.task), 60.0)
+            if not job.task.done():
+                job.task.cancel()
+        for task in list(self._analyses):
+            task.cancel()
+        for task in list(self._analyses):
+            with contextlib.suppress(Exception, asyncio.CancelledError):
+                await task
+        self._publish()
+
+    # ------------------------------------------------------------------------- publication
+
+    def _on_transition(self, tr: Transition) -> None:
+        self._publish()
+
+    def _on_workers(self, workers: list[str]) -> None:
+        self._workers = list(workers)
+        self._publish()
+
+    def status(self) -> CellStatus:
+        """The state publication's payload."""
+        job = self._current
+        jp = None
+        if job is not None:
+            jp = JobProgress(
+                job_id=job.record.job_id,
+                plate_id=job.record.plate_id,
+                state=JobState(job.record.state),
+                stage=job.stage,
+                fraction=float(min(max(job.fraction, 0.0), 1.0)),
+                profiles=job.profiles,
+                points=job.points,
+                worker_id=job.worker_id,
+                message=(job.record.history[-1]["message"] if job.record.history else "")[:500],
+            )
+        return CellStatus(
+            cell_id=self.cfg.cell.id,
+            state=self.sm.state,
+            t_utc=now_utc(),
+            job=jp,
+            queued=0,
+            workers=self._workers,
+            message=self.sm.message[:500],
+        )
+
+    def _publish(self) -> None:
+        pub = getattr(self, "_publisher", None)
+        if pub is None:
+            return
+        try:
+            pub.put(self.status().to_json())
+        except Exception as exc:  # the session may be closing
+            log.warning("state_publish_failed", error=str(exc))
+
+    async def _publish_periodically(self) -> None:
+        while True:
+            await asyncio.sleep(self.settings.status_period_s)
+            self._publish()
+
+    # ------------------------------------------------------------------------- API handlers
+
+    async def _on_trigger(self, query: Any) -> None:
+        await handle_trigger(query, self.designs_dir, self._accept)
+
+    async def _accept(self, req: TriggerRequest, design_path: Path) -> TriggerAccepted:
+        if self.sm.state in (CellState.STARTING, CellState.STOPPING, CellState.EMERGENCY_STOPPED):
+            raise TriggerError("not_allowed", "payload", f"the cell is {self.sm.state.value}")
+        if self._scan_job is not None:
+            raise TriggerError(
+                "busy", "payload", f"the cell is scanning job {self._scan_job.record.job_id}; try again later"
+            )
+        if any(abs(v) > 1e-9 for v in req.placement.rpy_deg[:2]):
+            raise TriggerError(
+                "invalid", "placement.rpy_deg", "plates lie flat on the bed: roll and pitch must be 0"
+            )
+        record = JobRecord(
+            job_id=new_job_id(),
+            plate_id=req.plate_id,
+            design=req.design,
+            design_path=str(design_path),
+            placement=req.placement.model_dump(),
+            note=req.note,
+        )
+        self.store.create(record)
+        job = _Job(record)
+        self._scan_job = self._current = job
+        job.task = asyncio.create_task(self._run_job(job), name=f"job-{record.job_id}")
+        return TriggerAccepted(job_id=record.job_id, state="started")
+
+    def _control_handler(self, action: str):
+        async def handler(query: Any) -> None:
+            job = self._scan_job
+            if job is None or job.executor is None:
+                from cellctl.api import ApiError
+
+                err = ApiError(code="no_job", field="", message=f"no scan in progress to {action}")
+                query.reply_err(err.to_json(), encoding=JSON)
+                return
+            if action == "pause":
+                job.executor.pause()
+            elif action == "resume":
+                job.executor.resume()
+            else:
+                job.stop_reason = "abort"
+                job.executor.abort()
+            log.info("control", action=action, job_id=job.record.job_id)
+            reply = ControlReply(action=action, job_id=job.record.job_id, state=self.sm.state.value)  # type: ignore[arg-type]
+            query.reply(query.key_expr, reply.to_json(), encoding=JSON)
+
+        return handler
+
+    async def _on_reanalyse(self, query: Any) -> None:
+        """``{"job_id": ...}``: rebuild an interrupted (or failed) job's cloud from its raw files and
+        send it to the workers again."""
+        from cellctl.api import ApiError
+
+        try:
+            data = json.loads(query.payload.to_bytes() if query.payload is not None else b"")
+            job_id = str(data["job_id"])
+            if not isinstance(data, dict) or set(data) != {"job_id"}:
+                raise ValueError('expected exactly {"job_id": ...}')
+            record = self.store.load(job_id)
+        except Exception as exc:
+            err = ApiError(code="invalid", field="job_id", message=str(exc)[:300])
+            query.reply_err(err.to_json(), encoding=JSON)
+            return
+        if record.state not in (JobState.INTERRUPTED.value, JobState.FAILED.value):
+            err = ApiError(code="not_allowed", field="job_id", message=f"job is {record.state}")
+            query.reply_err(err.to_json(), encoding=JSON)
+            return
+        if not (self.store.raw_dir(job_id) / "profiles.craw").exists():
+            err = ApiError(code="not_allowed", field="job_id", message="job has no raw profiles")
+            query.reply_err(err.to_json(), encoding=JSON)
+            return
+        job = _Job(record)
+        self._current = job
+        task = asyncio.create_task(self._analyse(job), name=f"reanalyse-{job_id}")
+        self._analyses.add(task)
+        task.add_done_callback(self._analyses.discard)
+        query.reply(
+            query.key_expr, json.dumps({"job_id": job_id, "state": "analysing"}).encode(), encoding=JSON
+        )
+
+    # ------------------------------------------------------------------------- the job
+
+    def _job_state(self, job: _Job, state: JobState, message: str = "", **info: Any) -> None:
+        job.stage = state.value
+        self.store.set_state(job.record, state, message, **info)
+        self._publish()
+
+    async def _run_job(self, job: _Job) -> None:
+        rec = job.record
+        bind_context(job_id=rec.job_id)
+        try:
+            ok = await self._scan(job)
+        except Exception as exc:
+            log.exception("job_scan_failed", job_id=rec.job_id)
+            self._job_state(job, JobState.FAILED, f"{type(exc).__name__}: {exc}")
+            self._scan_job = None
+            if self.sm.state != CellState.STOPPING:
+                self.sm.to(CellState.FAULTED, f"job {rec.job_id}: {exc}")
+            return
+        self._scan_job = None
+        if not ok:
+            if self.sm.state not in (CellState.STOPPING, CellState.FAULTED):
+                self.sm.to(CellState.IDLE, f"job {rec.job_id} {rec.state}")
+            return
+        if self.sm.state == CellState.STOPPING:
+            self._job_state(job, JobState.INTERRUPTED, "the daemon stopped before the analysis")
+            return
+        task = asyncio.create_task(self._analyse(job), name=f"analyse-{rec.job_id}")
+        self._analyses.add(task)
+        task.add_done_callback(self._analyses.discard)
+
+    async def _scan(self, job: _Job) -> bool:
+        """Plan, execute and acquire. True when the scan completed (raw files closed)."""
+        from analysis.mesh import MeshError
+        from analysis.plates import PlateError, load_design
+        from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
+        from cellctl.acquisition.rawstore import RawWriter
+        from cellctl.motion import ExecState, ExecutorConfig, MotionExecutor
+        from cellctl.planning import Placement, PlanInputError, PlannerSettings, PlanRefused, plan_scan
+        from drivers.laser.client import HD8Client
+
+        cfg, rec = self.cfg, job.record
+        self.sm.to(CellState.PLANNING, f"planning job {rec.job_id}")
+        self._job_state(job, JobState.PLANNING)
+        pos = rec.placement["pos_mm"]
+        try:
+            design = await asyncio.to_thread(load_design, Path(rec.design_path))
+            placement = Placement(
+                float(pos[0]), float(pos[1]), float(pos[2]), float(rec.placement["rpy_deg"][2])
+            )
+            settings = PlannerSettings.from_config(cfg)
+            t0 = time.perf_counter()
+            plan = await asyncio.to_thread(plan_scan, design, placement, settings, with_coverage=False)
+        except (MeshError, PlateError, PlanInputError, PlanRefused) as exc:
+            self._job_state(job, JobState.FAILED, f"plan refused: {exc}")
+            return False
+        summary = plan.summary()
+        self.store.set_state(
+            rec, JobState.PLANNING, "planned", plan=summary, plan_s=round(time.perf_counter() - t0, 3)
+        )
+        if self._stop_requested(job):
+            self._job_state(job, JobState.INTERRUPTED, "stopped before the scan")
+            return False
+
+        client = HD8Client(cfg.laser.host, cfg.laser.control_port, cfg.laser.data_port)
+        await client.connect()
+        writer = None
+        consumer = None
+        feeder = None
+        try:
+            await client.configure(rate_hz=cfg.laser.rate_hz, exposure_ns=round(cfg.laser.exposure_us * 1000))
+            await self.program.start()
+            await self.endpoint.wait_for_feedback(self.settings.feedback_timeout_s)
+            acq_settings = AcquisitionSettings.from_config(cfg, epoch_ns=time.monotonic_ns())
+            writer = RawWriter(
+                self.store.raw_dir(rec.job_id),
+                {"acquisition": acq_settings.to_json(), "job_id": rec.job_id, "plate_id": rec.plate_id},
+            )
+            acq = Acquisition(acq_settings, writer, keep_batches=False)
+            executor = MotionExecutor.for_plan(
+                self.endpoint,
+                plan,
+                settings,
+                ExecutorConfig.from_settings(settings, tracking_error_max_mm=cfg.robot.tracking_error_max_mm),
+                on_progress=lambda ev: self._on_progress(job, ev),
+            )
+            job.executor = executor
+            last_robot_ns = [-1]
+
+            def feed_robot() -> None:
+                a = self.endpoint.history.arrays()
+                new = a.t_host_ns > last_robot_ns[0]
+                if new.any():
+                    acq.feed_robot(a.t_host_ns[new], a.t_ctrl_us[new], a.q_deg[new][:, :6])
+                    last_robot_ns[0] = int(a.t_host_ns[new][-1])
+
+            feed_robot()
+
+            async def consume() -> None:
+                async for batch in client:
+                    acq.feed_profiles(batch)
+                    job.profiles += len(batch)
+
+            sweeps = plan.passes
+            bounds = np.array([[s.t_start_s, s.t_start_s + s.duration_s] for s in sweeps]).reshape(-1, 2)
+
+            async def mark_and_feed() -> None:
+                # Pass markers at the cycle the playback time crosses a sweep's bounds; the
+                # feedback history reaches the acquisition every few cycles (cheap, ordered).
+                open_pass = -1
+                while executor.state not in (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED):
+                    await asyncio.sleep(self.settings.marker_period_s)
+                    tau = executor.progress().t_traj_s
+                    inside = np.nonzero((bounds[:, 0] <= tau) & (tau < bounds[:, 1]))[0]
+                    k = int(inside[0]) if inside.size else -1
+                    if k != open_pass:
+                        now = time.monotonic_ns()
+                        if open_pass >= 0:
+                            acq.end_pass(now)
+                        if k >= 0:
+                            acq.begin_pass(k, now)
+                        open_pass = k
+                    feed_robot()
+                if open_pass >= 0:
+                    acq.end_pass(time.monotonic_ns())
+
+            consumer = asyncio.create_task(consume(), name="hd8-consumer")
+            await client.start()
+            self.sm.to(CellState.SCANNING, f"scanning job {rec.job_id}")
+            self._job_state(job, JobState.SCANNING)
+            feeder = asyncio.create_task(mark_and_feed(), name="pass-marker")
+            t_scan = time.perf_counter()
+            result = await executor.run()
+            scan_s = time.perf_counter() - t_scan
+            await feeder
+            t_last_profile = time.time()
+            with contextlib.suppress(Exception):
+                await client.stop()
+            await asyncio.sleep(0.1)  # frames in flight
+            await client.close()
+            await asyncio.wait_for(consumer, 10.0)
+            feed_robot()
+            await asyncio.to_thread(acq.finish)
+            await asyncio.to_thread(writer.close)
+            writer = None
+            with contextlib.suppress(Exception):
+                await self.program.end()
+            job.executor = None
+            info = {
+                "scan_s": round(scan_s, 3),
+                "profiles": job.profiles,
+                "execution": result.state.value,
+                "max_tracking_error_mm": round(float(result.max_tracking_error_mm), 3),
+                "last_profile_utc_s": t_last_profile,
+                "acquisition": json.loads(json.dumps(acq.quality(), default=_plain)),
+            }
+            if result.state == ExecState.FINISHED:
+                self.store.set_state(rec, JobState.SCANNING, "scan complete", **info)
+                return True
+            if job.stop_reason == "shutdown":
+                self._job_state(
+                    job, JobState.INTERRUPTED, "the daemon stopped during the scan; raw data kept", **info
+                )
+            elif job.stop_reason == "abort":
+                self._job_state(job, JobState.ABORTED, "aborted by request; raw data kept", **info)
+            else:
+                self._job_state(job, JobState.FAILED, f"motion fault: {result.fault}", **info)
+                if self.sm.state != CellState.STOPPING:
+                    self.sm.to(CellState.FAULTED, f"motion fault: {result.fault}")
+            return False
+        finally:
+            job.executor = None
+            for task in (feeder, consumer):
+                if task is not None and not task.done():
+                    task.cancel()
+            if writer is not None:
+                with contextlib.suppress(Exception):
+                    writer.close()
+            with contextlib.suppress(Exception):
+                await client.close()
+
+    def _stop_requested(self, job: _Job) -> bool:
+        return job.stop_reason is not None or self.sm.state == CellState.STOPPING
+
+    def _on_progress(self, job: _Job, ev: Any) -> None:
+        job.fraction = ev.percent / 100.0
+        job.stage = f"{ev.segment} ({ev.pass_index}/{ev.pass_count})"
+        if ev.state == "paused" and self.sm.state == CellState.SCANNING:
+            self.sm.to(CellState.PAUSED, f"job {job.record.job_id} paused")
+            self.store.set_state(job.record, JobState.PAUSED, "paused")
+        elif ev.state in ("running", "resuming") and self.sm.state == CellState.PAUSED:
+            self.sm.to(CellState.SCANNING, f"job {job.record.job_id} resumed")
+            self.store.set_state(job.record, JobState.SCANNING, "resumed")
+        self._publish()
+
+    async def _analyse(self, job: _Job) -> None:
+        """Rebuild the cloud from the raw files, publish it to the workers, store the report."""
+        from analysis.report import write_report
+        from cellctl.acquisition.cloud_files import write_ply
+        from cellctl.acquisition.reassemble import reassemble
+        from cellctl.analysis_settings import inspection_settings_dict
+        from cellctl.cloud_codec import Cloud, encode_cloud
+        from cellctl.dispatch import JobFailed
+
+        rec = job.record
+        bind_context(job_id=rec.job_id)
+        job.fraction = 0.0
+        self._job_state(job, JobState.WAITING_FOR_WORKER, "cloud being assembled")
+        if self._scan_job is None and self.sm.state not in (CellState.STOPPING, CellState.FAULTED):
+            self.sm.to(CellState.IDLE, f"job {rec.job_id} scanned; analysing")
+        try:
+            t0 = time.perf_counter()
+            res = await asyncio.to_thread(reassemble, self.store.raw_dir(rec.job_id))
+            pts = res.cloud.points()
+            job.points = int(pts["xyz_mm"].shape[0])
+            cloud = Cloud(
+                xyz_mm=pts["xyz_mm"].astype(np.float32),
+                job_id=rec.job_id,
+                plate_id=rec.plate_id,
+                pass_id=np.clip(pts["pass_id"], 0, 65535).astype(np.uint16),
+                profile_index=pts["profile_index"].astype(np.uint32),
+                point_index=pts["point_index"].astype(np.uint16),
+                t_s=(pts["t_ns"].astype(np.float64) * 1e-9),
+                meta={"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": rec.placement},
+            )
+            payload = await asyncio.to_thread(encode_cloud, cloud)
+            await asyncio.to_thread(write_ply, res.cloud, self.store.job_dir(rec.job_id) / "cloud.ply")
+            assemble_s = time.perf_counter() - t0
+            params = {
+                "design": rec.design_path,
+                "analysis": inspection_settings_dict(self.cfg.analysis),
+                "out_dir": str(self.store.results_dir(rec.job_id).resolve()),
+                "cell_id": self.cfg.cell.id,
+            }
+            self._job_state(
+                job, JobState.WAITING_FOR_WORKER, "cloud published", points=job.points,
+                cloud_bytes=len(payload), assemble_s=round(assemble_s, 3),
+            )  # fmt: skip
+            fut = self.dispatcher.submit(rec.job_id, rec.plate_id, payload, params)
+            del payload, cloud, pts, res
+            self._job_state(job, JobState.ANALYSING, "analysing")
+            env = await fut
+        except asyncio.CancelledError:
+            self._job_state(
+                job, JobState.INTERRUPTED, "the daemon stopped during the analysis; raw data kept"
+            )
+            raise
+        except JobFailed as exc:
+            self._job_state(job, JobState.FAILED, f"analysis failed: {exc.reason}")
+            return
+        except Exception as exc:
+            log.exception("job_analysis_failed")
+            self._job_state(job, JobState.FAILED, f"{type(exc).__name__}: {exc}")
+            return
+        job.worker_id = env.worker_id
+        jd = self.store.job_dir(rec.job_id)
+        if not env.ok or env.report is None:
+            self._job_state(job, JobState.FAILED, f"analysis error: {env.error}", worker_id=env.worker_id)
+            return
+        (jd / "report.json").write_text(json.dumps(env.report, indent=2), encoding="utf-8")
+        report_path = jd / "report.json"
+        if self.settings.write_html_report and (self.store.results_dir(rec.job_id) / "report.json").exists():
+            try:
+                paths = await asyncio.to_thread(write_report, self.store.results_dir(rec.job_id))
+                html = [p for p in paths if Path(p).suffix == ".html"]
+                if html:
+                    report_path = Path(html[0])
+            except Exception as exc:  # the JSON report stands on its own
+                log.warning("html_report_failed", error=str(exc))
+        job.fraction = 1.0
+        self._job_state(
+            job, JobState.DONE, str(report_path.resolve()), verdict=env.report.get("verdict"),
+            report=str(report_path.resolve()), worker_id=env.worker_id, analysis_timings_s=env.timings_s,
+            report_utc_s=time.time(),
+        )  # fmt: skip
+
+
+def _plain(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if hasattr(obj, "__dict__"):
+        return {k: v for k, v in vars(obj).items() if not k.startswith("_")}
+    return str(obj)
+
+
+def _normal_priority() -> None:
+    with contextlib.suppress(AttributeError, PermissionError, OSError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def use_realtime_loop(priority: int = 10) -> bool:
+    """Run the calling thread (the event loop's) under SCHED_FIFO when permitted, as a cell PC runs its
+    EGM loop; the loop's default executor gets normal-priority threads so heavy work (planning,
+    assembly) never starves the machine. Returns whether the priority was granted."""
+    loop = asyncio.get_running_loop()
+    loop.set_default_executor(ThreadPoolExecutor(max_workers=4, initializer=_normal_priority))
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, PermissionError, OSError):
+        log.info("realtime_priority_unavailable")
+        return False
+    log.info("realtime_priority", priority=priority)
+    return True
+
+
+async def run_daemon(cfg: CellConfig, settings: DaemonSettings | None = None) -> int:
+    """Run the daemon until SIGTERM / SIGINT; returns the exit code."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    if settings is None or settings.realtime:
+        use_realtime_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop.set)
+    try:
+        return await CellDaemon(cfg, settings).run(stop)
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.remove_signal_handler(sig)

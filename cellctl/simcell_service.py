@@ -1,0 +1,232 @@
+"""`cellctl sim`: the simulated cell of cell.toml ``[sim]`` as one process, on loopback.
+
+* the ABB controller simulator (:class:`drivers.abb_egm.sim.ControllerSim`): EGM as the UDP client
+  sending to ``[robot] egm_host:egm_port``, RWS served on ``[sim] rws_port``;
+* the HD8 simulator (:class:`drivers.laser.sim.LaserSimulator`) on ``[laser] control_port`` /
+  ``data_port``; its ``pose_at`` is the controller simulator's **true** trajectory composed with the
+  mounting ``[robot.sensor_in_flange]``, so the daemon's acquisition is judged against the truth;
+* the scene: the formed plate of ``[sim.plate]`` (design + the default forming error) laid at
+  ``[sim.placement]``, with bed and supports (:meth:`cellctl.acquisition.simcell.PlateTruth.scene`).
+
+The truth (placement, plate, forming error) goes to ``<data_dir>/sim-truth.json``. On start the
+process prints one JSON line with its addresses on stdout; it runs until SIGTERM / SIGINT.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from cellctl.acquisition.poses import T_from_pos_rpy
+from cellctl.acquisition.simcell import PlateTruth, plate_truth
+from cellctl.config import CellConfig
+
+log = structlog.get_logger(__name__)
+
+
+class SimCellError(Exception):
+    """The simulated cell cannot start (port in use, bad [sim] values)."""
+
+
+def sim_plate_truth(cfg: CellConfig) -> PlateTruth:
+    """The formed plate of ``[sim.plate]`` at ``[sim.placement]`` (base frame, mm)."""
+    sp = cfg.sim.plate
+    return plate_truth(
+        sp.kind,
+        pos_mm=tuple(cfg.sim.placement.pos_mm),
+        angle_deg=cfg.sim.placement.angle_deg,
+        forming_error=sp.forming_error == "default",
+        length_mm=sp.length_mm,
+        width_mm=sp.width_mm,
+        thickness_mm=sp.thickness_mm,
+        radius_x_mm=sp.radius_x_mm,
+        radius_y_mm=sp.radius_y_mm,
+    )
+
+
+def truth_dict(cfg: CellConfig, truth: PlateTruth) -> dict[str, Any]:
+    """What ``sim-truth.json`` holds: plate spec, forming error, placement and the true hand-eye."""
+    return json.loads(
+        json.dumps(
+            {
+                "plate": asdict(truth.spec),
+                "forming_error": None if truth.error is None else asdict(truth.error),
+                "placement": {
+                    "pos_mm": list(cfg.sim.placement.pos_mm),
+                    "angle_deg": cfg.sim.placement.angle_deg,
+                },
+                "T_base_plate": truth.T_base_plate.tolist(),
+                "sensor_in_flange": cfg.robot.sensor_in_flange.model_dump(),
+                "written_utc_s": time.time(),
+            },
+            default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o),
+        )
+    )
+
+
+class SimulatedCell:
+    """Controller + sensor simulators looking at the formed plate. ``await start()``, ``await stop()``."""
+
+    def __init__(self, cfg: CellConfig, *, scene_pitch_mm: float = 4.0) -> None:
+        self.cfg = cfg
+        self.scene_pitch_mm = scene_pitch_mm
+        self.truth = sim_plate_truth(cfg)
+        self.controller: Any = None
+        self.sensor: Any = None
+
+    async def start(self) -> dict[str, Any]:
+        """Build the scene, start both simulators; returns their addresses."""
+        from drivers.abb_egm.controller_model import ControllerModel
+        from drivers.abb_egm.kinematics import fk_batch
+        from drivers.abb_egm.sim import ABB_DEFAULT_PASSWORD, ControllerSim, ControllerSimConfig
+        from drivers.abb_egm.sim_egm import EgmFaults, EgmSimConfig
+        from drivers.laser.sim import LaserSimulator, SimConfig
+
+        cfg, sim = self.cfg, self.cfg.sim
+        users = tuple((u, os.environ.get(env, ABB_DEFAULT_PASSWORD)) for u, env in sim.rws_users.items())
+        f = sim.faults
+        self.controller = ControllerSim(
+            ControllerSimConfig(
+                rws_port=sim.rws_port,
+                rws_profile=cfg.robot.rws_profile,
+                rws_users=users,
+                rws_max_sessions=sim.rws_max_sessions,
+            ),
+            EgmSimConfig(
+                sensor_host=cfg.robot.egm_host,
+                sensor_port=cfg.robot.egm_port,
+                cycle_s=sim.egm_cycle_ms * 1e-3,
+                q_start_deg=tuple(sim.egm_q_start_deg),
+                stream_when_idle=sim.egm_stream_when_idle,
+                ctrl_clock_offset_s=1000.0,
+                seed=sim.plate.seed,
+            ),
+            EgmFaults(
+                loss_fraction=f.egm_loss_fraction,
+                burst_ms=f.egm_burst_ms,
+                delay_ms=f.egm_delay_ms,
+                jitter_ms=f.egm_jitter_ms,
+                duplicate_fraction=f.egm_duplicate_fraction,
+                reorder_fraction=f.egm_reorder_fraction,
+                corrupt_fraction=f.egm_corrupt_fraction,
+                stop_sending=f.egm_stop_sending,
+                rx_loss_fraction=f.egm_rx_loss_fraction,
+            ),
+            model=ControllerModel(opmode=sim.opmode),
+        )
+        scene = await asyncio.to_thread(self.truth.scene, self.scene_pitch_mm)
+        mount = cfg.robot.sensor_in_flange
+        T_fs = T_from_pos_rpy(mount.pos_mm, mount.rpy_deg)
+        trajectory = self.controller.egm.trajectory
+
+        def pose_at(t_true_s: np.ndarray) -> np.ndarray:
+            t = np.asarray(t_true_s, dtype=np.float64)
+            ts, qs = trajectory.arrays()
+            if len(ts) < 2 or not (t > ts[-1]).any():
+                return trajectory.T_base_frame_at(t, T_fs)
+            # the controller's cycle fell behind the sensor's on a loaded machine: continue the
+            # arm's last joint velocity for those milliseconds (as SimCell does) rather than fail
+            late = t > ts[-1]
+            q = np.empty((len(t), 6))
+            if (~late).any():
+                q[~late] = trajectory.q_deg_at(t[~late])
+            v = (qs[-1] - qs[-2]) / max(ts[-1] - ts[-2], 1e-6)
+            q[late] = qs[-1] + v * (t[late] - ts[-1])[:, None]
+            return fk_batch(q, T_fs)
+
+        las = cfg.laser
+        self.sensor = LaserSimulator(
+            scene,
+            pose_at,
+            config=SimConfig(
+                width=las.points_per_profile,
+                x_pitch_mm=las.line_width_mm / las.points_per_profile,
+                z_min_mm=las.depth_min_mm,
+                z_max_mm=las.depth_max_mm,
+                rate_hz=las.rate_hz,
+                exposure_ns=round(las.exposure_us * 1000),
+                noise_sigma_mm=sim.depth_noise_mm,
+                outlier_probability=sim.outlier_fraction,
+                clock_drift_ppm=sim.clocks.sensor_drift_ppm,
+                network_jitter_s=sim.clocks.network_jitter_ms * 1e-3,
+                seed=sim.plate.seed,
+            ),
+            host=las.host,
+            control_port=las.control_port,
+            data_port=las.data_port,
+        )
+        try:
+            await self.controller.start()
+            now = time.monotonic()
+            # the sensor clock runs sensor_offset_ms ahead of the host's
+            self.sensor.jump_timestamp(
+                now * 1e6 + sim.clocks.sensor_offset_ms * 1e3 - float(self.sensor.sensor_time_us(now))
+            )
+            ctl, dat = await self.sensor.start()
+        except OSError as exc:
+            await self.stop()
+            raise SimCellError(f"cannot start the simulated cell: {exc}") from None
+        addresses = {**self.controller.addresses(), "laser": [las.host, ctl, dat]}
+        await asyncio.to_thread(self._write_truth)
+        log.info("sim_ready", **{k: str(v) for k, v in addresses.items()})
+        return addresses
+
+    def _write_truth(self) -> Path:
+        data_dir = Path(self.cfg.cell.data_dir)
+        data_dir.mkdir(parents=True, exist_ok=True)
+        path = data_dir / "sim-truth.json"
+        path.write_text(json.dumps(truth_dict(self.cfg, self.truth), indent=2), encoding="utf-8")
+        return path
+
+    async def stop(self) -> None:
+        """Stop the sensor first (it reads the controller's trajectory), then the controller."""
+        if self.sensor is not None:
+            with contextlib.suppress(Exception):
+                await self.sensor.stop()
+        if self.controller is not None:
+            with contextlib.suppress(Exception):
+                await self.controller.stop()
+
+
+async def run_sim(cfg: CellConfig) -> int:
+    """Run the simulated cell until SIGTERM / SIGINT; 0 on a clean stop, 2 if it cannot start."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop.set)
+    cell = SimulatedCell(cfg)
+    try:
+        addresses = await cell.start()
+    except SimCellError as exc:
+        log.error("sim_start_failed", error=str(exc))
+        return 2
+    # After start: the renderer processes already exist and keep normal priority.
+    from cellctl.daemon.service import use_realtime_loop
+
+    use_realtime_loop()
+    print(json.dumps({"ready": True, **addresses}), flush=True)
+    try:
+        await stop.wait()
+    finally:
+        await cell.stop()
+        log.info("sim_stopped")
+    return 0
+
+
+def main_sync(cfg: CellConfig) -> int:
+    """Blocking entry (the precise event loop keeps the 4 ms EGM cycle on time)."""
+    from drivers.abb_egm.sim_egm import precise_event_loop
+
+    with asyncio.Runner(loop_factory=precise_event_loop) as runner:
+        return runner.run(run_sim(cfg))
