@@ -297,6 +297,7 @@ class MotionExecutor:
         self._held = False
         self._joint_stop = False
         self._ff_qd: np.ndarray | None = None
+        self._last_sent_qd = np.zeros(6)
 
     #: trajectory time ahead of a ramp's start whose peaks bound the ramp (a ramp covers less)
     _RAMP_WINDOW_S = 1.5
@@ -684,13 +685,16 @@ class MotionExecutor:
                 return
             # fall back to the last accepted state and stop smoothly from it
             self._inp.current_position = last.tolist()
-            self._ref_q = last
+            self._inp.current_velocity = self._last_sent_qd.tolist()
+            self._inp.current_acceleration = [0.0] * 6
+            self._ref_q, self._ref_qd = last, self._last_sent_qd.copy()
             self._begin_fault_stop(f"envelope: {exc}")
-            self.endpoint.command_joints(last, self._ref_qd if self.config.feedforward else None)
+            self.endpoint.command_joints(last, self._last_sent_qd if self.config.feedforward else None)
             return
         ff = self._ff_qd if self._ff_qd is not None else qd
         self.endpoint.command_joints(q, ff if self.config.feedforward else None)
         self._ff_qd = None
+        self._last_sent_qd = np.array(qd, dtype=np.float64)
         self._tcp_hist.append(p)
         self._rec_t.append(t_host_ns / 1e9)
         self._rec_q.append(q.copy())
