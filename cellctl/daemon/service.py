@@ -86,6 +86,7 @@ class _Job:
         self.stage = "queued"
         self.worker_id: str | None = None
         self.stop_reason: str | None = None  # "shutdown" or "abort"
+        self.cloud: Any = None  # the live ScanCloud of a finished scan, until published
         self.task: asyncio.Task | None = None
 
 
@@ -465,7 +466,7 @@ class CellDaemon:
                 self.store.raw_dir(rec.job_id),
                 {"acquisition": acq_settings.to_json(), "job_id": rec.job_id, "plate_id": rec.plate_id},
             )
-            acq = Acquisition(acq_settings, writer, keep_batches=False)
+            acq = Acquisition(acq_settings, writer, keep_batches=True)
             executor = MotionExecutor.for_plan(
                 self.endpoint,
                 plan,
@@ -544,7 +545,11 @@ class CellDaemon:
                 "acquisition": json.loads(json.dumps(acq.quality(), default=_plain)),
             }
             if result.state == ExecState.FINISHED:
-                self.store.set_state(rec, JobState.SCANNING, "scan complete", **info)
+                # The live cloud is bit for bit what `cellctl reassemble --live` rebuilds from the raw
+                # files; rebuilding with whole-scan clock fits costs tens of seconds, so it is left to
+                # re-analysis (the report is due seconds after the last profile).
+                job.cloud = acq.cloud()
+                self.store.set_state(rec, JobState.SCANNING, "scan complete", cloud="live", **info)
                 return True
             if job.stop_reason == "shutdown":
                 self._job_state(
@@ -585,7 +590,6 @@ class CellDaemon:
     async def _analyse(self, job: _Job) -> None:
         """Rebuild the cloud from the raw files, publish it to the workers, store the report."""
         from analysis.report import write_report
-        from cellctl.acquisition.cloud_files import write_ply
         from cellctl.acquisition.reassemble import reassemble
         from cellctl.analysis_settings import inspection_settings_dict
         from cellctl.cloud_codec import Cloud, encode_cloud
@@ -599,8 +603,12 @@ class CellDaemon:
             self.sm.to(CellState.IDLE, f"job {rec.job_id} scanned; analysing")
         try:
             t0 = time.perf_counter()
-            res = await asyncio.to_thread(reassemble, self.store.raw_dir(rec.job_id))
-            pts = res.cloud.points()
+            scan_cloud = job.cloud
+            job.cloud = None
+            if scan_cloud is None:  # re-analysis: whole-scan clock fits from the raw files
+                scan_cloud = (await asyncio.to_thread(reassemble, self.store.raw_dir(rec.job_id))).cloud
+            pts = await asyncio.to_thread(scan_cloud.points)
+            del scan_cloud
             job.points = int(pts["xyz_mm"].shape[0])
             cloud = Cloud(
                 xyz_mm=pts["xyz_mm"].astype(np.float32),
@@ -613,7 +621,6 @@ class CellDaemon:
                 meta={"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": rec.placement},
             )
             payload = await asyncio.to_thread(encode_cloud, cloud)
-            await asyncio.to_thread(write_ply, res.cloud, self.store.job_dir(rec.job_id) / "cloud.ply")
             assemble_s = time.perf_counter() - t0
             params = {
                 "design": rec.design_path,
@@ -626,7 +633,9 @@ class CellDaemon:
                 cloud_bytes=len(payload), assemble_s=round(assemble_s, 3),
             )  # fmt: skip
             fut = self.dispatcher.submit(rec.job_id, rec.plate_id, payload, params)
-            del payload, cloud, pts, res
+            # the published bytes, kept with the job (cellctl.cloud_codec layout)
+            await asyncio.to_thread((self.store.job_dir(rec.job_id) / "cloud.bin").write_bytes, payload)
+            del payload, cloud, pts
             self._job_state(job, JobState.ANALYSING, "analysing")
             env = await fut
         except asyncio.CancelledError:
