@@ -115,6 +115,21 @@ class ExecutorConfig:
     progress_interval_s: float = 0.25
 
     @classmethod
+    def from_config(cls, cfg, **changes) -> ExecutorConfig:
+        """From a :class:`cellctl.config.CellConfig`: ``[robot]`` joint limits, ``tracking_error_max_mm``
+        and ``egm_watchdog_s`` (a controller silent this long has stalled)."""
+        r = cfg.robot
+        values = {
+            "joint_speed_max_deg_s": tuple(r.joint_speed_max_deg_s),
+            "joint_accel_max_deg_s2": tuple(r.joint_accel_max_deg_s2),
+            "joint_jerk_max_deg_s3": tuple(r.joint_jerk_max_deg_s3),
+            "tracking_error_max_mm": r.tracking_error_max_mm,
+            "feedback_timeout_s": r.egm_watchdog_s,
+        }
+        values.update(changes)
+        return cls(**values)
+
+    @classmethod
     def from_settings(cls, settings, **changes) -> ExecutorConfig:
         """Limits from :class:`cellctl.planning.PlannerSettings` (``cell.toml [robot]``)."""
         return cls(
@@ -413,7 +428,7 @@ class MotionExecutor:
         self._scaler.set_tau(0.0)
         while self.state not in _TERMINAL:
             try:
-                fb = await self.endpoint.wait_for_feedback(cfg.feedback_timeout_s)
+                fb = await self._next_feedback()
             except TimeoutError:
                 await self._stalled()
                 break
@@ -441,6 +456,21 @@ class MotionExecutor:
                 self._send(fb.t_host_ns, cycles)
             self._maybe_progress()
         return self._finish()
+
+    async def _next_feedback(self):
+        """The next feedback; TimeoutError when the controller is silent for ``feedback_timeout_s``.
+
+        One short grace wait follows a timeout: when this process itself was not scheduled for a
+        while, the controller's packets are already queued and arrive at once; only a controller
+        that stays silent through the grace is a stall.
+        """
+        cfg = self.config
+        try:
+            return await self.endpoint.wait_for_feedback(cfg.feedback_timeout_s)
+        except TimeoutError:
+            fb = await self.endpoint.wait_for_feedback(max(0.02, 0.5 * cfg.feedback_timeout_s))
+            log.warning("executor_feedback_late", timeout_s=cfg.feedback_timeout_s)
+            return fb
 
     async def _wait_commandable(self):
         deadline = time.monotonic() + self.config.start_timeout_s

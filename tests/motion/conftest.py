@@ -73,6 +73,19 @@ class Execution:
     sim: EgmControllerSim
     true_t_s: np.ndarray
     true_q_deg: np.ndarray
+    feedback_t_s: np.ndarray
+
+    def undisturbed(self, recovery_s: float = 0.6, gap_cycles: float = 3.0) -> np.ndarray:
+        """(n,) bool over the true trajectory: False within ``recovery_s`` after a gap of more than
+        ``gap_cycles`` EGM cycles in the feedback's arrival. Such a gap means this process (which
+        runs both the simulator and the executor) was not scheduled: the simulated arm then drifted
+        on its last reference, which says nothing about the executor."""
+        t = self.feedback_t_s
+        gaps = np.flatnonzero(np.diff(t) > gap_cycles * 0.004032)
+        ok = np.ones(self.true_t_s.shape, dtype=bool)
+        for g in gaps:
+            ok &= ~((self.true_t_s >= t[g]) & (self.true_t_s <= t[g + 1] + recovery_s))
+        return ok
 
 
 async def execute(
@@ -108,7 +121,8 @@ async def execute(
         await sim.stop()
         await endpoint.close()
     t, q = sim.trajectory.arrays()
-    return Execution(result, sim, t, q)
+    feedback_t_s = endpoint.history.arrays().t_host_ns / 1e9
+    return Execution(result, sim, t, q, feedback_t_s)
 
 
 async def wait_for_state(executor: MotionExecutor, state: str, timeout_s: float = 30.0) -> None:

@@ -113,3 +113,19 @@ def test_any_set_point_is_either_accepted_within_every_limit_or_rejected_with_a_
     assert np.all(np.abs(q - Q_HOME) <= LIMITS.joint_speed_max_deg_s * CYCLE_S * 1.001)
     p0 = fk_batch(Q_HOME[None], LIMITS.T_flange_tcp)[0, :3, 3]
     assert np.linalg.norm(p - p0) / CYCLE_S <= LIMITS.tcp_speed_max_mm_s * 1.001
+
+
+def test_executor_and_envelope_take_their_limits_from_cell_toml(repo_root):
+    from cellctl.config import load_config
+    from cellctl.motion import ExecutorConfig
+
+    cfg = load_config(repo_root / "cell.toml")
+    ex = ExecutorConfig.from_config(cfg)
+    assert ex.tracking_error_max_mm == cfg.robot.tracking_error_max_mm
+    assert ex.feedback_timeout_s == cfg.robot.egm_watchdog_s
+    assert ex.joint_jerk_max_deg_s3 == tuple(cfg.robot.joint_jerk_max_deg_s3)
+    limits = EnvelopeLimits.from_settings(PlannerSettings.from_config(cfg), CYCLE_S)
+    np.testing.assert_allclose(
+        limits.q_max_deg, np.asarray(cfg.robot.joint_upper_deg) - cfg.robot.joint_margin_deg
+    )
+    assert limits.tcp_speed_max_mm_s == cfg.robot.tcp_speed_max_mm_s

@@ -60,8 +60,9 @@ def within_limits_and_workspace(q: np.ndarray, settings: PlannerSettings) -> Non
 
 # The machine running the tests is shared: a descheduled test process makes the simulated arm drift
 # on its last reference for a while (as a real controller does when the sensor PC stalls). The
-# fault threshold is raised for the runs that must finish, and the path accuracy is asserted on 97 %
-# of the samples (undisturbed runs stay within about 0.2 mm everywhere).
+# fault threshold is raised for the runs that must finish, and the path accuracy is asserted outside
+# the recovery windows after such gaps (Execution.undisturbed); undisturbed runs stay within about
+# 0.2 mm everywhere.
 TOLERANT = ExecutorConfig.from_settings(SMALL_SETTINGS, tracking_error_max_mm=25.0)
 
 
@@ -78,9 +79,10 @@ def test_full_small_plate_plan_executes_within_one_millimetre_of_the_planned_pat
     assert r.state == ExecState.FINISHED, r.fault
     # from the moment the robot runs the plan (the move to the start is not part of the path)
     running = r.t_host_s[np.argmax(r.t_traj_s > 0)]
-    on_plan = ex.true_t_s >= running
+    on_plan = (ex.true_t_s >= running) & ex.undisturbed()
+    assert on_plan.sum() > 0.5 * (ex.true_t_s >= running).sum()  # most of the run was undisturbed
     dev = path_deviation_mm(small_plan, SMALL_SETTINGS, ex.true_q_deg[on_plan])
-    assert np.percentile(dev, 97) < 1.0, f"p97 {np.percentile(dev, 97):.3f} mm, max {dev.max():.3f} mm"
+    assert np.percentile(dev, 99) < 1.0, f"p99 {np.percentile(dev, 99):.3f} mm, max {dev.max():.3f} mm"
     assert np.median(dev) < 0.3
     within_limits_and_workspace(ex.true_q_deg, SMALL_SETTINGS)
     # every reference respects the jerk limits
@@ -117,8 +119,9 @@ def test_pause_then_resume_continues_the_pass_it_paused_in_with_jerk_limited_sto
     # held still while paused
     assert np.max(np.abs(seen["q_after_wait"] - seen["q_paused"])) < 0.05
     # the stop happened on the path: the true sensor stays on the planned path throughout
-    dev = path_deviation_mm(small_plan, SMALL_SETTINGS, ex.true_q_deg[len(ex.true_q_deg) // 4 :])
-    assert np.percentile(dev, 97) < 1.0
+    late = np.arange(ex.true_t_s.size) >= ex.true_t_s.size // 4  # after the move to the start
+    dev = path_deviation_mm(small_plan, SMALL_SETTINGS, ex.true_q_deg[late & ex.undisturbed()])
+    assert np.percentile(dev, 99) < 1.0
     assert np.all(max_reference_jerk(r) <= 1.05 * np.asarray(SMALL_SETTINGS.joint_jerk_max_deg_s3))
     within_limits_and_workspace(ex.true_q_deg, SMALL_SETTINGS)
 
@@ -239,8 +242,8 @@ def test_full_sail_plate_plan_executes_on_the_simulator():
     r = ex.result
     assert r.state == ExecState.FINISHED, r.fault
     running = r.t_host_s[np.argmax(r.t_traj_s > 0)]
-    dev = path_deviation_mm(sail_plan, settings, ex.true_q_deg[ex.true_t_s >= running])
-    assert np.percentile(dev, 97) < 1.0 and np.median(dev) < 0.3
+    dev = path_deviation_mm(sail_plan, settings, ex.true_q_deg[(ex.true_t_s >= running) & ex.undisturbed()])
+    assert np.percentile(dev, 99) < 1.0 and np.median(dev) < 0.3
     within_limits_and_workspace(ex.true_q_deg, settings)
 
 
