@@ -1,0 +1,105 @@
+"""A simulated cell in real processes (`cellctl sim`, `cellctl run`, `cellctl worker`) for the e2e tests.
+
+Uniquely named (not conftest) so the tests can import it. Everything binds loopback ports that were
+free a moment ago; every process is stopped by its own pid.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from analysis.mesh import save_mesh
+from analysis.plates import design_mesh, plate_spec
+from cellctl.commands.demo_cmd import DEMO_DESIGN, Processes, _wait_ready_line, demo_config, to_toml
+from cellctl.config import load_config
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def tiny_cell_config(out: Path, **plate: float) -> Path:
+    """A cell.toml for a 300 x 200 mm sail plate scanned at 2 mm profile spacing (a scan of ~20 s)."""
+    base = load_config(REPO / "cell.toml").model_dump(mode="json")
+    cfg = demo_config(base, out)
+    cfg["sim"]["plate"].update(length_mm=plate.get("length_mm", 300.0), width_mm=plate.get("width_mm", 200.0))
+    cfg["scan"].update(profile_spacing_mm=plate.get("profile_spacing_mm", 2.0))
+    cfg["analysis"].update(
+        transverse_count=2, transverse_spacing_mm=80.0, longitudinal_count=1, longitudinal_spacing_mm=100.0,
+        ack_timeout_s=5.0, heartbeat_timeout_s=5.0,
+    )  # fmt: skip
+    (out / "designs").mkdir(parents=True, exist_ok=True)
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    path = out / "cell.toml"
+    path.write_text(to_toml(cfg), encoding="utf-8")
+    c = load_config(path)
+    sp = c.sim.plate
+    spec = plate_spec(sp.kind, length_mm=sp.length_mm, width_mm=sp.width_mm, thickness_mm=sp.thickness_mm,
+                      radius_x_mm=sp.radius_x_mm, radius_y_mm=sp.radius_y_mm)  # fmt: skip
+    save_mesh(design_mesh(spec, pitch_mm=5.0), out / "designs" / DEMO_DESIGN)
+    return path
+
+
+class Cell:
+    """The processes of one simulated cell plus a client session to it."""
+
+    def __init__(self, out: Path, config: Path) -> None:
+        self.out = out
+        self.config_path = config
+        self.cfg = load_config(config)
+        env = dict(os.environ)
+        env.setdefault("CELL_RWS_PASSWORD", "robotics")
+        env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+        self.procs = Processes(out / "logs", config, env)
+
+    def start(self, *, sim: bool = True, run: bool = True, worker: bool = True) -> None:
+        if sim:
+            p = self.procs.start("sim", "sim")
+            _wait_ready_line(self.out / "logs" / "sim.out", p, 120.0)
+        if run:
+            self.procs.start("run", "run")
+        if worker:
+            self.procs.start("worker", "worker")
+
+    def proc(self, name: str):
+        return next(p for n, p in self.procs.procs if n == name)
+
+    def stop(self) -> dict[str, Any]:
+        return self.procs.stop_all()
+
+    @property
+    def jobs_dir(self) -> Path:
+        return Path(self.cfg.cell.data_dir) / "jobs"
+
+    def job_record(self, job_id: str) -> dict[str, Any]:
+        return json.loads((self.jobs_dir / job_id / "job.json").read_text())
+
+
+async def open_client(cfg) -> Any:
+    """A client session to the daemon, retried until it listens (60 s)."""
+    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, open_session
+
+    deadline = time.monotonic() + 60.0
+    while True:
+        try:
+            return await asyncio.to_thread(
+                open_session, build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)
+            )
+        except ZenohSetupError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.5)
+
+
+async def wait_status(follower, pred, timeout_s: float = 90.0):
+    """Wait until ``pred(CellStatus)`` holds; returns that status."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        st = follower.latest
+        if st is not None and pred(st):
+            return st
+        await follower.next(0.5)
+    raise TimeoutError(f"status condition not met within {timeout_s} s; last {follower.latest}")

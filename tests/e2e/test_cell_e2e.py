@@ -1,0 +1,114 @@
+"""End to end through Zenoh on loopback, real processes: sim, daemon, worker.
+
+One module-scoped cell serves the trigger tests and the scan; the slow scan is marked ``slow``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import pytest
+from e2e_cell import Cell, open_client, tiny_cell_config, wait_status
+
+from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+from cellctl.commands.demo_cmd import DEMO_DESIGN
+from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
+from cellctl.zenoh_session import close_session
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cell")
+    c = Cell(out, tiny_cell_config(out))
+    c.start()
+    try:
+        yield c
+    finally:
+        codes = c.stop()
+        # every process ended by itself on SIGTERM
+        assert all(code == 0 for code in codes.values()), (codes, (out / "logs").as_posix())
+
+
+def _trigger(cell: Cell, **changes) -> dict:
+    pl = cell.cfg.sim.placement
+    req = {"plate_id": "e2e-plate", "design": DEMO_DESIGN,
+           "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]}}  # fmt: skip
+    req.update(changes)
+    return req
+
+
+def _run(coro):
+    return asyncio.run(coro)
+
+
+def test_malformed_oversized_and_unknown_field_triggers_each_get_an_error_and_change_nothing(cell: Cell):
+    async def go():
+        session = await open_client(cell.cfg)
+        keys = Keys(cell.cfg.key_prefix)
+        follower = StatusFollower(session, keys)
+        try:
+            await wait_status(follower, lambda s: s.state.value == "idle")
+            bad = {
+                "malformed": b"{not json",
+                "too_large": json.dumps(_trigger(cell, note="x" * 20000)).encode(),
+                "unknown": json.dumps({**_trigger(cell), "speed": 5}).encode(),
+                "outside": json.dumps(_trigger(cell, design="../cell.toml")).encode(),
+                "missing": json.dumps(_trigger(cell, design="nope.ply")).encode(),
+            }
+            codes = {}
+            for name, payload in bad.items():
+                with pytest.raises(ApiCallError) as exc:
+                    await call(session, keys.trigger, payload, TriggerAccepted, timeout_s=10.0)
+                codes[name] = (exc.value.error.code, exc.value.error.field)
+            st = await wait_status(follower, lambda s: True)
+            return codes, st
+        finally:
+            follower.close()
+            await asyncio.to_thread(close_session, session)
+
+    codes, st = _run(go())
+    assert codes["malformed"] == ("malformed", "payload")
+    assert codes["too_large"] == ("too_large", "payload")
+    assert codes["unknown"] == ("invalid", "speed")
+    assert codes["outside"][0] == "invalid" and codes["outside"][1] == "design"
+    assert codes["missing"] == ("design_not_found", "design")
+    assert st.state.value == "idle" and st.job is None
+    assert not cell.jobs_dir.exists() or not any(cell.jobs_dir.iterdir())
+
+
+def test_scan_is_analysed_by_the_worker_and_a_trigger_while_busy_is_refused(cell: Cell):
+    async def go():
+        session = await open_client(cell.cfg)
+        keys = Keys(cell.cfg.key_prefix)
+        follower = StatusFollower(session, keys)
+        try:
+            await wait_status(follower, lambda s: s.state.value == "idle" and s.workers)
+            acc = await call(session, keys.trigger, json.dumps(_trigger(cell)), TriggerAccepted)
+            with pytest.raises(ApiCallError) as busy:
+                await call(session, keys.trigger, json.dumps(_trigger(cell, plate_id="second")), TriggerAccepted)
+            state, message, report = await wait_for_job(follower, acc.job_id, 240.0)
+            return acc, busy.value, state, message, report
+        finally:
+            follower.close()
+            await asyncio.to_thread(close_session, session)
+
+    acc, busy, state, message, report = _run(go())
+    assert busy.error.code == "busy" and acc.job_id in busy.error.message
+    assert state == "done", message
+    rec = cell.job_record(acc.job_id)
+    assert rec["state"] == "done"
+    states = [h["state"] for h in rec["history"]]
+    assert states.index("planning") < states.index("scanning") < states.index("analysing") < states.index("done")
+    job_dir = cell.jobs_dir / acc.job_id
+    assert (job_dir / "raw" / "profiles.craw").stat().st_size > 0
+    stored = json.loads((job_dir / "report.json").read_text())
+    assert stored["job_id"] == acc.job_id and stored["verdict"] in ("pass", "fail")
+    assert report is not None and report["verdict"] == stored["verdict"]
+    assert [line["family"] for line in stored["lines"]].count("transverse") == 2
+    assert rec["info"]["profiles"] > 1000 and Path(message).exists()
+    # only one job was created: the refused trigger left nothing behind
+    assert [p.name for p in cell.jobs_dir.iterdir()] == [acc.job_id]
