@@ -161,6 +161,15 @@ def _check_size(design_c: np.ndarray, measured_c: np.ndarray, tol: float) -> Non
         )
 
 
+def placement_transform(x_mm: float, y_mm: float, angle_deg: float) -> np.ndarray:
+    """4x4 design -> bed transform of a nominal placement: design origin at (x, y), turned about z."""
+    a = np.radians(angle_deg)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    T[:2, 3] = [x_mm, y_mm]
+    return T
+
+
 def plate_frame(design_corners: np.ndarray) -> np.ndarray:
     """4x4 transform design frame -> plate frame (origin corner 0, x along edge 0->1, z up)."""
     x = design_corners[1, :2] - design_corners[0, :2]
@@ -174,26 +183,30 @@ def plate_frame(design_corners: np.ndarray) -> np.ndarray:
     return T
 
 
-def _filled_cells(points_mm: np.ndarray, cell_mm: float) -> int:
+def _hole_fraction(points_mm: np.ndarray, cell_mm: float) -> float:
+    """Empty cells lying between filled ones (left and right, or above and below), per filled cell."""
     ij = np.floor((points_mm[:, :2] - points_mm[:, :2].min(axis=0)) / cell_mm).astype(np.int64)
-    ny = int(ij[:, 1].max()) + 1
-    return int(np.count_nonzero(np.bincount(ij[:, 0] * ny + ij[:, 1])))
+    nx, ny = int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1
+    occ = (np.bincount(ij[:, 0] * ny + ij[:, 1], minlength=nx * ny) > 0).reshape(nx, ny)
+    inner = ~occ[1:-1, 1:-1]
+    holes = inner & ((occ[:-2, 1:-1] & occ[2:, 1:-1]) | (occ[1:-1, :-2] & occ[1:-1, 2:]))
+    return float(holes.sum() / max(occ.sum(), 1))
 
 
 def surface_cell_mm(
-    points_mm: np.ndarray, area_mm2: float, finest_mm: float, min_points: int = 16, fill: float = 0.95
+    points_mm: np.ndarray, area_mm2: float, finest_mm: float, min_points: int = 16, max_holes: float = 0.01
 ) -> float:
     """The height-grid cell size for the measured surface.
 
     Large enough that a cell averages about ``min_points`` scan points (the noise of a cell mean is
     the sensor noise / sqrt(min_points), so the template rests on the plate, not on its noise), and
-    large enough that the scan fills ``fill`` of the plate's area (a coarse scan needs larger cells,
-    else section planes fall through holes). Never finer than ``finest_mm``.
+    large enough that the scan leaves no holes between filled cells (a coarse scan needs larger
+    cells, else section planes fall through). Never finer than ``finest_mm``.
     """
     density = len(points_mm) / max(area_mm2, 1.0)
     cell = max(finest_mm, float(np.sqrt(min_points / max(density, 1e-9))))
     for _ in range(12):
-        if _filled_cells(points_mm, cell) * cell * cell >= fill * area_mm2:
+        if _hole_fraction(points_mm, cell) <= max_holes:
             break
         cell *= 1.25
     return cell
@@ -264,11 +277,15 @@ def inspect_cloud(
     job_id: str = "",
     cell_id: str = "",
     inputs: dict[str, Any] | None = None,
+    nominal_placement: tuple[float, float, float] | None = None,
 ) -> Inspection:
     """Inspect one scanned plate against its design; see the module docstring for the stages.
 
     Raises InspectionError (and the stages' own ValueError subclasses: NoPlateError,
     BoundaryError, RegistrationError, TemplateError, MetricsError) with a message a user can act on.
+    nominal_placement: (x_mm, y_mm, angle_deg) of the design frame's origin and x axis on the bed, as
+    the operator laid the plate; optional, it decides which corner is the reference when the design
+    is symmetric under a half turn (else the bed convention decides, see register()).
     """
     settings = settings or InspectionSettings()
     timings: dict[str, float] = {}
@@ -293,7 +310,8 @@ def inspect_cloud(
     measured_mesh = height_grid_mesh(seg.points_mm, cell_mm)
     lap("surface")
     # The fits run on the reconstructed surface (cell means): every cell of the plate, denoised.
-    reg = register(surface, measured_mesh.vertices_mm, design_c, bnd.corners_mm)
+    nominal = placement_transform(*nominal_placement) if nominal_placement is not None else None
+    reg = register(surface, measured_mesh.vertices_mm, design_c, bnd.corners_mm, nominal_transform=nominal)
     lap("register")
 
     T = reg.transform  # design -> measured
@@ -494,8 +512,10 @@ def analyse_job(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, 
         design = load_mesh(design_path)
     except MeshError as exc:
         raise InspectionError(str(exc)) from None
+    placement = job.get("placement")
     ins = inspect_cloud(
         sc, design, InspectionSettings.from_dict(job.get("analysis")),
+        nominal_placement=tuple(placement) if placement else None,
         plate_id=str(job.get("plate_id", "")), job_id=str(job.get("job_id", "")),
         cell_id=str(job.get("cell_id", "")), inputs={"design": str(design_path)},
     )  # fmt: skip

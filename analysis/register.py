@@ -39,6 +39,10 @@ from analysis.mesh import TriMesh
 log = structlog.get_logger(__name__)
 
 
+TIE_RELATIVE = 0.01  # candidate ICP fits within 1 % (plus TIE_ABSOLUTE_MM) of the best are a tie
+TIE_ABSOLUTE_MM = 0.002
+
+
 class RegistrationError(ValueError):
     """Inputs that cannot be registered: wrong shapes, no overlap with the design, degenerate corners."""
 
@@ -1029,6 +1033,7 @@ def register(
     icp_points: int = 100_000,
     boundary_weight: float = 1e-3,
     nonpen_cell_mm: float | None = None,
+    nominal_transform: np.ndarray | None = None,
     seed: int = 0,
 ) -> RegistrationResult:
     """Coarse fit (all corner shifts), ICP per candidate, best ICP kept, then the non-penetrating fit.
@@ -1039,6 +1044,8 @@ def register(
     The candidates' ICP runs on a 20,000-point subsample; the winner is refined on ``icp_points``.
     ICP and the non-penetrating fit keep the plate anchored in its own plane by the matched corners
     (``boundary_weight``, see :func:`icp_point_to_plane`); 0 turns that off.
+    ``nominal_transform``: the operator's nominal placement (4x4 design -> measured); it only
+    breaks ties between equally good fits of a symmetric design (which corner is the reference).
     ``nonpen_cell_mm``: None rests the design on every measured point; a cell size (1 mm for HD8
     scans) rests it on the :func:`grid_average` cell means instead -- the noise no longer lifts
     the design and 10^7 points cost what 10^6 do; penetration is then counted on the cell means.
@@ -1074,7 +1081,17 @@ def register(
         raise RegistrationError(
             "no corner correspondence gives an ICP fit: the cloud does not match the design"
         )
-    best_shift = min(trials, key=lambda k: trials[k][0])
+    # A design symmetric under a half turn fits both ways equally well: the corner labelling (and with
+    # it the line numbering) must then not depend on noise. Ties go to the candidate whose rotation is
+    # nearest the nominal placement when one is given, else to the lowest shift (the measured corners'
+    # own order: corner 0 starts the long edge pointing along the bed's +x).
+    best_rms = min(v[0] for v in trials.values())
+    tied = [k for k, v in trials.items() if v[0] <= best_rms * (1.0 + TIE_RELATIVE) + TIE_ABSOLUTE_MM]
+    if nominal_transform is not None and len(tied) > 1:
+        R_nom = _check_transform("nominal_transform", nominal_transform)[:3, :3]
+        best_shift = min(tied, key=lambda k: (-float(np.trace(R_nom.T @ trials[k][1].transform[:3, :3])), k))
+    else:
+        best_shift = min(tied)
     _, coarse, icp0 = trials[best_shift]
     anchor = dict(
         design_corners_mm=D, measured_corners_mm=matched[best_shift], boundary_weight=boundary_weight

@@ -9,6 +9,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from cellctl.config import ConfigError, load_config
 
 
@@ -22,6 +24,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("cloud", help="scan cloud: .ply (organised or not), .pcd, .xyz/.csv/.txt, .npz (mm)")
     p.add_argument("--design", required=True, help="design top-surface mesh: .ply, .stl or .obj (mm)")
     p.add_argument("--out", required=True, help="results directory (created)")
+    p.add_argument(
+        "--placement",
+        default=None,
+        metavar="X,Y,ANGLE_DEG",
+        help="nominal placement of the design on the bed (mm, mm, deg); optional, it decides the "
+        "reference corner of a design that is symmetric under a half turn",
+    )
     p.add_argument("--plate-id", default="", help="plate id for the report (default: the cloud's file name)")
     p.add_argument(
         "--config", default=None, help="cell.toml for [analysis] settings (default: ./cell.toml if present)"
@@ -45,6 +54,10 @@ def run(args: argparse.Namespace) -> int:
     from cellctl.config import AnalysisSection
     from cellctl.tables import line_table
 
+    try:
+        placement = _parse_placement(args.placement) if args.placement else None
+    except ValueError as exc:
+        return _fail(str(exc))
     cfg_path = args.config or ("cell.toml" if Path("cell.toml").is_file() else None)
     try:
         section = load_config(cfg_path).analysis if cfg_path else AnalysisSection()
@@ -57,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
             cloud, design, inspection_settings(section),
             plate_id=args.plate_id or Path(args.cloud).stem,
             inputs={"cloud": str(args.cloud), "design": str(args.design)},
+            nominal_placement=placement,
         )  # fmt: skip
     except ValueError as exc:  # every analysis error type is a ValueError with a readable message
         return _fail(str(exc))
@@ -71,3 +85,14 @@ def run(args: argparse.Namespace) -> int:
         print(line_table(ins.report))
         print(f"report: {files.get('report.html', files['report.json'])}")
     return 0 if ins.report["verdict"] == "pass" else 1
+
+
+def _parse_placement(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise ValueError(f"--placement {text!r}: expected X_MM,Y_MM,ANGLE_DEG, three numbers")
+    return values  # type: ignore[return-value]

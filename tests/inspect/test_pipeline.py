@@ -76,3 +76,24 @@ def test_known_dent_depth_is_found_on_the_lines_through_it() -> None:
     for name in ("T3", "L2"):
         assert abs(by_name[name]["zmax_mm"] - h) < 0.1, (name, by_name[name]["zmax_mm"])
     assert ins.report["registration"]["penetration_points"] == 0
+
+
+@pytest.mark.slow
+def test_the_same_plate_scanned_five_times_repeats_zmax_within_0_05_mm() -> None:
+    from analysis.plates import default_forming_error
+
+    spec = plate_spec("sail", length_mm=600, width_mm=400)
+    error = default_forming_error(spec)
+    design = design_mesh(spec, pitch_mm=2.0)
+    zmax = []
+    for seed in range(5):  # every seed: new noise, outliers and a new random placement on the bed
+        st = ScanSettings.coarse(point_pitch_mm=0.5, points_per_profile=100, profile_step_mm=1.0)
+        scan = synthesize_scan(spec, error, settings=st, seed=10 + seed)
+        T = scan.T_bed_design  # the operator's nominal placement: which end is the reference corner
+        nominal = (T[0, 3], T[1, 3], float(np.degrees(np.arctan2(T[1, 0], T[0, 0]))))
+        report = inspect_cloud(scan.cloud, design, SETTINGS, nominal_placement=nominal).report
+        zmax.append([line["zmax_mm"] for line in report["lines"]])
+    spread = np.ptp(np.array(zmax), axis=0)
+    assert spread.max() < 0.05, dict(
+        zip([f"line{i}" for i in range(len(spread))], spread.round(3), strict=True)
+    )
