@@ -128,8 +128,10 @@ def design_corners_from_mesh(design: TriMesh) -> np.ndarray:
     """
     tri = design.triangles
     edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
-    uniq, counts = np.unique(edges, axis=0, return_counts=True)
-    border = np.unique(uniq[counts == 1])
+    key = edges[:, 0] * len(design.vertices_mm) + edges[:, 1]  # one int64 per edge: a 1-D unique
+    uniq, counts = np.unique(key, return_counts=True)
+    once = uniq[counts == 1]
+    border = np.unique(np.concatenate([once // len(design.vertices_mm), once % len(design.vertices_mm)]))
     if len(border) < 4:
         raise InspectionError(
             "the design mesh has no open boundary: is it a closed solid, not a top surface?"
@@ -340,15 +342,16 @@ def inspect_cloud(
     verdict = judge(metrics, settings.tolerances)
     lap("metrics")
 
-    gaps, _, _, valid = deflection_gaps(surface, seg.points_mm, T)
+    gaps, _, _, valid = deflection_gaps(surface, seg.points_mm, T, geometry=False)
     deviation = np.where(valid, gaps, np.nan)
-    s_gaps, _, _, s_valid = deflection_gaps(surface, measured_mesh.vertices_mm, T)
+    s_gaps, _, _, s_valid = deflection_gaps(surface, measured_mesh.vertices_mm, T, geometry=False)
     surface_deviation = np.where(s_valid, s_gaps, np.nan)
     sigma = max(seg.noise_sigma_mm, 1e-6)
     raw_below = int(np.count_nonzero(valid & (gaps < -4.0 * sigma)))
     T_design_measured = invert_transform(T)
-    pts_design = seg.points_mm @ T_design_measured[:3, :3].T + T_design_measured[:3, 3]
-    coverage, holes_design = _coverage_holes(design, pts_design[:, :2], HOLE_CELL_MM)
+    # Coverage from the reconstructed surface: its cells are finer than the hole cells.
+    surf_design = measured_mesh.vertices_mm @ T_design_measured[:3, :3].T + T_design_measured[:3, 3]
+    coverage, holes_design = _coverage_holes(design, surf_design[:, :2], HOLE_CELL_MM)
     T_plate_design = plate_frame(design_c)
     holes_plate = holes_design @ T_plate_design[:2, :2].T + T_plate_design[:2, 3]
     lap("deviation_map")
