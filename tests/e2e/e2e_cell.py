@@ -22,11 +22,11 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def tiny_cell_config(out: Path, **plate: float) -> Path:
-    """A cell.toml for a 300 x 200 mm sail plate scanned at 2 mm profile spacing (a scan of ~20 s)."""
+    """A cell.toml for a 300 x 200 mm sail plate scanned at 1.5 mm profile spacing (a scan of ~30 s)."""
     base = load_config(REPO / "cell.toml").model_dump(mode="json")
     cfg = demo_config(base, out)
     cfg["sim"]["plate"].update(length_mm=plate.get("length_mm", 300.0), width_mm=plate.get("width_mm", 200.0))
-    cfg["scan"].update(profile_spacing_mm=plate.get("profile_spacing_mm", 2.0))
+    cfg["scan"].update(profile_spacing_mm=plate.get("profile_spacing_mm", 1.5))
     cfg["analysis"].update(
         transverse_count=2, transverse_spacing_mm=80.0, longitudinal_count=1, longitudinal_spacing_mm=100.0,
         ack_timeout_s=5.0, heartbeat_timeout_s=5.0,

@@ -89,7 +89,9 @@ def test_scan_is_analysed_by_the_worker_and_a_trigger_while_busy_is_refused(cell
             await wait_status(follower, lambda s: s.state.value == "idle" and s.workers)
             acc = await call(session, keys.trigger, json.dumps(_trigger(cell)), TriggerAccepted)
             with pytest.raises(ApiCallError) as busy:
-                await call(session, keys.trigger, json.dumps(_trigger(cell, plate_id="second")), TriggerAccepted)
+                await call(
+                    session, keys.trigger, json.dumps(_trigger(cell, plate_id="second")), TriggerAccepted
+                )
             state, message, report = await wait_for_job(follower, acc.job_id, 240.0)
             return acc, busy.value, state, message, report
         finally:
@@ -102,7 +104,9 @@ def test_scan_is_analysed_by_the_worker_and_a_trigger_while_busy_is_refused(cell
     rec = cell.job_record(acc.job_id)
     assert rec["state"] == "done"
     states = [h["state"] for h in rec["history"]]
-    assert states.index("planning") < states.index("scanning") < states.index("analysing") < states.index("done")
+    assert (
+        states.index("planning") < states.index("scanning") < states.index("analysing") < states.index("done")
+    )
     job_dir = cell.jobs_dir / acc.job_id
     assert (job_dir / "raw" / "profiles.craw").stat().st_size > 0
     stored = json.loads((job_dir / "report.json").read_text())
