@@ -1,0 +1,30 @@
+"""The demo's derived configuration: a valid cell.toml on fresh loopback ports."""
+
+from __future__ import annotations
+
+from cellctl.commands.demo_cmd import demo_config, to_toml
+from cellctl.config import load_config
+
+
+def test_demo_config_round_trips_through_toml_with_loopback_ports_and_the_small_plate(tmp_path, repo_root):
+    base = load_config(repo_root / "cell.toml").model_dump(mode="json")
+    cfg = demo_config(base, tmp_path)
+    path = tmp_path / "cell.toml"
+    path.write_text(to_toml(cfg))
+    c = load_config(path)
+    assert c.zenoh.listen[0].startswith("tcp/127.0.0.1:") and c.zenoh.listen != base["zenoh"]["listen"]
+    assert c.robot.rws_url == f"http://127.0.0.1:{c.sim.rws_port}"
+    assert (c.sim.plate.length_mm, c.sim.plate.width_mm) == (600.0, 400.0)
+    assert c.cell.data_dir == tmp_path / "data"
+    assert c.sim.rws_users == base["sim"]["rws_users"]
+    full = load_config_from(tmp_path, demo_config(base, tmp_path, full=True))
+    assert (full.sim.plate.length_mm, full.scan.profile_spacing_mm) == (
+        1200.0,
+        base["scan"]["profile_spacing_mm"],
+    )
+
+
+def load_config_from(d, cfg):
+    p = d / "full.toml"
+    p.write_text(to_toml(cfg))
+    return load_config(p)
