@@ -63,13 +63,15 @@ class DaemonSettings:
     status_period_s: periodic state publication. feedback_timeout_s: wait for the controller's first
     EGM packet after the program started. marker_period_s: how often the pass markers are checked
     against the executor's playback time and the feedback history is handed to the acquisition
-    (a pass boundary lands within this of its planned time, on a link where nothing is measured). write_html_report: render report.html / .pdf after the
+    (a pass boundary lands within this of its planned time, on a link where nothing is measured).
+    settle_s: sensor streaming before the arm moves (clock fits, sensor start-up). write_html_report: render report.html / .pdf after the
     worker's results arrive. realtime: run the event loop under SCHED_FIFO when permitted.
     """
 
     status_period_s: float = 1.0
     feedback_timeout_s: float = 5.0
     marker_period_s: float = 0.01
+    settle_s: float = 1.0
     write_html_report: bool = True
     realtime: bool = True
 
@@ -516,6 +518,9 @@ class CellDaemon:
 
             consumer = asyncio.create_task(consume(), name="hd8-consumer")
             await client.start()
+            # The arm waits while the clock fits gather their first pairs (and a sensor that has just
+            # started streaming settles) before the first reference moves it.
+            await asyncio.sleep(self.settings.settle_s)
             self.sm.to(CellState.SCANNING, f"scanning job {rec.job_id}")
             self._job_state(job, JobState.SCANNING)
             feeder = asyncio.create_task(mark_and_feed(), name="pass-marker")

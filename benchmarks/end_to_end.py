@@ -1,0 +1,137 @@
+"""End-to-end benchmark: the simulated 1200 x 800 mm sail plate with the HD8 settings of cell.toml.
+
+Starts `cellctl sim`, `cellctl run` and `cellctl worker` as separate processes (loopback ports, data
+in a temporary directory), triggers one scan over Zenoh and waits for the report. Reports:
+
+* ``scan_s``: the daemon's execution of the plan (first to last reference, approach to retract);
+* ``report_after_last_profile_s``: from the last profile of the scan to the report stored with the job;
+* ``total_s``: from the trigger to the report stored;
+* ``daemon_peak_mb`` / ``worker_peak_mb``: peak resident memory (VmHWM) of the daemon and of the
+  worker with its analysis child process;
+* plus the plan's figures, profile and point counts and the analysis timings.
+
+Targets (issue 8): report <= 15 s after the last profile, total <= 4.5 min.
+Usage: ``python benchmarks/end_to_end.py [--small] [--keep DIR]``; ``--small`` runs the demo's
+600 x 400 mm plate instead. Prints one JSON object; the processes' logs stay in the work directory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+
+def _peak_mb(pid: int) -> float:
+    """VmHWM of a live process and its children (the worker's analysis child), MB."""
+    total = 0.0
+    pids = [pid]
+    try:
+        children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+        pids += [int(c) for c in children]
+    except OSError:
+        pass
+    for p in pids:
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmHWM:"):
+                    total += int(line.split()[1]) / 1024.0
+        except OSError:
+            continue
+    return round(total, 1)
+
+
+def main() -> int:
+    from analysis.mesh import save_mesh
+    from analysis.plates import design_mesh, plate_spec
+    from cellctl.commands.demo_cmd import (
+        DEMO_DESIGN,
+        Processes,
+        _drive,
+        _wait_ready_line,
+        demo_config,
+        to_toml,
+    )
+    from cellctl.config import load_config
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument(
+        "--small", action="store_true", help="the demo's 600 x 400 mm plate instead of the full one"
+    )
+    p.add_argument("--keep", default=None, help="work directory to keep (default: a temporary one)")
+    p.add_argument("--config", default=str(REPO / "cell.toml"))
+    args = p.parse_args()
+    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="cellctl-e2e-bench-"))
+    (work / "logs").mkdir(parents=True, exist_ok=True)
+    (work / "designs").mkdir(parents=True, exist_ok=True)
+    cfg_dict = demo_config(load_config(args.config).model_dump(mode="json"), work, full=not args.small)
+    cfg_path = work / "cell.toml"
+    cfg_path.write_text(to_toml(cfg_dict))
+    cfg = load_config(cfg_path)
+    sp = cfg.sim.plate
+    spec = plate_spec(sp.kind, length_mm=sp.length_mm, width_mm=sp.width_mm, thickness_mm=sp.thickness_mm,
+                      radius_x_mm=sp.radius_x_mm, radius_y_mm=sp.radius_y_mm)  # fmt: skip
+    save_mesh(design_mesh(spec, pitch_mm=5.0), work / "designs" / DEMO_DESIGN)
+    env = dict(os.environ)
+    env.setdefault("CELL_RWS_PASSWORD", "robotics")
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    procs = Processes(work / "logs", cfg_path, env)
+    peaks: dict[str, float] = {}
+    try:
+        sim = procs.start("sim", "sim")
+        _wait_ready_line(work / "logs" / "sim.out", sim, 180.0)
+        daemon = procs.start("run", "run")
+        worker = procs.start("worker", "worker")
+        t0 = time.time()
+
+        async def drive():
+            task = asyncio.ensure_future(_drive(cfg_dict, cfg, procs, 3600.0))
+            while not task.done():  # sample peaks while the worker's analysis child is alive
+                peaks["daemon"] = max(peaks.get("daemon", 0.0), _peak_mb(daemon.pid))
+                peaks["worker"] = max(peaks.get("worker", 0.0), _peak_mb(worker.pid))
+                await asyncio.sleep(0.5)
+            return task.result()
+
+        sys.stdout, real_stdout = sys.stderr, sys.stdout  # the progress lines go to stderr
+        try:
+            job_id, report, _ = asyncio.run(drive())
+        finally:
+            sys.stdout = real_stdout
+        peaks["daemon"] = max(peaks["daemon"], _peak_mb(daemon.pid))
+        peaks["worker"] = max(peaks["worker"], _peak_mb(worker.pid))
+    finally:
+        procs.stop_all()
+    rec = json.loads((Path(cfg.cell.data_dir) / "jobs" / job_id / "job.json").read_text())
+    info = rec["info"]
+    created = rec["history"][0]["t_utc"]
+    out = {
+        "plate_mm": [sp.length_mm, sp.width_mm],
+        "scan_s": info["scan_s"],
+        "report_after_last_profile_s": round(info["report_utc_s"] - info["last_profile_utc_s"], 2),
+        "total_s": round(info["report_utc_s"] - t0, 2),
+        "daemon_peak_mb": peaks["daemon"],
+        "worker_peak_mb": peaks["worker"],
+        "planned_scan_s": info["plan"]["scan_time_s"],
+        "sweep_time_s": info["plan"]["sweep_time_s"],
+        "profiles": info["profiles"],
+        "points": info.get("points"),
+        "assemble_s": info.get("assemble_s"),
+        "analysis_timings_s": info.get("analysis_timings_s"),
+        "verdict": report.get("verdict") if report else None,
+        "job_created_utc": created,
+        "work_dir": str(work),
+    }
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
