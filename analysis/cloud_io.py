@@ -29,7 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CloudError", "ScanCloud", "read_cloud", "write_cloud_npz", "write_cloud_ply"]
+__all__ = [
+    "CloudError",
+    "ScanCloud",
+    "read_cloud",
+    "write_cloud_npz",
+    "write_cloud_ply",
+    "write_ply_vertices",
+]
 
 TEXT_SUFFIXES = {".xyz", ".txt", ".csv", ".asc", ".pts"}
 SUFFIXES = {".ply", ".pcd", ".npz", *TEXT_SUFFIXES}
@@ -252,23 +259,42 @@ def _read_npz(path: Path) -> ScanCloud:
         return ScanCloud(pts)
 
 
-def write_cloud_ply(cloud: ScanCloud, path: str | Path) -> Path:
-    """Write ``cloud`` as binary PLY: x, y, z float32 and, if organised, pass, profile, point int32."""
+_PLY_TYPES = {"f4": "float", "f8": "double", "i4": "int", "u4": "uint", "i2": "short", "u2": "ushort",
+              "i1": "char", "u1": "uchar"}  # fmt: skip
+
+
+def write_ply_vertices(path: str | Path, columns: dict[str, np.ndarray], comment: str = "") -> Path:
+    """Binary little-endian PLY of one vertex element: one property per column, in order.
+
+    columns: name -> (n,) array; each keeps its dtype (float32, float64, int32, uint16, ...).
+    """
     path = Path(path)
-    n = len(cloud)
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if cloud.organised:
-        fields += [("pass", "<i4"), ("profile", "<i4"), ("point", "<i4")]
-    rec = np.empty(n, dtype=np.dtype(fields))
-    rec["x"], rec["y"], rec["z"] = cloud.points_mm.T
-    if cloud.organised:
-        rec["pass"], rec["profile"], rec["point"] = cloud.pass_id, cloud.profile, cloud.point
-    props = "".join(f"property {'float' if t == '<f4' else 'int'} {name}\n" for name, t in fields)
-    header = f"ply\nformat binary_little_endian 1.0\ncomment cellctl scan cloud, mm\nelement vertex {n}\n{props}end_header\n"
+    arrays = {name: np.asarray(a) for name, a in columns.items()}
+    lengths = {len(a) for a in arrays.values()}
+    if len(lengths) != 1:
+        raise CloudError(f"{path}: PLY columns of different lengths {sorted(lengths)}")
+    dtype = np.dtype([(name, a.dtype.newbyteorder("<")) for name, a in arrays.items()])
+    rec = np.empty(lengths.pop(), dtype=dtype)
+    props = ""
+    for name, a in arrays.items():
+        rec[name] = a
+        props += f"property {_PLY_TYPES[a.dtype.str[1:]]} {name}\n"
+    head = "ply\nformat binary_little_endian 1.0\n" + (f"comment {comment}\n" if comment else "")
+    head += f"element vertex {len(rec)}\n{props}end_header\n"
     with path.open("wb") as f:
-        f.write(header.encode("ascii"))
+        f.write(head.encode("ascii"))
         f.write(rec.tobytes())
     return path
+
+
+def write_cloud_ply(cloud: ScanCloud, path: str | Path) -> Path:
+    """Write ``cloud`` as binary PLY: x, y, z float32 and, if organised, pass, profile, point int32."""
+    p = cloud.points_mm.astype(np.float32)
+    cols = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]}
+    if cloud.organised:
+        cols |= {"pass": cloud.pass_id.astype(np.int32), "profile": cloud.profile.astype(np.int32),
+                 "point": cloud.point.astype(np.int32)}  # fmt: skip
+    return write_ply_vertices(path, cols, "cellctl scan cloud, mm")
 
 
 def write_cloud_npz(cloud: ScanCloud, path: str | Path) -> Path:

@@ -41,7 +41,7 @@ import numpy as np
 import structlog
 
 from analysis.boundary import BoundaryResult, find_corners
-from analysis.cloud_io import ScanCloud
+from analysis.cloud_io import ScanCloud, write_ply_vertices
 from analysis.mesh import MeshError, TriMesh, load_mesh
 from analysis.metrics import LineMetrics, Tolerances, Verdict, judge, line_metrics
 from analysis.plates import canonical_corner_order
@@ -434,19 +434,9 @@ def inspect_cloud(
 
 def write_cloud_ply_with_deviation(points_mm: np.ndarray, deviation_mm: np.ndarray, path: Path) -> Path:
     """Binary PLY: float32 x, y, z (mm) and float32 ``deviation`` (mm; NaN where off the design)."""
-    n = len(points_mm)
-    rec = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("deviation", "<f4")])
-    rec["x"], rec["y"], rec["z"] = points_mm[:, 0], points_mm[:, 1], points_mm[:, 2]
-    rec["deviation"] = deviation_mm
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment cellctl registered cloud, design frame, mm\n"
-        f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
-        "property float deviation\nend_header\n"
-    )
-    with path.open("wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(rec.tobytes())
-    return path
+    p = points_mm.astype(np.float32)
+    cols = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "deviation": deviation_mm.astype(np.float32)}
+    return write_ply_vertices(path, cols, "cellctl registered cloud, design frame, mm")
 
 
 def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
