@@ -14,16 +14,17 @@ from cellctl.commands import (
     worker_cmd,
 )
 
+# The order `cellctl --help` lists them in: the cell, then offline tools, then maintenance.
 COMMAND_MODULES = [
-    config_cmd,
-    acquire_cmd,
-    synth_cmd,
-    inspect_cmd,
-    worker_cmd,
-    report_cmd,
-    plan_cmd,
-    run_cmd,
-    sim_cmd,
-    scan_cmd,
     demo_cmd,
+    sim_cmd,
+    run_cmd,
+    worker_cmd,
+    scan_cmd,  # scan, status, watch
+    plan_cmd,
+    inspect_cmd,
+    synth_cmd,
+    report_cmd,
+    acquire_cmd,  # reassemble, calibrate
+    config_cmd,
 ]
