@@ -55,10 +55,10 @@ def main() -> int:
     from cellctl.commands.demo_cmd import (
         DEMO_DESIGN,
         Processes,
-        _drive,
-        _wait_ready_line,
         demo_config,
+        drive_scan,
         to_toml,
+        wait_ready_line,
     )
     from cellctl.config import load_config
 
@@ -87,13 +87,13 @@ def main() -> int:
     peaks: dict[str, float] = {}
     try:
         sim = procs.start("sim", "sim")
-        _wait_ready_line(work / "logs" / "sim.out", sim, 180.0)
+        wait_ready_line(work / "logs" / "sim.out", sim, 180.0)
         daemon = procs.start("run", "run")
         worker = procs.start("worker", "worker")
         t0 = time.time()
 
         async def drive():
-            task = asyncio.ensure_future(_drive(cfg_dict, cfg, procs, 3600.0))
+            task = asyncio.ensure_future(drive_scan(cfg_dict, cfg, procs, 3600.0))
             while not task.done():  # sample peaks while the worker's analysis child is alive
                 peaks["daemon"] = max(peaks.get("daemon", 0.0), _peak_mb(daemon.pid))
                 peaks["worker"] = max(peaks.get("worker", 0.0), _peak_mb(worker.pid))

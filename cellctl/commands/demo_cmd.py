@@ -157,7 +157,8 @@ class Processes:
         return codes
 
 
-def _wait_ready_line(path: Path, proc: subprocess.Popen, timeout_s: float) -> dict:
+def wait_ready_line(path: Path, proc: subprocess.Popen, timeout_s: float) -> dict:
+    """Wait for `cellctl sim`'s ready line (JSON with its addresses) in its stdout file."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -172,9 +173,13 @@ def _wait_ready_line(path: Path, proc: subprocess.Popen, timeout_s: float) -> di
     raise DemoError(f"the simulated cell was not ready within {timeout_s} s; see {path.with_suffix('.log')}")
 
 
-async def _drive(
+async def drive_scan(
     cfg_dict: dict[str, Any], cfg: Any, procs: Processes, timeout_s: float
 ) -> tuple[str, dict | None, str]:
+    """Wait for the daemon and a worker, trigger the scan of the simulated plate, wait for its report.
+
+    Returns ``(job_id, report or None, the report's path)``; raises DemoError on any failure.
+    """
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
     from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
     from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, close_session, open_session
@@ -279,10 +284,10 @@ def run(args: argparse.Namespace) -> int:
     )
     try:
         sim = procs.start("sim", "sim")
-        _wait_ready_line(out / "logs" / "sim.out", sim, 120.0)
+        wait_ready_line(out / "logs" / "sim.out", sim, 120.0)
         procs.start("run", "run")
         procs.start("worker", "worker")
-        job_id, report, message = asyncio.run(_drive(cfg_dict, cfg, procs, args.timeout_s))
+        job_id, report, message = asyncio.run(drive_scan(cfg_dict, cfg, procs, args.timeout_s))
         if report is not None:
             print(line_table(report))
         print(f"report: {message}")

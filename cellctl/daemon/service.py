@@ -311,7 +311,23 @@ class CellDaemon:
     async def _on_trigger(self, query: Any) -> None:
         await handle_trigger(query, self.designs_dir, self._accept)
 
+    async def _ctrl_state(self) -> str:
+        """The controller's state through RWS ("" when it cannot be read)."""
+        try:
+            return await self.rws.get_ctrl_state()
+        except Exception as exc:
+            log.warning("rws_state_unreadable", error=str(exc))
+            return ""
+
     async def _accept(self, req: TriggerRequest, design_path: Path) -> TriggerAccepted:
+        if self.sm.state == CellState.EMERGENCY_STOPPED:
+            # leave the e-stop state only once the controller says it was released and reset
+            ctrl = await self._ctrl_state()
+            if ctrl in ("", "emergencystop"):
+                raise TriggerError(
+                    "not_allowed", "payload", "the controller is emergency-stopped; release and reset it"
+                )
+            self.sm.to(CellState.IDLE, f"emergency stop reset (controller {ctrl})")
         if self.sm.state in (CellState.STARTING, CellState.STOPPING, CellState.EMERGENCY_STOPPED):
             raise TriggerError("not_allowed", "payload", f"the cell is {self.sm.state.value}")
         if self._scan_job is not None:
@@ -565,7 +581,11 @@ class CellDaemon:
             else:
                 self._job_state(job, JobState.FAILED, f"motion fault: {result.fault}", **info)
                 if self.sm.state != CellState.STOPPING:
-                    self.sm.to(CellState.FAULTED, f"motion fault: {result.fault}")
+                    ctrl = await self._ctrl_state()
+                    if ctrl == "emergencystop":
+                        self.sm.to(CellState.EMERGENCY_STOPPED, f"emergency stop during job {rec.job_id}")
+                    else:
+                        self.sm.to(CellState.FAULTED, f"motion fault: {result.fault}")
             return False
         finally:
             job.executor = None
@@ -593,8 +613,17 @@ class CellDaemon:
         self._publish()
 
     async def _analyse(self, job: _Job) -> None:
-        """Rebuild the cloud from the raw files, publish it to the workers, store the report."""
-        from analysis.report import write_report
+        """Publish the cloud to the workers and store the report; any failure fails the job (logged),
+        it never leaves the job hanging."""
+        try:
+            await self._analyse_inner(job)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            log.exception("job_analysis_failed", job_id=job.record.job_id)
+            self._job_state(job, JobState.FAILED, f"{type(exc).__name__}: {exc}")
+
+    async def _analyse_inner(self, job: _Job) -> None:
         from cellctl.acquisition.reassemble import reassemble
         from cellctl.analysis_settings import inspection_settings_dict
         from cellctl.cloud_codec import Cloud, encode_cloud
@@ -664,6 +693,8 @@ class CellDaemon:
         report_path = jd / "report.json"
         if self.settings.write_html_report and (self.store.results_dir(rec.job_id) / "report.json").exists():
             try:
+                from analysis.report import write_report
+
                 paths = await asyncio.to_thread(write_report, self.store.results_dir(rec.job_id))
                 html = [p for p in paths if Path(p).suffix == ".html"]
                 if html:

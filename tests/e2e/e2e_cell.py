@@ -15,7 +15,7 @@ from typing import Any
 
 from analysis.mesh import save_mesh
 from analysis.plates import design_mesh, plate_spec
-from cellctl.commands.demo_cmd import DEMO_DESIGN, Processes, _wait_ready_line, demo_config, to_toml
+from cellctl.commands.demo_cmd import DEMO_DESIGN, Processes, demo_config, to_toml, wait_ready_line
 from cellctl.config import load_config
 
 REPO = Path(__file__).resolve().parents[2]
@@ -58,7 +58,7 @@ class Cell:
     def start(self, *, sim: bool = True, run: bool = True, worker: bool = True) -> None:
         if sim:
             p = self.procs.start("sim", "sim")
-            _wait_ready_line(self.out / "logs" / "sim.out", p, 120.0)
+            wait_ready_line(self.out / "logs" / "sim.out", p, 120.0)
         if run:
             self.procs.start("run", "run")
         if worker:
