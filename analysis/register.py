@@ -29,6 +29,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import cached_property
 from itertools import pairwise
 
 import numpy as np
@@ -171,45 +172,76 @@ class HeightField:
         ok = np.isfinite(z)
         return np.column_stack([self.x0_mm + i[ok] * self.step_mm, self.y0_mm + j[ok] * self.step_mm, z[ok]])
 
+    @cached_property
+    def cells(self) -> np.ndarray:
+        """(ny - 1) * nx rows of bilinear coefficients ``(a, b, c, d)``, one row per grid cell, mm.
+
+        Row ``j * nx + i`` describes the cell whose lower-left node is (j, i): the height at the cell
+        coordinates (ax, ay) in [0, 1)^2 is ``a + b ax + c ay + d ax ay``. The last column's rows are
+        NaN (no cell to their right). One gather of a 32-byte row per point replaces four scattered
+        node reads -- the lookup of a million points is memory-bound.
+        """
+        z = self.z_mm
+        ny, nx = self.shape
+        tab = np.full((ny - 1, nx, 4), np.nan)
+        tab[:, :-1, 0] = z[:-1, :-1]
+        tab[:, :-1, 1] = z[:-1, 1:] - z[:-1, :-1]
+        tab[:, :-1, 2] = z[1:, :-1] - z[:-1, :-1]
+        tab[:, :-1, 3] = (z[1:, 1:] - z[1:, :-1]) - tab[:, :-1, 1]
+        return tab.reshape(-1, 4)
+
     def evaluate(self, xy_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bilinear lookup at (n, 2) positions, mm.
 
         Returns ``(z_mm (n,), slope (n, 2) dz/dx and dz/dy, valid (n,) bool)``; invalid points (off
         the footprint) have z = slope = 0.
         """
+        xy_mm = np.asarray(xy_mm, dtype=np.float64)
+        z, sx, sy, valid = self.lookup(xy_mm[:, 0], xy_mm[:, 1])
+        return z, np.column_stack([sx, sy]), valid
+
+    def lookup(
+        self, x_mm: np.ndarray, y_mm: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Bilinear lookup at positions given as two (n,) coordinate arrays, mm.
+
+        Returns ``(z_mm, dz/dx, dz/dy, valid)``, each (n,); invalid points (off the footprint) have
+        z = slope = 0. The column form of :meth:`evaluate`, without (n, 2) temporaries.
+        """
         ny, nx = self.shape
-        h = self.step_mm
-        fx = (xy_mm[:, 0] - self.x0_mm) * (1.0 / h)
-        fy = (xy_mm[:, 1] - self.y0_mm) * (1.0 / h)
+        inv_h = 1.0 / self.step_mm
+        fx = x_mm - self.x0_mm
+        fx *= inv_h
+        fy = y_mm - self.y0_mm
+        fy *= inv_h
         valid = (fx >= 0) & (fx < nx - 1) & (fy >= 0) & (fy < ny - 1)
-        # clip instead of masking: invalid points read a harmless cell and are zeroed below
-        ix = np.clip(fx, 0, nx - 2).astype(np.intp)
-        iy = np.clip(fy, 0, ny - 2).astype(np.intp)
-        ax = fx - ix
-        ay = fy - iy
-        k = iy * nx
-        k += ix
-        flat = self.z_mm.reshape(-1)
-        z00 = np.take(flat, k)
-        z10 = np.take(flat, k + 1)
-        k += nx
-        z01 = np.take(flat, k)
-        z11 = np.take(flat, k + 1)
-        z10 -= z00  # now the x-differences along the cell's lower and upper edges
-        z11 -= z01
-        zb = z00 + z10 * ax
-        zt = z01 + z11 * ax
-        slope = np.empty((len(zb), 2))
-        slope[:, 0] = (z10 + (z11 - z10) * ay) * (1.0 / h)
-        zt -= zb
-        slope[:, 1] = zt * (1.0 / h)
-        z = zb + zt * ay
+        # truncate, then clip: invalid points read a harmless cell and are zeroed below
+        ix = fx.astype(np.intp)
+        np.clip(ix, 0, nx - 2, out=ix)
+        iy = fy.astype(np.intp)
+        np.clip(iy, 0, ny - 2, out=iy)
+        fx -= ix  # now the cell coordinates ax, ay
+        fy -= iy
+        iy *= nx
+        iy += ix
+        coef = np.take(self.cells, iy, axis=0)
+        a, b, c, d = coef.T
+        sx = d * fy
+        sx += b
+        sy = d * fx
+        sy += c
+        z = sx * fx
+        z += a
+        z += c * fy
+        sx *= inv_h
+        sy *= inv_h
         valid &= np.isfinite(z)
         bad = ~valid
         if bad.any():
             z[bad] = 0.0
-            slope[bad] = 0.0
-        return z, slope, valid
+            sx[bad] = 0.0
+            sy[bad] = 0.0
+        return z, sx, sy, valid
 
 
 def height_field_from_mesh(mesh: TriMesh, step_mm: float = 1.0, pad_mm: float = 20.0) -> HeightField:
@@ -580,24 +612,61 @@ def deflection_gaps(
     are wanted. Large clouds are split over a small thread pool: numpy releases the GIL on whole
     arrays, so both cores work, and the answer is the same.
     """
+    g = _ray_gaps(surface, measured_points_mm, T_meas_design, up, newton_steps, geometry)
+    if not geometry:
+        return g.gap_mm, None, None, g.valid
+    m = g.tilt.T
+    return g.gap_mm, g.q_design_mm.T, m / np.linalg.norm(m, axis=1, keepdims=True), g.valid
+
+
+@dataclass(frozen=True)
+class _RayGaps:
+    """Gaps along the deflection direction in the column layout the fit works in.
+
+    gap_mm (n,); valid (n,) bool; q_design_mm (3, n) the ray/surface intersections, design frame;
+    tilt (3, n) the surface normals scaled to a unit z component, ``(-dz/dx, -dz/dy, 1)`` (the
+    Jacobian needs only their direction over their projection on the ray, so no square root).
+    The geometry rows are None when not asked for.
+    """
+
+    gap_mm: np.ndarray
+    valid: np.ndarray
+    q_design_mm: np.ndarray | None = None
+    tilt: np.ndarray | None = None
+
+
+def _ray_gaps(
+    surface: HeightField,
+    measured_points_mm: np.ndarray,
+    T_meas_design: np.ndarray,
+    up: np.ndarray,
+    newton_steps: int,
+    geometry: bool,
+) -> _RayGaps:
+    """:func:`deflection_gaps` in column layout, split over the thread pool for large clouds."""
     n = len(measured_points_mm)
+    T_inv = invert_transform(np.asarray(T_meas_design, dtype=np.float64))
+    up = np.asarray(up, dtype=np.float64)
+    u = T_inv[:3, :3] @ (up / np.linalg.norm(up))
+    _ = surface.cells  # build the shared table once, before the threads read it
     workers = _gap_workers()
     if workers < 2 or n < 2 * _PARALLEL_MIN_POINTS:
-        return _gaps_serial(surface, measured_points_mm, T_meas_design, up, newton_steps, geometry)
+        return _ray_gaps_serial(surface, measured_points_mm, T_inv, u, newton_steps, geometry)
     bounds = np.linspace(0, n, workers + 1).astype(int)
     parts = list(
         _gap_pool().map(
-            lambda ab: _gaps_serial(
-                surface, measured_points_mm[ab[0] : ab[1]], T_meas_design, up, newton_steps, geometry
+            lambda ab: _ray_gaps_serial(
+                surface, measured_points_mm[ab[0] : ab[1]], T_inv, u, newton_steps, geometry
             ),
             pairwise(bounds),
         )
     )
-    s = np.concatenate([p[0] for p in parts])
-    valid = np.concatenate([p[3] for p in parts])
+    s = np.concatenate([p.gap_mm for p in parts])
+    valid = np.concatenate([p.valid for p in parts])
     if not geometry:
-        return s, None, None, valid
-    return s, np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]), valid
+        return _RayGaps(s, valid)
+    q = np.concatenate([p.q_design_mm for p in parts], axis=1)
+    return _RayGaps(s, valid, q, np.concatenate([p.tilt for p in parts], axis=1))
 
 
 _PARALLEL_MIN_POINTS = 100_000
@@ -615,33 +684,47 @@ def _gap_pool() -> ThreadPoolExecutor:
     return _POOL
 
 
-def _gaps_serial(
+def _ray_gaps_serial(
     surface: HeightField,
     measured_points_mm: np.ndarray,
-    T_meas_design: np.ndarray,
-    up: np.ndarray = np.array([0.0, 0.0, 1.0]),
-    newton_steps: int = 2,
-    geometry: bool = True,
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
-    """:func:`deflection_gaps` on one block of points, in the calling thread."""
-    T_inv = invert_transform(T_meas_design)
-    p = apply_transform(T_inv, measured_points_mm)
-    u = T_inv[:3, :3] @ (np.asarray(up, dtype=np.float64) / np.linalg.norm(up))
-    # Newton on F(s) = f(p_xy + s u_xy) - (p_z + s u_z); the ray is within a few degrees of the
-    # design's z, so two steps leave an error of order slope change * tilt^2, far below a nanometre
-    s = np.zeros(len(p))
-    slope = np.zeros((len(p), 2))
-    valid = np.ones(len(p), dtype=bool)
-    for _ in range(newton_steps):
-        xy = p[:, :2] + s[:, None] * u[:2]
-        z, slope, ok = surface.evaluate(xy)
-        valid = ok if _ == 0 else valid & ok
-        F = z - (p[:, 2] + s * u[2])
-        s = s - F / (slope[:, 0] * u[0] + slope[:, 1] * u[1] - u[2])
+    T_inv: np.ndarray,
+    u: np.ndarray,
+    newton_steps: int,
+    geometry: bool,
+) -> _RayGaps:
+    """Gaps of one block of points, in the calling thread. T_inv: (4, 4) measured -> design;
+    u: (3,) the unit deflection direction in the design frame."""
+    # (3, 3) @ (3, n): one BLAS call, and each coordinate row comes out contiguous
+    p = T_inv[:3, :3] @ np.asarray(measured_points_mm, dtype=np.float64).T
+    p += T_inv[:3, 3:4]
+    px, py, pz = p
+    ux, uy, uz = float(u[0]), float(u[1]), float(u[2])
+    # Newton on F(s) = f(p_xy + s u_xy) - (p_z + s u_z) from s = 0; the ray is within a few degrees
+    # of the design's z, so two steps leave an error of order slope change * tilt^2, far below a
+    # nanometre. The first step reads the surface at p_xy itself.
+    z, sx, sy, valid = surface.lookup(px, py)
+    F = z - pz
+    den = sx * ux
+    den += sy * uy
+    den -= uz
+    s = F / den
+    np.negative(s, out=s)
+    for _ in range(1, newton_steps):
+        z, sx, sy, ok = surface.lookup(px + s * ux, py + s * uy)
+        valid &= ok
+        F = z - (pz + s * uz)
+        den = sx * ux
+        den += sy * uy
+        den -= uz
+        s -= F / den
     if not geometry:
-        return s, None, None, valid
-    q = p + s[:, None] * u
-    return s, q, _surface_normals(slope), valid
+        return _RayGaps(s, valid)
+    q = p + np.outer(u, s)
+    tilt = np.empty_like(p)
+    np.negative(sx, out=tilt[0])
+    np.negative(sy, out=tilt[1])
+    tilt[2] = 1.0
+    return _RayGaps(s, valid, q, tilt)
 
 
 def _active_set_qp(
@@ -892,20 +975,36 @@ def _onesided_iterations(
     trust, x_prev = float(trust_mm), np.zeros(6)
     for it in range(1, max_iterations + 1):
         # the linearisation only needs one Newton step; the caller checks with two
-        s, q, n, valid = deflection_gaps(surface, P, T, up, newton_steps=1)
-        if not valid.all():
+        g = _ray_gaps(surface, P, T, up, 1, True)
+        s, q, m = g.gap_mm, g.q_design_mm, g.tilt
+        if not g.valid.all():
             # a point slid off the footprint edge during the fit: keep it out from now on
-            P, s, q, n = P[valid], s[valid], q[valid], n[valid]
+            P, s, q, m = P[g.valid], s[g.valid], q[:, g.valid], m[:, g.valid]
         T_inv = invert_transform(T)
         u = T_inv[:3, :3] @ up
-        c = q.mean(axis=0)
-        scale = float(np.sqrt(((q - c) ** 2).sum(axis=1).mean())) or 1.0
-        nu = n[:, 0] * u[0] + n[:, 1] * u[1] + n[:, 2] * u[2]
-        J = np.empty((len(s), 6))
-        J[:, :3] = np.cross(q - c, n) / (-scale * nu[:, None])
-        J[:, 3:] = n / -nu[:, None]
+        c = q.mean(axis=1)
+        d = q - c[:, None]
+        scale = float(np.sqrt(np.einsum("ij,ij->", d, d) / len(s))) or 1.0
+        # J = -[(q - c) x n, n] / (n . u): the normal's length cancels, so the unnormalised tilt
+        # (-dz/dx, -dz/dy, 1) serves; rows (6, n) so that J^T J is one BLAS call
+        w = m[0] * u[0]
+        w += m[1] * u[1]
+        w += u[2]
+        np.reciprocal(w, out=w)
+        np.negative(w, out=w)
+        J6 = np.empty((6, len(s)))
+        dx, dy, dz = d
+        np.multiply(dz, m[1], out=J6[0])
+        np.subtract(dy, J6[0], out=J6[0])
+        np.multiply(dz, m[0], out=J6[1])
+        J6[1] -= dx
+        np.multiply(dx, m[1], out=J6[2])
+        J6[2] -= dy * m[0]
+        J6[:3] *= w * (1.0 / scale)
+        np.multiply(m, w, out=J6[3:])
+        J = J6.T
         lift = np.concatenate([np.zeros(3), -u])  # moving the points down along u lifts every gap by 1
-        damping = DAMPING * float(np.einsum("ij,ij->", J, J)) / 6.0
+        damping = DAMPING * float(np.einsum("ij,ij->", J6, J6)) / 6.0
         K, e = _corner_terms(T_inv, corners, c, scale, boundary_weight * len(s) / 8.0)
         x, steps, active = _solve_onesided_qp(J, s, lift, damping, K, e, box=trust)
         qp_steps += steps
