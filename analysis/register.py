@@ -918,14 +918,7 @@ def nonpenetrating_fit(
         )
         qp_steps += steps
         it_total += its
-    # exact feasibility: a lift along `up` raises every gap by exactly the lift (the ray meets the
-    # surface at the same point), so the worst remaining round-off penetration is lifted away
-    s, valid = s[now], valid[now]
-    lift = -float(s[valid].min())
-    if lift > 0.0:
-        T = make_transform(np.eye(3), (lift + 1e-9) * up) @ T
-        s, _, _, valid = deflection_gaps(surface, P[now], T, up, geometry=False)
-    s = s[valid]
+    T, s = _settle(surface, P, np.flatnonzero(now), s[now], T, up)
     objective = float((s**2).sum())
     result = NonPenetratingResult(
         transform=T,
@@ -949,6 +942,40 @@ def nonpenetrating_fit(
         rms_mm=round(result.rms_mm, 5),
     )
     return result
+
+
+# the lowest gap after the fit: far above the gaps' round-off (1e-13 mm), far below anything that
+# costs (the whole cloud's objective rises by 2 * sum(gap) * margin, 1e-9 of itself)
+CONTACT_MARGIN_MM = 1e-9
+# gaps below this after the final shift are recomputed from scratch rather than shifted
+_RECHECK_MM = 1e-3
+
+
+def _settle(
+    surface: HeightField, P: np.ndarray, idx: np.ndarray, s: np.ndarray, T: np.ndarray, up: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Shift the design along ``up`` until its lowest gap over ``P[idx]`` is CONTACT_MARGIN_MM.
+
+    P: (N, 3) mm, measured frame; idx: (n,) the points that count; s: (n,) their exact gaps at ``T``. A shift along ``up`` changes every gap by exactly the
+    shift (the ray meets the surface at the same point), so a lift removes the round-off
+    penetration the linearised steps leave and a drop removes the float they leave; either way the
+    design ends in contact and the objective is the lowest of all poses along ``up`` that penetrate
+    nowhere. The shifted gaps are taken as computed, except the few near contact, which decide
+    feasibility: those are evaluated afresh (and any shortfall lifted again). Returns ``(T, gaps)``.
+    """
+    s = s.copy()
+    keep = np.ones(len(s), dtype=bool)
+    for _ in range(4):
+        shift = CONTACT_MARGIN_MM - float(s[keep].min())
+        T = make_transform(np.eye(3), shift * up) @ T
+        s += shift
+        near = np.flatnonzero(keep & (s < _RECHECK_MM))
+        g = _ray_gaps(surface, P[idx[near]], T, up, 2, False)
+        s[near] = g.gap_mm
+        keep[near] = g.valid  # a point exactly on the footprint's edge may round either way
+        if s[keep].min() >= 0.0:
+            break
+    return T, s[keep]
 
 
 def _onesided_iterations(
