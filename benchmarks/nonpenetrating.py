@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
 
@@ -183,6 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         "baseline_1e6_message": base_full_msg,
         "design_prep_s": round(design_prep_s, 3),
         "noise_mm": args.noise_mm,
+        # the machine is shared: wall time depends on the load, CPU time (both gap threads) far less
+        "load_avg_1min": round(os.getloadavg()[0], 2),
     }
     print(json.dumps(out))
     return 0
