@@ -1,5 +1,5 @@
-"""SIGTERM during a scan: smooth stop, exit 0, raw data complete, job interrupted; after a restart the
-job is re-analysed from its raw files."""
+"""Pause and resume over Zenoh; SIGTERM during a scan: smooth stop, exit 0, raw data complete, job
+interrupted; after a restart the job is re-analysed from its raw files."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 from cellctl.acquisition.reassemble import reassemble
-from cellctl.api import Keys, TriggerAccepted, call
+from cellctl.api import ControlReply, Keys, TriggerAccepted, call
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
 from cellctl.zenoh_session import async_get, close_session
@@ -19,7 +19,7 @@ from cellctl.zenoh_session import async_get, close_session
 pytestmark = pytest.mark.slow
 
 
-def test_sigterm_mid_scan_interrupts_the_job_with_its_raw_data_and_a_restart_reanalyses_it(tmp_path):
+def test_pause_resume_then_sigterm_mid_scan_interrupts_the_job_and_a_restart_reanalyses_it(tmp_path):
     cell = Cell(tmp_path, tiny_cell_config(tmp_path))
     keys = Keys(cell.cfg.key_prefix)
     pl = cell.cfg.sim.placement
@@ -34,6 +34,20 @@ def test_sigterm_mid_scan_interrupts_the_job_with_its_raw_data_and_a_restart_rea
             try:
                 await wait_status(follower, lambda s: s.state.value == "idle")
                 acc = await call(session, keys.trigger, json.dumps(req), TriggerAccepted)
+                await wait_status(
+                    follower,
+                    lambda s: s.job is not None and s.job.state.value == "scanning" and s.job.fraction > 0.2,
+                )
+                # pause and resume over Zenoh: the arm stops on the path and goes on from there
+                paused = await call(session, keys.control("pause"), b"", ControlReply)
+                assert paused.job_id == acc.job_id
+                st = await wait_status(follower, lambda s: s.state.value == "paused", timeout_s=20.0)
+                held = st.job.fraction
+                await asyncio.sleep(1.0)
+                assert follower.latest.state.value == "paused"
+                assert abs(follower.latest.job.fraction - held) < 0.01
+                await call(session, keys.control("resume"), b"", ControlReply)
+                await wait_status(follower, lambda s: s.state.value == "scanning", timeout_s=20.0)
                 await wait_status(
                     follower,
                     lambda s: s.job is not None and s.job.state.value == "scanning" and s.job.fraction > 0.5,
