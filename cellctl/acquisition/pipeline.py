@@ -252,7 +252,7 @@ class Acquisition:
         self.stats.robot_samples_dropped += int((~keep).sum())
         if keep.any():
             # FK once per sample (250 Hz), not once per profile: profiles blend the bracketing poses
-            self._track_T.extend((fk_batch(q[keep]) @ self._T_fs)[:, :3, :])
+            self._track_T.extend(fk_batch(q[keep], self._T_fs)[:, :3, :])
             self._track_t.extend(t[keep])
         return self._drain()
 
@@ -379,7 +379,8 @@ class Acquisition:
             )
         self._next_profile += len(t_ns)
         self.stats.profiles_assembled += len(t_ns)
-        self.stats.profiles_without_pose += int((~ab.valid.any(axis=1) & batch.valid.any(axis=1)).sum())
+        if ab.valid is not batch.valid:  # (the same array when every profile had a pose)
+            self.stats.profiles_without_pose += int((~ab.valid.any(axis=1) & batch.valid.any(axis=1)).sum())
         if self.keep_batches:
             self._batches.append(ab)
         return ab
@@ -399,8 +400,9 @@ def _batch_arrays(batch: ProfileBatch) -> dict[str, np.ndarray]:
         "width": np.int64(batch.width),
     }
     x = batch.x_mm
-    # uniform profiles share one x row: store it once (halves the raw volume)
-    if len(x) and np.array_equal(x, np.broadcast_to(x[0], x.shape)):
+    # uniform profiles share one x row: store it once (halves the raw volume); the decoder hands
+    # them over as a broadcast row (stride 0), which needs no comparison
+    if len(x) and (x.strides[0] == 0 or np.array_equal(x, np.broadcast_to(x[0], x.shape))):
         arrays["x_row"] = x[0]
     else:
         arrays["x_mm"] = x
@@ -411,7 +413,8 @@ def batch_from_arrays(a: dict[str, np.ndarray]) -> ProfileBatch:
     """Rebuild a :class:`ProfileBatch` from a stored profiles record."""
     n = len(a["frame_index"])
     w = int(a["width"])
-    x = np.broadcast_to(a["x_row"], (n, w)).copy() if "x_row" in a else a["x_mm"]
+    # the same read-only broadcast row the decoder delivers (no n copies of it)
+    x = np.broadcast_to(a["x_row"], (n, w)) if "x_row" in a else a["x_mm"]
     return ProfileBatch(
         frame_index=a["frame_index"],
         sensor_time_us=a["sensor_time_us"],

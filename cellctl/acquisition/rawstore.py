@@ -25,6 +25,7 @@ everything before it. :attr:`RawWriter.durable_seq` tells which records are alre
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import queue
@@ -68,16 +69,22 @@ class RawFormatError(ValueError):
     """A raw file or record cannot be parsed; names the file, the offset and the field."""
 
 
-def _array_header(name: str, arr: np.ndarray) -> bytes:
+@functools.lru_cache(maxsize=1024)
+def _array_header_of(name: str, dtype_str: str, shape: tuple[int, ...]) -> bytes:
+    # cached: a job repeats the same few (name, dtype, shape) combinations thousands of times
     nb = name.encode()
-    dt = arr.dtype.str.encode()
+    dt = dtype_str.encode()
     return (
         struct.pack("<B", len(nb))
         + nb
         + struct.pack("<B", len(dt))
         + dt
-        + struct.pack(f"<B{arr.ndim}Q", arr.ndim, *arr.shape)
+        + struct.pack(f"<B{len(shape)}Q", len(shape), *shape)
     )
+
+
+def _array_header(name: str, arr: np.ndarray) -> bytes:
+    return _array_header_of(name, arr.dtype.str, arr.shape)
 
 
 def pack_arrays(arrays: dict[str, np.ndarray]) -> tuple[list[bytes | memoryview], int]:

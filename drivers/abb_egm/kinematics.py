@@ -317,16 +317,35 @@ class RobotKinematics:
         return frame
 
 
-def _rot_batch(axis: str, angle_rad: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    one, zero = np.ones_like(c), np.zeros_like(c)
-    if axis == "x":
-        rows = [[one, zero, zero], [zero, c, -s], [zero, s, c]]
-    elif axis == "y":
-        rows = [[c, zero, s], [zero, one, zero], [-s, zero, c]]
-    else:
-        rows = [[c, -s, zero], [s, c, zero], [zero, zero, one]]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+#: for a rotation about axis a, the two columns of R it mixes: R @ Rot(a, q) changes only these
+#: (x: columns 1, 2; y: columns 2, 0; z: columns 0, 1), as ``(u, v) -> (c u + s v, c v - s u)``
+_MIXED_COLUMNS = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}
+#: per joint, the (column, length in mm) of its origin offset: the chain's offsets lie on one axis each
+_JOINT_OFFSETS_MM = tuple(
+    tuple((int(j), float(v) * 1000.0) for j, v in enumerate(row) if v != 0.0) for row in _JOINT_XYZ_M
+)
+
+
+_G_CACHE: dict[bytes, np.ndarray] = {}
+
+
+def _link6_to_tool(T_flange_tool: np.ndarray | None) -> np.ndarray:
+    """(3, 4) ``[R | p]`` of link_6 -> tool. Cached per tool: the rotation check runs once per tool,
+    not once per batch of feedback samples."""
+    key = b"" if T_flange_tool is None else T_flange_tool.tobytes() + str(T_flange_tool.shape).encode()
+    G = _G_CACHE.get(key)
+    if G is None:
+        G = np.zeros((3, 4))
+        G[:, :3] = _R_LINK6_FLANGE
+        if T_flange_tool is not None:
+            T_ft = _as_T(T_flange_tool, "T_flange_tool")
+            G[:, :3] = _R_LINK6_FLANGE @ T_ft[:3, :3]
+            G[:, 3] = _R_LINK6_FLANGE @ T_ft[:3, 3]
+        G.flags.writeable = False
+        if len(_G_CACHE) >= 64:  # a handful of tools in practice; never grow without bound
+            _G_CACHE.clear()
+        _G_CACHE[key] = G
+    return G
 
 
 def fk_batch(q_deg: np.ndarray, T_flange_tool: np.ndarray | None = None) -> np.ndarray:
@@ -344,17 +363,29 @@ def fk_batch(q_deg: np.ndarray, T_flange_tool: np.ndarray | None = None) -> np.n
         raise KinematicsError(f"q_deg must have shape (n, 6), got {q.shape}")
     q_rad = _q_rad(q)
     n = q.shape[0]
-    R = np.broadcast_to(np.eye(3), (n, 3, 3))
-    p = np.zeros((n, 3))
-    xyz_mm = _JOINT_XYZ_M * 1000.0
+    cos, sin = np.cos(q_rad.T), np.sin(q_rad.T)  # (6, n): one contiguous row per joint
+    # R kept as its three columns, each (3, n) with the samples contiguous: an elementary rotation
+    # mixes two columns, so a joint costs a few element-wise operations instead of a stacked 3x3
+    # matrix product (ingestion runs this for every 250 Hz feedback sample)
+    cols = [np.zeros((3, n)) for _ in range(3)]
+    for j in range(3):
+        cols[j][j] = 1.0
+    p = np.zeros((3, n))
     for i in range(6):  # six joints: a loop over the chain, vectorised over the samples
-        p = p + R @ xyz_mm[i]
-        R = R @ _rot_batch(_JOINT_AXES[i], q_rad[:, i])
-    R = R @ _R_LINK6_FLANGE
-    T = np.zeros((n, 4, 4))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = p
+        for j, length_mm in _JOINT_OFFSETS_MM[i]:
+            p += cols[j] * length_mm
+        a, b = _MIXED_COLUMNS[_JOINT_AXES[i]]
+        c, s = cos[i], sin[i]
+        u, v = cols[a], cols[b]
+        cols[a] = u * c + v * s
+        cols[b] = v * c - u * s
+    # flange (R @ _R_LINK6_FLANGE) and tool in one small product: [R p] @ G with G (3, 4) constant
+    G = _link6_to_tool(None if T_flange_tool is None else np.asarray(T_flange_tool, dtype=np.float64))
+    rows = np.stack(cols, axis=-1)  # (3, n, 3): R[row, sample, column]
+    top = (rows.reshape(3 * n, 3) @ G).reshape(3, n, 4)
+    top[:, :, 3] += p
+    T = np.empty((n, 4, 4))
+    T[:, :3, :] = top.transpose(1, 0, 2)
+    T[:, 3, :3] = 0.0
     T[:, 3, 3] = 1.0
-    if T_flange_tool is not None:
-        T = T @ _as_T(T_flange_tool, "T_flange_tool")
     return T

@@ -498,6 +498,18 @@ def _uniform_x_row(width: int, xs_nm: int, xo_um: int) -> np.ndarray:
     return row
 
 
+def _scaled(raw: np.ndarray, scale_nm: int, offset_um: int) -> np.ndarray:
+    """(n, w) int16 raw values -> (n, w) float32 mm, ``raw * scale + offset`` in float32.
+
+    In place on one float32 array: the same float32 products and sums as the expression
+    ``raw * np.float32(scale) + np.float32(offset)``, without its second temporary.
+    """
+    out = raw.astype(np.float32)
+    out *= np.float32(scale_nm * 1e-6)
+    out += np.float32(offset_um * 1e-3)
+    return out
+
+
 def _build_batch(views: Sequence[_GroupView], host_recv_ns: int) -> ProfileBatch:
     """One numpy decode for consecutive groups that share format, width and scale."""
     first = views[0]
@@ -509,23 +521,25 @@ def _build_batch(views: Sequence[_GroupView], host_recv_ns: int) -> ProfileBatch
         pbytes = b"".join(v.points for v in views)
     stamps = np.frombuffer(sbytes, dtype=STAMP_DTYPE)
     count = len(stamps)
-    z_scale = np.float32(zs_nm * 1e-6)
-    z_off = np.float32(zo_um * 1e-3)
     if first.kind == MessageType.PROFILE_UNIFORM:
         raw = np.frombuffer(pbytes, dtype="<i2").reshape(count, width)
         valid = raw != INVALID_RAW
-        x_mm = np.empty((count, width), dtype=np.float32)
-        x_mm[:] = _uniform_x_row(width, xs_nm, xo_um)
-        z_mm = raw * z_scale + z_off
+        # every uniform profile has the same x: a read-only broadcast of one cached row, not n copies
+        # (consumers see an (n, w) float32 array; the raw writer stores the row once)
+        x_mm = np.broadcast_to(_uniform_x_row(width, xs_nm, xo_um), (count, width))
+        z_mm = _scaled(raw, zs_nm, zo_um)
     else:
         raw = np.frombuffer(pbytes, dtype="<i2").reshape(count, width, 2)
         xr = raw[:, :, 0]
         zr = raw[:, :, 1]
         valid = (zr != INVALID_RAW) & (xr != INVALID_RAW)
-        x_mm = xr * np.float32(xs_nm * 1e-6) + np.float32(xo_um * 1e-3)
-        z_mm = zr * z_scale + z_off
-        x_mm[~valid] = np.nan
-    z_mm[~valid] = np.nan
+        x_mm = _scaled(xr, xs_nm, xo_um)
+        z_mm = _scaled(zr, zs_nm, zo_um)
+    if not valid.all():
+        invalid = ~valid
+        np.copyto(z_mm, np.float32(np.nan), where=invalid)
+        if first.kind != MessageType.PROFILE_UNIFORM:
+            np.copyto(x_mm, np.float32(np.nan), where=invalid)
     return ProfileBatch(
         frame_index=stamps["frame_index"].astype(np.uint64),
         sensor_time_us=stamps["sensor_time_us"].astype(np.uint64),
