@@ -115,6 +115,20 @@ class SegmentResult:
         return self._cloud
 
 
+def _profiles_from_zero(cloud: ScanCloud) -> ScanCloud:
+    """Number each pass's profiles from 0: an acquisition numbers profiles by frame over the whole
+    scan (and pass ids may be sparse), which would make the scan grid mostly empty places."""
+    pid = cloud.pass_id.astype(np.int64)
+    prof = cloud.profile.astype(np.int64)
+    _, pass_idx = np.unique(pid, return_inverse=True)
+    first = np.full(int(pass_idx.max()) + 1, np.iinfo(np.int64).max)
+    np.minimum.at(first, pass_idx, prof)
+    local = prof - first[pass_idx]
+    if np.array_equal(local, prof) and np.array_equal(pass_idx, pid):
+        return cloud
+    return ScanCloud(cloud.points_mm, pass_idx.astype(np.int32), local.astype(np.int32), cloud.point)
+
+
 def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | None = None) -> SegmentResult:
     """Extract the plate's top surface from a scan cloud.
 
@@ -133,6 +147,7 @@ def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | Non
     if not np.isfinite(cloud.points_mm).all():
         raise SegmentError("points_mm holds non-finite coordinates")
     if cloud.organised:
+        cloud = _profiles_from_zero(cloud)
         n_grid = (
             (int(cloud.pass_id.max()) + 1) * (int(cloud.profile.max()) + 1) * (int(cloud.point.max()) + 1)
         )
