@@ -62,6 +62,8 @@ def demo_config(base: dict[str, Any], out_dir: Path, *, full: bool = False) -> d
     # The simulated arm shares two loaded cores with everything else; a descheduled simulator makes
     # it lag its reference by a few cycles. A real cell keeps its own limit.
     cfg["robot"]["tracking_error_max_mm"] = max(cfg["robot"]["tracking_error_max_mm"], 10.0)
+    # Likewise a simulator descheduled for 100 ms is not a stalled controller (observed at load 6).
+    cfg["robot"]["egm_watchdog_s"] = max(cfg["robot"]["egm_watchdog_s"], 0.5)
     if not full:
         cfg["sim"]["plate"].update(kind="sail", length_mm=600.0, width_mm=400.0)
         cfg["scan"].update(
