@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from drivers.abb_egm.kinematics import (
@@ -85,7 +85,7 @@ _offset = st.tuples(*[st.floats(-8.0, 8.0)] * 6)
 @given(q=_inner, offset=_offset)
 def test_ik_recovers_a_reachable_pose_from_a_nearby_seed(q, offset):
     q = np.array(q)
-    # Keep farther from the two singularities than the seed offset (8 deg): across one, the pose has a
+    # Keep farther from the three singularities than the seed offset (8 deg): across one, the pose has a
     # second solution as close to the seed, and either is correct. Wrist: q5 = 0.
     if abs(q[4]) < 10.0:
         q[4] = 10.0 if q[4] >= 0 else -10.0
@@ -94,6 +94,9 @@ def test_ik_recovers_a_reachable_pose_from_a_nearby_seed(q, offset):
     if abs(q[2] - q3_stretched) < 12.0:
         q[2] = q3_stretched + (12.0 if q[2] >= q3_stretched else -12.0)
     target = KIN.fk(q, "flange").T_base_frame
+    # Shoulder: the wrist centre (135 mm behind the flange along its z) on the axis of joint 1.
+    wrist_centre = target[:3, 3] - 135.0 * target[:3, 2]
+    assume(np.hypot(wrist_centre[0], wrist_centre[1]) > 100.0)
     result = KIN.ik(target, q + np.array(offset))
     assert result.converged, result
     assert result.pos_err_mm < 1e-3 and result.rot_err_deg < 1e-3
