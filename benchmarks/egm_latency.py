@@ -126,10 +126,21 @@ def main() -> int:
     p.add_argument("--cycle-ms", type=float, default=4.032)
     p.add_argument("--warmup-s", type=float, default=1.0)
     p.add_argument("--realtime", action="store_true", help="SCHED_FIFO for simulator and endpoint")
+    p.add_argument(
+        "--cpu-latency-us",
+        type=int,
+        default=None,
+        help="hold the CPUs' wake-up latency at this many us (/dev/cpu_dma_latency), as `cellctl run` does",
+    )
     p.add_argument("--endpoint-child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
     _quiet_logging()
     realtime = _realtime(20) if args.realtime else False
+    held = False
+    if args.cpu_latency_us is not None and not args.endpoint_child:
+        from cellctl.daemon.service import hold_cpu_wakeup_latency
+
+        held = hold_cpu_wakeup_latency(args.cpu_latency_us)
     if args.endpoint_child:
         asyncio.run(_endpoint_child())
         return 0
@@ -151,6 +162,7 @@ def main() -> int:
             child.kill()
             child.wait()
     result["realtime"] = realtime
+    result["cpu_latency_held"] = held
     print(json.dumps(result))
     return 0
 

