@@ -303,9 +303,11 @@ def _cast(
                 continue
             lo = np.array([s.x_min_mm, s.y_min_mm, 0.0])
             hi = np.array([s.x_max_mm, s.y_max_mm, s.height_mm])
-            inv = 1.0 / d[sub]
-            t1 = (lo - o[sub]) * inv
-            t2 = (hi - o[sub]) * inv
+            with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+                # slab test: a ray parallel to a slab gets +-inf there, which the min/max below expect
+                inv = 1.0 / d[sub]
+                t1 = (lo - o[sub]) * inv
+                t2 = (hi - o[sub]) * inv
             tmin = np.fmin(t1, t2)
             t_enter = np.nanmax(tmin, axis=1)
             t_exit = np.nanmin(np.fmax(t1, t2), axis=1)
