@@ -158,10 +158,35 @@ async def wait_for_job(
     return "timeout", f"no end of job {job_id} within {timeout_s} s", None
 
 
+async def _client_session(cfg, command: str):
+    """A client session to the cell's Zenoh, or None after saying why on stderr."""
+    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, open_session
+
+    try:
+        return await asyncio.to_thread(
+            open_session, build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)
+        )
+    except ZenohSetupError as exc:
+        print(f"cellctl {command}: error: {exc}", file=sys.stderr)
+        return None
+
+
+def _runner(coro_fn):
+    """The command's entry point: load the configuration (exit 2 when bad), then run ``coro_fn``."""
+
+    def run(args: argparse.Namespace) -> int:
+        cfg = _config(args.config)
+        if cfg is None:
+            return EXIT_ERROR
+        return asyncio.run(coro_fn(args, cfg))
+
+    return run
+
+
 async def _scan(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
     from cellctl.tables import line_table
-    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, close_session, open_session
+    from cellctl.zenoh_session import close_session
 
     try:
         placement = placement_payload(args.placement, cfg.scan.placement_z_mm)
@@ -170,12 +195,8 @@ async def _scan(args: argparse.Namespace, cfg) -> int:
         return EXIT_ERROR
     req = {"plate_id": args.plate, "design": args.design, "placement": placement, "note": args.note}
     keys = Keys(cfg.key_prefix)
-    try:
-        session = await asyncio.to_thread(
-            open_session, build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)
-        )
-    except ZenohSetupError as exc:
-        print(f"cellctl scan: error: {exc}", file=sys.stderr)
+    session = await _client_session(cfg, "scan")
+    if session is None:
         return EXIT_NO_DAEMON
     follower = StatusFollower(session, keys) if args.wait else None
     try:
@@ -203,24 +224,16 @@ async def _scan(args: argparse.Namespace, cfg) -> int:
         await asyncio.to_thread(close_session, session)
 
 
-def run_scan(args: argparse.Namespace) -> int:
-    cfg = _config(args.config)
-    if cfg is None:
-        return EXIT_ERROR
-    return asyncio.run(_scan(args, cfg))
+run_scan = _runner(_scan)
 
 
 async def _status(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import Keys, list_workers
-    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, close_session, open_session
+    from cellctl.zenoh_session import close_session
 
     keys = Keys(cfg.key_prefix)
-    try:
-        session = await asyncio.to_thread(
-            open_session, build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)
-        )
-    except ZenohSetupError as exc:
-        print(f"cellctl status: error: {exc}", file=sys.stderr)
+    session = await _client_session(cfg, "status")
+    if session is None:
         return EXIT_NO_DAEMON
     follower = StatusFollower(session, keys)
     try:
@@ -255,24 +268,16 @@ async def _status(args: argparse.Namespace, cfg) -> int:
         await asyncio.to_thread(close_session, session)
 
 
-def run_status(args: argparse.Namespace) -> int:
-    cfg = _config(args.config)
-    if cfg is None:
-        return EXIT_ERROR
-    return asyncio.run(_status(args, cfg))
+run_status = _runner(_status)
 
 
 async def _watch(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import Keys
-    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, close_session, open_session
+    from cellctl.zenoh_session import close_session
 
     keys = Keys(cfg.key_prefix)
-    try:
-        session = await asyncio.to_thread(
-            open_session, build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)
-        )
-    except ZenohSetupError as exc:
-        print(f"cellctl watch: error: {exc}", file=sys.stderr)
+    session = await _client_session(cfg, "watch")
+    if session is None:
         return EXIT_NO_DAEMON
     follower = StatusFollower(session, keys)
     try:
@@ -294,8 +299,4 @@ async def _watch(args: argparse.Namespace, cfg) -> int:
         await asyncio.to_thread(close_session, session)
 
 
-def run_watch(args: argparse.Namespace) -> int:
-    cfg = _config(args.config)
-    if cfg is None:
-        return EXIT_ERROR
-    return asyncio.run(_watch(args, cfg))
+run_watch = _runner(_watch)
