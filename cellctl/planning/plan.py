@@ -178,33 +178,10 @@ class TimedTrajectory:
         h = self.t_s[i + 1] - self.t_s[i]
         hs = np.where(h > 0, h, 1.0)
         u = np.where(h > 0, (t - self.t_s[i]) / hs, 0.0)[:, None]
-        hh = hs[:, None]
-        p0, p1 = self.q_deg[i], self.q_deg[i + 1]
-        v0, v1 = self.qd_deg_s[i] * hh, self.qd_deg_s[i + 1] * hh
-        a0, a1 = self.qdd_deg_s2[i] * hh**2, self.qdd_deg_s2[i + 1] * hh**2
-        u2, u3, u4, u5 = u * u, u**3, u**4, u**5
-        q = (
-            (1 - 10 * u3 + 15 * u4 - 6 * u5) * p0
-            + (u - 6 * u3 + 8 * u4 - 3 * u5) * v0
-            + (0.5 * u2 - 1.5 * u3 + 1.5 * u4 - 0.5 * u5) * a0
-            + (0.5 * u3 - u4 + 0.5 * u5) * a1
-            + (-4 * u3 + 7 * u4 - 3 * u5) * v1
-            + (10 * u3 - 15 * u4 + 6 * u5) * p1
-        )
-        qd = (
-            (-30 * u2 + 60 * u3 - 30 * u4) * (p0 - p1)
-            + (1 - 18 * u2 + 32 * u3 - 15 * u4) * v0
-            + (u - 4.5 * u2 + 6 * u3 - 2.5 * u4) * a0
-            + (1.5 * u2 - 4 * u3 + 2.5 * u4) * a1
-            + (-12 * u2 + 28 * u3 - 15 * u4) * v1
-        ) / hh
-        qdd = (
-            (-60 * u + 180 * u2 - 120 * u3) * (p0 - p1)
-            + (-36 * u + 96 * u2 - 60 * u3) * v0
-            + (1 - 9 * u + 18 * u2 - 10 * u3) * a0
-            + (3 * u - 12 * u2 + 10 * u3) * a1
-            + (-24 * u + 84 * u2 - 60 * u3) * v1
-        ) / hh**2
+        q, qd, qdd = _quintic_hermite(
+            u, hs[:, None], self.q_deg[i], self.q_deg[i + 1], self.qd_deg_s[i], self.qd_deg_s[i + 1],
+            self.qdd_deg_s2[i], self.qdd_deg_s2[i + 1],
+        )  # fmt: skip
         seg = np.where(u[:, 0] < 1.0, self.segment[i], self.segment[i + 1])
         return q, qd, qdd, seg
 
@@ -229,32 +206,10 @@ class TimedTrajectory:
                 int(self.segment[i]),
             )
         u = (t - t0) / h
-        p0, p1 = self.q_deg[i], self.q_deg[i + 1]
-        v0, v1 = self.qd_deg_s[i] * h, self.qd_deg_s[i + 1] * h
-        a0, a1 = self.qdd_deg_s2[i] * (h * h), self.qdd_deg_s2[i + 1] * (h * h)
-        u2, u3, u4, u5 = u * u, u**3, u**4, u**5
-        q = (
-            (1 - 10 * u3 + 15 * u4 - 6 * u5) * p0
-            + (u - 6 * u3 + 8 * u4 - 3 * u5) * v0
-            + (0.5 * u2 - 1.5 * u3 + 1.5 * u4 - 0.5 * u5) * a0
-            + (0.5 * u3 - u4 + 0.5 * u5) * a1
-            + (-4 * u3 + 7 * u4 - 3 * u5) * v1
-            + (10 * u3 - 15 * u4 + 6 * u5) * p1
-        )
-        qd = (
-            (-30 * u2 + 60 * u3 - 30 * u4) * (p0 - p1)
-            + (1 - 18 * u2 + 32 * u3 - 15 * u4) * v0
-            + (u - 4.5 * u2 + 6 * u3 - 2.5 * u4) * a0
-            + (1.5 * u2 - 4 * u3 + 2.5 * u4) * a1
-            + (-12 * u2 + 28 * u3 - 15 * u4) * v1
-        ) / h
-        qdd = (
-            (-60 * u + 180 * u2 - 120 * u3) * (p0 - p1)
-            + (-36 * u + 96 * u2 - 60 * u3) * v0
-            + (1 - 9 * u + 18 * u2 - 10 * u3) * a0
-            + (3 * u - 12 * u2 + 10 * u3) * a1
-            + (-24 * u + 84 * u2 - 60 * u3) * v1
-        ) / (h * h)
+        q, qd, qdd = _quintic_hermite(
+            u, h, self.q_deg[i], self.q_deg[i + 1], self.qd_deg_s[i], self.qd_deg_s[i + 1],
+            self.qdd_deg_s2[i], self.qdd_deg_s2[i + 1],
+        )  # fmt: skip
         seg = int(self.segment[i] if u < 1.0 else self.segment[i + 1])
         return q, qd, qdd, seg
 
@@ -418,3 +373,34 @@ class ScanPlan:
             if isinstance(exc, PlanInputError):
                 raise
             raise PlanInputError(f"not a scan plan: {exc}") from exc
+
+
+def _quintic_hermite(u, h, p0, p1, qd0, qd1, qdd0, qdd1):
+    """Quintic Hermite between two samples h seconds apart at u in [0, 1] (scalar or broadcast
+    arrays): position, velocity and acceleration at both ends in; (q, qd, qdd) out."""
+    v0, v1 = qd0 * h, qd1 * h
+    a0, a1 = qdd0 * (h * h), qdd1 * (h * h)
+    u2, u3, u4, u5 = u * u, u**3, u**4, u**5
+    q = (
+        (1 - 10 * u3 + 15 * u4 - 6 * u5) * p0
+        + (u - 6 * u3 + 8 * u4 - 3 * u5) * v0
+        + (0.5 * u2 - 1.5 * u3 + 1.5 * u4 - 0.5 * u5) * a0
+        + (0.5 * u3 - u4 + 0.5 * u5) * a1
+        + (-4 * u3 + 7 * u4 - 3 * u5) * v1
+        + (10 * u3 - 15 * u4 + 6 * u5) * p1
+    )
+    qd = (
+        (-30 * u2 + 60 * u3 - 30 * u4) * (p0 - p1)
+        + (1 - 18 * u2 + 32 * u3 - 15 * u4) * v0
+        + (u - 4.5 * u2 + 6 * u3 - 2.5 * u4) * a0
+        + (1.5 * u2 - 4 * u3 + 2.5 * u4) * a1
+        + (-12 * u2 + 28 * u3 - 15 * u4) * v1
+    ) / h
+    qdd = (
+        (-60 * u + 180 * u2 - 120 * u3) * (p0 - p1)
+        + (-36 * u + 96 * u2 - 60 * u3) * v0
+        + (1 - 9 * u + 18 * u2 - 10 * u3) * a0
+        + (3 * u - 12 * u2 + 10 * u3) * a1
+        + (-24 * u + 84 * u2 - 60 * u3) * v1
+    ) / (h * h)
+    return q, qd, qdd
