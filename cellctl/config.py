@@ -318,12 +318,24 @@ class SimSection(Section):
     rws_max_sessions: Annotated[int, Field(ge=1, le=1000)] = 70
     rws_session_idle_s: PositiveFloat = 300.0
     opmode: Literal["AUTO", "MANR", "MANF"] = "AUTO"
+    # The run-time fault-control queryable of `cellctl sim` (docs/simulator.md); it lives only in
+    # the simulator process, on its own Zenoh endpoint, never in the daemon of a real cell.
+    fault_control: bool = True
+    fault_listen: str = "tcp/127.0.0.1:7448"
     depth_noise_mm: NonNegativeFloat = 0.02
     outlier_fraction: Fraction = 0.0005
     plate: SimPlate = SimPlate()
     placement: SimPlacement = SimPlacement()
     clocks: SimClocks = SimClocks()
     faults: SimFaults = SimFaults()
+
+    @field_validator("fault_listen")
+    @classmethod
+    def _fault_endpoint_parses(cls, v: str) -> str:
+        m = _ZENOH_ENDPOINT.match(v)
+        if not m or not 0 <= int(v.rsplit(":", 1)[1]) <= 65535:
+            raise ValueError(f"{v!r} is not a Zenoh endpoint like 'tcp/127.0.0.1:7448'")
+        return v
 
     @field_validator("rws_users")
     @classmethod
@@ -333,6 +345,26 @@ class SimSection(Section):
             if not re.fullmatch(r"[A-Z_][A-Z0-9_]*", env):
                 raise ValueError(f"user {user!r}: expected an environment variable name, got {env!r}")
         return v
+
+
+class DaemonSection(Section):
+    """`cellctl run`: publication and timing knobs of the daemon, and its trigger queue (docs/api.md)."""
+
+    # the state publication is sent on every change and at least this often
+    status_period_s: Annotated[float, Field(gt=0, le=60, allow_inf_nan=False)] = 1.0
+    # wait for the controller's first EGM packet after the EGM program started
+    feedback_timeout_s: Annotated[float, Field(gt=0, le=120, allow_inf_nan=False)] = 5.0
+    # pass markers are checked against the executor's playback time this often (a pass boundary lands
+    # within this of its planned time)
+    marker_period_s: Annotated[float, Field(ge=0.001, le=0.1, allow_inf_nan=False)] = 0.01
+    # sensor streaming before the arm moves (clock fits gather pairs, the sensor settles)
+    settle_s: Annotated[float, Field(ge=0, le=30, allow_inf_nan=False)] = 1.0
+    # render report.html / .pdf beside report.json when the worker's results arrive
+    write_html_report: bool = True
+    # run the event loop under SCHED_FIFO and hold the CPUs' wake-up latency when permitted
+    realtime: bool = True
+    # triggers waiting while a scan holds the robot; 0 refuses a trigger while busy
+    queue_max: Annotated[int, Field(ge=0, le=100)] = 4
 
 
 class CellConfig(BaseSettings):
@@ -353,6 +385,7 @@ class CellConfig(BaseSettings):
     zenoh: ZenohSection = ZenohSection()
     analysis: AnalysisSection = AnalysisSection()
     sim: SimSection = SimSection()
+    daemon: DaemonSection = DaemonSection()
 
     @classmethod
     def settings_customise_sources(

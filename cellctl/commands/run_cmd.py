@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from cellctl.daemon.service import DaemonSettings, run_daemon
+    from cellctl.daemon.service import run_daemon
     from drivers.abb_egm.sim_egm import precise_event_loop
 
     try:
@@ -31,6 +31,7 @@ def run(args: argparse.Namespace) -> int:
         for problem in err.problems:
             print(f"{err.source}: {problem}", file=sys.stderr)
         return 2
-    settings = DaemonSettings(write_html_report=not args.no_html)
+    if args.no_html:
+        cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"write_html_report": False})})
     with asyncio.Runner(loop_factory=precise_event_loop) as runner:
-        return runner.run(run_daemon(cfg, settings))
+        return runner.run(run_daemon(cfg))

@@ -23,7 +23,6 @@ import signal
 import struct
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -57,26 +56,6 @@ class DaemonError(Exception):
     """The daemon cannot start (configuration, ports, Zenoh)."""
 
 
-@dataclass(frozen=True)
-class DaemonSettings:
-    """Daemon knobs not (yet) in cell.toml.
-
-    status_period_s: periodic state publication. feedback_timeout_s: wait for the controller's first
-    EGM packet after the program started. marker_period_s: how often the pass markers are checked
-    against the executor's playback time and the feedback history is handed to the acquisition
-    (a pass boundary lands within this of its planned time, on a link where nothing is measured).
-    settle_s: sensor streaming before the arm moves (clock fits, sensor start-up). write_html_report: render report.html / .pdf after the
-    worker's results arrive. realtime: run the event loop under SCHED_FIFO when permitted.
-    """
-
-    status_period_s: float = 1.0
-    feedback_timeout_s: float = 5.0
-    marker_period_s: float = 0.01
-    settle_s: float = 1.0
-    write_html_report: bool = True
-    realtime: bool = True
-
-
 class _Job:
     """The running job's live objects (executor, counters) beside its stored record."""
 
@@ -96,9 +75,9 @@ class _Job:
 class CellDaemon:
     """The service. ``await run(stop)`` until ``stop`` is set; returns the exit code."""
 
-    def __init__(self, cfg: CellConfig, settings: DaemonSettings | None = None) -> None:
+    def __init__(self, cfg: CellConfig) -> None:
         self.cfg = cfg
-        self.settings = settings or DaemonSettings()
+        self.settings = cfg.daemon  # the [daemon] section: one source of truth
         self.keys = Keys(cfg.key_prefix)
         self.store = JobStore(cfg.cell.data_dir)
         self.designs_dir = Path(cfg.cell.designs_dir)
@@ -760,18 +739,18 @@ def use_realtime_loop(priority: int = 10) -> bool:
     return True
 
 
-async def run_daemon(cfg: CellConfig, settings: DaemonSettings | None = None) -> int:
-    """Run the daemon until SIGTERM / SIGINT; returns the exit code."""
+async def run_daemon(cfg: CellConfig) -> int:
+    """Run the daemon (``cfg.daemon`` holds its knobs) until SIGTERM / SIGINT; returns the exit code."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
-    if settings is None or settings.realtime:
+    if cfg.daemon.realtime:
         use_realtime_loop()
         hold_cpu_wakeup_latency(0)
     for sig in (signal.SIGTERM, signal.SIGINT):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
     try:
-        return await CellDaemon(cfg, settings).run(stop)
+        return await CellDaemon(cfg).run(stop)
     finally:
         for sig in (signal.SIGTERM, signal.SIGINT):
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):

@@ -82,6 +82,12 @@ def test_config_is_frozen(repo_root: Path) -> None:
         ("analysis.tolerances", {"deviation_standard_mm": 4.0}, "must not exceed deviation_limit_mm"),
         ("sim", {"rws_users": {"Default User": "robotics"}}, "expected an environment variable name"),
         ("sim.faults", {"egm_loss_fraction": 1.5}, "sim.faults.egm_loss_fraction = 1.5"),
+        ("daemon", {"queue_max": -1}, "daemon.queue_max = -1"),
+        ("daemon", {"queue_max": 1000}, "daemon.queue_max = 1000"),
+        ("daemon", {"status_period_s": 0}, "daemon.status_period_s = 0"),
+        ("daemon", {"settle_s": float("inf")}, "daemon.settle_s"),
+        ("daemon", {"marker_period_s": 0.5}, "daemon.marker_period_s = 0.5"),
+        ("daemon", {"write_html_report": "maybe"}, "daemon.write_html_report = 'maybe'"),
     ],
 )
 def test_bad_value_is_reported_with_its_path(
@@ -170,3 +176,30 @@ def test_missing_secret_names_the_variable_not_a_value(monkeypatch: pytest.Monke
     monkeypatch.delenv("TEST_SECRET_MISSING", raising=False)
     with pytest.raises(ConfigError, match="TEST_SECRET_MISSING is not set"):
         resolve_secret("TEST_SECRET_MISSING", None, what="rws")
+
+
+def test_daemon_section_defaults_apply_when_the_section_is_absent(shipped: dict) -> None:
+    cfg = parse_config({k: v for k, v in shipped.items() if k != "daemon"})
+    assert cfg.daemon.queue_max == 4 and cfg.daemon.write_html_report is True
+
+
+def test_daemon_unknown_key_is_reported(shipped: dict) -> None:
+    assert _problems(_with(shipped, "daemon", queue_len=3)) == ["daemon.queue_len: unknown key"]
+
+
+def test_daemon_section_is_overridden_from_the_environment(
+    shipped: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("CELL_DAEMON__QUEUE_MAX", "0")
+    monkeypatch.setenv("CELL_DAEMON__REALTIME", "false")
+    cfg = parse_config(shipped)
+    assert cfg.daemon.queue_max == 0 and cfg.daemon.realtime is False
+    assert cfg.daemon.settle_s == shipped["daemon"]["settle_s"]  # the rest of the table kept
+
+
+def test_bad_daemon_environment_override_is_one_readable_line(
+    shipped: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("CELL_DAEMON__QUEUE_MAX", "lots")
+    (problem,) = _problems(shipped)
+    assert problem.startswith("daemon.queue_max (from the environment) = 'lots'")
