@@ -365,6 +365,9 @@ class DaemonSection(Section):
     realtime: bool = True
     # triggers waiting while a scan holds the robot; 0 refuses a trigger while busy
     queue_max: Annotated[int, Field(ge=0, le=100)] = 4
+    # pre-flight before motion: the data directory must keep this much free beyond the planned
+    # scan's raw-data estimate (cellctl/daemon/preflight.py), or the job fails before the arm moves
+    min_free_mb: Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)] = 200.0
 
 
 class CellConfig(BaseSettings):
