@@ -8,8 +8,11 @@
 * the scene: the formed plate of ``[sim.plate]`` (design + the default forming error) laid at
   ``[sim.placement]``, with bed and supports (:meth:`cellctl.acquisition.simcell.PlateTruth.scene`).
 
-The truth (placement, plate, forming error) goes to ``<data_dir>/sim-truth.json``. On start the
-process prints one JSON line with its addresses on stdout; it runs until SIGTERM / SIGINT.
+The truth (placement, plate, forming error) goes to ``<data_dir>/sim-truth.json``. With
+``[sim] fault_control`` the process also serves the run-time fault knobs on ``<prefix>/sim/faults``
+(its own Zenoh endpoint ``[sim] fault_listen``; :mod:`cellctl.sim_faults`, docs/simulator.md). On start
+the process prints one JSON line with its addresses on stdout (``fault_control``: the endpoint, or
+null when off or not available); it runs until SIGTERM / SIGINT.
 """
 
 from __future__ import annotations
@@ -165,6 +168,11 @@ class SimulatedCell:
             control_port=las.control_port,
             data_port=las.data_port,
         )
+        # start-time laser faults of [sim.faults] (the run-time ones come over sim/faults)
+        if f.laser_disconnect_after_frames > 0:
+            self.sensor.disconnect_after(f.laser_disconnect_after_frames)
+        self.sensor.faults.corrupt_probability = f.laser_corrupt_fraction
+        self.sensor.faults.drop_probability = f.laser_drop_fraction
         try:
             await self.controller.start()
             now = time.monotonic()
@@ -215,10 +223,22 @@ async def run_sim(cfg: CellConfig) -> int:
     from cellctl.daemon.service import use_realtime_loop
 
     use_realtime_loop()
-    print(json.dumps({"ready": True, **addresses}), flush=True)
+    fault_session = None
+    if cfg.sim.fault_control:
+        from cellctl.sim_faults import serve_fault_control
+
+        served = await serve_fault_control(cfg, cell)
+        if served is not None:
+            fault_session = served[0]
+    fault_endpoint = cfg.sim.fault_listen if fault_session is not None else None
     try:
+        print(json.dumps({"ready": True, **addresses, "fault_control": fault_endpoint}), flush=True)
         await stop.wait()
     finally:
+        if fault_session is not None:
+            from cellctl.zenoh_session import close_session
+
+            await asyncio.to_thread(close_session, fault_session)
         await cell.stop()
         log.info("sim_stopped")
     return 0

@@ -307,10 +307,22 @@ class RwsServer:
         else:
             self._delays[path_prefix] = seconds
 
+    def clear_error(self, path_prefix: str) -> None:
+        """Remove the injected error of ``path_prefix`` (if any)."""
+        self._faults.pop(path_prefix, None)
+
     def clear_faults(self) -> None:
         """Remove injected errors and delays."""
         self._faults.clear()
         self._delays.clear()
+
+    def injected_faults(self) -> dict[str, Any]:
+        """The fault knobs in force: ``{"errors": {prefix: status}, "delays_s": {prefix: s}, "serving": bool}``."""
+        return {
+            "errors": {p: f.status for p, f in self._faults.items()},
+            "delays_s": dict(self._delays),
+            "serving": self._runner is not None,
+        }
 
     def expire_sessions(self) -> None:
         """Forget every session, as the controller does for idle sessions; clients must log in again."""
