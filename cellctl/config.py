@@ -185,14 +185,36 @@ class ScanSection(Section):
     approach_mm: PositiveFloat = 100.0
 
 
+ZenohRole = Literal["operator", "worker", "viewer", "daemon"]
+_ZENOH_USER = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.@\-]{0,63}$")
+
+
 class ZenohAccess(Section):
-    """Zenoh user/password authentication and access control (see docs/api.md)."""
+    """Zenoh user/password authentication and role-based access control (see docs/api.md).
+
+    ``user`` and its password (``password_env`` / ``password_file``, never the file) are what this
+    process presents. On the serving side (daemon or router) ``dictionary_file`` holds every
+    ``user:password`` line and ``roles`` maps a role to its users: ``operator`` triggers and
+    controls scans and reads state, ``worker`` receives clouds and publishes events and reports,
+    ``viewer`` only reads state, reports and liveliness, ``daemon`` uses the whole key space (a
+    daemon behind a router). With ``roles`` empty every dictionary user has the whole key space.
+    """
 
     enabled: bool = False
     user: str = "cellctl"
     password_env: str = "CELL_ZENOH_PASSWORD"
     password_file: Path | None = None
     dictionary_file: Path | None = None
+    roles: dict[ZenohRole, list[str]] = {}
+
+    @field_validator("roles")
+    @classmethod
+    def _role_users_are_names(cls, v: dict[str, list[str]]) -> dict[str, list[str]]:
+        for role, users in v.items():
+            for user in users:
+                if not _ZENOH_USER.fullmatch(user):
+                    raise ValueError(f"roles.{role}: {user!r} is not a user name (letters, digits, _ . @ -)")
+        return v
 
 
 class ZenohSection(Section):
@@ -491,12 +513,30 @@ def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> CellConfig:
     return parse_config(data, str(path))
 
 
+def check_secret_file_mode(file: str | Path, *, what: str) -> None:
+    """Refuse a secrets file that its group or the world may read or write (as ssh does for keys).
+
+    Raises ConfigError naming the file, its mode and the fix; a missing file passes (the read that
+    follows reports it).
+    """
+    try:
+        mode = os.stat(file).st_mode
+    except OSError:
+        return
+    if mode & 0o077:
+        raise ConfigError(
+            str(file),
+            [f"{what}: secrets file has mode {mode & 0o777:03o}, readable beyond its owner; chmod 600 it"],
+        )
+
+
 def resolve_secret(env_name: str, file: Path | None, *, what: str) -> SecretStr:
     """A secret from its secrets file (first) or environment variable; never from cell.toml.
 
     Raises ConfigError naming where the secret was looked for (never its value).
     """
     if file is not None:
+        check_secret_file_mode(file, what=what)
         try:
             text = Path(file).read_text(encoding="utf-8").strip()
         except OSError as exc:

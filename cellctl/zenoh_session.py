@@ -26,7 +26,7 @@ from typing import Any, Literal
 import structlog
 import zenoh
 
-from cellctl.config import ConfigError, ZenohSection, resolve_secret
+from cellctl.config import ConfigError, ZenohSection, check_secret_file_mode, resolve_secret
 
 log = structlog.get_logger(__name__)
 
@@ -58,14 +58,117 @@ def _loopback_of(endpoint: str) -> str:
 
 
 def _dictionary_users(path: Path) -> list[str]:
+    # The dictionary holds every user's password: refuse it when others may read it, like a secrets file.
+    try:
+        check_secret_file_mode(path, what="zenoh.access.dictionary_file")
+    except ConfigError as exc:
+        raise ZenohSetupError(str(exc)) from None
     try:
         lines = Path(path).read_text(encoding="utf-8").splitlines()
-    except OSError as exc:
-        raise ZenohSetupError(f"zenoh.access.dictionary_file {path}: cannot read: {exc.strerror}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) else "not UTF-8 text"
+        raise ZenohSetupError(f"zenoh.access.dictionary_file {path}: cannot read: {why}") from None
     users = [ln.split(":", 1)[0].strip() for ln in lines if ":" in ln and not ln.lstrip().startswith("#")]
     if not users:
         raise ZenohSetupError(f"zenoh.access.dictionary_file {path}: no 'user:password' lines")
     return users
+
+
+def _rule(rule_id: str, flow: str, messages: list[str], prefix: str, keys: list[str]) -> dict[str, Any]:
+    return {
+        "id": rule_id,
+        "permission": "allow",
+        "flows": [flow],
+        "messages": messages,
+        "key_exprs": [f"{prefix}/{k}" if k else prefix for k in keys],
+    }
+
+
+# What each role may do, seen from the serving node (the daemon or the router): "ingress" is what the
+# user's session sends in, "egress" what is forwarded to it. Keys are relative to the cell's prefix
+# (cellctl.api.Keys). Declarations flowing out reveal key names only, so every role receives them.
+_READ_KEYS = ["state", "reports/*", "jobs/*/event"]
+_WORKER_IN_KEYS = ["workers/*/jobs/*", "workers/*/cancel/*"]
+_DECLARATIONS = [
+    "declare_subscriber",
+    "declare_queryable",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+]
+
+
+def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
+    """The ACL rules of each role (see :class:`cellctl.config.ZenohAccess`)."""
+    common = [_rule("declarations_out", "egress", _DECLARATIONS, prefix, ["", "**"])]
+    read = [
+        _rule("read_subscribe", "ingress", ["declare_subscriber"], prefix, _READ_KEYS),
+        _rule("read_receive", "egress", ["put"], prefix, _READ_KEYS),
+        _rule(
+            "read_liveliness",
+            "ingress",
+            ["declare_liveliness_subscriber", "liveliness_query"],
+            prefix,
+            ["alive/**"],
+        ),
+        _rule("read_liveliness_replies", "egress", ["reply"], prefix, ["alive/**"]),
+        _rule("read_worker_info", "ingress", ["query"], prefix, ["workers/*/info"]),
+        _rule("read_worker_info_replies", "egress", ["reply"], prefix, ["workers/*/info"]),
+    ]
+    control_keys = ["scan/trigger", "control/*"]
+    operate = [
+        _rule("operate_query", "ingress", ["query"], prefix, control_keys),
+        _rule("operate_replies", "egress", ["reply"], prefix, control_keys),
+    ]
+    work = [
+        _rule("work_declare", "ingress", ["declare_subscriber"], prefix, _WORKER_IN_KEYS),
+        _rule("work_receive", "egress", ["put"], prefix, _WORKER_IN_KEYS),
+        _rule("work_publish", "ingress", ["put"], prefix, ["jobs/*/event", "reports/*"]),
+        _rule("work_alive", "ingress", ["liveliness_token"], prefix, ["alive/workers/*"]),
+        _rule("work_info", "ingress", ["declare_queryable", "reply"], prefix, ["workers/*/info"]),
+        _rule("work_info_queries", "egress", ["query"], prefix, ["workers/*/info"]),
+    ]
+    everything = [_rule("whole_cell", d, _ALL_MESSAGES, prefix, ["", "**"]) for d in ("ingress", "egress")]
+    return {
+        "viewer": common + read,
+        "operator": common + read + operate,
+        "worker": common + work,
+        "daemon": everything,
+    }
+
+
+def access_control_dict(roles: dict[str, list[str]], users: list[str], key_prefix: str) -> dict[str, Any]:
+    """The zenoh ``access_control`` section: default deny, each role's users allowed its rules only.
+
+    ``roles`` maps a role (operator, worker, viewer, daemon) to user names; empty means every user
+    of ``users`` (the dictionary file's) gets the whole cell key space. A role naming a user that is
+    not in the dictionary is a ZenohSetupError (a typo would silently lock that user out).
+    """
+    if not roles:
+        roles = {"daemon": list(users)}
+    unknown = sorted({u for names in roles.values() for u in names} - set(users))
+    if unknown:
+        raise ZenohSetupError(
+            f"zenoh.access.roles names users missing from the dictionary file: {', '.join(unknown)}"
+        )
+    role_rules = _role_rules(key_prefix)
+    rules: dict[str, dict[str, Any]] = {}
+    subjects, policies = [], []
+    for role, names in sorted(roles.items()):
+        if not names:
+            continue
+        role_rule_ids = []
+        for rule in role_rules[role]:
+            rules[rule["id"]] = rule  # shared rules (read, declarations) are defined once
+            role_rule_ids.append(rule["id"])
+        subjects.append({"id": f"role_{role}", "usernames": list(names)})
+        policies.append({"id": f"policy_{role}", "rules": role_rule_ids, "subjects": [f"role_{role}"]})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": list(rules.values()),
+        "subjects": subjects,
+        "policies": policies,
+    }
 
 
 def config_dict(
@@ -106,23 +209,8 @@ def config_dict(
         if access.dictionary_file is not None and mode != "client":
             usrpwd["dictionary_file"] = str(access.dictionary_file)
             if key_prefix:
-                # Authenticated users may use this cell's key space and nothing else.
                 users = _dictionary_users(access.dictionary_file)
-                cfg["access_control"] = {
-                    "enabled": True,
-                    "default_permission": "deny",
-                    "rules": [
-                        {
-                            "id": "cell",
-                            "permission": "allow",
-                            "flows": ["ingress", "egress"],
-                            "messages": _ALL_MESSAGES,
-                            "key_exprs": [key_prefix, f"{key_prefix}/**"],
-                        }
-                    ],
-                    "subjects": [{"id": "users", "usernames": users}],
-                    "policies": [{"rules": ["cell"], "subjects": ["users"]}],
-                }
+                cfg["access_control"] = access_control_dict(dict(access.roles), users, key_prefix)
         cfg["transport"] = {"auth": {"usrpwd": usrpwd}}
     return cfg
 

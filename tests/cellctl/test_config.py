@@ -169,6 +169,7 @@ def test_secret_file_wins_over_environment(tmp_path: Path, monkeypatch: pytest.M
     monkeypatch.setenv("TEST_SECRET_X", "from-env")
     f = tmp_path / "s"
     f.write_text("from-file\n")
+    f.chmod(0o600)  # secrets files readable by others are refused
     assert resolve_secret("TEST_SECRET_X", f, what="rws").get_secret_value() == "from-file"
 
 

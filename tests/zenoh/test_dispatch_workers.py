@@ -258,6 +258,7 @@ def test_jobs_flow_with_password_auth_and_access_control_on(hub, start_worker, m
     """Liveliness, jobs, events and reports all pass the ACL; keys outside the cell prefix do not."""
     users = hub.tmp / "users.txt"
     users.write_text("cellctl:pw-123\n")
+    users.chmod(0o600)  # a dictionary readable by others is refused
     monkeypatch.setenv("TEST_CELL_ZENOH_PW", "pw-123")  # inherited by the worker process
     with hub.toml.open("a") as f:
         f.write(

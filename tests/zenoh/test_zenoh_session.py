@@ -53,6 +53,7 @@ def test_access_settings_give_usrpwd_and_an_acl_confined_to_the_cell_prefix(tmp_
     monkeypatch.setenv("TEST_ZENOH_PW", "s3cret")
     users = tmp_path / "users.txt"
     users.write_text("# users\ncellctl:s3cret\nmes:other\n")
+    users.chmod(0o600)  # a dictionary readable by others is refused
     access = ZenohAccess(enabled=True, password_env="TEST_ZENOH_PW", dictionary_file=users)
     cfg = config_dict(ZenohSection(access=access), role="serve", key_prefix="cell/c1")
     assert cfg["transport"]["auth"]["usrpwd"] == {
@@ -141,6 +142,7 @@ def test_usrpwd_auth_admits_the_right_password_and_refuses_a_wrong_one(tmp_path,
     port = free_port()
     users = tmp_path / "users.txt"
     users.write_text("cellctl:right-pw\n")
+    users.chmod(0o600)
     monkeypatch.setenv("PW_RIGHT", "right-pw")
     monkeypatch.setenv("PW_WRONG", "wrong-pw")
 
