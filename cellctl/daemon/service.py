@@ -46,6 +46,7 @@ from cellctl.api import (
 )
 from cellctl.config import CellConfig, ConfigError, resolve_secret
 from cellctl.daemon.jobs import JobRecord, JobStore
+from cellctl.daemon.preflight import PreflightError, check_data_dir, probe_writable, raw_bytes_estimate
 from cellctl.daemon.states import CellStateMachine, Transition
 from cellctl.logging import bind_context
 
@@ -318,6 +319,10 @@ class CellDaemon:
             raise TriggerError(
                 "invalid", "placement.rpy_deg", "plates lie flat on the bed: roll and pitch must be 0"
             )
+        try:  # a read-only or full data directory refuses the trigger: no record, no motion
+            await asyncio.to_thread(probe_writable, self.store.root)
+        except PreflightError as exc:
+            raise TriggerError("not_allowed", exc.field, exc.message) from None
         record = JobRecord(
             job_id=new_job_id(),
             plate_id=req.plate_id,
@@ -448,6 +453,15 @@ class CellDaemon:
         )
         if self._stop_requested(job):
             self._job_state(job, JobState.INTERRUPTED, "stopped before the scan")
+            return False
+        est = raw_bytes_estimate(
+            plan.scan_time_s, rate_hz=cfg.laser.rate_hz, points_per_profile=cfg.laser.points_per_profile,
+            settle_s=self.settings.settle_s,
+        )  # fmt: skip
+        try:  # before motion: the raw files of this scan must fit
+            await asyncio.to_thread(check_data_dir, self.store.root, est.bytes, self.settings.min_free_mb)
+        except PreflightError as exc:
+            self._job_state(job, JobState.FAILED, f"pre-flight: {exc}; nothing moved")
             return False
 
         client = HD8Client(cfg.laser.host, cfg.laser.control_port, cfg.laser.data_port)

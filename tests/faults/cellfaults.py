@@ -1,0 +1,177 @@
+"""Helpers of the Zenoh / worker / daemon / disk fault cases and the soak (benchmarks/soak.py).
+
+The simulated cell runs as real processes (tests/e2e/e2e_cell.py); faults are made the way they
+happen: a TCP link cut (tcp_forwarder.py), ``kill -9`` of processes, a full or read-only mount.
+Everything here judges from the outside: the Zenoh API, the job records and the raw files.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import sys
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+_HERE = Path(__file__).resolve().parent
+for _p in (_HERE, _HERE.parent / "e2e"):
+    if str(_p) not in sys.path:
+        sys.path.insert(0, str(_p))
+
+from e2e_cell import Cell, open_client, tiny_cell_config, wait_status  # noqa: E402
+
+from cellctl.acquisition.rawstore import RawReader  # noqa: E402
+from cellctl.api import Keys  # noqa: E402
+from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml  # noqa: E402
+from cellctl.commands.scan_cmd import StatusFollower  # noqa: E402
+from cellctl.config import load_config  # noqa: E402
+from cellctl.zenoh_session import close_session  # noqa: E402
+
+__all__ = [
+    "Cell",
+    "RawCheck",
+    "children_of",
+    "client",
+    "kill9_tree",
+    "raw_check",
+    "tiny_cell_config",
+    "trigger_request",
+    "wait_status",
+    "worker_config_via",
+]
+
+FINAL = ("done", "failed", "aborted", "interrupted")
+
+
+def trigger_request(cell: Cell, plate_id: str = "fault-plate") -> dict[str, Any]:
+    """A trigger for the simulated plate at its true placement."""
+    pl = cell.cfg.sim.placement
+    return {
+        "plate_id": plate_id,
+        "design": DEMO_DESIGN,
+        "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]},
+    }
+
+
+def worker_config_via(cell: Cell, endpoint: str, name: str = "worker-via.toml") -> Path:
+    """A copy of the cell's configuration whose Zenoh clients connect to ``endpoint`` (a forwarder)."""
+    data = load_config(cell.config_path).model_dump(mode="json")
+    data["zenoh"]["connect"] = [endpoint]
+    path = cell.out / name
+    path.write_text(to_toml(data), encoding="utf-8")
+    load_config(path)  # the copy must validate as the original does
+    return path
+
+
+@contextlib.asynccontextmanager
+async def client(cell: Cell) -> AsyncIterator[tuple[Any, Keys, StatusFollower]]:
+    """A client session, the key space and a state follower; closed on exit."""
+    session = await open_client(cell.cfg)
+    keys = Keys(cell.cfg.key_prefix)
+    follower = StatusFollower(session, keys)
+    try:
+        yield session, keys, follower
+    finally:
+        follower.close()
+        await asyncio.to_thread(close_session, session)
+
+
+def children_of(pid: int) -> list[int]:
+    """Direct children of ``pid`` (Linux /proc)."""
+    out: list[int] = []
+    with contextlib.suppress(OSError):
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with contextlib.suppress(OSError):
+                out += [int(c) for c in Path(f"/proc/{pid}/task/{task}/children").read_text().split()]
+    return out
+
+
+def kill9_tree(pid: int) -> list[int]:
+    """``kill -9`` a process and its descendants (children first listed, all killed at once).
+
+    Returns every pid signalled.
+    """
+    pids, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        pids.append(p)
+        todo += children_of(p)
+    for p in pids:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(p, signal.SIGKILL)
+    return pids
+
+
+def pid_alive(pid: int) -> bool:
+    """True while ``pid`` exists and is not a zombie."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+class RawCheck:
+    """What a job's raw files hold: ``profiles`` in the intact records, the reader's ``problems``,
+    ``torn_bytes`` dropped at each stream's end, and the profile ``frames`` (sensor frame indices)."""
+
+    def __init__(self, raw_dir: Path) -> None:
+        reader = RawReader(raw_dir)
+        recs = reader.records()
+        import numpy as np
+
+        frames = [r.arrays["frame_index"] for r in recs if r.stream == "profiles"]
+        self.frames = np.concatenate(frames) if frames else np.zeros(0, dtype=np.uint64)
+        self.profiles = int(self.frames.size)
+        self.problems = list(reader.report.problems)
+        self.torn_bytes = dict(reader.report.torn_bytes)
+        self.records_used = reader.report.records_used
+
+    @property
+    def unique_frames(self) -> bool:
+        """No profile stored twice."""
+        import numpy as np
+
+        return int(np.unique(self.frames).size) == self.profiles
+
+
+def raw_check(cell: Cell, job_id: str) -> RawCheck:
+    """Read the job's raw files the way re-analysis does (never raises on a torn tail)."""
+    return RawCheck(cell.jobs_dir / job_id / "raw")
+
+
+def job_history(cell: Cell, job_id: str) -> list[str]:
+    """The job's state history, oldest first."""
+    return [h["state"] for h in cell.job_record(job_id)["history"]]
+
+
+def log_events(cell: Cell, name: str, event: str) -> list[dict[str, Any]]:
+    """The JSON log lines of process ``name`` (logs/<name>.log) with ``event``."""
+    out = []
+    path = cell.out / "logs" / f"{name}.log"
+    with contextlib.suppress(OSError):
+        for line in path.read_text(errors="replace").splitlines():
+            if f'"{event}"' not in line:
+                continue
+            with contextlib.suppress(ValueError):
+                d = json.loads(line)
+                if d.get("event") == event:
+                    out.append(d)
+    return out
+
+
+async def wait_until(pred, timeout_s: float, period_s: float = 0.2, what: str = "condition") -> Any:
+    """Poll ``pred()`` until truthy (returns its value) or raise TimeoutError naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        v = pred()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{what} not met within {timeout_s} s")
+        await asyncio.sleep(period_s)
