@@ -127,7 +127,9 @@ def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
         _rule("work_info", "ingress", ["declare_queryable", "reply"], prefix, ["workers/*/info"]),
         _rule("work_info_queries", "egress", ["query"], prefix, ["workers/*/info"]),
     ]
-    everything = [_rule("whole_cell", d, _ALL_MESSAGES, prefix, ["", "**"]) for d in ("ingress", "egress")]
+    everything = [
+        _rule(f"whole_cell_{d}", d, _ALL_MESSAGES, prefix, ["", "**"]) for d in ("ingress", "egress")
+    ]
     return {
         "viewer": common + read,
         "operator": common + read + operate,

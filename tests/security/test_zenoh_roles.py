@@ -309,3 +309,17 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
             proc.wait(5)
     assert envelope.ok and envelope.worker_id == "w1" and envelope.report["n_points"] == 500
     assert [a.worker_id for a in announced] == ["w1"]
+
+
+def test_without_roles_every_dictionary_user_gets_the_whole_cell_both_ways_and_rule_ids_are_unique():
+    acl = access_control_dict({}, ["cellctl", "mes"], PREFIX)
+    ids = [r["id"] for r in acl["rules"]]
+    assert len(ids) == len(set(ids))  # zenoh keeps one rule per id: a duplicate silently drops a flow
+    flows = {f for r in acl["rules"] for f in r["flows"]}
+    assert flows == {"ingress", "egress"}
+    assert acl["subjects"] == [{"id": "role_daemon", "usernames": ["cellctl", "mes"]}]
+    every_role = access_control_dict(
+        {"operator": ["a"], "worker": ["w"], "viewer": ["v"], "daemon": ["d"]}, ["a", "w", "v", "d"], PREFIX
+    )
+    ids = [r["id"] for r in every_role["rules"]]
+    assert len(ids) == len(set(ids))
