@@ -31,6 +31,25 @@ log = structlog.get_logger(__name__)
 TERMINAL = frozenset({JobState.DONE, JobState.FAILED, JobState.ABORTED, JobState.INTERRUPTED})
 
 
+#: Job directories hold a shipyard's raw scans and reports, which are confidential: the service user
+#: reads and writes them, its group (QA viewers, the backup agent) may read them, nobody else may
+#: even list them. 0o750 rather than 0o700 so that reports can be shared through group membership.
+DIR_MODE = 0o750
+
+
+def make_private_dir(path: Path) -> None:
+    """Create ``path`` (and missing parents) and set it to :data:`DIR_MODE` whatever the umask.
+
+    Raises JobStoreError naming the path when it cannot be created or its mode cannot be set.
+    """
+    try:
+        path.mkdir(mode=DIR_MODE, parents=True, exist_ok=True)
+        if path.stat().st_mode & 0o777 != DIR_MODE:
+            os.chmod(path, DIR_MODE)
+    except OSError as exc:
+        raise JobStoreError(f"{path}: cannot create a private directory: {exc.strerror or exc}") from None
+
+
 class JobStoreError(Exception):
     """A job directory or record that cannot be read or written (names the path)."""
 
@@ -66,8 +85,13 @@ class JobStore:
     """Reads and writes job records under ``<data_dir>/jobs``."""
 
     def __init__(self, data_dir: str | Path) -> None:
-        self.root = Path(data_dir) / "jobs"
-        self.root.mkdir(parents=True, exist_ok=True)
+        data = Path(data_dir)
+        if not data.exists():
+            make_private_dir(data)
+        elif data.stat().st_mode & 0o007:
+            log.warning("data_dir_open_to_others", path=str(data), mode=f"{data.stat().st_mode & 0o777:03o}")
+        self.root = data / "jobs"
+        make_private_dir(self.root)
 
     def job_dir(self, job_id: str) -> Path:
         return self.root / job_id
@@ -81,7 +105,8 @@ class JobStore:
     def create(self, record: JobRecord) -> JobRecord:
         """Make the job's directory and its first record (state queued)."""
         d = self.job_dir(record.job_id)
-        d.mkdir(parents=True, exist_ok=False)
+        d.mkdir(mode=DIR_MODE, exist_ok=False)
+        os.chmod(d, DIR_MODE)  # mkdir's mode is filtered by the umask; make it exact
         if not record.history:
             record.history.append({"state": record.state, "t_utc": record.created_utc, "message": "accepted"})
         self.save(record)
