@@ -6,6 +6,8 @@ in a temporary directory), triggers one scan over Zenoh and waits for the report
 * ``scan_s``: the daemon's execution of the plan (first to last reference, approach to retract);
 * ``report_after_last_profile_s``: from the last profile of the scan to the report stored with the job;
 * ``total_s``: from the trigger to the report stored;
+* ``html_after_last_profile_s``: from the last profile to report.html / .pdf written (the render
+  follows the stored JSON report and does not delay it);
 * ``daemon_peak_mb`` / ``worker_peak_mb``: peak resident memory (VmHWM) of the daemon and of the
   worker with its analysis child process;
 * plus the plan's figures, profile and point counts and the analysis timings.
@@ -107,16 +109,25 @@ def main() -> int:
             sys.stdout = real_stdout
         peaks["daemon"] = max(peaks["daemon"], _peak_mb(daemon.pid))
         peaks["worker"] = max(peaks["worker"], _peak_mb(worker.pid))
+        # the job is done with report.json; the HTML / PDF render follows: wait for it to be recorded
+        job_json = Path(cfg.cell.data_dir) / "jobs" / job_id / "job.json"
+        deadline = time.monotonic() + 180.0
+        while time.monotonic() < deadline and "html_s" not in json.loads(job_json.read_text())["info"]:
+            time.sleep(0.5)
+        peaks["daemon"] = max(peaks["daemon"], _peak_mb(daemon.pid))
     finally:
         procs.stop_all()
     rec = json.loads((Path(cfg.cell.data_dir) / "jobs" / job_id / "job.json").read_text())
     info = rec["info"]
+    last = info["last_profile_utc_s"]
+    events = {h["message"]: h["t_utc"] for h in rec["history"]}
     created = rec["history"][0]["t_utc"]
     out = {
         "plate_mm": [sp.length_mm, sp.width_mm],
         "scan_s": info["scan_s"],
-        "report_after_last_profile_s": round(info["report_utc_s"] - info["last_profile_utc_s"], 2),
+        "report_after_last_profile_s": round(info["report_utc_s"] - last, 2),
         "total_s": round(info["report_utc_s"] - t0, 2),
+        "html_after_last_profile_s": info.get("html_after_last_profile_s"),
         "daemon_peak_mb": peaks["daemon"],
         "worker_peak_mb": peaks["worker"],
         "planned_scan_s": info["plan"]["scan_time_s"],
@@ -124,7 +135,14 @@ def main() -> int:
         "profiles": info["profiles"],
         "points": info.get("points"),
         "assemble_s": info.get("assemble_s"),
+        "published_after_last_profile_s": (
+            round(info["published_utc_s"] - last, 2) if "published_utc_s" in info else None
+        ),
+        "html_s": info.get("html_s"),
         "analysis_timings_s": info.get("analysis_timings_s"),
+        "analysis_stages_s": (report or {}).get("timings_s"),
+        "scan_complete_utc": events.get("scan complete"),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
         "verdict": report.get("verdict") if report else None,
         "job_created_utc": created,
         "work_dir": str(work),

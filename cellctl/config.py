@@ -183,6 +183,11 @@ class ScanSection(Section):
     edge_tilt_deg: Annotated[float, Field(ge=0, lt=80, allow_inf_nan=False)] = 30.0
     link_clearance_mm: NonNegativeFloat = 30.0
     approach_mm: PositiveFloat = 100.0
+    # Column pitch of the cloud published to the analysis (every k-th point of each profile; the raw
+    # files keep every point). 0 publishes every point. Edge passes (boundary, thickness faces) have
+    # their own, usually finer, pitch.
+    publish_pitch_mm: NonNegativeFloat = 0.5
+    edge_publish_pitch_mm: NonNegativeFloat = 0.5
 
 
 ZenohRole = Literal["operator", "worker", "viewer", "daemon"]

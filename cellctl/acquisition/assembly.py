@@ -187,15 +187,36 @@ class ScanCloud:
         """Number of valid points."""
         return int(self.valid.sum())
 
-    def points(self) -> dict[str, np.ndarray]:
+    def points(self, column_step: int | np.ndarray = 1) -> dict[str, np.ndarray]:
         """Valid points flattened: ``xyz_mm`` (k, 3) float32, ``pass_id``, ``profile_index``,
-        ``point_index`` (int32, column in the profile) and ``t_ns`` per point."""
-        r, c = np.nonzero(self.valid)
+        ``point_index`` (int32, column in the profile) and ``t_ns`` per point.
+
+        column_step: keep every k-th column (0, k, 2k, ...) of each profile; an int for the whole
+            scan or (n,) ints, one per profile. ``point_index`` is then the column divided by the
+            profile's step, so the kept columns stay a dense grid (a sensor with fewer points).
+        """
+        step = np.asarray(column_step, dtype=np.int64)
+        if step.ndim == 0:
+            k = int(step)
+            if k < 1:
+                raise AssemblyError(f"column_step must be >= 1, got {k}")
+            # a strided view: the selection costs one pass over the kept columns only
+            r, c = np.nonzero(self.valid[:, ::k]) if k > 1 else np.nonzero(self.valid)
+            col, point = c * k, c
+        else:
+            if step.shape != (len(self),):
+                raise AssemblyError(f"column_step must be an int or ({len(self)},), got {step.shape}")
+            if step.size and step.min() < 1:
+                raise AssemblyError(f"column_step must be >= 1, got {int(step.min())}")
+            w = self.valid.shape[1]
+            kept = self.valid & (np.arange(w, dtype=np.int64)[None, :] % step[:, None] == 0)
+            r, col = np.nonzero(kept)
+            point = col // step[r]
         return {
-            "xyz_mm": self.xyz_mm[r, c],
+            "xyz_mm": self.xyz_mm[r, col],
             "pass_id": self.pass_id[r],
             "profile_index": self.profile_index[r],
-            "point_index": c.astype(np.int32),
+            "point_index": point.astype(np.int32),
             "t_ns": self.t_ns[r],
         }
 
