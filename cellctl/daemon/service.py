@@ -618,9 +618,9 @@ class CellDaemon:
             self._job_state(job, JobState.FAILED, f"{type(exc).__name__}: {exc}")
 
     async def _analyse_inner(self, job: _Job) -> None:
+        from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan
         from cellctl.acquisition.reassemble import reassemble
         from cellctl.analysis_settings import inspection_settings_dict
-        from cellctl.cloud_codec import Cloud, encode_cloud
         from cellctl.dispatch import JobFailed
 
         rec = job.record
@@ -635,20 +635,17 @@ class CellDaemon:
             job.cloud = None
             if scan_cloud is None:  # re-analysis: whole-scan clock fits from the raw files
                 scan_cloud = (await asyncio.to_thread(reassemble, self.store.raw_dir(rec.job_id))).cloud
-            pts = await asyncio.to_thread(scan_cloud.points)
-            del scan_cloud
-            job.points = int(pts["xyz_mm"].shape[0])
-            cloud = Cloud(
-                xyz_mm=pts["xyz_mm"].astype(np.float32),
-                job_id=rec.job_id,
-                plate_id=rec.plate_id,
-                pass_id=np.clip(pts["pass_id"], 0, 65535).astype(np.uint16),
-                profile_index=pts["profile_index"].astype(np.uint32),
-                point_index=pts["point_index"].astype(np.uint16),
-                t_s=(pts["t_ns"].astype(np.float64) * 1e-9),
-                meta={"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": rec.placement},
-            )
-            payload = await asyncio.to_thread(encode_cloud, cloud)
+            # The plan puts the raster passes first and the edge passes after them (pass ids index
+            # plan.passes), so the plan's raster count is the first edge pass.
+            first_edge = (rec.info.get("plan") or {}).get("passes")
+            steps = column_steps(scan_cloud.pass_id, first_edge, PublishSettings.from_config(self.cfg))
+            meta = {"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": rec.placement}
+            # thinned and encoded in one pass off the loop: the only copy of the points is the payload
+            payload, job.points = await asyncio.to_thread(
+                encode_scan, scan_cloud, job_id=rec.job_id, plate_id=rec.plate_id, column_step=steps,
+                meta=meta,
+            )  # fmt: skip
+            del scan_cloud, steps
             assemble_s = time.perf_counter() - t0
             params = {
                 "design": rec.design_path,
@@ -656,16 +653,21 @@ class CellDaemon:
                 "out_dir": str(self.store.results_dir(rec.job_id).resolve()),
                 "cell_id": self.cfg.cell.id,
             }
+            fut = self.dispatcher.submit(rec.job_id, rec.plate_id, payload, params)
+            # the published bytes, kept with the job (cellctl.cloud_codec layout); written while the
+            # worker analyses, and on disk before the job is done
+            cloud_path = self.store.job_dir(rec.job_id) / "cloud.bin"
+            written = asyncio.ensure_future(asyncio.to_thread(cloud_path.write_bytes, payload))
             self._job_state(
                 job, JobState.WAITING_FOR_WORKER, "cloud published", points=job.points,
-                cloud_bytes=len(payload), assemble_s=round(assemble_s, 3),
+                cloud_bytes=len(payload), assemble_s=round(assemble_s, 3), published_utc_s=time.time(),
             )  # fmt: skip
-            fut = self.dispatcher.submit(rec.job_id, rec.plate_id, payload, params)
-            # the published bytes, kept with the job (cellctl.cloud_codec layout)
-            await asyncio.to_thread((self.store.job_dir(rec.job_id) / "cloud.bin").write_bytes, payload)
-            del payload, cloud, pts
+            del payload
             self._job_state(job, JobState.ANALYSING, "analysing")
-            env = await fut
+            try:
+                env = await fut
+            finally:
+                await asyncio.shield(written)
         except asyncio.CancelledError:
             self._job_state(
                 job, JobState.INTERRUPTED, "the daemon stopped during the analysis; raw data kept"
@@ -683,24 +685,55 @@ class CellDaemon:
         if not env.ok or env.report is None:
             self._job_state(job, JobState.FAILED, f"analysis error: {env.error}", worker_id=env.worker_id)
             return
-        (jd / "report.json").write_text(json.dumps(env.report, indent=2), encoding="utf-8")
-        report_path = jd / "report.json"
-        if self.settings.write_html_report and (self.store.results_dir(rec.job_id) / "report.json").exists():
-            try:
-                from analysis.report import write_report
-
-                paths = await asyncio.to_thread(write_report, self.store.results_dir(rec.job_id))
-                html = [p for p in paths if Path(p).suffix == ".html"]
-                if html:
-                    report_path = Path(html[0])
-            except Exception as exc:  # the JSON report stands on its own
-                log.warning("html_report_failed", error=str(exc))
+        report_path = (jd / "report.json").resolve()
+        report_path.write_text(json.dumps(env.report, indent=2), encoding="utf-8")
         job.fraction = 1.0
+        # The JSON report (per-line verdicts) completes the job; the HTML / PDF render follows.
         self._job_state(
-            job, JobState.DONE, str(report_path.resolve()), verdict=env.report.get("verdict"),
-            report=str(report_path.resolve()), worker_id=env.worker_id, analysis_timings_s=env.timings_s,
+            job, JobState.DONE, str(report_path), verdict=env.report.get("verdict"),
+            report=str(report_path), worker_id=env.worker_id, analysis_timings_s=env.timings_s,
             report_utc_s=time.time(),
         )  # fmt: skip
+        if self.settings.write_html_report and (self.store.results_dir(rec.job_id) / "report.json").exists():
+            await self._render_html(job)
+
+    async def _render_html(self, job: _Job) -> None:
+        """Render report.html / .pdf of a done job in a thread; record where and when in the job.
+
+        A shutdown meanwhile waits for the render (it is a flush, not work to drop)."""
+        from analysis.report import write_report
+
+        rec = job.record
+        t0 = time.perf_counter()
+
+        def render_html() -> list[str]:
+            paths = write_report(self.store.results_dir(rec.job_id))
+            return [str(Path(p).resolve()) for p in paths if Path(p).suffix == ".html"]
+
+        render = asyncio.ensure_future(asyncio.to_thread(render_html))
+        cancelled = False
+        try:
+            await asyncio.shield(render)
+        except asyncio.CancelledError:
+            cancelled = True
+            with contextlib.suppress(Exception):
+                await render
+        try:
+            html = render.result()
+        except Exception as exc:  # the JSON report stands on its own
+            log.warning("html_report_failed", error=str(exc))
+            html = []
+        info: dict[str, Any] = {"html_s": round(time.perf_counter() - t0, 3)}
+        if html:
+            info["report_html"] = html[0]
+            last = rec.info.get("last_profile_utc_s")
+            if last is not None:
+                info["html_after_last_profile_s"] = round(time.time() - float(last), 3)
+        rec.info.update(info)
+        self.store.save(rec)
+        log.info("html_report_written", job_id=rec.job_id, **info)
+        if cancelled:
+            raise asyncio.CancelledError
 
 
 def _plain(obj: Any) -> Any:
