@@ -60,6 +60,7 @@ def main() -> int:
         demo_config,
         drive_scan,
         to_toml,
+        wait_html_report,
         wait_ready_line,
     )
     from cellctl.config import load_config
@@ -110,10 +111,7 @@ def main() -> int:
         peaks["daemon"] = max(peaks["daemon"], _peak_mb(daemon.pid))
         peaks["worker"] = max(peaks["worker"], _peak_mb(worker.pid))
         # the job is done with report.json; the HTML / PDF render follows: wait for it to be recorded
-        job_json = Path(cfg.cell.data_dir) / "jobs" / job_id / "job.json"
-        deadline = time.monotonic() + 180.0
-        while time.monotonic() < deadline and "html_s" not in json.loads(job_json.read_text())["info"]:
-            time.sleep(0.5)
+        wait_html_report(cfg.cell.data_dir, job_id, 180.0)
         peaks["daemon"] = max(peaks["daemon"], _peak_mb(daemon.pid))
     finally:
         procs.stop_all()

@@ -8,7 +8,8 @@ exits 0 too; 2 when something did not work). No process is left behind, also on 
 
 The default demo plate is a 600 x 400 mm sail scanned at 1 mm profile spacing, so the demo fits in
 about two minutes on two cores; ``--full`` scans the paper's 1200 x 800 mm plate at cell.toml's
-settings.
+settings. The job is done when report.json is stored; the HTML / PDF render follows, and the demo
+waits for it before it stops the processes.
 """
 
 from __future__ import annotations
@@ -175,6 +176,20 @@ def wait_ready_line(path: Path, proc: subprocess.Popen, timeout_s: float) -> dic
     raise DemoError(f"the simulated cell was not ready within {timeout_s} s; see {path.with_suffix('.log')}")
 
 
+def wait_html_report(data_dir: Path, job_id: str, timeout_s: float = 120.0) -> str | None:
+    """Wait until the daemon has recorded the HTML render that follows a done job (it renders after
+    storing report.json); returns report.html's path, or None if there is none within ``timeout_s``."""
+    job_json = Path(data_dir) / "jobs" / job_id / "job.json"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with contextlib.suppress(OSError, ValueError):
+            info = json.loads(job_json.read_text(encoding="utf-8"))["info"]
+            if "html_s" in info:
+                return info.get("report_html")
+        time.sleep(0.2)
+    return None
+
+
 async def drive_scan(
     cfg_dict: dict[str, Any], cfg: Any, procs: Processes, timeout_s: float
 ) -> tuple[str, dict | None, str]:
@@ -293,6 +308,9 @@ def run(args: argparse.Namespace) -> int:
         if report is not None:
             print(line_table(report))
         print(f"report: {message}")
+        html = wait_html_report(cfg.cell.data_dir, job_id)
+        if html:
+            print(f"html report: {html}")
         print(f"demo finished in {time.monotonic() - t0:.0f} s (job {job_id})", flush=True)
         return EXIT_OK
     except DemoError as exc:

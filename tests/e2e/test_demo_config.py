@@ -28,3 +28,17 @@ def load_config_from(d, cfg):
     p = d / "full.toml"
     p.write_text(to_toml(cfg))
     return load_config(p)
+
+
+def test_wait_html_report_returns_the_recorded_html_path_and_none_when_no_render_is_recorded(tmp_path):
+    import json
+
+    from cellctl.commands.demo_cmd import wait_html_report
+
+    job = tmp_path / "jobs" / "j1"
+    job.mkdir(parents=True)
+    (job / "job.json").write_text(json.dumps({"info": {"report_utc_s": 1.0}}))
+    assert wait_html_report(tmp_path, "j1", timeout_s=0.3) is None
+    (job / "job.json").write_text(json.dumps({"info": {"html_s": 2.0, "report_html": "/r/report.html"}}))
+    assert wait_html_report(tmp_path, "j1", timeout_s=5.0) == "/r/report.html"
+    assert wait_html_report(tmp_path, "missing", timeout_s=0.3) is None
