@@ -25,6 +25,7 @@ import resource
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -62,27 +63,60 @@ def _quiet_logging() -> None:
     )
 
 
-async def _endpoint_child() -> None:
-    """Child process: serve the endpoint until SIGTERM, print its port on stdout first."""
-    ep = EgmEndpoint(EgmEndpointConfig(host="127.0.0.1", port=0, watchdog_s=1.0))
+def _endpoint_config(args: argparse.Namespace) -> EgmEndpointConfig:
+    return EgmEndpointConfig(
+        host="127.0.0.1",
+        port=0,
+        watchdog_s=1.0,
+        reply_thread=args.reply_thread,
+        reply_thread_priority=args.endpoint_priority if args.realtime else 0,
+        reply_thread_cpus=tuple(args.endpoint_cpus),
+        switch_interval_s=None if args.switch_interval_us is None else args.switch_interval_us * 1e-6,
+    )
+
+
+async def _endpoint_child(args: argparse.Namespace) -> None:
+    """Child process: serve the endpoint until SIGTERM; print its port on stdout first and, at the end,
+    one JSON line with its statistics and the CPU time it used while serving."""
+    ep = EgmEndpoint(_endpoint_config(args))
     _, port = await ep.start()
-    _freeze_heap()
+    if args.gc_freeze:
+        _freeze_heap()
     print(port, flush=True)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
+    cpu0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
     await stop.wait()
-    print(json.dumps(ep.stats.snapshot()), file=sys.stderr, flush=True)
+    cpu1, t1 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
+    cpu_s = cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime
+    print(json.dumps({"cpu_fraction": cpu_s / (t1 - t0), "stats": ep.stats.snapshot()}), flush=True)
     await ep.close()
 
 
-async def _measure(port: int, seconds: float, cycle_ms: float, warmup_s: float) -> dict:
+def _figures(latency_us: np.ndarray, missed: np.ndarray, cycles: int, prefix: str = "") -> dict:
+    ok = np.isfinite(latency_us)
+    latency_us, missed = latency_us[ok], missed[ok]
+    unanswered = max(0, cycles - latency_us.shape[0])
+    q = np.percentile(latency_us, [50, 99, 99.9]) if latency_us.size else [float("nan")] * 3
+    return {
+        f"{prefix}p50_us": round(float(q[0]), 1),
+        f"{prefix}p99_us": round(float(q[1]), 1),
+        f"{prefix}p999_us": round(float(q[2]), 1),
+        f"{prefix}max_us": round(float(latency_us.max()), 1) if latency_us.size else None,
+        f"{prefix}missed_cycles": int(missed.sum()) + unanswered,
+    }
+
+
+async def _measure(port: int, args: argparse.Namespace) -> dict:
+    seconds, cycle_ms = args.seconds, args.cycle_ms
     sim = EgmControllerSim(EgmSimConfig(sensor_port=port, cycle_s=cycle_ms / 1000.0, comm_timeout_s=5.0))
     await sim.start()
     try:
-        await asyncio.sleep(warmup_s)  # imports, first allocations, the endpoint's first packets
-        _freeze_heap()
+        await asyncio.sleep(args.warmup_s)  # imports, first allocations, the endpoint's first packets
+        if args.gc_freeze:
+            _freeze_heap()
         sent0 = sim.stats.sent
         sim.reset_reply_latency()
         late_n0 = sim._late_n
@@ -93,21 +127,20 @@ async def _measure(port: int, seconds: float, cycle_ms: float, warmup_s: float) 
         sim.set_faults(stop_sending=True)
         cycles = sim.stats.sent - sent0
         await asyncio.sleep(0.05)
-        latency_us, missed = sim.reply_latency()
+        user_us, user_missed = sim.reply_latency()
+        kernel_us, kernel_missed = sim.reply_latency(kernel=True)
         late_us = sim.tick_lateness_us()[-min(sim._late_n - late_n0, 4096) :]
     finally:
         await sim.stop()
-    unanswered = max(0, cycles - latency_us.shape[0])
-    q = np.percentile(latency_us, [50, 99, 99.9]) if latency_us.size else [float("nan")] * 3
+    if not sim.kernel_rx_stamps:
+        print("egm_latency: no kernel receive stamps; headline figures are user space", file=sys.stderr)
+        kernel_us, kernel_missed = user_us, user_missed
     return {
-        "p50_us": round(float(q[0]), 1),
-        "p99_us": round(float(q[1]), 1),
-        "p999_us": round(float(q[2]), 1),
-        "max_us": round(float(latency_us.max()), 1) if latency_us.size else None,
+        **_figures(kernel_us, kernel_missed, cycles),
         "cycles": int(cycles),
-        "missed_cycles": int(missed.sum()) + unanswered,
-        "late_replies": int(missed.sum()),
-        "unanswered": unanswered,
+        "unanswered": max(0, cycles - int(np.isfinite(kernel_us).sum())),
+        "kernel_stamped": sim.kernel_rx_stamps,
+        **_figures(user_us, user_missed, cycles, prefix="user_"),
         "cycle_ms": cycle_ms,
         "seconds": seconds,
         "tick_late_p99_us": round(float(np.percentile(late_us, 99)), 1) if late_us.size else None,
@@ -120,12 +153,37 @@ async def _measure(port: int, seconds: float, cycle_ms: float, warmup_s: float) 
     }
 
 
+def _pin(cpus: list[int], what: str) -> None:
+    if not cpus:
+        return
+    try:
+        os.sched_setaffinity(0, cpus)
+    except OSError as exc:
+        print(f"egm_latency: cannot pin the {what} to CPUs {cpus} ({exc})", file=sys.stderr)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--cycle-ms", type=float, default=4.032)
     p.add_argument("--warmup-s", type=float, default=1.0)
     p.add_argument("--realtime", action="store_true", help="SCHED_FIFO for simulator and endpoint")
+    p.add_argument("--sim-priority", type=int, default=20, help="the simulator's SCHED_FIFO priority")
+    p.add_argument(
+        "--endpoint-priority",
+        type=int,
+        default=20,
+        help="the endpoint's SCHED_FIFO priority (its reply thread's with --reply-thread; the process "
+        "then runs its loop at --loop-priority, as the daemon does)",
+    )
+    p.add_argument("--loop-priority", type=int, default=10, help="endpoint loop thread with --reply-thread")
+    p.add_argument("--reply-thread", action="store_true", help="serve EGM from the endpoint's reply thread")
+    p.add_argument("--sim-cpus", type=int, nargs="*", default=[], help="pin the simulator to these CPUs")
+    p.add_argument("--endpoint-cpus", type=int, nargs="*", default=[], help="pin the endpoint (reply thread)")
+    p.add_argument("--switch-interval-us", type=float, default=None, help="sys.setswitchinterval, endpoint")
+    p.add_argument(
+        "--no-gc-freeze", dest="gc_freeze", action="store_false", help="leave the start-up heap to the GC"
+    )
     p.add_argument(
         "--cpu-latency-us",
         type=int,
@@ -135,34 +193,48 @@ def main() -> int:
     p.add_argument("--endpoint-child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
     _quiet_logging()
-    realtime = _realtime(20) if args.realtime else False
+    if args.endpoint_child:
+        if args.realtime:
+            # with a reply thread the loop runs below it (the thread asks for its own priority)
+            _realtime(args.loop_priority if args.reply_thread else args.endpoint_priority)
+        if not args.reply_thread:
+            _pin(args.endpoint_cpus, "endpoint")
+        asyncio.run(_endpoint_child(args))
+        return 0
+    realtime = _realtime(args.sim_priority) if args.realtime else False
     held = False
-    if args.cpu_latency_us is not None and not args.endpoint_child:
+    if args.cpu_latency_us is not None:
         from cellctl.daemon.service import hold_cpu_wakeup_latency
 
         held = hold_cpu_wakeup_latency(args.cpu_latency_us)
-    if args.endpoint_child:
-        asyncio.run(_endpoint_child())
-        return 0
+    child_argv = [a for a in sys.argv[1:] if a != "--realtime"] + (["--realtime"] if realtime else [])
     child = subprocess.Popen(
-        [sys.executable, str(Path(__file__).resolve()), "--endpoint-child"]
-        + (["--realtime"] if realtime else []),
+        [sys.executable, str(Path(__file__).resolve()), "--endpoint-child", *child_argv],
         stdout=subprocess.PIPE,
         text=True,
     )
+    endpoint: dict = {}
     try:
         port = int(child.stdout.readline())
+        _pin(args.sim_cpus, "simulator")
         with asyncio.Runner(loop_factory=precise_event_loop) as runner:
-            result = runner.run(_measure(port, args.seconds, args.cycle_ms, args.warmup_s))
+            result = runner.run(_measure(port, args))
     finally:
         child.send_signal(signal.SIGTERM)
         try:
-            child.wait(timeout=10)
+            out, _ = child.communicate(timeout=10)
+            endpoint = json.loads(out.strip().splitlines()[-1]) if out.strip() else {}
         except subprocess.TimeoutExpired:
             child.kill()
             child.wait()
+    if "cpu_fraction" in endpoint:
+        # CPU share of the whole endpoint process while it served (warm-up included): one core = 1.0
+        result["endpoint_cpu_fraction"] = round(endpoint["cpu_fraction"], 3)
+        result["endpoint_latency_max_us"] = round(endpoint["stats"]["latency_max_us"], 1)
     result["realtime"] = realtime
+    result["reply_thread"] = args.reply_thread
     result["cpu_latency_held"] = held
+    result["load_1min"] = os.getloadavg()[0]
     print(json.dumps(result))
     return 0
 

@@ -16,11 +16,26 @@ Besides the reply it keeps:
 - a watchdog that reports when the controller goes quiet and when it comes back.
 
 A malformed datagram is counted and logged (rate limited) and never ends the endpoint.
+
+Two ways to serve the controller (``EgmEndpointConfig.reply_thread``):
+
+- on the asyncio loop (a datagram protocol): simplest, but every reply waits for whatever the loop is
+  doing (zenoh hand-offs, status publication, job bookkeeping);
+- on a dedicated reply thread with a blocking socket: receive, decode, update state and history under
+  a short lock, reply with the current reference, nothing else. Everything that belongs to the loop
+  (waking ``wait_for_feedback``, the watchdog callback, log lines) is handed over with
+  ``call_soon_threadsafe``. The thread can run under SCHED_FIFO and on chosen CPUs.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import functools
+import os
+import socket
+import struct
+import sys
 import threading
 import time
 from collections import deque
@@ -80,6 +95,13 @@ class EgmEndpointConfig:
     ``malformed_log_interval_s``: at most one log line per interval for malformed packets.
     ``jitter_window``: receive intervals kept for the jitter figure.
     ``n_axes``: joints in the reference (6 for the IRB 4600).
+
+    Reply path (see the module docstring): ``reply_thread`` serves the controller from a dedicated
+    thread instead of the asyncio loop. For that thread: ``reply_thread_priority`` > 0 asks for
+    SCHED_FIFO at that priority (needs CAP_SYS_NICE / ``LimitRTPRIO``; refused -> normal scheduling
+    and a log line), ``reply_thread_cpus`` pins it to those CPUs (empty: any), and
+    ``switch_interval_s`` sets ``sys.setswitchinterval`` while the endpoint runs, so a busy
+    Python thread hands the GIL to the reply thread sooner (None: leave the interpreter's 5 ms).
     """
 
     host: str = "127.0.0.1"
@@ -89,6 +111,10 @@ class EgmEndpointConfig:
     malformed_log_interval_s: float = 1.0
     jitter_window: int = 2_500
     n_axes: int = 6
+    reply_thread: bool = False
+    reply_thread_priority: int = 0
+    reply_thread_cpus: tuple[int, ...] = ()
+    switch_interval_s: float | None = None
 
 
 def ok_to_command(
@@ -282,7 +308,9 @@ class EgmStatistics:
 
     def receive_interval_us(self) -> np.ndarray:
         """Recent receive intervals between consecutive in-order ``EgmRobot`` messages, us."""
-        return np.fromiter(self._intervals_us, dtype=np.float64, count=len(self._intervals_us))
+        # copy() is one C call, so a reply thread appending meanwhile cannot break the iteration
+        recent = self._intervals_us.copy()
+        return np.fromiter(recent, dtype=np.float64, count=len(recent))
 
     def snapshot(self) -> dict:
         """A plain dict for logs and status publications."""
@@ -361,16 +389,27 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._watchdog_handle: asyncio.TimerHandle | None = None
         self._malformed_logged_ns = -(10**18)
         self._malformed_suppressed = 0
-        self._feedback_waiters: list[asyncio.Future] = []
+        self._feedback_waiters: list[tuple[asyncio.Future, int]] = []
+        # the reference is swapped by the loop and read (or replaced by a hold) by the reply path
+        self._ref_lock = threading.Lock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._sock: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._stop_thread = False
+        self._saved_switch_interval: float | None = None
 
     # ---- lifecycle ----------------------------------------------------------------------------
 
     async def start(self) -> tuple[str, int]:
         """Bind the configured host/port (port 0 picks a free one); returns the bound address."""
-        if self._transport is not None:
+        if self._transport is not None or self._thread is not None:
             raise EgmEndpointError("endpoint already started")
         loop = asyncio.get_running_loop()
-        await loop.create_datagram_endpoint(lambda: self, local_addr=(self.config.host, self.config.port))
+        self._loop = loop
+        if self.config.reply_thread:
+            self._start_reply_thread()
+        else:
+            await loop.create_datagram_endpoint(lambda: self, local_addr=(self.config.host, self.config.port))
         self._schedule_watchdog()
         addr = self.local_address
         log.info("egm_endpoint_started", host=addr[0], port=addr[1])
@@ -381,11 +420,14 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         if self._watchdog_handle is not None:
             self._watchdog_handle.cancel()
             self._watchdog_handle = None
+        if self._thread is not None:
+            await self._stop_reply_thread()
+            log.info("egm_endpoint_closed", **self.stats.snapshot())
         if self._transport is not None:
             self._transport.close()
             self._transport = None
             log.info("egm_endpoint_closed", **self.stats.snapshot())
-        for fut in self._feedback_waiters:
+        for fut, _ in self._feedback_waiters:
             if not fut.done():
                 fut.set_exception(EgmEndpointError("endpoint closed"))
         self._feedback_waiters.clear()
@@ -400,6 +442,8 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     @property
     def local_address(self) -> tuple[str, int]:
         """(host, port) the endpoint listens on."""
+        if self._sock is not None:
+            return self._sock.getsockname()[:2]
         if self._transport is None:
             raise EgmEndpointError("endpoint not started")
         return self._transport.get_extra_info("sockname")[:2]
@@ -427,12 +471,14 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     async def wait_for_feedback(self, timeout_s: float) -> EgmState:
         """Wait for the next in-order ``EgmRobot``; raises ``TimeoutError`` after ``timeout_s``."""
         fut = asyncio.get_running_loop().create_future()
-        self._feedback_waiters.append(fut)
+        # stamped with the host clock: a reply thread's sample received before this call is not "next"
+        waiter = (fut, self._clock_ns())
+        self._feedback_waiters.append(waiter)
         try:
             return await asyncio.wait_for(fut, timeout_s)
         finally:
-            if fut in self._feedback_waiters:
-                self._feedback_waiters.remove(fut)
+            if waiter in self._feedback_waiters:
+                self._feedback_waiters.remove(waiter)
 
     # ---- references ---------------------------------------------------------------------------
 
@@ -445,7 +491,9 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         """
         q = self._vector(q_deg, self.config.n_axes, "q_deg")
         qd = None if speed_deg_s is None else self._vector(speed_deg_s, self.config.n_axes, "speed_deg_s")
-        self._reference = _joint_reference(q, qd)
+        ref = _joint_reference(q, qd)
+        with self._ref_lock:
+            self._reference = ref
 
     def command_pose(
         self, pos_mm: np.ndarray, quat_wxyz: np.ndarray, speed_ref: np.ndarray | None = None
@@ -463,14 +511,15 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             body = encode_sensor(msg, with_header=False)
         except EgmEncodeError as exc:
             raise EgmEndpointError(str(exc)) from None
-        self._reference = _Reference("pose", body)
+        with self._ref_lock:
+            self._reference = _Reference("pose", body)
 
     def hold(self) -> None:
         """Reference := the latest feedback joints (the robot stops where it is)."""
-        if self._latest is None:
-            self._reference = None
-        else:
-            self._reference = _joint_reference(self._latest.q_deg.copy())
+        latest = self._latest
+        ref = None if latest is None else _joint_reference(latest.q_deg.copy())
+        with self._ref_lock:
+            self._reference = ref
 
     @property
     def reference_q_deg(self) -> np.ndarray | None:
@@ -502,7 +551,15 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             log.warning("egm_socket_lost", error=str(exc))
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        t_rx_ns = self._clock_ns()
+        self._on_datagram(data, addr, self._clock_ns())
+
+    # ---- the reply path (both modes) ----------------------------------------------------------
+
+    def _on_datagram(self, data: bytes, addr: tuple[str, int], t_rx_ns: int) -> None:
+        """Handle one datagram: classify, reply at once, then update state and history.
+
+        Runs on the loop or on the reply thread; whatever belongs to the loop goes through ``_post``.
+        """
         try:
             pb = parse_robot_pb(data)  # about a microsecond; the full conversion waits for the reply
         except Exception as exc:  # EgmDecodeError, or anything else: one datagram never ends us
@@ -513,26 +570,25 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         tm_ms = h.tm if h.HasField("tm") else None
         if self._controller_addr != addr:
             if self._controller_addr is not None:
-                log.warning("egm_controller_address_changed", old=self._controller_addr, new=addr)
+                self._post(log.warning, "egm_controller_address_changed", old=self._controller_addr, new=addr)
             else:
-                log.info("egm_controller_seen", host=addr[0], port=addr[1])
+                self._post(log.info, "egm_controller_seen", host=addr[0], port=addr[1])
             self._controller_addr = addr
         self.stats.received += 1
-        in_order = self._track_seqno(seqno, tm_ms)
         msg: RobotMessage | None = None
-        if self._reference is None:
-            # A new session starts from where the robot is: hold it until someone commands.
-            msg = self._convert(pb, data, addr, t_rx_ns)
-            if msg is None:
-                return
-            self._reference = _joint_reference(msg.feedback_q_deg[: self.config.n_axes].copy())
-        self._reply(addr, t_rx_ns)
+        with self._ref_lock:
+            in_order = self._track_seqno(seqno, tm_ms)
+            if self._reference is None:
+                # A new session starts from where the robot is: hold it until someone commands.
+                msg = self._convert(pb, data, addr, t_rx_ns)
+                if msg is None:
+                    return
+                self._reference = _joint_reference(msg.feedback_q_deg[: self.config.n_axes].copy())
+            ref = self._reference
+        self._reply(addr, t_rx_ns, ref)
         if self._quiet:
             self._quiet = False
-            quiet_s = (t_rx_ns - (self._last_rx_ns or t_rx_ns)) / 1e9
-            log.info("egm_controller_resumed", quiet_s=round(quiet_s, 4))
-            if self._on_watchdog is not None:
-                self._call_watchdog("resumed", quiet_s)
+            self._post(self._resumed, (t_rx_ns - (self._last_rx_ns or t_rx_ns)) / 1e9)
         if not in_order:
             return
         if msg is None:
@@ -543,6 +599,111 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             self.stats._intervals_us.append((t_rx_ns - self._last_rx_ns) / 1000.0)
         self._last_rx_ns = t_rx_ns
         self._update_state(msg, t_rx_ns)
+
+    def _resumed(self, quiet_s: float) -> None:
+        log.info("egm_controller_resumed", quiet_s=round(quiet_s, 4))
+        if self._on_watchdog is not None:
+            self._call_watchdog("resumed", quiet_s)
+
+    def _post(self, fn: Callable[..., object], *args, **kwargs) -> None:
+        """Run ``fn`` on the event loop: at once on the loop's own reply path, handed over (without
+        waiting) from the reply thread, so the thread never blocks on loop-side work."""
+        thread = self._thread
+        if thread is None or thread.ident != threading.get_ident():
+            fn(*args, **kwargs)
+            return
+        loop = self._loop
+        if loop is None:
+            return
+        with contextlib.suppress(RuntimeError):  # the loop is closing: the endpoint goes with it
+            loop.call_soon_threadsafe(functools.partial(fn, *args, **kwargs))
+
+    # ---- the reply thread ---------------------------------------------------------------------
+
+    @property
+    def reply_thread_native_id(self) -> int | None:
+        """The reply thread's kernel thread id (for ``chrt`` / ``taskset``), or None in loop mode."""
+        thread = self._thread
+        return None if thread is None else thread.native_id
+
+    def _start_reply_thread(self) -> None:
+        cfg = self.config
+        family = socket.AF_INET6 if ":" in cfg.host else socket.AF_INET
+        sock = socket.socket(family, socket.SOCK_DGRAM)
+        try:
+            sock.bind((cfg.host, cfg.port))
+            # a kernel-side receive timeout keeps each receive one blocking syscall and still lets the
+            # thread look at its stop flag every 100 ms
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("ll", 0, 100_000))
+        except OSError:
+            sock.close()
+            raise
+        if cfg.switch_interval_s is not None:
+            self._saved_switch_interval = sys.getswitchinterval()
+            sys.setswitchinterval(cfg.switch_interval_s)
+        self._sock = sock
+        self._stop_thread = False
+        self._thread = threading.Thread(target=self._serve, args=(sock,), name="egm-reply", daemon=True)
+        self._thread.start()
+
+    async def _stop_reply_thread(self) -> None:
+        thread, sock = self._thread, self._sock
+        assert thread is not None and sock is not None
+        self._stop_thread = True
+        # shutdown wakes a receive that is blocked right now (Linux answers ENOTCONN but still wakes it)
+        with contextlib.suppress(OSError):
+            sock.shutdown(socket.SHUT_RDWR)
+        await asyncio.to_thread(thread.join, 2.0)
+        if thread.is_alive():  # cannot happen short of a hung interpreter; say so rather than hang
+            log.error("egm_reply_thread_did_not_stop")
+        sock.close()
+        self._thread = None
+        self._sock = None
+        if self._saved_switch_interval is not None:
+            sys.setswitchinterval(self._saved_switch_interval)
+            self._saved_switch_interval = None
+
+    def _serve(self, sock: socket.socket) -> None:
+        """The reply thread: receive, handle, repeat until the stop flag is set."""
+        self._configure_reply_thread()
+        recvfrom = sock.recvfrom
+        while not self._stop_thread:
+            try:
+                data, addr = recvfrom(65535)
+            except (BlockingIOError, InterruptedError):  # the receive timeout: look at the stop flag
+                continue
+            except OSError as exc:
+                if self._stop_thread:
+                    break
+                self.stats.send_errors += 1  # e.g. an ICMP error reported on the socket
+                self._post(log.warning, "egm_socket_error", error=str(exc))
+                time.sleep(0.001)  # a persistent error must not turn into a busy loop
+                continue
+            t_rx_ns = self._clock_ns()
+            if self._stop_thread or addr is None:
+                break
+            try:
+                self._on_datagram(data, addr, t_rx_ns)
+            except Exception as exc:  # one datagram never ends the thread
+                self._post(log.error, "egm_reply_thread_error", error=repr(exc))
+
+    def _configure_reply_thread(self) -> None:
+        """Pin and prioritise the calling (reply) thread as configured; refusals are logged, not fatal."""
+        cfg = self.config
+        if cfg.reply_thread_cpus:
+            try:
+                os.sched_setaffinity(0, cfg.reply_thread_cpus)
+            except OSError as exc:
+                self._post(log.warning, "egm_reply_thread_affinity_refused", cpus=cfg.reply_thread_cpus,
+                           error=str(exc))  # fmt: skip
+        if cfg.reply_thread_priority > 0:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(cfg.reply_thread_priority))
+            except OSError as exc:
+                self._post(log.warning, "egm_reply_thread_realtime_refused",
+                           priority=cfg.reply_thread_priority, error=str(exc))  # fmt: skip
+            else:
+                self._post(log.info, "egm_reply_thread_realtime", priority=cfg.reply_thread_priority)
 
     # ---- internals ----------------------------------------------------------------------------
 
@@ -594,24 +755,26 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._reply_seqno = seqno
         # a stale reference from a previous session could make the robot jump: hold instead
         self._reference = None
-        log.info("egm_session_seen", seqno=seqno, session=self.stats.sessions)
+        self._post(log.info, "egm_session_seen", seqno=seqno, session=self.stats.sessions)
 
-    def _reply(self, addr: tuple[str, int], t_rx_ns: int) -> None:
-        ref = self._reference
+    def _reply(self, addr: tuple[str, int], t_rx_ns: int, ref: _Reference | None) -> None:
         if ref is None:
             return
         seqno = self._reply_seqno
         self._reply_seqno = (seqno + 1) % _U32
         tm_ms = (self._clock_ns() // 1_000_000) % _U32
         payload = encode_sensor_header(seqno, tm_ms) + ref.body
-        transport = self._transport
-        if transport is None:
-            return
+        sock, transport = self._sock, self._transport
         try:
-            transport.sendto(payload, addr)
+            if sock is not None:
+                sock.sendto(payload, addr)
+            elif transport is not None:
+                transport.sendto(payload, addr)
+            else:
+                return
         except OSError as exc:
             self.stats.send_errors += 1
-            log.warning("egm_reply_send_failed", error=str(exc))
+            self._post(log.warning, "egm_reply_send_failed", error=str(exc))
             return
         latency_us = (self._clock_ns() - t_rx_ns) / 1000.0
         self.stats.replies_sent += 1
@@ -648,7 +811,8 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             previous.mci_state,
             previous.rapid_exec_state,
         ) != (state.motor_state, state.mci_state, state.rapid_exec_state):
-            log.info(
+            self._post(
+                log.info,
                 "egm_controller_state",
                 motors=_name(state.motor_state),
                 mci=_name(state.mci_state),
@@ -656,16 +820,25 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 ok_to_command=state.ok_to_command,
             )
         if self._feedback_waiters:
-            waiters, self._feedback_waiters = self._feedback_waiters, []
-            for fut in waiters:
-                if not fut.done():
-                    fut.set_result(state)
+            self._post(self._wake_waiters, state)
+
+    def _wake_waiters(self, state: EgmState) -> None:
+        """Resolve the ``wait_for_feedback`` calls made before ``state`` was received (on the loop)."""
+        keep = []
+        for waiter in self._feedback_waiters:
+            fut, t_wait_ns = waiter
+            if t_wait_ns > state.t_host_ns:
+                keep.append(waiter)  # asked after this sample arrived: it waits for the next one
+            elif not fut.done():
+                fut.set_result(state)
+        self._feedback_waiters = keep
 
     def _malformed(self, exc: Exception, addr: tuple[str, int], t_rx_ns: int) -> None:
         self.stats.malformed += 1
         interval_ns = int(self.config.malformed_log_interval_s * 1e9)
         if t_rx_ns - self._malformed_logged_ns >= interval_ns:
-            log.warning(
+            self._post(
+                log.warning,
                 "egm_malformed_packet",
                 error=str(exc),
                 host=addr[0],
@@ -685,7 +858,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._watchdog_handle = loop.call_later(period, self._watchdog_tick)
 
     def _watchdog_tick(self) -> None:
-        if self._transport is None:
+        if self._transport is None and self._thread is None:
             return
         self._schedule_watchdog()
         if self._last_rx_ns is None or self._quiet:

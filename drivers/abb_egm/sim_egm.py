@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import fcntl
 import math
 import selectors
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -73,6 +75,8 @@ EVENT_EGM_JOINT_LIMIT = 41890
 EVENT_EGM_SPEED_DEVIATION = 41891
 EVENT_EGM_POS_DEVIATION = 41892
 EVENT_EGM_POSE_UNREACHABLE = 41893
+#: Linux ioctl: the kernel's receive time (CLOCK_REALTIME, struct timespec) of the last datagram read
+_SIOCGSTAMPNS = 0x8907
 
 
 def precise_event_loop() -> asyncio.AbstractEventLoop:
@@ -355,12 +359,17 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self._burst_until = -1.0
         self._held: bytes | None = None
         self._pending: set[asyncio.TimerHandle] = set()
-        # reply latency probe: send time of each seqno, latency of each matched reply
+        # reply latency probe: send time of each seqno (monotonic, and CLOCK_REALTIME to compare with
+        # the kernel's receive stamps), latency of each matched reply in user space and kernel time
         self._send_t_ns = np.zeros(4096, dtype=np.int64)
+        self._send_real_ns = np.zeros(4096, dtype=np.int64)
         self._send_seq = np.full(4096, -1, dtype=np.int64)
         self._latency_us = np.zeros(cfg.latency_capacity)
         self._latency_missed = np.zeros(cfg.latency_capacity, dtype=bool)
+        self._latency_kernel_us = np.full(cfg.latency_capacity, np.nan)
+        self._latency_kernel_missed = np.zeros(cfg.latency_capacity, dtype=bool)
         self._latency_n = 0
+        self._kernel_stamps = False
         self._late_us = np.zeros(4096)
         self._late_n = 0
         self.ended_sessions: list[tuple[str, int | None]] = []
@@ -386,6 +395,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         # One offset, measured once: the true clock must run at the rate of the loop's clock (real
         # time). Re-reading both clocks every cycle would put read jitter into the sample times.
         self._clock_minus_loop_s = self.clock() - loop.time()
+        self._kernel_stamps = self._enable_kernel_rx_stamps()
         self._deadline = loop.time() + self.config.cycle_s
         self._timer = loop.call_at(self._deadline, self._tick)
         addr = self.local_address
@@ -459,11 +469,24 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         pose = self.kin.fk(self._q_deg)
         return self._q_deg.copy(), pose.pos_mm, pose.quat_wxyz
 
-    def reply_latency(self) -> tuple[np.ndarray, np.ndarray]:
-        """Measured reply latencies: ``latency_us`` (n,) from our send of EgmRobot k to the arrival of
-        the reply with seqno k, and ``missed`` (n,) bool, True where it arrived after the next send."""
+    def reply_latency(self, *, kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Measured reply latencies: ``latency_us`` (n,) from our send of EgmRobot k (stamped right at the
+        socket call) to the arrival of the reply with seqno k, and ``missed`` (n,) bool, True where it
+        arrived after the next send.
+
+        ``kernel=False``: arrival is when this simulator read the reply (user space, so its own wake-up
+        is included). ``kernel=True``: arrival is the kernel's receive stamp of the reply's datagram
+        (loopback: the moment the sensor's ``sendto`` handed it over), NaN where none was available.
+        """
         n = min(self._latency_n, self._latency_us.shape[0])
+        if kernel:
+            return self._latency_kernel_us[:n].copy(), self._latency_kernel_missed[:n].copy()
         return self._latency_us[:n].copy(), self._latency_missed[:n].copy()
+
+    @property
+    def kernel_rx_stamps(self) -> bool:
+        """True when the kernel stamps received replies (Linux), so ``reply_latency(kernel=True)`` has data."""
+        return self._kernel_stamps
 
     def reset_reply_latency(self) -> None:
         """Forget the latency samples (e.g. after a warm-up)."""
@@ -756,9 +779,10 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             if f.burst_ms > 0:
                 self._burst_until = now + f.burst_ms / 1000.0
             return
-        # The latency probe counts from the controller's send, before any injected network delay.
+        # The latency probe counts from the controller's send, before any injected network delay;
+        # an undelayed first copy is stamped again right at its socket call below.
         slot = seqno % self._send_t_ns.shape[0]
-        self._send_t_ns[slot] = time.monotonic_ns()
+        self._stamp_send(slot)
         self._send_seq[slot] = seqno
         if f.corrupt_fraction > 0 and rng.random() < f.corrupt_fraction:
             payload = self._corrupt(payload)
@@ -776,12 +800,19 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         if self._held is not None:
             out.append(self._held)
             self._held = None
+        stamp: int | None = slot
         for p in out:
             delay_s = (f.delay_ms + (rng.random() * f.jitter_ms if f.jitter_ms > 0 else 0.0)) / 1000.0
             if delay_s > 0 and self._loop is not None:
                 self._send_after(delay_s, p)
             else:
-                self._sendto(p)
+                self._sendto(p, stamp if p is payload else None)
+            if p is payload:
+                stamp = None  # a duplicate is not the send the probe measures from
+
+    def _stamp_send(self, slot: int) -> None:
+        self._send_t_ns[slot] = time.monotonic_ns()
+        self._send_real_ns[slot] = time.time_ns()
 
     def _send_after(self, delay_s: float, payload: bytes) -> None:
         assert self._loop is not None
@@ -801,9 +832,11 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             b[i] ^= int(self._rng.integers(1, 256))
         return bytes(b)
 
-    def _sendto(self, payload: bytes) -> None:
+    def _sendto(self, payload: bytes, stamp_slot: int | None = None) -> None:
         if self._transport is None:
             return
+        if stamp_slot is not None:
+            self._stamp_send(stamp_slot)
         try:
             self._transport.sendto(payload, (self.config.sensor_host, self.config.sensor_port))
         except OSError as exc:
@@ -820,6 +853,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         t_rx_ns = time.monotonic_ns()
+        t_krx_real_ns = self._kernel_rx_stamp_ns()
         f = self.faults
         if f.rx_loss_fraction > 0 and self._rng.random() < f.rx_loss_fraction:
             self.stats.sensor_dropped += 1
@@ -836,7 +870,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
                 )
             return
         self.stats.sensor_received += 1
-        self._probe_latency(msg.seqno, t_rx_ns)
+        self._probe_latency(msg.seqno, t_rx_ns, t_krx_real_ns)
         if not self._running:
             self.stats.sensor_ignored += 1
             return
@@ -844,7 +878,35 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self._newest_sensor = msg
         self._last_sensor_t = self.clock()
 
-    def _probe_latency(self, seqno: int | None, t_rx_ns: int) -> None:
+    def _enable_kernel_rx_stamps(self) -> bool:
+        # The first SIOCGSTAMPNS switches the socket's receive stamps on (it answers ENOENT because
+        # nothing was stamped yet); from then on the kernel keeps the stamp of the last datagram read.
+        # The ioctl rather than SO_TIMESTAMPNS + recvmsg: the asyncio transport reads with recvfrom,
+        # which drops ancillary data, and the stamp is the same skb receive time either way.
+        sock = None if self._transport is None else self._transport.get_extra_info("socket")
+        if sock is None:
+            return False
+        try:
+            fcntl.ioctl(sock.fileno(), _SIOCGSTAMPNS, bytes(16))
+        except FileNotFoundError:
+            return True
+        except OSError as exc:
+            log.info("egm_sim_kernel_stamps_unavailable", error=str(exc))
+            return False
+        return True
+
+    def _kernel_rx_stamp_ns(self) -> int | None:
+        """CLOCK_REALTIME ns at which the kernel received the datagram just read, or None."""
+        if not self._kernel_stamps or self._transport is None:
+            return None
+        sock = self._transport.get_extra_info("socket")
+        try:
+            sec, nsec = struct.unpack("qq", fcntl.ioctl(sock.fileno(), _SIOCGSTAMPNS, bytes(16)))
+        except OSError:
+            return None
+        return sec * 1_000_000_000 + nsec
+
+    def _probe_latency(self, seqno: int | None, t_rx_ns: int, t_krx_real_ns: int | None = None) -> None:
         if seqno is None:
             return
         slot = seqno % self._send_t_ns.shape[0]
@@ -855,6 +917,13 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self._latency_us[i] = latency_us
         # missed: the next EgmRobot had already gone out when the reply came
         nxt = (seqno + 1) % self._send_t_ns.shape[0]
-        self._latency_missed[i] = bool(self._send_seq[nxt] == seqno + 1 and self._send_t_ns[nxt] <= t_rx_ns)
+        next_sent = bool(self._send_seq[nxt] == (seqno + 1) % _U32)
+        self._latency_missed[i] = next_sent and self._send_t_ns[nxt] <= t_rx_ns
+        if t_krx_real_ns is None:
+            self._latency_kernel_us[i] = np.nan
+            self._latency_kernel_missed[i] = self._latency_missed[i]
+        else:
+            self._latency_kernel_us[i] = (t_krx_real_ns - self._send_real_ns[slot]) / 1000.0
+            self._latency_kernel_missed[i] = next_sent and self._send_real_ns[nxt] <= t_krx_real_ns
         self._send_seq[slot] = -1  # a duplicate reply is not a second sample
         self._latency_n += 1

@@ -1,9 +1,14 @@
-"""EGM endpoint over a loopback socket, driven by a hand-rolled controller socket (no simulator)."""
+"""EGM endpoint over a loopback socket, driven by a hand-rolled controller socket (no simulator).
+
+Every test runs against both reply paths: the asyncio datagram protocol and the dedicated reply thread.
+"""
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import socket
+import sys
 import time
 
 import numpy as np
@@ -31,6 +36,16 @@ from drivers.abb_egm.endpoint import (
 )
 
 Q0 = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+
+
+@pytest.fixture(autouse=True, params=["loop", "thread"])
+def reply_path(request, monkeypatch):
+    """Run the test with the endpoint's replies on the asyncio loop and on the reply thread."""
+    if request.param == "thread":
+        monkeypatch.setattr(
+            sys.modules[__name__], "EgmEndpointConfig", functools.partial(EgmEndpointConfig, reply_thread=True)
+        )
+    return request.param
 
 
 def robot(
