@@ -1,0 +1,94 @@
+"""Worker fault: the only analysis worker ``kill -9``'d mid-analysis, its analysis child with it.
+
+Expected outcome: the daemon sees the worker's liveliness token go, takes the job back (a retry, not
+a lost job) and keeps it queued; a restarted worker gets it and the job completes, exactly once. No
+process of the killed worker survives. The daemon's state stays consistent (idle while it waits,
+the job ``waiting_for_worker`` / ``analysing``, never failed) and the raw files hold every profile.
+(Two workers with one killed is covered at the dispatcher level in tests/zenoh.)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import pytest
+from cellfaults import (
+    FINAL,
+    Cell,
+    children_of,
+    client,
+    job_history,
+    kill9_tree,
+    log_events,
+    pid_alive,
+    raw_check,
+    tiny_cell_config,
+    trigger_request,
+    wait_status,
+    wait_until,
+)
+
+from cellctl.api import TriggerAccepted, call
+from cellctl.commands.scan_cmd import wait_for_job
+
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
+
+
+def test_worker_killed_mid_analysis_the_restarted_worker_completes_the_job_once(tmp_path):
+    cell = Cell(tmp_path, tiny_cell_config(tmp_path))
+    try:
+        cell.start()
+        first = cell.proc("worker")
+
+        async def go() -> dict:
+            seen: dict = {}
+            async with client(cell) as (session, keys, follower):
+                await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 120.0)
+                acc = await call(session, keys.trigger, json.dumps(trigger_request(cell)), TriggerAccepted)
+                job_id = seen["job_id"] = acc.job_id
+                # the worker acknowledged the cloud: its analysis child is working on it
+                await wait_until(
+                    lambda: (
+                        [e for e in log_events(cell, "worker", "job_started") if e.get("job_id") == job_id]
+                        or cell.job_record(job_id)["state"] in FINAL
+                    ),
+                    240.0,
+                    what="worker started the job",
+                )
+                assert cell.job_record(job_id)["state"] not in FINAL, cell.job_record(job_id)["history"]
+                seen["killed"] = kill9_tree(first.pid)
+                seen["analysis_children"] = [p for p in seen["killed"] if p != first.pid]
+                st = await wait_status(follower, lambda s: not s.workers, 30.0)
+                await asyncio.sleep(1.0)
+                st = follower.latest
+                seen["while_no_worker"] = (st.state.value, st.job.state.value if st.job else None)
+                # restart the worker: it takes the queued job
+                cell.procs.start("worker2", "worker")
+                state, message, _ = await wait_for_job(follower, job_id, 240.0)
+                seen["final"] = (state, message)
+            return seen
+
+        seen = asyncio.run(go())
+        job_id = seen["job_id"]
+        assert seen["final"][0] == "done", seen
+        assert first.wait(10) == -9
+        assert seen["analysis_children"], "the worker had an analysis child to kill"
+        assert not any(pid_alive(p) for p in seen["killed"]), "no process of the killed worker survives"
+        assert seen["while_no_worker"] in (("idle", "analysing"), ("idle", "waiting_for_worker")), seen
+        retries = [e for e in log_events(cell, "run", "job_retry") if e.get("job_id") == job_id]
+        assert len(retries) == 1 and "disappeared" in retries[0]["reason"], retries
+        reported = [e for e in log_events(cell, "run", "job_reported") if e.get("job_id") == job_id]
+        assert len(reported) == 1 and reported[0]["worker_id"].endswith(str(cell.proc("worker2").pid)), (
+            reported
+        )
+        assert "failed" not in job_history(cell, job_id) and job_history(cell, job_id).count("done") == 1
+        raw = raw_check(cell, job_id)
+        assert raw.profiles == cell.job_record(job_id)["info"]["profiles"] > 300
+        assert raw.unique_frames and not raw.problems
+        assert children_of(cell.proc("worker2").pid), "the restarted worker has its analysis child"
+    finally:
+        # the killed worker is already reaped; stop the rest
+        cell.procs.procs = [(n, p) for n, p in cell.procs.procs if p.poll() is None]
+        codes = cell.stop()
+    assert all(c == 0 for c in codes.values()), codes
