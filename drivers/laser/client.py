@@ -364,8 +364,21 @@ class HD8Client(ProfileSource):
         framer = P.MessageFramer()
         asm = P.GroupAssembler()
         chunk_size = self.config.read_chunk_bytes
+        stall_s = self.config.watchdog_timeout_s
         while True:
-            chunk = await reader.read(chunk_size)
+            if framer.pending:
+                # Inside a message, silence means a corrupt size field (one stray byte shifts the
+                # stream and the "size" can ask for megabytes that never come): resubscribe instead
+                # of waiting for them forever.
+                try:
+                    chunk = await asyncio.wait_for(reader.read(chunk_size), stall_s)
+                except TimeoutError:
+                    raise P.FramingError(
+                        f"no data for {stall_s} s inside a message ({framer.pending} bytes of it buffered)",
+                        field="size",
+                    ) from None
+            else:
+                chunk = await reader.read(chunk_size)
             if not chunk:
                 return
             now_ns = time.monotonic_ns()
