@@ -29,6 +29,9 @@ DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".npz", ".json")
 JSON = "application/json"
 
 _ID = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
+#: the daemon's control queryables (``Keys.control``)
+ControlAction = Literal["pause", "resume", "abort", "reset", "reanalyse"]
+CONTROL_ACTIONS: tuple[str, ...] = ("pause", "resume", "abort", "reset", "reanalyse")
 Ident = Annotated[str, Field(pattern=_ID)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
@@ -46,8 +49,8 @@ class Keys:
         """Queryable: JSON TriggerRequest in, TriggerAccepted or ApiError out."""
         return f"{self.prefix}/scan/trigger"
 
-    def control(self, action: Literal["pause", "resume", "abort"]) -> str:
-        """Queryable: empty payload (or {"job_id"}), ControlReply or ApiError out."""
+    def control(self, action: ControlAction) -> str:
+        """Queryable: empty payload (or ControlRequest JSON), ControlReply or ApiError out."""
         return f"{self.prefix}/control/{action}"
 
     @property
@@ -174,8 +177,10 @@ def parse_trigger(payload: bytes | bytearray | str | None, designs_dir: Path) ->
         raise TriggerError("too_large", "payload", f"{len(payload)} bytes, limit {MAX_TRIGGER_BYTES}")
     try:
         data = json.loads(payload)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise TriggerError("malformed", "payload", f"not UTF-8 JSON: {exc}") from None
+    except RecursionError:
+        raise TriggerError("malformed", "payload", "JSON nested too deeply") from None
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, and integers beyond 4300 digits
+        raise TriggerError("malformed", "payload", f"not UTF-8 JSON: {str(exc)[:200]}") from None
     if not isinstance(data, dict):
         raise TriggerError("malformed", "payload", f"expected a JSON object, got {type(data).__name__}")
     try:
@@ -186,10 +191,16 @@ def parse_trigger(payload: bytes | bytearray | str | None, designs_dir: Path) ->
         msg = "unknown field" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
         raise TriggerError("invalid", loc, msg) from None
     root = Path(designs_dir).resolve()
-    path = (root / req.design).resolve()
-    if not path.is_relative_to(root):
+    try:
+        path = (root / req.design).resolve()
+        inside = path.is_relative_to(root)
+        is_file = inside and path.is_file()
+    except (OSError, RuntimeError) as exc:  # a name too long for the file system, a symlink loop
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc).split(" from ")[0]
+        raise TriggerError("invalid", "design", f"cannot be resolved in designs_dir: {reason}") from None
+    if not inside:
         raise TriggerError("invalid", "design", "resolves outside designs_dir")
-    if not path.is_file():
+    if not is_file:
         raise TriggerError("design_not_found", "design", f"no such file in designs_dir: {req.design!r}")
     return req, path
 
@@ -206,18 +217,66 @@ class ApiError(Model):
     """Error reply (``query.reply_err``) of every queryable."""
 
     code: Literal[
-        "too_large", "malformed", "invalid", "design_not_found", "busy", "not_allowed", "no_job", "internal"
+        "too_large",
+        "malformed",
+        "invalid",
+        "design_not_found",
+        "busy",
+        "queue_full",
+        "not_allowed",
+        "no_job",
+        "internal",
     ]
     field: str = ""
     message: str
 
 
-class ControlReply(Model):
-    """Reply of pause / resume / abort."""
+class ControlRequest(Model):
+    """Payload of a control queryable: empty, or the job it is meant for.
 
-    action: Literal["pause", "resume", "abort"]
+    pause / resume / abort: ``job_id`` must be the scanning job, or a queued one (abort only: the
+    queued job is cancelled); omitted, the scanning job is meant. reanalyse: required. reset: none.
+    """
+
+    job_id: Ident | None = None
+
+
+class ControlError(TriggerError):
+    """A control request that is refused (same shape as a refused trigger: code, field, message)."""
+
+
+def parse_control(payload: bytes | bytearray | str | None) -> ControlRequest:
+    """Validate a control payload (empty means ``{}``); raises ControlError naming the field."""
+    if payload is None or len(payload) == 0:
+        return ControlRequest()
+    if len(payload) > MAX_TRIGGER_BYTES:
+        raise ControlError("too_large", "payload", f"{len(payload)} bytes, limit {MAX_TRIGGER_BYTES}")
+    try:
+        data = json.loads(payload)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ControlError("malformed", "payload", f"not UTF-8 JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise ControlError("malformed", "payload", f"expected a JSON object, got {type(data).__name__}")
+    try:
+        return ControlRequest.model_validate(data)
+    except ValidationError as err:
+        e = err.errors(include_url=False)[0]
+        loc = ".".join(str(p) for p in e["loc"]) or "payload"
+        msg = "unknown field" if e["type"] == "extra_forbidden" else e["msg"]
+        raise ControlError("invalid", loc, msg) from None
+
+
+class ControlReply(Model):
+    """Reply of the control queryables: what was done to which job, and the cell state after it.
+
+    ``job_state`` is the job's state after the action (``cancelled`` for a queued job that was
+    aborted, ``waiting_for_worker`` for a re-analysis, ...), None where no job is concerned.
+    """
+
+    action: ControlAction
     job_id: str | None
     state: str
+    job_state: str | None = None
 
 
 # --------------------------------------------------------------------------------------------- state
@@ -246,6 +305,13 @@ class JobState(StrEnum):
     FAILED = "failed"
     ABORTED = "aborted"
     INTERRUPTED = "interrupted"
+    CANCELLED = "cancelled"
+
+
+#: states a job ends in (``interrupted`` and ``failed`` jobs with raw data can be re-analysed)
+FINAL_JOB_STATES = frozenset(
+    {JobState.DONE, JobState.FAILED, JobState.ABORTED, JobState.INTERRUPTED, JobState.CANCELLED}
+)
 
 
 class JobProgress(Model):
@@ -262,16 +328,38 @@ class JobProgress(Model):
     message: str = ""
 
 
+class QueuedJob(Model):
+    """A trigger waiting for the robot; ``position`` 1 starts next."""
+
+    job_id: str
+    plate_id: str
+    position: Annotated[int, Field(ge=1)]
+    queued_utc: str = ""
+
+
 class CellStatus(Model):
-    """The state publication (``Keys.state``)."""
+    """The state publication (``Keys.state``).
+
+    ``job``: the job holding the robot, else the last one shown. ``queued`` / ``queue``: triggers
+    waiting for the robot, in start order. ``analyses``: scanned jobs whose report is pending.
+    ``recent``: the last jobs that ended (newest last), so a follower never misses an end that was
+    published between two of its reads.
+    """
 
     cell_id: str
     state: CellState
     t_utc: str
     job: JobProgress | None = None
     queued: Annotated[int, Field(ge=0)] = 0
+    queue: list[QueuedJob] = []
+    analyses: list[JobProgress] = []
+    recent: list[JobProgress] = []
     workers: list[str] = []
     message: str = ""
+
+    def jobs(self) -> list[JobProgress]:
+        """Every job this publication reports on (recent first, so a live entry wins on overwrite)."""
+        return [*self.recent, *self.analyses, *([self.job] if self.job is not None else [])]
 
 
 # --------------------------------------------------------------------------------------------- workers
@@ -331,10 +419,11 @@ class ReportEnvelope(Model):
     t_utc: str = ""
 
 
-class _TriggerLog:
-    """Refused triggers are counted; the log says so at most once per ``every_s``."""
+class RefusalLog:
+    """Refused requests are counted; the log says so (``event``) at most once per ``every_s``."""
 
-    def __init__(self, every_s: float = 5.0) -> None:
+    def __init__(self, event: str, every_s: float = 5.0) -> None:
+        self.event = event
         self.every_s = every_s
         self.refused = 0
         self._last = -1e9
@@ -344,12 +433,22 @@ class _TriggerLog:
         now = time.monotonic()
         if now - self._last >= self.every_s:
             self._last = now
-            log.warning(
-                "trigger_refused", code=err.code, field=err.field, error=err.message, total=self.refused
-            )
+            log.warning(self.event, code=err.code, field=err.field, error=err.message, total=self.refused)
 
 
-TRIGGER_LOG = _TriggerLog()
+TRIGGER_LOG = RefusalLog("trigger_refused")
+CONTROL_LOG = RefusalLog("control_refused")
+
+
+def read_payload(query: Any, error: type[TriggerError] = TriggerError) -> bytes | None:
+    """A query's payload as bytes (None when it has none); the size is checked before the copy, so a
+    huge payload never costs a huge copy (``error("too_large", ...)``)."""
+    payload = query.payload
+    if payload is None:
+        return None
+    if len(payload) > MAX_TRIGGER_BYTES:
+        raise error("too_large", "payload", f"{len(payload)} bytes, limit {MAX_TRIGGER_BYTES}")
+    return payload.to_bytes()
 
 
 async def handle_trigger(
@@ -363,13 +462,8 @@ async def handle_trigger(
     nothing; ``accept`` may raise TriggerError (for example ``busy``) to refuse as well. Returns
     what was accepted, or None.
     """
-    payload = query.payload
     try:
-        # Check the size before copying: a huge payload must not cost a huge copy.
-        if payload is not None and len(payload) > MAX_TRIGGER_BYTES:
-            raise TriggerError("too_large", "payload", f"{len(payload)} bytes, limit {MAX_TRIGGER_BYTES}")
-        raw = payload.to_bytes() if payload is not None else None
-        req, design_path = parse_trigger(raw, designs_dir)
+        req, design_path = parse_trigger(read_payload(query), designs_dir)
         accepted = await accept(req, design_path)
     except TriggerError as err:
         TRIGGER_LOG.refused_one(err)

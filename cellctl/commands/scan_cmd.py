@@ -1,8 +1,11 @@
-"""`cellctl scan`, `cellctl status` and `cellctl watch`: the cell's Zenoh API from the command line.
+"""`cellctl scan`, `status`, `watch`, `abort` and `reset`: the cell's Zenoh API from the command line.
 
-``scan`` triggers an inspection and, with ``--wait``, shows a progress bar fed by the daemon's state
-publication and prints the per-line verdict table (the paper's Tables 3-5) when the report arrives.
-Exit codes: 0 accepted / pass, 1 fail verdict, 2 refused or error, 3 no answer from the daemon.
+``scan`` triggers an inspection and, with ``--wait``, shows its place in the daemon's queue while it
+waits for the robot, then a progress bar fed by the daemon's state publication, and prints the
+per-line verdict table (the paper's Tables 3-5) when the report arrives. ``abort`` stops the scan
+in progress or cancels a queued job; ``reset`` clears an emergency stop or a fault once the
+controller is healthy. Exit codes: 0 accepted / pass, 1 fail verdict, 2 refused or error, 3 no
+answer from the daemon.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from typing import Any
 from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
 
 EXIT_OK, EXIT_FAIL, EXIT_ERROR, EXIT_NO_DAEMON = 0, 1, 2, 3
-_FINAL = ("done", "failed", "aborted", "interrupted")
+_FINAL = ("done", "failed", "aborted", "interrupted", "cancelled")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -49,6 +52,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     w.add_argument("--json", action="store_true", help="raw JSON lines")
     w.set_defaults(func=run_watch)
 
+    a = sub.add_parser("abort", help="stop the scan in progress (smoothly), or cancel a queued job")
+    a.add_argument("--job", default=None, help="the job id (default: the scan in progress)")
+    a.add_argument("--config", default=str(DEFAULT_CONFIG_PATH))
+    a.set_defaults(func=run_abort)
+
+    r = sub.add_parser(
+        "reset", help="clear emergency_stopped / faulted once the controller is released and reset"
+    )
+    r.add_argument("--config", default=str(DEFAULT_CONFIG_PATH))
+    r.set_defaults(func=run_reset)
+
 
 def _config(path: str):
     try:
@@ -68,12 +82,20 @@ def placement_payload(text: str, default_z_mm: float) -> dict[str, Any]:
 
 
 class StatusFollower:
-    """Keeps the latest CellStatus and the reports of a key prefix (Zenoh callbacks -> the loop)."""
+    """Keeps the latest CellStatus, every job it reported on and the reports of a key prefix (Zenoh
+    callbacks -> the loop).
+
+    ``jobs`` holds the last JobProgress seen per job id (from ``job``, ``analyses`` and ``recent``),
+    ``queue`` the queue positions of the latest publication: a job's end is kept even when the
+    next publication (another job's progress) follows it before the reader looks.
+    """
 
     def __init__(self, session: Any, keys: Any) -> None:
         from cellctl.zenoh_session import subscribe
 
         self.latest: Any = None
+        self.jobs: dict[str, Any] = {}
+        self.queue: dict[str, int] = {}
         self.reports: dict[str, Any] = {}
         self.changed = asyncio.Event()
         self._subs = [
@@ -87,9 +109,13 @@ class StatusFollower:
         from cellctl.api import CellStatus
 
         try:
-            self.latest = CellStatus.model_validate_json(sample.payload.to_bytes())
+            st = CellStatus.model_validate_json(sample.payload.to_bytes())
         except ValidationError:
             return
+        self.latest = st
+        for jp in st.jobs():
+            self.jobs[jp.job_id] = jp
+        self.queue = {q.job_id: q.position for q in st.queue}
         self.changed.set()
 
     def _on_report(self, sample: Any) -> None:
@@ -125,16 +151,24 @@ async def wait_for_job(
 ) -> tuple[str, str, dict | None]:
     """Follow the state publication until job ``job_id`` ends: ``(state, message, report or None)``.
 
-    Draws a one-line progress bar on ``out`` when it is a terminal (a line per stage otherwise).
+    While the job waits in the daemon's queue, says its position when it changes; then draws a
+    one-line progress bar on ``out`` when it is a terminal (a line per stage otherwise).
     """
     deadline = time.monotonic() + timeout_s
     tty = hasattr(out, "isatty") and out.isatty()
     last_line = ""
+    last_position = 0
+    # an end seen before this call (e.g. the job was interrupted, now re-analysed) is not this end
+    stale = follower.jobs.get(job_id)
     while time.monotonic() < deadline:
         await follower.next(1.0)
-        st = follower.latest
-        job = st.job if st is not None else None
-        if job is None or job.job_id != job_id:
+        position = follower.queue.get(job_id, 0)
+        if position and position != last_position:
+            out.write(f"queued at position {position}\n")
+            out.flush()
+        last_position = position
+        job = follower.jobs.get(job_id)
+        if job is None or (stale is not None and stale.state.value in _FINAL and job == stale):
             continue
         line = f"{job.state.value:<18} {_bar(job.fraction)} {job.fraction:6.1%} {job.stage[:40]:<40} profiles {job.profiles}"
         if tty:
@@ -207,7 +241,8 @@ async def _scan(args: argparse.Namespace, cfg) -> int:
         except ApiCallError as exc:
             print(f"cellctl scan: refused: {exc}", file=sys.stderr)
             return EXIT_NO_DAEMON if exc.error is None else EXIT_ERROR
-        print(f"job {acc.job_id} {acc.state}")
+        where = f" at position {acc.queue_position}" if acc.state == "queued" else ""
+        print(f"job {acc.job_id} {acc.state}{where}")
         if follower is None:
             return EXIT_OK
         state, message, report = await wait_for_job(follower, acc.job_id, args.timeout_s)
@@ -257,6 +292,12 @@ async def _status(args: argparse.Namespace, cfg) -> int:
                 if st.job is not None:
                     j = st.job
                     print(f"  job {j.job_id} ({j.plate_id}): {j.state.value} {j.fraction:.0%} {j.stage}")
+                for j in st.analyses:
+                    if st.job is None or j.job_id != st.job.job_id:
+                        print(f"  job {j.job_id} ({j.plate_id}): {j.state.value} {j.stage}")
+                print(f"queue: {st.queued}")
+                for q in st.queue:
+                    print(f"  {q.position}. job {q.job_id} ({q.plate_id}) since {q.queued_utc}")
             print(f"workers: {len(workers)}")
             for w in workers:
                 print(
@@ -293,10 +334,47 @@ async def _watch(args: argparse.Namespace, cfg) -> int:
                 job = (
                     "" if j is None else f"  job {j.job_id} {j.state.value} {_bar(j.fraction, 20)} {j.stage}"
                 )
-                print(f"{st.t_utc} {st.state.value:<12} workers {len(st.workers)}{job}", flush=True)
+                queued = f"  queued {st.queued}" if st.queued else ""
+                print(f"{st.t_utc} {st.state.value:<12} workers {len(st.workers)}{queued}{job}", flush=True)
     finally:
         follower.close()
         await asyncio.to_thread(close_session, session)
 
 
 run_watch = _runner(_watch)
+
+
+async def _control(args: argparse.Namespace, cfg, action: str, payload: dict[str, Any]) -> int:
+    from cellctl.api import ApiCallError, ControlReply, Keys, call
+    from cellctl.zenoh_session import close_session
+
+    keys = Keys(cfg.key_prefix)
+    session = await _client_session(cfg, action)
+    if session is None:
+        return EXIT_NO_DAEMON
+    try:
+        try:
+            reply = await call(
+                session, keys.control(action), json.dumps(payload) if payload else b"", ControlReply,
+                timeout_s=cfg.zenoh.trigger_timeout_s,
+            )  # fmt: skip
+        except ApiCallError as exc:
+            print(f"cellctl {action}: refused: {exc}", file=sys.stderr)
+            return EXIT_NO_DAEMON if exc.error is None else EXIT_ERROR
+        job = "" if reply.job_id is None else f"job {reply.job_id} {reply.job_state}, "
+        print(f"{action}: {job}cell {reply.state}")
+        return EXIT_OK
+    finally:
+        await asyncio.to_thread(close_session, session)
+
+
+async def _abort(args: argparse.Namespace, cfg) -> int:
+    return await _control(args, cfg, "abort", {} if args.job is None else {"job_id": args.job})
+
+
+async def _reset(args: argparse.Namespace, cfg) -> int:
+    return await _control(args, cfg, "reset", {})
+
+
+run_abort = _runner(_abort)
+run_reset = _runner(_reset)

@@ -10,7 +10,9 @@ Layout of a job directory::
 
 After a restart, :meth:`JobStore.recover` marks every job that was not finished ``interrupted``; its
 raw files are left as they are (they are append-only and fsync'ed), so the job can be re-analysed
-from them (:func:`cellctl.acquisition.reassemble.reassemble` on ``raw/``).
+from them (:func:`cellctl.acquisition.reassemble.reassemble` on ``raw/``). A job still ``queued``
+(never started) is marked ``cancelled`` instead: after a restart the robot moves only on a fresh
+trigger, never on its own.
 """
 
 from __future__ import annotations
@@ -23,12 +25,12 @@ from typing import Any
 
 import structlog
 
-from cellctl.api import JobState, now_utc
+from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
 
 log = structlog.get_logger(__name__)
 
 #: states a job can end in; any other state found at start-up means the daemon died during the job
-TERMINAL = frozenset({JobState.DONE, JobState.FAILED, JobState.ABORTED, JobState.INTERRUPTED})
+TERMINAL = FINAL_JOB_STATES
 
 
 #: Job directories hold a shipyard's raw scans and reports, which are confidential: the service user
@@ -156,10 +158,21 @@ class JobStore:
         return out
 
     def recover(self) -> list[JobRecord]:
-        """Mark every unfinished job interrupted (raw data left intact); returns those jobs."""
+        """Mark every unfinished job interrupted (raw data left intact) and every queued one cancelled;
+        returns those jobs."""
         found = []
         for rec in self.list():
             if rec.terminal:
+                continue
+            if rec.state == JobState.QUEUED.value:
+                self.set_state(
+                    rec,
+                    JobState.CANCELLED,
+                    "the daemon restarted while the job was queued; queued jobs never start on their own "
+                    "after a restart: trigger it again",
+                    cancelled_in=rec.state,
+                )
+                found.append(rec)
                 continue
             raw = self.raw_dir(rec.job_id)
             raw_files = sorted(p.name for p in raw.glob("*.craw")) if raw.is_dir() else []

@@ -4,8 +4,12 @@ A job (one remote trigger): validate -> plan (in a thread) -> motors on and the 
 through RWS -> execute the plan over EGM while the HD8 client streams profiles into the acquisition
 (raw files first) -> EGM program ended -> the whole-scan cloud rebuilt from the raw files ->
 published to the analysis workers through the :class:`~cellctl.dispatch.Dispatcher` -> the report
-stored with the job. One scan at a time: a trigger while a scan holds the robot is refused with
-``busy``; the analysis of a finished scan runs while the next one scans.
+stored with the job. One scan at a time: a trigger while a scan holds the robot waits in a bounded
+queue (``[daemon] queue_max``; full -> ``queue_full``; 0 -> refused with ``busy``) and starts when
+the robot is free; the analysis of a finished scan runs while the next one scans. A fault or an
+emergency stop cancels the queue, and so does a restart: the robot never starts moving on its own.
+An emergency stop holds the cell in ``emergency_stopped`` until ``control/reset`` finds the
+controller released and reset.
 
 State (:class:`~cellctl.api.CellStatus`) is published on every change and every
 ``status_period_s``; the daemon holds a liveliness token. SIGTERM / SIGINT: a scan in progress is
@@ -16,6 +20,7 @@ everything is closed and the process exits 0.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import json
 import os
@@ -30,19 +35,26 @@ import numpy as np
 import structlog
 
 from cellctl.api import (
+    CONTROL_LOG,
+    FINAL_JOB_STATES,
     JSON,
     CellState,
     CellStatus,
+    ControlError,
     ControlReply,
+    ControlRequest,
     JobProgress,
     JobState,
     Keys,
+    QueuedJob,
     TriggerAccepted,
     TriggerError,
     TriggerRequest,
     handle_trigger,
     new_job_id,
     now_utc,
+    parse_control,
+    read_payload,
 )
 from cellctl.config import CellConfig, ConfigError, resolve_secret
 from cellctl.daemon.jobs import JobRecord, JobStore
@@ -55,6 +67,12 @@ log = structlog.get_logger(__name__)
 
 class DaemonError(Exception):
     """The daemon cannot start (configuration, ports, Zenoh)."""
+
+
+#: controller states (RWS ctrl-state) in which an emergency stop counts as released and reset
+CONTROLLER_RESET_STATES = ("motoroff", "motoron", "emergencystopreset")
+#: ended jobs kept in the state publication's ``recent`` list
+RECENT_JOBS = 8
 
 
 class _Job:
@@ -92,6 +110,9 @@ class CellDaemon:
         self._current: _Job | None = None  # the job shown in the state publication
         self._scan_job: _Job | None = None  # the job holding the robot
         self._analyses: set[asyncio.Task] = set()
+        self._analysing: dict[str, _Job] = {}  # scanned jobs whose report is pending, by id
+        self._queue: collections.deque[_Job] = collections.deque()  # triggers waiting for the robot
+        self._recent: collections.deque[JobProgress] = collections.deque(maxlen=RECENT_JOBS)
         self._workers: list[str] = []
         self._loop: asyncio.AbstractEventLoop | None = None
 
@@ -174,13 +195,10 @@ class CellDaemon:
         try:
             s = self.session
             self._entities.append(declare_async_queryable(s, self.keys.trigger, self._on_trigger))
-            for action in ("pause", "resume", "abort"):
+            for action in ("pause", "resume", "abort", "reset", "reanalyse"):
                 self._entities.append(
                     declare_async_queryable(s, self.keys.control(action), self._control_handler(action))
                 )
-            self._entities.append(
-                declare_async_queryable(s, f"{self.keys.prefix}/control/reanalyse", self._on_reanalyse)
-            )
             self._entities.append(s.liveliness().declare_token(self.keys.daemon_alive))
             publisher = s.declare_publisher(self.keys.state, encoding=zenoh.Encoding.APPLICATION_JSON)
             self._publisher = publisher
@@ -188,7 +206,13 @@ class CellDaemon:
                 s, self.keys, DispatchSettings.from_config(cfg), DispatchHooks(on_workers=self._on_workers)
             )
             await self.dispatcher.start()
-            msg = f"{len(interrupted)} interrupted job(s) recovered" if interrupted else "ready"
+            n_cancelled = sum(r.state == JobState.CANCELLED.value for r in interrupted)
+            n_interrupted = len(interrupted) - n_cancelled
+            msg = (
+                f"{n_interrupted} interrupted job(s) recovered, {n_cancelled} queued job(s) cancelled"
+                if interrupted
+                else "ready"
+            )
             self.sm.to(CellState.IDLE, msg)
             periodic = asyncio.create_task(self._publish_periodically(), name="state-publisher")
             log.info("daemon_ready", key_prefix=self.keys.prefix, egm_port=self.endpoint_port)
@@ -221,6 +245,7 @@ class CellDaemon:
     async def _shutdown(self) -> None:
         """Stop a scan smoothly (job interrupted, raw flushed), stop waiting for reports."""
         self.sm.to(CellState.STOPPING, "shutdown requested")
+        self._cancel_queue("the daemon stopped while the job was queued; trigger it again")
         self._publish()
         job = self._scan_job
         if job is not None and job.task is not None:
@@ -247,28 +272,37 @@ class CellDaemon:
         self._workers = list(workers)
         self._publish()
 
+    @staticmethod
+    def _progress(job: _Job) -> JobProgress:
+        return JobProgress(
+            job_id=job.record.job_id,
+            plate_id=job.record.plate_id,
+            state=JobState(job.record.state),
+            stage=job.stage,
+            fraction=float(min(max(job.fraction, 0.0), 1.0)),
+            profiles=job.profiles,
+            points=job.points,
+            worker_id=job.worker_id,
+            message=(job.record.history[-1]["message"] if job.record.history else "")[:500],
+        )
+
     def status(self) -> CellStatus:
         """The state publication's payload."""
         job = self._current
-        jp = None
-        if job is not None:
-            jp = JobProgress(
-                job_id=job.record.job_id,
-                plate_id=job.record.plate_id,
-                state=JobState(job.record.state),
-                stage=job.stage,
-                fraction=float(min(max(job.fraction, 0.0), 1.0)),
-                profiles=job.profiles,
-                points=job.points,
-                worker_id=job.worker_id,
-                message=(job.record.history[-1]["message"] if job.record.history else "")[:500],
-            )
+        queue = [
+            QueuedJob(job_id=j.record.job_id, plate_id=j.record.plate_id, position=i + 1,
+                      queued_utc=j.record.created_utc)
+            for i, j in enumerate(self._queue)
+        ]  # fmt: skip
         return CellStatus(
             cell_id=self.cfg.cell.id,
             state=self.sm.state,
             t_utc=now_utc(),
-            job=jp,
-            queued=0,
+            job=None if job is None else self._progress(job),
+            queued=len(queue),
+            queue=queue,
+            analyses=[self._progress(j) for j in self._analysing.values()],
+            recent=list(self._recent),
             workers=self._workers,
             message=self.sm.message[:500],
         )
@@ -300,21 +334,33 @@ class CellDaemon:
             log.warning("rws_state_unreadable", error=str(exc))
             return ""
 
-    async def _accept(self, req: TriggerRequest, design_path: Path) -> TriggerAccepted:
+    def _check_cell_accepts(self) -> None:
+        """Refuse a trigger the cell cannot take now (TriggerError naming why)."""
         if self.sm.state == CellState.EMERGENCY_STOPPED:
-            # leave the e-stop state only once the controller says it was released and reset
-            ctrl = await self._ctrl_state()
-            if ctrl in ("", "emergencystop"):
-                raise TriggerError(
-                    "not_allowed", "payload", "the controller is emergency-stopped; release and reset it"
-                )
-            self.sm.to(CellState.IDLE, f"emergency stop reset (controller {ctrl})")
-        if self.sm.state in (CellState.STARTING, CellState.STOPPING, CellState.EMERGENCY_STOPPED):
-            raise TriggerError("not_allowed", "payload", f"the cell is {self.sm.state.value}")
-        if self._scan_job is not None:
+            # an e-stop is cleared by the operator (control/reset), never by a remote trigger
             raise TriggerError(
-                "busy", "payload", f"the cell is scanning job {self._scan_job.record.job_id}; try again later"
-            )
+                "not_allowed", "payload",
+                "the cell is emergency-stopped: release and reset the controller's emergency stop, "
+                "then send control/reset (cellctl reset)",
+            )  # fmt: skip
+        if self.sm.state in (CellState.STARTING, CellState.STOPPING):
+            raise TriggerError("not_allowed", "payload", f"the cell is {self.sm.state.value}")
+        busy = self._scan_job is not None or bool(self._queue)
+        if not busy:
+            return
+        holder = self._scan_job.record.job_id if self._scan_job is not None else self._queue[0].record.job_id
+        qmax = self.settings.queue_max
+        if qmax == 0:
+            raise TriggerError("busy", "payload", f"the cell is scanning job {holder}; try again later")
+        if len(self._queue) >= qmax:
+            raise TriggerError(
+                "queue_full", "payload",
+                f"{len(self._queue)} job(s) already wait behind job {holder} ([daemon] queue_max = {qmax}); "
+                "try again when one has started",
+            )  # fmt: skip
+
+    async def _accept(self, req: TriggerRequest, design_path: Path) -> TriggerAccepted:
+        self._check_cell_accepts()  # before the slower checks: a refusal costs nothing
         if any(abs(v) > 1e-9 for v in req.placement.rpy_deg[:2]):
             raise TriggerError(
                 "invalid", "placement.rpy_deg", "plates lie flat on the bed: roll and pitch must be 0"
@@ -331,71 +377,183 @@ class CellDaemon:
             placement=req.placement.model_dump(),
             note=req.note,
         )
-        self.store.create(record)
+        # Decide again after the awaits above (another trigger may have been taken meanwhile); from
+        # here to the reply nothing awaits, so two triggers can never both start.
+        self._check_cell_accepts()
         job = _Job(record)
+        if self._scan_job is None and not self._queue:
+            self.store.create(record)
+            self._start_job(job)
+            return TriggerAccepted(job_id=record.job_id, state="started")
+        position = len(self._queue) + 1
+        record.history.append(
+            {"state": record.state, "t_utc": record.created_utc, "message": f"queued at position {position}"}
+        )
+        self.store.create(record)
+        job.stage = JobState.QUEUED.value
+        self._queue.append(job)
+        log.info("job_queued", job_id=record.job_id, position=position)
+        self._publish()
+        return TriggerAccepted(job_id=record.job_id, state="queued", queue_position=position)
+
+    def _start_job(self, job: _Job) -> None:
         self._scan_job = self._current = job
-        job.task = asyncio.create_task(self._run_job(job), name=f"job-{record.job_id}")
-        return TriggerAccepted(job_id=record.job_id, state="started")
+        job.task = asyncio.create_task(self._run_job(job), name=f"job-{job.record.job_id}")
+
+    def _recheck_queued(self, job: _Job) -> str:
+        """Cheap checks before a queued job starts: what changed since its trigger ("" when nothing)."""
+        path = Path(job.record.design_path)
+        root = self.designs_dir.resolve()
+        if not path.resolve().is_relative_to(root) or not path.is_file():
+            return f"the design file {job.record.design!r} is gone from designs_dir"
+        return ""
+
+    def _start_next(self) -> None:
+        """Start the first queued job when the robot is free and the cell is idle."""
+        while self._queue and self._scan_job is None and self.sm.state == CellState.IDLE:
+            job = self._queue.popleft()
+            problem = self._recheck_queued(job)
+            if problem:
+                self._job_state(job, JobState.FAILED, f"refused at start: {problem}; nothing moved")
+                continue
+            log.info("job_dequeued", job_id=job.record.job_id, waiting=len(self._queue))
+            self._start_job(job)
+        self._publish()
+
+    def _cancel_queue(self, reason: str) -> None:
+        """Every queued job cancelled (never started): after a fault, an e-stop or a shutdown the
+        robot moves again only on a fresh trigger."""
+        while self._queue:
+            self._job_state(self._queue.popleft(), JobState.CANCELLED, reason)
+
+    def _after_scan(self, job: _Job) -> None:
+        """The robot is free again: go on with the queue, or drop it if the cell must not move."""
+        if self.sm.state in (CellState.FAULTED, CellState.EMERGENCY_STOPPED):
+            self._cancel_queue(
+                f"cancelled: the cell went {self.sm.state.value} during job {job.record.job_id}; "
+                "trigger it again once the cell is reset"
+            )
+        elif self.sm.state != CellState.STOPPING:
+            self._start_next()
 
     def _control_handler(self, action: str):
-        async def handler(query: Any) -> None:
-            job = self._scan_job
-            if job is None or job.executor is None:
-                from cellctl.api import ApiError
+        """A control queryable: parse, act, reply (ControlReply, or an ApiError naming the field)."""
 
-                err = ApiError(code="no_job", field="", message=f"no scan in progress to {action}")
-                query.reply_err(err.to_json(), encoding=JSON)
+        async def handler(query: Any) -> None:
+            try:
+                req = parse_control(read_payload(query, ControlError))
+                reply = await self._control(action, req)
+            except ControlError as err:
+                CONTROL_LOG.refused_one(err)
+                query.reply_err(err.to_api_error().to_json(), encoding=JSON)
                 return
-            if action == "pause":
-                job.executor.pause()
-            elif action == "resume":
-                job.executor.resume()
-            else:
-                job.stop_reason = "abort"
-                job.executor.abort()
-            log.info("control", action=action, job_id=job.record.job_id)
-            reply = ControlReply(action=action, job_id=job.record.job_id, state=self.sm.state.value)  # type: ignore[arg-type]
+            log.info("control", action=action, job_id=reply.job_id, job_state=reply.job_state)
             query.reply(query.key_expr, reply.to_json(), encoding=JSON)
 
         return handler
 
-    async def _on_reanalyse(self, query: Any) -> None:
-        """``{"job_id": ...}``: rebuild an interrupted (or failed) job's cloud from its raw files and
-        send it to the workers again."""
-        from cellctl.api import ApiError
+    async def _control(self, action: str, req: ControlRequest) -> ControlReply:
+        if action == "reset":
+            return await self._reset(req)
+        if action == "reanalyse":
+            return self._reanalyse(req)
+        if action == "abort" and req.job_id is not None:
+            queued = next((j for j in self._queue if j.record.job_id == req.job_id), None)
+            if queued is not None:
+                self._queue.remove(queued)
+                self._job_state(queued, JobState.CANCELLED, "cancelled while queued (abort); nothing moved")
+                return ControlReply(
+                    action="abort", job_id=req.job_id, state=self.sm.state.value, job_state="cancelled"
+                )
+        job = self._scan_job
+        if req.job_id is not None and (job is None or job.record.job_id != req.job_id):
+            where = "scanning or queued" if action == "abort" else "scanning"
+            raise ControlError("no_job", "job_id", f"job {req.job_id} is not {where}")
+        if job is None or (job.executor is None and action != "abort"):
+            raise ControlError("no_job", "", f"no scan in progress to {action}")
+        if action == "pause":
+            job.executor.pause()
+        elif action == "resume":
+            job.executor.resume()
+        else:
+            # before the executor exists (planning, program start) the flag stops the job before motion
+            job.stop_reason = "abort"
+            if job.executor is not None:
+                job.executor.abort()
+        return ControlReply(
+            action=action,  # type: ignore[arg-type]
+            job_id=job.record.job_id,
+            state=self.sm.state.value,
+            job_state=job.record.state,
+        )
 
+    async def _reset(self, req: ControlRequest) -> ControlReply:
+        """Clear ``emergency_stopped`` (the controller must be released and reset) or ``faulted``."""
+        if req.job_id is not None:
+            raise ControlError("invalid", "job_id", "reset takes no job_id")
+        if self.sm.state == CellState.EMERGENCY_STOPPED:
+            ctrl = await self._ctrl_state()
+            if ctrl not in CONTROLLER_RESET_STATES:
+                raise ControlError(
+                    "not_allowed", "payload",
+                    f"the controller is {ctrl or 'unreadable over RWS'}: release its emergency stop and "
+                    "reset it (motors off) first",
+                )  # fmt: skip
+            if self.sm.state == CellState.EMERGENCY_STOPPED:  # unchanged while RWS answered
+                self.sm.to(
+                    CellState.IDLE, f"reset by the operator after the emergency stop (controller {ctrl})"
+                )
+        elif self.sm.state == CellState.FAULTED:
+            self.sm.to(CellState.IDLE, "reset by the operator after a fault")
+        elif self.sm.state != CellState.IDLE:
+            raise ControlError(
+                "not_allowed", "payload", f"the cell is {self.sm.state.value}: nothing to reset"
+            )
+        return ControlReply(action="reset", job_id=None, state=self.sm.state.value)
+
+    def _reanalyse(self, req: ControlRequest) -> ControlReply:
+        """Rebuild an interrupted (or failed) job's cloud from its raw files and send it to the workers
+        again; the robot does not move."""
+        from cellctl.daemon.jobs import JobStoreError
+
+        if req.job_id is None:
+            raise ControlError("invalid", "job_id", 'required: {"job_id": ...}')
+        job_id = req.job_id
+        if job_id in self._analysing:
+            raise ControlError("not_allowed", "job_id", f"job {job_id} is being analysed already")
         try:
-            data = json.loads(query.payload.to_bytes() if query.payload is not None else b"")
-            job_id = str(data["job_id"])
-            if not isinstance(data, dict) or set(data) != {"job_id"}:
-                raise ValueError('expected exactly {"job_id": ...}')
             record = self.store.load(job_id)
-        except Exception as exc:
-            err = ApiError(code="invalid", field="job_id", message=str(exc)[:300])
-            query.reply_err(err.to_json(), encoding=JSON)
-            return
+        except JobStoreError:
+            raise ControlError("no_job", "job_id", f"no job {job_id} in the job store") from None
         if record.state not in (JobState.INTERRUPTED.value, JobState.FAILED.value):
-            err = ApiError(code="not_allowed", field="job_id", message=f"job is {record.state}")
-            query.reply_err(err.to_json(), encoding=JSON)
-            return
+            raise ControlError("not_allowed", "job_id", f"job is {record.state}")
         if not (self.store.raw_dir(job_id) / "profiles.craw").exists():
-            err = ApiError(code="not_allowed", field="job_id", message="job has no raw profiles")
-            query.reply_err(err.to_json(), encoding=JSON)
-            return
+            raise ControlError("not_allowed", "job_id", "job has no raw profiles")
         job = _Job(record)
         self._current = job
-        task = asyncio.create_task(self._analyse(job), name=f"reanalyse-{job_id}")
-        self._analyses.add(task)
-        task.add_done_callback(self._analyses.discard)
-        query.reply(
-            query.key_expr, json.dumps({"job_id": job_id, "state": "analysing"}).encode(), encoding=JSON
+        self._track_analysis(job, asyncio.create_task(self._analyse(job), name=f"reanalyse-{job_id}"))
+        return ControlReply(
+            action="reanalyse", job_id=job_id, state=self.sm.state.value, job_state="waiting_for_worker"
         )
+
+    def _track_analysis(self, job: _Job, task: asyncio.Task) -> None:
+        self._analyses.add(task)
+        self._analysing[job.record.job_id] = job
+
+        def done(t: asyncio.Task) -> None:
+            self._analyses.discard(t)
+            self._analysing.pop(job.record.job_id, None)
+            self._publish()
+
+        task.add_done_callback(done)
 
     # ------------------------------------------------------------------------- the job
 
     def _job_state(self, job: _Job, state: JobState, message: str = "", **info: Any) -> None:
         job.stage = state.value
         self.store.set_state(job.record, state, message, **info)
+        if state in FINAL_JOB_STATES:
+            self._recent.append(self._progress(job))
         self._publish()
 
     async def _run_job(self, job: _Job) -> None:
@@ -408,19 +566,27 @@ class CellDaemon:
             self._job_state(job, JobState.FAILED, f"{type(exc).__name__}: {exc}")
             self._scan_job = None
             if self.sm.state != CellState.STOPPING:
-                self.sm.to(CellState.FAULTED, f"job {rec.job_id}: {exc}")
+                # an e-stop before the executor ran shows up here (motors on refused, EGM never came)
+                if await self._ctrl_state() == "emergencystop":
+                    self.sm.to(CellState.EMERGENCY_STOPPED, f"emergency stop during job {rec.job_id}")
+                elif self.sm.state not in (CellState.STOPPING, CellState.EMERGENCY_STOPPED):
+                    self.sm.to(CellState.FAULTED, f"job {rec.job_id}: {exc}")
+            self._after_scan(job)
             return
         self._scan_job = None
         if not ok:
-            if self.sm.state not in (CellState.STOPPING, CellState.FAULTED):
+            if self.sm.state not in (CellState.STOPPING, CellState.FAULTED, CellState.EMERGENCY_STOPPED):
                 self.sm.to(CellState.IDLE, f"job {rec.job_id} {rec.state}")
+            self._after_scan(job)
             return
         if self.sm.state == CellState.STOPPING:
             self._job_state(job, JobState.INTERRUPTED, "the daemon stopped before the analysis")
             return
-        task = asyncio.create_task(self._analyse(job), name=f"analyse-{rec.job_id}")
-        self._analyses.add(task)
-        task.add_done_callback(self._analyses.discard)
+        if self.sm.state in (CellState.SCANNING, CellState.PAUSED):
+            # the robot is free: idle (the next queued job may start) while the analysis runs
+            self.sm.to(CellState.IDLE, f"job {rec.job_id} scanned; analysing")
+        self._track_analysis(job, asyncio.create_task(self._analyse(job), name=f"analyse-{rec.job_id}"))
+        self._after_scan(job)
 
     async def _scan(self, job: _Job) -> bool:
         """Plan, execute and acquire. True when the scan completed (raw files closed)."""
@@ -452,7 +618,10 @@ class CellDaemon:
             rec, JobState.PLANNING, "planned", plan=summary, plan_s=round(time.perf_counter() - t0, 3)
         )
         if self._stop_requested(job):
-            self._job_state(job, JobState.INTERRUPTED, "stopped before the scan")
+            if job.stop_reason == "abort":
+                self._job_state(job, JobState.ABORTED, "aborted by request before the scan; nothing moved")
+            else:
+                self._job_state(job, JobState.INTERRUPTED, "stopped before the scan")
             return False
         est = raw_bytes_estimate(
             plan.scan_time_s, rate_hz=cfg.laser.rate_hz, points_per_profile=cfg.laser.points_per_profile,
@@ -487,6 +656,8 @@ class CellDaemon:
                 on_progress=lambda ev: self._on_progress(job, ev),
             )
             job.executor = executor
+            if job.stop_reason is not None:  # aborted while the program started: stop before motion
+                executor.abort()
             last_robot_ns = [-1]
 
             def feed_robot() -> None:
@@ -573,12 +744,20 @@ class CellDaemon:
             elif job.stop_reason == "abort":
                 self._job_state(job, JobState.ABORTED, "aborted by request; raw data kept", **info)
             else:
-                self._job_state(job, JobState.FAILED, f"motion fault: {result.fault}", **info)
-                if self.sm.state != CellState.STOPPING:
-                    ctrl = await self._ctrl_state()
-                    if ctrl == "emergencystop":
-                        self.sm.to(CellState.EMERGENCY_STOPPED, f"emergency stop during job {rec.job_id}")
-                    else:
+                ctrl = "" if self.sm.state == CellState.STOPPING else await self._ctrl_state()
+                if ctrl == "emergencystop":
+                    # Not a failure of the job: the raw data up to the stop is intact and can be
+                    # re-analysed (control/reanalyse), or the plate scanned again after the reset.
+                    self._job_state(
+                        job, JobState.INTERRUPTED,
+                        "emergency stop during the scan; raw data kept (re-analyse, or trigger again "
+                        "after control/reset)",
+                        stopped_by="emergency_stop", **info,
+                    )  # fmt: skip
+                    self.sm.to(CellState.EMERGENCY_STOPPED, f"emergency stop during job {rec.job_id}")
+                else:
+                    self._job_state(job, JobState.FAILED, f"motion fault: {result.fault}", **info)
+                    if self.sm.state not in (CellState.STOPPING, CellState.EMERGENCY_STOPPED):
                         self.sm.to(CellState.FAULTED, f"motion fault: {result.fault}")
             return False
         finally:
@@ -642,9 +821,13 @@ class CellDaemon:
             meta = {"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": rec.placement}
             # thinned and encoded in one pass off the loop: the only copy of the points is the payload
             payload, job.points = await asyncio.to_thread(
-                encode_scan, scan_cloud, job_id=rec.job_id, plate_id=rec.plate_id, column_step=steps,
+                encode_scan,
+                scan_cloud,
+                job_id=rec.job_id,
+                plate_id=rec.plate_id,
+                column_step=steps,
                 meta=meta,
-            )  # fmt: skip
+            )
             del scan_cloud, steps
             assemble_s = time.perf_counter() - t0
             params = {

@@ -24,6 +24,7 @@ pytestmark = pytest.mark.slow
 def cell(tmp_path_factory):
     out = tmp_path_factory.mktemp("cell")
     c = Cell(out, tiny_cell_config(out))
+    c.procs.env["CELL_DAEMON__QUEUE_MAX"] = "0"  # the refuse-while-busy mode (the queue: test_queue_e2e)
     c.start()
     try:
         yield c
