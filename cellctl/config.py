@@ -457,7 +457,12 @@ def _looks_secret(key: str) -> bool:
 def _problems_from(err: ValidationError, env_keys: set[str]) -> list[str]:
     problems = []
     for e in err.errors(include_url=False):
-        loc = [str(p) for p in e["loc"] if not str(p).startswith(("function-", "literal["))]
+        # a TOML key may hold a newline or escape codes: escape them, one problem stays one line
+        loc = [
+            str(p) if str(p).isprintable() else str(p).encode("unicode_escape").decode("ascii")
+            for p in e["loc"]
+            if not str(p).startswith(("function-", "literal["))
+        ]
         path = ".".join(loc) or "(top level)"
         msg = e["msg"].removeprefix("Value error, ")
         origin = " (from the environment)" if path.split(".")[0] in env_keys else ""
