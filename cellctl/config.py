@@ -520,6 +520,10 @@ def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> CellConfig:
         raise ConfigError(str(path), [f"not UTF-8 text (byte {exc.start})"]) from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(str(path), [f"TOML syntax error: {exc}"]) from None
+    except RecursionError:
+        raise ConfigError(str(path), ["TOML nested too deeply"]) from None
+    except ValueError as exc:  # a value tomllib cannot convert, e.g. an integer beyond 4300 digits
+        raise ConfigError(str(path), [f"TOML value cannot be read: {str(exc)[:120]}"]) from None
     return parse_config(data, str(path))
 
 
