@@ -72,7 +72,18 @@ def _endpoint_config(args: argparse.Namespace) -> EgmEndpointConfig:
         reply_thread_priority=args.endpoint_priority if args.realtime else 0,
         reply_thread_cpus=tuple(args.endpoint_cpus),
         switch_interval_s=None if args.switch_interval_us is None else args.switch_interval_us * 1e-6,
+        reply_spin_us=args.spin_us,
     )
+
+
+def _busy_loop_work(loop: asyncio.AbstractEventLoop, busy_s: float, every_s: float) -> None:
+    """Stand-in for the daemon's own loop work (status, Zenoh hand-offs, profile assembly): pure
+    Python that holds the loop (and the GIL) for ``busy_s`` every ``every_s``."""
+    end = time.perf_counter() + busy_s
+    n = 0
+    while time.perf_counter() < end:
+        n += sum(range(64))
+    loop.call_later(every_s, _busy_loop_work, loop, busy_s, every_s)
 
 
 async def _endpoint_child(args: argparse.Namespace) -> None:
@@ -87,6 +98,8 @@ async def _endpoint_child(args: argparse.Namespace) -> None:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
+    if args.loop_busy_ms > 0:
+        loop.call_soon(_busy_loop_work, loop, args.loop_busy_ms / 1000.0, args.loop_busy_every_ms / 1000.0)
     cpu0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
     await stop.wait()
     cpu1, t1 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
@@ -181,6 +194,15 @@ def main() -> int:
     p.add_argument("--sim-cpus", type=int, nargs="*", default=[], help="pin the simulator to these CPUs")
     p.add_argument("--endpoint-cpus", type=int, nargs="*", default=[], help="pin the endpoint (reply thread)")
     p.add_argument("--switch-interval-us", type=float, default=None, help="sys.setswitchinterval, endpoint")
+    p.add_argument("--spin-us", type=float, default=0.0, help="reply thread polls this long around arrivals")
+    p.add_argument(
+        "--loop-busy-ms",
+        type=float,
+        default=0.0,
+        help="keep the endpoint's event loop busy this long (pure Python) every --loop-busy-every-ms, "
+        "as the daemon's loop is with the sensor streaming and assembly running",
+    )
+    p.add_argument("--loop-busy-every-ms", type=float, default=20.0)
     p.add_argument(
         "--no-gc-freeze", dest="gc_freeze", action="store_false", help="leave the start-up heap to the GC"
     )
@@ -233,6 +255,9 @@ def main() -> int:
         result["endpoint_latency_max_us"] = round(endpoint["stats"]["latency_max_us"], 1)
     result["realtime"] = realtime
     result["reply_thread"] = args.reply_thread
+    result["loop_busy_ms"] = args.loop_busy_ms
+    result["spin_us"] = args.spin_us
+    result["switch_interval_us"] = args.switch_interval_us
     result["cpu_latency_held"] = held
     result["load_1min"] = os.getloadavg()[0]
     print(json.dumps(result))

@@ -33,6 +33,7 @@ import asyncio
 import contextlib
 import functools
 import os
+import select
 import socket
 import struct
 import sys
@@ -102,6 +103,9 @@ class EgmEndpointConfig:
     and a log line), ``reply_thread_cpus`` pins it to those CPUs (empty: any), and
     ``switch_interval_s`` sets ``sys.setswitchinterval`` while the endpoint runs, so a busy
     Python thread hands the GIL to the reply thread sooner (None: leave the interpreter's 5 ms).
+    ``reply_spin_us`` > 0 makes the thread poll its socket without sleeping from that long before
+    the next packet is due (one receive interval after the last) until it comes or as long again
+    after, so the reply does not wait for a wake-up; it costs about twice that per cycle of a core.
     """
 
     host: str = "127.0.0.1"
@@ -115,6 +119,7 @@ class EgmEndpointConfig:
     reply_thread_priority: int = 0
     reply_thread_cpus: tuple[int, ...] = ()
     switch_interval_s: float | None = None
+    reply_spin_us: float = 0.0
 
 
 def ok_to_command(
@@ -667,9 +672,15 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         """The reply thread: receive, handle, repeat until the stop flag is set."""
         self._configure_reply_thread()
         recvfrom = sock.recvfrom
+        spin_ns = int(self.config.reply_spin_us * 1000)
+        due_ns: int | None = None  # when the next packet is expected (spin mode)
+        last_ns: int | None = None
         while not self._stop_thread:
             try:
-                data, addr = recvfrom(65535)
+                if spin_ns and due_ns is not None:
+                    data, addr = self._receive_spinning(sock, due_ns, spin_ns)
+                else:
+                    data, addr = recvfrom(65535)
             except (BlockingIOError, InterruptedError):  # the receive timeout: look at the stop flag
                 continue
             except OSError as exc:
@@ -682,10 +693,33 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             t_rx_ns = self._clock_ns()
             if self._stop_thread or addr is None:
                 break
+            if spin_ns:
+                now_ns = time.monotonic_ns()
+                # the controller's cadence is the last interval; a gap (loss, pause) spins once in vain
+                period_ns = None if last_ns is None else now_ns - last_ns
+                due_ns = now_ns + period_ns if period_ns is not None and period_ns < 100_000_000 else None
+                last_ns = now_ns
             try:
                 self._on_datagram(data, addr, t_rx_ns)
             except Exception as exc:  # one datagram never ends the thread
                 self._post(log.error, "egm_reply_thread_error", error=repr(exc))
+
+    @staticmethod
+    def _receive_spinning(sock: socket.socket, due_ns: int, spin_ns: int) -> tuple[bytes, tuple]:
+        """Sleep until ``spin_ns`` before ``due_ns``, then poll without sleeping until a datagram
+        comes or ``spin_ns`` after ``due_ns``; then fall back to the blocking receive."""
+        wait_s = (due_ns - spin_ns - time.monotonic_ns()) / 1e9
+        if wait_s > 0:
+            ready, _, _ = select.select([sock], [], [], wait_s)
+            if ready:
+                return sock.recvfrom(65535)  # early: no spin this cycle
+        end_ns = due_ns + spin_ns
+        while time.monotonic_ns() < end_ns:
+            try:
+                return sock.recvfrom(65535, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                pass
+        return sock.recvfrom(65535)
 
     def _configure_reply_thread(self) -> None:
         """Pin and prioritise the calling (reply) thread as configured; refusals are logged, not fatal."""

@@ -43,7 +43,9 @@ def reply_path(request, monkeypatch):
     """Run the test with the endpoint's replies on the asyncio loop and on the reply thread."""
     if request.param == "thread":
         monkeypatch.setattr(
-            sys.modules[__name__], "EgmEndpointConfig", functools.partial(EgmEndpointConfig, reply_thread=True)
+            sys.modules[__name__],
+            "EgmEndpointConfig",
+            functools.partial(EgmEndpointConfig, reply_thread=True),
         )
     return request.param
 
