@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import functools
 import hashlib
 import html
 import re
@@ -90,6 +91,29 @@ class RwsBusyError(RwsError):
 
 class RwsTimeoutError(RwsError):
     """No answer within the configured timeout."""
+
+
+class RwsProtocolError(RwsError):
+    """An answer that does not have the shape RWS gives it: a missing field, an unparsable value or
+    body. The message names the request and what was wrong."""
+
+
+def _parses_answer(fn):
+    """Turn a lookup or conversion failure while reading an answer into :class:`RwsProtocolError`.
+
+    A controller (or something pretending to be one) may answer anything: callers must see one
+    error type, never a KeyError or a ValueError from deep inside the parsing.
+    """
+
+    @functools.wraps(fn)
+    async def wrapper(self, *args, **kwargs):
+        try:
+            return await fn(self, *args, **kwargs)
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+            what = f"missing field {exc}" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
+            raise RwsProtocolError(f"{fn.__name__}: unexpected answer ({what})"[:300]) from exc
+
+    return wrapper
 
 
 @dataclass(frozen=True)
@@ -373,7 +397,12 @@ class RwsClient:
             try:
                 async with http.request(method, url, data=body, headers=headers) as resp:
                     status = resp.status
-                    text = await resp.text()
+                    try:
+                        text = await resp.text()
+                    except (UnicodeDecodeError, LookupError) as err:  # bad bytes or an unknown charset
+                        raise RwsProtocolError(
+                            f"undecodable body: {err}"[:200], status=status, method=method, path=path
+                        ) from err
                     if status == 401:
                         challenge = resp.headers.get("WWW-Authenticate", "")
                         stale = (
@@ -451,8 +480,8 @@ class RwsClient:
     async def _get_state(self, path: str, query: dict[str, str] | None = None) -> dict[str, Any]:
         _, body, _ = await self._request("GET", path, query=query)
         items = _states(body)
-        if not items:
-            raise RwsError("answer holds no state item", method="GET", path=path)
+        if not items or not isinstance(items[0], dict):
+            raise RwsProtocolError("answer holds no state item", method="GET", path=path)
         return items[0]
 
     def _mutating_query(self) -> dict[str, str]:
@@ -466,6 +495,7 @@ class RwsClient:
 
     # ---- panel --------------------------------------------------------------------------------
 
+    @_parses_answer
     async def get_ctrl_state(self) -> str:
         """Controller state: ``motoron``, ``motoroff``, ``guardstop``, ``emergencystop``, ..."""
         path = "/rw/panel/ctrlstate" if self.config.profile == "rws1" else "/rw/panel/ctrl-state"
@@ -484,12 +514,14 @@ class RwsClient:
         """Switch the motors off."""
         await self.set_motors(False)
 
+    @_parses_answer
     async def get_opmode(self) -> str:
         """Operating mode: ``AUTO``, ``MANR``, ``MANF``, ..."""
         return str((await self._get_state("/rw/panel/opmode"))["opmode"])
 
     # ---- RAPID execution ----------------------------------------------------------------------
 
+    @_parses_answer
     async def get_execution_state(self) -> ExecutionState:
         """RAPID execution state."""
         item = await self._get_state("/rw/rapid/execution")
@@ -524,6 +556,7 @@ class RwsClient:
             return f"/rw/rapid/symbol/data/RAPID/{sym}"
         return f"/rw/rapid/symbol/RAPID/{sym}/data"
 
+    @_parses_answer
     async def get_rapid_var(self, task: str, name: str, module: str | None = None) -> str:
         """Read a RAPID variable as its literal string (e.g. ``"[[0,0,0,0,30,0],[9E+09,...]]"``)."""
         return str((await self._get_state(self._symbol_path(task, name, module)))["value"])
@@ -536,6 +569,7 @@ class RwsClient:
         else:
             await self._request("POST", path, query=self._mutating_query(), form={"value": literal})
 
+    @_parses_answer
     async def get_rapid_num(self, task: str, name: str, module: str | None = None) -> float:
         """Read a ``num``."""
         return parse_num(await self.get_rapid_var(task, name, module))
@@ -544,6 +578,7 @@ class RwsClient:
         """Write a ``num``."""
         await self.set_rapid_var(task, name, format_num(value), module)
 
+    @_parses_answer
     async def get_rapid_bool(self, task: str, name: str, module: str | None = None) -> bool:
         """Read a ``bool``."""
         return parse_bool(await self.get_rapid_var(task, name, module))
@@ -552,6 +587,7 @@ class RwsClient:
         """Write a ``bool``."""
         await self.set_rapid_var(task, name, format_bool(value), module)
 
+    @_parses_answer
     async def get_rapid_string(self, task: str, name: str, module: str | None = None) -> str:
         """Read a ``string``."""
         return parse_string(await self.get_rapid_var(task, name, module))
@@ -560,6 +596,7 @@ class RwsClient:
         """Write a ``string``."""
         await self.set_rapid_var(task, name, format_string(value), module)
 
+    @_parses_answer
     async def get_rapid_jointtarget(self, task: str, name: str, module: str | None = None) -> JointTarget:
         """Read a ``jointtarget`` (degrees)."""
         return parse_jointtarget(await self.get_rapid_var(task, name, module))
@@ -577,6 +614,7 @@ class RwsClient:
         parts = [p for p in (network, device, signal) if p]
         return "/rw/iosystem/signals/" + "/".join(quote(p, safe="") for p in parts)
 
+    @_parses_answer
     async def get_io(self, signal: str, network: str | None = None, device: str | None = None) -> float:
         """Read an IO signal's value (0/1 for digital signals)."""
         item = await self._get_state(self._signal_path(signal, network, device))
@@ -595,6 +633,7 @@ class RwsClient:
 
     # ---- event log, position ------------------------------------------------------------------
 
+    @_parses_answer
     async def read_event_log(self, domain: int = 0) -> list[ElogEntry]:
         """Event-log messages of ``domain``, newest first."""
         _, body, _ = await self._request("GET", f"/rw/elog/{domain}", query={"lang": "en"})
@@ -613,11 +652,13 @@ class RwsClient:
             )
         return out
 
+    @_parses_answer
     async def get_joint_position(self) -> np.ndarray:
         """Robot joints, (6,) float, degrees."""
         item = await self._get_state(f"/rw/motionsystem/mechunits/{self.config.mechunit}/jointtarget")
         return np.array([float(item[f"rax_{i}"]) for i in range(1, 7)])
 
+    @_parses_answer
     async def get_cartesian(self) -> CartesianPose:
         """Flange pose (tool0) in the base frame."""
         item = await self._get_state(
