@@ -35,3 +35,8 @@ def centroid_after_sleep(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> d
 def always_raises(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, Any]:
     """An analysis that fails on its input, deterministically."""
     raise ValueError(f"plate {job['plate_id']}: no plate surface in {cloud['xyz_mm'].shape[0]} points")
+
+
+def blas_environment(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, Any]:
+    """The BLAS thread settings the analysis process runs with."""
+    return {k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
