@@ -643,16 +643,24 @@ class CellDaemon:
             await self.program.start()
             await self.endpoint.wait_for_feedback(self.settings.feedback_timeout_s)
             acq_settings = AcquisitionSettings.from_config(cfg, epoch_ns=time.monotonic_ns())
-            writer = RawWriter(
+            # Off the loop: the files are fsync'ed, and a busy disk must not hold up the EGM replies of
+            # the session just started (the controller ends it after its communication timeout).
+            writer = await asyncio.to_thread(
+                RawWriter,
                 self.store.raw_dir(rec.job_id),
                 {"acquisition": acq_settings.to_json(), "job_id": rec.job_id, "plate_id": rec.plate_id},
             )
             acq = Acquisition(acq_settings, writer, keep_batches=True)
+            egm0 = _counters(self.endpoint.stats, _EGM_COUNTERS)
             executor = MotionExecutor.for_plan(
                 self.endpoint,
                 plan,
                 settings,
-                ExecutorConfig.from_settings(settings, tracking_error_max_mm=cfg.robot.tracking_error_max_mm),
+                ExecutorConfig.from_settings(
+                    settings,
+                    tracking_error_max_mm=cfg.robot.tracking_error_max_mm,
+                    feedback_timeout_s=cfg.robot.egm_watchdog_s,  # [robot] egm_watchdog_s, not 0.1 s
+                ),
                 on_progress=lambda ev: self._on_progress(job, ev),
             )
             job.executor = executor
@@ -729,6 +737,9 @@ class CellDaemon:
                 "max_tracking_error_mm": round(float(result.max_tracking_error_mm), 3),
                 "last_profile_utc_s": t_last_profile,
                 "acquisition": json.loads(json.dumps(acq.quality(), default=_plain)),
+                # what the links went through during this job: said plainly in the job record
+                "egm": {k: v - egm0[k] for k, v in _counters(self.endpoint.stats, _EGM_COUNTERS).items()},
+                "sensor": _counters(client.stats, _SENSOR_COUNTERS),
             }
             if result.state == ExecState.FINISHED:
                 # The live cloud is bit for bit what `cellctl reassemble --live` rebuilds from the raw
@@ -917,6 +928,17 @@ class CellDaemon:
         log.info("html_report_written", job_id=rec.job_id, **info)
         if cancelled:
             raise asyncio.CancelledError
+
+
+_EGM_COUNTERS = ("received", "lost", "duplicated", "out_of_order", "malformed", "watchdog_events")
+_SENSOR_COUNTERS = (
+    "frames", "gaps", "missing_frames", "duplicates_dropped", "decode_errors", "reconnects", "overflow_frames",
+)  # fmt: skip
+
+
+def _counters(stats: Any, names: tuple[str, ...]) -> dict[str, int]:
+    """Integer counters of a statistics object, by name."""
+    return {n: int(getattr(stats, n)) for n in names}
 
 
 def _plain(obj: Any) -> Any:

@@ -300,6 +300,8 @@ class MotionExecutor:
         self._lost = 0
         self._tcp_hist = deque(maxlen=max(2, int(cfg.tracking_window_s / cfg.cycle_s)))
         self._max_track = 0.0
+        self._last_track = 0.0
+        self._not_ok = 0
         self._rec_t: list[float] = []
         self._rec_q: list[np.ndarray] = []
         self._rec_qd: list[np.ndarray] = []
@@ -435,15 +437,21 @@ class MotionExecutor:
             except Exception as exc:  # the endpoint closed under us
                 self._enter_fault(f"EGM endpoint failed: {exc}", hold=False)
                 break
-            cycles = self._cycles_since(fb.seqno, fb.feedback_time_us)
-            self._cycle += cycles
             if not fb.ok_to_command:
+                # A real stop (motors off, RAPID stopped, e-stop) persists; one packet alone may be a
+                # corrupted datagram that still decoded. The next packet (one cycle) confirms it.
+                self._not_ok += 1
+                if self._not_ok < 2:
+                    continue
                 self._enter_fault(
                     f"controller stopped EGM (motors {_name(fb.motor_state)}, EGM {_name(fb.mci_state)}, "
                     f"RAPID {_name(fb.rapid_exec_state)})",
                     hold=True,
                 )
                 break
+            self._not_ok = 0
+            cycles = self._cycles_since(fb.seqno, fb.feedback_time_us)
+            self._cycle += cycles
             self._handle_requests()
             self._fb_count += 1
             if self._fb_count % 4 == 0:  # a monitor: 16 ms of latency costs nothing, the CPU does
@@ -741,7 +749,11 @@ class MotionExecutor:
         a, b = hist[:-1], hist[1:]
         ab = b - a
         u = np.clip(np.sum((p_fb - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0.0, 1.0)
-        err = float(np.min(np.linalg.norm(a + u[:, None] * ab - p_fb, axis=1)))
+        raw = float(np.min(np.linalg.norm(a + u[:, None] * ab - p_fb, axis=1)))
+        # An error counts once two successive checks (16 ms apart) see it: a real tracking error
+        # changes little in 16 ms, one corrupted feedback datagram that still decoded is gone by then.
+        err = min(raw, self._last_track)
+        self._last_track = raw
         self._max_track = max(self._max_track, err)
         if err > self.config.tracking_error_max_mm and self.state != ExecState.FAULT_STOPPING:
             self._begin_fault_stop(
