@@ -62,3 +62,17 @@ def test_config_check_syntax_error(cellctl_exe: list[str], tmp_path: Path) -> No
 def test_unknown_command_exits_2_with_one_line(cellctl_exe: list[str]) -> None:
     r = _run(cellctl_exe, "frobnicate")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_config_check_names_each_bad_daemon_key_on_its_own_line(
+    cellctl_exe: list[str], tmp_path: Path
+) -> None:
+    bad = tmp_path / "cell.toml"
+    bad.write_text("[daemon]\nqueue_max = -1\nsettle_s = 'long'\nqueue_size = 3\n")
+    r = _run(cellctl_exe, "config", "check", str(bad))
+    assert r.returncode == 2 and r.stdout == ""
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 3, lines
+    assert any(f"{bad}: daemon.queue_max = -1: " in line for line in lines)
+    assert any(f"{bad}: daemon.settle_s = 'long': " in line for line in lines)
+    assert f"{bad}: daemon.queue_size: unknown key" in lines

@@ -13,12 +13,15 @@ from hypothesis import strategies as st
 from cellctl.api import (
     MAX_TRIGGER_BYTES,
     ApiCallError,
+    ControlError,
+    ControlRequest,
     Keys,
     TriggerAccepted,
     TriggerError,
     TriggerRequest,
     call,
     handle_trigger,
+    parse_control,
     parse_trigger,
 )
 from cellctl.zenoh_session import (
@@ -140,3 +143,47 @@ def test_trigger_queryable_answers_errors_and_keeps_serving_over_zenoh(hub, desi
     ]
     assert out[4] == TriggerAccepted(job_id="job-1", state="started")
     assert [r.plate_id for r in accepted] == ["P-17"]
+
+
+@pytest.mark.parametrize("payload", [None, b"", b"{}"])
+def test_empty_control_payload_means_the_scan_in_progress(payload):
+    assert parse_control(payload) == ControlRequest(job_id=None)
+
+
+def test_control_payload_names_its_job():
+    assert parse_control(b'{"job_id": "20261122T044528-c86cf189"}').job_id == "20261122T044528-c86cf189"
+
+
+@pytest.mark.parametrize(
+    ("payload", "code", "field"),
+    [
+        (b"{oops", "malformed", "payload"),
+        (b"[1]", "malformed", "payload"),
+        (b"\xff", "malformed", "payload"),
+        (b"x" * (MAX_TRIGGER_BYTES + 1), "too_large", "payload"),
+        (b'{"job_id": "x", "force": true}', "invalid", "force"),
+        (b'{"job_id": "../../etc"}', "invalid", "job_id"),
+        (b'{"job_id": 7}', "invalid", "job_id"),
+    ],
+)
+def test_bad_control_payload_is_refused_naming_the_field(payload, code, field):
+    with pytest.raises(ControlError) as err:
+        parse_control(payload)
+    assert (err.value.code, err.value.field) == (code, field)
+    assert err.value.to_api_error().code == code
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    body=st.one_of(
+        st.binary(max_size=200),
+        st.dictionaries(st.text(max_size=10), st.text(max_size=70)).map(lambda d: json.dumps(d).encode()),
+    )
+)
+def test_arbitrary_control_payloads_raise_only_control_error(body):
+    try:
+        req = parse_control(body)
+    except ControlError as err:
+        assert err.code in ("malformed", "invalid", "too_large")
+        return
+    assert req.job_id is None or "/" not in req.job_id
