@@ -164,6 +164,41 @@ class TriggerError(ValueError):
         return ApiError(code=self.code, field=self.field, message=self.message)
 
 
+def parse_model(
+    payload: bytes | bytearray | str | None,
+    model: type[M],
+    error: Callable[[str, str, str], Exception] = TriggerError,
+    *,
+    limit: int = MAX_TRIGGER_BYTES,
+    unknown: str = "unknown field",
+) -> M:
+    """Validate a JSON-object payload against ``model``; refusals raise ``error(code, field, message)``.
+
+    The size is checked before parsing. Codes: ``too_large``, ``malformed`` (empty, not UTF-8 JSON,
+    nested too deeply, not an object), ``invalid`` (the first failing field, dotted:
+    ``placement.pos_mm``; an unknown field says ``unknown``).
+    """
+    if payload is None or len(payload) == 0:
+        raise error("malformed", "payload", "empty; expected a JSON object")
+    if len(payload) > limit:
+        raise error("too_large", "payload", f"{len(payload)} bytes, limit {limit}")
+    try:
+        data = json.loads(payload)
+    except RecursionError:
+        raise error("malformed", "payload", "JSON nested too deeply") from None
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, and integers beyond 4300 digits
+        raise error("malformed", "payload", f"not UTF-8 JSON: {str(exc)[:200]}") from None
+    if not isinstance(data, dict):
+        raise error("malformed", "payload", f"expected a JSON object, got {type(data).__name__}")
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        e = err.errors(include_url=False)[0]
+        loc = ".".join(str(p) for p in e["loc"]) or "payload"
+        msg = unknown if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
+        raise error("invalid", loc, msg) from None
+
+
 def parse_trigger(payload: bytes | bytearray | str | None, designs_dir: Path) -> tuple[TriggerRequest, Path]:
     """Validate a trigger payload; returns the request and the resolved design file.
 
@@ -171,25 +206,7 @@ def parse_trigger(payload: bytes | bytearray | str | None, designs_dir: Path) ->
     existing file inside ``designs_dir``. Raises TriggerError with code ``too_large``,
     ``malformed``, ``invalid`` or ``design_not_found``.
     """
-    if payload is None or len(payload) == 0:
-        raise TriggerError("malformed", "payload", "empty; expected a JSON object")
-    if len(payload) > MAX_TRIGGER_BYTES:
-        raise TriggerError("too_large", "payload", f"{len(payload)} bytes, limit {MAX_TRIGGER_BYTES}")
-    try:
-        data = json.loads(payload)
-    except RecursionError:
-        raise TriggerError("malformed", "payload", "JSON nested too deeply") from None
-    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, and integers beyond 4300 digits
-        raise TriggerError("malformed", "payload", f"not UTF-8 JSON: {str(exc)[:200]}") from None
-    if not isinstance(data, dict):
-        raise TriggerError("malformed", "payload", f"expected a JSON object, got {type(data).__name__}")
-    try:
-        req = TriggerRequest.model_validate(data)
-    except ValidationError as err:
-        e = err.errors(include_url=False)[0]
-        loc = ".".join(str(p) for p in e["loc"]) or "payload"
-        msg = "unknown field" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
-        raise TriggerError("invalid", loc, msg) from None
+    req = parse_model(payload, TriggerRequest)
     root = Path(designs_dir).resolve()
     try:
         path = (root / req.design).resolve()
@@ -249,21 +266,7 @@ def parse_control(payload: bytes | bytearray | str | None) -> ControlRequest:
     """Validate a control payload (empty means ``{}``); raises ControlError naming the field."""
     if payload is None or len(payload) == 0:
         return ControlRequest()
-    if len(payload) > MAX_TRIGGER_BYTES:
-        raise ControlError("too_large", "payload", f"{len(payload)} bytes, limit {MAX_TRIGGER_BYTES}")
-    try:
-        data = json.loads(payload)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ControlError("malformed", "payload", f"not UTF-8 JSON: {exc}") from None
-    if not isinstance(data, dict):
-        raise ControlError("malformed", "payload", f"expected a JSON object, got {type(data).__name__}")
-    try:
-        return ControlRequest.model_validate(data)
-    except ValidationError as err:
-        e = err.errors(include_url=False)[0]
-        loc = ".".join(str(p) for p in e["loc"]) or "payload"
-        msg = "unknown field" if e["type"] == "extra_forbidden" else e["msg"]
-        raise ControlError("invalid", loc, msg) from None
+    return parse_model(payload, ControlRequest, ControlError)
 
 
 class ControlReply(Model):
