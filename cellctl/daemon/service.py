@@ -57,7 +57,7 @@ from cellctl.api import (
     read_payload,
 )
 from cellctl.config import CellConfig, ConfigError, resolve_secret
-from cellctl.daemon.jobs import JobRecord, JobStore
+from cellctl.daemon.jobs import JobRecord, JobStore, JobStoreError
 from cellctl.daemon.preflight import PreflightError, check_data_dir, probe_writable, raw_bytes_estimate
 from cellctl.daemon.states import CellStateMachine, Transition
 from cellctl.logging import bind_context
@@ -382,19 +382,26 @@ class CellDaemon:
         self._check_cell_accepts()
         job = _Job(record)
         if self._scan_job is None and not self._queue:
-            self.store.create(record)
+            self._create_record(record)
             self._start_job(job)
             return TriggerAccepted(job_id=record.job_id, state="started")
         position = len(self._queue) + 1
         record.history.append(
             {"state": record.state, "t_utc": record.created_utc, "message": f"queued at position {position}"}
         )
-        self.store.create(record)
+        self._create_record(record)
         job.stage = JobState.QUEUED.value
         self._queue.append(job)
         log.info("job_queued", job_id=record.job_id, position=position)
         self._publish()
         return TriggerAccepted(job_id=record.job_id, state="queued", queue_position=position)
+
+    def _create_record(self, record: JobRecord) -> None:
+        try:
+            self.store.create(record)
+        except (JobStoreError, OSError) as exc:  # the trigger is refused, the daemon serves on
+            log.error("job_record_failed", job_id=record.job_id, error=str(exc))
+            raise TriggerError("internal", "payload", f"cannot store the job: {exc}") from None
 
     def _start_job(self, job: _Job) -> None:
         self._scan_job = self._current = job
@@ -514,8 +521,6 @@ class CellDaemon:
     def _reanalyse(self, req: ControlRequest) -> ControlReply:
         """Rebuild an interrupted (or failed) job's cloud from its raw files and send it to the workers
         again; the robot does not move."""
-        from cellctl.daemon.jobs import JobStoreError
-
         if req.job_id is None:
             raise ControlError("invalid", "job_id", 'required: {"job_id": ...}')
         job_id = req.job_id
