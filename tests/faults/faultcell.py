@@ -44,9 +44,11 @@ __all__ = [
     "CellClient",
     "FaultCell",
     "JobDataCheck",
+    "JobRun",
     "check_job_data",
     "fault_cell_config",
     "open_client",
+    "run_job",
     "wait_status",
 ]
 
@@ -204,6 +206,10 @@ class CellClient:
             lambda s: s.state.value == "idle" and (bool(s.workers) or not workers), timeout_s
         )
 
+    async def wait_idle_or_faulted(self, timeout_s: float = 120.0) -> CellStatus:
+        """Wait until the cell takes a trigger (idle, or faulted after an earlier case) with a worker."""
+        return await self.wait(lambda s: s.state.value in ("idle", "faulted") and bool(s.workers), timeout_s)
+
     async def trigger(self, **changes: Any) -> str:
         """Trigger a scan of the simulated plate; returns the job id."""
         acc = await call(
@@ -309,3 +315,65 @@ def check_job_data(cell: Cell, job_id: str) -> JobDataCheck:
         assert check.cloud_duplicate_points == 0, f"{check.cloud_duplicate_points} cloud points duplicated"
         assert check.cloud_profiles <= check.raw_unique_frames
     return check
+
+
+# ------------------------------------------------------------------------------------------- one job
+
+
+@dataclass
+class JobRun:
+    """One job run under faults: its id, the final published status, what each injection replied,
+    the cell states seen meanwhile, and the on-disk check."""
+
+    job_id: str
+    final: CellStatus
+    replies: list[FaultState]
+    cell_states: list[str]
+    check: JobDataCheck
+
+    @property
+    def info(self) -> dict[str, Any]:
+        return self.check.record.get("info", {})
+
+    @property
+    def state(self) -> str:
+        return self.final.job.state.value if self.final.job is not None else ""
+
+    @property
+    def message(self) -> str:
+        return self.final.job.message if self.final.job is not None else ""
+
+
+async def run_job(
+    cell: FaultCell,
+    faults: list[tuple[float, dict[str, Any]]],
+    *,
+    timeout_s: float = 300.0,
+    clear_after: bool = True,
+) -> JobRun:
+    """Trigger a scan and inject ``faults``: ``(fraction, request)`` sent once the scan's progress
+    reached ``fraction`` (0..1); a fault that ends the scan early skips the later ones. Waits until
+    the job ends (done / failed / aborted / interrupted), then clears every fault knob.
+    """
+    async with cell.client() as c:
+        await c.wait_idle_or_faulted()
+        job_id = await c.trigger()
+        replies = []
+        try:
+            for fraction, request in sorted(faults, key=lambda f: f[0]):
+                st = await c.wait(
+                    lambda s, fr=fraction: s.job is not None and s.job.job_id == job_id and (
+                        s.job.state.value in FINAL_JOB_STATES
+                        or (s.job.state.value == "scanning" and s.job.fraction >= fr and s.job.profiles > 0)
+                    ),
+                    timeout_s,
+                )  # fmt: skip
+                if st.job.state.value in FINAL_JOB_STATES:
+                    break
+                replies.append(await cell.fault(request))
+            final = await c.wait_job_end(job_id, timeout_s)
+        finally:
+            if clear_after:
+                await cell.fault(clear=True)
+        states = [s.state.value for s in c.seen]
+    return JobRun(job_id, final, replies, states, check_job_data(cell, job_id))

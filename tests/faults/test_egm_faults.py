@@ -1,0 +1,101 @@
+"""EGM faults, injected into the simulated controller's UDP stream through ``<prefix>/sim/faults``.
+
+Each case runs a real scan (sim + daemon + worker on loopback), states its expected outcome in its
+docstring and checks that nothing acquired is lost (raw profiles == profiles received, no frame twice,
+no profile twice in the cloud) and that the job's history is consistent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+from faultcell import FaultCell, run_job
+
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    out = tmp_path_factory.mktemp("egmfaults")
+    c = FaultCell.create(out)
+    try:
+        yield c
+    finally:
+        codes = c.stop()
+        assert all(code == 0 for code in codes.values()), (codes, str(out / "logs"))
+
+
+def test_random_loss_of_1_then_5_percent_with_50_ms_bursts_completes_the_scan_within_tracking_limits(cell):
+    """1 % random loss of EgmRobot from the start of the scan, then 5 % with each loss a 50 ms burst
+    from mid-scan. Expected: the scan completes (execution finished), the tracking error stays under
+    the configured limit, the analysis reports a verdict, and the controller really lost packets."""
+    run = asyncio.run(
+        run_job(
+            cell,
+            [
+                (0.0, {"egm": {"loss_fraction": 0.01}}),
+                (0.5, {"egm": {"loss_fraction": 0.05, "burst_ms": 50.0}}),
+            ],
+        )
+    )
+    assert run.state == "done", run.message
+    assert run.info["execution"] == "finished"
+    assert run.info["max_tracking_error_mm"] <= cell.cfg.robot.tracking_error_max_mm
+    assert len(run.replies) == 2 and run.replies[1].egm["burst_ms"] == 50.0
+    assert run.replies[1].stats["egm"]["dropped"] > 0  # the 1 % phase lost packets before the switch
+    assert run.check.raw_profiles > 1000 and run.check.cloud_points > 0
+    assert run.info["egm"]["lost"] > 0  # the daemon's endpoint saw the gaps
+    assert run.info.get("verdict") in ("pass", "fail")
+
+
+def test_duplicated_reordered_and_corrupt_packets_are_counted_and_the_scan_continues(cell):
+    """5 % of EgmRobot duplicated, 5 % held back behind the next one, 1 % with flipped bytes.
+    Expected: the endpoint drops duplicates and stale packets, counts the corrupt ones (logged rate
+    limited) and never crashes; the scan completes within the tracking limit; nothing is lost."""
+    run = asyncio.run(
+        run_job(
+            cell,
+            [
+                (
+                    0.0,
+                    {"egm": {"duplicate_fraction": 0.05, "reorder_fraction": 0.05, "corrupt_fraction": 0.01}},
+                )
+            ],
+        )
+    )
+    assert run.state == "done", run.message
+    assert run.info["execution"] == "finished"
+    assert run.info["max_tracking_error_mm"] <= cell.cfg.robot.tracking_error_max_mm
+    egm = run.info["egm"]  # the daemon's endpoint counters over the job
+    assert egm["malformed"] > 0 and egm["duplicated"] > 0 and egm["out_of_order"] > 0, egm
+    logged = cell.log_events("run", "egm_malformed_packet")
+    assert logged, "malformed packets are logged"
+    assert len(logged) <= run.info["scan_s"] + 60  # rate limited: about one line a second at most
+
+
+def test_loss_longer_than_the_communication_timeout_stops_smoothly_and_leaves_a_reanalysable_job(cell):
+    """The controller goes silent for 1.5 s mid-scan (longer than the EGM watchdog and the
+    controller's communication timeout). Expected: the executor declares the controller stalled and
+    the job fails with a motion fault naming it; the cell is ``faulted`` (not crashed); every profile
+    received is on disk; the job can be re-analysed from its raw files and a new trigger is taken."""
+
+    run = asyncio.run(run_job(cell, [(0.3, {"egm": {"stop_sending": True}})], clear_after=False))
+    try:
+        assert run.state == "failed", run.message
+        assert "stalled" in run.message or "controller" in run.message, run.message
+        assert run.info["execution"] == "faulted"
+        assert run.check.raw_profiles > 0 and run.check.raw_profiles == run.info["profiles"]
+        assert "faulted" in run.cell_states
+    finally:
+        cell.fault_sync(clear=True)
+
+    async def after():
+        async with cell.client() as c:
+            reply = await c.control("reanalyse", run.job_id)
+            st = await c.wait(lambda s: any(j.job_id == run.job_id and j.state.value in ("done", "failed")
+                                            for j in ([s.job] if s.job else []) + list(s.recent)), 240.0)  # fmt: skip
+            return reply, st
+
+    reply, _ = asyncio.run(after())
+    assert reply.job_id == run.job_id and reply.job_state == "waiting_for_worker"
