@@ -568,7 +568,10 @@ class CellDaemon:
             ok = await self._scan(job)
         except Exception as exc:
             log.exception("job_scan_failed", job_id=rec.job_id)
-            self._job_state(job, JobState.FAILED, f"{type(exc).__name__}: {exc}")
+            why = f"{type(exc).__name__}: {exc}"
+            if job.stop_reason == "disk":
+                why = f"raw data could not be written ({exc}); the scan was stopped, what was written is kept"
+            self._job_state(job, JobState.FAILED, why)
             self._scan_job = None
             if self.sm.state != CellState.STOPPING:
                 # an e-stop before the executor ran shows up here (motors on refused, EGM never came)
@@ -682,9 +685,19 @@ class CellDaemon:
 
             feed_robot()
 
+            def disk_fault() -> None:
+                # The raw files take no more (disk full, quota, file size limit): stop smoothly along
+                # the path instead of scanning blind; everything written so far stays readable.
+                job.stop_reason = job.stop_reason or "disk"
+                executor.abort()
+
             async def consume() -> None:
                 async for batch in client:
-                    acq.feed_profiles(batch)
+                    try:
+                        acq.feed_profiles(batch)
+                    except OSError:
+                        disk_fault()
+                        raise
                     job.profiles += len(batch)
 
             sweeps = plan.passes
@@ -694,21 +707,25 @@ class CellDaemon:
                 # Pass markers at the cycle the playback time crosses a sweep's bounds; the
                 # feedback history reaches the acquisition every few cycles (cheap, ordered).
                 open_pass = -1
-                while executor.state not in (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED):
-                    await asyncio.sleep(self.settings.marker_period_s)
-                    tau = executor.progress().t_traj_s
-                    inside = np.nonzero((bounds[:, 0] <= tau) & (tau < bounds[:, 1]))[0]
-                    k = int(inside[0]) if inside.size else -1
-                    if k != open_pass:
-                        now = time.monotonic_ns()
-                        if open_pass >= 0:
-                            acq.end_pass(now)
-                        if k >= 0:
-                            acq.begin_pass(k, now)
-                        open_pass = k
-                    feed_robot()
-                if open_pass >= 0:
-                    acq.end_pass(time.monotonic_ns())
+                try:
+                    while executor.state not in (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED):
+                        await asyncio.sleep(self.settings.marker_period_s)
+                        tau = executor.progress().t_traj_s
+                        inside = np.nonzero((bounds[:, 0] <= tau) & (tau < bounds[:, 1]))[0]
+                        k = int(inside[0]) if inside.size else -1
+                        if k != open_pass:
+                            now = time.monotonic_ns()
+                            if open_pass >= 0:
+                                acq.end_pass(now)
+                            if k >= 0:
+                                acq.begin_pass(k, now)
+                            open_pass = k
+                        feed_robot()
+                    if open_pass >= 0:
+                        acq.end_pass(time.monotonic_ns())
+                except OSError:
+                    disk_fault()
+                    raise
 
             consumer = asyncio.create_task(consume(), name="hd8-consumer")
             await client.start()
@@ -784,6 +801,9 @@ class CellDaemon:
             if writer is not None:
                 with contextlib.suppress(Exception):
                     writer.close()
+                # cut short by an error (a full disk): the EGM program ends too, the arm holds
+                with contextlib.suppress(Exception):
+                    await self.program.end()
             with contextlib.suppress(Exception):
                 await client.close()
 
@@ -1006,6 +1026,9 @@ async def run_daemon(cfg: CellConfig) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
+    # A write past a file-size limit must fail (EFBIG, a smooth stop), not kill the daemon.
+    with contextlib.suppress(AttributeError, ValueError):
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     try:
         return await CellDaemon(cfg).run(stop)
     finally:

@@ -39,6 +39,7 @@ __all__ = [
     "client",
     "kill9_tree",
     "raw_check",
+    "rws_client",
     "tiny_cell_config",
     "trigger_request",
     "wait_status",
@@ -56,6 +57,22 @@ def trigger_request(cell: Cell, plate_id: str = "fault-plate") -> dict[str, Any]
         "design": DEMO_DESIGN,
         "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]},
     }
+
+
+def rws_client(cell: Cell) -> Any:
+    """An RWS client to the simulated controller (close it with ``await c.close()``)."""
+    from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
+
+    r = cell.cfg.robot
+    return RwsClient(
+        RwsClientConfig(
+            base_url=r.rws_url,
+            profile=r.rws_profile,
+            username=r.rws_user,
+            password=cell.procs.env["CELL_RWS_PASSWORD"],
+            timeout_s=10.0,
+        )
+    )
 
 
 def worker_config_via(cell: Cell, endpoint: str, name: str = "worker-via.toml") -> Path:

@@ -29,6 +29,7 @@ from cellfaults import (
     job_history,
     kill9_tree,
     raw_check,
+    rws_client,
     tiny_cell_config,
     trigger_request,
     wait_status,
@@ -38,24 +39,10 @@ from cellctl.acquisition.rawstore import CHUNK, RawReader
 from cellctl.api import TriggerAccepted, call
 from cellctl.commands.scan_cmd import wait_for_job
 from cellctl.zenoh_session import async_get
-from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 EGM_COMM_TIMEOUT_EVENT = 41822  # the controller's "EGM communication timeout" event code
-
-
-def _rws(cell: Cell) -> RwsClient:
-    r = cell.cfg.robot
-    return RwsClient(
-        RwsClientConfig(
-            base_url=r.rws_url,
-            profile=r.rws_profile,
-            username=r.rws_user,
-            password=cell.procs.env["CELL_RWS_PASSWORD"],
-            timeout_s=10.0,
-        )
-    )
 
 
 def _tear_last_chunk(path) -> int:
@@ -97,7 +84,7 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
                 seen["profiles_seen"] = st.job.profiles
             seen["killed"] = kill9_tree(cell.proc("run").pid)
             t_kill = time.monotonic()
-            rws = _rws(cell)
+            rws = rws_client(cell)
             try:
                 # the controller ends EGM on its own after its communication timeout, then holds
                 deadline = t_kill + 30.0

@@ -1,0 +1,211 @@
+"""Disk faults: the data directory too small, read-only, or filling up mid-scan.
+
+Simulated honestly on a real file system: a small tmpfs mounted on the data directory (resized and
+remounted read-only between cases), and a file-size limit (RLIMIT_FSIZE) set on the running daemon
+for the mid-scan case, so its raw writes fail with EFBIG like a full disk's would with ENOSPC.
+Mounting needs root (CI runs as root); without it the cases are skipped, saying so.
+
+Expected outcomes:
+
+* too little free space for the planned scan's raw data + ``[daemon] min_free_mb``: the job fails in
+  pre-flight, naming ``daemon.min_free_mb`` and the sizes, before any motion (the arm does not move,
+  no raw file is opened);
+* read-only data directory: the trigger is refused (``not_allowed``, field ``cell.data_dir``), no job
+  record is made, the daemon stays idle and serving;
+* writes failing mid-scan: the scan stops smoothly along its path, the EGM program is ended, the job
+  is ``failed`` saying the raw data could not be written, the cell ``faulted`` (a stated state a new
+  trigger leaves); the daemon survives, everything written before is readable, and the arm holds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import resource
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cellfaults import (
+    FINAL,
+    Cell,
+    client,
+    raw_check,
+    rws_client,
+    tiny_cell_config,
+    trigger_request,
+    wait_status,
+    wait_until,
+)
+
+from cellctl.api import ApiCallError, TriggerAccepted, call
+from cellctl.daemon.preflight import PreflightError, check_data_dir, probe_writable, raw_bytes_estimate
+
+
+def _mount(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["mount", *args], capture_output=True, text=True, timeout=30)
+
+
+@contextlib.contextmanager
+def tmpfs(directory: Path, size: str):
+    """A tmpfs of ``size`` on ``directory`` for the block; skipped (with the reason) when mounting is not
+    permitted here."""
+    directory.mkdir(parents=True, exist_ok=True)
+    r = _mount("-t", "tmpfs", "-o", f"size={size},mode=0700", "tmpfs", str(directory))
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root / CAP_SYS_ADMIN): {r.stderr.strip()}")
+    try:
+        yield directory
+    finally:
+        if subprocess.run(["umount", str(directory)], capture_output=True, timeout=30).returncode != 0:
+            subprocess.run(["umount", "-l", str(directory)], capture_output=True, timeout=30)
+
+
+def _remount(directory: Path, opts: str) -> None:
+    r = _mount("-o", f"remount,{opts}", str(directory))
+    assert r.returncode == 0, r.stderr
+
+
+# ------------------------------------------------------------------------------ the pre-flight itself
+
+
+def test_raw_estimate_covers_what_a_scan_stores():
+    # measured: 3.87 kB per 500-point profile (one profile per record, x row included)
+    est = raw_bytes_estimate(30.0, rate_hz=200.0, points_per_profile=500, settle_s=1.0, safety=1.0)
+    assert est.profiles == 6201
+    assert est.bytes / est.profiles >= 3870
+    with pytest.raises(ValueError, match="rate_hz"):
+        raw_bytes_estimate(30.0, rate_hz=0.0, points_per_profile=500)
+
+
+def test_preflight_names_the_field_and_sizes_for_a_small_full_or_read_only_data_directory(tmp_path):
+    d = tmp_path / "data"
+    with tmpfs(d, "8m"):
+        est = raw_bytes_estimate(30.0, rate_hz=200.0, points_per_profile=500)
+        with pytest.raises(PreflightError) as small:
+            check_data_dir(d, est.bytes, min_free_mb=0.0)
+        assert small.value.field == "daemon.min_free_mb"
+        assert "MB free" in small.value.message and str(d) in small.value.message
+        ok = check_data_dir(d, 1_000_000, min_free_mb=1.0)
+        assert ok.free_bytes > ok.need_bytes and not any(d.iterdir()), "the probe file is removed"
+
+        # a full file system: the probe's write fails and says so
+        with open(d / "filler", "wb") as f, contextlib.suppress(OSError):
+            while True:
+                f.write(b"\0" * (1 << 20))
+        with pytest.raises(PreflightError) as full:
+            probe_writable(d)
+        assert full.value.field == "cell.data_dir" and "is full" in full.value.message
+        (d / "filler").unlink()
+
+        _remount(d, "ro")
+        with pytest.raises(PreflightError) as ro:
+            probe_writable(d / "jobs")
+        assert ro.value.field == "cell.data_dir" and "read-only" in ro.value.message
+        _remount(d, "rw")
+        probe_writable(d / "jobs")
+
+
+# ------------------------------------------------------------------------------ the cell, end to end
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_data_dir_too_small_or_read_only_faults_before_motion_and_full_mid_scan_stops_smoothly(tmp_path):
+    cfg_path = tiny_cell_config(tmp_path)
+    cell = Cell(tmp_path, cfg_path)
+    data = Path(cell.cfg.cell.data_dir)
+    assert cell.cfg.daemon.min_free_mb >= 100, "the case relies on the default margin"
+    with tmpfs(data, "64m"):
+        try:
+            cell.start()
+
+            async def before_motion() -> dict:
+                seen: dict = {}
+                rws = rws_client(cell)
+                try:
+                    async with client(cell) as (session, keys, follower):
+                        await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 180.0)
+                        q0 = await rws.get_joint_position()
+                        # 1. 64 MB free, the scan's estimate + 200 MB needed: pre-flight fails the job
+                        acc = await call(
+                            session, keys.trigger, json.dumps(trigger_request(cell)), TriggerAccepted
+                        )
+                        await wait_until(
+                            lambda: cell.job_record(acc.job_id)["state"] in FINAL, 60.0, what="job ends"
+                        )
+                        seen["small"] = (acc.job_id, cell.job_record(acc.job_id))
+                        await wait_status(follower, lambda s: s.state.value == "idle", 30.0)
+                        seen["moved_deg"] = float(np.max(np.abs(await rws.get_joint_position() - q0)))
+                        # 2. read-only: the trigger is refused, nothing is written, the daemon serves on
+                        _remount(data, "ro")
+                        try:
+                            with pytest.raises(ApiCallError) as ro:
+                                await call(
+                                    session, keys.trigger, json.dumps(trigger_request(cell)), TriggerAccepted
+                                )
+                            seen["ro"] = ro.value.error
+                            st = await wait_status(follower, lambda s: True)
+                            seen["ro_state"] = st.state.value
+                            seen["jobs_after_ro"] = sorted(p.name for p in cell.jobs_dir.iterdir())
+                        finally:
+                            _remount(data, "rw,size=2g")
+                        # 3. room again, but the daemon's files may not grow past 2 MB: raw writes
+                        #    fail with EFBIG a few seconds into the scan
+                        resource.prlimit(
+                            cell.proc("run").pid, resource.RLIMIT_FSIZE, (2 << 20, resource.RLIM_INFINITY)
+                        )
+                        acc = await call(
+                            session,
+                            keys.trigger,
+                            json.dumps(trigger_request(cell, "fills-up")),
+                            TriggerAccepted,
+                        )
+                        seen["full_job"] = acc.job_id
+                        await wait_until(
+                            lambda: cell.job_record(acc.job_id)["state"] in FINAL, 180.0, period_s=0.5,
+                            what="job ends",
+                        )  # fmt: skip
+                        st = await wait_status(follower, lambda s: s.state.value != "scanning", 30.0)
+                        seen["full_state"] = (st.state.value, st.message)
+                        q1 = await rws.get_joint_position()
+                        await asyncio.sleep(1.5)
+                        seen["hold_after_full_deg"] = float(
+                            np.max(np.abs(await rws.get_joint_position() - q1))
+                        )
+                finally:
+                    await rws.close()
+                return seen
+
+            seen = asyncio.run(before_motion())
+            job_id, rec = seen["small"]
+            assert rec["state"] == "failed", rec["history"]
+            msg = rec["history"][-1]["message"]
+            assert "pre-flight" in msg and "daemon.min_free_mb" in msg and "nothing moved" in msg, msg
+            assert "scanning" not in [h["state"] for h in rec["history"]]
+            assert not (cell.jobs_dir / job_id / "raw").exists(), "no raw file opened before the check"
+            assert seen["moved_deg"] < 0.01
+            assert (seen["ro"].code, seen["ro"].field) == ("not_allowed", "cell.data_dir")
+            assert "read-only" in seen["ro"].message
+            assert seen["ro_state"] == "idle" and seen["jobs_after_ro"] == [job_id]
+
+            full = seen["full_job"]
+            rec = cell.job_record(full)
+            assert rec["state"] == "failed", rec["history"]
+            msg = rec["history"][-1]["message"]
+            assert "raw data could not be written" in msg and "File too large" in msg, msg
+            assert "scanning" in [h["state"] for h in rec["history"]]
+            assert seen["full_state"][0] == "faulted", seen["full_state"]
+            assert cell.proc("run").poll() is None, "the daemon survives a full disk"
+            assert seen["hold_after_full_deg"] < 0.01
+            raw = raw_check(cell, full)
+            assert raw.profiles > 100 and raw.unique_frames
+            assert os.path.getsize(cell.jobs_dir / full / "raw" / "profiles.craw") <= 2 << 20
+            # the cell takes triggers again (it is faulted, not stuck); lift the limit first
+            resource.prlimit(cell.proc("run").pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY,) * 2)
+        finally:
+            codes = cell.stop()
+    assert all(c == 0 for c in codes.values()), codes
