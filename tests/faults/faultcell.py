@@ -49,6 +49,7 @@ __all__ = [
     "fault_cell_config",
     "open_client",
     "run_job",
+    "wait_record",
     "wait_status",
 ]
 
@@ -241,6 +242,21 @@ class CellClient:
 
         payload = json.dumps({"job_id": job_id} if job_id else {})
         return await call(self.session, self.keys.control(action), payload, ControlReply, timeout_s=20.0)
+
+
+async def wait_record(cell: Cell, job_id: str, pred, timeout_s: float = 120.0) -> dict[str, Any]:
+    """Wait until ``pred(job.json record)`` holds (the record is read from disk, as an operator would)."""
+    deadline = time.monotonic() + timeout_s
+    rec: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        with contextlib.suppress(OSError, ValueError):
+            rec = cell.job_record(job_id)
+            if pred(rec):
+                return rec
+        await asyncio.sleep(0.5)
+    raise TimeoutError(
+        f"job {job_id} record condition not met within {timeout_s} s; last {rec.get('history')}"
+    )
 
 
 # ------------------------------------------------------------------------------------------- checks
