@@ -32,6 +32,7 @@ import numpy as np
 __all__ = [
     "CloudError",
     "ScanCloud",
+    "ply_header_overclaims",
     "read_cloud",
     "write_cloud_npz",
     "write_cloud_ply",
@@ -115,8 +116,10 @@ def read_cloud(path: str | Path) -> ScanCloud:
             cloud = _read_npz(path)
         else:
             cloud = _read_text(path)
-    except CloudError:
-        raise
+    except CloudError as exc:
+        if str(exc).startswith(str(path)):
+            raise
+        raise CloudError(f"{path}: {exc}") from None  # ScanCloud's own checks do not know the file
     except Exception as exc:  # a parser's own error: say which file and why, in one line
         raise CloudError(
             f"{path}: unreadable {suffix[1:].upper()} file ({type(exc).__name__}: {exc})"
@@ -129,6 +132,48 @@ def read_cloud(path: str | Path) -> ScanCloud:
     return cloud
 
 
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}  # fmt: skip
+
+
+def ply_header_overclaims(path: str | Path) -> str | None:
+    """Why a PLY header's element counts cannot fit in the file, or None when they can (or it is no PLY).
+
+    A 200-byte file may declare 10^8 vertices; parsers then allocate and loop for seconds to minutes
+    before failing. Checked against the smallest possible encoding of each element (one byte per
+    ASCII value plus its separator, the type size in binary), so a valid file always passes.
+    """
+    path = Path(path)
+    with path.open("rb") as f:
+        head = f.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        return None  # the parser reports what is wrong
+    binary = False
+    elements: list[list] = []  # [name, count, bytes per item]
+    try:
+        for line in head[:end].decode("ascii", "replace").splitlines():
+            tok = line.split()
+            if not tok:
+                continue
+            if tok[0] == "format":
+                binary = tok[1].startswith("binary")
+            elif tok[0] == "element":
+                elements.append([tok[1], int(tok[2]), 0])
+            elif tok[0] == "property" and elements:
+                # a list property holds at least its count; a scalar its value
+                t = tok[2] if tok[1] == "list" else tok[1]
+                elements[-1][2] += _PLY_SIZES.get(t, 1) if binary else 2
+    except (IndexError, ValueError):
+        return None
+    need = sum(max(count, 0) * max(per_item, 1) for _, count, per_item in elements)
+    available = path.stat().st_size - (end + len(b"end_header"))
+    if need > available:
+        counts = ", ".join(f"{count} {name}" for name, count, _ in elements)
+        return f"PLY header declares {counts}: at least {need} bytes, but only {available} follow the header"
+    return None
+
+
 def _read_ply(path: Path) -> ScanCloud:
     from plyfile import PlyData
 
@@ -136,6 +181,9 @@ def _read_ply(path: Path) -> ScanCloud:
         head = f.read(3)
     if head != b"ply":
         raise CloudError(f"{path}: not a PLY file (no 'ply' magic at the start)")
+    overclaim = ply_header_overclaims(path)
+    if overclaim:
+        raise CloudError(f"{path}: unreadable PLY file ({overclaim})")
     ply = PlyData.read(str(path))
     if "vertex" not in ply:
         raise CloudError(f"{path}: PLY has no 'vertex' element")

@@ -73,6 +73,13 @@ def load_mesh(path: str | Path) -> TriMesh:
         raise MeshError(f"{path}: no such file")
     if path.suffix.lower() not in {".ply", ".stl", ".obj"}:
         raise MeshError(f"{path}: unsupported mesh format {path.suffix!r} (use .ply, .stl or .obj)")
+    if path.suffix.lower() == ".ply":
+        from analysis.cloud_io import ply_header_overclaims
+
+        # open3d believes the header and spends minutes on a tiny file claiming 10^8 vertices
+        overclaim = ply_header_overclaims(path)
+        if overclaim:
+            raise MeshError(f"{path}: {overclaim}")
     m = o3d.io.read_triangle_mesh(str(path))
     v = np.asarray(m.vertices)
     t = np.asarray(m.triangles)
@@ -80,7 +87,10 @@ def load_mesh(path: str | Path) -> TriMesh:
         raise MeshError(f"{path}: no triangles in the file (empty or unreadable)")
     if not np.isfinite(v).all():
         raise MeshError(f"{path}: non-finite vertex coordinates")
-    return TriMesh(v, t)
+    try:
+        return TriMesh(v, t)
+    except MeshError as exc:  # TriMesh's own checks (an index beyond the vertices) do not know the file
+        raise MeshError(f"{path}: {exc}") from None
 
 
 def save_mesh(mesh: TriMesh, path: str | Path) -> Path:

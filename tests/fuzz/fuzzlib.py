@@ -87,3 +87,31 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+class Hang(AssertionError):
+    """A call that did not return within its bound: the input made the code spin or wait."""
+
+
+def no_hang(seconds: float):
+    """Context manager failing the test with :class:`Hang` when the block runs longer than ``seconds``.
+
+    Main thread only (SIGALRM). The bound is generous: it catches spins and waits, not slowness.
+    """
+    import contextlib
+    import signal
+
+    @contextlib.contextmanager
+    def guard():
+        def on_alarm(signum, frame):
+            raise Hang(f"still running after {seconds} s")
+
+        old = signal.signal(signal.SIGALRM, on_alarm)
+        signal.setitimer(signal.ITIMER_REAL, seconds)
+        try:
+            yield
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, old)
+
+    return guard()
