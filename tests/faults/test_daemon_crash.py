@@ -40,7 +40,7 @@ from cellctl.api import TriggerAccepted, call
 from cellctl.commands.scan_cmd import wait_for_job
 from cellctl.zenoh_session import async_get
 
-pytestmark = [pytest.mark.slow, pytest.mark.e2e]
+pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.timeout(600)]
 
 EGM_COMM_TIMEOUT_EVENT = 41822  # the controller's "EGM communication timeout" event code
 

@@ -114,6 +114,7 @@ def test_preflight_names_the_field_and_sizes_for_a_small_full_or_read_only_data_
 
 @pytest.mark.slow
 @pytest.mark.e2e
+@pytest.mark.timeout(600)
 def test_data_dir_too_small_or_read_only_faults_before_motion_and_full_mid_scan_stops_smoothly(tmp_path):
     cfg_path = tiny_cell_config(tmp_path)
     cell = Cell(tmp_path, cfg_path)

@@ -32,7 +32,7 @@ from cellfaults import (
 from cellctl.api import TriggerAccepted, call
 from cellctl.commands.scan_cmd import wait_for_job
 
-pytestmark = [pytest.mark.slow, pytest.mark.e2e]
+pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.timeout(600)]
 
 
 def test_worker_killed_mid_analysis_the_restarted_worker_completes_the_job_once(tmp_path):

@@ -36,7 +36,7 @@ from cellctl.api import TriggerAccepted, call
 from cellctl.commands.demo_cmd import Processes
 from cellctl.commands.scan_cmd import wait_for_job
 
-pytestmark = [pytest.mark.slow, pytest.mark.e2e]
+pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.timeout(600)]
 
 
 def _daemon_port(cell: Cell) -> int:

@@ -1,0 +1,283 @@
+"""Soak: N consecutive jobs on the simulated cell, each with one random fault; prints one JSON object.
+
+    python benchmarks/soak.py [--jobs 10] [--seed 0] [--faults a,b,...] [--out DIR] [--keep]
+
+The cell runs as real processes (`cellctl sim`, `cellctl run`, `cellctl worker`) on loopback, the
+tiny plate of the e2e tests (a scan of ~30 s). The worker reaches the daemon through a loopback TCP
+forwarder (tests/faults/tcp_forwarder.py), so the link between them can be cut. Each job draws one
+fault (seeded) from :data:`FAULTS`: EGM / sensor / RWS faults through the simulator's fault channel
+(``<prefix>/sim/faults``), the worker ``kill -9``'d mid-analysis (then restarted), the worker link
+cut for a few seconds mid-scan.
+
+Keys: ``jobs``, ``completed`` (done), ``recoverable`` (ended failed / aborted / interrupted with a
+message, raw data intact, the cell taking triggers again), ``faults_injected``,
+``missed_egm_cycles`` (EGM packets lost, from the daemon's per-job endpoint counters, over the jobs
+without an injected EGM fault), ``rss_growth_mb_per_job`` (least-squares slope of the daemon's RSS
+after each job), ``wall_s``, ``load_avg_1m`` (start, end), and ``per_job`` detail. Target: every job
+completed or recoverable, zero missed EGM cycles outside injected faults, no RSS growth trend.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import random
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+for _p in (REPO, REPO / "tests" / "faults", REPO / "tests" / "e2e"):
+    if str(_p) not in sys.path:
+        sys.path.insert(0, str(_p))
+
+from cellfaults import kill9_tree, log_events, wait_until, worker_config_via  # noqa: E402
+from faultcell import FaultCell, check_job_data, fault_cell_config  # noqa: E402
+from tcp_forwarder import TcpForwarder  # noqa: E402
+
+from cellctl.commands.demo_cmd import Processes  # noqa: E402
+from cellctl.logging import configure_logging  # noqa: E402
+
+#: name -> (kind, scan fraction at which it is injected, fault-channel request or None)
+FAULTS: dict[str, tuple[str, float, dict[str, Any] | None]] = {
+    "egm_loss_1pct": ("egm", 0.2, {"egm": {"loss_fraction": 0.01}}),
+    "egm_loss_5pct_bursts": ("egm", 0.2, {"egm": {"loss_fraction": 0.05, "burst_ms": 50.0}}),
+    "egm_duplicates_reorder": ("egm", 0.2, {"egm": {"duplicate_fraction": 0.02, "reorder_fraction": 0.02}}),
+    "sensor_corrupt_frames": ("sensor", 0.3, {"laser": {"corrupt": {"groups": 3, "mode": "payload"}}}),
+    "sensor_stall": ("sensor", 0.3, {"laser": {"stall_s": 1.0}}),
+    "rws_slow": ("rws", 0.2, {"rws": {"delay_s": 1.0, "delay_path": "/"}}),
+    "worker_kill9": ("worker", 0.0, None),
+    "link_cut": ("link", 0.3, None),
+}
+FINAL = ("done", "failed", "aborted", "interrupted")
+
+
+@dataclass
+class JobResult:
+    """One soak job: the fault drawn, how the job ended and what the daemon counted."""
+
+    index: int
+    fault: str
+    job_id: str = ""
+    state: str = ""
+    message: str = ""
+    outcome: str = ""  # completed | recoverable | lost
+    data_ok: bool = False
+    data_problem: str = ""
+    profiles: int = 0
+    egm: dict[str, int] = field(default_factory=dict)
+    cell_state_after: str = ""
+    rss_mb: float = 0.0
+    wall_s: float = 0.0
+
+
+def rss_mb(pid: int) -> float:
+    """Resident set size of ``pid``, MB (0 when it is gone)."""
+    with contextlib.suppress(OSError):
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    return 0.0
+
+
+def slope_per_job(values: list[float]) -> float:
+    """Least-squares slope of ``values`` against their index (0 for fewer than 2 values)."""
+    n = len(values)
+    if n < 2:
+        return 0.0
+    mx = (n - 1) / 2.0
+    my = sum(values) / n
+    sxx = sum((i - mx) ** 2 for i in range(n))
+    return sum((i - mx) * (v - my) for i, v in enumerate(values)) / sxx
+
+
+class SoakCell:
+    """The soak's cell: FaultCell (sim + daemon, fault channel) and a worker behind a forwarder."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = out
+        (out / "logs").mkdir(parents=True, exist_ok=True)
+        self.cell = FaultCell(out, fault_cell_config(out))
+        self.fwd = TcpForwarder(("127.0.0.1", int(self.cell.cfg.zenoh.listen[0].rsplit(":", 1)[1])))
+        self.workers: Processes | None = None
+        self.worker_starts = 0
+
+    def start(self) -> None:
+        self.cell.start(worker=False)
+        self.fwd.start()
+        self.workers = Processes(
+            self.out / "logs", worker_config_via(self.cell, self.fwd.endpoint), self.cell.procs.env
+        )
+        self.start_worker()
+
+    def start_worker(self) -> Any:
+        assert self.workers is not None
+        self.worker_starts += 1
+        return self.workers.start(f"worker{self.worker_starts}", "worker")
+
+    @property
+    def worker(self) -> Any:
+        assert self.workers is not None
+        return self.workers.procs[-1][1]
+
+    @property
+    def worker_log(self) -> str:
+        return f"worker{self.worker_starts}"
+
+    def stop(self) -> dict[str, Any]:
+        codes: dict[str, Any] = {}
+        if self.workers is not None:
+            self.workers.procs = [(n, p) for n, p in self.workers.procs if p.poll() is None]
+            codes.update(self.workers.stop_all())
+        self.fwd.close()
+        codes.update(self.cell.stop())
+        return codes
+
+
+async def _one_job(sc: SoakCell, res: JobResult, timeout_s: float) -> None:
+    kind, fraction, request = FAULTS[res.fault]
+    cell = sc.cell
+    async with cell.client() as c:
+        await c.wait_idle_or_faulted(timeout_s=180.0)
+        job_id = res.job_id = await c.trigger(plate_id=f"soak-{res.index}")
+        try:
+            if kind in ("egm", "sensor", "rws", "link"):
+                st = await c.wait(
+                    lambda s: s.job is not None and s.job.job_id == job_id and (
+                        s.job.state.value in FINAL
+                        or (s.job.state.value == "scanning" and s.job.fraction >= fraction and s.job.profiles > 0)
+                    ),
+                    timeout_s,
+                )  # fmt: skip
+                if st.job.state.value not in FINAL:
+                    if kind == "link":
+                        sc.fwd.cut()
+                        await asyncio.sleep(5.0)
+                        sc.fwd.restore()
+                    else:
+                        await cell.fault(request)
+            elif kind == "worker":
+
+                def started() -> bool:
+                    ev = log_events(cell, sc.worker_log, "job_started")
+                    return (
+                        any(e.get("job_id") == job_id for e in ev)
+                        or cell.job_record(job_id)["state"] in FINAL
+                    )
+
+                await wait_until(started, timeout_s, what="the worker started the job")
+                if cell.job_record(job_id)["state"] not in FINAL:
+                    kill9_tree(sc.worker.pid)
+                    sc.worker.wait(10)
+                    sc.start_worker()
+            final = await c.wait_job_end(job_id, timeout_s)
+        finally:
+            if kind in ("egm", "sensor", "rws"):
+                await cell.fault(clear=True)
+            sc.fwd.restore()
+        res.state = final.job.state.value
+        res.message = final.job.message[:300]
+        # the cell takes triggers again (idle, or faulted: a stated state a trigger leaves)
+        st = await c.wait(lambda s: s.state.value in ("idle", "faulted") and bool(s.workers), 120.0)
+        res.cell_state_after = st.state.value
+
+
+def run_soak(
+    out: Path, *, jobs: int = 10, seed: int = 0, faults: list[str] | None = None, timeout_s: float = 300.0
+) -> dict[str, Any]:
+    """Run the soak in ``out`` (created); returns the result object (see the module docstring)."""
+    menu = sorted(faults or FAULTS)
+    unknown = [f for f in menu if f not in FAULTS]
+    if unknown:
+        raise ValueError(f"unknown fault(s) {unknown}; known: {sorted(FAULTS)}")
+    rng = random.Random(seed)
+    # seeded shuffles of the menu, one after the other: random order, yet every fault is drawn
+    # once before any is drawn twice (10 jobs cover the 8 faults)
+    drawn: list[str] = []
+    while len(drawn) < jobs:
+        drawn += rng.sample(menu, len(menu))
+    drawn = drawn[:jobs]
+    out.mkdir(parents=True, exist_ok=True)
+    sc = SoakCell(out)
+    results: list[JobResult] = []
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    codes: dict[str, Any] = {}
+    try:
+        sc.start()
+        for i, fault in enumerate(drawn):
+            res = JobResult(index=i, fault=fault)
+            t_job = time.perf_counter()
+            try:
+                asyncio.run(_one_job(sc, res, timeout_s))
+            except Exception as exc:  # a soak records a failure and goes on to the next job
+                res.message = res.message or f"{type(exc).__name__}: {exc}"[:300]
+            res.wall_s = round(time.perf_counter() - t_job, 1)
+            if res.job_id:
+                try:
+                    check = check_job_data(sc.cell, res.job_id)
+                    res.data_ok = True
+                    res.profiles = check.raw_profiles
+                    res.egm = dict(check.record.get("info", {}).get("egm", {}))
+                except (AssertionError, OSError, ValueError) as exc:
+                    res.data_problem = str(exc)[:300]
+            if res.state == "done" and res.data_ok:
+                res.outcome = "completed"
+            elif res.state in FINAL and res.message and res.data_ok and res.cell_state_after:
+                res.outcome = "recoverable"
+            else:
+                res.outcome = "lost"
+            res.rss_mb = round(rss_mb(sc.cell.proc("run").pid), 1)
+            results.append(res)
+    finally:
+        codes = sc.stop()
+    rss = [r.rss_mb for r in results if r.rss_mb > 0]
+    missed = sum(int(r.egm.get("lost", 0)) for r in results if FAULTS[r.fault][0] != "egm")
+    return {
+        "jobs": jobs,
+        "completed": sum(r.outcome == "completed" for r in results),
+        "recoverable": sum(r.outcome == "recoverable" for r in results),
+        "faults_injected": len(results),
+        "missed_egm_cycles": missed,
+        "rss_growth_mb_per_job": round(slope_per_job(rss), 3),
+        "rss_mb_first_last": [rss[0], rss[-1]] if rss else [],
+        "seed": seed,
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "load_avg_1m": [round(load0, 2), round(os.getloadavg()[0], 2)],
+        "exit_codes": codes,
+        "per_job": [asdict(r) for r in results],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
+    ap.add_argument("--jobs", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--faults", default="", help=f"comma-separated subset of {','.join(sorted(FAULTS))}")
+    ap.add_argument("--out", type=Path, default=None, help="working directory (default: a temporary one)")
+    ap.add_argument("--keep", action="store_true", help="keep the working directory (logs, jobs)")
+    args = ap.parse_args(argv)
+    out = args.out or Path(tempfile.mkdtemp(prefix="cellctl-soak-"))
+    faults = [f for f in args.faults.split(",") if f] or None
+    # stdout carries the one JSON object; anything else (logs) goes to stderr
+    configure_logging("json", "WARNING", stream=sys.stderr)
+    real_stdout, sys.stdout = sys.stdout, sys.stderr
+    try:
+        result = run_soak(out, jobs=args.jobs, seed=args.seed, faults=faults)
+    finally:
+        sys.stdout = real_stdout
+        if args.out is None and not args.keep:
+            shutil.rmtree(out, ignore_errors=True)
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,46 @@
+"""The soak's code (benchmarks/soak.py) for two jobs: the worker link cut mid-scan, and 1 % EGM loss
+through the simulator's fault channel (the worker kill -9 has its own case in test_worker_faults.py).
+
+Expected outcome (the soak's target, not its timings): every job completes or ends in a stated,
+recoverable state with its raw data intact (every profile the daemon counted is on disk, none twice);
+no EGM packet is lost in a job without an injected EGM fault; every process exits 0 at the end.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+
+from soak import FAULTS, run_soak, slope_per_job
+
+
+def test_slope_per_job_is_the_least_squares_trend():
+    assert slope_per_job([]) == 0.0 and slope_per_job([5.0]) == 0.0
+    assert slope_per_job([1.0, 2.0, 3.0, 4.0]) == pytest.approx(1.0)
+    assert slope_per_job([3.0, 1.0, 3.0, 1.0]) == pytest.approx(-0.4)
+
+
+def test_unknown_fault_names_are_refused_naming_them(tmp_path):
+    with pytest.raises(ValueError, match="bogus"):
+        run_soak(tmp_path, jobs=1, faults=["bogus"])
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+@pytest.mark.timeout(900)
+def test_short_soak_every_job_completes_or_is_recoverable_with_no_data_lost(tmp_path):
+    faults = ["link_cut", "egm_loss_1pct"]
+    result = run_soak(tmp_path, jobs=2, seed=1, faults=faults)
+    jobs = result["per_job"]
+    assert result["jobs"] == result["faults_injected"] == 2
+    assert sorted(j["fault"] for j in jobs) == sorted(faults), "each fault drawn once"
+    assert result["completed"] + result["recoverable"] == 2, jobs
+    assert all(j["data_ok"] for j in jobs), [j["data_problem"] for j in jobs]
+    assert all(j["job_id"] and j["profiles"] > 1000 for j in jobs), jobs
+    assert result["missed_egm_cycles"] == 0, jobs
+    assert all(FAULTS[j["fault"]][0] == "egm" or j["egm"].get("lost", 0) == 0 for j in jobs)
+    assert all(code == 0 for code in result["exit_codes"].values()), result["exit_codes"]
