@@ -12,7 +12,8 @@ cut for a few seconds mid-scan.
 Keys: ``jobs``, ``completed`` (done), ``recoverable`` (ended failed / aborted / interrupted with a
 message, raw data intact, the cell taking triggers again), ``faults_injected``,
 ``missed_egm_cycles`` (EGM packets lost, from the daemon's per-job endpoint counters, over the jobs
-without an injected EGM fault), ``rss_growth_mb_per_job`` (least-squares slope of the daemon's RSS
+without an injected EGM fault), ``daemon_egm`` (its whole-run counters from ``<prefix>/stats``,
+injected faults included), ``rss_growth_mb_per_job`` (least-squares slope of the daemon's RSS
 after each job), ``wall_s``, ``load_avg_1m`` (start, end), and ``per_job`` detail. Target: every job
 completed or recoverable, zero missed EGM cycles outside injected faults, no RSS growth trend.
 """
@@ -189,6 +190,18 @@ async def _one_job(sc: SoakCell, res: JobResult, timeout_s: float) -> None:
         res.cell_state_after = st.state.value
 
 
+async def daemon_stats(cell: FaultCell) -> dict[str, Any]:
+    """The daemon's ``<prefix>/stats`` reply (docs/api.md), or {} when it does not answer."""
+    from cellctl.zenoh_session import async_get
+
+    async with cell.client() as c:
+        replies = await async_get(c.session, f"{c.keys.prefix}/stats", timeout_s=10.0)
+    for r in replies:
+        if r.ok is not None:
+            return json.loads(r.ok.payload.to_bytes())
+    return {}
+
+
 def run_soak(
     out: Path, *, jobs: int = 10, seed: int = 0, faults: list[str] | None = None, timeout_s: float = 300.0
 ) -> dict[str, Any]:
@@ -210,6 +223,7 @@ def run_soak(
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     codes: dict[str, Any] = {}
+    stats: dict[str, Any] = {}
     try:
         sc.start()
         for i, fault in enumerate(drawn):
@@ -236,8 +250,11 @@ def run_soak(
                 res.outcome = "lost"
             res.rss_mb = round(rss_mb(sc.cell.proc("run").pid), 1)
             results.append(res)
+        with contextlib.suppress(Exception):
+            stats = asyncio.run(daemon_stats(sc.cell))
     finally:
         codes = sc.stop()
+    egm = (stats.get("egm") or {}) if stats else {}
     rss = [r.rss_mb for r in results if r.rss_mb > 0]
     missed = sum(int(r.egm.get("lost", 0)) for r in results if FAULTS[r.fault][0] != "egm")
     return {
@@ -248,6 +265,10 @@ def run_soak(
         "missed_egm_cycles": missed,
         "rss_growth_mb_per_job": round(slope_per_job(rss), 3),
         "rss_mb_first_last": [rss[0], rss[-1]] if rss else [],
+        # the daemon's whole-run EGM counters (<prefix>/stats), injected faults included
+        "daemon_egm": {
+            k: egm.get(k) for k in ("received", "lost", "watchdog_events", "sessions", "malformed")
+        },
         "seed": seed,
         "wall_s": round(time.perf_counter() - t0, 1),
         "load_avg_1m": [round(load0, 2), round(os.getloadavg()[0], 2)],

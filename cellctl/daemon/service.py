@@ -199,6 +199,7 @@ class CellDaemon:
                 self._entities.append(
                     declare_async_queryable(s, self.keys.control(action), self._control_handler(action))
                 )
+            self._entities.append(declare_async_queryable(s, f"{self.keys.prefix}/stats", self._on_stats))
             self._entities.append(s.liveliness().declare_token(self.keys.daemon_alive))
             publisher = s.declare_publisher(self.keys.state, encoding=zenoh.Encoding.APPLICATION_JSON)
             self._publisher = publisher
@@ -264,6 +265,18 @@ class CellDaemon:
         self._publish()
 
     # ------------------------------------------------------------------------- publication
+
+    async def _on_stats(self, query: Any) -> None:
+        """``<prefix>/stats``: the daemon's counters since it started (docs/api.md) for monitoring and the
+        soak: the EGM endpoint's statistics, resident memory, malformed worker messages."""
+        body = {
+            "cell_id": self.cfg.cell.id,
+            "t_utc": now_utc(),
+            "egm": self.endpoint.stats.snapshot() if self.endpoint is not None else None,
+            "rss_mb": _rss_mb(),
+            "dispatch_malformed": getattr(self.dispatcher, "malformed", 0),
+        }
+        query.reply(query.key_expr, json.dumps(body).encode(), encoding=JSON)
 
     def _on_transition(self, tr: Transition) -> None:
         self._publish()
@@ -964,6 +977,14 @@ _SENSOR_COUNTERS = (
 def _counters(stats: Any, names: tuple[str, ...]) -> dict[str, int]:
     """Integer counters of a statistics object, by name."""
     return {n: int(getattr(stats, n)) for n in names}
+
+
+def _rss_mb() -> float:
+    """This process's resident memory, MB (Linux /proc; 0.0 where it cannot be read)."""
+    try:
+        return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return 0.0
 
 
 def _plain(obj: Any) -> Any:

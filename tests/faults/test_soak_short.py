@@ -43,4 +43,6 @@ def test_short_soak_every_job_completes_or_is_recoverable_with_no_data_lost(tmp_
     assert all(j["job_id"] and j["profiles"] > 1000 for j in jobs), jobs
     assert result["missed_egm_cycles"] == 0, jobs
     assert all(FAULTS[j["fault"]][0] == "egm" or j["egm"].get("lost", 0) == 0 for j in jobs)
+    # the daemon's <prefix>/stats answered with its whole-run EGM counters
+    assert result["daemon_egm"]["received"] >= sum(j["egm"].get("received", 0) for j in jobs) > 0
     assert all(code == 0 for code in result["exit_codes"].values()), result["exit_codes"]
