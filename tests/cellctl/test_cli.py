@@ -76,3 +76,17 @@ def test_config_check_names_each_bad_daemon_key_on_its_own_line(
     assert any(f"{bad}: daemon.queue_max = -1: " in line for line in lines)
     assert any(f"{bad}: daemon.settle_s = 'long': " in line for line in lines)
     assert f"{bad}: daemon.queue_size: unknown key" in lines
+
+
+def test_abort_without_a_daemon_exits_3_saying_so(cellctl_exe: list[str], repo_root: Path) -> None:
+    import os
+    import socket
+
+    with socket.socket() as s:  # a loopback port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "CELL_ZENOH__LISTEN": f'["tcp/127.0.0.1:{port}"]'}
+    r = _run(cellctl_exe, "abort", "--job", "20261122T000000-aaaa0001", "--config", str(repo_root / "cell.toml"),
+             env=env)  # fmt: skip
+    assert r.returncode == 3, r.stderr
+    assert "cellctl abort: error: cannot open Zenoh" in r.stderr and "Traceback" not in r.stderr
