@@ -65,6 +65,12 @@ class ClockSyncConfig:
             (milliseconds on a loaded host), while 50 ppm of drift adds only 1 ms over 20 s.
         min_pairs: no fit before this many pairs.
         spike_ms: a pair more than this above the envelope counts as a latency spike in the report.
+        step_ms, step_confirm_s: a device clock that steps (reset, resynchronised) leaves every new
+            pair more than ``step_ms`` off the fit, all on one side. Below the fit (the clock jumped
+            ahead) latency cannot explain it, so ``min_pairs`` such pairs confirm the step; above it
+            (the clock jumped back) they must persist for ``step_confirm_s`` of device time, longer
+            than any latency spike. On a step the pairs before it are forgotten and the fit restarts
+            from the pairs after it. 0 turns the detection off.
     """
 
     window_s: float = 120.0
@@ -74,6 +80,8 @@ class ClockSyncConfig:
     min_drift_span_s: float = 20.0
     min_pairs: int = 4
     spike_ms: float = 2.0
+    step_ms: float = 100.0
+    step_confirm_s: float = 0.5
 
     def __post_init__(self) -> None:
         if self.min_drift_span_s < 0:
@@ -214,6 +222,12 @@ class ClockSync:
         self._fit: ClockFit | None = None
         self._last_fit_s: int | None = None
         self._n_fits = 0
+        # the run of new pairs off the fit on one side: side (+1 above, -1 below, 0 none), start, count
+        self._step_side = 0
+        self._step_from_s = 0
+        self._run_s = np.empty(0, dtype=np.int64)
+        self._run_d = np.empty(0, dtype=np.int64)
+        self.steps = 0
 
     @property
     def fit(self) -> ClockFit | None:
@@ -244,6 +258,9 @@ class ClockSync:
             self._origin = (int(src[0]), int(host[0]))
         s = src - self._origin[0]
         d = (host - self._origin[1]) - s * 1000  # exact integers: host minus device time, ns
+        if self._fit is not None and self.config.step_ms > 0:
+            k = self._track_step(s, d, (host - self._fit.to_host_ns(src)) * 1e-6)
+            s, d = s[k:], d[k:]
         self._merge_bins(s, d)
         self._recent_s = np.concatenate([self._recent_s, s])[-self._report_pairs :]
         self._recent_d = np.concatenate([self._recent_d, d])[-self._report_pairs :]
@@ -262,6 +279,46 @@ class ClockSync:
         self._fit = self._refit()
         self._last_fit_s = self._newest_s
         return self._fit
+
+    def _track_step(self, s: np.ndarray, d: np.ndarray, above_ms: np.ndarray) -> int:
+        """Follow the run of pairs far off the fit on one side; on a confirmed step, forget every pair
+        from before it (they describe the clock as it was, and after a backward step their device
+        times overlap the new ones) and keep the run's. Returns the index of the first pair of
+        ``s`` / ``d`` that still belongs in the window (0 unless a step began in this batch)."""
+        cfg = self.config
+        side = np.where(above_ms > cfg.step_ms, 1, np.where(above_ms < -cfg.step_ms, -1, 0))
+        last = int(side[-1])
+        if last == 0:
+            self._step_side, self._run_s, self._run_d = 0, s[:0], d[:0]
+            return 0
+        other = np.flatnonzero(side != last)
+        k = int(other[-1]) + 1 if other.size else 0
+        if k > 0 or self._step_side != last:
+            self._step_side, self._step_from_s = last, int(s[k])
+            self._run_s, self._run_d = s[:0], d[:0]
+        run_s, run_d = self._run_s, self._run_d  # the run's pairs from earlier batches
+        n = len(run_s) + len(side) - k
+        confirmed = n >= cfg.min_pairs and (
+            last < 0 or int(s[-1]) - self._step_from_s >= cfg.step_confirm_s * 1e6
+        )
+        if not confirmed:
+            self._run_s, self._run_d = np.concatenate([run_s, s[k:]]), np.concatenate([run_d, d[k:]])
+            return 0
+        empty = np.empty(0, dtype=np.int64)
+        self._bin_id, self._bin_s, self._bin_d, self._bin_n = empty, empty, empty, empty
+        self._recent_s, self._recent_d = empty, empty
+        self._newest_s = int(max(s.max(), run_s.max() if len(run_s) else s.max()))
+        if len(run_s):
+            self._merge_bins(run_s, run_d)
+            self._recent_s, self._recent_d = run_s[-self._report_pairs :], run_d[-self._report_pairs :]
+        self._last_fit_s = None  # refit as soon as the pairs after the step suffice
+        self.steps += 1
+        log.warning(
+            "clock_step", clock=self.name, step_ms=round(float(np.median(above_ms[k:])), 3),
+            at_device_s=round(self._step_from_s * 1e-6, 3), pairs=n,
+        )  # fmt: skip
+        self._step_side, self._run_s, self._run_d = 0, s[:0], d[:0]
+        return k
 
     def _merge_bins(self, s: np.ndarray, d: np.ndarray) -> None:
         b = s // self._bin_us
