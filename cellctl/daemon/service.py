@@ -930,19 +930,28 @@ class CellDaemon:
             await self._render_html(job)
 
     async def _render_html(self, job: _Job) -> None:
-        """Render report.html / .pdf of a done job in a thread; record where and when in the job.
+        """Render report.html / .pdf of a done job (``cellctl report`` in a child process); record
+        where and when in the job.
 
-        A shutdown meanwhile waits for the render (it is a flush, not work to drop)."""
-        from analysis.report import write_report
+        A child process, not a thread: the render is tens of seconds of matplotlib holding the GIL,
+        which would delay the event loop (EGM) of the next scan. It runs at normal priority even when
+        the loop runs under SCHED_FIFO. A shutdown meanwhile waits for it (a flush, not work to drop).
+        """
+        import sys
 
         rec = job.record
         t0 = time.perf_counter()
-
-        def render_html() -> list[str]:
-            paths = write_report(self.store.results_dir(rec.job_id))
-            return [str(Path(p).resolve()) for p in paths if Path(p).suffix == ".html"]
-
-        render = asyncio.ensure_future(asyncio.to_thread(render_html))
+        results = self.store.results_dir(rec.job_id).resolve()
+        try:
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "cellctl", "report", str(results),
+                stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
+                stderr=asyncio.subprocess.PIPE, preexec_fn=_normal_priority,
+            )  # fmt: skip
+        except OSError as exc:  # the job is done with its JSON report; only the HTML is missing
+            log.warning("html_report_failed", error=str(exc))
+            return
+        render = asyncio.ensure_future(proc.communicate())
         cancelled = False
         try:
             await asyncio.shield(render)
@@ -950,14 +959,20 @@ class CellDaemon:
             cancelled = True
             with contextlib.suppress(Exception):
                 await render
+        html: list[str] = []
         try:
-            html = render.result()
+            out, err = render.result()
+            html = [line for line in out.decode(errors="replace").splitlines() if line.endswith(".html")]
+            if proc.returncode != 0 or not html:
+                html = []
+                log.warning(
+                    "html_report_failed", code=proc.returncode, error=err.decode(errors="replace")[-500:]
+                )
         except Exception as exc:  # the JSON report stands on its own
             log.warning("html_report_failed", error=str(exc))
-            html = []
         info: dict[str, Any] = {"html_s": round(time.perf_counter() - t0, 3)}
         if html:
-            info["report_html"] = html[0]
+            info["report_html"] = str(results / Path(html[0]).name)
             last = rec.info.get("last_profile_utc_s")
             if last is not None:
                 info["html_after_last_profile_s"] = round(time.time() - float(last), 3)
