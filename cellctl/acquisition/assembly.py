@@ -196,6 +196,8 @@ class ScanCloud:
             profile's step, so the kept columns stay a dense grid (a sensor with fewer points).
         """
         step = np.asarray(column_step, dtype=np.int64)
+        if step.ndim == 1 and step.size and step.shape == (len(self),) and step.min() == step.max():
+            step = step[0]  # one step for every profile: the strided view below is 5x cheaper
         if step.ndim == 0:
             k = int(step)
             if k < 1:
