@@ -7,8 +7,9 @@ detection lines (14 transverse, 7 longitudinal, 2 diagonals). Synthesis and file
 timed. Then the same for a plate of twice the area (sides x sqrt 2, lines scaled to fit) for the
 cost's growth.
 
-Keys: points (raw points of the 1200 x 800 scan), stages_s (per pipeline stage), total_s (wall),
-cpu_s (process CPU time of that run), scaling (total_s of the 2x-area scan / total_s),
+``--publish-pitch-mm 0.5`` thins each profile as the cell publishes it (cell.toml ``[scan]
+publish_pitch_mm``). Keys: points (points analysed of the 1200 x 800 scan), stages_s (per pipeline
+stage), total_s (wall), cpu_s (process CPU time of that run), scaling (total_s of the 2x-area scan / total_s),
 points_2x, total_2x_s, load_avg_1min (above 2 the wall times on this 2-core machine are
 inflated by other processes), zmax_mm (per line, for a sanity look), verdict.
 """
@@ -51,6 +52,16 @@ def _scan(length_mm: float, width_mm: float, step_mm: float, seed: int, cache: P
     return spec, cloud
 
 
+def _thin(cloud: ScanCloud, pitch_mm: float, native_mm: float = 0.1) -> ScanCloud:
+    """Every k-th point of each profile, renumbered densely: what the cell publishes at ``[scan]
+    publish_pitch_mm`` (cellctl.acquisition.publish)."""
+    k = max(1, round(pitch_mm / native_mm))
+    if k == 1:
+        return cloud
+    keep = cloud.point % k == 0
+    return ScanCloud(cloud.points_mm[keep], cloud.pass_id[keep], cloud.profile[keep], cloud.point[keep] // k)
+
+
 def _run(spec, cloud: ScanCloud, layout: DetectionLayout) -> tuple[dict, float, float]:
     design = design_mesh(spec, pitch_mm=2.0)
     c0 = time.process_time()
@@ -63,6 +74,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--profile-step-mm", type=float, default=1.0, help="1.0 gives about 10^7 raw points")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--publish-pitch-mm", type=float, default=0.0,
+        help="thin each profile to this pitch as the cell publishes it (cell.toml: 0.5); 0: all points",
+    )  # fmt: skip
     parser.add_argument("--no-scaling", action="store_true", help="skip the 2x-area run")
     parser.add_argument(
         "--cache-dir", type=Path, default=None, help="keep the synthetic scans here between runs"
@@ -79,6 +94,7 @@ def main() -> int:
     spec, cloud = _scan(
         1200.0, 800.0, args.profile_step_mm, args.seed, cache(f"scan1x-{args.profile_step_mm}.npz")
     )
+    cloud = _thin(cloud, args.publish_pitch_mm)
     report, total_s, cpu_s = _run(spec, cloud, DetectionLayout())
     out = {
         "points": len(cloud.points_mm),
@@ -94,6 +110,7 @@ def main() -> int:
         spec2, cloud2 = _scan(1200.0 * k, 800.0 * k, args.profile_step_mm, args.seed,
                               cache(f"scan2x-{args.profile_step_mm}.npz"))  # fmt: skip
         layout2 = DetectionLayout(14, 80.0 * k, 7, 100.0 * k, True)
+        cloud2 = _thin(cloud2, args.publish_pitch_mm)
         _, total2_s, _ = _run(spec2, cloud2, layout2)
         out.update(points_2x=len(cloud2.points_mm), total_2x_s=round(total2_s, 3),
                    scaling=round(total2_s / total_s, 3))  # fmt: skip
