@@ -56,7 +56,7 @@ from typing import Annotated, Any, Literal
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from cellctl.api import JSON, ApiError, Model
+from cellctl.api import JSON, ApiError, Model, TriggerError
 from cellctl.config import CellConfig, ZenohSection
 
 log = structlog.get_logger(__name__)
@@ -157,17 +157,11 @@ class FaultState(Model):
     stats: dict[str, dict[str, Any]] = Field(default_factory=dict)
 
 
-class FaultRequestError(ValueError):
-    """A fault payload that is refused; ``field`` names the offending knob (``egm.bogus``)."""
+class FaultRequestError(TriggerError):
+    """A fault payload that is refused; ``field`` names the offending knob (``egm.bogus``).
 
-    def __init__(self, code: str, field: str, message: str) -> None:
-        self.code = code
-        self.field = field
-        self.message = message
-        super().__init__(f"{field}: {message}")
-
-    def to_api_error(self) -> ApiError:
-        return ApiError(code=self.code, field=self.field, message=self.message)  # type: ignore[arg-type]
+    The same shape as a refused trigger (code, field, message; ``to_api_error``).
+    """
 
 
 class FaultChannelError(Exception):

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "e2e"))
 
@@ -47,6 +48,7 @@ __all__ = [
     "JobRun",
     "check_job_data",
     "fault_cell_config",
+    "module_cell",
     "open_client",
     "run_job",
     "wait_record",
@@ -57,6 +59,23 @@ __all__ = [
 FINAL_JOB_STATES = ("done", "failed", "aborted", "interrupted")
 #: the job.json history a job that starts must begin with
 STARTED_PREFIX = ["queued", "planning"]
+
+
+def module_cell(name: str, **config: Any):
+    """A module-scoped pytest fixture ``cell``: a started :class:`FaultCell` (``config`` as for
+    :func:`fault_cell_config`), stopped at the end; every process must end by itself on SIGTERM."""
+
+    @pytest.fixture(scope="module")
+    def cell(tmp_path_factory):
+        out = tmp_path_factory.mktemp(name)
+        c = FaultCell.create(out, **config)
+        try:
+            yield c
+        finally:
+            codes = c.stop()
+            assert all(code == 0 for code in codes.values()), (codes, str(out / "logs"))
+
+    return cell
 
 
 def fault_cell_config(out: Path, *, sim_faults: dict[str, Any] | None = None, **changes: Any) -> Path:
@@ -105,7 +124,7 @@ class FaultCell(Cell):
     def start(self, *, sim: bool = True, run: bool = True, worker: bool = True) -> None:
         if sim:
             p = self.procs.start("sim", "sim")
-            self.ready = wait_ready_line(self.out / "logs" / "sim.out", p, 120.0)
+            self.ready = wait_ready_line(self.out / "logs" / "sim.out", p, 300.0)
             if not self.ready.get("fault_control"):
                 raise RuntimeError(
                     f"the simulator serves no fault channel; see {self.out / 'logs' / 'sim.log'}"
@@ -132,7 +151,7 @@ class FaultCell(Cell):
         if self._fault_session is None:
             self._fault_session = await asyncio.to_thread(open_fault_session, self.cfg, role="connect")
         body = {**(request or {}), **sections}
-        return await send_faults(self._fault_session, self.cfg.key_prefix, body, timeout_s=20.0)
+        return await send_faults(self._fault_session, self.cfg.key_prefix, body, timeout_s=30.0)
 
     def fault_sync(self, request: dict[str, Any] | None = None, **sections: Any) -> FaultState:
         """:meth:`fault` from synchronous code."""
@@ -202,12 +221,12 @@ class CellClient:
             await self.follower.next(0.5)
         raise TimeoutError(f"status condition not met within {timeout_s} s; last {self.follower.latest}")
 
-    async def wait_idle(self, *, workers: bool = True, timeout_s: float = 120.0) -> CellStatus:
+    async def wait_idle(self, *, workers: bool = True, timeout_s: float = 300.0) -> CellStatus:
         return await self.wait(
             lambda s: s.state.value == "idle" and (bool(s.workers) or not workers), timeout_s
         )
 
-    async def wait_idle_or_faulted(self, timeout_s: float = 120.0) -> CellStatus:
+    async def wait_idle_or_faulted(self, timeout_s: float = 300.0) -> CellStatus:
         """Wait until the cell takes a trigger (idle, or faulted after an earlier case) with a worker."""
         return await self.wait(lambda s: s.state.value in ("idle", "faulted") and bool(s.workers), timeout_s)
 
@@ -215,12 +234,12 @@ class CellClient:
         """Trigger a scan of the simulated plate; returns the job id."""
         acc = await call(
             self.session, self.keys.trigger, json.dumps(self.cell.trigger_request(**changes)), TriggerAccepted,
-            timeout_s=20.0,
+            timeout_s=30.0,
         )  # fmt: skip
         return acc.job_id
 
     async def wait_scanning(
-        self, job_id: str, min_fraction: float = 0.0, timeout_s: float = 180.0
+        self, job_id: str, min_fraction: float = 0.0, timeout_s: float = 300.0
     ) -> CellStatus:
         """Wait until the job scans and its progress reached ``min_fraction`` (0..1)."""
         return await self.wait(
@@ -229,7 +248,7 @@ class CellClient:
             timeout_s,
         )  # fmt: skip
 
-    async def wait_job_end(self, job_id: str, timeout_s: float = 240.0) -> CellStatus:
+    async def wait_job_end(self, job_id: str, timeout_s: float = 480.0) -> CellStatus:
         """Wait until the published status shows the job in a final state; returns that status."""
         return await self.wait(
             lambda s: s.job is not None and s.job.job_id == job_id and s.job.state.value in FINAL_JOB_STATES,
@@ -241,7 +260,7 @@ class CellClient:
         from cellctl.api import ControlReply
 
         payload = json.dumps({"job_id": job_id} if job_id else {})
-        return await call(self.session, self.keys.control(action), payload, ControlReply, timeout_s=20.0)
+        return await call(self.session, self.keys.control(action), payload, ControlReply, timeout_s=30.0)
 
 
 async def wait_record(cell: Cell, job_id: str, pred, timeout_s: float = 120.0) -> dict[str, Any]:
@@ -364,7 +383,7 @@ async def run_job(
     cell: FaultCell,
     faults: list[tuple[float, dict[str, Any]]],
     *,
-    timeout_s: float = 300.0,
+    timeout_s: float = 480.0,
     clear_after: bool = True,
 ) -> JobRun:
     """Trigger a scan and inject ``faults``: ``(fraction, request)`` sent once the scan's progress

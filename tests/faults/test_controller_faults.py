@@ -10,23 +10,15 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-from faultcell import ApiCallError, FaultCell, run_job
+from faultcell import ApiCallError, FaultCell, module_cell, run_job
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 RWS_TIMEOUT_S = 1.5
 
 
-@pytest.fixture(scope="module")
-def cell(tmp_path_factory):
-    out = tmp_path_factory.mktemp("ctrlfaults")
-    # a short RWS timeout, so "slow" (4 s) is over it while the simulator's normal answers are not
-    c = FaultCell.create(out, robot__rws_timeout_s=RWS_TIMEOUT_S)
-    try:
-        yield c
-    finally:
-        codes = c.stop()
-        assert all(code == 0 for code in codes.values()), (codes, str(out / "logs"))
+# a short RWS timeout, so "slow" (4 s) is over it while the simulator's normal answers are not
+cell = module_cell("ctrlfaults", robot__rws_timeout_s=RWS_TIMEOUT_S)
 
 
 def _stopped_mid_scan(run, cell: FaultCell, state: str = "failed") -> None:
@@ -44,7 +36,7 @@ def _cell_state_after(cell: FaultCell) -> str:
 
     async def go():
         async with cell.client() as c:
-            st = await c.wait(lambda s: s.state.value not in ("scanning", "planning", "paused"), 30.0)
+            st = await c.wait(lambda s: s.state.value not in ("scanning", "planning", "paused"), 120.0)
             return st.state.value
 
     return asyncio.run(go())
@@ -93,14 +85,14 @@ def test_emergency_stop_mid_pass_holds_the_cell_until_the_controller_and_the_ope
 
     async def after(job_id: str):
         async with cell.client() as c:
-            st = await c.wait(lambda s: s.state.value == "emergency_stopped", 30.0)
+            st = await c.wait(lambda s: s.state.value == "emergency_stopped", 120.0)
             with pytest.raises(ApiCallError) as trig:
                 await c.trigger()
             with pytest.raises(ApiCallError) as early_reset:
                 await c.control("reset")
             await cell.fault(controller={"action": "reset_emergency_stop"})
             reply = await c.control("reset")
-            idle = await c.wait(lambda s: s.state.value == "idle", 30.0)
+            idle = await c.wait(lambda s: s.state.value == "idle", 120.0)
             return st, trig.value, early_reset.value, reply, idle
 
     try:
@@ -125,7 +117,7 @@ async def _release_emergency_stop(cell: FaultCell) -> None:
     if state.controller["ctrl_state"] == "emergencystop":
         await cell.fault(controller={"action": "reset_emergency_stop"})
     async with cell.client() as c:
-        st = await c.wait(lambda s: True, 30.0)
+        st = await c.wait(lambda s: True, 120.0)
         if st.state.value in ("emergency_stopped", "faulted"):
             await c.control("reset")
 
@@ -150,7 +142,7 @@ def test_rws_failing_before_motion_fails_the_job_with_a_clear_message_and_nothin
             async with cell.client() as c:
                 await c.wait_idle_or_faulted()
                 job_id = await c.trigger()
-                final = await c.wait_job_end(job_id, 120.0)
+                final = await c.wait_job_end(job_id)
         finally:
             after = await cell.fault(clear=True)
         return job_id, final, before, after

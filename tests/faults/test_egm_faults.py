@@ -10,20 +10,12 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-from faultcell import FaultCell, run_job, wait_record
+from faultcell import module_cell, run_job, wait_record
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 
-@pytest.fixture(scope="module")
-def cell(tmp_path_factory):
-    out = tmp_path_factory.mktemp("egmfaults")
-    c = FaultCell.create(out)
-    try:
-        yield c
-    finally:
-        codes = c.stop()
-        assert all(code == 0 for code in codes.values()), (codes, str(out / "logs"))
+cell = module_cell("egmfaults")
 
 
 def test_random_loss_of_1_then_5_percent_with_50_ms_bursts_completes_the_scan_within_tracking_limits(cell):
@@ -98,7 +90,7 @@ def test_loss_longer_than_the_communication_timeout_stops_smoothly_and_leaves_a_
                 cell, run.job_id, lambda r: len(r["history"]) > len(run.check.states)
                 and r["state"] in ("done", "failed"), 240.0,
             )  # fmt: skip
-            st = await c.wait(lambda s: s.state.value in ("idle", "faulted"), 30.0)
+            st = await c.wait(lambda s: s.state.value in ("idle", "faulted"), 120.0)
             return reply, rec, st
 
     reply, rec, st = asyncio.run(after())

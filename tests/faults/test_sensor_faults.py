@@ -13,20 +13,12 @@ import json
 
 import numpy as np
 import pytest
-from faultcell import FaultCell, run_job
+from faultcell import module_cell, run_job
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 
-@pytest.fixture(scope="module")
-def cell(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sensorfaults")
-    c = FaultCell.create(out)
-    try:
-        yield c
-    finally:
-        codes = c.stop()
-        assert all(code == 0 for code in codes.values()), (codes, str(out / "logs"))
+cell = module_cell("sensorfaults")
 
 
 def _contiguous(frame_index: np.ndarray) -> bool:
