@@ -1,17 +1,38 @@
 """EGM reply latency: the simulated controller in this process, the EGM endpoint in a child process.
 
 For ``--seconds`` (default 60) the controller sends one ``EgmRobot`` every 4.032 ms over loopback;
-the endpoint answers each at once. Per cycle we measure the time from the controller's send to the
-arrival of the matching reply (reply seqno k answers robot seqno k). A cycle is missed when its reply
-arrived after the next ``EgmRobot`` went out, or never.
+the endpoint answers each at once. Per cycle we measure from the controller's send of ``EgmRobot`` k
+(stamped right at its ``sendto``) to the arrival of the reply with seqno k. A cycle is missed when
+its reply arrived after ``EgmRobot`` k + 1 went out, or never.
 
-Prints exactly one JSON object on stdout:
-``{"p50_us", "p99_us", "p999_us", "max_us", "cycles", "missed_cycles", ...}``; logs go to stderr.
+Two arrival times, two sets of figures:
 
-    python benchmarks/egm_latency.py [--seconds 60] [--cycle-ms 4.032] [--realtime]
+- headline keys ``p50_us p99_us p999_us max_us missed_cycles``: arrival is the **kernel's receive
+  stamp** of the reply on the simulator's socket (``SIOCGSTAMPNS``, CLOCK_REALTIME; on loopback the
+  moment the endpoint's ``sendto`` handed the datagram over). This is "controller send to reply
+  receive" as a controller on its own machine would see it, and "packet in to reply out" for the
+  PC plus one loopback send; the simulator's own wake-up is not in it.
+- ``user_p50_us user_p99_us user_p999_us user_max_us user_missed_cycles``: arrival is when the
+  simulator's event loop read the reply (user space), so its wake-up after the reply is included.
 
-``--realtime`` runs both processes under SCHED_FIFO (needs the privilege), as a cell PC would run
-its EGM process; without it the figures include whatever else the machine is doing.
+Other keys: ``cycles``, ``unanswered``, ``kernel_stamped`` (False: no kernel stamps on this OS, the
+headline keys are then the user-space ones), ``tick_late_*`` (how late the simulator's cycles
+started), ``sim_cpu_fraction`` / ``endpoint_cpu_fraction`` (share of one core, the endpoint's over
+its whole run), ``endpoint_latency_max_us`` (the endpoint's own receive-to-send time, worst case),
+``load_1min`` (the machine is shared: read the figures with it) and the settings used.
+
+Prints exactly one JSON object on stdout; logs go to stderr.
+
+    python benchmarks/egm_latency.py [--seconds 60] [--realtime] [--cpu-latency-us 0] \\
+        [--reply-thread] [--switch-interval-us 200] [--spin-us 150] [--loop-busy-ms 2]
+
+``--realtime`` runs the simulator and the endpoint under SCHED_FIFO (needs the privilege), as a cell
+PC runs its EGM process; with ``--reply-thread`` the endpoint answers from its reply thread
+(``--endpoint-priority``, default 20) while its loop runs at ``--loop-priority`` (10), as the daemon
+does. ``--cpu-latency-us 0`` holds the CPUs out of deep idle states (PM QoS), ``--sim-cpus`` /
+``--endpoint-cpus`` pin the two sides, ``--spin-us`` lets the reply thread poll around each expected
+arrival, ``--loop-busy-ms`` keeps the endpoint's loop busy in pure Python the way the daemon's loop
+is during a scan, and ``--no-gc-freeze`` leaves the start-up heap to the collector.
 """
 
 from __future__ import annotations

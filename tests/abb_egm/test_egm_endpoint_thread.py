@@ -255,3 +255,32 @@ def test_simulator_follows_the_reply_thread_and_stamps_replies_in_the_kernel():
 
     with asyncio.Runner(loop_factory=precise_event_loop) as runner:
         runner.run(main())
+
+
+def test_spinning_reply_thread_answers_every_packet_of_a_steady_stream_and_after_a_gap():
+    async def main():
+        ep = EgmEndpoint(EgmEndpointConfig(port=0, reply_thread=True, reply_spin_us=300.0))
+        addr = await ep.start()
+        ctl = controller_socket()
+
+        def controller(seqnos, period_s):
+            replies = []
+            for k in seqnos:
+                ctl.sendto(robot(k), addr)
+                replies.append(decode_sensor(ctl.recvfrom(4096)[0]).seqno)
+                threading.Event().wait(period_s)
+            return replies
+
+        try:
+            steady = await asyncio.to_thread(controller, range(0, 40), 0.004)
+            # a pause far longer than the cadence: the thread spins once in vain, then blocks again
+            await asyncio.sleep(0.15)
+            after_gap = await asyncio.to_thread(controller, range(40, 45), 0.004)
+        finally:
+            ctl.close()
+            await ep.close()
+        assert steady == list(range(40)) and after_gap == list(range(40, 45))
+        assert ep.stats.lost == 0 and ep.stats.replies_sent == 45
+        assert reply_threads() == []
+
+    asyncio.run(main())
