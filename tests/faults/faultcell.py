@@ -365,6 +365,30 @@ class JobRun:
     replies: list[FaultState]
     cell_states: list[str]
     check: JobDataCheck
+    before: FaultState | None = None
+    after: FaultState | None = None
+
+    def sim_delta(self, sim: str, counter: str) -> int:
+        """How much a simulator counter (``stats[sim][counter]``) grew during the job."""
+        if self.before is None or self.after is None:
+            return 0
+        return int(self.after.stats[sim][counter]) - int(self.before.stats[sim][counter])
+
+    @property
+    def sensor_starved(self) -> bool:
+        """The simulated HD8 could not render in real time (frames overrun): the machine was too
+        loaded for the acquisition to be judged, though nothing received may be lost all the same."""
+        return self.sim_delta("laser", "overrun_frames") > 0
+
+    @property
+    def controller_starved(self) -> bool:
+        """The simulated controller ran late on more than 1 % of its cycles (a loaded machine): a
+        controller that stalls for real then is a stall the daemon must stop on."""
+        return self.sim_delta("egm", "overruns") > 0.01 * max(self.sim_delta("egm", "cycles"), 1)
+
+    @property
+    def starved(self) -> bool:
+        return self.sensor_starved or self.controller_starved
 
     @property
     def info(self) -> dict[str, Any]:
@@ -392,8 +416,10 @@ async def run_job(
     """
     async with cell.client() as c:
         await c.wait_idle_or_faulted()
+        before = await cell.fault()
         job_id = await c.trigger()
         replies = []
+        after = None
         try:
             for fraction, request in sorted(faults, key=lambda f: f[0]):
                 st = await c.wait(
@@ -408,7 +434,6 @@ async def run_job(
                 replies.append(await cell.fault(request))
             final = await c.wait_job_end(job_id, timeout_s)
         finally:
-            if clear_after:
-                await cell.fault(clear=True)
+            after = await cell.fault(clear=True) if clear_after else await cell.fault()
         states = [s.state.value for s in c.seen]
-    return JobRun(job_id, final, replies, states, check_job_data(cell, job_id))
+    return JobRun(job_id, final, replies, states, check_job_data(cell, job_id), before, after)

