@@ -33,7 +33,6 @@ import asyncio
 import contextlib
 import functools
 import os
-import select
 import socket
 import struct
 import sys
@@ -639,7 +638,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             sock.bind((cfg.host, cfg.port))
             # a kernel-side receive timeout keeps each receive one blocking syscall and still lets the
             # thread look at its stop flag every 100 ms
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("ll", 0, 100_000))
+            _set_receive_timeout(sock, _IDLE_RECEIVE_TIMEOUT_NS)
         except OSError:
             sock.close()
             raise
@@ -680,6 +679,8 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 if spin_ns and due_ns is not None:
                     data, addr = self._receive_spinning(sock, due_ns, spin_ns)
                 else:
+                    if spin_ns:  # the spin shortened the receive timeout; sleep the long one again
+                        _set_receive_timeout(sock, _IDLE_RECEIVE_TIMEOUT_NS)
                     data, addr = recvfrom(65535)
             except (BlockingIOError, InterruptedError):  # the receive timeout: look at the stop flag
                 continue
@@ -708,17 +709,22 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     def _receive_spinning(sock: socket.socket, due_ns: int, spin_ns: int) -> tuple[bytes, tuple]:
         """Sleep until ``spin_ns`` before ``due_ns``, then poll without sleeping until a datagram
         comes or ``spin_ns`` after ``due_ns``; then fall back to the blocking receive."""
-        wait_s = (due_ns - spin_ns - time.monotonic_ns()) / 1e9
-        if wait_s > 0:
-            ready, _, _ = select.select([sock], [], [], wait_s)
-            if ready:
+        # The sleep is a blocking receive with a microsecond timeout (SO_RCVTIMEO): a packet that comes
+        # early is taken at once, and unlike select() it works for any descriptor number.
+        wait_ns = due_ns - spin_ns - time.monotonic_ns()
+        if wait_ns >= 1000:
+            _set_receive_timeout(sock, wait_ns)
+            try:
                 return sock.recvfrom(65535)  # early: no spin this cycle
+            except BlockingIOError:
+                pass
         end_ns = due_ns + spin_ns
         while time.monotonic_ns() < end_ns:
             try:
                 return sock.recvfrom(65535, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 pass
+        _set_receive_timeout(sock, _IDLE_RECEIVE_TIMEOUT_NS)
         return sock.recvfrom(65535)
 
     def _configure_reply_thread(self) -> None:
@@ -911,6 +917,15 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             self._on_watchdog(event, quiet_s)
         except Exception:  # a broken callback must not stop the endpoint
             log.exception("egm_watchdog_callback_failed", watchdog_event=event)
+
+
+_IDLE_RECEIVE_TIMEOUT_NS = 100_000_000
+
+
+def _set_receive_timeout(sock: socket.socket, timeout_ns: int) -> None:
+    """SO_RCVTIMEO of a blocking socket (struct timeval); a receive then ends with BlockingIOError."""
+    sec, usec = divmod(max(1, timeout_ns // 1000), 1_000_000)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("ll", sec, usec))
 
 
 def _after(tm_ms: int, other_ms: int) -> bool:
