@@ -39,7 +39,7 @@ for _p in (REPO, REPO / "tests" / "faults", REPO / "tests" / "e2e"):
     if str(_p) not in sys.path:
         sys.path.insert(0, str(_p))
 
-from cellfaults import kill9_tree, log_events, wait_until, worker_config_via  # noqa: E402
+from cellfaults import kill9_tree, wait_until, worker_config_via  # noqa: E402
 from faultcell import FaultCell, check_job_data, fault_cell_config  # noqa: E402
 from tcp_forwarder import TcpForwarder  # noqa: E402
 
@@ -167,7 +167,7 @@ async def _one_job(sc: SoakCell, res: JobResult, timeout_s: float) -> None:
             elif kind == "worker":
 
                 def started() -> bool:
-                    ev = log_events(cell, sc.worker_log, "job_started")
+                    ev = cell.log_events(sc.worker_log, "job_started")
                     return (
                         any(e.get("job_id") == job_id for e in ev)
                         or cell.job_record(job_id)["state"] in FINAL

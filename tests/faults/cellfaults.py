@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import os
 import signal
 import sys
 import time
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -23,40 +21,39 @@ for _p in (_HERE, _HERE.parent / "e2e"):
     if str(_p) not in sys.path:
         sys.path.insert(0, str(_p))
 
-from e2e_cell import Cell, open_client, tiny_cell_config, wait_status  # noqa: E402
+from e2e_cell import Cell, wait_status  # noqa: E402
+from faultcell import FINAL_JOB_STATES, FaultCell, fault_cell_config  # noqa: E402
 
 from cellctl.acquisition.rawstore import RawReader  # noqa: E402
-from cellctl.api import Keys  # noqa: E402
-from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml  # noqa: E402
-from cellctl.commands.scan_cmd import StatusFollower  # noqa: E402
+from cellctl.commands.demo_cmd import to_toml  # noqa: E402
 from cellctl.config import load_config  # noqa: E402
-from cellctl.zenoh_session import close_session  # noqa: E402
 
 __all__ = [
+    "FINAL",
     "Cell",
+    "FaultCell",
     "RawCheck",
+    "analysed",
     "children_of",
-    "client",
+    "fault_cell_config",
     "kill9_tree",
     "raw_check",
     "rws_client",
-    "tiny_cell_config",
-    "trigger_request",
     "wait_status",
     "worker_config_via",
 ]
 
-FINAL = ("done", "failed", "aborted", "interrupted")
+FINAL = FINAL_JOB_STATES
 
 
-def trigger_request(cell: Cell, plate_id: str = "fault-plate") -> dict[str, Any]:
-    """A trigger for the simulated plate at its true placement."""
-    pl = cell.cfg.sim.placement
-    return {
-        "plate_id": plate_id,
-        "design": DEMO_DESIGN,
-        "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]},
-    }
+def analysed(state: str, message: str) -> bool:
+    """The worker's report reached the daemon: ``done``, or ``failed`` with the analysis' own error.
+
+    On a heavily loaded machine (load average 20 on 2 cores, observed) the simulated sensor drops
+    frames and the analysis may refuse the sparse cloud ("the design does not match the plate"); the
+    report still came back, once, which is what the Zenoh and worker fault cases are about.
+    """
+    return state == "done" or (state == "failed" and message.startswith("analysis error"))
 
 
 def rws_client(cell: Cell) -> Any:
@@ -83,19 +80,6 @@ def worker_config_via(cell: Cell, endpoint: str, name: str = "worker-via.toml") 
     path.write_text(to_toml(data), encoding="utf-8")
     load_config(path)  # the copy must validate as the original does
     return path
-
-
-@contextlib.asynccontextmanager
-async def client(cell: Cell) -> AsyncIterator[tuple[Any, Keys, StatusFollower]]:
-    """A client session, the key space and a state follower; closed on exit."""
-    session = await open_client(cell.cfg)
-    keys = Keys(cell.cfg.key_prefix)
-    follower = StatusFollower(session, keys)
-    try:
-        yield session, keys, follower
-    finally:
-        follower.close()
-        await asyncio.to_thread(close_session, session)
 
 
 def children_of(pid: int) -> list[int]:
@@ -165,21 +149,6 @@ def raw_check(cell: Cell, job_id: str) -> RawCheck:
 def job_history(cell: Cell, job_id: str) -> list[str]:
     """The job's state history, oldest first."""
     return [h["state"] for h in cell.job_record(job_id)["history"]]
-
-
-def log_events(cell: Cell, name: str, event: str) -> list[dict[str, Any]]:
-    """The JSON log lines of process ``name`` (logs/<name>.log) with ``event``."""
-    out = []
-    path = cell.out / "logs" / f"{name}.log"
-    with contextlib.suppress(OSError):
-        for line in path.read_text(errors="replace").splitlines():
-            if f'"{event}"' not in line:
-                continue
-            with contextlib.suppress(ValueError):
-                d = json.loads(line)
-                if d.get("event") == event:
-                    out.append(d)
-    return out
 
 
 async def wait_until(pred, timeout_s: float, period_s: float = 0.2, what: str = "condition") -> Any:

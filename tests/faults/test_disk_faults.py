@@ -31,12 +31,10 @@ import numpy as np
 import pytest
 from cellfaults import (
     FINAL,
-    Cell,
-    client,
+    FaultCell,
+    fault_cell_config,
     raw_check,
     rws_client,
-    tiny_cell_config,
-    trigger_request,
     wait_status,
     wait_until,
 )
@@ -116,8 +114,8 @@ def test_preflight_names_the_field_and_sizes_for_a_small_full_or_read_only_data_
 @pytest.mark.e2e
 @pytest.mark.timeout(600)
 def test_data_dir_too_small_or_read_only_faults_before_motion_and_full_mid_scan_stops_smoothly(tmp_path):
-    cfg_path = tiny_cell_config(tmp_path)
-    cell = Cell(tmp_path, cfg_path)
+    cfg_path = fault_cell_config(tmp_path)
+    cell = FaultCell(tmp_path, cfg_path)
     data = Path(cell.cfg.cell.data_dir)
     assert cell.cfg.daemon.min_free_mb >= 100, "the case relies on the default margin"
     with tmpfs(data, "64m"):
@@ -128,12 +126,13 @@ def test_data_dir_too_small_or_read_only_faults_before_motion_and_full_mid_scan_
                 seen: dict = {}
                 rws = rws_client(cell)
                 try:
-                    async with client(cell) as (session, keys, follower):
+                    async with cell.client() as c:
+                        session, keys, follower = c.session, c.keys, c.follower
                         await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 180.0)
                         q0 = await rws.get_joint_position()
                         # 1. 64 MB free, the scan's estimate + 200 MB needed: pre-flight fails the job
                         acc = await call(
-                            session, keys.trigger, json.dumps(trigger_request(cell)), TriggerAccepted
+                            session, keys.trigger, json.dumps(cell.trigger_request()), TriggerAccepted
                         )
                         await wait_until(
                             lambda: cell.job_record(acc.job_id)["state"] in FINAL, 60.0, what="job ends"
@@ -146,7 +145,7 @@ def test_data_dir_too_small_or_read_only_faults_before_motion_and_full_mid_scan_
                         try:
                             with pytest.raises(ApiCallError) as ro:
                                 await call(
-                                    session, keys.trigger, json.dumps(trigger_request(cell)), TriggerAccepted
+                                    session, keys.trigger, json.dumps(cell.trigger_request()), TriggerAccepted
                                 )
                             seen["ro"] = ro.value.error
                             st = await wait_status(follower, lambda s: True)
@@ -162,7 +161,7 @@ def test_data_dir_too_small_or_read_only_faults_before_motion_and_full_mid_scan_
                         acc = await call(
                             session,
                             keys.trigger,
-                            json.dumps(trigger_request(cell, "fills-up")),
+                            json.dumps(cell.trigger_request(plate_id="fills-up")),
                             TriggerAccepted,
                         )
                         seen["full_job"] = acc.job_id
