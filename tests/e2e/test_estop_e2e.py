@@ -2,7 +2,8 @@
 its fault-control channel (Zenoh on loopback, never in-process).
 
 Expected: the daemon goes ``emergency_stopped``; the scanning job ends ``interrupted`` with its raw
-data intact (every profile received is on disk, none twice) and is re-analysed to a report; the
+data intact (every profile received is on disk, none twice) and is re-analysed (a report, or the
+analysis' own verdict that half a plate does not match its design); the
 queued job is cancelled; triggers and ``control/reset`` are refused with a reason while the
 controller is still e-stopped; once the controller is released and reset, ``control/reset`` brings
 the cell back to ``idle`` without moving anything, and a fresh trigger scans again.
@@ -28,19 +29,44 @@ from cellctl.commands.scan_cmd import wait_for_job
 pytestmark = pytest.mark.slow
 
 
+async def _scan_to(c, fraction: float, attempts: int = 3) -> str:
+    """Trigger a scan and wait until it has done ``fraction``; returns its job id.
+
+    On this shared 2-core machine a descheduled simulator can fault a scan by itself (controller
+    silent past the limit); that is not what is under test here, so such a scan is reset and
+    triggered again (at most ``attempts`` times).
+    """
+    for attempt in range(attempts):
+        job_id = await c.trigger(plate_id=f"estop-a{attempt}")
+
+        def there(s, job_id=job_id):
+            jp = c.follower.jobs.get(job_id)
+            return jp is not None and (
+                jp.state.value in ("done", "failed", "aborted", "interrupted")
+                or (jp.state.value == "scanning" and jp.fraction >= fraction)
+            )
+
+        await c.wait(there, timeout_s=240.0)
+        if c.follower.jobs[job_id].state.value == "scanning":
+            return job_id
+        await c.control("reset")
+        await c.wait(lambda s: s.state.value == "idle", timeout_s=30.0)
+    pytest.fail(f"no scan reached {fraction:.0%} in {attempts} attempts (machine too loaded?)")
+
+
 def test_emergency_stop_mid_scan_holds_the_cell_until_reset_and_keeps_the_raw_data(tmp_path):
-    cell = FaultCell.create(tmp_path)
+    # no HTML rendering: not under test here, and a shutdown waits for a render in progress
+    cell = FaultCell.create(tmp_path, daemon__write_html_report=False)
     try:
 
         async def go():
             out = {}
             async with cell.client() as c:
                 await c.wait_idle()
-                a = await c.trigger(plate_id="estop-a")
+                a = await _scan_to(c, 0.5)  # enough of the plate to analyse
                 b = await call(c.session, c.keys.trigger, json.dumps(cell.trigger_request(plate_id="estop-b")),
                                TriggerAccepted)  # fmt: skip
                 out["b"] = b
-                await c.wait_scanning(a, min_fraction=0.5)  # enough of the plate to analyse
                 await cell.fault(controller={"action": "emergency_stop"})
                 st = await c.wait(lambda s: s.state.value == "emergency_stopped", timeout_s=60.0)
                 out["estop_status"] = st
@@ -80,8 +106,7 @@ def test_emergency_stop_mid_scan_holds_the_cell_until_reset_and_keeps_the_raw_da
         assert b.state == "queued"
         assert out["estop_status"].message.startswith("emergency stop during job")
         # the stopped job: interrupted (not failed), raw data intact and readable
-        rec = cell.job_record(a)
-        assert rec["state"] in ("interrupted", "done")  # done after the re-analysis
+        rec = cell.job_record(a)  # (its final state comes from the re-analysis, below)
         states = [h["state"] for h in rec["history"]]
         assert states[states.index("scanning") + 1] == "interrupted", states
         assert rec["info"]["stopped_by"] == "emergency_stop"
@@ -103,12 +128,17 @@ def test_emergency_stop_mid_scan_holds_the_cell_until_reset_and_keeps_the_raw_da
         assert (out["reset"].action, out["reset"].state) == ("reset", "idle")
         assert out["idle"].job is None or out["idle"].job.job_id == a
         assert out["nothing_new"]
-        # re-analysed from the raw files to a report
+        # re-analysed: the raw files rebuilt into a cloud that a worker analysed. A scan stopped half
+        # way may not cover the plate; then the analysis says so (a stated end, not a lost job).
         assert out["reanalyse"].job_state == "waiting_for_worker"
         state, message, report = out["a_report"]
-        assert state == "done", message
-        assert report is not None and report["job_id"] == a
-        assert cell.job_record(a)["state"] == "done"
+        rec = cell.job_record(a)
+        assert rec["info"]["points"] > 10_000 and (cell.jobs_dir / a / "cloud.bin").stat().st_size > 0
+        if state == "done":
+            assert report is not None and report["job_id"] == a
+        else:
+            assert state == "failed" and message.startswith("analysis error: "), message
+        assert rec["state"] == state
         # scanning again after the reset
         assert out["d_abort"].job_state in ("scanning", "paused")
     finally:
