@@ -64,25 +64,71 @@ class TriMesh:
         return TriMesh(self.vertices_mm @ T[:3, :3].T + T[:3, 3], self.triangles)
 
 
+def _read_ply_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n, 3) and triangles (m, 3) of a PLY, read with plyfile (polygons fanned into triangles).
+
+    open3d's PLY reader trusts the file: a binary PLY whose face lists disagree with its bytes
+    crashed the process (segmentation fault, found by tests/fuzz). plyfile raises instead.
+    """
+    from plyfile import PlyData
+
+    from analysis.cloud_io import ply_header_overclaims
+
+    # parsers believe the header and spend minutes on a tiny file claiming 10^8 vertices
+    overclaim = ply_header_overclaims(path)
+    if overclaim:
+        raise MeshError(f"{path}: {overclaim}")
+    try:
+        ply = PlyData.read(str(path))
+        vert = ply["vertex"].data
+        v = np.column_stack([np.asarray(vert[c], dtype=np.float64) for c in ("x", "y", "z")])
+        faces = ply["face"].data
+        name = next(n for n in ("vertex_indices", "vertex_index") if n in (faces.dtype.names or ()))
+        polys = [np.asarray(f, dtype=np.int64) for f in faces[name]]
+    except (KeyError, StopIteration):
+        raise MeshError(f"{path}: PLY lacks vertex x, y, z or face vertex_indices") from None
+    except Exception as exc:  # plyfile's own errors, truncated data: one line naming the file
+        raise MeshError(f"{path}: unreadable PLY file ({type(exc).__name__}: {str(exc)[:200]})") from None
+    tris = [np.column_stack([np.full(len(f) - 2, f[0]), f[1:-1], f[2:]]) for f in polys if len(f) >= 3]
+    t = np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
+    return v, t
+
+
+def _check_binary_stl(path: Path) -> None:
+    """A binary STL's size is fixed by its triangle count; refuse one whose bytes disagree before
+    open3d reads it (it trusts the count)."""
+    with path.open("rb") as f:
+        head = f.read(84)
+    size = path.stat().st_size
+    if head[:5].lower() == b"solid" and b"facet" in path.read_bytes()[:4096]:
+        return  # ASCII STL
+    if len(head) < 84:
+        raise MeshError(f"{path}: binary STL shorter than its 84-byte header")
+    n = int.from_bytes(head[80:84], "little")
+    if size != 84 + 50 * n:
+        raise MeshError(
+            f"{path}: binary STL declares {n} triangles ({84 + 50 * n} bytes) but has {size} bytes"
+        )
+
+
 def load_mesh(path: str | Path) -> TriMesh:
     """Read a triangle mesh (PLY, STL or OBJ, millimetres) with one clear error when unusable."""
-    import open3d as o3d
-
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"{path}: no such file")
-    if path.suffix.lower() not in {".ply", ".stl", ".obj"}:
+    suffix = path.suffix.lower()
+    if suffix not in {".ply", ".stl", ".obj"}:
         raise MeshError(f"{path}: unsupported mesh format {path.suffix!r} (use .ply, .stl or .obj)")
-    if path.suffix.lower() == ".ply":
-        from analysis.cloud_io import ply_header_overclaims
+    if suffix == ".ply":
+        v, t = _read_ply_mesh(path)
+    else:
+        import open3d as o3d
 
-        # open3d believes the header and spends minutes on a tiny file claiming 10^8 vertices
-        overclaim = ply_header_overclaims(path)
-        if overclaim:
-            raise MeshError(f"{path}: {overclaim}")
-    m = o3d.io.read_triangle_mesh(str(path))
-    v = np.asarray(m.vertices)
-    t = np.asarray(m.triangles)
+        if suffix == ".stl":
+            _check_binary_stl(path)
+        m = o3d.io.read_triangle_mesh(str(path))
+        v = np.asarray(m.vertices)
+        t = np.asarray(m.triangles)
     if len(v) == 0 or len(t) == 0:
         raise MeshError(f"{path}: no triangles in the file (empty or unreadable)")
     if not np.isfinite(v).all():

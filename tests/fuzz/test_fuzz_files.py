@@ -204,3 +204,30 @@ def test_a_cloud_with_a_negative_profile_index_is_refused_naming_the_file(tmp_pa
     path.write_bytes(_NEGATIVE_PROFILE_PLY)
     with pytest.raises(CloudError, match=r"neg\.ply: profile has negative indices"):
         read_cloud(path)
+
+
+# found by fuzzing: open3d's PLY reader crashed the whole process (SIGSEGV) on this 335-byte binary
+# PLY, whose face lists disagree with its bytes; PLY meshes are now read with plyfile
+_SEGFAULT_PLY = bytes.fromhex(
+    "706c790a666f726d61742062696e6172795f6c6974746c655f656e6469616e20312e300a636f6d6d656e742043726561"
+    "746564206279204f70656e33440a656c656d656e742076657274657820340a70726f706572747920646f75626c652078"
+    "0a70726f706572747920646f75626c6520790a70726f706572747920646f75626c65207a0a656c656d656e7420666163"
+    "6520320a70726f7065727479206c6973742075636861722075696e74207665727465785f696e64696365730a656e645f"
+    "6865616465720a0000000000000000000000000000000000000000000000000000000000005940000000000000000000"
+    "000000594000000000000000000000000000000000000000000000000000000000000059400000000000000000000000"
+    "0000005940000000000000594000000000000014400300000000010000000200000003010000000300000002000000"
+)
+
+
+def test_a_binary_ply_mesh_whose_faces_disagree_with_its_bytes_is_an_error_not_a_crash(tmp_path):
+    path = tmp_path / "crash.ply"
+    path.write_bytes(_SEGFAULT_PLY)
+    with pytest.raises(MeshError, match=r"crash\.ply: "):
+        load_mesh(path)
+
+
+def test_a_binary_stl_whose_size_disagrees_with_its_triangle_count_is_refused(tmp_path, seeds):
+    path = tmp_path / "short.stl"
+    path.write_bytes(seeds["mesh"][".stl"][0][:-7])
+    with pytest.raises(MeshError, match="declares 2 triangles"):
+        load_mesh(path)
