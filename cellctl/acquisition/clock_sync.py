@@ -65,12 +65,13 @@ class ClockSyncConfig:
             (milliseconds on a loaded host), while 50 ppm of drift adds only 1 ms over 20 s.
         min_pairs: no fit before this many pairs.
         spike_ms: a pair more than this above the envelope counts as a latency spike in the report.
-        step_ms, step_confirm_s: a device clock that steps (reset, resynchronised) leaves every new
-            pair more than ``step_ms`` off the fit, all on one side. Below the fit (the clock jumped
-            ahead) latency cannot explain it, so ``min_pairs`` such pairs confirm the step; above it
-            (the clock jumped back) they must persist for ``step_confirm_s`` of device time, longer
-            than any latency spike. On a step the pairs before it are forgotten and the fit restarts
-            from the pairs after it. 0 turns the detection off.
+        step_ms, step_confirm_s: a device clock that jumps *back* (reset, resynchronised) leaves
+            every new pair more than ``step_ms`` above the fit, and the lower envelope would keep
+            the old pairs for the whole window. When every pair stays that far above for
+            ``step_confirm_s`` of device time (longer than a host's latency burst) the pairs before
+            are forgotten and the fit restarts from the pairs after the step. A jump *ahead* needs
+            nothing: its pairs lie below the envelope, which the next refit follows. 0 turns the
+            detection off.
     """
 
     window_s: float = 120.0
@@ -80,8 +81,8 @@ class ClockSyncConfig:
     min_drift_span_s: float = 20.0
     min_pairs: int = 4
     spike_ms: float = 2.0
-    step_ms: float = 100.0
-    step_confirm_s: float = 0.5
+    step_ms: float = 200.0
+    step_confirm_s: float = 1.0
 
     def __post_init__(self) -> None:
         if self.min_drift_span_s < 0:
@@ -281,12 +282,12 @@ class ClockSync:
         return self._fit
 
     def _track_step(self, s: np.ndarray, d: np.ndarray, above_ms: np.ndarray) -> int:
-        """Follow the run of pairs far off the fit on one side; on a confirmed step, forget every pair
+        """Follow the run of pairs far above the fit; on a confirmed step, forget every pair
         from before it (they describe the clock as it was, and after a backward step their device
         times overlap the new ones) and keep the run's. Returns the index of the first pair of
         ``s`` / ``d`` that still belongs in the window (0 unless a step began in this batch)."""
         cfg = self.config
-        side = np.where(above_ms > cfg.step_ms, 1, np.where(above_ms < -cfg.step_ms, -1, 0))
+        side = (above_ms > cfg.step_ms).astype(np.int64)
         last = int(side[-1])
         if last == 0:
             self._step_side, self._run_s, self._run_d = 0, s[:0], d[:0]
@@ -298,9 +299,7 @@ class ClockSync:
             self._run_s, self._run_d = s[:0], d[:0]
         run_s, run_d = self._run_s, self._run_d  # the run's pairs from earlier batches
         n = len(run_s) + len(side) - k
-        confirmed = n >= cfg.min_pairs and (
-            last < 0 or int(s[-1]) - self._step_from_s >= cfg.step_confirm_s * 1e6
-        )
+        confirmed = n >= cfg.min_pairs and int(s[-1]) - self._step_from_s >= cfg.step_confirm_s * 1e6
         if not confirmed:
             self._run_s, self._run_d = np.concatenate([run_s, s[k:]]), np.concatenate([run_d, d[k:]])
             return 0

@@ -99,14 +99,15 @@ def test_stalled_stream_resumes_and_delivers_the_held_frames(cell):
 @pytest.mark.parametrize("jump_ms", [250.0, -250.0])
 def test_sensor_clock_jump_mid_scan_keeps_every_profile_and_the_cloud_on_the_plate(cell, jump_ms):
     """The sensor's clock steps by +-250 ms at 40 % of the scan. Expected: the stamps jump, the online
-    clock fit follows the step instead of mapping the rest of the scan 250 ms off; the scan
+    clock fit follows the step (ahead: at its next refit; back: a detected ``clock_step`` after a
+    second) instead of mapping the rest of the scan 250 ms off; the scan
     completes, every frame is kept once, and the analysis still reports on the plate."""
     run = asyncio.run(run_job(cell, [(0.4, {"laser": {"clock_jump_ms": jump_ms}})]))
     _gap_reported_exactly(run)
     assert run.replies[0].laser["clock_jump_ms"] == jump_ms
-    steps = [e for e in cell.log_events("run", "clock_step") if e.get("job_id") == run.job_id]
-    assert steps and steps[0]["clock"] == "sensor", "the daemon saw the step"
-    assert abs(steps[0]["step_ms"] + jump_ms) < 50.0  # device ahead: host minus device drops
+    if jump_ms < 0:  # a jump back is detected as a step (a jump ahead is followed by the next refit)
+        steps = [e for e in cell.log_events("run", "clock_step") if e.get("job_id") == run.job_id]
+        assert any(e["clock"] == "sensor" and abs(e["step_ms"] + jump_ms) < 100.0 for e in steps), steps
     if not _completed(run):
         return
     assert _contiguous(run.check.raw_frame_index)
@@ -116,20 +117,20 @@ def test_sensor_clock_jump_mid_scan_keeps_every_profile_and_the_cloud_on_the_pla
     assert report["registration"]["icp_rms_mm"] < 0.6, report["registration"]
 
 
-@pytest.mark.parametrize("jump_ms", [250.0, -250.0, 2000.0])
+@pytest.mark.parametrize("jump_ms", [250.0, -250.0, 2000.0, -2000.0])
 def test_clock_fit_follows_a_step_of_the_device_clock_and_not_a_latency_burst(jump_ms):
     """The estimator alone: 200 pairs/s with exponential latency, the device clock steps at 10 s.
-    Expected: within a second of device time the fit maps the new stamps within 5 ms again (without
-    the step detection a backward step stayed 250 ms off for the whole 120 s window); a 0.3 s latency
-    burst of 150 ms is no step."""
+    Expected: the fit maps the new stamps within 5 ms again 2.5 s of device time later (a jump back
+    is detected as a step; without that it stayed off for the whole 120 s window; a jump ahead is
+    followed by the next refit of the lower envelope); a 0.5 s latency burst of 150 ms is no step."""
     from cellctl.acquisition.clock_sync import ClockSync
 
     rng = np.random.default_rng(3)
-    t = np.arange(0.0, 14.0, 0.005)
+    t = np.arange(0.0, 16.0, 0.005)
     src = (t * 1e6).astype(np.int64) + 7_000_000
     src[t >= 10.0] += int(jump_ms * 1000)
     lat_ns = 2e6 + rng.exponential(1e6, t.size)
-    lat_ns[(t >= 5.0) & (t < 5.3)] += 150e6  # a latency burst, not a step
+    lat_ns[(t >= 5.0) & (t < 5.5)] += 150e6  # a latency burst, not a step
     host = (t * 1e9 + lat_ns).astype(np.int64)
     cs = ClockSync(name="sensor")
     err_ms = np.full(t.size, np.nan)
@@ -137,6 +138,6 @@ def test_clock_fit_follows_a_step_of_the_device_clock_and_not_a_latency_burst(ju
         cs.add(src[i : i + 5], host[i : i + 5])
         if cs.fit is not None:
             err_ms[i : i + 5] = (cs.to_host_ns(src[i : i + 5]) - (t[i : i + 5] * 1e9 + 2e6)) * 1e-6
-    assert cs.steps == 1
+    assert cs.steps == (1 if jump_ms < 0 else 0)
     assert np.nanmax(np.abs(err_ms[(t > 1.0) & (t < 10.0)])) < 5.0  # the burst moved nothing
-    assert np.nanmax(np.abs(err_ms[t > 11.0])) < 5.0
+    assert np.nanmax(np.abs(err_ms[t > 12.5])) < 5.0
