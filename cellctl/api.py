@@ -121,11 +121,22 @@ def new_job_id() -> str:
 # --------------------------------------------------------------------------------------------- trigger
 
 
-class Placement(Model):
-    """Nominal placement of the plate on the bed: design frame -> robot base frame."""
+#: A placement beyond these is no plate on this bed but a typo or an attack: refused at the door,
+#: before a job exists (the planner's workspace check would refuse it later, after a job was made).
+MAX_PLACEMENT_MM = 100_000.0
+MAX_PLACEMENT_DEG = 360.0
+PosMm = Annotated[float, Field(ge=-MAX_PLACEMENT_MM, le=MAX_PLACEMENT_MM, allow_inf_nan=False)]
+AngleDeg = Annotated[float, Field(ge=-MAX_PLACEMENT_DEG, le=MAX_PLACEMENT_DEG, allow_inf_nan=False)]
 
-    pos_mm: Vec3
-    rpy_deg: Vec3 = [0.0, 0.0, 0.0]
+
+class Placement(Model):
+    """Nominal placement of the plate on the bed: design frame -> robot base frame.
+
+    ``pos_mm`` within +-100 m, ``rpy_deg`` within +-360 deg.
+    """
+
+    pos_mm: Annotated[list[PosMm], Field(min_length=3, max_length=3)]
+    rpy_deg: Annotated[list[AngleDeg], Field(min_length=3, max_length=3)] = [0.0, 0.0, 0.0]
 
 
 class TriggerRequest(Model):
