@@ -148,7 +148,16 @@ class CellDaemon:
         r = cfg.robot
         self.endpoint = EgmEndpoint(
             EgmEndpointConfig(
-                host=r.egm_host, port=r.egm_port, watchdog_s=r.egm_watchdog_s, history_len=r.egm_history_len
+                host=r.egm_host,
+                port=r.egm_port,
+                watchdog_s=r.egm_watchdog_s,
+                history_len=r.egm_history_len,
+                # replies from their own SCHED_FIFO thread, off this loop, with a short GIL hand-over
+                # (benchmarks/README.md, egm_latency); to become cell.toml [robot] egm_reply_* keys
+                reply_thread=True,
+                reply_thread_priority=20,
+                switch_interval_s=2e-4,
+                reply_spin_us=150.0,
             )
         )
         try:
