@@ -39,7 +39,7 @@ for _p in (REPO, REPO / "tests" / "faults", REPO / "tests" / "e2e"):
     if str(_p) not in sys.path:
         sys.path.insert(0, str(_p))
 
-from cellfaults import kill9_tree, wait_until, worker_config_via  # noqa: E402
+from cellfaults import kill9_tree, stop_cell, wait_until, worker_config_via  # noqa: E402
 from faultcell import FaultCell, check_job_data, fault_cell_config  # noqa: E402
 from tcp_forwarder import TcpForwarder  # noqa: E402
 
@@ -136,9 +136,9 @@ class SoakCell:
         codes: dict[str, Any] = {}
         if self.workers is not None:
             self.workers.procs = [(n, p) for n, p in self.workers.procs if p.poll() is None]
-            codes.update(self.workers.stop_all())
+            codes.update(self.workers.stop_all(grace_s=60.0))
         self.fwd.close()
-        codes.update(self.cell.stop())
+        codes.update(stop_cell(self.cell))
         return codes
 
 

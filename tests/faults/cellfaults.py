@@ -39,6 +39,7 @@ __all__ = [
     "kill9_tree",
     "raw_check",
     "rws_client",
+    "stop_cell",
     "wait_status",
     "worker_config_via",
 ]
@@ -54,6 +55,17 @@ def analysed(state: str, message: str) -> bool:
     report still came back, once, which is what the Zenoh and worker fault cases are about.
     """
     return state == "done" or (state == "failed" and message.startswith("analysis error"))
+
+
+def stop_cell(cell: Cell, grace_s: float = 180.0) -> dict[str, Any]:
+    """Stop the cell's processes (SIGTERM; SIGKILL after ``grace_s``); returns their exit codes.
+
+    The daemon finishes a report render in progress before it exits (by design): tens of seconds on
+    a loaded machine, more than the e2e helper's 30 s grace.
+    """
+    codes = cell.procs.stop_all(grace_s=grace_s)
+    codes.update(cell.stop())
+    return codes
 
 
 def rws_client(cell: Cell) -> Any:

@@ -31,6 +31,7 @@ from cellfaults import (
     kill9_tree,
     raw_check,
     rws_client,
+    stop_cell,
     wait_status,
 )
 
@@ -160,5 +161,5 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
         assert os.path.getsize(raw_dir / "profiles.craw") > 0
     finally:
         cell.procs.procs = [(n, p) for n, p in cell.procs.procs if p.poll() is None]
-        codes = cell.stop()
+        codes = stop_cell(cell)
     assert all(c == 0 for c in codes.values()), codes

@@ -35,6 +35,7 @@ from cellfaults import (
     fault_cell_config,
     raw_check,
     rws_client,
+    stop_cell,
     wait_status,
     wait_until,
 )
@@ -207,5 +208,5 @@ def test_data_dir_too_small_or_read_only_faults_before_motion_and_full_mid_scan_
             # the cell takes triggers again (it is faulted, not stuck); lift the limit first
             resource.prlimit(cell.proc("run").pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY,) * 2)
         finally:
-            codes = cell.stop()
+            codes = stop_cell(cell)
     assert all(c == 0 for c in codes.values()), codes

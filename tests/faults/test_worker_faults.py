@@ -23,6 +23,7 @@ from cellfaults import (
     kill9_tree,
     pid_alive,
     raw_check,
+    stop_cell,
     wait_status,
     wait_until,
 )
@@ -90,5 +91,5 @@ def test_worker_killed_mid_analysis_the_restarted_worker_completes_the_job_once(
     finally:
         # the killed worker is already reaped; stop the rest
         cell.procs.procs = [(n, p) for n, p in cell.procs.procs if p.poll() is None]
-        codes = cell.stop()
+        codes = stop_cell(cell)
     assert all(c == 0 for c in codes.values()), codes

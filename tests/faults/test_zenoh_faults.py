@@ -24,6 +24,7 @@ from cellfaults import (
     fault_cell_config,
     job_history,
     raw_check,
+    stop_cell,
     wait_status,
     wait_until,
     worker_config_via,
@@ -133,7 +134,7 @@ def test_link_cut_during_scan_and_analysis_the_job_is_analysed_once_after_the_li
         assert fwd.stats.cuts == 2 and fwd.stats.accepted >= 3
     finally:
         if workers is not None:
-            workers.stop_all()
+            workers.stop_all(grace_s=60.0)
         fwd.close()
-        codes = cell.stop()
+        codes = stop_cell(cell)
     assert all(c == 0 for c in codes.values()), codes
