@@ -211,6 +211,19 @@ class ZenohAccess(Section):
     password_file: Path | None = None
     dictionary_file: Path | None = None
     roles: dict[ZenohRole, list[str]] = {}
+    # "password": user/password; "tls": mutual TLS, roles name certificate common names; "both".
+    auth: Literal["password", "tls", "both"] = "password"
+    tls_ca_file: Path | None = None  # the cell's CA (PEM): peers must present a certificate it signed
+    tls_cert_file: Path | None = None  # this process's certificate (PEM)
+    tls_key_file: Path | None = None  # its private key (PEM, a secrets file: chmod 600)
+
+    @model_validator(mode="after")
+    def _tls_files_given(self) -> ZenohAccess:
+        if self.auth != "password":
+            missing = [n for n in ("tls_ca_file", "tls_cert_file", "tls_key_file") if getattr(self, n) is None]
+            if missing:
+                raise ValueError(f"auth {self.auth!r} needs {', '.join(missing)}")
+        return self
 
     @field_validator("roles")
     @classmethod

@@ -138,16 +138,24 @@ def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
     }
 
 
-def access_control_dict(roles: dict[str, list[str]], users: list[str], key_prefix: str) -> dict[str, Any]:
+def access_control_dict(
+    roles: dict[str, list[str]],
+    users: list[str] | None,
+    key_prefix: str,
+    *,
+    subject_key: Literal["usernames", "cert_common_names"] = "usernames",
+) -> dict[str, Any]:
     """The zenoh ``access_control`` section: default deny, each role's users allowed its rules only.
 
-    ``roles`` maps a role (operator, worker, viewer, daemon) to user names; empty means every user
-    of ``users`` (the dictionary file's) gets the whole cell key space. A role naming a user that is
-    not in the dictionary is a ZenohSetupError (a typo would silently lock that user out).
+    ``roles`` maps a role (operator, worker, viewer, daemon) to user names (``subject_key``
+    "usernames", from the dictionary ``users``) or certificate common names ("cert_common_names",
+    ``users`` None: any certificate the cell's CA signed). Empty ``roles`` gives every user of
+    ``users`` the whole cell key space. A role naming a user that is not in the dictionary is a
+    ZenohSetupError (a typo would silently lock that user out).
     """
     if not roles:
-        roles = {"daemon": list(users)}
-    unknown = sorted({u for names in roles.values() for u in names} - set(users))
+        roles = {"daemon": list(users or [])}
+    unknown = sorted({u for names in roles.values() for u in names} - set(users)) if users is not None else []
     if unknown:
         raise ZenohSetupError(
             f"zenoh.access.roles names users missing from the dictionary file: {', '.join(unknown)}"
@@ -162,7 +170,7 @@ def access_control_dict(roles: dict[str, list[str]], users: list[str], key_prefi
         for rule in role_rules[role]:
             rules[rule["id"]] = rule  # shared rules (read, declarations) are defined once
             role_rule_ids.append(rule["id"])
-        subjects.append({"id": f"role_{role}", "usernames": list(names)})
+        subjects.append({"id": f"role_{role}", subject_key: list(names)})
         policies.append({"id": f"policy_{role}", "rules": role_rule_ids, "subjects": [f"role_{role}"]})
     return {
         "enabled": True,
@@ -171,6 +179,34 @@ def access_control_dict(roles: dict[str, list[str]], users: list[str], key_prefi
         "subjects": subjects,
         "policies": policies,
     }
+
+
+def _tls_dict(section: ZenohSection, *, role: Role, mode: str) -> dict[str, Any]:
+    """``transport/link/tls`` for mutual TLS: this process's certificate, and the CA that must have
+    signed the peer's. Every endpoint has to be ``tls/...``."""
+    access = section.access
+    plain = [ep for ep in (*section.listen, *section.connect) if not ep.startswith("tls/")]
+    if plain:
+        raise ZenohSetupError(
+            f"zenoh.access.auth {access.auth!r} needs tls/ endpoints, got {', '.join(plain)}"
+        )
+    try:
+        check_secret_file_mode(access.tls_key_file, what="zenoh.access.tls_key_file")
+    except ConfigError as exc:
+        raise ZenohSetupError(str(exc)) from None
+    for name in ("tls_ca_file", "tls_cert_file", "tls_key_file"):
+        if not Path(getattr(access, name)).is_file():
+            raise ZenohSetupError(f"zenoh.access.{name} {getattr(access, name)}: no such file")
+    out: dict[str, Any] = {"root_ca_certificate": str(access.tls_ca_file), "enable_mtls": True}
+    sides = (
+        ["connect"]
+        if role == "connect" or mode == "client"
+        else ["listen"] + (["connect"] if section.connect else [])
+    )
+    for side in sides:
+        out[f"{side}_certificate"] = str(access.tls_cert_file)
+        out[f"{side}_private_key"] = str(access.tls_key_file)
+    return out
 
 
 def config_dict(
@@ -203,17 +239,30 @@ def config_dict(
     }
     access = section.access
     if access.enabled:
-        try:
-            password = resolve_secret(access.password_env, access.password_file, what="zenoh.access password")
-        except ConfigError as exc:
-            raise ZenohSetupError(str(exc)) from None
-        usrpwd: dict[str, Any] = {"user": access.user, "password": password.get_secret_value()}
-        if access.dictionary_file is not None and mode != "client":
-            usrpwd["dictionary_file"] = str(access.dictionary_file)
-            if key_prefix:
-                users = _dictionary_users(access.dictionary_file)
-                cfg["access_control"] = access_control_dict(dict(access.roles), users, key_prefix)
-        cfg["transport"] = {"auth": {"usrpwd": usrpwd}}
+        uses_password = access.auth in ("password", "both")
+        transport: dict[str, Any] = {}
+        if access.auth != "password":
+            transport["link"] = {"tls": _tls_dict(section, role=role, mode=mode)}
+        if uses_password:
+            try:
+                password = resolve_secret(
+                    access.password_env, access.password_file, what="zenoh.access password"
+                )
+            except ConfigError as exc:
+                raise ZenohSetupError(str(exc)) from None
+            usrpwd: dict[str, Any] = {"user": access.user, "password": password.get_secret_value()}
+            if access.dictionary_file is not None and mode != "client":
+                usrpwd["dictionary_file"] = str(access.dictionary_file)
+                if key_prefix:
+                    users = _dictionary_users(access.dictionary_file)
+                    cfg["access_control"] = access_control_dict(dict(access.roles), users, key_prefix)
+            transport["auth"] = {"usrpwd": usrpwd}
+        elif access.roles and key_prefix and mode != "client":
+            # TLS only: the roles name the common names of the certificates the cell's CA signed
+            cfg["access_control"] = access_control_dict(
+                dict(access.roles), None, key_prefix, subject_key="cert_common_names"
+            )
+        cfg["transport"] = transport
     return cfg
 
 

@@ -1,0 +1,162 @@
+"""Mutual TLS from [zenoh.access] (auth = "tls"): certificates made here with `cryptography`, on loopback.
+
+Roles name certificate common names: the operator's certificate may trigger, a worker's may not,
+a certificate from another CA cannot connect at all, and a private key others may read is refused.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime
+import ipaddress
+import json
+from pathlib import Path
+
+import pytest
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import NameOID
+from sec_util import free_port
+
+from cellctl.api import Keys
+from cellctl.config import ZenohAccess, ZenohSection
+from cellctl.zenoh_session import (
+    ZenohSetupError,
+    async_get,
+    build_zenoh_config,
+    close_session,
+    config_dict,
+    declare_async_queryable,
+    open_session,
+)
+
+PREFIX = "cell/tls1"
+KEYS = Keys(PREFIX)
+ROLES = {"operator": ["alice"], "worker": ["w1"]}
+
+
+class Pki:
+    """A CA and leaf certificates (EC P-256) written as PEM files; keys chmod 600."""
+
+    def __init__(self, root: Path, ca_cn: str = "cell-ca") -> None:
+        self.root = root
+        root.mkdir(parents=True, exist_ok=True)
+        self.now = datetime.datetime.now(datetime.UTC)
+        self.ca_key = ec.generate_private_key(ec.SECP256R1())
+        self.ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, ca_cn)])
+        ca = self._builder(self.ca_name, self.ca_key.public_key()).add_extension(
+            x509.BasicConstraints(ca=True, path_length=None), critical=True
+        )
+        self.ca_file = self._write_cert(ca.sign(self.ca_key, hashes.SHA256()), "ca.pem")
+
+    def _builder(self, subject: x509.Name, public_key) -> x509.CertificateBuilder:
+        return (
+            x509.CertificateBuilder()
+            .subject_name(subject)
+            .issuer_name(self.ca_name)
+            .public_key(public_key)
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(self.now - datetime.timedelta(hours=1))
+            .not_valid_after(self.now + datetime.timedelta(days=1))
+        )
+
+    def _write_cert(self, cert: x509.Certificate, name: str) -> Path:
+        path = self.root / name
+        path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        return path
+
+    def leaf(self, cn: str) -> tuple[Path, Path]:
+        key = ec.generate_private_key(ec.SECP256R1())
+        san = x509.SubjectAlternativeName(
+            [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
+        )
+        cert = self._builder(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)]), key.public_key())
+        cert_file = self._write_cert(
+            cert.add_extension(san, critical=False).sign(self.ca_key, hashes.SHA256()), f"{cn}.pem"
+        )
+        key_file = self.root / f"{cn}.key"
+        key_file.write_bytes(
+            key.private_bytes(
+                serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+            )
+        )
+        key_file.chmod(0o600)
+        return cert_file, key_file
+
+
+def _section(port: int, pki: Pki, cn: str, roles: dict | None = None) -> ZenohSection:
+    cert, key = pki.leaf(cn)
+    access = ZenohAccess(enabled=True, auth="tls", tls_ca_file=pki.ca_file, tls_cert_file=cert, tls_key_file=key,
+                         roles=roles if roles is not None else ROLES)  # fmt: skip
+    return ZenohSection(listen=[f"tls/127.0.0.1:{port}"], multicast_scouting=False, access=access)
+
+
+def test_operator_certificate_triggers_worker_certificate_cannot_and_a_foreign_ca_cannot_connect(tmp_path):
+    pki, foreign = Pki(tmp_path / "pki"), Pki(tmp_path / "other", ca_cn="someone-else")
+    port = free_port()
+
+    async def main():
+        calls = 0
+
+        async def on_trigger(query):
+            nonlocal calls
+            calls += 1
+            query.reply(query.key_expr, b'{"job_id": "j", "state": "queued"}')
+
+        daemon = open_session(
+            build_zenoh_config(_section(port, pki, "daemon"), role="serve", key_prefix=PREFIX)
+        )
+        sessions = []
+        try:
+            declare_async_queryable(daemon, KEYS.trigger, on_trigger)
+            out = {}
+            for cn in ("alice", "w1"):
+                s = open_session(build_zenoh_config(_section(port, pki, cn), role="connect"))
+                sessions.append(s)
+                before = calls
+                replies = await async_get(s, KEYS.trigger, payload=json.dumps({}), timeout_s=3)
+                out[cn] = ([r.ok is not None for r in replies], calls - before)
+            with pytest.raises(ZenohSetupError, match="cannot open Zenoh"):
+                sessions.append(
+                    open_session(build_zenoh_config(_section(port, foreign, "alice"), role="connect"))
+                )
+            return out
+        finally:
+            for s in sessions:
+                close_session(s)
+            close_session(daemon)
+
+    out = asyncio.run(main())
+    assert out["alice"] == ([True], 1)
+    assert out["w1"] == ([], 0)
+
+
+def test_tls_config_uses_tls_endpoints_mtls_and_acl_by_certificate_common_name(tmp_path):
+    pki = Pki(tmp_path / "pki")
+    serve = config_dict(_section(7447, pki, "daemon"), role="serve", key_prefix=PREFIX)
+    tls = serve["transport"]["link"]["tls"]
+    assert tls["enable_mtls"] and {"listen_certificate", "listen_private_key", "root_ca_certificate"} <= set(
+        tls
+    )
+    assert "auth" not in serve["transport"]  # no password in TLS-only mode
+    assert {s["id"]: s["cert_common_names"] for s in serve["access_control"]["subjects"]} == {
+        "role_operator": ["alice"],
+        "role_worker": ["w1"],
+    }
+    client = config_dict(_section(7447, pki, "alice"), role="connect", key_prefix=PREFIX)
+    assert {"connect_certificate", "connect_private_key"} <= set(client["transport"]["link"]["tls"])
+    assert "access_control" not in client
+
+
+def test_tls_refuses_plain_tcp_endpoints_a_shared_private_key_and_missing_files(tmp_path):
+    pki = Pki(tmp_path / "pki")
+    section = _section(7447, pki, "daemon")
+    plain = section.model_copy(update={"listen": ["tcp/127.0.0.1:7447"]})
+    with pytest.raises(ZenohSetupError, match="needs tls/ endpoints"):
+        config_dict(plain, key_prefix=PREFIX)
+    section.access.tls_key_file.chmod(0o644)
+    with pytest.raises(ZenohSetupError, match=r"tls_key_file.*mode 644"):
+        config_dict(section, key_prefix=PREFIX)
+    with pytest.raises(ValueError, match="needs tls_ca_file, tls_cert_file, tls_key_file"):
+        ZenohAccess(enabled=True, auth="tls")
