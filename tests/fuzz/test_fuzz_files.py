@@ -85,7 +85,7 @@ def _file(kind: str):
     return draw_file
 
 
-@fuzz_settings(150)
+@fuzz_settings(80)
 @given(data=st.data())
 def test_any_mutated_cloud_file_reads_or_raises_one_cloud_error(data, seeds, tmp_path):
     suffix, raw = data.draw(_file("cloud")(seeds))
@@ -100,7 +100,7 @@ def test_any_mutated_cloud_file_reads_or_raises_one_cloud_error(data, seeds, tmp
     assert cloud.points_mm.shape[1] == 3 and np.isfinite(cloud.points_mm).all()
 
 
-@fuzz_settings(80)
+@fuzz_settings(40)
 @given(data=st.data())
 # found by fuzzing: a 187-byte PLY claiming 10^8 vertices kept open3d busy for 10 to 36 s
 @example(data=None)
@@ -125,6 +125,7 @@ def test_any_mutated_mesh_file_loads_or_raises_one_mesh_error(data, seeds, tmp_p
     assert mesh.triangles.max() < len(mesh.vertices_mm) and np.isfinite(mesh.vertices_mm).all()
 
 
+@pytest.mark.slow  # each example runs the analysis pipeline in-process
 @fuzz_settings(4)
 @given(data=st.data())
 def test_inspect_refuses_mutated_inputs_with_exit_2_and_one_line(data, seeds, tmp_path, capsys):
