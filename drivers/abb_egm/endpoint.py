@@ -393,7 +393,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._watchdog_handle: asyncio.TimerHandle | None = None
         self._malformed_logged_ns = -(10**18)
         self._malformed_suppressed = 0
-        self._feedback_waiters: list[tuple[asyncio.Future, int]] = []
+        self._feedback_waiters: list[asyncio.Future] = []
         # the reference is swapped by the loop and read (or replaced by a hold) by the reply path
         self._ref_lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -431,7 +431,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             self._transport.close()
             self._transport = None
             log.info("egm_endpoint_closed", **self.stats.snapshot())
-        for fut, _ in self._feedback_waiters:
+        for fut in self._feedback_waiters:
             if not fut.done():
                 fut.set_exception(EgmEndpointError("endpoint closed"))
         self._feedback_waiters.clear()
@@ -475,14 +475,12 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     async def wait_for_feedback(self, timeout_s: float) -> EgmState:
         """Wait for the next in-order ``EgmRobot``; raises ``TimeoutError`` after ``timeout_s``."""
         fut = asyncio.get_running_loop().create_future()
-        # stamped with the host clock: a reply thread's sample received before this call is not "next"
-        waiter = (fut, self._clock_ns())
-        self._feedback_waiters.append(waiter)
+        self._feedback_waiters.append(fut)
         try:
             return await asyncio.wait_for(fut, timeout_s)
         finally:
-            if waiter in self._feedback_waiters:
-                self._feedback_waiters.remove(waiter)
+            if fut in self._feedback_waiters:
+                self._feedback_waiters.remove(fut)
 
     # ---- references ---------------------------------------------------------------------------
 
@@ -589,7 +587,23 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                     return
                 self._reference = _joint_reference(msg.feedback_q_deg[: self.config.n_axes].copy())
             ref = self._reference
+        # On the loop the reply goes out before the conversion: nothing can look at the state until
+        # this callback returns anyway. On the reply thread the state goes in first (about 20 us),
+        # so whoever sees the reply (the controller, the executor, a test) finds the state it answers.
+        if self._thread is None:
+            self._reply(addr, t_rx_ns, ref)
+            self._record(pb, data, addr, t_rx_ns, msg, in_order)
+            return
+        try:
+            self._record(pb, data, addr, t_rx_ns, msg, in_order)
+        except Exception as exc:  # the controller gets its reply whatever the bookkeeping did
+            self._post(log.error, "egm_reply_thread_error", error=repr(exc))
         self._reply(addr, t_rx_ns, ref)
+
+    def _record(
+        self, pb, data: bytes, addr: tuple[str, int], t_rx_ns: int, msg: RobotMessage | None, in_order: bool
+    ) -> None:
+        """After (loop) or before (reply thread) the reply: watchdog, statistics, state, history."""
         if self._quiet:
             self._quiet = False
             self._post(self._resumed, (t_rx_ns - (self._last_rx_ns or t_rx_ns)) / 1e9)
@@ -859,19 +873,19 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 rapid=_name(state.rapid_exec_state),
                 ok_to_command=state.ok_to_command,
             )
-        if self._feedback_waiters:
+        # The reply thread hands every sample to the loop (the loop wakes once per cycle, as it does
+        # for the datagram in loop mode): a wait begun before the hand-over runs gets this sample,
+        # exactly as a wait begun before the loop read the datagram does.
+        if self._thread is not None or self._feedback_waiters:
             self._post(self._wake_waiters, state)
 
     def _wake_waiters(self, state: EgmState) -> None:
-        """Resolve the ``wait_for_feedback`` calls made before ``state`` was received (on the loop)."""
-        keep = []
-        for waiter in self._feedback_waiters:
-            fut, t_wait_ns = waiter
-            if t_wait_ns > state.t_host_ns:
-                keep.append(waiter)  # asked after this sample arrived: it waits for the next one
-            elif not fut.done():
-                fut.set_result(state)
-        self._feedback_waiters = keep
+        """Resolve every pending ``wait_for_feedback`` with ``state`` (on the loop)."""
+        if self._feedback_waiters:
+            waiters, self._feedback_waiters = self._feedback_waiters, []
+            for fut in waiters:
+                if not fut.done():
+                    fut.set_result(state)
 
     def _malformed(self, exc: Exception, addr: tuple[str, int], t_rx_ns: int) -> None:
         self.stats.malformed += 1

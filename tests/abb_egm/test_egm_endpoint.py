@@ -38,9 +38,10 @@ from drivers.abb_egm.endpoint import (
 Q0 = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
 
 
-@pytest.fixture(autouse=True, params=["loop", "thread"])
+@pytest.fixture(params=["loop", "thread"])
 def reply_path(request, monkeypatch):
-    """Run the test with the endpoint's replies on the asyncio loop and on the reply thread."""
+    """Run the test with the endpoint's replies on the asyncio loop and on the reply thread (for the
+    tests that serve a socket; the others never start the endpoint)."""
     if request.param == "thread":
         monkeypatch.setattr(
             sys.modules[__name__],
@@ -89,7 +90,7 @@ class FakeController:
     def send(self, payload: bytes) -> None:
         self.sock.sendto(payload, self.addr)
 
-    async def recv(self, wait_s: float = 1.0):
+    async def recv(self, wait_s: float = 5.0):  # generous: the machine may be loaded
         loop = asyncio.get_running_loop()
         data, _ = await asyncio.wait_for(loop.sock_recvfrom(self.sock, 4096), wait_s)
         return decode_sensor(data)
@@ -120,6 +121,7 @@ def run(body, **cfg):
     asyncio.run(_with_endpoint(body, **cfg))
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_endpoint_replies_once_per_robot_message_with_correction_and_consecutive_seqno():
     async def body(ep, ctl):
         replies = []
@@ -135,6 +137,7 @@ def test_endpoint_replies_once_per_robot_message_with_correction_and_consecutive
     run(body)
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_endpoint_holds_the_first_feedback_until_commanded_then_sends_joint_reference_and_speed():
     async def body(ep, ctl):
         ctl.send(robot(0))
@@ -150,6 +153,7 @@ def test_endpoint_holds_the_first_feedback_until_commanded_then_sends_joint_refe
     run(body)
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_endpoint_pose_mode_sends_planned_cartesian_and_no_joints():
     async def body(ep, ctl):
         ctl.send(robot(0))
@@ -175,6 +179,7 @@ def test_command_with_wrong_shape_or_nan_raises_endpoint_error():
         ep.command_pose(np.zeros(3), np.zeros(4))
 
 
+@pytest.mark.usefixtures("reply_path")
 @pytest.mark.parametrize(
     "motors, mci, rapid, expected",
     [
@@ -200,6 +205,7 @@ def test_ok_to_command_needs_motors_on_egm_running_and_rapid_running_or_undefine
     run(body)
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_statistics_count_gaps_duplicates_and_late_packets():
     async def body(ep, ctl):
         for k in (0, 1, 2, 5, 5, 3, 6, 4, 7):  # 3 and 4 arrive late, 5 twice
@@ -220,6 +226,7 @@ def test_statistics_count_gaps_duplicates_and_late_packets():
     run(body)
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_controller_counter_restart_at_zero_is_a_new_session_that_holds_position():
     async def body(ep, ctl):
         ctl.send(robot(0))
@@ -236,6 +243,7 @@ def test_controller_counter_restart_at_zero_is_a_new_session_that_holds_position
     run(body)
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_malformed_packets_are_counted_logged_rate_limited_and_never_stop_the_endpoint():
     async def body(ep, ctl):
         with capture_logs() as logs:
@@ -253,26 +261,33 @@ def test_malformed_packets_are_counted_logged_rate_limited_and_never_stop_the_en
     run(body, malformed_log_interval_s=10.0)
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_watchdog_reports_a_quiet_controller_once_and_its_return():
     events = []
+    seen = {}
+
+    def on_watchdog(event, quiet_s):
+        events.append((event, quiet_s))
+        seen[event].set()
 
     async def body(ep, ctl):
         ctl.send(robot(0))
         await ctl.recv()
-        await asyncio.sleep(0.25)
+        await asyncio.wait_for(seen["quiet"].wait(), 5.0)
         assert ep.quiet
         assert [e for e, _ in events] == ["quiet"]
         assert events[0][1] >= 0.05
         ctl.send(robot(1))
         await ctl.recv()
+        # the reply goes out first; the "resumed" event follows on the loop
+        await asyncio.wait_for(seen["resumed"].wait(), 5.0)
         assert not ep.quiet
         assert [e for e, _ in events] == ["quiet", "resumed"]
         assert ep.stats.watchdog_events == 1
 
     async def main():
-        ep = EgmEndpoint(
-            EgmEndpointConfig(port=0, watchdog_s=0.05), on_watchdog=lambda e, s: events.append((e, s))
-        )
+        seen.update(quiet=asyncio.Event(), resumed=asyncio.Event())
+        ep = EgmEndpoint(EgmEndpointConfig(port=0, watchdog_s=0.05), on_watchdog=on_watchdog)
         addr = await ep.start()
         ctl = FakeController(addr)
         try:
@@ -284,6 +299,7 @@ def test_watchdog_reports_a_quiet_controller_once_and_its_return():
     asyncio.run(main())
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_a_failing_watchdog_callback_does_not_stop_the_endpoint():
     def boom(event, quiet_s):
         raise RuntimeError("callback bug")
@@ -302,6 +318,7 @@ def test_a_failing_watchdog_callback_does_not_stop_the_endpoint():
     asyncio.run(main())
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_wait_for_feedback_times_out_without_traffic():
     async def body(ep, ctl):
         with pytest.raises(TimeoutError):
@@ -313,6 +330,7 @@ def test_wait_for_feedback_times_out_without_traffic():
     run(body)
 
 
+@pytest.mark.usefixtures("reply_path")
 def test_feedback_history_stamps_host_and_controller_time_and_interpolates():
     async def body(ep, ctl):
         t_before = time.monotonic_ns()

@@ -166,13 +166,17 @@ def test_wait_for_feedback_returns_a_sample_received_after_the_call():
         addr = await ep.start()
         ctl = controller_socket()
         try:
+            first = asyncio.ensure_future(ep.wait_for_feedback(5.0))
+            await asyncio.sleep(0)  # the wait is registered
             await exchange(ctl, addr, robot(0))
-            waiter = asyncio.ensure_future(ep.wait_for_feedback(2.0))
+            assert (await first).seqno == 0  # handed over to the loop
+            waiter = asyncio.ensure_future(ep.wait_for_feedback(5.0))
             await asyncio.sleep(0.02)
-            assert not waiter.done()  # the sample already received is not "the next"
+            assert not waiter.done()  # the sample already handed over is not "the next"
             ctl.sendto(robot(1), addr)
             state = await waiter
             assert state.seqno == 1
+            assert ep.latest.seqno == 1
         finally:
             ctl.close()
             await ep.close()
