@@ -47,6 +47,7 @@ __all__ = [
     "JobDataCheck",
     "JobRun",
     "check_job_data",
+    "completed",
     "fault_cell_config",
     "module_cell",
     "open_client",
@@ -437,3 +438,21 @@ async def run_job(
             after = await cell.fault(clear=True) if clear_after else await cell.fault()
         states = [s.state.value for s in c.seen]
     return JobRun(job_id, final, replies, states, check_job_data(cell, job_id), before, after)
+
+
+def completed(run: JobRun) -> bool:
+    """True when the job is done. When the loaded machine starved a simulator (its overrun counters
+    grew) the stated fallbacks are accepted instead and False is returned: a real stall of the
+    controller ends the scan with a stall fault, and a sensor that overran frames leaves a cloud the
+    analysis may refuse with its own plain error. Anything else fails the test."""
+    if run.state == "done":
+        return True
+    if run.controller_starved and run.state == "failed" and "stalled" in run.message:
+        assert run.check.raw_profiles == run.info["profiles"]
+        return False
+    if run.sensor_starved and run.info.get("execution") == "finished" and "analysis" in run.message:
+        return False
+    raise AssertionError(
+        f"job {run.state}: {run.message} (sensor overruns {run.sim_delta('laser', 'overrun_frames')}, "
+        f"controller overruns {run.sim_delta('egm', 'overruns')} of {run.sim_delta('egm', 'cycles')} cycles)"
+    )

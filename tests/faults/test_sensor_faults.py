@@ -13,7 +13,7 @@ import json
 
 import numpy as np
 import pytest
-from faultcell import module_cell, run_job
+from faultcell import completed, module_cell, run_job
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
@@ -34,16 +34,10 @@ def _gap_reported_exactly(run) -> None:
 
 
 def _completed(run) -> bool:
-    """The scan completed and was analysed; on a machine so loaded that the simulated sensor could
-    not render in real time (it overran frames) the analysis may lack the plate, which the job then
-    reports plainly: that is asserted instead."""
+    """The scan completed (execution finished) and the job is done, or a starved simulator's stated
+    fallback holds (see :func:`faultcell.completed`)."""
     assert run.info["execution"] == "finished", run.message
-    if run.sensor_starved:
-        assert run.state in ("done", "failed"), run.message
-        assert run.state == "done" or "analysis" in run.message, run.message
-        return False
-    assert run.state == "done", run.message
-    return True
+    return completed(run)
 
 
 def test_disconnect_mid_pass_reconnects_and_replays_the_missed_frames_without_duplicates(cell):
