@@ -24,6 +24,7 @@ import time
 import numpy as np
 import pytest
 from cellfaults import (
+    FINAL,
     FaultCell,
     analysed,
     fault_cell_config,
@@ -75,13 +76,25 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
             async with cell.client() as c:
                 session, keys, follower = c.session, c.keys, c.follower
                 await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 120.0)
-                acc = await call(session, keys.trigger, json.dumps(cell.trigger_request()), TriggerAccepted)
-                seen["job_id"] = acc.job_id
-                st = await wait_status(
-                    follower,
-                    lambda s: s.job is not None and s.job.state.value == "scanning" and s.job.fraction > 0.6,
-                    120.0,
-                )
+                seen["scans_lost_to_load"] = []
+                for _ in range(3):
+                    acc = await call(
+                        session, keys.trigger, json.dumps(cell.trigger_request()), TriggerAccepted
+                    )
+                    seen["job_id"] = job_id = acc.job_id
+                    st = await wait_status(
+                        follower,
+                        lambda s, job_id=job_id: s.job is not None and s.job.job_id == job_id and (
+                            (s.job.state.value == "scanning" and s.job.fraction > 0.6) or s.job.state.value in FINAL
+                        ),
+                        180.0,
+                    )  # fmt: skip
+                    if st.job.state.value == "scanning":
+                        break
+                    # A loaded machine can starve the simulated controller past the executor's
+                    # silence limit (a motion fault, observed at load 13): scan again, limits unchanged.
+                    seen["scans_lost_to_load"].append(st.job.message)
+                assert st.job.state.value == "scanning", seen
                 seen["profiles_seen"] = st.job.profiles
             seen["killed"] = kill9_tree(cell.proc("run").pid)
             t_kill = time.monotonic()
