@@ -79,21 +79,37 @@ def robot(
 
 
 class FakeController:
-    """A bare UDP socket that plays the controller's side of the exchange."""
+    """A bare UDP socket that plays the controller's side of the exchange.
 
-    def __init__(self, endpoint_addr):
+    ``recv`` returns once the endpoint has also finished with every datagram sent so far: its reply
+    thread answers first and updates state and history after, so a test reads them only then.
+    """
+
+    def __init__(self, endpoint_addr, endpoint: EgmEndpoint | None = None):
         self.addr = endpoint_addr
+        self.endpoint = endpoint
+        self.sent = 0
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.setblocking(False)
 
     def send(self, payload: bytes) -> None:
         self.sock.sendto(payload, self.addr)
+        self.sent += 1
 
     async def recv(self, wait_s: float = 5.0):  # generous: the machine may be loaded
         loop = asyncio.get_running_loop()
         data, _ = await asyncio.wait_for(loop.sock_recvfrom(self.sock, 4096), wait_s)
+        await self.settled()
         return decode_sensor(data)
+
+    async def settled(self, wait_s: float = 5.0) -> None:
+        """Until the endpoint has handled every datagram this controller sent."""
+        for _ in range(int(wait_s / 0.001)):
+            if self.endpoint is None or self.endpoint.stats.handled >= self.sent:
+                return
+            await asyncio.sleep(0.001)
+        raise TimeoutError(f"endpoint handled {self.endpoint.stats.handled} of {self.sent} datagrams")
 
     async def nothing(self, wait: float = 0.05) -> bool:
         try:
@@ -109,7 +125,7 @@ class FakeController:
 async def _with_endpoint(body, **cfg):
     ep = EgmEndpoint(EgmEndpointConfig(port=0, **cfg))
     addr = await ep.start()
-    ctl = FakeController(addr)
+    ctl = FakeController(addr, ep)
     try:
         await body(ep, ctl)
     finally:
@@ -289,7 +305,7 @@ def test_watchdog_reports_a_quiet_controller_once_and_its_return():
         seen.update(quiet=asyncio.Event(), resumed=asyncio.Event())
         ep = EgmEndpoint(EgmEndpointConfig(port=0, watchdog_s=0.05), on_watchdog=on_watchdog)
         addr = await ep.start()
-        ctl = FakeController(addr)
+        ctl = FakeController(addr, ep)
         try:
             await body(ep, ctl)
         finally:
@@ -306,7 +322,7 @@ def test_a_failing_watchdog_callback_does_not_stop_the_endpoint():
 
     async def main():
         ep = EgmEndpoint(EgmEndpointConfig(port=0, watchdog_s=0.02), on_watchdog=boom)
-        ctl = FakeController(await ep.start())
+        ctl = FakeController(await ep.start(), ep)
         ctl.send(robot(0))
         await ctl.recv()
         await asyncio.sleep(0.1)

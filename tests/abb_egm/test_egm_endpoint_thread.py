@@ -57,6 +57,15 @@ async def exchange(ctl: socket.socket, addr, payload: bytes):
     return decode_sensor(data)
 
 
+async def handled(ep: EgmEndpoint, n: int, wait_s: float = 5.0) -> None:
+    """Until the reply thread has finished ``n`` datagrams (it answers first, records after)."""
+    for _ in range(int(wait_s / 0.001)):
+        if ep.stats.handled >= n:
+            return
+        await asyncio.sleep(0.001)
+    raise TimeoutError(f"handled {ep.stats.handled} of {n}")
+
+
 def reply_threads() -> list[threading.Thread]:
     return [t for t in threading.enumerate() if t.name == "egm-reply"]
 
@@ -71,6 +80,7 @@ def test_reply_thread_answers_from_its_own_thread_and_close_ends_it():
             assert len(reply_threads()) == 1
             replies = [await exchange(ctl, addr, robot(k)) for k in range(3)]
             assert [r.seqno for r in replies] == [0, 1, 2]
+            await handled(ep, 3)
             assert ep.stats.replies_sent == 3 and ep.latest.seqno == 2
         finally:
             ctl.close()
@@ -203,7 +213,8 @@ def test_an_error_while_handling_one_datagram_does_not_end_the_reply_thread():
             with capture_logs() as logs:
                 for k in range(4):
                     assert (await exchange(ctl, addr, robot(k))).seqno == k
-                await asyncio.sleep(0.05)
+                await handled(ep, 4)
+                await asyncio.sleep(0.05)  # the error's log line is handed to the loop
             assert [e["event"] for e in logs if e["log_level"] == "error"] == ["egm_reply_thread_error"]
             assert len(ep.history) == 3
         finally:
