@@ -98,7 +98,7 @@ class CellDaemon:
         self.cfg = cfg
         self.settings = cfg.daemon  # the [daemon] section: one source of truth
         self.keys = Keys(cfg.key_prefix)
-        self.store = JobStore(cfg.cell.data_dir)
+        self.store = JobStore(cfg.cell.data_dir, background_saves=True)  # no fsync on the loop
         self.designs_dir = Path(cfg.cell.designs_dir)
         self.sm = CellStateMachine(self._on_transition)
         self.session: Any = None
@@ -244,6 +244,10 @@ class CellDaemon:
             await asyncio.to_thread(close_session, self.session)
             await self.endpoint.close()
             await self.rws.close()
+            try:
+                await asyncio.to_thread(self.store.close)  # every job.json on disk before exit
+            except JobStoreError as exc:
+                log.error("job_records_not_flushed", error=str(exc))
         log.info("daemon_stopped")
         return 0
 
@@ -944,7 +948,9 @@ class CellDaemon:
 
         A child process, not a thread: the render is tens of seconds of matplotlib holding the GIL,
         which would delay the event loop (EGM) of the next scan. It runs at normal priority even when
-        the loop runs under SCHED_FIFO. A shutdown meanwhile waits for it (a flush, not work to drop).
+        the loop runs under SCHED_FIFO. A shutdown meanwhile stops the render (SIGTERM, then SIGKILL
+        after 5 s): the job is already done with its report.json, and ``cellctl report <results>``
+        renders the HTML / PDF again at any time, so a stop never waits tens of seconds on it.
         """
         import sys
 
@@ -966,8 +972,17 @@ class CellDaemon:
             await asyncio.shield(render)
         except asyncio.CancelledError:
             cancelled = True
-            with contextlib.suppress(Exception):
-                await render
+            with contextlib.suppress(ProcessLookupError):
+                proc.terminate()
+            try:
+                await asyncio.wait_for(asyncio.shield(render), 5.0)
+            except Exception:  # TimeoutError included
+                with contextlib.suppress(ProcessLookupError):
+                    proc.kill()
+                with contextlib.suppress(Exception):
+                    await render
+            log.warning("html_report_stopped", job_id=rec.job_id, reason="daemon stopping",
+                        regenerate=f"cellctl report {results}")  # fmt: skip
         html: list[str] = []
         try:
             out, err = render.result()
