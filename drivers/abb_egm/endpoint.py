@@ -879,13 +879,11 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 rapid=_name(state.rapid_exec_state),
                 ok_to_command=state.ok_to_command,
             )
-        # The reply thread hands every sample to the loop (the loop wakes once per cycle, as it does
-        # for the datagram in loop mode): a wait begun before the hand-over runs gets this sample,
-        # exactly as a wait begun before the loop read the datagram does.
-        if self._thread is not None:
-            self._handover = state  # posted by _on_datagram once the reply is out
-        elif self._feedback_waiters:
-            self._wake_waiters(state)
+        if self._feedback_waiters:
+            if self._thread is not None:
+                self._handover = state  # posted by _on_datagram once the reply is out
+            else:
+                self._wake_waiters(state)
 
     def _wake_waiters(self, state: EgmState) -> None:
         """Resolve every pending ``wait_for_feedback`` with ``state`` (on the loop)."""
