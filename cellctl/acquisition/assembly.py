@@ -13,8 +13,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import structlog
 
 from cellctl.acquisition.poses import interpolate_poses, transform_profiles
+
+log = structlog.get_logger(__name__)
+
+#: |coordinate| beyond this (mm, base frame) is not a measurement: 100 m, far beyond any rail cell
+MAX_ABS_MM = 1.0e5
 
 __all__ = [
     "AssembledBatch",
@@ -138,6 +144,13 @@ def assemble_batch(
     # the source's z is NaN where it has no return; only profiles without a pose need masking here
     z = z_mm if all_inside else np.where(ok, z_mm, np.float32(np.nan))
     xyz = transform_profiles(T, x_mm, z)
+    # A point this far from the robot base is not a measurement (a corrupted value upstream, seen on
+    # fault-injected runs as 1e20-1e36 mm); it must not reach the analysis as a plate point.
+    absurd = ok & ~(np.abs(xyz) < MAX_ABS_MM).all(axis=2)
+    if absurd.any():
+        log.warning("absurd_points_dropped", points=int(absurd.sum()), first_profile=first_profile_index)
+        ok = ok & ~absurd
+        xyz[absurd] = np.nan
     return AssembledBatch(
         profile_index=np.arange(first_profile_index, first_profile_index + n, dtype=np.int64),
         frame_index=np.asarray(frame_index, dtype=np.uint64),

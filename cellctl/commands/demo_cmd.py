@@ -59,6 +59,7 @@ def demo_config(base: dict[str, Any], out_dir: Path, *, full: bool = False) -> d
     )
     cfg["zenoh"]["access"]["enabled"] = False
     cfg["sim"]["rws_port"] = rws_port
+    cfg["sim"]["fault_listen"] = f"tcp/127.0.0.1:{free_port()}"  # several sims may run at once
     cfg["sim"]["faults"] = {}
     # The simulated arm shares two loaded cores with everything else; a descheduled simulator makes
     # it lag its reference by a few cycles: allow 0.1 s of lag at the scan speed (10 mm at 100 mm/s,
