@@ -74,6 +74,12 @@ class RobotSection(Section):
     egm_comm_timeout_s: PositiveFloat = 1.0
     egm_watchdog_s: PositiveFloat = 0.1
     egm_history_len: Annotated[int, Field(ge=1000, le=10_000_000)] = 30_000
+    # EGM replies from their own thread (docs/robot-setup.md section 12, benchmarks/egm_latency.py)
+    egm_reply_thread: bool = True
+    egm_reply_priority: Annotated[int, Field(ge=0, le=99)] = 20
+    egm_reply_cpus: list[Annotated[int, Field(ge=0, le=1023)]] = []
+    egm_switch_interval_s: Annotated[float, Field(gt=0, le=0.005, allow_inf_nan=False)] = 2e-4
+    egm_reply_spin_us: Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)] = 150.0
     # RWS (HTTP/HTTPS)
     rws_url: str = "http://127.0.0.1:8080"
     rws_profile: Literal["rws1", "rws2"] = "rws1"

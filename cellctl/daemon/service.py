@@ -153,11 +153,12 @@ class CellDaemon:
                 watchdog_s=r.egm_watchdog_s,
                 history_len=r.egm_history_len,
                 # replies from their own SCHED_FIFO thread, off this loop, with a short GIL hand-over
-                # (benchmarks/README.md, egm_latency); to become cell.toml [robot] egm_reply_* keys
-                reply_thread=True,
-                reply_thread_priority=20,
-                switch_interval_s=2e-4,
-                reply_spin_us=150.0,
+                # (benchmarks/README.md, egm_latency; docs/robot-setup.md section 12)
+                reply_thread=r.egm_reply_thread,
+                reply_thread_priority=r.egm_reply_priority,
+                reply_thread_cpus=tuple(r.egm_reply_cpus),
+                switch_interval_s=r.egm_switch_interval_s,
+                reply_spin_us=r.egm_reply_spin_us,
             )
         )
         try:
