@@ -56,7 +56,7 @@ from typing import Annotated, Any, Literal
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from cellctl.api import JSON, ApiError, Model, TriggerError
+from cellctl.api import JSON, ApiError, Model, TriggerError, parse_model
 from cellctl.config import CellConfig, ZenohSection
 
 log = structlog.get_logger(__name__)
@@ -179,23 +179,9 @@ def sim_faults_key(key_prefix: str) -> str:
 
 def parse_fault_request(payload: bytes | bytearray | str | None) -> FaultRequest:
     """Validate a fault payload; raises FaultRequestError naming the offending knob."""
-    if payload is None or len(payload) == 0:
-        raise FaultRequestError("malformed", "payload", "empty; expected a JSON object")
-    if len(payload) > MAX_FAULT_BYTES:
-        raise FaultRequestError("too_large", "payload", f"{len(payload)} bytes, limit {MAX_FAULT_BYTES}")
-    try:
-        data = json.loads(payload)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise FaultRequestError("malformed", "payload", f"not UTF-8 JSON: {exc}") from None
-    if not isinstance(data, dict):
-        raise FaultRequestError("malformed", "payload", f"expected a JSON object, got {type(data).__name__}")
-    try:
-        return FaultRequest.model_validate(data)
-    except ValidationError as err:
-        e = err.errors(include_url=False)[0]
-        loc = ".".join(str(p) for p in e["loc"]) or "payload"
-        msg = "unknown fault knob" if e["type"] == "extra_forbidden" else e["msg"]
-        raise FaultRequestError("invalid", loc, msg) from None
+    return parse_model(
+        payload, FaultRequest, FaultRequestError, limit=MAX_FAULT_BYTES, unknown="unknown fault knob"
+    )
 
 
 def parse_assignments(items: list[str]) -> dict[str, Any]:
