@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import json
 import os
-import threading
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -86,22 +84,9 @@ class JobRecord:
 
 
 class JobStore:
-    """Reads and writes job records under ``<data_dir>/jobs``.
+    """Reads and writes job records under ``<data_dir>/jobs``."""
 
-    ``background_saves=True`` (the daemon): :meth:`save` snapshots the record at once and writes it
-    (temp file, fsync, rename) on one writer thread, in order, so the event loop never waits on an
-    fsync: on ext4 an fsync can wait for the journal to flush every dirty page of the disk, which at
-    scan start (raw files being created) stalled the loop for about a second. :meth:`create` stays
-    synchronous (a trigger whose record cannot be written is refused), :meth:`load` and
-    :meth:`flush` wait for pending writes, a failed background write is logged and re-raised by the
-    next :meth:`flush`.
-    """
-
-    def __init__(self, data_dir: str | Path, *, background_saves: bool = False) -> None:
-        self._writer = ThreadPoolExecutor(1, thread_name_prefix="jobstore") if background_saves else None
-        self._pending: list[Future] = []
-        self._pending_lock = threading.Lock()
-        self._write_error: JobStoreError | None = None
+    def __init__(self, data_dir: str | Path) -> None:
         data = Path(data_dir)
         if not data.exists():
             make_private_dir(data)
@@ -127,62 +112,13 @@ class JobStore:
         if not record.history:
             record.history.append({"state": record.state, "t_utc": record.created_utc, "message": "accepted"})
         self.save(record)
-        self.flush()
         return record
 
     def save(self, record: JobRecord) -> None:
-        """Write ``job.json`` atomically (temp file, fsync, rename): a crash leaves the old or the new.
-
-        With background saves the record is serialised now and written on the writer thread."""
+        """Write ``job.json`` atomically (temp file, fsync, rename): a crash leaves the old or the new."""
         path = self.job_dir(record.job_id) / "job.json"
-        data = json.dumps(asdict(record), indent=2, default=_json_default)
-        if self._writer is None:
-            self._write(path, data)
-            return
-        fut = self._writer.submit(self._write, path, data)
-        fut.add_done_callback(self._written)
-        with self._pending_lock:
-            self._pending.append(fut)
-
-    def _written(self, fut: Future) -> None:
-        with self._pending_lock:
-            if fut in self._pending:
-                self._pending.remove(fut)
-        exc = fut.exception()
-        if isinstance(exc, JobStoreError):
-            self._write_error = exc
-            log.error("job_record_write_failed", error=str(exc))
-
-    def _wait(self) -> JobStoreError | None:
-        """Wait for the pending background writes; the first write error since the last flush."""
-        with self._pending_lock:
-            pending = list(self._pending)
-        err = None
-        for fut in pending:
-            exc = fut.exception()  # waits
-            if err is None and isinstance(exc, JobStoreError):
-                err = exc
-        err, self._write_error = self._write_error or err, None
-        return err
-
-    def flush(self) -> None:
-        """Wait for every pending background write; raise the first write error since the last flush."""
-        err = self._wait()
-        if err is not None:
-            raise err
-
-    def close(self) -> None:
-        """Flush and stop the writer thread (background saves); a no-op otherwise."""
-        if self._writer is not None:
-            try:
-                self.flush()
-            finally:
-                self._writer.shutdown(wait=True)
-                self._writer = None
-
-    @staticmethod
-    def _write(path: Path, data: str) -> None:
         tmp = path.with_suffix(".json.tmp")
+        data = json.dumps(asdict(record), indent=2, default=_json_default)
         try:
             with open(tmp, "w", encoding="utf-8") as f:
                 f.write(data)
@@ -201,9 +137,7 @@ class JobStore:
         log.info("job_state", job_id=record.job_id, state=record.state, message=message)
 
     def load(self, job_id: str) -> JobRecord:
-        """Read one record (after any pending background write)."""
-        if self._writer is not None:
-            self._wait()
+        """Read one record."""
         path = self.job_dir(job_id) / "job.json"
         try:
             data = json.loads(path.read_text(encoding="utf-8"))

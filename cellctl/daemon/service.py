@@ -98,7 +98,7 @@ class CellDaemon:
         self.cfg = cfg
         self.settings = cfg.daemon  # the [daemon] section: one source of truth
         self.keys = Keys(cfg.key_prefix)
-        self.store = JobStore(cfg.cell.data_dir, background_saves=True)  # no fsync on the loop
+        self.store = JobStore(cfg.cell.data_dir)
         self.designs_dir = Path(cfg.cell.designs_dir)
         self.sm = CellStateMachine(self._on_transition)
         self.session: Any = None
@@ -245,10 +245,6 @@ class CellDaemon:
             await asyncio.to_thread(close_session, self.session)
             await self.endpoint.close()
             await self.rws.close()
-            try:
-                await asyncio.to_thread(self.store.close)  # every job.json on disk before exit
-            except JobStoreError as exc:
-                log.error("job_records_not_flushed", error=str(exc))
         log.info("daemon_stopped")
         return 0
 

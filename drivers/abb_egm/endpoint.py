@@ -102,6 +102,12 @@ class EgmEndpointConfig:
     and a log line), ``reply_thread_cpus`` pins it to those CPUs (empty: any), and
     ``switch_interval_s`` sets ``sys.setswitchinterval`` while the endpoint runs, so a busy
     Python thread hands the GIL to the reply thread sooner (None: leave the interpreter's 5 ms).
+    Feedback plausibility: a sample whose joints leave the straight-line prediction from the two
+    samples before it by more than ``plausible_tol_deg + accel dt^2 / 2`` is held back as suspect
+    (EGM has no checksum; a datagram corrupted past the UDP checksum can still decode). It is taken
+    once the next sample agrees with it within ``plausible_speed_deg_s`` (a real change, e.g. a hard
+    stop, persists), otherwise dropped and counted in ``implausible``; pose interpolation never sees it.
+    ``cycle_s`` is the controller's nominal period, for the prediction's time steps.
     ``reply_spin_us`` > 0 makes the thread poll its socket without sleeping from that long before
     the next packet is due (one receive interval after the last) until it comes or as long again
     after, so the reply does not wait for a wake-up; it costs about twice that per cycle of a core.
@@ -119,6 +125,10 @@ class EgmEndpointConfig:
     reply_thread_cpus: tuple[int, ...] = ()
     switch_interval_s: float | None = None
     reply_spin_us: float = 0.0
+    plausible_accel_deg_s2: float = 5000.0
+    plausible_tol_deg: float = 0.05
+    plausible_speed_deg_s: float = 600.0
+    cycle_s: float = 0.004032
 
 
 def ok_to_command(
@@ -302,6 +312,7 @@ class EgmStatistics:
     duplicated: int = 0
     out_of_order: int = 0
     malformed: int = 0
+    implausible: int = 0
     sessions: int = 0
     handled: int = 0
     watchdog_events: int = 0
@@ -386,6 +397,9 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._transport: asyncio.DatagramTransport | None = None
         self._controller_addr: tuple[str, int] | None = None
         self._latest: EgmState | None = None
+        # the last two accepted (seqno, q_deg) and a held-back suspect (seqno, q_deg, msg, t_rx_ns)
+        self._plaus: list[tuple[int, np.ndarray]] = []
+        self._suspect: tuple | None = None
         self._reference: _Reference | None = None
         self._last_seqno: int | None = None
         self._last_tm: int | None = None
@@ -620,7 +634,55 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         if self._last_rx_ns is not None:
             self.stats._intervals_us.append((t_rx_ns - self._last_rx_ns) / 1000.0)
         self._last_rx_ns = t_rx_ns
-        self._update_state(msg, t_rx_ns)
+        verdict = self._plausibility(msg, t_rx_ns)
+        if verdict is None:
+            return
+        for m, t in verdict:
+            self._update_state(m, t)
+
+    def _plausibility(self, msg: RobotMessage, t_rx_ns: int) -> list[tuple[RobotMessage, int]] | None:
+        """The samples to take now (this one, possibly after a confirmed suspect), or None to hold."""
+        c = self.config
+        n = c.n_axes
+        q = np.asarray(msg.feedback_q_deg[:n], dtype=np.float64)
+        s = msg.seqno
+        if q.shape[0] < n or s is None:
+            return [(msg, t_rx_ns)]
+        if not np.isfinite(q).all() or np.abs(q).max() > 720.0:
+            self._implausible(msg, t_rx_ns, "joint value out of any range")
+            return None
+        take: list[tuple[RobotMessage, int]] = []
+        if len(self._plaus) == 2:
+            (s0, q0), (s1, q1) = self._plaus
+            k, k01 = s - s1, s1 - s0
+            if 0 < k <= 25 and k01 > 0:
+                dt = k * c.cycle_s
+                tol = c.plausible_tol_deg + 0.5 * c.plausible_accel_deg_s2 * dt * dt
+                if np.abs(q - (q1 + (q1 - q0) * (k / k01))).max() > tol:
+                    sus = self._suspect
+                    ks = None if sus is None else s - sus[0]
+                    step = c.plausible_tol_deg + c.plausible_speed_deg_s * c.cycle_s * (ks or 0)
+                    if sus is None or not 0 < ks <= 3 or np.abs(q - sus[1]).max() > step:
+                        if sus is not None:  # the earlier suspect was alone: corrupt
+                            self._implausible(sus[2], sus[3], "joint jump not confirmed")
+                        self._suspect = (s, q, msg, t_rx_ns)
+                        return None
+                    take.append((sus[2], sus[3]))  # two samples agree: a real change
+                    self._plaus = [(sus[0], sus[1])]
+        if self._suspect is not None and not take:
+            self._implausible(self._suspect[2], self._suspect[3], "joint jump not confirmed")
+        self._suspect = None
+        self._plaus = [*self._plaus, (s, q)][-2:]
+        take.append((msg, t_rx_ns))
+        return take
+
+    def _implausible(self, msg: RobotMessage, t_rx_ns: int, why: str) -> None:
+        self.stats.implausible += 1
+        self._malformed(
+            ValueError(f"implausible feedback (seqno {msg.seqno}): {why}"),
+            self._controller_addr or ("?", 0),
+            t_rx_ns,
+        )
 
     def _resumed(self, quiet_s: float) -> None:
         log.info("egm_controller_resumed", quiet_s=round(quiet_s, 4))
@@ -815,6 +877,8 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._reply_seqno = seqno
         # a stale reference from a previous session could make the robot jump: hold instead
         self._reference = None
+        self._plaus = []
+        self._suspect = None
         self._post(log.info, "egm_session_seen", seqno=seqno, session=self.stats.sessions)
 
     def _reply(self, addr: tuple[str, int], t_rx_ns: int, ref: _Reference | None) -> None:

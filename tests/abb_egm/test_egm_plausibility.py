@@ -1,0 +1,57 @@
+"""Feedback that decodes but cannot be the robot (a datagram corrupted past the UDP checksum) never
+reaches the pose history; a real change (a hard stop) is taken once the next sample confirms it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.abb_egm.test_egm_endpoint import Q0, robot, run
+
+
+@pytest.mark.parametrize("reply_thread", [False, True])
+def test_a_lone_joint_jump_is_dropped_and_counted(reply_thread):
+    async def body(ep, ctl):
+        for k in range(8):
+            q = Q0 + 0.1 * k
+            if k == 5:
+                q = q.copy()
+                q[1] += 3.0  # one corrupted joint value, 3 deg off the motion
+            ctl.send(robot(k, q=q))
+            await ctl.recv()
+        a = ep.history.arrays()
+        assert list(a.seqno) == [0, 1, 2, 3, 4, 6, 7]
+        np.testing.assert_allclose(a.q_deg[:, 1], Q0[1] + 0.1 * a.seqno)
+        assert ep.stats.implausible == 1 and ep.stats.malformed == 1
+        assert ep.latest.seqno == 7
+
+    run(body, reply_thread=reply_thread)
+
+
+@pytest.mark.parametrize("reply_thread", [False, True])
+def test_a_hard_stop_confirmed_by_the_next_sample_is_kept(reply_thread):
+    async def body(ep, ctl):
+        seq = [Q0 + 0.1 * k for k in range(5)] + [Q0 + 0.45] * 4  # moving, then stopped dead
+        for k, q in enumerate(seq):
+            ctl.send(robot(k, q=q))
+            await ctl.recv()
+        a = ep.history.arrays()
+        assert list(a.seqno) == list(range(9))
+        assert ep.stats.implausible == 0
+        np.testing.assert_allclose(a.q_deg[-1], Q0 + 0.45)
+
+    run(body, reply_thread=reply_thread)
+
+
+def test_non_finite_or_absurd_joints_never_reach_the_history():
+    async def body(ep, ctl):
+        for k in range(3):
+            ctl.send(robot(k, q=Q0))
+            await ctl.recv()
+        bad = Q0.copy()
+        bad[0] = 1e30
+        ctl.send(robot(3, q=bad))
+        await ctl.recv()
+        assert len(ep.history.arrays()) == 3 and ep.stats.implausible == 1
+
+    run(body)
