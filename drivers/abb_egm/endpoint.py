@@ -74,6 +74,8 @@ __all__ = [
 log = structlog.get_logger(__name__)
 
 _U32 = 2**32
+#: a forward seqno jump beyond this (4 s of packets) waits for the next packet to confirm it
+_SEQNO_JUMP = 1000
 #: reply latency histogram bin edges (us); the last bin is open ended
 LATENCY_BIN_EDGES_US = np.array([0, 20, 50, 100, 200, 500, 1000, 2000, 4000, 10000], dtype=np.int64)
 
@@ -397,9 +399,10 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._transport: asyncio.DatagramTransport | None = None
         self._controller_addr: tuple[str, int] | None = None
         self._latest: EgmState | None = None
-        # the last two accepted (seqno, q_deg) and a held-back suspect (seqno, q_deg, msg, t_rx_ns)
-        self._plaus: list[tuple[int, np.ndarray]] = []
+        # the last two accepted (seqno, q_deg, t_ctrl_us), a held-back suspect (seqno, q, msg, t_rx_ns, t)
+        self._plaus: list[tuple[int, np.ndarray, int | None]] = []
         self._suspect: tuple | None = None
+        self._seqno_suspect: int | None = None
         self._reference: _Reference | None = None
         self._last_seqno: int | None = None
         self._last_tm: int | None = None
@@ -651,28 +654,39 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         if not np.isfinite(q).all() or np.abs(q).max() > 720.0:
             self._implausible(msg, t_rx_ns, "joint value out of any range")
             return None
+        t = msg.feedback_time_us
         take: list[tuple[RobotMessage, int]] = []
         if len(self._plaus) == 2:
-            (s0, q0), (s1, q1) = self._plaus
+            (s0, q0, t0), (s1, q1, t1) = self._plaus
             k, k01 = s - s1, s1 - s0
             if 0 < k <= 25 and k01 > 0:
                 dt = k * c.cycle_s
                 tol = c.plausible_tol_deg + 0.5 * c.plausible_accel_deg_s2 * dt * dt
-                if np.abs(q - (q1 + (q1 - q0) * (k / k01))).max() > tol:
+                off = np.abs(q - (q1 + (q1 - q0) * (k / k01))).max() > tol
+                if t is not None and t0 is not None and t1 is not None:
+                    # the controller's clock advances one period per message (the robot clock fit uses it)
+                    off = off or abs((t - t1) - (t1 - t0) * k / k01) > 2000 + 0.25 * dt * 1e6
+                if off:
                     sus = self._suspect
                     ks = None if sus is None else s - sus[0]
                     step = c.plausible_tol_deg + c.plausible_speed_deg_s * c.cycle_s * (ks or 0)
-                    if sus is None or not 0 < ks <= 3 or np.abs(q - sus[1]).max() > step:
+                    agree = (
+                        sus is not None
+                        and 0 < ks <= 3
+                        and np.abs(q - sus[1]).max() <= step
+                        and (t is None or sus[4] is None or abs((t - sus[4]) - ks * c.cycle_s * 1e6) <= 2000)
+                    )
+                    if not agree:
                         if sus is not None:  # the earlier suspect was alone: corrupt
-                            self._implausible(sus[2], sus[3], "joint jump not confirmed")
-                        self._suspect = (s, q, msg, t_rx_ns)
+                            self._implausible(sus[2], sus[3], "jump not confirmed")
+                        self._suspect = (s, q, msg, t_rx_ns, t)
                         return None
                     take.append((sus[2], sus[3]))  # two samples agree: a real change
-                    self._plaus = [(sus[0], sus[1])]
+                    self._plaus = [(sus[0], sus[1], sus[4])]
         if self._suspect is not None and not take:
-            self._implausible(self._suspect[2], self._suspect[3], "joint jump not confirmed")
+            self._implausible(self._suspect[2], self._suspect[3], "jump not confirmed")
         self._suspect = None
-        self._plaus = [*self._plaus, (s, q)][-2:]
+        self._plaus = [*self._plaus, (s, q, t)][-2:]
         take.append((msg, t_rx_ns))
         return take
 
@@ -858,6 +872,14 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             self.stats.duplicated += 1
             return False
         if diff < _U32 // 2:
+            if diff > _SEQNO_JUMP and seqno != (self._seqno_suspect or -2) + 1:
+                # a forward jump of seconds' worth of packets: a corrupted seqno (EGM has no checksum),
+                # unless the next packet continues from it; taken as the newest it would make every
+                # genuine packet after it look stale
+                self._seqno_suspect = seqno
+                self.stats.implausible += 1
+                return False
+            self._seqno_suspect = None
             self.stats.lost += diff - 1
             self._last_seqno = seqno
             self._recent.append(seqno)
@@ -879,6 +901,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._reference = None
         self._plaus = []
         self._suspect = None
+        self._seqno_suspect = None
         self._post(log.info, "egm_session_seen", seqno=seqno, session=self.stats.sessions)
 
     def _reply(self, addr: tuple[str, int], t_rx_ns: int, ref: _Reference | None) -> None:

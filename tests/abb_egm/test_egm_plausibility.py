@@ -55,3 +55,22 @@ def test_non_finite_or_absurd_joints_never_reach_the_history():
         assert len(ep.history.arrays()) == 3 and ep.stats.implausible == 1
 
     run(body)
+
+
+def test_a_corrupted_controller_time_or_seqno_jump_is_dropped_and_the_stream_goes_on():
+    async def body(ep, ctl):
+        for k in range(4):
+            ctl.send(robot(k, q=Q0))
+            await ctl.recv()
+        ctl.send(robot(4, q=Q0, t_us=1_700_000_000_000_000 + 4 * 4032 + 9_000_000))  # clock 9 s off
+        await ctl.recv()
+        ctl.send(robot(5_000_000, q=Q0))  # a seqno from nowhere
+        await ctl.recv()
+        for k in range(5, 9):
+            ctl.send(robot(k, q=Q0))
+            await ctl.recv()
+        a = ep.history.arrays()
+        assert list(a.seqno) == [0, 1, 2, 3, 5, 6, 7, 8]
+        assert ep.stats.implausible == 2 and ep.latest.seqno == 8
+
+    run(body)

@@ -27,6 +27,9 @@ def tiny_cell_config(out: Path, **plate: float) -> Path:
     cfg = demo_config(base, out)
     cfg["sim"]["plate"].update(length_mm=plate.get("length_mm", 300.0), width_mm=plate.get("width_mm", 200.0))
     cfg["scan"].update(profile_spacing_mm=plate.get("profile_spacing_mm", 1.5))
+    # The HTML/PDF render (a child process of tens of CPU-seconds) has its own tests
+    # (tests/zenoh/test_daemon_html_step.py); here it would only compete with the next scan.
+    cfg["daemon"]["write_html_report"] = False
     cfg["analysis"].update(
         transverse_count=2, transverse_spacing_mm=80.0, longitudinal_count=1, longitudinal_spacing_mm=100.0,
         ack_timeout_s=5.0, heartbeat_timeout_s=5.0,
