@@ -226,7 +226,9 @@ class ZenohAccess(Section):
     @model_validator(mode="after")
     def _tls_files_given(self) -> ZenohAccess:
         if self.auth != "password":
-            missing = [n for n in ("tls_ca_file", "tls_cert_file", "tls_key_file") if getattr(self, n) is None]
+            missing = [
+                n for n in ("tls_ca_file", "tls_cert_file", "tls_key_file") if getattr(self, n) is None
+            ]
             if missing:
                 raise ValueError(f"auth {self.auth!r} needs {', '.join(missing)}")
         return self

@@ -498,7 +498,10 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         fut = asyncio.get_running_loop().create_future()
         self._feedback_waiters.append(fut)
         try:
-            return await asyncio.wait_for(fut, timeout_s)
+            # asyncio.timeout, not wait_for: on Python 3.11 wait_for drops a cancellation that arrives
+            # as the feedback does, and at 250 Hz a cancelled waiter loop would carry on.
+            async with asyncio.timeout(timeout_s):
+                return await fut
         finally:
             if fut in self._feedback_waiters:
                 self._feedback_waiters.remove(fut)

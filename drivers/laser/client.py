@@ -13,7 +13,6 @@ validation is skipped, counted and logged (rate limited), and the stream carries
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
 from collections.abc import AsyncIterator
 from typing import Any
@@ -29,6 +28,9 @@ from drivers.laser.source import ProfileBatch, ProfileSource, SourceEventKind
 __all__ = ["HD8Client", "HD8ClientConfig"]
 
 log = structlog.get_logger(__name__)
+
+#: how long close() waits for its tasks to end after cancelling them
+_CLOSE_TIMEOUT_S = 2.0
 
 _CLOSED = object()
 
@@ -129,7 +131,8 @@ class HD8Client(ProfileSource):
             reader, writer = self._ctl
             writer.write(P.encode_command(command, payload))
             try:
-                msg = await asyncio.wait_for(self._read_reply(reader), self.config.command_timeout_s)
+                async with asyncio.timeout(self.config.command_timeout_s):
+                    msg = await self._read_reply(reader)
             except TimeoutError:
                 await self._close_control()
                 raise P.ProtocolTimeout(
@@ -254,9 +257,14 @@ class HD8Client(ProfileSource):
         self._want_running = False
         for t in self._tasks:
             t.cancel()
-        for t in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
+        if self._tasks:
+            # Bounded: a task that ignores its cancellation is logged, never waited for forever.
+            ended, stuck = await asyncio.wait(self._tasks, timeout=_CLOSE_TIMEOUT_S)
+            for t in ended:
+                if not t.cancelled() and t.exception() is not None:
+                    log.warning("hd8_task_failed_at_close", task=t.get_name(), error=repr(t.exception()))
+            if stuck:
+                log.error("hd8_close_tasks_stuck", tasks=sorted(t.get_name() for t in stuck))
         self._tasks = []
         if self._data_writer is not None:
             self._data_writer.transport.abort()
@@ -370,8 +378,12 @@ class HD8Client(ProfileSource):
                 # Inside a message, silence means a corrupt size field (one stray byte shifts the
                 # stream and the "size" can ask for megabytes that never come): resubscribe instead
                 # of waiting for them forever.
+                # asyncio.timeout, not wait_for: on Python 3.11 wait_for drops a cancellation that
+                # arrives as the read completes, and on a busy stream that is most of them (close()
+                # then waited for a second cancel).
                 try:
-                    chunk = await asyncio.wait_for(reader.read(chunk_size), stall_s)
+                    async with asyncio.timeout(stall_s):
+                        chunk = await reader.read(chunk_size)
                 except TimeoutError:
                     raise P.FramingError(
                         f"no data for {stall_s} s inside a message ({framer.pending} bytes of it buffered)",

@@ -48,6 +48,9 @@ __all__ = ["LaserSimulator", "PoseFn", "SimConfig", "SimFaults", "SimStats", "fi
 
 log = structlog.get_logger(__name__)
 
+#: spacing of the jitter-delayed sends that would otherwise share one time (keeps their order)
+_SEND_ORDER_STEP_S = 1e-6
+
 #: ``pose_at(t_true_s (n,) float64 s) -> (n, 4, 4) T_world_sensor in mm``. Called in the event loop.
 PoseFn = Callable[[np.ndarray], np.ndarray]
 
@@ -583,10 +586,13 @@ class LaserSimulator:
             for hn, hg in pending:
                 self._send_all(hn, hg)
             return
-        # Delay each group by a random amount, never overtaking the group before it.
+        # Delay each group by a random amount, never overtaking the group before it. The send times
+        # must be strictly increasing: the event loop's timer heap does not keep insertion order
+        # among equal times (the groups held by a stall, released together, came out shuffled).
         loop = asyncio.get_running_loop()
         for hn, hg in pending:
-            t_send = max(self._last_send_at, loop.time() + abs(self._fault_rng.normal(0.0, jitter)))
+            t_jitter = loop.time() + abs(self._fault_rng.normal(0.0, jitter))
+            t_send = max(self._last_send_at + _SEND_ORDER_STEP_S, t_jitter)
             self._last_send_at = t_send
             loop.call_at(t_send, self._send_all, hn, hg)
 

@@ -134,6 +134,36 @@ def test_watchdog_reports_stall_and_resumption() -> None:
     run(scenario())
 
 
+def test_close_ends_promptly_while_the_stream_is_busy() -> None:
+    """Regression: on Python 3.11 ``asyncio.wait_for`` dropped a cancellation that arrived as the read
+    inside it completed; with a backlog streaming in, close() hung until a second cancel came (20 s in
+    the stall test above). close() must end its tasks well within its own bounded wait."""
+    from drivers.laser.client import _CLOSE_TIMEOUT_S
+
+    async def scenario() -> None:
+        sim = LaserSimulator(plane_scene(0.0), fixed_pose(looking_down(100.0)), config=FAST)
+        ctl, dat = await sim.start()
+        client = HD8Client("127.0.0.1", ctl, dat, config=HD8ClientConfig(watchdog_timeout_s=0.15))
+        try:
+            await client.connect()
+            await client.start()
+            await collect(client, 20)
+            sim.stall(0.5, acquire=True)
+            while (await asyncio.wait_for(client.events.get(), 3.0)).kind != SourceEventKind.RESUMED:
+                pass
+            await collect(client, 300)  # the held backlog is streaming in
+            t0 = time.monotonic()
+            closing = asyncio.create_task(client.close())
+            done, _ = await asyncio.wait({closing}, timeout=_CLOSE_TIMEOUT_S * 2)
+            assert closing in done
+            assert time.monotonic() - t0 < _CLOSE_TIMEOUT_S / 2
+        finally:
+            await client.close()
+            await sim.stop()
+
+    run(scenario())
+
+
 def test_buffer_overflow_is_counted_and_reported_not_silent() -> None:
     async def scenario() -> None:
         cfg = HD8ClientConfig(buffer_profiles=30)
@@ -530,6 +560,31 @@ def test_network_jitter_delays_groups_without_reordering_them() -> None:
             true_ns = sim.exposure_mid_true_s(b.frame_index) * 1e9
             latency_ms = (b.host_recv_ns - true_ns) / 1e6
             assert latency_ms.min() > 0 and np.percentile(latency_ms, 90) - latency_ms.min() > 1.0
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_frames_held_by_a_stall_are_released_in_order_under_network_jitter(seed) -> None:
+    """Regression (issue 10's stalled-sensor fault case): the groups held during a stall are released
+    together; with network jitter they were scheduled at equal times, and the event loop's timer heap
+    does not keep insertion order among equal times, so the client saw them out of order, counted
+    them missing and then dropped them as stale."""
+    cfg = SimConfig(
+        rate_hz=500.0, network_jitter_s=0.0003, outlier_probability=0.0, seed=seed, max_backlog_s=10.0
+    )
+
+    async def scenario() -> None:
+        ccfg = HD8ClientConfig(watchdog_timeout_s=0.15)
+        async with sim_and_client(config=cfg, client_config=ccfg) as (sim, client):
+            await client.start()
+            first = await collect(client, 20)
+            sim.stall(0.4, acquire=True)
+            b = ProfileBatch.concat([*first, *(await collect(client, 500))])
+            fi = b.frame_index.astype(np.int64)
+            np.testing.assert_array_equal(fi, np.arange(fi[0], fi[0] + len(fi)))
+            st = client.stats
+            assert (st.gaps, st.missing_frames, st.duplicates_dropped) == (0, 0, 0), st
 
     run(scenario())
 
