@@ -46,17 +46,30 @@ from tcp_forwarder import TcpForwarder  # noqa: E402
 from cellctl.commands.demo_cmd import Processes  # noqa: E402
 from cellctl.logging import configure_logging  # noqa: E402
 
-#: name -> (kind, scan fraction at which it is injected, fault-channel request or None)
+#: name -> (kind, scan fraction at which it is injected, fault-channel request or None). Kinds:
+#: egm / sensor / rws / controller / estop go through the simulator's fault channel mid-scan;
+#: rws_down is in force when the trigger arrives (the job fails before motion); worker and link act
+#: on the worker process and its forwarder.
 FAULTS: dict[str, tuple[str, float, dict[str, Any] | None]] = {
     "egm_loss_1pct": ("egm", 0.2, {"egm": {"loss_fraction": 0.01}}),
     "egm_loss_5pct_bursts": ("egm", 0.2, {"egm": {"loss_fraction": 0.05, "burst_ms": 50.0}}),
     "egm_duplicates_reorder": ("egm", 0.2, {"egm": {"duplicate_fraction": 0.02, "reorder_fraction": 0.02}}),
+    "egm_silent": ("egm", 0.3, {"egm": {"stop_sending": True}}),
     "sensor_corrupt_frames": ("sensor", 0.3, {"laser": {"corrupt": {"groups": 3, "mode": "payload"}}}),
     "sensor_stall": ("sensor", 0.3, {"laser": {"stall_s": 1.0}}),
+    "sensor_disconnect": ("sensor", 0.3, {"laser": {"disconnect_after_frames": 30}}),
+    "sensor_clock_jump": ("sensor", 0.4, {"laser": {"clock_jump_ms": 250.0}}),
     "rws_slow": ("rws", 0.2, {"rws": {"delay_s": 1.0, "delay_path": "/"}}),
+    "rws_503": ("rws_down", 0.0, {"rws": {"error_status": 503}}),
+    "motors_off": ("controller", 0.3, {"controller": {"action": "motors_off"}}),
+    "emergency_stop": ("estop", 0.3, {"controller": {"action": "emergency_stop"}}),
     "worker_kill9": ("worker", 0.0, None),
     "link_cut": ("link", 0.3, None),
 }
+#: the fault kinds that go through the simulator's fault channel (cleared after the job)
+_SIM_KINDS = ("egm", "sensor", "rws", "rws_down", "controller", "estop")
+#: the kinds whose injected fault stops or drops the EGM stream (their lost packets are not "missed")
+_EGM_KINDS = ("egm", "controller", "estop")
 FINAL = ("done", "failed", "aborted", "interrupted")
 
 
@@ -147,9 +160,11 @@ async def _one_job(sc: SoakCell, res: JobResult, timeout_s: float) -> None:
     cell = sc.cell
     async with cell.client() as c:
         await c.wait_idle_or_faulted(timeout_s=180.0)
-        job_id = res.job_id = await c.trigger(plate_id=f"soak-{res.index}")
+        if kind == "rws_down":
+            await cell.fault(request)
         try:
-            if kind in ("egm", "sensor", "rws", "link"):
+            job_id = res.job_id = await c.trigger(plate_id=f"soak-{res.index}")
+            if kind in ("egm", "sensor", "rws", "controller", "estop", "link"):
                 st = await c.wait(
                     lambda s: s.job is not None and s.job.job_id == job_id and (
                         s.job.state.value in FINAL
@@ -180,11 +195,17 @@ async def _one_job(sc: SoakCell, res: JobResult, timeout_s: float) -> None:
                     sc.start_worker()
             final = await c.wait_job_end(job_id, timeout_s)
         finally:
-            if kind in ("egm", "sensor", "rws"):
+            if kind in _SIM_KINDS:
                 await cell.fault(clear=True)
             sc.fwd.restore()
         res.state = final.job.state.value
         res.message = final.job.message[:300]
+        if kind == "estop":
+            # the operator's procedure (docs/operations.md): release and reset the controller's
+            # e-stop, then reset the cell
+            await c.wait(lambda s: s.state.value == "emergency_stopped", 60.0)
+            await cell.fault(controller={"action": "reset_emergency_stop"})
+            await c.control("reset")
         # the cell takes triggers again (idle, or faulted: a stated state a trigger leaves)
         st = await c.wait(lambda s: s.state.value in ("idle", "faulted") and bool(s.workers), 120.0)
         res.cell_state_after = st.state.value
@@ -212,7 +233,7 @@ def run_soak(
         raise ValueError(f"unknown fault(s) {unknown}; known: {sorted(FAULTS)}")
     rng = random.Random(seed)
     # seeded shuffles of the menu, one after the other: random order, yet every fault is drawn
-    # once before any is drawn twice (10 jobs cover the 8 faults)
+    # once before any is drawn twice (14 jobs cover the 14 faults)
     drawn: list[str] = []
     while len(drawn) < jobs:
         drawn += rng.sample(menu, len(menu))
@@ -256,7 +277,7 @@ def run_soak(
         codes = sc.stop()
     egm = (stats.get("egm") or {}) if stats else {}
     rss = [r.rss_mb for r in results if r.rss_mb > 0]
-    missed = sum(int(r.egm.get("lost", 0)) for r in results if FAULTS[r.fault][0] != "egm")
+    missed = sum(int(r.egm.get("lost", 0)) for r in results if FAULTS[r.fault][0] not in _EGM_KINDS)
     return {
         "jobs": jobs,
         "completed": sum(r.outcome == "completed" for r in results),

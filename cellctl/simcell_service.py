@@ -21,7 +21,6 @@ import asyncio
 import contextlib
 import json
 import os
-import signal
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -33,6 +32,7 @@ import structlog
 from cellctl.acquisition.poses import T_from_pos_rpy
 from cellctl.acquisition.simcell import PlateTruth, plate_truth
 from cellctl.config import CellConfig
+from cellctl.signals import stop_on_signals
 
 log = structlog.get_logger(__name__)
 
@@ -133,18 +133,9 @@ class SimulatedCell:
         trajectory = self.controller.egm.trajectory
 
         def pose_at(t_true_s: np.ndarray) -> np.ndarray:
-            t = np.asarray(t_true_s, dtype=np.float64)
-            ts, qs = trajectory.arrays()
-            if len(ts) < 2 or not (t > ts[-1]).any():
-                return trajectory.T_base_frame_at(t, T_fs)
-            # the controller's cycle fell behind the sensor's on a loaded machine: continue the
-            # arm's last joint velocity for those milliseconds (as SimCell does) rather than fail
-            late = t > ts[-1]
-            q = np.empty((len(t), 6))
-            if (~late).any():
-                q[~late] = trajectory.q_deg_at(t[~late])
-            v = (qs[-1] - qs[-2]) / max(ts[-1] - ts[-2], 1e-6)
-            q[late] = qs[-1] + v * (t[late] - ts[-1])[:, None]
+            # a controller cycle that fell behind the sensor's on a loaded machine: the arm's last
+            # joint velocity continues for those milliseconds (as SimCell does) rather than fail
+            q, _late = trajectory.q_deg_continued(t_true_s)
             return fk_batch(q, T_fs)
 
         las = cfg.laser
@@ -209,10 +200,14 @@ class SimulatedCell:
 async def run_sim(cfg: CellConfig) -> int:
     """Run the simulated cell until SIGTERM / SIGINT; 0 on a clean stop, 2 if it cannot start."""
     stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, stop.set)
+    release_signals = stop_on_signals(stop)
+    try:
+        return await _serve_sim(cfg, stop)
+    finally:
+        release_signals()
+
+
+async def _serve_sim(cfg: CellConfig, stop: asyncio.Event) -> int:
     cell = SimulatedCell(cfg)
     try:
         addresses = await cell.start()

@@ -48,6 +48,7 @@ from cellctl.api import (
     default_worker_id,
     now_utc,
 )
+from cellctl.signals import stop_on_signals
 from cellctl.zenoh_session import (
     ZenohSetupError,
     build_zenoh_config,
@@ -497,10 +498,7 @@ async def run_worker_async(
     Returns the process exit code: 0 after a clean stop, 2 for configuration or analysis load errors.
     """
     stop = stop or asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, stop.set)
+    release_signals = stop_on_signals(stop)
     try:
         cfg_factory = lambda: build_zenoh_config(section_zenoh, role="connect", key_prefix=key_prefix)  # noqa: E731
         cfg_factory()
@@ -530,9 +528,7 @@ async def run_worker_async(
     finally:
         runner.kill()
         close_session(session)
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                loop.remove_signal_handler(sig)
+        release_signals()
 
 
 def run_worker(config: Any, settings: WorkerSettings) -> int:

@@ -459,21 +459,15 @@ class SimCell:
         trajectory = self.controller.trajectory
 
         def pose_at(t_true_s: np.ndarray) -> np.ndarray:
-            t = np.asarray(t_true_s, dtype=np.float64)
-            ts, qs = trajectory.arrays()
-            late = t > ts[-1]
-            if not late.any():
-                return trajectory.T_base_frame_at(t, T_fs_true)
-            # The controller simulator's cycle fell behind the sensor's (a loaded machine): continue
-            # the arm's last joint velocity for those few milliseconds and count it, never crash.
-            self.poses_extrapolated += int(late.sum())
-            self.extrapolated_t_s.extend(t[late].tolist())
-            self.max_extrapolation_s = max(self.max_extrapolation_s, float(t.max() - ts[-1]))
-            q = np.empty((len(t), 6))
-            if (~late).any():
-                q[~late] = trajectory.q_deg_at(t[~late])
-            v = (qs[-1] - qs[-2]) / max(ts[-1] - ts[-2], 1e-6)
-            q[late] = qs[-1] + v * (t[late] - ts[-1])[:, None]
+            # The controller simulator's cycle fell behind the sensor's (a loaded machine): the arm's
+            # last joint velocity continues for those few milliseconds, counted, never a crash.
+            q, late = trajectory.q_deg_continued(t_true_s)
+            if late.any():
+                t = np.atleast_1d(np.asarray(t_true_s, dtype=np.float64))
+                self.poses_extrapolated += int(late.sum())
+                self.extrapolated_t_s.extend(t[late].tolist())
+                t_newest = float(trajectory.newest(1)[0][-1])
+                self.max_extrapolation_s = max(self.max_extrapolation_s, float(t.max() - t_newest))
             return fk_batch(q, T_fs_true)
 
         # the HD8 counter counts the sensor clock's ms from the config's clock_offset_us (default 1 s):
@@ -517,11 +511,10 @@ class SimCell:
         await self.client.start()
 
     def _feed_robot(self) -> None:
-        a = self.endpoint.history.arrays()
-        new = a.t_host_ns > self._last_robot_ns
-        if new.any():
-            self.acq.feed_robot(a.t_host_ns[new], a.t_ctrl_us[new], a.q_deg[new])
-            self._last_robot_ns = int(a.t_host_ns[new][-1])
+        a = self.endpoint.history.since(self._last_robot_ns)
+        if len(a):
+            self.acq.feed_robot(a.t_host_ns, a.t_ctrl_us, a.q_deg)
+            self._last_robot_ns = int(a.t_host_ns[-1])
 
     async def _consume(self) -> None:
         async for batch in self.client:

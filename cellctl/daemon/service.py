@@ -61,6 +61,7 @@ from cellctl.daemon.jobs import JobRecord, JobStore, JobStoreError
 from cellctl.daemon.preflight import PreflightError, check_data_dir, probe_writable, raw_bytes_estimate
 from cellctl.daemon.states import CellStateMachine, Transition
 from cellctl.logging import bind_context
+from cellctl.signals import stop_on_signals
 
 log = structlog.get_logger(__name__)
 
@@ -700,11 +701,10 @@ class CellDaemon:
             last_robot_ns = [-1]
 
             def feed_robot() -> None:
-                a = self.endpoint.history.arrays()
-                new = a.t_host_ns > last_robot_ns[0]
-                if new.any():
-                    acq.feed_robot(a.t_host_ns[new], a.t_ctrl_us[new], a.q_deg[new][:, :6])
-                    last_robot_ns[0] = int(a.t_host_ns[new][-1])
+                a = self.endpoint.history.since(last_robot_ns[0])  # only what is new (every 10 ms)
+                if len(a):
+                    acq.feed_robot(a.t_host_ns, a.t_ctrl_us, a.q_deg[:, :6])
+                    last_robot_ns[0] = int(a.t_host_ns[-1])
 
             feed_robot()
 
@@ -839,7 +839,7 @@ class CellDaemon:
         if ev.state == "paused" and self.sm.state == CellState.SCANNING:
             self.sm.to(CellState.PAUSED, f"job {job.record.job_id} paused")
             self.store.set_state(job.record, JobState.PAUSED, "paused")
-        elif ev.state in ("running", "resuming") and self.sm.state == CellState.PAUSED:
+        elif ev.state in ("running", "resuming", "moving_to_start") and self.sm.state == CellState.PAUSED:
             self.sm.to(CellState.SCANNING, f"job {job.record.job_id} resumed")
             self.store.set_state(job.record, JobState.SCANNING, "resumed")
         self._publish()
@@ -1076,19 +1076,14 @@ def use_realtime_loop(priority: int = 10) -> bool:
 async def run_daemon(cfg: CellConfig) -> int:
     """Run the daemon (``cfg.daemon`` holds its knobs) until SIGTERM / SIGINT; returns the exit code."""
     stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
     if cfg.daemon.realtime:
         use_realtime_loop()
         hold_cpu_wakeup_latency(0)
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, stop.set)
+    release_signals = stop_on_signals(stop)
     # A write past a file-size limit must fail (EFBIG, a smooth stop), not kill the daemon.
     with contextlib.suppress(AttributeError, ValueError):
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     try:
         return await CellDaemon(cfg).run(stop)
     finally:
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                loop.remove_signal_handler(sig)
+        release_signals()

@@ -313,6 +313,7 @@ class MotionExecutor:
         self._started = False
         self._held = False
         self._joint_stop = False
+        self._approach = False  # until the arm reached the plan's start (pause holds it in joint space)
         self._ff_qd: np.ndarray | None = None
         self._last_sent_qd = np.zeros(6)
 
@@ -374,7 +375,8 @@ class MotionExecutor:
     # ---- control (call from the event loop) -------------------------------------------------------
 
     def pause(self) -> None:
-        """Slow down along the path and hold (jerk-limited); a no-op unless running or resuming."""
+        """Slow down and hold (jerk-limited): along the path, or in joint space during the move to the
+        plan's start (resume then continues that move); a no-op when stopping or stopped."""
         self._requests.append("pause")
 
     def resume(self) -> None:
@@ -424,6 +426,7 @@ class MotionExecutor:
         q0 = self.trajectory.q_deg[0]
         if np.max(np.abs(q_fb - q0)) > cfg.start_tolerance_deg:
             self._set_state(ExecState.MOVING_TO_START)
+            self._approach = True
             self._set_start_limits(q_fb, q0)
         else:
             self._set_state(ExecState.RUNNING)
@@ -548,6 +551,8 @@ class MotionExecutor:
             s = self.state
             if req.startswith("fault:"):
                 self._begin_fault_stop(req[6:])
+            elif self._approach and req in ("pause", "resume", "abort"):
+                self._handle_approach_request(req, s)
             elif req == "pause" and s in (ExecState.RUNNING, ExecState.RESUMING):
                 self._ramp_rate(0.0)
                 self._set_state(ExecState.PAUSING)
@@ -557,13 +562,29 @@ class MotionExecutor:
             elif req == "abort":
                 if s == ExecState.PAUSED:
                     self._set_state(ExecState.ABORTED)
-                elif s == ExecState.MOVING_TO_START:
-                    self._begin_joint_stop(ExecState.ABORTING)
                 elif s in (ExecState.RUNNING, ExecState.PAUSING, ExecState.RESUMING):
                     self._ramp_rate(0.0)
                     self._set_state(ExecState.ABORTING)
             else:
                 log.info("executor_request_ignored", request=req, state=s.value)
+
+    def _handle_approach_request(self, req: str, s: ExecState) -> None:
+        """pause / resume / abort before the arm reached the plan's start (a joint-space move)."""
+        if req == "pause" and s == ExecState.MOVING_TO_START:
+            self._inp.control_interface = ControlInterface.Velocity
+            self._inp.target_velocity = [0.0] * 6
+            self._inp.target_acceleration = [0.0] * 6
+            self._inp.synchronization = Synchronization.No
+            self._set_state(ExecState.PAUSING)
+        elif req == "resume" and s in (ExecState.PAUSING, ExecState.PAUSED):
+            self._set_start_limits(self._ref_q, self.trajectory.q_deg[0])
+            self._set_state(ExecState.MOVING_TO_START)
+        elif req == "abort" and s == ExecState.PAUSED:
+            self._set_state(ExecState.ABORTED)
+        elif req == "abort":
+            self._begin_joint_stop(ExecState.ABORTING)
+        else:
+            log.info("executor_request_ignored", request=req, state=s.value, approach=True)
 
     def _begin_joint_stop(self, state: ExecState) -> None:
         self._inp.control_interface = ControlInterface.Velocity
@@ -633,9 +654,16 @@ class MotionExecutor:
                 and np.max(np.abs(fb.q_deg[:6] - traj.q_deg[0])) <= self.config.start_tolerance_deg
             )
             if at_start:
+                self._approach = False
                 self._set_limits(1.0)
                 self._inp.synchronization = Synchronization.No
                 self._set_state(ExecState.RUNNING)
+            return
+        if self._approach:  # paused on the way to the start: a jerk-limited joint stop, then hold
+            if s == ExecState.PAUSING:
+                res = self._otg_update()
+                if res == Result.Finished or np.all(np.abs(self._ref_qd) < 1e-9):
+                    self._set_state(ExecState.PAUSED)
             return
         if s == ExecState.PAUSED:
             return

@@ -57,6 +57,7 @@ from drivers.abb_egm.codec import (
     parse_robot_pb,
     robot_from_pb,
 )
+from drivers.abb_egm.ring import ring_indices, ring_search, ring_start
 
 __all__ = [
     "LATENCY_BIN_EDGES_US",
@@ -105,11 +106,15 @@ class EgmEndpointConfig:
     ``switch_interval_s`` sets ``sys.setswitchinterval`` while the endpoint runs, so a busy
     Python thread hands the GIL to the reply thread sooner (None: leave the interpreter's 5 ms).
     Feedback plausibility: a sample whose joints leave the straight-line prediction from the two
-    samples before it by more than ``plausible_tol_deg + accel dt^2 / 2`` is held back as suspect
-    (EGM has no checksum; a datagram corrupted past the UDP checksum can still decode). It is taken
-    once the next sample agrees with it within ``plausible_speed_deg_s`` (a real change, e.g. a hard
-    stop, persists), otherwise dropped and counted in ``implausible``; pose interpolation never sees it.
-    ``cycle_s`` is the controller's nominal period, for the prediction's time steps.
+    samples before it by more than ``plausible_tol_deg + accel dt^2 / 2``, or whose controller time
+    did not advance by its seqno step (at least one ``cycle_s`` per message, at most
+    ``plausible_late_s`` more: a sender that fell behind sends late samples with their true times),
+    is held back as suspect (EGM has no checksum; a datagram corrupted past the UDP checksum can
+    still decode). The prediction runs on the controller's time when the samples carry it, on the
+    seqno otherwise. A suspect is taken once the next sample agrees with it within
+    ``plausible_speed_deg_s`` (a real change, e.g. a hard stop, persists), otherwise dropped and
+    counted in ``implausible``; pose interpolation never sees it.
+    ``cycle_s`` is the controller's nominal period.
     ``reply_spin_us`` > 0 makes the thread poll its socket without sleeping from that long before
     the next packet is due (one receive interval after the last) until it comes or as long again
     after, so the reply does not wait for a wake-up; it costs about twice that per cycle of a core.
@@ -130,6 +135,7 @@ class EgmEndpointConfig:
     plausible_accel_deg_s2: float = 5000.0
     plausible_tol_deg: float = 0.05
     plausible_speed_deg_s: float = 600.0
+    plausible_late_s: float = 0.25
     cycle_s: float = 0.004032
 
 
@@ -249,18 +255,26 @@ class FeedbackHistory:
     def arrays(self) -> FeedbackArrays:
         """All kept samples, oldest first, as numpy copies."""
         with self._lock:
-            if self._count < self.capacity:
-                idx = np.arange(self._count)
-            else:
-                idx = (np.arange(self.capacity) + self._next) % self.capacity
-            return FeedbackArrays(
-                t_host_ns=self._t_host_ns[idx],
-                t_ctrl_us=self._t_ctrl_us[idx],
-                seqno=self._seqno[idx],
-                q_deg=self._q_deg[idx],
-                pos_mm=self._pos_mm[idx],
-                quat_wxyz=self._quat[idx],
-            )
+            start = ring_start(self._next, self._count, self.capacity)
+            return self._take(ring_indices(start, 0, self._count, self.capacity))
+
+    def since(self, t_host_ns: int) -> FeedbackArrays:
+        """The samples received after ``t_host_ns`` (host clock), oldest first, as numpy copies; costs
+        what it returns, not the whole record (for a reader that polls for what is new)."""
+        with self._lock:
+            start = ring_start(self._next, self._count, self.capacity)
+            v0 = ring_search(self._t_host_ns, start, self._count, t_host_ns, "right")
+            return self._take(ring_indices(start, v0, self._count, self.capacity))
+
+    def _take(self, idx: np.ndarray) -> FeedbackArrays:
+        return FeedbackArrays(
+            t_host_ns=self._t_host_ns[idx],
+            t_ctrl_us=self._t_ctrl_us[idx],
+            seqno=self._seqno[idx],
+            q_deg=self._q_deg[idx],
+            pos_mm=self._pos_mm[idx],
+            quat_wxyz=self._quat[idx],
+        )
 
     def q_deg_at(self, t: np.ndarray, *, time_base: str = "host") -> np.ndarray:
         """Joint angles linearly interpolated at times ``t``.
@@ -663,22 +677,24 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             (s0, q0, t0), (s1, q1, t1) = self._plaus
             k, k01 = s - s1, s1 - s0
             if 0 < k <= 25 and k01 > 0:
-                dt = k * c.cycle_s
+                if t is not None and t0 is not None and t1 is not None and t1 > t0:
+                    # on the controller's clock: the robot clock fit uses it, so it must be sane too
+                    off = not self._clock_step_ok(t - t1, k)
+                    dt, ratio = (t - t1) * 1e-6, (t - t1) / (t1 - t0)
+                else:
+                    off, dt, ratio = False, k * c.cycle_s, k / k01
                 tol = c.plausible_tol_deg + 0.5 * c.plausible_accel_deg_s2 * dt * dt
-                off = np.abs(q - (q1 + (q1 - q0) * (k / k01))).max() > tol
-                if t is not None and t0 is not None and t1 is not None:
-                    # the controller's clock advances one period per message (the robot clock fit uses it)
-                    off = off or abs((t - t1) - (t1 - t0) * k / k01) > 2000 + 0.25 * dt * 1e6
+                off = off or np.abs(q - (q1 + (q1 - q0) * ratio)).max() > tol
                 if off:
                     sus = self._suspect
                     ks = None if sus is None else s - sus[0]
-                    step = c.plausible_tol_deg + c.plausible_speed_deg_s * c.cycle_s * (ks or 0)
-                    agree = (
-                        sus is not None
-                        and 0 < ks <= 3
-                        and np.abs(q - sus[1]).max() <= step
-                        and (t is None or sus[4] is None or abs((t - sus[4]) - ks * c.cycle_s * 1e6) <= 2000)
-                    )
+                    agree = sus is not None and 0 < ks <= 3
+                    if agree:
+                        timed = t is not None and sus[4] is not None
+                        dts = (t - sus[4]) * 1e-6 if timed else ks * c.cycle_s
+                        agree = (not timed or self._clock_step_ok(t - sus[4], ks)) and np.abs(
+                            q - sus[1]
+                        ).max() <= c.plausible_tol_deg + c.plausible_speed_deg_s * max(dts, 0.0)
                     if not agree:
                         if sus is not None:  # the earlier suspect was alone: corrupt
                             self._implausible(sus[2], sus[3], "jump not confirmed")
@@ -692,6 +708,12 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._plaus = [*self._plaus, (s, q, t)][-2:]
         take.append((msg, t_rx_ns))
         return take
+
+    def _clock_step_ok(self, dt_us: int, k: int) -> bool:
+        """The controller's clock moved ``dt_us`` over ``k`` messages: at least ``k`` periods (2 ms of
+        rounding), at most ``plausible_late_s`` more."""
+        c = self.config
+        return k * c.cycle_s * 1e6 - 2000 <= dt_us <= (k * c.cycle_s + c.plausible_late_s) * 1e6
 
     def _implausible(self, msg: RobotMessage, t_rx_ns: int, why: str) -> None:
         self.stats.implausible += 1

@@ -49,6 +49,7 @@ from drivers.abb_egm.codec import (
     encode_robot,
 )
 from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S, RobotKinematics, fk_batch
+from drivers.abb_egm.ring import ring_indices, ring_search, ring_start
 
 __all__ = [
     "EVENT_EGM_COMM_TIMEOUT",
@@ -237,6 +238,25 @@ class TrajectoryRecorder:
             oldest = self._t_s[0 if self._count < self.capacity else self._next]
             return float(oldest), float(newest)
 
+    def _window(self, t_lo: float, t_hi: float) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """Copies of the samples that bracket ``[t_lo, t_hi]`` (one more on each side when there is
+        one), oldest first, and the (oldest, newest) time of the whole record. Binary search on the
+        ring's two sorted runs: a query costs the window it needs, not the whole record (a copy of
+        the full 2**17-sample ring took 3 ms per query, and the sensor asks ~100 times a second)."""
+        cap = self.capacity
+        with self._lock:
+            n = self._count
+            if n == 0:
+                raise TrajectoryRangeError("no trajectory recorded yet")
+            start = ring_start(self._next, n, cap)
+            v0 = max(ring_search(self._t_s, start, n, t_lo, "right") - 1, 0)
+            v1 = min(max(ring_search(self._t_s, start, n, t_hi, "left") + 1, v0 + 2), n)
+            v0 = max(min(v0, v1 - 2), 0)
+            idx = ring_indices(start, v0, v1, cap)
+            oldest = float(self._t_s[start])
+            newest = float(self._t_s[(start + n - 1) % cap])
+            return self._t_s[idx], self._q_deg[idx], oldest, newest
+
     def q_deg_at(self, t_s: np.ndarray, *, hold_s: float = 0.01) -> np.ndarray:
         """Joint angles at times ``t_s`` (m,) s, linearly interpolated between samples -> (m, 6) deg.
 
@@ -244,14 +264,15 @@ class TrajectoryRecorder:
         within one cycle); earlier than the oldest or later than that raises TrajectoryRangeError.
         """
         t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
-        ts, qs = self.arrays()
-        if ts.shape[0] == 0:
-            raise TrajectoryRangeError("no trajectory recorded yet")
         if t.size == 0:
-            return np.zeros((0, qs.shape[1]))
-        if t.min() < ts[0] or t.max() > ts[-1] + hold_s:
+            with self._lock:
+                if self._count == 0:
+                    raise TrajectoryRangeError("no trajectory recorded yet")
+            return np.zeros((0, self._q_deg.shape[1]))
+        ts, qs, oldest, newest = self._window(float(t.min()), float(t.max()))
+        if t.min() < oldest or t.max() > newest + hold_s:
             raise TrajectoryRangeError(
-                f"times [{t.min():.6f}, {t.max():.6f}] s outside the record [{ts[0]:.6f}, {ts[-1]:.6f}] s"
+                f"times [{t.min():.6f}, {t.max():.6f}] s outside the record [{oldest:.6f}, {newest:.6f}] s"
             )
         if ts.shape[0] == 1:
             return np.repeat(qs, t.shape[0], axis=0)
@@ -260,6 +281,34 @@ class TrajectoryRecorder:
         span = ts[i + 1] - ts[i]
         w = np.divide(tc - ts[i], span, out=np.zeros_like(tc), where=span > 0)[:, None]
         return qs[i] * (1.0 - w) + qs[i + 1] * w
+
+    def newest(self, k: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the newest ``k`` samples (fewer when fewer are kept), oldest first."""
+        with self._lock:
+            n = min(k, self._count)
+            idx = ring_indices(
+                ring_start(self._next, self._count, self.capacity),
+                self._count - n,
+                self._count,
+                self.capacity,
+            )
+            return self._t_s[idx], self._q_deg[idx]
+
+    def q_deg_continued(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Like :meth:`q_deg_at`, but times after the newest sample continue the arm's last joint
+        velocity instead of failing (the sensor simulator's clock ran ahead of a controller cycle
+        that fell behind on a loaded machine). Returns (q (m, 6) deg, late (m,) bool)."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        ts, qs = self.newest(2)
+        late = t > ts[-1] if ts.shape[0] else np.zeros(t.shape, dtype=bool)
+        if ts.shape[0] < 2 or not late.any():
+            return self.q_deg_at(t), np.zeros(t.shape, dtype=bool)
+        q = np.empty((t.shape[0], qs.shape[1]))
+        if (~late).any():
+            q[~late] = self.q_deg_at(t[~late])
+        v = (qs[-1] - qs[-2]) / max(ts[-1] - ts[-2], 1e-6)
+        q[late] = qs[-1] + v * (t[late] - ts[-1])[:, None]
+        return q, late
 
     def T_base_frame_at(self, t_s: np.ndarray, T_flange_tool: np.ndarray | None = None) -> np.ndarray:
         """Poses at times ``t_s`` (m,): (m, 4, 4), mm, of the flange or of ``T_flange_tool``'s frame."""

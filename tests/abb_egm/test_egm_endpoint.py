@@ -380,6 +380,24 @@ def test_feedback_history_is_bounded_and_keeps_the_newest_samples_in_order():
     np.testing.assert_allclose(h.q_deg_at(np.array([7500, 10_250]))[:, 3], [7.5, 10.25])
 
 
+@settings(max_examples=80, deadline=None)
+@given(
+    n=st.integers(0, 40),
+    capacity=st.integers(2, 16),
+    after=st.integers(-5_000, 50_000),
+)
+def test_feedback_history_since_returns_exactly_the_newer_samples(n, capacity, after):
+    """``since`` (the daemon's 100 Hz poll) searches the ring instead of copying it whole: the same
+    samples as filtering ``arrays()``, wrapped ring or not."""
+    h = FeedbackHistory(capacity=capacity)
+    for k in range(n):
+        h.append(1000 * k, 10 * k, k, np.full(6, float(k)), None, None)
+    a = h.arrays()
+    b = h.since(after)
+    assert b.seqno.tolist() == a.seqno[a.t_host_ns > after].tolist()
+    np.testing.assert_array_equal(b.q_deg, a.q_deg[a.t_host_ns > after])
+
+
 class _NullTransport:
     def __init__(self):
         self.sent = 0

@@ -481,3 +481,44 @@ def test_trajectory_interpolation_is_exact_on_samples_and_between_them_for_linea
     u = np.array(data.draw(st.lists(st.floats(0.0, 1.0), min_size=1, max_size=20)))
     query = ts[0] + u * (ts[-1] - ts[0])
     np.testing.assert_allclose(rec.q_deg_at(query), slope * query[:, None], rtol=1e-9, atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(1, 120),
+    capacity=st.integers(2, 50),
+    seed=st.integers(0, 2**16),
+    data=st.data(),
+)
+def test_trajectory_lookup_on_a_window_of_the_ring_equals_interpolating_the_whole_record(
+    n, capacity, seed, data
+):
+    """q_deg_at reads only the samples around the query (the ring once copied itself whole per query);
+    the answer is the same as interpolating every kept sample, wrapped ring or not."""
+    rng = np.random.default_rng(seed)
+    rec = TrajectoryRecorder(capacity=capacity)
+    t = 5.0 + np.cumsum(rng.uniform(1e-3, 1e-2, n))
+    q = rng.normal(0.0, 30.0, (n, 6))
+    for ti, qi in zip(t, q, strict=True):
+        rec.append(ti, qi)
+    ts, qs = rec.arrays()
+    u = np.array(data.draw(st.lists(st.floats(0.0, 1.0), min_size=1, max_size=10)))
+    query = ts[0] + u * (ts[-1] - ts[0])
+    expected = np.stack([np.interp(query, ts, qs[:, j]) for j in range(6)], axis=1)
+    np.testing.assert_allclose(rec.q_deg_at(query), expected, rtol=1e-12, atol=1e-9)
+    with pytest.raises(TrajectoryRangeError):
+        rec.q_deg_at(np.array([ts[0] - 1e-3]))
+
+
+def test_trajectory_continues_the_last_joint_velocity_past_the_newest_sample():
+    rec = TrajectoryRecorder(capacity=8)
+    slope = np.array([1.0, -2.0, 0.5, 3.0, 0.0, -1.0])
+    for k in range(20):  # wrapped
+        rec.append(k * 0.004, slope * k * 0.004)
+    t = np.array([0.05, 0.076, 0.08, 0.09])
+    q, late = rec.q_deg_continued(t)
+    assert late.tolist() == [False, False, True, True]
+    np.testing.assert_allclose(q, slope * t[:, None], atol=1e-12)
+    np.testing.assert_allclose(rec.newest(2)[0], [0.072, 0.076])
+    with pytest.raises(TrajectoryRangeError):
+        rec.q_deg_continued(np.array([0.0]))  # forgotten

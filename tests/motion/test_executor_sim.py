@@ -126,6 +126,44 @@ def test_pause_then_resume_continues_the_pass_it_paused_in_with_jerk_limited_sto
     within_limits_and_workspace(ex.true_q_deg, SMALL_SETTINGS)
 
 
+def test_pause_during_the_move_to_the_start_holds_in_joint_space_and_resume_continues_it(small_plan):
+    """A pause requested before the arm reached the plan's start used to be dropped (the daemon's
+    control reply still said ok). Now it stops the approach (jerk-limited, joint space) and holds;
+    resume continues the approach, then the plan runs from its start."""
+    seen = {}
+
+    async def control(executor: MotionExecutor, sim) -> None:
+        await wait_for_state(executor, "moving_to_start")
+        await asyncio.sleep(0.3)  # under way
+        executor.pause()
+        await wait_for_state(executor, "paused")
+        seen["q_paused"] = sim.q_deg
+        await asyncio.sleep(0.5)
+        seen["q_after_wait"] = sim.q_deg
+        seen["t_traj_paused"] = executor.progress().t_traj_s
+        executor.resume()
+        await wait_for_state(executor, "moving_to_start")
+        await wait_for_state(executor, "running")
+        await wait_for_segment(executor, "scan 1", 0.1)
+        executor.abort()
+
+    q_offset = np.array([8.0, -6.0, 5.0, 3.0, -4.0, 6.0])
+    ex = run_async(
+        execute(small_plan, SMALL_SETTINGS, config=TOLERANT, q_start_offset_deg=q_offset, control=control)
+    )
+    r = ex.result
+    assert r.state == ExecState.ABORTED, r.fault
+    assert seen["t_traj_paused"] == 0.0  # the plan had not started
+    # held where it stopped, part of the way to the start
+    assert np.max(np.abs(seen["q_after_wait"] - seen["q_paused"])) < 0.05
+    q0 = small_plan.trajectory.q_deg[0]
+    assert 0.5 < np.max(np.abs(seen["q_paused"] - q0)) < np.max(np.abs(q_offset)) - 0.5
+    states = [e.state for e in r.events]
+    assert states.index("paused") < states.index("running")
+    assert np.all(max_reference_jerk(r) <= 1.05 * np.asarray(SMALL_SETTINGS.joint_jerk_max_deg_s3))
+    within_limits_and_workspace(ex.true_q_deg, SMALL_SETTINGS)
+
+
 def test_abort_from_the_middle_of_a_pass_stops_smoothly_and_ends_aborted(small_plan):
     async def control(executor, sim) -> None:
         await wait_for_segment(executor, "scan 1", 0.5)
