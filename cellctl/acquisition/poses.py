@@ -54,14 +54,20 @@ def pos_rpy_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return T[:3, 3].copy(), Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)
 
 
+#: intervals between feedback samples longer than this (1.5 controller cycles) are lost packets
+CUBIC_GAP_NS = 6_000_000
+
+
 def interpolate_joints(
     sample_t_ns: np.ndarray,
     sample_q_deg: np.ndarray,
     t_ns: np.ndarray,
     epoch_ns: int,
     max_gap_ns: int | None = None,
+    cubic_gap_ns: int | None = CUBIC_GAP_NS,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Linear interpolation of joint samples at many times.
+    """Interpolation of joint samples at many times: linear between neighbouring samples, cubic
+    Hermite across a gap (lost feedback packets).
 
     Args:
         sample_t_ns: (m,) int64 strictly increasing sample times, host ns.
@@ -69,6 +75,11 @@ def interpolate_joints(
         t_ns: (n,) int64 query times, host ns.
         epoch_ns: fixed time origin for the float arithmetic (the job's start).
         max_gap_ns: bracketing samples further apart than this (lost feedback) give no valid pose.
+        cubic_gap_ns: bracketing samples further apart than this are bridged by a cubic Hermite
+            whose end slopes are those of the sample intervals beside the gap (when those are not
+            gaps themselves): a 50 ms burst of lost packets during an acceleration is off by
+            ``a h^2 / 8`` linearly (0.6 mm at 2 m/s^2), well under a micrometre this way for a
+            smooth motion. None: linear everywhere.
 
     Returns:
         ``(q_deg (n, 6), inside (n,) bool)``; outside the sample span the nearest sample is held and
@@ -89,9 +100,48 @@ def interpolate_joints(
     tf = (t - epoch_ns).astype(np.float64)
     w = np.clip((tf - t0) / (t1 - t0), 0.0, 1.0)[:, None]
     inside = (t >= ts[0]) & (t <= ts[-1])
+    gap_ns = ts[i + 1] - ts[i]
     if max_gap_ns is not None:
-        inside &= (ts[i + 1] - ts[i]) <= max_gap_ns
-    return q[i] + (q[i + 1] - q[i]) * w, inside
+        inside &= gap_ns <= max_gap_ns
+    out = q[i] + (q[i + 1] - q[i]) * w
+    if cubic_gap_ns is not None:
+        _bridge_gaps(out, ts, q, i, w[:, 0], gap_ns > cubic_gap_ns, cubic_gap_ns)
+    return out, inside
+
+
+def _bridge_gaps(
+    out: np.ndarray,
+    ts: np.ndarray,
+    q: np.ndarray,
+    i: np.ndarray,
+    w: np.ndarray,
+    gap: np.ndarray,
+    short_ns: int,
+) -> None:
+    """Replace, in place, the linear values of the queries inside gaps by a cubic Hermite whose end
+    slopes come from the (short) sample intervals on each side; a side without one keeps the chord."""
+    if not gap.any():
+        return
+    m = ts.shape[0]
+    k = np.nonzero(gap)[0]
+    a, b = i[k], i[k] + 1
+    h = (ts[b] - ts[a]).astype(np.float64)
+    chord = (q[b] - q[a]) / h[:, None]
+    slope_a, slope_b = chord.copy(), chord.copy()
+    has_a = a >= 1
+    has_a[has_a] &= (ts[a[has_a]] - ts[a[has_a] - 1]) <= short_ns
+    has_b = b + 1 < m
+    has_b[has_b] &= (ts[b[has_b] + 1] - ts[b[has_b]]) <= short_ns
+    if has_a.any():
+        aa = a[has_a]
+        slope_a[has_a] = (q[aa] - q[aa - 1]) / (ts[aa] - ts[aa - 1]).astype(np.float64)[:, None]
+    if has_b.any():
+        bb = b[has_b]
+        slope_b[has_b] = (q[bb + 1] - q[bb]) / (ts[bb + 1] - ts[bb]).astype(np.float64)[:, None]
+    s = w[k][:, None]
+    s2, s3 = s * s, s * s * s
+    h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
+    out[k] = h00 * q[a] + h10 * (h[:, None] * slope_a) + h01 * q[b] + h11 * (h[:, None] * slope_b)
 
 
 @dataclass(frozen=True, slots=True)

@@ -140,8 +140,9 @@ class EgmSimConfig:
 class EgmFaults:
     """Wire faults of the simulated controller, all off by default.
 
-    ``loss_fraction``: probability that a cycle's ``EgmRobot`` is lost; with ``burst_ms`` > 0 each
-    loss starts a burst during which every packet is lost. ``delay_ms`` + uniform(0, ``jitter_ms``)
+    ``loss_fraction``: the fraction of ``EgmRobot`` lost; with ``burst_ms`` > 0 the losses come in
+    bursts of that length (every packet inside a burst is lost; bursts start with the probability
+    that loses ``loss_fraction`` of the packets overall, so "5 % loss in 50 ms bursts" loses 5 %). ``delay_ms`` + uniform(0, ``jitter_ms``)
     delays each packet (jitter also reorders). ``duplicate_fraction`` sends a packet twice,
     ``reorder_fraction`` holds a packet back behind the next one, ``corrupt_fraction`` flips bytes.
     ``stop_sending`` silences the controller. ``rx_loss_fraction`` drops the sensor's replies.
@@ -813,6 +814,14 @@ class EgmControllerSim(asyncio.DatagramProtocol):
 
     # ---- wire and faults ----------------------------------------------------------------------
 
+    def _loss_start_probability(self) -> float:
+        """Per packet: the chance to start a loss (a burst of ``n`` packets when ``burst_ms`` > 0),
+        chosen so that ``loss_fraction`` of the packets are lost overall: f = p n / (1 - p + p n)."""
+        f = self.faults
+        n = max(1.0, f.burst_ms / 1000.0 / self.config.cycle_s) if f.burst_ms > 0 else 1.0
+        frac = min(f.loss_fraction, 0.999)
+        return frac / (n - frac * (n - 1.0))
+
     def _emit(self, payload: bytes, seqno: int) -> None:
         f = self.faults
         if f.stop_sending:
@@ -823,7 +832,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         if now < self._burst_until:
             self.stats.dropped += 1
             return
-        if f.loss_fraction > 0 and rng.random() < f.loss_fraction:
+        if f.loss_fraction > 0 and rng.random() < self._loss_start_probability():
             self.stats.dropped += 1
             if f.burst_ms > 0:
                 self._burst_until = now + f.burst_ms / 1000.0

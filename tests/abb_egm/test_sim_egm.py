@@ -307,13 +307,17 @@ def test_statistics_match_injected_loss_duplicates_and_reordering():
 def test_burst_loss_drops_consecutive_packets_and_the_endpoint_counts_them():
     async def main():
         sim, ep = await start_pair()
-        sim.set_faults(loss_fraction=0.02, burst_ms=20.0)
+        sent0, dropped0 = sim.stats.sent, sim.stats.dropped
+        sim.set_faults(loss_fraction=0.2, burst_ms=20.0)
         await asyncio.sleep(1.0)
         await _settle_counts(sim, ep)
         assert sim.stats.dropped >= 5  # each loss lasts about five cycles
         assert ep.stats.lost == sim.stats.dropped
         seq = ep.history.arrays().seqno
         assert np.diff(seq).max() >= 5
+        # loss_fraction is the fraction lost overall, bursts or not (about 12 bursts in 1 s)
+        dropped = sim.stats.dropped - dropped0
+        assert 0.05 < dropped / (dropped + sim.stats.sent - sent0) < 0.4
         await stop_pair(sim, ep)
 
     run(main)
