@@ -5,9 +5,11 @@
 The cell runs as real processes (`cellctl sim`, `cellctl run`, `cellctl worker`) on loopback, the
 tiny plate of the e2e tests (a scan of ~30 s). The worker reaches the daemon through a loopback TCP
 forwarder (tests/faults/tcp_forwarder.py), so the link between them can be cut. Each job draws one
-fault (seeded) from :data:`FAULTS`: EGM / sensor / RWS faults through the simulator's fault channel
-(``<prefix>/sim/faults``), the worker ``kill -9``'d mid-analysis (then restarted), the worker link
-cut for a few seconds mid-scan.
+fault (seeded; every fault once before any twice) from :data:`FAULTS`: EGM loss, bursts,
+duplicates/reordering and silence, sensor corrupt frames, stall, disconnect and clock jump, RWS slow
+or answering 503, motors off and the emergency stop (then the operator's reset), all through the
+simulator's fault channel (``<prefix>/sim/faults``); the worker ``kill -9``'d mid-analysis (then
+restarted); the worker link cut for a few seconds mid-scan.
 
 Keys: ``jobs``, ``completed`` (done), ``recoverable`` (ended failed / aborted / interrupted with a
 message, raw data intact, the cell taking triggers again), ``faults_injected``,

@@ -5,6 +5,8 @@ vectorised forward kinematics (:func:`drivers.abb_egm.kinematics.fk_batch`) and 
 transform ``T_flange_sensor`` (``[robot.sensor_in_flange]`` of cell.toml). Joint-space interpolation
 is exact for the controller's own interpolation at the 4 ms sample rate to well below a micrometre
 on smooth scan motions (section 3.4 of line-laser-and-sync.md), and it needs no quaternion care.
+Where EGM packets were lost (an interval over 1.5 cycles) a cubic Hermite with the slopes of the
+intervals beside the gap bridges it; gaps over ``max_gap_ns`` give no pose.
 
 Times are int64 host nanoseconds; they are turned into float seconds relative to a fixed
 ``epoch_ns`` (the job's), never relative to the slice of history at hand, so the same sample pair
