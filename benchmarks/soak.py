@@ -91,6 +91,7 @@ class JobResult:
     egm: dict[str, int] = field(default_factory=dict)
     cell_state_after: str = ""
     rss_mb: float = 0.0
+    heap_mb: float | None = None  # the daemon's traced Python heap (PYTHONTRACEMALLOC set), MB
     wall_s: float = 0.0
 
 
@@ -272,6 +273,9 @@ def run_soak(
             else:
                 res.outcome = "lost"
             res.rss_mb = round(rss_mb(sc.cell.proc("run").pid), 1)
+            if os.environ.get("PYTHONTRACEMALLOC"):
+                with contextlib.suppress(Exception):
+                    res.heap_mb = asyncio.run(daemon_stats(sc.cell))["python_heap"]["traced_mb"]
             results.append(res)
         with contextlib.suppress(Exception):
             stats = asyncio.run(daemon_stats(sc.cell))
@@ -292,6 +296,8 @@ def run_soak(
         "daemon_egm": {
             k: egm.get(k) for k in ("received", "lost", "watchdog_events", "sessions", "malformed")
         },
+        # with PYTHONTRACEMALLOC set for the cell: where the daemon's Python heap is after the run
+        **({"daemon_python_heap": stats["python_heap"]} if stats.get("python_heap") else {}),
         "seed": seed,
         "wall_s": round(time.perf_counter() - t0, 1),
         "load_avg_1m": [round(load0, 2), round(os.getloadavg()[0], 2)],

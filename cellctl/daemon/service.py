@@ -22,11 +22,13 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import ctypes
 import json
 import os
 import signal
 import struct
 import time
+import tracemalloc
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -287,6 +289,8 @@ class CellDaemon:
             "rss_mb": _rss_mb(),
             "dispatch_malformed": getattr(self.dispatcher, "malformed", 0),
         }
+        if tracemalloc.is_tracing():  # PYTHONTRACEMALLOC=1: where the Python heap is, for a leak hunt
+            body["python_heap"] = _heap_summary()
         query.reply(query.key_expr, json.dumps(body).encode(), encoding=JSON)
 
     def _on_transition(self, tr: Transition) -> None:
@@ -583,6 +587,9 @@ class CellDaemon:
         self.store.set_state(job.record, state, message, **info)
         if state in FINAL_JOB_STATES:
             self._recent.append(self._progress(job))
+            # a job's arrays are freed now; hand the freed heap pages back (off the loop)
+            if self._loop is not None:
+                self._loop.run_in_executor(None, release_freed_memory)
         self._publish()
 
     async def _run_job(self, job: _Job) -> None:
@@ -1015,6 +1022,20 @@ def _counters(stats: Any, names: tuple[str, ...]) -> dict[str, int]:
     return {n: int(getattr(stats, n)) for n in names}
 
 
+def release_freed_memory() -> bool:
+    """Return the C heap's free pages to the system (glibc ``malloc_trim``); False where unavailable.
+
+    A job's numpy temporaries (assembly, encoding: ~100 MB at peak for the small plate) are freed
+    when it ends, but glibc keeps the pages of its heaps: over a 30-job soak the daemon's RSS crept
+    up ~2 MB per job with its traced Python heap flat (126.3 -> 126.5 MB over 10 jobs).
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.malloc_trim(0))
+    except (OSError, AttributeError):
+        return False
+
+
 def _rss_mb() -> float:
     """This process's resident memory, MB (Linux /proc; 0.0 where it cannot be read)."""
     try:
@@ -1071,6 +1092,19 @@ def use_realtime_loop(priority: int = 10) -> bool:
         return False
     log.info("realtime_priority", priority=priority)
     return True
+
+
+def _heap_summary(top: int = 15) -> dict[str, Any]:
+    """Traced Python heap: current and peak MB, the ``top`` source lines holding the most."""
+    current, peak = tracemalloc.get_traced_memory()
+    stats = tracemalloc.take_snapshot().statistics("lineno")[:top]
+    return {
+        "traced_mb": round(current / 1e6, 2),
+        "peak_mb": round(peak / 1e6, 2),
+        "top": [
+            {"where": str(st.traceback), "kb": round(st.size / 1e3, 1), "blocks": st.count} for st in stats
+        ],
+    }
 
 
 async def run_daemon(cfg: CellConfig) -> int:

@@ -7,6 +7,7 @@ service, never a user error).
 
 from __future__ import annotations
 
+import collections
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -48,6 +49,10 @@ class Transition:
     t_utc_s: float
 
 
+#: transitions kept in :attr:`CellStateMachine.history`
+HISTORY_MAX = 1000
+
+
 class CellStateMachine:
     """Current state plus transition checks; ``on_change(Transition)`` runs after every change.
 
@@ -58,7 +63,8 @@ class CellStateMachine:
     def __init__(self, on_change: Callable[[Transition], None] | None = None) -> None:
         self.state = S.STARTING
         self.message = ""
-        self.history: list[Transition] = []
+        # the recent transitions (for tests and debugging); bounded: the daemon runs for months
+        self.history: collections.deque[Transition] = collections.deque(maxlen=HISTORY_MAX)
         self._on_change = on_change
 
     @property

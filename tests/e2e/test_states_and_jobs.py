@@ -63,6 +63,19 @@ def test_state_machine_only_ever_takes_allowed_steps(targets):
         assert tr.new in ALLOWED[tr.old] or tr.new in (CellState.STOPPING, CellState.EMERGENCY_STOPPED)
 
 
+def test_state_history_keeps_the_newest_transitions_only():
+    """The daemon runs for months: its transition history is bounded (it grew by ~10 per job)."""
+    from cellctl.daemon.states import HISTORY_MAX
+
+    sm = CellStateMachine()
+    sm.to(CellState.IDLE)
+    for k in range(HISTORY_MAX):
+        sm.to(CellState.PLANNING, f"job {k}")
+        sm.to(CellState.IDLE, f"job {k} done")
+    assert len(sm.history) == HISTORY_MAX
+    assert sm.history[-1].reason == f"job {HISTORY_MAX - 1} done"
+
+
 def _record(job_id="20260101T000000-aaaa0001", state=JobState.QUEUED):
     return JobRecord(job_id=job_id, plate_id="p1", design="d.ply", design_path="/d/d.ply",
                      placement={"pos_mm": [1.0, 2.0, 3.0], "rpy_deg": [0.0, 0.0, 3.0]}, state=state.value)  # fmt: skip
