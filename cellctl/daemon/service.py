@@ -290,7 +290,7 @@ class CellDaemon:
             "dispatch_malformed": getattr(self.dispatcher, "malformed", 0),
         }
         if tracemalloc.is_tracing():  # PYTHONTRACEMALLOC=1: where the Python heap is, for a leak hunt
-            body["python_heap"] = _heap_summary()
+            body["python_heap"] = await asyncio.to_thread(_heap_summary)  # a snapshot takes seconds
         query.reply(query.key_expr, json.dumps(body).encode(), encoding=JSON)
 
     def _on_transition(self, tr: Transition) -> None:
