@@ -40,6 +40,7 @@ import structlog
 
 from analysis.cloud_io import CloudError, ScanCloud, write_cloud_ply
 from analysis.mesh import TriMesh, save_mesh
+from analysis.placement import Placement, placement_transform
 from analysis.plates import (
     PLATE_KINDS,
     EdgeSpringback,
@@ -57,7 +58,6 @@ from analysis.plates import (
 
 __all__ = [
     "BedScene",
-    "Placement",
     "ScanSettings",
     "SupportBox",
     "SynthError",
@@ -141,28 +141,16 @@ class ScanSettings:
         return cls(**base)
 
 
-@dataclass(frozen=True)
-class Placement:
-    """Where the plate lies: yaw about bed z, XY offset of the design origin, tilt (deg, mm)."""
-
-    yaw_deg: float = 0.0
-    x_mm: float = 0.0
-    y_mm: float = 0.0
-    tilt_deg: float = 0.0
-    tilt_axis_deg: float = 0.0
-
-
 def random_placement(
-    rng: np.random.Generator, *, offset_mm: float = 100.0, tilt_max_deg: float = 0.5
+    rng: np.random.Generator, *, offset_mm: float = 100.0, tilt_max_deg: float = 0.5, yaw_deg: float | None = None
 ) -> Placement:
-    """Any yaw, an XY offset within +-offset_mm, a tilt up to tilt_max_deg about a random axis."""
-    return Placement(
-        yaw_deg=float(rng.uniform(0.0, 360.0)),
-        x_mm=float(rng.uniform(-offset_mm, offset_mm)),
-        y_mm=float(rng.uniform(-offset_mm, offset_mm)),
-        tilt_deg=float(rng.uniform(0.0, tilt_max_deg)),
-        tilt_axis_deg=float(rng.uniform(0.0, 360.0)),
-    )
+    """Any yaw (or ``yaw_deg``), an XY offset within +-offset_mm, a tilt up to tilt_max_deg about a
+    random horizontal axis. The height is left 0: :func:`synthesize_scan` lowers the plate onto the
+    supports."""
+    yaw = float(rng.uniform(0.0, 360.0))
+    x, y = float(rng.uniform(-offset_mm, offset_mm)), float(rng.uniform(-offset_mm, offset_mm))
+    tilt, tilt_axis = float(rng.uniform(0.0, tilt_max_deg)), float(rng.uniform(0.0, 360.0))
+    return Placement.on_bed(x, y, yaw if yaw_deg is None else yaw_deg, tilt_deg=tilt, tilt_axis_deg=tilt_axis)
 
 
 @dataclass
@@ -210,7 +198,7 @@ class SynthScan:
             "plate": self.spec.to_dict(),
             "forming_error": self.error.to_dict(),
             "T_bed_design": self.T_bed_design.tolist(),
-            "placement": asdict(self.placement),
+            "placement": self.placement.model_dump(),
             "corners_bed_mm": self.corners_bed_mm().tolist(),
             "settings": asdict(self.settings),
             "scene": asdict(self.scene),
@@ -222,23 +210,10 @@ class SynthScan:
         }
 
 
-def _rot_z(deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _rot_axis(axis: np.ndarray, deg: float) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    a = np.deg2rad(deg)
-    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
-
-
 def _place(spec: PlateSpec, error: FormingError, placement: Placement, scene: BedScene) -> np.ndarray:
-    """T_bed_design: rotate, then lower the plate until its bottom touches the highest support under it."""
-    ta = np.deg2rad(placement.tilt_axis_deg)
-    R = _rot_axis(np.array([np.cos(ta), np.sin(ta), 0.0]), placement.tilt_deg) @ _rot_z(placement.yaw_deg)
+    """T_bed_design: rotate, then lower the plate until its bottom touches the highest support under it
+    (the placement's height is not used)."""
+    R = placement_transform(placement)[:3, :3]
     u = np.linspace(-spec.length_mm / 2, spec.length_mm / 2, 241)
     v = np.linspace(-spec.width_mm / 2, spec.width_mm / 2, 161)
     U, V = np.meshgrid(u, v, indexing="ij")
@@ -672,8 +647,7 @@ def synth_main(argv: list[str] | None = None) -> int:
         placement = None
         if args.yaw_deg is not None:
             rng = np.random.default_rng(args.seed)
-            pl = random_placement(rng)
-            placement = Placement(args.yaw_deg, pl.x_mm, pl.y_mm, pl.tilt_deg, pl.tilt_axis_deg)
+            placement = random_placement(rng, yaw_deg=args.yaw_deg)
         scan = synthesize_scan(spec, error, settings=settings, placement=placement, seed=args.seed)
         paths = write_synth(scan, args.out)
     except (PlateError, SynthError, CloudError) as exc:

@@ -216,7 +216,7 @@ async def _one_job(sc: SoakCell, res: JobResult, timeout_s: float) -> None:
 
 async def daemon_stats(cell: FaultCell) -> dict[str, Any]:
     """The daemon's ``<prefix>/stats`` reply (docs/api.md), or {} when it does not answer."""
-    from cellctl.zenoh_session import async_get
+    from cellctl.api.session import async_get
 
     async with cell.client() as c:
         replies = await async_get(c.session, f"{c.keys.prefix}/stats", timeout_s=10.0)

@@ -31,6 +31,8 @@ from pydantic import (
 )
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
+from analysis.placement import Placement
+
 ENV_PREFIX = "CELL_"
 ENV_DELIMITER = "__"
 DEFAULT_CONFIG_PATH = Path("cell.toml")
@@ -331,8 +333,14 @@ class SimPlate(Section):
 
 
 class SimPlacement(Section):
+    """Where the simulated plate lies: its design origin at ``pos_mm``, turned ``angle_deg`` about z."""
+
     pos_mm: Vec3 = [1500.0, 0.0, 300.0]
     angle_deg: Finite = 3.0
+
+    def to_placement(self) -> Placement:
+        """The same as the product's placement type (what a trigger sends for this plate)."""
+        return Placement.on_bed(self.pos_mm[0], self.pos_mm[1], self.angle_deg, z_mm=self.pos_mm[2])
 
 
 class SimClocks(Section):

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from cellctl.acquisition.assembly import AssemblyError, ScanCloud
-from cellctl.cloud_codec import Cloud, encode_cloud
+from cellctl.api.cloud_codec import Cloud, encode_cloud
 
 __all__ = ["PublishSettings", "column_steps", "encode_scan", "publication_cloud"]
 
@@ -79,7 +79,7 @@ def publication_cloud(
     column_step: int | np.ndarray = 1,
     meta: dict[str, Any] | None = None,
 ) -> Cloud:
-    """The valid points of ``scan`` as a :class:`~cellctl.cloud_codec.Cloud`, thinned by ``column_step``
+    """The valid points of ``scan`` as a :class:`~cellctl.api.cloud_codec.Cloud`, thinned by ``column_step``
     (see :meth:`ScanCloud.points`); exposure times in s from the job's epoch; transit profiles
     (pass -1) go with pass 0, as the scan grid has no negative pass."""
     pts = scan.points(column_step)
@@ -105,7 +105,7 @@ def encode_scan(
     column_step: int | np.ndarray = 1,
     meta: dict[str, Any] | None = None,
 ) -> tuple[bytearray, int]:
-    """:func:`publication_cloud` encoded by :func:`~cellctl.cloud_codec.encode_cloud`: ``(payload,
+    """:func:`publication_cloud` encoded by :func:`~cellctl.api.cloud_codec.encode_cloud`: ``(payload,
     n_points)``. One pass over the kept points; run it off the event loop."""
     cloud = publication_cloud(scan, job_id=job_id, plate_id=plate_id, column_step=column_step, meta=meta)
     return encode_cloud(cloud), cloud.n_points

@@ -50,8 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def parse_placement(text: str, default_z_mm: float):
-    """``"X,Y,ANGLE_DEG"`` or ``"X,Y,Z,ANGLE_DEG"`` -> :class:`~cellctl.planning.Placement`."""
-    from cellctl.planning import Placement
+    """``"X,Y,ANGLE_DEG"`` or ``"X,Y,Z,ANGLE_DEG"`` -> :class:`~analysis.placement.Placement`."""
+    from analysis.placement import Placement
 
     parts = [p.strip() for p in text.split(",")]
     if len(parts) not in (3, 4):
@@ -67,7 +67,7 @@ def parse_placement(text: str, default_z_mm: float):
         z = default_z_mm
     else:
         x, y, z, a = values
-    return Placement(x, y, z, a)
+    return Placement.on_bed(x, y, a, z_mm=z)
 
 
 def _design(arg: str, cfg):

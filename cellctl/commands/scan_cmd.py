@@ -91,7 +91,7 @@ class StatusFollower:
     """
 
     def __init__(self, session: Any, keys: Any) -> None:
-        from cellctl.zenoh_session import subscribe
+        from cellctl.api.session import subscribe
 
         self.latest: Any = None
         self.jobs: dict[str, Any] = {}
@@ -194,7 +194,7 @@ async def wait_for_job(
 
 async def _client_session(cfg, command: str):
     """A client session to the cell's Zenoh, or None after saying why on stderr."""
-    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, open_session
+    from cellctl.api.session import ZenohSetupError, build_zenoh_config, open_session
 
     try:
         return await asyncio.to_thread(
@@ -219,8 +219,8 @@ def _runner(coro_fn):
 
 async def _scan(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+    from cellctl.api.session import close_session
     from cellctl.tables import line_table
-    from cellctl.zenoh_session import close_session
 
     try:
         placement = placement_payload(args.placement, cfg.scan.placement_z_mm)
@@ -264,7 +264,7 @@ run_scan = _runner(_scan)
 
 async def _status(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import Keys, list_workers
-    from cellctl.zenoh_session import close_session
+    from cellctl.api.session import close_session
 
     keys = Keys(cfg.key_prefix)
     session = await _client_session(cfg, "status")
@@ -314,7 +314,7 @@ run_status = _runner(_status)
 
 async def _watch(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import Keys
-    from cellctl.zenoh_session import close_session
+    from cellctl.api.session import close_session
 
     keys = Keys(cfg.key_prefix)
     session = await _client_session(cfg, "watch")
@@ -346,7 +346,7 @@ run_watch = _runner(_watch)
 
 async def _control(args: argparse.Namespace, cfg, action: str, payload: dict[str, Any]) -> int:
     from cellctl.api import ApiCallError, ControlReply, Keys, call
-    from cellctl.zenoh_session import close_session
+    from cellctl.api.session import close_session
 
     keys = Keys(cfg.key_prefix)
     session = await _client_session(cfg, action)

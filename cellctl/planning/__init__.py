@@ -6,7 +6,6 @@ functions on numpy arrays and usable on their own.
 
 from cellctl.planning.plan import (
     CoverageReport,
-    Placement,
     PlanInputError,
     PlanRefused,
     ScanPlan,
@@ -18,7 +17,6 @@ from cellctl.planning.settings import PlannerSettings
 
 __all__ = [
     "CoverageReport",
-    "Placement",
     "PlanInputError",
     "PlanRefused",
     "PlannerSettings",

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from cellctl.acquisition.assembly import AssemblyError, ScanCloud
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, publication_cloud
-from cellctl.cloud_codec import decode_cloud
+from cellctl.api.cloud_codec import decode_cloud
 from cellctl.config import CellConfig
 
 

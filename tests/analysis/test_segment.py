@@ -10,9 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.cloud_io import ScanCloud
+from analysis.placement import Placement
 from analysis.plates import FormingError, GaussianBump, formed_height_mm, plate_spec
 from analysis.segment import NoPlateError, SegmentError, SegmentSettings, segment_plate
-from analysis.synth import Placement, ScanSettings, synthesize_scan
+from analysis.synth import ScanSettings, synthesize_scan
 
 COARSE = {"point_pitch_mm": 1.0, "points_per_profile": 50, "profile_step_mm": 2.0}
 
@@ -113,7 +114,7 @@ def test_organised_cloud_of_a_too_small_surface_raises_no_plate():
         spec,
         FormingError(),
         settings=ScanSettings(**COARSE, margin_mm=5.0),
-        placement=Placement(),
+        placement=Placement.on_bed(0.0, 0.0, 0.0),
         seed=1,
     )
     with pytest.raises(NoPlateError):
@@ -154,7 +155,7 @@ def test_any_small_plate_at_any_placement_segments_to_its_top_surface(kind, yaw,
     scan = synthesize_scan(
         spec,
         settings=ScanSettings(**COARSE),
-        placement=Placement(yaw, 20.0, -10.0, tilt, yaw / 2),
+        placement=Placement.on_bed(20.0, -10.0, yaw, tilt_deg=tilt, tilt_axis_deg=yaw / 2),
         seed=seed,
     )
     res = segment_plate(scan.cloud)

@@ -10,6 +10,7 @@ import pytest
 
 from analysis.cloud_io import read_cloud
 from analysis.mesh import load_mesh
+from analysis.placement import Placement
 from analysis.plates import (
     FormingError,
     GaussianBump,
@@ -19,7 +20,6 @@ from analysis.plates import (
     plate_spec,
 )
 from analysis.synth import (
-    Placement,
     ScanSettings,
     SynthError,
     parse_deform,
@@ -31,7 +31,7 @@ from analysis.synth import (
 @cache
 def _scan(seed: int = 3, noise_mm: float = 0.02, yaw: float | None = None, kind: str = "sail"):
     placement = (
-        None if yaw is None else Placement(yaw_deg=yaw, x_mm=30.0, y_mm=-20.0, tilt_deg=0.3, tilt_axis_deg=40)
+        None if yaw is None else Placement.on_bed(30.0, -20.0, yaw, tilt_deg=0.3, tilt_axis_deg=40)
     )
     return synthesize_scan(
         plate_spec(kind),

@@ -83,7 +83,7 @@ class Cell:
 
 async def open_client(cfg) -> Any:
     """A client session to the daemon, retried until it listens (60 s)."""
-    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, open_session
+    from cellctl.api.session import ZenohSetupError, build_zenoh_config, open_session
 
     deadline = time.monotonic() + 60.0
     while True:

@@ -13,9 +13,9 @@ import pytest
 from e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+from cellctl.api.session import close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
-from cellctl.zenoh_session import close_session
 
 pytestmark = pytest.mark.slow
 

@@ -38,8 +38,8 @@ from cellfaults import (
 
 from cellctl.acquisition.rawstore import CHUNK, RawReader
 from cellctl.api import TriggerAccepted, call
+from cellctl.api.session import async_get
 from cellctl.commands.scan_cmd import wait_for_job
-from cellctl.zenoh_session import async_get
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.timeout(600)]
 

@@ -19,8 +19,8 @@ from hypothesis import strategies as st
 
 from analysis.cloud_io import CloudError, ScanCloud, read_cloud, write_cloud_npz, write_cloud_ply
 from analysis.mesh import MeshError, TriMesh, load_mesh, save_mesh
+from cellctl.api.cloud_codec import Cloud, CloudFormatError, decode_cloud, encode_cloud
 from cellctl.cli import main as cli_main
-from cellctl.cloud_codec import Cloud, CloudFormatError, decode_cloud, encode_cloud
 
 _RNG = np.random.default_rng(11)
 _PTS = np.round(_RNG.normal(0, 50, (12, 3)), 3)

@@ -17,9 +17,7 @@ import zenoh
 from sec_util import PASSWORDS, env_name, free_port, section, write_dictionary
 
 from cellctl.api import Keys, TriggerAccepted, handle_trigger, new_job_id
-from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.daemon.jobs import JobRecord, JobStore
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     ZenohSetupError,
     access_control_dict,
     async_get,
@@ -30,6 +28,8 @@ from cellctl.zenoh_session import (
     open_session,
     subscribe,
 )
+from cellctl.config import ZenohAccess, ZenohSection
+from cellctl.daemon.jobs import JobRecord, JobStore
 
 PREFIX = "cell/sec1"
 KEYS = Keys(PREFIX)
@@ -255,8 +255,8 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
     import numpy as np
 
     from cellctl.api import list_workers
-    from cellctl.cloud_codec import Cloud, encode_cloud
-    from cellctl.dispatch import Dispatcher, DispatchSettings
+    from cellctl.api.cloud_codec import Cloud, encode_cloud
+    from cellctl.api.dispatch import Dispatcher, DispatchSettings
 
     port = free_port()
     dictionary = write_dictionary(tmp_path / "users.txt")

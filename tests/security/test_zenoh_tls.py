@@ -20,8 +20,7 @@ from cryptography.x509.oid import NameOID
 from sec_util import free_port
 
 from cellctl.api import Keys
-from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     ZenohSetupError,
     async_get,
     build_zenoh_config,
@@ -30,6 +29,7 @@ from cellctl.zenoh_session import (
     declare_async_queryable,
     open_session,
 )
+from cellctl.config import ZenohAccess, ZenohSection
 
 PREFIX = "cell/tls1"
 KEYS = Keys(PREFIX)

@@ -6,7 +6,7 @@ import asyncio
 
 import numpy as np
 
-from cellctl.cloud_codec import Cloud, encode_cloud
+from cellctl.api.cloud_codec import Cloud, encode_cloud
 from cellctl.worker import AnalysisProcess
 
 FN = "tests.zenoh.zworker_fns:blas_environment"

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from cellctl.api import Keys, list_workers
-from cellctl.cloud_codec import Cloud, encode_cloud
+from cellctl.api.cloud_codec import Cloud, encode_cloud
+from cellctl.api.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
+from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe
 from cellctl.config import load_config
-from cellctl.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
-from cellctl.zenoh_session import build_zenoh_config, close_session, open_session, subscribe
 
 pytestmark = pytest.mark.e2e
 FAST = DispatchSettings(ack_timeout_s=5.0, heartbeat_timeout_s=3.0, job_timeout_s=60.0, max_attempts=3)

@@ -9,8 +9,7 @@ import pytest
 import zenoh
 from zenoh_testutil import free_port
 
-from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     ZenohSetupError,
     async_get,
     build_zenoh_config,
@@ -20,6 +19,7 @@ from cellctl.zenoh_session import (
     open_session,
     subscribe,
 )
+from cellctl.config import ZenohAccess, ZenohSection
 
 
 def test_daemon_config_listens_only_where_configured_with_scouting_off():
