@@ -188,7 +188,8 @@ async def wait_for_job(
                     break
                 await asyncio.sleep(0.1)
                 env = follower.reports.get(job_id)
-            return job.state.value, job.message, (env.report if env is not None else None)
+            report = None if env is None or env.report is None else env.report.model_dump(mode="json")
+            return job.state.value, job.message, report
     return "timeout", f"no end of job {job_id} within {timeout_s} s", None
 
 
