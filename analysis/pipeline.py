@@ -42,7 +42,7 @@ import numpy as np
 import structlog
 
 from analysis.boundary import BoundaryResult, find_corners
-from analysis.cloud_io import ScanCloud, write_ply_vertices
+from analysis.cloud_io import ScanCloud, write_cloud_ply
 from analysis.job import AnalysisJob, Report
 from analysis.mesh import MeshError, TriMesh, load_mesh
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
@@ -382,7 +382,7 @@ def inspect_cloud(
             "noise_sigma_mm": seg.noise_sigma_mm,
             "max_deviation_mm": float(np.nanmax(deviation)) if np.isfinite(deviation).any() else None,
         },
-        "inputs": {"points": len(cloud.points_mm), **(inputs or {}), "placement": nominal_placement},
+        "inputs": {"points": len(cloud), **(inputs or {}), "placement": nominal_placement},
         "timings_s": timings,
     }
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
@@ -412,24 +412,21 @@ def inspect_cloud(
 # ------------------------------------------------------------------------------------ results dir
 
 
-def write_cloud_ply_with_deviation(points_mm: np.ndarray, deviation_mm: np.ndarray, path: Path) -> Path:
-    """Binary PLY: float32 x, y, z (mm) and float32 ``deviation`` (mm; NaN where off the design)."""
-    p = points_mm.astype(np.float32)
-    cols = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "deviation": deviation_mm.astype(np.float32)}
-    return write_ply_vertices(path, cols, "cellctl registered cloud, design frame, mm")
-
-
 def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
     """Store an inspection as a results directory; returns the written files by name.
 
-    cloud.ply holds the plate's points in the design frame (registered), with their deviation.
+    cloud.ply holds the plate's points in the design frame (registered), with their deviation
+    (float32 mm, NaN where off the design).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
     T_dm = invert_transform(ins.T_measured_design)
     pts_design = ins.plate_points_mm @ T_dm[:3, :3].T + T_dm[:3, 3]
-    files["cloud.ply"] = write_cloud_ply_with_deviation(pts_design, ins.deviation_mm, out / "cloud.ply")
+    files["cloud.ply"] = write_cloud_ply(
+        ScanCloud(pts_design), out / "cloud.ply", extra={"deviation": ins.deviation_mm.astype(np.float32)},
+        comment="cellctl registered cloud, design frame, mm; deviation mm, NaN off the design",
+    )  # fmt: skip
 
     # The map shows the reconstructed surface (denoised cell means), not single noisy points.
     T_pm = ins.T_plate_design @ T_dm
@@ -469,22 +466,19 @@ def _json_default(o: Any) -> Any:
 # ------------------------------------------------------------------------------------- worker API
 
 
-def analyse_job(cloud: dict[str, np.ndarray], job: AnalysisJob) -> dict[str, Any]:
-    """Worker entry point: ``cloud`` arrays by field (``xyz_mm`` and the scan organisation), ``job``
-    the job's parameters (design, nominal placement, settings, ``out_dir``).
+def analyse_job(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
+    """Worker entry point: ``cloud`` the scan (organised or not), ``job`` the job's parameters
+    (design, nominal placement, settings, ``out_dir``).
 
     Returns the report (the :class:`~analysis.job.Report` schema, as a dict); with ``out_dir`` also
     writes the results directory there.
     """
-    xyz = np.asarray(cloud["xyz_mm"], dtype=np.float64)
-    org = [cloud.get(k) for k in ("pass_id", "profile_index", "point_index")]
-    sc = ScanCloud(xyz, *org) if all(a is not None for a in org) else ScanCloud(xyz)
     try:
         design = load_mesh(job.design)
     except MeshError as exc:
         raise InspectionError(str(exc)) from None
     ins = inspect_cloud(
-        sc, design, job.settings, nominal_placement=job.placement,
+        cloud, design, job.settings, nominal_placement=job.placement,
         plate_id=job.plate_id, job_id=job.job_id, cell_id=job.cell_id, inputs={"design": job.design},
     )  # fmt: skip
     if job.out_dir:

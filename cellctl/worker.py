@@ -11,9 +11,9 @@ Shape of one worker process:
 
 The analysis callable is resolved from a dotted path ``"package.module:function"`` (default
 ``analysis.pipeline:analyse_job``) and called in the child as
-``fn(cloud: dict[str, np.ndarray], job: AnalysisJob) -> Report | dict``: ``cloud`` holds the arrays
-of :class:`cellctl.api.cloud_codec.Cloud` by field name (``xyz_mm`` (n, 3) float32 mm, and
-optionally ``pass_id``, ``profile_index``, ``point_index``, ``t_s``), ``job`` is the JobSpec's
+``fn(cloud: ScanCloud, job: AnalysisJob) -> Report | dict``: ``cloud`` is the decoded cloud as
+:class:`analysis.cloud_io.ScanCloud` (``xyz_mm`` (n, 3) mm, and when sent the organisation
+``pass_id``, ``profile_index``, ``point_index`` and the times ``t_s``), ``job`` is the JobSpec's
 :class:`~analysis.job.AnalysisJob` (validated again in the child: ids, design, the trigger's
 placement, settings, ``out_dir``). What it returns is validated as a :class:`~analysis.job.Report`
 before it leaves the child (numpy scalars and arrays are converted); a report that does not fit
@@ -177,7 +177,7 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
             job = AnalysisJob.model_validate_json(spec_raw)
             cloud = decode_cloud(cloud_raw)
             t1 = time.perf_counter()
-            result = fn(cloud.arrays(), job)
+            result = fn(cloud.scan_cloud(), job)
             if not isinstance(result, Report):
                 result = Report.model_validate_json(json.dumps(result, default=_json_default, allow_nan=False))
             t2 = time.perf_counter()

@@ -91,7 +91,7 @@ class _Job:
         self.stage = "queued"
         self.worker_id: str | None = None
         self.stop_reason: str | None = None  # "shutdown" or "abort"
-        self.cloud: Any = None  # the live ScanCloud of a finished scan, until published
+        self.cloud: Any = None  # the live AssembledScan of a finished scan, until published
         self.task: asyncio.Task | None = None
 
 

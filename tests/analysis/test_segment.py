@@ -137,7 +137,7 @@ def test_unusable_input_raises_segment_error(points, message):
 def test_organisation_too_sparse_to_be_a_scan_grid_falls_back_to_delaunay():
     scan = _scan("sail", seed=6, length_mm=450.0)
     c = scan.cloud
-    sparse = ScanCloud(c.points_mm, c.pass_id, c.profile * 1000, c.point)
+    sparse = ScanCloud(c.xyz_mm, c.pass_id, c.profile_index * 1000, c.point_index)
     res = segment_plate(sparse)
     assert res.method == "delaunay"
     assert res.mask.sum() >= 0.95 * _truth_top(scan, 0.12).sum()

@@ -178,7 +178,7 @@ def test_synth_main_writes_scan_design_and_truth_that_read_back(tmp_path):
     assert truth["plate"]["kind"] == "saddle"
     assert FormingError.from_dict(truth["forming_error"]).bumps[0].amplitude_mm == -3.0
     T = np.array(truth["T_bed_design"])
-    q = (cloud.points_mm - T[:3, 3]) @ T[:3, :3]
+    q = (cloud.xyz_mm - T[:3, 3]) @ T[:3, :3]
     spec = plate_spec("saddle")
     err = FormingError.from_dict(truth["forming_error"])
     z = formed_height_mm(spec, err, q[:, 0], q[:, 1])

@@ -120,8 +120,7 @@ def _analyse(tmp_path: Path, placement: Placement | None) -> dict:
     tmp_path.mkdir(parents=True, exist_ok=True)
     design = tmp_path / "sail.ply"
     save_mesh(design_mesh(spec, pitch_mm=5.0), design)
-    cloud = {"xyz_mm": scan.points_mm.astype(np.float32), "pass_id": scan.pass_id.astype(np.uint16),
-             "profile_index": scan.profile.astype(np.uint32), "point_index": scan.point.astype(np.uint16)}  # fmt: skip
+    cloud = scan.cloud
     job = _job(design=str(design), placement=placement, out_dir=str(tmp_path / "results"))
     # through JSON, as the worker's child receives it
     return analyse_job(cloud, AnalysisJob.model_validate_json(job.model_dump_json()))

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import numpy as np
-
+from analysis.cloud_io import ScanCloud
 from analysis.job import AnalysisJob, Report
 from tests.zenoh.zworker_fns import minimal_report
 
 
-def point_count(cloud: dict[str, np.ndarray], job: AnalysisJob) -> Report:
+def point_count(cloud: ScanCloud, job: AnalysisJob) -> Report:
     """A report recording the cloud's point count: enough to prove the job went round trip."""
-    return minimal_report(job, int(cloud["xyz_mm"].shape[0]))
+    return minimal_report(job, len(cloud))

@@ -27,7 +27,8 @@ FAST = DispatchSettings(ack_timeout_s=5.0, heartbeat_timeout_s=3.0, job_timeout_
 def _cloud_bytes(job_id: str, n: int = 2000, offset_mm: float = 0.0) -> tuple[bytearray, np.ndarray]:
     rng = np.random.default_rng(abs(hash(job_id)) % 2**32)
     xyz = (rng.normal(0, 100, (n, 3)) + offset_mm).astype(np.float32)
-    cloud = Cloud(xyz_mm=xyz, job_id=job_id, plate_id="P1", pass_id=(np.arange(n) % 4).astype(np.uint16))
+    cloud = Cloud(xyz_mm=xyz, job_id=job_id, plate_id="P1", pass_id=(np.arange(n) % 4).astype(np.uint16),
+                  profile_index=(np.arange(n) // 40).astype(np.uint32), point_index=(np.arange(n) % 10).astype(np.uint16))  # fmt: skip
     return encode_cloud(cloud), xyz.astype(np.float64).mean(axis=0)
 
 

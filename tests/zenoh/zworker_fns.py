@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from analysis.cloud_io import ScanCloud
 from analysis.job import AnalysisJob, Report
 
 
@@ -51,7 +52,7 @@ def minimal_report(job: AnalysisJob, points: int) -> Report:
     )  # fmt: skip
 
 
-def centroid_after_sleep(cloud: dict[str, np.ndarray], job: AnalysisJob) -> Report:
+def centroid_after_sleep(cloud: ScanCloud, job: AnalysisJob) -> Report:
     """Record the call, sleep ``sleep_s``, observe the cloud's point count, centroid (mm) and passes."""
     todo = behaviour(job)
     record = todo.get("record_path")
@@ -59,8 +60,8 @@ def centroid_after_sleep(cloud: dict[str, np.ndarray], job: AnalysisJob) -> Repo
         with Path(record).open("a") as f:
             f.write(f"start {job.job_id} {os.getpid()}\n")
     time.sleep(float(todo.get("sleep_s", 0.0)))
-    xyz = cloud["xyz_mm"].astype(np.float64)
-    passes = np.unique(cloud["pass_id"]).tolist() if "pass_id" in cloud else []
+    xyz = cloud.xyz_mm
+    passes = np.unique(cloud.pass_id).tolist() if cloud.organised else []
     observe(job, job_id=job.job_id, n_points=xyz.shape[0], centroid_mm=xyz.mean(axis=0).tolist(),
             passes=passes, pid=os.getpid())  # fmt: skip
     if record:
@@ -69,17 +70,17 @@ def centroid_after_sleep(cloud: dict[str, np.ndarray], job: AnalysisJob) -> Repo
     return minimal_report(job, xyz.shape[0])
 
 
-def always_raises(cloud: dict[str, np.ndarray], job: AnalysisJob) -> Report:
+def always_raises(cloud: ScanCloud, job: AnalysisJob) -> Report:
     """An analysis that fails on its input, deterministically."""
-    raise ValueError(f"plate {job.plate_id}: no plate surface in {cloud['xyz_mm'].shape[0]} points")
+    raise ValueError(f"plate {job.plate_id}: no plate surface in {len(cloud)} points")
 
 
-def not_a_report(cloud: dict[str, np.ndarray], job: AnalysisJob) -> dict[str, Any]:
+def not_a_report(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
     """An analysis whose result does not fit the report schema (an unknown field, no verdict)."""
-    return {"job_id": job.job_id, "n_points": cloud["xyz_mm"].shape[0]}
+    return {"job_id": job.job_id, "n_points": len(cloud)}
 
 
-def blas_environment(cloud: dict[str, np.ndarray], job: AnalysisJob) -> Report:
+def blas_environment(cloud: ScanCloud, job: AnalysisJob) -> Report:
     """Observe the BLAS thread settings the analysis process runs with."""
     observe(job, **{k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")})
-    return minimal_report(job, cloud["xyz_mm"].shape[0])
+    return minimal_report(job, len(cloud))
