@@ -327,7 +327,9 @@ def _read_text(path: Path) -> ScanCloud:
         pts = table[:, [col["x"], col["y"], col["z"]]]
         pname = "pass" if "pass" in col else ("pass_id" if "pass_id" in col else None)
         if pname and "profile" in col and "point" in col:
-            return organised_cloud(pts, table[:, col[pname]], table[:, col["profile"]], table[:, col["point"]])
+            return organised_cloud(
+                pts, table[:, col[pname]], table[:, col["profile"]], table[:, col["point"]]
+            )
         return ScanCloud(pts)
     return ScanCloud(table[:, :3])
 
@@ -336,7 +338,9 @@ def _read_npz(path: Path) -> ScanCloud:
     with np.load(path, allow_pickle=False) as z:
         key = next((k for k in ("xyz_mm", "points_mm", "points", "xyz") if k in z.files), None)
         if key is None:
-            raise CloudError(f"{path}: NPZ has none of the arrays xyz_mm, points_mm, points, xyz (has {z.files})")
+            raise CloudError(
+                f"{path}: NPZ has none of the arrays xyz_mm, points_mm, points, xyz (has {z.files})"
+            )
         pts = np.asarray(z[key], dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise CloudError(f"{path}: array {key!r} must be (n, 3), got {pts.shape}")

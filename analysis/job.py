@@ -21,11 +21,11 @@ from analysis.settings import InspectionSettings
 
 __all__ = [
     "AnalysisJob",
-    "CoverageReport",
     "LineReport",
     "RegistrationReport",
     "Report",
     "ReportInputs",
+    "ScanCoverage",
     "SurfaceReport",
 ]
 
@@ -67,7 +67,9 @@ class RegistrationReport(_Strict):
     surface_points: int
     surface_cell_mm: float
     raw_points_below_4sigma: int
-    transform: Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4)]], Field(min_length=4, max_length=4)]
+    transform: Annotated[
+        list[Annotated[list[float], Field(min_length=4, max_length=4)]], Field(min_length=4, max_length=4)
+    ]
     corner_shift: int
     candidates_icp_rms_mm: dict[str, float] = {}
 
@@ -96,7 +98,7 @@ class LineReport(_Strict):
     noise_mm: float | None = None
 
 
-class CoverageReport(_Strict):
+class ScanCoverage(_Strict):
     """Share of the design's footprint the scan saw, and the area it missed."""
 
     fraction: float
@@ -134,7 +136,7 @@ class Report(_Strict):
     plate_size_mm: Vec2
     lines: list[LineReport]
     tolerances: Tolerances
-    coverage: CoverageReport
+    coverage: ScanCoverage
     surface: SurfaceReport
     inputs: ReportInputs
     timings_s: dict[str, float] = {}

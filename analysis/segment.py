@@ -149,7 +149,9 @@ def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | Non
     if cloud.organised:
         cloud = _profiles_from_zero(cloud)
         n_grid = (
-            (int(cloud.pass_id.max()) + 1) * (int(cloud.profile_index.max()) + 1) * (int(cloud.point_index.max()) + 1)
+            (int(cloud.pass_id.max()) + 1)
+            * (int(cloud.profile_index.max()) + 1)
+            * (int(cloud.point_index.max()) + 1)
         )
         if n_grid <= max(8 * len(cloud), 1_000_000):
             return _segment_grid(cloud, settings)

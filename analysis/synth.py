@@ -142,7 +142,11 @@ class ScanSettings:
 
 
 def random_placement(
-    rng: np.random.Generator, *, offset_mm: float = 100.0, tilt_max_deg: float = 0.5, yaw_deg: float | None = None
+    rng: np.random.Generator,
+    *,
+    offset_mm: float = 100.0,
+    tilt_max_deg: float = 0.5,
+    yaw_deg: float | None = None,
 ) -> Placement:
     """Any yaw (or ``yaw_deg``), an XY offset within +-offset_mm, a tilt up to tilt_max_deg about a
     random horizontal axis. The height is left 0: :func:`synthesize_scan` lowers the plate onto the

@@ -271,7 +271,7 @@ class ZenohSection(Section):
         return self
 
 
-class Tolerances(Section):
+class TolerancesSection(Section):
     """Template-to-plate tolerances: 'standard' range and absolute 'limit' (CSQS 2016 defaults)."""
 
     standard: str = "CSQS 2016 (doubly curved plate)"
@@ -283,7 +283,7 @@ class Tolerances(Section):
     length_gap_limit_mm: PositiveFloat = 5.0
 
     @model_validator(mode="after")
-    def _standard_within_limit(self) -> Tolerances:
+    def _standard_within_limit(self) -> TolerancesSection:
         for name in ("deviation", "frame_gap", "length_gap"):
             std, lim = getattr(self, f"{name}_standard_mm"), getattr(self, f"{name}_limit_mm")
             if std > lim:
@@ -300,7 +300,7 @@ class AnalysisSection(Section):
     sample_step_mm: PositiveFloat = 1.0
     icp_stop_mm: PositiveFloat = 0.1
     workers: Annotated[int, Field(ge=1, le=64)] = 1
-    tolerances: Tolerances = Tolerances()
+    tolerances: TolerancesSection = TolerancesSection()
     # Workers and the job dispatcher (docs/api.md, "Jobs and workers").
     callable: Annotated[str, Field(pattern=r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")] = (
         "analysis.pipeline:analyse_job"

@@ -179,7 +179,9 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
             t1 = time.perf_counter()
             result = fn(cloud.scan_cloud(), job)
             if not isinstance(result, Report):
-                result = Report.model_validate_json(json.dumps(result, default=_json_default, allow_nan=False))
+                result = Report.model_validate_json(
+                    json.dumps(result, default=_json_default, allow_nan=False)
+                )
             t2 = time.perf_counter()
             text = json.dumps(
                 {

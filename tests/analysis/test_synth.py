@@ -30,9 +30,7 @@ from analysis.synth import (
 
 @cache
 def _scan(seed: int = 3, noise_mm: float = 0.02, yaw: float | None = None, kind: str = "sail"):
-    placement = (
-        None if yaw is None else Placement.on_bed(30.0, -20.0, yaw, tilt_deg=0.3, tilt_axis_deg=40)
-    )
+    placement = None if yaw is None else Placement.on_bed(30.0, -20.0, yaw, tilt_deg=0.3, tilt_axis_deg=40)
     return synthesize_scan(
         plate_spec(kind),
         settings=ScanSettings.coarse(

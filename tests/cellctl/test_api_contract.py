@@ -146,3 +146,9 @@ def test_the_job_placement_reaches_the_analysis_and_picks_the_reference_corner(t
     unplaced = _analyse(tmp_path / "none", None)
     assert np.linalg.norm((np.asarray(unplaced["corners_mm"][0]) - _where(lay, c0))[:2]) < 10.0
     assert unplaced["inputs"]["placement"] is None
+
+
+def test_the_field_tables_of_docs_api_md_are_those_of_the_models():
+    from cellctl.api.doc import main
+
+    assert main(["--check"]) == 0, "run: python -m cellctl.api.doc"

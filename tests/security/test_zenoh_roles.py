@@ -283,7 +283,9 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
         try:
             await disp.start()
             assert await _until(lambda: disp.workers == ["w1"], 60), log_path.read_text()
-            envelope = await asyncio.wait_for(disp.submit(AnalysisJob(job_id="jobS", plate_id="P1", design="p.stl"), payload), 60)
+            envelope = await asyncio.wait_for(
+                disp.submit(AnalysisJob(job_id="jobS", plate_id="P1", design="p.stl"), payload), 60
+            )
             bob = _client(port, "bob")
             announced = await list_workers(bob, KEYS, timeout_s=5)
             return envelope, announced
