@@ -50,8 +50,8 @@ def run(args: argparse.Namespace) -> int:
     from analysis.report import write_report
     from cellctl.api.analysis_job import inspection_settings
     from cellctl.commands.plan_cmd import parse_placement
+    from cellctl.commands.tables import line_table
     from cellctl.config import AnalysisSection
-    from cellctl.tables import line_table
 
     try:
         placement = parse_placement(args.placement, 0.0) if args.placement else None

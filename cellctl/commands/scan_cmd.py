@@ -221,7 +221,7 @@ def _runner(coro_fn):
 async def _scan(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
     from cellctl.api.session import close_session
-    from cellctl.tables import line_table
+    from cellctl.commands.tables import line_table
 
     try:
         placement = placement_payload(args.placement, cfg.scan.placement_z_mm)

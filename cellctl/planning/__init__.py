@@ -10,7 +10,6 @@ from cellctl.planning.plan import (
     PlanRefused,
     ScanPlan,
     Segment,
-    TimedTrajectory,
 )
 from cellctl.planning.planner import plan_scan
 from cellctl.planning.settings import PlannerSettings
@@ -22,6 +21,5 @@ __all__ = [
     "PlannerSettings",
     "ScanPlan",
     "Segment",
-    "TimedTrajectory",
     "plan_scan",
 ]

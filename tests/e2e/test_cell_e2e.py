@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 from analysis.job import Report
 from analysis.mesh import load_mesh
@@ -21,6 +20,7 @@ from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
 from cellctl.api.session import close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
+from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 pytestmark = pytest.mark.slow
 
