@@ -234,7 +234,7 @@ async def drive_scan(
         req = {
             "plate_id": "demo-sail" if cfg.sim.plate.length_mm < 1200 else "sail-1200x800",
             "design": DEMO_DESIGN,
-            "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]},
+            "placement": pl.to_placement().model_dump(),
             "note": "cellctl demo",
         }
         try:

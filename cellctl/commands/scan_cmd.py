@@ -77,8 +77,7 @@ def placement_payload(text: str, default_z_mm: float) -> dict[str, Any]:
     """``X,Y,ANGLE`` / ``X,Y,Z,ANGLE`` -> the trigger's ``placement`` object (ValueError if malformed)."""
     from cellctl.commands.plan_cmd import parse_placement
 
-    p = parse_placement(text, default_z_mm)
-    return {"pos_mm": [p.x_mm, p.y_mm, p.z_mm], "rpy_deg": [0.0, 0.0, p.angle_deg]}
+    return parse_placement(text, default_z_mm).model_dump()
 
 
 class StatusFollower:

@@ -152,3 +152,13 @@ def test_the_field_tables_of_docs_api_md_are_those_of_the_models():
     from cellctl.api.doc import main
 
     assert main(["--check"]) == 0, "run: python -m cellctl.api.doc"
+
+
+def test_the_scan_command_sends_the_placement_it_was_given_as_the_one_placement_type():
+    from cellctl.api import TriggerRequest
+    from cellctl.commands.scan_cmd import placement_payload
+
+    payload = placement_payload("1500,-20,183", 300.0)
+    assert Placement.model_validate(payload) == Placement.on_bed(1500.0, -20.0, 183.0, z_mm=300.0)
+    req = TriggerRequest.model_validate({"plate_id": "P", "design": "a.ply", "placement": payload})
+    assert req.placement.yaw_deg == 183.0
