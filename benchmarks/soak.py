@@ -217,7 +217,7 @@ async def daemon_stats(cell: FaultCell) -> dict[str, Any]:
     from cellctl.api.session import async_get
 
     async with cell.client() as c:
-        replies = await async_get(c.session, f"{c.keys.prefix}/stats", timeout_s=10.0)
+        replies = await async_get(c.session, c.keys.stats, timeout_s=10.0)
     for r in replies:
         if r.ok is not None:
             return json.loads(r.ok.payload.to_bytes())

@@ -21,7 +21,15 @@ from analysis.metrics import Tolerances
 from analysis.placement import Placement
 from analysis.settings import InspectionSettings
 from analysis.templates import DetectionLayout
-from cellctl.api.models import AnalysisJob, JobEvent, JobSpec, ReportEnvelope, TriggerRequest
+from cellctl.api.models import (
+    AnalysisJob,
+    DaemonStats,
+    EgmStats,
+    JobEvent,
+    JobSpec,
+    ReportEnvelope,
+    TriggerRequest,
+)
 
 __all__ = ["MODELS", "field_table", "render"]
 
@@ -31,7 +39,7 @@ MODELS: dict[str, type] = {
     for m in (
         TriggerRequest, Placement, JobSpec, AnalysisJob, InspectionSettings, DetectionLayout, Tolerances,
         JobEvent, ReportEnvelope, Report, RegistrationReport, LineReport, ScanCoverage, SurfaceReport,
-        ReportInputs,
+        ReportInputs, DaemonStats, EgmStats,
     )
 }  # fmt: skip
 DOC = Path(__file__).resolve().parents[2] / "docs" / "api.md"

@@ -36,6 +36,11 @@ class Keys:
         return f"{self.prefix}/state"
 
     @property
+    def stats(self) -> str:
+        """Queryable: empty in, DaemonStats JSON out."""
+        return f"{self.prefix}/stats"
+
+    @property
     def daemon_alive(self) -> str:
         """Liveliness token of the daemon."""
         return f"{self.prefix}/alive/daemon"

@@ -44,6 +44,10 @@ __all__ = [
     "ControlError",
     "ControlReply",
     "ControlRequest",
+    "DaemonStats",
+    "EgmStats",
+    "HeapLine",
+    "HeapSummary",
     "Ident",
     "JobEvent",
     "JobProgress",
@@ -344,6 +348,54 @@ class CellStatus(Model):
 
 
 # --------------------------------------------------------------------------------------------- workers
+
+
+class EgmStats(Model):
+    """The EGM endpoint's counters since the daemon started (``EgmStatistics.snapshot()`` of the driver)."""
+
+    received: int
+    handled: int
+    replies_sent: int
+    lost: int
+    duplicated: int
+    out_of_order: int
+    malformed: int
+    sessions: int
+    watchdog_events: int
+    send_errors: int
+    interval_mean_us: float | None = None
+    interval_jitter_us: float | None = None
+    interval_max_us: float | None = None
+    latency_bins_us: list[float] = []
+    latency_counts: list[int] = []
+    latency_max_us: float = 0.0
+
+
+class HeapLine(Model):
+    """One source line holding traced Python memory."""
+
+    where: str
+    kb: float
+    blocks: int
+
+
+class HeapSummary(Model):
+    """The traced Python heap (only under ``PYTHONTRACEMALLOC``): current and peak MB, top lines."""
+
+    traced_mb: float
+    peak_mb: float
+    top: list[HeapLine] = []
+
+
+class DaemonStats(Model):
+    """Reply of ``Keys.stats``: the daemon's counters since it started, for monitoring and the soak."""
+
+    cell_id: str
+    t_utc: str
+    rss_mb: float
+    dispatch_malformed: Annotated[int, Field(ge=0)] = 0
+    egm: EgmStats | None = None
+    python_heap: HeapSummary | None = None
 
 
 class WorkerAnnouncement(Model):

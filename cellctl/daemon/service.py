@@ -46,6 +46,7 @@ from cellctl.api import (
     ControlError,
     ControlReply,
     ControlRequest,
+    DaemonStats,
     JobProgress,
     JobState,
     Keys,
@@ -213,7 +214,7 @@ class CellDaemon:
                 self._entities.append(
                     declare_async_queryable(s, self.keys.control(action), self._control_handler(action))
                 )
-            self._entities.append(declare_async_queryable(s, f"{self.keys.prefix}/stats", self._on_stats))
+            self._entities.append(declare_async_queryable(s, self.keys.stats, self._on_stats))
             self._entities.append(s.liveliness().declare_token(self.keys.daemon_alive))
             publisher = s.declare_publisher(self.keys.state, encoding=zenoh.Encoding.APPLICATION_JSON)
             self._publisher = publisher
@@ -283,16 +284,15 @@ class CellDaemon:
     async def _on_stats(self, query: Any) -> None:
         """``<prefix>/stats``: the daemon's counters since it started (docs/api.md) for monitoring and the
         soak: the EGM endpoint's statistics, resident memory, malformed worker messages."""
-        body = {
-            "cell_id": self.cfg.cell.id,
-            "t_utc": now_utc(),
-            "egm": self.endpoint.stats.snapshot() if self.endpoint is not None else None,
-            "rss_mb": _rss_mb(),
-            "dispatch_malformed": getattr(self.dispatcher, "malformed", 0),
-        }
+        heap = None
         if tracemalloc.is_tracing():  # PYTHONTRACEMALLOC=1: where the Python heap is, for a leak hunt
-            body["python_heap"] = await asyncio.to_thread(_heap_summary)  # a snapshot takes seconds
-        query.reply(query.key_expr, json.dumps(body).encode(), encoding=JSON)
+            heap = await asyncio.to_thread(_heap_summary)  # a snapshot takes seconds
+        body = DaemonStats(
+            cell_id=self.cfg.cell.id, t_utc=now_utc(), rss_mb=_rss_mb(),
+            egm=self.endpoint.stats.snapshot() if self.endpoint is not None else None,
+            dispatch_malformed=getattr(self.dispatcher, "malformed", 0), python_heap=heap,
+        )  # fmt: skip
+        query.reply(query.key_expr, body.to_json(), encoding=JSON)
 
     def _on_transition(self, tr: Transition) -> None:
         self._publish()

@@ -162,3 +162,11 @@ def test_the_scan_command_sends_the_placement_it_was_given_as_the_one_placement_
     assert Placement.model_validate(payload) == Placement.on_bed(1500.0, -20.0, 183.0, z_mm=300.0)
     req = TriggerRequest.model_validate({"plate_id": "P", "design": "a.ply", "placement": payload})
     assert req.placement.yaw_deg == 183.0
+
+
+def test_the_daemon_stats_model_takes_the_egm_endpoint_statistics_as_they_are():
+    from cellctl.api import DaemonStats
+    from drivers.abb_egm.endpoint import EgmStatistics
+
+    stats = DaemonStats(cell_id="c", t_utc="t", rss_mb=1.0, egm=EgmStatistics().snapshot())
+    assert DaemonStats.model_validate_json(stats.to_json()) == stats
