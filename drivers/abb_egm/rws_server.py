@@ -688,9 +688,9 @@ class RwsServer:
     ) -> web.Response:
         """A success answer: ``items`` (``_type``, ``_title``, fields; ``_links`` optional) in the profile's
         envelope. ``_links.base`` is the resource's parent, ``self`` relative to it (query echoed)."""
-        parent, _, leaf = r.path.rpartition("/")
-        base = f"{self.base_url}{parent}/"
-        self_href = leaf + (f"?{r.req.query_string}" if r.req.query_string else "")
+        base_path, rel = self._base_and_self(r.path)
+        base = f"{self.base_url}{base_path}"
+        self_href = rel + (f"?{r.req.query_string}" if r.req.query_string else "")
         if not r.json:
             data = self._xhtml(items, title, base, self_href, next_href).encode("ascii", "xmlcharrefreplace")
         else:
@@ -705,6 +705,18 @@ class RwsServer:
                 body = {"_links": links, **({"status": {"code": RC_OK}} if status else {}), "state": items}
             data = json.dumps(body).encode()
         return web.Response(body=data, headers={"Content-Type": CONTENT_TYPE[(self.profile, r.json)]})
+
+    @staticmethod
+    def _base_and_self(path: str) -> tuple[str, str]:
+        """``_links.base`` and ``self`` as the captured answers have them: the service root
+        (``/rw/rapid/`` + ``tasks``), or the resource itself (``/rw/panel/ctrlstate/`` + ``""``) for
+        panel, motion-system, system and the event-log root."""
+        parts = path.strip("/").split("/")
+        if len(parts) < 2 or parts[0] != "rw":
+            return "/", path.lstrip("/")
+        if parts[1] in ("panel", "motionsystem", "system") or path == "/rw/elog":
+            return path + "/", ""
+        return f"/rw/{parts[1]}/", "/".join(parts[2:])
 
     def _xhtml(
         self, items: list[dict[str, Any]], title: str, base: str, self_href: str, next_href: str | None
@@ -965,6 +977,10 @@ class RwsServer:
         }
         if listing:
             item["_links"] = {"self": {"href": f"tasks/{name}"}}
+        else:  # the fields of the manual's task page (values of a normal motion task)
+            item.update({"tasktype": "Normal", "trust": "None", "taskID": "1", "execmode": "continous",
+                         "exectype": "None", "prodentrypt": "main", "bind_ref": "True",
+                         "task_in_forgnd": "True"})  # fmt: skip
         return item
 
     async def _get_tasks(self, r: _Request) -> web.Response:
