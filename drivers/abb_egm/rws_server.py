@@ -1079,7 +1079,16 @@ class RwsServer:
             item["_links"] = {"self": {"href": f"signals/{path}"}}
         else:
             item.update(
-                {"unitnm": sig.device, "phstate": "valid", "pvalue": format_num(sig.lvalue), "quality": "1"}
+                {
+                    "unitnm": sig.device,
+                    "phstate": "valid",
+                    "pvalue": format_num(sig.lvalue),
+                    "ltime-sec": "0",
+                    "ltime-microsec": "0",
+                    "ptime-sec": "0",
+                    "ptime-microsec": "0",
+                    "quality": "1",
+                }
             )
         return item
 

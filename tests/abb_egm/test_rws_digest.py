@@ -5,13 +5,13 @@ from __future__ import annotations
 import base64
 
 from aiohttp.test_utils import make_mocked_request
+from conftest import SHARED
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.abb_egm.controller_model import ControllerModel
 from drivers.abb_egm.rws_client import _auth_params, _DigestState
 from drivers.abb_egm.rws_server import RwsServer, parse_auth_params
-from conftest import SHARED
 
 # User names and passwords as a controller's UAS allows them: printable, no double quote.
 text = st.text(
