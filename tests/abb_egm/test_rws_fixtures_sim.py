@@ -20,7 +20,6 @@ import aiohttp
 import pytest
 from conftest import SHARED
 
-from drivers.abb_egm.controller_model import ControllerModel, IoSignal
 from drivers.abb_egm.rws_client import (
     RwsClient,
     RwsClientConfig,
@@ -29,7 +28,8 @@ from drivers.abb_egm.rws_client import (
     parse_event_xhtml,
     parse_xhtml,
 )
-from drivers.abb_egm.rws_server import RwsServer
+from drivers.abb_egm.sim.model import ControllerModel, IoSignal
+from drivers.abb_egm.sim.rws_server import RwsServer
 
 FIX = SHARED / "testdata" / "rws"
 CTYPE = {

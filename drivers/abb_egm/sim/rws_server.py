@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import asyncio
 import base64
-import hashlib
 import html
 import itertools
 import json
@@ -49,16 +48,14 @@ from urllib.parse import quote, unquote
 import structlog
 from aiohttp import WSMsgType, web
 
-from drivers.abb_egm.controller_model import (
-    RC_IO_ACCESS_DENIED,
+from drivers.abb_egm.digest import digest_response, parse_auth_params
+from drivers.abb_egm.rapid_values import RC_IO_ACCESS_DENIED, ControllerError, RapidValueError, format_num
+from drivers.abb_egm.sim.model import (
     AccessDenied,
-    ControllerError,
     ControllerModel,
-    RapidValueError,
     SignalNotFound,
     StateRefused,
     SymbolNotFound,
-    format_num,
 )
 
 log = structlog.get_logger(__name__)
@@ -150,21 +147,6 @@ class _Request:
     json: bool
     multi: list[tuple[str, str]] = field(default_factory=list)  # form fields in order, repeats kept
     path: str = ""  # the request path without a trailing slash
-
-
-def _md5(text: str) -> str:
-    return hashlib.md5(text.encode()).hexdigest()
-
-
-_AUTH_PARAM_RE = re.compile(r'(\w+)\s*=\s*(?:"((?:[^"\\]|\\.)*)"|([^,\s]+))')
-
-
-def parse_auth_params(header_value: str) -> dict[str, str]:
-    """Parse ``key=value`` / ``key="value"`` pairs of a Digest challenge or response header."""
-    return {
-        m.group(1).lower(): m.group(2) if m.group(2) is not None else m.group(3)
-        for m in _AUTH_PARAM_RE.finditer(header_value)
-    }
 
 
 def _x(value: object) -> str:
@@ -444,9 +426,10 @@ class RwsServer:
             return None, False
         if p.get("uri", "") not in (req.path_qs, req.raw_path):
             return None, False
-        ha1 = _md5(f"{user}:{REALM}:{self.users[user]}")
-        ha2 = _md5(f"{req.method}:{p.get('uri', '')}")
-        expected = _md5(f"{ha1}:{nonce}:{p['nc']}:{p['cnonce']}:auth:{ha2}")
+        expected = digest_response(
+            username=user, realm=REALM, password=self.users[user], method=req.method,
+            uri=p.get("uri", ""), nonce=nonce, nc=p["nc"], cnonce=p["cnonce"],
+        )  # fmt: skip
         if not secrets.compare_digest(expected, p["response"]):
             return None, False
         self._nonce_nc[nonce] = nc
