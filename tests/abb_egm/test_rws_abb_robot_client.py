@@ -10,8 +10,11 @@ sends to ``[robot] egm_host:egm_port`` of cell.toml, where abb-robot-client's ``
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import queue
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -22,7 +25,6 @@ from cellctl.commands.demo_cmd import Processes, demo_config, to_toml, wait_read
 from cellctl.config import load_config
 
 rws_mod = pytest.importorskip("abb_robot_client.rws", reason="abb-robot-client is a test dependency")
-egm_mod = pytest.importorskip("abb_robot_client.egm")
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
@@ -51,23 +53,25 @@ def sim_cell(tmp_path_factory):
         assert codes.get("sim") == 0, (out / "logs" / "sim.log").read_text()[-3000:]
 
 
-def _wait_for(pred, timeout_s: float, what: str):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"{what} not within {timeout_s} s")
-
-
 def test_abb_robot_client_reads_the_controller_and_runs_an_egm_session_on_the_simulator(sim_cell):
     base_url, egm_port, cfg = sim_cell
     rws = rws_mod.RWS(base_url, "Default User", "robotics")
     events: queue.Queue = queue.Queue()
     sub = None
-    egm = egm_mod.EGM(port=egm_port)
+    # abb-robot-client's EGM listens in a child process (see abb_client_egm_guidance.py)
+    guidance = subprocess.Popen(
+        [
+            sys.executable,
+            str(Path(__file__).with_name("abb_client_egm_guidance.py")),
+            str(egm_port),
+            "2.0",
+            "30",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
+        assert json.loads(guidance.stdout.readline()) == {"ready": True}
         # panel, execution, position
         assert rws.get_controller_state() == "motoroff"
         assert rws.get_operation_mode() == "AUTO"
@@ -117,35 +121,15 @@ def test_abb_robot_client_reads_the_controller_and_runs_an_egm_session_on_the_si
         assert log and log[0].code == 10011 and log[0].msgtype == 1 and log[0].title
 
         # start RAPID: CellEgm enters EGMRunJoint, EGM joint guidance moves axis 1 by 2 degrees
-        rws.start(cycle="once", tasks=["T_ROB1"])
+        rws.start(cycle="once", tasks=["T_ROB1"])  # CellEgm enters EGMRunJoint
         assert rws.get_execution_state().ctrlexecstate == "running"
-
-        # Packets queued before the start still say motors off: read (and answer each with its own
-        # position, as a sensor holding still does, else the 1 s CommTimeout ends the session) until
-        # the running session's.
-        def running_state():
-            ok, st = egm.receive_from_robot(0.1)
-            if not ok:
-                return None
-            egm.send_to_robot(st.joint_angles)
-            return st if st.motors_on and st.rapid_running else None
-
-        state = _wait_for(running_state, 10.0, "an EgmRobot of the running session")
-        q0 = np.array(state.joint_angles)
-        target = q0 + np.array([2.0, 0, 0, 0, 0, 0])
-        deadline = time.monotonic() + 15.0
-        q = q0
-        while time.monotonic() < deadline:
-            ok, state = egm.receive_from_robot(0.1)
-            if not ok:
-                continue
-            egm.send_to_robot(target)
-            q = np.array(state.joint_angles)
-            if abs(q[0] - target[0]) < 0.02:
-                break
-        assert abs(q[0] - target[0]) < 0.02, (q0, q)
+        out, _ = guidance.communicate(timeout=60)
+        result = json.loads(out.strip().splitlines()[-1])
+        assert result["q0"] is not None, "no EgmRobot of a running session reached abb-robot-client"
+        q0, q = np.array(result["q0"]), np.array(result["q"])
+        assert abs(q[0] - (q0[0] + 2.0)) < 0.02, (q0, q)
         np.testing.assert_allclose(q[1:], q0[1:], atol=0.02)
-        np.testing.assert_allclose(rws.get_jointtarget().robax[0], target[0], atol=0.05)
+        np.testing.assert_allclose(rws.get_jointtarget().robax[0], q0[0] + 2.0, atol=0.05)
 
         # stop
         rws.stop()
@@ -165,5 +149,7 @@ def test_abb_robot_client_reads_the_controller_and_runs_an_egm_session_on_the_si
     finally:
         if sub is not None:
             sub.close()
-        egm.close()
+        if guidance.poll() is None:
+            guidance.kill()
+            guidance.wait()
         rws.close()
