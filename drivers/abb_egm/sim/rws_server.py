@@ -270,6 +270,7 @@ class RwsServer:
         self._sub_seq = 0
         self._session_seq = itertools.count(1)
         self._abbcx_seq = itertools.count(int(secrets.randbelow(1000)) + 1)
+        self._cycle = "once"  # the run mode of the last start (CellEgm runs once)
         self._master: dict[str, str] = {}  # mastership domain ("edit", "motion") -> session id
         self._faults: dict[str, _Fault] = {}
         self._delays: dict[str, float] = {}
@@ -915,7 +916,7 @@ class RwsServer:
             "_type": "rap-execution",
             "_title": "execution",
             "ctrlexecstate": self.model.rapid_state,
-            "cycle": "once",
+            "cycle": self._cycle,
         }
         return self._respond(r, [item], "rapid")
 
@@ -925,13 +926,15 @@ class RwsServer:
         self._choice(
             r, "execmode", ("continue", "stepin", "stepover", "stepout", "stepback", "steplast", "stepmotion")
         )
-        self._choice(r, "cycle", ("forever", "asis", "once", "oncedone"))
+        cycle = self._choice(r, "cycle", ("forever", "asis", "once", "oncedone"))
         self._choice(r, "condition", ("none", "callchain"))
         self._choice(r, "stopatbp", ("disabled", "enabled"))
         self._choice(r, "alltaskbytsp", ("true", "false"))
         if self.profile == "rws1":
             self._implicit_mastership_v1(r)
         self.model.start_rapid()
+        if cycle not in (None, "asis"):
+            self._cycle = cycle
         return self._no_content()
 
     async def _stop(self, r: _Request) -> web.Response:
