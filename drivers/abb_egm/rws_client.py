@@ -11,7 +11,11 @@
 One ``aiohttp.ClientSession`` with a cookie jar holds the controller session. A 401 on a request made
 with a session cookie means the controller dropped the session (idle timeout, restart): the client
 logs in again once and repeats the request. Every request has a bounded timeout. A non-2xx answer
-raises ``RwsError`` carrying the HTTP status and the controller's return code and message.
+raises ``RwsError`` carrying the HTTP status and the controller's return code and message, read from
+either profile's error body (RWS 1.0: ``status`` under ``_embedded``; RWS 2.0: at the top level;
+XHTML ``<div class="status">``). XHTML answers are read into the same shape as JSON ones, and list
+resources are read page by page along ``_links.next``. Only endpoints of ABB's RWS documentation
+are used; ``docs/robot-setup.md`` lists which were checked against captured controller answers.
 
 Usage::
 
