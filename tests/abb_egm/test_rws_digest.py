@@ -5,7 +5,6 @@ from __future__ import annotations
 import base64
 
 from aiohttp.test_utils import make_mocked_request
-from conftest import SHARED
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -13,6 +12,7 @@ from drivers.abb_egm.digest import parse_auth_params
 from drivers.abb_egm.rws_client import _DigestState
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
+from tests.conftest import SHARED
 
 # User names and passwords as a controller's UAS allows them: printable, no double quote.
 text = st.text(

@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from aiohttp import web
-from conftest import SHARED
 
 from drivers.abb_egm.rws_client import (
     ElogEntry,
@@ -32,6 +31,7 @@ from drivers.abb_egm.rws_client import (
     parse_xhtml,
     subscription_ws_url,
 )
+from tests.conftest import SHARED
 
 FIX = SHARED / "testdata" / "rws"
 JSON1, XHTML1 = "application/json", "application/xhtml+xml"

@@ -18,7 +18,6 @@ from urllib.parse import urlsplit
 
 import aiohttp
 import pytest
-from conftest import SHARED
 
 from drivers.abb_egm.rws_client import (
     RwsClient,
@@ -30,6 +29,7 @@ from drivers.abb_egm.rws_client import (
 )
 from drivers.abb_egm.sim.model import ControllerModel, IoSignal
 from drivers.abb_egm.sim.rws_server import RwsServer
+from tests.conftest import SHARED
 
 FIX = SHARED / "testdata" / "rws"
 CTYPE = {

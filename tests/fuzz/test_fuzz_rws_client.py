@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import json
 import threading
-from pathlib import Path
 
 import pytest
 from aiohttp import web
@@ -20,6 +19,7 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig, RwsError
+from tests.conftest import SHARED
 
 
 def _state(**item) -> bytes:
@@ -41,7 +41,7 @@ VALID_BODIES = (
     b"",
     # captured controller answers (../shared/testdata/rws): both error shapes, XHTML pages
     *(
-        (Path(__file__).resolve().parents[2].parent / "shared/testdata/rws" / rel).read_bytes()
+        (SHARED / "testdata/rws" / rel).read_bytes()
         for rel in (
             "rws1/errors/ichbinmeraj_400-exec-start-wrong-state-json.json",
             "rws1/errors/ichbinmeraj_404-module-xhtml.xml",
