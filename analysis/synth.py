@@ -23,7 +23,7 @@ What the generator models, in the bed frame (x, y on the bed, z up, bed top at z
   ``outlier_range_mm`` along the ray.
 
 Organisation: ``pass_id`` numbers raster passes from 0 and the four edge passes after them,
-``profile`` counts profiles within a pass, ``point`` counts rays along the line. Missing returns
+``profile_index`` counts profiles within a pass, ``point_index`` counts rays along the line. Missing returns
 are absent from the output, the indices of the others are kept.
 """
 
@@ -161,16 +161,17 @@ def random_placement(
 class SynthScan:
     """A synthetic scan with its ground truth.
 
-    points_mm: (n, 3) float64, bed frame.
-    pass_id, profile, point: (n,) int32 scan organisation.
+    xyz_mm: (n, 3) float64, bed frame.
+    pass_id, profile_index, point_index: (n,) int32 scan organisation (the names of
+    :class:`~analysis.cloud_io.ScanCloud`).
     T_bed_design: (4, 4) design frame -> bed frame (exact).
     is_outlier: (n,) bool, points the generator displaced on purpose.
     """
 
-    points_mm: np.ndarray
+    xyz_mm: np.ndarray
     pass_id: np.ndarray
-    profile: np.ndarray
-    point: np.ndarray
+    profile_index: np.ndarray
+    point_index: np.ndarray
     T_bed_design: np.ndarray
     spec: PlateSpec
     error: FormingError
@@ -184,7 +185,7 @@ class SynthScan:
     @property
     def cloud(self) -> ScanCloud:
         """The scan as an organised :class:`ScanCloud`."""
-        return ScanCloud(self.points_mm, self.pass_id, self.profile, self.point)
+        return ScanCloud(self.xyz_mm, self.pass_id, self.profile_index, self.point_index)
 
     def design_mesh(self, pitch_mm: float = 5.0) -> TriMesh:
         """The design top surface (design frame) the plate was formed from."""
@@ -207,7 +208,7 @@ class SynthScan:
             "settings": asdict(self.settings),
             "scene": asdict(self.scene),
             "seed": self.seed,
-            "n_points": len(self.points_mm),
+            "n_points": len(self.xyz_mm),
             "n_raster_passes": self.n_raster_passes,
             "n_outliers": int(self.is_outlier.sum()),
             "frames": "points in the bed frame; design frame per analysis.plates; T maps design -> bed",
@@ -485,10 +486,10 @@ def synthesize_scan(
             out_outl.append(outl)
 
     scan = SynthScan(
-        points_mm=np.concatenate(out_pts),
+        xyz_mm=np.concatenate(out_pts),
         pass_id=np.concatenate(out_pass),
-        profile=np.concatenate(out_prof),
-        point=np.concatenate(out_point),
+        profile_index=np.concatenate(out_prof),
+        point_index=np.concatenate(out_point),
         T_bed_design=T,
         spec=spec,
         error=error,
@@ -500,7 +501,7 @@ def synthesize_scan(
         is_outlier=np.concatenate(out_outl),
     )
     log.info(
-        "synth_scan", points=len(scan.points_mm), raster_passes=n_pass, profiles_per_pass=n_prof,
+        "synth_scan", points=len(scan.xyz_mm), raster_passes=n_pass, profiles_per_pass=n_prof,
         yaw_deg=round(placement.yaw_deg, 3), plate=spec.kind,
     )  # fmt: skip
     return scan
@@ -660,5 +661,5 @@ def synth_main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"cellctl synth: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
-    print(f"wrote {paths[0]} ({len(scan.points_mm)} points), {paths[1]}, {paths[2]}")
+    print(f"wrote {paths[0]} ({len(scan.xyz_mm)} points), {paths[1]}, {paths[2]}")
     return 0

@@ -27,7 +27,7 @@ def _scan(kind: str = "sail", seed: int = 11, noise_mm: float = 0.02, length_mm:
 def _truth_top(scan, tol_mm: float) -> np.ndarray:
     """Points within tol of the formed top surface over the footprint, outliers excluded."""
     T = scan.T_bed_design
-    q = (scan.points_mm - T[:3, 3]) @ T[:3, :3]
+    q = (scan.xyz_mm - T[:3, 3]) @ T[:3, :3]
     z = formed_height_mm(scan.spec, scan.error, q[:, 0], q[:, 1])
     # The first hundredths of a millimetre of a thickness face are the top edge itself.
     inside = (np.abs(q[:, 0]) <= scan.spec.length_mm / 2 + 0.05) & (
@@ -46,7 +46,7 @@ def test_grid_segmentation_keeps_the_top_surface_and_drops_bed_supports_faces_an
     assert not (res.mask & scan.is_outlier).any()
     # Nearly all of the top surface (the rest: 6-sigma tails and a few cells at holes).
     assert res.mask.sum() >= 0.99 * _truth_top(scan, 0.12).sum()
-    np.testing.assert_array_equal(res.points_mm, scan.points_mm[res.mask])
+    np.testing.assert_array_equal(res.points_mm, scan.xyz_mm[res.mask])
     assert res.cloud.organised and len(res.cloud) == res.mask.sum()
 
 
@@ -54,7 +54,7 @@ def test_scan_pitch_is_reported_for_meshing_the_points():
     # COARSE: 1 mm along the line, 2 mm between profiles; the coarser one bounds mesh cells.
     assert segment_plate(_scan().cloud).point_spacing_mm == pytest.approx(2.0, rel=0.05)
     small = _scan("sail", seed=6, length_mm=450.0)
-    assert segment_plate(small.points_mm).point_spacing_mm == pytest.approx(2.0, rel=0.1)
+    assert segment_plate(small.xyz_mm).point_spacing_mm == pytest.approx(2.0, rel=0.1)
 
 
 def test_measured_noise_level_matches_the_sensor_noise():
@@ -89,7 +89,7 @@ def test_a_deep_narrow_dent_stays_part_of_the_plate():
 
 def test_unorganised_cloud_takes_the_delaunay_route_with_the_same_result_quality():
     scan = _scan("sail", seed=6, length_mm=450.0)
-    res = segment_plate(ScanCloud(scan.points_mm))
+    res = segment_plate(ScanCloud(scan.xyz_mm))
     assert res.method == "delaunay"
     assert not (res.mask & ~_truth_top(scan, 0.2)).any()
     assert res.mask.sum() >= 0.95 * _truth_top(scan, 0.12).sum()
@@ -98,7 +98,7 @@ def test_unorganised_cloud_takes_the_delaunay_route_with_the_same_result_quality
 
 def test_plain_array_input_is_accepted():
     scan = _scan("sail", seed=6, length_mm=450.0)
-    assert segment_plate(scan.points_mm).method == "delaunay"
+    assert segment_plate(scan.xyz_mm).method == "delaunay"
 
 
 def test_noise_only_cloud_raises_no_plate():
@@ -165,8 +165,8 @@ def test_any_small_plate_at_any_placement_segments_to_its_top_surface(kind, yaw,
 
 def test_dense_unorganised_cloud_fits_cell_planes_on_a_subsample_with_the_same_result():
     scan = _scan("sail", seed=6, length_mm=450.0)
-    full = segment_plate(scan.points_mm)
-    sub = segment_plate(scan.points_mm, SegmentSettings(max_cell_sample=40_000))
+    full = segment_plate(scan.xyz_mm)
+    sub = segment_plate(scan.xyz_mm, SegmentSettings(max_cell_sample=40_000))
     assert not (sub.mask & ~_truth_top(scan, 0.2)).any()
     assert sub.mask.sum() >= 0.97 * full.mask.sum()
     assert sub.noise_sigma_mm == pytest.approx(0.02, rel=0.25)
