@@ -38,7 +38,7 @@ from cellctl.acquisition.reassemble import reassemble
 from cellctl.acquisition.simcell import SimCell, SimCellConfig, joint_path, plate_truth, raster_poses
 from cellctl.calibration.time_offset import calibrate_time_offset
 from cellctl.logging import configure_logging
-from drivers.abb_egm.sim_egm import precise_event_loop
+from drivers.runtime import precise_event_loop
 
 
 def _scan(truth, cfg, pass_y, speeds, job, x_range=None):

@@ -48,7 +48,6 @@ from cellctl.api import (
     default_worker_id,
     now_utc,
 )
-from cellctl.signals import stop_on_signals
 from cellctl.zenoh_session import (
     ZenohSetupError,
     build_zenoh_config,
@@ -57,6 +56,7 @@ from cellctl.zenoh_session import (
     open_session,
     subscribe,
 )
+from drivers.runtime import stop_on_signals
 
 log = structlog.get_logger(__name__)
 

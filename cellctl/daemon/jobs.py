@@ -17,6 +17,7 @@ trigger, never on its own.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 from dataclasses import asdict, dataclass, field
@@ -25,7 +26,10 @@ from typing import Any
 
 import structlog
 
+from cellctl.acquisition.assembly import ScanCloud
+from cellctl.acquisition.session import AcquisitionSession
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
+from cellctl.motion import MotionExecutor
 
 log = structlog.get_logger(__name__)
 
@@ -81,6 +85,23 @@ class JobRecord:
     @property
     def terminal(self) -> bool:
         return JobState(self.state) in TERMINAL
+
+
+class ActiveJob:
+    """A job the daemon is running (queued, scanning or analysing): its live objects beside its record."""
+
+    def __init__(self, record: JobRecord) -> None:
+        self.record = record
+        self.executor: MotionExecutor | None = None
+        self.profiles = 0
+        self.points = 0
+        self.fraction = 0.0
+        self.stage = "queued"
+        self.worker_id: str | None = None
+        self.stop_reason: str | None = None  # "shutdown", "abort" or "disk"
+        self.cloud: ScanCloud | None = None  # the live cloud of a finished scan, until published
+        self.task: asyncio.Task[None] | None = None
+        self.session: AcquisitionSession | None = None  # while the scan acquires
 
 
 class JobStore:

@@ -27,7 +27,8 @@ import structlog
 
 from drivers.abb_egm.controller_model import ControllerModel
 from drivers.abb_egm.rws_server import RwsServer
-from drivers.abb_egm.sim_egm import EgmControllerSim, EgmFaults, EgmSimConfig, precise_event_loop
+from drivers.abb_egm.sim_egm import EgmControllerSim, EgmFaults, EgmSimConfig
+from drivers.runtime import precise_event_loop
 
 __all__ = ["ControllerSim", "ControllerSimConfig", "main"]
 

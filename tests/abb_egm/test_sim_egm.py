@@ -25,8 +25,8 @@ from drivers.abb_egm.sim_egm import (
     FaultError,
     TrajectoryRangeError,
     TrajectoryRecorder,
-    precise_event_loop,
 )
+from drivers.runtime import precise_event_loop
 
 CYCLE_S = 0.004032
 Q_START = np.array([0.0, 10.0, -10.0, 0.0, 30.0, 0.0])

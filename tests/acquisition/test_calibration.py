@@ -27,7 +27,7 @@ from cellctl.calibration.hand_eye import (
 )
 from cellctl.calibration.time_offset import TimeOffsetError, estimate_time_offset
 from drivers.abb_egm.kinematics import RobotKinematics, fk_batch
-from drivers.abb_egm.sim_egm import precise_event_loop
+from drivers.runtime import precise_event_loop
 from tests.acquisition.synthetic import feed, make_run
 
 SPHERE_C = np.array([1500.0, 100.0, 350.0])
