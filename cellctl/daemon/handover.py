@@ -23,7 +23,7 @@ from cellctl.acquisition.reassemble import reassemble
 from cellctl.analysis_settings import inspection_settings_dict
 from cellctl.api import JobState
 from cellctl.config import CellConfig
-from cellctl.daemon.jobs import ActiveJob, JobStore
+from cellctl.daemon.jobs import ActiveJob, JobStore, JobStoreError
 from cellctl.daemon.render import render_report
 from cellctl.dispatch import Dispatcher, JobFailed
 from cellctl.logging import bind_context
@@ -159,7 +159,10 @@ async def render_html(store: JobStore, job: ActiveJob) -> None:
         if last is not None:
             info["html_after_last_profile_s"] = round(time.time() - float(last), 3)
     rec.info.update(info)
-    store.save(rec)
+    try:
+        store.save(rec)
+    except JobStoreError as exc:  # the job is done with its report.json; only the render's note is lost
+        log.warning("job_record_write_failed", job_id=rec.job_id, error=str(exc))
     log.info("html_report_written", job_id=rec.job_id, **info)
     if out.stopped:
         raise asyncio.CancelledError

@@ -23,6 +23,7 @@ import asyncio
 import collections
 import contextlib
 import json
+import os
 import tracemalloc
 from pathlib import Path
 from typing import Any
@@ -54,7 +55,7 @@ from cellctl.api import (
 )
 from cellctl.config import CellConfig, ConfigError
 from cellctl.daemon.handover import Handover
-from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore, JobStoreError
+from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore, JobStoreError, lock_data_dir
 from cellctl.daemon.preflight import PreflightError, probe_writable
 from cellctl.daemon.scan import ScanRunner
 from cellctl.daemon.states import CellStateMachine, Transition
@@ -88,6 +89,8 @@ class DaemonError(Exception):
 CONTROLLER_RESET_STATES = ("motoroff", "motoron", "emergencystopreset")
 #: ended jobs kept in the state publication's ``recent`` list
 RECENT_JOBS = 8
+#: a job record the disk refused is written again this often until it is taken
+RECORD_RETRY_S = 2.0
 
 
 class CellDaemon:
@@ -115,6 +118,8 @@ class CellDaemon:
         self._recent: collections.deque[JobProgress] = collections.deque(maxlen=RECENT_JOBS)
         self._workers: list[str] = []
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._unsaved: dict[str, JobRecord] = {}  # records the disk refused, retried by _saver
+        self._saver: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------------------- life cycle
 
@@ -123,6 +128,18 @@ class CellDaemon:
         self._loop = asyncio.get_running_loop()
         cfg = self.cfg
         bind_context(cell_id=cfg.cell.id)
+        try:  # before anything else touches the job store: one daemon per data directory
+            lock_fd = lock_data_dir(cfg.cell.data_dir)
+        except JobStoreError as exc:
+            log.error("data_dir_locked", error=str(exc))
+            return 2
+        try:
+            return await self._serve(stop)
+        finally:
+            os.close(lock_fd)
+
+    async def _serve(self, stop: asyncio.Event) -> int:
+        cfg = self.cfg
         interrupted = self.store.recover()
         try:
             password = rws_password(cfg.robot)
@@ -497,8 +514,16 @@ class CellDaemon:
             raise ControlError("not_allowed", "job_id", f"job {job_id} is being analysed already")
         try:
             record = self.store.load(job_id)
-        except JobStoreError:
-            raise ControlError("no_job", "job_id", f"no job {job_id} in the job store") from None
+        except JobStoreError as exc:
+            if (
+                not (self.store.job_dir(job_id) / "job.json").exists()
+                or not (self.store.raw_dir(job_id) / "profiles.craw").exists()
+            ):
+                raise ControlError("no_job", "job_id", f"no job {job_id} in the job store") from None
+            try:  # the record is unreadable but the raw data is there: set the record aside, go on
+                record = self.store.quarantine(job_id, str(exc).split(": unreadable job record: ")[-1][:300])
+            except JobStoreError as exc2:
+                raise ControlError("internal", "job_id", f"job {job_id}: {exc2}") from None
         if record.state not in (JobState.INTERRUPTED.value, JobState.FAILED.value):
             raise ControlError("not_allowed", "job_id", f"job is {record.state}")
         if not (self.store.raw_dir(job_id) / "profiles.craw").exists():
@@ -524,14 +549,48 @@ class CellDaemon:
     # ------------------------------------------------------------------------- the job
 
     def _job_state(self, job: ActiveJob, state: JobState, message: str = "", **info: Any) -> None:
+        """Record a job's state: in memory, on disk, in the publication. Never raises: a record the
+        disk does not take (full, read-only) keeps its new state in memory and in the publication,
+        and its write is retried until it succeeds (:meth:`_save_later`)."""
         job.stage = state.value
-        self.store.set_state(job.record, state, message, **info)
+        try:
+            self.store.set_state(job.record, state, message, **info)
+        except JobStoreError as exc:  # set_state changed the record before it failed to write it
+            log.error("job_record_write_failed", job_id=job.record.job_id, state=state.value, error=str(exc))
+            self._save_later(job.record)
         if state in FINAL_JOB_STATES:
             self._recent.append(self._progress(job))
             # a job's arrays are freed now; hand the freed heap pages back (off the loop)
             if self._loop is not None:
                 self._loop.run_in_executor(None, release_freed_memory)
         self._publish()
+
+    def _save_later(self, record: JobRecord) -> None:
+        """Retry writing ``record`` every ``RECORD_RETRY_S`` until the disk takes it (newest wins)."""
+        self._unsaved[record.job_id] = record
+        if self._saver is None or self._saver.done():
+            if self._loop is None:
+                return
+            self._saver = self._loop.create_task(self._retry_saves(), name="job-record-retry")
+
+    async def _retry_saves(self) -> None:
+        while self._unsaved:
+            await asyncio.sleep(RECORD_RETRY_S)
+            for job_id, record in list(self._unsaved.items()):
+                try:
+                    await asyncio.to_thread(self.store.save, record)
+                except JobStoreError as exc:
+                    log.warning("job_record_write_retry_failed", job_id=job_id, error=str(exc))
+                    continue
+                if self._unsaved.get(job_id) is record:
+                    del self._unsaved[job_id]
+                log.info("job_record_written", job_id=job_id, state=record.state)
+
+    def _record_progress(self, job: ActiveJob, state: JobState, message: str) -> None:
+        """A pause / resume in the job's record (never raises, as :meth:`_job_state`)."""
+        stage = job.stage
+        self._job_state(job, state, message)
+        job.stage = stage
 
     async def _run_job(self, job: ActiveJob) -> None:
         rec = job.record
@@ -592,10 +651,10 @@ class CellDaemon:
         job.stage = f"{ev.segment} ({ev.pass_index}/{ev.pass_count})"
         if ev.state == "paused" and self.sm.state == CellState.SCANNING:
             self.sm.to(CellState.PAUSED, f"job {job.record.job_id} paused")
-            self.store.set_state(job.record, JobState.PAUSED, "paused")
+            self._record_progress(job, JobState.PAUSED, "paused")
         elif ev.state in ("running", "resuming", "moving_to_start") and self.sm.state == CellState.PAUSED:
             self.sm.to(CellState.SCANNING, f"job {job.record.job_id} resumed")
-            self.store.set_state(job.record, JobState.SCANNING, "resumed")
+            self._record_progress(job, JobState.SCANNING, "resumed")
         self._publish()
 
     # ------------------------------------------------------------------------- the analysis

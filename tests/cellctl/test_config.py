@@ -84,7 +84,7 @@ def test_config_is_frozen(repo_root: Path) -> None:
         ("zenoh", {"key_prefix": "cell//x"}, "zenoh.key_prefix"),
         ("cell", {"id": "bad id!"}, "cell.id = 'bad id!'"),
         ("analysis.tolerances", {"deviation_standard_mm": 4.0}, "must not exceed deviation_limit_mm"),
-        ("sim", {"rws_users": {"Default User": "robotics"}}, "expected an environment variable name"),
+        ("sim", {"rws_users": {"Default User": "robotics"}}, "expected the name of an environment variable"),
         ("sim.faults", {"egm_loss_fraction": 1.5}, "sim.faults.egm_loss_fraction = 1.5"),
         ("daemon", {"queue_max": -1}, "daemon.queue_max = -1"),
         ("daemon", {"queue_max": 1000}, "daemon.queue_max = 1000"),
