@@ -12,10 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.abb_egm.codec import MciState, MotorState
-from drivers.abb_egm.controller_model import ControllerModel
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.kinematics import RobotKinematics
-from drivers.abb_egm.sim_egm import (
+from drivers.abb_egm.sim.egm import (
     EVENT_EGM_COMM_TIMEOUT,
     EVENT_EGM_JOINT_LIMIT,
     EVENT_EGM_SPEED_DEVIATION,
@@ -26,6 +25,7 @@ from drivers.abb_egm.sim_egm import (
     TrajectoryRangeError,
     TrajectoryRecorder,
 )
+from drivers.abb_egm.sim.model import ControllerModel
 from drivers.runtime import precise_event_loop
 
 CYCLE_S = 0.004032

@@ -22,9 +22,9 @@ from cellctl.acquisition.session import AcquisitionSession, SessionSettings, pas
 from cellctl.config import CellConfig
 from cellctl.daemon.wiring import hd8_client, laser_exposure_ns
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.sim_egm import EgmControllerSim, EgmSimConfig
-from drivers.laser.scene import plane_scene
-from drivers.laser.sim import LaserSimulator, SimConfig, fixed_pose
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
+from drivers.laser.sim.scene import plane_scene
+from drivers.laser.sim.sensor import LaserSimulator, SimConfig, fixed_pose
 
 REPO = Path(__file__).resolve().parents[2]
 WINDOWS = pass_windows_s([0.3, 0.9], [0.4, 0.4])  # two passes, 0.2 s apart
