@@ -98,17 +98,18 @@ class Handover:
                 "out_dir": str(self.store.results_dir(rec.job_id).resolve()),
                 "cell_id": self.cfg.cell.id,
             }
+            # waiting for a worker until the dispatcher assigns the job (the daemon's on_assigned
+            # hook then says analysing): with no worker present the job says so (docs/operations.md)
+            self._job_state(
+                job, JobState.WAITING_FOR_WORKER, "cloud published", points=job.points,
+                cloud_bytes=len(payload), assemble_s=round(assemble_s, 3), published_utc_s=time.time(),
+            )  # fmt: skip
             fut = self.dispatcher.submit(rec.job_id, rec.plate_id, payload, params)
             # the published bytes, kept with the job (cellctl.cloud_codec layout); written while the
             # worker analyses, and on disk before the job is done
             cloud_path = self.store.job_dir(rec.job_id) / "cloud.bin"
             written = asyncio.ensure_future(asyncio.to_thread(cloud_path.write_bytes, payload))
-            self._job_state(
-                job, JobState.WAITING_FOR_WORKER, "cloud published", points=job.points,
-                cloud_bytes=len(payload), assemble_s=round(assemble_s, 3), published_utc_s=time.time(),
-            )  # fmt: skip
             del payload
-            self._job_state(job, JobState.ANALYSING, "analysing")
             try:
                 env = await fut
             finally:

@@ -141,6 +141,10 @@ class CellDaemon:
     async def _serve(self, stop: asyncio.Event) -> int:
         cfg = self.cfg
         interrupted = self.store.recover()
+        for rec in interrupted[-RECENT_JOBS:]:
+            # published with the first state: a client still waiting on one of them (`cellctl scan
+            # --wait` across the restart) learns that it ended instead of waiting for its timeout
+            self._recent.append(self._progress(ActiveJob(rec)))
         try:
             password = rws_password(cfg.robot)
             zcfg = build_zenoh_config(cfg.zenoh, role="serve", key_prefix=cfg.key_prefix)
@@ -173,8 +177,9 @@ class CellDaemon:
             self._entities.append(s.liveliness().declare_token(self.keys.daemon_alive))
             self._publisher = s.declare_publisher(self.keys.state, encoding=zenoh.Encoding.APPLICATION_JSON)
             self.dispatcher = Dispatcher(
-                s, self.keys, DispatchSettings.from_config(cfg), DispatchHooks(on_workers=self._on_workers)
-            )
+                s, self.keys, DispatchSettings.from_config(cfg),
+                DispatchHooks(on_workers=self._on_workers, on_assigned=self._on_assigned, on_retry=self._on_retry),
+            )  # fmt: skip
             self.handover = Handover(cfg, self.store, self.dispatcher, self._job_state)
             await self.dispatcher.start()
             n_cancelled = sum(r.state == JobState.CANCELLED.value for r in interrupted)
@@ -252,6 +257,18 @@ class CellDaemon:
 
     def _on_transition(self, tr: Transition) -> None:
         self._publish()
+
+    def _on_assigned(self, job_id: str, worker_id: str, attempt: int) -> None:
+        job = self._analysing.get(job_id)
+        if job is not None and job.record.state not in {s.value for s in FINAL_JOB_STATES}:
+            job.worker_id = worker_id
+            self._job_state(job, JobState.ANALYSING, f"analysing on {worker_id} (attempt {attempt})")
+
+    def _on_retry(self, job_id: str, worker_id: str, reason: str) -> None:
+        job = self._analysing.get(job_id)
+        if job is not None and job.record.state not in {s.value for s in FINAL_JOB_STATES}:
+            job.worker_id = None
+            self._job_state(job, JobState.WAITING_FOR_WORKER, f"taken back from {worker_id}: {reason}")
 
     def _on_workers(self, workers: list[str]) -> None:
         self._workers = list(workers)
@@ -560,6 +577,9 @@ class CellDaemon:
             self._save_later(job.record)
         if state in FINAL_JOB_STATES:
             self._recent.append(self._progress(job))
+            if self.sm.state == CellState.IDLE and self.sm.message.startswith(f"job {job.record.job_id} "):
+                # the idle cell's message named this job as analysing: say how it ended
+                self.sm.message = f"job {job.record.job_id} {state.value}"
             # a job's arrays are freed now; hand the freed heap pages back (off the loop)
             if self._loop is not None:
                 self._loop.run_in_executor(None, release_freed_memory)
