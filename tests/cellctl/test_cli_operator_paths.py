@@ -10,7 +10,7 @@ from pathlib import Path
 
 from analysis.templates import DetectionLayout
 from cellctl.acquisition.rawstore import RawWriter
-from tests.report.results_fixture import write_synthetic_results
+from tests.support.results_fixture import write_synthetic_results
 
 REPO = Path(__file__).resolve().parents[2]
 

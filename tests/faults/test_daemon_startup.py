@@ -10,7 +10,8 @@ import time
 from pathlib import Path
 
 import pytest
-from faultcell import FaultCell
+
+from tests.support.faultcell import FaultCell
 
 pytestmark = pytest.mark.e2e
 

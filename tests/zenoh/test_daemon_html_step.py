@@ -10,7 +10,7 @@ from analysis.templates import DetectionLayout
 from cellctl.config import CellConfig
 from cellctl.daemon.handover import render_html
 from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore
-from tests.report.results_fixture import write_synthetic_results
+from tests.support.results_fixture import write_synthetic_results
 
 
 def _store_and_job(tmp_path) -> tuple[JobStore, ActiveJob]:
