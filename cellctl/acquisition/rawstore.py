@@ -357,6 +357,25 @@ def read_job_meta(job_dir: str | Path) -> dict[str, Any]:
         raise RawFormatError(f"{path}: not valid JSON ({exc})") from None
 
 
+def _first_valid_chunk(data: memoryview, start: int) -> int:
+    """Byte offset of the first chunk at or after ``start`` whose magic, length and CRC hold (-1: none)."""
+    raw = bytes(data)
+    magic = struct.pack("<I", CHUNK_MAGIC)
+    pos = raw.find(magic, start)
+    while pos >= 0:
+        if len(raw) - pos >= CHUNK.size:
+            _m, plen, crc, _n = CHUNK.unpack_from(raw, pos)
+            body = pos + CHUNK.size
+            if (
+                plen <= MAX_CHUNK_BYTES
+                and body + plen <= len(raw)
+                and zlib.crc32(raw[body : body + plen]) == crc
+            ):
+                return pos
+        pos = raw.find(magic, pos + 1)
+    return -1
+
+
 class RawReader:
     """Reads a job's raw files; stops each stream at the first incomplete or corrupt chunk."""
 
@@ -374,9 +393,21 @@ class RawReader:
             return []
         name = stream.encode()
         head = FILE_MAGIC + struct.pack("<II", VERSION, len(name)) + name
-        if bytes(data[: len(head)]) != head:
-            raise RawFormatError(f"{path}: bad file header {bytes(data[: len(head)]).hex()}")
         pos = len(head)
+        if bytes(data[: len(head)]) != head:
+            # A damaged header loses nothing else: the chunks carry their own magic and CRC, so the
+            # reader resumes at the first chunk whose CRC holds (and the other streams are unaffected).
+            found = _first_valid_chunk(data, 0)
+            self.report.problems.append(
+                f"{path.name}: bad file header {bytes(data[: len(head)]).hex()}"
+                + (f"; resumed at the chunk at byte {found}" if found >= 0 else "; no chunk found after it")
+            )
+            if found < 0:
+                self.report.chunks[stream] = 0
+                self.report.records[stream] = 0
+                self.report.torn_bytes[stream] = len(data)
+                return []
+            pos = found
         out: list[RawRecord] = []
         chunks = 0
         while pos < len(data):
