@@ -103,6 +103,7 @@ class AcquisitionSession:
         self._last_robot_ns = -1
         self._consumer: asyncio.Task[None] | None = None
         self._open_pass = -1
+        self._finished = False
 
     # ---- the three feeds -------------------------------------------------------------------------
 
@@ -172,12 +173,18 @@ class AcquisitionSession:
             await asyncio.wait_for(self._consumer, self.settings.consumer_timeout_s)
         self.pump_feedback()
         await asyncio.to_thread(self.acq.finish)
+        self._finished = True
 
     async def abort(self) -> None:
-        """Cut the session short (an error elsewhere): stop the consumer, close the sensor."""
+        """Cut the session short (an error elsewhere): stop the consumer, leave the sensor stopped
+        (not streaming into nowhere until the next scan), close it. Nothing to do after :meth:`finish`."""
+        if self._finished:
+            return
         if self._consumer is not None and not self._consumer.done():
             self._consumer.cancel()
-            with contextlib.suppress(BaseException):
+            with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._consumer
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self.sensor.stop(), 2.0)
         with contextlib.suppress(Exception):
             await self.sensor.close()
