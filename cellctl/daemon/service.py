@@ -241,7 +241,7 @@ class CellDaemon:
 
     # ------------------------------------------------------------------------- publication
 
-    async def _on_stats(self, query: Any) -> None:
+    async def _on_stats(self, query: zenoh.Query) -> None:
         """``<prefix>/stats``: the daemon's counters since it started (docs/api.md) for monitoring and the
         soak: the EGM endpoint's statistics, resident memory, malformed worker messages."""
         body = {
@@ -325,7 +325,7 @@ class CellDaemon:
 
     # ------------------------------------------------------------------------- API handlers
 
-    async def _on_trigger(self, query: Any) -> None:
+    async def _on_trigger(self, query: zenoh.Query) -> None:
         await handle_trigger(query, self.designs_dir, self._accept)
 
     async def _ctrl_state(self) -> str:
@@ -449,7 +449,7 @@ class CellDaemon:
     def _control_handler(self, action: str):
         """A control queryable: parse, act, reply (ControlReply, or an ApiError naming the field)."""
 
-        async def handler(query: Any) -> None:
+        async def handler(query: zenoh.Query) -> None:
             try:
                 req = parse_control(read_payload(query, ControlError))
                 reply = await self._control(action, req)

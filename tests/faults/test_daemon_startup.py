@@ -5,6 +5,7 @@ changes nothing."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 from pathlib import Path
@@ -70,6 +71,17 @@ def test_bad_records_are_quarantined_and_a_second_daemon_exits_at_once_changing_
             garbage.name,
         }
         assert json.loads((good / "job.json").read_text())["state"] == "interrupted"
+
+        # a record that goes bad while the daemon runs: re-analysis still finds the job by its raw data
+        (good / "job.json").write_text('{"state": ')
+
+        async def reanalyse():
+            async with cell.client() as c:
+                return await c.control("reanalyse", good.name)
+
+        reply = asyncio.run(reanalyse())
+        assert (reply.job_id, reply.job_state) == (good.name, "waiting_for_worker"), reply
+        assert (good / "job.json.quarantined").read_text() == '{"state": '
 
         # a live scan's record, as a running daemon holds it: a second daemon must not touch it
         live = _plant(jobs, "20260101T000005-live", _record("20260101T000005-live"))
