@@ -91,8 +91,12 @@ def test_session_feeds_profiles_and_feedback_and_marks_each_pass_once(tmp_path):
             assert errors == []
             assert session.profiles > 200  # 200 Hz for ~1.9 s
             assert acq.stats.profiles_in == session.profiles
-            assert acq.stats.robot_samples > 300  # 250 Hz feedback, pumped from the endpoint's history
-            events = [r for r in RawReader(tmp_path / "raw").records() if r.stream == "events"]
+            assert acq.stats.robot_samples > 100  # 250 Hz feedback (fewer on a loaded machine)
+            records = RawReader(tmp_path / "raw").records()
+            # the pump hands over only what is new: every feedback sample once, in order
+            t_robot = np.concatenate([r.arrays["t_host_ns"] for r in records if r.stream == "robot"])
+            assert len(t_robot) == acq.stats.robot_samples and np.all(np.diff(t_robot) > 0)
+            events = [r for r in records if r.stream == "events"]
             begins = [int(r.arrays["pass_id"]) for r in events if r.kind == KIND_PASS_BEGIN]
             ends = [int(r.arrays["t_ns"]) for r in events if r.kind == KIND_PASS_END]
             assert begins == [0, 1] and len(ends) == 2
