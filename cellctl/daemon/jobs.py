@@ -77,7 +77,9 @@ def lock_data_dir(data_dir: str | Path) -> int:
     process holds it: a second daemon on the same data stops before it touches a record."""
     path = Path(data_dir) / LOCK_NAME
     try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o640)
+        # held read-only: an open file for writing would keep the data directory's file system from
+        # being remounted read-only (the operator's way to freeze a cell's data)
+        fd = os.open(path, os.O_RDONLY | os.O_CREAT, 0o640)
     except OSError as exc:
         raise JobStoreError(f"{path}: cannot open the lock file: {exc.strerror or exc}") from None
     try:
@@ -91,8 +93,8 @@ def lock_data_dir(data_dir: str | Path) -> int:
             f"{Path(data_dir)}: another daemon is running on this data directory"
             + (f" (pid {holder})" if holder else "")
         ) from None
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    with contextlib.suppress(OSError):  # the holder's pid, for the second daemon's message
+        path.write_text(f"{os.getpid()}\n", encoding="ascii")
     return fd
 
 
