@@ -126,7 +126,8 @@ class TriggerRequest(Model):
         p = PurePosixPath(v)
         if p.is_absolute():
             raise ValueError("must be relative to designs_dir, not absolute")
-        if any(part in ("..", ".") for part in p.parts) or v.startswith("~"):
+        # the raw components: PurePosixPath drops "." ("./x.ply" has the parts ("x.ply",))
+        if any(part in ("..", ".") for part in v.split("/")) or v.startswith("~"):
             raise ValueError("must not contain '..', '.' or '~' components")
         if p.suffix.lower() not in DESIGN_SUFFIXES:
             raise ValueError(f"must end in one of {', '.join(DESIGN_SUFFIXES)}")

@@ -19,6 +19,7 @@ from cellctl.api.cloud_codec import Cloud, encode_cloud
 from cellctl.api.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
 from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe
 from cellctl.config import load_config
+from tests.zenoh.zworker_fns import minimal_report
 
 pytestmark = pytest.mark.e2e
 FAST = DispatchSettings(ack_timeout_s=5.0, heartbeat_timeout_s=3.0, job_timeout_s=60.0, max_attempts=3)
@@ -360,3 +361,42 @@ def test_sigterm_mid_analysis_hands_the_job_back_and_exits_zero(hub, start_worke
     assert retries[0][1] == holder.worker_id
     assert "worker stopping" in retries[0][2] or "disappeared" in retries[0][2]
     assert "analysis_process_ready" in holder.log() and holder.log().count("analysis_process_ready") == 1
+
+
+def test_a_forged_pass_report_from_a_peer_naming_another_worker_is_refused_and_the_real_one_counts(
+    hub, start_worker
+):
+    """Access control off: any peer can publish on ``reports/<job>``. A report naming another worker
+    (or a worker that does not hold the job, or an attempt that is not current) must not resolve
+    the job, and the real worker must not be told to cancel (issue 24, finding 4)."""
+    start_worker("w1")
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: len(disp.workers) == 1, 30, "the worker")
+        payload, centroid = _cloud_bytes("jobF")
+        record = hub.tmp / "calls.txt"
+        fut = disp.submit(_job(hub, "jobF", "P1", record_path=str(record), sleep_s=2.0), payload)
+        await _wait_for(lambda: any(k == "start" for k, _, _ in _records(record)), 20, "analysis start")
+        forged = [
+            {"worker_id": "intruder", "attempt": 1},  # a worker id nobody assigned
+            {"worker_id": "w1", "attempt": 2},  # the right worker, an attempt that does not exist
+        ]
+        for f in forged:
+            forged_report = minimal_report(AnalysisJob(job_id="jobF", plate_id="P1", design="x.stl"), 1)
+            body = {
+                "job_id": "jobF",
+                "plate_id": "P1",
+                "ok": True,
+                "report": forged_report.model_dump(mode="json"),
+                **f,
+            }
+            disp.session.put(disp.keys.report("jobF"), json.dumps(body).encode())
+        await _wait_for(lambda: disp.refused_reports == 2, 10, "both forged reports refused")
+        assert not fut.done()
+        env = await asyncio.wait_for(fut, 30)
+        return env, centroid
+
+    env, centroid = _run(hub, scenario)
+    assert env.ok and env.worker_id == "w1" and env.attempt == 1
+    assert env.report.job_id == "jobF"
+    np.testing.assert_allclose(_observed(hub, "jobF")["centroid_mm"], centroid, atol=1e-3)
