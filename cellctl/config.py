@@ -507,6 +507,17 @@ class DaemonSection(Section):
     min_free_mb: Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)] = 200.0
 
 
+class WorkerSection(Section):
+    """`cellctl worker`: where it keeps its own files and which cells it serves (docs/operations.md)."""
+
+    # the worker's own directory (design cache, a job's results until they are sent); relative to
+    # the worker's working directory. Nothing in it is read by the daemon: results go over Zenoh.
+    data_dir: Path = Path("worker-data")
+    # the cells this worker takes jobs from: key prefixes ("cell/a", "cell/b") or one key expression
+    # of them ("cell/*"); empty: the cell this file configures ([zenoh] key_prefix)
+    cells: list[Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-*]+(/[A-Za-z0-9_\-*]+)*$")]] = []
+
+
 class CellConfig(BaseSettings):
     """The whole `cell.toml`."""
 
@@ -526,6 +537,7 @@ class CellConfig(BaseSettings):
     analysis: AnalysisSection = AnalysisSection()
     sim: SimSection = SimSection()
     daemon: DaemonSection = DaemonSection()
+    worker: WorkerSection = WorkerSection()
 
     @classmethod
     def settings_customise_sources(

@@ -24,10 +24,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import importlib
 import json
 import multiprocessing as mp
 import os
+import shutil
 import signal
 import socket
 import threading
@@ -35,6 +37,7 @@ import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import structlog
@@ -52,11 +55,20 @@ from cellctl.api import (
 )
 from cellctl.api.session import (
     ZenohSetupError,
+    async_get,
     build_zenoh_config,
     close_session,
     declare_async_queryable,
     open_session,
     subscribe,
+)
+from cellctl.api.transfer import (
+    ResultChunk,
+    ResultManifest,
+    TransferError,
+    cache_design,
+    cached_design,
+    pack_results,
 )
 from drivers.runtime import stop_on_signals
 
@@ -86,12 +98,16 @@ class WorkerSettings:
     # products are (n, 3) x (3, 3), memory-bound, and on a busy 2-core machine OpenBLAS' spinning
     # threads made one such product of 2.5 M points take 1.5 s instead of 0.1 s (load 8).
     blas_threads: int = 1
+    # the worker's own files (design cache, a job's results until sent): never the daemon's
+    data_dir: Path = Path("worker-data")
+    design_timeout_s: float = 60.0
 
     @classmethod
     def from_config(cls, config: Any, **override: Any) -> WorkerSettings:
-        """From ``[analysis]`` of a CellConfig; keyword arguments override (the command line)."""
+        """From ``[analysis]`` and ``[worker]`` of a CellConfig; keyword arguments override (the
+        command line)."""
         a = config.analysis
-        values = {"analysis": a.callable, "heartbeat_s": a.heartbeat_s}
+        values = {"analysis": a.callable, "heartbeat_s": a.heartbeat_s, "data_dir": config.worker.data_dir}
         values.update({k: v for k, v in override.items() if v is not None})
         return cls(**values)
 
@@ -437,17 +453,34 @@ class Worker:
         log.info("job_started", job_id=spec.job_id, attempt=spec.attempt)
         hb = asyncio.get_running_loop().create_task(self._heartbeat(spec))
         t0 = time.perf_counter()
+        out_dir: Path | None = None
         try:
             cloud = await asyncio.to_thread(sample.payload.to_bytes)
             del sample
+            job = spec.job
+            if spec.transfer is not None:
+                try:
+                    job, out_dir = await self._local_job(spec)
+                except TransferError as exc:
+                    log.warning("design_unavailable", job_id=spec.job_id, error=str(exc))
+                    self._event(spec, "failed", str(exc))
+                    return
             try:
-                outcome = await self.runner.run(spec.job, cloud)
+                outcome = await self.runner.run(job, cloud)
             except AnalysisCrashed as exc:
                 log.error("analysis_crashed", job_id=spec.job_id, error=str(exc))
                 self._event(spec, "failed", str(exc))
                 await self._restart_runner()
                 return
             del cloud
+            manifest = None
+            if (
+                outcome.ok
+                and out_dir is not None
+                and spec.transfer is not None
+                and spec.transfer.return_results
+            ):
+                manifest = await self._send_results(spec, out_dir)
             env = ReportEnvelope(
                 job_id=spec.job_id,
                 plate_id=spec.plate_id,
@@ -458,6 +491,7 @@ class Worker:
                 error=outcome.error,
                 timings_s={**outcome.timings_s, "worker_total": time.perf_counter() - t0},
                 t_utc=now_utc(),
+                results=manifest,
             )
             payload = env.to_json()
             # Reports can be large (per-line curves): BLOCK, never silently dropped.
@@ -488,6 +522,62 @@ class Worker:
             hb.cancel()
             self._current = None
             self._task = None
+            if out_dir is not None:
+                shutil.rmtree(out_dir, ignore_errors=True)
+
+    async def _local_job(self, spec: JobSpec) -> tuple[AnalysisJob, Path]:
+        """The job as this worker runs it: the design from its cache (fetched by hash from the
+        daemon when missing), the results into a fresh directory of its own."""
+        transfer = spec.transfer
+        assert transfer is not None
+        update: dict[str, Any] = {}
+        if transfer.design is not None:
+            update["design"] = str(await self._design(transfer.design))
+        out_dir = self.settings.data_dir / "jobs" / f"{spec.job_id}-{spec.attempt}"
+        await asyncio.to_thread(shutil.rmtree, out_dir, True)
+        out_dir.mkdir(parents=True)
+        update["out_dir"] = str(out_dir.resolve())
+        return spec.job.model_copy(update=update), out_dir
+
+    async def _design(self, ref: Any) -> Path:
+        cache = self.settings.data_dir / "designs"
+        path = await asyncio.to_thread(cached_design, cache, ref)
+        if path is not None:
+            return path
+        replies = await async_get(
+            self.session, self.keys.design(ref.sha256), timeout_s=self.settings.design_timeout_s
+        )
+        ok = [r.ok for r in replies if r.ok is not None]
+        if not ok:
+            why = replies[0].err.payload.to_bytes().decode(errors="replace") if replies else "no reply"
+            raise TransferError(f"design {ref.name} ({ref.sha256[:12]}): {why}")
+        data = ok[0].payload.to_bytes()
+        path = await asyncio.to_thread(cache_design, cache, ref, data)
+        log.info("design_cached", name=ref.name, sha256=ref.sha256[:12], bytes=len(data))
+        return path
+
+    async def _send_results(self, spec: JobSpec, out_dir: Path) -> ResultManifest:
+        """Pack the results directory and put its chunks (BLOCK) before the report goes out."""
+        transfer = spec.transfer
+        assert transfer is not None
+        manifest, chunks = await asyncio.to_thread(
+            pack_results, out_dir, chunk_bytes=transfer.chunk_bytes, max_bytes=transfer.max_result_bytes
+        )
+
+        def put_all() -> None:
+            for i, data in enumerate(chunks):
+                head = ResultChunk(
+                    job_id=spec.job_id, worker_id=self.worker_id, attempt=spec.attempt, index=i,
+                    chunks=len(chunks), sha256=hashlib.sha256(data).hexdigest(),
+                )  # fmt: skip
+                self.session.put(
+                    self.keys.result_chunk(spec.job_id, spec.attempt, i), data, attachment=head.to_json(),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )  # fmt: skip
+
+        await asyncio.to_thread(put_all)
+        log.info("results_sent", job_id=spec.job_id, chunks=manifest.chunks, bytes=manifest.total_bytes)
+        return manifest
 
     async def _restart_runner(self) -> None:
         await asyncio.to_thread(self.runner.kill)  # kill() joins the child: not on the loop

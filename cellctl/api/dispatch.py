@@ -17,6 +17,12 @@ Protocol (keys in :class:`cellctl.api.Keys`, payloads in docs/api.md):
    current attempt; any other report (another worker's id, an attempt taken back, a job the
    sender does not hold) is refused, logged and counted (``refused_reports``).
 
+6. A job submitted with a :class:`~cellctl.api.transfer.TransferSpec` shares nothing but the link:
+   the design is served by hash (``Keys.design``), and the report's ResultManifest must match the
+   chunks received on ``Keys.result_chunk`` (waiting ``results_grace_s`` for late ones); a result
+   incomplete or corrupt is refused (``refused_results``) and the job retried, like a lost attempt.
+   The verified files wait in :meth:`Dispatcher.take_results` for the daemon to store.
+
 No worker at all: jobs wait in the queue and go out when a worker appears. The dispatcher persists
 nothing; :class:`DispatchHooks` lets the daemon record every transition.
 """
@@ -39,7 +45,15 @@ from analysis.job import AnalysisJob
 from cellctl.api.cloud_codec import ENCODING as CLOUD_ENCODING
 from cellctl.api.keys import Keys
 from cellctl.api.models import JobEvent, JobSpec, ReportEnvelope
-from cellctl.api.session import subscribe
+from cellctl.api.session import declare_async_queryable, subscribe
+from cellctl.api.transfer import (
+    MAX_RESULT_BYTES,
+    DesignServer,
+    ResultChunk,
+    ResultCollector,
+    ResultRefused,
+    TransferSpec,
+)
 
 log = structlog.get_logger(__name__)
 
@@ -66,6 +80,9 @@ class DispatchSettings:
     # > 0: clouds go through an explicit Zenoh shared-memory pool of this size (same host only;
     # Zenoh copies for remote workers). Cuts the daemon's put from ~1.2 s to ~0.1 s for 280 MB.
     shm_pool_mb: int = 0
+    # how long a report waits for result chunks still in flight before its result is refused
+    results_grace_s: float = 3.0
+    max_result_bytes: int = MAX_RESULT_BYTES
 
     @classmethod
     def from_config(cls, config: Any) -> DispatchSettings:
@@ -115,6 +132,7 @@ class _Job:
     last_seen: float = 0.0
     tried: set[str] = field(default_factory=set)
     last_reason: str = ""
+    transfer: TransferSpec | None = None
 
 
 class Dispatcher:
@@ -140,6 +158,10 @@ class Dispatcher:
         self._shm: Any = None
         self.malformed = 0
         self.refused_reports = 0
+        self.refused_results = 0
+        self.designs = DesignServer()
+        self.collector = ResultCollector(max_bytes=self.settings.max_result_bytes)
+        self._results: dict[str, dict[str, bytes]] = {}
 
     # ------------------------------------------------------------------------------------- public
 
@@ -165,6 +187,8 @@ class Dispatcher:
         )
         self._entities.append(subscribe(self.session, self.keys.job_event("*"), self._on_event))
         self._entities.append(subscribe(self.session, self.keys.report("*"), self._on_report))
+        self._entities.append(subscribe(self.session, f"{self.keys.prefix}/results/**", self._on_chunk))
+        self._entities.append(declare_async_queryable(self.session, self.keys.design("*"), self._on_design))
         self._watchdog = asyncio.get_running_loop().create_task(self._watch())
         if self.settings.shm_pool_mb > 0:
             try:
@@ -172,9 +196,13 @@ class Dispatcher:
             except Exception as exc:  # the shm API is marked unstable: fall back to the copy path
                 log.warning("shm_unavailable", error=str(exc))
 
-    def submit(self, params: AnalysisJob, cloud: bytes | bytearray) -> asyncio.Future[ReportEnvelope]:
+    def submit(
+        self, params: AnalysisJob, cloud: bytes | bytearray, *, transfer: TransferSpec | None = None
+    ) -> asyncio.Future[ReportEnvelope]:
         """Queue a cloud (encoded by :func:`cellctl.api.cloud_codec.encode_cloud`) for analysis with
-        the job's parameters (``params.job_id`` names the job).
+        the job's parameters (``params.job_id`` names the job). With ``transfer`` the design must have
+        been registered (``self.designs.register``) and the results come back over Zenoh
+        (:meth:`take_results`).
 
         The future resolves with the first ReportEnvelope (``ok`` False when the analysis itself
         raised), or fails with JobFailed after ``max_attempts`` lost attempts.
@@ -185,7 +213,7 @@ class Dispatcher:
         if job_id in self._jobs:
             raise ValueError(f"job {job_id!r} is already pending")
         fut: asyncio.Future[ReportEnvelope] = asyncio.get_running_loop().create_future()
-        self._jobs[job_id] = _Job(job_id, plate_id, cloud, params, fut)
+        self._jobs[job_id] = _Job(job_id, plate_id, cloud, params, fut, transfer=transfer)
         self._queue.append(job_id)
         log.info("job_queued", job_id=job_id, plate_id=plate_id, bytes=len(cloud), workers=len(self._workers))
         self._call(self.hooks.on_queued, job_id)
@@ -245,7 +273,7 @@ class Dispatcher:
         job.tried.add(worker.worker_id)
         worker.job_id = job.job_id
         worker.last_assigned = now
-        spec = JobSpec(attempt=job.attempt, job=job.params)
+        spec = JobSpec(attempt=job.attempt, job=job.params, transfer=job.transfer)
         log.info("job_assigned", job_id=job.job_id, worker_id=worker.worker_id, attempt=job.attempt)
         self._call(self.hooks.on_assigned, job.job_id, worker.worker_id, job.attempt)
         task = asyncio.get_running_loop().create_task(self._send(job, worker.worker_id, spec))
@@ -309,6 +337,7 @@ class Dispatcher:
 
     def _fail(self, job: _Job, reason: str) -> None:
         self._jobs.pop(job.job_id, None)
+        self.collector.forget(job.job_id)
         with contextlib.suppress(ValueError):
             self._queue.remove(job.job_id)
         log.error("job_failed", job_id=job.job_id, reason=reason)
@@ -375,7 +404,44 @@ class Dispatcher:
                 assigned_to=job.worker_id, current_attempt=job.attempt, key=str(sample.key_expr),
             )  # fmt: skip
             return
+        if env.results is not None and job.transfer is not None:
+            self._resolve_with_results(job, env, waited=False)
+            return
+        self._resolve(job, env)
+
+    def _resolve_with_results(self, job: _Job, env: ReportEnvelope, *, waited: bool) -> None:
+        """Keep the report only with its verified result bundle; refuse it (a retry) otherwise."""
+        if (
+            self._jobs.get(job.job_id) is not job
+            or job.worker_id != env.worker_id
+            or job.attempt != env.attempt
+        ):
+            return  # taken back (worker gone, timeout) while its chunks were awaited
+        manifest = env.results
+        assert manifest is not None
+        if not waited and self.collector.missing(job.job_id, env.attempt, manifest):
+            # chunks still in flight (another path through a router): wait a little for them
+            asyncio.get_running_loop().call_later(
+                self.settings.results_grace_s, lambda: self._resolve_with_results(job, env, waited=True)
+            )
+            return
+        try:
+            files = self.collector.take(job.job_id, env.attempt, env.worker_id, manifest)
+        except ResultRefused as exc:
+            self.refused_results += 1
+            log.warning("result_refused", job_id=job.job_id, worker_id=env.worker_id, reason=exc.reason)
+            self._requeue(job, f"result refused: {exc.reason}")
+            return
+        self._results[job.job_id] = files
+        self._resolve(job, env)
+
+    def take_results(self, job_id: str) -> dict[str, bytes]:
+        """The verified result files of a resolved job (name -> bytes), handed over once."""
+        return self._results.pop(job_id, {})
+
+    def _resolve(self, job: _Job, env: ReportEnvelope) -> None:
         del self._jobs[env.job_id]
+        self.collector.forget(job.job_id)
         self._release(job)
         with contextlib.suppress(ValueError):
             self._queue.remove(job.job_id)
@@ -387,6 +453,32 @@ class Dispatcher:
         if not job.future.done():
             job.future.set_result(env)
         self._pump()
+
+    def _on_chunk(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            if sample.attachment is None:
+                raise ValueError("no ResultChunk attachment")
+            head = ResultChunk.model_validate_json(sample.attachment.to_bytes())
+        except ValueError as exc:
+            self._malformed("result_chunk_malformed", key, exc)
+            return
+        if key != self.keys.result_chunk(head.job_id, head.attempt, head.index):
+            self._malformed("result_chunk_malformed", key, ValueError("attachment does not match the key"))
+            return
+        job = self._jobs.get(head.job_id)
+        if job is None or job.worker_id != head.worker_id or job.attempt != head.attempt:
+            return  # not the current attempt's holder: never kept
+        job.last_seen = time.monotonic()  # a large bundle is progress, like a heartbeat
+        self.collector.add(head, sample.payload.to_bytes())
+
+    async def _on_design(self, query: zenoh.Query) -> None:
+        sha = Keys.last_chunk(str(query.key_expr))
+        data = await asyncio.to_thread(self.designs.read, sha)
+        if data is None:
+            query.reply_err(f"no design with sha256 {sha[:64]} here".encode())
+            return
+        query.reply(query.key_expr, data)
 
     def _malformed(self, event: str, key: str, exc: Exception) -> None:
         self.malformed += 1

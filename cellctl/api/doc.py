@@ -30,6 +30,7 @@ from cellctl.api.models import (
     ReportEnvelope,
     TriggerRequest,
 )
+from cellctl.api.transfer import DesignRef, ResultChunk, ResultFile, ResultManifest, TransferSpec
 
 __all__ = ["MODELS", "field_table", "render"]
 
@@ -39,7 +40,7 @@ MODELS: dict[str, type] = {
     for m in (
         TriggerRequest, Placement, JobSpec, AnalysisJob, InspectionSettings, DetectionLayout, Tolerances,
         JobEvent, ReportEnvelope, Report, RegistrationReport, LineReport, ScanCoverage, SurfaceReport,
-        ReportInputs, DaemonStats, EgmStats,
+        ReportInputs, DaemonStats, EgmStats, TransferSpec, DesignRef, ResultChunk, ResultManifest, ResultFile,
     )
 }  # fmt: skip
 DOC = Path(__file__).resolve().parents[2] / "docs" / "api.md"

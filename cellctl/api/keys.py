@@ -71,6 +71,15 @@ class Keys:
         """Publication: ReportEnvelope JSON (large, CongestionControl.BLOCK)."""
         return f"{self.prefix}/reports/{job_id}"
 
+    # transfers (cellctl.api.transfer)
+    def design(self, sha256: str = "*") -> str:
+        """Queryable on the daemon: a design's bytes by SHA-256 (of the jobs it submitted)."""
+        return f"{self.prefix}/designs/{sha256}"
+
+    def result_chunk(self, job_id: str = "*", attempt: int | str = "*", index: int | str = "*") -> str:
+        """Publication by the worker: one chunk of a job's result bundle (ResultChunk attachment)."""
+        return f"{self.prefix}/results/{job_id}/{attempt}/{index}"
+
     @staticmethod
     def last_chunk(key: str) -> str:
         """The last chunk of a key expression (the job id of a job/report key, a worker id, ...)."""

@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from analysis.job import AnalysisJob, Report
 from analysis.placement import Placement
 from cellctl.api.keys import ControlAction
+from cellctl.api.transfer import ResultManifest, TransferSpec
 
 log = structlog.get_logger(__name__)
 
@@ -420,10 +421,14 @@ def default_worker_id() -> str:
 
 class JobSpec(Model):
     """Sent with the cloud (as attachment) to the worker that is to analyse it: the job parameters
-    (ids, design, the trigger's placement, analysis settings, where to write results) and the attempt."""
+    (ids, design, the trigger's placement, analysis settings, where to write results) and the attempt.
+    ``transfer`` set: the design comes by hash from the daemon and the results go back over Zenoh
+    (:mod:`cellctl.api.transfer`); the job's ``design`` and ``out_dir`` paths are the daemon's, not
+    the worker's."""
 
     attempt: Annotated[int, Field(ge=1)]
     job: AnalysisJob
+    transfer: TransferSpec | None = None
 
     @property
     def job_id(self) -> str:
@@ -457,6 +462,8 @@ class ReportEnvelope(Model):
     error: str | None = None
     timings_s: dict[str, float] = {}
     t_utc: str = ""
+    #: the result bundle sent before this envelope (JobSpec ``transfer``); None: nothing sent
+    results: ResultManifest | None = None
 
 
 class RefusalLog:

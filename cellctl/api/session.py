@@ -125,7 +125,9 @@ def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
     work = [
         _rule("work_declare", "ingress", ["declare_subscriber"], prefix, _WORKER_IN_KEYS),
         _rule("work_receive", "egress", ["put"], prefix, _WORKER_IN_KEYS),
-        _rule("work_publish", "ingress", ["put"], prefix, ["jobs/*/event", "reports/*"]),
+        _rule("work_publish", "ingress", ["put"], prefix, ["jobs/*/event", "reports/*", "results/**"]),
+        _rule("work_designs", "ingress", ["query"], prefix, ["designs/*"]),
+        _rule("work_designs_replies", "egress", ["reply"], prefix, ["designs/*"]),
         _rule("work_alive", "ingress", ["liveliness_token"], prefix, ["alive/workers/*"]),
         _rule("work_info", "ingress", ["declare_queryable", "reply"], prefix, ["workers/*/info"]),
         _rule("work_info_queries", "egress", ["query"], prefix, ["workers/*/info"]),

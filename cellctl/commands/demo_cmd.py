@@ -50,6 +50,7 @@ def demo_config(base: dict[str, Any], out_dir: Path, *, full: bool = False) -> d
     cfg = json.loads(json.dumps(base))
     rws_port = free_port()
     cfg["cell"].update(id="demo", data_dir=str(out_dir / "data"), designs_dir=str(out_dir / "designs"))
+    cfg["worker"]["data_dir"] = str(out_dir / "worker-data")  # its own: results come back over Zenoh
     cfg["robot"].update(
         egm_host="127.0.0.1", egm_port=free_port(socket.SOCK_DGRAM), rws_url=f"http://127.0.0.1:{rws_port}"
     )

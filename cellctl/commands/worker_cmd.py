@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
 
@@ -26,6 +27,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=None,
         help="job heartbeat period (default: [analysis] heartbeat_s)",
+    )
+    p.add_argument(
+        "--data-dir",
+        default=None,
+        help="the worker's own directory: design cache, results until sent (default: [worker] data_dir)",
     )
     p.set_defaults(func=run)
 
@@ -50,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
         print("cellctl worker: --heartbeat-s must be positive", file=sys.stderr)
         return 2
     settings = WorkerSettings.from_config(
-        config, worker_id=args.worker_id, analysis=args.analysis, heartbeat_s=args.heartbeat_s
-    )
+        config, worker_id=args.worker_id, analysis=args.analysis, heartbeat_s=args.heartbeat_s,
+        data_dir=None if args.data_dir is None else Path(args.data_dir),
+    )  # fmt: skip
     return run_worker(config, settings)

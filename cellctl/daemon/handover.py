@@ -22,6 +22,7 @@ from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import JobState
 from cellctl.api.analysis_job import analysis_job
 from cellctl.api.dispatch import Dispatcher, JobFailed
+from cellctl.api.transfer import TransferError, TransferSpec, store_results
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import ActiveJob, JobStore, JobStoreError
 from cellctl.daemon.render import render_report
@@ -101,7 +102,11 @@ class Handover:
                 job, JobState.WAITING_FOR_WORKER, "cloud published", points=job.points,
                 cloud_bytes=len(payload), assemble_s=round(assemble_s, 3), published_utc_s=time.time(),
             )  # fmt: skip
-            fut = self.dispatcher.submit(params, payload)
+            # nothing shared but Zenoh: the design goes by hash, the results come back as bytes
+            transfer = TransferSpec(
+                design=await asyncio.to_thread(self.dispatcher.designs.register, Path(rec.design_path))
+            )
+            fut = self.dispatcher.submit(params, payload, transfer=transfer)
             # the published bytes, kept with the job (cellctl.api.cloud_codec layout); written while the
             # worker analyses, and on disk before the job is done
             cloud_path = self.store.job_dir(rec.job_id) / "cloud.bin"
@@ -119,6 +124,9 @@ class Handover:
         except JobFailed as exc:
             self._job_state(job, JobState.FAILED, f"analysis failed: {exc.reason}")
             return
+        except TransferError as exc:
+            self._job_state(job, JobState.FAILED, f"design cannot be served: {exc}; raw data kept")
+            return
         except Exception as exc:
             log.exception("job_analysis_failed")
             self._job_state(job, JobState.FAILED, f"{type(exc).__name__}: {exc}")
@@ -128,6 +136,13 @@ class Handover:
         if not env.ok or env.report is None:
             self._job_state(job, JobState.FAILED, f"analysis error: {env.error}", worker_id=env.worker_id)
             return
+        files = self.dispatcher.take_results(rec.job_id)
+        if files:  # the worker's results directory, verified: stored before the job is done
+            results_dir = self.store.results_dir(rec.job_id)
+            await asyncio.to_thread(store_results, files, results_dir)
+            log.info(
+                "results_stored", job_id=rec.job_id, files=sorted(files), bytes=sum(map(len, files.values()))
+            )
         report_path = (jd / "report.json").resolve()
         report_path.write_text(env.report.model_dump_json(indent=2), encoding="utf-8")
         job.fraction = 1.0
@@ -135,7 +150,7 @@ class Handover:
         self._job_state(
             job, JobState.DONE, str(report_path), verdict=env.report.verdict,
             report=str(report_path), worker_id=env.worker_id, analysis_timings_s=env.timings_s,
-            report_utc_s=time.time(),
+            report_utc_s=time.time(), results_bytes=sum(map(len, files.values())),
         )  # fmt: skip
         if (
             self.cfg.daemon.write_html_report
