@@ -518,6 +518,23 @@ class WorkerSection(Section):
     cells: list[Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-*]+(/[A-Za-z0-9_\-*]+)*$")]] = []
 
 
+class RouterSection(Section):
+    """`cellctl router`: Zenoh's router for a fleet of cells (docs/operations.md, "Fleet")."""
+
+    # where the router listens (cells connect as peers, workers and operator tools as clients)
+    listen: list[str] = ["tcp/0.0.0.0:7447"]
+    # the cells whose keys the access rules (when [zenoh.access] is on) cover: their key prefixes;
+    # empty: this file's cell only
+    cells: list[Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")]] = []
+
+    @field_validator("listen")
+    @classmethod
+    def _endpoints_parse(cls, v: list[str]) -> list[str]:
+        if not v:
+            raise ValueError("a router listens on at least one endpoint")
+        return ZenohSection._endpoints_parse(v)
+
+
 class CellConfig(BaseSettings):
     """The whole `cell.toml`."""
 
@@ -538,6 +555,7 @@ class CellConfig(BaseSettings):
     sim: SimSection = SimSection()
     daemon: DaemonSection = DaemonSection()
     worker: WorkerSection = WorkerSection()
+    router: RouterSection = RouterSection()
 
     @classmethod
     def settings_customise_sources(

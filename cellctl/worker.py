@@ -101,6 +101,9 @@ class WorkerSettings:
     # the worker's own files (design cache, a job's results until sent): never the daemon's
     data_dir: Path = Path("worker-data")
     design_timeout_s: float = 60.0
+    # a free slot is held this long for a cell passed over while busy (longer than the dispatcher's
+    # busy back-off, 2 s, so that cell's next offer finds it)
+    fair_hold_s: float = 4.0
 
     @classmethod
     def from_config(cls, config: Any, **override: Any) -> WorkerSettings:
@@ -340,17 +343,24 @@ class _RateLimitedLog:
 
 
 class Worker:
-    """Serves analysis jobs for one cell over an open session. Use :meth:`serve` until ``stop`` is set."""
+    """Serves analysis jobs over an open session, for one cell (``keys``) and every cell of ``cells``
+    (key prefixes, or key expressions of prefixes such as ``cell/*``: each cell whose daemon is
+    alive under it is served from the moment it appears). One job at a time, whichever cell it is
+    from; when several cells wait (a cell's job offered while busy), the next free slot goes to
+    the cell passed over longest (for ``fair_hold_s``), so no cell is starved by a busier one.
+    Use :meth:`serve` until ``stop`` is set."""
 
     def __init__(
         self,
         session: zenoh.Session,
-        keys: Keys,
+        keys: Keys | None,
         settings: WorkerSettings,
         runner: AnalysisProcess | None = None,
+        cells: list[str] | tuple[str, ...] = (),
     ) -> None:
         self.session = session
         self.keys = keys
+        self.cells = tuple(cells)
         self.settings = settings
         self.worker_id = settings.worker_id or default_worker_id()
         self.runner = runner or AnalysisProcess(
@@ -359,6 +369,12 @@ class Worker:
         self.jobs_done = 0
         self.malformed = _RateLimitedLog()
         self._current: JobSpec | None = None
+        self._current_cell: str | None = None
+        self._served: dict[str, Keys] = {}
+        self._entities: list[Any] = []
+        # cells whose offer was turned down while busy (prefix -> when first), and since when idle
+        self._passed_over: dict[str, float] = {}
+        self._idle_since = time.monotonic()
         self._task: asyncio.Task[None] | None = None
         self._started_utc = now_utc()
         self._stopping = False
@@ -374,7 +390,7 @@ class Worker:
             jobs_done=self.jobs_done,
         )
 
-    def _event(self, spec: JobSpec, event: str, message: str = "") -> None:
+    def _event(self, keys: Keys, spec: JobSpec, event: str, message: str = "") -> None:
         ev = JobEvent(
             job_id=spec.job_id,
             worker_id=self.worker_id,
@@ -383,22 +399,25 @@ class Worker:
             message=message,
             t_utc=now_utc(),
         )
-        self.session.put(self.keys.job_event(spec.job_id), ev.to_json(), encoding="application/json")
+        self.session.put(keys.job_event(spec.job_id), ev.to_json(), encoding="application/json")
 
     async def serve(self, stop: asyncio.Event) -> None:
         """Start the analysis child, declare the worker's entities, serve until ``stop``; undeclare all."""
         if not self.runner.running:
             await self.runner.start()
-        entities: list[Any] = []
+        entities = self._entities
         try:
-            entities.append(subscribe(self.session, self.keys.worker_job(self.worker_id), self._on_job))
-            entities.append(subscribe(self.session, self.keys.worker_cancel(self.worker_id), self._on_cancel))
-            entities.append(
-                declare_async_queryable(self.session, self.keys.worker_info(self.worker_id), self._on_info)
-            )
-            # The token comes last: once the dispatcher sees it, the job subscriber already exists.
-            entities.append(self.session.liveliness().declare_token(self.keys.worker_alive(self.worker_id)))
-            log.info("worker_ready", worker_id=self.worker_id, analysis=self.settings.analysis)
+            if self.keys is not None:
+                self._serve_cell(self.keys.prefix)
+            for cell in self.cells:
+                if "*" in cell:  # a key expression: serve each cell whose daemon is alive under it
+                    entities.append(
+                        subscribe(self.session, f"{cell}/alive/daemon", self._on_daemon, liveliness=True)
+                    )
+                else:
+                    self._serve_cell(cell)
+            log.info("worker_ready", worker_id=self.worker_id, analysis=self.settings.analysis,
+                     cells=sorted(self._served), patterns=[c for c in self.cells if "*" in c])  # fmt: skip
             await stop.wait()
         finally:
             self._stopping = True
@@ -412,14 +431,50 @@ class Worker:
             self.runner.kill()
             log.info("worker_stopped", worker_id=self.worker_id, jobs_done=self.jobs_done)
 
-    async def _on_info(self, query: zenoh.Query) -> None:
+    def _serve_cell(self, prefix: str) -> None:
+        """Declare this worker's entities in one cell (once)."""
+        if prefix in self._served:
+            return
+        keys = self._served[prefix] = Keys(prefix)
+        wid, ents = self.worker_id, self._entities
+        ents.append(subscribe(self.session, keys.worker_job(wid), lambda s: self._on_job(keys, s)))
+        ents.append(subscribe(self.session, keys.worker_cancel(wid), self._on_cancel))
+        ents.append(
+            declare_async_queryable(self.session, keys.worker_info(wid), lambda q: self._on_info(keys, q))
+        )
+        # The token comes last: once the dispatcher sees it, the job subscriber already exists.
+        ents.append(self.session.liveliness().declare_token(keys.worker_alive(wid)))
+        log.info("worker_serves_cell", worker_id=wid, prefix=prefix)
+
+    def _on_daemon(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            key = str(sample.key_expr)
+            self._serve_cell(key[: -len("/alive/daemon")])
+
+    async def _on_info(self, keys: Keys, query: zenoh.Query) -> None:
         # Reply on our own key, not the (possibly wildcard) query key: replies on one key are
         # consolidated into one, and every worker must be heard.
         query.reply(
-            self.keys.worker_info(self.worker_id), self.announcement().to_json(), encoding="application/json"
+            keys.worker_info(self.worker_id), self.announcement().to_json(), encoding="application/json"
         )
 
-    def _on_job(self, sample: zenoh.Sample) -> None:
+    def _turn_down(self, keys: Keys, spec: JobSpec) -> str | None:
+        """Why this offer is turned down (busy, or the slot is held for a cell passed over), or None."""
+        now = time.monotonic()
+        if self._current is not None:
+            if keys.prefix != self._current_cell:
+                self._passed_over.setdefault(keys.prefix, now)
+            return f"busy with {self._current.job_id}"
+        if now - self._idle_since >= self.settings.fair_hold_s:
+            return None  # the held cell did not come back in time: first come, first served
+        waiting = {p: t for p, t in self._passed_over.items() if p in self._served}
+        first = min(waiting, key=waiting.__getitem__) if waiting else keys.prefix
+        if first == keys.prefix:
+            return None
+        self._passed_over.setdefault(keys.prefix, now)
+        return f"next slot held for {first}"
+
+    def _on_job(self, keys: Keys, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         try:
             if sample.attachment is None:
@@ -430,13 +485,21 @@ class Worker:
         except ValueError as exc:
             self.malformed.warn("job_message_malformed", key=key, error=str(exc)[:300])
             return
-        if self._current is not None:
-            if self._current.job_id != spec.job_id or self._current.attempt != spec.attempt:
-                self._event(spec, "rejected", f"busy with {self._current.job_id}")
+        if (
+            self._current is not None
+            and self._current.job_id == spec.job_id
+            and self._current.attempt == spec.attempt
+        ):
+            return  # the same offer again
+        why = self._turn_down(keys, spec)
+        if why is not None:
+            log.info("job_turned_down", job_id=spec.job_id, cell=keys.prefix, reason=why)
+            self._event(keys, spec, "rejected", why)
             return
-        self._current = spec
-        self._event(spec, "accepted")
-        self._task = asyncio.get_running_loop().create_task(self._run(spec, sample))
+        self._passed_over.pop(keys.prefix, None)
+        self._current, self._current_cell = spec, keys.prefix
+        self._event(keys, spec, "accepted")
+        self._task = asyncio.get_running_loop().create_task(self._run(keys, spec, sample))
 
     def _on_cancel(self, sample: zenoh.Sample) -> None:
         job_id = Keys.last_chunk(str(sample.key_expr))
@@ -444,14 +507,14 @@ class Worker:
             log.info("job_cancelled", job_id=job_id)
             self._task.cancel()
 
-    async def _heartbeat(self, spec: JobSpec) -> None:
+    async def _heartbeat(self, keys: Keys, spec: JobSpec) -> None:
         while True:
             await asyncio.sleep(self.settings.heartbeat_s)
-            self._event(spec, "heartbeat")
+            self._event(keys, spec, "heartbeat")
 
-    async def _run(self, spec: JobSpec, sample: zenoh.Sample) -> None:
-        log.info("job_started", job_id=spec.job_id, attempt=spec.attempt)
-        hb = asyncio.get_running_loop().create_task(self._heartbeat(spec))
+    async def _run(self, keys: Keys, spec: JobSpec, sample: zenoh.Sample) -> None:
+        log.info("job_started", job_id=spec.job_id, attempt=spec.attempt, cell=keys.prefix)
+        hb = asyncio.get_running_loop().create_task(self._heartbeat(keys, spec))
         t0 = time.perf_counter()
         out_dir: Path | None = None
         try:
@@ -460,16 +523,16 @@ class Worker:
             job = spec.job
             if spec.transfer is not None:
                 try:
-                    job, out_dir = await self._local_job(spec)
+                    job, out_dir = await self._local_job(keys, spec)
                 except TransferError as exc:
                     log.warning("design_unavailable", job_id=spec.job_id, error=str(exc))
-                    self._event(spec, "failed", str(exc))
+                    self._event(keys, spec, "failed", str(exc))
                     return
             try:
                 outcome = await self.runner.run(job, cloud)
             except AnalysisCrashed as exc:
                 log.error("analysis_crashed", job_id=spec.job_id, error=str(exc))
-                self._event(spec, "failed", str(exc))
+                self._event(keys, spec, "failed", str(exc))
                 await self._restart_runner()
                 return
             del cloud
@@ -480,7 +543,7 @@ class Worker:
                 and spec.transfer is not None
                 and spec.transfer.return_results
             ):
-                manifest = await self._send_results(spec, out_dir)
+                manifest = await self._send_results(keys, spec, out_dir)
             env = ReportEnvelope(
                 job_id=spec.job_id,
                 plate_id=spec.plate_id,
@@ -497,7 +560,7 @@ class Worker:
             # Reports can be large (per-line curves): BLOCK, never silently dropped.
             await asyncio.to_thread(
                 self.session.put,
-                self.keys.report(spec.job_id),
+                keys.report(spec.job_id),
                 payload,
                 encoding="application/json",
                 congestion_control=zenoh.CongestionControl.BLOCK,
@@ -517,35 +580,36 @@ class Worker:
             # Anything else (a put refused, an unreadable result): the job goes elsewhere, we go on.
             log.exception("job_error", job_id=spec.job_id)
             with contextlib.suppress(Exception):
-                self._event(spec, "failed", f"{type(exc).__name__}: {exc}")
+                self._event(keys, spec, "failed", f"{type(exc).__name__}: {exc}")
         finally:
             hb.cancel()
-            self._current = None
+            self._current = self._current_cell = None
             self._task = None
+            self._idle_since = time.monotonic()
             if out_dir is not None:
                 shutil.rmtree(out_dir, ignore_errors=True)
 
-    async def _local_job(self, spec: JobSpec) -> tuple[AnalysisJob, Path]:
+    async def _local_job(self, keys: Keys, spec: JobSpec) -> tuple[AnalysisJob, Path]:
         """The job as this worker runs it: the design from its cache (fetched by hash from the
         daemon when missing), the results into a fresh directory of its own."""
         transfer = spec.transfer
         assert transfer is not None
         update: dict[str, Any] = {}
         if transfer.design is not None:
-            update["design"] = str(await self._design(transfer.design))
+            update["design"] = str(await self._design(keys, transfer.design))
         out_dir = self.settings.data_dir / "jobs" / f"{spec.job_id}-{spec.attempt}"
         await asyncio.to_thread(shutil.rmtree, out_dir, True)
         out_dir.mkdir(parents=True)
         update["out_dir"] = str(out_dir.resolve())
         return spec.job.model_copy(update=update), out_dir
 
-    async def _design(self, ref: Any) -> Path:
+    async def _design(self, keys: Keys, ref: Any) -> Path:
         cache = self.settings.data_dir / "designs"
         path = await asyncio.to_thread(cached_design, cache, ref)
         if path is not None:
             return path
         replies = await async_get(
-            self.session, self.keys.design(ref.sha256), timeout_s=self.settings.design_timeout_s
+            self.session, keys.design(ref.sha256), timeout_s=self.settings.design_timeout_s
         )
         ok = [r.ok for r in replies if r.ok is not None]
         if not ok:
@@ -556,7 +620,7 @@ class Worker:
         log.info("design_cached", name=ref.name, sha256=ref.sha256[:12], bytes=len(data))
         return path
 
-    async def _send_results(self, spec: JobSpec, out_dir: Path) -> ResultManifest:
+    async def _send_results(self, keys: Keys, spec: JobSpec, out_dir: Path) -> ResultManifest:
         """Pack the results directory and put its chunks (BLOCK) before the report goes out."""
         transfer = spec.transfer
         assert transfer is not None
@@ -571,7 +635,7 @@ class Worker:
                     chunks=len(chunks), sha256=hashlib.sha256(data).hexdigest(),
                 )  # fmt: skip
                 self.session.put(
-                    self.keys.result_chunk(spec.job_id, spec.attempt, i), data, attachment=head.to_json(),
+                    keys.result_chunk(spec.job_id, spec.attempt, i), data, attachment=head.to_json(),
                     congestion_control=zenoh.CongestionControl.BLOCK,
                 )  # fmt: skip
 
@@ -588,7 +652,11 @@ class Worker:
 
 
 async def run_worker_async(
-    section_zenoh: Any, key_prefix: str, settings: WorkerSettings, stop: asyncio.Event | None = None
+    section_zenoh: Any,
+    key_prefix: str,
+    settings: WorkerSettings,
+    stop: asyncio.Event | None = None,
+    cells: list[str] | tuple[str, ...] = (),
 ) -> int:
     """Open a client session (retrying until the daemon or router is reachable), serve, close.
 
@@ -620,7 +688,9 @@ async def run_worker_async(
                     await asyncio.wait_for(stop.wait(), settings.connect_retry_s)
         if session is None:
             return 0
-        await Worker(session, Keys(key_prefix), settings, runner).serve(stop)
+        # [worker] cells given: those cells (the configured one only if listed); else this cell
+        own = None if cells else Keys(key_prefix)
+        await Worker(session, own, settings, runner, cells=cells).serve(stop)
         return 0
     finally:
         runner.kill()
@@ -630,4 +700,4 @@ async def run_worker_async(
 
 def run_worker(config: Any, settings: WorkerSettings) -> int:
     """Blocking entry point used by `cellctl worker`: one worker for ``config`` (a CellConfig)."""
-    return asyncio.run(run_worker_async(config.zenoh, config.key_prefix, settings))
+    return asyncio.run(run_worker_async(config.zenoh, config.key_prefix, settings, cells=config.worker.cells))

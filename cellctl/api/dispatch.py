@@ -82,6 +82,9 @@ class DispatchSettings:
     shm_pool_mb: int = 0
     # how long a report waits for result chunks still in flight before its result is refused
     results_grace_s: float = 3.0
+    # a worker that just appeared is offered work this much later: through a router its job
+    # subscriber may become known here after its liveliness token, and a put before that is lost
+    worker_settle_s: float = 0.5
     max_result_bytes: int = MAX_RESULT_BYTES
 
     @classmethod
@@ -353,7 +356,9 @@ class Dispatcher:
         worker_id = Keys.last_chunk(str(sample.key_expr))
         if sample.kind == zenoh.SampleKind.PUT:
             if worker_id not in self._workers:
-                self._workers[worker_id] = _Worker(worker_id)
+                self._workers[worker_id] = _Worker(
+                    worker_id, available_at=time.monotonic() + self.settings.worker_settle_s
+                )
                 log.info("worker_appeared", worker_id=worker_id, workers=len(self._workers))
                 self._call(self.hooks.on_workers, self.workers)
             self._pump()
@@ -405,11 +410,11 @@ class Dispatcher:
             )  # fmt: skip
             return
         if env.results is not None and job.transfer is not None:
-            self._resolve_with_results(job, env, waited=False)
+            self._resolve_with_results(job, env, waited=0.0)
             return
         self._resolve(job, env)
 
-    def _resolve_with_results(self, job: _Job, env: ReportEnvelope, *, waited: bool) -> None:
+    def _resolve_with_results(self, job: _Job, env: ReportEnvelope, *, waited: float) -> None:
         """Keep the report only with its verified result bundle; refuse it (a retry) otherwise."""
         if (
             self._jobs.get(job.job_id) is not job
@@ -419,12 +424,17 @@ class Dispatcher:
             return  # taken back (worker gone, timeout) while its chunks were awaited
         manifest = env.results
         assert manifest is not None
-        if not waited and self.collector.missing(job.job_id, env.attempt, manifest):
-            # chunks still in flight (another path through a router): wait a little for them
+        if (
+            self.collector.missing(job.job_id, env.attempt, manifest)
+            and waited < self.settings.results_grace_s
+        ):
+            # chunks still in flight (they may take another path through a router): look again soon
             asyncio.get_running_loop().call_later(
-                self.settings.results_grace_s, lambda: self._resolve_with_results(job, env, waited=True)
+                0.05, lambda: self._resolve_with_results(job, env, waited=waited + 0.05)
             )
             return
+        if waited:
+            log.info("results_waited", job_id=job.job_id, waited_s=round(waited, 2))
         try:
             files = self.collector.take(job.job_id, env.attempt, env.worker_id, manifest)
         except ResultRefused as exc:

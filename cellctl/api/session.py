@@ -271,6 +271,31 @@ def config_dict(
     return cfg
 
 
+def router_config_dict(section: ZenohSection, listen: list[str], prefixes: list[str]) -> dict[str, Any]:
+    """The Zenoh configuration of ``cellctl router``: the ``[zenoh]`` section's TLS and access
+    settings (as the daemon serves them) in router mode on ``listen``, the access rules covering
+    every cell of ``prefixes`` (each role's rules once per cell)."""
+    routed = section.model_copy(update={"mode": "router", "listen": list(listen), "connect": []})
+    cfg = config_dict(routed, role="serve", key_prefix=prefixes[0])
+    cfg["scouting"]["gossip"] = {"enabled": True}
+    acl = cfg.get("access_control")
+    if acl is not None and len(prefixes) > 1:
+        subject_key = next(k for k in acl["subjects"][0] if k != "id") if acl["subjects"] else "usernames"
+        users = (
+            None if subject_key == "cert_common_names" else _dictionary_users(section.access.dictionary_file)
+        )
+        rules, policies = [], []
+        for i, prefix in enumerate(prefixes):
+            one = access_control_dict(dict(section.access.roles), users, prefix, subject_key=subject_key)
+            rules += [{**r, "id": f"{r['id']}_{i}"} for r in one["rules"]]
+            policies += [
+                {**p, "id": f"{p['id']}_{i}", "rules": [f"{r}_{i}" for r in p["rules"]]}
+                for p in one["policies"]
+            ]
+        acl.update(rules=rules, policies=policies)
+    return cfg
+
+
 def build_zenoh_config(
     section: ZenohSection, *, role: Role = "serve", key_prefix: str | None = None
 ) -> zenoh.Config:

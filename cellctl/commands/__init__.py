@@ -7,6 +7,7 @@ from cellctl.commands import (
     inspect_cmd,
     plan_cmd,
     report_cmd,
+    router_cmd,
     run_cmd,
     scan_cmd,
     sim_cmd,
@@ -20,6 +21,7 @@ COMMAND_MODULES = [
     sim_cmd,
     run_cmd,
     worker_cmd,
+    router_cmd,
     scan_cmd,  # scan, status, watch
     plan_cmd,
     inspect_cmd,
