@@ -1,0 +1,124 @@
+"""The fleet shares nothing: a router, two simulated cells and a server of two workers, each in its
+own network namespace (and every process in its own mount namespace), the server's link slowed by
+netem (20 ms, 1 % loss). One fleet serves every case; namespaces are removed whatever happens."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections import Counter
+
+import pytest
+
+from tests.support import fleet_cells
+from tests.support.netns_fleet import Fleet, remove_leftovers
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.e2e,
+    pytest.mark.skipif(
+        os.geteuid() != 0 or shutil.which("ip") is None or shutil.which("tc") is None,
+        reason="network namespaces need root, ip and tc",
+    ),
+]
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    remove_leftovers()
+    f = Fleet(tmp_path_factory.mktemp("fleet"), cells=2, workers=2)
+    try:
+        f.create()
+        # 20 ms and 1 % loss on the server's link where the kernel has netem (not in every container)
+        f.netem_on = f.netem("s", 20.0, 1.0)
+        fleet_cells.configure(f)
+        fleet_cells.start(f)
+        yield f
+    finally:
+        f.close()
+        assert not [n for n in remove_leftovers(f.ns_prefix)], "namespaces left behind"
+
+
+def _stored(fleet, cell, job_id) -> bool:
+    d = fleet_cells.results_dir(fleet, cell, job_id)
+    return all(
+        (d / n).is_file() and (d / n).stat().st_size > 0 for n in ("report.json", "results.npz", "cloud.ply")
+    )
+
+
+def _analysing(recs, job_id):
+    r = recs[job_id]
+    return r["state"] == "analysing" and r.get("info", {}).get("worker_id")
+
+
+def _reported_once(fleet, ids):
+    """Each job's results stored exactly once at its daemon, and done exactly once."""
+    for job_id, cell in ids.items():
+        rec = fleet_cells.jobs(fleet, cell)[job_id]
+        assert [h["state"] for h in rec["history"]].count("done") == 1, rec["history"]
+        assert _stored(fleet, cell, job_id), job_id
+        assert (
+            json.loads((fleet_cells.results_dir(fleet, cell, job_id) / "report.json").read_text())["job_id"]
+            == job_id
+        )
+    log = "".join(fleet.proc(f"run{c}").log.read_text() for c in range(fleet.cells))
+    stored = Counter(json.loads(line)["job_id"] for line in log.splitlines() if '"results_stored"' in line)
+    assert all(stored[j] == 1 for j in ids), stored
+
+
+def test_six_jobs_over_both_cells_each_analysed_once_with_results_stored_at_its_daemon(fleet):
+    ids = {fleet_cells.trigger(fleet, i % 2, f"P{i}"): i % 2 for i in range(6)}
+    fleet_cells.wait_jobs(
+        fleet, ids, lambda recs: all(r["state"] in fleet_cells.FINAL for r in recs.values()), 900
+    )
+    recs = {**fleet_cells.jobs(fleet, 0), **fleet_cells.jobs(fleet, 1)}
+    assert all(recs[j]["state"] == "done" for j in ids), {
+        j: (recs[j]["state"], recs[j]["history"][-1]) for j in ids
+    }
+    _reported_once(fleet, ids)
+    workers_log = "".join(fleet.proc(f"worker{w}").log.read_text() for w in range(2))
+    reported = Counter(
+        json.loads(line)["job_id"] for line in workers_log.splitlines() if '"job_reported"' in line
+    )
+    assert all(reported[j] == 1 for j in ids), reported  # analysed exactly once
+    assert {recs[j]["info"]["worker_id"] for j in ids} == {"w0", "w1"}  # both workers took jobs
+
+
+def test_a_worker_killed_mid_job_loses_nothing_the_other_completes_it(fleet):
+    job = fleet_cells.trigger(fleet, 0, "PK")
+    recs = fleet_cells.wait_jobs(fleet, {job: 0}, lambda r: _analysing(r, job), 300)
+    holder = recs[job]["info"]["worker_id"]
+    fleet.kill(f"worker{holder[1:]}")
+    try:
+        recs = fleet_cells.wait_jobs(fleet, {job: 0}, lambda r: r[job]["state"] in fleet_cells.FINAL, 300)
+        assert recs[job]["state"] == "done" and recs[job]["info"]["worker_id"] != holder
+        _reported_once(fleet, {job: 0})
+    finally:
+        fleet.restart(f"worker{holder[1:]}")
+
+
+def test_the_router_killed_mid_analysis_and_restarted_the_job_completes(fleet):
+    job = fleet_cells.trigger(fleet, 1, "PR")
+    fleet_cells.wait_jobs(fleet, {job: 1}, lambda r: _analysing(r, job), 300)
+    fleet.kill("router")
+    time.sleep(3.0)
+    fleet.restart("router")
+    fleet.wait_ready("router", 60)
+    recs = fleet_cells.wait_jobs(fleet, {job: 1}, lambda r: r[job]["state"] in fleet_cells.FINAL, 300)
+    assert recs[job]["state"] == "done", recs[job]["history"][-3:]
+    _reported_once(fleet, {job: 1})
+
+
+def test_the_server_link_cut_for_10_s_mid_transfer_loses_nothing_and_doubles_nothing(fleet):
+    job = fleet_cells.trigger(fleet, 0, "PL")
+    fleet_cells.wait_jobs(fleet, {job: 0}, lambda r: _analysing(r, job), 300)
+    fleet.link("s", up=False)
+    try:
+        time.sleep(10.0)
+    finally:
+        fleet.link("s", up=True)
+    recs = fleet_cells.wait_jobs(fleet, {job: 0}, lambda r: r[job]["state"] in fleet_cells.FINAL, 300)
+    assert recs[job]["state"] == "done", recs[job]["history"][-3:]
+    _reported_once(fleet, {job: 0})

@@ -1,0 +1,97 @@
+"""Configuration and driving of a netns fleet (tests/support/netns_fleet.py) of simulated cells."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml
+from cellctl.config import load_config
+from tests.support.e2e_cell import tiny_cell_config
+from tests.support.netns_fleet import ROUTER_PORT, Fleet
+
+FINAL = ("done", "failed", "aborted", "interrupted", "cancelled")
+
+
+def configure(fleet: Fleet) -> None:
+    """cell.toml of every host: the router's, each cell's (peer, connecting to the router), the
+    server's (client, [worker] cells = cell/*)."""
+    hub = f"tcp/{fleet.router_ip}:{ROUTER_PORT}"
+    (fleet.host_dir("r") / "cell.toml").write_text(
+        f'[cell]\nid = "hub"\n\n[router]\nlisten = ["tcp/0.0.0.0:{ROUTER_PORT}"]\n', encoding="utf-8"
+    )
+    for i in range(fleet.cells):
+        out = fleet.host_dir(f"c{i}")
+        path = tiny_cell_config(out)
+        cfg = load_config(path).model_dump(mode="json")
+        cfg["cell"]["id"] = f"c{i}"
+        cfg["zenoh"]["connect"] = [hub]
+        cfg["analysis"].update(ack_timeout_s=10.0, heartbeat_timeout_s=8.0, max_attempts=5)
+        path.write_text(to_toml(cfg), encoding="utf-8")
+    (fleet.host_dir("s") / "cell.toml").write_text(
+        f'[cell]\nid = "srv"\n\n[zenoh]\nmode = "client"\nconnect = ["{hub}"]\nlisten = []\n'
+        'multicast_scouting = false\n\n[worker]\ncells = ["cell/*"]\n', encoding="utf-8"
+    )  # fmt: skip
+
+
+def start(fleet: Fleet) -> None:
+    """Router, then each cell's sim and daemon, then the workers."""
+    fleet.start("router", "r", ["router", "--config", "cell.toml"])
+    fleet.wait_ready("router", 120)
+    for i in range(fleet.cells):
+        fleet.start(f"sim{i}", f"c{i}", ["sim", "--config", "cell.toml"])
+    for i in range(fleet.cells):
+        fleet.wait_ready(f"sim{i}", 180)
+        fleet.start(f"run{i}", f"c{i}", ["run", "--config", "cell.toml"])
+    for w in range(fleet.workers):
+        fleet.start(
+            f"worker{w}",
+            "s",
+            ["worker", "--config", "cell.toml", "--worker-id", f"w{w}", "--data-dir", f"w{w}"],
+        )
+
+
+def trigger(fleet: Fleet, cell: int, plate_id: str) -> str:
+    """Trigger one scan at a cell (`cellctl scan` inside its namespace); returns the job id."""
+    cfg = load_config(fleet.host_dir(f"c{cell}") / "cell.toml")
+    pl = cfg.sim.placement
+    placement = f"{pl.pos_mm[0]},{pl.pos_mm[1]},{pl.pos_mm[2]},{pl.angle_deg}"
+    deadline = time.monotonic() + 120
+    while True:
+        r = fleet.run_in(f"c{cell}", ["scan", "--plate", plate_id, "--design", DEMO_DESIGN, "--placement", placement,
+                                      "--config", "cell.toml"])  # fmt: skip
+        if r.returncode == 0:
+            return next(line.split()[1] for line in r.stdout.splitlines() if line.startswith("job "))
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"trigger at c{cell} failed: {r.stdout} {r.stderr}")
+        time.sleep(1.0)
+
+
+def jobs(fleet: Fleet, cell: int) -> dict[str, dict[str, Any]]:
+    """Every job record of a cell (from its data dir), by job id."""
+    out = {}
+    for p in (fleet.host_dir(f"c{cell}") / "data" / "jobs").glob("*/job.json"):
+        with contextlib.suppress(OSError, ValueError):
+            out[p.parent.name] = json.loads(p.read_text())
+    return out
+
+
+def wait_jobs(fleet: Fleet, ids: dict[str, int], pred, timeout_s: float) -> dict[str, dict[str, Any]]:
+    """Wait until ``pred(records)`` holds for the records of ``ids`` (job id -> cell)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        recs = {}
+        for cell in set(ids.values()):
+            recs.update({k: v for k, v in jobs(fleet, cell).items() if k in ids})
+        if len(recs) == len(ids) and pred(recs):
+            return recs
+        if time.monotonic() > deadline:
+            raise TimeoutError({k: v.get("state") for k, v in recs.items()})
+        time.sleep(0.5)
+
+
+def results_dir(fleet: Fleet, cell: int, job_id: str) -> Path:
+    return fleet.host_dir(f"c{cell}") / "data" / "jobs" / job_id / "results"
