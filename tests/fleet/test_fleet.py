@@ -49,8 +49,12 @@ def _stored(fleet, cell, job_id) -> bool:
 
 
 def _analysing(recs, job_id):
+    """The worker analysing the job now ("analysing on w0 (attempt 1)"), else None."""
     r = recs[job_id]
-    return r["state"] == "analysing" and r.get("info", {}).get("worker_id")
+    last = r["history"][-1]
+    if r["state"] != "analysing" or not last["message"].startswith("analysing on "):
+        return None
+    return last["message"].split()[2]
 
 
 def _reported_once(fleet, ids):
@@ -88,8 +92,8 @@ def test_six_jobs_over_both_cells_each_analysed_once_with_results_stored_at_its_
 
 def test_a_worker_killed_mid_job_loses_nothing_the_other_completes_it(fleet):
     job = fleet_cells.trigger(fleet, 0, "PK")
-    recs = fleet_cells.wait_jobs(fleet, {job: 0}, lambda r: _analysing(r, job), 300)
-    holder = recs[job]["info"]["worker_id"]
+    recs = fleet_cells.wait_jobs(fleet, {job: 0}, lambda r: _analysing(r, job), 300, poll_s=0.05)
+    holder = _analysing(recs, job)
     fleet.kill(f"worker{holder[1:]}")
     try:
         recs = fleet_cells.wait_jobs(fleet, {job: 0}, lambda r: r[job]["state"] in fleet_cells.FINAL, 300)
@@ -101,7 +105,7 @@ def test_a_worker_killed_mid_job_loses_nothing_the_other_completes_it(fleet):
 
 def test_the_router_killed_mid_analysis_and_restarted_the_job_completes(fleet):
     job = fleet_cells.trigger(fleet, 1, "PR")
-    fleet_cells.wait_jobs(fleet, {job: 1}, lambda r: _analysing(r, job), 300)
+    fleet_cells.wait_jobs(fleet, {job: 1}, lambda r: _analysing(r, job), 300, poll_s=0.05)
     fleet.kill("router")
     time.sleep(3.0)
     fleet.restart("router")
@@ -113,7 +117,7 @@ def test_the_router_killed_mid_analysis_and_restarted_the_job_completes(fleet):
 
 def test_the_server_link_cut_for_10_s_mid_transfer_loses_nothing_and_doubles_nothing(fleet):
     job = fleet_cells.trigger(fleet, 0, "PL")
-    fleet_cells.wait_jobs(fleet, {job: 0}, lambda r: _analysing(r, job), 300)
+    fleet_cells.wait_jobs(fleet, {job: 0}, lambda r: _analysing(r, job), 300, poll_s=0.05)
     fleet.link("s", up=False)
     try:
         time.sleep(10.0)

@@ -79,7 +79,9 @@ def jobs(fleet: Fleet, cell: int) -> dict[str, dict[str, Any]]:
     return out
 
 
-def wait_jobs(fleet: Fleet, ids: dict[str, int], pred, timeout_s: float) -> dict[str, dict[str, Any]]:
+def wait_jobs(
+    fleet: Fleet, ids: dict[str, int], pred, timeout_s: float, poll_s: float = 0.5
+) -> dict[str, dict[str, Any]]:
     """Wait until ``pred(records)`` holds for the records of ``ids`` (job id -> cell)."""
     deadline = time.monotonic() + timeout_s
     while True:
@@ -90,7 +92,7 @@ def wait_jobs(fleet: Fleet, ids: dict[str, int], pred, timeout_s: float) -> dict
             return recs
         if time.monotonic() > deadline:
             raise TimeoutError({k: v.get("state") for k, v in recs.items()})
-        time.sleep(0.5)
+        time.sleep(poll_s)
 
 
 def results_dir(fleet: Fleet, cell: int, job_id: str) -> Path:

@@ -40,6 +40,10 @@ def remove_leftovers(prefix: str = PREFIX) -> list[str]:
     names = [line.split()[0] for line in _ip("netns", "list").stdout.splitlines() if line.strip()]
     gone = [n for n in names if n.startswith(prefix + "-") or n.startswith(prefix)]
     for n in gone:
+        # a killed run's processes may live on in its namespaces: stop them by their pids first
+        for pid in _ip("netns", "pids", n, check=False).stdout.split():
+            with contextlib.suppress(ProcessLookupError, ValueError):
+                os.kill(int(pid), signal.SIGKILL)
         _ip("netns", "delete", n, check=False)
     return gone
 
