@@ -59,7 +59,12 @@ def make_private_dir(path: Path) -> None:
 
 
 class JobStoreError(Exception):
-    """A job directory or record that cannot be read or written (names the path)."""
+    """A job directory or record that cannot be read or written (names the path); ``reason`` is
+    what was wrong, without the path."""
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason or message
 
 
 class DataDirLocked(JobStoreError):
@@ -207,7 +212,7 @@ class JobStore:
                 raise ValueError(f"expected a JSON object, got {type(data).__name__}")
             return _checked(JobRecord(**data))
         except (OSError, ValueError, TypeError) as exc:
-            raise JobStoreError(f"{path}: unreadable job record: {exc}") from None
+            raise JobStoreError(f"{path}: unreadable job record: {exc}", str(exc)[:300]) from None
 
     def list(self) -> list[JobRecord]:
         """Every readable record, oldest first (job ids sort by time); unreadable ones are logged."""
@@ -276,9 +281,7 @@ class JobStore:
                 try:
                     rec = self.load(d.name)
                 except JobStoreError as exc:
-                    found.append(
-                        self.quarantine(d.name, str(exc).split(": unreadable job record: ")[-1][:300])
-                    )
+                    found.append(self.quarantine(d.name, exc.reason))
                     continue
                 if not rec.terminal:
                     found.append(self._recover_one(rec))

@@ -538,7 +538,7 @@ class CellDaemon:
             ):
                 raise ControlError("no_job", "job_id", f"no job {job_id} in the job store") from None
             try:  # the record is unreadable but the raw data is there: set the record aside, go on
-                record = self.store.quarantine(job_id, str(exc).split(": unreadable job record: ")[-1][:300])
+                record = self.store.quarantine(job_id, exc.reason)
             except JobStoreError as exc2:
                 raise ControlError("internal", "job_id", f"job {job_id}: {exc2}") from None
         if record.state not in (JobState.INTERRUPTED.value, JobState.FAILED.value):
