@@ -313,6 +313,52 @@ class JobStore:
         return rec
 
 
+class RecordRetry:
+    """Job records the disk refused (full, read-only), written again every ``period_s`` until it
+    takes them; the newest state of a record wins (the record object is the live one)."""
+
+    def __init__(self, store: JobStore, period_s: float = 2.0) -> None:
+        self.store = store
+        self.period_s = period_s
+        self._pending: dict[str, JobRecord] = {}
+        self._task: asyncio.Task[None] | None = None
+
+    def __len__(self) -> int:
+        return len(self._pending)
+
+    def add(self, record: JobRecord) -> None:
+        """Write ``record`` later (call it in the running loop)."""
+        self._pending[record.job_id] = record
+        if self._task is None or self._task.done():
+            self._task = asyncio.get_running_loop().create_task(self._run(), name="job-record-retry")
+
+    async def _run(self) -> None:
+        while self._pending:
+            await asyncio.sleep(self.period_s)
+            for job_id, record in list(self._pending.items()):
+                try:
+                    await asyncio.to_thread(self.store.save, record)
+                except JobStoreError as exc:
+                    log.warning("job_record_write_retry_failed", job_id=job_id, error=str(exc))
+                    continue
+                if self._pending.get(job_id) is record:
+                    del self._pending[job_id]
+                log.info("job_record_written", job_id=job_id, state=record.state)
+
+    def try_now(self) -> None:
+        """One last attempt for each pending record (shutdown); what still fails is logged."""
+        for job_id, record in list(self._pending.items()):
+            try:
+                self.store.save(record)
+            except JobStoreError as exc:
+                log.error("job_record_not_written", job_id=job_id, state=record.state, error=str(exc))
+                continue
+            del self._pending[job_id]
+            log.info("job_record_written", job_id=job_id, state=record.state)
+        if self._task is not None:
+            self._task.cancel()
+
+
 def _is_placement(v: Any) -> bool:
     return (
         isinstance(v, dict)
