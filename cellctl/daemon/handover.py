@@ -2,7 +2,7 @@
 
 :class:`Handover` takes a scanned (or re-analysed) job: the live cloud of the scan, or the cloud
 rebuilt from the raw files, is thinned and encoded off the loop, submitted to the
-:class:`~cellctl.dispatch.Dispatcher` with the job parameters, kept with the job as ``cloud.bin``,
+:class:`~cellctl.api.dispatch.Dispatcher` with the job parameters, kept with the job as ``cloud.bin``,
 and the worker's report stored as ``report.json``. The job's states are told to the daemon through
 ``set_state``; any failure fails the job, it never leaves it hanging. The HTML / PDF render of the
 stored report is :mod:`cellctl.daemon.render`.
@@ -11,7 +11,6 @@ stored report is :mod:`cellctl.daemon.render`.
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from pathlib import Path
 from typing import Any, Protocol
@@ -20,12 +19,12 @@ import structlog
 
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan
 from cellctl.acquisition.reassemble import reassemble
-from cellctl.analysis_settings import inspection_settings_dict
 from cellctl.api import JobState
+from cellctl.api.analysis_job import analysis_job
+from cellctl.api.dispatch import Dispatcher, JobFailed
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import ActiveJob, JobStore, JobStoreError
 from cellctl.daemon.render import render_report
-from cellctl.dispatch import Dispatcher, JobFailed
 from cellctl.logging import bind_context
 
 __all__ = ["Handover", "SetJobState", "render_html"]
@@ -92,20 +91,18 @@ class Handover:
             )
             del scan_cloud, steps
             assemble_s = time.perf_counter() - t0
-            params = {
-                "design": rec.design_path,
-                "analysis": inspection_settings_dict(self.cfg.analysis),
-                "out_dir": str(self.store.results_dir(rec.job_id).resolve()),
-                "cell_id": self.cfg.cell.id,
-            }
+            params = analysis_job(
+                self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
+                placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
+            )  # fmt: skip
             # waiting for a worker until the dispatcher assigns the job (the daemon's on_assigned
             # hook then says analysing): with no worker present the job says so (docs/operations.md)
             self._job_state(
                 job, JobState.WAITING_FOR_WORKER, "cloud published", points=job.points,
                 cloud_bytes=len(payload), assemble_s=round(assemble_s, 3), published_utc_s=time.time(),
             )  # fmt: skip
-            fut = self.dispatcher.submit(rec.job_id, rec.plate_id, payload, params)
-            # the published bytes, kept with the job (cellctl.cloud_codec layout); written while the
+            fut = self.dispatcher.submit(params, payload)
+            # the published bytes, kept with the job (cellctl.api.cloud_codec layout); written while the
             # worker analyses, and on disk before the job is done
             cloud_path = self.store.job_dir(rec.job_id) / "cloud.bin"
             written = asyncio.ensure_future(asyncio.to_thread(cloud_path.write_bytes, payload))
@@ -132,11 +129,11 @@ class Handover:
             self._job_state(job, JobState.FAILED, f"analysis error: {env.error}", worker_id=env.worker_id)
             return
         report_path = (jd / "report.json").resolve()
-        report_path.write_text(json.dumps(env.report, indent=2), encoding="utf-8")
+        report_path.write_text(env.report.model_dump_json(indent=2), encoding="utf-8")
         job.fraction = 1.0
         # The JSON report (per-line verdicts) completes the job; the HTML / PDF render follows.
         self._job_state(
-            job, JobState.DONE, str(report_path), verdict=env.report.get("verdict"),
+            job, JobState.DONE, str(report_path), verdict=env.report.verdict,
             report=str(report_path), worker_id=env.worker_id, analysis_timings_s=env.timings_s,
             report_utc_s=time.time(),
         )  # fmt: skip

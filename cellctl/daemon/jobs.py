@@ -4,7 +4,7 @@ Layout of a job directory::
 
     job.json        this record: trigger, state, state history, results (rewritten atomically)
     raw/            the acquisition's raw files (cellctl.acquisition.rawstore: job.json + *.craw)
-    cloud.bin       the published cloud, exactly the bytes sent (cellctl.cloud_codec layout, base frame, mm)
+    cloud.bin       the published cloud, exactly the bytes sent (cellctl.api.cloud_codec layout, base frame, mm)
     results/        the worker's results directory (report.json, report.csv, results.npz, cloud.ply)
     report.json     the report as the daemon received it
 
@@ -28,7 +28,7 @@ from typing import Any
 
 import structlog
 
-from cellctl.acquisition.assembly import ScanCloud
+from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.session import AcquisitionSession
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
 from cellctl.motion import MotionExecutor
@@ -142,7 +142,7 @@ class ActiveJob:
         self.stage = "queued"
         self.worker_id: str | None = None
         self.stop_reason: str | None = None  # "shutdown", "abort" or "disk"
-        self.cloud: ScanCloud | None = None  # the live cloud of a finished scan, until published
+        self.cloud: AssembledScan | None = None  # the live cloud of a finished scan, until published
         self.task: asyncio.Task[None] | None = None
         self.session: AcquisitionSession | None = None  # while the scan acquires
 

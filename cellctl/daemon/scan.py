@@ -22,6 +22,7 @@ from typing import Any, Protocol
 import structlog
 
 from analysis.mesh import MeshError
+from analysis.placement import Placement
 from analysis.plates import PlateError, load_design
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.acquisition.rawstore import RawWriter
@@ -32,7 +33,7 @@ from cellctl.daemon.jobs import ActiveJob, JobStore
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
-from cellctl.planning import Placement, PlanInputError, PlannerSettings, PlanRefused, ScanPlan, plan_scan
+from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, plan_scan
 from drivers.laser.client import HD8Client
 
 __all__ = ["ScanHost", "ScanRunner"]
@@ -103,12 +104,9 @@ class ScanRunner:
 
     async def _plan(self, job: ActiveJob) -> tuple[ScanPlan, PlannerSettings] | None:
         rec = job.record
-        pos = rec.placement["pos_mm"]
         try:
             design = await asyncio.to_thread(load_design, Path(rec.design_path))
-            placement = Placement(
-                float(pos[0]), float(pos[1]), float(pos[2]), float(rec.placement["rpy_deg"][2])
-            )
+            placement = Placement.model_validate(rec.placement)
             settings = PlannerSettings.from_config(self.cfg)
             t0 = time.perf_counter()
             plan = await asyncio.to_thread(plan_scan, design, placement, settings, with_coverage=False)

@@ -3,7 +3,7 @@
 A job (one remote trigger): validate -> plan (in a thread) -> motors on and the EGM program started
 through RWS -> execute the plan over EGM while the HD8 client streams profiles into the acquisition
 (raw files first) -> EGM program ended -> the whole-scan cloud rebuilt from the raw files ->
-published to the analysis workers through the :class:`~cellctl.dispatch.Dispatcher` -> the report
+published to the analysis workers through the :class:`~cellctl.api.dispatch.Dispatcher` -> the report
 stored with the job. One scan at a time: a trigger while a scan holds the robot waits in a bounded
 queue (``[daemon] queue_max``; full -> ``queue_full``; 0 -> refused with ``busy``) and starts when
 the robot is free; the analysis of a finished scan runs while the next one scans. A fault or an
@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-import json
 import os
 import tracemalloc
 from pathlib import Path
@@ -40,6 +39,7 @@ from cellctl.api import (
     ControlError,
     ControlReply,
     ControlRequest,
+    DaemonStats,
     JobProgress,
     JobState,
     Keys,
@@ -53,6 +53,14 @@ from cellctl.api import (
     parse_control,
     read_payload,
 )
+from cellctl.api.dispatch import Dispatcher, DispatchHooks, DispatchSettings
+from cellctl.api.session import (
+    ZenohSetupError,
+    build_zenoh_config,
+    close_session,
+    declare_async_queryable,
+    open_session,
+)
 from cellctl.config import CellConfig, ConfigError
 from cellctl.daemon.handover import Handover
 from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore, JobStoreError, RecordRetry, lock_data_dir
@@ -60,16 +68,8 @@ from cellctl.daemon.preflight import PreflightError, probe_writable
 from cellctl.daemon.scan import ScanRunner
 from cellctl.daemon.states import CellStateMachine, Transition
 from cellctl.daemon.wiring import CellDrivers, build_drivers, rws_password
-from cellctl.dispatch import Dispatcher, DispatchHooks, DispatchSettings
 from cellctl.logging import bind_context
 from cellctl.motion import ProgressEvent
-from cellctl.zenoh_session import (
-    ZenohSetupError,
-    build_zenoh_config,
-    close_session,
-    declare_async_queryable,
-    open_session,
-)
 from drivers.runtime import (
     heap_summary,
     hold_cpu_wakeup_latency,
@@ -171,7 +171,7 @@ class CellDaemon:
                 self._entities.append(
                     declare_async_queryable(s, self.keys.control(action), self._control_handler(action))
                 )
-            self._entities.append(declare_async_queryable(s, f"{self.keys.prefix}/stats", self._on_stats))
+            self._entities.append(declare_async_queryable(s, self.keys.stats, self._on_stats))
             self._entities.append(s.liveliness().declare_token(self.keys.daemon_alive))
             self._publisher = s.declare_publisher(self.keys.state, encoding=zenoh.Encoding.APPLICATION_JSON)
             self.dispatcher = Dispatcher(
@@ -243,16 +243,15 @@ class CellDaemon:
     async def _on_stats(self, query: zenoh.Query) -> None:
         """``<prefix>/stats``: the daemon's counters since it started (docs/api.md) for monitoring and the
         soak: the EGM endpoint's statistics, resident memory, malformed worker messages."""
-        body = {
-            "cell_id": self.cfg.cell.id,
-            "t_utc": now_utc(),
-            "egm": self.drivers.endpoint.stats.snapshot() if self.drivers is not None else None,
-            "rss_mb": rss_mb(),
-            "dispatch_malformed": 0 if self.dispatcher is None else self.dispatcher.malformed,
-        }
+        heap = None
         if tracemalloc.is_tracing():  # PYTHONTRACEMALLOC=1: where the Python heap is, for a leak hunt
-            body["python_heap"] = await asyncio.to_thread(heap_summary)  # a snapshot takes seconds
-        query.reply(query.key_expr, json.dumps(body).encode(), encoding=JSON)
+            heap = await asyncio.to_thread(heap_summary)  # a snapshot takes seconds
+        body = DaemonStats(
+            cell_id=self.cfg.cell.id, t_utc=now_utc(), rss_mb=rss_mb(),
+            egm=self.drivers.endpoint.stats.snapshot() if self.drivers is not None else None,
+            dispatch_malformed=0 if self.dispatcher is None else self.dispatcher.malformed, python_heap=heap,
+        )  # fmt: skip
+        query.reply(query.key_expr, body.to_json(), encoding=JSON)
 
     def _on_transition(self, tr: Transition) -> None:
         self._publish()
