@@ -19,6 +19,8 @@ from drivers.abb_egm.sim.controller import ControllerSim, ControllerSimConfig
 from drivers.abb_egm.sim.controller import main as sim_main
 from drivers.abb_egm.sim.egm import EgmSimConfig, precise_event_loop
 
+pytestmark = pytest.mark.process  # the simulator as `python -m drivers.abb_egm.sim`
+
 REPO = Path(__file__).resolve().parents[2]
 
 

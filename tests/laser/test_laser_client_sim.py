@@ -614,6 +614,7 @@ def test_external_trigger_mode_gives_one_frame_per_edge_exposed_at_the_edge() ->
 
 
 @pytest.mark.slow  # spawns a process that imports open3d
+@pytest.mark.process
 def test_rendering_in_a_worker_process_streams_the_same_scene() -> None:
     cfg = SimConfig(rate_hz=500.0, render_process=True, outlier_probability=0.0, seed=10)
 

@@ -5,9 +5,12 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
+import pytest
 
 from cellctl.cloud_codec import Cloud, encode_cloud
 from cellctl.worker import AnalysisProcess
+
+pytestmark = pytest.mark.process  # the spawned analysis process
 
 FN = "tests.zenoh.zworker_fns:blas_environment"
 

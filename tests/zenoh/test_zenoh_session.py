@@ -7,7 +7,6 @@ import threading
 
 import pytest
 import zenoh
-from tests.support.ports import free_port
 
 from cellctl.config import ZenohAccess, ZenohSection
 from cellctl.zenoh_session import (
@@ -20,6 +19,7 @@ from cellctl.zenoh_session import (
     open_session,
     subscribe,
 )
+from tests.support.ports import free_port
 
 
 def test_daemon_config_listens_only_where_configured_with_scouting_off():
