@@ -75,8 +75,11 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     path = os.environ.get(SKIP_LOG_ENV)
     if not path or not report.skipped:
         return
-    reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
-    reason = reason.removeprefix("Skipped: ")
+    if hasattr(report, "wasxfail"):  # an expected failure is a skip too: it proves nothing
+        reason = f"xfail: {report.wasxfail}"
+    else:
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        reason = reason.removeprefix("Skipped: ")
     with open(path, "a", encoding="utf-8") as f:
         f.write(json.dumps({"nodeid": report.nodeid, "when": report.when, "reason": reason}) + "\n")
 

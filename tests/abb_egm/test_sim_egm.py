@@ -1,4 +1,9 @@
-"""Simulated controller (EGM side) against the real endpoint, over loopback UDP."""
+"""Simulated controller (EGM side) against the real endpoint, over loopback UDP.
+
+Tests of the simulator's internals: its control law, limits and fault knobs are set and read in
+process (``sim.set_faults``, ``sim.q_deg``, the controller model) where the case is about them; what
+the endpoint observes comes only over EGM. Tests of what uses the simulator drive it through its
+protocols (RWS, EGM, the fault channel: tests/faults/test_fault_channel.py)."""
 
 from __future__ import annotations
 
@@ -173,6 +178,8 @@ def test_communication_timeout_ends_the_session_with_event_41822_in_the_model():
 
 
 def test_program_start_through_the_model_starts_a_session_with_seqno_from_zero():
+    """The simulator's internals: the program started on its controller model, in process."""
+
     async def main():
         model = ControllerModel()
         sim, ep = await start_pair(sim_kwargs={"model": model})
@@ -183,9 +190,10 @@ def test_program_start_through_the_model_starts_a_session_with_seqno_from_zero()
         await wait_until(lambda: ep.ok_to_command, 0.5)
         assert ep.stats.sessions == 2  # the idle stream, then the EGM session starting at seqno 0
         assert ep.latest.seqno < 20
-        # position reads through RWS see the simulated arm
+        # the position the model gives RWS is the arm the EGM feedback shows (it holds still here)
         q, _pos, _quat = model.position()
-        np.testing.assert_allclose(q, sim.q_deg, atol=1.0)
+        await ep.wait_for_feedback(10.0)
+        np.testing.assert_allclose(q, ep.latest.q_deg, atol=0.01)
         # the end variable ends the session cleanly
         model.set_bool(model.task, model.module, model.end_var, True)
         await wait_until(lambda: ep.latest.mci_state is MciState.STOPPED, 0.5)
