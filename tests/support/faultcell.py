@@ -141,7 +141,7 @@ class FaultCell(Cell):
 
     def stop(self) -> dict[str, Any]:
         if self._fault_session is not None:
-            from cellctl.zenoh_session import close_session
+            from cellctl.api.session import close_session
 
             close_session(self._fault_session)
             self._fault_session = None
@@ -187,8 +187,8 @@ class FaultCell(Cell):
     @contextlib.asynccontextmanager
     async def client(self):
         """A Zenoh client session with a status follower (``CellClient``), closed on exit."""
+        from cellctl.api.session import close_session
         from cellctl.commands.scan_cmd import StatusFollower
-        from cellctl.zenoh_session import close_session
 
         session = await open_client(self.cfg)
         keys = Keys(self.cfg.key_prefix)
@@ -340,7 +340,7 @@ def check_job_data(cell: Cell, job_id: str) -> JobDataCheck:
     )
     cloud_bin = cell.jobs_dir / job_id / "cloud.bin"
     if cloud_bin.exists():
-        from cellctl.cloud_codec import decode_cloud
+        from cellctl.api.cloud_codec import decode_cloud
 
         cloud = decode_cloud(cloud_bin.read_bytes())
         t = np.asarray(cloud.t_s, dtype=np.float64)

@@ -8,8 +8,7 @@ import threading
 import pytest
 import zenoh
 
-from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     ZenohSetupError,
     async_get,
     build_zenoh_config,
@@ -19,6 +18,7 @@ from cellctl.zenoh_session import (
     open_session,
     subscribe,
 )
+from cellctl.config import ZenohAccess, ZenohSection
 from tests.support.ports import free_port
 
 
