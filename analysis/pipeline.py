@@ -42,8 +42,9 @@ import numpy as np
 import structlog
 
 from analysis.boundary import BoundaryResult, find_corners
+from analysis.cad import CadDesign, read_design
 from analysis.cloud_io import ScanCloud, write_ply_vertices
-from analysis.mesh import MeshError, TriMesh, load_mesh
+from analysis.mesh import MeshError, TriMesh
 from analysis.metrics import LineMetrics, Tolerances, Verdict, judge, line_metrics
 from analysis.plates import canonical_corner_order
 from analysis.register import (
@@ -56,7 +57,13 @@ from analysis.register import (
 )
 from analysis.report import write_csv
 from analysis.segment import SegmentResult, segment_plate
-from analysis.templates import DetectionLayout, TemplateCut, cut_templates, detection_lines
+from analysis.templates import (
+    DetectionLayout,
+    TemplateCut,
+    cut_templates,
+    cut_templates_exact,
+    detection_lines,
+)
 
 log = structlog.get_logger(__name__)
 
@@ -273,7 +280,7 @@ def _subsample_index(n: int, k: int, seed: int = 0) -> np.ndarray:
 
 def inspect_cloud(
     cloud: ScanCloud,
-    design: TriMesh,
+    design: TriMesh | CadDesign,
     settings: InspectionSettings | None = None,
     *,
     plate_id: str = "",
@@ -289,8 +296,13 @@ def inspect_cloud(
     nominal_placement: (x_mm, y_mm, angle_deg) of the design frame's origin and x axis on the bed, as
     the operator laid the plate; optional, it decides which corner is the reference when the design
     is symmetric under a half turn (else the bed convention decides, see register()).
+    design: a mesh, or a CAD design (:mod:`analysis.cad`): then registration runs on its
+    tessellation, the corners come from the face's own boundary and the templates are cut from
+    the exact surface.
     """
     settings = settings or InspectionSettings()
+    cad = design if isinstance(design, CadDesign) else None
+    design = cad.mesh if cad is not None else design
     timings: dict[str, float] = {}
     t = time.perf_counter()
 
@@ -309,7 +321,7 @@ def inspect_cloud(
         bnd = find_corners(seg.points_mm)
         lap("boundary")
         surface: HeightField = design_field.result()
-    design_c = design_corners_from_mesh(design)
+    design_c = cad.corners_mm if cad is not None else design_corners_from_mesh(design)
     _check_size(design_c, bnd.corners_mm, settings.size_tolerance)
     cell_mm = surface_cell_mm(
         seg.points_mm, seg.plate_area_mm2, settings.grid_mm, settings.min_points_per_cell
@@ -324,7 +336,10 @@ def inspect_cloud(
     T = reg.transform  # design -> measured
     measured_c = np.roll(bnd.corners_mm, -reg.coarse.shift, axis=0)
     lines = detection_lines(measured_c, settings.layout)
-    cuts = cut_templates(design.transformed(T), measured_mesh, lines, step_mm=settings.sample_step_mm)
+    if cad is not None:
+        cuts = cut_templates_exact(cad, T, measured_mesh, lines, step_mm=settings.sample_step_mm)
+    else:
+        cuts = cut_templates(design.transformed(T), measured_mesh, lines, step_mm=settings.sample_step_mm)
     if not cuts:
         raise InspectionError("no detection line crosses both the design and the scanned plate")
     lap("templates")
@@ -410,6 +425,7 @@ def inspect_cloud(
             "max_deviation_mm": float(np.nanmax(deviation)) if np.isfinite(deviation).any() else None,
         },
         "inputs": {"points": len(cloud.points_mm), **(inputs or {})},
+        "design": _design_record(cad),
         "timings_s": timings,
     }
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
@@ -432,6 +448,21 @@ def inspect_cloud(
         verdict=verdict,
         timings_s=timings,
     )
+
+
+def _design_record(cad: CadDesign | None) -> dict[str, Any]:
+    """What the report says about the design: a mesh, or the CAD file's format, units and faces."""
+    if cad is None:
+        return {"kind": "mesh"}
+    return {
+        "kind": "cad",
+        "format": cad.facts.fmt,
+        "file_units": cad.facts.units,
+        "faces": len(cad.faces),
+        "chord_error_mm": round(cad.chord_error_mm, 5),
+        "templates": "exact surface",
+        "T_design_file": cad.T_design_file.tolist(),
+    }
 
 
 # ------------------------------------------------------------------------------------ results dir
@@ -505,9 +536,9 @@ def analyse_job(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, 
     sc = ScanCloud(xyz, *org) if all(a is not None for a in org) else ScanCloud(xyz)
     design_path = job.get("design")
     if not design_path:
-        raise InspectionError("the job names no design mesh")
+        raise InspectionError("the job names no design")
     try:
-        design = load_mesh(design_path)
+        design = read_design(design_path)
     except MeshError as exc:
         raise InspectionError(str(exc)) from None
     placement = job.get("placement")
