@@ -324,30 +324,38 @@ class CadDesign:
                 sign[f] = -1.0
         return sign
 
-    def _seeds(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The face and (u, v) of the tessellation vertex nearest each point: Newton's start."""
+    @cached_property
+    def _tree(self):
         from scipy.spatial import cKDTree
 
-        corners = self.mesh.triangle_vertices_mm.reshape(-1, 3)
-        _, k = cKDTree(corners).query(points_mm)
+        return cKDTree(self.mesh.triangle_vertices_mm.reshape(-1, 3))
+
+    def _seeds(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The face and (u, v) of the tessellation vertex nearest each point: Newton's start."""
+        _, k = self._tree.query(points_mm)
         return self.triangle_face[k // 3], self.triangle_uv.reshape(-1, 2)[k]
 
-    def project(self, points_mm: np.ndarray, iterations: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    def project(
+        self,
+        points_mm: np.ndarray,
+        iterations: int = 12,
+        seeds: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Closest points of the exact surface to ``points_mm`` (n, 3): (feet (n, 3), distance (n,)).
 
-        Gauss-Newton on the foot-point condition from the nearest tessellation vertex, the
-        parameters kept inside the face's bounds. Distances are unsigned, mm.
+        Gauss-Newton on the foot-point condition from the nearest tessellation vertex (or from
+        ``seeds``: faces (n,) and parameters (n, 2)), the parameters kept inside the face's bounds.
+        Distances are unsigned, mm.
         """
         p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
-        face, uv = self._seeds(p)
-        uv = uv.copy()
+        face, uv = seeds if seeds is not None else self._seeds(p)
+        uv = np.array(uv, dtype=np.float64)
         for _ in range(iterations):
             S, Su, Sv = self.evaluate(face, uv)
             J = np.stack([Su, Sv], axis=2)  # (n, 3, 2)
             JtJ = np.einsum("nki,nkj->nij", J, J)
             rhs = np.einsum("nki,nk->ni", J, p - S)
-            step = np.linalg.solve(JtJ, rhs[..., None])[..., 0]
-            uv += step
+            uv += _damped_solve(JtJ, rhs)
             self._clamp(face, uv)
         S, _, _ = self.evaluate(face, uv)
         return S, np.linalg.norm(p - S, axis=1)
@@ -383,10 +391,8 @@ class CadDesign:
                 S, Su, Sv = self.evaluate(f, w)
                 J = np.stack([Su, Sv, np.broadcast_to(-d, Su.shape)], axis=2)
                 F = S - o[idx] - t[:, None] * d
-                try:
-                    step = np.linalg.solve(J, -F[..., None])[..., 0]
-                except np.linalg.LinAlgError:
-                    break
+                Jt = np.swapaxes(J, 1, 2)
+                step = _damped_solve(Jt @ J, -np.einsum("nij,nj->ni", Jt, F))
                 w += step[:, :2]
                 t += step[:, 2]
                 self._clamp(f, w)
@@ -428,12 +434,14 @@ class CadDesign:
             _, Svu, Svv = (a - b for a, b in zip(patch.evaluate(U, V + h[1]), (S, Su, Sv), strict=True))
             Suu, Suv, Svv = Suu / h[0], (Suv / h[0] + Svu / h[1]) / 2, Svv / h[1]
             nrm = np.cross(Su, Sv)
-            nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+            jac = np.linalg.norm(nrm, axis=1)
+            regular = jac > 1e-6 * np.median(jac)  # a patch side collapsed to a point has no curvature
+            nrm /= np.where(regular, jac, 1.0)[:, None]
             E, F, G = (np.einsum("ij,ij->i", a, b) for a, b in ((Su, Su), (Su, Sv), (Sv, Sv)))
             L, M, N = (np.einsum("ij,ij->i", a, nrm) for a in (Suu, Suv, Svv))
             K = (L * N - M * M) / (E * G - F * F)
             H = (E * N - 2 * F * M + G * L) / (2 * (E * G - F * F))
-            kmax = np.abs(H) + np.sqrt(np.maximum(H * H - K, 0.0))
+            kmax = np.where(regular, np.abs(H) + np.sqrt(np.maximum(H * H - K, 0.0)), 0.0)
             best = min(best, float(1.0 / max(kmax.max(), 1e-15)))
         return best
 
@@ -463,6 +471,13 @@ class CadDesign:
             "entities": self.facts.entities,
             "timings_s": self.timings_s,
         }
+
+
+def _damped_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Batched solve of (n, k, k) normal equations, lightly damped: at a pole of a patch (a side
+    collapsed to a point) the Jacobian is singular and the step must stay finite."""
+    eps = 1e-12 * np.trace(A, axis1=1, axis2=2)[:, None, None] + 1e-300
+    return np.linalg.solve(A + eps * np.eye(A.shape[1]), b[..., None])[..., 0]
 
 
 def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -574,7 +589,7 @@ def _patch(face, path: Path) -> NurbsPatch:
     from OCP.GeomConvert import GeomConvert
 
     u0, u1, v0, v1 = BRepTools.UVBounds_s(face)
-    surf = BRep_Tool.Surface_s(face)
+    surf = BRep_Tool.Surface_s(face)  # in the face's own coordinates: its location moves it
     bs = surf if isinstance(surf, Geom_BSplineSurface) else None
     if bs is None:
         try:
@@ -596,7 +611,11 @@ def _patch(face, path: Path) -> NurbsPatch:
     weights = np.array([[bs.Weight(i, j) for j in range(1, nv + 1)] for i in range(1, nu + 1)])
     ku = np.array([bs.UKnotSequence().Value(i) for i in range(1, bs.UKnotSequence().Length() + 1)])
     kv = np.array([bs.VKnotSequence().Value(i) for i in range(1, bs.VKnotSequence().Length() + 1)])
-    return NurbsPatch(poles, weights, ku, kv, bs.UDegree(), bs.VDegree(), (u0, u1), (v0, v1))
+    trsf = face.Location().Transformation()
+    T = np.eye(4)
+    T[:3, :] = [[trsf.Value(i, j) for j in range(1, 5)] for i in range(1, 4)]
+    patch = NurbsPatch(poles, weights, ku, kv, bs.UDegree(), bs.VDegree(), (u0, u1), (v0, v1))
+    return patch if np.allclose(T, np.eye(4)) else patch.transformed(T)
 
 
 def _tessellate(shape, faces: list, deflection_mm: float):
@@ -790,8 +809,89 @@ def read_cad(
     sew_tol_mm: float | None = None,
     *,
     one_plate: bool = True,
+    isolated: bool = True,
+    timeout_s: float = 300.0,
 ) -> CadDesign:
-    """Read an IGES or STEP design into a :class:`CadDesign` (design frame, mm).
+    """Read an IGES or STEP design (see :func:`read_cad_in_process` for the parameters).
+
+    isolated: read in a forked child process. OpenCASCADE's translators trust the file: a
+    corrupted STEP entity crashed the whole process (segmentation fault), as open3d did on a bad
+    PLY. A :class:`CadDesign` is plain arrays, so the child pickles it back through a pipe; a
+    child that dies or runs past ``timeout_s`` refuses the file with one line.
+    """
+    if not isolated:
+        return read_cad_in_process(path, deflection_mm, sew_tol_mm, one_plate=one_plate)
+    import OCP.BRepMesh
+    import OCP.IGESControl
+    import OCP.STEPControl  # noqa: F401 - loaded once here, inherited by every forked reader
+
+    return _in_child(
+        lambda: read_cad_in_process(path, deflection_mm, sew_tol_mm, one_plate=one_plate, quiet=True),
+        path,
+        timeout_s,
+    )
+
+
+def _in_child(work, path: str | Path, timeout_s: float):
+    """Run ``work()`` in a forked child; its result or exception comes back pickled."""
+    import os
+    import pickle
+    import select
+    import signal
+    import time
+
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: never returns into the caller's code
+        os.close(r)
+        code = 0
+        try:
+            try:
+                payload = pickle.dumps(("ok", work()))
+            except DesignError as exc:
+                payload = pickle.dumps(("error", str(exc)))
+            with os.fdopen(w, "wb") as f:
+                f.write(payload)
+        except BaseException:  # noqa: BLE001 - the child must exit, whatever happened
+            code = 1
+        os._exit(code)
+    os.close(w)
+    chunks: list[bytes] = []
+    deadline = time.monotonic() + timeout_s
+    try:
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                os.kill(pid, signal.SIGKILL)
+                raise DesignError(f"{path}: the CAD reader did not finish within {timeout_s:.0f} s")
+            ready, _, _ = select.select([r], [], [], min(left, 1.0))
+            if ready:
+                chunk = os.read(r, 1 << 20)
+                if not chunk:
+                    break
+                chunks.append(chunk)
+    finally:
+        os.close(r)
+        _, status = os.waitpid(pid, 0)
+    if os.WIFSIGNALED(status) or not chunks:
+        kind = Path(path).suffix.lstrip(".").upper()
+        why = f"signal {os.WTERMSIG(status)}" if os.WIFSIGNALED(status) else f"exit {os.WEXITSTATUS(status)}"
+        raise DesignError(f"{path}: corrupted {kind} file (the CAD reader crashed on it: {why})")
+    kind, value = pickle.loads(b"".join(chunks))
+    if kind == "error":
+        raise DesignError(value)
+    return value
+
+
+def read_cad_in_process(
+    path: str | Path,
+    deflection_mm: float | None = None,
+    sew_tol_mm: float | None = None,
+    *,
+    one_plate: bool = True,
+    quiet: bool = False,
+) -> CadDesign:
+    """Read an IGES or STEP design into a :class:`CadDesign` (design frame, mm), in this process.
 
     deflection_mm: the tessellation's chord tolerance; default 0.01 mm (half the sensor noise) for a plate up to 5 m
     across, 1e-5 of the diagonal beyond (a whole hull). sew_tol_mm: gap up to which faces sharing an
@@ -876,12 +976,13 @@ def read_cad(
     )  # fmt: skip
     design.chord_error_mm = measured_chord_error_mm(design)
     timings["boundary"] = time.perf_counter() - t
-    log.info("design_read", file=str(path), fmt=facts.fmt, units=facts.units, faces=len(patches),
-             triangles=len(mesh.triangles), chord_error_mm=round(design.chord_error_mm, 5))  # fmt: skip
+    if not quiet:  # a forked child does not log: another thread may have held the log's lock
+        log.info("design_read", file=str(path), fmt=facts.fmt, units=facts.units, faces=len(patches),
+                 triangles=len(mesh.triangles), chord_error_mm=round(design.chord_error_mm, 5))  # fmt: skip
     return design
 
 
-def measured_chord_error_mm(design: CadDesign, max_triangles: int = 20000) -> float:
+def measured_chord_error_mm(design: CadDesign, max_triangles: int = 5000) -> float:
     """The largest distance between the tessellation and the exact surface (mm), measured where a
     triangle departs most from its surface: its centroid and its edge midpoints (a subsample of at
     most ``max_triangles`` triangles)."""
@@ -894,8 +995,8 @@ def measured_chord_error_mm(design: CadDesign, max_triangles: int = 20000) -> fl
     for wts in ((1 / 3, 1 / 3, 1 / 3), (0.5, 0.5, 0.0), (0.0, 0.5, 0.5), (0.5, 0.0, 0.5)):
         w = np.asarray(wts)
         p = np.einsum("k,nkc->nc", w, tv)
-        S, _, _ = design.evaluate(face, np.einsum("k,nkc->nc", w, tuv))
-        worst = max(worst, float(np.linalg.norm(S - p, axis=1).max()))
+        _, dist = design.project(p, iterations=6, seeds=(face, np.einsum("k,nkc->nc", w, tuv)))
+        worst = max(worst, float(dist.max()))
     return worst
 
 
