@@ -330,7 +330,7 @@ class CadDesign:
 
         return cKDTree(self.mesh.triangle_vertices_mm.reshape(-1, 3))
 
-    def _seeds(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def nearest_parameters(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The face and (u, v) of the tessellation vertex nearest each point: Newton's start."""
         _, k = self._tree.query(points_mm)
         return self.triangle_face[k // 3], self.triangle_uv.reshape(-1, 2)[k]
@@ -348,7 +348,7 @@ class CadDesign:
         Distances are unsigned, mm.
         """
         p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
-        face, uv = seeds if seeds is not None else self._seeds(p)
+        face, uv = seeds if seeds is not None else self.nearest_parameters(p)
         uv = np.array(uv, dtype=np.float64)
         for _ in range(iterations):
             S, Su, Sv = self.evaluate(face, uv)
@@ -378,7 +378,7 @@ class CadDesign:
         """
         o = np.asarray(origins_mm, dtype=np.float64).reshape(-1, 3)
         d = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
-        face, uv = self._seeds(o)
+        face, uv = self.nearest_parameters(o)
         out = np.full_like(o, np.nan)
         todo = np.ones(len(o), dtype=bool)
         for _attempt in range(3):
@@ -852,7 +852,7 @@ def _in_child(work, path: str | Path, timeout_s: float):
                 payload = pickle.dumps(("error", str(exc)))
             with os.fdopen(w, "wb") as f:
                 f.write(payload)
-        except BaseException:  # noqa: BLE001 - the child must exit, whatever happened
+        except BaseException:  # the child must exit, whatever happened
             code = 1
         os._exit(code)
     os.close(w)
@@ -1015,3 +1015,8 @@ def read_design(path: str | Path) -> TriMesh | CadDesign:
 def design_mesh_of(design: TriMesh | CadDesign) -> TriMesh:
     """The triangle mesh of a design (a CAD design's tessellation)."""
     return design.mesh if isinstance(design, CadDesign) else design
+
+
+def design_mesh_from_file(path: str | Path) -> TriMesh:
+    """The design's triangle mesh from any design file, in the design frame (the planner's input)."""
+    return design_mesh_of(read_design(path))

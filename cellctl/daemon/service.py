@@ -629,8 +629,9 @@ class CellDaemon:
 
     async def _scan(self, job: _Job) -> bool:
         """Plan, execute and acquire. True when the scan completed (raw files closed)."""
+        from analysis.cad import design_mesh_from_file
         from analysis.mesh import MeshError
-        from analysis.plates import PlateError, load_design
+        from analysis.plates import PlateError
         from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
         from cellctl.acquisition.rawstore import RawWriter
         from cellctl.motion import ExecState, ExecutorConfig, MotionExecutor
@@ -642,7 +643,7 @@ class CellDaemon:
         self._job_state(job, JobState.PLANNING)
         pos = rec.placement["pos_mm"]
         try:
-            design = await asyncio.to_thread(load_design, Path(rec.design_path))
+            design = await asyncio.to_thread(design_mesh_from_file, Path(rec.design_path))
             placement = Placement(
                 float(pos[0]), float(pos[1]), float(pos[2]), float(rec.placement["rpy_deg"][2])
             )
