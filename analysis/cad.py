@@ -117,6 +117,8 @@ def iges_facts(path: Path, data: bytes) -> FileFacts:
         if not line.strip():
             continue
         if len(line) < 73 or line[72] not in sections:
+            if k == len(lines) - 1:
+                raise DesignError(f"{path}: truncated IGES file (its last line, {k + 1}, is cut off)")
             raise DesignError(
                 f"{path}: corrupted IGES file (line {k + 1} is not an 80-column S/G/D/P/T record)"
             )
@@ -242,13 +244,18 @@ class NurbsPatch:
         """Points and first derivatives at parameters (u, v): three (n, 3) arrays, mm."""
         Nu, dNu = _basis(self.knots_u, self.degree_u, u)
         Nv, dNv = _basis(self.knots_v, self.degree_v, v)
-        Pw = self.poles_mm * self.weights[..., None]
-        A = np.einsum("ni,ijc,nj->nc", Nu, Pw, Nv)
-        Au = np.einsum("ni,ijc,nj->nc", dNu, Pw, Nv)
-        Av = np.einsum("ni,ijc,nj->nc", Nu, Pw, dNv)
-        W = np.einsum("ni,ij,nj->n", Nu, self.weights, Nv)[:, None]
-        Wu = np.einsum("ni,ij,nj->n", dNu, self.weights, Nv)[:, None]
-        Wv = np.einsum("ni,ij,nj->n", Nu, self.weights, dNv)[:, None]
+        nu, nv = self.weights.shape
+        # homogeneous poles (w x, w y, w z, w): u by a matrix product, then v per point
+        Pw = np.concatenate([self.poles_mm * self.weights[..., None], self.weights[..., None]], axis=2)
+        Pw = Pw.reshape(nu, nv * 4)
+        G = (Nu @ Pw).reshape(-1, nv, 4)
+        Gu = (dNu @ Pw).reshape(-1, nv, 4)
+        H = np.einsum("nj,njc->nc", Nv, G)
+        Hu = np.einsum("nj,njc->nc", Nv, Gu)
+        Hv = np.einsum("nj,njc->nc", dNv, G)
+        A, W = H[:, :3], H[:, 3:]
+        Au, Wu = Hu[:, :3], Hu[:, 3:]
+        Av, Wv = Hv[:, :3], Hv[:, 3:]
         S = A / W
         return S, (Au - S * Wu) / W, (Av - S * Wv) / W
 
@@ -618,36 +625,126 @@ def _patch(face, path: Path) -> NurbsPatch:
     return patch if np.allclose(T, np.eye(4)) else patch.transformed(T)
 
 
-def _tessellate(shape, faces: list, deflection_mm: float):
-    """(vertices (n, 3), triangles (m, 3), triangle face (m,), triangle uv (m, 3, 2)), file frame."""
+def _untrimmed(face, patch: NurbsPatch) -> bool:
+    """True when the face is its patch's whole parameter rectangle: one wire, every edge's curve on
+    the surface lying on one side of the rectangle (no trimming curve inside it)."""
+    from OCP.BRepAdaptor import BRepAdaptor_Curve2d
+    from OCP.TopAbs import TopAbs_EDGE, TopAbs_WIRE
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS
+
+    wires = TopExp_Explorer(face, TopAbs_WIRE)
+    n_wires = 0
+    while wires.More():
+        n_wires += 1
+        wires.Next()
+    if n_wires != 1:
+        return False
+    (u0, u1), (v0, v1) = patch.u_range, patch.v_range
+    tol_u, tol_v = 1e-9 * max(u1 - u0, 1e-9), 1e-9 * max(v1 - v0, 1e-9)
+    ex = TopExp_Explorer(face, TopAbs_EDGE)
+    while ex.More():
+        c = BRepAdaptor_Curve2d(TopoDS.Edge(ex.Current()), face)
+        pts = [c.Value(t) for t in np.linspace(c.FirstParameter(), c.LastParameter(), 5)]
+        u = np.array([p.X() for p in pts])
+        v = np.array([p.Y() for p in pts])
+        on_side = (
+            np.all(np.abs(u - u0) < tol_u) or np.all(np.abs(u - u1) < tol_u)
+            or np.all(np.abs(v - v0) < tol_v) or np.all(np.abs(v - v1) < tol_v)
+        )  # fmt: skip
+        if not on_side:
+            return False
+        ex.Next()
+    return True
+
+
+def _grid_tessellation(patch: NurbsPatch, chord_mm: float, max_nodes: int = 400_000):
+    """A patch's whole parameter rectangle as a grid mesh with chord error about ``chord_mm``.
+
+    The grid is refined once from a 17 x 17 trial: the midpoints' departure from the chords falls
+    with the square of the spacing. Returns (vertices, triangles, uv (n, 2)); triangles are
+    counter-clockwise in (u, v) (du x dv side).
+    """
+    (u0, u1), (v0, v1) = patch.u_range, patch.v_range
+
+    def departure(nu: int, nv: int) -> tuple[float, float, float, float]:
+        u = np.linspace(u0, u1, nu)
+        v = np.linspace(v0, v1, nv)
+        U, V = np.meshgrid(u, v, indexing="ij")
+        S = patch.evaluate(U.ravel(), V.ravel())[0].reshape(nu, nv, 3)
+        Um, Vm = np.meshgrid((u[:-1] + u[1:]) / 2, v, indexing="ij")
+        Su = patch.evaluate(Um.ravel(), Vm.ravel())[0].reshape(nu - 1, nv, 3)
+        Um, Vm = np.meshgrid(u, (v[:-1] + v[1:]) / 2, indexing="ij")
+        Sv = patch.evaluate(Um.ravel(), Vm.ravel())[0].reshape(nu, nv - 1, 3)
+        Um, Vm = np.meshgrid((u[:-1] + u[1:]) / 2, (v[:-1] + v[1:]) / 2, indexing="ij")
+        Sc = patch.evaluate(Um.ravel(), Vm.ravel())[0].reshape(nu - 1, nv - 1, 3)
+        dc = np.linalg.norm(Sc - (S[:-1, :-1] + S[1:, 1:]) / 2, axis=2).max()  # the cell's diagonal
+        du = max(np.linalg.norm(Su - (S[:-1] + S[1:]) / 2, axis=2).max(), dc)
+        dv = max(np.linalg.norm(Sv - (S[:, :-1] + S[:, 1:]) / 2, axis=2).max(), dc)
+        len_u = np.linalg.norm(np.diff(S, axis=0), axis=2).sum(axis=0).max()
+        len_v = np.linalg.norm(np.diff(S, axis=1), axis=2).sum(axis=1).max()
+        return float(du), float(dv), float(len_u), float(len_v)
+
+    n0 = 17
+    du, dv, len_u, len_v = departure(n0, n0)
+    # fine enough for the chord error, and no cell longer than 20 mm on a plate (a hull's patch:
+    # 1 % of its length), so seeds and section extents stay local
+    cell = max(20.0, 0.01 * max(len_u, len_v))
+    nu = int(np.clip(max(np.ceil((n0 - 1) * np.sqrt(du / chord_mm)), np.ceil(len_u / cell)) + 1, 2, 4000))
+    nv = int(np.clip(max(np.ceil((n0 - 1) * np.sqrt(dv / chord_mm)), np.ceil(len_v / cell)) + 1, 2, 4000))
+    if nu * nv > max_nodes:
+        scale = np.sqrt(max_nodes / (nu * nv))
+        nu, nv = max(2, int(nu * scale)), max(2, int(nv * scale))
+    u = np.linspace(u0, u1, nu)
+    v = np.linspace(v0, v1, nv)
+    U, V = np.meshgrid(u, v, indexing="ij")
+    uv = np.column_stack([U.ravel(), V.ravel()])
+    S = patch.evaluate(uv[:, 0], uv[:, 1])[0]
+    idx = np.arange(nu * nv).reshape(nu, nv)
+    a, b = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel()
+    c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    tri = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    return S, tri, uv
+
+
+def _tessellate(faces: list, patches: list[NurbsPatch], deflection_mm: float):
+    """(vertices (n, 3), triangles (m, 3), triangle face (m,), triangle uv (m, 3, 2)), file frame.
+
+    A face that is its patch's whole parameter rectangle is gridded in numpy at a fifth of the
+    deflection (exact nodes, fast); a trimmed face is meshed by OpenCASCADE within the deflection.
+    """
     from OCP.BRep import BRep_Tool
     from OCP.BRepMesh import BRepMesh_IncrementalMesh
     from OCP.TopAbs import TopAbs_REVERSED
     from OCP.TopLoc import TopLoc_Location
 
-    BRepMesh_IncrementalMesh(shape, deflection_mm, False, 0.1, False)
     verts, tris, tface, tuv = [], [], [], []
     offset = 0
-    for k, face in enumerate(faces):
-        loc = TopLoc_Location()
-        tri = BRep_Tool.Triangulation_s(face, loc)
-        if tri is None or tri.NbTriangles() == 0:
-            continue
-        trsf = loc.Transformation()
-        n = tri.NbNodes()
-        pts = []
-        for i in range(1, n + 1):
-            p = tri.Node(i).Transformed(trsf)
-            pts.append((p.X(), p.Y(), p.Z()))
-        uv = np.array([(tri.UVNode(i).X(), tri.UVNode(i).Y()) for i in range(1, n + 1)])
-        t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
+    for k, (face, patch) in enumerate(zip(faces, patches, strict=True)):
+        if _untrimmed(face, patch):
+            pts, t, uv = _grid_tessellation(patch, deflection_mm / 5.0)
+        else:
+            BRepMesh_IncrementalMesh(face, deflection_mm, False, 0.1, False)
+            loc = TopLoc_Location()
+            tri = BRep_Tool.Triangulation_s(face, loc)
+            if tri is None or tri.NbTriangles() == 0:
+                continue
+            trsf = loc.Transformation()
+            n = tri.NbNodes()
+            pts = []
+            for i in range(1, n + 1):
+                p = tri.Node(i).Transformed(trsf)
+                pts.append((p.X(), p.Y(), p.Z()))
+            pts = np.asarray(pts)
+            uv = np.array([(tri.UVNode(i).X(), tri.UVNode(i).Y()) for i in range(1, n + 1)])
+            t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
         if face.Orientation() == TopAbs_REVERSED:
             t = t[:, [0, 2, 1]]
-        verts.append(np.asarray(pts))
+        verts.append(pts)
         tris.append(t + offset)
         tface.append(np.full(len(t), k))
         tuv.append(uv[t])
-        offset += n
+        offset += len(pts)
     if not tris:
         raise DesignError("the surface could not be tessellated")
     return np.concatenate(verts), np.concatenate(tris), np.concatenate(tface), np.concatenate(tuv)
@@ -761,7 +858,7 @@ def plate_frame_from_surface(
     z: the normal of the area-weighted least-squares plane through the surface (the plate's base
     plane), turned to the side the surface's normals point to (the design side up); x: along the
     long edges, mean of the two long edges' directions in that plane; origin: the corners' centre
-    projected onto the plane. A plate already lying in its file's frame (base plane within 0.5
+    projected onto the plane (:func:`read_cad_in_process` then moves it along z onto the surface). A plate already lying in its file's frame (base plane within 0.5
     degrees of +z, corners centred on the origin within 1 mm) keeps that frame: the identity.
     """
     tv = vertices_mm[triangles]
@@ -825,11 +922,15 @@ def read_cad(
     import OCP.IGESControl
     import OCP.STEPControl  # noqa: F401 - loaded once here, inherited by every forked reader
 
-    return _in_child(
+    design = _in_child(
         lambda: read_cad_in_process(path, deflection_mm, sew_tol_mm, one_plate=one_plate, quiet=True),
         path,
         timeout_s,
     )
+    log.info("design_read", file=str(path), fmt=design.facts.fmt, units=design.facts.units,
+             faces=len(design.faces), triangles=len(design.mesh.triangles),
+             chord_error_mm=round(design.chord_error_mm, 5))  # fmt: skip
+    return design
 
 
 def _in_child(work, path: str | Path, timeout_s: float):
@@ -843,6 +944,9 @@ def _in_child(work, path: str | Path, timeout_s: float):
     r, w = os.pipe()
     pid = os.fork()
     if pid == 0:  # the child: never returns into the caller's code
+        import faulthandler
+
+        faulthandler.disable()  # a crash is reported by the parent in one line, not as a dump
         os.close(r)
         code = 0
         try:
@@ -850,6 +954,10 @@ def _in_child(work, path: str | Path, timeout_s: float):
                 payload = pickle.dumps(("ok", work()))
             except DesignError as exc:
                 payload = pickle.dumps(("error", str(exc)))
+            except Exception as exc:  # a reader bug still ends in one line, with its type
+                payload = pickle.dumps(
+                    ("error", f"{path}: the CAD reader failed ({type(exc).__name__}: {exc})")
+                )
             with os.fdopen(w, "wb") as f:
                 f.write(payload)
         except BaseException:  # the child must exit, whatever happened
@@ -950,7 +1058,7 @@ def read_cad_in_process(
     if deflection_mm is None:
         deflection_mm = 0.01 if diag <= 5000.0 else 1e-5 * diag
     try:
-        V, Tr, tface, tuv = _tessellate(shape, faces, deflection_mm)
+        V, Tr, tface, tuv = _tessellate(faces, patches, deflection_mm)
     except DesignError as exc:
         raise DesignError(f"{path}: {exc}") from None
     V, Tr = _weld(V, Tr, min(1e-3, sew_tol_mm))
@@ -966,19 +1074,29 @@ def read_cad_in_process(
     except DesignError as exc:
         raise DesignError(f"{path}: {exc}") from None
     T = plate_frame_from_surface(V, Tr, corners_file)
-    mesh = mesh_file.transformed(T)
-    corners = canonical_corner_order(_apply(T, corners_file))
-    design = CadDesign(
-        path=path, facts=facts, faces=[p.transformed(T) for p in patches], mesh=mesh,
-        triangle_face=tface, triangle_uv=tuv, corners_mm=corners, boundary_mm=_apply(T, samples),
-        T_design_file=T, deflection_mm=float(deflection_mm), chord_error_mm=0.0,
-        area_mm2=float(mesh.triangle_areas_mm2().sum()), timings_s=timings,
-    )  # fmt: skip
+
+    def framed(T: np.ndarray) -> CadDesign:
+        mesh = mesh_file.transformed(T)
+        return CadDesign(
+            path=path, facts=facts, faces=[p.transformed(T) for p in patches], mesh=mesh,
+            triangle_face=tface, triangle_uv=tuv, corners_mm=canonical_corner_order(_apply(T, corners_file)),
+            boundary_mm=_apply(T, samples), T_design_file=T, deflection_mm=float(deflection_mm),
+            chord_error_mm=0.0, area_mm2=float(mesh.triangle_areas_mm2().sum()), timings_s=timings,
+        )  # fmt: skip
+
+    design = framed(T)
+    if not np.array_equal(T, np.eye(4)):
+        # the origin on the surface itself, over the corners' centre (as a mesh's design frame has it)
+        foot = design.vertical_heights(np.zeros((1, 3)), np.array([0.0, 0.0, 1.0]))[0]
+        if np.isfinite(foot).all():
+            shift = np.eye(4)
+            shift[2, 3] = -foot[2]
+            design = framed(shift @ T)
     design.chord_error_mm = measured_chord_error_mm(design)
     timings["boundary"] = time.perf_counter() - t
     if not quiet:  # a forked child does not log: another thread may have held the log's lock
         log.info("design_read", file=str(path), fmt=facts.fmt, units=facts.units, faces=len(patches),
-                 triangles=len(mesh.triangles), chord_error_mm=round(design.chord_error_mm, 5))  # fmt: skip
+                 triangles=len(design.mesh.triangles), chord_error_mm=round(design.chord_error_mm, 5))  # fmt: skip
     return design
 
 
