@@ -1,7 +1,7 @@
 """Accuracy of the assembled cloud on a simulated scan of the 1200 x 800 sail plate.
 
 The simulated cell (controller simulator over EGM, HD8 simulator over TCP, both on loopback; see
-cellctl/acquisition/simcell.py) scans the formed sail plate with straight raster passes, forward and
+tests/support/simcell.py) scans the formed sail plate with straight raster passes, forward and
 backward, at ``--speed`` mm/s. The sensor clock runs 30 ms ahead of the host and drifts 50 ppm; depth
 noise 0.02 mm. The time offset is first calibrated on a short back-and-forth scan (as commissioning
 would), then the plate scan is assembled three ways from its raw files:
@@ -35,10 +35,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from cellctl.acquisition.pipeline import AcquisitionSettings
 from cellctl.acquisition.reassemble import reassemble
-from cellctl.acquisition.simcell import SimCell, SimCellConfig, joint_path, plate_truth, raster_poses
 from cellctl.calibration.time_offset import calibrate_time_offset
 from cellctl.logging import configure_logging
-from drivers.abb_egm.sim_egm import precise_event_loop
+from cellctl.simcell.truth import plate_truth
+from drivers.abb_egm.sim.egm import precise_event_loop
+from tests.support.simcell import SimCell, SimCellConfig, joint_path, raster_poses
 
 
 def _scan(truth, cfg, pass_y, speeds, job, x_range=None):

@@ -6,24 +6,20 @@ functions on numpy arrays and usable on their own.
 
 from cellctl.planning.plan import (
     CoverageReport,
-    Placement,
     PlanInputError,
     PlanRefused,
     ScanPlan,
     Segment,
-    TimedTrajectory,
 )
 from cellctl.planning.planner import plan_scan
 from cellctl.planning.settings import PlannerSettings
 
 __all__ = [
     "CoverageReport",
-    "Placement",
     "PlanInputError",
     "PlanRefused",
     "PlannerSettings",
     "ScanPlan",
     "Segment",
-    "TimedTrajectory",
     "plan_scan",
 ]

@@ -17,6 +17,7 @@ import structlog
 
 from analysis.mesh import TriMesh
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
+from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
 from cellctl.planning.joint_path import check_reach, first_configuration, sensor_kinematics, solve_joint_path
 from cellctl.planning.plan import (
@@ -25,7 +26,6 @@ from cellctl.planning.plan import (
     PlanInputError,
     PlanRefused,
     ScanPlan,
-    TimedTrajectory,
     pose_matrix,
 )
 from cellctl.planning.settings import PlannerSettings
@@ -84,6 +84,8 @@ def plan_scan(
     settings = settings or PlannerSettings()
     if not isinstance(design, TriMesh):
         raise PlanInputError(f"design: expected a TriMesh, got {type(design).__name__}")
+    if not placement.flat:
+        raise PlanInputError(f"placement.rpy_deg: plates lie flat on the bed, got {placement.rpy_deg}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     surface = design_surface(design)

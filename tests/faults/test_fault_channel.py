@@ -13,10 +13,15 @@ import os
 import subprocess
 
 import pytest
-from faultcell import REPO, FaultCell
 
-from cellctl.sim_faults import FaultChannelError, FaultRequestError, parse_assignments, parse_fault_request
+from cellctl.simcell.faults import (
+    FaultChannelError,
+    FaultRequestError,
+    parse_assignments,
+    parse_fault_request,
+)
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig, RwsError
+from tests.support.faultcell import REPO, FaultCell
 
 
 @pytest.fixture(scope="module")
@@ -75,8 +80,8 @@ def test_bad_requests_get_an_error_naming_the_knob_and_the_channel_keeps_serving
                 await sim.fault(body)
             errors[name] = (exc.value.error.code, exc.value.error.field)
         # raw bytes: not JSON, and too large
-        from cellctl.sim_faults import sim_faults_key
-        from cellctl.zenoh_session import async_get
+        from cellctl.api.session import async_get
+        from cellctl.simcell.faults import sim_faults_key
 
         await sim.fault()  # opens the session
         raw = {}
@@ -213,7 +218,7 @@ def test_assignments_become_the_nested_payload_and_bad_ones_name_the_item():
 
 
 def test_cli_without_a_simulator_says_so_instead_of_hanging(tmp_path, cellctl_exe):
-    from faultcell import fault_cell_config
+    from tests.support.faultcell import fault_cell_config
 
     cfg = fault_cell_config(tmp_path)
     r = subprocess.run([*cellctl_exe, "sim", "fault", "--config", str(cfg), "--timeout", "2"],
@@ -237,14 +242,14 @@ def test_fault_control_off_serves_no_channel(tmp_path):
 
 
 def fault_cell_config_off(out):
-    from faultcell import fault_cell_config
+    from tests.support.faultcell import fault_cell_config
 
     return fault_cell_config(out, sim__fault_control=False)
 
 
 async def _quick_fault(cell: FaultCell):
-    from cellctl.sim_faults import open_fault_session, send_faults
-    from cellctl.zenoh_session import ZenohSetupError, close_session
+    from cellctl.api.session import ZenohSetupError, close_session
+    from cellctl.simcell.faults import open_fault_session, send_faults
 
     try:
         session = await asyncio.to_thread(open_fault_session, cell.cfg, role="connect")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from fuzzlib import free_port, fuzz_settings, mutated
+from fuzzlib import fuzz_settings, mutated
 from hypothesis import example, given
 from hypothesis import strategies as st
 
@@ -28,9 +28,10 @@ from cellctl.api import (
     new_job_id,
     parse_trigger,
 )
+from cellctl.api.session import build_zenoh_config, close_session, declare_async_queryable, open_session
 from cellctl.config import ZenohSection
 from cellctl.daemon.jobs import JobRecord, JobStore
-from cellctl.zenoh_session import build_zenoh_config, close_session, declare_async_queryable, open_session
+from tests.support.ports import free_port
 
 CODES = {"too_large", "malformed", "invalid", "design_not_found"}
 VALID = {"plate_id": "P-17", "design": "sail/plate1.stl", "placement": {"pos_mm": [1500.0, 0.0, 300.0]}}

@@ -17,11 +17,9 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
-from sec_util import free_port
 
 from cellctl.api import Keys
-from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     ZenohSetupError,
     async_get,
     build_zenoh_config,
@@ -30,6 +28,8 @@ from cellctl.zenoh_session import (
     declare_async_queryable,
     open_session,
 )
+from cellctl.config import ZenohAccess, ZenohSection
+from tests.support.ports import free_port
 
 PREFIX = "cell/tls1"
 KEYS = Keys(PREFIX)

@@ -86,7 +86,7 @@ class _Knobs(BaseModel):
 
 
 class EgmKnobs(_Knobs):
-    """EGM wire faults (:class:`drivers.abb_egm.sim_egm.EgmFaults`); a knob left out stays as it is."""
+    """EGM wire faults (:class:`drivers.abb_egm.sim.egm.EgmFaults`); a knob left out stays as it is."""
 
     loss_fraction: Fraction | None = None
     burst_ms: NonNeg | None = None
@@ -125,7 +125,7 @@ class CorruptKnobs(_Knobs):
 
 
 class LaserKnobs(_Knobs):
-    """HD8 simulator faults (:class:`drivers.laser.sim.SimFaults`)."""
+    """HD8 simulator faults (:class:`drivers.laser.sim.sensor.SimFaults`)."""
 
     disconnect_after_frames: Count | None = None
     corrupt: CorruptKnobs | None = None
@@ -216,7 +216,7 @@ def parse_assignments(items: list[str]) -> dict[str, Any]:
 
 
 class SimFaultControl:
-    """Applies fault requests to a running :class:`cellctl.simcell_service.SimulatedCell`.
+    """Applies fault requests to a running :class:`cellctl.simcell.service.SimulatedCell`.
 
     Runs on the simulator's event loop (every knob is a plain attribute change, except RWS going
     down or up, which is awaited).
@@ -233,7 +233,7 @@ class SimFaultControl:
 
         Raises FaultRequestError (code ``not_allowed``) if the controller refuses the action.
         """
-        from drivers.abb_egm.controller_model import ControllerError
+        from drivers.abb_egm.rapid_values import ControllerError
 
         ctl = self.cell.controller
         applied: list[str] = []
@@ -266,8 +266,8 @@ class SimFaultControl:
         return state
 
     async def _clear(self) -> None:
-        from drivers.abb_egm.sim_egm import EgmFaults
-        from drivers.laser.sim import SimFaults
+        from drivers.abb_egm.sim.egm import EgmFaults
+        from drivers.laser.sim.sensor import SimFaults
 
         ctl, sensor = self.cell.controller, self.cell.sensor
         ctl.egm.set_faults(**dataclasses.asdict(EgmFaults()))
@@ -387,7 +387,7 @@ def fault_zenoh_section(cfg: CellConfig) -> ZenohSection:
 
 def open_fault_session(cfg: CellConfig, *, role: Literal["serve", "connect"]) -> Any:
     """A Zenoh session of the fault channel: the simulator serves it, clients connect to it."""
-    from cellctl.zenoh_session import build_zenoh_config, open_session
+    from cellctl.api.session import build_zenoh_config, open_session
 
     zcfg = build_zenoh_config(fault_zenoh_section(cfg), role=role, key_prefix=cfg.key_prefix)
     return open_session(zcfg, what=f"sim fault channel ({cfg.sim.fault_listen})")
@@ -400,7 +400,7 @@ async def send_faults(
 
     Raises FaultChannelError when no simulator answers or it refuses (``.error`` names the knob).
     """
-    from cellctl.zenoh_session import async_get
+    from cellctl.api.session import async_get
 
     body = (
         request.model_dump_json(exclude_none=True)
@@ -436,7 +436,7 @@ async def serve_fault_control(cfg: CellConfig, cell: Any) -> tuple[Any, SimFault
     """
     import asyncio
 
-    from cellctl.zenoh_session import ZenohSetupError, close_session, declare_async_queryable
+    from cellctl.api.session import ZenohSetupError, close_session, declare_async_queryable
 
     control = SimFaultControl(cell)
     try:

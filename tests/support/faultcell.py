@@ -1,8 +1,8 @@
 """The fault-injection harness: a simulated cell in real processes, faults through ``<prefix>/sim/faults``.
 
-Builds on :mod:`tests.e2e.e2e_cell` (``Cell``, ``open_client``, ``wait_status``). Every fault goes to
+Builds on :mod:`tests.support.e2e_cell` (``Cell``, ``open_client``, ``wait_status``). Every fault goes to
 the running ``cellctl sim`` over its fault-control channel (Zenoh on loopback), never in-process.
-Uniquely named (not conftest) so other fault tests and ``benchmarks/soak.py`` can import it.
+Used by the fault tests, the e-stop e2e test and ``benchmarks/soak.py``.
 
 Typical use::
 
@@ -21,7 +21,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,14 +29,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "e2e"))
-
-from e2e_cell import REPO, Cell, open_client, tiny_cell_config, wait_status
-
 from cellctl.api import ApiCallError, CellStatus, Keys, TriggerAccepted, call
-from cellctl.commands.demo_cmd import DEMO_DESIGN, free_port, to_toml, wait_ready_line
+from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_ready_line
 from cellctl.config import load_config
-from cellctl.sim_faults import FaultState, open_fault_session, send_faults
+from cellctl.simcell.faults import FaultState, open_fault_session, send_faults
+from tests.support.e2e_cell import REPO, Cell, open_client, tiny_cell_config, wait_status
+from tests.support.ports import free_port
 
 __all__ = [
     "REPO",
@@ -141,7 +138,7 @@ class FaultCell(Cell):
 
     def stop(self) -> dict[str, Any]:
         if self._fault_session is not None:
-            from cellctl.zenoh_session import close_session
+            from cellctl.api.session import close_session
 
             close_session(self._fault_session)
             self._fault_session = None
@@ -187,8 +184,8 @@ class FaultCell(Cell):
     @contextlib.asynccontextmanager
     async def client(self):
         """A Zenoh client session with a status follower (``CellClient``), closed on exit."""
+        from cellctl.api.session import close_session
         from cellctl.commands.scan_cmd import StatusFollower
-        from cellctl.zenoh_session import close_session
 
         session = await open_client(self.cfg)
         keys = Keys(self.cfg.key_prefix)
@@ -340,7 +337,7 @@ def check_job_data(cell: Cell, job_id: str) -> JobDataCheck:
     )
     cloud_bin = cell.jobs_dir / job_id / "cloud.bin"
     if cloud_bin.exists():
-        from cellctl.cloud_codec import decode_cloud
+        from cellctl.api.cloud_codec import decode_cloud
 
         cloud = decode_cloud(cloud_bin.read_bytes())
         t = np.asarray(cloud.t_s, dtype=np.float64)

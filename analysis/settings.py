@@ -1,0 +1,29 @@
+"""The analysis settings: everything the pipeline needs to know besides the data.
+
+A frozen dataclass of frozen dataclasses (:class:`~analysis.templates.DetectionLayout`,
+:class:`~analysis.metrics.Tolerances`): plain to build in a notebook, and validated field by field
+(unknown fields refused) where it crosses a process boundary inside
+:class:`analysis.job.AnalysisJob`. The cell fills it from ``cell.toml`` (``cellctl.api.analysis_job``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from analysis.metrics import Tolerances
+from analysis.templates import DetectionLayout
+
+__all__ = ["InspectionSettings"]
+
+
+@dataclass(frozen=True)
+class InspectionSettings:
+    """Detection lines, tolerances and the sampling of the pipeline (mm; fractions are relative)."""
+
+    layout: DetectionLayout = field(default_factory=DetectionLayout)
+    tolerances: Tolerances = field(default_factory=Tolerances)
+    sample_step_mm: float = 1.0
+    grid_mm: float = 1.0  # finest cell of the reconstructed measured surface
+    min_points_per_cell: int = 16
+    size_tolerance: float = 0.05  # relative: a design more than 5 % off the plate's size is refused
+    design_grid_mm: float = 1.0
