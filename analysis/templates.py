@@ -321,7 +321,11 @@ class ExactSurface(Protocol):
 
 
 def exact_section(
-    surface: ExactSurface, T_measured_design: np.ndarray, line: DetectionLine, step_mm: float = 1.0
+    surface: ExactSurface,
+    T_measured_design: np.ndarray,
+    line: DetectionLine,
+    step_mm: float = 1.0,
+    mesh_measured: TriMesh | None = None,
 ) -> SampledSection:
     """The design's section along ``line`` (measured frame) sampled on the exact surface.
 
@@ -329,9 +333,11 @@ def exact_section(
     the chord error); every sample of the shared ``step_mm`` grid inside it is then the exact
     intersection of the surface with the line through it along ``up``: a point of the section
     plane, so the section is the plane-surface intersection sampled where the metrics need it.
+    mesh_measured: the tessellation already moved by ``T_measured_design`` (saves the move per line).
     """
     T = np.asarray(T_measured_design, dtype=np.float64)
-    approx = sample_section(cut_mesh(surface.mesh.transformed(T), line), step_mm, max_gap_mm=np.inf)
+    mesh_measured = mesh_measured if mesh_measured is not None else surface.mesh.transformed(T)
+    approx = sample_section(cut_mesh(mesh_measured, line), step_mm, max_gap_mm=np.inf)
     if not len(approx.s_mm):
         return approx
     R, t = T[:3, :3], T[:3, 3]
@@ -352,9 +358,10 @@ def cut_templates_exact(
 ) -> list[TemplateCut]:
     """:func:`cut_templates` with the design side cut from the exact surface (:func:`exact_section`)."""
     out: list[TemplateCut] = []
+    moved = surface.mesh.transformed(np.asarray(T_measured_design, dtype=np.float64))
     for line in lines:
         try:
-            sd = exact_section(surface, T_measured_design, line, step_mm)
+            sd = exact_section(surface, T_measured_design, line, step_mm, moved)
             sm = sample_section(cut_mesh(measured_mesh, line), step_mm, max_gap_mm=max_gap_mm)
         except TemplateError as exc:
             log.warning("template_line_skipped", family=line.family, index=line.index, reason=str(exc))
