@@ -630,8 +630,9 @@ class CellDaemon:
 
     async def _scan(self, job: _Job) -> bool:
         """Plan, execute and acquire. True when the scan completed (raw files closed)."""
+        from analysis.cad import design_mesh_from_file
         from analysis.mesh import MeshError
-        from analysis.plates import PlateError, load_design
+        from analysis.plates import PlateError
         from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
         from cellctl.acquisition.rawstore import RawWriter
         from cellctl.motion import ExecState, ExecutorConfig, MotionExecutor
@@ -642,7 +643,7 @@ class CellDaemon:
         self.sm.to(CellState.PLANNING, f"planning job {rec.job_id}")
         self._job_state(job, JobState.PLANNING)
         try:
-            design = await asyncio.to_thread(load_design, Path(rec.design_path))
+            design = await asyncio.to_thread(design_mesh_from_file, Path(rec.design_path))
             placement = Placement.model_validate(rec.placement)
             settings = PlannerSettings.from_config(cfg)
             t0 = time.perf_counter()
