@@ -2,8 +2,8 @@
 
 What lives here: the precise event loop (microsecond timers), real-time scheduling (SCHED_FIFO for
 a loop or a thread, normal priority for helper threads and child processes), the CPU wake-up
-latency hold, handing freed C-heap pages back (``malloc_trim``), resident memory, and the stop
-signals of a service (SIGTERM / SIGINT, SIGXFSZ ignored).
+latency hold, handing freed C-heap pages back (``malloc_trim``), resident memory and the traced
+Python heap, and the stop signals of a service (SIGTERM / SIGINT, SIGXFSZ ignored).
 
 Why in ``drivers`` and not in ``cellctl``: the users are on both sides of the one-way door. The EGM
 endpoint (``drivers.abb_egm.endpoint``) puts its reply thread under SCHED_FIFO, the controller and
@@ -25,13 +25,16 @@ import os
 import selectors
 import signal
 import struct
+import tracemalloc
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import structlog
 
 __all__ = [
+    "heap_summary",
     "hold_cpu_wakeup_latency",
     "normal_priority",
     "precise_event_loop",
@@ -153,6 +156,20 @@ def rss_mb() -> float:
         return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
     except (OSError, ValueError, IndexError):
         return 0.0
+
+
+def heap_summary(top: int = 15) -> dict[str, Any]:
+    """Traced Python heap (``PYTHONTRACEMALLOC``): current and peak MB, the ``top`` source lines
+    holding the most. A snapshot takes seconds: call it off the event loop."""
+    current, peak = tracemalloc.get_traced_memory()
+    stats = tracemalloc.take_snapshot().statistics("lineno")[:top]
+    return {
+        "traced_mb": round(current / 1e6, 2),
+        "peak_mb": round(peak / 1e6, 2),
+        "top": [
+            {"where": str(st.traceback), "kb": round(st.size / 1e3, 1), "blocks": st.count} for st in stats
+        ],
+    }
 
 
 # ---------------------------------------------------------------------------------- signals

@@ -76,7 +76,7 @@ __all__ = [
 
 API_VERSION = 1
 MAX_TRIGGER_BYTES = 16 * 1024
-DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".npz", ".json")
+DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".igs", ".iges", ".stp", ".step", ".npz", ".json")
 JSON = "application/json"
 
 _ID = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"

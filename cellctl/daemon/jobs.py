@@ -59,7 +59,12 @@ def make_private_dir(path: Path) -> None:
 
 
 class JobStoreError(Exception):
-    """A job directory or record that cannot be read or written (names the path)."""
+    """A job directory or record that cannot be read or written (names the path); ``reason`` is
+    what was wrong, without the path."""
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason or message
 
 
 class DataDirLocked(JobStoreError):
@@ -207,7 +212,7 @@ class JobStore:
                 raise ValueError(f"expected a JSON object, got {type(data).__name__}")
             return _checked(JobRecord(**data))
         except (OSError, ValueError, TypeError) as exc:
-            raise JobStoreError(f"{path}: unreadable job record: {exc}") from None
+            raise JobStoreError(f"{path}: unreadable job record: {exc}", str(exc)[:300]) from None
 
     def list(self) -> list[JobRecord]:
         """Every readable record, oldest first (job ids sort by time); unreadable ones are logged."""
@@ -276,9 +281,7 @@ class JobStore:
                 try:
                     rec = self.load(d.name)
                 except JobStoreError as exc:
-                    found.append(
-                        self.quarantine(d.name, str(exc).split(": unreadable job record: ")[-1][:300])
-                    )
+                    found.append(self.quarantine(d.name, exc.reason))
                     continue
                 if not rec.terminal:
                     found.append(self._recover_one(rec))
@@ -308,6 +311,52 @@ class JobStore:
             raw_files=raw_files,
         )
         return rec
+
+
+class RecordRetry:
+    """Job records the disk refused (full, read-only), written again every ``period_s`` until it
+    takes them; the newest state of a record wins (the record object is the live one)."""
+
+    def __init__(self, store: JobStore, period_s: float = 2.0) -> None:
+        self.store = store
+        self.period_s = period_s
+        self._pending: dict[str, JobRecord] = {}
+        self._task: asyncio.Task[None] | None = None
+
+    def __len__(self) -> int:
+        return len(self._pending)
+
+    def add(self, record: JobRecord) -> None:
+        """Write ``record`` later (call it in the running loop)."""
+        self._pending[record.job_id] = record
+        if self._task is None or self._task.done():
+            self._task = asyncio.get_running_loop().create_task(self._run(), name="job-record-retry")
+
+    async def _run(self) -> None:
+        while self._pending:
+            await asyncio.sleep(self.period_s)
+            for job_id, record in list(self._pending.items()):
+                try:
+                    await asyncio.to_thread(self.store.save, record)
+                except JobStoreError as exc:
+                    log.warning("job_record_write_retry_failed", job_id=job_id, error=str(exc))
+                    continue
+                if self._pending.get(job_id) is record:
+                    del self._pending[job_id]
+                log.info("job_record_written", job_id=job_id, state=record.state)
+
+    def try_now(self) -> None:
+        """One last attempt for each pending record (shutdown); what still fails is logged."""
+        for job_id, record in list(self._pending.items()):
+            try:
+                self.store.save(record)
+            except JobStoreError as exc:
+                log.error("job_record_not_written", job_id=job_id, state=record.state, error=str(exc))
+                continue
+            del self._pending[job_id]
+            log.info("job_record_written", job_id=job_id, state=record.state)
+        if self._task is not None:
+            self._task.cancel()
 
 
 def _is_placement(v: Any) -> bool:

@@ -21,9 +21,10 @@ from typing import Any, Protocol
 
 import structlog
 
+from analysis.cad import design_mesh_from_file
 from analysis.mesh import MeshError
 from analysis.placement import Placement
-from analysis.plates import PlateError, load_design
+from analysis.plates import PlateError
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.acquisition.rawstore import RawWriter
 from cellctl.acquisition.session import AcquisitionSession, SessionSettings, pass_windows_s
@@ -105,7 +106,7 @@ class ScanRunner:
     async def _plan(self, job: ActiveJob) -> tuple[ScanPlan, PlannerSettings] | None:
         rec = job.record
         try:
-            design = await asyncio.to_thread(load_design, Path(rec.design_path))
+            design = await asyncio.to_thread(design_mesh_from_file, Path(rec.design_path))
             placement = Placement.model_validate(rec.placement)
             settings = PlannerSettings.from_config(self.cfg)
             t0 = time.perf_counter()

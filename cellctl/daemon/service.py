@@ -63,7 +63,7 @@ from cellctl.api.session import (
 )
 from cellctl.config import CellConfig, ConfigError
 from cellctl.daemon.handover import Handover
-from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore, JobStoreError, lock_data_dir
+from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore, JobStoreError, RecordRetry, lock_data_dir
 from cellctl.daemon.preflight import PreflightError, probe_writable
 from cellctl.daemon.scan import ScanRunner
 from cellctl.daemon.states import CellStateMachine, Transition
@@ -71,6 +71,7 @@ from cellctl.daemon.wiring import CellDrivers, build_drivers, rws_password
 from cellctl.logging import bind_context
 from cellctl.motion import ProgressEvent
 from drivers.runtime import (
+    heap_summary,
     hold_cpu_wakeup_latency,
     release_freed_memory,
     rss_mb,
@@ -89,8 +90,6 @@ class DaemonError(Exception):
 CONTROLLER_RESET_STATES = ("motoroff", "motoron", "emergencystopreset")
 #: ended jobs kept in the state publication's ``recent`` list
 RECENT_JOBS = 8
-#: a job record the disk refused is written again this often until it is taken
-RECORD_RETRY_S = 2.0
 
 
 class CellDaemon:
@@ -118,8 +117,7 @@ class CellDaemon:
         self._recent: collections.deque[JobProgress] = collections.deque(maxlen=RECENT_JOBS)
         self._workers: list[str] = []
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._unsaved: dict[str, JobRecord] = {}  # records the disk refused, retried by _saver
-        self._saver: asyncio.Task[None] | None = None
+        self._unsaved = RecordRetry(self.store)  # records the disk refused, written again later
 
     # ------------------------------------------------------------------------- life cycle
 
@@ -237,6 +235,7 @@ class CellDaemon:
         for task in list(self._analyses):
             with contextlib.suppress(Exception, asyncio.CancelledError):
                 await task
+        self._unsaved.try_now()  # a record the disk still refuses is logged; start-up recovers it
         self._publish()
 
     # ------------------------------------------------------------------------- publication
@@ -246,7 +245,7 @@ class CellDaemon:
         soak: the EGM endpoint's statistics, resident memory, malformed worker messages."""
         heap = None
         if tracemalloc.is_tracing():  # PYTHONTRACEMALLOC=1: where the Python heap is, for a leak hunt
-            heap = await asyncio.to_thread(_heap_summary)  # a snapshot takes seconds
+            heap = await asyncio.to_thread(heap_summary)  # a snapshot takes seconds
         body = DaemonStats(
             cell_id=self.cfg.cell.id, t_utc=now_utc(), rss_mb=rss_mb(),
             egm=self.drivers.endpoint.stats.snapshot() if self.drivers is not None else None,
@@ -537,7 +536,7 @@ class CellDaemon:
             ):
                 raise ControlError("no_job", "job_id", f"no job {job_id} in the job store") from None
             try:  # the record is unreadable but the raw data is there: set the record aside, go on
-                record = self.store.quarantine(job_id, str(exc).split(": unreadable job record: ")[-1][:300])
+                record = self.store.quarantine(job_id, exc.reason)
             except JobStoreError as exc2:
                 raise ControlError("internal", "job_id", f"job {job_id}: {exc2}") from None
         if record.state not in (JobState.INTERRUPTED.value, JobState.FAILED.value):
@@ -567,13 +566,13 @@ class CellDaemon:
     def _job_state(self, job: ActiveJob, state: JobState, message: str = "", **info: Any) -> None:
         """Record a job's state: in memory, on disk, in the publication. Never raises: a record the
         disk does not take (full, read-only) keeps its new state in memory and in the publication,
-        and its write is retried until it succeeds (:meth:`_save_later`)."""
+        and its write is retried until it succeeds (:class:`~cellctl.daemon.jobs.RecordRetry`)."""
         job.stage = state.value
         try:
             self.store.set_state(job.record, state, message, **info)
         except JobStoreError as exc:  # set_state changed the record before it failed to write it
             log.error("job_record_write_failed", job_id=job.record.job_id, state=state.value, error=str(exc))
-            self._save_later(job.record)
+            self._unsaved.add(job.record)
         if state in FINAL_JOB_STATES:
             self._recent.append(self._progress(job))
             if self.sm.state == CellState.IDLE and self.sm.message.startswith(f"job {job.record.job_id} "):
@@ -583,27 +582,6 @@ class CellDaemon:
             if self._loop is not None:
                 self._loop.run_in_executor(None, release_freed_memory)
         self._publish()
-
-    def _save_later(self, record: JobRecord) -> None:
-        """Retry writing ``record`` every ``RECORD_RETRY_S`` until the disk takes it (newest wins)."""
-        self._unsaved[record.job_id] = record
-        if self._saver is None or self._saver.done():
-            if self._loop is None:
-                return
-            self._saver = self._loop.create_task(self._retry_saves(), name="job-record-retry")
-
-    async def _retry_saves(self) -> None:
-        while self._unsaved:
-            await asyncio.sleep(RECORD_RETRY_S)
-            for job_id, record in list(self._unsaved.items()):
-                try:
-                    await asyncio.to_thread(self.store.save, record)
-                except JobStoreError as exc:
-                    log.warning("job_record_write_retry_failed", job_id=job_id, error=str(exc))
-                    continue
-                if self._unsaved.get(job_id) is record:
-                    del self._unsaved[job_id]
-                log.info("job_record_written", job_id=job_id, state=record.state)
 
     def _record_progress(self, job: ActiveJob, state: JobState, message: str) -> None:
         """A pause / resume in the job's record (never raises, as :meth:`_job_state`)."""
@@ -684,19 +662,6 @@ class CellDaemon:
         if self._scan_job is None and self.sm.state not in (CellState.STOPPING, CellState.FAULTED):
             self.sm.to(CellState.IDLE, f"job {job.record.job_id} scanned; analysing")
         await self.handover.analyse(job)
-
-
-def _heap_summary(top: int = 15) -> dict[str, Any]:
-    """Traced Python heap: current and peak MB, the ``top`` source lines holding the most."""
-    current, peak = tracemalloc.get_traced_memory()
-    stats = tracemalloc.take_snapshot().statistics("lineno")[:top]
-    return {
-        "traced_mb": round(current / 1e6, 2),
-        "peak_mb": round(peak / 1e6, 2),
-        "top": [
-            {"where": str(st.traceback), "kb": round(st.size / 1e3, 1), "blocks": st.count} for st in stats
-        ],
-    }
 
 
 async def run_daemon(cfg: CellConfig) -> int:

@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cellctl.acquisition.pipeline import KIND_PASS_BEGIN, KIND_PASS_END, Acquisition, AcquisitionSettings
 from cellctl.acquisition.rawstore import RawReader, RawWriter
@@ -134,6 +135,7 @@ async def _write_fault_main(tmp_path: Path) -> int:
         return len(errors)
 
 
+@pytest.mark.process
 def test_a_write_that_fails_calls_the_owner_once_and_ends_the_session_with_the_error(tmp_path):
     """In a child process: the file-size limit must not touch the test runner's own files."""
     code = (

@@ -8,9 +8,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from analysis.templates import DetectionLayout
 from cellctl.acquisition.rawstore import RawWriter
 from tests.support.results_fixture import write_synthetic_results
+
+pytestmark = pytest.mark.process  # each test runs `cellctl`
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -6,11 +6,15 @@ from __future__ import annotations
 import asyncio
 import time
 
+import pytest
+
 from analysis.templates import DetectionLayout
 from cellctl.config import CellConfig
 from cellctl.daemon.handover import render_html
 from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore
 from tests.support.results_fixture import write_synthetic_results
+
+pytestmark = pytest.mark.process  # the render runs in a child process
 
 
 def _store_and_job(tmp_path) -> tuple[JobStore, ActiveJob]:

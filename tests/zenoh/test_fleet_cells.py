@@ -22,7 +22,7 @@ from cellctl.api.transfer import TransferSpec
 from cellctl.commands.demo_cmd import wait_ready_line
 from cellctl.config import ZenohSection
 from tests.support.ports import free_port
-from tests.zenoh.test_dispatch_workers import FAST, _cloud_bytes, _records, _wait_for
+from tests.zenoh.test_dispatch_workers import GENEROUS, _cloud_bytes, _records, _wait_for
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 HERE = Path(__file__).resolve().parent
@@ -75,7 +75,7 @@ def test_one_worker_serves_two_cells_through_the_router_each_job_once_and_in_tur
             sessions = [
                 open_session(build_zenoh_config(section, role="serve", key_prefix=p)) for p in prefixes
             ]
-            disps = [Dispatcher(s, Keys(p), FAST) for s, p in zip(sessions, prefixes, strict=True)]
+            disps = [Dispatcher(s, Keys(p), GENEROUS) for s, p in zip(sessions, prefixes, strict=True)]
             # as `cellctl run` does: the worker finds the cells under its key expression by these
             tokens = [
                 s.liveliness().declare_token(Keys(p).daemon_alive)

@@ -28,7 +28,7 @@ from cellctl.api.transfer import (
     pack_results,
     store_results,
 )
-from tests.zenoh.test_dispatch_workers import FAST, _cloud_bytes, _run, _wait_for
+from tests.zenoh.test_dispatch_workers import GENEROUS, _cloud_bytes, _run, _wait_for
 from tests.zenoh.zworker_fns import minimal_report
 
 
@@ -198,6 +198,6 @@ def test_a_result_that_arrives_incomplete_costs_a_retry_and_the_next_complete_on
             sub.undeclare()
             close_session(s)
 
-    env, files, refused = _run(hub, scenario, settings=FAST)
+    env, files, refused = _run(hub, scenario, settings=GENEROUS)
     assert attempts == [1, 2] and refused == 1 and env.attempt == 2
     assert files["results.npz"] == (out / "results.npz").read_bytes() and "report.json.tmp" not in files
