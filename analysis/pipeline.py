@@ -55,6 +55,7 @@ from analysis.register import (
     register,
 )
 from analysis.report import write_csv
+from analysis.rest_surface import RestSurface, rest_surface
 from analysis.segment import SegmentResult, segment_plate
 from analysis.templates import DetectionLayout, TemplateCut, cut_templates, detection_lines
 
@@ -80,6 +81,9 @@ class InspectionSettings:
     min_points_per_cell: int = 16
     size_tolerance: float = 0.05  # relative: a design more than 5 % off the plate's size is refused
     design_grid_mm: float = 1.0
+    # the resting surface's stated bound on its noise bias (rest_surface), and its largest patch
+    rest_target_sigmas: float = 0.25
+    rest_max_cell_mm: float = 20.0
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> InspectionSettings:
@@ -318,7 +322,23 @@ def inspect_cloud(
     lap("surface")
     # The fits run on the reconstructed surface (cell means): every cell of the plate, denoised.
     nominal = placement_transform(*nominal_placement) if nominal_placement is not None else None
-    reg = register(surface, measured_mesh.vertices_mm, design_c, bnd.corners_mm, nominal_transform=nominal)
+    rests: list[RestSurface] = []
+
+    def rest_on(T_icp: np.ndarray) -> np.ndarray:
+        # the design rests on patch estimates of the plate with a bounded noise bias
+        rests.append(rest_surface(surface, seg.points_mm, T_icp, target_sigmas=settings.rest_target_sigmas,
+                                  max_cell_mm=settings.rest_max_cell_mm))  # fmt: skip
+        return rests[-1].points_mm
+
+    reg = register(
+        surface,
+        measured_mesh.vertices_mm,
+        design_c,
+        bnd.corners_mm,
+        nominal_transform=nominal,
+        rest_points=rest_on,
+    )
+    rest = rests[-1]
     lap("register")
 
     T = reg.transform  # design -> measured
@@ -329,12 +349,16 @@ def inspect_cloud(
         raise InspectionError("no detection line crosses both the design and the scanned plate")
     lap("templates")
 
+    # The sections are cut from cell means: their noise is the points' over the root of a cell's
+    # count (estimated from the data; the sections' own second differences miss it, the mesh being
+    # linear between its nodes, and the splines would follow the noise)
+    section_noise = rest.noise_mm / np.sqrt(len(seg.points_mm) / max(len(measured_mesh.vertices_mm), 1))
     metrics: list[LineMetrics] = []
     kept: list[TemplateCut] = []
     for cut in cuts:
         try:
             m = line_metrics(
-                cut.s_mm, cut.design_h_mm, cut.measured_h_mm,
+                cut.s_mm, cut.design_h_mm, cut.measured_h_mm, noise_mm=section_noise,
                 family=cut.line.family, index=cut.line.index, position_mm=cut.line.position_mm,
             )  # fmt: skip
         except ValueError as exc:
@@ -392,6 +416,7 @@ def inspect_cloud(
             "surface_points": len(measured_mesh.vertices_mm),
             "surface_cell_mm": cell_mm,
             "raw_points_below_4sigma": raw_below,
+            "rest_surface": rest.as_dict(),
             "transform": T.tolist(),
             "corner_shift": reg.coarse.shift,
             "candidates_icp_rms_mm": {str(k): v for k, v in reg.candidates.items()},

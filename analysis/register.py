@@ -27,6 +27,7 @@ measurement frame.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -1159,6 +1160,7 @@ def register(
     icp_points: int = 100_000,
     boundary_weight: float = 1e-3,
     nonpen_cell_mm: float | None = None,
+    rest_points: Callable[[np.ndarray], np.ndarray] | None = None,
     nominal_transform: np.ndarray | None = None,
     seed: int = 0,
 ) -> RegistrationResult:
@@ -1175,6 +1177,9 @@ def register(
     ``nonpen_cell_mm``: None rests the design on every measured point; a cell size (1 mm for HD8
     scans) rests it on the :func:`grid_average` cell means instead -- the noise no longer lifts
     the design and 10^7 points cost what 10^6 do; penetration is then counted on the cell means.
+    ``rest_points``: given the ICP pose (4x4 design -> measured), the (m, 3) points the design
+    rests on instead (``analysis.rest_surface``: patch estimates with a bounded noise bias);
+    penetration is then counted on those.
     """
     P = _check_points("measured_points_mm", measured_points_mm, 6)
     surface = design if isinstance(design, HeightField) else height_field_from_mesh(design, grid_step_mm)
@@ -1224,7 +1229,10 @@ def register(
     )
     icp = icp_point_to_plane(surface, P, icp0.transform, max_points=icp_points, seed=seed, **anchor)
     coarse_rms = coarse_fit_rms(surface, _subsample(P, 20_000, seed), coarse.transform)
-    P_np = P if nonpen_cell_mm is None else grid_average(P, nonpen_cell_mm)
+    if rest_points is not None:
+        P_np = _check_points("rest_points", rest_points(icp.transform), 6)
+    else:
+        P_np = P if nonpen_cell_mm is None else grid_average(P, nonpen_cell_mm)
     npf = nonpenetrating_fit(surface, P_np, icp.transform, up=up, **anchor)
     log.info(
         "registered",
