@@ -85,6 +85,20 @@ class RestSurface:
         }
 
 
+# a patch's gap slope counts as real above this chi-square (2 degrees of freedom: p = 1e-6), so a
+# flat patch is held at its centroid alone with all but certainty
+SLOPE_CHI2 = 27.6
+
+
+def _extent(inv: np.ndarray, v: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of ``v`` per group ``inv`` of ``m`` groups."""
+    lo = np.full(m, np.inf)
+    hi = np.full(m, -np.inf)
+    np.minimum.at(lo, inv, v)
+    np.maximum.at(hi, inv, v)
+    return lo, hi
+
+
 def max_normal_quantile(count: int, confidence: float) -> float:
     """q with P(max of ``count`` independent standard normals < q) = ``confidence``."""
     if count < 1 or not 0.0 < confidence < 1.0:
@@ -95,11 +109,21 @@ def max_normal_quantile(count: int, confidence: float) -> float:
 
 def _cells(xy: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(inverse index (n,), counts (m,)) of the occupied ``cell_mm`` squares."""
-    ij = np.floor(xy / cell_mm).astype(np.int64)
-    ij -= ij.min(axis=0)
-    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
-    _, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+    inv, count, _ = _cells_with_border(xy, cell_mm)
     return inv, count
+
+
+def _cells_with_border(xy: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_cells` and (m,) bool: the cell lacks one of its four neighbours (the plate's edge)."""
+    ij = np.floor(xy / cell_mm).astype(np.int64)
+    ij -= ij.min(axis=0) - 1  # a free row and column on every side
+    width = int(ij[:, 1].max()) + 2
+    key = ij[:, 0] * width + ij[:, 1]
+    keys, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+    border = np.zeros(len(keys), dtype=bool)
+    for step in (1, -1, width, -width):
+        border |= ~np.isin(keys + step, keys, assume_unique=True)
+    return inv, count, border
 
 
 def noise_from_gaps(xy_mm: np.ndarray, gap_mm: np.ndarray, cell_mm: float = 2.0) -> float:
@@ -129,14 +153,17 @@ def rest_surface(
     max_cell_mm: float = 20.0,
     min_cell_mm: float = 1.0,
     noise_cell_mm: float = 2.0,
+    edge_corners: bool = False,
     up: np.ndarray = np.array([0.0, 0.0, 1.0]),
 ) -> RestSurface:
     """The patch estimate of the plate (see the module docstring) at the pose ``T_meas_design``.
 
     surface: the design's height field; points_mm: (n, 3) plate top-surface points, measured frame;
     T_meas_design: (4, 4) design -> measured, near the final pose (after ICP). noise_mm: None
-    estimates sigma from the data (:func:`noise_from_gaps`). Raises RegistrationError when fewer
-    than 6 patches remain.
+    estimates sigma from the data (:func:`noise_from_gaps`). ``edge_corners`` also holds sloped
+    patches on the plate's edge at their corners (springback; off by default: at 0.1 mm noise the
+    corner extrapolations, 7x the variance, lifted a dented plate's design by 0.7 sigma). Raises
+    RegistrationError when fewer than 6 patches remain.
     """
     P = np.asarray(points_mm, dtype=np.float64)
     if P.ndim != 2 or P.shape[1] != 3 or len(P) < 6:
@@ -163,7 +190,7 @@ def rest_surface(
         patches = max(2.0 * area / cell**2, 1.0)  # twice: the part-filled patches along the edges
     n_min = min(n_min, max(int(0.66 * density * cell**2), 1))  # the cap: what a patch can hold
     # patches anchored at the points' lower-left corner (any anchor is as good)
-    inv, count = _cells(xy - lo, cell)
+    inv, count, border = _cells_with_border(xy - lo, cell)
     keep = count >= n_min
     if keep.sum() < 6:
         raise RegistrationError(
@@ -174,13 +201,40 @@ def rest_surface(
     for k in range(3):
         mean[:, k] = np.bincount(inv, weights=P[:, k]) / count
     mean_gap = np.bincount(inv, weights=gap) / count
-    mean, mean_gap, count = mean[keep], mean_gap[keep], count[keep]
-    # the centroid's own gap is linear in its height along up: move it so that gap = the mean gap
-    g_c, _, _, ok = deflection_gaps(surface, mean, T_meas_design, up, geometry=False)
+    # per patch, the plane of the gaps about the centroid: a patch on the plate's edge whose slope is
+    # significant (springback raising the edge) is held at the corners of its points' extent as
+    # well -- its centroid alone would let the design dip below the raised edge. Inside the plate
+    # the centroid serves: a plane extrapolated to the corners reads a dent's rim too high.
+    dx, dy = P[:, 0] - mean[inv, 0], P[:, 1] - mean[inv, 1]
+    dg = gap - mean_gap[inv]
+    sxx, sxy, syy = (np.bincount(inv, weights=w) for w in (dx * dx, dx * dy, dy * dy))
+    sxg, syg = np.bincount(inv, weights=dx * dg), np.bincount(inv, weights=dy * dg)
+    det = sxx * syy - sxy**2
+    safe = np.where(det > 0, det, 1.0)
+    b_x = np.where(det > 0, (syy * sxg - sxy * syg) / safe, 0.0)
+    b_y = np.where(det > 0, (sxx * syg - sxy * sxg) / safe, 0.0)
+    chi2 = (b_x * sxg + b_y * syg) / max(sigma, 1e-12) ** 2  # the slope's explained sum over sigma^2
+    sloped = keep & border & (chi2 > SLOPE_CHI2) & edge_corners
+    x_lo, x_hi = _extent(inv, dx, len(count))
+    y_lo, y_hi = _extent(inv, dy, len(count))
+    reps = [mean[keep]]
+    rep_gap = [mean_gap[keep]]
+    rep_count = [count[keep]]
+    for cx, cy in ((x_lo, y_lo), (x_hi, y_lo), (x_hi, y_hi), (x_lo, y_hi)):
+        c = mean[sloped].copy()
+        c[:, 0] += cx[sloped]
+        c[:, 1] += cy[sloped]
+        reps.append(c)
+        rep_gap.append(mean_gap[sloped] + b_x[sloped] * cx[sloped] + b_y[sloped] * cy[sloped])
+        # the plane at a corner of a uniform square patch has 7x the variance of the mean
+        rep_count.append(count[sloped] / 7.0)
+    rep, rep_g, count_eff = np.vstack(reps), np.concatenate(rep_gap), np.concatenate(rep_count)
+    # a point's own gap is linear in its height along up: move it so that its gap is the estimate
+    g_c, _, _, ok = deflection_gaps(surface, rep, T_meas_design, up, geometry=False)
     up_n = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    rest = mean + np.outer(g_c - mean_gap, up_n)
-    rest, count = rest[ok], count[ok]
-    n_used = int(count.min())
+    rest = rep + np.outer(g_c - rep_g, up_n)
+    rest, count = rest[ok], count_eff[ok]
+    n_used = max(int(count.min()), 1)
     se = sigma / math.sqrt(n_used)
     bound = max_normal_quantile(len(count), confidence) * se
     result = RestSurface(
