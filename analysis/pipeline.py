@@ -48,6 +48,7 @@ from analysis.metrics import LineMetrics, Tolerances, Verdict, judge, line_metri
 from analysis.plates import canonical_corner_order
 from analysis.register import (
     HeightField,
+    RegistrationError,
     RegistrationResult,
     deflection_gaps,
     height_field_from_mesh,
@@ -57,6 +58,14 @@ from analysis.register import (
 from analysis.report import write_csv
 from analysis.rest_surface import RestSurface, rest_surface
 from analysis.segment import SegmentResult, segment_plate
+from analysis.template_fit import (
+    TEMPLATE_FITS,
+    LineFitResult,
+    TemplateFitError,
+    check_mode,
+    fit_line_template,
+    line_rest_samples,
+)
 from analysis.templates import DetectionLayout, TemplateCut, cut_templates, detection_lines
 
 log = structlog.get_logger(__name__)
@@ -81,9 +90,16 @@ class InspectionSettings:
     min_points_per_cell: int = 16
     size_tolerance: float = 0.05  # relative: a design more than 5 % off the plate's size is refused
     design_grid_mm: float = 1.0
+    # "rigid": one template rests on the whole plate (the paper's 3D fit); "per_line": one per line,
+    # on its own section (the paper's 2D case). compare: the report also carries the other's figures
+    template_fit: str = "rigid"
+    template_fit_compare: bool = False
     # the resting surface's stated bound on its noise bias (rest_surface), and its largest patch
     rest_target_sigmas: float = 0.25
     rest_max_cell_mm: float = 20.0
+
+    def __post_init__(self) -> None:
+        check_mode(self.template_fit)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> InspectionSettings:
@@ -272,6 +288,47 @@ def _subsample_index(n: int, k: int, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, size=k, replace=False))
 
 
+def _line_figures(
+    cuts: list[TemplateCut], fits: list[LineFitResult | None], noise_mm: float
+) -> tuple[list[LineMetrics], list[TemplateCut], list[LineFitResult | None]]:
+    """The six figures of every cut that has enough samples (the others are logged and skipped)."""
+    metrics: list[LineMetrics] = []
+    kept: list[TemplateCut] = []
+    kept_fits: list[LineFitResult | None] = []
+    for cut, fit in zip(cuts, fits, strict=True):
+        try:
+            m = line_metrics(
+                cut.s_mm, cut.design_h_mm, cut.measured_h_mm, noise_mm=noise_mm,
+                family=cut.line.family, index=cut.line.index, position_mm=cut.line.position_mm,
+            )  # fmt: skip
+        except ValueError as exc:
+            log.warning("line_skipped", family=cut.line.family, index=cut.line.index, reason=str(exc))
+            continue
+        metrics.append(m)
+        kept.append(cut)
+        kept_fits.append(fit)
+    return metrics, kept, kept_fits
+
+
+def _per_line_cuts(
+    cuts: list[TemplateCut], points_mm: np.ndarray, gaps_mm: np.ndarray, noise_mm: float
+) -> tuple[list[TemplateCut], list[LineFitResult | None]]:
+    """Each cut with its design section rested on its own line (``analysis.template_fit``)."""
+    out: list[TemplateCut] = []
+    fits: list[LineFitResult | None] = []
+    for cut in cuts:
+        try:
+            r = line_rest_samples(points_mm, gaps_mm, cut.line, cut.s_mm, cut.design_h_mm, noise_mm)
+            fit = fit_line_template(cut.s_mm, cut.design_h_mm, r.s_mm, r.h_mm)
+        except (TemplateFitError, RegistrationError) as exc:
+            log.warning("per_line_fit_skipped", family=cut.line.family, index=cut.line.index, reason=str(exc))
+            continue
+        moved = fit.moved_heights(cut.s_mm, cut.design_h_mm, cut.s_mm)
+        out.append(TemplateCut(cut.line, cut.s_mm, moved, cut.measured_h_mm))
+        fits.append(fit)
+    return out, fits
+
+
 # --------------------------------------------------------------------------------------- pipeline
 
 
@@ -353,25 +410,23 @@ def inspect_cloud(
     # count (estimated from the data; the sections' own second differences miss it, the mesh being
     # linear between its nodes, and the splines would follow the noise)
     section_noise = rest.noise_mm / np.sqrt(len(seg.points_mm) / max(len(measured_mesh.vertices_mm), 1))
-    metrics: list[LineMetrics] = []
-    kept: list[TemplateCut] = []
-    for cut in cuts:
-        try:
-            m = line_metrics(
-                cut.s_mm, cut.design_h_mm, cut.measured_h_mm, noise_mm=section_noise,
-                family=cut.line.family, index=cut.line.index, position_mm=cut.line.position_mm,
-            )  # fmt: skip
-        except ValueError as exc:
-            log.warning("line_skipped", family=cut.line.family, index=cut.line.index, reason=str(exc))
-            continue
-        metrics.append(m)
-        kept.append(cut)
-    if not metrics:
-        raise InspectionError("no detection line has enough scanned samples to be evaluated")
-    verdict = judge(metrics, settings.tolerances)
+    gaps, _, _, valid = deflection_gaps(surface, seg.points_mm, T, geometry=False)
+    mode = check_mode(settings.template_fit)
+    modes = [mode] + ([m for m in TEMPLATE_FITS if m != mode] if settings.template_fit_compare else [])
+    judged: dict[str, tuple[Verdict, list[TemplateCut], list[LineFitResult | None]]] = {}
+    for fit_mode in modes:
+        fit_cuts, fits = (
+            (cuts, [None] * len(cuts))
+            if fit_mode == "rigid"
+            else _per_line_cuts(cuts, seg.points_mm, np.where(valid, gaps, np.nan), rest.noise_mm)
+        )
+        metrics, kept, kept_fits = _line_figures(fit_cuts, fits, section_noise)
+        if not metrics:
+            raise InspectionError("no detection line has enough scanned samples to be evaluated")
+        judged[fit_mode] = (judge(metrics, settings.tolerances), kept, kept_fits)
+    verdict, kept, kept_fits = judged[mode]
     lap("metrics")
 
-    gaps, _, _, valid = deflection_gaps(surface, seg.points_mm, T, geometry=False)
     deviation = np.where(valid, gaps, np.nan)
     s_gaps, _, _, s_valid = deflection_gaps(surface, measured_mesh.vertices_mm, T, geometry=False)
     surface_deviation = np.where(s_valid, s_gaps, np.nan)
@@ -387,7 +442,7 @@ def inspect_cloud(
 
     T_plate_measured = T_plate_design @ T_design_measured
     line_records = []
-    for m, cut in zip(verdict.lines, kept, strict=True):
+    for m, cut, line_fit in zip(verdict.lines, kept, kept_fits, strict=True):
         ends = np.vstack([cut.line.start_mm, cut.line.end_mm])
         ends_plate = ends @ T_plate_measured[:3, :3].T + T_plate_measured[:3, 3]
         rec = m.as_dict()
@@ -397,6 +452,8 @@ def inspect_cloud(
             end_plate_mm=[round(float(v), 2) for v in ends_plate[1, :2]],
             noise_mm=m.noise_mm,
         )
+        if line_fit is not None:
+            rec["line_fit"] = line_fit.as_dict()
         line_records.append(rec)
 
     plate_l, plate_w = _side_lengths(design_c)
@@ -407,6 +464,7 @@ def inspect_cloud(
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "verdict": verdict.verdict,
         "standard": settings.tolerances.standard,
+        "template_fit": mode,
         "registration": {
             "coarse_rms_mm": reg.coarse_rms_mm,
             "icp_rms_mm": reg.icp.rms_mm,
@@ -437,6 +495,18 @@ def inspect_cloud(
         "inputs": {"points": len(cloud.points_mm), **(inputs or {})},
         "timings_s": timings,
     }
+    for other in modes[1:]:
+        v = judged[other][0]
+        report["template_fit_compare"] = {
+            "template_fit": other,
+            "verdict": v.verdict,
+            "lines": [
+                {"name": f"{FAMILY_LETTER.get(m.family, '?')}{m.index}", "family": m.family, "index": m.index,
+                 "sz_avg_mm": m.sz_avg_mm, "zmax_mm": m.zmax_mm, "cmax_per_mm": m.cmax_per_mm,
+                 "grade": m.grade, "pass": m.passed}
+                for m in v.lines
+            ],
+        }  # fmt: skip
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
     log.info("inspected", verdict=verdict.verdict, lines=len(line_records), worst_zmax_mm=round(verdict.worst_zmax_mm, 3),
              total_s=timings["total"])  # fmt: skip

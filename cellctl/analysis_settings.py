@@ -28,6 +28,8 @@ def inspection_settings(section: AnalysisSection) -> InspectionSettings:
             deviation_limit_mm=tol.deviation_limit_mm,
         ),
         sample_step_mm=section.sample_step_mm,
+        template_fit=section.template_fit,
+        template_fit_compare=section.template_fit_compare,
     )
 
 
@@ -40,4 +42,6 @@ def inspection_settings_dict(section: AnalysisSection) -> dict:
         "tolerances": {k: getattr(s.tolerances, k) for k in ("standard", "deviation_standard_mm",
                                                               "deviation_limit_mm")},
         "sample_step_mm": s.sample_step_mm,
+        "template_fit": s.template_fit,
+        "template_fit_compare": s.template_fit_compare,
     }  # fmt: skip
