@@ -35,10 +35,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from cellctl.acquisition.pipeline import AcquisitionSettings
 from cellctl.acquisition.reassemble import reassemble
-from cellctl.acquisition.simcell import SimCell, SimCellConfig, joint_path, plate_truth, raster_poses
 from cellctl.calibration.time_offset import calibrate_time_offset
 from cellctl.logging import configure_logging
-from drivers.abb_egm.sim_egm import precise_event_loop
+from cellctl.simcell.truth import plate_truth
+from drivers.abb_egm.sim.egm import precise_event_loop
+from tests.support.simcell import SimCell, SimCellConfig, joint_path, raster_poses
 
 
 def _scan(truth, cfg, pass_y, speeds, job, x_range=None):

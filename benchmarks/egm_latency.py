@@ -56,7 +56,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig  # noqa: E402
-from drivers.abb_egm.sim_egm import EgmControllerSim, EgmSimConfig, precise_event_loop  # noqa: E402
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig, precise_event_loop  # noqa: E402
 
 
 def _realtime(priority: int) -> bool:

@@ -36,9 +36,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from drivers.laser import protocol as P
 from drivers.laser.client import HD8Client
-from drivers.laser.optics import LaserOptics, render_uniform
-from drivers.laser.scene import SceneRaycaster, cell_scene
-from drivers.laser.sim import LaserSimulator, SimConfig
+from drivers.laser.sim.optics import LaserOptics, render_uniform
+from drivers.laser.sim.scene import SceneRaycaster, cell_scene
+from drivers.laser.sim.sensor import LaserSimulator, SimConfig
 
 
 def curved_plate() -> tuple[np.ndarray, np.ndarray]:

@@ -62,7 +62,7 @@ def _load(path: str) -> CellConfig | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cellctl.simcell_service import main_sync
+    from cellctl.simcell.service import main_sync
 
     cfg = _load(args.config)
     if cfg is None:
@@ -78,7 +78,7 @@ def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_fault(args: argparse.Namespace) -> int:
-    from cellctl.sim_faults import FaultChannelError, FaultRequestError, parse_assignments
+    from cellctl.simcell.faults import FaultChannelError, FaultRequestError, parse_assignments
 
     cfg = _load(args.config)
     if cfg is None:
@@ -106,7 +106,7 @@ def run_fault(args: argparse.Namespace) -> int:
 
 
 async def _send(cfg: CellConfig, request: dict[str, Any], timeout_s: float) -> dict[str, Any]:
-    from cellctl.sim_faults import FaultChannelError, open_fault_session, send_faults
+    from cellctl.simcell.faults import FaultChannelError, open_fault_session, send_faults
     from cellctl.zenoh_session import ZenohSetupError, close_session
 
     try:

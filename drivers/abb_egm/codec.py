@@ -1,7 +1,7 @@
 """EGM codec: protobuf ``EgmRobot`` / ``EgmSensor`` bytes <-> plain dataclasses.
 
 Shared by the sensor-side endpoint (:mod:`drivers.abb_egm.endpoint`) and the controller simulator
-(:mod:`drivers.abb_egm.sim_egm`) so the two cannot drift apart. No I/O here.
+(:mod:`drivers.abb_egm.sim.egm`) so the two cannot drift apart. No I/O here.
 
 Units at this boundary are the controller's: joints in degrees, positions in millimetres,
 orientations as unit quaternions with the scalar first (w, x, y, z), header ``tm`` in milliseconds,

@@ -29,7 +29,6 @@ import asyncio
 import base64
 import contextlib
 import functools
-import hashlib
 import html
 import re
 import secrets
@@ -43,8 +42,9 @@ import aiohttp
 import numpy as np
 import structlog
 
-from drivers.abb_egm import controller_model as _prog
-from drivers.abb_egm.controller_model import (
+from drivers.abb_egm import rapid_values as _prog
+from drivers.abb_egm.digest import digest_response, parse_auth_params
+from drivers.abb_egm.rapid_values import (
     JointTarget,
     format_bool,
     format_jointtarget,
@@ -178,20 +178,6 @@ class StateChange:
     value: str
 
 
-def _h(text: str) -> str:
-    return hashlib.md5(text.encode()).hexdigest()
-
-
-_AUTH_PARAM_RE = re.compile(r'(\w+)\s*=\s*(?:"((?:[^"\\]|\\.)*)"|([^,\s]+))')
-
-
-def _auth_params(value: str) -> dict[str, str]:
-    return {
-        m.group(1).lower(): m.group(2) if m.group(2) is not None else m.group(3)
-        for m in _AUTH_PARAM_RE.finditer(value)
-    }
-
-
 class _DigestState:
     """One digest challenge and its nonce counter (RFC 2617, MD5, qop=auth)."""
 
@@ -212,9 +198,10 @@ class _DigestState:
         self.nc += 1
         nc = f"{self.nc:08x}"
         cnonce = cnonce or secrets.token_hex(8)
-        ha1 = _h(f"{username}:{self.realm}:{password}")
-        ha2 = _h(f"{method}:{uri}")
-        response = _h(f"{ha1}:{self.nonce}:{nc}:{cnonce}:auth:{ha2}")
+        response = digest_response(
+            username=username, realm=self.realm, password=password, method=method, uri=uri,
+            nonce=self.nonce, nc=nc, cnonce=cnonce,
+        )  # fmt: skip
         parts = [
             f'username="{username}"',
             f'realm="{self.realm}"',
@@ -405,9 +392,7 @@ class RwsClient:
                         ) from err
                     if status == 401:
                         challenge = resp.headers.get("WWW-Authenticate", "")
-                        stale = (
-                            "stale" in _auth_params(challenge) and _auth_params(challenge)["stale"] == "true"
-                        )
+                        stale = parse_auth_params(challenge).get("stale") == "true"
                         if auth is not None and not stale:
                             self._logged_in = False
                             raise RwsAuthError(
@@ -420,7 +405,7 @@ class RwsClient:
                             log.info("rws_session_stale_relogin", path=path)
                         self._logged_in = False
                         if challenge.lower().startswith("digest "):
-                            self._digest = _DigestState(_auth_params(challenge[7:]))
+                            self._digest = _DigestState(parse_auth_params(challenge[7:]))
                         elif self.config.profile == "rws1":
                             raise RwsError(
                                 f"expected a digest challenge, got {challenge!r}",

@@ -3,8 +3,8 @@
 * :mod:`drivers.laser.source`: :class:`ProfileBatch` and the :class:`ProfileSource` interface.
 * :mod:`drivers.laser.protocol`: the codec (docs/hd8-protocol.md), shared by client and simulator.
 * :mod:`drivers.laser.client`: :class:`HD8Client`, the TCP implementation of ``ProfileSource``.
-* :mod:`drivers.laser.sim`, :mod:`drivers.laser.scene`, :mod:`drivers.laser.optics`: the simulator
-  (imports open3d; load it only where a simulated sensor is needed).
+* :mod:`drivers.laser.sim`: the sensor simulator (``sim.sensor``, ``sim.scene``, ``sim.optics``;
+  imports open3d: load it only where a simulated sensor is needed).
 """
 
 from drivers.laser.client import HD8Client, HD8ClientConfig

@@ -10,15 +10,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.abb_egm import controller_model as cm
-from drivers.abb_egm.controller_model import (
-    EVENT_EGM_COMM_TIMEOUT,
-    AccessDenied,
-    ControllerModel,
+from drivers.abb_egm import rapid_values as rv
+from drivers.abb_egm.rapid_values import (
     JointTarget,
     RapidValueError,
-    StateRefused,
-    SymbolNotFound,
     format_bool,
     format_jointtarget,
     format_num,
@@ -27,6 +22,13 @@ from drivers.abb_egm.controller_model import (
     parse_jointtarget,
     parse_num,
     parse_string,
+)
+from drivers.abb_egm.sim.model import (
+    EVENT_EGM_COMM_TIMEOUT,
+    AccessDenied,
+    ControllerModel,
+    StateRefused,
+    SymbolNotFound,
 )
 
 T = "T_ROB1"
@@ -189,7 +191,7 @@ def test_rapid_module_declares_every_variable_the_model_uses() -> None:
     assert "-41822" in text and f'EGM_DEVICE:="{"EGM_DAEMON"}"' in text
     for instr in ("EGMGetId", "EGMSetupUC", "EGMActJoint", "EGMRunJoint", "EGMStop", "EGMReset"):
         assert instr in text
-    assert cm.SIGNAL_END in text
+    assert rv.SIGNAL_END in text
 
 
 def test_rapid_module_defaults_equal_the_model_defaults() -> None:
@@ -228,7 +230,7 @@ def test_const_and_input_signals_refuse_writes() -> None:
         m.set_num(T, None, "EGM_LIMIT", 4)
     with pytest.raises(AccessDenied) as err:
         m.set_io("DI_PLATE_PRESENT", 1)
-    assert err.value.code == cm.RC_IO_ACCESS_DENIED
+    assert err.value.code == rv.RC_IO_ACCESS_DENIED
     m.set_io("DI_PLATE_PRESENT", 1, force=True)  # the simulator's own wiring may
     assert m.get_io("DI_PLATE_PRESENT") == 1
     with pytest.raises(RapidValueError):

@@ -11,11 +11,8 @@ import aiohttp
 import numpy as np
 import pytest
 
-from drivers.abb_egm.controller_model import (
-    EVENT_EGM_COMM_TIMEOUT,
-    RC_IO_ACCESS_DENIED,
-    ControllerModel,
-)
+from drivers.abb_egm.digest import parse_auth_params
+from drivers.abb_egm.rapid_values import RC_IO_ACCESS_DENIED
 from drivers.abb_egm.rws_client import (
     RwsAuthError,
     RwsBusyError,
@@ -24,8 +21,10 @@ from drivers.abb_egm.rws_client import (
     RwsError,
     RwsTimeoutError,
     StateChange,
+    _DigestState,
 )
-from drivers.abb_egm.rws_server import RwsServer
+from drivers.abb_egm.sim.model import EVENT_EGM_COMM_TIMEOUT, ControllerModel
+from drivers.abb_egm.sim.rws_server import RwsServer
 
 T = "T_ROB1"
 
@@ -107,9 +106,7 @@ def test_digest_response_with_wrong_uri_is_refused() -> None:
     async def body() -> None:
         async with cell("rws1") as (_, server, client), aiohttp.ClientSession() as http:
             async with http.get(server.base_url + "/rw/panel/ctrlstate?json=1") as resp:
-                from drivers.abb_egm.rws_client import _auth_params, _DigestState
-
-                state = _DigestState(_auth_params(resp.headers["WWW-Authenticate"][7:]))
+                state = _DigestState(parse_auth_params(resp.headers["WWW-Authenticate"][7:]))
             header = state.header("GET", "/rw/panel/opmode?json=1", "Default User", "robotics")
             async with http.get(
                 server.base_url + "/rw/panel/ctrlstate?json=1", headers={"Authorization": header}
@@ -562,12 +559,10 @@ def test_rws2_json_uses_top_level_state_and_embedded_resources() -> None:
 def test_expired_digest_nonce_is_answered_with_stale_and_a_fresh_nonce() -> None:
     async def body() -> None:
         async with cell("rws1") as (_, server, _client), aiohttp.ClientSession() as http:
-            from drivers.abb_egm.rws_client import _auth_params, _DigestState
-
             server.nonce_lifetime_s = 0.05
             url = server.base_url + "/rw/panel/ctrlstate?json=1"
             async with http.get(url) as resp:
-                state = _DigestState(_auth_params(resp.headers["WWW-Authenticate"][7:]))
+                state = _DigestState(parse_auth_params(resp.headers["WWW-Authenticate"][7:]))
             await asyncio.sleep(0.1)
             header = state.header("GET", "/rw/panel/ctrlstate?json=1", "Default User", "robotics")
             async with http.get(url, headers={"Authorization": header}) as resp:
@@ -581,11 +576,9 @@ def test_expired_digest_nonce_is_answered_with_stale_and_a_fresh_nonce() -> None
 def test_replayed_digest_nonce_count_is_refused() -> None:
     async def body() -> None:
         async with cell("rws1") as (_, server, _client):
-            from drivers.abb_egm.rws_client import _auth_params, _DigestState
-
             url = server.base_url + "/rw/panel/ctrlstate?json=1"
             async with aiohttp.ClientSession() as http, http.get(url) as resp:
-                state = _DigestState(_auth_params(resp.headers["WWW-Authenticate"][7:]))
+                state = _DigestState(parse_auth_params(resp.headers["WWW-Authenticate"][7:]))
             header = state.header("GET", "/rw/panel/ctrlstate?json=1", "Default User", "robotics")
             for expected in (200, 401):  # a fresh client each time, so no cookie helps
                 async with (
@@ -629,7 +622,7 @@ def test_certificate_generation_gives_a_loadable_cert_for_the_host(
     import shutil
     import ssl
 
-    from drivers.abb_egm import rws_server
+    from drivers.abb_egm.sim import rws_server
 
     if backend == "openssl":
         if shutil.which("openssl") is None:

@@ -6,9 +6,10 @@ from aiohttp.test_utils import make_mocked_request
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.abb_egm.controller_model import ControllerModel
-from drivers.abb_egm.rws_client import _auth_params, _DigestState
-from drivers.abb_egm.rws_server import RwsServer, parse_auth_params
+from drivers.abb_egm.digest import parse_auth_params
+from drivers.abb_egm.rws_client import _DigestState
+from drivers.abb_egm.sim.model import ControllerModel
+from drivers.abb_egm.sim.rws_server import RwsServer
 
 # User names and passwords as a controller's UAS allows them: printable, no double quote.
 text = st.text(
@@ -31,7 +32,7 @@ def test_client_digest_answer_is_accepted_for_the_right_password(
     user: str, password: str, uri: str, method: str
 ) -> None:
     server = _server(user, password)
-    state = _DigestState(_auth_params(server._challenge()[7:]))
+    state = _DigestState(parse_auth_params(server._challenge()[7:]))
     header = state.header(method, uri, user, password)
     req = make_mocked_request(method, uri, headers={"Authorization": header})
     assert server._check_authorization(req) == (user, False)
@@ -43,7 +44,7 @@ def test_client_digest_answer_is_refused_for_a_wrong_password(user: str, passwor
     if wrong == password:
         wrong += "x"
     server = _server(user, password)
-    state = _DigestState(_auth_params(server._challenge()[7:]))
+    state = _DigestState(parse_auth_params(server._challenge()[7:]))
     uri = "/rw/panel/ctrlstate?json=1"
     req = make_mocked_request("GET", uri, headers={"Authorization": state.header("GET", uri, user, wrong)})
     assert server._check_authorization(req) == (None, False)

@@ -6,7 +6,6 @@ import asyncio
 
 import pytest
 
-from drivers.abb_egm.controller_model import EVENT_EGM_COMM_TIMEOUT, ControllerModel
 from drivers.abb_egm.rws_client import (
     CellEgmProgram,
     EgmProgramError,
@@ -14,7 +13,8 @@ from drivers.abb_egm.rws_client import (
     RwsClient,
     RwsClientConfig,
 )
-from drivers.abb_egm.rws_server import RwsServer
+from drivers.abb_egm.sim.model import EVENT_EGM_COMM_TIMEOUT, ControllerModel
+from drivers.abb_egm.sim.rws_server import RwsServer
 
 PROFILES = ["rws1", "rws2"]
 

@@ -10,9 +10,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.abb_egm.controller_model import ControllerModel, format_string
+from drivers.abb_egm.rapid_values import format_string
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig, parse_event_xhtml
-from drivers.abb_egm.rws_server import RwsServer
+from drivers.abb_egm.sim.model import ControllerModel
+from drivers.abb_egm.sim.rws_server import RwsServer
 
 T = "T_ROB1"
 # RAPID strings: up to 80 characters of the controller's Latin-1 set, without control characters.

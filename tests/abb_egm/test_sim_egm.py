@@ -12,10 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.abb_egm.codec import MciState, MotorState
-from drivers.abb_egm.controller_model import ControllerModel
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.kinematics import RobotKinematics
-from drivers.abb_egm.sim_egm import (
+from drivers.abb_egm.sim.egm import (
     EVENT_EGM_COMM_TIMEOUT,
     EVENT_EGM_JOINT_LIMIT,
     EVENT_EGM_SPEED_DEVIATION,
@@ -27,6 +26,7 @@ from drivers.abb_egm.sim_egm import (
     TrajectoryRecorder,
     precise_event_loop,
 )
+from drivers.abb_egm.sim.model import ControllerModel
 
 CYCLE_S = 0.004032
 Q_START = np.array([0.0, 10.0, -10.0, 0.0, 30.0, 0.0])

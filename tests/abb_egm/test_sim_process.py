@@ -15,9 +15,9 @@ import pytest
 
 from drivers.abb_egm.codec import MciState, MotorState
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.sim import ControllerSim, ControllerSimConfig
-from drivers.abb_egm.sim import main as sim_main
-from drivers.abb_egm.sim_egm import EgmSimConfig, precise_event_loop
+from drivers.abb_egm.sim.controller import ControllerSim, ControllerSimConfig
+from drivers.abb_egm.sim.controller import main as sim_main
+from drivers.abb_egm.sim.egm import EgmSimConfig, precise_event_loop
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -14,8 +14,8 @@ import numpy as np
 
 from cellctl.acquisition.poses import T_from_pos_rpy
 from drivers.abb_egm.kinematics import fk_batch
-from drivers.laser.optics import LaserOptics, render_uniform
-from drivers.laser.scene import Scene, SceneRaycaster
+from drivers.laser.sim.optics import LaserOptics, render_uniform
+from drivers.laser.sim.scene import Scene, SceneRaycaster
 from drivers.laser.source import ProfileBatch
 
 Q_CENTER_DEG = np.array([0.0, 15.67, 28.77, 0.0, 45.56, 180.0])

@@ -11,13 +11,6 @@ from scipy.spatial.transform import Rotation
 from cellctl.acquisition.clock_sync import ClockSyncConfig
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.acquisition.poses import T_from_pos_rpy
-from cellctl.acquisition.simcell import (
-    Q_SEED_DEG,
-    SimCell,
-    SimCellConfig,
-    sphere_scene,
-    stop_and_shoot_path,
-)
 from cellctl.calibration.hand_eye import (
     HandEyeError,
     StopCapture,
@@ -27,8 +20,15 @@ from cellctl.calibration.hand_eye import (
 )
 from cellctl.calibration.time_offset import TimeOffsetError, estimate_time_offset
 from drivers.abb_egm.kinematics import RobotKinematics, fk_batch
-from drivers.abb_egm.sim_egm import precise_event_loop
+from drivers.abb_egm.sim.egm import precise_event_loop
 from tests.acquisition.synthetic import feed, make_run
+from tests.support.simcell import (
+    Q_SEED_DEG,
+    SimCell,
+    SimCellConfig,
+    sphere_scene,
+    stop_and_shoot_path,
+)
 
 SPHERE_C = np.array([1500.0, 100.0, 350.0])
 SPHERE_R = 20.0

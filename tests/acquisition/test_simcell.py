@@ -15,9 +15,10 @@ import pytest
 
 from cellctl.acquisition.pipeline import AcquisitionSettings
 from cellctl.acquisition.reassemble import reassemble
-from cellctl.acquisition.simcell import SimCell, SimCellConfig, joint_path, plate_truth, raster_poses
 from cellctl.calibration.time_offset import calibrate_time_offset
-from drivers.abb_egm.sim_egm import precise_event_loop
+from cellctl.simcell.truth import plate_truth
+from drivers.abb_egm.sim.egm import precise_event_loop
+from tests.support.simcell import SimCell, SimCellConfig, joint_path, raster_poses
 
 pytestmark = pytest.mark.slow
 

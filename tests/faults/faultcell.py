@@ -37,7 +37,7 @@ from e2e_cell import REPO, Cell, open_client, tiny_cell_config, wait_status
 from cellctl.api import ApiCallError, CellStatus, Keys, TriggerAccepted, call
 from cellctl.commands.demo_cmd import DEMO_DESIGN, free_port, to_toml, wait_ready_line
 from cellctl.config import load_config
-from cellctl.sim_faults import FaultState, open_fault_session, send_faults
+from cellctl.simcell.faults import FaultState, open_fault_session, send_faults
 
 __all__ = [
     "REPO",

@@ -15,7 +15,12 @@ import subprocess
 import pytest
 from faultcell import REPO, FaultCell
 
-from cellctl.sim_faults import FaultChannelError, FaultRequestError, parse_assignments, parse_fault_request
+from cellctl.simcell.faults import (
+    FaultChannelError,
+    FaultRequestError,
+    parse_assignments,
+    parse_fault_request,
+)
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig, RwsError
 
 
@@ -75,7 +80,7 @@ def test_bad_requests_get_an_error_naming_the_knob_and_the_channel_keeps_serving
                 await sim.fault(body)
             errors[name] = (exc.value.error.code, exc.value.error.field)
         # raw bytes: not JSON, and too large
-        from cellctl.sim_faults import sim_faults_key
+        from cellctl.simcell.faults import sim_faults_key
         from cellctl.zenoh_session import async_get
 
         await sim.fault()  # opens the session
@@ -243,7 +248,7 @@ def fault_cell_config_off(out):
 
 
 async def _quick_fault(cell: FaultCell):
-    from cellctl.sim_faults import open_fault_session, send_faults
+    from cellctl.simcell.faults import open_fault_session, send_faults
     from cellctl.zenoh_session import ZenohSetupError, close_session
 
     try:

@@ -14,8 +14,8 @@ from laser_helpers import collect, looking_down, run, sim_and_client
 
 from drivers.laser import protocol as P
 from drivers.laser.client import HD8Client, HD8ClientConfig
-from drivers.laser.scene import plane_scene
-from drivers.laser.sim import LaserSimulator, SimConfig, fixed_pose
+from drivers.laser.sim.scene import plane_scene
+from drivers.laser.sim.sensor import LaserSimulator, SimConfig, fixed_pose
 from drivers.laser.source import ProfileBatch, SourceEventKind
 
 # A long backlog: on a loaded CI machine the simulator may fall behind real time for a moment; it must

@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 from laser_helpers import collect, looking_down, run, sim_and_client
 from scipy.spatial.transform import Rotation
 
-from drivers.laser.optics import LaserOptics, render_points, render_uniform
-from drivers.laser.scene import (
+from drivers.laser.sim.optics import LaserOptics, render_points, render_uniform
+from drivers.laser.sim.scene import (
     Scene,
     SceneRaycaster,
     box_scene,
@@ -19,7 +19,7 @@ from drivers.laser.scene import (
     plate_solid,
     step_scene,
 )
-from drivers.laser.sim import LaserSimulator, SimConfig
+from drivers.laser.sim.sensor import LaserSimulator, SimConfig
 from drivers.laser.source import ProfileBatch
 
 

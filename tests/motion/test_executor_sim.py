@@ -242,7 +242,7 @@ def test_envelope_violation_is_a_fault_and_no_violating_reference_is_ever_sent(s
 
     async def run():
         from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-        from drivers.abb_egm.sim_egm import EgmControllerSim, EgmSimConfig
+        from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
 
         endpoint = EgmEndpoint(EgmEndpointConfig(port=0))
         _, port = await endpoint.start()

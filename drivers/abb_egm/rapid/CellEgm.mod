@@ -12,8 +12,9 @@ MODULE CellEgm
     ! UdpUc device EGM_DEVICE. It ends the session by writing egm_end := TRUE (or by setting the
     ! digital output DO_EGM_END). egm_status tells the daemon how the last session ended.
     !
-    ! The controller simulator (drivers/abb_egm/controller_model.py) models exactly this program:
-    ! keep the variable names and the egm_status values in step with it.
+    ! The controller simulator (drivers/abb_egm/sim/model.py) models exactly this program, and
+    ! drivers/abb_egm/rapid_values.py names its variables and egm_status values for the client and
+    ! the simulator: keep them in step with it.
     !-------------------------------------------------------------------------------------------
 
     ! --- written by the daemon through RWS (defaults suit a first test) ---

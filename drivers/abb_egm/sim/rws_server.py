@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import base64
-import hashlib
 import html
 import os
 import re
@@ -37,12 +36,9 @@ from urllib.parse import unquote
 import structlog
 from aiohttp import WSMsgType, web
 
-from drivers.abb_egm.controller_model import (
-    RC_BAD_VALUE,
-    ControllerError,
-    ControllerModel,
-    format_num,
-)
+from drivers.abb_egm.digest import digest_response, md5_hex, parse_auth_params
+from drivers.abb_egm.rapid_values import RC_BAD_VALUE, ControllerError, format_num
+from drivers.abb_egm.sim.model import ControllerModel
 
 log = structlog.get_logger(__name__)
 
@@ -101,21 +97,6 @@ class _Request:
     form: dict[str, str]
     json: bool
     multi: list[tuple[str, str]] = field(default_factory=list)  # form fields in order, repeats kept
-
-
-def _md5(text: str) -> str:
-    return hashlib.md5(text.encode()).hexdigest()
-
-
-_AUTH_PARAM_RE = re.compile(r'(\w+)\s*=\s*(?:"((?:[^"\\]|\\.)*)"|([^,\s]+))')
-
-
-def parse_auth_params(header_value: str) -> dict[str, str]:
-    """Parse ``key=value`` / ``key="value"`` pairs of a Digest challenge or response header."""
-    return {
-        m.group(1).lower(): m.group(2) if m.group(2) is not None else m.group(3)
-        for m in _AUTH_PARAM_RE.finditer(header_value)
-    }
 
 
 async def generate_self_signed_cert(directory: str, host: str) -> tuple[str, str]:
@@ -348,7 +329,7 @@ class RwsServer:
                 del self._nonces[n]
                 self._nonce_nc.pop(n, None)
         stale_s = ', stale="true"' if stale else ""
-        return f'Digest realm="{REALM}", qop="auth", nonce="{nonce}", opaque="{_md5(REALM)}", algorithm=MD5{stale_s}'
+        return f'Digest realm="{REALM}", qop="auth", nonce="{nonce}", opaque="{md5_hex(REALM)}", algorithm=MD5{stale_s}'
 
     def _check_authorization(self, req: web.Request) -> tuple[str | None, bool]:
         """Return (user or None, stale nonce)."""
@@ -381,9 +362,10 @@ class RwsServer:
             return None, False
         if p.get("uri", "") not in (req.path_qs, req.raw_path):
             return None, False
-        ha1 = _md5(f"{user}:{REALM}:{self.users[user]}")
-        ha2 = _md5(f"{req.method}:{p.get('uri', '')}")
-        expected = _md5(f"{ha1}:{nonce}:{p['nc']}:{p['cnonce']}:auth:{ha2}")
+        expected = digest_response(
+            username=user, realm=REALM, password=self.users[user], method=req.method,
+            uri=p.get("uri", ""), nonce=nonce, nc=p["nc"], cnonce=p["cnonce"],
+        )  # fmt: skip
         if not secrets.compare_digest(expected, p["response"]):
             return None, False
         self._nonce_nc[nonce] = nc

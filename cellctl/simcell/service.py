@@ -1,16 +1,16 @@
 """`cellctl sim`: the simulated cell of cell.toml ``[sim]`` as one process, on loopback.
 
-* the ABB controller simulator (:class:`drivers.abb_egm.sim.ControllerSim`): EGM as the UDP client
+* the ABB controller simulator (:class:`drivers.abb_egm.sim.controller.ControllerSim`): EGM as the UDP client
   sending to ``[robot] egm_host:egm_port``, RWS served on ``[sim] rws_port``;
-* the HD8 simulator (:class:`drivers.laser.sim.LaserSimulator`) on ``[laser] control_port`` /
+* the HD8 simulator (:class:`drivers.laser.sim.sensor.LaserSimulator`) on ``[laser] control_port`` /
   ``data_port``; its ``pose_at`` is the controller simulator's **true** trajectory composed with the
   mounting ``[robot.sensor_in_flange]``, so the daemon's acquisition is judged against the truth;
 * the scene: the formed plate of ``[sim.plate]`` (design + the default forming error) laid at
-  ``[sim.placement]``, with bed and supports (:meth:`cellctl.acquisition.simcell.PlateTruth.scene`).
+  ``[sim.placement]``, with bed and supports (:meth:`cellctl.simcell.truth.PlateTruth.scene`).
 
 The truth (placement, plate, forming error) goes to ``<data_dir>/sim-truth.json``. With
 ``[sim] fault_control`` the process also serves the run-time fault knobs on ``<prefix>/sim/faults``
-(its own Zenoh endpoint ``[sim] fault_listen``; :mod:`cellctl.sim_faults`, docs/simulator.md). On start
+(its own Zenoh endpoint ``[sim] fault_listen``; :mod:`cellctl.simcell.faults`, docs/simulator.md). On start
 the process prints one JSON line with its addresses on stdout (``fault_control``: the endpoint, or
 null when off or not available); it runs until SIGTERM / SIGINT.
 """
@@ -30,9 +30,9 @@ import numpy as np
 import structlog
 
 from cellctl.acquisition.poses import T_from_pos_rpy
-from cellctl.acquisition.simcell import PlateTruth, plate_truth
 from cellctl.config import CellConfig
 from cellctl.signals import stop_on_signals
+from cellctl.simcell.truth import PlateTruth, plate_truth
 
 log = structlog.get_logger(__name__)
 
@@ -89,11 +89,11 @@ class SimulatedCell:
 
     async def start(self) -> dict[str, Any]:
         """Build the scene, start both simulators; returns their addresses."""
-        from drivers.abb_egm.controller_model import ControllerModel
         from drivers.abb_egm.kinematics import fk_batch
-        from drivers.abb_egm.sim import ABB_DEFAULT_PASSWORD, ControllerSim, ControllerSimConfig
-        from drivers.abb_egm.sim_egm import EgmFaults, EgmSimConfig
-        from drivers.laser.sim import LaserSimulator, SimConfig
+        from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD, ControllerSim, ControllerSimConfig
+        from drivers.abb_egm.sim.egm import EgmFaults, EgmSimConfig
+        from drivers.abb_egm.sim.model import ControllerModel
+        from drivers.laser.sim.sensor import LaserSimulator, SimConfig
 
         cfg, sim = self.cfg, self.cfg.sim
         users = tuple((u, os.environ.get(env, ABB_DEFAULT_PASSWORD)) for u, env in sim.rws_users.items())
@@ -220,7 +220,7 @@ async def _serve_sim(cfg: CellConfig, stop: asyncio.Event) -> int:
     use_realtime_loop()
     fault_session = None
     if cfg.sim.fault_control:
-        from cellctl.sim_faults import serve_fault_control
+        from cellctl.simcell.faults import serve_fault_control
 
         served = await serve_fault_control(cfg, cell)
         if served is not None:
@@ -241,7 +241,7 @@ async def _serve_sim(cfg: CellConfig, stop: asyncio.Event) -> int:
 
 def main_sync(cfg: CellConfig) -> int:
     """Blocking entry (the precise event loop keeps the 4 ms EGM cycle on time)."""
-    from drivers.abb_egm.sim_egm import precise_event_loop
+    from drivers.abb_egm.sim.egm import precise_event_loop
 
     with asyncio.Runner(loop_factory=precise_event_loop) as runner:
         return runner.run(run_sim(cfg))

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.laser.scene import SceneRaycaster
+from drivers.laser.sim.scene import SceneRaycaster
 
 __all__ = ["LaserOptics", "ProfileRender", "render_points", "render_uniform"]
 

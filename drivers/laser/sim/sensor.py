@@ -7,7 +7,7 @@ What it models (see docs/hd8-protocol.md for which parts are documented HD8 beha
 
 * acquisition at the configured rate; each frame's mid-exposure true time ``t_true_s`` is fed to
   ``pose_at`` for the sensor pose ``T_world_sensor``, then the laser fan is ray-cast onto the scene
-  (:mod:`drivers.laser.optics`): depth noise, missing returns at grazing incidence and out of range,
+  (:mod:`drivers.laser.sim.optics`): depth noise, missing returns at grazing incidence and out of range,
   sparse outliers;
 * the sensor's own clock: ``sensor_time_us = offset + (t_true - t_epoch) * (1 + drift_ppm * 1e-6)``
   and the HD8's 32-bit millisecond counter derived from it (configurable start, so it can wrap);
@@ -41,8 +41,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from drivers.laser import protocol as P
 from drivers.laser._ratelimit import RateLimitedLog
-from drivers.laser.optics import LaserOptics, render_points, render_uniform
-from drivers.laser.scene import Scene, SceneRaycaster, plane_scene, step_scene
+from drivers.laser.sim.optics import LaserOptics, render_points, render_uniform
+from drivers.laser.sim.scene import Scene, SceneRaycaster, plane_scene, step_scene
 
 __all__ = ["LaserSimulator", "PoseFn", "SimConfig", "SimFaults", "SimStats", "fixed_pose", "main"]
 
@@ -203,7 +203,7 @@ class LaserSimulator:
     """A simulated HD8 on two TCP ports (control and data) of ``host``.
 
     Args:
-        scene: what the sensor looks at, world frame, mm: a :class:`drivers.laser.scene.Scene` or a
+        scene: what the sensor looks at, world frame, mm: a :class:`drivers.laser.sim.scene.Scene` or a
             ``(vertices_mm (n, 3), triangles (m, 3))`` pair.
         pose_at: ``pose_at(t_true_s (n,)) -> (n, 4, 4)`` sensor pose ``T_world_sensor`` (mm) at each
             exposure's true mid-exposure time, in the time base of ``clock``. Called in the event loop.
@@ -930,7 +930,3 @@ def main(argv: list[str] | None = None) -> None:
         # stdout carries the one JSON line with the ports; logs go to stderr.
         structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
     asyncio.run(_run(args))
-
-
-if __name__ == "__main__":
-    main()

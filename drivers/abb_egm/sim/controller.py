@@ -1,7 +1,7 @@
 """The simulated ABB controller: EGM over UDP and RWS over HTTP(S) on one shared controller state.
 
-Composes :class:`~drivers.abb_egm.controller_model.ControllerModel` (panel, RAPID program, event
-log), :class:`~drivers.abb_egm.rws_server.RwsServer` and :class:`~drivers.abb_egm.sim_egm.EgmControllerSim`.
+Composes :class:`~drivers.abb_egm.sim.model.ControllerModel` (panel, RAPID program, event
+log), :class:`~drivers.abb_egm.sim.rws_server.RwsServer` and :class:`~drivers.abb_egm.sim.egm.EgmControllerSim`.
 Starting the RAPID program through RWS starts the EGM session; the end variable, motors off, an
 emergency stop or a communication timeout end it.
 
@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import structlog
 
-from drivers.abb_egm.controller_model import ControllerModel
-from drivers.abb_egm.rws_server import RwsServer
-from drivers.abb_egm.sim_egm import EgmControllerSim, EgmFaults, EgmSimConfig, precise_event_loop
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmFaults, EgmSimConfig, precise_event_loop
+from drivers.abb_egm.sim.model import ControllerModel
+from drivers.abb_egm.sim.rws_server import RwsServer
 
 __all__ = ["ControllerSim", "ControllerSimConfig", "main"]
 
@@ -223,10 +223,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:  # e.g. a port in use: say so plainly instead of a traceback
         print(f"controller simulator: {exc}", file=sys.stderr)
         return 2
-
-
-if __name__ == "__main__":
-    if not structlog.is_configured():
-        # stdout carries the one machine-readable line with the addresses; logs go to stderr
-        structlog.configure(logger_factory=structlog.PrintLoggerFactory(sys.stderr))
-    sys.exit(main())

@@ -12,7 +12,7 @@ not drift) the simulator does what the EGM manual (p.26) describes for the contr
 
 A reference beyond the joint limits, the position-deviation or the speed-deviation limit puts EGM
 in error and ends the session; no sensor message for the communication timeout ends it with event
-41822. With a :class:`~drivers.abb_egm.controller_model.ControllerModel` attached, motors, RAPID
+41822. With a :class:`~drivers.abb_egm.sim.model.ControllerModel` attached, motors, RAPID
 state and the EGM arguments come from the model (RWS drives them) and session ends are reported to
 it; without one the simulator runs standalone (``motors_on`` / ``egm_enabled`` attributes).
 
@@ -172,7 +172,7 @@ class EgmFaults:
 
 
 class ControllerModelLike(Protocol):
-    """What the simulator uses of :class:`drivers.abb_egm.controller_model.ControllerModel`."""
+    """What the simulator uses of :class:`drivers.abb_egm.sim.model.ControllerModel`."""
 
     @property
     def ctrl_state(self) -> str: ...

@@ -86,7 +86,7 @@ class _Knobs(BaseModel):
 
 
 class EgmKnobs(_Knobs):
-    """EGM wire faults (:class:`drivers.abb_egm.sim_egm.EgmFaults`); a knob left out stays as it is."""
+    """EGM wire faults (:class:`drivers.abb_egm.sim.egm.EgmFaults`); a knob left out stays as it is."""
 
     loss_fraction: Fraction | None = None
     burst_ms: NonNeg | None = None
@@ -125,7 +125,7 @@ class CorruptKnobs(_Knobs):
 
 
 class LaserKnobs(_Knobs):
-    """HD8 simulator faults (:class:`drivers.laser.sim.SimFaults`)."""
+    """HD8 simulator faults (:class:`drivers.laser.sim.sensor.SimFaults`)."""
 
     disconnect_after_frames: Count | None = None
     corrupt: CorruptKnobs | None = None
@@ -216,7 +216,7 @@ def parse_assignments(items: list[str]) -> dict[str, Any]:
 
 
 class SimFaultControl:
-    """Applies fault requests to a running :class:`cellctl.simcell_service.SimulatedCell`.
+    """Applies fault requests to a running :class:`cellctl.simcell.service.SimulatedCell`.
 
     Runs on the simulator's event loop (every knob is a plain attribute change, except RWS going
     down or up, which is awaited).
@@ -233,7 +233,7 @@ class SimFaultControl:
 
         Raises FaultRequestError (code ``not_allowed``) if the controller refuses the action.
         """
-        from drivers.abb_egm.controller_model import ControllerError
+        from drivers.abb_egm.rapid_values import ControllerError
 
         ctl = self.cell.controller
         applied: list[str] = []
@@ -266,8 +266,8 @@ class SimFaultControl:
         return state
 
     async def _clear(self) -> None:
-        from drivers.abb_egm.sim_egm import EgmFaults
-        from drivers.laser.sim import SimFaults
+        from drivers.abb_egm.sim.egm import EgmFaults
+        from drivers.laser.sim.sensor import SimFaults
 
         ctl, sensor = self.cell.controller, self.cell.sensor
         ctl.egm.set_faults(**dataclasses.asdict(EgmFaults()))

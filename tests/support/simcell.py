@@ -1,11 +1,12 @@
-"""The simulated cell's acquisition wiring: controller and sensor simulators driven through their protocols.
+"""Test harness: the acquisition against the simulators in one process, driven through their protocols.
 
-One process, one event loop, loopback sockets only:
+Used by the acquisition and calibration tests and ``benchmarks/acquisition_accuracy.py`` (the
+product's simulated cell, ``cellctl sim``, is :mod:`cellctl.simcell`). One process, one event loop, loopback sockets only:
 
-* :class:`drivers.abb_egm.sim_egm.EgmControllerSim` (the controller, UDP client) talks EGM to our
+* :class:`drivers.abb_egm.sim.egm.EgmControllerSim` (the controller, UDP client) talks EGM to our
   :class:`drivers.abb_egm.endpoint.EgmEndpoint`; we stream joint references, it moves the simulated
   arm by the controller's control law and records the arm's true trajectory;
-* :class:`drivers.laser.sim.LaserSimulator` serves HD8 profiles over TCP to our
+* :class:`drivers.laser.sim.sensor.LaserSimulator` serves HD8 profiles over TCP to our
   :class:`drivers.laser.client.HD8Client`; it ray-casts the scene at the arm's **true** sensor pose at
   every exposure (true trajectory and the *true* hand-eye), stamps with its own clock (offset, drift,
   32-bit ms counter) and adds depth noise;
@@ -13,7 +14,8 @@ One process, one event loop, loopback sockets only:
   joints, controller clock) and the client's batches, exactly as the daemon would, and writes the
   job's raw files.
 
-Ground truth (plate surface, true poses) is known, so accuracy is measurable. Motions here are
+Ground truth (plate surface: :mod:`cellctl.simcell.truth`; true poses) is known, so accuracy is
+measurable. Motions here are
 simple rasters and stop-and-shoot poses generated in joint space through IK; the real scan planner
 lives in ``cellctl.planning``.
 """
@@ -31,32 +33,23 @@ from pathlib import Path
 import numpy as np
 import structlog
 
-from analysis.plates import (
-    FormingError,
-    PlateSpec,
-    default_forming_error,
-    design_mesh,
-    plate_spec,
-    surface_gradient,
-)
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.acquisition.poses import T_from_pos_rpy
 from cellctl.acquisition.rawstore import RawWriter
+from cellctl.simcell.truth import PlateTruth
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.kinematics import RobotKinematics, fk_batch
-from drivers.abb_egm.sim_egm import EgmControllerSim, EgmSimConfig
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
 from drivers.laser.client import HD8Client
-from drivers.laser.scene import Scene, cell_scene
-from drivers.laser.sim import LaserSimulator, SimConfig
+from drivers.laser.sim.scene import Scene
+from drivers.laser.sim.sensor import LaserSimulator, SimConfig
 
 __all__ = [
     "JointPath",
     "PathError",
-    "PlateTruth",
     "SimCell",
     "SimCellConfig",
     "joint_path",
-    "plate_truth",
     "raster_poses",
     "segment_profile",
     "sphere_scene",
@@ -107,70 +100,6 @@ class SimCellConfig:
     def T_flange_sensor(self) -> np.ndarray:
         """(4, 4) true hand-eye, mm."""
         return T_from_pos_rpy(self.true_sensor_in_flange_pos_mm, self.true_sensor_in_flange_rpy_deg)
-
-
-# ---------------------------------------------------------------------------------------------
-# ground truth: a formed plate on the bed
-
-
-@dataclass(frozen=True)
-class PlateTruth:
-    """A formed plate laid on the bed: its spec, forming error and pose ``T_base_plate`` (mm)."""
-
-    spec: PlateSpec
-    error: FormingError | None
-    T_base_plate: np.ndarray
-
-    def scene(self, pitch_mm: float = 4.0) -> Scene:
-        """The sensor's scene: plate solid (formed top surface), supports, bed; base frame."""
-        mesh = design_mesh(self.spec, pitch_mm=pitch_mm, error=self.error).transformed(self.T_base_plate)
-        return cell_scene(mesh.vertices_mm, mesh.triangles, thickness_mm=self.spec.thickness_mm)
-
-    def height_mm(self, x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Top-surface height and gradient at plate-frame (x, y)."""
-        if self.error is None:
-            err = FormingError()
-        else:
-            err = self.error
-        return surface_gradient(self.spec, err, x_mm, y_mm)
-
-    def distance_mm(
-        self, xyz_base_mm: np.ndarray, edge_margin_mm: float = 10.0
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Signed distance of base-frame points to the true top surface, along its normal.
-
-        Returns ``(d_mm (k,), inside (k,) bool)``: ``inside`` marks points over the plate at least
-        ``edge_margin_mm`` from its edges (the accuracy target is stated away from edges).
-        """
-        T_inv = np.linalg.inv(self.T_base_plate)
-        p = np.asarray(xyz_base_mm, dtype=np.float64) @ T_inv[:3, :3].T + T_inv[:3, 3]
-        h, gx, gy = self.height_mm(p[:, 0], p[:, 1])
-        d = (p[:, 2] - h) / np.sqrt(1.0 + gx**2 + gy**2)
-        inside = (np.abs(p[:, 0]) <= self.spec.length_mm / 2 - edge_margin_mm) & (
-            np.abs(p[:, 1]) <= self.spec.width_mm / 2 - edge_margin_mm
-        )
-        return d, inside
-
-    def to_base(self, xyz_plate_mm: np.ndarray) -> np.ndarray:
-        """Plate-frame points (k, 3) into the base frame."""
-        return np.asarray(xyz_plate_mm) @ self.T_base_plate[:3, :3].T + self.T_base_plate[:3, 3]
-
-
-def plate_truth(
-    kind: str = "sail",
-    *,
-    pos_mm: Sequence[float] = (1500.0, 0.0, 300.0),
-    angle_deg: float = 3.0,
-    forming_error: bool = True,
-    **spec_overrides: float,
-) -> PlateTruth:
-    """The cell.toml ``[sim.plate]`` / ``[sim.placement]`` plate (defaults: the 1200 x 800 sail)."""
-    spec = plate_spec(kind, **spec_overrides)
-    return PlateTruth(
-        spec=spec,
-        error=default_forming_error(spec) if forming_error else None,
-        T_base_plate=T_from_pos_rpy(pos_mm, (0.0, 0.0, angle_deg)),
-    )
 
 
 # ---------------------------------------------------------------------------------------------
