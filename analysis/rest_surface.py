@@ -99,6 +99,32 @@ def _extent(inv: np.ndarray, v: np.ndarray, m: int) -> tuple[np.ndarray, np.ndar
     return lo, hi
 
 
+TRIM_SIGMAS = 3.0
+
+
+def _patch_planes(
+    inv: np.ndarray, m: int, P: np.ndarray, gap: np.ndarray, w: np.ndarray, sigma: float
+) -> tuple[np.ndarray, ...]:
+    """Weighted plane of the gaps per patch: (centroid (m, 3), mean gap, slope x, slope y, dx (n,),
+    dy (n,) the points' offsets from their centroid, chi-square of the slope, weight sum)."""
+    n_w = np.bincount(inv, weights=w, minlength=m)
+    safe_n = np.maximum(n_w, 1.0)
+    mean = np.column_stack([np.bincount(inv, weights=w * P[:, k], minlength=m) / safe_n for k in range(3)])
+    mean_gap = np.bincount(inv, weights=w * gap, minlength=m) / safe_n
+    dx, dy = P[:, 0] - mean[inv, 0], P[:, 1] - mean[inv, 1]
+    dg = gap - mean_gap[inv]
+    sxx, sxy, syy = (np.bincount(inv, weights=w * v, minlength=m) for v in (dx * dx, dx * dy, dy * dy))
+    sxg = np.bincount(inv, weights=w * dx * dg, minlength=m)
+    syg = np.bincount(inv, weights=w * dy * dg, minlength=m)
+    det = sxx * syy - sxy**2
+    ok = det > 1e-12 * np.maximum(sxx * syy, 1e-300)
+    safe = np.where(ok, det, 1.0)
+    b_x = np.where(ok, (syy * sxg - sxy * syg) / safe, 0.0)
+    b_y = np.where(ok, (sxx * syg - sxy * sxg) / safe, 0.0)
+    chi2 = (b_x * sxg + b_y * syg) / max(sigma, 1e-12) ** 2  # the slope's explained sum over sigma^2
+    return mean, mean_gap, b_x, b_y, dx, dy, chi2, n_w
+
+
 def max_normal_quantile(count: int, confidence: float) -> float:
     """q with P(max of ``count`` independent standard normals < q) = ``confidence``."""
     if count < 1 or not 0.0 < confidence < 1.0:
@@ -153,7 +179,7 @@ def rest_surface(
     max_cell_mm: float = 20.0,
     min_cell_mm: float = 1.0,
     noise_cell_mm: float = 2.0,
-    edge_corners: bool = False,
+    edge_corners: bool = True,
     up: np.ndarray = np.array([0.0, 0.0, 1.0]),
 ) -> RestSurface:
     """The patch estimate of the plate (see the module docstring) at the pose ``T_meas_design``.
@@ -161,8 +187,8 @@ def rest_surface(
     surface: the design's height field; points_mm: (n, 3) plate top-surface points, measured frame;
     T_meas_design: (4, 4) design -> measured, near the final pose (after ICP). noise_mm: None
     estimates sigma from the data (:func:`noise_from_gaps`). ``edge_corners`` also holds sloped
-    patches on the plate's edge at their corners (springback; off by default: at 0.1 mm noise the
-    corner extrapolations, 7x the variance, lifted a dented plate's design by 0.7 sigma). Raises
+    patches on the plate's edge at their corners (springback: without, a 600 x 400 sail with 1 mm
+    springback sank 0.17 mm below its raised corners). Raises
     RegistrationError when fewer than 6 patches remain.
     """
     P = np.asarray(points_mm, dtype=np.float64)
@@ -197,24 +223,21 @@ def rest_surface(
             f"rest surface: only {int(keep.sum())} patches of {cell:.1f} mm hold {n_min} points "
             f"(span {hi - lo} mm)"
         )
-    mean = np.empty((len(count), 3))
-    for k in range(3):
-        mean[:, k] = np.bincount(inv, weights=P[:, k]) / count
-    mean_gap = np.bincount(inv, weights=gap) / count
-    # per patch, the plane of the gaps about the centroid: a patch on the plate's edge whose slope is
-    # significant (springback raising the edge) is held at the corners of its points' extent as
+    # per patch, the plane of the gaps about the centroid, fitted twice: the second time without the
+    # points more than TRIM_SIGMAS off the first plane (the edge band's points of the thickness face,
+    # outliers the segmentation's 6-sigma test let through). A patch on the plate's edge whose slope
+    # is significant (springback raising the edge) is held at the corners of its points' extent as
     # well -- its centroid alone would let the design dip below the raised edge. Inside the plate
     # the centroid serves: a plane extrapolated to the corners reads a dent's rim too high.
-    dx, dy = P[:, 0] - mean[inv, 0], P[:, 1] - mean[inv, 1]
-    dg = gap - mean_gap[inv]
-    sxx, sxy, syy = (np.bincount(inv, weights=w) for w in (dx * dx, dx * dy, dy * dy))
-    sxg, syg = np.bincount(inv, weights=dx * dg), np.bincount(inv, weights=dy * dg)
-    det = sxx * syy - sxy**2
-    safe = np.where(det > 0, det, 1.0)
-    b_x = np.where(det > 0, (syy * sxg - sxy * syg) / safe, 0.0)
-    b_y = np.where(det > 0, (sxx * syg - sxy * sxg) / safe, 0.0)
-    chi2 = (b_x * sxg + b_y * syg) / max(sigma, 1e-12) ** 2  # the slope's explained sum over sigma^2
+    w = np.ones(len(P))
+    for _ in range(2):
+        mean, mean_gap, b_x, b_y, dx, dy, chi2, n_w = _patch_planes(inv, len(count), P, gap, w, sigma)
+        resid = gap - mean_gap[inv] - b_x[inv] * dx - b_y[inv] * dy
+        w = (np.abs(resid) <= TRIM_SIGMAS * sigma).astype(np.float64)
+    count = n_w.astype(np.int64)
+    keep &= count >= n_min
     sloped = keep & border & (chi2 > SLOPE_CHI2) & edge_corners
+    dx, dy = np.where(w > 0, dx, 0.0), np.where(w > 0, dy, 0.0)  # the extent of the points kept
     x_lo, x_hi = _extent(inv, dx, len(count))
     y_lo, y_hi = _extent(inv, dy, len(count))
     reps = [mean[keep]]
