@@ -179,6 +179,7 @@ def fit_line_template(
     max_iterations: int = 30,
     tolerance_mm: float = 1e-6,
     rel_tolerance: float = 1e-9,
+    slide_weight: float = 1e-3,
 ) -> LineFitResult:
     """Rest the design section on the samples: least squares, no sample above the template.
 
@@ -186,8 +187,9 @@ def fit_line_template(
     rest_s_mm, rest_h_mm: (m,) the samples it rests on. Unknowns: rotation (about the samples'
     centroid) and translation in the section plane. Each step linearises the moved polyline's height
     at the samples, ``dh = (s - c_s) dtheta + dt_h - h'(s) (dt_s - (h - c_h) dtheta)``, and solves the
-    one-sided QP exactly; the sliding of a straight section along itself costs nothing and is held
-    by a small damping. Steps are halved until they lower the objective of the pose lifted into
+    one-sided QP exactly. The slide along the line is held near the rigid fit's placement by a
+    penalty ``slide_weight`` x samples x shift_s^2 (the sliding of a straight or circular section
+    along itself costs nothing else, and noise would drive it). Steps are halved until they lower the objective of the pose lifted into
     contact; the fit stops when a step is below ``tolerance_mm`` or gains less than
     ``rel_tolerance`` of the objective. Ends with that lift (lowest gap 0).
     """
@@ -211,6 +213,11 @@ def fit_line_template(
     fit = LineFitResult(0.0, 0.0, 0.0, cs, ch, 0.0, 0.0, 0.0, len(sm), 0, 0, False)
     lift = np.array([0.0, 0.0, 1.0])
 
+    # the slide along the line is held by the rigid fit's placement (the plate's corners), as a
+    # worker lines a template up with the line's marks: weight slide_weight per sample, as the 3D
+    # fit's corner anchoring
+    anchor = slide_weight * len(sm)
+
     def heights(f: LineFitResult) -> np.ndarray:
         # the moved section at the samples, its end segments extended: a sample the motion moves
         # just past an end keeps its cost (else the fit could gain by sliding samples off)
@@ -226,7 +233,7 @@ def fit_line_template(
         # feasible twin along h, so this ranks poses without a feasibility test
         g = heights(f) - hm
         g = g - g.min()
-        return float(g @ g)
+        return float(g @ g) + anchor * f.shift_s_mm**2
 
     best = merit(fit)
     converged, it = False, 0
@@ -237,7 +244,8 @@ def fit_line_template(
         k = np.interp(sm, s2, np.gradient(h2, s2))
         J = np.column_stack([((sm - cs) + k * (h_at - ch)) / scale, -k, np.ones(len(sm))])
         damping = DAMPING * float(np.einsum("ij,ij->", J, J)) / 3.0
-        x, _, _ = solve_onesided_qp(J, gap, lift, damping)
+        K = math.sqrt(anchor) * np.array([[0.0, 1.0, 0.0]])
+        x, _, _ = solve_onesided_qp(J, gap, lift, damping, K, math.sqrt(anchor) * np.array([t[0]]))
         # the linear model overreaches along a nearly free slide (an arc along itself): halve the
         # step until the merit falls
         for _ in range(10):
