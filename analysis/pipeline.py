@@ -21,11 +21,15 @@ triangulated between neighbouring filled cells. The cell is sized so that it ave
 scan points (about 1.6 mm at HD8 density), which divides the sensor noise by 4, and the grid keeps
 the cost linear in the number of points where a Delaunay triangulation of millions would not be.
 
-ICP and the non-penetrating fit run on that reconstructed surface, every cell of it. A template
-rests on the plate, not on the sensor's noise: fitted to raw points, the design would be lifted by
-the most negative noise sample (about 4 sigma, 0.08 mm at 0.02 mm noise) and every Zmax would read
-that much too high. ``penetration_points`` counts reconstructed-surface points below the design
-(0 after the fit); ``raw_points_below_4sigma`` reports raw points more than 4 noise sigmas below it.
+ICP runs on that reconstructed surface. The non-penetrating fit rests the design on patch
+estimates of the plate whose noise bias is bounded (``analysis.rest_surface``: the noise measured
+from the data, patch means of the gaps to the design sized so the highest patch error stays below
+0.25 sigma with 99 % confidence): rested on raw points or 16-point cell means, the design floated on
+the highest noise excursion (1.75 sigma) and every Zmax read that much too high. The sections are
+smoothed at the cell means' noise. ``penetration_points`` counts resting-surface points below the
+design (0 after the fit); ``raw_points_below_4sigma`` reports raw points more than 4 noise sigmas
+below it. ``template_fit`` chooses one template for the plate (rigid, the paper's 3D fit) or one
+per line (``analysis.template_fit``, the paper's 2D case); docs/metrology.md has the details.
 """
 
 from __future__ import annotations
