@@ -1,7 +1,7 @@
 """Accuracy of the assembled cloud on a simulated scan of the 1200 x 800 sail plate.
 
 The simulated cell (controller simulator over EGM, HD8 simulator over TCP, both on loopback; see
-cellctl/acquisition/simcell.py) scans the formed sail plate with straight raster passes, forward and
+tests/support/simcell.py) scans the formed sail plate with straight raster passes, forward and
 backward, at ``--speed`` mm/s. The sensor clock runs 30 ms ahead of the host and drifts 50 ppm; depth
 noise 0.02 mm. The time offset is first calibrated on a short back-and-forth scan (as commissioning
 would), then the plate scan is assembled three ways from its raw files:

@@ -4,7 +4,7 @@
 
 The cell runs as real processes (`cellctl sim`, `cellctl run`, `cellctl worker`) on loopback, the
 tiny plate of the e2e tests (a scan of ~30 s). The worker reaches the daemon through a loopback TCP
-forwarder (tests/faults/tcp_forwarder.py), so the link between them can be cut. Each job draws one
+forwarder (tests/support/tcp_forwarder.py), so the link between them can be cut. Each job draws one
 fault (seeded; every fault once before any twice) from :data:`FAULTS`: EGM loss, bursts,
 duplicates/reordering and silence, sensor corrupt frames, stall, disconnect and clock jump, RWS slow
 or answering 503, motors off and the emergency stop (then the operator's reset), all through the
@@ -37,16 +37,14 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
-for _p in (REPO, REPO / "tests" / "faults", REPO / "tests" / "e2e"):
-    if str(_p) not in sys.path:
-        sys.path.insert(0, str(_p))
-
-from cellfaults import kill9_tree, stop_cell, wait_until, worker_config_via  # noqa: E402
-from faultcell import FaultCell, check_job_data, fault_cell_config  # noqa: E402
-from tcp_forwarder import TcpForwarder  # noqa: E402
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
 
 from cellctl.commands.demo_cmd import Processes  # noqa: E402
 from cellctl.logging import configure_logging  # noqa: E402
+from tests.support.cellfaults import kill9_tree, stop_cell, wait_until, worker_config_via  # noqa: E402
+from tests.support.faultcell import FaultCell, check_job_data, fault_cell_config  # noqa: E402
+from tests.support.tcp_forwarder import TcpForwarder  # noqa: E402
 
 #: name -> (kind, scan fraction at which it is injected, fault-channel request or None). Kinds:
 #: egm / sensor / rws / controller / estop go through the simulator's fault channel mid-scan;

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import statistics
 import subprocess
 import sys
@@ -33,12 +32,7 @@ sys.path.insert(0, str(REPO))
 from cellctl.cloud_codec import ENCODING, Cloud, decode_cloud, encode_cloud  # noqa: E402
 from cellctl.config import ZenohSection  # noqa: E402
 from cellctl.zenoh_session import build_zenoh_config, close_session, open_session  # noqa: E402
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.support.ports import free_port  # noqa: E402
 
 
 def make_cloud(n: int, job_id: str) -> Cloud:
@@ -107,7 +101,7 @@ def main() -> None:
 
 
 def run(args: argparse.Namespace) -> None:
-    port = _free_port()
+    port = free_port()
     prefix = f"bench/zc{os.getpid()}"
     section = ZenohSection(listen=[f"tcp/127.0.0.1:{port}"])
     session = open_session(build_zenoh_config(section, role="serve"), what="bench daemon")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import structlog
 
-from cellctl.acquisition.poses import interpolate_poses, transform_profiles
+from cellctl.acquisition.poses import interpolate_poses, transform_profiles_within
 
 log = structlog.get_logger(__name__)
 
@@ -143,10 +143,10 @@ def assemble_batch(
     ok = valid if all_inside else valid & inside[:, None]
     # the source's z is NaN where it has no return; only profiles without a pose need masking here
     z = z_mm if all_inside else np.where(ok, z_mm, np.float32(np.nan))
-    xyz = transform_profiles(T, x_mm, z)
     # A point this far from the robot base is not a measurement (a corrupted value upstream, seen on
     # fault-injected runs as 1e20-1e36 mm); it must not reach the analysis as a plate point.
-    absurd = ok & ~(np.abs(xyz) < MAX_ABS_MM).all(axis=2)
+    xyz, within = transform_profiles_within(T, x_mm, z, MAX_ABS_MM)
+    absurd = ok & ~within
     if absurd.any():
         log.warning("absurd_points_dropped", points=int(absurd.sum()), first_profile=first_profile_index)
         ok = ok & ~absurd

@@ -272,7 +272,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from analysis.mesh import save_mesh
     from analysis.plates import design_mesh, plate_spec
-    from cellctl.tables import line_table
+    from cellctl.commands.tables import line_table
 
     t0 = time.monotonic()
     try:

@@ -51,8 +51,8 @@ def run(args: argparse.Namespace) -> int:
     from analysis.pipeline import inspect_cloud, write_results
     from analysis.report import write_report
     from cellctl.analysis_settings import inspection_settings
+    from cellctl.commands.tables import line_table
     from cellctl.config import AnalysisSection
-    from cellctl.tables import line_table
 
     try:
         placement = _parse_placement(args.placement) if args.placement else None

@@ -219,7 +219,7 @@ def _runner(coro_fn):
 
 async def _scan(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
-    from cellctl.tables import line_table
+    from cellctl.commands.tables import line_table
     from cellctl.zenoh_session import close_session
 
     try:

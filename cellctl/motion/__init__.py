@@ -1,4 +1,5 @@
-"""Motion: the safety envelope every set-point passes, and the EGM executor that streams a plan."""
+"""Motion: the timed trajectory, the safety envelope every set-point passes, and the EGM executor that
+streams a trajectory. Planning builds on it; motion imports nothing of planning."""
 
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.motion.executor import (
@@ -9,6 +10,7 @@ from cellctl.motion.executor import (
     MotionExecutor,
     ProgressEvent,
 )
+from cellctl.motion.trajectory import TimedTrajectory
 
 __all__ = [
     "EnvelopeLimits",
@@ -20,4 +22,5 @@ __all__ = [
     "MotionExecutor",
     "ProgressEvent",
     "SafetyEnvelope",
+    "TimedTrajectory",
 ]

@@ -38,7 +38,7 @@ import structlog
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
 
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
-from cellctl.planning.plan import TimedTrajectory
+from cellctl.motion.trajectory import TimedTrajectory
 from drivers.abb_egm.endpoint import EgmEndpoint
 from drivers.abb_egm.kinematics import fk_batch
 

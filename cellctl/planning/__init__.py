@@ -11,7 +11,6 @@ from cellctl.planning.plan import (
     PlanRefused,
     ScanPlan,
     Segment,
-    TimedTrajectory,
 )
 from cellctl.planning.planner import plan_scan
 from cellctl.planning.settings import PlannerSettings
@@ -24,6 +23,5 @@ __all__ = [
     "PlannerSettings",
     "ScanPlan",
     "Segment",
-    "TimedTrajectory",
     "plan_scan",
 ]

@@ -17,6 +17,7 @@ import structlog
 
 from analysis.mesh import TriMesh
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
+from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
 from cellctl.planning.joint_path import check_reach, first_configuration, sensor_kinematics, solve_joint_path
 from cellctl.planning.plan import (
@@ -25,7 +26,6 @@ from cellctl.planning.plan import (
     PlanInputError,
     PlanRefused,
     ScanPlan,
-    TimedTrajectory,
     pose_matrix,
 )
 from cellctl.planning.settings import PlannerSettings

@@ -29,7 +29,8 @@ import toppra.algorithm as ta_algo
 import toppra.constraint as ta_constraint
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
-from cellctl.planning.plan import PlanRefused, Segment, TimedTrajectory
+from cellctl.motion.trajectory import TimedTrajectory
+from cellctl.planning.plan import PlanRefused, Segment
 from cellctl.planning.settings import PlannerSettings
 from drivers.abb_egm.kinematics import fk_batch
 

@@ -11,7 +11,11 @@
 One ``aiohttp.ClientSession`` with a cookie jar holds the controller session. A 401 on a request made
 with a session cookie means the controller dropped the session (idle timeout, restart): the client
 logs in again once and repeats the request. Every request has a bounded timeout. A non-2xx answer
-raises ``RwsError`` carrying the HTTP status and the controller's return code and message.
+raises ``RwsError`` carrying the HTTP status and the controller's return code and message, read from
+either profile's error body (RWS 1.0: ``status`` under ``_embedded``; RWS 2.0: at the top level;
+XHTML ``<div class="status">``). XHTML answers are read into the same shape as JSON ones, and list
+resources are read page by page along ``_links.next``. Only endpoints of ABB's RWS documentation
+are used; ``docs/robot-setup.md`` lists which were checked against captured controller answers.
 
 Usage::
 
@@ -30,13 +34,14 @@ import base64
 import contextlib
 import functools
 import html
+import json
 import re
 import secrets
 import ssl
 from collections.abc import AsyncIterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
-from urllib.parse import quote, urlsplit
+from typing import Any, Literal, NamedTuple
+from urllib.parse import parse_qsl, quote, urljoin, urlsplit
 
 import aiohttp
 import numpy as np
@@ -146,7 +151,8 @@ class ExecutionState:
 
 @dataclass(frozen=True)
 class ElogEntry:
-    """One event-log message. ``msgtype``: 1 info, 2 warning, 3 error."""
+    """One event-log message. ``msgtype``: 1 info, 2 warning, 3 error; ``tstamp`` as the controller
+    writes it (``2024-01-10 T 14:53:00``, controller clock); texts empty unless a language was asked."""
 
     seqnum: int
     msgtype: int
@@ -154,6 +160,32 @@ class ElogEntry:
     title: str
     desc: str
     tstamp: str
+    conseqs: str = ""
+    causes: str = ""
+    actions: str = ""
+    args: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class TaskState:
+    """One RAPID task as ``/rw/rapid/tasks`` lists it (``excstate``: ready, started, stopped, ...)."""
+
+    name: str
+    type: str
+    taskstate: str
+    excstate: str
+    active: bool
+    motiontask: bool
+
+
+@dataclass(frozen=True)
+class SignalState:
+    """One IO signal as ``/rw/iosystem/signals`` lists it; ``path`` is ``network/device/name``."""
+
+    name: str
+    path: str
+    type: str
+    lvalue: float
 
 
 @dataclass(frozen=True)
@@ -231,30 +263,155 @@ def _states(body: Any) -> list[dict[str, Any]]:
     return []
 
 
-_LI_RE = re.compile(r'<li class="([^"]+)" title="([^"]*)">(.*?)</li>', re.S)
-_SPAN_RE = re.compile(r'<span class="([^"]+)">(.*?)</span>', re.S)
+_LI_RE = re.compile(r"<li\b([^>]*)>(.*?)</li>", re.S)
+_ATTR_RE = re.compile(r'([\w:-]+)\s*=\s*"([^"]*)"')
+_SPAN_RE = re.compile(r"<span\b([^>]*?)(?:/>|>(.*?)</span>)", re.S)
+_A_RE = re.compile(r"<a\b([^>]*?)/?>", re.S)
+_BASE_RE = re.compile(r'<base\s+href\s*=\s*"([^"]*)"', re.S)
+_STATUS_RE = re.compile(r'<div class="status">(.*?)</div>', re.S)
+_WS_HREF_RE = re.compile(r'<a\s+href\s*=\s*"(wss?://[^"]+/poll/[^"/]+)"\s+rel="(?:self|events)"')
+
+
+def _attrs(text: str) -> dict[str, str]:
+    return {k: html.unescape(v) for k, v in _ATTR_RE.findall(text)}
+
+
+def parse_xhtml(text: str) -> dict[str, Any]:
+    """An RWS XHTML answer as the JSON envelope of RWS 1.0: ``{"_links": {...}, "_embedded": {"_state": [...]}}``.
+
+    Each ``<li class=.. title=..>`` becomes an item with ``_type`` / ``_title``, one field per
+    ``<span class=..>`` (``<span class="x"/>`` is ``""``), ``argN`` spans collected in ``argv`` and its
+    ``rel="self"`` link in ``_links``; the page's ``self`` / ``next`` links and ``<base href>`` go to
+    ``_links``. An error page (``<div class="status">``) gives ``{"_embedded": {"status": {code, msg}}}``.
+    """
+    links: dict[str, Any] = {}
+    if m := _BASE_RE.search(text):
+        links["base"] = {"href": html.unescape(m.group(1))}
+    if m := _STATUS_RE.search(text):
+        spans = {
+            _attrs(a).get("class", ""): html.unescape(v or "").strip()
+            for a, v in _SPAN_RE.findall(m.group(1))
+        }
+        status: dict[str, Any] = {"msg": spans.get("msg", "")}
+        if "code" in spans:
+            status["code"] = spans["code"]
+        return {"_links": links, "_embedded": {"status": status, "_state": []}}
+    outside = _LI_RE.sub("", text)
+    for a in _A_RE.findall(outside):
+        at = _attrs(a)
+        if at.get("rel") in ("self", "next") and "href" in at:
+            links.setdefault(at["rel"], {"href": at["href"]})
+    items: list[dict[str, Any]] = []
+    for li_attrs, inner in _LI_RE.findall(text):
+        at = _attrs(li_attrs)
+        item: dict[str, Any] = {"_type": at.get("class", ""), "_title": at.get("title", "")}
+        for a in _A_RE.findall(inner):
+            a_at = _attrs(a)
+            if a_at.get("rel") == "self" and "href" in a_at:
+                item["_links"] = {"self": {"href": a_at["href"]}}
+        argv = []
+        for span_attrs, value in _SPAN_RE.findall(inner):
+            sp = _attrs(span_attrs)
+            name, val = sp.get("class", ""), html.unescape(value or "")
+            if re.fullmatch(r"arg\d+", name):
+                argv.append({"type": sp.get("type", ""), "value": val})
+            elif name:
+                item[name] = val
+        if argv:
+            item["argv"] = argv
+        items.append(item)
+    return {"_links": links, "_embedded": {"_state": items}}
+
+
+def _self_href(item: dict[str, Any]) -> str:
+    link = item.get("_links")
+    return str(link.get("self", {}).get("href", "")) if isinstance(link, dict) else ""
 
 
 def parse_event_xhtml(text: str) -> list[StateChange]:
-    """Parse an RWS 1.0 subscription event (XHTML fragment) into state changes."""
+    """Parse a subscription event page (XHTML, both profiles; also the 201 answer) into state changes.
+
+    ``elog`` changes carry the event code when the page names it; the controller's event pages name
+    only the sequence number (``value`` is then ``""``).
+    """
     out: list[StateChange] = []
-    for cls, title, inner in _LI_RE.findall(text):
-        spans = {k: html.unescape(v) for k, v in _SPAN_RE.findall(inner)}
-        if cls == "pnl-ctrlstate-ev" and "ctrlstate" in spans:
-            out.append(StateChange("ctrlstate", "ctrlstate", spans["ctrlstate"]))
-        elif cls == "pnl-opmode-ev" and "opmode" in spans:
-            out.append(StateChange("opmode", "opmode", spans["opmode"]))
-        elif cls == "rap-ctrlexecstate-ev" and "ctrlexecstate" in spans:
-            out.append(StateChange("execution", "ctrlexecstate", spans["ctrlexecstate"]))
-        elif cls == "rap-data" and "value" in spans:
-            name = spans.get("name") or html.unescape(title).rstrip("/").split("/")[-1]
-            out.append(StateChange("rapid-data", name, spans["value"]))
-        elif cls == "ios-signalstate-ev" and "lvalue" in spans:
-            name = spans.get("name") or html.unescape(title).split("/")[-1]
-            out.append(StateChange("signal", name, spans["lvalue"]))
+    items = _states(parse_xhtml(text))
+    pending_var = ""  # RWS 1.0 sends the variable's path in a rap-value-ev item before its rap-data
+    for it in items:
+        cls, href = it["_type"], _self_href(it)
+        if cls == "pnl-ctrlstate-ev" and "ctrlstate" in it:
+            out.append(StateChange("ctrlstate", "ctrlstate", it["ctrlstate"]))
+        elif cls == "pnl-opmode-ev" and "opmode" in it:
+            out.append(StateChange("opmode", "opmode", it["opmode"]))
+        elif cls == "rap-ctrlexecstate-ev" and "ctrlexecstate" in it:
+            out.append(StateChange("execution", "ctrlexecstate", it["ctrlexecstate"]))
+        elif cls == "rap-value-ev":
+            pending_var = href
+        elif cls == "rap-data" and "value" in it:
+            where = it.get("name") or it["_title"] or href or pending_var
+            name = where.split(";")[0].rstrip("/").removesuffix("/data").split("/")[-1]
+            out.append(StateChange("rapid-data", name, it["value"]))
+            pending_var = ""
+        elif cls == "ios-signalstate-ev" and "lvalue" in it:
+            where = it.get("name") or href or it["_title"]
+            out.append(StateChange("signal", where.split(";")[0].split("/")[-1], it["lvalue"]))
         elif cls == "elog-message-ev":
-            out.append(StateChange("elog", spans.get("seqnum", ""), spans.get("code", "")))
+            seq = it.get("seqnum") or href.rstrip("/").split("/")[-1]
+            out.append(StateChange("elog", seq, it.get("code", "")))
     return out
+
+
+def subscription_ws_url(headers: Mapping[str, str], body: str) -> str:
+    """The websocket URL of a new subscription: the ``Location`` header, else the body's
+    ``<a href="ws://.../poll/N" rel="self">`` (some RobotWare 6 controllers send only that)."""
+    location = headers.get("Location", "")
+    if location:
+        return location
+    m = _WS_HREF_RE.search(body)
+    if m is None:
+        raise RwsProtocolError("subscription answer names no websocket (no Location, no ws:// link)")
+    return html.unescape(m.group(1))
+
+
+def error_status(text: str, parsed: Any) -> tuple[int | None, str]:
+    """The controller's return code and message of an error body, whichever shape it has: RWS 1.0
+    JSON (``status`` under ``_embedded``), RWS 2.0 JSON (``status`` at the top level), XHTML
+    (``<div class="status">``); JSON is recognised also under a wrong Content-Type."""
+    if parsed is None and text.lstrip().startswith("{"):
+        with contextlib.suppress(ValueError):
+            parsed = json.loads(text)
+    if parsed is None and "<" in text:
+        parsed = parse_xhtml(text)
+    code: Any = None
+    msg = text[:200]
+    if isinstance(parsed, dict):
+        emb = parsed.get("_embedded")
+        st = parsed.get("status")
+        if not (isinstance(st, dict) and "code" in st) and isinstance(emb, dict):
+            st = emb.get("status")
+        if isinstance(st, dict):
+            code, msg = st.get("code"), str(st.get("msg", msg))
+        else:
+            items = _states(parsed)
+            if items and isinstance(items[0], dict) and "code" in items[0]:
+                code, msg = items[0].get("code"), str(items[0].get("msg", msg))
+    if isinstance(code, str):
+        try:
+            code = int(code)
+        except ValueError:
+            code = None
+    if isinstance(code, bool) or not isinstance(code, int):
+        code = None
+    return code, msg
+
+
+class _Answer(NamedTuple):
+    """One answer: HTTP status, the body as JSON (XHTML parsed into the same shape), headers, raw text."""
+
+    status: int
+    body: Any
+    headers: Mapping[str, str]
+    text: str
 
 
 class RwsClient:
@@ -337,7 +494,10 @@ class RwsClient:
         return "&".join(f"{quote(k, safe='')}={quote(v, safe='')}" for k, v in items)
 
     def _path_qs(self, path: str, query: dict[str, str] | None) -> str:
-        q = dict(query or {})
+        # A path may carry its own query (a controller's _links.next); the arguments' query adds to it.
+        path, _, own = path.partition("?")
+        q = dict(parse_qsl(own, keep_blank_values=True))
+        q.update(query or {})
         if self.config.profile == "rws1":
             q.setdefault("json", "1")
         if not q:
@@ -352,8 +512,8 @@ class RwsClient:
         query: dict[str, str] | None = None,
         form: Sequence[tuple[str, str]] | dict[str, str] | None = None,
         relogin: bool = True,
-    ) -> tuple[int, Any, Mapping[str, str]]:
-        """Send one request; handles the 401 challenge, stale sessions and errors. Returns (status, body, headers)."""
+    ) -> _Answer:
+        """Send one request; handles the 401 challenge, stale sessions and errors."""
         if not self._logged_in:
             # One login at a time: concurrent first requests would otherwise each open a session.
             async with self._login_lock:
@@ -367,7 +527,7 @@ class RwsClient:
         query: dict[str, str] | None,
         form: Sequence[tuple[str, str]] | dict[str, str] | None,
         relogin: bool,
-    ) -> tuple[int, Any, Mapping[str, str]]:
+    ) -> _Answer:
         http = self._session()
         path_qs = self._path_qs(path, query)
         body = self._encode_form(form)
@@ -392,7 +552,8 @@ class RwsClient:
                         ) from err
                     if status == 401:
                         challenge = resp.headers.get("WWW-Authenticate", "")
-                        stale = parse_auth_params(challenge).get("stale") == "true"
+                        # RFC 2617 says "true"; the controller writes stale="FALSE" / "TRUE".
+                        stale = parse_auth_params(challenge).get("stale", "").lower() == "true"
                         if auth is not None and not stale:
                             self._logged_in = False
                             raise RwsAuthError(
@@ -421,16 +582,25 @@ class RwsClient:
                         self.logins += 1
                         sent_credentials = False
                     parsed: Any = None
-                    if text and "json" in resp.headers.get("Content-Type", ""):
+                    ctype = resp.headers.get("Content-Type", "")
+                    if text and "json" in ctype:
                         try:
-                            parsed = await resp.json(content_type=None)
+                            parsed = json.loads(text)
                         except ValueError as err:
-                            raise RwsError(
-                                f"malformed JSON body: {text[:80]!r}", status=status, method=method, path=path
-                            ) from err
+                            if status < 400:
+                                raise RwsError(
+                                    f"malformed JSON body: {text[:80]!r}",
+                                    status=status,
+                                    method=method,
+                                    path=path,
+                                ) from err
+                    elif text and "xml" in ctype:
+                        parsed = parse_xhtml(text)
                     if status >= 400:
-                        raise self._error_from(status, parsed, text, method, path)
-                    return status, parsed, resp.headers
+                        code, msg = error_status(text, parsed)
+                        cls = RwsBusyError if status == 503 else RwsError
+                        raise cls(msg, status=status, code=code, method=method, path=path)
+                    return _Answer(status, parsed, resp.headers, text)
             except TimeoutError as err:
                 raise RwsTimeoutError(
                     f"no answer within {self.config.timeout_s} s", method=method, path=path
@@ -441,29 +611,30 @@ class RwsClient:
             "login did not complete after repeated challenges", status=401, method=method, path=path
         )
 
-    @staticmethod
-    def _error_from(status: int, parsed: Any, text: str, method: str, path: str) -> RwsError:
-        code: int | None = None
-        msg = text[:200]
-        if isinstance(parsed, dict):
-            st = parsed.get("status")
-            if isinstance(st, dict):
-                code = st.get("code")
-                msg = st.get("msg", msg)
-            else:
-                items = _states(parsed)
-                if items and "code" in items[0]:
-                    code, msg = items[0].get("code"), items[0].get("msg", msg)
-        if isinstance(code, str):
-            try:
-                code = int(code)
-            except ValueError:
-                code = None
-        cls = RwsBusyError if status == 503 else RwsError
-        return cls(msg, status=status, code=code, method=method, path=path)
+    async def _get_all(self, path: str, query: dict[str, str] | None = None) -> list[dict[str, Any]]:
+        """The items of a list resource, following ``_links.next`` page by page (at most 1000 pages)."""
+        items: list[dict[str, Any]] = []
+        next_path: str | None = path
+        seen: set[str] = set()
+        while next_path is not None and len(seen) < 1000:
+            seen.add(next_path)
+            body = (await self._request("GET", next_path, query=query)).body
+            items += [it for it in _states(body) if isinstance(it, dict)]
+            next_path = None
+            links = body.get("_links") if isinstance(body, dict) else None
+            nxt = links.get("next") if isinstance(links, dict) else None
+            if isinstance(nxt, dict) and nxt.get("href"):
+                base = links.get("base", {}).get("href") if isinstance(links.get("base"), dict) else None
+                # "signals?start=3&amp;limit=3": RobotWare 7 XML-escapes the & inside its JSON links
+                href = html.unescape(str(nxt["href"]))
+                target = urlsplit(urljoin(str(base or self._base + path), href))
+                candidate = target.path + (f"?{target.query}" if target.query else "")
+                next_path = candidate if candidate not in seen else None
+                query = None  # the next link carries the query of the page it names
+        return items
 
     async def _get_state(self, path: str, query: dict[str, str] | None = None) -> dict[str, Any]:
-        _, body, _ = await self._request("GET", path, query=query)
+        body = (await self._request("GET", path, query=query)).body
         items = _states(body)
         if not items or not isinstance(items[0], dict):
             raise RwsProtocolError("answer holds no state item", method="GET", path=path)
@@ -618,24 +789,88 @@ class RwsClient:
 
     # ---- event log, position ------------------------------------------------------------------
 
+    @staticmethod
+    def _elog_entry(it: dict[str, Any]) -> ElogEntry:
+        seq = it.get("seqnum") or str(it.get("_title", "")).rsplit("/", 1)[-1]
+        argv = it.get("argv") or []
+        return ElogEntry(
+            seqnum=int(seq),
+            msgtype=int(it.get("msgtype", 0)),
+            code=int(it.get("code", 0)),
+            title=str(it.get("title", "")),
+            desc=str(it.get("desc", "")),
+            tstamp=str(it.get("tstamp", "")),
+            conseqs=str(it.get("conseqs", "")),
+            causes=str(it.get("causes", "")),
+            actions=str(it.get("actions", "")),
+            args=tuple(str(a["value"]) for a in argv if isinstance(a, dict)),
+        )
+
     @_parses_answer
     async def read_event_log(self, domain: int = 0) -> list[ElogEntry]:
-        """Event-log messages of ``domain``, newest first."""
-        _, body, _ = await self._request("GET", f"/rw/elog/{domain}", query={"lang": "en"})
-        out = []
-        for it in _states(body):
-            seq = it.get("seqnum") or str(it.get("_title", "")).rsplit("/", 1)[-1]
-            out.append(
-                ElogEntry(
-                    seqnum=int(seq),
-                    msgtype=int(it.get("msgtype", 0)),
-                    code=int(it.get("code", 0)),
-                    title=str(it.get("title", "")),
-                    desc=str(it.get("desc", "")),
-                    tstamp=str(it.get("tstamp", "")),
-                )
+        """Event-log messages of ``domain``, newest first (every page, following ``_links.next``)."""
+        items = await self._get_all(f"/rw/elog/{domain}", {"lang": "en"})
+        return [self._elog_entry(it) for it in items]
+
+    @_parses_answer
+    async def read_event(self, domain: int, seqnum: int) -> ElogEntry:
+        """One event-log message with its English texts."""
+        return self._elog_entry(await self._get_state(f"/rw/elog/{domain}/{seqnum}", {"lang": "en"}))
+
+    @_parses_answer
+    async def read_event_log_domains(self) -> dict[int, int]:
+        """Event-log domain number -> number of messages in it."""
+        items = await self._get_all("/rw/elog")
+        return {
+            int(it["_title"]): int(it.get("numevts", 0))
+            for it in items
+            if it.get("_type") == "elog-domain-li"
+        }
+
+    # ---- tasks, modules, signal list ----------------------------------------------------------
+
+    @staticmethod
+    def _task_state(it: dict[str, Any]) -> TaskState:
+        return TaskState(
+            name=str(it["name"]),
+            type=str(it.get("type", "")),
+            taskstate=str(it.get("taskstate", "")),
+            excstate=str(it.get("excstate", "")),
+            active=str(it.get("active", "")).lower() == "on",
+            motiontask=str(it.get("motiontask", "")).lower() == "true",
+        )
+
+    @_parses_answer
+    async def get_tasks(self) -> list[TaskState]:
+        """The RAPID tasks of the system (RobotWare 7's ``spy`` entry left out)."""
+        items = await self._get_all("/rw/rapid/tasks")
+        return [self._task_state(it) for it in items if it.get("_type") == "rap-task-li"]
+
+    @_parses_answer
+    async def get_task(self, task: str) -> TaskState:
+        """One RAPID task."""
+        return self._task_state(await self._get_state(f"/rw/rapid/tasks/{quote(task, safe='')}"))
+
+    @_parses_answer
+    async def get_modules(self, task: str) -> list[tuple[str, str]]:
+        """``(name, type)`` of the modules loaded in ``task`` (``SysMod`` / ``ProgMod``)."""
+        if self.config.profile == "rws1":
+            items = await self._get_all("/rw/rapid/modules", {"task": task})
+        else:
+            items = await self._get_all(f"/rw/rapid/tasks/{quote(task, safe='')}/modules")
+        return [(str(it["name"]), str(it.get("type", ""))) for it in items if "name" in it]
+
+    @_parses_answer
+    async def list_signals(self) -> list[SignalState]:
+        """Every IO signal (all pages)."""
+        items = await self._get_all("/rw/iosystem/signals")
+        return [
+            SignalState(
+                str(it["name"]), str(it.get("_title", "")), str(it.get("type", "")), float(it["lvalue"])
             )
-        return out
+            for it in items
+            if "name" in it
+        ]
 
     @_parses_answer
     async def get_joint_position(self) -> np.ndarray:
@@ -711,11 +946,8 @@ class RwsClient:
             form += [("resources", str(i)), (str(i), res), (f"{i}-p", prio)]
         failures = 0
         while True:
-            _, _, headers = await self._request("POST", "/subscription", form=form)
-            location = headers.get("Location", "")
-            if not location:
-                raise RwsError("subscription answer has no Location", method="POST", path="/subscription")
-            ws_path = urlsplit(location).path
+            answer = await self._request("POST", "/subscription", form=form)
+            ws_path = urlsplit(subscription_ws_url(answer.headers, answer.text)).path
             ws_url = self._base.replace("http", "ws", 1) + ws_path
             try:
                 async with self._session().ws_connect(
@@ -729,6 +961,10 @@ class RwsClient:
                     async for msg in ws:
                         if msg.type == aiohttp.WSMsgType.TEXT:
                             for change in parse_event_xhtml(msg.data):
+                                if change.kind == "elog" and not change.value:
+                                    # The event names only the sequence number; the code is in the message.
+                                    entry = await self.read_event(0, int(change.name))
+                                    change = StateChange("elog", change.name, str(entry.code))
                                 yield change
                         elif msg.type in (aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.ERROR):
                             break

@@ -125,7 +125,8 @@ def test_rws2_refuses_requests_without_v2_media_type() -> None:
             headers = {"Authorization": f"Basic {token}", "Accept": "application/hal+json"}
             async with http.get(server.base_url + "/rw/panel/ctrl-state", headers=headers, ssl=False) as resp:
                 assert resp.status == 406
-                assert "v=2.0" in (await resp.json())["status"]["msg"]
+                assert resp.headers["Content-Type"] == "application/hal+json;v=2.0"
+                assert "v=2.0" in (await resp.json(content_type=None))["status"]["msg"]
 
     run(body)
 
@@ -326,7 +327,9 @@ def test_writing_a_malformed_literal_is_refused_with_the_value_named(profile: st
             assert err.value.status == 400 and "'fast'" in err.value.message
             with pytest.raises(RwsError) as err2:
                 await client.get_rapid_var(T, "no_such_var")
-            assert err2.value.status == 404 and "no_such_var" in err2.value.message
+            # RobotWare 6 answers an unknown symbol with 400 (captured answer), RobotWare 7 with 404.
+            assert err2.value.status == (400 if profile == "rws1" else 404)
+            assert "no_such_var" in err2.value.message
             assert server.stats["bad_requests"] == 2
             assert await client.get_rapid_num(T, "egm_comm_timeout_s") == 1.0  # still serving
 
@@ -432,7 +435,7 @@ def test_server_survives_malformed_form_bodies_and_counts_them() -> None:
             for data in (b"\xff\xfe", b"value", b"novalue=1"):
                 async with http.post(url, data=data, headers=ctype) as resp:
                     assert resp.status == 400
-                    assert (await resp.json())["status"]["msg"]
+                    assert (await resp.json())["_embedded"]["status"]["msg"]
             assert server.stats["bad_requests"] == 3
             assert await client.get_ctrl_state() == "motoroff"
 
@@ -567,7 +570,7 @@ def test_expired_digest_nonce_is_answered_with_stale_and_a_fresh_nonce() -> None
             header = state.header("GET", "/rw/panel/ctrlstate?json=1", "Default User", "robotics")
             async with http.get(url, headers={"Authorization": header}) as resp:
                 assert resp.status == 401
-                assert 'stale="true"' in resp.headers["WWW-Authenticate"]
+                assert 'stale="TRUE"' in resp.headers["WWW-Authenticate"]
             assert server.stats["sessions_created"] == 0
 
     run(body)

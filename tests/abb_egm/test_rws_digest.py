@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import base64
+
 from aiohttp.test_utils import make_mocked_request
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -10,6 +12,7 @@ from drivers.abb_egm.digest import parse_auth_params
 from drivers.abb_egm.rws_client import _DigestState
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
+from tests.conftest import SHARED
 
 # User names and passwords as a controller's UAS allows them: printable, no double quote.
 text = st.text(
@@ -50,10 +53,44 @@ def test_client_digest_answer_is_refused_for_a_wrong_password(user: str, passwor
     assert server._check_authorization(req) == (None, False)
 
 
-def test_challenge_names_realm_qop_nonce_and_md5() -> None:
-    p = parse_auth_params(_server("u", "p")._challenge()[7:])
-    assert p["qop"] == "auth" and p["algorithm"] == "MD5" and len(p["nonce"]) == 32
-    assert p["realm"] == "validusers@robotwebservices.com"
+def test_challenge_has_the_fields_of_the_captured_irc5_challenge() -> None:
+    """Same fields and values as the RobotWare 6 challenge in ../shared/testdata/rws/headers/."""
+    challenge = (
+        SHARED / "testdata/rws/headers/rws1_401_digest_challenge_and_authorization.from_wireshark_comment.txt"
+    )
+    captured_line = next(ln for ln in challenge.read_text().splitlines() if ln.startswith("# Digest realm"))
+    captured = parse_auth_params(captured_line[len("# Digest ") :])
+    ours = _server("u", "p")._challenge()
+    assert ours.startswith("Digest ")
+    p = parse_auth_params(ours[7:])
+    assert p.keys() == captured.keys()
+    for key in ("realm", "domain", "qop", "opaque", "algorithm", "stale"):
+        assert p[key] == captured[key], key
+    # the nonce has the controller's form: base64 of "<hex>:<realm>:<hex time>:0"
+    decoded = base64.b64decode(p["nonce"]).decode().split(":")
+    assert decoded[1:2] == [captured["realm"]] and decoded[-1] == "0"
+    assert base64.b64decode(captured["nonce"]).decode().split(":")[1] == captured["realm"]
+
+
+def test_client_answer_reproduces_the_captured_irc5_authorization() -> None:
+    """The client's digest answer to the captured challenge, with the captured cnonce, is the captured
+    response hash (Default User / robotics)."""
+    lines = (
+        (
+            SHARED
+            / "testdata/rws/headers/rws1_401_digest_challenge_and_authorization.from_wireshark_comment.txt"
+        )
+        .read_text()
+        .splitlines()
+    )
+    challenge = parse_auth_params(next(ln for ln in lines if ln.startswith("# Digest realm"))[9:])
+    answer = parse_auth_params(next(ln for ln in lines if ln.startswith("# Digest username"))[9:])
+    state = _DigestState(challenge)
+    ours = parse_auth_params(
+        state.header("GET", answer["uri"], "Default User", "robotics", cnonce=answer["cnonce"])[7:]
+    )
+    assert ours["response"] == answer["response"]
+    assert ours["nc"] == answer["nc"] and ours["opaque"] == answer["opaque"]
 
 
 def test_rfc2617_example_response() -> None:

@@ -10,29 +10,7 @@ from hypothesis import strategies as st
 from analysis import register as rg
 from analysis import templates as tp
 from analysis.mesh import TriMesh
-
-L_MM, W_MM = 1200.0, 800.0
-
-
-def sail(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    return x**2 / 6000.0 + y**2 / 4000.0
-
-
-def grid_mesh(f, step_mm: float = 10.0) -> TriMesh:
-    xs = np.linspace(-L_MM / 2, L_MM / 2, round(L_MM / step_mm) + 1)
-    ys = np.linspace(-W_MM / 2, W_MM / 2, round(W_MM / step_mm) + 1)
-    X, Y = np.meshgrid(xs, ys)
-    V = np.column_stack([X.ravel(), Y.ravel(), f(X, Y).ravel()])
-    nx = len(xs)
-    i, j = np.meshgrid(np.arange(nx - 1), np.arange(len(ys) - 1))
-    k = (j * nx + i).ravel()
-    T = np.vstack([np.column_stack([k, k + 1, k + nx + 1]), np.column_stack([k, k + nx + 1, k + nx])])
-    return TriMesh(V, T)
-
-
-def corners(f=sail) -> np.ndarray:
-    c = np.array([[-L_MM / 2, -W_MM / 2], [L_MM / 2, -W_MM / 2], [L_MM / 2, W_MM / 2], [-L_MM / 2, W_MM / 2]])
-    return np.column_stack([c, f(c[:, 0], c[:, 1])])
+from tests.support.surfaces import corners, grid_mesh, sail
 
 
 def test_default_layout_gives_the_papers_23_lines_on_the_sail_plate():

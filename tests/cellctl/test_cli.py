@@ -6,6 +6,7 @@ import subprocess
 from pathlib import Path
 
 from cellctl import __version__
+from tests.support.ports import free_port
 
 
 def _run(exe: list[str], *args: str, cwd: Path | None = None, env: dict | None = None):
@@ -80,11 +81,8 @@ def test_config_check_names_each_bad_daemon_key_on_its_own_line(
 
 def test_abort_without_a_daemon_exits_3_saying_so(cellctl_exe: list[str], repo_root: Path) -> None:
     import os
-    import socket
 
-    with socket.socket() as s:  # a loopback port nobody listens on
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()  # a loopback port nobody listens on
     env = {**os.environ, "CELL_ZENOH__LISTEN": f'["tcp/127.0.0.1:{port}"]'}
     r = _run(cellctl_exe, "abort", "--job", "20261122T000000-aaaa0001", "--config", str(repo_root / "cell.toml"),
              env=env)  # fmt: skip

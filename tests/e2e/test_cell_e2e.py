@@ -10,12 +10,12 @@ import json
 from pathlib import Path
 
 import pytest
-from e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
 from cellctl.zenoh_session import close_session
+from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 pytestmark = pytest.mark.slow
 

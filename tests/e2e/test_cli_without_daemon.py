@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import subprocess
 
-from e2e_cell import tiny_cell_config
+from tests.support.e2e_cell import tiny_cell_config
 
 
 def _cellctl(cellctl_exe, *args, timeout=60):

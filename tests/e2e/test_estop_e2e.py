@@ -13,18 +13,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import sys
-from pathlib import Path
 
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "faults"))
-
-from faultcell import FaultCell, check_job_data
 
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import ApiCallError, ControlReply, TriggerAccepted, call
 from cellctl.commands.scan_cmd import wait_for_job
+from tests.support.faultcell import FaultCell, check_job_data
 
 pytestmark = pytest.mark.slow
 

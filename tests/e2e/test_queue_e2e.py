@@ -14,12 +14,12 @@ import json
 import signal
 
 import pytest
-from e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 from cellctl.api import ApiCallError, ControlReply, Keys, TriggerAccepted, call
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower
 from cellctl.zenoh_session import close_session
+from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 pytestmark = pytest.mark.slow
 

@@ -8,13 +8,13 @@ import json
 import signal
 
 import pytest
-from e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import ControlReply, Keys, TriggerAccepted, call
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
 from cellctl.zenoh_session import async_get, close_session
+from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 pytestmark = pytest.mark.slow
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-from faultcell import ApiCallError, FaultCell, module_cell, run_job
+
+from tests.support.faultcell import ApiCallError, FaultCell, module_cell, run_job
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 

@@ -23,7 +23,12 @@ import time
 
 import numpy as np
 import pytest
-from cellfaults import (
+
+from cellctl.acquisition.rawstore import CHUNK, RawReader
+from cellctl.api import TriggerAccepted, call
+from cellctl.commands.scan_cmd import wait_for_job
+from cellctl.zenoh_session import async_get
+from tests.support.cellfaults import (
     FINAL,
     FaultCell,
     analysed,
@@ -35,11 +40,6 @@ from cellfaults import (
     stop_cell,
     wait_status,
 )
-
-from cellctl.acquisition.rawstore import CHUNK, RawReader
-from cellctl.api import TriggerAccepted, call
-from cellctl.commands.scan_cmd import wait_for_job
-from cellctl.zenoh_session import async_get
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.timeout(600)]
 

@@ -29,7 +29,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cellfaults import (
+
+from cellctl.api import ApiCallError, TriggerAccepted, call
+from cellctl.daemon.preflight import PreflightError, check_data_dir, probe_writable, raw_bytes_estimate
+from tests.support.cellfaults import (
     FINAL,
     FaultCell,
     fault_cell_config,
@@ -39,9 +42,6 @@ from cellfaults import (
     wait_status,
     wait_until,
 )
-
-from cellctl.api import ApiCallError, TriggerAccepted, call
-from cellctl.daemon.preflight import PreflightError, check_data_dir, probe_writable, raw_bytes_estimate
 
 
 def _mount(*args: str) -> subprocess.CompletedProcess:

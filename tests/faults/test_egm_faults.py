@@ -10,7 +10,8 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-from faultcell import completed, module_cell, run_job, wait_record
+
+from tests.support.faultcell import completed, module_cell, run_job, wait_record
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 

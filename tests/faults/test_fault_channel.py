@@ -13,7 +13,6 @@ import os
 import subprocess
 
 import pytest
-from faultcell import REPO, FaultCell
 
 from cellctl.simcell.faults import (
     FaultChannelError,
@@ -22,6 +21,7 @@ from cellctl.simcell.faults import (
     parse_fault_request,
 )
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig, RwsError
+from tests.support.faultcell import REPO, FaultCell
 
 
 @pytest.fixture(scope="module")
@@ -218,7 +218,7 @@ def test_assignments_become_the_nested_payload_and_bad_ones_name_the_item():
 
 
 def test_cli_without_a_simulator_says_so_instead_of_hanging(tmp_path, cellctl_exe):
-    from faultcell import fault_cell_config
+    from tests.support.faultcell import fault_cell_config
 
     cfg = fault_cell_config(tmp_path)
     r = subprocess.run([*cellctl_exe, "sim", "fault", "--config", str(cfg), "--timeout", "2"],
@@ -242,7 +242,7 @@ def test_fault_control_off_serves_no_channel(tmp_path):
 
 
 def fault_cell_config_off(out):
-    from faultcell import fault_cell_config
+    from tests.support.faultcell import fault_cell_config
 
     return fault_cell_config(out, sim__fault_control=False)
 

@@ -13,7 +13,8 @@ import json
 
 import numpy as np
 import pytest
-from faultcell import completed, module_cell, run_job
+
+from tests.support.faultcell import completed, module_cell, run_job
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 

@@ -13,7 +13,10 @@ import asyncio
 import json
 
 import pytest
-from cellfaults import (
+
+from cellctl.api import TriggerAccepted, call
+from cellctl.commands.scan_cmd import wait_for_job
+from tests.support.cellfaults import (
     FINAL,
     FaultCell,
     analysed,
@@ -27,9 +30,6 @@ from cellfaults import (
     wait_status,
     wait_until,
 )
-
-from cellctl.api import TriggerAccepted, call
-from cellctl.commands.scan_cmd import wait_for_job
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.timeout(600)]
 

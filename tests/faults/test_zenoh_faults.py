@@ -18,7 +18,11 @@ import json
 import time
 
 import pytest
-from cellfaults import (
+
+from cellctl.api import TriggerAccepted, call
+from cellctl.commands.demo_cmd import Processes
+from cellctl.commands.scan_cmd import wait_for_job
+from tests.support.cellfaults import (
     FaultCell,
     analysed,
     fault_cell_config,
@@ -29,11 +33,7 @@ from cellfaults import (
     wait_until,
     worker_config_via,
 )
-from tcp_forwarder import TcpForwarder
-
-from cellctl.api import TriggerAccepted, call
-from cellctl.commands.demo_cmd import Processes
-from cellctl.commands.scan_cmd import wait_for_job
+from tests.support.tcp_forwarder import TcpForwarder
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.timeout(600)]
 

@@ -80,15 +80,6 @@ def mutated(draw: st.DrawFn, valid: bytes, others: tuple[bytes, ...] = ()) -> by
     return draw(st.binary(min_size=0, max_size=max(8, 2 * n)))
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class Hang(AssertionError):
     """A call that did not return within its bound: the input made the code spin or wait."""
 

@@ -19,6 +19,7 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig, RwsError
+from tests.conftest import SHARED
 
 
 def _state(**item) -> bytes:
@@ -38,6 +39,19 @@ VALID_BODIES = (
     _state(x="1", y="2", z="3", q1="1", q2="0", q3="0", q4="0"),
     json.dumps({"status": {"code": -1073442813, "msg": "Access denied"}}).encode(),
     b"",
+    # captured controller answers (../shared/testdata/rws): both error shapes, XHTML pages
+    *(
+        (SHARED / "testdata/rws" / rel).read_bytes()
+        for rel in (
+            "rws1/errors/ichbinmeraj_400-exec-start-wrong-state-json.json",
+            "rws1/errors/ichbinmeraj_404-module-xhtml.xml",
+            "rws2/errors/ichbinmeraj_403-mastership-held-haljson.json",
+            "rws1/doc_get_rapid_tasks.xml",
+            "rws1/doc_post_subscription_persvar_201.xml",
+            "rws2/blueicaro_get_elog_0_95_lang_en.json",
+            "rws2/ichbinmeraj_get_iosystem_signals_paged.PARTIAL.json",
+        )
+    ),
 )
 CALLS = {
     "ctrl_state": lambda c: c.get_ctrl_state(),
@@ -54,6 +68,9 @@ CALLS = {
     "motors_on": lambda c: c.motors_on(),
     "set_bool": lambda c: c.set_rapid_bool("T_ROB1", "b", True),
     "start": lambda c: c.start_rapid(),
+    "tasks": lambda c: c.get_tasks(),
+    "signals": lambda c: c.list_signals(),
+    "event": lambda c: c.read_event(0, 1),
 }
 CONTENT_TYPES = (
     "application/json",
@@ -62,6 +79,8 @@ CONTENT_TYPES = (
     "application/json; charset=bogus-8",
     "application/json; charset=utf-16",
     "text/html",
+    "application/xhtml+xml",
+    "application/xhtml+xml;v=2.0",
     "",
 )
 CHALLENGES = (

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from fuzzlib import free_port, fuzz_settings, mutated
+from fuzzlib import fuzz_settings, mutated
 from hypothesis import example, given
 from hypothesis import strategies as st
 
@@ -31,6 +31,7 @@ from cellctl.api import (
 from cellctl.config import ZenohSection
 from cellctl.daemon.jobs import JobRecord, JobStore
 from cellctl.zenoh_session import build_zenoh_config, close_session, declare_async_queryable, open_session
+from tests.support.ports import free_port
 
 CODES = {"too_large", "malformed", "invalid", "design_not_found"}
 VALID = {"plate_id": "P-17", "design": "sail/plate1.stl", "placement": {"pos_mm": [1500.0, 0.0, 300.0]}}

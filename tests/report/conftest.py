@@ -8,7 +8,7 @@ import pytest
 
 from analysis.report import write_report
 from analysis.templates import DetectionLayout
-from tests.report.results_fixture import SyntheticResults, write_synthetic_results
+from tests.support.results_fixture import SyntheticResults, write_synthetic_results
 
 # Lines through the dent (T4 at x = 900, L2 at y = 300), through the bump (T2, L3), and clear of both;
 # eleven lines keep the session's one full render short while spanning several PDF pages of plots.

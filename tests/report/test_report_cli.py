@@ -13,7 +13,7 @@ import pytest
 
 from analysis.templates import DetectionLayout
 from cellctl.commands import report_cmd
-from tests.report.results_fixture import write_synthetic_results
+from tests.support.results_fixture import write_synthetic_results
 
 TINY = DetectionLayout(transverse_offsets_mm=(900.0,), longitudinal_offsets_mm=(), diagonals=False)
 

@@ -18,7 +18,7 @@ from analysis.report import ReportError, load_results, write_report
 from analysis.rework import find_rework_regions, grid_deviation
 from analysis.templates import DetectionLayout
 from tests.report.conftest import PLATE_ID
-from tests.report.results_fixture import write_synthetic_results
+from tests.support.results_fixture import write_synthetic_results
 
 SMALL = DetectionLayout(
     transverse_offsets_mm=(300.0, 900.0), longitudinal_offsets_mm=(300.0,), diagonals=False

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 from pathlib import Path
 
 from cellctl.config import ZenohAccess, ZenohSection
@@ -16,13 +15,6 @@ PASSWORDS = {
     "eve": "eve-a3a1-secret",
 }
 ROLES = {"operator": ["alice"], "worker": ["w1"], "viewer": ["bob"]}
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def write_dictionary(path: Path, passwords: dict[str, str] = PASSWORDS) -> Path:

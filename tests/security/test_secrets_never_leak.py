@@ -11,20 +11,17 @@ from __future__ import annotations
 
 import asyncio
 import json
-import sys
 import uuid
 from pathlib import Path
 
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "e2e"))
-from e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
 from cellctl.config import load_config
 from cellctl.zenoh_session import close_session, subscribe
+from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 pytestmark = pytest.mark.slow
 

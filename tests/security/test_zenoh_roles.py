@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import structlog
 import zenoh
-from sec_util import PASSWORDS, env_name, free_port, section, write_dictionary
+from sec_util import PASSWORDS, env_name, section, write_dictionary
 
 from cellctl.api import Keys, TriggerAccepted, handle_trigger, new_job_id
 from cellctl.config import ZenohAccess, ZenohSection
@@ -30,6 +30,7 @@ from cellctl.zenoh_session import (
     open_session,
     subscribe,
 )
+from tests.support.ports import free_port
 
 PREFIX = "cell/sec1"
 KEYS = Keys(PREFIX)

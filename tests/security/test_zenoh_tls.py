@@ -17,7 +17,6 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
-from sec_util import free_port
 
 from cellctl.api import Keys
 from cellctl.config import ZenohAccess, ZenohSection
@@ -30,6 +29,7 @@ from cellctl.zenoh_session import (
     declare_async_queryable,
     open_session,
 )
+from tests.support.ports import free_port
 
 PREFIX = "cell/tls1"
 KEYS = Keys(PREFIX)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import structlog
-from zenoh_testutil import free_port
+from tests.support.ports import free_port
 
 from cellctl.config import ZenohSection
 

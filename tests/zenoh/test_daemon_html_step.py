@@ -10,7 +10,7 @@ from analysis.templates import DetectionLayout
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import JobRecord
 from cellctl.daemon.service import CellDaemon, _Job
-from tests.report.results_fixture import write_synthetic_results
+from tests.support.results_fixture import write_synthetic_results
 
 
 def _daemon_and_job(tmp_path) -> tuple[CellDaemon, _Job]:

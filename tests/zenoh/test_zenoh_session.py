@@ -7,7 +7,7 @@ import threading
 
 import pytest
 import zenoh
-from zenoh_testutil import free_port
+from tests.support.ports import free_port
 
 from cellctl.config import ZenohAccess, ZenohSection
 from cellctl.zenoh_session import (

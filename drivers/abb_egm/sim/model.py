@@ -111,6 +111,10 @@ class SymbolNotFound(ControllerError):
     http_status = 404
 
 
+class SignalNotFound(SymbolNotFound):
+    """No IO signal of that name (RWS answers it with its own return code, unlike a RAPID symbol)."""
+
+
 class AccessDenied(ControllerError):
     """Writing a constant or a signal whose access level forbids it."""
 
@@ -148,7 +152,11 @@ class IoSignal:
 
 @dataclass(frozen=True)
 class ElogEvent:
-    """One event-log entry (domain 0). ``msgtype``: 1 info, 2 warning, 3 error."""
+    """One event-log entry (domain 0). ``msgtype``: 1 info, 2 warning, 3 error.
+
+    ``tstamp`` is the controller's ``YYYY-MM-DD T HH:MM:SS`` (one space each side of the T, as the
+    ABB manual's and RobotWare 7's answers show it).
+    """
 
     seqnum: int
     msgtype: int
@@ -156,6 +164,10 @@ class ElogEvent:
     title: str
     desc: str
     tstamp: str
+    conseqs: str = ""
+    causes: str = ""
+    actions: str = ""
+    args: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -223,6 +235,8 @@ class ControllerModel:
         self._events: deque[ElogEvent] = deque(maxlen=elog_capacity)
         self._event_seq = 0
         self._listeners: list[Listener] = []
+        # RAPID tasks of the system: name -> active (only the motion task runs the CellEgm program)
+        self.tasks_active: dict[str, bool] = {task: True}
         self._position_source: PositionSource = _home_pose
         self._egm_wanted_last = False
         self._define_program_data()
@@ -401,6 +415,8 @@ class ControllerModel:
                 f"start refused: operating mode {self._opmode} needs the pendant (RMMP)",
                 code=RC_STATE_REFUSED,
             )
+        if not self.tasks_active.get(self.task, False):
+            raise StateRefused(f"start refused: task {self.task} is not active", code=RC_STATE_REFUSED)
         self._rapid_state = "running"
         if self._phase == "main":
             self._enter_egm_phase()
@@ -461,6 +477,21 @@ class ControllerModel:
         if self._rapid_state == "running":
             log.info("rapid_halted", reason=reason)
             self.stop_rapid()
+
+    def set_task_active(self, task: str, active: bool) -> None:
+        """Activate / deactivate a task (RWS ``activate`` / ``deactivate``); only with RAPID stopped."""
+        if task not in self.tasks_active:
+            raise SymbolNotFound(f"task not found: {task}", code=RC_NOT_FOUND)
+        if self._rapid_state == "running":
+            raise StateRefused("task (de)activation refused: the program is running", code=RC_STATE_REFUSED)
+        self.tasks_active[task] = active
+
+    def modules(self, task: str) -> list[tuple[str, str]]:
+        """``(name, type)`` of the modules loaded in ``task``: the system modules and the program's."""
+        if task not in self.tasks_active:
+            raise SymbolNotFound(f"task not found: {task}", code=RC_NOT_FOUND)
+        prog = sorted({m for (t, m, _n) in self._vars if t == task})
+        return [("BASE", "SysMod"), ("user", "SysMod"), *((m, "ProgMod") for m in prog)]
 
     # ---- EGM program model --------------------------------------------------------------------
 
@@ -581,7 +612,7 @@ class ControllerModel:
         """The signal record; ``SymbolNotFound`` if the signal does not exist."""
         sig = self._signals.get(name)
         if sig is None:
-            raise SymbolNotFound(f"IO signal not found: {name}", code=RC_NOT_FOUND)
+            raise SignalNotFound(f"IO signal not found: {name}", code=RC_NOT_FOUND)
         return sig
 
     def get_io(self, name: str) -> float:
@@ -615,7 +646,7 @@ class ControllerModel:
         if severity not in _SEVERITY:
             raise RapidValueError(f"unknown severity {severity!r}", code=RC_BAD_VALUE)
         self._event_seq += 1
-        tstamp = time.strftime("%Y-%m-%d T  %H:%M:%S", time.gmtime())
+        tstamp = time.strftime("%Y-%m-%d T %H:%M:%S", time.gmtime())
         ev = ElogEvent(self._event_seq, _SEVERITY[severity], int(code), title, desc, tstamp)
         self._events.append(ev)
         log.info("elog_event", code=code, title=title, severity=severity)

@@ -1,6 +1,6 @@
 """Helpers of the Zenoh / worker / daemon / disk fault cases and the soak (benchmarks/soak.py).
 
-The simulated cell runs as real processes (tests/e2e/e2e_cell.py); faults are made the way they
+The simulated cell runs as real processes (tests/support/e2e_cell.py); faults are made the way they
 happen: a TCP link cut (tcp_forwarder.py), ``kill -9`` of processes, a full or read-only mount.
 Everything here judges from the outside: the Zenoh API, the job records and the raw files.
 """
@@ -11,22 +11,15 @@ import asyncio
 import contextlib
 import os
 import signal
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
-_HERE = Path(__file__).resolve().parent
-for _p in (_HERE, _HERE.parent / "e2e"):
-    if str(_p) not in sys.path:
-        sys.path.insert(0, str(_p))
-
-from e2e_cell import Cell, wait_status  # noqa: E402
-from faultcell import FINAL_JOB_STATES, FaultCell, fault_cell_config  # noqa: E402
-
-from cellctl.acquisition.rawstore import RawReader  # noqa: E402
-from cellctl.commands.demo_cmd import to_toml  # noqa: E402
-from cellctl.config import load_config  # noqa: E402
+from cellctl.acquisition.rawstore import RawReader
+from cellctl.commands.demo_cmd import to_toml
+from cellctl.config import load_config
+from tests.support.e2e_cell import Cell, wait_status
+from tests.support.faultcell import FINAL_JOB_STATES, FaultCell, fault_cell_config
 
 __all__ = [
     "FINAL",

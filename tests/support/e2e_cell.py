@@ -1,6 +1,6 @@
 """A simulated cell in real processes (`cellctl sim`, `cellctl run`, `cellctl worker`) for the e2e tests.
 
-Uniquely named (not conftest) so the tests can import it. Everything binds loopback ports that were
+Used by the e2e, fault and security tests. Everything binds loopback ports that were
 free a moment ago; every process is stopped by its own pid.
 """
 

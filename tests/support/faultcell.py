@@ -1,8 +1,8 @@
 """The fault-injection harness: a simulated cell in real processes, faults through ``<prefix>/sim/faults``.
 
-Builds on :mod:`tests.e2e.e2e_cell` (``Cell``, ``open_client``, ``wait_status``). Every fault goes to
+Builds on :mod:`tests.support.e2e_cell` (``Cell``, ``open_client``, ``wait_status``). Every fault goes to
 the running ``cellctl sim`` over its fault-control channel (Zenoh on loopback), never in-process.
-Uniquely named (not conftest) so other fault tests and ``benchmarks/soak.py`` can import it.
+Used by the fault tests, the e-stop e2e test and ``benchmarks/soak.py``.
 
 Typical use::
 
@@ -21,7 +21,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,15 +28,13 @@ from typing import Any
 
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "e2e"))
-
-from e2e_cell import REPO, Cell, open_client, tiny_cell_config, wait_status
+from tests.support.ports import free_port
 
 from cellctl.api import ApiCallError, CellStatus, Keys, TriggerAccepted, call
-from cellctl.commands.demo_cmd import DEMO_DESIGN, free_port, to_toml, wait_ready_line
+from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_ready_line
 from cellctl.config import load_config
 from cellctl.simcell.faults import FaultState, open_fault_session, send_faults
+from tests.support.e2e_cell import REPO, Cell, open_client, tiny_cell_config, wait_status
 
 __all__ = [
     "REPO",

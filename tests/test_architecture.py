@@ -1,0 +1,370 @@
+"""The import rules of docs/architecture.md, read from the source with ``ast`` (nothing is imported).
+
+Every module under ``cellctl/``, ``drivers/`` and ``analysis/`` is parsed, imports inside functions
+and under ``if TYPE_CHECKING:`` included (as are ``importlib.import_module("...")`` and
+``__import__("...")`` with a literal name), and held to three rules:
+
+1. ``drivers`` and ``analysis`` import neither ``cellctl`` nor each other;
+2. production code imports no simulator: only the simulators' wings (``drivers/*/sim/`` and the
+   simulated cell ``cellctl/simcell/``) import a wing, besides the one door ``cellctl sim``
+   (:mod:`cellctl.commands.sim_cmd`); tests and benchmarks may import anything;
+3. packages do not import each other in a circle. The nodes are the packages and loose modules one
+   level under each root (``cellctl.planning``, ``cellctl.motion``, ``cellctl.api``, ``cellctl.config``,
+   ``drivers.abb_egm``, ...), a ``sim`` wing being a node of its own (``drivers.abb_egm.sim``).
+
+Each failure names the importing file and line.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections import defaultdict
+from collections.abc import Mapping
+from dataclasses import dataclass
+from itertools import pairwise
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+ROOTS = ("cellctl", "drivers", "analysis")
+
+#: production modules that may import the simulated cell: the ``cellctl sim`` command starts it
+SIM_DOORS = {"cellctl.commands.sim_cmd": "cellctl.simcell"}
+
+#: (importer, imported module) -> why it is still there. Each entry must still be needed (a test
+#: below fails on a stale one, so the list only shrinks).
+PENDING: dict[tuple[str, str], str] = {
+    ("cellctl.commands.run_cmd", "drivers.abb_egm.sim.egm"): (
+        "precise_event_loop moves out of the EGM simulator into the daemon's runtime module "
+        "(issue 15, the daemon split)"
+    ),
+}
+
+
+@dataclass(frozen=True)
+class Import:
+    """One import statement's target: ``importer`` (module) imports ``target`` at ``path:line``."""
+
+    importer: str
+    target: str
+    path: str
+    line: int
+
+    def where(self) -> str:
+        return f"{self.path}:{self.line}: {self.importer} imports {self.target}"
+
+
+def module_name(path: str) -> tuple[str, bool]:
+    """``cellctl/daemon/service.py`` -> (``cellctl.daemon.service``, False); a package's ``__init__``
+    gives the package name and True."""
+    parts = list(Path(path).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        return ".".join(parts[:-1]), True
+    return ".".join(parts), False
+
+
+def _literal_import_call(node: ast.Call) -> str | None:
+    """The module named by ``importlib.import_module("x")``, ``import_module("x")`` or ``__import__("x")``."""
+    f = node.func
+    name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
+    if name not in ("import_module", "__import__") or not node.args:
+        return None
+    arg = node.args[0]
+    return arg.value if isinstance(arg, ast.Constant) and isinstance(arg.value, str) else None
+
+
+def imports_of(path: str, source: str, known: set[str]) -> list[Import]:
+    """Every import of a module of ours in ``source`` (the file at repository path ``path``).
+
+    ``from package import name`` counts as importing ``package.name`` when that is a module of ours
+    (``known``), else ``package``. Relative imports are resolved against the file's package.
+    """
+    module, is_package = module_name(path)
+    package = module if is_package else module.rpartition(".")[0]
+    found: list[tuple[str, int]] = []
+    for node in ast.walk(ast.parse(source, filename=path)):
+        if isinstance(node, ast.Import):
+            found += [(a.name, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base_parts = package.split(".")
+                base = ".".join(base_parts[: len(base_parts) - (node.level - 1)])
+                base = f"{base}.{node.module}" if node.module else base
+            else:
+                base = node.module or ""
+            for a in node.names:
+                sub = f"{base}.{a.name}"
+                found.append((sub if sub in known else base, node.lineno))
+        elif isinstance(node, ast.Call) and (name := _literal_import_call(node)):
+            found.append((name, node.lineno))
+    return [Import(module, t, path, line) for t, line in found if t.split(".")[0] in ROOTS and t != module]
+
+
+def is_sim(module: str) -> bool:
+    """A module of a simulator's wing: ``drivers.<driver>.sim[...]`` or ``cellctl.simcell[...]``."""
+    parts = module.split(".")
+    return (parts[0] == "drivers" and parts[2:3] == ["sim"]) or parts[:2] == ["cellctl", "simcell"]
+
+
+def node_of(module: str) -> str:
+    """The package-level node of a module: ``cellctl.daemon.jobs`` -> ``cellctl.daemon``,
+    ``drivers.abb_egm.sim.egm`` -> ``drivers.abb_egm.sim``, ``cellctl.config`` -> itself."""
+    parts = module.split(".")
+    return ".".join(parts[:3] if parts[2:3] == ["sim"] else parts[:2])
+
+
+def layer_violations(imports: list[Import]) -> list[str]:
+    """Rule 1: drivers and analysis import neither cellctl nor each other."""
+    out = []
+    for imp in imports:
+        a, b = imp.importer.split(".")[0], imp.target.split(".")[0]
+        if a in ("drivers", "analysis") and b == "cellctl":
+            out.append(f"{imp.where()}: {a} never imports cellctl (cellctl composes drivers and analysis)")
+        elif {a, b} == {"drivers", "analysis"}:
+            out.append(f"{imp.where()}: drivers and analysis never import each other")
+    return out
+
+
+def sim_violations(imports: list[Import], pending: Mapping[tuple[str, str], str] = PENDING) -> list[str]:
+    """Rule 2: a simulator's wing is imported only by a wing (or the ``cellctl sim`` door)."""
+    out = []
+    for imp in imports:
+        if not is_sim(imp.target) or is_sim(imp.importer) or (imp.importer, imp.target) in pending:
+            continue
+        door = SIM_DOORS.get(imp.importer)
+        if door is not None and (imp.target == door or imp.target.startswith(door + ".")):
+            continue
+        out.append(
+            f"{imp.where()}: production code never imports a simulator (drivers/*/sim/, cellctl/simcell/); "
+            "what client and simulator share lives beside the codec"
+        )
+    return out
+
+
+def cycle_violations(imports: list[Import]) -> list[str]:
+    """Rule 3: the package-level graph has no cycle. Each cycle is reported with its path and, for
+    every edge on it, the first import that makes it."""
+    edges: dict[tuple[str, str], Import] = {}
+    graph: dict[str, set[str]] = defaultdict(set)
+    for imp in sorted(imports, key=lambda i: (i.path, i.line)):
+        a, b = node_of(imp.importer), node_of(imp.target)
+        if a != b:
+            graph[a].add(b)
+            edges.setdefault((a, b), imp)
+    out = []
+    for comp in _strongly_connected(graph):
+        if len(comp) < 2:
+            continue
+        cycle = _a_cycle(sorted(comp)[0], comp, graph)
+        hops = "; ".join(edges[(x, y)].where() for x, y in pairwise(cycle))
+        out.append(f"import cycle between packages {' -> '.join(cycle)} ({hops})")
+    return out
+
+
+def _strongly_connected(graph: Mapping[str, set[str]]) -> list[set[str]]:
+    """Tarjan's algorithm, iterative."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    comps: list[set[str]] = []
+    nodes = sorted(set(graph) | {w for ws in graph.values() for w in ws})
+    for root in nodes:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.get(root, ()))))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is None:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
+                if low[v] == index[v]:
+                    comp = set()
+                    while True:
+                        x = stack.pop()
+                        on_stack.discard(x)
+                        comp.add(x)
+                        if x == v:
+                            break
+                    comps.append(comp)
+            elif w not in index:
+                index[w] = low[w] = len(index)
+                stack.append(w)
+                on_stack.add(w)
+                work.append((w, iter(sorted(graph.get(w, ())))))
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+    return comps
+
+
+def _a_cycle(start: str, comp: set[str], graph: Mapping[str, set[str]]) -> list[str]:
+    """A shortest path start -> ... -> start inside one strongly connected component."""
+    prev: dict[str, str] = {}
+    frontier = [start]
+    while frontier:
+        nxt = []
+        for v in frontier:
+            for w in sorted(graph.get(v, ())):
+                if w not in comp:
+                    continue
+                if w == start:  # walk back from v to start, then close the loop
+                    back = [v]
+                    while back[-1] != start:
+                        back.append(prev[back[-1]])
+                    return [*reversed(back), start]
+                if w not in prev:
+                    prev[w] = v
+                    nxt.append(w)
+        frontier = nxt
+    raise AssertionError(f"{start} is on no cycle of {sorted(comp)}")
+
+
+def check_sources(files: Mapping[str, str]) -> dict[str, list[str]]:
+    """All three rules over ``files`` (repository path -> source); the rule name -> its violations."""
+    known = {module_name(p)[0] for p in files}
+    imports = [imp for p, src in files.items() for imp in imports_of(p, src, known)]
+    return {
+        "layers": layer_violations(imports),
+        "simulators": sim_violations(imports),
+        "cycles": cycle_violations(imports),
+    }
+
+
+def _repository_sources() -> dict[str, str]:
+    return {
+        str(p.relative_to(REPO)): p.read_text(encoding="utf-8")
+        for root in ROOTS
+        for p in sorted((REPO / root).rglob("*.py"))
+    }
+
+
+@pytest.fixture(scope="module")
+def repository() -> tuple[dict[str, str], list[Import]]:
+    files = _repository_sources()
+    known = {module_name(p)[0] for p in files}
+    return files, [imp for p, src in files.items() for imp in imports_of(p, src, known)]
+
+
+def test_the_checker_reads_the_whole_tree(repository) -> None:
+    files, imports = repository
+    for must in ("cellctl/daemon/service.py", "drivers/abb_egm/sim/egm.py", "analysis/pipeline.py"):
+        assert must in files
+    assert len(files) > 80 and len(imports) > 300, (len(files), len(imports))
+    pairs = {(node_of(i.importer), node_of(i.target)) for i in imports}
+    # known edges, one of them from an import inside a function
+    assert ("cellctl.planning", "cellctl.motion") in pairs
+    assert ("cellctl.commands", "cellctl.simcell") in pairs
+    assert ("drivers.abb_egm.sim", "drivers.abb_egm") in pairs
+
+
+def test_drivers_and_analysis_import_neither_cellctl_nor_each_other(repository) -> None:
+    violations = layer_violations(repository[1])
+    assert not violations, "\n".join(violations)
+
+
+def test_production_code_imports_no_simulator(repository) -> None:
+    violations = sim_violations(repository[1])
+    assert not violations, "\n".join(violations)
+
+
+def test_packages_do_not_import_each_other_in_a_circle(repository) -> None:
+    violations = cycle_violations(repository[1])
+    assert not violations, "\n".join(violations)
+
+
+def test_every_pending_exception_is_still_needed(repository) -> None:
+    found = {(i.importer, i.target) for i in repository[1]}
+    stale = [f"{k[0]} -> {k[1]} ({why})" for k, why in PENDING.items() if k not in found]
+    assert not stale, "no longer imported: remove from PENDING: " + "; ".join(stale)
+
+
+# ------------------------------------------------------------------------ the checker on planted code
+
+
+def test_checker_finds_a_driver_importing_cellctl_inside_a_function() -> None:
+    found = check_sources(
+        {
+            "drivers/laser/client.py": "import numpy\n\n\ndef f():\n    from cellctl.config import load_config\n",
+            "cellctl/config.py": "",
+        }
+    )
+    assert found["layers"] == [
+        "drivers/laser/client.py:5: drivers.laser.client imports cellctl.config: "
+        "drivers never imports cellctl (cellctl composes drivers and analysis)"
+    ]
+
+
+def test_checker_finds_analysis_and_drivers_importing_each_other() -> None:
+    found = check_sources(
+        {
+            "analysis/segment.py": "import drivers.laser.protocol\n",
+            "drivers/laser/protocol.py": "",
+            "drivers/abb_egm/kinematics.py": "import importlib\nm = importlib.import_module('analysis.mesh')\n",
+            "analysis/mesh.py": "",
+        }
+    )
+    assert len(found["layers"]) == 2
+    assert found["layers"][0].startswith(
+        "analysis/segment.py:1: analysis.segment imports drivers.laser.protocol"
+    )
+    assert found["layers"][1].startswith("drivers/abb_egm/kinematics.py:2: ")
+
+
+def test_checker_finds_production_code_importing_a_simulator() -> None:
+    found = check_sources(
+        {
+            "drivers/abb_egm/rws_client.py": "from .sim import model\n",
+            "drivers/abb_egm/sim/__init__.py": "",
+            "drivers/abb_egm/sim/model.py": "from drivers.abb_egm.rapid_values import format_num\n",
+            "drivers/abb_egm/rapid_values.py": "",
+            "cellctl/daemon/service.py": "def g():\n    from cellctl.simcell.service import main_sync\n",
+            "cellctl/simcell/service.py": "from drivers.laser.sim.sensor import LaserSimulator\n",
+            "drivers/laser/sim/sensor.py": "",
+            "cellctl/commands/sim_cmd.py": "from cellctl.simcell.service import main_sync\n",
+        }
+    )
+    sims = found["simulators"]
+    assert [s.split(": ")[0:2] for s in sims] == [
+        ["drivers/abb_egm/rws_client.py:1", "drivers.abb_egm.rws_client imports drivers.abb_egm.sim.model"],
+        ["cellctl/daemon/service.py:2", "cellctl.daemon.service imports cellctl.simcell.service"],
+    ]
+
+
+def test_checker_finds_a_cycle_between_packages_and_names_each_import() -> None:
+    found = check_sources(
+        {
+            "cellctl/planning/planner.py": "from cellctl.motion.envelope import SafetyEnvelope\n",
+            "cellctl/motion/envelope.py": "",
+            "cellctl/motion/executor.py": "import os\n\n\ndef run():\n    from cellctl.planning import plan\n",
+            "cellctl/planning/__init__.py": "",
+            "cellctl/planning/plan.py": "",
+            "cellctl/config.py": "",
+            "cellctl/daemon/service.py": "import cellctl.config\nimport cellctl.planning.plan\n",
+        }
+    )
+    assert found["cycles"] == [
+        "import cycle between packages cellctl.motion -> cellctl.planning -> cellctl.motion "
+        "(cellctl/motion/executor.py:5: cellctl.motion.executor imports cellctl.planning.plan; "
+        "cellctl/planning/planner.py:1: cellctl.planning.planner imports cellctl.motion.envelope)"
+    ]
+
+
+def test_checker_passes_a_tree_that_keeps_the_rules() -> None:
+    found = check_sources(
+        {
+            "drivers/abb_egm/codec.py": "from . import egm_pb2\n",
+            "drivers/abb_egm/egm_pb2.py": "",
+            "drivers/abb_egm/sim/egm.py": "from drivers.abb_egm.codec import decode\n",
+            "analysis/register.py": "from analysis.mesh import TriMesh\n",
+            "analysis/mesh.py": "",
+            "cellctl/motion/executor.py": "from drivers.abb_egm.codec import decode\n",
+            "cellctl/planning/planner.py": "from cellctl.motion import executor\nimport analysis.register\n",
+        }
+    )
+    assert found == {"layers": [], "simulators": [], "cycles": []}
