@@ -239,20 +239,21 @@ def rest_surface(
     count = n_w.astype(np.int64)
     keep &= count >= n_min
     sloped = keep & border & (chi2 > SLOPE_CHI2) & edge_corners
-    dx, dy = np.where(w > 0, dx, 0.0), np.where(w > 0, dy, 0.0)  # the extent of the points kept
-    x_lo, x_hi = _extent(inv, dx, len(count))
-    y_lo, y_hi = _extent(inv, dy, len(count))
     reps = [mean[keep]]
     rep_gap = [mean_gap[keep]]
-    rep_count = [count[keep]]
-    for cx, cy in ((x_lo, y_lo), (x_hi, y_lo), (x_hi, y_hi), (x_lo, y_hi)):
-        c = mean[sloped].copy()
-        c[:, 0] += cx[sloped]
-        c[:, 1] += cy[sloped]
-        reps.append(c)
-        rep_gap.append(mean_gap[sloped] + b_x[sloped] * cx[sloped] + b_y[sloped] * cy[sloped])
-        # the plane at a corner of a uniform square patch has 7x the variance of the mean
-        rep_count.append(count[sloped] / 7.0)
+    rep_count = [count[keep].astype(np.float64)]
+    if sloped.any():
+        dx, dy = np.where(w > 0, dx, 0.0), np.where(w > 0, dy, 0.0)  # the extent of the points kept
+        x_lo, x_hi = _extent(inv, dx, len(count))
+        y_lo, y_hi = _extent(inv, dy, len(count))
+        for cx, cy in ((x_lo, y_lo), (x_hi, y_lo), (x_hi, y_hi), (x_lo, y_hi)):
+            c = mean[sloped].copy()
+            c[:, 0] += cx[sloped]
+            c[:, 1] += cy[sloped]
+            reps.append(c)
+            rep_gap.append(mean_gap[sloped] + b_x[sloped] * cx[sloped] + b_y[sloped] * cy[sloped])
+            # the plane at a corner of a uniform square patch has 7x the variance of the mean
+            rep_count.append(count[sloped] / 7.0)
     rep, rep_g, count_eff = np.vstack(reps), np.concatenate(rep_gap), np.concatenate(rep_count)
     # a point's own gap is linear in its height along up: move it so that its gap is the estimate
     g_c, _, _, ok = deflection_gaps(surface, rep, T_meas_design, up, geometry=False)
