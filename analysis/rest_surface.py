@@ -11,7 +11,8 @@ a stated confidence:
    about the mean gap of small cells (``noise_cell_mm``), with the cells' degrees of freedom put
    back. The design takes out the plate's shape; a dent's slope across a 2 mm cell adds little, and
    the median ignores the few cells on steep dent flanks.
-2. **Patch means of the gaps.** The measured plane is cut into square patches of side ``h``; each
+2. **Patch means of the gaps.** The plate is cut into patches of side about ``h`` laid out in the
+   design frame (so the edge patches sit the same way on the plate whatever its placement); each
    patch stands for its points by their centroid and the *mean of their gaps to the design* at the
    ICP pose. Measured as a gap, the patch mean carries no bias from the plate's curvature (the
    design has the same curvature), only from the curvature of the forming error across the patch:
@@ -41,7 +42,13 @@ import numpy as np
 import structlog
 from scipy.stats import norm
 
-from analysis.register import HeightField, RegistrationError, deflection_gaps
+from analysis.register import (
+    HeightField,
+    RegistrationError,
+    apply_transform,
+    deflection_gaps,
+    invert_transform,
+)
 
 log = structlog.get_logger(__name__)
 
@@ -135,14 +142,25 @@ def max_normal_quantile(count: int, confidence: float) -> float:
 
 def _cells(xy: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(inverse index (n,), counts (m,)) of the occupied ``cell_mm`` squares."""
-    inv, count, _ = _cells_with_border(xy, cell_mm)
+    inv, count, _ = _cells_with_border(np.floor(xy / cell_mm).astype(np.int64))
     return inv, count
 
 
-def _cells_with_border(xy: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_cells` and (m,) bool: the cell lacks one of its four neighbours (the plate's edge)."""
-    ij = np.floor(xy / cell_mm).astype(np.int64)
-    ij -= ij.min(axis=0) - 1  # a free row and column on every side
+def _plate_cells(xy_design_mm: np.ndarray, cell_mm: float) -> np.ndarray:
+    """(n, 2) cell indices of patches laid out in the design frame from the points' lowest corner,
+    the side stretched so that a whole number of patches spans the points: the edge patches then
+    sit the same way on the plate in every scan, whatever its placement on the bed."""
+    lo = xy_design_mm.min(axis=0)
+    span = np.maximum(xy_design_mm.max(axis=0) - lo, 1e-9)
+    n = np.maximum(np.round(span / cell_mm), 1.0)
+    ij = np.floor((xy_design_mm - lo) / (span / n)).astype(np.int64)
+    return np.minimum(ij, (n - 1).astype(np.int64))
+
+
+def _cells_with_border(ij: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cells of the (n, 2) integer indices: (inverse index (n,), counts (m,), border (m,) bool --
+    the cell lacks one of its four neighbours, the plate's edge)."""
+    ij = ij - (ij.min(axis=0) - 1)  # a free row and column on every side
     width = int(ij[:, 1].max()) + 2
     key = ij[:, 0] * width + ij[:, 1]
     keys, inv, count = np.unique(key, return_inverse=True, return_counts=True)
@@ -218,7 +236,8 @@ def rest_surface(
         patches = max(2.0 * area / cell**2, 1.0)  # twice: the part-filled patches along the edges
     n_min = min(n_min, max(int(0.66 * density * cell**2), 1))  # the cap: what a patch can hold
     # patches anchored at the points' lower-left corner (any anchor is as good)
-    inv, count, border = _cells_with_border(xy - lo, cell)
+    q = apply_transform(invert_transform(np.asarray(T_meas_design, dtype=np.float64)), P)
+    inv, count, border = _cells_with_border(_plate_cells(q[:, :2], cell))
     keep = count >= n_min
     if keep.sum() < 6:
         raise RegistrationError(
