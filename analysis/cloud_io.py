@@ -1,21 +1,33 @@
-"""Scan clouds on disk: PLY (with or without the scan organisation), PCD, XYZ/CSV text and NPZ.
+"""The product's one cloud type, :class:`ScanCloud`, and scan clouds on disk (PLY, PCD, text, NPZ).
 
-A scan cloud is ``points_mm`` (n, 3) plus, when the scanner recorded it, the organisation of every
-point: ``pass_id`` (raster or edge pass), ``profile`` (profile index within the pass) and ``point``
-(index along the laser line). ``segment`` triangulates organised clouds on their scan grid and
-falls back to Delaunay otherwise.
+The cloud vocabulary, from the acquisition to the analysis (the daemon builds a ScanCloud from its
+assembled scan, the wire codec carries the same arrays, the worker hands a ScanCloud to the
+analysis):
+
+* names: ``xyz_mm`` (n, 3) points (robot base / bed frame, mm) and, when the scanner recorded the
+  organisation, ``pass_id`` (raster or edge pass), ``profile_index`` (profile, running within the
+  scan), ``point_index`` (index along the laser line), and optionally ``t_s`` (exposure time, s
+  from the scan's first profile);
+* dtypes: in memory ``xyz_mm`` float64, the indices int32, ``t_s`` float64; stored and sent,
+  ``xyz`` float32 (a micrometre at 10 m), the indices as the format holds them;
+* transit: the moves between passes are no pass of the scan grid; their profiles are filed under
+  pass 0 (pass ids are >= 0 in every cloud). Files written before this convention marked transit
+  with pass -1: reading maps it to 0.
+
+``segment`` triangulates organised clouds on their scan grid and falls back to Delaunay otherwise.
 
 File layouts written and read here:
 
-* PLY (binary little endian): vertex properties ``x, y, z`` float32 and, when organised,
-  ``pass``, ``profile``, ``point`` int32. Reading accepts float or double coordinates, ASCII or
-  binary, and ``pass_id`` as an alias of ``pass``.
+* PLY (binary little endian), the one organised-PLY writer :func:`write_cloud_ply`: vertex
+  properties ``x, y, z`` float32, when organised ``pass``, ``profile``, ``point`` int32, ``t_s``
+  float64 when known, plus any extra per-point columns (the registered cloud's ``deviation``).
+  Reading accepts float or double coordinates, ASCII or binary, ``pass_id`` as an alias of ``pass``.
 * PCD (ASCII or binary; ``binary_compressed`` is refused with a clear message): fields x y z.
 * Text (``.xyz``, ``.txt``, ``.csv``, ``.asc``): one point per line, comma/space/semicolon
   separated, the first three columns are x y z; a header line with names ``x,y,z[,pass,profile,
   point]`` is understood; ``#`` starts a comment.
-* NPZ: array ``points_mm`` (or ``points`` / ``xyz``) (n, 3) and optional ``pass_id``, ``profile``,
-  ``point`` (n,) integer arrays.
+* NPZ: array ``xyz_mm`` (older files: ``points_mm``, ``points`` or ``xyz``) (n, 3) and optional
+  ``pass_id``, ``profile_index``, ``point_index`` (older: ``profile``, ``point``) (n,) integer arrays.
 
 Every failure raises :class:`CloudError` naming the file and what is wrong with it.
 """
@@ -30,8 +42,10 @@ from pathlib import Path
 import numpy as np
 
 __all__ = [
+    "ORGANISATION",
     "CloudError",
     "ScanCloud",
+    "organised_cloud",
     "ply_header_overclaims",
     "read_cloud",
     "write_cloud_npz",
@@ -49,27 +63,29 @@ class CloudError(ValueError):
 
 @dataclass(frozen=True)
 class ScanCloud:
-    """A scanned point cloud, optionally with its scan organisation.
+    """A scanned point cloud, optionally with its scan organisation (see the module docstring).
 
-    points_mm: (n, 3) float64, millimetres (robot base / bed frame).
-    pass_id, profile, point: (n,) int32 each, or all None for an unorganised cloud.
+    xyz_mm: (n, 3) float64, millimetres (robot base / bed frame).
+    pass_id, profile_index, point_index: (n,) int32 each (>= 0), or all None for an unorganised cloud.
+    t_s: (n,) float64 exposure times (s from the scan's first profile), or None.
     """
 
-    points_mm: np.ndarray
+    xyz_mm: np.ndarray
     pass_id: np.ndarray | None = None
-    profile: np.ndarray | None = None
-    point: np.ndarray | None = None
+    profile_index: np.ndarray | None = None
+    point_index: np.ndarray | None = None
+    t_s: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        p = np.asarray(self.points_mm, dtype=np.float64)
+        p = np.asarray(self.xyz_mm, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3:
-            raise CloudError(f"points_mm must be (n, 3), got {p.shape}")
-        object.__setattr__(self, "points_mm", p)
-        org = [self.pass_id, self.profile, self.point]
+            raise CloudError(f"xyz_mm must be (n, 3), got {p.shape}")
+        object.__setattr__(self, "xyz_mm", p)
+        org = [self.pass_id, self.profile_index, self.point_index]
         if any(a is not None for a in org):
             if any(a is None for a in org):
-                raise CloudError("pass_id, profile and point must be given together")
-            for name in ("pass_id", "profile", "point"):
+                raise CloudError("pass_id, profile_index and point_index must be given together")
+            for name in ORGANISATION:
                 a = np.asarray(getattr(self, name))
                 if a.shape != (len(p),):
                     raise CloudError(f"{name} must be ({len(p)},), got {a.shape}")
@@ -78,20 +94,38 @@ class ScanCloud:
                 if a.size and a.min() < 0:
                     raise CloudError(f"{name} has negative indices")
                 object.__setattr__(self, name, a.astype(np.int32))
+        if self.t_s is not None:
+            t = np.asarray(self.t_s, dtype=np.float64)
+            if t.shape != (len(p),):
+                raise CloudError(f"t_s must be ({len(p)},), got {t.shape}")
+            object.__setattr__(self, "t_s", t)
 
     @property
     def organised(self) -> bool:
-        """True when every point carries (pass_id, profile, point)."""
+        """True when every point carries (pass_id, profile_index, point_index)."""
         return self.pass_id is not None
 
     def __len__(self) -> int:
-        return len(self.points_mm)
+        return len(self.xyz_mm)
 
     def subset(self, mask: np.ndarray) -> ScanCloud:
-        """The points where ``mask`` (bool (n,) or index array) selects, organisation kept."""
+        """The points where ``mask`` (bool (n,) or index array) selects, organisation and times kept."""
+        t = None if self.t_s is None else self.t_s[mask]
         if not self.organised:
-            return ScanCloud(self.points_mm[mask])
-        return ScanCloud(self.points_mm[mask], self.pass_id[mask], self.profile[mask], self.point[mask])
+            return ScanCloud(self.xyz_mm[mask], t_s=t)
+        return ScanCloud(
+            self.xyz_mm[mask], self.pass_id[mask], self.profile_index[mask], self.point_index[mask], t
+        )
+
+
+#: the organisation arrays of a ScanCloud, in order
+ORGANISATION = ("pass_id", "profile_index", "point_index")
+
+
+def organised_cloud(xyz_mm: np.ndarray, pass_id: np.ndarray, profile_index: np.ndarray,
+                    point_index: np.ndarray, t_s: np.ndarray | None = None) -> ScanCloud:  # fmt: skip
+    """A ScanCloud from arrays as files of any age hold them: transit marked pass -1 goes to pass 0."""
+    return ScanCloud(xyz_mm, np.maximum(np.asarray(pass_id), 0), profile_index, point_index, t_s)
 
 
 def read_cloud(path: str | Path) -> ScanCloud:
@@ -126,8 +160,8 @@ def read_cloud(path: str | Path) -> ScanCloud:
         ) from exc
     if len(cloud) == 0:
         raise CloudError(f"{path}: the cloud holds no points")
-    if not np.isfinite(cloud.points_mm).all():
-        bad = int(np.count_nonzero(~np.isfinite(cloud.points_mm).all(axis=1)))
+    if not np.isfinite(cloud.xyz_mm).all():
+        bad = int(np.count_nonzero(~np.isfinite(cloud.xyz_mm).all(axis=1)))
         raise CloudError(f"{path}: {bad} points with non-finite coordinates")
     return cloud
 
@@ -195,7 +229,11 @@ def _read_ply(path: Path) -> ScanCloud:
     pts = np.column_stack([np.asarray(v[c], dtype=np.float64) for c in ("x", "y", "z")])
     pass_name = "pass" if "pass" in names else ("pass_id" if "pass_id" in names else None)
     if pass_name and {"profile", "point"} <= names:
-        return ScanCloud(pts, np.asarray(v[pass_name]), np.asarray(v["profile"]), np.asarray(v["point"]))
+        t_name = "t_s" if "t_s" in names else ("time_s" if "time_s" in names else None)
+        t_s = None if t_name is None else np.asarray(v[t_name])
+        return organised_cloud(
+            pts, np.asarray(v[pass_name]), np.asarray(v["profile"]), np.asarray(v["point"]), t_s
+        )
     return ScanCloud(pts)
 
 
@@ -289,21 +327,26 @@ def _read_text(path: Path) -> ScanCloud:
         pts = table[:, [col["x"], col["y"], col["z"]]]
         pname = "pass" if "pass" in col else ("pass_id" if "pass_id" in col else None)
         if pname and "profile" in col and "point" in col:
-            return ScanCloud(pts, table[:, col[pname]], table[:, col["profile"]], table[:, col["point"]])
+            return organised_cloud(
+                pts, table[:, col[pname]], table[:, col["profile"]], table[:, col["point"]]
+            )
         return ScanCloud(pts)
     return ScanCloud(table[:, :3])
 
 
 def _read_npz(path: Path) -> ScanCloud:
     with np.load(path, allow_pickle=False) as z:
-        key = next((k for k in ("points_mm", "points", "xyz") if k in z.files), None)
+        key = next((k for k in ("xyz_mm", "points_mm", "points", "xyz") if k in z.files), None)
         if key is None:
-            raise CloudError(f"{path}: NPZ has none of the arrays points_mm, points, xyz (has {z.files})")
+            raise CloudError(
+                f"{path}: NPZ has none of the arrays xyz_mm, points_mm, points, xyz (has {z.files})"
+            )
         pts = np.asarray(z[key], dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise CloudError(f"{path}: array {key!r} must be (n, 3), got {pts.shape}")
-        if all(k in z.files for k in ("pass_id", "profile", "point")):
-            return ScanCloud(pts, z["pass_id"], z["profile"], z["point"])
+        for names in (ORGANISATION, ("pass_id", "profile", "point")):
+            if all(k in z.files for k in names):
+                return organised_cloud(pts, *(z[k] for k in names))
         return ScanCloud(pts)
 
 
@@ -335,22 +378,36 @@ def write_ply_vertices(path: str | Path, columns: dict[str, np.ndarray], comment
     return path
 
 
-def write_cloud_ply(cloud: ScanCloud, path: str | Path) -> Path:
-    """Write ``cloud`` as binary PLY: x, y, z float32 and, if organised, pass, profile, point int32."""
-    p = cloud.points_mm.astype(np.float32)
+def write_cloud_ply(
+    cloud: ScanCloud,
+    path: str | Path,
+    *,
+    extra: dict[str, np.ndarray] | None = None,
+    comment: str = "cellctl scan cloud, mm",
+) -> Path:
+    """Write ``cloud`` as binary PLY, the one organised-PLY layout of the product: x, y, z float32,
+    pass, profile, point int32 if organised, t_s float64 if known, then ``extra`` columns (each (n,),
+    its own dtype) in order."""
+    p = cloud.xyz_mm.astype(np.float32)
     cols = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]}
     if cloud.organised:
-        cols |= {"pass": cloud.pass_id.astype(np.int32), "profile": cloud.profile.astype(np.int32),
-                 "point": cloud.point.astype(np.int32)}  # fmt: skip
-    return write_ply_vertices(path, cols, "cellctl scan cloud, mm")
+        cols |= {"pass": cloud.pass_id.astype(np.int32), "profile": cloud.profile_index.astype(np.int32),
+                 "point": cloud.point_index.astype(np.int32)}  # fmt: skip
+    if cloud.t_s is not None:
+        cols["t_s"] = cloud.t_s.astype(np.float64)
+    cols |= extra or {}
+    return write_ply_vertices(path, cols, comment)
 
 
 def write_cloud_npz(cloud: ScanCloud, path: str | Path) -> Path:
-    """Write ``cloud`` as NPZ (``points_mm`` and, if organised, ``pass_id``, ``profile``, ``point``)."""
+    """Write ``cloud`` as NPZ (``xyz_mm`` and, if organised, ``pass_id``, ``profile_index``,
+    ``point_index``; ``t_s`` if known)."""
     path = Path(path)
-    arrays = {"points_mm": cloud.points_mm}
+    arrays = {"xyz_mm": cloud.xyz_mm}
     if cloud.organised:
-        arrays.update(pass_id=cloud.pass_id, profile=cloud.profile, point=cloud.point)
+        arrays.update(pass_id=cloud.pass_id, profile_index=cloud.profile_index, point_index=cloud.point_index)
+    if cloud.t_s is not None:
+        arrays["t_s"] = cloud.t_s
     with path.open("wb") as f:
         np.savez(f, **arrays)
     return path

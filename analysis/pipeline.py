@@ -46,9 +46,11 @@ import numpy as np
 import structlog
 
 from analysis.boundary import BoundaryResult, find_corners
-from analysis.cloud_io import ScanCloud, write_ply_vertices
+from analysis.cloud_io import ScanCloud, write_cloud_ply
+from analysis.job import AnalysisJob, Report
 from analysis.mesh import MeshError, TriMesh, load_mesh
-from analysis.metrics import LineMetrics, Tolerances, Verdict, judge, line_metrics
+from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
+from analysis.placement import Placement, placement_transform
 from analysis.plates import canonical_corner_order
 from analysis.register import (
     HeightField,
@@ -62,15 +64,15 @@ from analysis.register import (
 from analysis.report import write_csv
 from analysis.rest_surface import RestSurface, rest_surface
 from analysis.segment import SegmentResult, segment_plate
+from analysis.settings import TEMPLATE_FITS, InspectionSettings
 from analysis.template_fit import (
-    TEMPLATE_FITS,
     LineFitResult,
     TemplateFitError,
     check_mode,
     fit_line_template,
     line_rest_samples,
 )
-from analysis.templates import DetectionLayout, TemplateCut, cut_templates, detection_lines
+from analysis.templates import TemplateCut, cut_templates, detection_lines
 
 log = structlog.get_logger(__name__)
 
@@ -81,37 +83,6 @@ HOLE_CELL_MM = 5.0
 
 class InspectionError(ValueError):
     """The inputs cannot be inspected: no plate, a design that does not fit the plate, no line."""
-
-
-@dataclass(frozen=True)
-class InspectionSettings:
-    """Everything the pipeline needs to know besides the data (filled from cell.toml by the app)."""
-
-    layout: DetectionLayout = field(default_factory=DetectionLayout)
-    tolerances: Tolerances = field(default_factory=Tolerances)
-    sample_step_mm: float = 1.0
-    grid_mm: float = 1.0  # finest cell of the reconstructed measured surface
-    min_points_per_cell: int = 16
-    size_tolerance: float = 0.05  # relative: a design more than 5 % off the plate's size is refused
-    design_grid_mm: float = 1.0
-    # "rigid": one template rests on the whole plate (the paper's 3D fit); "per_line": one per line,
-    # on its own section (the paper's 2D case). compare: the report also carries the other's figures
-    template_fit: str = "rigid"
-    template_fit_compare: bool = False
-    # the resting surface's stated bound on its noise bias (rest_surface), and its largest patch
-    rest_target_sigmas: float = 0.25
-    rest_max_cell_mm: float = 20.0
-
-    def __post_init__(self) -> None:
-        check_mode(self.template_fit)
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any] | None) -> InspectionSettings:
-        """From a plain dict (a job's JSON): ``layout`` and ``tolerances`` sub-dicts plus scalars."""
-        d = dict(d or {})
-        layout = DetectionLayout(**d.pop("layout", {}))
-        tolerances = Tolerances(**d.pop("tolerances", {}))
-        return cls(layout=layout, tolerances=tolerances, **d)
 
 
 @dataclass
@@ -186,15 +157,6 @@ def _check_size(design_c: np.ndarray, measured_c: np.ndarray, tol: float) -> Non
             f"the design does not match the plate: the plate measures {ml:.0f} x {mw:.0f} mm, "
             f"the design is {dl:.0f} x {dw:.0f} mm (more than {tol:.0%} apart)"
         )
-
-
-def placement_transform(x_mm: float, y_mm: float, angle_deg: float) -> np.ndarray:
-    """4x4 design -> bed transform of a nominal placement: design origin at (x, y), turned about z."""
-    a = np.radians(angle_deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    T[:2, 3] = [x_mm, y_mm]
-    return T
 
 
 def plate_frame(design_corners: np.ndarray) -> np.ndarray:
@@ -345,15 +307,15 @@ def inspect_cloud(
     job_id: str = "",
     cell_id: str = "",
     inputs: dict[str, Any] | None = None,
-    nominal_placement: tuple[float, float, float] | None = None,
+    nominal_placement: Placement | None = None,
 ) -> Inspection:
     """Inspect one scanned plate against its design; see the module docstring for the stages.
 
     Raises InspectionError (and the stages' own ValueError subclasses: NoPlateError,
     BoundaryError, RegistrationError, TemplateError, MetricsError) with a message a user can act on.
-    nominal_placement: (x_mm, y_mm, angle_deg) of the design frame's origin and x axis on the bed, as
-    the operator laid the plate; optional, it decides which corner is the reference when the design
-    is symmetric under a half turn (else the bed convention decides, see register()).
+    nominal_placement: the design frame's placement on the bed as the operator laid the plate;
+    optional, it decides which corner is the reference when the design is symmetric under a half
+    turn (else the bed convention decides, see register()). The report records it under ``inputs``.
     """
     settings = settings or InspectionSettings()
     timings: dict[str, float] = {}
@@ -382,7 +344,7 @@ def inspect_cloud(
     measured_mesh = height_grid_mesh(seg.points_mm, cell_mm)
     lap("surface")
     # The fits run on the reconstructed surface (cell means): every cell of the plate, denoised.
-    nominal = placement_transform(*nominal_placement) if nominal_placement is not None else None
+    nominal = placement_transform(nominal_placement) if nominal_placement is not None else None
     rests: list[RestSurface] = []
 
     def rest_on(T_icp: np.ndarray) -> np.ndarray:
@@ -496,7 +458,7 @@ def inspect_cloud(
             "noise_sigma_mm": seg.noise_sigma_mm,
             "max_deviation_mm": float(np.nanmax(deviation)) if np.isfinite(deviation).any() else None,
         },
-        "inputs": {"points": len(cloud.points_mm), **(inputs or {})},
+        "inputs": {"points": len(cloud), **(inputs or {}), "placement": nominal_placement},
         "timings_s": timings,
     }
     for other in modes[1:]:
@@ -512,6 +474,8 @@ def inspect_cloud(
             ],
         }  # fmt: skip
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
+    # the schema of report.json, checked where the report is made
+    report = Report.model_validate(report).model_dump(mode="json")
     log.info("inspected", verdict=verdict.verdict, lines=len(line_records), worst_zmax_mm=round(verdict.worst_zmax_mm, 3),
              total_s=timings["total"])  # fmt: skip
     return Inspection(
@@ -536,24 +500,21 @@ def inspect_cloud(
 # ------------------------------------------------------------------------------------ results dir
 
 
-def write_cloud_ply_with_deviation(points_mm: np.ndarray, deviation_mm: np.ndarray, path: Path) -> Path:
-    """Binary PLY: float32 x, y, z (mm) and float32 ``deviation`` (mm; NaN where off the design)."""
-    p = points_mm.astype(np.float32)
-    cols = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "deviation": deviation_mm.astype(np.float32)}
-    return write_ply_vertices(path, cols, "cellctl registered cloud, design frame, mm")
-
-
 def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
     """Store an inspection as a results directory; returns the written files by name.
 
-    cloud.ply holds the plate's points in the design frame (registered), with their deviation.
+    cloud.ply holds the plate's points in the design frame (registered), with their deviation
+    (float32 mm, NaN where off the design).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
     T_dm = invert_transform(ins.T_measured_design)
     pts_design = ins.plate_points_mm @ T_dm[:3, :3].T + T_dm[:3, 3]
-    files["cloud.ply"] = write_cloud_ply_with_deviation(pts_design, ins.deviation_mm, out / "cloud.ply")
+    files["cloud.ply"] = write_cloud_ply(
+        ScanCloud(pts_design), out / "cloud.ply", extra={"deviation": ins.deviation_mm.astype(np.float32)},
+        comment="cellctl registered cloud, design frame, mm; deviation mm, NaN off the design",
+    )  # fmt: skip
 
     # The map shows the reconstructed surface (denoised cell means), not single noisy points.
     T_pm = ins.T_plate_design @ T_dm
@@ -593,29 +554,21 @@ def _json_default(o: Any) -> Any:
 # ------------------------------------------------------------------------------------- worker API
 
 
-def analyse_job(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, Any]:
-    """Worker entry point: ``cloud`` arrays by field (``xyz_mm`` and the scan organisation), ``job``
-    the job's parameters (``design`` path, optional ``analysis`` settings dict and ``out_dir``).
+def analyse_job(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
+    """Worker entry point: ``cloud`` the scan (organised or not), ``job`` the job's parameters
+    (design, nominal placement, settings, ``out_dir``).
 
-    Returns the report dict; with ``out_dir`` also writes the results directory there.
+    Returns the report (the :class:`~analysis.job.Report` schema, as a dict); with ``out_dir`` also
+    writes the results directory there.
     """
-    xyz = np.asarray(cloud["xyz_mm"], dtype=np.float64)
-    org = [cloud.get(k) for k in ("pass_id", "profile_index", "point_index")]
-    sc = ScanCloud(xyz, *org) if all(a is not None for a in org) else ScanCloud(xyz)
-    design_path = job.get("design")
-    if not design_path:
-        raise InspectionError("the job names no design mesh")
     try:
-        design = load_mesh(design_path)
+        design = load_mesh(job.design)
     except MeshError as exc:
         raise InspectionError(str(exc)) from None
-    placement = job.get("placement")
     ins = inspect_cloud(
-        sc, design, InspectionSettings.from_dict(job.get("analysis")),
-        nominal_placement=tuple(placement) if placement else None,
-        plate_id=str(job.get("plate_id", "")), job_id=str(job.get("job_id", "")),
-        cell_id=str(job.get("cell_id", "")), inputs={"design": str(design_path)},
+        cloud, design, job.settings, nominal_placement=job.placement,
+        plate_id=job.plate_id, job_id=job.job_id, cell_id=job.cell_id, inputs={"design": job.design},
     )  # fmt: skip
-    if job.get("out_dir"):
-        write_results(ins, job["out_dir"])
+    if job.out_dir:
+        write_results(ins, job.out_dir)
     return ins.report

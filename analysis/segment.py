@@ -119,14 +119,14 @@ def _profiles_from_zero(cloud: ScanCloud) -> ScanCloud:
     """Number each pass's profiles from 0: an acquisition numbers profiles by frame over the whole
     scan (and pass ids may be sparse), which would make the scan grid mostly empty places."""
     pid = cloud.pass_id.astype(np.int64)
-    prof = cloud.profile.astype(np.int64)
+    prof = cloud.profile_index.astype(np.int64)
     _, pass_idx = np.unique(pid, return_inverse=True)
     first = np.full(int(pass_idx.max()) + 1, np.iinfo(np.int64).max)
     np.minimum.at(first, pass_idx, prof)
     local = prof - first[pass_idx]
     if np.array_equal(local, prof) and np.array_equal(pass_idx, pid):
         return cloud
-    return ScanCloud(cloud.points_mm, pass_idx.astype(np.int32), local.astype(np.int32), cloud.point)
+    return ScanCloud(cloud.xyz_mm, pass_idx.astype(np.int32), local.astype(np.int32), cloud.point_index)
 
 
 def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | None = None) -> SegmentResult:
@@ -144,12 +144,14 @@ def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | Non
         cloud = ScanCloud(arr)
     if len(cloud) < 100:
         raise SegmentError(f"{len(cloud)} points: too few to hold a plate")
-    if not np.isfinite(cloud.points_mm).all():
-        raise SegmentError("points_mm holds non-finite coordinates")
+    if not np.isfinite(cloud.xyz_mm).all():
+        raise SegmentError("xyz_mm holds non-finite coordinates")
     if cloud.organised:
         cloud = _profiles_from_zero(cloud)
         n_grid = (
-            (int(cloud.pass_id.max()) + 1) * (int(cloud.profile.max()) + 1) * (int(cloud.point.max()) + 1)
+            (int(cloud.pass_id.max()) + 1)
+            * (int(cloud.profile_index.max()) + 1)
+            * (int(cloud.point_index.max()) + 1)
         )
         if n_grid <= max(8 * len(cloud), 1_000_000):
             return _segment_grid(cloud, settings)
@@ -242,18 +244,18 @@ def _grid_pitch(points: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
 def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    pts = cloud.points_mm
+    pts = cloud.xyz_mm
     n = len(pts)
     # Cell statistics in float32 about the cloud's centre: half the memory traffic, and at
     # +-2 m the rounding (0.1 um) is far below the sensor noise. The selection is exact per point.
     p32 = np.subtract(pts, pts[:: max(1, n // 1000)].mean(axis=0), dtype=np.float32)  # no float64 temporary
     pass_id = cloud.pass_id.astype(np.int64)
     n_pass = int(pass_id.max()) + 1
-    width = int(cloud.point.max()) + 1
-    n_rows = int(cloud.profile.max()) + 1
+    width = int(cloud.point_index.max()) + 1
+    n_rows = int(cloud.profile_index.max()) + 1
     # One index grid for all passes: (pass, profile, point) -> point index. Duplicated indices
     # (a malformed file) keep the last point, which is harmless for segmentation.
-    lin = (pass_id * n_rows + cloud.profile) * width + cloud.point
+    lin = (pass_id * n_rows + cloud.profile_index) * width + cloud.point_index
     itype = np.int32 if n < 2**31 - 1 else np.int64  # half the memory traffic for the usual sizes
     grid = np.full(n_pass * n_rows * width, -1, dtype=itype)
     grid[lin] = np.arange(n, dtype=itype)
@@ -445,7 +447,7 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
 
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    pts = cloud.points_mm
+    pts = cloud.xyz_mm
     n = len(pts)
     # Cells big enough for a dozen points over at least two scan lines each, so every cell has its
     # own plane (PCA normal).

@@ -25,7 +25,7 @@ What the generator models, in the bed frame (x, y on the bed, z up, bed top at z
   backward (the passes of a real raster run both ways).
 
 Organisation: ``pass_id`` numbers raster passes from 0 and the four edge passes after them,
-``profile`` counts profiles within a pass, ``point`` counts rays along the line. Missing returns
+``profile_index`` counts profiles within a pass, ``point_index`` counts rays along the line. Missing returns
 are absent from the output, the indices of the others are kept.
 """
 
@@ -42,6 +42,7 @@ import structlog
 
 from analysis.cloud_io import CloudError, ScanCloud, write_cloud_ply
 from analysis.mesh import TriMesh, save_mesh
+from analysis.placement import Placement, placement_transform
 from analysis.plates import (
     PLATE_KINDS,
     EdgeSpringback,
@@ -59,7 +60,6 @@ from analysis.plates import (
 
 __all__ = [
     "BedScene",
-    "Placement",
     "ScanSettings",
     "SupportBox",
     "SynthError",
@@ -147,44 +147,37 @@ class ScanSettings:
         return cls(**base)
 
 
-@dataclass(frozen=True)
-class Placement:
-    """Where the plate lies: yaw about bed z, XY offset of the design origin, tilt (deg, mm)."""
-
-    yaw_deg: float = 0.0
-    x_mm: float = 0.0
-    y_mm: float = 0.0
-    tilt_deg: float = 0.0
-    tilt_axis_deg: float = 0.0
-
-
 def random_placement(
-    rng: np.random.Generator, *, offset_mm: float = 100.0, tilt_max_deg: float = 0.5
+    rng: np.random.Generator,
+    *,
+    offset_mm: float = 100.0,
+    tilt_max_deg: float = 0.5,
+    yaw_deg: float | None = None,
 ) -> Placement:
-    """Any yaw, an XY offset within +-offset_mm, a tilt up to tilt_max_deg about a random axis."""
-    return Placement(
-        yaw_deg=float(rng.uniform(0.0, 360.0)),
-        x_mm=float(rng.uniform(-offset_mm, offset_mm)),
-        y_mm=float(rng.uniform(-offset_mm, offset_mm)),
-        tilt_deg=float(rng.uniform(0.0, tilt_max_deg)),
-        tilt_axis_deg=float(rng.uniform(0.0, 360.0)),
-    )
+    """Any yaw (or ``yaw_deg``), an XY offset within +-offset_mm, a tilt up to tilt_max_deg about a
+    random horizontal axis. The height is left 0: :func:`synthesize_scan` lowers the plate onto the
+    supports."""
+    yaw = float(rng.uniform(0.0, 360.0))
+    x, y = float(rng.uniform(-offset_mm, offset_mm)), float(rng.uniform(-offset_mm, offset_mm))
+    tilt, tilt_axis = float(rng.uniform(0.0, tilt_max_deg)), float(rng.uniform(0.0, 360.0))
+    return Placement.on_bed(x, y, yaw if yaw_deg is None else yaw_deg, tilt_deg=tilt, tilt_axis_deg=tilt_axis)
 
 
 @dataclass
 class SynthScan:
     """A synthetic scan with its ground truth.
 
-    points_mm: (n, 3) float64, bed frame.
-    pass_id, profile, point: (n,) int32 scan organisation.
+    xyz_mm: (n, 3) float64, bed frame.
+    pass_id, profile_index, point_index: (n,) int32 scan organisation (the names of
+    :class:`~analysis.cloud_io.ScanCloud`).
     T_bed_design: (4, 4) design frame -> bed frame (exact).
     is_outlier: (n,) bool, points the generator displaced on purpose.
     """
 
-    points_mm: np.ndarray
+    xyz_mm: np.ndarray
     pass_id: np.ndarray
-    profile: np.ndarray
-    point: np.ndarray
+    profile_index: np.ndarray
+    point_index: np.ndarray
     T_bed_design: np.ndarray
     spec: PlateSpec
     error: FormingError
@@ -198,7 +191,7 @@ class SynthScan:
     @property
     def cloud(self) -> ScanCloud:
         """The scan as an organised :class:`ScanCloud`."""
-        return ScanCloud(self.points_mm, self.pass_id, self.profile, self.point)
+        return ScanCloud(self.xyz_mm, self.pass_id, self.profile_index, self.point_index)
 
     def design_mesh(self, pitch_mm: float = 5.0) -> TriMesh:
         """The design top surface (design frame) the plate was formed from."""
@@ -216,35 +209,22 @@ class SynthScan:
             "plate": self.spec.to_dict(),
             "forming_error": self.error.to_dict(),
             "T_bed_design": self.T_bed_design.tolist(),
-            "placement": asdict(self.placement),
+            "placement": self.placement.model_dump(),
             "corners_bed_mm": self.corners_bed_mm().tolist(),
             "settings": asdict(self.settings),
             "scene": asdict(self.scene),
             "seed": self.seed,
-            "n_points": len(self.points_mm),
+            "n_points": len(self.xyz_mm),
             "n_raster_passes": self.n_raster_passes,
             "n_outliers": int(self.is_outlier.sum()),
             "frames": "points in the bed frame; design frame per analysis.plates; T maps design -> bed",
         }
 
 
-def _rot_z(deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _rot_axis(axis: np.ndarray, deg: float) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    a = np.deg2rad(deg)
-    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
-
-
 def _place(spec: PlateSpec, error: FormingError, placement: Placement, scene: BedScene) -> np.ndarray:
-    """T_bed_design: rotate, then lower the plate until its bottom touches the highest support under it."""
-    ta = np.deg2rad(placement.tilt_axis_deg)
-    R = _rot_axis(np.array([np.cos(ta), np.sin(ta), 0.0]), placement.tilt_deg) @ _rot_z(placement.yaw_deg)
+    """T_bed_design: rotate, then lower the plate until its bottom touches the highest support under it
+    (the placement's height is not used)."""
+    R = placement_transform(placement)[:3, :3]
     u = np.linspace(-spec.length_mm / 2, spec.length_mm / 2, 241)
     v = np.linspace(-spec.width_mm / 2, spec.width_mm / 2, 161)
     U, V = np.meshgrid(u, v, indexing="ij")
@@ -517,10 +497,10 @@ def synthesize_scan(
             out_outl.append(outl)
 
     scan = SynthScan(
-        points_mm=np.concatenate(out_pts),
+        xyz_mm=np.concatenate(out_pts),
         pass_id=np.concatenate(out_pass),
-        profile=np.concatenate(out_prof),
-        point=np.concatenate(out_point),
+        profile_index=np.concatenate(out_prof),
+        point_index=np.concatenate(out_point),
         T_bed_design=T,
         spec=spec,
         error=error,
@@ -532,7 +512,7 @@ def synthesize_scan(
         is_outlier=np.concatenate(out_outl),
     )
     log.info(
-        "synth_scan", points=len(scan.points_mm), raster_passes=n_pass, profiles_per_pass=n_prof,
+        "synth_scan", points=len(scan.xyz_mm), raster_passes=n_pass, profiles_per_pass=n_prof,
         yaw_deg=round(placement.yaw_deg, 3), plate=spec.kind,
     )  # fmt: skip
     return scan
@@ -683,8 +663,7 @@ def synth_main(argv: list[str] | None = None) -> int:
         placement = None
         if args.yaw_deg is not None:
             rng = np.random.default_rng(args.seed)
-            pl = random_placement(rng)
-            placement = Placement(args.yaw_deg, pl.x_mm, pl.y_mm, pl.tilt_deg, pl.tilt_axis_deg)
+            placement = random_placement(rng, yaw_deg=args.yaw_deg)
         scan = synthesize_scan(spec, error, settings=settings, placement=placement, seed=args.seed)
         paths = write_synth(scan, args.out)
     except (PlateError, SynthError, CloudError) as exc:
@@ -693,5 +672,5 @@ def synth_main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"cellctl synth: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
-    print(f"wrote {paths[0]} ({len(scan.points_mm)} points), {paths[1]}, {paths[2]}")
+    print(f"wrote {paths[0]} ({len(scan.xyz_mm)} points), {paths[1]}, {paths[2]}")
     return 0

@@ -30,9 +30,8 @@ import numpy as np
 
 from analysis.register import DAMPING, solve_onesided_qp
 from analysis.rest_surface import max_normal_quantile
+from analysis.settings import TEMPLATE_FITS
 from analysis.templates import DetectionLine
-
-TEMPLATE_FITS = ("rigid", "per_line")
 
 
 class TemplateFitError(ValueError):

@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from analysis.accuracy import template_lift, true_line_zmax
 from analysis.pipeline import InspectionSettings, inspect_cloud
+from analysis.placement import Placement
 from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.register import height_field_from_mesh
 from analysis.synth import ScanSettings, synthesize_scan
@@ -82,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             scan = synthesize_scan(spec, error, settings=st, seed=args.seed * 100 + k)
             T = scan.T_bed_design
-            nominal = (T[0, 3], T[1, 3], float(np.degrees(np.arctan2(T[1, 0], T[0, 0]))))
+            nominal = Placement.on_bed(T[0, 3], T[1, 3], float(np.degrees(np.arctan2(T[1, 0], T[0, 0]))))
             ins = inspect_cloud(scan.cloud, design, settings, nominal_placement=nominal)
             lifts.append(template_lift(field, spec, T, ins.T_measured_design))
             truth = [
@@ -122,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
                 "levels": levels,
                 "plates": args.plates,
                 "dents": args.dents,
-                "points_last_scan": len(scan.points_mm),
+                "points_last_scan": len(scan.xyz_mm),
                 "wall_s": round(time.perf_counter() - t0, 1),
                 "target": {"lift_sigma": 0.3, "zmax_error_mm": 0.1},
             }

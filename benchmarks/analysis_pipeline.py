@@ -24,12 +24,11 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import structlog
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from analysis.cloud_io import ScanCloud
+from analysis.cloud_io import ScanCloud, read_cloud, write_cloud_npz
 from analysis.pipeline import InspectionSettings, inspect_cloud
 from analysis.plates import default_forming_error, design_mesh, plate_spec
 from analysis.synth import ScanSettings, synthesize_scan
@@ -39,16 +38,13 @@ from analysis.templates import DetectionLayout
 def _scan(length_mm: float, width_mm: float, step_mm: float, seed: int, cache: Path | None):
     spec = plate_spec("sail", length_mm=length_mm, width_mm=width_mm)
     if cache and cache.is_file():
-        z = np.load(cache)
-        return spec, ScanCloud(z["points_mm"], z["pass_id"], z["profile"], z["point"])
+        return spec, read_cloud(cache)
     scan = synthesize_scan(
         spec, default_forming_error(spec), settings=ScanSettings(profile_step_mm=step_mm), seed=seed
     )
     cloud = scan.cloud
     if cache:
-        np.savez(
-            cache, points_mm=cloud.points_mm, pass_id=cloud.pass_id, profile=cloud.profile, point=cloud.point
-        )
+        write_cloud_npz(cloud, cache)
     return spec, cloud
 
 
@@ -58,8 +54,10 @@ def _thin(cloud: ScanCloud, pitch_mm: float, native_mm: float = 0.1) -> ScanClou
     k = max(1, round(pitch_mm / native_mm))
     if k == 1:
         return cloud
-    keep = cloud.point % k == 0
-    return ScanCloud(cloud.points_mm[keep], cloud.pass_id[keep], cloud.profile[keep], cloud.point[keep] // k)
+    keep = cloud.point_index % k == 0
+    return ScanCloud(
+        cloud.xyz_mm[keep], cloud.pass_id[keep], cloud.profile_index[keep], cloud.point_index[keep] // k
+    )
 
 
 def _run(spec, cloud: ScanCloud, layout: DetectionLayout) -> tuple[dict, float, float]:
@@ -97,7 +95,7 @@ def main() -> int:
     cloud = _thin(cloud, args.publish_pitch_mm)
     report, total_s, cpu_s = _run(spec, cloud, DetectionLayout())
     out = {
-        "points": len(cloud.points_mm),
+        "points": len(cloud),
         "stages_s": {k: v for k, v in report["timings_s"].items() if k != "total"},
         "total_s": round(total_s, 3),
         "cpu_s": round(cpu_s, 3),
@@ -112,7 +110,7 @@ def main() -> int:
         layout2 = DetectionLayout(14, 80.0 * k, 7, 100.0 * k, True)
         cloud2 = _thin(cloud2, args.publish_pitch_mm)
         _, total2_s, _ = _run(spec2, cloud2, layout2)
-        out.update(points_2x=len(cloud2.points_mm), total_2x_s=round(total2_s, 3),
+        out.update(points_2x=len(cloud2), total_2x_s=round(total2_s, 3),
                    scaling=round(total2_s / total_s, 3))  # fmt: skip
     out["load_avg_1min"] = round(os.getloadavg()[0], 2)
     print(json.dumps(out))

@@ -40,14 +40,14 @@ def main() -> int:
         logger_factory=structlog.PrintLoggerFactory(sys.stderr),
     )
 
+    from analysis.placement import Placement
     from analysis.plates import design_mesh, plate_spec
     from cellctl.config import load_config
-    from cellctl.planning import Placement, PlannerSettings, PlanRefused, plan_scan
+    from cellctl.planning import PlannerSettings, PlanRefused, plan_scan
 
     cfg = load_config(args.config)
     settings = PlannerSettings.from_config(cfg)
-    pl = cfg.sim.placement
-    placement = Placement(pl.pos_mm[0], pl.pos_mm[1], pl.pos_mm[2], pl.angle_deg)
+    placement = cfg.sim.placement.to_placement()
     sail = design_mesh(plate_spec("sail"), pitch_mm=10.0)
 
     runs = []
@@ -64,7 +64,7 @@ def main() -> int:
         pitch_mm=25.0,
     )
     # long side across the robot, the near edge 750 mm in front of the base
-    large_placement = Placement(2000.0, 0.0, placement.z_mm, 90.0)
+    large_placement = Placement.on_bed(2000.0, 0.0, 90.0, z_mm=placement.z_mm)
     t0 = time.perf_counter()
     try:
         big = plan_scan(large, large_placement, settings)

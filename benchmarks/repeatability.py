@@ -32,8 +32,9 @@ import structlog
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from analysis.pipeline import InspectionSettings, inspect_cloud
+from analysis.placement import Placement
 from analysis.plates import default_forming_error, design_mesh, plate_spec
-from analysis.synth import Placement, ScanSettings, synthesize_scan
+from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 
 
@@ -95,16 +96,16 @@ def main(argv: list[str] | None = None) -> int:
         template_fit_compare=True,
     )
     rng = np.random.default_rng(args.seed)
-    base = Placement(yaw_deg=float(rng.uniform(0, 360)), x_mm=40.0, y_mm=-25.0)
+    base_x_mm, base_y_mm, base_yaw_deg = 40.0, -25.0, float(rng.uniform(0, 360))
     judged: dict[str, list[list[float]]] = {"zmax_mm": [], "sz_avg_mm": [], "cmax_per_mm": []}
     other: dict[str, list[list[float]]] = {"zmax_mm": [], "sz_avg_mm": [], "cmax_per_mm": []}
     names: list[str] | None = None
     t0 = time.perf_counter()
     for i in range(args.scans):
-        placement = Placement(
-            yaw_deg=base.yaw_deg + float(rng.uniform(-args.yaw_deg, args.yaw_deg)),
-            x_mm=base.x_mm + float(rng.uniform(-args.shift_mm, args.shift_mm)),
-            y_mm=base.y_mm + float(rng.uniform(-args.shift_mm, args.shift_mm)),
+        placement = Placement.on_bed(
+            base_x_mm + float(rng.uniform(-args.shift_mm, args.shift_mm)),
+            base_y_mm + float(rng.uniform(-args.shift_mm, args.shift_mm)),
+            base_yaw_deg + float(rng.uniform(-args.yaw_deg, args.yaw_deg)),
             tilt_deg=float(rng.uniform(0.0, 0.2)),
             tilt_axis_deg=float(rng.uniform(0.0, 360.0)),
         )
@@ -117,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         scan = synthesize_scan(spec, error, settings=st, placement=placement, seed=args.seed * 1000 + i)
         # the operator's nominal placement: where the plate was meant to lie, not where it lies
-        nominal = (base.x_mm, base.y_mm, base.yaw_deg)
+        nominal = Placement.on_bed(base_x_mm, base_y_mm, base_yaw_deg)
         rep = inspect_cloud(scan.cloud, design, settings, nominal_placement=nominal).report
         lines = rep["lines"]
         these = [ln["name"] for ln in lines]
@@ -140,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
             **_keys(s_other),
         },
         "per_line": s_judged["per_line"],
-        "points_last_scan": len(scan.points_mm),
+        "points_last_scan": len(scan.xyz_mm),
         "wall_s": round(time.perf_counter() - t0, 1),
         "target": {"zmax_spread_max_mm": 0.05},
     }

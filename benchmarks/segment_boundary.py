@@ -28,7 +28,7 @@ import structlog
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from analysis.boundary import find_corners
-from analysis.cloud_io import ScanCloud
+from analysis.cloud_io import read_cloud
 from analysis.segment import segment_plate
 from analysis.synth import ScanSettings, synthesize_scan
 
@@ -46,15 +46,15 @@ def main() -> int:
     t = time.perf_counter()
     if args.cache and args.cache.is_file():
         z = np.load(args.cache)
-        cloud = ScanCloud(z["points_mm"], z["pass_id"], z["profile"], z["point"])
+        cloud = read_cloud(args.cache)
         truth = z["corners_bed_mm"]
     else:
         scan = synthesize_scan(settings=ScanSettings(profile_step_mm=args.profile_step_mm), seed=args.seed)
         cloud = scan.cloud
         truth = scan.corners_bed_mm()
         if args.cache:
-            np.savez(args.cache, points_mm=cloud.points_mm, pass_id=cloud.pass_id, profile=cloud.profile,
-                     point=cloud.point, corners_bed_mm=truth)  # fmt: skip
+            np.savez(args.cache, xyz_mm=cloud.xyz_mm, pass_id=cloud.pass_id, profile_index=cloud.profile_index,
+                     point_index=cloud.point_index, corners_bed_mm=truth)  # fmt: skip
         del scan
     synth_s = time.perf_counter() - t
 

@@ -214,10 +214,10 @@ async def _one_job(sc: SoakCell, res: JobResult, timeout_s: float) -> None:
 
 async def daemon_stats(cell: FaultCell) -> dict[str, Any]:
     """The daemon's ``<prefix>/stats`` reply (docs/api.md), or {} when it does not answer."""
-    from cellctl.zenoh_session import async_get
+    from cellctl.api.session import async_get
 
     async with cell.client() as c:
-        replies = await async_get(c.session, f"{c.keys.prefix}/stats", timeout_s=10.0)
+        replies = await async_get(c.session, c.keys.stats, timeout_s=10.0)
     for r in replies:
         if r.ok is not None:
             return json.loads(r.ok.payload.to_bytes())

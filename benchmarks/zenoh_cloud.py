@@ -29,9 +29,9 @@ import zenoh
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from cellctl.cloud_codec import ENCODING, Cloud, decode_cloud, encode_cloud  # noqa: E402
+from cellctl.api.cloud_codec import ENCODING, Cloud, decode_cloud, encode_cloud  # noqa: E402
+from cellctl.api.session import build_zenoh_config, close_session, open_session  # noqa: E402
 from cellctl.config import ZenohSection  # noqa: E402
-from cellctl.zenoh_session import build_zenoh_config, close_session, open_session  # noqa: E402
 from tests.support.ports import free_port  # noqa: E402
 
 

@@ -31,6 +31,8 @@ from pydantic import (
 )
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
+from analysis.placement import Placement
+
 ENV_PREFIX = "CELL_"
 ENV_DELIMITER = "__"
 DEFAULT_CONFIG_PATH = Path("cell.toml")
@@ -269,7 +271,7 @@ class ZenohSection(Section):
         return self
 
 
-class Tolerances(Section):
+class TolerancesSection(Section):
     """Template-to-plate tolerances: 'standard' range and absolute 'limit' (CSQS 2016 defaults)."""
 
     standard: str = "CSQS 2016 (doubly curved plate)"
@@ -281,7 +283,7 @@ class Tolerances(Section):
     length_gap_limit_mm: PositiveFloat = 5.0
 
     @model_validator(mode="after")
-    def _standard_within_limit(self) -> Tolerances:
+    def _standard_within_limit(self) -> TolerancesSection:
         for name in ("deviation", "frame_gap", "length_gap"):
             std, lim = getattr(self, f"{name}_standard_mm"), getattr(self, f"{name}_limit_mm")
             if std > lim:
@@ -302,7 +304,7 @@ class AnalysisSection(Section):
     template_fit_compare: bool = False
     icp_stop_mm: PositiveFloat = 0.1
     workers: Annotated[int, Field(ge=1, le=64)] = 1
-    tolerances: Tolerances = Tolerances()
+    tolerances: TolerancesSection = TolerancesSection()
     # Workers and the job dispatcher (docs/api.md, "Jobs and workers").
     callable: Annotated[str, Field(pattern=r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")] = (
         "analysis.pipeline:analyse_job"
@@ -335,8 +337,14 @@ class SimPlate(Section):
 
 
 class SimPlacement(Section):
+    """Where the simulated plate lies: its design origin at ``pos_mm``, turned ``angle_deg`` about z."""
+
     pos_mm: Vec3 = [1500.0, 0.0, 300.0]
     angle_deg: Finite = 3.0
+
+    def to_placement(self) -> Placement:
+        """The same as the product's placement type (what a trigger sends for this plate)."""
+        return Placement.on_bed(self.pos_mm[0], self.pos_mm[1], self.angle_deg, z_mm=self.pos_mm[2])
 
 
 class SimClocks(Section):

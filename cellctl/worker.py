@@ -11,12 +11,13 @@ Shape of one worker process:
 
 The analysis callable is resolved from a dotted path ``"package.module:function"`` (default
 ``analysis.pipeline:analyse_job``) and called in the child as
-``fn(cloud: dict[str, np.ndarray], job: dict) -> dict``: ``cloud`` holds the arrays of
-:class:`cellctl.cloud_codec.Cloud` by field name (``xyz_mm`` (n, 3) float32 mm, and optionally
-``pass_id``, ``profile_index``, ``point_index``, ``t_s``), ``job`` is the JobSpec's ``params`` plus
-``job_id``, ``plate_id``, ``attempt`` and the cloud's metadata under ``cloud_meta``. The returned
-dict (the report, architecture.md schema) must be JSON-serialisable; numpy scalars and arrays are
-converted.
+``fn(cloud: ScanCloud, job: AnalysisJob) -> Report | dict``: ``cloud`` is the decoded cloud as
+:class:`analysis.cloud_io.ScanCloud` (``xyz_mm`` (n, 3) mm, and when sent the organisation
+``pass_id``, ``profile_index``, ``point_index`` and the times ``t_s``), ``job`` is the JobSpec's
+:class:`~analysis.job.AnalysisJob` (validated again in the child: ids, design, the trigger's
+placement, settings, ``out_dir``). What it returns is validated as a :class:`~analysis.job.Report`
+before it leaves the child (numpy scalars and arrays are converted); a report that does not fit
+the schema is an analysis error.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from typing import Any
 import structlog
 import zenoh
 
+from analysis.job import AnalysisJob, Report
 from cellctl.api import (
     JobEvent,
     JobSpec,
@@ -48,8 +50,7 @@ from cellctl.api import (
     default_worker_id,
     now_utc,
 )
-from cellctl.signals import stop_on_signals
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     ZenohSetupError,
     build_zenoh_config,
     close_session,
@@ -57,6 +58,7 @@ from cellctl.zenoh_session import (
     open_session,
     subscribe,
 )
+from cellctl.signals import stop_on_signals
 
 log = structlog.get_logger(__name__)
 
@@ -99,7 +101,7 @@ class AnalysisOutcome:
     """What the child returned for one job."""
 
     ok: bool
-    report: dict[str, Any] | None
+    report: Report | None
     error: str | None
     timings_s: dict[str, float]
 
@@ -161,7 +163,7 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
     except AnalysisLoadError as exc:
         conn.send_bytes(json.dumps({"ready": False, "error": str(exc)}).encode())
         return
-    from cellctl.cloud_codec import decode_cloud
+    from cellctl.api.cloud_codec import decode_cloud
 
     conn.send_bytes(json.dumps({"ready": True}).encode())
     while True:
@@ -172,19 +174,21 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
             return
         t0 = time.perf_counter()
         try:
-            job = json.loads(spec_raw)
+            job = AnalysisJob.model_validate_json(spec_raw)
             cloud = decode_cloud(cloud_raw)
             t1 = time.perf_counter()
-            job = {**job, "cloud_meta": cloud.meta}
-            report = fn(cloud.arrays(), job)
+            result = fn(cloud.scan_cloud(), job)
+            if not isinstance(result, Report):
+                result = Report.model_validate_json(
+                    json.dumps(result, default=_json_default, allow_nan=False)
+                )
             t2 = time.perf_counter()
             text = json.dumps(
                 {
                     "ok": True,
-                    "report": report,
+                    "report": result.model_dump(mode="json"),
                     "timings_s": {"decode": t1 - t0, "analysis": t2 - t1},
                 },
-                default=_json_default,
                 allow_nan=False,
             )
         except Exception as exc:
@@ -262,11 +266,11 @@ class AnalysisProcess:
                 proc.join(0.1)
                 raise AnalysisCrashed(f"analysis process died (exit code {proc.exitcode})")
 
-    async def run(self, job: dict[str, Any], cloud: bytes) -> AnalysisOutcome:
+    async def run(self, job: AnalysisJob, cloud: bytes) -> AnalysisOutcome:
         """Analyse one cloud in the child. AnalysisCrashed if the child dies meanwhile."""
         if self._proc is None or not self._proc.is_alive():
             raise AnalysisCrashed("analysis process is not running")
-        spec = json.dumps(job).encode("utf-8")
+        spec = job.model_dump_json().encode("utf-8")
 
         def send() -> None:
             self._conn.send_bytes(spec)
@@ -280,8 +284,12 @@ class AnalysisProcess:
         out = json.loads(raw)
         if not out["ok"]:
             log.warning("analysis_failed", error=out["error"], traceback=out.get("traceback"))
+        report = out.get("report")
         return AnalysisOutcome(
-            ok=bool(out["ok"]), report=out.get("report"), error=out.get("error"), timings_s=out["timings_s"]
+            ok=bool(out["ok"]),
+            report=None if report is None else Report.model_validate(report),
+            error=out.get("error"),
+            timings_s=out["timings_s"],
         )
 
     def kill(self) -> None:
@@ -432,9 +440,8 @@ class Worker:
         try:
             cloud = await asyncio.to_thread(sample.payload.to_bytes)
             del sample
-            job = {**spec.params, "job_id": spec.job_id, "plate_id": spec.plate_id, "attempt": spec.attempt}
             try:
-                outcome = await self.runner.run(job, cloud)
+                outcome = await self.runner.run(spec.job, cloud)
             except AnalysisCrashed as exc:
                 log.error("analysis_crashed", job_id=spec.job_id, error=str(exc))
                 self._event(spec, "failed", str(exc))

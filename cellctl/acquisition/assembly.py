@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import structlog
 
+from analysis.cloud_io import ScanCloud
 from cellctl.acquisition.poses import interpolate_poses, transform_profiles_within
 
 log = structlog.get_logger(__name__)
@@ -24,9 +25,9 @@ MAX_ABS_MM = 1.0e5
 
 __all__ = [
     "AssembledBatch",
+    "AssembledScan",
     "AssemblyError",
     "PassSchedule",
-    "ScanCloud",
     "assemble_batch",
 ]
 
@@ -163,10 +164,12 @@ def assemble_batch(
 
 
 @dataclass(frozen=True, slots=True)
-class ScanCloud:
+class AssembledScan:
     """The whole organised scan: the rows of every :class:`AssembledBatch`, concatenated.
 
-    Attributes: as :class:`AssembledBatch` with ``n`` = profiles in the scan.
+    Attributes: as :class:`AssembledBatch` with ``n`` = profiles in the scan (``pass_id`` -1 marks
+    transit rows: the daemon schedules by it). :meth:`cloud_arrays` / :meth:`scan_cloud` give the
+    product's cloud (``analysis.cloud_io``'s vocabulary) that files and the analysis get.
     """
 
     profile_index: np.ndarray
@@ -178,7 +181,7 @@ class ScanCloud:
     sensor_pos_mm: np.ndarray
 
     @classmethod
-    def concat(cls, batches: Sequence[AssembledBatch], width: int = 0) -> ScanCloud:
+    def concat(cls, batches: Sequence[AssembledBatch], width: int = 0) -> AssembledScan:
         """Concatenate batches (an empty scan of ``width`` points per profile if there are none)."""
         if not batches:
             return cls(
@@ -234,6 +237,25 @@ class ScanCloud:
             "point_index": point.astype(np.int32),
             "t_ns": self.t_ns[r],
         }
+
+    def cloud_arrays(self, column_step: int | np.ndarray = 1) -> dict[str, np.ndarray]:
+        """The valid points (thinned as in :meth:`points`) in the cloud vocabulary of
+        :mod:`analysis.cloud_io`: ``xyz_mm`` float32, ``pass_id`` with transit filed under pass 0,
+        ``profile_index``, ``point_index``, ``t_s`` (s from the scan's first profile). No copy
+        beyond the selection: the caller picks its storage dtypes."""
+        pts = self.points(column_step)
+        t0 = int(self.t_ns.min()) if len(self) else 0
+        return {
+            "xyz_mm": pts["xyz_mm"],
+            "pass_id": np.maximum(pts["pass_id"], 0),
+            "profile_index": pts["profile_index"],
+            "point_index": pts["point_index"],
+            "t_s": (pts["t_ns"] - t0) * 1e-9,
+        }
+
+    def scan_cloud(self, column_step: int | np.ndarray = 1) -> ScanCloud:
+        """:meth:`cloud_arrays` as the analysis' :class:`~analysis.cloud_io.ScanCloud`."""
+        return ScanCloud(**self.cloud_arrays(column_step))
 
     def digest(self) -> str:
         """SHA-256 over every array's bytes: equal digests mean bit-for-bit equal clouds."""

@@ -2,15 +2,16 @@
 
 Both are written here with numpy structured arrays (no extra package):
 
-* **PLY** (binary little-endian): ``float x, y, z`` (robot base frame, mm), ``int pass``
-  (-1 = transit), ``int profile`` (running profile index), ``ushort point`` (column in the profile)
-  and ``double time_s`` (exposure time from the first profile). Float32 coordinates, as CloudCompare,
-  PCL and Open3D's tensor reader expect (line-laser-and-sync.md section 6).
+* **PLY**: the product's one organised-PLY layout (:func:`analysis.cloud_io.write_cloud_ply`, read
+  back by ``cellctl inspect``): ``float x, y, z`` (robot base frame, mm), ``int pass`` (transit
+  filed under pass 0), ``int profile`` (running profile index), ``int point`` (column in the
+  profile) and ``double t_s`` (exposure time from the first profile). Float32 coordinates, as
+  CloudCompare, PCL and Open3D's tensor reader expect (line-laser-and-sync.md section 6).
 * **LAS 1.4**, point data record format 6 (30 bytes) plus two *extra bytes* (``profile`` u32,
   ``point`` u16, described in the standard extra-bytes VLR). Coordinates are scaled integers:
   scale 0.001 (1 um, the unit is mm) and an offset at the cloud's minimum, so int32 covers +-2 km.
-  ``point source ID`` carries the pass (pass + 1, 0 = transit) and ``GPS time`` the exposure time in
-  seconds from the first profile. Chosen over E57 because E57 needs libE57Format (a new package).
+  ``point source ID`` carries the pass + 1 (files of the earlier convention hold 0 for transit) and
+  ``GPS time`` the exposure time in seconds from the first profile. Chosen over E57 because E57 needs libE57Format (a new package).
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cellctl.acquisition.assembly import ScanCloud
+from analysis.cloud_io import write_cloud_ply
+from cellctl.acquisition.assembly import AssembledScan
 
 __all__ = ["LAS_SCALE_MM", "CloudFileError", "read_las", "write_las", "write_ply"]
 
@@ -35,47 +37,9 @@ class CloudFileError(ValueError):
     """A cloud file cannot be written or read (names the file and the field)."""
 
 
-def _flat(cloud: ScanCloud) -> dict[str, np.ndarray]:
-    pts = cloud.points()
-    t0 = int(cloud.t_ns.min()) if len(cloud) else 0
-    pts["time_s"] = (pts["t_ns"] - t0).astype(np.float64) * 1e-9
-    return pts
-
-
-def write_ply(cloud: ScanCloud, path: str | Path) -> Path:
-    """Write the valid points of ``cloud`` as binary PLY; returns the path."""
-    path = Path(path)
-    pts = _flat(cloud)
-    n = len(pts["xyz_mm"])
-    dt = np.dtype(
-        [
-            ("x", "<f4"),
-            ("y", "<f4"),
-            ("z", "<f4"),
-            ("pass", "<i4"),
-            ("profile", "<i4"),
-            ("point", "<u2"),
-            ("time_s", "<f8"),
-        ]
-    )
-    rec = np.empty(n, dtype=dt)
-    rec["x"], rec["y"], rec["z"] = pts["xyz_mm"].T
-    rec["pass"] = pts["pass_id"]
-    rec["profile"] = pts["profile_index"]
-    rec["point"] = pts["point_index"]
-    rec["time_s"] = pts["time_s"]
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        "comment cellctl scan cloud: robot base frame, mm; pass -1 = transit\n"
-        f"element vertex {n}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property int pass\nproperty int profile\nproperty ushort point\nproperty double time_s\n"
-        "end_header\n"
-    )
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(rec.tobytes())
-    return path
+def write_ply(scan: AssembledScan, path: str | Path) -> Path:
+    """Write the valid points of ``scan`` as binary PLY; returns the path."""
+    return write_cloud_ply(scan.scan_cloud(), path, comment="cellctl scan cloud: robot base frame, mm")
 
 
 _LAS_POINT = np.dtype(
@@ -113,10 +77,10 @@ def _extra_bytes_vlr() -> bytes:
     return header + payload
 
 
-def write_las(cloud: ScanCloud, path: str | Path) -> Path:
+def write_las(cloud: AssembledScan, path: str | Path) -> Path:
     """Write the valid points of ``cloud`` as LAS 1.4, point format 6 + extra bytes; returns the path."""
     path = Path(path)
-    pts = _flat(cloud)
+    pts = cloud.cloud_arrays()
     xyz = pts["xyz_mm"].astype(np.float64)
     n = len(xyz)
     lo = np.floor(xyz.min(axis=0)) if n else np.zeros(3)
@@ -130,7 +94,7 @@ def write_las(cloud: ScanCloud, path: str | Path) -> Path:
     rec["X"], rec["Y"], rec["Z"] = scaled.astype(np.int32).T
     rec["returns"] = 0x11  # return 1 of 1
     rec["point_source_id"] = (pts["pass_id"] + 1).astype(np.uint16)
-    rec["gps_time"] = pts["time_s"]
+    rec["gps_time"] = pts["t_s"]
     rec["profile"] = pts["profile_index"].astype(np.uint32)
     rec["point"] = pts["point_index"].astype(np.uint16)
     vlr = _extra_bytes_vlr()
@@ -184,8 +148,9 @@ def write_las(cloud: ScanCloud, path: str | Path) -> Path:
 
 
 def read_las(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a LAS file written by :func:`write_las`: ``xyz_mm`` (n, 3) float64, ``pass_id``, ``profile``,
-    ``point``, ``time_s``."""
+    """Read a LAS file written by :func:`write_las`: ``xyz_mm`` (n, 3) float64, ``pass_id``,
+    ``profile_index``, ``point_index``, ``t_s`` (the cloud vocabulary; an older file's transit, point
+    source 0, reads as pass 0)."""
     data = Path(path).read_bytes()
     if data[:4] != b"LASF" or data[24:26] != b"\x01\x04":
         raise CloudFileError(
@@ -203,8 +168,8 @@ def read_las(path: str | Path) -> dict[str, np.ndarray]:
     xyz = np.column_stack([rec["X"], rec["Y"], rec["Z"]]).astype(np.float64) * scale + off
     return {
         "xyz_mm": xyz,
-        "pass_id": rec["point_source_id"].astype(np.int32) - 1,
-        "profile": rec["profile"].copy(),
-        "point": rec["point"].copy(),
-        "time_s": rec["gps_time"].copy(),
+        "pass_id": np.maximum(rec["point_source_id"].astype(np.int32) - 1, 0),
+        "profile_index": rec["profile"].copy(),
+        "point_index": rec["point"].copy(),
+        "t_s": rec["gps_time"].copy(),
     }

@@ -20,7 +20,7 @@ from typing import Any, Literal
 import numpy as np
 import structlog
 
-from cellctl.acquisition.assembly import AssembledBatch, PassSchedule, ScanCloud, assemble_batch
+from cellctl.acquisition.assembly import AssembledBatch, AssembledScan, PassSchedule, assemble_batch
 from cellctl.acquisition.clock_sync import (
     ClockFit,
     ClockSync,
@@ -299,9 +299,9 @@ class Acquisition:
 
     # ---- results --------------------------------------------------------------------------------
 
-    def cloud(self) -> ScanCloud:
+    def cloud(self) -> AssembledScan:
         """Everything assembled so far as one organised cloud."""
-        return ScanCloud.concat(self._batches, self._width)
+        return AssembledScan.concat(self._batches, self._width)
 
     def quality(self) -> dict[str, Any]:
         """Clock fit reports and counters (for the job record and logs)."""

@@ -15,12 +15,12 @@ gives the same bits whether it was interpolated live or when the raw files are r
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from analysis.placement import T_from_pos_rpy
 from drivers.abb_egm.kinematics import fk_batch
 
 __all__ = [
@@ -38,17 +38,6 @@ __all__ = [
 
 class PoseTimeError(ValueError):
     """Interpolation input is unusable: unsorted or too short history, wrong shapes."""
-
-
-def T_from_pos_rpy(pos_mm: Sequence[float], rpy_deg: Sequence[float]) -> np.ndarray:
-    """(4, 4) transform from a translation (3,) mm and roll-pitch-yaw (3,) deg about fixed x, y, z.
-
-    This is the convention of ``cellctl.config.Pose`` (``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``).
-    """
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("xyz", np.asarray(rpy_deg, dtype=np.float64), degrees=True).as_matrix()
-    T[:3, 3] = np.asarray(pos_mm, dtype=np.float64)
-    return T
 
 
 def pos_rpy_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

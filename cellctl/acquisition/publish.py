@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from cellctl.acquisition.assembly import AssemblyError, ScanCloud
-from cellctl.cloud_codec import Cloud, encode_cloud
+from cellctl.acquisition.assembly import AssembledScan, AssemblyError
+from cellctl.api.cloud_codec import Cloud, encode_cloud
 
 __all__ = ["PublishSettings", "column_steps", "encode_scan", "publication_cloud"]
 
@@ -72,40 +72,41 @@ def column_steps(pass_id: np.ndarray, first_edge_pass: int | None, settings: Pub
 
 
 def publication_cloud(
-    scan: ScanCloud,
+    scan: AssembledScan,
     *,
     job_id: str,
     plate_id: str,
     column_step: int | np.ndarray = 1,
     meta: dict[str, Any] | None = None,
 ) -> Cloud:
-    """The valid points of ``scan`` as a :class:`~cellctl.cloud_codec.Cloud`, thinned by ``column_step``
-    (see :meth:`ScanCloud.points`); exposure times in s from the job's epoch; transit profiles
-    (pass -1) go with pass 0, as the scan grid has no negative pass."""
-    pts = scan.points(column_step)
-    if pts["point_index"].size and int(pts["point_index"].max()) > 65535:
-        raise AssemblyError(f"point index {int(pts['point_index'].max())} does not fit the cloud's u16")
+    """The valid points of ``scan`` as a :class:`~cellctl.api.cloud_codec.Cloud`, thinned by ``column_step``
+    (see :meth:`AssembledScan.points`), in the cloud vocabulary (:meth:`AssembledScan.cloud_arrays`:
+    transit under pass 0, exposure times in s from the first profile) at the codec's dtypes."""
+    pts = scan.cloud_arrays(column_step)
+    for name in ("pass_id", "point_index"):
+        if pts[name].size and int(pts[name].max()) > 65535:
+            raise AssemblyError(f"{name} {int(pts[name].max())} does not fit the cloud's u16")
     return Cloud(
         xyz_mm=pts["xyz_mm"],
         job_id=job_id,
         plate_id=plate_id,
-        pass_id=np.clip(pts["pass_id"], 0, 65535).astype(np.uint16),
+        pass_id=pts["pass_id"].astype(np.uint16),
         profile_index=pts["profile_index"].astype(np.uint32),
         point_index=pts["point_index"].astype(np.uint16),
-        t_s=pts["t_ns"] * 1e-9,
+        t_s=pts["t_s"],
         meta=dict(meta or {}),
     )
 
 
 def encode_scan(
-    scan: ScanCloud,
+    scan: AssembledScan,
     *,
     job_id: str,
     plate_id: str,
     column_step: int | np.ndarray = 1,
     meta: dict[str, Any] | None = None,
 ) -> tuple[bytearray, int]:
-    """:func:`publication_cloud` encoded by :func:`~cellctl.cloud_codec.encode_cloud`: ``(payload,
+    """:func:`publication_cloud` encoded by :func:`~cellctl.api.cloud_codec.encode_cloud`: ``(payload,
     n_points)``. One pass over the kept points; run it off the event loop."""
     cloud = publication_cloud(scan, job_id=job_id, plate_id=plate_id, column_step=column_step, meta=meta)
     return encode_cloud(cloud), cloud.n_points

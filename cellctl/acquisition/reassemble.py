@@ -20,7 +20,7 @@ from pathlib import Path
 
 import structlog
 
-from cellctl.acquisition.assembly import ScanCloud
+from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.clock_sync import ClockFit, FrameTimeline
 from cellctl.acquisition.pipeline import (
     KIND_CLOCK_FIT,
@@ -54,7 +54,7 @@ class ReassemblyResult:
         fits: the whole-scan fits used (``sensor``, ``robot``, ``frames``); empty for the live replay.
     """
 
-    cloud: ScanCloud
+    cloud: AssembledScan
     settings: AcquisitionSettings
     read: ReadReport
     fits_recorded: int = 0

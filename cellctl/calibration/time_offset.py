@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cellctl.acquisition.assembly import ScanCloud
+from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.reassemble import reassemble
 
 __all__ = ["TimeOffsetError", "TimeOffsetResult", "calibrate_time_offset", "estimate_time_offset"]
@@ -71,7 +71,7 @@ class TimeOffsetResult:
         }
 
 
-def _profile_velocity(cloud: ScanCloud) -> tuple[np.ndarray, np.ndarray]:
+def _profile_velocity(cloud: AssembledScan) -> tuple[np.ndarray, np.ndarray]:
     """Sensor velocity (n, 3) mm/s at each profile, and its speed class (mm/s rounded to 50)."""
     n_ok = np.isfinite(cloud.sensor_pos_mm).all(axis=1)
     c = cloud.sensor_pos_mm.astype(np.float64)
@@ -86,7 +86,7 @@ def _profile_velocity(cloud: ScanCloud) -> tuple[np.ndarray, np.ndarray]:
 
 
 def estimate_time_offset(
-    cloud: ScanCloud, *, cell_mm: float = 2.0, min_speed_mm_s: float = 5.0, trim_mm: float = 0.5
+    cloud: AssembledScan, *, cell_mm: float = 2.0, min_speed_mm_s: float = 5.0, trim_mm: float = 0.5
 ) -> TimeOffsetEstimate:
     """Linear estimate of the timing error of an organised scan (see the module docstring).
 

@@ -204,8 +204,8 @@ async def drive_scan(
     Returns ``(job_id, report or None, the report's path)``; raises DemoError on any failure.
     """
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+    from cellctl.api.session import ZenohSetupError, build_zenoh_config, close_session, open_session
     from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
-    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, close_session, open_session
 
     keys = Keys(cfg.key_prefix)
     zcfg = lambda: build_zenoh_config(cfg.zenoh, role="connect", key_prefix=cfg.key_prefix)  # noqa: E731
@@ -234,7 +234,7 @@ async def drive_scan(
         req = {
             "plate_id": "demo-sail" if cfg.sim.plate.length_mm < 1200 else "sail-1200x800",
             "design": DEMO_DESIGN,
-            "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]},
+            "placement": pl.to_placement().model_dump(),
             "note": "cellctl demo",
         }
         try:

@@ -9,8 +9,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from cellctl.config import ConfigError, load_config
 
 
@@ -50,12 +48,13 @@ def run(args: argparse.Namespace) -> int:
     from analysis.mesh import load_mesh
     from analysis.pipeline import inspect_cloud, write_results
     from analysis.report import write_report
-    from cellctl.analysis_settings import inspection_settings
+    from cellctl.api.analysis_job import inspection_settings
+    from cellctl.commands.plan_cmd import parse_placement
     from cellctl.commands.tables import line_table
     from cellctl.config import AnalysisSection
 
     try:
-        placement = _parse_placement(args.placement) if args.placement else None
+        placement = parse_placement(args.placement, 0.0) if args.placement else None
     except ValueError as exc:
         return _fail(str(exc))
     cfg_path = args.config or ("cell.toml" if Path("cell.toml").is_file() else None)
@@ -85,14 +84,3 @@ def run(args: argparse.Namespace) -> int:
         print(line_table(ins.report))
         print(f"report: {files.get('report.html', files['report.json'])}")
     return 0 if ins.report["verdict"] == "pass" else 1
-
-
-def _parse_placement(text: str) -> tuple[float, float, float]:
-    parts = text.split(",")
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(np.isfinite(values)):
-        raise ValueError(f"--placement {text!r}: expected X_MM,Y_MM,ANGLE_DEG, three numbers")
-    return values  # type: ignore[return-value]

@@ -50,8 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def parse_placement(text: str, default_z_mm: float):
-    """``"X,Y,ANGLE_DEG"`` or ``"X,Y,Z,ANGLE_DEG"`` -> :class:`~cellctl.planning.Placement`."""
-    from cellctl.planning import Placement
+    """``"X,Y,ANGLE_DEG"`` or ``"X,Y,Z,ANGLE_DEG"`` -> :class:`~analysis.placement.Placement`."""
+    from pydantic import ValidationError
+
+    from analysis.placement import Placement
 
     parts = [p.strip() for p in text.split(",")]
     if len(parts) not in (3, 4):
@@ -67,7 +69,11 @@ def parse_placement(text: str, default_z_mm: float):
         z = default_z_mm
     else:
         x, y, z, a = values
-    return Placement(x, y, z, a)
+    try:
+        return Placement.on_bed(x, y, a, z_mm=z)
+    except ValidationError as exc:  # out of range: +-100 m, +-360 deg
+        problem = exc.errors(include_url=False)[0]
+        raise PlacementArgError(f"--placement {text!r}: {problem['msg']}") from None
 
 
 def _design(arg: str, cfg):

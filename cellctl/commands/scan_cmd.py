@@ -77,8 +77,7 @@ def placement_payload(text: str, default_z_mm: float) -> dict[str, Any]:
     """``X,Y,ANGLE`` / ``X,Y,Z,ANGLE`` -> the trigger's ``placement`` object (ValueError if malformed)."""
     from cellctl.commands.plan_cmd import parse_placement
 
-    p = parse_placement(text, default_z_mm)
-    return {"pos_mm": [p.x_mm, p.y_mm, p.z_mm], "rpy_deg": [0.0, 0.0, p.angle_deg]}
+    return parse_placement(text, default_z_mm).model_dump()
 
 
 class StatusFollower:
@@ -91,7 +90,7 @@ class StatusFollower:
     """
 
     def __init__(self, session: Any, keys: Any) -> None:
-        from cellctl.zenoh_session import subscribe
+        from cellctl.api.session import subscribe
 
         self.latest: Any = None
         self.jobs: dict[str, Any] = {}
@@ -188,13 +187,14 @@ async def wait_for_job(
                     break
                 await asyncio.sleep(0.1)
                 env = follower.reports.get(job_id)
-            return job.state.value, job.message, (env.report if env is not None else None)
+            report = None if env is None or env.report is None else env.report.model_dump(mode="json")
+            return job.state.value, job.message, report
     return "timeout", f"no end of job {job_id} within {timeout_s} s", None
 
 
 async def _client_session(cfg, command: str):
     """A client session to the cell's Zenoh, or None after saying why on stderr."""
-    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, open_session
+    from cellctl.api.session import ZenohSetupError, build_zenoh_config, open_session
 
     try:
         return await asyncio.to_thread(
@@ -219,8 +219,8 @@ def _runner(coro_fn):
 
 async def _scan(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+    from cellctl.api.session import close_session
     from cellctl.commands.tables import line_table
-    from cellctl.zenoh_session import close_session
 
     try:
         placement = placement_payload(args.placement, cfg.scan.placement_z_mm)
@@ -264,7 +264,7 @@ run_scan = _runner(_scan)
 
 async def _status(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import Keys, list_workers
-    from cellctl.zenoh_session import close_session
+    from cellctl.api.session import close_session
 
     keys = Keys(cfg.key_prefix)
     session = await _client_session(cfg, "status")
@@ -314,7 +314,7 @@ run_status = _runner(_status)
 
 async def _watch(args: argparse.Namespace, cfg) -> int:
     from cellctl.api import Keys
-    from cellctl.zenoh_session import close_session
+    from cellctl.api.session import close_session
 
     keys = Keys(cfg.key_prefix)
     session = await _client_session(cfg, "watch")
@@ -346,7 +346,7 @@ run_watch = _runner(_watch)
 
 async def _control(args: argparse.Namespace, cfg, action: str, payload: dict[str, Any]) -> int:
     from cellctl.api import ApiCallError, ControlReply, Keys, call
-    from cellctl.zenoh_session import close_session
+    from cellctl.api.session import close_session
 
     keys = Keys(cfg.key_prefix)
     session = await _client_session(cfg, action)

@@ -106,8 +106,8 @@ def run_fault(args: argparse.Namespace) -> int:
 
 
 async def _send(cfg: CellConfig, request: dict[str, Any], timeout_s: float) -> dict[str, Any]:
+    from cellctl.api.session import ZenohSetupError, close_session
     from cellctl.simcell.faults import FaultChannelError, open_fault_session, send_faults
-    from cellctl.zenoh_session import ZenohSetupError, close_session
 
     try:
         session = await asyncio.to_thread(open_fault_session, cfg, role="connect")

@@ -4,7 +4,7 @@ Layout of a job directory::
 
     job.json        this record: trigger, state, state history, results (rewritten atomically)
     raw/            the acquisition's raw files (cellctl.acquisition.rawstore: job.json + *.craw)
-    cloud.bin       the published cloud, exactly the bytes sent (cellctl.cloud_codec layout, base frame, mm)
+    cloud.bin       the published cloud, exactly the bytes sent (cellctl.api.cloud_codec layout, base frame, mm)
     results/        the worker's results directory (report.json, report.csv, results.npz, cloud.ply)
     report.json     the report as the daemon received it
 

@@ -3,7 +3,7 @@
 A job (one remote trigger): validate -> plan (in a thread) -> motors on and the EGM program started
 through RWS -> execute the plan over EGM while the HD8 client streams profiles into the acquisition
 (raw files first) -> EGM program ended -> the whole-scan cloud rebuilt from the raw files ->
-published to the analysis workers through the :class:`~cellctl.dispatch.Dispatcher` -> the report
+published to the analysis workers through the :class:`~cellctl.api.dispatch.Dispatcher` -> the report
 stored with the job. One scan at a time: a trigger while a scan holds the robot waits in a bounded
 queue (``[daemon] queue_max``; full -> ``queue_full``; 0 -> refused with ``busy``) and starts when
 the robot is free; the analysis of a finished scan runs while the next one scans. A fault or an
@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import structlog
 
+from analysis.placement import Placement
 from cellctl.api import (
     CONTROL_LOG,
     FINAL_JOB_STATES,
@@ -45,6 +46,7 @@ from cellctl.api import (
     ControlError,
     ControlReply,
     ControlRequest,
+    DaemonStats,
     JobProgress,
     JobState,
     Keys,
@@ -90,7 +92,7 @@ class _Job:
         self.stage = "queued"
         self.worker_id: str | None = None
         self.stop_reason: str | None = None  # "shutdown" or "abort"
-        self.cloud: Any = None  # the live ScanCloud of a finished scan, until published
+        self.cloud: Any = None  # the live AssembledScan of a finished scan, until published
         self.task: asyncio.Task | None = None
 
 
@@ -125,8 +127,8 @@ class CellDaemon:
         """Start everything, serve until ``stop``, stop smoothly. Returns 0 (or 2 on a start failure)."""
         import zenoh
 
-        from cellctl.dispatch import Dispatcher, DispatchHooks, DispatchSettings
-        from cellctl.zenoh_session import (
+        from cellctl.api.dispatch import Dispatcher, DispatchHooks, DispatchSettings
+        from cellctl.api.session import (
             ZenohSetupError,
             build_zenoh_config,
             close_session,
@@ -212,7 +214,7 @@ class CellDaemon:
                 self._entities.append(
                     declare_async_queryable(s, self.keys.control(action), self._control_handler(action))
                 )
-            self._entities.append(declare_async_queryable(s, f"{self.keys.prefix}/stats", self._on_stats))
+            self._entities.append(declare_async_queryable(s, self.keys.stats, self._on_stats))
             self._entities.append(s.liveliness().declare_token(self.keys.daemon_alive))
             publisher = s.declare_publisher(self.keys.state, encoding=zenoh.Encoding.APPLICATION_JSON)
             self._publisher = publisher
@@ -282,16 +284,15 @@ class CellDaemon:
     async def _on_stats(self, query: Any) -> None:
         """``<prefix>/stats``: the daemon's counters since it started (docs/api.md) for monitoring and the
         soak: the EGM endpoint's statistics, resident memory, malformed worker messages."""
-        body = {
-            "cell_id": self.cfg.cell.id,
-            "t_utc": now_utc(),
-            "egm": self.endpoint.stats.snapshot() if self.endpoint is not None else None,
-            "rss_mb": _rss_mb(),
-            "dispatch_malformed": getattr(self.dispatcher, "malformed", 0),
-        }
+        heap = None
         if tracemalloc.is_tracing():  # PYTHONTRACEMALLOC=1: where the Python heap is, for a leak hunt
-            body["python_heap"] = await asyncio.to_thread(_heap_summary)  # a snapshot takes seconds
-        query.reply(query.key_expr, json.dumps(body).encode(), encoding=JSON)
+            heap = await asyncio.to_thread(_heap_summary)  # a snapshot takes seconds
+        body = DaemonStats(
+            cell_id=self.cfg.cell.id, t_utc=now_utc(), rss_mb=_rss_mb(),
+            egm=self.endpoint.stats.snapshot() if self.endpoint is not None else None,
+            dispatch_malformed=getattr(self.dispatcher, "malformed", 0), python_heap=heap,
+        )  # fmt: skip
+        query.reply(query.key_expr, body.to_json(), encoding=JSON)
 
     def _on_transition(self, tr: Transition) -> None:
         self._publish()
@@ -634,18 +635,15 @@ class CellDaemon:
         from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
         from cellctl.acquisition.rawstore import RawWriter
         from cellctl.motion import ExecState, ExecutorConfig, MotionExecutor
-        from cellctl.planning import Placement, PlanInputError, PlannerSettings, PlanRefused, plan_scan
+        from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, plan_scan
         from drivers.laser.client import HD8Client
 
         cfg, rec = self.cfg, job.record
         self.sm.to(CellState.PLANNING, f"planning job {rec.job_id}")
         self._job_state(job, JobState.PLANNING)
-        pos = rec.placement["pos_mm"]
         try:
             design = await asyncio.to_thread(load_design, Path(rec.design_path))
-            placement = Placement(
-                float(pos[0]), float(pos[1]), float(pos[2]), float(rec.placement["rpy_deg"][2])
-            )
+            placement = Placement.model_validate(rec.placement)
             settings = PlannerSettings.from_config(cfg)
             t0 = time.perf_counter()
             plan = await asyncio.to_thread(plan_scan, design, placement, settings, with_coverage=False)
@@ -865,8 +863,8 @@ class CellDaemon:
     async def _analyse_inner(self, job: _Job) -> None:
         from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan
         from cellctl.acquisition.reassemble import reassemble
-        from cellctl.analysis_settings import inspection_settings_dict
-        from cellctl.dispatch import JobFailed
+        from cellctl.api.analysis_job import analysis_job
+        from cellctl.api.dispatch import JobFailed
 
         rec = job.record
         bind_context(job_id=rec.job_id)
@@ -896,14 +894,12 @@ class CellDaemon:
             )
             del scan_cloud, steps
             assemble_s = time.perf_counter() - t0
-            params = {
-                "design": rec.design_path,
-                "analysis": inspection_settings_dict(self.cfg.analysis),
-                "out_dir": str(self.store.results_dir(rec.job_id).resolve()),
-                "cell_id": self.cfg.cell.id,
-            }
-            fut = self.dispatcher.submit(rec.job_id, rec.plate_id, payload, params)
-            # the published bytes, kept with the job (cellctl.cloud_codec layout); written while the
+            params = analysis_job(
+                self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
+                placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
+            )  # fmt: skip
+            fut = self.dispatcher.submit(params, payload)
+            # the published bytes, kept with the job (cellctl.api.cloud_codec layout); written while the
             # worker analyses, and on disk before the job is done
             cloud_path = self.store.job_dir(rec.job_id) / "cloud.bin"
             written = asyncio.ensure_future(asyncio.to_thread(cloud_path.write_bytes, payload))
@@ -935,11 +931,11 @@ class CellDaemon:
             self._job_state(job, JobState.FAILED, f"analysis error: {env.error}", worker_id=env.worker_id)
             return
         report_path = (jd / "report.json").resolve()
-        report_path.write_text(json.dumps(env.report, indent=2), encoding="utf-8")
+        report_path.write_text(env.report.model_dump_json(indent=2), encoding="utf-8")
         job.fraction = 1.0
         # The JSON report (per-line verdicts) completes the job; the HTML / PDF render follows.
         self._job_state(
-            job, JobState.DONE, str(report_path), verdict=env.report.get("verdict"),
+            job, JobState.DONE, str(report_path), verdict=env.report.verdict,
             report=str(report_path), worker_id=env.worker_id, analysis_timings_s=env.timings_s,
             report_utc_s=time.time(),
         )  # fmt: skip

@@ -6,7 +6,6 @@ functions on numpy arrays and usable on their own.
 
 from cellctl.planning.plan import (
     CoverageReport,
-    Placement,
     PlanInputError,
     PlanRefused,
     ScanPlan,
@@ -17,7 +16,6 @@ from cellctl.planning.settings import PlannerSettings
 
 __all__ = [
     "CoverageReport",
-    "Placement",
     "PlanInputError",
     "PlanRefused",
     "PlannerSettings",

@@ -24,7 +24,8 @@ from scipy.interpolate import RectBivariateSpline
 from scipy.ndimage import distance_transform_edt
 
 from analysis.mesh import TriMesh
-from cellctl.planning.plan import CoverageReport, Placement, PlanInputError, PlanRefused, Segment
+from analysis.placement import Placement, placement_transform
+from cellctl.planning.plan import CoverageReport, PlanInputError, PlanRefused, Segment
 from cellctl.planning.settings import PlannerSettings
 
 __all__ = ["DesignSurface", "build_segments", "design_surface", "placement_margin_mm", "predict_coverage"]
@@ -411,7 +412,7 @@ def build_segments(
     )
 
     # plate frame -> base frame
-    T = placement.T_base_plate
+    T = placement_transform(placement)
     for seg in segments:
         seg.pos_mm = seg.pos_mm @ T[:3, :3].T + T[:3, 3]
         seg.R_base_sensor = T[:3, :3][None] @ seg.R_base_sensor
@@ -473,7 +474,7 @@ def predict_coverage(
         raise PlanInputError("design: no footprint cell lies over the surface")
 
     def fraction(pl: Placement) -> tuple[float, int]:
-        T = pl.T_base_plate
+        T = placement_transform(pl)
         scene = _raycasting_scene(design.transformed(T))
         hit = scene.cast_rays(rays)
         t = hit["t_hit"].numpy().astype(np.float64)
@@ -501,11 +502,11 @@ def predict_coverage(
     du, dd = settings.placement_uncertainty_mm, settings.placement_uncertainty_deg
     if du > 0 or dd > 0:
         for sx, sy, sa in ((1, 1, 1), (-1, -1, -1), (1, -1, -1), (-1, 1, 1)):
-            moved = Placement(
+            moved = Placement.on_bed(
                 placement.x_mm + sx * du,
                 placement.y_mm + sy * du,
-                placement.z_mm,
-                placement.angle_deg + sa * dd,
+                placement.yaw_deg + sa * dd,
+                z_mm=placement.z_mm,
             )
             worst = min(worst, fraction(moved)[0])
     log.debug("coverage_predicted", fraction=frac, worst=worst, rays=int(origins.shape[0]))

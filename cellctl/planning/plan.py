@@ -15,12 +15,12 @@ from typing import Any, Literal
 
 import numpy as np
 
+from analysis.placement import Placement
 from cellctl.motion.trajectory import TimedTrajectory
 
 __all__ = [
     "SEGMENT_KINDS",
     "CoverageReport",
-    "Placement",
     "PlanInputError",
     "PlanRefused",
     "ScanPlan",
@@ -78,31 +78,6 @@ class PlanRefused(Exception):
             "pos_mm": None if self.pos_mm is None else self.pos_mm.round(3).tolist(),
             "message": str(self),
         }
-
-
-@dataclass(frozen=True)
-class Placement:
-    """Nominal placement of the plate frame in the base frame: origin (x, y, z) mm, rotation about z deg."""
-
-    x_mm: float
-    y_mm: float
-    z_mm: float
-    angle_deg: float
-
-    def __post_init__(self) -> None:
-        for name in ("x_mm", "y_mm", "z_mm", "angle_deg"):
-            value = getattr(self, name)
-            if not isinstance(value, int | float) or not np.isfinite(value):
-                raise PlanInputError(f"placement.{name}: expected a finite number, got {value!r}")
-
-    @property
-    def T_base_plate(self) -> np.ndarray:
-        """(4, 4) transform mapping plate-frame mm into base-frame mm."""
-        a = np.deg2rad(self.angle_deg)
-        T = np.eye(4)
-        T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-        T[:3, 3] = [self.x_mm, self.y_mm, self.z_mm]
-        return T
 
 
 def pose_matrix(pos_mm: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -224,7 +199,7 @@ class ScanPlan:
         tr = self.trajectory
         return {
             "format": "cellctl.scan_plan/1",
-            "placement": self.placement.__dict__,
+            "placement": self.placement.model_dump(),
             "footprint_mm": list(self.footprint_mm),
             "summary": self.summary(),
             "coverage": self.coverage.to_dict(),
@@ -283,7 +258,7 @@ class ScanPlan:
             tr = d["trajectory"]
             sm = d["summary"]
             return cls(
-                placement=Placement(**d["placement"]),
+                placement=_placement(d["placement"]),
                 footprint_mm=tuple(d["footprint_mm"]),
                 segments=segs,
                 trajectory=TimedTrajectory(
@@ -308,3 +283,10 @@ class ScanPlan:
             if isinstance(exc, PlanInputError):
                 raise
             raise PlanInputError(f"not a scan plan: {exc}") from exc
+
+
+def _placement(d: dict[str, Any]) -> Placement:
+    """A stored plan's placement; plans written before the one Placement type held x/y/z/angle."""
+    if "angle_deg" in d:
+        return Placement.on_bed(d["x_mm"], d["y_mm"], d["angle_deg"], z_mm=d["z_mm"])
+    return Placement.model_validate(d)

@@ -84,6 +84,8 @@ def plan_scan(
     settings = settings or PlannerSettings()
     if not isinstance(design, TriMesh):
         raise PlanInputError(f"design: expected a TriMesh, got {type(design).__name__}")
+    if not placement.flat:
+        raise PlanInputError(f"placement.rpy_deg: plates lie flat on the bed, got {placement.rpy_deg}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     surface = design_surface(design)

@@ -10,22 +10,10 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
+from analysis.placement import T_from_pos_rpy
 from cellctl.planning.plan import PlanInputError
 
-__all__ = ["PlannerSettings", "T_from_pos_rpy"]
-
-
-def T_from_pos_rpy(pos_mm, rpy_deg) -> np.ndarray:
-    """(4, 4) transform from a translation (mm) and roll-pitch-yaw (deg, fixed axes x, y, z)."""
-    r, p, y = np.deg2rad(np.asarray(rpy_deg, dtype=np.float64))
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    T = np.eye(4)
-    T[:3, :3] = Rz @ Ry @ Rx
-    T[:3, 3] = np.asarray(pos_mm, dtype=np.float64)
-    return T
+__all__ = ["PlannerSettings"]
 
 
 def _default_T_flange_sensor() -> np.ndarray:

@@ -387,7 +387,7 @@ def fault_zenoh_section(cfg: CellConfig) -> ZenohSection:
 
 def open_fault_session(cfg: CellConfig, *, role: Literal["serve", "connect"]) -> Any:
     """A Zenoh session of the fault channel: the simulator serves it, clients connect to it."""
-    from cellctl.zenoh_session import build_zenoh_config, open_session
+    from cellctl.api.session import build_zenoh_config, open_session
 
     zcfg = build_zenoh_config(fault_zenoh_section(cfg), role=role, key_prefix=cfg.key_prefix)
     return open_session(zcfg, what=f"sim fault channel ({cfg.sim.fault_listen})")
@@ -400,7 +400,7 @@ async def send_faults(
 
     Raises FaultChannelError when no simulator answers or it refuses (``.error`` names the knob).
     """
-    from cellctl.zenoh_session import async_get
+    from cellctl.api.session import async_get
 
     body = (
         request.model_dump_json(exclude_none=True)
@@ -436,7 +436,7 @@ async def serve_fault_control(cfg: CellConfig, cell: Any) -> tuple[Any, SimFault
     """
     import asyncio
 
-    from cellctl.zenoh_session import ZenohSetupError, close_session, declare_async_queryable
+    from cellctl.api.session import ZenohSetupError, close_session, declare_async_queryable
 
     control = SimFaultControl(cell)
     try:

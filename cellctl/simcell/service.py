@@ -231,7 +231,7 @@ async def _serve_sim(cfg: CellConfig, stop: asyncio.Event) -> int:
         await stop.wait()
     finally:
         if fault_session is not None:
-            from cellctl.zenoh_session import close_session
+            from cellctl.api.session import close_session
 
             await asyncio.to_thread(close_session, fault_session)
         await cell.stop()

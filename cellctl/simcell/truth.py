@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from analysis.placement import Placement, placement_transform
 from analysis.plates import (
     FormingError,
     PlateSpec,
@@ -21,7 +22,6 @@ from analysis.plates import (
     plate_spec,
     surface_gradient,
 )
-from cellctl.acquisition.poses import T_from_pos_rpy
 from drivers.laser.sim.scene import Scene, cell_scene
 
 __all__ = ["PlateTruth", "plate_truth"]
@@ -83,5 +83,5 @@ def plate_truth(
     return PlateTruth(
         spec=spec,
         error=default_forming_error(spec) if forming_error else None,
-        T_base_plate=T_from_pos_rpy(pos_mm, (0.0, 0.0, angle_deg)),
+        T_base_plate=placement_transform(Placement.on_bed(pos_mm[0], pos_mm[1], angle_deg, z_mm=pos_mm[2])),
     )

@@ -8,7 +8,8 @@ import numpy as np
 import plyfile
 import pytest
 
-from cellctl.acquisition.assembly import ScanCloud
+from analysis.cloud_io import read_cloud
+from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.cloud_files import LAS_SCALE_MM, CloudFileError, read_las, write_las, write_ply
 
 
@@ -19,7 +20,7 @@ def cloud():
     xyz = rng.uniform([1000, -500, 200], [2200, 500, 450], (n, w, 3)).astype(np.float32)
     valid = rng.random((n, w)) > 0.2
     xyz[~valid] = np.nan
-    return ScanCloud(
+    return AssembledScan(
         profile_index=np.arange(n, dtype=np.int64),
         frame_index=np.arange(n, dtype=np.uint64) + 100,
         pass_id=np.repeat(np.array([-1, 0, 1, 2], dtype=np.int32), 10),
@@ -37,10 +38,39 @@ def test_ply_holds_float32_xyz_pass_profile_and_point_of_every_valid_point(cloud
     assert len(v) == cloud.n_valid
     assert v.dtype["x"] == np.float32
     np.testing.assert_array_equal(np.column_stack([v["x"], v["y"], v["z"]]), pts["xyz_mm"])
-    np.testing.assert_array_equal(v["pass"], pts["pass_id"])
+    np.testing.assert_array_equal(v["pass"], np.maximum(pts["pass_id"], 0))  # transit filed under pass 0
     np.testing.assert_array_equal(v["profile"], pts["profile_index"])
     np.testing.assert_array_equal(v["point"], pts["point_index"])
-    assert v["time_s"].max() == pytest.approx(0.195)
+    assert v["t_s"].min() == 0.0 and v["t_s"].max() == pytest.approx(0.195)
+
+
+def test_the_acquisition_ply_reads_back_as_the_analysis_cloud_with_transit_in_pass_zero(cloud, tmp_path):
+    back = read_cloud(write_ply(cloud, tmp_path / "c.ply"))
+    pts = cloud.points()
+    assert back.organised and len(back) == cloud.n_valid
+    np.testing.assert_array_equal(back.xyz_mm, pts["xyz_mm"].astype(np.float64))
+    np.testing.assert_array_equal(back.pass_id, np.maximum(pts["pass_id"], 0))
+    np.testing.assert_array_equal(back.profile_index, pts["profile_index"])
+    np.testing.assert_allclose(back.t_s, (pts["t_ns"] - cloud.t_ns.min()) * 1e-9)
+
+
+def test_an_acquisition_ply_of_the_earlier_layout_still_loads(tmp_path):
+    """Before one vocabulary: transit as pass -1, point as ushort, times as ``time_s``."""
+    rec = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("pass", "<i4"), ("profile", "<i4"),
+                             ("point", "<u2"), ("time_s", "<f8")])  # fmt: skip
+    rec["pass"], rec["profile"], rec["point"], rec["time_s"] = (
+        [-1, 0, 1],
+        [0, 1, 2],
+        [5, 6, 7],
+        [0.0, 0.1, 0.2],
+    )
+    head = ("ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            "property float z\nproperty int pass\nproperty int profile\nproperty ushort point\n"
+            "property double time_s\nend_header\n")  # fmt: skip
+    (tmp_path / "old.ply").write_bytes(head.encode() + rec.tobytes())
+    back = read_cloud(tmp_path / "old.ply")
+    assert back.pass_id.tolist() == [0, 0, 1] and back.point_index.tolist() == [5, 6, 7]
+    np.testing.assert_allclose(back.t_s, [0.0, 0.1, 0.2])
 
 
 def test_las_is_version_1_4_format_6_with_extra_bytes_and_micrometre_coordinates(cloud, tmp_path):
@@ -55,9 +85,10 @@ def test_las_is_version_1_4_format_6_with_extra_bytes_and_micrometre_coordinates
     back = read_las(path)
     pts = cloud.points()
     assert np.max(np.abs(back["xyz_mm"] - pts["xyz_mm"].astype(np.float64))) <= LAS_SCALE_MM / 2 + 1e-4
-    np.testing.assert_array_equal(back["pass_id"], pts["pass_id"])
-    np.testing.assert_array_equal(back["profile"], pts["profile_index"])
-    np.testing.assert_array_equal(back["point"], pts["point_index"])
+    np.testing.assert_array_equal(back["pass_id"], np.maximum(pts["pass_id"], 0))
+    np.testing.assert_array_equal(back["profile_index"], pts["profile_index"])
+    np.testing.assert_array_equal(back["point_index"], pts["point_index"])
+    np.testing.assert_allclose(back["t_s"], (pts["t_ns"] - cloud.t_ns.min()) * 1e-9)
 
 
 def test_las_bounds_in_the_header_enclose_the_points(cloud, tmp_path):

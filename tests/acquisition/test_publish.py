@@ -7,18 +7,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cellctl.acquisition.assembly import AssemblyError, ScanCloud
+from cellctl.acquisition.assembly import AssembledScan, AssemblyError
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, publication_cloud
-from cellctl.cloud_codec import decode_cloud
+from cellctl.api.cloud_codec import decode_cloud
 from cellctl.config import CellConfig
 
 
-def _scan(n: int = 12, w: int = 20, seed: int = 0) -> ScanCloud:
+def _scan(n: int = 12, w: int = 20, seed: int = 0) -> AssembledScan:
     rng = np.random.default_rng(seed)
     xyz = rng.normal(size=(n, w, 3)).astype(np.float32)
     valid = rng.random((n, w)) > 0.2
     xyz[~valid] = np.nan
-    return ScanCloud(
+    return AssembledScan(
         profile_index=np.arange(100, 100 + n, dtype=np.int64),
         frame_index=np.arange(n, dtype=np.uint64),
         pass_id=np.repeat(np.arange(-1, n // 4 - 1, dtype=np.int32), 4)[:n],
@@ -99,5 +99,10 @@ def test_encoded_scan_decodes_to_the_thinned_points_with_transit_in_pass_zero():
     np.testing.assert_array_equal(cloud.xyz_mm, pts["xyz_mm"])
     np.testing.assert_array_equal(cloud.point_index, pts["point_index"])
     np.testing.assert_array_equal(cloud.pass_id, np.maximum(pts["pass_id"], 0))
-    np.testing.assert_allclose(cloud.t_s, pts["t_ns"] * 1e-9)
+    np.testing.assert_allclose(cloud.t_s, (pts["t_ns"] - sc.t_ns.min()) * 1e-9)  # s from the first profile
     assert publication_cloud(sc, job_id="j", plate_id="p").n_points == sc.n_valid
+    # the worker's cloud is the analysis' type, with the same arrays as the acquisition's files
+    same = sc.scan_cloud(3)
+    got = cloud.scan_cloud()
+    for name in ("xyz_mm", "pass_id", "profile_index", "point_index", "t_s"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(same, name))

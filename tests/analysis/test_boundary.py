@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.boundary import BoundaryError, find_corners
+from analysis.placement import Placement
 from analysis.plates import (
     FormingError,
     GaussianBump,
@@ -19,7 +20,7 @@ from analysis.plates import (
     plate_spec,
 )
 from analysis.segment import segment_plate
-from analysis.synth import Placement, ScanSettings, synthesize_scan
+from analysis.synth import ScanSettings, synthesize_scan
 
 COARSE = ScanSettings(point_pitch_mm=1.0, points_per_profile=50, profile_step_mm=2.0)
 
@@ -61,7 +62,11 @@ def _scan_and_corners(yaw: float, kind: str = "sail"):
     spec = plate_spec(kind)
     err = FormingError(bumps=(GaussianBump(300.0, -100.0, -2.0, 60.0),))
     scan = synthesize_scan(
-        spec, err, settings=COARSE, placement=Placement(yaw, 40.0, -25.0, 0.4, yaw + 33.0), seed=int(yaw)
+        spec,
+        err,
+        settings=COARSE,
+        placement=Placement.on_bed(40.0, -25.0, yaw, tilt_deg=0.4, tilt_axis_deg=yaw + 33.0),
+        seed=int(yaw),
     )
     seg = segment_plate(scan.cloud)
     return scan, find_corners(seg.points_mm)
@@ -167,7 +172,10 @@ def test_a_thin_line_of_points_has_no_four_edges():
 def test_corners_of_any_small_scanned_plate_are_within_a_scan_pitch_of_the_truth(kind, yaw, tilt, seed):
     spec = plate_spec(kind, length_mm=300.0, width_mm=200.0, radius_x_mm=1500.0, radius_y_mm=1200.0)
     scan = synthesize_scan(
-        spec, settings=COARSE, placement=Placement(yaw, 20.0, -10.0, tilt, yaw / 2), seed=seed
+        spec,
+        settings=COARSE,
+        placement=Placement.on_bed(20.0, -10.0, yaw, tilt_deg=tilt, tilt_axis_deg=yaw / 2),
+        seed=seed,
     )
     res = find_corners(segment_plate(scan.cloud).points_mm)
     truth = scan.corners_bed_mm()

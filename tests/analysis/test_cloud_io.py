@@ -23,9 +23,33 @@ def test_organised_ply_round_trips_points_and_organisation(tmp_path):
     cloud = _organised()
     back = read_cloud(write_cloud_ply(cloud, tmp_path / "scan.ply"))
     assert back.organised
-    np.testing.assert_allclose(back.points_mm, cloud.points_mm.astype(np.float32), rtol=0, atol=0)
-    for name in ("pass_id", "profile", "point"):
+    np.testing.assert_allclose(back.xyz_mm, cloud.xyz_mm.astype(np.float32), rtol=0, atol=0)
+    for name in ("pass_id", "profile_index", "point_index"):
         np.testing.assert_array_equal(getattr(back, name), getattr(cloud, name))
+
+
+def test_ply_carries_times_and_extra_columns_after_the_organisation(tmp_path):
+    cloud = _organised(50)
+    timed = ScanCloud(
+        cloud.xyz_mm, cloud.pass_id, cloud.profile_index, cloud.point_index, np.arange(50) * 0.005
+    )
+    dev = np.linspace(-1, 1, 50).astype(np.float32)
+    path = write_cloud_ply(timed, tmp_path / "t.ply", extra={"deviation": dev})
+    header = path.read_bytes().split(b"end_header")[0].decode()
+    assert header.index("int point") < header.index("double t_s") < header.index("float deviation")
+    back = read_cloud(path)
+    np.testing.assert_array_equal(back.t_s, timed.t_s)
+    np.testing.assert_array_equal(back.point_index, cloud.point_index)
+
+
+def test_npz_of_the_earlier_names_still_loads(tmp_path):
+    pts = np.arange(12, dtype=np.float64).reshape(4, 3)
+    np.savez(
+        tmp_path / "old.npz", points_mm=pts, pass_id=[-1, 0, 0, 1], profile=[0, 1, 2, 3], point=[4, 4, 5, 5]
+    )
+    back = read_cloud(tmp_path / "old.npz")
+    np.testing.assert_array_equal(back.xyz_mm, pts)
+    assert back.pass_id.tolist() == [0, 0, 0, 1] and back.point_index.tolist() == [4, 4, 5, 5]
 
 
 def test_ply_header_names_float_xyz_and_int_pass_profile_point(tmp_path):
@@ -43,7 +67,7 @@ def test_unorganised_double_ascii_ply_written_by_plyfile_reads_as_unorganised(tm
     PlyData([PlyElement.describe(rec, "vertex")], text=True).write(str(tmp_path / "a.ply"))
     back = read_cloud(tmp_path / "a.ply")
     assert not back.organised
-    np.testing.assert_allclose(back.points_mm, pts, rtol=1e-6)
+    np.testing.assert_allclose(back.xyz_mm, pts, rtol=1e-6)
 
 
 @settings(max_examples=25, deadline=None)
@@ -51,14 +75,14 @@ def test_unorganised_double_ascii_ply_written_by_plyfile_reads_as_unorganised(tm
 def test_npz_round_trips_any_finite_cloud_exactly(tmp_path_factory, pts):
     path = tmp_path_factory.mktemp("npz") / "c.npz"
     back = read_cloud(write_cloud_npz(ScanCloud(pts), path))
-    np.testing.assert_array_equal(back.points_mm, pts)
+    np.testing.assert_array_equal(back.xyz_mm, pts)
     assert not back.organised
 
 
 def test_organised_npz_keeps_organisation(tmp_path):
     cloud = _organised(30)
     back = read_cloud(write_cloud_npz(cloud, tmp_path / "c.npz"))
-    np.testing.assert_array_equal(back.profile, cloud.profile)
+    np.testing.assert_array_equal(back.profile_index, cloud.profile_index)
 
 
 def _pcd_header(n: int, data: str, fields="x y z", size="4 4 4", typ="F F F") -> bytes:
@@ -72,7 +96,7 @@ def test_ascii_pcd_reads_xyz(tmp_path):
     pts = np.array([[1.0, 2.0, 3.0], [4.5, 5.5, 6.5]])
     body = "\n".join(" ".join(str(v) for v in p) for p in pts).encode()
     (tmp_path / "a.pcd").write_bytes(_pcd_header(2, "ascii") + body + b"\n")
-    np.testing.assert_allclose(read_cloud(tmp_path / "a.pcd").points_mm, pts)
+    np.testing.assert_allclose(read_cloud(tmp_path / "a.pcd").xyz_mm, pts)
 
 
 def test_binary_pcd_with_an_extra_field_reads_xyz_and_drops_nan_points(tmp_path):
@@ -80,7 +104,7 @@ def test_binary_pcd_with_an_extra_field_reads_xyz_and_drops_nan_points(tmp_path)
     body = b"".join(struct.pack("<fffI", *p, 0xFFFFFF) for p in pts)
     head = _pcd_header(3, "binary", fields="x y z rgb", size="4 4 4 4", typ="F F F U")
     (tmp_path / "b.pcd").write_bytes(head + body)
-    np.testing.assert_allclose(read_cloud(tmp_path / "b.pcd").points_mm, pts[[0, 2]])
+    np.testing.assert_allclose(read_cloud(tmp_path / "b.pcd").xyz_mm, pts[[0, 2]])
 
 
 def test_compressed_pcd_is_refused_naming_the_data_kind(tmp_path):
@@ -97,19 +121,19 @@ def test_truncated_binary_pcd_is_reported(tmp_path):
 
 def test_xyz_text_with_spaces_and_comments_reads(tmp_path):
     (tmp_path / "a.xyz").write_text("# scan\n1 2 3\n4 5 6 0.5\n\n7 8 9 1\n")
-    np.testing.assert_allclose(read_cloud(tmp_path / "a.xyz").points_mm, [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    np.testing.assert_allclose(read_cloud(tmp_path / "a.xyz").xyz_mm, [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
 
 
 def test_csv_with_header_reads_organisation(tmp_path):
     (tmp_path / "a.csv").write_text("x,y,z,pass,profile,point\n1,2,3,0,5,7\n4,5,6,1,6,8\n")
     c = read_cloud(tmp_path / "a.csv")
     assert c.organised
-    np.testing.assert_array_equal(c.point, [7, 8])
+    np.testing.assert_array_equal(c.point_index, [7, 8])
 
 
 def test_csv_with_columns_in_another_order_uses_the_names(tmp_path):
     (tmp_path / "a.csv").write_text("z;y;x\n3;2;1\n")
-    np.testing.assert_allclose(read_cloud(tmp_path / "a.csv").points_mm, [[1, 2, 3]])
+    np.testing.assert_allclose(read_cloud(tmp_path / "a.csv").xyz_mm, [[1, 2, 3]])
 
 
 @pytest.mark.parametrize(

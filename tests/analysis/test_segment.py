@@ -10,9 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.cloud_io import ScanCloud
+from analysis.placement import Placement
 from analysis.plates import FormingError, GaussianBump, formed_height_mm, plate_spec
 from analysis.segment import NoPlateError, SegmentError, SegmentSettings, segment_plate
-from analysis.synth import Placement, ScanSettings, synthesize_scan
+from analysis.synth import ScanSettings, synthesize_scan
 
 COARSE = {"point_pitch_mm": 1.0, "points_per_profile": 50, "profile_step_mm": 2.0}
 
@@ -26,7 +27,7 @@ def _scan(kind: str = "sail", seed: int = 11, noise_mm: float = 0.02, length_mm:
 def _truth_top(scan, tol_mm: float) -> np.ndarray:
     """Points within tol of the formed top surface over the footprint, outliers excluded."""
     T = scan.T_bed_design
-    q = (scan.points_mm - T[:3, 3]) @ T[:3, :3]
+    q = (scan.xyz_mm - T[:3, 3]) @ T[:3, :3]
     z = formed_height_mm(scan.spec, scan.error, q[:, 0], q[:, 1])
     # The first hundredths of a millimetre of a thickness face are the top edge itself.
     inside = (np.abs(q[:, 0]) <= scan.spec.length_mm / 2 + 0.05) & (
@@ -45,7 +46,7 @@ def test_grid_segmentation_keeps_the_top_surface_and_drops_bed_supports_faces_an
     assert not (res.mask & scan.is_outlier).any()
     # Nearly all of the top surface (the rest: 6-sigma tails and a few cells at holes).
     assert res.mask.sum() >= 0.99 * _truth_top(scan, 0.12).sum()
-    np.testing.assert_array_equal(res.points_mm, scan.points_mm[res.mask])
+    np.testing.assert_array_equal(res.points_mm, scan.xyz_mm[res.mask])
     assert res.cloud.organised and len(res.cloud) == res.mask.sum()
 
 
@@ -53,7 +54,7 @@ def test_scan_pitch_is_reported_for_meshing_the_points():
     # COARSE: 1 mm along the line, 2 mm between profiles; the coarser one bounds mesh cells.
     assert segment_plate(_scan().cloud).point_spacing_mm == pytest.approx(2.0, rel=0.05)
     small = _scan("sail", seed=6, length_mm=450.0)
-    assert segment_plate(small.points_mm).point_spacing_mm == pytest.approx(2.0, rel=0.1)
+    assert segment_plate(small.xyz_mm).point_spacing_mm == pytest.approx(2.0, rel=0.1)
 
 
 def test_measured_noise_level_matches_the_sensor_noise():
@@ -88,7 +89,7 @@ def test_a_deep_narrow_dent_stays_part_of_the_plate():
 
 def test_unorganised_cloud_takes_the_delaunay_route_with_the_same_result_quality():
     scan = _scan("sail", seed=6, length_mm=450.0)
-    res = segment_plate(ScanCloud(scan.points_mm))
+    res = segment_plate(ScanCloud(scan.xyz_mm))
     assert res.method == "delaunay"
     assert not (res.mask & ~_truth_top(scan, 0.2)).any()
     assert res.mask.sum() >= 0.95 * _truth_top(scan, 0.12).sum()
@@ -97,7 +98,7 @@ def test_unorganised_cloud_takes_the_delaunay_route_with_the_same_result_quality
 
 def test_plain_array_input_is_accepted():
     scan = _scan("sail", seed=6, length_mm=450.0)
-    assert segment_plate(scan.points_mm).method == "delaunay"
+    assert segment_plate(scan.xyz_mm).method == "delaunay"
 
 
 def test_noise_only_cloud_raises_no_plate():
@@ -113,7 +114,7 @@ def test_organised_cloud_of_a_too_small_surface_raises_no_plate():
         spec,
         FormingError(),
         settings=ScanSettings(**COARSE, margin_mm=5.0),
-        placement=Placement(),
+        placement=Placement.on_bed(0.0, 0.0, 0.0),
         seed=1,
     )
     with pytest.raises(NoPlateError):
@@ -136,7 +137,7 @@ def test_unusable_input_raises_segment_error(points, message):
 def test_organisation_too_sparse_to_be_a_scan_grid_falls_back_to_delaunay():
     scan = _scan("sail", seed=6, length_mm=450.0)
     c = scan.cloud
-    sparse = ScanCloud(c.points_mm, c.pass_id, c.profile * 1000, c.point)
+    sparse = ScanCloud(c.xyz_mm, c.pass_id, c.profile_index * 1000, c.point_index)
     res = segment_plate(sparse)
     assert res.method == "delaunay"
     assert res.mask.sum() >= 0.95 * _truth_top(scan, 0.12).sum()
@@ -154,7 +155,7 @@ def test_any_small_plate_at_any_placement_segments_to_its_top_surface(kind, yaw,
     scan = synthesize_scan(
         spec,
         settings=ScanSettings(**COARSE),
-        placement=Placement(yaw, 20.0, -10.0, tilt, yaw / 2),
+        placement=Placement.on_bed(20.0, -10.0, yaw, tilt_deg=tilt, tilt_axis_deg=yaw / 2),
         seed=seed,
     )
     res = segment_plate(scan.cloud)
@@ -164,8 +165,8 @@ def test_any_small_plate_at_any_placement_segments_to_its_top_surface(kind, yaw,
 
 def test_dense_unorganised_cloud_fits_cell_planes_on_a_subsample_with_the_same_result():
     scan = _scan("sail", seed=6, length_mm=450.0)
-    full = segment_plate(scan.points_mm)
-    sub = segment_plate(scan.points_mm, SegmentSettings(max_cell_sample=40_000))
+    full = segment_plate(scan.xyz_mm)
+    sub = segment_plate(scan.xyz_mm, SegmentSettings(max_cell_sample=40_000))
     assert not (sub.mask & ~_truth_top(scan, 0.2)).any()
     assert sub.mask.sum() >= 0.97 * full.mask.sum()
     assert sub.noise_sigma_mm == pytest.approx(0.02, rel=0.25)

@@ -10,6 +10,7 @@ import pytest
 
 from analysis.cloud_io import read_cloud
 from analysis.mesh import load_mesh
+from analysis.placement import Placement
 from analysis.plates import (
     FormingError,
     GaussianBump,
@@ -19,7 +20,6 @@ from analysis.plates import (
     plate_spec,
 )
 from analysis.synth import (
-    Placement,
     ScanSettings,
     SynthError,
     parse_deform,
@@ -30,9 +30,7 @@ from analysis.synth import (
 
 @cache
 def _scan(seed: int = 3, noise_mm: float = 0.02, yaw: float | None = None, kind: str = "sail"):
-    placement = (
-        None if yaw is None else Placement(yaw_deg=yaw, x_mm=30.0, y_mm=-20.0, tilt_deg=0.3, tilt_axis_deg=40)
-    )
+    placement = None if yaw is None else Placement.on_bed(30.0, -20.0, yaw, tilt_deg=0.3, tilt_axis_deg=40)
     return synthesize_scan(
         plate_spec(kind),
         settings=ScanSettings.coarse(
@@ -45,7 +43,7 @@ def _scan(seed: int = 3, noise_mm: float = 0.02, yaw: float | None = None, kind:
 
 def _design_frame(scan) -> np.ndarray:
     T = scan.T_bed_design
-    return (scan.points_mm - T[:3, 3]) @ T[:3, :3]
+    return (scan.xyz_mm - T[:3, 3]) @ T[:3, :3]
 
 
 def test_noise_free_top_surface_points_lie_exactly_on_the_formed_surface():
@@ -82,7 +80,7 @@ def test_placement_transform_is_a_rigid_motion_and_the_plate_rests_on_the_suppor
 
 def test_scan_shows_bed_supports_thickness_faces_and_outliers():
     scan = _scan()
-    z = scan.points_mm[:, 2]
+    z = scan.xyz_mm[:, 2]
     q = _design_frame(scan)
     assert np.count_nonzero(np.abs(z) < 0.2) > 1000  # the bed
     assert np.count_nonzero(np.abs(z - 60.0) < 0.2) > 1000  # support tops
@@ -104,9 +102,9 @@ def test_vertical_raster_rays_miss_the_thickness_faces_at_grazing_incidence():
 
 def test_organisation_indices_are_unique_per_point():
     scan = _scan()
-    key = (scan.pass_id.astype(np.int64) * 100_000 + scan.profile) * 1000 + scan.point
+    key = (scan.pass_id.astype(np.int64) * 100_000 + scan.profile_index) * 1000 + scan.point_index
     assert len(np.unique(key)) == len(key)
-    assert scan.point.max() == scan.settings.points_per_profile - 1
+    assert scan.point_index.max() == scan.settings.points_per_profile - 1
 
 
 def test_same_seed_gives_the_same_scan_and_another_seed_another_placement():
@@ -119,7 +117,7 @@ def test_same_seed_gives_the_same_scan_and_another_seed_another_placement():
     c = synthesize_scan(
         settings=ScanSettings.coarse(point_pitch_mm=4.0, points_per_profile=13, profile_step_mm=8.0), seed=6
     )
-    np.testing.assert_array_equal(a.points_mm, b.points_mm)
+    np.testing.assert_array_equal(a.xyz_mm, b.xyz_mm)
     assert a.placement != c.placement
 
 
@@ -178,7 +176,7 @@ def test_synth_main_writes_scan_design_and_truth_that_read_back(tmp_path):
     assert truth["plate"]["kind"] == "saddle"
     assert FormingError.from_dict(truth["forming_error"]).bumps[0].amplitude_mm == -3.0
     T = np.array(truth["T_bed_design"])
-    q = (cloud.points_mm - T[:3, 3]) @ T[:3, :3]
+    q = (cloud.xyz_mm - T[:3, 3]) @ T[:3, :3]
     spec = plate_spec("saddle")
     err = FormingError.from_dict(truth["forming_error"])
     z = formed_height_mm(spec, err, q[:, 0], q[:, 1])

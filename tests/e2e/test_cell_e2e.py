@@ -9,12 +9,17 @@ import asyncio
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from analysis.job import Report
+from analysis.mesh import load_mesh
+from analysis.pipeline import design_corners_from_mesh
+from analysis.placement import Placement, placement_transform
 from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+from cellctl.api.session import close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
-from cellctl.zenoh_session import close_session
 from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 pytestmark = pytest.mark.slow
@@ -23,7 +28,11 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     out = tmp_path_factory.mktemp("cell")
-    c = Cell(out, tiny_cell_config(out))
+    # A plate without forming error, the same after a half turn, laid at -87 deg: the bed convention
+    # (corner 0 starts the long edge pointing within 90 deg of +x) then agrees with this lay, and the
+    # lay turned by 180 deg (93 deg) names the opposite corner. (The planner refuses 183 deg, a wrist
+    # wrap on joint 6, so the usual 3 deg lay cannot be turned.)
+    c = Cell(out, tiny_cell_config(out, forming_error="none", angle_deg=-87.0))
     c.procs.env["CELL_DAEMON__QUEUE_MAX"] = "0"  # the refuse-while-busy mode (the queue: test_queue_e2e)
     c.start()
     try:
@@ -117,3 +126,39 @@ def test_scan_is_analysed_by_the_worker_and_a_trigger_while_busy_is_refused(cell
     assert rec["info"]["profiles"] > 1000 and Path(message).exists()
     # only one job was created: the refused trigger left nothing behind
     assert [p.name for p in cell.jobs_dir.iterdir()] == [acc.job_id]
+
+
+def test_a_half_turned_placement_puts_the_reference_corner_where_the_trigger_says(cell: Cell):
+    """The sail without forming error fits the design equally well both ways round: only the operator's
+    placement, carried in the job parameters to the analysis, says which corner is the reference."""
+    pl = cell.cfg.sim.placement
+    turned = Placement.on_bed(pl.pos_mm[0], pl.pos_mm[1], pl.angle_deg + 180.0, z_mm=pl.pos_mm[2])
+
+    async def go():
+        session = await open_client(cell.cfg)
+        keys = Keys(cell.cfg.key_prefix)
+        follower = StatusFollower(session, keys)
+        try:
+            await wait_status(follower, lambda s: s.state.value == "idle" and s.workers)
+            req = _trigger(cell, plate_id="turned", placement=turned.model_dump())
+            acc = await call(session, keys.trigger, json.dumps(req), TriggerAccepted)
+            state, message, _ = await wait_for_job(follower, acc.job_id, 240.0)
+            return acc, state, message
+        finally:
+            follower.close()
+            await asyncio.to_thread(close_session, session)
+
+    acc, state, message = _run(go())
+    assert state == "done", message
+    job_dir = cell.jobs_dir / acc.job_id
+    stored = Report.model_validate_json((job_dir / "report.json").read_text())
+    results = Report.model_validate_json((job_dir / "results" / "report.json").read_text())
+    assert stored.inputs.placement == turned and results.inputs.placement == turned
+    design_c = design_corners_from_mesh(load_mesh(cell.cfg.cell.designs_dir / DEMO_DESIGN))
+    T_turned = placement_transform(turned)
+    where_said = T_turned[:3, :3] @ design_c[0] + T_turned[:3, 3]
+    T_lay = placement_transform(pl.to_placement())
+    other_end = T_lay[:3, :3] @ design_c[0] + T_lay[:3, 3]  # the bed convention's choice for this lay
+    corner0 = np.asarray(stored.corners_mm[0])
+    assert np.linalg.norm((corner0 - where_said)[:2]) < 15.0, (corner0, where_said)
+    assert np.linalg.norm((corner0 - other_end)[:2]) > 300.0

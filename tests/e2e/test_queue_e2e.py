@@ -16,9 +16,9 @@ import signal
 import pytest
 
 from cellctl.api import ApiCallError, ControlReply, Keys, TriggerAccepted, call
+from cellctl.api.session import close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower
-from cellctl.zenoh_session import close_session
 from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 pytestmark = pytest.mark.slow

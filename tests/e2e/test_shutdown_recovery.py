@@ -11,9 +11,9 @@ import pytest
 
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import ControlReply, Keys, TriggerAccepted, call
+from cellctl.api.session import async_get, close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
-from cellctl.zenoh_session import async_get, close_session
 from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 pytestmark = pytest.mark.slow

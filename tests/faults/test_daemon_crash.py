@@ -26,8 +26,8 @@ import pytest
 
 from cellctl.acquisition.rawstore import CHUNK, RawReader
 from cellctl.api import TriggerAccepted, call
+from cellctl.api.session import async_get
 from cellctl.commands.scan_cmd import wait_for_job
-from cellctl.zenoh_session import async_get
 from tests.support.cellfaults import (
     FINAL,
     FaultCell,

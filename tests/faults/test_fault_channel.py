@@ -80,8 +80,8 @@ def test_bad_requests_get_an_error_naming_the_knob_and_the_channel_keeps_serving
                 await sim.fault(body)
             errors[name] = (exc.value.error.code, exc.value.error.field)
         # raw bytes: not JSON, and too large
+        from cellctl.api.session import async_get
         from cellctl.simcell.faults import sim_faults_key
-        from cellctl.zenoh_session import async_get
 
         await sim.fault()  # opens the session
         raw = {}
@@ -248,8 +248,8 @@ def fault_cell_config_off(out):
 
 
 async def _quick_fault(cell: FaultCell):
+    from cellctl.api.session import ZenohSetupError, close_session
     from cellctl.simcell.faults import open_fault_session, send_faults
-    from cellctl.zenoh_session import ZenohSetupError, close_session
 
     try:
         session = await asyncio.to_thread(open_fault_session, cell.cfg, role="connect")

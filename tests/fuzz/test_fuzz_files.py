@@ -19,8 +19,8 @@ from hypothesis import strategies as st
 
 from analysis.cloud_io import CloudError, ScanCloud, read_cloud, write_cloud_npz, write_cloud_ply
 from analysis.mesh import MeshError, TriMesh, load_mesh, save_mesh
+from cellctl.api.cloud_codec import Cloud, CloudFormatError, decode_cloud, encode_cloud
 from cellctl.cli import main as cli_main
-from cellctl.cloud_codec import Cloud, CloudFormatError, decode_cloud, encode_cloud
 
 _RNG = np.random.default_rng(11)
 _PTS = np.round(_RNG.normal(0, 50, (12, 3)), 3)
@@ -97,7 +97,7 @@ def test_any_mutated_cloud_file_reads_or_raises_one_cloud_error(data, seeds, tmp
         except CloudError as err:
             assert str(err).startswith(str(path)) and "\n" not in str(err)
             return
-    assert cloud.points_mm.shape[1] == 3 and np.isfinite(cloud.points_mm).all()
+    assert cloud.xyz_mm.shape[1] == 3 and np.isfinite(cloud.xyz_mm).all()
 
 
 @fuzz_settings(40)
@@ -203,7 +203,7 @@ def test_a_mesh_whose_triangle_points_past_its_vertices_is_refused_naming_the_fi
 def test_a_cloud_with_a_negative_profile_index_is_refused_naming_the_file(tmp_path):
     path = tmp_path / "neg.ply"
     path.write_bytes(_NEGATIVE_PROFILE_PLY)
-    with pytest.raises(CloudError, match=r"neg\.ply: profile has negative indices"):
+    with pytest.raises(CloudError, match=r"neg\.ply: profile_index has negative indices"):
         read_cloud(path)
 
 

@@ -28,9 +28,9 @@ from cellctl.api import (
     new_job_id,
     parse_trigger,
 )
+from cellctl.api.session import build_zenoh_config, close_session, declare_async_queryable, open_session
 from cellctl.config import ZenohSection
 from cellctl.daemon.jobs import JobRecord, JobStore
-from cellctl.zenoh_session import build_zenoh_config, close_session, declare_async_queryable, open_session
 from tests.support.ports import free_port
 
 CODES = {"too_large", "malformed", "invalid", "design_not_found"}

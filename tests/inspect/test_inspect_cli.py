@@ -121,4 +121,4 @@ def test_design_of_another_size_is_refused(cellctl_exe: list[str], tmp_path: Pat
 def test_bad_placement_is_refused(cellctl_exe: list[str], tmp_path: Path, small_scan: Path) -> None:
     r = _run(cellctl_exe, "inspect", str(small_scan / "scan.ply"), "--design", str(small_scan / "scan-design.ply"),
              "--out", str(tmp_path / "o"), "--placement", "1,2")  # fmt: skip
-    assert r.returncode == 2 and "--placement '1,2': expected X_MM,Y_MM,ANGLE_DEG" in r.stderr
+    assert r.returncode == 2 and "--placement '1,2': expected X,Y,ANGLE_DEG" in r.stderr

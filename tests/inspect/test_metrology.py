@@ -7,6 +7,7 @@ import pytest
 
 from analysis.accuracy import template_lift, true_line_zmax
 from analysis.pipeline import InspectionSettings, inspect_cloud
+from analysis.placement import Placement
 from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.register import height_field_from_mesh
 from analysis.report import _compare_html
@@ -23,7 +24,7 @@ def _inspect(noise_mm: float, seed: int, **settings):
     )
     scan = synthesize_scan(spec, DENTS, settings=st, seed=seed)
     T = scan.T_bed_design
-    nominal = (T[0, 3], T[1, 3], float(np.degrees(np.arctan2(T[1, 0], T[0, 0]))))
+    nominal = Placement.on_bed(T[0, 3], T[1, 3], float(np.degrees(np.arctan2(T[1, 0], T[0, 0]))))
     design = design_mesh(spec, pitch_mm=2.0)
     s = InspectionSettings(layout=DetectionLayout(5, 100.0, 3, 100.0, True), **settings)
     return spec, scan, design, inspect_cloud(scan.cloud, design, s, nominal_placement=nominal)
@@ -56,7 +57,7 @@ def test_at_0_05_mm_noise_the_template_lifts_under_0_3_sigma_and_every_zmax_is_w
 
 def test_per_line_mode_judges_each_line_on_its_own_template_without_penetration():
     _, _, _, ins = _inspect(0.05, seed=4, template_fit="per_line")
-    assert ins.report["template_fit"] == "per_line" and "template_fit_compare" not in ins.report
+    assert ins.report["template_fit"] == "per_line" and ins.report["template_fit_compare"] is None
     by_name = {line["name"]: line for line in ins.report["lines"]}
     assert all(line["line_fit"]["penetration_points"] == 0 for line in ins.report["lines"])
     for name in ("T3", "L2"):  # through the 1.5 mm dent

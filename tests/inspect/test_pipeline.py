@@ -12,6 +12,7 @@ from analysis.pipeline import (
     inspect_cloud,
     plate_frame,
 )
+from analysis.placement import Placement
 from analysis.plates import (
     NO_FORMING_ERROR,
     FormingError,
@@ -90,7 +91,7 @@ def test_the_same_plate_scanned_five_times_repeats_zmax_within_0_05_mm() -> None
         st = ScanSettings.coarse(point_pitch_mm=0.5, points_per_profile=100, profile_step_mm=1.0)
         scan = synthesize_scan(spec, error, settings=st, seed=10 + seed)
         T = scan.T_bed_design  # the operator's nominal placement: which end is the reference corner
-        nominal = (T[0, 3], T[1, 3], float(np.degrees(np.arctan2(T[1, 0], T[0, 0]))))
+        nominal = Placement.on_bed(T[0, 3], T[1, 3], float(np.degrees(np.arctan2(T[1, 0], T[0, 0]))))
         report = inspect_cloud(scan.cloud, design, SETTINGS, nominal_placement=nominal).report
         zmax.append([line["zmax_mm"] for line in report["lines"]])
     spread = np.ptp(np.array(zmax), axis=0)

@@ -11,18 +11,19 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from analysis.placement import Placement
 from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import ExecutionResult, ExecutorConfig, MotionExecutor
-from cellctl.planning import Placement, PlannerSettings, ScanPlan, plan_scan
+from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig, precise_event_loop
 
-SAIL_PLACEMENT = Placement(1500.0, 0.0, 300.0, 3.0)
+SAIL_PLACEMENT = Placement.on_bed(1500.0, 0.0, 3.0, z_mm=300.0)
 #: a small plate and fast sweeps keep the executions short; the geometry is the real planner's
 SMALL_SETTINGS = PlannerSettings(
     speed_mm_s=200.0, placement_uncertainty_mm=5.0, placement_uncertainty_deg=0.5
 )
-SMALL_PLACEMENT = Placement(1600.0, 100.0, 300.0, 3.0)
+SMALL_PLACEMENT = Placement.on_bed(1600.0, 100.0, 3.0, z_mm=300.0)
 
 
 @pytest.fixture(scope="session")

@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from analysis.mesh import TriMesh, save_mesh
+from analysis.placement import Placement, placement_transform
 from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, SafetyEnvelope
-from cellctl.planning import Placement, PlanInputError, PlannerSettings, PlanRefused, ScanPlan, plan_scan
+from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, plan_scan
 from cellctl.planning.coverage import design_surface
 from cellctl.planning.timing import RAMP_ALLOWANCE_MM, tcp_speed_mm_s
 from drivers.abb_egm.kinematics import fk_batch
@@ -42,7 +44,7 @@ def test_sail_plate_plan_sees_the_whole_top_surface_and_meets_the_sweep_ratio(sa
 def test_raster_passes_keep_the_line_across_the_pass_and_the_sensor_on_the_normal_at_the_standoff(sail_plan):
     settings = PlannerSettings()
     surface = design_surface(design_mesh(plate_spec("sail"), pitch_mm=10.0))
-    T_plate_base = np.linalg.inv(SAIL_PLACEMENT.T_base_plate)
+    T_plate_base = np.linalg.inv(placement_transform(SAIL_PLACEMENT))
     checked = 0
     for seg in (s for s in sail_plan.segments if s.kind == "scan"):
         R = T_plate_base[:3, :3] @ seg.R_base_sensor
@@ -109,7 +111,7 @@ def test_plate_beyond_the_reach_of_a_railless_cell_is_refused_naming_pass_point_
     spec = plate_spec("sail", length_mm=6000.0, width_mm=2500.0, radius_x_mm=20000.0, radius_y_mm=10000.0)
     large = design_mesh(spec, pitch_mm=25.0)
     with pytest.raises(PlanRefused) as info:
-        plan_scan(large, Placement(2000.0, 0.0, 300.0, 90.0), with_coverage=False)
+        plan_scan(large, Placement.on_bed(2000.0, 0.0, 90.0, z_mm=300.0), with_coverage=False)
     r = info.value
     assert r.pass_label and r.point_index is not None and r.limit.startswith("reach")
     assert "split the plate" in r.reason
@@ -156,8 +158,14 @@ def test_a_vertical_wall_is_not_a_plate_design():
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
 def test_placement_with_a_non_finite_value_names_the_field(bad):
-    with pytest.raises(PlanInputError, match=r"placement\.angle_deg"):
-        Placement(1500.0, 0.0, 300.0, bad)
+    with pytest.raises(ValidationError, match=r"rpy_deg"):
+        Placement.on_bed(1500.0, 0.0, bad, z_mm=300.0)
+
+
+def test_a_tilted_placement_is_refused_by_the_planner():
+    tilted = Placement(pos_mm=[1500.0, 0.0, 300.0], rpy_deg=[2.0, 0.0, 3.0])
+    with pytest.raises(PlanInputError, match=r"placement\.rpy_deg"):
+        plan_scan(design_mesh(plate_spec("sail"), pitch_mm=20.0), tilted, with_coverage=False)
 
 
 def test_settings_with_the_standoff_outside_the_depth_range_are_rejected():

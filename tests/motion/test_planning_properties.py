@@ -7,9 +7,10 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from analysis.placement import Placement
 from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, SafetyEnvelope
-from cellctl.planning import Placement, PlanInputError, PlannerSettings, PlanRefused, plan_scan
+from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, plan_scan
 
 CYCLE_S = 0.004032
 
@@ -29,11 +30,11 @@ def plates(draw):
 
 
 placements = st.builds(
-    Placement,
+    Placement.on_bed,
     x_mm=st.floats(700.0, 2600.0),
     y_mm=st.floats(-1200.0, 1200.0),
+    yaw_deg=st.floats(-180.0, 180.0),
     z_mm=st.floats(0.0, 700.0),
-    angle_deg=st.floats(-180.0, 180.0),
 )
 
 scan_settings = st.builds(
@@ -77,7 +78,7 @@ def test_every_plan_passes_the_envelope_and_every_refusal_has_a_reason(spec, pla
 )
 def test_plans_near_the_default_placement_cover_the_plate(dx, dy, angle):
     spec = plate_spec("sail", length_mm=400.0, width_mm=300.0)
-    placement = Placement(1600.0 + dx, dy, 300.0, angle)
+    placement = Placement.on_bed(1600.0 + dx, dy, angle, z_mm=300.0)
     try:
         plan = plan_scan(design_mesh(spec, pitch_mm=10.0), placement, PlannerSettings())
     except PlanRefused as exc:

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from typing import Any
+from analysis.cloud_io import ScanCloud
+from analysis.job import AnalysisJob, Report
+from tests.zenoh.zworker_fns import minimal_report
 
-import numpy as np
 
-
-def point_count(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, Any]:
-    """The cloud's point count and centroid (mm): enough to prove the job went round trip."""
-    xyz = cloud["xyz_mm"].astype(np.float64)
-    return {"job_id": job["job_id"], "n_points": int(xyz.shape[0]), "centroid_mm": xyz.mean(axis=0).tolist()}
+def point_count(cloud: ScanCloud, job: AnalysisJob) -> Report:
+    """A report recording the cloud's point count: enough to prove the job went round trip."""
+    return minimal_report(job, len(cloud))

@@ -17,10 +17,10 @@ from pathlib import Path
 import pytest
 
 from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+from cellctl.api.session import close_session, subscribe
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
 from cellctl.config import load_config
-from cellctl.zenoh_session import close_session, subscribe
 from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
 
 pytestmark = pytest.mark.slow

@@ -17,9 +17,7 @@ import zenoh
 from sec_util import PASSWORDS, env_name, section, write_dictionary
 
 from cellctl.api import Keys, TriggerAccepted, handle_trigger, new_job_id
-from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.daemon.jobs import JobRecord, JobStore
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     ZenohSetupError,
     access_control_dict,
     async_get,
@@ -30,6 +28,8 @@ from cellctl.zenoh_session import (
     open_session,
     subscribe,
 )
+from cellctl.config import ZenohAccess, ZenohSection
+from cellctl.daemon.jobs import JobRecord, JobStore
 from tests.support.ports import free_port
 
 PREFIX = "cell/sec1"
@@ -255,9 +255,10 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
 
     import numpy as np
 
+    from analysis.job import AnalysisJob
     from cellctl.api import list_workers
-    from cellctl.cloud_codec import Cloud, encode_cloud
-    from cellctl.dispatch import Dispatcher, DispatchSettings
+    from cellctl.api.cloud_codec import Cloud, encode_cloud
+    from cellctl.api.dispatch import Dispatcher, DispatchSettings
 
     port = free_port()
     dictionary = write_dictionary(tmp_path / "users.txt")
@@ -283,7 +284,9 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
         try:
             await disp.start()
             assert await _until(lambda: disp.workers == ["w1"], 60), log_path.read_text()
-            envelope = await asyncio.wait_for(disp.submit("jobS", "P1", payload), 60)
+            envelope = await asyncio.wait_for(
+                disp.submit(AnalysisJob(job_id="jobS", plate_id="P1", design="p.stl"), payload), 60
+            )
             bob = _client(port, "bob")
             announced = await list_workers(bob, KEYS, timeout_s=5)
             return envelope, announced
@@ -308,7 +311,7 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(5)
-    assert envelope.ok and envelope.worker_id == "w1" and envelope.report["n_points"] == 500
+    assert envelope.ok and envelope.worker_id == "w1" and envelope.report.inputs.points == 500
     assert [a.worker_id for a in announced] == ["w1"]
 
 

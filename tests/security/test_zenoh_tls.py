@@ -19,8 +19,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
 from cellctl.api import Keys
-from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     ZenohSetupError,
     async_get,
     build_zenoh_config,
@@ -29,6 +28,7 @@ from cellctl.zenoh_session import (
     declare_async_queryable,
     open_session,
 )
+from cellctl.config import ZenohAccess, ZenohSection
 from tests.support.ports import free_port
 
 PREFIX = "cell/tls1"

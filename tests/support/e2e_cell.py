@@ -21,11 +21,20 @@ from cellctl.config import load_config
 REPO = Path(__file__).resolve().parents[2]
 
 
-def tiny_cell_config(out: Path, **plate: float) -> Path:
-    """A cell.toml for a 300 x 200 mm sail plate scanned at 1.5 mm profile spacing (a scan of ~30 s)."""
+def tiny_cell_config(
+    out: Path, *, forming_error: str = "default", angle_deg: float | None = None, **plate: float
+) -> Path:
+    """A cell.toml for a 300 x 200 mm sail plate scanned at 1.5 mm profile spacing (a scan of ~30 s).
+
+    ``forming_error="none"``: the simulated plate is its design, which a half turn maps onto itself.
+    ``angle_deg``: the simulated plate's yaw on the bed (default: cell.toml's).
+    """
     base = load_config(REPO / "cell.toml").model_dump(mode="json")
     cfg = demo_config(base, out)
     cfg["sim"]["plate"].update(length_mm=plate.get("length_mm", 300.0), width_mm=plate.get("width_mm", 200.0))
+    cfg["sim"]["plate"]["forming_error"] = forming_error
+    if angle_deg is not None:
+        cfg["sim"]["placement"]["angle_deg"] = angle_deg
     cfg["scan"].update(profile_spacing_mm=plate.get("profile_spacing_mm", 1.5))
     # The HTML/PDF render (a child process of tens of CPU-seconds) has its own tests
     # (tests/zenoh/test_daemon_html_step.py); here it would only compete with the next scan.
@@ -83,7 +92,7 @@ class Cell:
 
 async def open_client(cfg) -> Any:
     """A client session to the daemon, retried until it listens (60 s)."""
-    from cellctl.zenoh_session import ZenohSetupError, build_zenoh_config, open_session
+    from cellctl.api.session import ZenohSetupError, build_zenoh_config, open_session
 
     deadline = time.monotonic() + 60.0
     while True:

@@ -28,13 +28,13 @@ from typing import Any
 
 import numpy as np
 import pytest
-from tests.support.ports import free_port
 
 from cellctl.api import ApiCallError, CellStatus, Keys, TriggerAccepted, call
 from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_ready_line
 from cellctl.config import load_config
 from cellctl.simcell.faults import FaultState, open_fault_session, send_faults
 from tests.support.e2e_cell import REPO, Cell, open_client, tiny_cell_config, wait_status
+from tests.support.ports import free_port
 
 __all__ = [
     "REPO",
@@ -138,7 +138,7 @@ class FaultCell(Cell):
 
     def stop(self) -> dict[str, Any]:
         if self._fault_session is not None:
-            from cellctl.zenoh_session import close_session
+            from cellctl.api.session import close_session
 
             close_session(self._fault_session)
             self._fault_session = None
@@ -184,8 +184,8 @@ class FaultCell(Cell):
     @contextlib.asynccontextmanager
     async def client(self):
         """A Zenoh client session with a status follower (``CellClient``), closed on exit."""
+        from cellctl.api.session import close_session
         from cellctl.commands.scan_cmd import StatusFollower
-        from cellctl.zenoh_session import close_session
 
         session = await open_client(self.cfg)
         keys = Keys(self.cfg.key_prefix)
@@ -337,7 +337,7 @@ def check_job_data(cell: Cell, job_id: str) -> JobDataCheck:
     )
     cloud_bin = cell.jobs_dir / job_id / "cloud.bin"
     if cloud_bin.exists():
-        from cellctl.cloud_codec import decode_cloud
+        from cellctl.api.cloud_codec import decode_cloud
 
         cloud = decode_cloud(cloud_bin.read_bytes())
         t = np.asarray(cloud.t_s, dtype=np.float64)

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 import structlog
-from tests.support.ports import free_port
 
 from cellctl.config import ZenohSection
+from tests.support.ports import free_port
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent

@@ -3,41 +3,47 @@
 from __future__ import annotations
 
 import asyncio
+import json
+from pathlib import Path
 
 import numpy as np
 
-from cellctl.cloud_codec import Cloud, encode_cloud
+from analysis.job import AnalysisJob
+from cellctl.api.cloud_codec import Cloud, encode_cloud
 from cellctl.worker import AnalysisProcess
 
 FN = "tests.zenoh.zworker_fns:blas_environment"
 
 
-def _run_once(proc: AnalysisProcess) -> dict:
+def _run_once(proc: AnalysisProcess, out_dir: Path) -> dict:
+    """One job through the child; what the analysis observed (its report is the minimal one)."""
     payload = encode_cloud(Cloud(xyz_mm=np.zeros((4, 3), np.float32), job_id="j1", plate_id="p1"))
 
     async def go():
         await proc.start()
         try:
-            return await proc.run({"job_id": "j1", "plate_id": "p1"}, bytes(payload))
+            job = AnalysisJob(job_id="j1", plate_id="p1", design="none.stl", out_dir=str(out_dir))
+            return await proc.run(job, bytes(payload))
         finally:
             proc.kill()
 
     out = asyncio.run(go())
     assert out.ok, out.error
-    return out.report
+    assert out.report is not None and out.report.job_id == "j1" and out.report.inputs.points == 4
+    return json.loads((out_dir / "observed.json").read_text())
 
 
-def test_analysis_process_asks_blas_for_the_configured_threads(monkeypatch):
+def test_analysis_process_asks_blas_for_the_configured_threads(monkeypatch, tmp_path):
     monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
     monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
-    report = _run_once(AnalysisProcess(FN, blas_threads=3))
+    report = _run_once(AnalysisProcess(FN, blas_threads=3), tmp_path)
     assert report == {"OPENBLAS_NUM_THREADS": "3", "MKL_NUM_THREADS": "3"}
 
 
-def test_an_explicit_blas_setting_in_the_environment_wins(monkeypatch):
+def test_an_explicit_blas_setting_in_the_environment_wins(monkeypatch, tmp_path):
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")
     monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
-    assert _run_once(AnalysisProcess(FN, blas_threads=1)) == {
+    assert _run_once(AnalysisProcess(FN, blas_threads=1), tmp_path) == {
         "OPENBLAS_NUM_THREADS": "2",
         "MKL_NUM_THREADS": "1",
     }

@@ -24,7 +24,7 @@ from cellctl.api import (
     parse_control,
     parse_trigger,
 )
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     build_zenoh_config,
     close_session,
     declare_async_queryable,

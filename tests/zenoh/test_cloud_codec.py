@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cellctl.cloud_codec import (
+from cellctl.api.cloud_codec import (
     FIELD_ENTRY,
     HEADER_SIZE,
     Cloud,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import signal
 import time
@@ -12,11 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from analysis.job import AnalysisJob
 from cellctl.api import Keys, list_workers
-from cellctl.cloud_codec import Cloud, encode_cloud
+from cellctl.api.cloud_codec import Cloud, encode_cloud
+from cellctl.api.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
+from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe
 from cellctl.config import load_config
-from cellctl.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
-from cellctl.zenoh_session import build_zenoh_config, close_session, open_session, subscribe
 
 pytestmark = pytest.mark.e2e
 FAST = DispatchSettings(ack_timeout_s=5.0, heartbeat_timeout_s=3.0, job_timeout_s=60.0, max_attempts=3)
@@ -25,7 +27,8 @@ FAST = DispatchSettings(ack_timeout_s=5.0, heartbeat_timeout_s=3.0, job_timeout_
 def _cloud_bytes(job_id: str, n: int = 2000, offset_mm: float = 0.0) -> tuple[bytearray, np.ndarray]:
     rng = np.random.default_rng(abs(hash(job_id)) % 2**32)
     xyz = (rng.normal(0, 100, (n, 3)) + offset_mm).astype(np.float32)
-    cloud = Cloud(xyz_mm=xyz, job_id=job_id, plate_id="P1", pass_id=(np.arange(n) % 4).astype(np.uint16))
+    cloud = Cloud(xyz_mm=xyz, job_id=job_id, plate_id="P1", pass_id=(np.arange(n) % 4).astype(np.uint16),
+                  profile_index=(np.arange(n) // 40).astype(np.uint32), point_index=(np.arange(n) % 10).astype(np.uint16))  # fmt: skip
     return encode_cloud(cloud), xyz.astype(np.float64).mean(axis=0)
 
 
@@ -54,6 +57,19 @@ def _run(hub, scenario, settings=FAST, hooks=None):
     return asyncio.run(main())
 
 
+def _job(hub, job_id: str, plate_id: str = "P1", **todo) -> AnalysisJob:
+    """The job parameters of a test job: ``todo`` (sleep_s, record_path) rides in the design file,
+    which the test analysis reads; it writes what it saw under ``out_dir`` (:func:`_observed`)."""
+    d = hub.tmp / job_id
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "todo.json").write_text(json.dumps(todo))
+    return AnalysisJob(job_id=job_id, plate_id=plate_id, design=str(d / "todo.json"), out_dir=str(d / "out"))
+
+
+def _observed(hub, job_id: str) -> dict:
+    return json.loads((hub.tmp / job_id / "out" / "observed.json").read_text())
+
+
 def _records(path: Path) -> list[tuple[str, str, int]]:
     if not path.exists():
         return []
@@ -70,7 +86,7 @@ def test_two_workers_ten_jobs_each_analysed_exactly_once(hub, start_worker):
         for i in range(10):
             job_id = f"job{i:02d}"
             payload, centroids[job_id] = _cloud_bytes(job_id, offset_mm=10.0 * i)
-            futures[job_id] = disp.submit(job_id, "P1", payload, {"record_path": str(record), "sleep_s": 0.2})
+            futures[job_id] = disp.submit(_job(hub, job_id, record_path=str(record), sleep_s=0.2), payload)
         reports = dict(
             zip(futures, await asyncio.wait_for(asyncio.gather(*futures.values()), 60), strict=True)
         )
@@ -82,10 +98,11 @@ def test_two_workers_ten_jobs_each_analysed_exactly_once(hub, start_worker):
     assert sum(a.jobs_done for a in announced) == 10
     assert all(env.ok for env in reports.values()), [env.error for env in reports.values()]
     for job_id, env in reports.items():
-        assert env.report["job_id"] == job_id and env.attempt == 1
-        assert env.report["n_points"] == 2000
-        np.testing.assert_allclose(env.report["centroid_mm"], centroids[job_id], atol=1e-3)
-        assert env.report["passes"] == [0, 1, 2, 3]
+        seen = _observed(hub, job_id)
+        assert env.report.job_id == job_id and env.attempt == 1 and env.report.inputs.points == 2000
+        assert seen["n_points"] == 2000
+        np.testing.assert_allclose(seen["centroid_mm"], centroids[job_id], atol=1e-3)
+        assert seen["passes"] == [0, 1, 2, 3]
     starts = Counter(job for kind, job, _ in _records(record) if kind == "start")
     assert starts == Counter({f"job{i:02d}": 1 for i in range(10)})
     assert {env.worker_id for env in reports.values()} == {"w1", "w2"}  # the work was shared
@@ -105,7 +122,7 @@ def test_worker_killed_mid_analysis_the_other_completes_the_job(hub, start_worke
     async def scenario(disp: Dispatcher):
         await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
         payload, centroid = _cloud_bytes("jobK")
-        fut = disp.submit("jobK", "P1", payload, {"record_path": str(record), "sleep_s": 1.5})
+        fut = disp.submit(_job(hub, "jobK", "P1", record_path=str(record), sleep_s=1.5), payload)
         await _wait_for(lambda: any(k == "start" for k, _, _ in _records(record)), 20, "analysis start")
         victim = assigned[0][1]
         child_pid = _records(record)[0][2]
@@ -115,7 +132,7 @@ def test_worker_killed_mid_analysis_the_other_completes_the_job(hub, start_worke
 
     env, victim, child_pid, centroid = _run(hub, scenario, hooks=hooks)
     assert env.ok and env.attempt == 2 and env.worker_id != victim
-    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+    np.testing.assert_allclose(_observed(hub, env.job_id)["centroid_mm"], centroid, atol=1e-3)
     assert retries and retries[0][1] == victim and "disappeared" in retries[0][2]
     # the killed worker's analysis process does not outlive it
     t_end = time.monotonic() + 5
@@ -140,7 +157,7 @@ def _pid_alive(pid: int) -> bool:
 def test_job_waits_without_workers_and_is_analysed_when_one_starts(hub, start_worker, shm_pool_mb):
     async def scenario(disp: Dispatcher):
         payload, centroid = _cloud_bytes("jobW")
-        fut = disp.submit("jobW", "P1", payload, {})
+        fut = disp.submit(_job(hub, "jobW", "P1"), payload)
         await asyncio.sleep(1.0)
         assert not fut.done() and disp.workers == [] and disp.pending == ["jobW"]
         start_worker("late")
@@ -149,7 +166,7 @@ def test_job_waits_without_workers_and_is_analysed_when_one_starts(hub, start_wo
 
     env, centroid = _run(hub, scenario, settings=DispatchSettings(shm_pool_mb=shm_pool_mb))
     assert env.ok and env.worker_id == "late" and env.attempt == 1
-    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+    np.testing.assert_allclose(_observed(hub, env.job_id)["centroid_mm"], centroid, atol=1e-3)
 
 
 def test_analysis_exception_is_reported_once_and_not_retried(hub, start_worker):
@@ -158,12 +175,24 @@ def test_analysis_exception_is_reported_once_and_not_retried(hub, start_worker):
 
     async def scenario(disp: Dispatcher):
         await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
-        return await asyncio.wait_for(disp.submit("jobE", "P9", _cloud_bytes("jobE", n=7)[0]), 30)
+        return await asyncio.wait_for(disp.submit(_job(hub, "jobE", "P9"), _cloud_bytes("jobE", n=7)[0]), 30)
 
     env = _run(hub, scenario, hooks=DispatchHooks(on_retry=lambda *a: retries.append(a)))
     assert not env.ok and env.report is None
     assert "ValueError: plate P9: no plate surface in 7 points" in env.error
     assert retries == []
+
+
+def test_a_result_that_is_no_report_is_an_analysis_error_named_by_the_worker(hub, start_worker):
+    start_worker("w1", analysis="zworker_fns:not_a_report")
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
+        return await asyncio.wait_for(disp.submit(_job(hub, "jobN", "P2"), _cloud_bytes("jobN", n=9)[0]), 30)
+
+    env = _run(hub, scenario)
+    assert not env.ok and env.report is None and env.attempt == 1
+    assert "ValidationError" in env.error and "n_points" in env.error and "verdict" in env.error
 
 
 @pytest.mark.slow
@@ -173,7 +202,9 @@ def test_job_fails_after_max_attempts_when_every_worker_dies(hub, start_worker):
 
     async def scenario(disp: Dispatcher):
         await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
-        fut = disp.submit("jobX", "P1", _cloud_bytes("jobX")[0], {"record_path": str(record), "sleep_s": 30})
+        fut = disp.submit(
+            _job(hub, "jobX", "P1", record_path=str(record), sleep_s=30), _cloud_bytes("jobX")[0]
+        )
         for n in (1, 2):
             await _wait_for(lambda n=n: len(_records(record)) >= n, 20, f"analysis start {n}")
             holder = disp.assignment("jobX")[0]
@@ -211,7 +242,9 @@ def test_frozen_worker_loses_its_job_to_the_other_after_heartbeat_timeout(hub, s
 
     async def scenario(disp: Dispatcher):
         await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
-        fut = disp.submit("jobF", "P1", _cloud_bytes("jobF")[0], {"record_path": str(record), "sleep_s": 1.0})
+        fut = disp.submit(
+            _job(hub, "jobF", "P1", record_path=str(record), sleep_s=1.0), _cloud_bytes("jobF")[0]
+        )
         await _wait_for(lambda: disp.assignment("jobF")[0] is not None, 10, "assignment")
         holder = workers[disp.assignment("jobF")[0]]
         holder.proc.send_signal(signal.SIGSTOP)  # alive to the OS and the link, silent to us
@@ -243,12 +276,12 @@ def test_malformed_messages_are_counted_and_endpoints_keep_serving(hub, start_wo
         disp.session.put(keys.report("jobZ"), b"\xff not a report")
         disp.session.put(keys.job_event("jobZ"), b'{"job_id": "jobZ"}')
         payload, centroid = _cloud_bytes("jobOK")
-        env = await asyncio.wait_for(disp.submit("jobOK", "P1", payload), 30)
+        env = await asyncio.wait_for(disp.submit(_job(hub, "jobOK", "P1"), payload), 30)
         return env, centroid, disp.malformed
 
     env, centroid, malformed = _run(hub, scenario)
     assert env.ok and env.attempt == 1
-    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+    np.testing.assert_allclose(_observed(hub, env.job_id)["centroid_mm"], centroid, atol=1e-3)
     assert malformed == 2
     assert w.proc.poll() is None
     assert "job_message_malformed" in w.log() and "no JobSpec attachment" in w.log()
@@ -276,14 +309,14 @@ def test_jobs_flow_with_password_auth_and_access_control_on(hub, start_worker, m
         try:
             client.put("other/x", b"must be filtered")
             payload, centroid = _cloud_bytes("jobA")
-            env = await asyncio.wait_for(disp.submit("jobA", "P1", payload), 30)
+            env = await asyncio.wait_for(disp.submit(_job(hub, "jobA", "P1"), payload), 30)
         finally:
             close_session(client)
         return env, centroid
 
     env, centroid = _run(hub, scenario)
     assert env.ok and env.worker_id == "w1"
-    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+    np.testing.assert_allclose(_observed(hub, env.job_id)["centroid_mm"], centroid, atol=1e-3)
     assert outside == []
 
 
@@ -296,11 +329,11 @@ def test_worker_started_before_the_daemon_connects_once_it_listens(hub, start_wo
 
     async def scenario(disp: Dispatcher):
         payload, centroid = _cloud_bytes("jobE1")
-        return await asyncio.wait_for(disp.submit("jobE1", "P1", payload), 30), centroid
+        return await asyncio.wait_for(disp.submit(_job(hub, "jobE1", "P1"), payload), 30), centroid
 
     env, centroid = _run(hub, scenario)
     assert env.ok and env.worker_id == "early"
-    np.testing.assert_allclose(env.report["centroid_mm"], centroid, atol=1e-3)
+    np.testing.assert_allclose(_observed(hub, env.job_id)["centroid_mm"], centroid, atol=1e-3)
 
 
 @pytest.mark.slow
@@ -311,7 +344,9 @@ def test_sigterm_mid_analysis_hands_the_job_back_and_exits_zero(hub, start_worke
 
     async def scenario(disp: Dispatcher):
         await _wait_for(lambda: len(disp.workers) == 2, 30, "two workers")
-        fut = disp.submit("jobT", "P1", _cloud_bytes("jobT")[0], {"record_path": str(record), "sleep_s": 1.5})
+        fut = disp.submit(
+            _job(hub, "jobT", "P1", record_path=str(record), sleep_s=1.5), _cloud_bytes("jobT")[0]
+        )
         await _wait_for(lambda: len(_records(record)) >= 1, 20, "analysis start")
         holder = workers[disp.assignment("jobT")[0]]
         t0 = time.monotonic()

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from cellctl.api.dispatch import DispatchSettings
 from cellctl.config import ConfigError, load_config, parse_config
-from cellctl.dispatch import DispatchSettings
 from cellctl.worker import AnalysisLoadError, WorkerSettings, resolve_callable
 
 

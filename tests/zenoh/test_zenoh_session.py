@@ -7,10 +7,8 @@ import threading
 
 import pytest
 import zenoh
-from tests.support.ports import free_port
 
-from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.zenoh_session import (
+from cellctl.api.session import (
     ZenohSetupError,
     async_get,
     build_zenoh_config,
@@ -20,6 +18,8 @@ from cellctl.zenoh_session import (
     open_session,
     subscribe,
 )
+from cellctl.config import ZenohAccess, ZenohSection
+from tests.support.ports import free_port
 
 
 def test_daemon_config_listens_only_where_configured_with_scouting_off():

@@ -1,7 +1,13 @@
-"""Small real analysis callables for the worker tests (imported by dotted path in the worker's child)."""
+"""Small real analysis callables for the worker tests (imported by dotted path in the worker's child).
+
+They take the typed job like the product's analysis: what a test wants them to do (sleep, record
+the call) comes in the job's ``design`` file (JSON), what they saw of the cloud goes to
+``observed.json`` in the job's ``out_dir``, and what they return is a schema-valid Report.
+"""
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from pathlib import Path
@@ -9,34 +15,72 @@ from typing import Any
 
 import numpy as np
 
+from analysis.cloud_io import ScanCloud
+from analysis.job import AnalysisJob, Report
 
-def centroid_after_sleep(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, Any]:
-    """Record the call, sleep ``job['sleep_s']``, return the cloud's point count and centroid (mm)."""
-    record = job.get("record_path")
+
+def behaviour(job: AnalysisJob) -> dict[str, Any]:
+    """The test's instructions for this job (the design file's JSON; none when it does not exist)."""
+    path = Path(job.design)
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def observe(job: AnalysisJob, **seen: Any) -> None:
+    """Write what the analysis saw to ``<out_dir>/observed.json`` (a test reads it back)."""
+    if job.out_dir:
+        out = Path(job.out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "observed.json").write_text(json.dumps(seen))
+
+
+def minimal_report(job: AnalysisJob, points: int) -> Report:
+    """A report that fits the schema and judges no line (so it fails): the ids, the inputs, zeros."""
+    zero4 = [[0.0] * 4 for _ in range(4)]
+    return Report.model_validate(
+        {
+            "plate_id": job.plate_id, "job_id": job.job_id, "cell_id": job.cell_id, "verdict": "fail",
+            "registration": {
+                "coarse_rms_mm": 0.0, "icp_rms_mm": 0.0, "nonpen_rms_mm": 0.0, "penetration_points": 0,
+                "penetration_points_before": 0, "surface_points": 0, "surface_cell_mm": 0.0,
+                "raw_points_below_4sigma": 0, "transform": zero4, "corner_shift": 0,
+            },
+            "corners_mm": [[0.0] * 3 for _ in range(4)], "plate_size_mm": [0.0, 0.0], "lines": [],
+            "tolerances": {}, "coverage": {"fraction": 0.0, "holes_mm2": 0.0},
+            "surface": {"points": 0, "noise_sigma_mm": 0.0},
+            "inputs": {"points": points, "design": job.design, "placement": job.placement},
+        }
+    )  # fmt: skip
+
+
+def centroid_after_sleep(cloud: ScanCloud, job: AnalysisJob) -> Report:
+    """Record the call, sleep ``sleep_s``, observe the cloud's point count, centroid (mm) and passes."""
+    todo = behaviour(job)
+    record = todo.get("record_path")
     if record:
         with Path(record).open("a") as f:
-            f.write(f"start {job['job_id']} {os.getpid()}\n")
-    time.sleep(float(job.get("sleep_s", 0.0)))
-    xyz = cloud["xyz_mm"].astype(np.float64)
-    out = {
-        "job_id": job["job_id"],
-        "plate_id": job["plate_id"],
-        "n_points": xyz.shape[0],
-        "centroid_mm": xyz.mean(axis=0),
-        "passes": np.unique(cloud["pass_id"]) if "pass_id" in cloud else [],
-        "pid": os.getpid(),
-    }
+            f.write(f"start {job.job_id} {os.getpid()}\n")
+    time.sleep(float(todo.get("sleep_s", 0.0)))
+    xyz = cloud.xyz_mm
+    passes = np.unique(cloud.pass_id).tolist() if cloud.organised else []
+    observe(job, job_id=job.job_id, n_points=xyz.shape[0], centroid_mm=xyz.mean(axis=0).tolist(),
+            passes=passes, pid=os.getpid())  # fmt: skip
     if record:
         with Path(record).open("a") as f:
-            f.write(f"done {job['job_id']} {os.getpid()}\n")
-    return out
+            f.write(f"done {job.job_id} {os.getpid()}\n")
+    return minimal_report(job, xyz.shape[0])
 
 
-def always_raises(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, Any]:
+def always_raises(cloud: ScanCloud, job: AnalysisJob) -> Report:
     """An analysis that fails on its input, deterministically."""
-    raise ValueError(f"plate {job['plate_id']}: no plate surface in {cloud['xyz_mm'].shape[0]} points")
+    raise ValueError(f"plate {job.plate_id}: no plate surface in {len(cloud)} points")
 
 
-def blas_environment(cloud: dict[str, np.ndarray], job: dict[str, Any]) -> dict[str, Any]:
-    """The BLAS thread settings the analysis process runs with."""
-    return {k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+def not_a_report(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
+    """An analysis whose result does not fit the report schema (an unknown field, no verdict)."""
+    return {"job_id": job.job_id, "n_points": len(cloud)}
+
+
+def blas_environment(cloud: ScanCloud, job: AnalysisJob) -> Report:
+    """Observe the BLAS thread settings the analysis process runs with."""
+    observe(job, **{k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")})
+    return minimal_report(job, len(cloud))

@@ -25,7 +25,10 @@ from typing import Any, Literal
 
 import structlog
 import zenoh
+from pydantic import ValidationError
 
+from cellctl.api.keys import Keys
+from cellctl.api.models import ApiError, M, WorkerAnnouncement
 from cellctl.config import ConfigError, ZenohSection, check_secret_file_mode, resolve_secret
 
 log = structlog.get_logger(__name__)
@@ -424,3 +427,57 @@ async def async_get(
         kwargs["target"] = target
     session.get(selector, zenoh.handlers.Callback(on_reply, on_done), **kwargs)
     return await done
+
+
+# ------------------------------------------------------------------------------- client calls
+
+
+class ApiCallError(Exception):
+    """A query that got an error reply (``error`` holds the ApiError) or no reply at all."""
+
+    def __init__(self, key: str, error: ApiError | None, message: str) -> None:
+        self.key = key
+        self.error = error
+        super().__init__(f"{key}: {message}")
+
+
+async def call(
+    session: Any, key: str, payload: bytes | str | None, reply_model: type[M], *, timeout_s: float = 10.0
+) -> M:
+    """Query one of the cell's queryables and parse the reply (what `cellctl scan` and friends use).
+
+    Raises ApiCallError on an error reply (with the parsed ApiError), on no reply within
+    ``timeout_s`` (daemon not running or too slow), or on a reply that does not parse.
+    """
+    replies = await async_get(session, key, payload=payload, timeout_s=timeout_s)
+    if not replies:
+        raise ApiCallError(key, None, f"no reply within {timeout_s} s (is the daemon running?)")
+    reply = replies[0]
+    if reply.ok is None:
+        raw = reply.err.payload.to_bytes()
+        try:
+            err = ApiError.model_validate_json(raw)
+        except ValidationError:
+            raise ApiCallError(key, None, f"error reply: {raw[:200]!r}") from None
+        where = f"{err.field}: " if err.field else ""
+        raise ApiCallError(key, err, f"{err.code}: {where}{err.message}")
+    try:
+        return reply_model.model_validate_json(reply.ok.payload.to_bytes())
+    except ValidationError as exc:
+        raise ApiCallError(key, None, f"reply is not a {reply_model.__name__}: {exc}") from None
+
+
+async def list_workers(session: Any, keys: Keys, *, timeout_s: float = 2.0) -> list[WorkerAnnouncement]:
+    """Every worker's announcement (for `cellctl status`), sorted by id; unreadable replies skipped."""
+    replies = await async_get(
+        session, keys.worker_info("*"), timeout_s=timeout_s, target=zenoh.QueryTarget.ALL
+    )
+    out = []
+    for r in replies:
+        if r.ok is None:
+            continue
+        try:
+            out.append(WorkerAnnouncement.model_validate_json(r.ok.payload.to_bytes()))
+        except ValidationError:
+            log.warning("worker_announcement_malformed", key=str(r.ok.key_expr))
+    return sorted(out, key=lambda a: a.worker_id)

@@ -34,9 +34,11 @@ import structlog
 import zenoh
 from pydantic import ValidationError
 
-from cellctl.api import JobEvent, JobSpec, Keys, ReportEnvelope
-from cellctl.cloud_codec import ENCODING as CLOUD_ENCODING
-from cellctl.zenoh_session import subscribe
+from analysis.job import AnalysisJob
+from cellctl.api.cloud_codec import ENCODING as CLOUD_ENCODING
+from cellctl.api.keys import Keys
+from cellctl.api.models import JobEvent, JobSpec, ReportEnvelope
+from cellctl.api.session import subscribe
 
 log = structlog.get_logger(__name__)
 
@@ -102,7 +104,7 @@ class _Job:
     job_id: str
     plate_id: str
     cloud: bytes | bytearray
-    params: dict[str, Any]
+    params: AnalysisJob
     future: asyncio.Future[ReportEnvelope]
     attempt: int = 0
     worker_id: str | None = None
@@ -168,18 +170,20 @@ class Dispatcher:
             except Exception as exc:  # the shm API is marked unstable: fall back to the copy path
                 log.warning("shm_unavailable", error=str(exc))
 
-    def submit(
-        self, job_id: str, plate_id: str, cloud: bytes | bytearray, params: dict[str, Any] | None = None
-    ) -> asyncio.Future[ReportEnvelope]:
-        """Queue a cloud (encoded by :func:`cellctl.cloud_codec.encode_cloud`) for analysis.
+    def submit(self, params: AnalysisJob, cloud: bytes | bytearray) -> asyncio.Future[ReportEnvelope]:
+        """Queue a cloud (encoded by :func:`cellctl.api.cloud_codec.encode_cloud`) for analysis with
+        the job's parameters (``params.job_id`` names the job).
 
         The future resolves with the first ReportEnvelope (``ok`` False when the analysis itself
         raised), or fails with JobFailed after ``max_attempts`` lost attempts.
         """
+        job_id, plate_id = params.job_id, params.plate_id
+        if not job_id:
+            raise ValueError("the job parameters name no job_id")
         if job_id in self._jobs:
             raise ValueError(f"job {job_id!r} is already pending")
         fut: asyncio.Future[ReportEnvelope] = asyncio.get_running_loop().create_future()
-        self._jobs[job_id] = _Job(job_id, plate_id, cloud, dict(params or {}), fut)
+        self._jobs[job_id] = _Job(job_id, plate_id, cloud, params, fut)
         self._queue.append(job_id)
         log.info("job_queued", job_id=job_id, plate_id=plate_id, bytes=len(cloud), workers=len(self._workers))
         self._call(self.hooks.on_queued, job_id)
@@ -239,7 +243,7 @@ class Dispatcher:
         job.tried.add(worker.worker_id)
         worker.job_id = job.job_id
         worker.last_assigned = now
-        spec = JobSpec(job_id=job.job_id, plate_id=job.plate_id, attempt=job.attempt, params=job.params)
+        spec = JobSpec(attempt=job.attempt, job=job.params)
         log.info("job_assigned", job_id=job.job_id, worker_id=worker.worker_id, attempt=job.attempt)
         self._call(self.hooks.on_assigned, job.job_id, worker.worker_id, job.attempt)
         task = asyncio.get_running_loop().create_task(self._send(job, worker.worker_id, spec))

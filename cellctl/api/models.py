@@ -1,9 +1,12 @@
-"""The cell's Zenoh API: the key space and the JSON payload models (documented in docs/api.md).
+"""The payload models of the cell's Zenoh API, both ways (documented in docs/api.md).
 
-Everything lives under ``CellConfig.key_prefix`` (default ``cell/<cell_id>``). Payloads are UTF-8
-JSON validated by the pydantic models below (unknown fields refused), except the cloud, which uses
-the binary layout of :mod:`cellctl.cloud_codec`. Inbound requests are parsed with
-:func:`parse_trigger`, which raises :class:`TriggerError` naming the offending field.
+Payloads are UTF-8 JSON validated by the pydantic models below (unknown fields refused) on both
+sides, except the cloud, which uses the binary layout of :mod:`cellctl.api.cloud_codec`. The job a
+worker is given (:class:`JobSpec` with its :class:`~analysis.job.AnalysisJob`) and the report it
+returns (:class:`ReportEnvelope` with its :class:`~analysis.job.Report`) carry the analysis
+package's own models, so the daemon, the worker and the analysis check one schema. Inbound
+requests are parsed with :func:`parse_trigger`, which raises :class:`TriggerError` naming the
+offending field. The key expressions are in :mod:`cellctl.api.keys`.
 """
 
 from __future__ import annotations
@@ -13,7 +16,6 @@ import os
 import socket
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path, PurePosixPath
 from typing import Annotated, Any, Literal, TypeVar
@@ -21,7 +23,55 @@ from typing import Annotated, Any, Literal, TypeVar
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from analysis.job import AnalysisJob, Report
+from analysis.placement import Placement
+from cellctl.api.keys import ControlAction
+
 log = structlog.get_logger(__name__)
+
+__all__ = [
+    "API_VERSION",
+    "CONTROL_LOG",
+    "DESIGN_SUFFIXES",
+    "FINAL_JOB_STATES",
+    "JSON",
+    "MAX_TRIGGER_BYTES",
+    "TRIGGER_LOG",
+    "AnalysisJob",
+    "ApiError",
+    "CellState",
+    "CellStatus",
+    "ControlError",
+    "ControlReply",
+    "ControlRequest",
+    "DaemonStats",
+    "EgmStats",
+    "HeapLine",
+    "HeapSummary",
+    "Ident",
+    "JobEvent",
+    "JobProgress",
+    "JobSpec",
+    "JobState",
+    "Model",
+    "Placement",
+    "QueuedJob",
+    "RefusalLog",
+    "Report",
+    "ReportEnvelope",
+    "TriggerAccepted",
+    "TriggerError",
+    "TriggerRequest",
+    "WorkerAnnouncement",
+    "default_worker_id",
+    "handle_trigger",
+    "new_job_id",
+    "now_utc",
+    "parse_control",
+    "parse_model",
+    "parse_trigger",
+    "read_payload",
+]
 
 API_VERSION = 1
 MAX_TRIGGER_BYTES = 16 * 1024
@@ -29,70 +79,9 @@ DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".npz", ".json")
 JSON = "application/json"
 
 _ID = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
-#: the daemon's control queryables (``Keys.control``)
-ControlAction = Literal["pause", "resume", "abort", "reset", "reanalyse"]
-CONTROL_ACTIONS: tuple[str, ...] = ("pause", "resume", "abort", "reset", "reanalyse")
 Ident = Annotated[str, Field(pattern=_ID)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
-
-
-@dataclass(frozen=True)
-class Keys:
-    """The key expressions of one cell, built from its prefix (``CellConfig.key_prefix``)."""
-
-    prefix: str
-
-    # daemon side
-    @property
-    def trigger(self) -> str:
-        """Queryable: JSON TriggerRequest in, TriggerAccepted or ApiError out."""
-        return f"{self.prefix}/scan/trigger"
-
-    def control(self, action: ControlAction) -> str:
-        """Queryable: empty payload (or ControlRequest JSON), ControlReply or ApiError out."""
-        return f"{self.prefix}/control/{action}"
-
-    @property
-    def state(self) -> str:
-        """Publication: CellStatus JSON, on every change and periodically."""
-        return f"{self.prefix}/state"
-
-    @property
-    def daemon_alive(self) -> str:
-        """Liveliness token of the daemon."""
-        return f"{self.prefix}/alive/daemon"
-
-    # workers
-    def worker_alive(self, worker_id: str = "*") -> str:
-        """Liveliness token of one worker (``*``: all of them)."""
-        return f"{self.prefix}/alive/workers/{worker_id}"
-
-    def worker_info(self, worker_id: str = "*") -> str:
-        """Queryable on each worker: WorkerAnnouncement JSON."""
-        return f"{self.prefix}/workers/{worker_id}/info"
-
-    def worker_job(self, worker_id: str, job_id: str = "*") -> str:
-        """Publication to one worker: the cloud (binary) with the JobSpec JSON as attachment."""
-        return f"{self.prefix}/workers/{worker_id}/jobs/{job_id}"
-
-    def worker_cancel(self, worker_id: str, job_id: str = "*") -> str:
-        """Publication to one worker: stop analysing this job (it was given to another worker)."""
-        return f"{self.prefix}/workers/{worker_id}/cancel/{job_id}"
-
-    # jobs
-    def job_event(self, job_id: str = "*") -> str:
-        """Publication by the worker holding a job: JobEvent JSON (accepted, heartbeat, done, ...)."""
-        return f"{self.prefix}/jobs/{job_id}/event"
-
-    def report(self, job_id: str = "*") -> str:
-        """Publication: ReportEnvelope JSON (large, CongestionControl.BLOCK)."""
-        return f"{self.prefix}/reports/{job_id}"
-
-    @staticmethod
-    def last_chunk(key: str) -> str:
-        """The last chunk of a key expression (the job id of a job/report key, a worker id, ...)."""
-        return str(key).rsplit("/", 1)[-1]
 
 
 class Model(BaseModel):
@@ -119,24 +108,6 @@ def new_job_id() -> str:
 
 
 # --------------------------------------------------------------------------------------------- trigger
-
-
-#: A placement beyond these is no plate on this bed but a typo or an attack: refused at the door,
-#: before a job exists (the planner's workspace check would refuse it later, after a job was made).
-MAX_PLACEMENT_MM = 100_000.0
-MAX_PLACEMENT_DEG = 360.0
-PosMm = Annotated[float, Field(ge=-MAX_PLACEMENT_MM, le=MAX_PLACEMENT_MM, allow_inf_nan=False)]
-AngleDeg = Annotated[float, Field(ge=-MAX_PLACEMENT_DEG, le=MAX_PLACEMENT_DEG, allow_inf_nan=False)]
-
-
-class Placement(Model):
-    """Nominal placement of the plate on the bed: design frame -> robot base frame.
-
-    ``pos_mm`` within +-100 m, ``rpy_deg`` within +-360 deg.
-    """
-
-    pos_mm: Annotated[list[PosMm], Field(min_length=3, max_length=3)]
-    rpy_deg: Annotated[list[AngleDeg], Field(min_length=3, max_length=3)] = [0.0, 0.0, 0.0]
 
 
 class TriggerRequest(Model):
@@ -379,6 +350,54 @@ class CellStatus(Model):
 # --------------------------------------------------------------------------------------------- workers
 
 
+class EgmStats(Model):
+    """The EGM endpoint's counters since the daemon started (``EgmStatistics.snapshot()`` of the driver)."""
+
+    received: int
+    handled: int
+    replies_sent: int
+    lost: int
+    duplicated: int
+    out_of_order: int
+    malformed: int
+    sessions: int
+    watchdog_events: int
+    send_errors: int
+    interval_mean_us: float | None = None
+    interval_jitter_us: float | None = None
+    interval_max_us: float | None = None
+    latency_bins_us: list[float] = []
+    latency_counts: list[int] = []
+    latency_max_us: float = 0.0
+
+
+class HeapLine(Model):
+    """One source line holding traced Python memory."""
+
+    where: str
+    kb: float
+    blocks: int
+
+
+class HeapSummary(Model):
+    """The traced Python heap (only under ``PYTHONTRACEMALLOC``): current and peak MB, top lines."""
+
+    traced_mb: float
+    peak_mb: float
+    top: list[HeapLine] = []
+
+
+class DaemonStats(Model):
+    """Reply of ``Keys.stats``: the daemon's counters since it started, for monitoring and the soak."""
+
+    cell_id: str
+    t_utc: str
+    rss_mb: float
+    dispatch_malformed: Annotated[int, Field(ge=0)] = 0
+    egm: EgmStats | None = None
+    python_heap: HeapSummary | None = None
+
+
 class WorkerAnnouncement(Model):
     """What a worker says about itself (``Keys.worker_info``)."""
 
@@ -399,13 +418,19 @@ def default_worker_id() -> str:
 
 
 class JobSpec(Model):
-    """Sent with the cloud (as attachment) to the worker that is to analyse it."""
+    """Sent with the cloud (as attachment) to the worker that is to analyse it: the job parameters
+    (ids, design, the trigger's placement, analysis settings, where to write results) and the attempt."""
 
-    job_id: str
-    plate_id: str
     attempt: Annotated[int, Field(ge=1)]
-    # Opaque to the dispatcher: design path, placement, analysis settings, tolerances.
-    params: dict[str, Any] = {}
+    job: AnalysisJob
+
+    @property
+    def job_id(self) -> str:
+        return self.job.job_id
+
+    @property
+    def plate_id(self) -> str:
+        return self.job.plate_id
 
 
 class JobEvent(Model):
@@ -427,7 +452,7 @@ class ReportEnvelope(Model):
     worker_id: str
     attempt: Annotated[int, Field(ge=1)]
     ok: bool
-    report: dict[str, Any] | None = None
+    report: Report | None = None
     error: str | None = None
     timings_s: dict[str, float] = {}
     t_utc: str = ""
@@ -485,60 +510,3 @@ async def handle_trigger(
         return None
     query.reply(query.key_expr, accepted.to_json(), encoding=JSON)
     return accepted
-
-
-class ApiCallError(Exception):
-    """A query that got an error reply (``error`` holds the ApiError) or no reply at all."""
-
-    def __init__(self, key: str, error: ApiError | None, message: str) -> None:
-        self.key = key
-        self.error = error
-        super().__init__(f"{key}: {message}")
-
-
-async def call(
-    session: Any, key: str, payload: bytes | str | None, reply_model: type[M], *, timeout_s: float = 10.0
-) -> M:
-    """Query one of the cell's queryables and parse the reply (what `cellctl scan` and friends use).
-
-    Raises ApiCallError on an error reply (with the parsed ApiError), on no reply within
-    ``timeout_s`` (daemon not running or too slow), or on a reply that does not parse.
-    """
-    from cellctl.zenoh_session import async_get  # here: the models above must not need Zenoh
-
-    replies = await async_get(session, key, payload=payload, timeout_s=timeout_s)
-    if not replies:
-        raise ApiCallError(key, None, f"no reply within {timeout_s} s (is the daemon running?)")
-    reply = replies[0]
-    if reply.ok is None:
-        raw = reply.err.payload.to_bytes()
-        try:
-            err = ApiError.model_validate_json(raw)
-        except ValidationError:
-            raise ApiCallError(key, None, f"error reply: {raw[:200]!r}") from None
-        where = f"{err.field}: " if err.field else ""
-        raise ApiCallError(key, err, f"{err.code}: {where}{err.message}")
-    try:
-        return reply_model.model_validate_json(reply.ok.payload.to_bytes())
-    except ValidationError as exc:
-        raise ApiCallError(key, None, f"reply is not a {reply_model.__name__}: {exc}") from None
-
-
-async def list_workers(session: Any, keys: Keys, *, timeout_s: float = 2.0) -> list[WorkerAnnouncement]:
-    """Every worker's announcement (for `cellctl status`), sorted by id; unreadable replies skipped."""
-    import zenoh
-
-    from cellctl.zenoh_session import async_get
-
-    replies = await async_get(
-        session, keys.worker_info("*"), timeout_s=timeout_s, target=zenoh.QueryTarget.ALL
-    )
-    out = []
-    for r in replies:
-        if r.ok is None:
-            continue
-        try:
-            out.append(WorkerAnnouncement.model_validate_json(r.ok.payload.to_bytes()))
-        except ValidationError:
-            log.warning("worker_announcement_malformed", key=str(r.ok.key_expr))
-    return sorted(out, key=lambda a: a.worker_id)

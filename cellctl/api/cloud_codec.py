@@ -29,8 +29,9 @@ metadata block, then each array as raw little-endian bytes, 8-byte aligned, so d
 Fields (fixed dtype each; ``xyz_mm`` required, the others optional):
 ``xyz_mm`` f32 x3 (mm, robot base frame), ``pass_id`` u16, ``profile_index`` u32 (profile within
 its pass), ``point_index`` u16 (point along the laser line), ``t_s`` f64 (s, cell clock); pass,
-profile and point together are the point's place on the scan grid (``analysis.cloud_io.ScanCloud``
-calls them ``pass_id``, ``profile``, ``point``). Arrays follow in table order, without overlap.
+profile and point together are the point's place on the scan grid: the names, the transit
+convention and the meaning of ``t_s`` are those of ``analysis.cloud_io.ScanCloud``, which the
+worker hands to the analysis (:meth:`Cloud.scan_cloud`). Arrays follow in table order, without overlap.
 The payload itself is not checksummed: Zenoh runs over TCP, which already is.
 """
 
@@ -43,6 +44,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from analysis.cloud_io import ScanCloud
 
 MAGIC = b"CCLD"
 VERSION = 1
@@ -90,11 +93,13 @@ class CloudFormatError(ValueError):
 
 @dataclass(frozen=True)
 class Cloud:
-    """One assembled scan.
+    """One assembled scan on the wire: the arrays of :class:`analysis.cloud_io.ScanCloud` (the same
+    names and conventions) at the wire's dtypes, with the job it belongs to.
 
     xyz_mm: (n, 3) float32, mm, robot base frame. Optional per-point arrays, each (n,):
-    pass_id uint16, profile_index uint32 (within its pass), point_index uint16 (along the line),
-    t_s float64 (exposure time, s). ``meta`` holds further JSON-able metadata.
+    pass_id uint16 (transit under pass 0), profile_index uint32 (running within the scan),
+    point_index uint16 (along the line), t_s float64 (exposure time, s from the first profile).
+    ``meta`` holds further JSON-able metadata.
     """
 
     xyz_mm: np.ndarray
@@ -118,6 +123,14 @@ class Cloud:
             if arr is not None:
                 out[name] = arr
         return out
+
+    def scan_cloud(self) -> ScanCloud:
+        """The analysis' cloud (what a worker hands to the analysis): organised when all three
+        organisation arrays came along, with the exposure times when they did."""
+        org = [self.pass_id, self.profile_index, self.point_index]
+        if all(a is not None for a in org):
+            return ScanCloud(self.xyz_mm, *org, t_s=self.t_s)
+        return ScanCloud(self.xyz_mm, t_s=self.t_s)
 
 
 def _pad(n: int) -> int:

@@ -1,0 +1,64 @@
+"""A job's analysis parameters from the cell's configuration: the one typed path from ``cell.toml``
+to the worker (``[analysis]`` -> :class:`~analysis.settings.InspectionSettings` inside an
+:class:`~analysis.job.AnalysisJob`, which the JobSpec carries as JSON and the worker validates back).
+
+`analysis` never imports `cellctl`; this is the one place the configuration is translated.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from analysis.job import AnalysisJob
+from analysis.metrics import Tolerances
+from analysis.placement import Placement
+from analysis.settings import InspectionSettings
+from analysis.templates import DetectionLayout
+from cellctl.config import AnalysisSection, CellConfig
+
+__all__ = ["analysis_job", "inspection_settings"]
+
+
+def inspection_settings(section: AnalysisSection) -> InspectionSettings:
+    """InspectionSettings from the ``[analysis]`` section."""
+    tol = section.tolerances
+    return InspectionSettings(
+        layout=DetectionLayout(
+            transverse_count=section.transverse_count,
+            transverse_spacing_mm=section.transverse_spacing_mm,
+            longitudinal_count=section.longitudinal_count,
+            longitudinal_spacing_mm=section.longitudinal_spacing_mm,
+            diagonals=section.diagonals,
+        ),
+        tolerances=Tolerances(
+            standard=tol.standard,
+            deviation_standard_mm=tol.deviation_standard_mm,
+            deviation_limit_mm=tol.deviation_limit_mm,
+        ),
+        sample_step_mm=section.sample_step_mm,
+        template_fit=section.template_fit,
+        template_fit_compare=section.template_fit_compare,
+    )
+
+
+def analysis_job(
+    cfg: CellConfig,
+    *,
+    job_id: str,
+    plate_id: str,
+    design: str,
+    placement: Placement | dict[str, Any],
+    out_dir: Path,
+) -> AnalysisJob:
+    """The parameters the daemon sends with a job's cloud: the trigger's design and placement (as
+    the job record stores it), the cell's analysis settings, and the job's results directory."""
+    return AnalysisJob(
+        job_id=job_id,
+        plate_id=plate_id,
+        cell_id=cfg.cell.id,
+        design=design,
+        placement=Placement.model_validate(placement),
+        settings=inspection_settings(cfg.analysis),
+        out_dir=str(out_dir),
+    )
