@@ -136,9 +136,9 @@ def test_the_template_rests_on_raised_edges_not_below_them(field):
         g0 = rg.deflection_gaps(field, truth, clean.transform, geometry=False)[0]
         return float(np.median(g - g0))
 
-    # centroids alone: the design sinks 0.14 mm below the raised edges; held at the sloped edge
-    # patches' corners it sinks a third of that -- the plane under-reads the convex rise at the
-    # patch's extremes (0.046 mm noise-free at 9.6 mm patches: a bias, stated in docs/metrology.md)
+    # centroids alone (the default): the design sinks over 0.1 mm below the raised edges; held at
+    # the sloped edge patches' corners it stays within 0.06 mm of the noise-free resting pose, either
+    # way -- the plane extrapolated to a patch's extremes is biased and noisy (docs/metrology.md)
     with_corners, without = sink(edge_corners=True), sink()
     assert without < -0.1
-    assert -0.06 < with_corners < 0.3 * noise and with_corners > 0.5 * without
+    assert abs(with_corners) < 0.06 and abs(with_corners) < 0.5 * abs(without), (with_corners, without)
