@@ -4,6 +4,7 @@ from cellctl.commands import (
     acquire_cmd,
     config_cmd,
     demo_cmd,
+    design_cmd,
     inspect_cmd,
     plan_cmd,
     report_cmd,
@@ -23,6 +24,7 @@ COMMAND_MODULES = [
     scan_cmd,  # scan, status, watch
     plan_cmd,
     inspect_cmd,
+    design_cmd,
     synth_cmd,
     report_cmd,
     acquire_cmd,  # reassemble, calibrate

@@ -23,7 +23,8 @@ from drivers.abb_egm.codec import (
     encode_robot,
 )
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig, precise_event_loop
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
+from drivers.runtime import precise_event_loop
 
 Q0 = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
 
@@ -109,9 +110,13 @@ def test_close_ends_the_reply_thread_while_the_controller_keeps_sending():
         sender = threading.Thread(target=flood)
         sender.start()
         try:
-            await asyncio.sleep(0.1)
+            # the flood is under way (bounded generously: a loaded machine only delays it)
+            for _ in range(600):
+                if ep.stats.received > 10:
+                    break
+                await asyncio.sleep(0.05)
             assert ep.stats.received > 10
-            await asyncio.wait_for(ep.close(), 3.0)
+            await asyncio.wait_for(ep.close(), 30.0)
             assert reply_threads() == []
         finally:
             stop.set()

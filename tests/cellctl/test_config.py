@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import re
 import tomllib
+import typing
 from pathlib import Path
 
 import pytest
+from pydantic import BaseModel, ValidationError
 
 from cellctl.config import CellConfig, ConfigError, load_config, parse_config, resolve_secret
 
@@ -39,15 +42,34 @@ def test_shipped_cell_toml_validates(repo_root: Path) -> None:
     assert all(ep.startswith("tcp/127.0.0.1:") for ep in cfg.zenoh.listen)
 
 
-def test_shipped_cell_toml_sets_every_field_explicitly(shipped: dict) -> None:
-    # The shipped file documents the whole configuration: no section is left to defaults.
-    for name in CellConfig.model_fields:
-        assert name in shipped, f"[{name}] missing from cell.toml"
+def _unset_fields(model: type[BaseModel], data: dict, text: str, path: str = "") -> list[str]:
+    """Fields of ``model`` (recursively through nested sections) that ``data`` does not set. A field
+    whose default is None (an optional file; TOML has no null) counts as set when a commented
+    ``# name =`` line documents it."""
+    unset = []
+    for name, field in model.model_fields.items():
+        key = field.alias or name
+        where = f"{path}.{key}" if path else key
+        if key not in data:
+            if not (field.default is None and re.search(rf"^# {re.escape(key)} = ", text, re.MULTILINE)):
+                unset.append(where)
+            continue
+        nested = [a for a in (field.annotation, *typing.get_args(field.annotation))
+                  if isinstance(a, type) and issubclass(a, BaseModel)]  # fmt: skip
+        if nested and isinstance(data[key], dict):
+            unset += _unset_fields(nested[0], data[key], text, where)
+    return unset
+
+
+def test_shipped_cell_toml_sets_every_field_explicitly(shipped: dict, repo_root: Path) -> None:
+    # The shipped file documents the whole configuration: no field of any section, nested ones
+    # included, is left to a default it does not show.
+    assert _unset_fields(CellConfig, shipped, (repo_root / "cell.toml").read_text()) == []
 
 
 def test_config_is_frozen(repo_root: Path) -> None:
     cfg = load_config(repo_root / "cell.toml")
-    with pytest.raises(Exception):  # noqa: B017 - pydantic raises ValidationError for frozen instances
+    with pytest.raises(ValidationError, match="frozen"):
         cfg.robot.egm_port = 1  # type: ignore[misc]
 
 
@@ -84,7 +106,7 @@ def test_config_is_frozen(repo_root: Path) -> None:
         ("zenoh", {"key_prefix": "cell//x"}, "zenoh.key_prefix"),
         ("cell", {"id": "bad id!"}, "cell.id = 'bad id!'"),
         ("analysis.tolerances", {"deviation_standard_mm": 4.0}, "must not exceed deviation_limit_mm"),
-        ("sim", {"rws_users": {"Default User": "robotics"}}, "expected an environment variable name"),
+        ("sim", {"rws_users": {"Default User": "robotics"}}, "expected the name of an environment variable"),
         ("sim.faults", {"egm_loss_fraction": 1.5}, "sim.faults.egm_loss_fraction = 1.5"),
         ("daemon", {"queue_max": -1}, "daemon.queue_max = -1"),
         ("daemon", {"queue_max": 1000}, "daemon.queue_max = 1000"),
@@ -208,3 +230,59 @@ def test_bad_daemon_environment_override_is_one_readable_line(
     monkeypatch.setenv("CELL_DAEMON__QUEUE_MAX", "lots")
     (problem,) = _problems(shipped)
     assert problem.startswith("daemon.queue_max (from the environment) = 'lots'")
+
+
+# ---- issue 24, finding 5: configuration within physics, strict types, secrets never echoed
+
+
+@pytest.mark.parametrize(
+    ("section", "values", "expected"),
+    [
+        ("robot", {"tcp_speed_max_mm_s": 1e12}, "robot.tcp_speed_max_mm_s = 1000000000000.0"),
+        ("robot", {"joint_lower_deg": [-1e9] * 6}, "leave the IRB 4600's range"),
+        ("robot", {"joint_upper_deg": [1e9] * 6}, "leave the IRB 4600's range"),
+        ("robot", {"joint_speed_max_deg_s": [1e6] * 6}, "exceeds the IRB 4600's"),
+        ("robot", {"joint_accel_max_deg_s2": [1e9] * 6}, "beyond the bounds"),
+        ("robot", {"workspace_min_mm": [-1e15] * 3}, "reaches beyond"),
+        ("robot", {"egm_comm_timeout_s": 1e9}, "robot.egm_comm_timeout_s = 1000000000.0"),
+        ("robot", {"rws_timeout_s": 1e9}, "robot.rws_timeout_s"),
+        ("laser", {"rate_hz": True}, "expected a number, got a boolean"),
+        ("laser", {"rate_hz": 1e9}, "laser.rate_hz"),
+        ("robot", {"joint_margin_deg": False}, "expected a number, got a boolean"),
+        ("robot", {"workspace_max_mm": [True, 2000.0, 2400.0]}, "expected a number, got a boolean"),
+        ("analysis", {"job_timeout_s": 1e12}, "analysis.job_timeout_s"),
+    ],
+)
+def test_values_no_irb_4600_or_sensor_can_have_are_refused(
+    shipped: dict, section: str, values: dict, expected: str
+):
+    problems = _problems(_with(shipped, section, **values))
+    assert any(expected in p for p in problems), problems
+
+
+def test_the_shipped_limits_stay_inside_the_robot_model(shipped: dict):
+    parse_config(shipped, "cell.toml")  # the defaults and the shipped file pass the new bounds
+
+
+@pytest.mark.parametrize(
+    ("section", "key"), [("robot", "rws_password_env"), ("zenoh.access", "password_env")]
+)
+def test_a_password_typed_into_an_env_key_is_refused_and_never_echoed(shipped: dict, section: str, key: str):
+    secret = "s3cr3t-Hunter2!"
+    problems = _problems(_with(shipped, section, **{key: secret}))
+    assert any(key in p and "not its value" in p for p in problems), problems
+    assert not any(secret in p for p in problems), problems
+
+
+def test_a_password_typed_into_sim_rws_users_is_never_echoed(shipped: dict):
+    secret = "robotics-Pa55"
+    problems = _problems(_with(shipped, "sim", rws_users={"Default User": secret}))
+    assert problems and not any(secret in p for p in problems), problems
+
+
+def test_an_empty_file_names_the_missing_section(tmp_path: Path):
+    empty = tmp_path / "cell.toml"
+    empty.write_text("# nothing here\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(empty)
+    assert any("[cell]" in p and "empty" in p for p in info.value.problems), info.value.problems
