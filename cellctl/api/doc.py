@@ -27,6 +27,7 @@ from cellctl.api.models import (
     EgmStats,
     JobEvent,
     JobSpec,
+    LiveCloudChunk,
     ReportEnvelope,
     TriggerRequest,
 )
@@ -39,7 +40,7 @@ MODELS: dict[str, type] = {
     for m in (
         TriggerRequest, Placement, JobSpec, AnalysisJob, InspectionSettings, DetectionLayout, Tolerances,
         JobEvent, ReportEnvelope, Report, RegistrationReport, LineReport, ScanCoverage, SurfaceReport,
-        ReportInputs, DaemonStats, EgmStats,
+        ReportInputs, DaemonStats, EgmStats, LiveCloudChunk,
     )
 }  # fmt: skip
 DOC = Path(__file__).resolve().parents[2] / "docs" / "api.md"

@@ -634,6 +634,7 @@ class CellDaemon:
         from analysis.plates import PlateError, load_design
         from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
         from cellctl.acquisition.rawstore import RawWriter
+        from cellctl.daemon.live import LiveCloudFeed
         from cellctl.motion import ExecState, ExecutorConfig, MotionExecutor
         from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, plan_scan
         from drivers.laser.client import HD8Client
@@ -719,14 +720,19 @@ class CellDaemon:
                 job.stop_reason = job.stop_reason or "disk"
                 executor.abort()
 
+            live = LiveCloudFeed(
+                self.session, self.keys.live_cloud(rec.job_id), rec.job_id, rate_hz=cfg.laser.rate_hz
+            )
+
             async def consume() -> None:
                 async for batch in client:
                     try:
-                        acq.feed_profiles(batch)
+                        assembled = acq.feed_profiles(batch)
                     except OSError:
                         disk_fault()
                         raise
                     job.profiles += len(batch)
+                    live.add(assembled, job.profiles)
 
             sweeps = plan.passes
             bounds = np.array([[s.t_start_s, s.t_start_s + s.duration_s] for s in sweeps]).reshape(-1, 2)
