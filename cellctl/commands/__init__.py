@@ -4,6 +4,7 @@ from cellctl.commands import (
     acquire_cmd,
     config_cmd,
     demo_cmd,
+    hmi_cmd,
     inspect_cmd,
     plan_cmd,
     report_cmd,
@@ -21,6 +22,7 @@ COMMAND_MODULES = [
     run_cmd,
     worker_cmd,
     scan_cmd,  # scan, status, watch
+    hmi_cmd,  # hmi, history
     plan_cmd,
     inspect_cmd,
     synth_cmd,
