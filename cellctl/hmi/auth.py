@@ -129,9 +129,11 @@ class Session:
 
 @dataclass
 class LoginLimiter:
-    """At most ``max_failures`` failed log-ins per client address and per user name in ``window_s``."""
+    """At most ``max_failures`` failed log-ins per key (``user:<name>``) in ``window_s``; keys
+    starting ``ip:`` (a client address, which several users may share) allow ``max_failures_ip``."""
 
     max_failures: int = 5
+    max_failures_ip: int = 20
     window_s: float = 60.0
     _fails: dict[str, deque[float]] = field(default_factory=dict)
 
@@ -144,9 +146,11 @@ class LoginLimiter:
     def blocked(self, *keys: str) -> float:
         """Seconds until a log-in from these keys is accepted again (0: now)."""
         now = time.monotonic()
-        waits = [
-            self.window_s - (now - q[0]) for k in keys if len(q := self._recent(k, now)) >= self.max_failures
-        ]
+        waits = []
+        for k in keys:
+            q = self._recent(k, now)
+            if len(q) >= (self.max_failures_ip if k.startswith("ip:") else self.max_failures):
+                waits.append(self.window_s - (now - q[0]))
         return max(waits, default=0.0)
 
     def failed(self, *keys: str) -> None:

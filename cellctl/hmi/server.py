@@ -338,12 +338,12 @@ class HmiServer:
 
         def read() -> dict[str, Any]:
             with np.load(path) as z:
-                xy, dev = z["plate_xy_mm"], z["plate_deviation_mm"]
+                xy, dev = z["plate_xy_mm"].astype(float), z["plate_deviation_mm"].astype(float)
                 idx = np.linspace(0, len(xy) - 1, min(len(xy), MAP_MAX_POINTS)).astype(int) if len(xy) else []
                 lines = []
                 k = 0
                 while f"line{k}_s_mm" in z.files:
-                    s, dv = z[f"line{k}_s_mm"], z[f"line{k}_deviation_mm"]
+                    s, dv = z[f"line{k}_s_mm"].astype(float), z[f"line{k}_deviation_mm"].astype(float)
                     step = max(1, len(s) // 400)
                     lines.append({"s_mm": np.round(s[::step], 1).tolist(),
                                   "deviation_mm": np.round(np.nan_to_num(dv[::step]), 3).tolist()})  # fmt: skip
