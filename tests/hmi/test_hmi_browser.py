@@ -143,7 +143,7 @@ def wait_idle(page, timeout_ms: int = 120_000) -> None:
 
 def start_scan(page, plate: str) -> None:
     page.goto(page.url.split("#")[0] + "#start")
-    page.wait_for_selector("#start-design option")
+    page.wait_for_selector("#start-design option", state="attached")
     page.fill("#start-plate", plate)
     page.click("#start-submit")
     page.wait_for_function("location.hash === '#scan'", timeout=30_000)
@@ -202,7 +202,7 @@ def test_operator_scans_a_plate_twice_and_sees_both_rounds(page, cell_hmi, shots
     login(page, hmi, "olga")
     page.screenshot(path=str(shots / "hmi-cell.png"))
     page.goto(hmi.url + "/#start")
-    page.wait_for_selector("#start-design option")
+    page.wait_for_selector("#start-design option", state="attached")
     page.wait_for_function("document.getElementById('start-preview-info').textContent.includes('mm')")
     page.fill("#start-plate", PLATE)
     page.screenshot(path=str(shots / "hmi-start.png"))

@@ -90,7 +90,8 @@ function onStatus(st, tServer) {
   renderBanner();
   renderHealth();
   if (document.body.dataset.page === "scan") renderScan();
-  if (tServer) S.lastLatencyMs = Date.now() - tServer;
+  // publication -> on screen (same clock on one machine; kept for benchmarks/hmi.py)
+  S.statusLatencyMs = (S.statusLatencyMs || []).slice(-999).concat([Date.now() - Date.parse(st.t_utc)]);
   document.body.dataset.statusT = st.t_utc;
 }
 function renderHealth() {
