@@ -46,10 +46,23 @@ class AuthError(Exception):
     """A users file or an entry that cannot be used (names the file and line)."""
 
 
-def allowed(role: str, action: str) -> bool:
-    """Whether ``role`` may do ``action`` (an :data:`ACTION_ROLE` key)."""
+def allowed(role: str, action: str, *, cap: str = "engineer") -> bool:
+    """Whether ``role`` may do ``action`` (an :data:`ACTION_ROLE` key); ``cap``: the most the HMI's
+    own Zenoh identity allows (:func:`role_cap`)."""
     need = ACTION_ROLE.get(action)
-    return need is not None and role in ROLES and ROLES.index(role) >= ROLES.index(need)
+    if need is None or role not in ROLES or cap not in ROLES:
+        return False
+    return min(ROLES.index(role), ROLES.index(cap)) >= ROLES.index(need)
+
+
+def role_cap(access_enabled: bool, zenoh_user: str, zenoh_roles: dict[str, list[str]]) -> str:
+    """The most an HMI user may do, given the Zenoh roles of the HMI's own identity: with access
+    control and roles, a Zenoh user without ``operator`` (or ``daemon``) caps every HMI user at
+    ``viewer`` (its queries would get no reply); otherwise ``engineer``."""
+    if not access_enabled or not zenoh_roles:
+        return "engineer"
+    mine = {role for role, users in zenoh_roles.items() if zenoh_user in users}
+    return "engineer" if mine & {"operator", "daemon"} else "viewer"
 
 
 def hash_password(

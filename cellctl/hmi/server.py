@@ -23,7 +23,7 @@ from aiohttp import WSMsgType, web
 
 from cellctl.api import DESIGN_SUFFIXES, ApiCallError
 from cellctl.config import CellConfig
-from cellctl.hmi.auth import ACTION_ROLE, ZENOH_ROLE, Authenticator, Session, allowed
+from cellctl.hmi.auth import ACTION_ROLE, ZENOH_ROLE, Authenticator, Session, allowed, role_cap
 from cellctl.hmi.history import History
 from cellctl.hmi.link import CellLink
 
@@ -69,6 +69,10 @@ class HmiServer:
     ) -> None:
         self.cfg = cfg
         self.default_placement = default_placement
+        acc = cfg.zenoh.access
+        self.cap = role_cap(acc.enabled, acc.user, {str(k): list(v) for k, v in acc.roles.items()})
+        if self.cap != "engineer":
+            log.warning("hmi_read_only", reason=f"zenoh user {acc.user!r} holds no operator role")
         self.auth = auth
         self.secure_cookie = secure_cookie
         self.data_dir = Path(cfg.cell.data_dir)
@@ -181,14 +185,13 @@ class HmiServer:
         resp.del_cookie(COOKIE, path="/")
         return resp
 
-    @staticmethod
-    def _me(s: Session) -> dict[str, Any]:
+    def _me(self, s: Session) -> dict[str, Any]:
         return {
             "user": s.user,
             "role": s.role,
             "zenoh_role": ZENOH_ROLE[s.role],
             "csrf": s.csrf,
-            "may": [a for a in ACTION_ROLE if allowed(s.role, a)],
+            "may": [a for a in ACTION_ROLE if allowed(s.role, a, cap=self.cap)],
         }
 
     async def me(self, request: web.Request) -> web.Response:
@@ -201,9 +204,15 @@ class HmiServer:
 
     def _check(self, request: web.Request, action: str) -> web.Response | None:
         s: Session = request["session"]
-        if not allowed(s.role, action):
+        if not allowed(s.role, action, cap=self.cap):
             log.info("hmi_refused", user=s.user, role=s.role, action=action)
             need = ACTION_ROLE.get(action, "engineer")
+            if allowed(s.role, action):
+                return _err(
+                    403,
+                    "forbidden",
+                    f"{action}: this HMI's Zenoh identity holds no operator role (read-only)",
+                )
             return _err(403, "forbidden", f"{action} needs the {need} role; {s.user} is {s.role}")
         return None
 

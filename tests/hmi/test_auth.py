@@ -15,6 +15,7 @@ from cellctl.hmi.auth import (
     allowed,
     hash_password,
     load_users,
+    role_cap,
     verify_password,
 )
 
@@ -96,3 +97,12 @@ def test_the_limiter_blocks_after_five_failures_per_key_for_the_window() -> None
     for _ in range(15):
         lim.failed("ip:1")
     assert lim.blocked("ip:1", "user:vic") > 0
+
+
+def test_the_hmis_zenoh_identity_caps_what_its_users_may_do() -> None:
+    roles = {"operator": ["hmi"], "viewer": ["qa-screen"], "worker": ["w1"]}
+    assert role_cap(True, "hmi", roles) == "engineer"
+    assert role_cap(True, "qa-screen", roles) == "viewer"
+    assert role_cap(False, "qa-screen", roles) == "engineer" and role_cap(True, "x", {}) == "engineer"
+    assert not allowed("engineer", "reset", cap="viewer") and not allowed("operator", "trigger", cap="viewer")
+    assert allowed("engineer", "reset", cap="engineer")

@@ -286,4 +286,4 @@ def test_estop_shows_the_banner_at_once_and_reset_needs_the_engineer(page, cell_
     page.wait_for_selector("#btn-reset:not(.hidden)", timeout=10_000)
     page.click("#btn-reset")
     page.wait_for_function("document.body.dataset.cellState === 'idle'", timeout=30_000)
-    page.wait_for_selector("#banner.hidden", timeout=5_000)
+    page.wait_for_selector("#banner.hidden", state="attached", timeout=5_000)
