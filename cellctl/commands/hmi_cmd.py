@@ -8,7 +8,8 @@ import getpass
 import os
 import sys
 
-from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
+from cellctl.commands.scan_cmd import _config  # the configuration, or its problems printed
+from cellctl.config import DEFAULT_CONFIG_PATH
 
 DEFAULT_LISTEN = "127.0.0.1:8088"
 
@@ -47,15 +48,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     h.add_argument("plate", nargs="?", help="a plate id: its rounds side by side")
     h.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="cell.toml (default: ./cell.toml)")
     h.set_defaults(func=history)
-
-
-def _config(path: str):
-    try:
-        return load_config(path)
-    except ConfigError as err:
-        for problem in err.problems:
-            print(f"{err.source}: {problem}", file=sys.stderr)
-        return None
 
 
 def adduser(args: argparse.Namespace) -> int:

@@ -7,7 +7,8 @@ function PointView(canvas, opts) {
   opts = opts || {};
   const ctx = canvas.getContext("2d");
   let xyz = new Float32Array(0), rgb = new Uint8Array(0), n = 0;
-  let yaw = opts.top ? 0 : -0.6, pitch = opts.top ? Math.PI / 2 : 0.9;
+  // pitch 0 looks straight down (the top view); larger tilts the plate towards the viewer
+  let yaw = opts.top ? 0 : -0.6, pitch = opts.top ? 0 : 0.9;
   let zScale = opts.zScale || 1;
   let pending = false;
   const self = {};
