@@ -90,6 +90,9 @@ class JobResult:
     cell_state_after: str = ""
     rss_mb: float = 0.0
     heap_mb: float | None = None  # the daemon's traced Python heap (PYTHONTRACEMALLOC set), MB
+    # how far the simulators fell behind real time during the job (their overrun counters' growth):
+    # laser frames rendered late, EGM cycles run late, of all cycles
+    sim_overruns: dict[str, int] = field(default_factory=dict)
     wall_s: float = 0.0
 
 
@@ -161,6 +164,7 @@ async def _one_job(sc: SoakCell, res: JobResult, timeout_s: float) -> None:
     cell = sc.cell
     async with cell.client() as c:
         await c.wait_idle_or_faulted(timeout_s=180.0)
+        before = await cell.fault()
         if kind == "rws_down":
             await cell.fault(request)
         try:
@@ -196,9 +200,14 @@ async def _one_job(sc: SoakCell, res: JobResult, timeout_s: float) -> None:
                     sc.start_worker()
             final = await c.wait_job_end(job_id, timeout_s)
         finally:
-            if kind in _SIM_KINDS:
-                await cell.fault(clear=True)
+            after = await cell.fault(clear=True) if kind in _SIM_KINDS else await cell.fault()
             sc.fwd.restore()
+            res.sim_overruns = {
+                "laser_overrun_frames": after.stats["laser"]["overrun_frames"]
+                - before.stats["laser"]["overrun_frames"],
+                "egm_overruns": after.stats["egm"]["overruns"] - before.stats["egm"]["overruns"],
+                "egm_cycles": after.stats["egm"]["cycles"] - before.stats["egm"]["cycles"],
+            }
         res.state = final.job.state.value
         res.message = final.job.message[:300]
         if kind == "estop":

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import multiprocessing.process
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -10,6 +13,75 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SHARED = REPO_ROOT.parent / "shared"
+
+# A test that starts another process (a CLI run, a simulator process, a worker, protoc, pdftotext)
+# carries one of the markers `make test-fast` deselects (`process` says it; `e2e` and `slow` imply
+# it), so that test-fast starts none: an unmarked test that tries is refused at the spawn.
+SPAWN_MARKERS = ("process", "e2e", "slow")
+SPAWN_EVENTS = (
+    "subprocess.Popen",
+    "os.fork",
+    "os.forkpty",
+    "os.posix_spawn",
+    "os.exec",
+    "os.spawn",
+    "os.system",
+)
+# Where every skip is written (one JSON object a line: nodeid, reason) when set; .ci/run checks the
+# file against tests/skip_allowlist.txt and counts the fallbacks.
+SKIP_LOG_ENV = "CELLCTL_SKIP_LOG"
+
+_current: dict[str, object] = {"item": None}
+
+
+def _refuse_unmarked_spawn(what: str) -> None:
+    item = _current["item"]
+    if item is None or any(item.get_closest_marker(m) for m in SPAWN_MARKERS):
+        return
+    raise RuntimeError(
+        f"{item.nodeid} starts a process ({what}) but is not marked "
+        f"{' or '.join('@pytest.mark.' + m for m in SPAWN_MARKERS)}: make test-fast must start none"
+    )
+
+
+def _audit(event: str, args: tuple) -> None:
+    if event in SPAWN_EVENTS:
+        _refuse_unmarked_spawn(event if event != "subprocess.Popen" else f"{event} {args[0]!s}")
+
+
+sys.addaudithook(_audit)  # audit hooks cannot be removed; the check only acts while a test runs
+_process_start = multiprocessing.process.BaseProcess.start
+
+
+def _checked_start(self: multiprocessing.process.BaseProcess) -> None:
+    # multiprocessing's spawn start method forks through _posixsubprocess, which raises no audit event
+    _refuse_unmarked_spawn(f"multiprocessing {self.name}")
+    _process_start(self)
+
+
+multiprocessing.process.BaseProcess.start = _checked_start  # type: ignore[method-assign]
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    _current["item"] = item
+    try:
+        return (yield)
+    finally:
+        _current["item"] = None
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    path = os.environ.get(SKIP_LOG_ENV)
+    if not path or not report.skipped:
+        return
+    if hasattr(report, "wasxfail"):  # an expected failure is a skip too: it proves nothing
+        reason = f"xfail: {report.wasxfail}"
+    else:
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        reason = reason.removeprefix("Skipped: ")
+    with open(path, "a", encoding="utf-8") as f:
+        f.write(json.dumps({"nodeid": report.nodeid, "when": report.when, "reason": reason}) + "\n")
 
 
 @pytest.fixture(scope="session")

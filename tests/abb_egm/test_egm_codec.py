@@ -59,6 +59,7 @@ def _f64(field: int, value: float) -> bytes:
     return _tag(field, 1) + struct.pack("<d", value)
 
 
+@pytest.mark.process
 def test_checked_in_egm_pb2_matches_a_fresh_protoc_run(tmp_path):
     subprocess.run(
         [sys.executable, "-m", "grpc_tools.protoc", f"-I{PKG}", f"--python_out={tmp_path}", "egm.proto"],

@@ -317,19 +317,29 @@ def test_watchdog_reports_a_quiet_controller_once_and_its_return():
 
 @pytest.mark.usefixtures("reply_path")
 def test_a_failing_watchdog_callback_does_not_stop_the_endpoint():
+    calls: list[str] = []
+    called = {}
+
     def boom(event, quiet_s):
+        calls.append(event)
+        called[event].set()
         raise RuntimeError("callback bug")
 
     async def main():
+        called.update(quiet=asyncio.Event(), resumed=asyncio.Event())
         ep = EgmEndpoint(EgmEndpointConfig(port=0, watchdog_s=0.02), on_watchdog=boom)
         ctl = FakeController(await ep.start(), ep)
-        ctl.send(robot(0))
-        await ctl.recv()
-        await asyncio.sleep(0.1)
-        ctl.send(robot(1))
-        assert (await ctl.recv()).seqno == 1
-        ctl.close()
-        await ep.close()
+        try:
+            ctl.send(robot(0))
+            await ctl.recv()
+            await asyncio.wait_for(called["quiet"].wait(), 5.0)  # the callback ran, and raised
+            ctl.send(robot(1))
+            assert (await ctl.recv()).seqno == 1  # the endpoint still replies
+            await asyncio.wait_for(called["resumed"].wait(), 5.0)  # and still calls the callback
+            assert calls == ["quiet", "resumed"] and ep.stats.watchdog_events == 1
+        finally:
+            ctl.close()
+            await ep.close()
 
     asyncio.run(main())
 

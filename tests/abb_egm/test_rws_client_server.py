@@ -618,7 +618,7 @@ def test_session_opened_by_a_failing_first_request_is_reused(profile: str) -> No
     run(body)
 
 
-@pytest.mark.parametrize("backend", ["cryptography", "openssl"])
+@pytest.mark.parametrize("backend", ["cryptography", pytest.param("openssl", marks=pytest.mark.process)])
 def test_certificate_generation_gives_a_loadable_cert_for_the_host(
     backend: str, tmp_path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -635,8 +635,6 @@ def test_certificate_generation_gives_a_loadable_cert_for_the_host(
             raise ImportError("cryptography hidden by the test")
 
         monkeypatch.setattr(rws_server, "_cert_with_cryptography", no_cryptography)
-    else:
-        pytest.importorskip("cryptography")
     cert, key = asyncio.run(rws_server.generate_self_signed_cert(str(tmp_path), "127.0.0.1"))
     ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     ctx.load_cert_chain(cert, key)  # raises if the pair does not match

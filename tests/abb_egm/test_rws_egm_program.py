@@ -12,6 +12,7 @@ from drivers.abb_egm.rws_client import (
     EgmProgramSettings,
     RwsClient,
     RwsClientConfig,
+    RwsError,
 )
 from drivers.abb_egm.sim.model import EVENT_EGM_COMM_TIMEOUT, ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
@@ -84,9 +85,9 @@ def test_start_during_emergency_stop_reports_the_controller_refusal() -> None:
     model.emergency_stop()
 
     async def body(prog: CellEgmProgram, server: RwsServer) -> None:
-        with pytest.raises(Exception, match="emergencystop") as err:
+        with pytest.raises(RwsError, match="emergencystop") as err:
             await prog.start()
-        assert getattr(err.value, "status", None) == 400
+        assert err.value.status == 400
 
     run(_with_program("rws1", model, body))
 

@@ -15,9 +15,12 @@ import pytest
 
 from drivers.abb_egm.codec import MciState, MotorState
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.sim.controller import ControllerSim, ControllerSimConfig
+from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
+from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD, ControllerSim, ControllerSimConfig
 from drivers.abb_egm.sim.controller import main as sim_main
 from drivers.abb_egm.sim.egm import EgmSimConfig, precise_event_loop
+
+pytestmark = pytest.mark.process  # the simulator as `python -m drivers.abb_egm.sim`
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -72,28 +75,43 @@ def test_sim_entry_point_rejects_a_bad_fault_value_with_a_clear_message(capsys):
 
 
 def test_composed_sim_starts_egm_when_the_program_starts_and_reports_positions_to_rws():
+    """Driven only through its protocols: motors and program through RWS, motion through EGM; the
+    joints RWS reports are the ones the EGM feedback carried (two independent observations)."""
+
     async def main():
         ep = EgmEndpoint(EgmEndpointConfig(port=0))
         _, port = await ep.start()
         sim = ControllerSim(ControllerSimConfig(), EgmSimConfig(sensor_port=port))
         addresses = await sim.start()
         assert addresses["rws_url"].startswith("http://127.0.0.1:")
-        await ep.wait_for_feedback(1.0)
-        assert not ep.ok_to_command
-        sim.model.motors_on()
-        sim.model.start_rapid()
-        for _ in range(50):
-            await ep.wait_for_feedback(1.0)
-            if ep.ok_to_command:
-                break
-        assert ep.ok_to_command
-        ep.command_joints(sim.egm.q_deg + np.array([2.0, 0, 0, 0, 0, 0]))
-        await asyncio.sleep(0.3)
-        q, _pos, _quat = sim.model.position()
-        np.testing.assert_allclose(q, sim.egm.q_deg)
-        assert q[0] > 1.0
-        await sim.stop()
-        await ep.close()
+        rws = RwsClient(RwsClientConfig(base_url=addresses["rws_url"], profile="rws1",
+                                        username="Default User", password=ABB_DEFAULT_PASSWORD))  # fmt: skip
+        try:
+            await ep.wait_for_feedback(10.0)
+            assert not ep.ok_to_command
+            await rws.motors_on()
+            await rws.start_rapid()
+            for _ in range(500):
+                await ep.wait_for_feedback(10.0)
+                if ep.ok_to_command:
+                    break
+            assert ep.ok_to_command
+            target = ep.latest.q_deg + np.array([2.0, 0, 0, 0, 0, 0])
+            ep.command_joints(target)
+            for _ in range(2500):  # until the feedback reached the target (about 0.3 s idle)
+                await ep.wait_for_feedback(10.0)
+                if np.abs(ep.latest.q_deg - target).max() < 0.01:
+                    break
+            fed_back = ep.latest.q_deg
+            np.testing.assert_allclose(fed_back, target, atol=0.01)
+            q_rws = await rws.get_joint_position()
+            # the arm holds the target: what RWS reads now is what EGM fed back
+            np.testing.assert_allclose(q_rws, fed_back, atol=0.01)
+            assert q_rws[0] > 1.0
+        finally:
+            await rws.close()
+            await sim.stop()
+            await ep.close()
 
     with asyncio.Runner(loop_factory=precise_event_loop) as runner:
         runner.run(main())

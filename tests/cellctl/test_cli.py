@@ -5,8 +5,12 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
+import pytest
+
 from cellctl import __version__
 from tests.support.ports import free_port
+
+pytestmark = pytest.mark.process  # the console script run as a user runs it
 
 
 def _run(exe: list[str], *args: str, cwd: Path | None = None, env: dict | None = None):

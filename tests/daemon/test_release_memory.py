@@ -6,6 +6,10 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
+pytestmark = pytest.mark.process  # measured in a fresh interpreter
+
 
 def test_freed_numpy_temporaries_leave_the_resident_set_after_the_release():
     """Medium numpy arrays (64 KB, below glibc's mmap threshold) live on the C heap; freed under a

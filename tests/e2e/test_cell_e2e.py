@@ -90,7 +90,10 @@ def test_malformed_oversized_and_unknown_field_triggers_each_get_an_error_and_ch
     assert not cell.jobs_dir.exists() or not any(cell.jobs_dir.iterdir())
 
 
-def test_scan_is_analysed_by_the_worker_and_a_trigger_while_busy_is_refused(cell: Cell):
+@pytest.fixture(scope="module")
+def scanned(cell: Cell):
+    """One scan of the simulated plate, with a second trigger sent while it runs."""
+
     async def go():
         session = await open_client(cell.cfg)
         keys = Keys(cell.cfg.key_prefix)
@@ -108,7 +111,11 @@ def test_scan_is_analysed_by_the_worker_and_a_trigger_while_busy_is_refused(cell
             follower.close()
             await asyncio.to_thread(close_session, session)
 
-    acc, busy, state, message, report = _run(go())
+    return _run(go())
+
+
+def test_scan_is_analysed_by_the_worker_and_a_trigger_while_busy_is_refused(cell: Cell, scanned):
+    acc, busy, state, message, report = scanned
     assert busy.error.code == "busy" and acc.job_id in busy.error.message
     assert state == "done", message
     rec = cell.job_record(acc.job_id)

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import subprocess
 
+import pytest
+
 from tests.support.e2e_cell import tiny_cell_config
+
+pytestmark = pytest.mark.process  # the console script in a subprocess
 
 
 def _cellctl(cellctl_exe, *args, timeout=60):

@@ -30,8 +30,8 @@ from cellctl.api.session import async_get
 from cellctl.commands.scan_cmd import wait_for_job
 from tests.support.cellfaults import (
     FINAL,
+    PARTIAL_CLOUD_REFUSED,
     FaultCell,
-    analysed,
     fault_cell_config,
     job_history,
     kill9_tree,
@@ -165,7 +165,8 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
         assert seen2["recovered"] == ("interrupted", "scanning"), seen2
         assert "1 interrupted job" in seen2["message"], seen2["message"]
         state, message, report = seen2["final"]
-        assert analysed(state, message), message
+        # the one outcome besides a report: the plain refusal of the partial cloud (docstring)
+        assert state == "done" or (state == "failed" and message.startswith(PARTIAL_CLOUD_REFUSED)), message
         hist = job_history(cell, job_id)
         assert hist.count("interrupted") == 1 and hist[-1] == state, hist
         if state == "done":

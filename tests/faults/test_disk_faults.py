@@ -80,6 +80,7 @@ def test_raw_estimate_covers_what_a_scan_stores():
         raw_bytes_estimate(30.0, rate_hz=0.0, points_per_profile=500)
 
 
+@pytest.mark.process  # mounts tmpfs with mount(8)
 def test_preflight_names_the_field_and_sizes_for_a_small_full_or_read_only_data_directory(tmp_path):
     d = tmp_path / "data"
     with tmpfs(d, "8m"):

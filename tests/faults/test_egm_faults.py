@@ -11,7 +11,14 @@ import asyncio
 
 import pytest
 
-from tests.support.faultcell import completed, module_cell, run_job, wait_record
+from tests.support.faultcell import (
+    ANALYSIS_REFUSED_WHEN_SENSOR_STARVED,
+    STALL_WHEN_CONTROLLER_STARVED,
+    expect_done,
+    module_cell,
+    run_job,
+    wait_record,
+)
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
@@ -32,8 +39,7 @@ def test_random_loss_of_1_then_5_percent_with_50_ms_bursts_completes_the_scan_wi
             ],
         )
     )
-    if not completed(run):
-        return
+    expect_done(run, STALL_WHEN_CONTROLLER_STARVED, ANALYSIS_REFUSED_WHEN_SENSOR_STARVED)
     assert run.info["execution"] == "finished"
     assert run.info["max_tracking_error_mm"] <= cell.cfg.robot.tracking_error_max_mm
     assert len(run.replies) == 2 and run.replies[1].egm["burst_ms"] == 50.0
@@ -61,8 +67,7 @@ def test_duplicated_reordered_and_corrupt_packets_are_counted_and_the_scan_conti
             ],
         )
     )
-    if not completed(run):
-        return
+    expect_done(run, STALL_WHEN_CONTROLLER_STARVED, ANALYSIS_REFUSED_WHEN_SENSOR_STARVED)
     assert run.info["execution"] == "finished"
     assert run.info["max_tracking_error_mm"] <= cell.cfg.robot.tracking_error_max_mm
     egm = run.info["egm"]  # the daemon's endpoint counters over the job

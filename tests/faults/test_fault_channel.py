@@ -23,6 +23,8 @@ from cellctl.simcell.faults import (
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig, RwsError
 from tests.support.faultcell import REPO, FaultCell
 
+pytestmark = pytest.mark.e2e  # the simulator cell runs as its own process
+
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):

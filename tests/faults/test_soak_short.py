@@ -1,9 +1,12 @@
 """The soak's code (benchmarks/soak.py) for two jobs: the worker link cut mid-scan, and 1 % EGM loss
 through the simulator's fault channel (the worker kill -9 has its own case in test_worker_faults.py).
 
-Expected outcome (the soak's target, not its timings): every job completes or ends in a stated,
-recoverable state with its raw data intact (every profile the daemon counted is on disk, none twice);
-no EGM packet is lost in a job without an injected EGM fault; every process exits 0 at the end.
+Expected outcome (the soak's target, not its timings): both jobs complete (``done``) with their raw
+data intact (every profile the daemon counted is on disk, none twice): a cut of a few seconds costs
+the worker a reconnect, 1 % EGM loss is within what the executor bridges. The one fallback: a job
+during which the machine starved a simulator (its overrun counters grew) may end in a stated,
+recoverable state instead; the case then skips as a fallback, counted by .ci/run. No EGM packet is
+lost in a job without an injected EGM fault; every process exits 0 at the end.
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ def test_short_soak_every_job_completes_or_is_recoverable_with_no_data_lost(tmp_
     assert result["jobs"] == result["faults_injected"] == 2
     assert sorted(j["fault"] for j in jobs) == sorted(faults), "each fault drawn once"
     assert result["completed"] + result["recoverable"] == 2, jobs
+    unfinished = [j for j in jobs if j["outcome"] != "completed"]
+    # a job that did not complete on a machine that kept real time is a failure, not a fallback
+    assert all(_starved(j) for j in unfinished), unfinished
     assert all(j["data_ok"] for j in jobs), [j["data_problem"] for j in jobs]
     assert all(j["job_id"] and j["profiles"] > 1000 for j in jobs), jobs
     assert result["missed_egm_cycles"] == 0, jobs
@@ -46,3 +52,16 @@ def test_short_soak_every_job_completes_or_is_recoverable_with_no_data_lost(tmp_
     # the daemon's <prefix>/stats answered with its whole-run EGM counters
     assert result["daemon_egm"]["received"] >= sum(j["egm"].get("received", 0) for j in jobs) > 0
     assert all(code == 0 for code in result["exit_codes"].values()), result["exit_codes"]
+    if unfinished:
+        pytest.skip(
+            "fallback: simulators starved: "
+            + "; ".join(
+                f"{j['fault']} job {j['state']} ({j['message']}), overruns {j['sim_overruns']}"
+                for j in unfinished
+            )
+        )
+
+
+def _starved(job: dict) -> bool:
+    o = job["sim_overruns"]
+    return o["laser_overrun_frames"] > 0 or o["egm_overruns"] > 0.01 * max(o["egm_cycles"], 1)

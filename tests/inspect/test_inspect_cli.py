@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.process  # the console script in a subprocess
+
 SMALL_PLATE = ["--length-mm", "600", "--width-mm", "400", "--profile-step-mm", "2",
                "--point-pitch-mm", "0.4", "--points-per-profile", "125"]  # fmt: skip
 SMALL_LAYOUT = (

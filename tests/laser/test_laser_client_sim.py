@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+import structlog.testing
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from laser_helpers import collect, looking_down, run, sim_and_client
@@ -152,11 +153,15 @@ def test_close_ends_promptly_while_the_stream_is_busy() -> None:
             while (await asyncio.wait_for(client.events.get(), 3.0)).kind != SourceEventKind.RESUMED:
                 pass
             await collect(client, 300)  # the held backlog is streaming in
-            t0 = time.monotonic()
-            closing = asyncio.create_task(client.close())
-            done, _ = await asyncio.wait({closing}, timeout=_CLOSE_TIMEOUT_S * 2)
+            tasks = list(client._tasks)  # the client's own tasks: this checks how they end
+            with structlog.testing.capture_logs() as logs:
+                closing = asyncio.create_task(client.close())
+                # generous: a close that hangs is stuck for good; a slow machine only delays it
+                done, _ = await asyncio.wait({closing}, timeout=_CLOSE_TIMEOUT_S * 10)
             assert closing in done
-            assert time.monotonic() - t0 < _CLOSE_TIMEOUT_S / 2
+            # every task ended on its first cancellation: none was left for the bounded wait to give up on
+            assert tasks and all(t.done() for t in tasks)
+            assert not [e for e in logs if e["event"] == "hd8_close_tasks_stuck"], logs
         finally:
             await client.close()
             await sim.stop()
@@ -614,6 +619,7 @@ def test_external_trigger_mode_gives_one_frame_per_edge_exposed_at_the_edge() ->
 
 
 @pytest.mark.slow  # spawns a process that imports open3d
+@pytest.mark.process
 def test_rendering_in_a_worker_process_streams_the_same_scene() -> None:
     cfg = SimConfig(rate_hz=500.0, render_process=True, outlier_probability=0.0, seed=10)
 

@@ -10,10 +10,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from laser_helpers import collect, run
 
 from drivers.laser.client import HD8Client
 from drivers.laser.source import ProfileBatch
+
+pytestmark = pytest.mark.process  # the simulator as `python -m drivers.laser.sim`
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -173,6 +173,7 @@ def test_settings_with_the_standoff_outside_the_depth_range_are_rejected():
         PlannerSettings(standoff_mm=150.0)
 
 
+@pytest.mark.process
 def test_cli_plan_prints_passes_coverage_and_scan_time_and_writes_json(tmp_path, repo_root):
     mesh = tmp_path / "small.ply"
     save_mesh(design_mesh(plate_spec("sail", length_mm=200.0, width_mm=150.0), pitch_mm=5.0), mesh)

@@ -11,13 +11,10 @@ import pytest
 from plyfile import PlyData
 from scipy.spatial import cKDTree
 
-from analysis import pipeline
+from analysis import pipeline, plates, synth
 from analysis.report import load_results, write_report
 from analysis.rework import find_rework_regions, grid_deviation
 from analysis.templates import DetectionLayout
-
-synth = pytest.importorskip("analysis.synth")
-plates = pytest.importorskip("analysis.plates")
 
 
 @pytest.fixture(scope="module")

@@ -61,6 +61,7 @@ def test_open_without_a_desktop_declines_so_the_path_is_printed(monkeypatch, tmp
     assert report_cmd._open(tmp_path / "report.html") is False
 
 
+@pytest.mark.process
 def test_report_refuses_an_unknown_job_and_a_broken_results_dir(cellctl_exe, tmp_path: Path) -> None:
     (tmp_path / "cell.toml").write_text(f'[cell]\ndata_dir = "{tmp_path / "store"}"\n')
     res = _run([*cellctl_exe, "report", "nope", "--config", "cell.toml"], tmp_path)

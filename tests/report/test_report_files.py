@@ -89,6 +89,7 @@ def test_rework_regions_find_the_dent_below_and_the_bump_above_the_template(repo
     assert "plate above template" in html
 
 
+@pytest.mark.process
 def test_pdf_has_summary_rework_tables_and_line_pages(reported) -> None:
     truth, _ = reported
     pages = _pdf_pages(truth.results_dir / "report.pdf")
@@ -201,6 +202,7 @@ def test_a_directory_without_results_is_refused_clearly(tmp_path) -> None:
         write_report(tmp_path)
 
 
+@pytest.mark.process
 def test_a_plate_without_detection_lines_still_gets_a_report_that_says_so(tmp_path) -> None:
     none = DetectionLayout(transverse_count=0, longitudinal_count=0, diagonals=False)
     truth = write_synthetic_results(tmp_path, n_points=2000, layout=none)

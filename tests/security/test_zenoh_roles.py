@@ -175,19 +175,29 @@ def test_viewer_reads_state_but_its_forged_report_never_reaches_the_daemon_while
                 return bool(seen)
 
             got_state = await _until(publish_state, 10, 0.2)
+
+            async def probe(query):
+                query.reply(query.key_expr, b"{}")
+
+            # A query the viewer may make, sent after its forged put on the same link: its reply
+            # comes once the daemon side handled everything bob sent before it, the put included.
+            declare_async_queryable(daemon.session, f"{PREFIX}/workers/probe/info", probe)
             bob.put(KEYS.report("job-forged"), b'{"forged": true}')
+            probed = await async_get(bob, f"{PREFIX}/workers/probe/info", timeout_s=10.0)
+            forged_seen = list(daemon.reports)
             delivered = await _until(
                 lambda: (w1.put(KEYS.report("job-real"), b'{"real": true}'), bool(daemon.reports))[1], 10, 0.2
             )
-            await asyncio.sleep(0.5)  # the forged put, had it passed, would be there by now
-            return got_state, delivered, list(daemon.reports), worker_saw_state
+            return got_state, delivered, list(daemon.reports), worker_saw_state, probed, forged_seen
         finally:
             close_session(bob)
             close_session(w1)
             daemon.close()
 
-    got_state, delivered, reports, worker_saw_state = asyncio.run(main())
+    got_state, delivered, reports, worker_saw_state, probed, forged_seen = asyncio.run(main())
     assert got_state, "the viewer never received the state publication"
+    assert probed and probed[0].ok is not None, "the viewer's probe query after its put got no reply"
+    assert forged_seen == [], forged_seen
     assert delivered and all(r == b'{"real": true}' for r in reports)
     assert worker_saw_state == []  # workers have no read role
 

@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from cellctl.acquisition.rawstore import RawReader
 from cellctl.commands.demo_cmd import to_toml
 from cellctl.config import load_config
@@ -23,15 +25,17 @@ from tests.support.faultcell import FINAL_JOB_STATES, FaultCell, fault_cell_conf
 
 __all__ = [
     "FINAL",
+    "PARTIAL_CLOUD_REFUSED",
     "Cell",
     "FaultCell",
     "RawCheck",
-    "analysed",
     "children_of",
+    "expect_analysed",
     "fault_cell_config",
     "kill9_tree",
     "raw_check",
     "rws_client",
+    "sensor_overruns",
     "stop_cell",
     "wait_status",
     "worker_config_via",
@@ -40,14 +44,30 @@ __all__ = [
 FINAL = FINAL_JOB_STATES
 
 
-def analysed(state: str, message: str) -> bool:
-    """The worker's report reached the daemon: ``done``, or ``failed`` with the analysis' own error.
+# The analysis' plain refusal of a cloud that covers only part of the plate (what a scan cut short
+# leaves): the worker reports the pipeline's InspectionError.
+PARTIAL_CLOUD_REFUSED = "analysis error: InspectionError: the design does not match the plate"
 
-    On a heavily loaded machine (load average 20 on 2 cores, observed) the simulated sensor drops
-    frames and the analysis may refuse the sparse cloud ("the design does not match the plate"); the
-    report still came back, once, which is what the Zenoh and worker fault cases are about.
-    """
-    return state == "done" or (state == "failed" and message.startswith("analysis error"))
+
+async def sensor_overruns(cell: FaultCell) -> int:
+    """Frames the simulated HD8 could not render in time since it started (the cells of these
+    cases run one job): more than zero means the machine starved it and the cloud may be sparse."""
+    return int((await cell.fault()).stats["laser"]["overrun_frames"])
+
+
+def expect_analysed(state: str, message: str, overrun_frames: int) -> None:
+    """The worker's report of a whole scan reached the daemon and the job is ``done``. The one
+    fallback: when the machine starved the simulated sensor (``overrun_frames`` > 0), the analysis
+    may refuse the sparse cloud with its own error; the report still came back once, which is what
+    the Zenoh and worker cases are about, and the case is skipped as a fallback (counted by .ci/run).
+    Call it last, after the case's other checks."""
+    if state == "done":
+        return
+    if overrun_frames > 0 and state == "failed" and message.startswith("analysis error"):
+        pytest.skip(
+            f"fallback: simulators starved (sensor overruns {overrun_frames} frames): job failed: {message}"
+        )
+    raise AssertionError(f"job {state}: {message} (sensor overruns {overrun_frames} frames)")
 
 
 def stop_cell(cell: Cell, grace_s: float = 180.0) -> dict[str, Any]:

@@ -37,14 +37,17 @@ from tests.support.e2e_cell import REPO, Cell, open_client, tiny_cell_config, wa
 from tests.support.ports import free_port
 
 __all__ = [
+    "ANALYSIS_REFUSED_WHEN_SENSOR_STARVED",
     "REPO",
+    "STALL_WHEN_CONTROLLER_STARVED",
     "ApiCallError",
     "CellClient",
+    "Fallback",
     "FaultCell",
     "JobDataCheck",
     "JobRun",
     "check_job_data",
-    "completed",
+    "expect_done",
     "fault_cell_config",
     "module_cell",
     "open_client",
@@ -437,19 +440,59 @@ async def run_job(
     return JobRun(job_id, final, replies, states, check_job_data(cell, job_id), before, after)
 
 
-def completed(run: JobRun) -> bool:
-    """True when the job is done. When the loaded machine starved a simulator (its overrun counters
-    grew) the stated fallbacks are accepted instead and False is returned: a real stall of the
-    controller ends the scan with a stall fault, and a sensor that overran frames leaves a cloud the
-    analysis may refuse with its own plain error. Anything else fails the test."""
-    if run.state == "done":
-        return True
-    if run.controller_starved and run.state == "failed" and "stalled" in run.message:
-        assert run.check.raw_profiles == run.info["profiles"]
-        return False
-    if run.sensor_starved and run.info.get("execution") == "finished" and "analysis" in run.message:
-        return False
-    raise AssertionError(
-        f"job {run.state}: {run.message} (sensor overruns {run.sim_delta('laser', 'overrun_frames')}, "
-        f"controller overruns {run.sim_delta('egm', 'overruns')} of {run.sim_delta('egm', 'cycles')} cycles)"
+@dataclass(frozen=True)
+class Fallback:
+    """An outcome other than ``done`` that a fault case accepts only when the machine starved the
+    named simulator (its overrun counters grew during the job): the job ends ``state`` with a message
+    containing ``message``, the executor's ``execution`` as given (None: any)."""
+
+    name: str
+    starved: str  # "controller" or "sensor"
+    state: str
+    message: str
+    execution: str | None = None
+
+    def matches(self, run: JobRun) -> bool:
+        starved = run.controller_starved if self.starved == "controller" else run.sensor_starved
+        return (
+            starved
+            and run.state == self.state
+            and self.message in run.message
+            and (self.execution is None or run.info.get("execution") == self.execution)
+        )
+
+
+# A starved controller runs late; a controller late for longer than the feedback timeout is a
+# stall the daemon must stop on (a motion fault, every received profile on disk).
+STALL_WHEN_CONTROLLER_STARVED = Fallback("stall", "controller", "failed", "stalled", "faulted")
+# A sensor that overran frames leaves a sparse cloud the analysis may refuse with its own error.
+ANALYSIS_REFUSED_WHEN_SENSOR_STARVED = Fallback(
+    "analysis refused", "sensor", "failed", "analysis error", "finished"
+)
+
+
+def overruns(run: JobRun) -> str:
+    return (
+        f"sensor overruns {run.sim_delta('laser', 'overrun_frames')} frames, controller overruns "
+        f"{run.sim_delta('egm', 'overruns')} of {run.sim_delta('egm', 'cycles')} cycles"
     )
+
+
+def expect_done(run: JobRun, *fallbacks: Fallback) -> None:
+    """Return when the job is ``done``. When it ended as one of the case's named ``fallbacks`` (only
+    possible on a machine that starved a simulator), the case is skipped with reason "fallback:
+    simulators starved ..." and the overrun counts: tests/skip_allowlist.txt allows it and .ci/run
+    counts it, so a starved run is visible and bounded instead of silently green. Checks the caller
+    made before this call ran either way; the ones after it need a job that kept real time. Any other
+    outcome fails the case."""
+    if run.state == "done":
+        return
+    for fb in fallbacks:
+        if fb.matches(run):
+            if fb is STALL_WHEN_CONTROLLER_STARVED:
+                assert run.check.raw_profiles == run.info["profiles"]
+            pytest.skip(
+                f"fallback: simulators starved ({overruns(run)}): job {run.state} ({fb.name}): {run.message}"
+            )
+    raise AssertionError(f"job {run.state}: {run.message} ({overruns(run)}; accepted fallbacks: "
+                         f"{[fb.name for fb in fallbacks] or 'none'})")  # fmt: skip

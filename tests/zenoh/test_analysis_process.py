@@ -7,10 +7,13 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from analysis.job import AnalysisJob
 from cellctl.api.cloud_codec import Cloud, encode_cloud
 from cellctl.worker import AnalysisProcess
+
+pytestmark = pytest.mark.process  # the spawned analysis process
 
 FN = "tests.zenoh.zworker_fns:blas_environment"
 

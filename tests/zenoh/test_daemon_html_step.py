@@ -6,11 +6,15 @@ from __future__ import annotations
 import asyncio
 import time
 
+import pytest
+
 from analysis.templates import DetectionLayout
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import JobRecord
 from cellctl.daemon.service import CellDaemon, _Job
 from tests.support.results_fixture import write_synthetic_results
+
+pytestmark = pytest.mark.process  # the render runs in a child process
 
 
 def _daemon_and_job(tmp_path) -> tuple[CellDaemon, _Job]:

@@ -1,0 +1,60 @@
+"""Check a run's skips (the JSON-lines file tests/conftest.py writes) against tests/skip_allowlist.txt.
+
+Prints every skip with the entry that allows it, the count of fallbacks, and exits 1 when a skip is
+not allowed or when more than ``--max-fallbacks`` cases fell back."""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import json
+import sys
+from pathlib import Path
+
+FALLBACK = "fallback:"
+
+
+def load_allowlist(path: Path) -> list[tuple[str, str, str]]:
+    entries = []
+    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        fields = [f.strip() for f in line.split(" | ")]
+        if len(fields) != 3 or not all(fields):
+            raise SystemExit(f"{path}:{n}: want 'test id pattern | reason beginning | why', got {line!r}")
+        entries.append((fields[0], fields[1], fields[2]))
+    return entries
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("skip_log", type=Path)
+    ap.add_argument("--allowlist", type=Path, default=Path("tests/skip_allowlist.txt"))
+    ap.add_argument("--max-fallbacks", type=int, required=True)
+    args = ap.parse_args(argv)
+    allow = load_allowlist(args.allowlist)
+    skips = []
+    if args.skip_log.exists():
+        skips = [json.loads(line) for line in args.skip_log.read_text(encoding="utf-8").splitlines() if line]
+    refused, fallbacks = [], []
+    for s in skips:
+        entry = next(
+            (e for e in allow if fnmatch.fnmatch(s["nodeid"], e[0]) and s["reason"].startswith(e[1])), None
+        )
+        if entry is None:
+            refused.append(s)
+            print(f"ci: skip NOT allowed: {s['nodeid']}: {s['reason']}", file=sys.stderr)
+        else:
+            print(f"ci: skip allowed ({entry[1]}): {s['nodeid']}: {s['reason']}")
+        if s["reason"].startswith(FALLBACK):
+            fallbacks.append(s)
+    print(f"ci: {len(skips)} skipped, {len(fallbacks)} fallbacks (at most {args.max_fallbacks} allowed)")
+    if refused:
+        print(f"ci: {len(refused)} skips are not on {args.allowlist}", file=sys.stderr)
+    if len(fallbacks) > args.max_fallbacks:
+        print(f"ci: {len(fallbacks)} cases fell back, more than {args.max_fallbacks}", file=sys.stderr)
+    return 1 if refused or len(fallbacks) > args.max_fallbacks else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,143 @@
+"""The measurement end to end: a full-process job (sim, daemon, worker through Zenoh on loopback) on
+the simulated plate with its known forming error, its figures compared with ``sim-truth.json``.
+
+Its own cell: the shared one of test_cell_e2e.py runs a plate without forming error (its half-turn
+case needs one that a half turn maps onto itself), against which a measurement proves nothing. One
+scan (about a minute of CI) serves both cases here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cellctl.api import Keys, TriggerAccepted, call
+from cellctl.api.session import close_session
+from cellctl.commands.demo_cmd import DEMO_DESIGN
+from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
+from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
+from tests.support.truth_check import TruthDeviation
+
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    out = tmp_path_factory.mktemp("measured")
+    c = Cell(out, tiny_cell_config(out))  # the default forming error: a dent, a bump, spring-back
+    c.start()
+    try:
+        yield c
+    finally:
+        codes = c.stop()
+        assert all(code == 0 for code in codes.values()), (codes, (out / "logs").as_posix())
+
+
+@pytest.fixture(scope="module")
+def scanned(cell: Cell):
+    """One job on the plate: its id, final state and message."""
+    pl = cell.cfg.sim.placement
+    req = {"plate_id": "measured", "design": DEMO_DESIGN,
+           "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]}}  # fmt: skip
+
+    async def go():
+        session = await open_client(cell.cfg)
+        keys = Keys(cell.cfg.key_prefix)
+        follower = StatusFollower(session, keys)
+        try:
+            await wait_status(follower, lambda s: s.state.value == "idle" and s.workers)
+            acc = await call(session, keys.trigger, json.dumps(req), TriggerAccepted)
+            state, message, _ = await wait_for_job(follower, acc.job_id, 240.0)
+            return acc.job_id, state, message
+        finally:
+            follower.close()
+            await asyncio.to_thread(close_session, session)
+
+    return asyncio.run(go())
+
+
+def _truth(cell: Cell, job_dir: Path, report: dict) -> TruthDeviation:
+    return TruthDeviation(
+        Path(cell.cfg.cell.data_dir) / "sim-truth.json", report, cell.out / "designs" / DEMO_DESIGN
+    )
+
+
+# Tolerances of the measurement against the simulator's truth. The sensor's noise is 0.02 mm (1
+# sigma) and the analysis reconstructs the surface in cells of a few points; the simulator renders
+# the formed plate from a 4 mm mesh (chord error under 0.02 mm on the dent).
+ZMAX_TOL_MM = 0.15  # per line: reported Zmax vs the forming error's Zmax on the same line
+PROFILE_MEDIAN_TOL_MM = 0.05  # per line: median |measured - true| deviation along it
+FIELD_MEDIAN_TOL_MM = 0.05  # the deviation field over the plate: median |measured - true|
+FIELD_P99_TOL_MM = 0.3  # ... and its 99th percentile (edges, where cells hold few points)
+REGISTRATION_INPLANE_TOL_MM = 1.5  # the registered design vs the true plate at its corners, in plane
+REGISTRATION_HEIGHT_TOL_MM = 3.0  # ... and in height (the dent is 2.5 mm deep)
+
+
+def test_the_reported_deviations_are_the_forming_error_the_simulator_put_in(cell: Cell, scanned):
+    """The measurement end to end: per-line Zmax, the deviation along each line and the deviation
+    field of the job's results equal what the simulated plate's known forming error gives
+    (``sim-truth.json``) on the same lines, for the registration the analysis reported."""
+    job_id, state, message = scanned
+    assert state == "done", message
+    job_dir = cell.jobs_dir / job_id
+    report = json.loads((job_dir / "report.json").read_text())
+    results = np.load(job_dir / "results" / "results.npz")
+    truth = _truth(cell, job_dir, report)
+    assert not truth.error.is_zero, "the simulated plate carries a forming error"
+
+    lines = report["lines"]
+    assert len(lines) == len(
+        [k for k in results.files if k.endswith("_deviation_mm") and k.startswith("line")]
+    )
+    figures = []
+    for k, line in enumerate(lines):
+        s = results[f"line{k}_s_mm"]
+        measured = results[f"line{k}_deviation_mm"]
+        ok = np.isfinite(measured)
+        expected = truth.line_deviation_mm(line, s[ok])
+        zmax_true = float(np.max(np.abs(expected)))
+        figures.append(
+            (line["name"], line["zmax_mm"], zmax_true, float(np.median(np.abs(measured[ok] - expected))))
+        )
+    assert all(abs(z - zt) <= ZMAX_TOL_MM for _, z, zt, _ in figures), figures
+    assert all(m <= PROFILE_MEDIAN_TOL_MM for *_, m in figures), figures
+    assert max(zt for _, _, zt, _ in figures) > 0.5, figures  # the lines cross the dent or the bump
+
+    xy_plate = results["plate_xy_mm"].astype(np.float64)
+    T_design_plate = np.linalg.inv(truth.T_plate_design)
+    xy = xy_plate @ T_design_plate[:2, :2].T + T_design_plate[:2, 3]
+    diff = np.abs(results["plate_deviation_mm"] - truth.deviation_mm(xy[:, 0], xy[:, 1]))
+    assert diff.size > 1000
+    assert np.median(diff) <= FIELD_MEDIAN_TOL_MM and np.percentile(diff, 99) <= FIELD_P99_TOL_MM, (
+        np.median(diff),
+        np.percentile(diff, 99),
+        diff.max(),
+    )
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="known defect: the registration turns the design 1.7 deg off the true plate (5-6 mm at the "
+    "corners): the surface hardly sees the yaw of a nearly flat plate and the unformed design pays for "
+    "part of the forming error with it; the corners' weight (analysis/register.py boundary_weight 1e-3) "
+    "is too weak to hold it, and 1e-2 fails test_register's 1 mm corner-noise case",
+)
+def test_the_registered_design_lies_where_the_true_plate_lies(cell: Cell, scanned):
+    """The registration against the truth: the design, registered onto the cloud, sits where the
+    simulator put the plate (``T_base_plate`` in sim-truth.json)."""
+    job_id, state, message = scanned
+    assert state == "done", message
+    job_dir = cell.jobs_dir / job_id
+    report = json.loads((job_dir / "report.json").read_text())
+    truth = _truth(cell, job_dir, report)
+    # In its plane within a millimetre or so at the corners (the boundary anchors it); in height
+    # where the non-penetrating rest on the formed plate puts it (at most the forming error's depth).
+    corners = np.array([[x, y, 0.0, 1.0] for x in (-150.0, 150.0) for y in (-100.0, 100.0)])
+    moved = (truth.M @ corners.T)[:3] - corners.T[:3]
+    assert np.hypot(moved[0], moved[1]).max() < REGISTRATION_INPLANE_TOL_MM, moved
+    assert np.abs(moved[2]).max() < REGISTRATION_HEIGHT_TOL_MM, moved

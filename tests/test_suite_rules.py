@@ -1,0 +1,83 @@
+"""The suite's own rules, run on a throw-away test file in a fresh pytest: a test that starts a
+process without a marker `make test-fast` deselects is refused at the spawn; every skip is logged
+for .ci/run, which fails on a skip not on the allow-list and on too many fallbacks."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO_ROOT, SKIP_LOG_ENV
+
+pytestmark = pytest.mark.process  # a fresh pytest
+
+CASES = textwrap.dedent(
+    """
+    import multiprocessing, subprocess, sys
+    import pytest
+
+    def test_unmarked_spawn():
+        subprocess.run([sys.executable, "-c", "pass"], check=True)
+
+    def test_unmarked_multiprocessing():
+        p = multiprocessing.get_context("spawn").Process(target=print)
+        p.start()
+        p.join()
+
+    @pytest.mark.process
+    def test_marked_spawn():
+        subprocess.run([sys.executable, "-c", "pass"], check=True)
+
+    def test_plain_skip():
+        pytest.skip("no reason anyone allowed")
+
+    def test_fallback():
+        pytest.skip("fallback: simulators starved (laser overruns 3)")
+    """
+)
+
+
+def _check(log: Path, allow: Path, max_fallbacks: int) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(REPO_ROOT / ".ci/check_skips.py"), str(log), "--allowlist", str(allow),
+           "--max-fallbacks", str(max_fallbacks)]  # fmt: skip
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+
+
+def test_unmarked_spawns_are_refused_and_skips_are_checked_against_the_allowlist(tmp_path):
+    (tmp_path / "test_cases.py").write_text(CASES)
+    log = tmp_path / "skips.jsonl"
+    env = {**os.environ, SKIP_LOG_ENV: str(log), "PYTHONPATH": str(REPO_ROOT)}
+    r = subprocess.run(
+        [sys.executable, "-m", "pytest", "-p", "tests.conftest", "-q", "-rA", "-p", "no:cacheprovider",
+         "test_cases.py"],
+        capture_output=True, text=True, timeout=240, cwd=tmp_path, env=env,
+    )  # fmt: skip
+    out = r.stdout
+    assert "FAILED test_cases.py::test_unmarked_spawn " in out, out
+    assert "FAILED test_cases.py::test_unmarked_multiprocessing " in out, out
+    assert "PASSED test_cases.py::test_marked_spawn" in out, out
+    assert "is not marked @pytest.mark.process or @pytest.mark.e2e" in out, out
+    skips = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [(s["nodeid"], s["reason"]) for s in skips] == [
+        ("test_cases.py::test_plain_skip", "no reason anyone allowed"),
+        ("test_cases.py::test_fallback", "fallback: simulators starved (laser overruns 3)"),
+    ]
+
+    allow = tmp_path / "allow.txt"
+    allow.write_text(
+        "# comment\ntest_cases.py::test_fallback | fallback: simulators starved | the test says so\n"
+    )
+    refused = _check(log, allow, max_fallbacks=1)
+    assert refused.returncode == 1 and "skip NOT allowed: test_cases.py::test_plain_skip" in refused.stderr
+    assert "1 fallbacks" in refused.stdout
+
+    allow.write_text(allow.read_text() + "test_cases.py::test_plain_* | no reason | a test of the check\n")
+    assert _check(log, allow, max_fallbacks=1).returncode == 0
+    too_many = _check(log, allow, max_fallbacks=0)
+    assert too_many.returncode == 1 and "1 cases fell back, more than 0" in too_many.stderr
