@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from cellctl.hmi.history import History, format_history
 
 REPO = Path(__file__).resolve().parents[2]
@@ -68,6 +70,7 @@ def test_rebuild_rounds_previous_round_and_index_job(tmp_path: Path) -> None:
     assert (tmp_path / "history.sqlite").exists()
 
 
+@pytest.mark.process
 def test_cellctl_history_prints_a_plates_rounds(tmp_path: Path) -> None:
     data = tmp_path / "data"
     _job(data, "j1", "P1", "2026-11-01T10:00:00Z", [4.0])
