@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import concurrent.futures
 import json
 import subprocess
 import sys
@@ -55,6 +56,12 @@ async def egm_snapshot(cfg: Any) -> dict[str, Any]:
         if r.ok is not None:
             return json.loads(r.ok.payload.to_bytes())["egm"]
     raise RuntimeError("the daemon's stats did not answer")
+
+
+def egm_now(cfg: Any) -> dict[str, Any]:
+    """:func:`egm_snapshot` from any thread (Playwright's sync API runs an event loop in this one)."""
+    with concurrent.futures.ThreadPoolExecutor(1) as ex:
+        return ex.submit(lambda: asyncio.run(egm_snapshot(cfg))).result()
 
 
 def p99_us(before: dict[str, Any], after: dict[str, Any]) -> tuple[float, int]:
@@ -93,9 +100,9 @@ def main() -> int:
     try:
         cell.start()
         # 1. a scan without the HMI
-        e0 = asyncio.run(egm_snapshot(cell.cfg))
+        e0 = egm_now(cell.cfg)
         trigger(cell, "BENCH-1")
-        e1 = asyncio.run(egm_snapshot(cell.cfg))
+        e1 = egm_now(cell.cfg)
         result["egm_p99_us_without_hmi"], result["egm_replies_without_hmi"] = p99_us(e0, e1)
         # 2. the HMI, a browser on the Scan page, the same scan
         users = out / "hmi-users"
@@ -128,7 +135,7 @@ def main() -> int:
                 result["page_load_s"] = round(time.perf_counter() - t0, 3)
                 page.goto(url + "/#scan")
                 page.evaluate("S.statusLatencyMs = []; S.liveUpdates = 0")
-                e2 = asyncio.run(egm_snapshot(cell.cfg))
+                e2 = egm_now(cell.cfg)
                 t_scan = [None, None]
 
                 def watch() -> None:
@@ -145,7 +152,7 @@ def main() -> int:
                 result["live_points"] = page.evaluate("S.livePoints || 0")
                 lat = np.asarray(page.evaluate("S.statusLatencyMs"), float)
                 scan.join(600)
-                e3 = asyncio.run(egm_snapshot(cell.cfg))
+                e3 = egm_now(cell.cfg)
                 result["egm_p99_us_with_hmi"], result["egm_replies_with_hmi"] = p99_us(e2, e3)
                 dt = t_scan[1] - t_scan[0]
                 result["live_updates_per_s"] = round(updates / dt, 2) if dt > 0 else None
