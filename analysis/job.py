@@ -122,6 +122,20 @@ class ReportInputs(_Strict):
     placement: Placement | None = None
 
 
+class DesignReport(_Strict):
+    """The design the plate was judged against: a mesh, or a CAD file (:mod:`analysis.cad`) with its
+    format, file units, faces, the tessellation's measured chord error (registration runs on it),
+    where the templates were cut, and ``T_design_file`` (file coordinates in mm -> design frame)."""
+
+    kind: Literal["mesh", "cad"] = "mesh"
+    format: str = ""
+    file_units: str = "mm"
+    faces: int | None = None
+    chord_error_mm: float | None = None
+    templates: Literal["mesh", "exact surface"] = "mesh"
+    T_design_file: list[list[float]] | None = None
+
+
 class Report(_Strict):
     """``report.json``: one inspected plate (docs/architecture.md, "The report")."""
 
@@ -139,4 +153,5 @@ class Report(_Strict):
     coverage: ScanCoverage
     surface: SurfaceReport
     inputs: ReportInputs
+    design: DesignReport = DesignReport()
     timings_s: dict[str, float] = {}

@@ -42,9 +42,10 @@ import numpy as np
 import structlog
 
 from analysis.boundary import BoundaryResult, find_corners
+from analysis.cad import CadDesign, read_design
 from analysis.cloud_io import ScanCloud, write_cloud_ply
 from analysis.job import AnalysisJob, Report
-from analysis.mesh import MeshError, TriMesh, load_mesh
+from analysis.mesh import MeshError, TriMesh
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
 from analysis.placement import Placement, placement_transform
 from analysis.plates import canonical_corner_order
@@ -59,7 +60,7 @@ from analysis.register import (
 from analysis.report import write_csv
 from analysis.segment import SegmentResult, segment_plate
 from analysis.settings import InspectionSettings
-from analysis.templates import TemplateCut, cut_templates, detection_lines
+from analysis.templates import TemplateCut, cut_templates, cut_templates_exact, detection_lines
 
 log = structlog.get_logger(__name__)
 
@@ -246,7 +247,7 @@ def _subsample_index(n: int, k: int, seed: int = 0) -> np.ndarray:
 
 def inspect_cloud(
     cloud: ScanCloud,
-    design: TriMesh,
+    design: TriMesh | CadDesign,
     settings: InspectionSettings | None = None,
     *,
     plate_id: str = "",
@@ -262,8 +263,13 @@ def inspect_cloud(
     nominal_placement: the design frame's placement on the bed as the operator laid the plate;
     optional, it decides which corner is the reference when the design is symmetric under a half
     turn (else the bed convention decides, see register()). The report records it under ``inputs``.
+    design: a mesh, or a CAD design (:mod:`analysis.cad`): then registration runs on its
+    tessellation, the corners come from the face's own boundary and the templates are cut from
+    the exact surface.
     """
     settings = settings or InspectionSettings()
+    cad = design if isinstance(design, CadDesign) else None
+    design = cad.mesh if cad is not None else design
     timings: dict[str, float] = {}
     t = time.perf_counter()
 
@@ -282,7 +288,7 @@ def inspect_cloud(
         bnd = find_corners(seg.points_mm)
         lap("boundary")
         surface: HeightField = design_field.result()
-    design_c = design_corners_from_mesh(design)
+    design_c = cad.corners_mm if cad is not None else design_corners_from_mesh(design)
     _check_size(design_c, bnd.corners_mm, settings.size_tolerance)
     cell_mm = surface_cell_mm(
         seg.points_mm, seg.plate_area_mm2, settings.grid_mm, settings.min_points_per_cell
@@ -297,7 +303,10 @@ def inspect_cloud(
     T = reg.transform  # design -> measured
     measured_c = np.roll(bnd.corners_mm, -reg.coarse.shift, axis=0)
     lines = detection_lines(measured_c, settings.layout)
-    cuts = cut_templates(design.transformed(T), measured_mesh, lines, step_mm=settings.sample_step_mm)
+    if cad is not None:
+        cuts = cut_templates_exact(cad, T, measured_mesh, lines, step_mm=settings.sample_step_mm)
+    else:
+        cuts = cut_templates(design.transformed(T), measured_mesh, lines, step_mm=settings.sample_step_mm)
     if not cuts:
         raise InspectionError("no detection line crosses both the design and the scanned plate")
     lap("templates")
@@ -383,6 +392,7 @@ def inspect_cloud(
             "max_deviation_mm": float(np.nanmax(deviation)) if np.isfinite(deviation).any() else None,
         },
         "inputs": {"points": len(cloud), **(inputs or {}), "placement": nominal_placement},
+        "design": _design_record(cad),
         "timings_s": timings,
     }
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
@@ -407,6 +417,21 @@ def inspect_cloud(
         verdict=verdict,
         timings_s=timings,
     )
+
+
+def _design_record(cad: CadDesign | None) -> dict[str, Any]:
+    """What the report says about the design: a mesh, or the CAD file's format, units and faces."""
+    if cad is None:
+        return {"kind": "mesh"}
+    return {
+        "kind": "cad",
+        "format": cad.facts.fmt,
+        "file_units": cad.facts.units,
+        "faces": len(cad.faces),
+        "chord_error_mm": round(cad.chord_error_mm, 5),
+        "templates": "exact surface",
+        "T_design_file": cad.T_design_file.tolist(),
+    }
 
 
 # ------------------------------------------------------------------------------------ results dir
@@ -474,7 +499,7 @@ def analyse_job(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
     writes the results directory there.
     """
     try:
-        design = load_mesh(job.design)
+        design = read_design(job.design)
     except MeshError as exc:
         raise InspectionError(str(exc)) from None
     ins = inspect_cloud(

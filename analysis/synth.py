@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import structlog
 
+from analysis.cad_write import write_design
 from analysis.cloud_io import CloudError, ScanCloud, write_cloud_ply
 from analysis.mesh import TriMesh, save_mesh
 from analysis.placement import Placement, placement_transform
@@ -627,6 +628,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--profile-step-mm", type=float, default=0.5, help="travel between profiles (default 0.5)")
     p.add_argument("--noise-mm", type=float, default=0.02, help="range noise sigma (default 0.02)")
     p.add_argument("--no-edge-passes", action="store_true", help="raster passes only (no thickness faces)")
+    p.add_argument(
+        "--cad",
+        action="store_true",
+        help="also write the design as exact NURBS: <stem>-design.igs and <stem>-design.step (mm)",
+    )
     return p
 
 
@@ -655,11 +661,14 @@ def synth_main(argv: list[str] | None = None) -> int:
             placement = random_placement(rng, yaw_deg=args.yaw_deg)
         scan = synthesize_scan(spec, error, settings=settings, placement=placement, seed=args.seed)
         paths = write_synth(scan, args.out)
+        if args.cad:
+            stem = paths[1].with_suffix("")
+            paths = (*paths, write_design(spec, f"{stem}.igs"), write_design(spec, f"{stem}.step"))
     except (PlateError, SynthError, CloudError) as exc:
         print(f"cellctl synth: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
         print(f"cellctl synth: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
-    print(f"wrote {paths[0]} ({len(scan.xyz_mm)} points), {paths[1]}, {paths[2]}")
+    print(f"wrote {paths[0]} ({len(scan.xyz_mm)} points), " + ", ".join(str(p) for p in paths[1:]))
     return 0

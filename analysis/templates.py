@@ -14,6 +14,7 @@ is a length edge (the design plate frame's x), edge 0->3 a width edge.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import structlog
@@ -292,15 +293,80 @@ def cut_templates(
         except TemplateError as exc:
             log.warning("template_line_skipped", family=line.family, index=line.index, reason=str(exc))
             continue
-        lo = max(sd.s_mm[0], sm.s_mm[0]) if len(sd.s_mm) and len(sm.s_mm) else 0.0
-        hi = min(sd.s_mm[-1], sm.s_mm[-1]) if len(sd.s_mm) and len(sm.s_mm) else -1.0
-        if hi <= lo:
-            log.warning(
-                "template_line_skipped", family=line.family, index=line.index, reason="no common domain"
-            )
+        cut = _joined_cut(line, sd, sm)
+        if cut is not None:
+            out.append(cut)
+    return out
+
+
+def _joined_cut(line: DetectionLine, sd: SampledSection, sm: SampledSection) -> TemplateCut | None:
+    """Design and measured samples of one line on their common domain (None: they do not overlap)."""
+    lo = max(sd.s_mm[0], sm.s_mm[0]) if len(sd.s_mm) and len(sm.s_mm) else 0.0
+    hi = min(sd.s_mm[-1], sm.s_mm[-1]) if len(sd.s_mm) and len(sm.s_mm) else -1.0
+    if hi <= lo:
+        log.warning("template_line_skipped", family=line.family, index=line.index, reason="no common domain")
+        return None
+    grid = sd.s_mm[(sd.s_mm >= lo - 1e-9) & (sd.s_mm <= hi + 1e-9)]
+    hd = sd.h_mm[np.searchsorted(sd.s_mm, grid - 1e-9)]
+    hm = sm.h_mm[np.searchsorted(sm.s_mm, grid - 1e-9)]
+    return TemplateCut(line, grid, hd, hm)
+
+
+class ExactSurface(Protocol):
+    """A design surface that can be cut exactly (:class:`analysis.cad.CadDesign`)."""
+
+    mesh: TriMesh
+
+    def vertical_heights(self, origins_mm: np.ndarray, direction: np.ndarray) -> np.ndarray: ...
+
+
+def exact_section(
+    surface: ExactSurface,
+    T_measured_design: np.ndarray,
+    line: DetectionLine,
+    step_mm: float = 1.0,
+    mesh_measured: TriMesh | None = None,
+) -> SampledSection:
+    """The design's section along ``line`` (measured frame) sampled on the exact surface.
+
+    The tessellation's cut gives the line's extent over the design (the face's own boundary, to
+    the chord error); every sample of the shared ``step_mm`` grid inside it is then the exact
+    intersection of the surface with the line through it along ``up``: a point of the section
+    plane, so the section is the plane-surface intersection sampled where the metrics need it.
+    mesh_measured: the tessellation already moved by ``T_measured_design`` (saves the move per line).
+    """
+    T = np.asarray(T_measured_design, dtype=np.float64)
+    mesh_measured = mesh_measured if mesh_measured is not None else surface.mesh.transformed(T)
+    approx = sample_section(cut_mesh(mesh_measured, line), step_mm, max_gap_mm=np.inf)
+    if not len(approx.s_mm):
+        return approx
+    R, t = T[:3, :3], T[:3, 3]
+    origins_m = line.start_mm + np.outer(approx.s_mm, line.direction)
+    origins_d = (origins_m - t) @ R  # R^T (p - t), row-wise
+    pts_d = surface.vertical_heights(origins_d, R.T @ line.up)
+    pts_m = pts_d @ R.T + t
+    return SampledSection(approx.s_mm, _along(pts_m, np.zeros(3), line.up))
+
+
+def cut_templates_exact(
+    surface: ExactSurface,
+    T_measured_design: np.ndarray,
+    measured_mesh: TriMesh,
+    lines: list[DetectionLine],
+    step_mm: float = 1.0,
+    max_gap_mm: float = 5.0,
+) -> list[TemplateCut]:
+    """:func:`cut_templates` with the design side cut from the exact surface (:func:`exact_section`)."""
+    out: list[TemplateCut] = []
+    moved = surface.mesh.transformed(np.asarray(T_measured_design, dtype=np.float64))
+    for line in lines:
+        try:
+            sd = exact_section(surface, T_measured_design, line, step_mm, moved)
+            sm = sample_section(cut_mesh(measured_mesh, line), step_mm, max_gap_mm=max_gap_mm)
+        except TemplateError as exc:
+            log.warning("template_line_skipped", family=line.family, index=line.index, reason=str(exc))
             continue
-        grid = sd.s_mm[(sd.s_mm >= lo - 1e-9) & (sd.s_mm <= hi + 1e-9)]
-        hd = sd.h_mm[np.searchsorted(sd.s_mm, grid - 1e-9)]
-        hm = sm.h_mm[np.searchsorted(sm.s_mm, grid - 1e-9)]
-        out.append(TemplateCut(line, grid, hd, hm))
+        cut = _joined_cut(line, sd, sm)
+        if cut is not None:
+            out.append(cut)
     return out

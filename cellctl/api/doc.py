@@ -16,7 +16,15 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from analysis.job import LineReport, RegistrationReport, Report, ReportInputs, ScanCoverage, SurfaceReport
+from analysis.job import (
+    DesignReport,
+    LineReport,
+    RegistrationReport,
+    Report,
+    ReportInputs,
+    ScanCoverage,
+    SurfaceReport,
+)
 from analysis.metrics import Tolerances
 from analysis.placement import Placement
 from analysis.settings import InspectionSettings
@@ -40,7 +48,7 @@ MODELS: dict[str, type] = {
     for m in (
         TriggerRequest, Placement, JobSpec, AnalysisJob, InspectionSettings, DetectionLayout, Tolerances,
         JobEvent, ReportEnvelope, Report, RegistrationReport, LineReport, ScanCoverage, SurfaceReport,
-        ReportInputs, DaemonStats, EgmStats, LiveCloudChunk,
+        ReportInputs, DesignReport, DaemonStats, EgmStats, LiveCloudChunk,
     )
 }  # fmt: skip
 DOC = Path(__file__).resolve().parents[2] / "docs" / "api.md"

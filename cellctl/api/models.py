@@ -76,7 +76,7 @@ __all__ = [
 
 API_VERSION = 1
 MAX_TRIGGER_BYTES = 16 * 1024
-DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".npz", ".json")
+DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".igs", ".iges", ".stp", ".step", ".npz", ".json")
 JSON = "application/json"
 
 _ID = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
@@ -127,7 +127,8 @@ class TriggerRequest(Model):
         p = PurePosixPath(v)
         if p.is_absolute():
             raise ValueError("must be relative to designs_dir, not absolute")
-        if any(part in ("..", ".") for part in p.parts) or v.startswith("~"):
+        # the raw components: PurePosixPath drops "." ("./x.ply" has the parts ("x.ply",))
+        if any(part in ("..", ".") for part in v.split("/")) or v.startswith("~"):
             raise ValueError("must not contain '..', '.' or '~' components")
         if p.suffix.lower() not in DESIGN_SUFFIXES:
             raise ValueError(f"must end in one of {', '.join(DESIGN_SUFFIXES)}")

@@ -4,6 +4,7 @@ from cellctl.commands import (
     acquire_cmd,
     config_cmd,
     demo_cmd,
+    design_cmd,
     hmi_cmd,
     inspect_cmd,
     plan_cmd,
@@ -25,6 +26,7 @@ COMMAND_MODULES = [
     hmi_cmd,  # hmi, history
     plan_cmd,
     inspect_cmd,
+    design_cmd,
     synth_cmd,
     report_cmd,
     acquire_cmd,  # reassemble, calibrate

@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
 
     from cellctl.hmi.auth import Authenticator, AuthError, load_users
     from cellctl.hmi.server import serve
-    from cellctl.signals import stop_on_signals
+    from drivers.runtime import stop_on_signals
 
     cfg = _config(args.config)
     if cfg is None:

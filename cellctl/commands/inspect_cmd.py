@@ -20,7 +20,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "non-penetrating), cut the detection lines and judge them against the tolerances.",
     )
     p.add_argument("cloud", help="scan cloud: .ply (organised or not), .pcd, .xyz/.csv/.txt, .npz (mm)")
-    p.add_argument("--design", required=True, help="design top-surface mesh: .ply, .stl or .obj (mm)")
+    p.add_argument(
+        "--design",
+        required=True,
+        help="design surface: IGES/STEP (.igs/.iges/.stp/.step, units from the file) or a top-surface "
+        "mesh (.ply/.stl/.obj, mm)",
+    )
     p.add_argument("--out", required=True, help="results directory (created)")
     p.add_argument(
         "--placement",
@@ -44,8 +49,8 @@ def _fail(msg: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     # Heavy imports here, so `cellctl --help` stays fast.
+    from analysis.cad import read_design
     from analysis.cloud_io import read_cloud
-    from analysis.mesh import load_mesh
     from analysis.pipeline import inspect_cloud, write_results
     from analysis.report import write_report
     from cellctl.api.analysis_job import inspection_settings
@@ -64,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"{err.source}: " + "; ".join(err.problems))
     try:
         cloud = read_cloud(args.cloud)
-        design = load_mesh(args.design)
+        design = read_design(args.design)
         ins = inspect_cloud(
             cloud, design, inspection_settings(section),
             plate_id=args.plate_id or Path(args.cloud).stem,

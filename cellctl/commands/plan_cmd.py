@@ -32,7 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--design",
         required=True,
-        help="design top-surface mesh (PLY, STL or OBJ, mm, plate frame), or 'sim' for the plate in [sim.plate]",
+        help="design: IGES/STEP surface or top-surface mesh (PLY, STL or OBJ, mm, plate frame), "
+        "or 'sim' for the plate in [sim.plate]",
     )
     p.add_argument(
         "--placement",
@@ -77,7 +78,8 @@ def parse_placement(text: str, default_z_mm: float):
 
 
 def _design(arg: str, cfg):
-    from analysis.plates import design_mesh, load_design, plate_spec
+    from analysis.cad import design_mesh_from_file
+    from analysis.plates import design_mesh, plate_spec
 
     if arg == "sim":
         sp = cfg.sim.plate
@@ -91,7 +93,7 @@ def _design(arg: str, cfg):
             radius_y_mm=sp.radius_y_mm,
         )
         return design_mesh(spec, pitch_mm=10.0)
-    return load_design(Path(arg))
+    return design_mesh_from_file(Path(arg))
 
 
 def _error(msg: str, as_json: bool) -> int:

@@ -27,7 +27,9 @@ _FINAL = ("done", "failed", "aborted", "interrupted", "cancelled")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("scan", help="trigger an inspection over Zenoh; --wait shows progress and the verdict")
     p.add_argument("--plate", required=True, help="plate id (letters, digits, '-', '_', '.')")
-    p.add_argument("--design", required=True, help="design mesh, relative to [cell] designs_dir")
+    p.add_argument(
+        "--design", required=True, help="design (IGES, STEP, PLY, STL or OBJ), relative to [cell] designs_dir"
+    )
     p.add_argument(
         "--placement",
         required=True,

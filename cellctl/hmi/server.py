@@ -269,9 +269,9 @@ class HmiServer:
             return _err(404, "design_not_found", f"{rel}: no such design")
 
         def load() -> dict[str, Any]:
-            from analysis.plates import load_design
+            from analysis.cad import design_mesh_from_file
 
-            design = load_design(p)
+            design = design_mesh_from_file(p)
             v = np.asarray(design.vertices_mm, float)
             idx = np.linspace(0, len(v) - 1, min(len(v), 4000)).astype(int)
             return {
