@@ -9,11 +9,17 @@ A frozen dataclass of frozen dataclasses (:class:`~analysis.templates.DetectionL
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 from analysis.metrics import Tolerances
 from analysis.templates import DetectionLayout
 
-__all__ = ["InspectionSettings"]
+__all__ = ["TEMPLATE_FITS", "InspectionSettings", "TemplateFit"]
+
+# "rigid": one template rests on the whole plate (the paper's 3D fit); "per_line": one per detection
+# line, on its own section (the paper's 2D case; analysis.template_fit)
+TemplateFit = Literal["rigid", "per_line"]
+TEMPLATE_FITS: tuple[str, ...] = ("rigid", "per_line")
 
 
 @dataclass(frozen=True)
@@ -27,3 +33,17 @@ class InspectionSettings:
     min_points_per_cell: int = 16
     size_tolerance: float = 0.05  # relative: a design more than 5 % off the plate's size is refused
     design_grid_mm: float = 1.0
+    # which template judges the plate; compare: the report also carries the other's figures
+    template_fit: TemplateFit = "rigid"
+    template_fit_compare: bool = False
+    # the resting surface's stated bound on its noise bias (analysis.rest_surface), its largest patch
+    rest_target_sigmas: float = 0.25
+    rest_max_cell_mm: float = 20.0
+
+    def __post_init__(self) -> None:
+        if self.template_fit not in TEMPLATE_FITS:
+            raise ValueError(
+                f"template_fit must be one of {', '.join(TEMPLATE_FITS)}, got {self.template_fit!r}"
+            )
+        if not self.rest_target_sigmas > 0 or not self.rest_max_cell_mm > 0:
+            raise ValueError("rest_target_sigmas and rest_max_cell_mm must be positive")

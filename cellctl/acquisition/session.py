@@ -32,7 +32,7 @@ import contextlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -80,6 +80,8 @@ class AcquisitionSession:
             row ``k``.
         settings: timing.
         on_write_error: called once, in the loop, when the raw files take no more.
+        on_assembled: called with the batches each profile batch assembled and the profile count so
+            far (the daemon's live cloud for displays); None: nobody watches.
     """
 
     def __init__(
@@ -91,6 +93,7 @@ class AcquisitionSession:
         settings: SessionSettings,
         *,
         on_write_error: Callable[[OSError], None],
+        on_assembled: Callable[[list, int], None] | None = None,
     ) -> None:
         self.acq = acq
         self.sensor = sensor
@@ -100,6 +103,7 @@ class AcquisitionSession:
         self.profiles = 0
         self.write_error: OSError | None = None
         self._on_write_error = on_write_error
+        self._on_assembled = on_assembled
         self._last_robot_ns = -1
         self._consumer: asyncio.Task[None] | None = None
         self._open_pass = -1
@@ -116,8 +120,10 @@ class AcquisitionSession:
 
     async def _consume(self) -> None:
         async for batch in self.sensor:
-            self._guarded(self.acq.feed_profiles, batch)
+            made = self._guarded(self.acq.feed_profiles, batch)
             self.profiles += len(batch)
+            if made and self._on_assembled is not None:
+                self._on_assembled(made, self.profiles)
 
     def mark(self, tau_s: float, t_ns: int) -> None:
         """Open / close passes for playback time ``tau_s`` seen at host time ``t_ns``."""
@@ -131,9 +137,9 @@ class AcquisitionSession:
             self._guarded(self.acq.begin_pass, k, t_ns)
         self._open_pass = k
 
-    def _guarded(self, fn: Callable[..., object], *args: object) -> None:
+    def _guarded(self, fn: Callable[..., Any], *args: object) -> Any:
         try:
-            fn(*args)
+            return fn(*args)
         except OSError as exc:
             if self.write_error is None:
                 self.write_error = exc

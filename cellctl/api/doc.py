@@ -35,6 +35,7 @@ from cellctl.api.models import (
     EgmStats,
     JobEvent,
     JobSpec,
+    LiveCloudChunk,
     ReportEnvelope,
     TriggerRequest,
 )
@@ -48,8 +49,8 @@ MODELS: dict[str, type] = {
     for m in (
         TriggerRequest, Placement, JobSpec, AnalysisJob, InspectionSettings, DetectionLayout, Tolerances,
         JobEvent, ReportEnvelope, Report, RegistrationReport, LineReport, ScanCoverage, SurfaceReport,
-        ReportInputs, DesignReport, DaemonStats, EgmStats, TransferSpec, DesignRef, ResultChunk, ResultManifest,
-        ResultFile,
+        ReportInputs, DesignReport, DaemonStats, EgmStats, LiveCloudChunk, TransferSpec, DesignRef, ResultChunk,
+        ResultManifest, ResultFile,
     )
 }  # fmt: skip
 DOC = Path(__file__).resolve().parents[2] / "docs" / "api.md"

@@ -16,6 +16,7 @@ import asyncio
 import contextlib
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -62,6 +63,8 @@ class ScanHost(Protocol):
     async def ctrl_state(self) -> str: ...
 
     def on_progress(self, job: ActiveJob, ev: ProgressEvent) -> None: ...
+
+    def live_feed(self, job_id: str) -> Callable[[list, int], None] | None: ...
 
 
 class ScanRunner:
@@ -183,7 +186,7 @@ class ScanRunner:
                 acq, client, drv.endpoint.history,
                 pass_windows_s([s.t_start_s for s in plan.passes], [s.duration_s for s in plan.passes]),
                 SessionSettings(marker_period_s=cfg.daemon.marker_period_s, settle_s=cfg.daemon.settle_s),
-                on_write_error=write_failed,
+                on_write_error=write_failed, on_assembled=host.live_feed(rec.job_id),
             )  # fmt: skip
             job.session = session
             # The arm waits while the clock fits gather their first pairs (and a sensor that has just

@@ -24,6 +24,7 @@ import collections
 import contextlib
 import os
 import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -633,6 +634,17 @@ class CellDaemon:
 
     def to_cell(self, state: CellState, message: str) -> None:
         self.sm.to(state, message)
+
+    def live_feed(self, job_id: str) -> Callable[[list, int], None] | None:
+        """The scan's thinned live cloud for displays (``Keys.live_cloud``, cellctl/daemon/live.py)."""
+        if self.session is None:
+            return None
+        from cellctl.daemon.live import LiveCloudFeed
+
+        feed = LiveCloudFeed(
+            self.session, self.keys.live_cloud(job_id), job_id, rate_hz=self.cfg.laser.rate_hz
+        )
+        return feed.add
 
     def job_state(self, job: ActiveJob, state: JobState, message: str = "", **info: Any) -> None:
         self._job_state(job, state, message, **info)
