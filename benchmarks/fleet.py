@@ -101,6 +101,10 @@ def main(argv: list[str] | None = None) -> int:
         "results_stored_s_p50": round(statistics.median(lat), 2) if lat else None,
         "link_mb_per_job": round(link_bytes / 2**20 / max(len(ids), 1), 2),
         "netem": netem,
+        # why a job is not done (its final state and last message): a lost job's cause
+        "not_done": {
+            j: f"{recs[j]['state']}: {recs[j]['history'][-1]['message'][:160]}" for j in ids if j not in done
+        },
     }
     print(json.dumps(out))
     return 0 if out["lost"] == 0 and out["duplicated"] == 0 else 1
