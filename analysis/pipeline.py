@@ -60,11 +60,16 @@ from analysis.register import (
 from analysis.report import write_csv
 from analysis.segment import SegmentResult, segment_plate
 from analysis.settings import InspectionSettings
-from analysis.templates import TemplateCut, cut_templates, cut_templates_exact, detection_lines
+from analysis.templates import (
+    TemplateCut,
+    cut_templates,
+    cut_templates_exact,
+    detection_lines,
+    line_name,
+)
 
 log = structlog.get_logger(__name__)
 
-FAMILY_LETTER = {"transverse": "T", "longitudinal": "L", "diagonal": "D"}
 MAX_MAP_POINTS = 300_000
 HOLE_CELL_MM = 5.0
 
@@ -350,7 +355,7 @@ def inspect_cloud(
         ends_plate = ends @ T_plate_measured[:3, :3].T + T_plate_measured[:3, 3]
         rec = m.as_dict()
         rec.update(
-            name=f"{FAMILY_LETTER.get(m.family, '?')}{m.index}",
+            name=line_name(cut.line),
             start_plate_mm=[round(float(v), 2) for v in ends_plate[0, :2]],
             end_plate_mm=[round(float(v), 2) for v in ends_plate[1, :2]],
             noise_mm=m.noise_mm,

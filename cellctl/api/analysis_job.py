@@ -7,6 +7,7 @@ to the worker (``[analysis]`` -> :class:`~analysis.settings.InspectionSettings` 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,14 +15,17 @@ from analysis.job import AnalysisJob
 from analysis.metrics import Tolerances
 from analysis.placement import Placement
 from analysis.settings import InspectionSettings
-from analysis.templates import DetectionLayout
+from analysis.templates import DetectionLayout, TableTemplate
 from cellctl.config import AnalysisSection, CellConfig
 
 __all__ = ["analysis_job", "inspection_settings"]
 
 
-def inspection_settings(section: AnalysisSection) -> InspectionSettings:
-    """InspectionSettings from the ``[analysis]`` section."""
+def inspection_settings(
+    section: AnalysisSection, templates: Sequence[TableTemplate | dict[str, Any]] = ()
+) -> InspectionSettings:
+    """InspectionSettings from the ``[analysis]`` section, with a template table's rows (the
+    trigger's or ``--template-table``) added to its line layout."""
     tol = section.tolerances
     return InspectionSettings(
         layout=DetectionLayout(
@@ -30,6 +34,7 @@ def inspection_settings(section: AnalysisSection) -> InspectionSettings:
             longitudinal_count=section.longitudinal_count,
             longitudinal_spacing_mm=section.longitudinal_spacing_mm,
             diagonals=section.diagonals,
+            templates=tuple(t if isinstance(t, TableTemplate) else TableTemplate(**t) for t in templates),
         ),
         tolerances=Tolerances(
             standard=tol.standard,
@@ -48,15 +53,18 @@ def analysis_job(
     design: str,
     placement: Placement | dict[str, Any],
     out_dir: Path,
+    analysis: dict[str, Any] | None = None,
 ) -> AnalysisJob:
     """The parameters the daemon sends with a job's cloud: the trigger's design and placement (as
-    the job record stores it), the cell's analysis settings, and the job's results directory."""
+    the job record stores it), the cell's analysis settings with the trigger's per-plate analysis
+    options (``analysis``: ``template_table`` rows), and the job's results directory."""
+    analysis = analysis or {}
     return AnalysisJob(
         job_id=job_id,
         plate_id=plate_id,
         cell_id=cfg.cell.id,
         design=design,
         placement=Placement.model_validate(placement),
-        settings=inspection_settings(cfg.analysis),
+        settings=inspection_settings(cfg.analysis, analysis.get("template_table", ())),
         out_dir=str(out_dir),
     )

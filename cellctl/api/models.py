@@ -11,6 +11,7 @@ offending field. The key expressions are in :mod:`cellctl.api.keys`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import socket
@@ -25,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from analysis.job import AnalysisJob, Report
 from analysis.placement import Placement
+from analysis.templates import TableTemplate
 from cellctl.api.keys import ControlAction
 
 log = structlog.get_logger(__name__)
@@ -111,12 +113,25 @@ def new_job_id() -> str:
 
 
 class TriggerRequest(Model):
-    """Start an inspection. ``design`` is a path relative to ``[cell] designs_dir``."""
+    """Start an inspection. ``design`` is a path relative to ``[cell] designs_dir``.
+
+    ``template_table``: the yard's template table of this plate, as rows (the CSV's content, read
+    by ``cellctl scan --template-table``, not a path): one named detection line per row, added to
+    the ``[analysis]`` layout (docs/designs.md).
+    """
 
     plate_id: Ident
     design: Annotated[str, Field(min_length=1, max_length=255)]
     placement: Placement
     note: Annotated[str, Field(max_length=500)] = ""
+    template_table: Annotated[tuple[TableTemplate, ...], Field(max_length=200)] = ()
+
+    def analysis_options(self) -> dict[str, Any]:
+        """The per-plate analysis options the job record keeps and the job's settings carry."""
+        out: dict[str, Any] = {}
+        if self.template_table:
+            out["template_table"] = [dataclasses.asdict(t) for t in self.template_table]
+        return out
 
     @field_validator("design")
     @classmethod

@@ -34,6 +34,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="nominal placement of the design on the bed (mm, mm, deg); optional, it decides the "
         "reference corner of a design that is symmetric under a half turn",
     )
+    p.add_argument(
+        "--template-table",
+        default=None,
+        metavar="CSV",
+        help="the yard's template table (docs/designs.md): one named line per template, added to the layout",
+    )
     p.add_argument("--plate-id", default="", help="plate id for the report (default: the cloud's file name)")
     p.add_argument(
         "--config", default=None, help="cell.toml for [analysis] settings (default: ./cell.toml if present)"
@@ -53,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from analysis.cloud_io import read_cloud
     from analysis.pipeline import inspect_cloud, write_results
     from analysis.report import write_report
+    from analysis.template_table import read_template_table
     from cellctl.api.analysis_job import inspection_settings
     from cellctl.commands.plan_cmd import parse_placement
     from cellctl.commands.tables import line_table
@@ -60,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         placement = parse_placement(args.placement, 0.0) if args.placement else None
+        table = read_template_table(args.template_table) if args.template_table else ()
     except ValueError as exc:
         return _fail(str(exc))
     cfg_path = args.config or ("cell.toml" if Path("cell.toml").is_file() else None)
@@ -71,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         cloud = read_cloud(args.cloud)
         design = read_design(args.design)
         ins = inspect_cloud(
-            cloud, design, inspection_settings(section),
+            cloud, design, inspection_settings(section, table),
             plate_id=args.plate_id or Path(args.cloud).stem,
             inputs={"cloud": str(args.cloud), "design": str(args.design)},
             nominal_placement=placement,

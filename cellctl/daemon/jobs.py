@@ -65,6 +65,7 @@ class JobRecord:
         design_path: resolved absolute path. placement: ``{"pos_mm": [...], "rpy_deg": [...]}``.
         state: a :class:`cellctl.api.JobState` value. history: ``[{"state", "t_utc", "message"}]``.
         info: counters and results (profiles, points, scan_s, verdict, report path, ...).
+        analysis: the trigger's per-plate analysis options (``template_table``: the table's rows).
     """
 
     job_id: str
@@ -77,6 +78,7 @@ class JobRecord:
     created_utc: str = field(default_factory=now_utc)
     history: list[dict[str, str]] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    analysis: dict[str, Any] = field(default_factory=dict)
 
     @property
     def terminal(self) -> bool:

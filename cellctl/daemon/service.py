@@ -405,6 +405,7 @@ class CellDaemon:
             design_path=str(design_path),
             placement=req.placement.model_dump(),
             note=req.note,
+            analysis=req.analysis_options(),
         )
         # Decide again after the awaits above (another trigger may have been taken meanwhile); from
         # here to the reply nothing awaits, so two triggers can never both start.
@@ -898,6 +899,7 @@ class CellDaemon:
             params = analysis_job(
                 self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
                 placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
+                analysis=rec.analysis,
             )  # fmt: skip
             fut = self.dispatcher.submit(params, payload)
             # the published bytes, kept with the job (cellctl.api.cloud_codec layout); written while the
