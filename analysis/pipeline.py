@@ -47,6 +47,7 @@ from analysis.cloud_io import ScanCloud, write_cloud_ply
 from analysis.job import AnalysisJob, Report
 from analysis.mesh import MeshError, TriMesh
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
+from analysis.moulded import design_as_laid
 from analysis.placement import Placement, placement_transform
 from analysis.plates import canonical_corner_order
 from analysis.register import (
@@ -270,9 +271,12 @@ def inspect_cloud(
     turn (else the bed convention decides, see register()). The report records it under ``inputs``.
     design: a mesh, or a CAD design (:mod:`analysis.cad`): then registration runs on its
     tessellation, the corners come from the face's own boundary and the templates are cut from
-    the exact surface.
+    the exact surface. ``settings.design_side`` ``moulded_down``: the plate lies turned over, the
+    design is offset by ``settings.thickness_mm`` first (:func:`analysis.moulded.design_as_laid`).
     """
     settings = settings or InspectionSettings()
+    # the face the sensor sees: the design itself, or its other side when laid moulded side down
+    design = design_as_laid(design, settings.design_side, settings.thickness_mm)
     cad = design if isinstance(design, CadDesign) else None
     design = cad.mesh if cad is not None else design
     timings: dict[str, float] = {}
@@ -397,7 +401,11 @@ def inspect_cloud(
             "max_deviation_mm": float(np.nanmax(deviation)) if np.isfinite(deviation).any() else None,
         },
         "inputs": {"points": len(cloud), **(inputs or {}), "placement": nominal_placement},
-        "design": _design_record(cad),
+        "design": {
+            **_design_record(cad),
+            "side": settings.design_side,
+            "thickness_mm": settings.thickness_mm if settings.design_side == "moulded_down" else None,
+        },
         "timings_s": timings,
     }
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)

@@ -9,6 +9,7 @@ A frozen dataclass of frozen dataclasses (:class:`~analysis.templates.DetectionL
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 from analysis.metrics import Tolerances
 from analysis.templates import DetectionLayout
@@ -27,3 +28,7 @@ class InspectionSettings:
     min_points_per_cell: int = 16
     size_tolerance: float = 0.05  # relative: a design more than 5 % off the plate's size is refused
     design_grid_mm: float = 1.0
+    # which face of the plate the design surface is and whether it faces up (analysis.moulded);
+    # moulded_down: the design is offset by thickness_mm and turned over
+    design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
+    thickness_mm: float = 0.0
