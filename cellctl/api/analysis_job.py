@@ -7,6 +7,7 @@ to the worker (``[analysis]`` -> :class:`~analysis.settings.InspectionSettings` 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -57,7 +58,7 @@ def analysis_job(
 ) -> AnalysisJob:
     """The parameters the daemon sends with a job's cloud: the trigger's design and placement (as
     the job record stores it), the cell's analysis settings with the trigger's per-plate analysis
-    options (``analysis``: ``template_table`` rows), and the job's results directory."""
+    options (``analysis``: ``template_table`` rows, ``design_side``, ``thickness_mm``), and the job's results directory."""
     analysis = analysis or {}
     return AnalysisJob(
         job_id=job_id,
@@ -65,6 +66,10 @@ def analysis_job(
         cell_id=cfg.cell.id,
         design=design,
         placement=Placement.model_validate(placement),
-        settings=inspection_settings(cfg.analysis, analysis.get("template_table", ())),
+        settings=dataclasses.replace(
+            inspection_settings(cfg.analysis, analysis.get("template_table", ())),
+            design_side=analysis.get("design_side", "moulded_up"),
+            thickness_mm=float(analysis.get("thickness_mm", 0.0)),
+        ),
         out_dir=str(out_dir),
     )

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
+from cellctl.commands.scan_cmd import add_design_side_arguments
 from cellctl.config import ConfigError, load_config
 
 
@@ -40,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="CSV",
         help="the yard's template table (docs/designs.md): one named line per template, added to the layout",
     )
+    add_design_side_arguments(p)
     p.add_argument("--plate-id", default="", help="plate id for the report (default: the cloud's file name)")
     p.add_argument(
         "--config", default=None, help="cell.toml for [analysis] settings (default: ./cell.toml if present)"
@@ -79,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
         cloud = read_cloud(args.cloud)
         design = read_design(args.design)
         ins = inspect_cloud(
-            cloud, design, inspection_settings(section, table),
+            cloud, design, replace(inspection_settings(section, table), design_side=args.design_side,
+                                   thickness_mm=args.thickness),
             plate_id=args.plate_id or Path(args.cloud).stem,
             inputs={"cloud": str(args.cloud), "design": str(args.design)},
             nominal_placement=placement,

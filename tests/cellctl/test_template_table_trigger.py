@@ -54,3 +54,25 @@ def test_a_trigger_with_a_bad_row_is_refused_and_the_cli_refuses_a_bad_file(tmp_
     with pytest.raises(ValueError, match=r"t\.csv: line 1: missing column 'distance_mm'"):
         template_table_rows(str(tmp_path / "t.csv"))
     assert template_table_rows(None) == []
+
+
+def test_the_design_side_and_thickness_travel_from_the_trigger_to_the_settings(tmp_path: Path) -> None:
+    (tmp_path / "p.igs").write_text("x\n")
+    base = {"plate_id": "P1", "design": "p.igs", "placement": PLACEMENT}
+    req, _ = parse_trigger(
+        json.dumps({**base, "design_side": "moulded_down", "thickness_mm": 12.5}), tmp_path
+    )
+    cfg = CellConfig.model_validate({"cell": {"id": "c1"}})
+    job = analysis_job(cfg, job_id="j", plate_id="P1", design="/d/p.igs", placement=PLACEMENT,
+                       out_dir=tmp_path, analysis=req.analysis_options())  # fmt: skip
+    settings = AnalysisJob.model_validate_json(job.model_dump_json()).settings
+    assert (settings.design_side, settings.thickness_mm) == ("moulded_down", 12.5)
+    plain, _ = parse_trigger(json.dumps(base), tmp_path)
+    assert plain.analysis_options() == {}
+    for bad, field in (
+        ({"design_side": "moulded_down"}, "needs its thickness"),
+        ({"design_side": "sideways", "thickness_mm": 5}, "design_side"),
+        ({"design_side": "moulded_down", "thickness_mm": -3}, "thickness_mm"),
+    ):
+        with pytest.raises(TriggerError, match=field):
+            parse_trigger(json.dumps({**base, **bad}), tmp_path)
