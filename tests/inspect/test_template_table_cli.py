@@ -92,3 +92,13 @@ def test_a_bad_table_is_refused_with_its_reason(
         assert "Traceback" not in r.stderr
         err = [ln for ln in r.stderr.splitlines() if ln.startswith(f"cellctl {cmd}:")]
         assert len(err) == 1 and reason in err[0], r.stderr
+
+
+def test_inspect_refuses_moulded_side_down_without_a_thickness(
+    scan_dir: Path, cellctl_exe: list[str]
+) -> None:
+    r = _run(cellctl_exe, "inspect", "scan.ply", "--design", "scan-design.ply", "--out", "side-out",
+             "--design-side", "moulded_down", cwd=scan_dir)  # fmt: skip
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    err = [ln for ln in r.stderr.splitlines() if ln.startswith("cellctl inspect:")]
+    assert len(err) == 1 and "needs its thickness" in err[0], r.stderr
