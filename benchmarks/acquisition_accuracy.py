@@ -38,7 +38,7 @@ from cellctl.acquisition.reassemble import reassemble
 from cellctl.calibration.time_offset import calibrate_time_offset
 from cellctl.logging import configure_logging
 from cellctl.simcell.truth import plate_truth
-from drivers.abb_egm.sim.egm import precise_event_loop
+from drivers.runtime import precise_event_loop
 from tests.support.simcell import SimCell, SimCellConfig, joint_path, raster_poses
 
 

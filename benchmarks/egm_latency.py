@@ -56,7 +56,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig  # noqa: E402
-from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig, precise_event_loop  # noqa: E402
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig  # noqa: E402
+from drivers.runtime import precise_event_loop  # noqa: E402
 
 
 def _realtime(priority: int) -> bool:
@@ -247,7 +248,7 @@ def main() -> int:
     realtime = _realtime(args.sim_priority) if args.realtime else False
     held = False
     if args.cpu_latency_us is not None:
-        from cellctl.daemon.service import hold_cpu_wakeup_latency
+        from drivers.runtime import hold_cpu_wakeup_latency
 
         held = hold_cpu_wakeup_latency(args.cpu_latency_us)
     child_argv = [a for a in sys.argv[1:] if a != "--realtime"] + (["--realtime"] if realtime else [])

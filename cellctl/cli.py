@@ -8,6 +8,8 @@ sets ``func(args) -> int`` as the handler. Exit codes: 0 success (or "pass"), 1 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -19,6 +21,7 @@ EXIT_OK = 0
 EXIT_FAIL = 1
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a tool whose reader went away
 
 
 class _Parser(argparse.ArgumentParser):
@@ -58,6 +61,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_ERROR
     try:
         return int(args.func(args))
+    except BrokenPipeError:
+        # the reader went away (`cellctl status | head`): stop quietly, as a shell tool does; stdout
+        # goes to /dev/null so that the interpreter's final flush does not fail again
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except KeyboardInterrupt:
         print("cellctl: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

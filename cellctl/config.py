@@ -32,6 +32,7 @@ from pydantic import (
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from analysis.placement import Placement
+from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S
 
 ENV_PREFIX = "CELL_"
 ENV_DELIMITER = "__"
@@ -48,12 +49,61 @@ Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
 
 _ZENOH_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/(\[[0-9a-fA-F:]+\]|[^/:\s]+):\d{1,5}$")
 _SECRET_WORDS = ("password", "passwd", "secret", "token")
+#: an environment variable's name (what every ``*_env`` key holds: never the secret itself)
+_ENV_NAME = re.compile(r"[A-Z_][A-Z0-9_]{0,127}")
+
+# Physical and sane bounds. The joint ranges and speeds are the IRB 4600-40/2.55's
+# (drivers/abb_egm/kinematics.py, from its product specification); the others are sanity bounds
+# well beyond what the cell does, so that a typo (1e12) is refused while any real setting passes.
+#: TCP speed, mm/s: beyond any industrial arm's tool speed
+TCP_SPEED_BOUND_MM_S = 10_000.0
+#: joint acceleration, deg/s^2, and jerk, deg/s^3
+JOINT_ACCEL_BOUND_DEG_S2 = 10_000.0
+JOINT_JERK_BOUND_DEG_S3 = 1_000_000.0
+#: each workspace coordinate, mm: the 2.55 m reach plus tool, sensor and stand-off, with room
+WORKSPACE_BOUND_MM = 4_000.0
+#: profiles per second: the HD8's top rate (the simulator's max_rate_hz)
+LASER_RATE_BOUND_HZ = 1_000.0
+
+
+def _seconds(hi: float, default_gt: float = 0.0) -> Any:
+    return Annotated[float, Field(gt=default_gt, le=hi, allow_inf_nan=False)]
+
+
+EnvName = Annotated[str, Field(min_length=1, max_length=128)]
 
 
 class Section(BaseModel):
-    """Base of every section: frozen, unknown keys rejected."""
+    """Base of every section: frozen, unknown keys rejected, no boolean where a number is meant
+    (``rate_hz = true`` would otherwise be 1 Hz)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_as_number(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        for name, value in data.items():
+            field = cls.model_fields.get(name)
+            if field is None or "bool" in str(field.annotation):
+                continue
+            values = value if isinstance(value, list) else [value]
+            if any(isinstance(v, bool) for v in values):
+                raise ValueError(f"{name}: expected a number, got a boolean")
+        return data
+
+    @field_validator("*")
+    @classmethod
+    def _env_keys_name_variables(cls, v: Any, info: Any) -> Any:
+        # A *_env key holds the NAME of an environment variable; a password typed into it would be
+        # logged as "variable ... is not set". The value is never echoed.
+        if info.field_name.endswith("_env") and isinstance(v, str) and not _ENV_NAME.fullmatch(v):
+            raise ValueError(
+                "expected the name of an environment variable (A-Z, 0-9, _), not its value; "
+                "the value given is not shown"
+            )
+        return v
 
 
 class Pose(Section):
@@ -73,8 +123,8 @@ class RobotSection(Section):
     # EGM (UDP): the controller sends to egm_host:egm_port and we answer to its source address.
     egm_host: str = "127.0.0.1"
     egm_port: Port = 6511
-    egm_comm_timeout_s: PositiveFloat = 1.0
-    egm_watchdog_s: PositiveFloat = 0.1
+    egm_comm_timeout_s: _seconds(60.0) = 1.0
+    egm_watchdog_s: _seconds(10.0) = 0.1
     egm_history_len: Annotated[int, Field(ge=1000, le=10_000_000)] = 30_000
     # EGM replies from their own thread (docs/robot-setup.md section 12, benchmarks/egm_latency.py)
     egm_reply_thread: bool = True
@@ -88,9 +138,9 @@ class RobotSection(Section):
     rws_user: str = "Default User"
     rws_password_env: str = "CELL_RWS_PASSWORD"
     rws_password_file: Path | None = None
-    rws_timeout_s: PositiveFloat = 5.0
+    rws_timeout_s: _seconds(120.0) = 5.0
     rws_ca_file: Path | None = None
-    rws_poll_interval_s: PositiveFloat = 0.2
+    rws_poll_interval_s: _seconds(10.0) = 0.2
     rws_mechunit: str = "ROB_1"
     # The RAPID module of drivers/abb_egm/rapid (CellEgm.mod) and the EGM settings written to it.
     rapid_task: str = "T_ROB1"
@@ -98,9 +148,9 @@ class RobotSection(Section):
     egm_pos_corr_gain: Annotated[float, Field(ge=0, le=20)] = 1.0
     egm_max_speed_deviation_deg_s: PositiveFloat = 1000.0
     egm_max_pos_deviation_deg: PositiveFloat = 1000.0
-    egm_cond_time_s: PositiveFloat = 1e6
-    egm_ramp_in_s: PositiveFloat = 0.05
-    egm_lp_filter_hz: PositiveFloat = 20.0
+    egm_cond_time_s: _seconds(1e7) = 1e6
+    egm_ramp_in_s: _seconds(60.0) = 0.05
+    egm_lp_filter_hz: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] = 20.0
     egm_sample_rate_ms: Annotated[int, Field(ge=4, le=1000, multiple_of=4)] = 4
     # Limits every commanded set-point is checked against (IRB 4600-40/2.55 defaults, with margins).
     joint_lower_deg: Joint6 = [-180.0, -90.0, -180.0, -400.0, -125.0, -400.0]
@@ -109,10 +159,10 @@ class RobotSection(Section):
     joint_speed_max_deg_s: PositiveJoint6 = [175.0, 175.0, 175.0, 250.0, 250.0, 360.0]
     joint_accel_max_deg_s2: PositiveJoint6 = [300.0, 300.0, 300.0, 600.0, 600.0, 800.0]
     joint_jerk_max_deg_s3: PositiveJoint6 = [3000.0, 3000.0, 3000.0, 6000.0, 6000.0, 8000.0]
-    tcp_speed_max_mm_s: PositiveFloat = 250.0
+    tcp_speed_max_mm_s: Annotated[float, Field(gt=0, le=TCP_SPEED_BOUND_MM_S, allow_inf_nan=False)] = 250.0
     workspace_min_mm: Vec3 = [-500.0, -2000.0, 100.0]
     workspace_max_mm: Vec3 = [2600.0, 2000.0, 2400.0]
-    tracking_error_max_mm: PositiveFloat = 5.0
+    tracking_error_max_mm: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 5.0
     # Planning: smallest |joint 5| along a plan (distance from the wrist singularity).
     wrist_margin_deg: Annotated[float, Field(ge=0, lt=90, allow_inf_nan=False)] = 5.0
     # Mounting: flange -> sensor (laser) frame, from the hand-eye calibration.
@@ -131,13 +181,40 @@ class RobotSection(Section):
     @model_validator(mode="after")
     def _limits_ordered(self) -> RobotSection:
         for i, (lo, hi) in enumerate(zip(self.joint_lower_deg, self.joint_upper_deg, strict=True)):
+            if lo < Q_MIN_DEG[i] or hi > Q_MAX_DEG[i]:
+                raise ValueError(
+                    f"joint {i + 1}: limits [{lo}, {hi}] deg leave the IRB 4600's range "
+                    f"[{Q_MIN_DEG[i]:g}, {Q_MAX_DEG[i]:g}] deg"
+                )
             if not lo < hi:
                 raise ValueError(
                     f"joint {i + 1}: joint_lower_deg ({lo}) must be below joint_upper_deg ({hi})"
                 )
             if 2 * self.joint_margin_deg >= hi - lo:
                 raise ValueError(f"joint {i + 1}: joint_margin_deg leaves no usable range")
+        for i, (v, a, j) in enumerate(
+            zip(
+                self.joint_speed_max_deg_s,
+                self.joint_accel_max_deg_s2,
+                self.joint_jerk_max_deg_s3,
+                strict=True,
+            )
+        ):
+            if v > QD_MAX_DEG_S[i]:
+                raise ValueError(
+                    f"joint {i + 1}: joint_speed_max_deg_s ({v}) exceeds the IRB 4600's {QD_MAX_DEG_S[i]:g} deg/s"
+                )
+            if a > JOINT_ACCEL_BOUND_DEG_S2 or j > JOINT_JERK_BOUND_DEG_S3:
+                raise ValueError(
+                    f"joint {i + 1}: acceleration {a} deg/s^2 / jerk {j} deg/s^3 beyond the bounds "
+                    f"{JOINT_ACCEL_BOUND_DEG_S2:g} / {JOINT_JERK_BOUND_DEG_S3:g}"
+                )
         for axis, lo, hi in zip("xyz", self.workspace_min_mm, self.workspace_max_mm, strict=True):
+            if max(abs(lo), abs(hi)) > WORKSPACE_BOUND_MM:
+                raise ValueError(
+                    f"workspace {axis}: [{lo}, {hi}] mm reaches beyond +-{WORKSPACE_BOUND_MM:g} mm "
+                    "(the arm's 2.55 m reach with tool and sensor)"
+                )
             if not lo < hi:
                 raise ValueError(
                     f"workspace {axis}: workspace_min_mm ({lo}) must be below workspace_max_mm ({hi})"
@@ -155,14 +232,14 @@ class LaserSection(Section):
     data_port: Port = 3196
     line_width_mm: PositiveFloat = 50.0
     points_per_profile: Annotated[int, Field(ge=2, le=4096)] = 500
-    rate_hz: PositiveFloat = 200.0
+    rate_hz: Annotated[float, Field(gt=0, le=LASER_RATE_BOUND_HZ, allow_inf_nan=False)] = 200.0
     exposure_us: Annotated[float, Field(ge=10, le=100_000)] = 500.0
     depth_min_mm: PositiveFloat = 70.0
     depth_max_mm: PositiveFloat = 130.0
     latency_ms: Finite = 0.0
     # which sensor stamp the acquisition uses: "us" (protocol's mid-exposure us) or "ms" (HD8 counter)
     sensor_clock: Literal["us", "ms"] = "us"
-    watchdog_s: PositiveFloat = 0.5
+    watchdog_s: _seconds(60.0) = 0.5
     buffer_profiles: Annotated[int, Field(ge=100)] = 20_000
 
     @model_validator(mode="after")
@@ -251,7 +328,7 @@ class ZenohSection(Section):
     connect: list[str] = []
     multicast_scouting: bool = False
     key_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-{}]+(/[A-Za-z0-9_\-{}]+)*$")] = "cell/{cell_id}"
-    trigger_timeout_s: PositiveFloat = 10.0
+    trigger_timeout_s: _seconds(600.0) = 10.0
     shm_pool_mb: Annotated[int, Field(ge=0, le=65536)] = 0
     access: ZenohAccess = ZenohAccess()
 
@@ -305,10 +382,10 @@ class AnalysisSection(Section):
     callable: Annotated[str, Field(pattern=r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")] = (
         "analysis.pipeline:analyse_job"
     )
-    heartbeat_s: PositiveFloat = 1.0
-    ack_timeout_s: PositiveFloat = 10.0
-    heartbeat_timeout_s: PositiveFloat = 10.0
-    job_timeout_s: PositiveFloat = 900.0
+    heartbeat_s: _seconds(60.0) = 1.0
+    ack_timeout_s: _seconds(3600.0) = 10.0
+    heartbeat_timeout_s: _seconds(3600.0) = 10.0
+    job_timeout_s: _seconds(86_400.0) = 900.0
     max_attempts: Annotated[int, Field(ge=1, le=10)] = 3
 
     @model_validator(mode="after")
@@ -366,7 +443,7 @@ class SimFaults(Section):
 
 
 class SimSection(Section):
-    egm_cycle_ms: PositiveFloat = 4.032
+    egm_cycle_ms: Annotated[float, Field(ge=1, le=100, allow_inf_nan=False)] = 4.032
     egm_q_start_deg: Joint6 = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]
     egm_stream_when_idle: bool = True
     rws_port: Port = 8080
@@ -398,8 +475,12 @@ class SimSection(Section):
     def _users_name_env_vars(cls, v: dict[str, str]) -> dict[str, str]:
         # Values are the *names* of environment variables holding the simulator's passwords.
         for user, env in v.items():
-            if not re.fullmatch(r"[A-Z_][A-Z0-9_]*", env):
-                raise ValueError(f"user {user!r}: expected an environment variable name, got {env!r}")
+            if not _ENV_NAME.fullmatch(env):
+                # never echo the value: it may be the password itself
+                raise ValueError(
+                    f"user {user!r}: expected the name of an environment variable (A-Z, 0-9, _) holding "
+                    "its password, not the password; the value given is not shown"
+                )
         return v
 
 
@@ -511,9 +592,16 @@ def _problems_from(err: ValidationError, env_keys: set[str]) -> list[str]:
             or e["type"] == "assertion_error"
         ):
             problems.append(f"{path}{origin}: {msg}")
+        elif _secret_bearing(loc):
+            problems.append(f"{path}{origin}: {msg} (the value given is not shown)")
         else:
             problems.append(f"{path}{origin} = {_format_value(e.get('input'))}: {msg}")
     return problems
+
+
+def _secret_bearing(loc: list[str]) -> bool:
+    """A key whose value may be (or name) a secret: ``*_env``, ``*_file``, ``sim.rws_users``."""
+    return any(p.endswith(("_env", "_file")) or p == "rws_users" or _looks_secret(p) for p in loc)
 
 
 def _env_sections() -> set[str]:
@@ -553,6 +641,11 @@ def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> CellConfig:
         raise ConfigError(str(path), ["TOML nested too deeply"]) from None
     except ValueError as exc:  # a value tomllib cannot convert, e.g. an integer beyond 4300 digits
         raise ConfigError(str(path), [f"TOML value cannot be read: {str(exc)[:120]}"]) from None
+    if not data:  # an empty file would run a cell on every default: name what is missing
+        raise ConfigError(
+            str(path),
+            ["the file is empty: required section [cell] (the cell's id, data_dir, designs_dir) is missing"],
+        )
     return parse_config(data, str(path))
 
 

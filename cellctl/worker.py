@@ -58,7 +58,7 @@ from cellctl.api.session import (
     open_session,
     subscribe,
 )
-from cellctl.signals import stop_on_signals
+from drivers.runtime import stop_on_signals
 
 log = structlog.get_logger(__name__)
 

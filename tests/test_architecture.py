@@ -34,12 +34,7 @@ SIM_DOORS = {"cellctl.commands.sim_cmd": "cellctl.simcell"}
 
 #: (importer, imported module) -> why it is still there. Each entry must still be needed (a test
 #: below fails on a stale one, so the list only shrinks).
-PENDING: dict[tuple[str, str], str] = {
-    ("cellctl.commands.run_cmd", "drivers.abb_egm.sim.egm"): (
-        "precise_event_loop moves out of the EGM simulator into the daemon's runtime module "
-        "(issue 15, the daemon split)"
-    ),
-}
+PENDING: dict[tuple[str, str], str] = {}
 
 
 @dataclass(frozen=True)

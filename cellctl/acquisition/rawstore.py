@@ -152,6 +152,11 @@ class _StreamBuffer:
     max_seq: int = -1
 
 
+#: modes of a job's raw directory and files (group-readable for QA and backup, nobody else)
+RAW_DIR_MODE = 0o750
+RAW_FILE_MODE = 0o640
+
+
 class RawWriter:
     """Appends records to a job's raw files with chunked, fsync'ed writes.
 
@@ -177,7 +182,10 @@ class RawWriter:
         max_queued_chunks: int = 8,
     ) -> None:
         self.job_dir = Path(job_dir)
-        self.job_dir.mkdir(parents=True, exist_ok=True)
+        # a shipyard's raw scans are confidential: owner read/write, group read, nobody else (as the
+        # job store's directories, cellctl/daemon/jobs.py DIR_MODE), whatever the umask
+        self.job_dir.mkdir(mode=RAW_DIR_MODE, parents=True, exist_ok=True)
+        os.chmod(self.job_dir, RAW_DIR_MODE)
         if any((self.job_dir / f"{s}.craw").exists() for s in STREAMS):
             raise FileExistsError(
                 f"{self.job_dir} already holds raw files; a job's raw data is never overwritten"
@@ -192,13 +200,15 @@ class RawWriter:
         self.bytes_written = 0
         tmp = self.job_dir / (JOB_META + ".tmp")
         tmp.write_text(json.dumps(meta, indent=2, sort_keys=True))
+        os.chmod(tmp, RAW_FILE_MODE)
         self._sync_path(tmp)
         os.replace(tmp, self.job_dir / JOB_META)
         self._streams: dict[str, _StreamBuffer] = {}
         for s in STREAMS:
             fd = os.open(
-                self.job_dir / f"{s}.craw", os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o644
+                self.job_dir / f"{s}.craw", os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, RAW_FILE_MODE
             )
+            os.fchmod(fd, RAW_FILE_MODE)  # the umask may have taken more
             name = s.encode()
             os.write(fd, FILE_MAGIC + struct.pack("<II", VERSION, len(name)) + name)
             if fsync:
@@ -348,6 +358,25 @@ def read_job_meta(job_dir: str | Path) -> dict[str, Any]:
         raise RawFormatError(f"{path}: not valid JSON ({exc})") from None
 
 
+def _first_valid_chunk(data: memoryview, start: int) -> int:
+    """Byte offset of the first chunk at or after ``start`` whose magic, length and CRC hold (-1: none)."""
+    raw = bytes(data)
+    magic = struct.pack("<I", CHUNK_MAGIC)
+    pos = raw.find(magic, start)
+    while pos >= 0:
+        if len(raw) - pos >= CHUNK.size:
+            _m, plen, crc, _n = CHUNK.unpack_from(raw, pos)
+            body = pos + CHUNK.size
+            if (
+                plen <= MAX_CHUNK_BYTES
+                and body + plen <= len(raw)
+                and zlib.crc32(raw[body : body + plen]) == crc
+            ):
+                return pos
+        pos = raw.find(magic, pos + 1)
+    return -1
+
+
 class RawReader:
     """Reads a job's raw files; stops each stream at the first incomplete or corrupt chunk."""
 
@@ -365,9 +394,21 @@ class RawReader:
             return []
         name = stream.encode()
         head = FILE_MAGIC + struct.pack("<II", VERSION, len(name)) + name
-        if bytes(data[: len(head)]) != head:
-            raise RawFormatError(f"{path}: bad file header {bytes(data[: len(head)]).hex()}")
         pos = len(head)
+        if bytes(data[: len(head)]) != head:
+            # A damaged header loses nothing else: the chunks carry their own magic and CRC, so the
+            # reader resumes at the first chunk whose CRC holds (and the other streams are unaffected).
+            found = _first_valid_chunk(data, 0)
+            self.report.problems.append(
+                f"{path.name}: bad file header {bytes(data[: len(head)]).hex()}"
+                + (f"; resumed at the chunk at byte {found}" if found >= 0 else "; no chunk found after it")
+            )
+            if found < 0:
+                self.report.chunks[stream] = 0
+                self.report.records[stream] = 0
+                self.report.torn_bytes[stream] = len(data)
+                return []
+            pos = found
         out: list[RawRecord] = []
         chunks = 0
         while pos < len(data):

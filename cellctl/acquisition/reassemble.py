@@ -133,7 +133,14 @@ def reassemble(job_dir: str | Path, overrides: dict | None = None, *, final: boo
     Raises:
         RawFormatError: not a job directory, or a record that cannot be interpreted.
     """
+    job_dir = Path(job_dir)
+    if not (job_dir / "profiles.craw").exists() and (job_dir / "raw" / "profiles.craw").exists():
+        job_dir = job_dir / "raw"  # the daemon's job directory stands for its raw/ directory
     reader = RawReader(job_dir)
+    if not isinstance(reader.meta.get("acquisition"), dict):
+        raise RawFormatError(
+            f"{job_dir / 'job.json'}: no 'acquisition' settings: not the raw directory of a scan"
+        )
     settings = AcquisitionSettings.from_json({**reader.meta["acquisition"], **(overrides or {})})
     records = reader.records()
     fixed = final_fits(records, settings) if final else {}

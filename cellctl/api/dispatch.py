@@ -13,8 +13,9 @@ Protocol (keys in :class:`cellctl.api.Keys`, payloads in docs/api.md):
    heartbeats stop for ``heartbeat_timeout_s``, when the attempt exceeds ``job_timeout_s``, or
    when the worker reports that its analysis process died. A worker that is busy ``rejected``
    the job: re-queued without counting an attempt. After ``max_attempts`` the job fails.
-5. The first report of a job resolves it; a later one (from a worker it was taken from) is
-   ignored, and a worker still holding a job that was resolved elsewhere is told to cancel.
+5. A report resolves its job only when it comes from the worker the job is assigned to, for its
+   current attempt; any other report (another worker's id, an attempt taken back, a job the
+   sender does not hold) is refused, logged and counted (``refused_reports``).
 
 No worker at all: jobs wait in the queue and go out when a worker appears. The dispatcher persists
 nothing; :class:`DispatchHooks` lets the daemon record every transition.
@@ -138,6 +139,7 @@ class Dispatcher:
         self._sends: set[asyncio.Task[None]] = set()
         self._shm: Any = None
         self.malformed = 0
+        self.refused_reports = 0
 
     # ------------------------------------------------------------------------------------- public
 
@@ -359,13 +361,21 @@ class Dispatcher:
         except ValidationError as exc:
             self._malformed("report_malformed", str(sample.key_expr), exc)
             return
-        job = self._jobs.pop(env.job_id, None)
+        job = self._jobs.get(env.job_id)
         if job is None:
             log.info("report_ignored", job_id=env.job_id, worker_id=env.worker_id, reason="not pending")
             return
-        if job.worker_id is not None and job.worker_id != env.worker_id:
-            # Resolved by an earlier attempt after all: the current holder can stop.
-            self._cancel_on(job.worker_id, job.job_id)
+        if job.worker_id != env.worker_id or job.attempt != env.attempt:
+            # Only the worker the job is assigned to, for its current attempt, reports it: anything
+            # else (a peer on an open link naming another worker, a worker for a job it does not
+            # hold, a late report of an attempt taken back) is refused and the analysis goes on.
+            self.refused_reports += 1
+            log.warning(
+                "report_refused", job_id=env.job_id, worker_id=env.worker_id, attempt=env.attempt,
+                assigned_to=job.worker_id, current_attempt=job.attempt, key=str(sample.key_expr),
+            )  # fmt: skip
+            return
+        del self._jobs[env.job_id]
         self._release(job)
         with contextlib.suppress(ValueError):
             self._queue.remove(job.job_id)

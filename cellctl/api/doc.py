@@ -35,6 +35,7 @@ from cellctl.api.models import (
     EgmStats,
     JobEvent,
     JobSpec,
+    LiveCloudChunk,
     ReportEnvelope,
     TriggerRequest,
 )
@@ -47,7 +48,7 @@ MODELS: dict[str, type] = {
     for m in (
         TriggerRequest, Placement, JobSpec, AnalysisJob, InspectionSettings, DetectionLayout, Tolerances,
         JobEvent, ReportEnvelope, Report, RegistrationReport, LineReport, ScanCoverage, SurfaceReport,
-        ReportInputs, DesignReport, DaemonStats, EgmStats,
+        ReportInputs, DesignReport, DaemonStats, EgmStats, LiveCloudChunk,
     )
 }  # fmt: skip
 DOC = Path(__file__).resolve().parents[2] / "docs" / "api.md"

@@ -67,6 +67,10 @@ class Keys:
         """Publication by the worker holding a job: JobEvent JSON (accepted, heartbeat, done, ...)."""
         return f"{self.prefix}/jobs/{job_id}/event"
 
+    def live_cloud(self, job_id: str = "*") -> str:
+        """Publication by the daemon during a scan: LiveCloudChunk JSON (thinned points, for displays)."""
+        return f"{self.prefix}/jobs/{job_id}/live"
+
     def report(self, job_id: str = "*") -> str:
         """Publication: ReportEnvelope JSON (large, CongestionControl.BLOCK)."""
         return f"{self.prefix}/reports/{job_id}"

@@ -55,6 +55,7 @@ __all__ = [
     "JobProgress",
     "JobSpec",
     "JobState",
+    "LiveCloudChunk",
     "Model",
     "Placement",
     "QueuedJob",
@@ -154,7 +155,8 @@ class TriggerRequest(Model):
         p = PurePosixPath(v)
         if p.is_absolute():
             raise ValueError("must be relative to designs_dir, not absolute")
-        if any(part in ("..", ".") for part in p.parts) or v.startswith("~"):
+        # the raw components: PurePosixPath drops "." ("./x.ply" has the parts ("x.ply",))
+        if any(part in ("..", ".") for part in v.split("/")) or v.startswith("~"):
             raise ValueError("must not contain '..', '.' or '~' components")
         if p.suffix.lower() not in DESIGN_SUFFIXES:
             raise ValueError(f"must end in one of {', '.join(DESIGN_SUFFIXES)}")
@@ -470,6 +472,18 @@ class JobEvent(Model):
     event: Literal["accepted", "heartbeat", "done", "failed", "rejected", "cancelled"]
     message: str = ""
     t_utc: str = ""
+
+
+class LiveCloudChunk(Model):
+    """The daemon -> displays, on ``Keys.live_cloud`` during a scan: the points assembled since the
+    previous chunk, thinned (every few profiles, every few points along the line), base frame, mm,
+    rounded to 0.1 mm. ``seq`` counts from 0 per job (a gap: a chunk was dropped); ``profiles``: the
+    scan's profiles so far. For the eye only: the analysis gets the full cloud on ``worker_job``."""
+
+    job_id: str
+    seq: Annotated[int, Field(ge=0)]
+    profiles: Annotated[int, Field(ge=0)] = 0
+    xyz_mm: list[tuple[float, float, float]] = []
 
 
 class ReportEnvelope(Model):

@@ -90,7 +90,7 @@ def _rule(rule_id: str, flow: str, messages: list[str], prefix: str, keys: list[
 # What each role may do, seen from the serving node (the daemon or the router): "ingress" is what the
 # user's session sends in, "egress" what is forwarded to it. Keys are relative to the cell's prefix
 # (cellctl.api.Keys). Declarations flowing out reveal key names only, so every role receives them.
-_READ_KEYS = ["state", "reports/*", "jobs/*/event"]
+_READ_KEYS = ["state", "reports/*", "jobs/*/event", "jobs/*/live"]
 _WORKER_IN_KEYS = ["workers/*/jobs/*", "workers/*/cancel/*"]
 _DECLARATIONS = [
     "declare_subscriber",

@@ -5,6 +5,7 @@ from cellctl.commands import (
     config_cmd,
     demo_cmd,
     design_cmd,
+    hmi_cmd,
     inspect_cmd,
     plan_cmd,
     report_cmd,
@@ -22,6 +23,7 @@ COMMAND_MODULES = [
     run_cmd,
     worker_cmd,
     scan_cmd,  # scan, status, watch
+    hmi_cmd,  # hmi, history
     plan_cmd,
     inspect_cmd,
     design_cmd,

@@ -10,6 +10,10 @@ The default demo plate is a 600 x 400 mm sail scanned at 1 mm profile spacing, s
 about two minutes on two cores; ``--full`` scans the paper's 1200 x 800 mm plate at cell.toml's
 settings. The job is done when report.json is stored; the HTML / PDF render follows, and the demo
 waits for it before it stops the processes.
+
+``--hmi`` also starts `cellctl hmi` on http://127.0.0.1:8088 (one user per role, passwords printed)
+before the scan, and keeps the whole cell running after it until Ctrl-C: start more scans from the
+browser.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
 
 EXIT_OK, EXIT_ERROR = 0, 2
 DEMO_DESIGN = "demo-plate.ply"
+HMI_ADDRESS = "127.0.0.1:8088"
 
 
 class DemoError(Exception):
@@ -266,6 +271,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="base cell.toml (default: ./cell.toml)")
     p.add_argument("--timeout-s", type=float, default=900.0, help="give up on the scan after this")
+    p.add_argument(
+        "--hmi",
+        action="store_true",
+        help=f"also serve the HMI on http://{HMI_ADDRESS} and keep the cell running until Ctrl-C",
+    )
     p.set_defaults(func=run)
 
 
@@ -310,6 +320,8 @@ def run(args: argparse.Namespace) -> int:
         wait_ready_line(out / "logs" / "sim.out", sim, 120.0)
         procs.start("run", "run")
         procs.start("worker", "worker")
+        if args.hmi:
+            start_hmi(procs, out, cfg)
         job_id, report, message = asyncio.run(drive_scan(cfg_dict, cfg, procs, args.timeout_s))
         if report is not None:
             print(line_table(report))
@@ -318,6 +330,13 @@ def run(args: argparse.Namespace) -> int:
         if html:
             print(f"html report: {html}")
         print(f"demo finished in {time.monotonic() - t0:.0f} s (job {job_id})", flush=True)
+        if args.hmi:
+            print(
+                f"the cell keeps running: HMI on http://{HMI_ADDRESS}/ (Ctrl-C stops everything)", flush=True
+            )
+            while True:
+                procs.check_alive()
+                time.sleep(1.0)
         return EXIT_OK
     except DemoError as exc:
         print(f"cellctl demo: error: {exc}", file=sys.stderr)
@@ -328,6 +347,29 @@ def run(args: argparse.Namespace) -> int:
     finally:
         procs.stop_all()
         signal.signal(signal.SIGTERM, previous)
+
+
+def start_hmi(procs: Processes, out: Path, cfg: Any) -> None:
+    """Start `cellctl hmi` on HMI_ADDRESS with one user per role (passwords made up now, printed,
+    and kept in ``out/hmi-passwords.txt``, mode 600; the users file holds only their hashes)."""
+    import secrets
+
+    from cellctl.hmi.auth import ROLES, add_user
+
+    users, lines = out / "hmi-users", []
+    for role in ROLES:
+        password = secrets.token_urlsafe(9)
+        add_user(users, role, role, password)
+        lines.append(f"{role}: {password}")
+    fd = os.open(out / "hmi-passwords.txt", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    pl = cfg.sim.placement.to_placement()
+    procs.start(
+        "hmi", "hmi", "--users", str(users), "--listen", HMI_ADDRESS,
+        "--default-placement", ",".join(str(v) for v in [*pl.pos_mm, pl.rpy_deg[2]]),
+    )  # fmt: skip
+    print(f"HMI: http://{HMI_ADDRESS}/  users (user: password): " + ", ".join(lines), flush=True)
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:

@@ -38,14 +38,23 @@ def resolve_results_dir(target: str, config_path: str) -> Path:
     """
     as_dir = Path(target)
     if as_dir.is_dir():
-        return as_dir
+        return _results_of(as_dir)
     if any(sep in target for sep in ("/", os.sep)) or target in (".", ".."):
         raise FileNotFoundError(f"{target}: no such directory")
     config = load_config(config_path)
     job_dir = config.cell.data_dir / "jobs" / target
     if not job_dir.is_dir():
         raise FileNotFoundError(f"{target}: neither a directory nor a job in {config.cell.data_dir / 'jobs'}")
-    return job_dir
+    return _results_of(job_dir)
+
+
+def _results_of(directory: Path) -> Path:
+    """A job directory (``<data_dir>/jobs/<JOB>``) stands for its ``results/``; a results directory
+    (or any other directory) for itself."""
+    results = directory / "results"
+    if (results / "report.json").exists():
+        return results
+    return directory
 
 
 def _open(path: Path) -> bool:

@@ -23,7 +23,7 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from cellctl.daemon.service import run_daemon
-    from drivers.abb_egm.sim.egm import precise_event_loop
+    from drivers.runtime import precise_event_loop
 
     try:
         cfg = load_config(args.config)

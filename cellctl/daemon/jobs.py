@@ -17,6 +17,9 @@ trigger, never on its own.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import fcntl
 import json
 import os
 from dataclasses import asdict, dataclass, field
@@ -25,7 +28,10 @@ from typing import Any
 
 import structlog
 
+from cellctl.acquisition.assembly import AssembledScan
+from cellctl.acquisition.session import AcquisitionSession
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
+from cellctl.motion import MotionExecutor
 
 log = structlog.get_logger(__name__)
 
@@ -53,7 +59,48 @@ def make_private_dir(path: Path) -> None:
 
 
 class JobStoreError(Exception):
-    """A job directory or record that cannot be read or written (names the path)."""
+    """A job directory or record that cannot be read or written (names the path); ``reason`` is
+    what was wrong, without the path."""
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason or message
+
+
+class DataDirLocked(JobStoreError):
+    """Another daemon holds the data directory (names it and, when known, that daemon's pid)."""
+
+
+#: the lock file a daemon holds in its data directory while it runs
+LOCK_NAME = "daemon.lock"
+
+
+def lock_data_dir(data_dir: str | Path) -> int:
+    """Take the data directory's exclusive lock (``flock`` on ``<data_dir>/daemon.lock``) without
+    waiting; returns the open descriptor (the lock lives as long as it; the kernel drops it when the
+    process dies, so a ``kill -9`` leaves no stale lock). Raises :class:`DataDirLocked` when another
+    process holds it: a second daemon on the same data stops before it touches a record."""
+    path = Path(data_dir) / LOCK_NAME
+    try:
+        # held read-only: an open file for writing would keep the data directory's file system from
+        # being remounted read-only (the operator's way to freeze a cell's data)
+        fd = os.open(path, os.O_RDONLY | os.O_CREAT, 0o640)
+    except OSError as exc:
+        raise JobStoreError(f"{path}: cannot open the lock file: {exc.strerror or exc}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = ""
+        with contextlib.suppress(OSError, ValueError):
+            holder = os.pread(fd, 32, 0).decode().strip()
+        os.close(fd)
+        raise DataDirLocked(
+            f"{Path(data_dir)}: another daemon is running on this data directory"
+            + (f" (pid {holder})" if holder else "")
+        ) from None
+    with contextlib.suppress(OSError):  # the holder's pid, for the second daemon's message
+        path.write_text(f"{os.getpid()}\n", encoding="ascii")
+    return fd
 
 
 @dataclass
@@ -65,7 +112,8 @@ class JobRecord:
         design_path: resolved absolute path. placement: ``{"pos_mm": [...], "rpy_deg": [...]}``.
         state: a :class:`cellctl.api.JobState` value. history: ``[{"state", "t_utc", "message"}]``.
         info: counters and results (profiles, points, scan_s, verdict, report path, ...).
-        analysis: the trigger's per-plate analysis options (``template_table``: the table's rows).
+        analysis: the trigger's per-plate analysis options (``template_table`` rows, ``design_side``,
+        ``thickness_mm``), kept so a re-analysis judges the plate the same way.
     """
 
     job_id: str
@@ -83,6 +131,23 @@ class JobRecord:
     @property
     def terminal(self) -> bool:
         return JobState(self.state) in TERMINAL
+
+
+class ActiveJob:
+    """A job the daemon is running (queued, scanning or analysing): its live objects beside its record."""
+
+    def __init__(self, record: JobRecord) -> None:
+        self.record = record
+        self.executor: MotionExecutor | None = None
+        self.profiles = 0
+        self.points = 0
+        self.fraction = 0.0
+        self.stage = "queued"
+        self.worker_id: str | None = None
+        self.stop_reason: str | None = None  # "shutdown", "abort" or "disk"
+        self.cloud: AssembledScan | None = None  # the live cloud of a finished scan, until published
+        self.task: asyncio.Task[None] | None = None
+        self.session: AcquisitionSession | None = None  # while the scan acquires
 
 
 class JobStore:
@@ -128,6 +193,8 @@ class JobStore:
                 os.fsync(f.fileno())
             os.replace(tmp, path)
         except OSError as exc:
+            with contextlib.suppress(OSError):  # no half-written temp file left beside the record
+                tmp.unlink()
             raise JobStoreError(f"{path}: cannot write the job record: {exc.strerror or exc}") from None
 
     def set_state(self, record: JobRecord, state: JobState, message: str = "", **info: Any) -> None:
@@ -139,13 +206,16 @@ class JobStore:
         log.info("job_state", job_id=record.job_id, state=record.state, message=message)
 
     def load(self, job_id: str) -> JobRecord:
-        """Read one record."""
+        """Read one record; JobStoreError when it cannot be read or is not a record this version knows
+        (an unknown state, a field of the wrong type)."""
         path = self.job_dir(job_id) / "job.json"
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
-            return JobRecord(**data)
+            if not isinstance(data, dict):
+                raise ValueError(f"expected a JSON object, got {type(data).__name__}")
+            return _checked(JobRecord(**data))
         except (OSError, ValueError, TypeError) as exc:
-            raise JobStoreError(f"{path}: unreadable job record: {exc}") from None
+            raise JobStoreError(f"{path}: unreadable job record: {exc}", str(exc)[:300]) from None
 
     def list(self) -> list[JobRecord]:
         """Every readable record, oldest first (job ids sort by time); unreadable ones are logged."""
@@ -159,36 +229,170 @@ class JobStore:
                 log.warning("job_record_unreadable", error=str(exc))
         return out
 
+    def quarantine(self, job_id: str, why: str) -> JobRecord:
+        """Set an unreadable or unknown record aside (``job.json.quarantined``, kept as it was) and
+        write a fresh ``interrupted`` one in its place, so the job's raw data stays re-analysable
+        (``control/reanalyse``); what could be read of the old record (plate, design, placement)
+        is carried over."""
+        d = self.job_dir(job_id)
+        path = d / "job.json"
+        old: dict[str, Any] = {}
+        with contextlib.suppress(OSError, ValueError):
+            data = json.loads(path.read_text(encoding="utf-8"))
+            old = data if isinstance(data, dict) else {}
+        aside = d / "job.json.quarantined"
+        with contextlib.suppress(OSError):
+            os.replace(path, aside)
+
+        def text(key: str) -> str:
+            v = old.get(key)
+            return v if isinstance(v, str) else ""
+
+        placement = old.get("placement")
+        rec = JobRecord(
+            job_id=job_id,
+            plate_id=text("plate_id") or "unknown",
+            design=text("design"),
+            design_path=text("design_path"),
+            placement=placement
+            if _is_placement(placement)
+            else {"pos_mm": [0.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]},
+            state=JobState.INTERRUPTED.value,
+            analysis=old["analysis"] if isinstance(old.get("analysis"), dict) else {},
+        )
+        raw = self.raw_dir(job_id)
+        rec.history.append(
+            {"state": rec.state, "t_utc": now_utc(),
+             "message": f"job record quarantined at start-up ({why}); raw data kept, re-analysable"}
+        )  # fmt: skip
+        rec.info.update(
+            quarantined=str(aside), quarantine_reason=why,
+            raw_files=sorted(p.name for p in raw.glob("*.craw")) if raw.is_dir() else [],
+        )  # fmt: skip
+        self.save(rec)
+        log.error("job_record_quarantined", job_id=job_id, reason=why, kept_as=str(aside))
+        return rec
+
     def recover(self) -> list[JobRecord]:
         """Mark every unfinished job interrupted (raw data left intact) and every queued one cancelled;
-        returns those jobs."""
+        quarantine records that cannot be read (:meth:`quarantine`). Returns those jobs; never raises
+        for one bad record (a record that cannot be written is logged and left as it is)."""
         found = []
-        for rec in self.list():
-            if rec.terminal:
+        for d in sorted(p for p in self.root.iterdir() if p.is_dir()):
+            if not (d / "job.json").exists():
                 continue
-            if rec.state == JobState.QUEUED.value:
-                self.set_state(
-                    rec,
-                    JobState.CANCELLED,
-                    "the daemon restarted while the job was queued; queued jobs never start on their own "
-                    "after a restart: trigger it again",
-                    cancelled_in=rec.state,
-                )
-                found.append(rec)
-                continue
-            raw = self.raw_dir(rec.job_id)
-            raw_files = sorted(p.name for p in raw.glob("*.craw")) if raw.is_dir() else []
-            self.set_state(
-                rec,
-                JobState.INTERRUPTED,
-                f"the daemon stopped during {rec.state}; raw data kept",
-                interrupted_in=rec.state,
-                raw_files=raw_files,
-            )
-            found.append(rec)
+            try:
+                try:
+                    rec = self.load(d.name)
+                except JobStoreError as exc:
+                    found.append(self.quarantine(d.name, exc.reason))
+                    continue
+                if not rec.terminal:
+                    found.append(self._recover_one(rec))
+            except JobStoreError as exc:
+                log.error("job_recovery_failed", job_id=d.name, error=str(exc))
         if found:
             log.warning("jobs_interrupted", jobs=[r.job_id for r in found])
         return found
+
+    def _recover_one(self, rec: JobRecord) -> JobRecord:
+        if rec.state == JobState.QUEUED.value:
+            self.set_state(
+                rec,
+                JobState.CANCELLED,
+                "the daemon restarted while the job was queued; queued jobs never start on their own "
+                "after a restart: trigger it again",
+                cancelled_in=rec.state,
+            )
+            return rec
+        raw = self.raw_dir(rec.job_id)
+        raw_files = sorted(p.name for p in raw.glob("*.craw")) if raw.is_dir() else []
+        self.set_state(
+            rec,
+            JobState.INTERRUPTED,
+            f"the daemon stopped during {rec.state}; raw data kept",
+            interrupted_in=rec.state,
+            raw_files=raw_files,
+        )
+        return rec
+
+
+class RecordRetry:
+    """Job records the disk refused (full, read-only), written again every ``period_s`` until it
+    takes them; the newest state of a record wins (the record object is the live one)."""
+
+    def __init__(self, store: JobStore, period_s: float = 2.0) -> None:
+        self.store = store
+        self.period_s = period_s
+        self._pending: dict[str, JobRecord] = {}
+        self._task: asyncio.Task[None] | None = None
+
+    def __len__(self) -> int:
+        return len(self._pending)
+
+    def add(self, record: JobRecord) -> None:
+        """Write ``record`` later (call it in the running loop)."""
+        self._pending[record.job_id] = record
+        if self._task is None or self._task.done():
+            self._task = asyncio.get_running_loop().create_task(self._run(), name="job-record-retry")
+
+    async def _run(self) -> None:
+        while self._pending:
+            await asyncio.sleep(self.period_s)
+            for job_id, record in list(self._pending.items()):
+                try:
+                    await asyncio.to_thread(self.store.save, record)
+                except JobStoreError as exc:
+                    log.warning("job_record_write_retry_failed", job_id=job_id, error=str(exc))
+                    continue
+                if self._pending.get(job_id) is record:
+                    del self._pending[job_id]
+                log.info("job_record_written", job_id=job_id, state=record.state)
+
+    def try_now(self) -> None:
+        """One last attempt for each pending record (shutdown); what still fails is logged."""
+        for job_id, record in list(self._pending.items()):
+            try:
+                self.store.save(record)
+            except JobStoreError as exc:
+                log.error("job_record_not_written", job_id=job_id, state=record.state, error=str(exc))
+                continue
+            del self._pending[job_id]
+            log.info("job_record_written", job_id=job_id, state=record.state)
+        if self._task is not None:
+            self._task.cancel()
+
+
+def _is_placement(v: Any) -> bool:
+    return (
+        isinstance(v, dict)
+        and all(isinstance(v.get(k), list) and len(v[k]) == 3 for k in ("pos_mm", "rpy_deg"))
+        and all(
+            isinstance(x, int | float) and not isinstance(x, bool)
+            for k in ("pos_mm", "rpy_deg")
+            for x in v[k]
+        )
+    )
+
+
+def _checked(rec: JobRecord) -> JobRecord:
+    """``rec`` when every field has the type and the state a value this version knows (ValueError)."""
+    JobState(rec.state)  # ValueError for a state of another version (e.g. "reanalysing")
+    for name in ("job_id", "plate_id", "design", "design_path", "note", "created_utc"):
+        if not isinstance(getattr(rec, name), str):
+            raise ValueError(f"{name}: expected a string, got {type(getattr(rec, name)).__name__}")
+    if not isinstance(rec.history, list) or not all(
+        isinstance(h, dict) and isinstance(h.get("state"), str) and isinstance(h.get("message", ""), str)
+        for h in rec.history
+    ):
+        raise ValueError("history: expected a list of {state, t_utc, message}")
+    if not isinstance(rec.info, dict):
+        raise ValueError(f"info: expected an object, got {type(rec.info).__name__}")
+    if not isinstance(rec.analysis, dict):
+        raise ValueError(f"analysis: expected an object, got {type(rec.analysis).__name__}")
+    if not _is_placement(rec.placement):
+        raise ValueError("placement: expected {pos_mm: [x, y, z], rpy_deg: [r, p, y]}")
+    return rec
 
 
 def _json_default(obj: Any) -> Any:

@@ -31,8 +31,8 @@ import structlog
 
 from cellctl.acquisition.poses import T_from_pos_rpy
 from cellctl.config import CellConfig
-from cellctl.signals import stop_on_signals
 from cellctl.simcell.truth import PlateTruth, plate_truth
+from drivers.runtime import stop_on_signals
 
 log = structlog.get_logger(__name__)
 
@@ -215,7 +215,7 @@ async def _serve_sim(cfg: CellConfig, stop: asyncio.Event) -> int:
         log.error("sim_start_failed", error=str(exc))
         return 2
     # After start: the renderer processes already exist and keep normal priority.
-    from cellctl.daemon.service import use_realtime_loop
+    from drivers.runtime import use_realtime_loop
 
     use_realtime_loop()
     fault_session = None
@@ -241,7 +241,7 @@ async def _serve_sim(cfg: CellConfig, stop: asyncio.Event) -> int:
 
 def main_sync(cfg: CellConfig) -> int:
     """Blocking entry (the precise event loop keeps the 4 ms EGM cycle on time)."""
-    from drivers.abb_egm.sim.egm import precise_event_loop
+    from drivers.runtime import precise_event_loop
 
     with asyncio.Runner(loop_factory=precise_event_loop) as runner:
         return runner.run(run_sim(cfg))

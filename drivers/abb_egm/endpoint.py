@@ -32,7 +32,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
-import os
 import socket
 import struct
 import sys
@@ -58,6 +57,7 @@ from drivers.abb_egm.codec import (
     robot_from_pb,
 )
 from drivers.abb_egm.ring import ring_indices, ring_search, ring_start
+from drivers.runtime import set_thread_realtime
 
 __all__ = [
     "LATENCY_BIN_EDGES_US",
@@ -851,20 +851,16 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     def _configure_reply_thread(self) -> None:
         """Pin and prioritise the calling (reply) thread as configured; refusals are logged, not fatal."""
         cfg = self.config
-        if cfg.reply_thread_cpus:
-            try:
-                os.sched_setaffinity(0, cfg.reply_thread_cpus)
-            except OSError as exc:
+        refused = set_thread_realtime(cfg.reply_thread_priority, tuple(cfg.reply_thread_cpus))
+        for why in refused:
+            if why.startswith("affinity"):
                 self._post(log.warning, "egm_reply_thread_affinity_refused", cpus=cfg.reply_thread_cpus,
-                           error=str(exc))  # fmt: skip
-        if cfg.reply_thread_priority > 0:
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(cfg.reply_thread_priority))
-            except OSError as exc:
-                self._post(log.warning, "egm_reply_thread_realtime_refused",
-                           priority=cfg.reply_thread_priority, error=str(exc))  # fmt: skip
+                           error=why)  # fmt: skip
             else:
-                self._post(log.info, "egm_reply_thread_realtime", priority=cfg.reply_thread_priority)
+                self._post(log.warning, "egm_reply_thread_realtime_refused",
+                           priority=cfg.reply_thread_priority, error=why)  # fmt: skip
+        if cfg.reply_thread_priority > 0 and not any(w.startswith("SCHED_FIFO") for w in refused):
+            self._post(log.info, "egm_reply_thread_realtime", priority=cfg.reply_thread_priority)
 
     # ---- internals ----------------------------------------------------------------------------
 

@@ -23,7 +23,8 @@ from drivers.abb_egm.codec import (
     encode_robot,
 )
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig, precise_event_loop
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
+from drivers.runtime import precise_event_loop
 
 Q0 = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
 

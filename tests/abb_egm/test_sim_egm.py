@@ -29,9 +29,9 @@ from drivers.abb_egm.sim.egm import (
     FaultError,
     TrajectoryRangeError,
     TrajectoryRecorder,
-    precise_event_loop,
 )
 from drivers.abb_egm.sim.model import ControllerModel
+from drivers.runtime import precise_event_loop
 
 CYCLE_S = 0.004032
 Q_START = np.array([0.0, 10.0, -10.0, 0.0, 30.0, 0.0])

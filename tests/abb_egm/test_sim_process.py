@@ -18,7 +18,8 @@ from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD, ControllerSim, ControllerSimConfig
 from drivers.abb_egm.sim.controller import main as sim_main
-from drivers.abb_egm.sim.egm import EgmSimConfig, precise_event_loop
+from drivers.abb_egm.sim.egm import EgmSimConfig
+from drivers.runtime import precise_event_loop
 
 pytestmark = pytest.mark.process  # the simulator as `python -m drivers.abb_egm.sim`
 

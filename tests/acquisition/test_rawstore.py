@@ -170,3 +170,20 @@ def test_kill_9_mid_scan_loses_at_most_the_unflushed_chunk(tmp_path, repo_root):
     k = n - 20  # the last few were assembled at replay's end without robot samples after them
     np.testing.assert_array_equal(res.cloud.xyz_mm[:k], ref.xyz_mm[:k])
     np.testing.assert_array_equal(res.cloud.t_ns[:k], ref.t_ns[:k])
+
+
+def test_a_garbage_file_header_loses_neither_that_streams_chunks_nor_the_other_streams(tmp_path):
+    """Issue 24: one raw file whose header was overwritten made the whole job unreadable."""
+    w = RawWriter(tmp_path, {"job_id": "J"}, fsync=False, chunk_bytes=1)
+    for i in range(5):
+        w.append("robot", 2, {"t_host_ns": np.array([i], dtype=np.int64)})
+        w.append("profiles", 1, {"frame": np.array([i], dtype=np.int64)})
+    w.close()
+    with open(tmp_path / "robot.craw", "r+b") as f:
+        f.write(b"\xde\xad\xbe\xef" * 4)  # the file header (and nothing past it) destroyed
+    reader = RawReader(tmp_path)
+    recs = reader.records()
+    by_stream = {s: [r for r in recs if r.stream == s] for s in ("robot", "profiles")}
+    assert len(by_stream["profiles"]) == 5
+    assert [int(r.arrays["t_host_ns"][0]) for r in by_stream["robot"]] == [0, 1, 2, 3, 4]
+    assert any("robot.craw: bad file header" in p and "resumed" in p for p in reader.report.problems)

@@ -17,7 +17,7 @@ from cellctl.acquisition.pipeline import AcquisitionSettings
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.calibration.time_offset import calibrate_time_offset
 from cellctl.simcell.truth import plate_truth
-from drivers.abb_egm.sim.egm import precise_event_loop
+from drivers.runtime import precise_event_loop
 from tests.support.simcell import SimCell, SimCellConfig, joint_path, raster_poses
 
 pytestmark = pytest.mark.slow

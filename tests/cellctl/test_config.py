@@ -106,7 +106,7 @@ def test_config_is_frozen(repo_root: Path) -> None:
         ("zenoh", {"key_prefix": "cell//x"}, "zenoh.key_prefix"),
         ("cell", {"id": "bad id!"}, "cell.id = 'bad id!'"),
         ("analysis.tolerances", {"deviation_standard_mm": 4.0}, "must not exceed deviation_limit_mm"),
-        ("sim", {"rws_users": {"Default User": "robotics"}}, "expected an environment variable name"),
+        ("sim", {"rws_users": {"Default User": "robotics"}}, "expected the name of an environment variable"),
         ("sim.faults", {"egm_loss_fraction": 1.5}, "sim.faults.egm_loss_fraction = 1.5"),
         ("daemon", {"queue_max": -1}, "daemon.queue_max = -1"),
         ("daemon", {"queue_max": 1000}, "daemon.queue_max = 1000"),
@@ -230,3 +230,59 @@ def test_bad_daemon_environment_override_is_one_readable_line(
     monkeypatch.setenv("CELL_DAEMON__QUEUE_MAX", "lots")
     (problem,) = _problems(shipped)
     assert problem.startswith("daemon.queue_max (from the environment) = 'lots'")
+
+
+# ---- issue 24, finding 5: configuration within physics, strict types, secrets never echoed
+
+
+@pytest.mark.parametrize(
+    ("section", "values", "expected"),
+    [
+        ("robot", {"tcp_speed_max_mm_s": 1e12}, "robot.tcp_speed_max_mm_s = 1000000000000.0"),
+        ("robot", {"joint_lower_deg": [-1e9] * 6}, "leave the IRB 4600's range"),
+        ("robot", {"joint_upper_deg": [1e9] * 6}, "leave the IRB 4600's range"),
+        ("robot", {"joint_speed_max_deg_s": [1e6] * 6}, "exceeds the IRB 4600's"),
+        ("robot", {"joint_accel_max_deg_s2": [1e9] * 6}, "beyond the bounds"),
+        ("robot", {"workspace_min_mm": [-1e15] * 3}, "reaches beyond"),
+        ("robot", {"egm_comm_timeout_s": 1e9}, "robot.egm_comm_timeout_s = 1000000000.0"),
+        ("robot", {"rws_timeout_s": 1e9}, "robot.rws_timeout_s"),
+        ("laser", {"rate_hz": True}, "expected a number, got a boolean"),
+        ("laser", {"rate_hz": 1e9}, "laser.rate_hz"),
+        ("robot", {"joint_margin_deg": False}, "expected a number, got a boolean"),
+        ("robot", {"workspace_max_mm": [True, 2000.0, 2400.0]}, "expected a number, got a boolean"),
+        ("analysis", {"job_timeout_s": 1e12}, "analysis.job_timeout_s"),
+    ],
+)
+def test_values_no_irb_4600_or_sensor_can_have_are_refused(
+    shipped: dict, section: str, values: dict, expected: str
+):
+    problems = _problems(_with(shipped, section, **values))
+    assert any(expected in p for p in problems), problems
+
+
+def test_the_shipped_limits_stay_inside_the_robot_model(shipped: dict):
+    parse_config(shipped, "cell.toml")  # the defaults and the shipped file pass the new bounds
+
+
+@pytest.mark.parametrize(
+    ("section", "key"), [("robot", "rws_password_env"), ("zenoh.access", "password_env")]
+)
+def test_a_password_typed_into_an_env_key_is_refused_and_never_echoed(shipped: dict, section: str, key: str):
+    secret = "s3cr3t-Hunter2!"
+    problems = _problems(_with(shipped, section, **{key: secret}))
+    assert any(key in p and "not its value" in p for p in problems), problems
+    assert not any(secret in p for p in problems), problems
+
+
+def test_a_password_typed_into_sim_rws_users_is_never_echoed(shipped: dict):
+    secret = "robotics-Pa55"
+    problems = _problems(_with(shipped, "sim", rws_users={"Default User": secret}))
+    assert problems and not any(secret in p for p in problems), problems
+
+
+def test_an_empty_file_names_the_missing_section(tmp_path: Path):
+    empty = tmp_path / "cell.toml"
+    empty.write_text("# nothing here\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(empty)
+    assert any("[cell]" in p and "empty" in p for p in info.value.problems), info.value.problems

@@ -18,7 +18,7 @@ def test_freed_numpy_temporaries_leave_the_resident_set_after_the_release():
     code = textwrap.dedent(
         """
         import numpy as np
-        from cellctl.daemon.service import _rss_mb, release_freed_memory
+        from drivers.runtime import release_freed_memory, rss_mb as _rss_mb
         arrs = [np.ones(8000) for _ in range(3000)]  # ~190 MB of 64 KB blocks
         pin = np.ones(8000)  # allocated last: the heap top stays in use
         del arrs

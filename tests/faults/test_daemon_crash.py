@@ -151,6 +151,9 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
                 session, keys, follower = c.session, c.keys, c.follower
                 st = await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 120.0)
                 seen2["message"] = st.message
+                # published with the first state after the restart: a client still waiting on the job
+                # (`cellctl scan --wait` across the crash) learns that it was interrupted
+                seen2["published"] = {j.job_id: j.state.value for j in st.jobs()}.get(job_id)
                 rec = cell.job_record(job_id)
                 seen2["recovered"] = (rec["state"], rec["info"].get("interrupted_in"))
                 replies = await async_get(
@@ -159,6 +162,12 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
                 )  # fmt: skip
                 assert replies and replies[0].ok is not None, replies and replies[0].err.payload.to_bytes()
                 seen2["final"] = await wait_for_job(follower, job_id, 300.0)
+                # issue 24, finding 2: the killed daemon left the sensor streaming and the EGM program
+                # ended by the controller; a fresh scan must bring both back to a known state
+                acc = await call(session, keys.trigger, json.dumps(cell.trigger_request()), TriggerAccepted)
+                seen2["next_scan"] = await wait_for_job(follower, acc.job_id, 480.0)
+                st = await wait_status(follower, lambda s: s.state.value == "idle", 30.0)
+                seen2["idle_message"] = (acc.job_id, st.message)
             return seen2
 
         seen2 = asyncio.run(reanalyse())
@@ -173,6 +182,12 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
             assert report is not None and report["job_id"] == job_id
             assert json.loads((cell.jobs_dir / job_id / "report.json").read_text())["job_id"] == job_id
         assert os.path.getsize(raw_dir / "profiles.craw") > 0
+        assert seen2["published"] == "interrupted", seen2
+        next_id, idle_message = seen2["idle_message"]
+        assert idle_message == f"job {next_id} done", idle_message  # not "scanned; analysing" any more
+        next_state, next_message, _ = seen2["next_scan"]
+        assert next_state == "done", next_message
+        assert "needs the sensor stopped" not in next_message
     finally:
         cell.procs.procs = [(n, p) for n, p in cell.procs.procs if p.poll() is None]
         codes = stop_cell(cell)

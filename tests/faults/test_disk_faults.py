@@ -42,6 +42,7 @@ from tests.support.cellfaults import (
     wait_status,
     wait_until,
 )
+from tests.support.faultcell import wait_record
 
 
 def _mount(*args: str) -> subprocess.CompletedProcess:
@@ -208,6 +209,79 @@ def test_data_dir_too_small_or_read_only_faults_before_motion_and_full_mid_scan_
             assert os.path.getsize(cell.jobs_dir / full / "raw" / "profiles.craw") <= 2 << 20
             # the cell takes triggers again (it is faulted, not stuck); lift the limit first
             resource.prlimit(cell.proc("run").pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY,) * 2)
+        finally:
+            codes = stop_cell(cell)
+    assert all(c == 0 for c in codes.values()), codes
+
+
+def _fill(directory: Path) -> Path:
+    """Write ``directory/filler`` until the file system is full (ENOSPC); returns the file."""
+    path = directory / "filler"
+    chunk = b"\0" * (1 << 20)
+    with contextlib.suppress(OSError), open(path, "wb") as f:
+        while True:
+            f.write(chunk)
+            f.flush()
+    return path
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+@pytest.mark.timeout(600)
+def test_a_disk_that_fills_mid_scan_leaves_an_operator_a_way_out_without_a_restart(tmp_path):
+    """Issue 24, finding 1 (and 2): the data directory fills up during a scan, so that also the job
+    record cannot be written. The job must end ``failed`` in memory and in the publication (the cell
+    ``faulted``, abort has nothing to abort, reset clears it), no half-written record is left, the
+    record reaches the disk once there is room again, and the next scan runs to its report (the
+    sensor and the controller brought back to a known state)."""
+    cfg_path = fault_cell_config(tmp_path, daemon__min_free_mb=1)
+    cell = FaultCell(tmp_path, cfg_path)
+    data = Path(cell.cfg.cell.data_dir)
+    with tmpfs(data, "150m"):
+        try:
+            cell.start()
+
+            async def scenario() -> dict:
+                seen: dict = {}
+                async with cell.client() as c:
+                    await c.wait_idle()
+                    job = await c.trigger(plate_id="fills-up")
+                    await c.wait_scanning(job, min_fraction=0.05)
+                    filler = await asyncio.to_thread(_fill, data)
+                    st = await c.wait(
+                        lambda s: s.state.value != "scanning" and s.job is not None and s.job.job_id == job
+                        and s.job.state.value == "failed", 120.0,
+                    )  # fmt: skip
+                    st = await c.wait(lambda s: s.state.value == "faulted", 30.0)
+                    seen["failed_state"] = st.state.value
+                    seen["message"] = st.job.message if st.job else ""
+                    seen["tmp_left"] = sorted(p.name for p in (cell.jobs_dir / job).glob("*.tmp"))
+                    seen["on_disk_while_full"] = cell.job_record(job)["state"]
+                    with pytest.raises(ApiCallError) as nothing:
+                        await c.control("abort")
+                    seen["abort"] = nothing.value.error.code
+                    reply = await c.control("reset")
+                    seen["reset"] = reply.state
+                    filler.unlink()
+                    rec = await wait_record(cell, job, lambda r: r["state"] == "failed", 30.0)
+                    seen["record"] = rec
+                    again = await c.trigger(plate_id="room-again")
+                    st = await c.wait_job_end(again, 480.0)
+                    seen["again"] = st.job.state.value
+                return seen
+
+            seen = asyncio.run(scenario())
+            assert seen["failed_state"] == "faulted"
+            assert "raw data could not be written" in seen["message"], seen["message"]
+            assert seen["tmp_left"] == [], "a half-written job.json.tmp was left"
+            assert seen["on_disk_while_full"] in ("scanning", "failed")
+            assert seen["abort"] == "no_job"
+            assert seen["reset"] == "idle"
+            assert seen["record"]["history"][-1]["message"].startswith("raw data could not be written")
+            assert seen["again"] == "done", seen
+            assert cell.proc("run").poll() is None
+            assert cell.log_events("run", "job_record_write_failed")
+            assert cell.log_events("run", "job_record_written")
         finally:
             codes = stop_cell(cell)
     assert all(c == 0 for c in codes.values()), codes

@@ -14,13 +14,14 @@ import subprocess
 
 import pytest
 
+from cellctl.daemon.wiring import rws_client_config
 from cellctl.simcell.faults import (
     FaultChannelError,
     FaultRequestError,
     parse_assignments,
     parse_fault_request,
 )
-from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig, RwsError
+from drivers.abb_egm.rws_client import RwsClient, RwsError
 from tests.support.faultcell import REPO, FaultCell
 
 pytestmark = pytest.mark.e2e  # the simulator cell runs as its own process
@@ -39,10 +40,8 @@ def sim(tmp_path_factory):
 
 
 def _rws(cell: FaultCell, timeout_s: float = 2.0) -> RwsClient:
-    return RwsClient(
-        RwsClientConfig(base_url=cell.cfg.robot.rws_url, profile=cell.cfg.robot.rws_profile, timeout_s=timeout_s,
-                        password=os.environ.get("CELL_RWS_PASSWORD", "robotics"))
-    )  # fmt: skip
+    password = os.environ.get("CELL_RWS_PASSWORD", "robotics")
+    return RwsClient(rws_client_config(cell.cfg.robot, password, timeout_s=timeout_s))
 
 
 def test_ready_line_names_the_fault_endpoint_and_an_empty_request_only_reports(sim: FaultCell):

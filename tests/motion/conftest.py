@@ -16,7 +16,8 @@ from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import ExecutionResult, ExecutorConfig, MotionExecutor
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig, precise_event_loop
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
+from drivers.runtime import precise_event_loop
 
 SAIL_PLACEMENT = Placement.on_bed(1500.0, 0.0, 3.0, z_mm=300.0)
 #: a small plate and fast sweeps keep the executions short; the geometry is the real planner's

@@ -56,3 +56,17 @@ def test_a_data_directory_that_cannot_be_created_is_a_job_store_error_naming_it(
     blocker.write_text("x")
     with pytest.raises(JobStoreError, match="cannot create a private directory"):
         JobStore(blocker / "data")
+
+
+def test_raw_directory_and_files_are_group_readable_only_whatever_the_umask(tmp_path, open_umask):
+    """Issue 24: ``raw/`` was 0o755 with 0o644 files, so anybody on the machine read the raw scans."""
+    from cellctl.acquisition.rawstore import STREAMS, RawWriter
+
+    raw = tmp_path / "jobs" / "J" / "raw"
+    w = RawWriter(raw, {"job_id": "J"}, fsync=False)
+    w.close()
+    assert _mode(raw) == 0o750
+    assert {p.name: _mode(p) for p in raw.iterdir()} == {
+        **{f"{s}.craw": 0o640 for s in STREAMS},
+        "job.json": 0o640,
+    }

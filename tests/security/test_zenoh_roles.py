@@ -337,3 +337,31 @@ def test_without_roles_every_dictionary_user_gets_the_whole_cell_both_ways_and_r
     )
     ids = [r["id"] for r in every_role["rules"]]
     assert len(ids) == len(set(ids))
+
+
+def test_a_viewer_receives_the_live_cloud_and_a_worker_does_not(tmp_path):
+    """The HMI follows a scan's thinned cloud (``jobs/<id>/live``) with no more than the viewer role."""
+
+    async def main():
+        daemon = FakeDaemonSide(tmp_path, free_port())
+        await daemon.start()
+        bob = w1 = None
+        try:
+            bob, w1 = _client(daemon.port, "bob"), _client(daemon.port, "w1")
+            viewer_saw: list[bytes] = []
+            worker_saw: list[bytes] = []
+            subscribe(bob, KEYS.live_cloud("*"), lambda s: viewer_saw.append(s.payload.to_bytes()))
+            subscribe(w1, KEYS.live_cloud("*"), lambda s: worker_saw.append(s.payload.to_bytes()))
+            chunk = b'{"job_id": "j1", "seq": 0, "xyz_mm": [[1.0, 2.0, 3.0]]}'
+            got = await _until(
+                lambda: (daemon.session.put(KEYS.live_cloud("j1"), chunk), bool(viewer_saw))[1], 10, 0.2
+            )
+            return got, viewer_saw, worker_saw
+        finally:
+            close_session(bob)
+            close_session(w1)
+            daemon.close()
+
+    got, viewer_saw, worker_saw = asyncio.run(main())
+    assert got and viewer_saw[0].startswith(b'{"job_id": "j1"')
+    assert worker_saw == []

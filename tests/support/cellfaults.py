@@ -83,18 +83,10 @@ def stop_cell(cell: Cell, grace_s: float = 180.0) -> dict[str, Any]:
 
 def rws_client(cell: Cell) -> Any:
     """An RWS client to the simulated controller (close it with ``await c.close()``)."""
-    from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
+    from cellctl.daemon.wiring import rws_client_config
+    from drivers.abb_egm.rws_client import RwsClient
 
-    r = cell.cfg.robot
-    return RwsClient(
-        RwsClientConfig(
-            base_url=r.rws_url,
-            profile=r.rws_profile,
-            username=r.rws_user,
-            password=cell.procs.env["CELL_RWS_PASSWORD"],
-            timeout_s=10.0,
-        )
-    )
+    return RwsClient(rws_client_config(cell.cfg.robot, cell.procs.env["CELL_RWS_PASSWORD"], timeout_s=10.0))
 
 
 def worker_config_via(cell: Cell, endpoint: str, name: str = "worker-via.toml") -> Path:

@@ -22,12 +22,18 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def tiny_cell_config(
-    out: Path, *, forming_error: str = "default", angle_deg: float | None = None, **plate: float
+    out: Path,
+    *,
+    forming_error: str = "default",
+    angle_deg: float | None = None,
+    tolerances: dict[str, float] | None = None,
+    **plate: float,
 ) -> Path:
     """A cell.toml for a 300 x 200 mm sail plate scanned at 1.5 mm profile spacing (a scan of ~30 s).
 
     ``forming_error="none"``: the simulated plate is its design, which a half turn maps onto itself.
     ``angle_deg``: the simulated plate's yaw on the bed (default: cell.toml's).
+    ``tolerances``: ``[analysis.tolerances]`` keys to override (tighter ones make a line fail).
     """
     base = load_config(REPO / "cell.toml").model_dump(mode="json")
     cfg = demo_config(base, out)
@@ -43,6 +49,7 @@ def tiny_cell_config(
         transverse_count=2, transverse_spacing_mm=80.0, longitudinal_count=1, longitudinal_spacing_mm=100.0,
         ack_timeout_s=5.0, heartbeat_timeout_s=5.0,
     )  # fmt: skip
+    cfg["analysis"]["tolerances"].update(tolerances or {})
     (out / "designs").mkdir(parents=True, exist_ok=True)
     (out / "logs").mkdir(parents=True, exist_ok=True)
     path = out / "cell.toml"

@@ -66,6 +66,8 @@ def test_valid_trigger_resolves_the_design_inside_designs_dir(designs):
         (_req(placement={"pos_mm": [1, 2]}), "invalid", "placement.pos_mm"),
         (_req(plate_id="../x"), "invalid", "plate_id"),
         (_req(design="../secret.stl"), "invalid", "design"),
+        (_req(design="./x.ply"), "invalid", "design"),  # issue 24: "." components were let through
+        (_req(design="a/./b.ply"), "invalid", "design"),
         (_req(design="sail/../../secret.stl"), "invalid", "design"),
         (_req(design="/etc/passwd.stl"), "invalid", "design"),
         (_req(design="~/x.stl"), "invalid", "design"),

@@ -363,3 +363,35 @@ def test_sigterm_mid_analysis_hands_the_job_back_and_exits_zero(hub, start_worke
     assert retries[0][1] == holder.worker_id
     assert "worker stopping" in retries[0][2] or "disappeared" in retries[0][2]
     assert "analysis_process_ready" in holder.log() and holder.log().count("analysis_process_ready") == 1
+
+
+def test_a_forged_report_from_a_peer_naming_another_worker_is_refused_and_the_real_one_counts(
+    hub, start_worker
+):
+    """Access control off: any peer can publish on ``reports/<job>``. A report naming another worker
+    (or an attempt that is not current) must not resolve the job, and the real worker's analysis
+    must go on to its report (issue 24, finding 4). The forged reports are valid envelopes (here an
+    analysis failure, which would have failed the job as surely as a forged verdict passes it)."""
+    start_worker("w1")
+    record = hub.tmp / "calls.txt"
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: len(disp.workers) == 1, 30, "the worker")
+        payload, centroid = _cloud_bytes("jobF")
+        fut = disp.submit(_job(hub, "jobF", "P1", record_path=str(record), sleep_s=2.0), payload)
+        await _wait_for(lambda: any(k == "start" for k, _, _ in _records(record)), 20, "analysis start")
+        forged = [
+            {"worker_id": "intruder", "attempt": 1},  # a worker id nobody assigned
+            {"worker_id": "w1", "attempt": 2},  # the right worker, an attempt that does not exist
+        ]
+        for f in forged:
+            body = {"job_id": "jobF", "plate_id": "P1", "ok": False, "error": "forged", **f}
+            disp.session.put(disp.keys.report("jobF"), json.dumps(body).encode())
+        await _wait_for(lambda: disp.refused_reports == 2, 10, "both forged reports refused")
+        assert not fut.done() and disp.malformed == 0
+        env = await asyncio.wait_for(fut, 30)
+        return env, centroid
+
+    env, centroid = _run(hub, scenario)
+    assert env.ok and env.worker_id == "w1" and env.attempt == 1 and env.error is None
+    np.testing.assert_allclose(_observed(hub, "jobF")["centroid_mm"], centroid, atol=1e-3)

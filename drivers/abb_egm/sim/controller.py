@@ -25,9 +25,10 @@ from dataclasses import dataclass
 
 import structlog
 
-from drivers.abb_egm.sim.egm import EgmControllerSim, EgmFaults, EgmSimConfig, precise_event_loop
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmFaults, EgmSimConfig
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
+from drivers.runtime import precise_event_loop
 
 __all__ = ["ControllerSim", "ControllerSimConfig", "main"]
 

@@ -26,7 +26,6 @@ import asyncio
 import dataclasses
 import fcntl
 import math
-import selectors
 import struct
 import threading
 import time
@@ -62,7 +61,6 @@ __all__ = [
     "FaultError",
     "TrajectoryRangeError",
     "TrajectoryRecorder",
-    "precise_event_loop",
 ]
 
 log = structlog.get_logger(__name__)
@@ -78,16 +76,6 @@ EVENT_EGM_POS_DEVIATION = 41892
 EVENT_EGM_POSE_UNREACHABLE = 41893
 #: Linux ioctl: the kernel's receive time (CLOCK_REALTIME, struct timespec) of the last datagram read
 _SIOCGSTAMPNS = 0x8907
-
-
-def precise_event_loop() -> asyncio.AbstractEventLoop:
-    """An asyncio loop whose timers wake with microsecond rather than millisecond resolution.
-
-    The default epoll selector rounds every wait up to a whole millisecond, which makes a 4.032 ms
-    cycle jitter by up to 1 ms; ``select()`` takes a ``timeval`` and wakes within tens of us. With the
-    few sockets of a simulator the O(n) cost of ``select`` does not matter.
-    """
-    return asyncio.SelectorEventLoop(selectors.SelectSelector())
 
 
 class FaultError(ValueError):

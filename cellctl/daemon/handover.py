@@ -1,0 +1,167 @@
+"""The hand-over of a scanned job to the analysis: cloud encoded, published, report stored.
+
+:class:`Handover` takes a scanned (or re-analysed) job: the live cloud of the scan, or the cloud
+rebuilt from the raw files, is thinned and encoded off the loop, submitted to the
+:class:`~cellctl.api.dispatch.Dispatcher` with the job parameters, kept with the job as ``cloud.bin``,
+and the worker's report stored as ``report.json``. The job's states are told to the daemon through
+``set_state``; any failure fails the job, it never leaves it hanging. The HTML / PDF render of the
+stored report is :mod:`cellctl.daemon.render`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+from typing import Any, Protocol
+
+import structlog
+
+from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan
+from cellctl.acquisition.reassemble import reassemble
+from cellctl.api import JobState
+from cellctl.api.analysis_job import analysis_job
+from cellctl.api.dispatch import Dispatcher, JobFailed
+from cellctl.config import CellConfig
+from cellctl.daemon.jobs import ActiveJob, JobStore, JobStoreError
+from cellctl.daemon.render import render_report
+from cellctl.logging import bind_context
+
+__all__ = ["Handover", "SetJobState", "render_html"]
+
+log = structlog.get_logger(__name__)
+
+
+class SetJobState(Protocol):
+    """The daemon's job-state setter (store, publication, final-state bookkeeping)."""
+
+    def __call__(self, job: ActiveJob, state: JobState, message: str = "", **info: Any) -> None: ...
+
+
+class Handover:
+    """Publishes scanned jobs to the analysis workers and stores their reports."""
+
+    def __init__(
+        self,
+        cfg: CellConfig,
+        store: JobStore,
+        dispatcher: Dispatcher,
+        set_state: SetJobState,
+    ) -> None:
+        self.cfg = cfg
+        self.store = store
+        self.dispatcher = dispatcher
+        self._job_state = set_state
+
+    async def analyse(self, job: ActiveJob) -> None:
+        """Publish the cloud to the workers and store the report; any failure fails the job (logged),
+        it never leaves the job hanging."""
+        try:
+            await self._analyse_inner(job)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            log.exception("job_analysis_failed", job_id=job.record.job_id)
+            self._job_state(job, JobState.FAILED, f"{type(exc).__name__}: {exc}")
+
+    async def _analyse_inner(self, job: ActiveJob) -> None:
+        rec = job.record
+        bind_context(job_id=rec.job_id)
+        job.fraction = 0.0
+        self._job_state(job, JobState.WAITING_FOR_WORKER, "cloud being assembled")
+        try:
+            t0 = time.perf_counter()
+            scan_cloud = job.cloud
+            job.cloud = None
+            if scan_cloud is None:  # re-analysis: whole-scan clock fits from the raw files
+                scan_cloud = (await asyncio.to_thread(reassemble, self.store.raw_dir(rec.job_id))).cloud
+            # The plan puts the raster passes first and the edge passes after them (pass ids index
+            # plan.passes), so the plan's raster count is the first edge pass.
+            first_edge = (rec.info.get("plan") or {}).get("passes")
+            steps = column_steps(scan_cloud.pass_id, first_edge, PublishSettings.from_config(self.cfg))
+            meta = {"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": rec.placement}
+            # thinned and encoded in one pass off the loop: the only copy of the points is the payload
+            payload, job.points = await asyncio.to_thread(
+                encode_scan,
+                scan_cloud,
+                job_id=rec.job_id,
+                plate_id=rec.plate_id,
+                column_step=steps,
+                meta=meta,
+            )
+            del scan_cloud, steps
+            assemble_s = time.perf_counter() - t0
+            params = analysis_job(
+                self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
+                placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
+                analysis=rec.analysis,
+            )  # fmt: skip
+            # waiting for a worker until the dispatcher assigns the job (the daemon's on_assigned
+            # hook then says analysing): with no worker present the job says so (docs/operations.md)
+            self._job_state(
+                job, JobState.WAITING_FOR_WORKER, "cloud published", points=job.points,
+                cloud_bytes=len(payload), assemble_s=round(assemble_s, 3), published_utc_s=time.time(),
+            )  # fmt: skip
+            fut = self.dispatcher.submit(params, payload)
+            # the published bytes, kept with the job (cellctl.api.cloud_codec layout); written while the
+            # worker analyses, and on disk before the job is done
+            cloud_path = self.store.job_dir(rec.job_id) / "cloud.bin"
+            written = asyncio.ensure_future(asyncio.to_thread(cloud_path.write_bytes, payload))
+            del payload
+            try:
+                env = await fut
+            finally:
+                await asyncio.shield(written)
+        except asyncio.CancelledError:
+            self._job_state(
+                job, JobState.INTERRUPTED, "the daemon stopped during the analysis; raw data kept"
+            )
+            raise
+        except JobFailed as exc:
+            self._job_state(job, JobState.FAILED, f"analysis failed: {exc.reason}")
+            return
+        except Exception as exc:
+            log.exception("job_analysis_failed")
+            self._job_state(job, JobState.FAILED, f"{type(exc).__name__}: {exc}")
+            return
+        job.worker_id = env.worker_id
+        jd = self.store.job_dir(rec.job_id)
+        if not env.ok or env.report is None:
+            self._job_state(job, JobState.FAILED, f"analysis error: {env.error}", worker_id=env.worker_id)
+            return
+        report_path = (jd / "report.json").resolve()
+        report_path.write_text(env.report.model_dump_json(indent=2), encoding="utf-8")
+        job.fraction = 1.0
+        # The JSON report (per-line verdicts) completes the job; the HTML / PDF render follows.
+        self._job_state(
+            job, JobState.DONE, str(report_path), verdict=env.report.verdict,
+            report=str(report_path), worker_id=env.worker_id, analysis_timings_s=env.timings_s,
+            report_utc_s=time.time(),
+        )  # fmt: skip
+        if (
+            self.cfg.daemon.write_html_report
+            and (self.store.results_dir(rec.job_id) / "report.json").exists()
+        ):
+            await render_html(self.store, job)
+
+
+async def render_html(store: JobStore, job: ActiveJob) -> None:
+    """Render report.html / .pdf of a done job in a child process (:mod:`.render`); record where
+    and when in the job."""
+    rec = job.record
+    results = store.results_dir(rec.job_id).resolve()
+    out = await render_report(results)
+    info: dict[str, Any] = {"html_s": round(out.elapsed_s, 3)}
+    if out.html is not None:
+        info["report_html"] = str(results / Path(out.html).name)
+        last = rec.info.get("last_profile_utc_s")
+        if last is not None:
+            info["html_after_last_profile_s"] = round(time.time() - float(last), 3)
+    rec.info.update(info)
+    try:
+        store.save(rec)
+    except JobStoreError as exc:  # the job is done with its report.json; only the render's note is lost
+        log.warning("job_record_write_failed", job_id=rec.job_id, error=str(exc))
+    log.info("html_report_written", job_id=rec.job_id, **info)
+    if out.stopped:
+        raise asyncio.CancelledError

@@ -1,0 +1,294 @@
+"""One scan of a job: plan, pre-flight, drivers to a known state, motion with the acquisition session.
+
+:class:`ScanRunner` holds what a scan needs of the cell (configuration, job store, the named
+drivers) and tells its host (the daemon) about job and cell states through :class:`ScanHost`. The
+feed loop that runs during the motion is :class:`~cellctl.acquisition.session.AcquisitionSession`;
+the cloud's hand-over to the analysis is :mod:`cellctl.daemon.handover`.
+
+Before every scan the sensor and the controller are brought to a known state whatever the previous
+run left (a killed daemon, a disk fault): the sensor is stopped before it is configured, and an EGM
+session still open on the controller is ended before the program starts again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Protocol
+
+import structlog
+
+from analysis.cad import design_mesh_from_file
+from analysis.mesh import MeshError
+from analysis.placement import Placement
+from analysis.plates import PlateError
+from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
+from cellctl.acquisition.rawstore import RawWriter
+from cellctl.acquisition.session import AcquisitionSession, SessionSettings, pass_windows_s
+from cellctl.api import CellState, JobState
+from cellctl.config import CellConfig
+from cellctl.daemon.jobs import ActiveJob, JobStore
+from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
+from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
+from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
+from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, plan_scan
+from drivers.laser.client import HD8Client
+
+__all__ = ["ScanHost", "ScanRunner"]
+
+log = structlog.get_logger(__name__)
+
+_EGM_COUNTERS = ("received", "lost", "duplicated", "out_of_order", "malformed", "watchdog_events")
+_SENSOR_COUNTERS = (
+    "frames", "gaps", "missing_frames", "duplicates_dropped", "decode_errors", "reconnects", "overflow_frames",
+)  # fmt: skip
+
+
+class ScanHost(Protocol):
+    """What the scan tells (and asks) the daemon."""
+
+    @property
+    def cell_state(self) -> CellState: ...
+
+    def to_cell(self, state: CellState, message: str) -> None: ...
+
+    def job_state(self, job: ActiveJob, state: JobState, message: str = "", **info: Any) -> None: ...
+
+    def stop_requested(self, job: ActiveJob) -> bool: ...
+
+    async def ctrl_state(self) -> str: ...
+
+    def on_progress(self, job: ActiveJob, ev: ProgressEvent) -> None: ...
+
+    def live_feed(self, job_id: str) -> Callable[[list, int], None] | None: ...
+
+
+class ScanRunner:
+    """Runs the scan of one job at a time for its :class:`ScanHost`."""
+
+    def __init__(self, cfg: CellConfig, store: JobStore, drivers: CellDrivers, host: ScanHost) -> None:
+        self.cfg = cfg
+        self.store = store
+        self.drivers = drivers
+        self.host = host
+
+    async def scan(self, job: ActiveJob) -> bool:
+        """Plan, execute and acquire. True when the scan completed (raw files closed, ``job.cloud`` set).
+
+        False when it ended otherwise (the job's state says how); raises on an error (the job's
+        ``stop_reason`` is ``"disk"`` when the raw files took no more)."""
+        host, rec = self.host, job.record
+        host.to_cell(CellState.PLANNING, f"planning job {rec.job_id}")
+        host.job_state(job, JobState.PLANNING)
+        planned = await self._plan(job)
+        if planned is None:
+            return False
+        plan, settings = planned
+        if host.stop_requested(job):
+            if job.stop_reason == "abort":
+                host.job_state(job, JobState.ABORTED, "aborted by request before the scan; nothing moved")
+            else:
+                host.job_state(job, JobState.INTERRUPTED, "stopped before the scan")
+            return False
+        d = self.cfg.daemon
+        est = raw_bytes_estimate(
+            plan.scan_time_s, rate_hz=self.cfg.laser.rate_hz,
+            points_per_profile=self.cfg.laser.points_per_profile, settle_s=d.settle_s,
+        )  # fmt: skip
+        try:  # before motion: the raw files of this scan must fit
+            await asyncio.to_thread(check_data_dir, self.store.root, est.bytes, d.min_free_mb)
+        except PreflightError as exc:
+            host.job_state(job, JobState.FAILED, f"pre-flight: {exc}; nothing moved")
+            return False
+        return await self._acquire(job, plan, settings)
+
+    async def _plan(self, job: ActiveJob) -> tuple[ScanPlan, PlannerSettings] | None:
+        rec = job.record
+        try:
+            design = await asyncio.to_thread(design_mesh_from_file, Path(rec.design_path))
+            placement = Placement.model_validate(rec.placement)
+            settings = PlannerSettings.from_config(self.cfg)
+            t0 = time.perf_counter()
+            plan = await asyncio.to_thread(plan_scan, design, placement, settings, with_coverage=False)
+        except (MeshError, PlateError, PlanInputError, PlanRefused) as exc:
+            self.host.job_state(job, JobState.FAILED, f"plan refused: {exc}")
+            return None
+        self.host.job_state(
+            job, JobState.PLANNING, "planned", plan=plan.summary(), plan_s=round(time.perf_counter() - t0, 3)
+        )
+        return plan, settings
+
+    async def _sensor_ready(self) -> HD8Client:
+        """A connected sensor client, the sensor stopped and configured."""
+        las = self.cfg.laser
+        client = hd8_client(las)
+        await client.connect()
+        try:
+            # whatever a previous run left streaming (a killed daemon): SET_RATE needs it stopped
+            await client.stop()
+            await client.configure(rate_hz=las.rate_hz, exposure_ns=laser_exposure_ns(las))
+        except BaseException:
+            with contextlib.suppress(Exception):
+                await client.close()
+            raise
+        return client
+
+    async def _acquire(self, job: ActiveJob, plan: ScanPlan, settings: PlannerSettings) -> bool:
+        cfg, host, rec, drv = self.cfg, self.host, job.record, self.drivers
+        client = await self._sensor_ready()
+        writer: RawWriter | None = None
+        session: AcquisitionSession | None = None
+        tracker: asyncio.Task[None] | None = None
+        program_started = False
+        try:
+            # an EGM session the controller still runs (the previous daemon died mid-scan) ends first
+            with contextlib.suppress(Exception):
+                await drv.program.end()
+            program_started = True
+            await drv.program.start()
+            await drv.endpoint.wait_for_feedback(cfg.daemon.feedback_timeout_s)
+            acq_settings = AcquisitionSettings.from_config(cfg, epoch_ns=time.monotonic_ns())
+            # Off the loop: the files are fsync'ed, and a busy disk must not hold up the EGM replies of
+            # the session just started (the controller ends it after its communication timeout).
+            writer = await asyncio.to_thread(
+                RawWriter,
+                self.store.raw_dir(rec.job_id),
+                {"acquisition": acq_settings.to_json(), "job_id": rec.job_id, "plate_id": rec.plate_id},
+            )
+            acq = Acquisition(acq_settings, writer, keep_batches=True)
+            egm0 = _counters(drv.endpoint.stats, _EGM_COUNTERS)
+            executor = MotionExecutor.for_plan(
+                drv.endpoint,
+                plan,
+                settings,
+                ExecutorConfig.from_settings(
+                    settings,
+                    tracking_error_max_mm=cfg.robot.tracking_error_max_mm,
+                    feedback_timeout_s=cfg.robot.egm_watchdog_s,  # [robot] egm_watchdog_s, not 0.1 s
+                ),
+                on_progress=lambda ev: host.on_progress(job, ev),
+            )
+            job.executor = executor
+            if job.stop_reason is not None:  # aborted while the program started: stop before motion
+                executor.abort()
+
+            def write_failed(exc: OSError) -> None:
+                # The raw files take no more (disk full, quota, file size limit): stop smoothly along
+                # the path instead of scanning blind; everything written so far stays readable.
+                job.stop_reason = job.stop_reason or "disk"
+                executor.abort()
+
+            session = AcquisitionSession(
+                acq, client, drv.endpoint.history,
+                pass_windows_s([s.t_start_s for s in plan.passes], [s.duration_s for s in plan.passes]),
+                SessionSettings(marker_period_s=cfg.daemon.marker_period_s, settle_s=cfg.daemon.settle_s),
+                on_write_error=write_failed, on_assembled=host.live_feed(rec.job_id),
+            )  # fmt: skip
+            job.session = session
+            # The arm waits while the clock fits gather their first pairs (and a sensor that has just
+            # started streaming settles) before the first reference moves it.
+            await session.start()
+            host.to_cell(CellState.SCANNING, f"scanning job {rec.job_id}")
+            host.job_state(job, JobState.SCANNING)
+            tracker = asyncio.create_task(
+                session.track(
+                    lambda: executor.progress().t_traj_s,
+                    lambda: executor.state in (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED),
+                ),
+                name="pass-marker",
+            )
+            t_scan = time.perf_counter()
+            result = await executor.run()
+            scan_s = time.perf_counter() - t_scan
+            await tracker
+            t_last_profile = time.time()
+            await session.finish()
+            job.profiles = session.profiles
+            await asyncio.to_thread(writer.close)
+            writer = None
+            with contextlib.suppress(Exception):
+                await drv.program.end()
+            program_started = False
+            job.executor = None
+            info = {
+                "scan_s": round(scan_s, 3),
+                "profiles": job.profiles,
+                "execution": result.state.value,
+                "max_tracking_error_mm": round(float(result.max_tracking_error_mm), 3),
+                "last_profile_utc_s": t_last_profile,
+                "acquisition": json.loads(json.dumps(acq.quality(), default=_plain)),
+                # what the links went through during this job: said plainly in the job record
+                "egm": {k: v - egm0[k] for k, v in _counters(drv.endpoint.stats, _EGM_COUNTERS).items()},
+                "sensor": _counters(client.stats, _SENSOR_COUNTERS),
+            }
+            if result.state == ExecState.FINISHED:
+                # The live cloud is bit for bit what `cellctl reassemble --live` rebuilds from the raw
+                # files; rebuilding with whole-scan clock fits costs tens of seconds, so it is left to
+                # re-analysis (the report is due seconds after the last profile).
+                job.cloud = acq.cloud()
+                host.job_state(job, JobState.SCANNING, "scan complete", cloud="live", **info)
+                return True
+            await self._ended_early(job, result, info)
+            return False
+        finally:
+            job.executor = None
+            if session is not None:
+                job.profiles = max(job.profiles, session.profiles)
+            job.session = None
+            if tracker is not None and not tracker.done():
+                tracker.cancel()
+            if session is not None:
+                await session.abort()
+            if writer is not None:
+                with contextlib.suppress(Exception):
+                    writer.close()
+            if program_started:
+                # cut short by an error (a full disk): the EGM program ends too, the arm holds
+                with contextlib.suppress(Exception):
+                    await drv.program.end()
+            with contextlib.suppress(Exception):
+                await client.close()
+
+    async def _ended_early(self, job: ActiveJob, result: ExecutionResult, info: dict[str, Any]) -> None:
+        """An aborted, interrupted or faulted motion: the job's end and, for a fault, the cell's."""
+        host, rec = self.host, job.record
+        if job.stop_reason == "shutdown":
+            host.job_state(
+                job, JobState.INTERRUPTED, "the daemon stopped during the scan; raw data kept", **info
+            )
+            return
+        if job.stop_reason == "abort":
+            host.job_state(job, JobState.ABORTED, "aborted by request; raw data kept", **info)
+            return
+        ctrl = "" if host.cell_state == CellState.STOPPING else await host.ctrl_state()
+        if ctrl == "emergencystop":
+            # Not a failure of the job: the raw data up to the stop is intact and can be
+            # re-analysed (control/reanalyse), or the plate scanned again after the reset.
+            host.job_state(
+                job, JobState.INTERRUPTED,
+                "emergency stop during the scan; raw data kept (re-analyse, or trigger again "
+                "after control/reset)",
+                stopped_by="emergency_stop", **info,
+            )  # fmt: skip
+            host.to_cell(CellState.EMERGENCY_STOPPED, f"emergency stop during job {rec.job_id}")
+            return
+        host.job_state(job, JobState.FAILED, f"motion fault: {result.fault}", **info)
+        if host.cell_state not in (CellState.STOPPING, CellState.EMERGENCY_STOPPED):
+            host.to_cell(CellState.FAULTED, f"motion fault: {result.fault}")
+
+
+def _counters(stats: Any, names: tuple[str, ...]) -> dict[str, int]:
+    """Integer counters of a statistics object, by name."""
+    return {n: int(getattr(stats, n)) for n in names}
+
+
+def _plain(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if hasattr(obj, "__dict__"):
+        return {k: v for k, v in vars(obj).items() if not k.startswith("_")}
+    return str(obj)

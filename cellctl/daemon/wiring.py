@@ -1,0 +1,118 @@
+"""From `cell.toml` to the drivers' configurations: the one place a config field meets a driver field.
+
+The daemon, the fault and security harnesses and any command that talks to the cell's robot or
+sensor build their driver objects here, so a ``[robot]`` or ``[laser]`` key is read in one place and
+a new driver setting is wired once. Each function is a plain, typed mapping; :class:`CellDrivers`
+holds the daemon's long-lived driver objects, named.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from cellctl.config import CellConfig, LaserSection, RobotSection, resolve_secret
+from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
+from drivers.abb_egm.rws_client import CellEgmProgram, EgmProgramSettings, RwsClient, RwsClientConfig
+from drivers.laser.client import HD8Client, HD8ClientConfig
+
+__all__ = [
+    "CellDrivers",
+    "build_drivers",
+    "egm_endpoint_config",
+    "egm_program_settings",
+    "hd8_client",
+    "hd8_client_config",
+    "laser_exposure_ns",
+    "rws_client_config",
+    "rws_password",
+]
+
+
+def egm_endpoint_config(robot: RobotSection) -> EgmEndpointConfig:
+    """``[robot] egm_*`` -> the EGM endpoint's settings."""
+    return EgmEndpointConfig(
+        host=robot.egm_host,
+        port=robot.egm_port,
+        watchdog_s=robot.egm_watchdog_s,
+        history_len=robot.egm_history_len,
+        # replies from their own SCHED_FIFO thread, off the daemon's loop, with a short GIL hand-over
+        # (benchmarks/README.md, egm_latency; docs/robot-setup.md section 12)
+        reply_thread=robot.egm_reply_thread,
+        reply_thread_priority=robot.egm_reply_priority,
+        reply_thread_cpus=tuple(robot.egm_reply_cpus),
+        switch_interval_s=robot.egm_switch_interval_s,
+        reply_spin_us=robot.egm_reply_spin_us,
+    )
+
+
+def rws_password(robot: RobotSection) -> str:
+    """The RWS password from ``rws_password_file`` or ``rws_password_env`` (ConfigError if neither)."""
+    return resolve_secret(
+        robot.rws_password_env, robot.rws_password_file, what="robot.rws password"
+    ).get_secret_value()
+
+
+def rws_client_config(
+    robot: RobotSection, password: str, *, timeout_s: float | None = None
+) -> RwsClientConfig:
+    """``[robot] rws_*`` -> the RWS client's settings (``timeout_s`` overrides ``rws_timeout_s``)."""
+    return RwsClientConfig(
+        base_url=robot.rws_url,
+        profile=robot.rws_profile,
+        username=robot.rws_user,
+        password=password,
+        timeout_s=robot.rws_timeout_s if timeout_s is None else timeout_s,
+        tls_ca_file=None if robot.rws_ca_file is None else str(robot.rws_ca_file),
+        poll_interval_s=robot.rws_poll_interval_s,
+        mechunit=robot.rws_mechunit,
+    )
+
+
+def egm_program_settings(robot: RobotSection) -> EgmProgramSettings:
+    """``[robot] egm_*`` / ``rapid_*`` -> the EGM arguments written into CellEgm.mod before each start."""
+    return EgmProgramSettings(
+        comm_timeout_s=robot.egm_comm_timeout_s,
+        pos_corr_gain=min(robot.egm_pos_corr_gain, 1.0),
+        max_speed_deviation_deg_s=robot.egm_max_speed_deviation_deg_s,
+        max_pos_deviation_deg=robot.egm_max_pos_deviation_deg,
+        cond_time_s=robot.egm_cond_time_s,
+        ramp_in_time_s=robot.egm_ramp_in_s,
+        lp_filter_hz=robot.egm_lp_filter_hz,
+        sample_rate_ms=float(robot.egm_sample_rate_ms),
+        task=robot.rapid_task,
+        module=robot.rapid_module,
+    )
+
+
+def hd8_client_config(laser: LaserSection) -> HD8ClientConfig:
+    """``[laser]`` -> the HD8 client's tuning (its stall watchdog and profile buffer)."""
+    return HD8ClientConfig(watchdog_timeout_s=laser.watchdog_s, buffer_profiles=laser.buffer_profiles)
+
+
+def hd8_client(laser: LaserSection) -> HD8Client:
+    """A (not yet connected) client of the ``[laser]`` sensor."""
+    return HD8Client(laser.host, laser.control_port, laser.data_port, config=hd8_client_config(laser))
+
+
+def laser_exposure_ns(laser: LaserSection) -> int:
+    """``[laser] exposure_us`` in the protocol's unit."""
+    return round(laser.exposure_us * 1000)
+
+
+@dataclass(frozen=True)
+class CellDrivers:
+    """The daemon's long-lived driver objects (the sensor client is made per scan: :func:`hd8_client`)."""
+
+    endpoint: EgmEndpoint
+    rws: RwsClient
+    program: CellEgmProgram
+
+
+def build_drivers(cfg: CellConfig, password: str) -> CellDrivers:
+    """The EGM endpoint (not started), the RWS client and the EGM program of ``cfg``."""
+    rws = RwsClient(rws_client_config(cfg.robot, password))
+    return CellDrivers(
+        endpoint=EgmEndpoint(egm_endpoint_config(cfg.robot)),
+        rws=rws,
+        program=CellEgmProgram(rws, egm_program_settings(cfg.robot)),
+    )

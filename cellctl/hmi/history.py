@@ -1,0 +1,201 @@
+"""The plate history: an SQLite index of the job directories (``<data_dir>/history.sqlite``).
+
+The job directories stay the record (``job.json``, ``report.json``); the index is rebuilt from them at
+start (:meth:`History.rebuild`) and updated as jobs end (:meth:`History.index_job`). A plate is
+formed in rounds (heat, inspect, heat again): its rounds are its finished jobs in creation order,
+each with Zmax per line, so the rounds can be set side by side.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+log = structlog.get_logger(__name__)
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    job_id TEXT PRIMARY KEY,
+    plate_id TEXT NOT NULL,
+    state TEXT NOT NULL,
+    verdict TEXT,
+    created_utc TEXT NOT NULL,
+    ended_utc TEXT,
+    design TEXT,
+    message TEXT,
+    max_abs_zmax_mm REAL,
+    lines_json TEXT
+);
+CREATE INDEX IF NOT EXISTS jobs_plate ON jobs (plate_id, created_utc);
+"""
+DB_NAME = "history.sqlite"
+
+
+def _line_summary(report: dict[str, Any]) -> list[dict[str, Any]]:
+    return [
+        {
+            "name": ln.get("name") or f"{ln['family'][0].upper()}{ln['index']}",
+            "family": ln["family"],
+            "index": ln["index"],
+            "zmax_mm": ln["zmax_mm"],
+            "sz_avg_mm": ln["sz_avg_mm"],
+            "pass": ln["pass"],
+        }
+        for ln in report.get("lines", [])
+    ]
+
+
+def read_job_dir(job_dir: Path) -> dict[str, Any] | None:
+    """One row from a job directory; None when it holds no readable job.json."""
+    try:
+        rec = json.loads((job_dir / "job.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    report = None
+    rp = job_dir / "report.json"
+    if rp.exists():
+        try:
+            report = json.loads(rp.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            log.warning("history_report_unreadable", path=str(rp))
+    hist = rec.get("history") or []
+    lines = _line_summary(report) if report else []
+    return {
+        "job_id": rec["job_id"],
+        "plate_id": rec["plate_id"],
+        "state": rec["state"],
+        "verdict": (report or {}).get("verdict"),
+        "created_utc": rec.get("created_utc", ""),
+        "ended_utc": hist[-1]["t_utc"] if hist else None,
+        "design": rec.get("design", ""),
+        "message": hist[-1].get("message", "") if hist else "",
+        "max_abs_zmax_mm": max((abs(ln["zmax_mm"]) for ln in lines), default=None),
+        "lines_json": json.dumps(lines),
+    }
+
+
+class History:
+    """The index; safe to use from several threads (one connection, one lock)."""
+
+    def __init__(self, data_dir: str | Path, db_path: str | Path | None = None) -> None:
+        self.data_dir = Path(data_dir)
+        self.db_path = Path(db_path) if db_path else self.data_dir / DB_NAME
+        self._lock = threading.Lock()
+        self._db = sqlite3.connect(self.db_path, check_same_thread=False)
+        self._db.row_factory = sqlite3.Row
+        self._db.executescript(SCHEMA)
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def rebuild(self) -> int:
+        """Index every job directory again (rows of vanished jobs are dropped); returns the count."""
+        rows = [r for d in sorted((self.data_dir / "jobs").glob("*/")) if (r := read_job_dir(d))]
+        with self._lock, self._db:
+            self._db.execute("DELETE FROM jobs")
+            self._db.executemany(_UPSERT, rows)
+        return len(rows)
+
+    def index_job(self, job_id: str) -> dict[str, Any] | None:
+        """Index (again) one job directory, e.g. when its job ended."""
+        row = read_job_dir(self.data_dir / "jobs" / job_id)
+        if row is not None:
+            with self._lock, self._db:
+                self._db.execute(_UPSERT, row)
+        return row
+
+    def jobs(
+        self,
+        *,
+        plate_id: str | None = None,
+        verdict: str | None = None,
+        date: str | None = None,
+        limit: int = 200,
+    ) -> list[dict[str, Any]]:
+        """Jobs newest first; ``date``: a ``YYYY-MM-DD`` prefix of the creation time (UTC)."""
+        q, args = "SELECT * FROM jobs WHERE 1=1", []
+        if plate_id:
+            q += " AND plate_id = ?"
+            args.append(plate_id)
+        if verdict:
+            q += " AND verdict = ?"
+            args.append(verdict)
+        if date:
+            q += " AND created_utc LIKE ?"
+            args.append(date + "%")
+        q += " ORDER BY created_utc DESC LIMIT ?"
+        args.append(limit)
+        with self._lock:
+            return [_row(r) for r in self._db.execute(q, args)]
+
+    def rounds(self, plate_id: str) -> list[dict[str, Any]]:
+        """The plate's analysed jobs (a verdict) oldest first, numbered from 1: its forming rounds."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT * FROM jobs WHERE plate_id = ? AND verdict IS NOT NULL ORDER BY created_utc",
+                (plate_id,),
+            ).fetchall()
+        return [{**_row(r), "round": k} for k, r in enumerate(rows, 1)]
+
+    def previous_round(self, job_id: str) -> dict[str, Any] | None:
+        """The round of the same plate before this job (None for a first round)."""
+        with self._lock:
+            me = self._db.execute(
+                "SELECT plate_id, created_utc FROM jobs WHERE job_id = ?", (job_id,)
+            ).fetchone()
+            if me is None:
+                return None
+            r = self._db.execute(
+                "SELECT * FROM jobs WHERE plate_id = ? AND verdict IS NOT NULL AND created_utc < ? "
+                "ORDER BY created_utc DESC LIMIT 1",
+                (me["plate_id"], me["created_utc"]),
+            ).fetchone()
+        return _row(r) if r else None
+
+
+_UPSERT = (
+    "INSERT OR REPLACE INTO jobs (job_id, plate_id, state, verdict, created_utc, ended_utc, design, message, "
+    "max_abs_zmax_mm, lines_json) VALUES (:job_id, :plate_id, :state, :verdict, :created_utc, :ended_utc, "
+    ":design, :message, :max_abs_zmax_mm, :lines_json)"
+)
+
+
+def _row(r: sqlite3.Row) -> dict[str, Any]:
+    d = dict(r)
+    d["lines"] = json.loads(d.pop("lines_json") or "[]")
+    return d
+
+
+def format_history(hist: History, plate_id: str | None) -> str:
+    """The text `cellctl history [PLATE]` prints: jobs, or one plate's rounds with Zmax per line."""
+    if not plate_id:
+        rows = hist.jobs()
+        out = [f"{'job':26} {'plate':20} {'state':12} {'verdict':8} created"]
+        out += [
+            f"{r['job_id']:26} {r['plate_id']:20} {r['state']:12} {r['verdict'] or '-':8} {r['created_utc']}"
+            for r in rows
+        ]
+        return "\n".join(out) if rows else "no jobs in the history"
+    rounds = hist.rounds(plate_id)
+    if not rounds:
+        return f"plate {plate_id}: no analysed rounds"
+    names = [ln["name"] for ln in rounds[-1]["lines"]]
+    for r in rounds[:-1]:
+        names += [ln["name"] for ln in r["lines"] if ln["name"] not in names]
+    head = f"{'line':8}" + "".join(f" {'round ' + str(r['round']):>10}" for r in rounds)
+    out = [f"plate {plate_id}: {len(rounds)} round(s), Zmax per line (mm)", head]
+    for name in names:
+        cells = []
+        for r in rounds:
+            ln = next((x for x in r["lines"] if x["name"] == name), None)
+            cells.append(f" {ln['zmax_mm']:>9.2f}{'' if ln['pass'] else '!'}" if ln else f" {'-':>10}")
+        out.append(f"{name:8}" + "".join(cells))
+    out.append(f"{'verdict':8}" + "".join(f" {r['verdict']:>10}" for r in rounds))
+    out.append(f"{'job':8}" + "".join(f" {r['job_id'][-10:]:>10}" for r in rounds))
+    return "\n".join(out)

@@ -1,0 +1,459 @@
+"""The HMI web server (aiohttp): the pages, a JSON API for them, and a websocket of live updates.
+
+Every request that acts on the cell goes through :class:`~cellctl.hmi.link.CellLink` (Zenoh) and
+is checked against the session's role first (:func:`cellctl.hmi.auth.allowed`); the page hiding a
+button is a convenience, never the check. Cookies: ``HttpOnly``, ``SameSite=Strict``; every POST
+but the log-in carries the session's CSRF token in ``X-CSRF-Token``. Log-ins are rate-limited per
+client address and per user name.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import re
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+from aiohttp import WSMsgType, web
+
+from cellctl.api import DESIGN_SUFFIXES, ApiCallError
+from cellctl.config import CellConfig
+from cellctl.hmi.auth import ACTION_ROLE, ZENOH_ROLE, Authenticator, Session, allowed, role_cap
+from cellctl.hmi.history import History
+from cellctl.hmi.link import CellLink
+
+log = structlog.get_logger(__name__)
+
+STATIC = Path(__file__).with_name("static")
+COOKIE = "hmi_session"
+_JOB_ID = re.compile(r"^[A-Za-z0-9_.-]{1,80}$")
+#: files of a job a browser may download: (name, where in the job directory, content type)
+DOWNLOADS = {
+    "report.html": ("results/report.html", "text/html"),
+    "report.pdf": ("results/report.pdf", "application/pdf"),
+    "report.csv": ("results/report.csv", "text/csv"),
+    "report.json": ("results/report.json", "application/json"),
+    "cloud.ply": ("results/cloud.ply", "application/octet-stream"),
+}
+MAX_BODY_BYTES = 16 * 1024
+MAP_MAX_POINTS = 30_000
+_SECURITY_HEADERS = {
+    "Content-Security-Policy": (
+        "default-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data:; object-src 'none'; "
+        "frame-ancestors 'none'"
+    ),
+    "X-Content-Type-Options": "nosniff",
+    "X-Frame-Options": "DENY",
+    "Referrer-Policy": "no-referrer",
+    "Cache-Control": "no-store",
+}
+
+
+def _err(status: int, code: str, message: str, field: str = "") -> web.Response:
+    return web.json_response({"code": code, "field": field, "message": message}, status=status)
+
+
+class HmiServer:
+    def __init__(
+        self,
+        cfg: CellConfig,
+        auth: Authenticator,
+        *,
+        secure_cookie: bool = False,
+        default_placement: dict[str, Any] | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.default_placement = default_placement
+        acc = cfg.zenoh.access
+        self.cap = role_cap(acc.enabled, acc.user, {str(k): list(v) for k, v in acc.roles.items()})
+        if self.cap != "engineer":
+            log.warning("hmi_read_only", reason=f"zenoh user {acc.user!r} holds no operator role")
+        self.auth = auth
+        self.secure_cookie = secure_cookie
+        self.data_dir = Path(cfg.cell.data_dir)
+        self.designs_dir = Path(cfg.cell.designs_dir)
+        self.history: History | None = None
+        self.sockets: set[web.WebSocketResponse] = set()
+        self.link = CellLink(cfg, self._broadcast)
+        self.link.on_job_end = self._job_ended
+        self.app = self._build_app()
+
+    # ---------------------------------------------------------------- app
+    def _build_app(self) -> web.Application:
+        app = web.Application(middlewares=[self._headers_mw, self._auth_mw], client_max_size=MAX_BODY_BYTES)
+        r = app.router
+        r.add_get("/", self.index)
+        r.add_static("/static/", STATIC, show_index=False)
+        r.add_post("/api/login", self.login)
+        r.add_post("/api/logout", self.logout)
+        r.add_get("/api/me", self.me)
+        r.add_get("/api/status", self.status)
+        r.add_get("/api/designs", self.designs)
+        r.add_get("/api/designs/preview", self.design_preview)
+        r.add_post("/api/trigger", self.trigger)
+        r.add_post("/api/control/{action}", self.control)
+        r.add_get("/api/jobs", self.jobs)
+        r.add_get("/api/jobs/{job_id}", self.job)
+        r.add_get("/api/jobs/{job_id}/map", self.job_map)
+        r.add_get("/api/jobs/{job_id}/live", self.job_live)
+        r.add_get("/api/jobs/{job_id}/files/{name}", self.job_file)
+        r.add_get("/api/plates/{plate_id}/rounds", self.rounds)
+        r.add_get("/ws", self.websocket)
+        app.on_startup.append(self._on_startup)
+        app.on_cleanup.append(self._on_cleanup)
+        return app
+
+    async def _on_startup(self, app: web.Application) -> None:
+        self.history = History(self.data_dir)
+        n = await asyncio.to_thread(self.history.rebuild)
+        log.info("hmi_history_rebuilt", jobs=n)
+        await self.link.start()
+
+    async def _on_cleanup(self, app: web.Application) -> None:
+        for ws in list(self.sockets):
+            with contextlib.suppress(Exception):
+                await ws.close()
+        await self.link.close()
+        if self.history is not None:
+            self.history.close()
+
+    @web.middleware
+    async def _headers_mw(self, request: web.Request, handler: Any) -> web.StreamResponse:
+        resp = await handler(request)
+        for k, v in _SECURITY_HEADERS.items():
+            if k == "Cache-Control" and request.path.startswith("/static/"):
+                continue
+            resp.headers.setdefault(k, v)
+        return resp
+
+    @web.middleware
+    async def _auth_mw(self, request: web.Request, handler: Any) -> web.StreamResponse:
+        path = request.path
+        if path == "/" or path.startswith("/static/") or path == "/api/login":
+            return await handler(request)
+        s = self.auth.session(request.cookies.get(COOKIE))
+        if s is None:
+            return _err(401, "not_logged_in", "log in first")
+        if request.method == "POST" and request.headers.get("X-CSRF-Token") != s.csrf:
+            return _err(403, "csrf", "missing or wrong CSRF token; reload the page")
+        request["session"] = s
+        return await handler(request)
+
+    # ---------------------------------------------------------------- pages and log-in
+    async def index(self, request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(STATIC / "index.html")
+
+    async def login(self, request: web.Request) -> web.Response:
+        try:
+            body = await request.json()
+            name, password = str(body["user"]), str(body["password"])
+        except (ValueError, KeyError, TypeError):
+            return _err(400, "malformed", 'expected {"user": ..., "password": ...}')
+        peer = f"ip:{request.remote}"
+        wait = self.auth.limiter.blocked(peer, f"user:{name}")
+        if wait > 0:
+            return web.json_response(
+                {
+                    "code": "rate_limited",
+                    "field": "",
+                    "message": f"too many failed log-ins; try again in {wait:.0f} s",
+                },
+                status=429,
+                headers={"Retry-After": str(int(wait) + 1)},
+            )
+        s = await asyncio.to_thread(self.auth.login, name, password)
+        if s is None:
+            self.auth.limiter.failed(peer, f"user:{name}")
+            log.info("hmi_login_refused", user=name[:64], peer=request.remote)
+            return _err(401, "bad_login", "wrong user name or password")
+        log.info("hmi_login", user=s.user, role=s.role)
+        resp = web.json_response(self._me(s))
+        resp.set_cookie(
+            COOKIE, s.token, httponly=True, samesite="Strict", secure=self.secure_cookie, path="/",
+            max_age=int(self.auth.ttl_s),
+        )  # fmt: skip
+        return resp
+
+    async def logout(self, request: web.Request) -> web.Response:
+        self.auth.logout(request.cookies.get(COOKIE))
+        resp = web.json_response({"ok": True})
+        resp.del_cookie(COOKIE, path="/")
+        return resp
+
+    def _me(self, s: Session) -> dict[str, Any]:
+        return {
+            "user": s.user,
+            "role": s.role,
+            "zenoh_role": ZENOH_ROLE[s.role],
+            "csrf": s.csrf,
+            "may": [a for a in ACTION_ROLE if allowed(s.role, a, cap=self.cap)],
+        }
+
+    async def me(self, request: web.Request) -> web.Response:
+        return web.json_response(self._me(request["session"]))
+
+    # ---------------------------------------------------------------- the cell
+    async def status(self, request: web.Request) -> web.Response:
+        st = self.link.status
+        return web.json_response({"status": st.model_dump(mode="json") if st else None})
+
+    def _check(self, request: web.Request, action: str) -> web.Response | None:
+        s: Session = request["session"]
+        if not allowed(s.role, action, cap=self.cap):
+            log.info("hmi_refused", user=s.user, role=s.role, action=action)
+            need = ACTION_ROLE.get(action, "engineer")
+            if allowed(s.role, action):
+                return _err(
+                    403,
+                    "forbidden",
+                    f"{action}: this HMI's Zenoh identity holds no operator role (read-only)",
+                )
+            return _err(403, "forbidden", f"{action} needs the {need} role; {s.user} is {s.role}")
+        return None
+
+    async def trigger(self, request: web.Request) -> web.Response:
+        if (refused := self._check(request, "trigger")) is not None:
+            return refused
+        body = await request.text()
+        try:
+            acc = await self.link.trigger(body)
+        except ApiCallError as exc:
+            return _api_error(exc)
+        log.info("hmi_trigger", user=request["session"].user, job_id=acc.job_id)
+        return web.json_response(acc.model_dump(mode="json"))
+
+    async def control(self, request: web.Request) -> web.Response:
+        action = request.match_info["action"]
+        if action not in ACTION_ROLE or action == "trigger":
+            return _err(404, "invalid", f"no action {action!r}", "action")
+        if (refused := self._check(request, action)) is not None:
+            return refused
+        body = await request.text()
+        try:
+            reply = await self.link.control(action, body or "{}")
+        except ApiCallError as exc:
+            return _api_error(exc)
+        log.info("hmi_control", user=request["session"].user, action=action)
+        return web.json_response(reply.model_dump(mode="json"))
+
+    async def designs(self, request: web.Request) -> web.Response:
+        root = self.designs_dir
+
+        def scan() -> list[str]:
+            if not root.is_dir():
+                return []
+            return sorted(
+                p.relative_to(root).as_posix()
+                for p in root.rglob("*")
+                if p.is_file() and p.suffix.lower() in DESIGN_SUFFIXES
+            )
+
+        return web.json_response(
+            {"designs": await asyncio.to_thread(scan), "default_placement": self.default_placement}
+        )
+
+    async def design_preview(self, request: web.Request) -> web.Response:
+        rel = request.query.get("path", "")
+        root = self.designs_dir.resolve()
+        try:
+            p = (root / rel).resolve()
+            p.relative_to(root)
+        except (ValueError, OSError):
+            return _err(400, "invalid", "not a design in the designs directory", "path")
+        if not p.is_file():
+            return _err(404, "design_not_found", f"{rel}: no such design")
+
+        def load() -> dict[str, Any]:
+            from analysis.cad import design_mesh_from_file
+
+            design = design_mesh_from_file(p)
+            v = np.asarray(design.vertices_mm, float)
+            idx = np.linspace(0, len(v) - 1, min(len(v), 4000)).astype(int)
+            return {
+                "xyz_mm": np.round(v[idx], 1).tolist(),
+                "min_mm": v.min(0).tolist(),
+                "max_mm": v.max(0).tolist(),
+            }
+
+        try:
+            return web.json_response(await asyncio.to_thread(load))
+        except Exception as exc:  # an unreadable design: say so, the page stays usable
+            return _err(422, "invalid", f"{rel}: cannot read: {exc}", "path")
+
+    # ---------------------------------------------------------------- jobs and history
+    def _job_dir(self, job_id: str) -> Path | None:
+        if not _JOB_ID.match(job_id):
+            return None
+        d = self.data_dir / "jobs" / job_id
+        return d if d.is_dir() else None
+
+    def _job_ended(self, job_id: str) -> None:
+        async def later() -> None:
+            # the daemon writes report.json right after the publication: index once it has
+            for delay in (0.5, 2.0, 5.0):
+                await asyncio.sleep(delay)
+                row = await asyncio.to_thread(self.history.index_job, job_id) if self.history else None
+                if row and (row["verdict"] or row["state"] != "done"):
+                    break
+            self._broadcast({"type": "history", "job_id": job_id})
+
+        task = asyncio.get_running_loop().create_task(later())
+        _TASKS.add(task)
+        task.add_done_callback(_TASKS.discard)
+
+    async def jobs(self, request: web.Request) -> web.Response:
+        q = request.query
+        rows = await asyncio.to_thread(
+            self.history.jobs, plate_id=q.get("plate") or None, verdict=q.get("verdict") or None,
+            date=q.get("date") or None,
+        )  # fmt: skip
+        return web.json_response({"jobs": rows})
+
+    async def rounds(self, request: web.Request) -> web.Response:
+        return web.json_response(
+            {"rounds": await asyncio.to_thread(self.history.rounds, request.match_info["plate_id"])}
+        )
+
+    async def job(self, request: web.Request) -> web.Response:
+        job_id = request.match_info["job_id"]
+        d = self._job_dir(job_id)
+        if d is None:
+            return _err(404, "no_job", f"no job {job_id}")
+
+        def read() -> dict[str, Any]:
+            rec = json.loads((d / "job.json").read_text(encoding="utf-8"))
+            rp = d / "results" / "report.json"
+            if not rp.exists():
+                rp = d / "report.json"
+            report = json.loads(rp.read_text(encoding="utf-8")) if rp.exists() else None
+            files = [n for n, (rel, _) in DOWNLOADS.items() if (d / rel).is_file()]
+            if (d / "cloud.bin").is_file():
+                files.append("cloud.bin")
+            prev = self.history.previous_round(job_id) if self.history else None
+            return {"job": rec, "report": report, "files": files, "previous": prev}
+
+        return web.json_response(await asyncio.to_thread(read))
+
+    async def job_map(self, request: web.Request) -> web.Response:
+        d = self._job_dir(request.match_info["job_id"])
+        path = d / "results" / "results.npz" if d else None
+        if path is None or not path.is_file():
+            return _err(404, "no_job", "no results for this job")
+
+        def read() -> dict[str, Any]:
+            with np.load(path) as z:
+                xy, dev = z["plate_xy_mm"].astype(float), z["plate_deviation_mm"].astype(float)
+                idx = np.linspace(0, len(xy) - 1, min(len(xy), MAP_MAX_POINTS)).astype(int) if len(xy) else []
+                lines = []
+                k = 0
+                while f"line{k}_s_mm" in z.files:
+                    s, dv = z[f"line{k}_s_mm"].astype(float), z[f"line{k}_deviation_mm"].astype(float)
+                    step = max(1, len(s) // 400)
+                    lines.append({"s_mm": np.round(s[::step], 1).tolist(),
+                                  "deviation_mm": np.round(np.nan_to_num(dv[::step]), 3).tolist()})  # fmt: skip
+                    k += 1
+                return {
+                    "xy_mm": np.round(xy[idx], 1).tolist(),
+                    "deviation_mm": np.round(dev[idx], 3).tolist(),
+                    "plate_size_mm": z["plate_size_mm"].tolist(),
+                    "lines": lines,
+                }
+
+        return web.json_response(await asyncio.to_thread(read))
+
+    async def job_live(self, request: web.Request) -> web.Response:
+        return web.json_response({"xyz_mm": self.link.live_cloud(request.match_info["job_id"])})
+
+    async def job_file(self, request: web.Request) -> web.StreamResponse:
+        d = self._job_dir(request.match_info["job_id"])
+        name = request.match_info["name"]
+        if d is None:
+            return _err(404, "no_job", "no such job")
+        if name == "cloud.bin":
+            rel, ctype = "cloud.bin", "application/x-cellctl-cloud"
+        elif name in DOWNLOADS:
+            rel, ctype = DOWNLOADS[name]
+        else:
+            return _err(404, "invalid", f"no download {name!r}")
+        path = d / rel
+        if not path.is_file():
+            return _err(404, "no_file", f"{name} is not there (yet)")
+        return web.FileResponse(
+            path,
+            headers={"Content-Type": ctype, "Content-Disposition": f'attachment; filename="{d.name}-{name}"'},
+        )
+
+    # ---------------------------------------------------------------- live updates
+    async def websocket(self, request: web.Request) -> web.WebSocketResponse:
+        ws = web.WebSocketResponse(heartbeat=20.0)
+        await ws.prepare(request)
+        self.sockets.add(ws)
+        try:
+            if self.link.status is not None:
+                await ws.send_str(
+                    json.dumps({"type": "status", "status": self.link.status.model_dump(mode="json")})
+                )
+            async for msg in ws:
+                if msg.type == WSMsgType.ERROR:
+                    break
+                # a session that ended (log-out, expiry) stops receiving
+                if self.auth.session(request.cookies.get(COOKIE)) is None:
+                    break
+        finally:
+            self.sockets.discard(ws)
+        return ws
+
+    def _broadcast(self, event: dict[str, Any]) -> None:
+        if not self.sockets:
+            return
+        event["t_server_ms"] = time.time() * 1000.0
+        text = json.dumps(event)
+        for ws in list(self.sockets):
+            if ws.closed:
+                self.sockets.discard(ws)
+                continue
+            task = asyncio.get_running_loop().create_task(_send(ws, text))
+            _TASKS.add(task)
+            task.add_done_callback(_TASKS.discard)
+
+
+_TASKS: set[asyncio.Task[Any]] = set()
+
+
+async def _send(ws: web.WebSocketResponse, text: str) -> None:
+    with contextlib.suppress(Exception):
+        await ws.send_str(text)
+
+
+def _api_error(exc: ApiCallError) -> web.Response:
+    if exc.error is None:  # no reply: the daemon is down or too slow
+        return _err(503, "no_reply", str(exc))
+    e = exc.error
+    status = {"busy": 409, "queue_full": 409, "not_allowed": 409, "no_job": 404, "design_not_found": 404}.get(
+        e.code, 400
+    )
+    return _err(status, e.code, e.message, e.field)
+
+
+async def serve(
+    cfg: CellConfig, auth: Authenticator, host: str, port: int, stop: asyncio.Event, **kwargs: Any
+) -> int:
+    """Run until ``stop`` is set; prints the address once listening (``kwargs``: HmiServer's)."""
+    server = HmiServer(cfg, auth, **kwargs)
+    runner = web.AppRunner(server.app, access_log=None)
+    await runner.setup()
+    try:
+        site = web.TCPSite(runner, host, port)
+        await site.start()
+        bound = runner.addresses[0] if runner.addresses else (host, port)
+        print(json.dumps({"ready": True, "url": f"http://{bound[0]}:{bound[1]}/"}), flush=True)
+        log.info("hmi_ready", host=bound[0], port=bound[1])
+        await stop.wait()
+        return 0
+    finally:
+        await runner.cleanup()

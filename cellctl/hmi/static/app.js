@@ -1,0 +1,388 @@
+// The HMI's pages: one document, pages by the URL's hash, live updates over one websocket.
+"use strict";
+
+const S = { me: null, status: null, statusAt: 0, liveJob: null, view: null, scanStart: null, designs: [], lastResult: null };
+const $ = (id) => document.getElementById(id);
+const esc = (s) => String(s == null ? "" : s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+const fmt = (v, d = 2) => (v == null || !isFinite(v) ? "-" : Number(v).toFixed(d));
+
+async function api(method, path, body) {
+  const headers = {};
+  if (method !== "GET") { headers["Content-Type"] = "application/json"; if (S.me) headers["X-CSRF-Token"] = S.me.csrf; }
+  const r = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body), credentials: "same-origin" });
+  let data = null;
+  try { data = await r.json(); } catch (e) { data = null; }
+  if (r.status === 401 && path !== "/api/login") showLogin();
+  return { ok: r.ok, status: r.status, data };
+}
+const errText = (res) => (res.data && res.data.message ? (res.data.field ? res.data.field + ": " : "") + res.data.message : "error " + res.status);
+
+// ------------------------------------------------------------------ log-in
+function showLogin() { $("app").classList.add("hidden"); $("login").classList.remove("hidden"); $("login-user").focus(); }
+async function afterLogin(me) {
+  S.me = me;
+  $("login").classList.add("hidden"); $("app").classList.remove("hidden");
+  $("who").textContent = `${me.user} (${me.role})`;
+  document.body.dataset.role = me.role;
+  for (const el of document.querySelectorAll(".operator-only")) el.classList.toggle("hidden", !me.may.includes("pause"));
+  for (const el of document.querySelectorAll(".engineer-only")) el.dataset.allowed = me.may.includes("reset") ? "1" : "";
+  $("nav-start").classList.toggle("hidden", !me.may.includes("trigger"));
+  connect();
+  route();
+}
+$("login-form").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  $("login-error").textContent = "";
+  const res = await api("POST", "/api/login", { user: $("login-user").value, password: $("login-password").value });
+  $("login-password").value = "";
+  if (res.ok) afterLogin(res.data); else $("login-error").textContent = errText(res);
+});
+$("logout").addEventListener("click", async () => { await api("POST", "/api/logout", {}); S.me = null; if (S.ws) S.ws.close(); showLogin(); });
+
+// ------------------------------------------------------------------ live updates
+function connect() {
+  if (S.ws && S.ws.readyState <= 1) return;
+  const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
+  S.ws = ws;
+  ws.onopen = () => $("conn").classList.add("up");
+  ws.onclose = () => { $("conn").classList.remove("up"); if (S.me) setTimeout(connect, 1000); };
+  ws.onmessage = (m) => {
+    const ev = JSON.parse(m.data);
+    if (ev.type === "status") onStatus(ev.status, ev.t_server_ms);
+    else if (ev.type === "live") onLive(ev);
+    else if (ev.type === "history" || ev.type === "report") onJobEnd(ev);
+  };
+}
+setInterval(() => { if (S.me) renderBanner(); }, 1000);
+
+// ------------------------------------------------------------------ pages
+const PAGES = ["cell", "start", "scan", "result", "history"];
+function route() {
+  const [page, arg] = (location.hash.replace(/^#/, "") || "cell").split("/");
+  const p = PAGES.includes(page) ? page : "cell";
+  for (const name of PAGES) $("page-" + name).classList.toggle("active", name === p);
+  for (const a of document.querySelectorAll("nav a")) a.classList.toggle("active", a.dataset.page === p);
+  document.body.dataset.page = p;
+  if (p === "start") loadStart();
+  if (p === "result") loadResult(arg ? decodeURIComponent(arg) : null);
+  if (p === "history") loadHistory(arg ? decodeURIComponent(arg) : null);
+  if (p === "scan") loadScan();
+}
+window.addEventListener("hashchange", () => { if (S.me) route(); });
+
+// ------------------------------------------------------------------ Cell page and banner
+function onStatus(st, tServer) {
+  S.status = st; S.statusAt = Date.now();
+  document.body.dataset.cellState = st.state;
+  $("cell-state").textContent = st.state.replace("_", " ");
+  $("cell-message").textContent = st.message;
+  const j = st.job;
+  $("cell-job").innerHTML = j ? `<b>${esc(j.plate_id)}</b> ${esc(j.job_id)}<br>${esc(j.state)} ${esc(j.stage)}` : "none";
+  $("cell-job-bar").style.width = j ? (100 * j.fraction).toFixed(1) + "%" : "0";
+  $("cell-queue").innerHTML = st.queue.map((q) => `<li>${esc(q.plate_id)} <small>${esc(q.job_id)}</small></li>`).join("") || "<li>empty</li>";
+  $("cell-analyses").innerHTML = st.analyses.map((a) => `<li>${esc(a.plate_id)}: ${esc(a.state)} ${esc(a.worker_id || "")}</li>`).join("") || "<li>none</li>";
+  $("cell-workers").innerHTML = st.workers.map((w) => `<li>${esc(w)}</li>`).join("") || "<li>no worker: reports wait</li>";
+  $("cell-recent").innerHTML = "<tr><th>plate</th><th>job</th><th>state</th><th>message</th><th></th></tr>" +
+    st.recent.slice().reverse().map((r) => `<tr class="clickable" data-job="${esc(r.job_id)}"><td>${esc(r.plate_id)}</td><td>${esc(r.job_id)}</td><td>${esc(r.state)}</td><td>${esc(r.message)}</td><td>${
+      ["interrupted", "failed"].includes(r.state) && S.me && S.me.may.includes("reanalyse") ? `<button class="reanalyse" data-job="${esc(r.job_id)}">Re-analyse</button>` : ""}</td></tr>`).join("");
+  const resetable = ["faulted", "emergency_stopped"].includes(st.state);
+  $("btn-reset").classList.toggle("hidden", !(resetable && $("btn-reset").dataset.allowed));
+  renderBanner();
+  renderHealth();
+  if (document.body.dataset.page === "scan") renderScan();
+  // publication -> on screen (same clock on one machine; kept for benchmarks/hmi.py)
+  S.statusLatencyMs = (S.statusLatencyMs || []).slice(-999).concat([Date.now() - Date.parse(st.t_utc)]);
+  document.body.dataset.statusT = st.t_utc;
+}
+function renderHealth() {
+  const age = S.statusAt ? (Date.now() - S.statusAt) / 1000 : Infinity;
+  const items = [
+    [age < 3.5, age < 3.5 ? "daemon: publishing" : "daemon: no state for " + (isFinite(age) ? age.toFixed(0) + " s" : "ever")],
+    [S.status && S.status.workers.length > 0, `analysis workers: ${S.status ? S.status.workers.length : 0}`],
+    [S.status && S.status.state !== "emergency_stopped" && S.status.state !== "faulted", "robot: " + (S.status ? (S.status.state === "emergency_stopped" ? "e-stopped" : S.status.state === "faulted" ? "faulted" : "ok") : "?")],
+    [S.status && !(S.status.job && S.status.job.state === "scanning" && S.status.job.profiles === 0 && S.status.job.fraction > 0.1), "sensor: " + (S.status && S.status.job ? S.status.job.profiles + " profiles" : "idle")],
+  ];
+  $("cell-health").innerHTML = items.map(([ok, t]) => `<li style="color:${ok ? "#8f8" : "#f88"}">${esc(t)}</li>`).join("");
+}
+function renderBanner() {
+  const b = $("banner"), st = S.status;
+  const age = S.statusAt ? (Date.now() - S.statusAt) / 1000 : 0;
+  let html = "", warn = false;
+  if (st && st.state === "emergency_stopped") {
+    html = `<h2>EMERGENCY STOP</h2>${esc(st.message)}<ol>
+      <li>Make the cell safe; find out why the stop was pressed.</li>
+      <li>Release the e-stop and reset it on the controller (motors off or on).</li>
+      <li>An engineer presses <b>Reset cell</b> on the Cell page (refused while the controller still reports the e-stop).</li>
+      <li>Re-analyse the interrupted job from its raw data (Cell page, Recent jobs), or start the plate again.</li></ol>`;
+  } else if (st && st.state === "faulted") {
+    warn = true;
+    html = `<h2>FAULT</h2>${esc(st.message)}<ol><li>Check the robot and the sensor (the job's raw data is kept).</li>
+      <li>An engineer presses <b>Reset cell</b>, or start the plate again (a new scan is accepted).</li></ol>`;
+  } else if (S.statusAt && age > 5) {
+    warn = true;
+    html = `<h2>NO CONTACT WITH THE CELL</h2>No state from the daemon for ${age.toFixed(0)} s: is <code>cellctl run</code> running? The page updates by itself when it is back.`;
+  }
+  b.innerHTML = html; b.classList.toggle("hidden", !html); b.classList.toggle("warn", warn);
+  b.dataset.state = st ? st.state : "";
+}
+$("btn-reset").addEventListener("click", async () => {
+  const res = await api("POST", "/api/control/reset", {});
+  $("cell-message").textContent = res.ok ? "reset: cell " + res.data.state : "reset refused: " + errText(res);
+});
+$("cell-recent").addEventListener("click", async (e) => {
+  const btn = e.target.closest("button.reanalyse");
+  if (btn) {
+    const res = await api("POST", "/api/control/reanalyse", { job_id: btn.dataset.job });
+    $("cell-message").textContent = res.ok ? "re-analysing " + btn.dataset.job : "re-analyse refused: " + errText(res);
+    return;
+  }
+  const tr = e.target.closest("tr[data-job]");
+  if (tr) location.hash = "#result/" + encodeURIComponent(tr.dataset.job);
+});
+
+// ------------------------------------------------------------------ Start page
+async function loadStart() {
+  const res = await api("GET", "/api/designs");
+  if (!res.ok) return;
+  S.designs = res.data.designs;
+  const sel = $("start-design"), keep = sel.value;
+  sel.innerHTML = S.designs.map((d) => `<option>${esc(d)}</option>`).join("");
+  if (keep && S.designs.includes(keep)) sel.value = keep;
+  const p = res.data.default_placement;
+  if (p && $("start-x").value === "") { $("start-x").value = p.pos_mm[0]; $("start-y").value = p.pos_mm[1]; $("start-z").value = p.pos_mm[2]; $("start-yaw").value = p.rpy_deg[2]; }
+  preview();
+  $("start-plate").focus();
+}
+async function preview() {
+  const d = $("start-design").value;
+  if (!d) return;
+  const res = await api("GET", "/api/designs/preview?path=" + encodeURIComponent(d));
+  if (!res.ok) { $("start-preview-info").textContent = errText(res); return; }
+  const xyz = new Float32Array(res.data.xyz_mm.flat());
+  if (!S.previewView) S.previewView = PointView($("start-preview"), { top: true });
+  S.previewView.setPoints(xyz, heightColours(xyz, res.data.min_mm[2], res.data.max_mm[2]));
+  const size = res.data.max_mm.map((v, k) => v - res.data.min_mm[k]);
+  $("start-preview-info").textContent = `${size[0].toFixed(0)} x ${size[1].toFixed(0)} mm, height ${size[2].toFixed(0)} mm`;
+}
+$("start-design").addEventListener("change", preview);
+$("start-plate").addEventListener("keydown", (e) => { if (e.key === "Enter") { e.preventDefault(); $("start-design").focus(); } }); // a barcode scanner ends with Enter
+$("start-form").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  $("start-error").textContent = ""; $("start-ok").textContent = "";
+  const num = (id) => Number($(id).value);
+  const body = { plate_id: $("start-plate").value.trim(), design: $("start-design").value,
+    placement: { pos_mm: [num("start-x"), num("start-y"), num("start-z")], rpy_deg: [0, 0, num("start-yaw")] }, note: $("start-note").value };
+  $("start-submit").disabled = true;
+  const res = await api("POST", "/api/trigger", body);
+  $("start-submit").disabled = false;
+  if (!res.ok) { $("start-error").textContent = "Not started. " + errText(res); return; }
+  $("start-ok").textContent = res.data.state === "queued" ? `Queued at position ${res.data.queue_position} (job ${res.data.job_id})` : `Started: job ${res.data.job_id}`;
+  S.followJob = res.data.job_id;
+  location.hash = "#scan";
+});
+
+// ------------------------------------------------------------------ Scan page
+function scanJob() {
+  const st = S.status;
+  if (!st || !st.job) return null;
+  return st.job;
+}
+async function loadScan() {
+  if (!S.view) S.view = PointView($("scan-view"));
+  const j = scanJob();
+  if (j && j.job_id !== S.liveJob) {
+    S.liveJob = j.job_id; S.livePoints = 0;
+    const res = await api("GET", "/api/jobs/" + encodeURIComponent(j.job_id) + "/live");
+    S.view.setPoints(new Float32Array(0), new Uint8Array(0));
+    if (res.ok && res.data.xyz_mm.length) addLive(res.data.xyz_mm);
+  }
+  renderScan();
+}
+function addLive(pts) {
+  const xyz = new Float32Array(pts.flat());
+  if (S.zRange == null) { let lo = Infinity, hi = -Infinity; for (let i = 2; i < xyz.length; i += 3) { lo = Math.min(lo, xyz[i]); hi = Math.max(hi, xyz[i]); } S.zRange = [lo, hi + 1]; }
+  S.view.addPoints(xyz, heightColours(xyz, S.zRange[0], S.zRange[1]));
+  S.livePoints = S.view.count();
+  S.liveUpdates = (S.liveUpdates || 0) + 1;
+  $("scan-points").textContent = `${S.livePoints} points`;
+  $("scan-points").dataset.points = String(S.livePoints);
+}
+function onLive(ev) {
+  if (!S.view) S.view = PointView($("scan-view"));
+  if (ev.job_id !== S.liveJob) { S.liveJob = ev.job_id; S.zRange = null; S.view.setPoints(new Float32Array(0), new Uint8Array(0)); }
+  if (ev.xyz_mm.length) addLive(ev.xyz_mm);
+}
+function renderScan() {
+  const j = scanJob();
+  if (!j) { $("scan-job").textContent = "no scan in progress"; return; }
+  $("scan-job").innerHTML = `<b>${esc(j.plate_id)}</b> ${esc(j.job_id)}<br>${esc(j.state)}: ${esc(j.stage)} ${esc(j.message)}`;
+  const m = /\((\d+)\/(\d+)\)/.exec(j.stage || "");
+  $("scan-pass").textContent = m ? `${m[1]} / ${m[2]}` : "-";
+  const f = j.fraction || 0;
+  $("scan-bar").style.width = (100 * f).toFixed(1) + "%";
+  $("scan-progress").textContent = `${(100 * f).toFixed(0)} %  ·  ${j.profiles} profiles`;
+  $("scan-progress").dataset.fraction = String(f);
+  if (["scanning", "paused"].includes(j.state)) {
+    if (!S.scanStart || S.scanStart.job !== j.job_id) S.scanStart = { job: j.job_id, t: Date.now(), f };
+    const el = (Date.now() - S.scanStart.t) / 1000, df = f - S.scanStart.f;
+    $("scan-left").textContent = df > 0.02 ? Math.max(0, (el * (1 - f)) / df).toFixed(0) + " s" : "…";
+  } else $("scan-left").textContent = ["done", "waiting_for_worker", "analysing"].includes(j.state) ? "scan done" : "-";
+  $("btn-pause").disabled = j.state !== "scanning";
+  $("btn-resume").disabled = j.state !== "paused";
+  $("btn-abort").disabled = !["planning", "scanning", "paused"].includes(j.state);
+}
+for (const action of ["pause", "resume", "abort"]) {
+  $("btn-" + action).addEventListener("click", async () => {
+    const j = scanJob();
+    const res = await api("POST", "/api/control/" + action, j ? { job_id: j.job_id } : {});
+    $("scan-error").textContent = res.ok ? "" : action + " refused: " + errText(res);
+  });
+}
+function onJobEnd(ev) {
+  if (ev.type === "history" && S.followJob === ev.job_id) { S.followJob = null; location.hash = "#result/" + encodeURIComponent(ev.job_id); }
+  else if (document.body.dataset.page === "history") loadHistory(S.historyPlate);
+}
+
+// ------------------------------------------------------------------ Result page
+async function loadResult(jobId) {
+  if (!jobId) {
+    const res = await api("GET", "/api/jobs");
+    const done = res.ok ? res.data.jobs.find((j) => j.verdict) : null;
+    if (!done) { $("result-title").textContent = "No result yet"; return; }
+    jobId = done.job_id;
+  }
+  const res = await api("GET", "/api/jobs/" + encodeURIComponent(jobId));
+  if (!res.ok) { $("result-title").textContent = errText(res); return; }
+  const { job, report, files, previous } = res.data;
+  document.body.dataset.resultJob = job.job_id;
+  $("result-title").textContent = `Plate ${job.plate_id} · job ${job.job_id}`;
+  $("result-meta").innerHTML = `state ${esc(job.state)} · design ${esc(job.design)} · ${esc(job.created_utc)}<br>${esc((job.history.slice(-1)[0] || {}).message || "")}`;
+  $("result-downloads").innerHTML = files.map((f) => `<a href="/api/jobs/${encodeURIComponent(job.job_id)}/files/${f}" download>${esc(f)}</a>`).join("");
+  const rb = $("btn-reanalyse");
+  rb.classList.toggle("hidden", !(rb.dataset.allowed && ["interrupted", "failed"].includes(job.state)));
+  rb.dataset.job = job.job_id;
+  const v = $("result-verdict");
+  v.className = "verdict" + (report ? " " + report.verdict : "");
+  v.textContent = report ? report.verdict.toUpperCase() : job.state.toUpperCase();
+  if (!report) { $("result-lines").innerHTML = ""; $("result-plots").innerHTML = ""; $("result-rework").innerHTML = ""; return; }
+  const tol = report.tolerances, stdMm = tol.deviation_standard_mm, limMm = tol.deviation_limit_mm;
+  const prev = previous ? Object.fromEntries(previous.lines.map((l) => [l.name, l])) : {};
+  const lname = (l) => l.name || `${l.family[0].toUpperCase()}${l.index}`;
+  $("result-lines").innerHTML = `<tr><th>line</th><th>pos mm</th><th>Sz avg mm</th><th>Zmax mm</th><th>at mm</th><th>CI</th><th>Sc avg 1/mm</th><th>Cmax 1/mm</th><th>length mm</th><th>grade</th><th>result</th>${previous ? "<th>prev. Zmax</th>" : ""}</tr>` +
+    report.lines.map((l) => `<tr class="${l.pass ? "" : "fail"}" data-line="${esc(lname(l))}"><td>${esc(lname(l))} ${esc(l.family)}</td><td>${fmt(l.position_mm, 0)}</td><td>${fmt(l.sz_avg_mm)}</td><td>${fmt(l.zmax_mm)}</td><td>${fmt(l.zmax_at_mm, 0)}</td><td>${fmt(l.ci, 3)}</td><td>${Number(l.sc_avg_per_mm).toExponential(2)}</td><td>${Number(l.cmax_per_mm).toExponential(2)}</td><td>${fmt(l.length_mm, 0)}</td><td>${esc(l.grade)}</td><td>${l.pass ? "pass" : "FAIL"}</td>${previous ? `<td>${prev[lname(l)] ? fmt(prev[lname(l)].zmax_mm) : "-"}</td>` : ""}</tr>`).join("");
+  $("result-legend").innerHTML = `<span style="background:rgb(${BAND.std})">|d| ≤ ${stdMm} mm</span><span style="background:rgb(${BAND.limit})">≤ ${limMm} mm</span><span style="background:rgb(${BAND.out})">&gt; ${limMm} mm</span>`;
+  const mres = await api("GET", "/api/jobs/" + encodeURIComponent(job.job_id) + "/map");
+  const map = mres.ok ? mres.data : null;
+  if (map) {
+    const m = map.xy_mm.length, top = new Float32Array(3 * m), d3 = new Float32Array(3 * m), col = new Uint8Array(3 * m);
+    let amax = 1e-3;
+    for (let i = 0; i < m; i++) amax = Math.max(amax, Math.abs(map.deviation_mm[i]));
+    for (let i = 0; i < m; i++) {
+      top[3 * i] = map.xy_mm[i][0]; top[3 * i + 1] = map.xy_mm[i][1]; top[3 * i + 2] = 0;
+      d3[3 * i] = map.xy_mm[i][0]; d3[3 * i + 1] = map.xy_mm[i][1]; d3[3 * i + 2] = map.deviation_mm[i];
+      col.set(bandColour(map.deviation_mm[i], stdMm, limMm), 3 * i);
+    }
+    if (!S.res3d) S.res3d = PointView($("result-3d"));
+    if (!S.resTop) S.resTop = PointView($("result-top"), { top: true });
+    S.res3d.setZScale(0.15 * Math.max(...report.plate_size_mm) / amax);
+    S.res3d.setPoints(d3, col); S.resTop.setPoints(top, col);
+  }
+  // rework regions: runs beyond the limit along each line, placed from the reference corner
+  const rework = [];
+  $("result-plots").innerHTML = "";
+  report.lines.forEach((l, k) => {
+    const ld = map && map.lines[k];
+    const c = document.createElement("canvas"); c.width = 370; c.height = 170; c.dataset.line = lname(l);
+    $("result-plots").appendChild(c);
+    if (ld) plotLine(c, lname(l), ld.s_mm, ld.deviation_mm, stdMm, limMm, l.pass);
+    if (!ld || l.pass) return;
+    const s = ld.s_mm, dv = ld.deviation_mm, s0 = s[0], s1 = s[s.length - 1];
+    const at = (sv) => {
+      if (!l.start_plate_mm || !l.end_plate_mm) return `s = ${sv.toFixed(0)} mm`;
+      const t = (sv - s0) / Math.max(s1 - s0, 1e-9), p = l.start_plate_mm.map((a, j) => a + t * (l.end_plate_mm[j] - a));
+      return `(${p[0].toFixed(0)}, ${p[1].toFixed(0)}) mm`;
+    };
+    let i = 0;
+    while (i < s.length) {
+      if (Math.abs(dv[i]) <= limMm) { i++; continue; }
+      let j = i, worst = 0;
+      while (j < s.length && Math.abs(dv[j]) > limMm) { if (Math.abs(dv[j]) > Math.abs(worst)) worst = dv[j]; j++; }
+      rework.push(`<li>line ${esc(lname(l))}: from ${at(s[i])} to ${at(s[j - 1])}, worst ${worst.toFixed(2)} mm (${worst > 0 ? "design above the plate" : "plate above the design"})</li>`);
+      i = j;
+    }
+    if (!rework.length) rework.push(`<li>line ${esc(lname(l))}: Zmax ${fmt(l.zmax_mm)} mm at ${fmt(l.zmax_at_mm, 0)} mm</li>`);
+  });
+  $("result-rework").innerHTML = rework.join("") || "<li>none: every line within the limit</li>";
+}
+$("btn-reanalyse").addEventListener("click", async () => {
+  const res = await api("POST", "/api/control/reanalyse", { job_id: $("btn-reanalyse").dataset.job });
+  $("result-meta").textContent = res.ok ? "re-analysing" : "re-analyse refused: " + errText(res);
+});
+
+function plotAxes(c, title, xs, ys, yBands) {
+  const g = c.getContext("2d"), W = c.width, H = c.height, L = 46, B = 22;
+  g.fillStyle = "#06090b"; g.fillRect(0, 0, W, H);
+  const xlo = Math.min(...xs), xhi = Math.max(...xs, xlo + 1);
+  let ylo = Math.min(...ys, ...yBands.map((b) => -b)), yhi = Math.max(...ys, ...yBands);
+  const pad = 0.1 * (yhi - ylo || 1); ylo -= pad; yhi += pad;
+  const X = (v) => L + ((v - xlo) / (xhi - xlo)) * (W - L - 8), Y = (v) => 8 + ((yhi - v) / (yhi - ylo)) * (H - B - 8);
+  g.fillStyle = "#9fb0bf"; g.font = "13px system-ui";
+  g.fillText(title, L + 4, 20);
+  g.fillText(yhi.toFixed(1), 2, 16); g.fillText(ylo.toFixed(1), 2, H - B); g.fillText(xlo.toFixed(0), L, H - 6); g.fillText(xhi.toFixed(0), W - 40, H - 6);
+  return { g, X, Y, W, H, L, B };
+}
+function plotLine(c, name, s, dv, stdMm, limMm, pass) {
+  const { g, X, Y } = plotAxes(c, `${name}: deviation mm along s mm`, s, dv, [limMm]);
+  g.fillStyle = "rgba(40,170,70,0.18)"; g.fillRect(X(s[0]), Y(stdMm), X(s[s.length - 1]) - X(s[0]), Y(-stdMm) - Y(stdMm));
+  g.strokeStyle = "rgba(230,170,30,0.8)"; g.setLineDash([4, 4]);
+  for (const b of [limMm, -limMm]) { g.beginPath(); g.moveTo(X(s[0]), Y(b)); g.lineTo(X(s[s.length - 1]), Y(b)); g.stroke(); }
+  g.setLineDash([]); g.strokeStyle = pass ? "#6cf" : "#f66"; g.lineWidth = 2; g.beginPath();
+  s.forEach((sv, i) => (i ? g.lineTo(X(sv), Y(dv[i])) : g.moveTo(X(sv), Y(dv[i])))); g.stroke();
+}
+
+// ------------------------------------------------------------------ History page
+async function loadHistory(plate) {
+  S.historyPlate = plate;
+  if (plate && !$("history-plate").value) $("history-plate").value = plate;
+  const q = new URLSearchParams({ plate: $("history-plate").value.trim(), date: $("history-date").value, verdict: $("history-verdict").value });
+  const res = await api("GET", "/api/jobs?" + q);
+  if (res.ok) {
+    $("history-jobs").innerHTML = "<tr><th>plate</th><th>job</th><th>created (UTC)</th><th>state</th><th>verdict</th><th>max |Zmax| mm</th></tr>" +
+      res.data.jobs.map((j) => `<tr class="clickable ${j.verdict === "fail" ? "fail" : ""}" data-job="${esc(j.job_id)}" data-plate="${esc(j.plate_id)}"><td><a href="#history/${encodeURIComponent(j.plate_id)}">${esc(j.plate_id)}</a></td><td>${esc(j.job_id)}</td><td>${esc(j.created_utc)}</td><td>${esc(j.state)}</td><td>${esc(j.verdict || "-")}</td><td>${fmt(j.max_abs_zmax_mm)}</td></tr>`).join("");
+  }
+  const p = $("history-plate").value.trim();
+  $("history-rounds").classList.toggle("hidden", !p);
+  if (!p) return;
+  const rr = await api("GET", "/api/plates/" + encodeURIComponent(p) + "/rounds");
+  const rounds = rr.ok ? rr.data.rounds : [];
+  $("history-rounds-title").textContent = `Plate ${p}: ${rounds.length} round(s), Zmax per line (mm)`;
+  $("history-rounds").dataset.rounds = String(rounds.length);
+  const names = [];
+  for (const r of rounds) for (const l of r.lines) if (!names.includes(l.name)) names.push(l.name);
+  $("history-rounds-table").innerHTML = `<tr><th>line</th>${rounds.map((r) => `<th>round ${r.round}<br><small>${esc(r.job_id)}</small></th>`).join("")}</tr>` +
+    names.map((n) => `<tr><td>${esc(n)}</td>${rounds.map((r) => { const l = r.lines.find((x) => x.name === n); return `<td style="color:${l && !l.pass ? "#f99" : ""}">${l ? fmt(l.zmax_mm) : "-"}</td>`; }).join("")}</tr>`).join("") +
+    `<tr><td>verdict</td>${rounds.map((r) => `<td>${esc(r.verdict)}</td>`).join("")}</tr>`;
+  // convergence: |Zmax| per line over the rounds
+  const c = $("history-convergence");
+  if (!rounds.length) { c.getContext("2d").clearRect(0, 0, c.width, c.height); return; }
+  const xs = rounds.map((r) => r.round), all = rounds.flatMap((r) => r.lines.map((l) => Math.abs(l.zmax_mm)));
+  const { g, X, Y } = plotAxes(c, "convergence: |Zmax| per line (mm) by round", xs.length > 1 ? xs : [1, 2], all.length ? all : [0], [0]);
+  const palette = ["#6cf", "#fc6", "#9f9", "#f9c", "#c9f", "#9ff", "#fa8", "#ccc"];
+  names.forEach((n, k) => {
+    g.strokeStyle = palette[k % palette.length]; g.fillStyle = g.strokeStyle; g.lineWidth = 2; g.beginPath();
+    rounds.forEach((r, i) => { const l = r.lines.find((x) => x.name === n); if (!l) return; const x = X(r.round), y = Y(Math.abs(l.zmax_mm)); i ? g.lineTo(x, y) : g.moveTo(x, y); g.fillRect(x - 3, y - 3, 6, 6); });
+    g.stroke(); g.fillText(n, c.width - 60, 20 + 14 * k);
+  });
+}
+$("history-form").addEventListener("submit", (e) => { e.preventDefault(); loadHistory(null); });
+$("history-jobs").addEventListener("click", (e) => {
+  if (e.target.closest("a")) { $("history-plate").value = e.target.closest("tr").dataset.plate; return; }
+  const tr = e.target.closest("tr[data-job]");
+  if (tr) location.hash = "#result/" + encodeURIComponent(tr.dataset.job);
+});
+
+// ------------------------------------------------------------------ start
+(async () => {
+  const res = await api("GET", "/api/me");
+  if (res.ok) afterLogin(res.data); else showLogin();
+})();
