@@ -14,6 +14,8 @@ from analysis.mesh import TriMesh
 from analysis.plates import design_corners, design_height_mm, design_mesh, plate_spec
 from analysis.templates import DetectionLayout, detection_lines, exact_section
 
+pytestmark = pytest.mark.process  # every CAD file is read in a forked child (analysis.cad)
+
 HULLS = Path(__file__).resolve().parents[2] / ".." / "shared" / "testdata" / "designs"
 HULLS = HULLS if HULLS.is_dir() else Path("/work/shared/testdata/designs")
 SAIL = plate_spec("sail")
