@@ -17,16 +17,20 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from analysis.metrics import Tolerances
 from analysis.placement import Placement
-from analysis.settings import InspectionSettings
+from analysis.settings import InspectionSettings, TemplateFit
 
 __all__ = [
     "AnalysisJob",
+    "CompareLine",
+    "LineFitReport",
     "LineReport",
     "RegistrationReport",
     "Report",
     "ReportInputs",
+    "RestSurfaceReport",
     "ScanCoverage",
     "SurfaceReport",
+    "TemplateFitCompare",
 ]
 
 
@@ -56,6 +60,21 @@ Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
+class RestSurfaceReport(_Strict):
+    """The surface the design rests on (``analysis.rest_surface``): patches, noise, the bias bound (mm)."""
+
+    estimator: str
+    patches: int
+    cell_mm: float
+    min_points: int
+    noise_mm: float
+    standard_error_mm: float
+    bound_mm: float
+    confidence: float
+    target_sigmas: float
+    target_met: bool
+
+
 class RegistrationReport(_Strict):
     """How the design was laid on the measured plate (rms in mm, ``transform`` design -> measured)."""
 
@@ -72,6 +91,42 @@ class RegistrationReport(_Strict):
     ]
     corner_shift: int
     candidates_icp_rms_mm: dict[str, float] = {}
+    rest_surface: RestSurfaceReport | None = None
+
+
+class LineFitReport(_Strict):
+    """A per-line template's motion in its section plane (``template_fit = "per_line"``)."""
+
+    angle_deg: float
+    shift_s_mm: float
+    shift_h_mm: float
+    rms_mm: float
+    rest_points: int
+    penetration_points: int
+    converged: bool
+
+
+class CompareLine(_Strict):
+    """One line's figures under the template fit that did not judge the plate."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, serialize_by_alias=True)
+
+    name: str
+    family: Literal["transverse", "longitudinal", "diagonal"]
+    index: Annotated[int, Field(ge=1)]
+    sz_avg_mm: float
+    zmax_mm: float
+    cmax_per_mm: float
+    grade: str = ""
+    passed: bool = Field(alias="pass")
+
+
+class TemplateFitCompare(_Strict):
+    """The other template fit's figures, shown beside the judged ones (``template_fit_compare``)."""
+
+    template_fit: TemplateFit
+    verdict: Literal["pass", "fail"]
+    lines: list[CompareLine]
 
 
 class LineReport(_Strict):
@@ -96,6 +151,7 @@ class LineReport(_Strict):
     start_plate_mm: Vec2 | None = None
     end_plate_mm: Vec2 | None = None
     noise_mm: float | None = None
+    line_fit: LineFitReport | None = None
 
 
 class ScanCoverage(_Strict):
@@ -149,6 +205,8 @@ class Report(_Strict):
     created_utc: str = ""
     verdict: Literal["pass", "fail"]
     standard: str = ""
+    template_fit: TemplateFit = "rigid"
+    template_fit_compare: TemplateFitCompare | None = None
     registration: RegistrationReport
     corners_mm: Annotated[list[Vec3], Field(min_length=4, max_length=4)]
     plate_size_mm: Vec2

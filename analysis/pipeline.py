@@ -21,11 +21,15 @@ triangulated between neighbouring filled cells. The cell is sized so that it ave
 scan points (about 1.6 mm at HD8 density), which divides the sensor noise by 4, and the grid keeps
 the cost linear in the number of points where a Delaunay triangulation of millions would not be.
 
-ICP and the non-penetrating fit run on that reconstructed surface, every cell of it. A template
-rests on the plate, not on the sensor's noise: fitted to raw points, the design would be lifted by
-the most negative noise sample (about 4 sigma, 0.08 mm at 0.02 mm noise) and every Zmax would read
-that much too high. ``penetration_points`` counts reconstructed-surface points below the design
-(0 after the fit); ``raw_points_below_4sigma`` reports raw points more than 4 noise sigmas below it.
+ICP runs on that reconstructed surface. The non-penetrating fit rests the design on patch
+estimates of the plate whose noise bias is bounded (``analysis.rest_surface``: the noise measured
+from the data, patch means of the gaps to the design sized so the highest patch error stays below
+0.25 sigma with 99 % confidence): rested on raw points or 16-point cell means, the design floated on
+the highest noise excursion (1.75 sigma) and every Zmax read that much too high. The sections are
+smoothed at the cell means' noise. ``penetration_points`` counts resting-surface points below the
+design (0 after the fit); ``raw_points_below_4sigma`` reports raw points more than 4 noise sigmas
+below it. ``template_fit`` chooses one template for the plate (rigid, the paper's 3D fit) or one
+per line (``analysis.template_fit``, the paper's 2D case); docs/metrology.md has the details.
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ from analysis.placement import Placement, placement_transform
 from analysis.plates import canonical_corner_order
 from analysis.register import (
     HeightField,
+    RegistrationError,
     RegistrationResult,
     deflection_gaps,
     height_field_from_mesh,
@@ -59,9 +64,18 @@ from analysis.register import (
     register,
 )
 from analysis.report import write_csv
+from analysis.rest_surface import RestSurface, rest_surface
 from analysis.segment import SegmentResult, segment_plate
-from analysis.settings import InspectionSettings
+from analysis.settings import TEMPLATE_FITS, InspectionSettings
+from analysis.template_fit import (
+    LineFitResult,
+    TemplateFitError,
+    check_mode,
+    fit_line_template,
+    line_rest_samples,
+)
 from analysis.templates import (
+    FAMILY_LETTER,
     TemplateCut,
     cut_templates,
     cut_templates_exact,
@@ -248,6 +262,47 @@ def _subsample_index(n: int, k: int, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, size=k, replace=False))
 
 
+def _line_figures(
+    cuts: list[TemplateCut], fits: list[LineFitResult | None], noise_mm: float
+) -> tuple[list[LineMetrics], list[TemplateCut], list[LineFitResult | None]]:
+    """The six figures of every cut that has enough samples (the others are logged and skipped)."""
+    metrics: list[LineMetrics] = []
+    kept: list[TemplateCut] = []
+    kept_fits: list[LineFitResult | None] = []
+    for cut, fit in zip(cuts, fits, strict=True):
+        try:
+            m = line_metrics(
+                cut.s_mm, cut.design_h_mm, cut.measured_h_mm, noise_mm=noise_mm,
+                family=cut.line.family, index=cut.line.index, position_mm=cut.line.position_mm,
+            )  # fmt: skip
+        except ValueError as exc:
+            log.warning("line_skipped", family=cut.line.family, index=cut.line.index, reason=str(exc))
+            continue
+        metrics.append(m)
+        kept.append(cut)
+        kept_fits.append(fit)
+    return metrics, kept, kept_fits
+
+
+def _per_line_cuts(
+    cuts: list[TemplateCut], points_mm: np.ndarray, gaps_mm: np.ndarray, noise_mm: float
+) -> tuple[list[TemplateCut], list[LineFitResult | None]]:
+    """Each cut with its design section rested on its own line (``analysis.template_fit``)."""
+    out: list[TemplateCut] = []
+    fits: list[LineFitResult | None] = []
+    for cut in cuts:
+        try:
+            r = line_rest_samples(points_mm, gaps_mm, cut.line, cut.s_mm, cut.design_h_mm, noise_mm)
+            fit = fit_line_template(cut.s_mm, cut.design_h_mm, r.s_mm, r.h_mm)
+        except (TemplateFitError, RegistrationError) as exc:
+            log.warning("per_line_fit_skipped", family=cut.line.family, index=cut.line.index, reason=str(exc))
+            continue
+        moved = fit.moved_heights(cut.s_mm, cut.design_h_mm, cut.s_mm)
+        out.append(TemplateCut(cut.line, cut.s_mm, moved, cut.measured_h_mm))
+        fits.append(fit)
+    return out, fits
+
+
 # --------------------------------------------------------------------------------------- pipeline
 
 
@@ -306,7 +361,23 @@ def inspect_cloud(
     lap("surface")
     # The fits run on the reconstructed surface (cell means): every cell of the plate, denoised.
     nominal = placement_transform(nominal_placement) if nominal_placement is not None else None
-    reg = register(surface, measured_mesh.vertices_mm, design_c, bnd.corners_mm, nominal_transform=nominal)
+    rests: list[RestSurface] = []
+
+    def rest_on(T_icp: np.ndarray) -> np.ndarray:
+        # the design rests on patch estimates of the plate with a bounded noise bias
+        rests.append(rest_surface(surface, seg.points_mm, T_icp, target_sigmas=settings.rest_target_sigmas,
+                                  max_cell_mm=settings.rest_max_cell_mm))  # fmt: skip
+        return rests[-1].points_mm
+
+    reg = register(
+        surface,
+        measured_mesh.vertices_mm,
+        design_c,
+        bnd.corners_mm,
+        nominal_transform=nominal,
+        rest_points=rest_on,
+    )
+    rest = rests[-1]
     lap("register")
 
     T = reg.transform  # design -> measured
@@ -320,25 +391,27 @@ def inspect_cloud(
         raise InspectionError("no detection line crosses both the design and the scanned plate")
     lap("templates")
 
-    metrics: list[LineMetrics] = []
-    kept: list[TemplateCut] = []
-    for cut in cuts:
-        try:
-            m = line_metrics(
-                cut.s_mm, cut.design_h_mm, cut.measured_h_mm,
-                family=cut.line.family, index=cut.line.index, position_mm=cut.line.position_mm,
-            )  # fmt: skip
-        except ValueError as exc:
-            log.warning("line_skipped", family=cut.line.family, index=cut.line.index, reason=str(exc))
-            continue
-        metrics.append(m)
-        kept.append(cut)
-    if not metrics:
-        raise InspectionError("no detection line has enough scanned samples to be evaluated")
-    verdict = judge(metrics, settings.tolerances)
+    # The sections are cut from cell means: their noise is the points' over the root of a cell's
+    # count (estimated from the data; the sections' own second differences miss it, the mesh being
+    # linear between its nodes, and the splines would follow the noise)
+    section_noise = rest.noise_mm / np.sqrt(len(seg.points_mm) / max(len(measured_mesh.vertices_mm), 1))
+    gaps, _, _, valid = deflection_gaps(surface, seg.points_mm, T, geometry=False)
+    mode = check_mode(settings.template_fit)
+    modes = [mode] + ([m for m in TEMPLATE_FITS if m != mode] if settings.template_fit_compare else [])
+    judged: dict[str, tuple[Verdict, list[TemplateCut], list[LineFitResult | None]]] = {}
+    for fit_mode in modes:
+        fit_cuts, fits = (
+            (cuts, [None] * len(cuts))
+            if fit_mode == "rigid"
+            else _per_line_cuts(cuts, seg.points_mm, np.where(valid, gaps, np.nan), rest.noise_mm)
+        )
+        metrics, kept, kept_fits = _line_figures(fit_cuts, fits, section_noise)
+        if not metrics:
+            raise InspectionError("no detection line has enough scanned samples to be evaluated")
+        judged[fit_mode] = (judge(metrics, settings.tolerances), kept, kept_fits)
+    verdict, kept, kept_fits = judged[mode]
     lap("metrics")
 
-    gaps, _, _, valid = deflection_gaps(surface, seg.points_mm, T, geometry=False)
     deviation = np.where(valid, gaps, np.nan)
     s_gaps, _, _, s_valid = deflection_gaps(surface, measured_mesh.vertices_mm, T, geometry=False)
     surface_deviation = np.where(s_valid, s_gaps, np.nan)
@@ -354,7 +427,7 @@ def inspect_cloud(
 
     T_plate_measured = T_plate_design @ T_design_measured
     line_records = []
-    for m, cut in zip(verdict.lines, kept, strict=True):
+    for m, cut, line_fit in zip(verdict.lines, kept, kept_fits, strict=True):
         ends = np.vstack([cut.line.start_mm, cut.line.end_mm])
         ends_plate = ends @ T_plate_measured[:3, :3].T + T_plate_measured[:3, 3]
         rec = m.as_dict()
@@ -364,6 +437,8 @@ def inspect_cloud(
             end_plate_mm=[round(float(v), 2) for v in ends_plate[1, :2]],
             noise_mm=m.noise_mm,
         )
+        if line_fit is not None:
+            rec["line_fit"] = line_fit.as_dict()
         line_records.append(rec)
 
     plate_l, plate_w = _side_lengths(design_c)
@@ -374,6 +449,7 @@ def inspect_cloud(
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "verdict": verdict.verdict,
         "standard": settings.tolerances.standard,
+        "template_fit": mode,
         "registration": {
             "coarse_rms_mm": reg.coarse_rms_mm,
             "icp_rms_mm": reg.icp.rms_mm,
@@ -383,6 +459,7 @@ def inspect_cloud(
             "surface_points": len(measured_mesh.vertices_mm),
             "surface_cell_mm": cell_mm,
             "raw_points_below_4sigma": raw_below,
+            "rest_surface": rest.as_dict(),
             "transform": T.tolist(),
             "corner_shift": reg.coarse.shift,
             "candidates_icp_rms_mm": {str(k): v for k, v in reg.candidates.items()},
@@ -408,6 +485,18 @@ def inspect_cloud(
         },
         "timings_s": timings,
     }
+    for other in modes[1:]:
+        v = judged[other][0]
+        report["template_fit_compare"] = {
+            "template_fit": other,
+            "verdict": v.verdict,
+            "lines": [
+                {"name": f"{FAMILY_LETTER.get(m.family, '?')}{m.index}", "family": m.family, "index": m.index,
+                 "sz_avg_mm": m.sz_avg_mm, "zmax_mm": m.zmax_mm, "cmax_per_mm": m.cmax_per_mm,
+                 "grade": m.grade, "pass": m.passed}
+                for m in v.lines
+            ],
+        }  # fmt: skip
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
     # the schema of report.json, checked where the report is made
     report = Report.model_validate(report).model_dump(mode="json")

@@ -27,6 +27,7 @@ measurement frame.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -782,7 +783,7 @@ def _active_set_qp(
     raise RegistrationError(f"active-set QP did not converge in {max_iter} steps")
 
 
-def _solve_onesided_qp(
+def solve_onesided_qp(
     J: np.ndarray,
     s: np.ndarray,
     lift: np.ndarray,
@@ -793,6 +794,8 @@ def _solve_onesided_qp(
 ) -> tuple[np.ndarray, int, int]:
     """min ||s + J x||^2 + ||e + K x||^2 + damping ||x||^2 subject to s + J x >= 0, exactly.
 
+    J (m, k) with k unknowns (6 here, 3 for a motion in a section plane).
+
     By constraint generation: the objective uses every row; the constraints start with the rows of smallest gap and grow by
     the violated ones until none is violated -- then the solution of the reduced problem is the
     solution of the full one (it is feasible for a relaxation's optimum). J (m, 6), s (m,).
@@ -800,8 +803,9 @@ def _solve_onesided_qp(
     deflection direction), which gives a feasible start. box: optional trust region, |x_i| <= box
     for every parameter (12 more linear constraints, always in the working problem). Returns ``(x, active-set steps, active constraints)``.
     """
+    k = J.shape[1]  # 6 for a rigid motion in space, 3 for one in a section plane
     H = J.T @ J
-    H[np.diag_indices(6)] += damping
+    H[np.diag_indices(k)] += damping
     g = J.T @ s
     if K is not None and e is not None and len(e):
         H += K.T @ K
@@ -810,10 +814,10 @@ def _solve_onesided_qp(
     x0 = max(0.0, -float(s.min())) * lift
     if box is not None:
         box = max(box, 1.5 * float(np.abs(x0).max()))  # the lift itself must stay allowed
-        Abox = np.vstack([np.eye(6), -np.eye(6)])
-        bbox = np.full(12, -box)
+        Abox = np.vstack([np.eye(k), -np.eye(k)])
+        bbox = np.full(2 * k, -box)
     else:
-        Abox, bbox = np.zeros((0, 6)), np.zeros(0)
+        Abox, bbox = np.zeros((0, k)), np.zeros(0)
     k0 = min(m, 256)
     work = np.argpartition(s, k0 - 1)[:k0] if k0 < m else np.arange(m)
     steps = 0
@@ -829,6 +833,9 @@ def _solve_onesided_qp(
         worst = viol[np.argsort((s + J @ x)[viol])[:256]]
         work = np.union1d(work, worst)
     raise RegistrationError("one-sided QP: constraint generation did not settle")
+
+
+_solve_onesided_qp = solve_onesided_qp  # the name the fits below and the tests use
 
 
 # relative Levenberg-Marquardt damping of the one-sided step: without boundary anchoring the slide of a
@@ -1159,6 +1166,7 @@ def register(
     icp_points: int = 100_000,
     boundary_weight: float = 1e-3,
     nonpen_cell_mm: float | None = None,
+    rest_points: Callable[[np.ndarray], np.ndarray] | None = None,
     nominal_transform: np.ndarray | None = None,
     seed: int = 0,
 ) -> RegistrationResult:
@@ -1175,6 +1183,9 @@ def register(
     ``nonpen_cell_mm``: None rests the design on every measured point; a cell size (1 mm for HD8
     scans) rests it on the :func:`grid_average` cell means instead -- the noise no longer lifts
     the design and 10^7 points cost what 10^6 do; penetration is then counted on the cell means.
+    ``rest_points``: given the ICP pose (4x4 design -> measured), the (m, 3) points the design
+    rests on instead (``analysis.rest_surface``: patch estimates with a bounded noise bias);
+    penetration is then counted on those.
     """
     P = _check_points("measured_points_mm", measured_points_mm, 6)
     surface = design if isinstance(design, HeightField) else height_field_from_mesh(design, grid_step_mm)
@@ -1224,7 +1235,10 @@ def register(
     )
     icp = icp_point_to_plane(surface, P, icp0.transform, max_points=icp_points, seed=seed, **anchor)
     coarse_rms = coarse_fit_rms(surface, _subsample(P, 20_000, seed), coarse.transform)
-    P_np = P if nonpen_cell_mm is None else grid_average(P, nonpen_cell_mm)
+    if rest_points is not None:
+        P_np = _check_points("rest_points", rest_points(icp.transform), 6)
+    else:
+        P_np = P if nonpen_cell_mm is None else grid_average(P, nonpen_cell_mm)
     npf = nonpenetrating_fit(surface, P_np, icp.transform, up=up, **anchor)
     log.info(
         "registered",

@@ -595,6 +595,38 @@ def _lines_table_html(report: dict, family: str) -> str:
     )
 
 
+TEMPLATE_FIT_TEXT = {
+    "rigid": "one template resting on the whole plate (rigid 3D fit)",
+    "per_line": "a template per line, resting on its own section (2D fit)",
+}
+
+
+def _compare_html(report: dict) -> str:
+    """The other template fit's figures beside the judged ones, when the report carries them."""
+    other = report.get("template_fit_compare")
+    if not isinstance(other, dict) or not isinstance(other.get("lines"), list):
+        return ""
+    mine = {ln.get("name"): ln for ln in report["lines"]}
+    rows = "".join(
+        f'<tr data-line="{_e(ln.get("name"))}"><td class="t">{_e(ln.get("name"))}</td>'
+        f"<td>{_f(mine.get(ln.get('name'), {}).get('zmax_mm'), 4)}</td><td>{_f(ln.get('zmax_mm'), 4)}</td>"
+        f"<td>{_f(mine.get(ln.get('name'), {}).get('sz_avg_mm'), 4)}</td><td>{_f(ln.get('sz_avg_mm'), 4)}</td>"
+        f"<td>{_f(mine.get(ln.get('name'), {}).get('cmax_per_mm'), 4)}</td><td>{_f(ln.get('cmax_per_mm'), 4)}</td>"
+        f'<td class="v">{"pass" if ln.get("pass") else "FAIL"}</td></tr>'
+        for ln in other["lines"]
+    )
+    judged, alt = report.get("template_fit", "rigid"), other.get("template_fit", "")
+    return (
+        f'<section id="template-fits"><h2>Both template fits</h2><p class="muted">Judged: '
+        f"{_e(TEMPLATE_FIT_TEXT.get(judged, judged))}. Shown beside it, not judged: "
+        f"{_e(TEMPLATE_FIT_TEXT.get(alt, alt))} (verdict {_e(other.get('verdict', '—'))}).</p>"
+        f'<table class="lines" data-compare="{_e(alt)}"><thead><tr><th>line</th>'
+        f"<th>Zmax {_e(judged)} (mm)</th><th>Zmax {_e(alt)} (mm)</th><th>SZ-average {_e(judged)} (mm)</th>"
+        f"<th>SZ-average {_e(alt)} (mm)</th><th>Cmax {_e(judged)} (mm⁻¹)</th><th>Cmax {_e(alt)} (mm⁻¹)</th>"
+        f"<th>{_e(alt)} verdict</th></tr></thead><tbody>{rows}</tbody></table></section>"
+    )
+
+
 def _rework_html(regions: list[ReworkRegion], std: float) -> str:
     if not regions:
         return f"<p>No region of the plate lies beyond the standard range (±{std:g} mm).</p>"
@@ -644,6 +676,15 @@ def _registration_items(report: dict) -> list[tuple[str, str]]:
         ("penetrating points before the fit", _e(reg.get("penetration_points_before", "—"))),
         ("penetrating points after the fit", _e(reg.get("penetration_points", "—"))),
     ]
+    rest = reg.get("rest_surface")
+    if isinstance(rest, dict):
+        items.append(
+            (
+                "resting surface: patch (mm), points at least",
+                f"{_f(rest.get('cell_mm'), 1)}, {_e(rest.get('min_points'))}",
+            )
+        )
+        items.append(("resting surface: noise sigma, bias bound (mm)", f"{_f(rest.get('noise_mm'), 4)}, {_f(rest.get('bound_mm'), 4)} ({_e(rest.get('confidence'))})"))  # fmt: skip
     T = reg.get("transform")
     try:
         T = np.asarray(T, dtype=float)
@@ -675,6 +716,10 @@ def render_html(data: ResultsData, regions: list[ReworkRegion], svgs: dict[str, 
             ("lines within tolerance", f"{n_pass} of {len(lines)}"),
             ("worst line", f"{_e(worst['name'])}: Zmax {worst['zmax_mm']:.2f} mm" if worst else "—"),
             ("regions to rework", str(len(regions))),
+            (
+                "template fit",
+                _e(TEMPLATE_FIT_TEXT.get(rep.get("template_fit", "rigid"), rep.get("template_fit"))),
+            ),
             ("failed lines", _e(", ".join(ln["name"] for ln in lines if not ln["pass"]) or "none")),
         ]
     )
@@ -709,6 +754,7 @@ purple boxes are the regions to rework.</figcaption></figure></section>
 reference corner (x along the length, y along the width).</p>{_rework_html(regions, std)}</section>
 <section id="tables"><h2>Detection lines (the paper's Tables 3–5)</h2>
 {"".join(_lines_table_html(rep, fam) for fam, _ in FAMILIES)}</section>
+{_compare_html(rep)}
 <section id="lines"><h2>Detection lines, one plot each</h2><div class="plots">{line_figs}</div></section>
 <section id="registration"><h2>Registration</h2>{_kv_table(_registration_items(rep))}
 <h3>Measured corners (mm, measuring frame)</h3>{corner_rows or "<p>—</p>"}</section>

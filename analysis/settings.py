@@ -14,7 +14,12 @@ from typing import Literal
 from analysis.metrics import Tolerances
 from analysis.templates import DetectionLayout
 
-__all__ = ["InspectionSettings"]
+__all__ = ["TEMPLATE_FITS", "InspectionSettings", "TemplateFit"]
+
+# "rigid": one template rests on the whole plate (the paper's 3D fit); "per_line": one per detection
+# line, on its own section (the paper's 2D case; analysis.template_fit)
+TemplateFit = Literal["rigid", "per_line"]
+TEMPLATE_FITS: tuple[str, ...] = ("rigid", "per_line")
 
 
 @dataclass(frozen=True)
@@ -32,3 +37,17 @@ class InspectionSettings:
     # moulded_down: the design is offset by thickness_mm and turned over
     design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
     thickness_mm: float = 0.0
+    # which template judges the plate; compare: the report also carries the other's figures
+    template_fit: TemplateFit = "rigid"
+    template_fit_compare: bool = False
+    # the resting surface's stated bound on its noise bias (analysis.rest_surface), its largest patch
+    rest_target_sigmas: float = 0.25
+    rest_max_cell_mm: float = 20.0
+
+    def __post_init__(self) -> None:
+        if self.template_fit not in TEMPLATE_FITS:
+            raise ValueError(
+                f"template_fit must be one of {', '.join(TEMPLATE_FITS)}, got {self.template_fit!r}"
+            )
+        if not self.rest_target_sigmas > 0 or not self.rest_max_cell_mm > 0:
+            raise ValueError("rest_target_sigmas and rest_max_cell_mm must be positive")

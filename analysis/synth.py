@@ -20,7 +20,9 @@ What the generator models, in the bed frame (x, y on the bed, z up, bed top at z
   analytic surface, thickness faces), then: Gaussian range noise ``noise_mm`` along the ray;
   missing returns where the incidence angle exceeds ``grazing_limit_deg`` and at random
   (``dropout_fraction``); sparse outliers (``outlier_fraction``) displaced 1 mm to
-  ``outlier_range_mm`` along the ray.
+  ``outlier_range_mm`` along the ray. A sensor clock offset (``clock_offset_ms`` at
+  ``scan_speed_mm_s``) places each raster profile off along its travel, alternately forward and
+  backward (the passes of a real raster run both ways).
 
 Organisation: ``pass_id`` numbers raster passes from 0 and the four edge passes after them,
 ``profile_index`` counts profiles within a pass, ``point_index`` counts rays along the line. Missing returns
@@ -116,6 +118,10 @@ class ScanSettings:
     outlier_range_mm: float = 20.0
     dropout_fraction: float = 0.002
     grazing_limit_deg: float = 80.0
+    # a sensor clock off the robot's by this much places every profile that far along its travel:
+    # speed x offset, forward on even raster passes, backward on odd ones (the cell scans both ways)
+    clock_offset_ms: float = 0.0
+    scan_speed_mm_s: float = 100.0
 
     def __post_init__(self) -> None:
         for name in ("point_pitch_mm", "profile_step_mm"):
@@ -450,6 +456,11 @@ def synthesize_scan(
         d = np.tile([0.0, 0.0, -1.0], (len(o), 1))
         hits = _cast(o, d, spec, error, T, scene)
         pts, keep, outl = _sense(o, d, hits, settings, rng)
+        if settings.clock_offset_ms:
+            lag_mm = (
+                settings.scan_speed_mm_s * settings.clock_offset_ms * 1e-3 * (1.0 if p % 2 == 0 else -1.0)
+            )
+            pts[:, :2] += lag_mm * e_s
         out_pts.append(pts)
         out_pass.append(np.full(len(pts), p, np.int32))
         prof_idx, pt_idx = np.meshgrid(k, j, indexing="ij")

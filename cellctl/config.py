@@ -375,6 +375,10 @@ class AnalysisSection(Section):
     longitudinal_spacing_mm: PositiveFloat = 100.0
     diagonals: bool = True
     sample_step_mm: PositiveFloat = 1.0
+    # "rigid": one template rests on the whole plate (the paper's 3D fit); "per_line": a template per
+    # detection line, on its own section (the paper's 2D case). compare: the report carries both
+    template_fit: Literal["rigid", "per_line"] = "rigid"
+    template_fit_compare: bool = False
     icp_stop_mm: PositiveFloat = 0.1
     workers: Annotated[int, Field(ge=1, le=64)] = 1
     tolerances: TolerancesSection = TolerancesSection()

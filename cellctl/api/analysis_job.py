@@ -43,6 +43,8 @@ def inspection_settings(
             deviation_limit_mm=tol.deviation_limit_mm,
         ),
         sample_step_mm=section.sample_step_mm,
+        template_fit=section.template_fit,
+        template_fit_compare=section.template_fit_compare,
     )
 
 

@@ -350,7 +350,7 @@ def test_wait_for_feedback_times_out_without_traffic():
         with pytest.raises(TimeoutError):
             await ep.wait_for_feedback(0.05)
         ctl.send(robot(0))
-        state = await ep.wait_for_feedback(1.0)
+        state = await ep.wait_for_feedback(10.0)  # generous: a loaded machine delays the reply thread
         assert state.seqno == 0
 
     run(body)

@@ -14,7 +14,8 @@ from analysis.mesh import TriMesh
 from analysis.plates import design_corners, design_height_mm, design_mesh, plate_spec
 from analysis.templates import DetectionLayout, detection_lines, exact_section
 
-pytestmark = pytest.mark.process  # every CAD file is read in a forked child (analysis.cad)
+# Every CAD read runs in a forked child (OpenCASCADE can crash on a bad file): a process test.
+pytestmark = pytest.mark.process
 
 HULLS = Path(__file__).resolve().parents[2] / ".." / "shared" / "testdata" / "designs"
 HULLS = HULLS if HULLS.is_dir() else Path("/work/shared/testdata/designs")

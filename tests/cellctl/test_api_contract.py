@@ -95,6 +95,20 @@ def test_the_daemon_builds_the_job_from_the_trigger_placement_and_the_cell_setti
     )
     assert job.placement == TURNED and job.cell_id == "c7" and job.out_dir == "/o"
     assert job.settings.layout.transverse_count == 3 and not job.settings.layout.diagonals
+    assert job.settings.template_fit == "rigid" and not job.settings.template_fit_compare
+
+
+def test_the_template_fit_of_cell_toml_travels_to_the_analysis_and_a_wrong_one_is_refused():
+    cfg = CellConfig.model_validate({"analysis": {"template_fit": "per_line", "template_fit_compare": True}})
+    job = analysis_job(
+        cfg, job_id="j", plate_id="P", design="/d/x.ply", placement=TURNED.model_dump(), out_dir=Path("/o")
+    )
+    back = AnalysisJob.model_validate_json(job.model_dump_json())
+    assert back.settings.template_fit == "per_line" and back.settings.template_fit_compare
+    with pytest.raises(ValidationError, match="template_fit"):
+        CellConfig.model_validate({"analysis": {"template_fit": "floating"}})
+    with pytest.raises(ValidationError, match="template_fit"):
+        AnalysisJob.model_validate({"design": "/d/x.ply", "settings": {"template_fit": "floating"}})
 
 
 def test_a_report_with_an_unknown_field_is_refused_also_inside_the_envelope():

@@ -1,0 +1,298 @@
+"""The surface a template rests on: an estimate of the plate whose upward bias is bounded by the noise.
+
+A one-sided fit rests the design on the highest of the points it is given. Given raw samples (or
+cell means of a few points), that is the largest upward noise excursion among hundreds of thousands,
+3.5-5 standard errors: the design floats that far above the plate and every Zmax reads that much too
+high (about 1.8 sigma with 16-point cell means). The template must rest on the plate, not on the
+noise, so the constraint acts on an estimate of the surface whose error is small against sigma with
+a stated confidence:
+
+1. **Noise from the data.** ``sigma`` is the robust spread (MAD) of the points' gaps to the design
+   about the mean gap of small cells (``noise_cell_mm``), with the cells' degrees of freedom put
+   back. The design takes out the plate's shape; a dent's slope across a 2 mm cell adds little, and
+   the median ignores the few cells on steep dent flanks.
+2. **Patch means of the gaps.** The plate is cut into patches of side about ``h`` laid out in the
+   design frame (so the edge patches sit the same way on the plate whatever its placement); each
+   patch stands for its points by their centroid and the *mean of their gaps to the design* at the
+   ICP pose. Measured as a gap, the patch mean carries no bias from the plate's curvature (the
+   design has the same curvature), only from the curvature of the forming error across the patch:
+   a bump of height ``a`` and Gaussian width ``w`` reads ``a h^2 / (12 w^2)`` low at its top.
+3. **Patch size from a stated confidence.** With ``M`` patches of at least ``n`` points each, the
+   highest of the patch errors stays below ``q_M sigma / sqrt(n)`` with probability ``confidence``,
+   ``q_M = Phi^-1(confidence^(1/M))`` (the maximum of ``M`` independent normals). ``n`` is chosen so
+   that bound is ``target_sigmas * sigma`` (0.25 sigma: the template's lift stays below 0.3 sigma);
+   ``h`` holds about 1.5 ``n`` points at the scan's density, so patches cut by the plate's edge down
+   to ``n`` points are still used; smaller ones are not. ``max_cell_mm`` caps ``h`` (the narrowest
+   bump that must still carry the template); a scan too sparse for the cap gets a larger bound, and
+   the result says so.
+
+Assumes independent noise between points (a correlated error -- a pass offset, a clock error on a
+slope -- is not divided by ``sqrt(n)``) and a plate smooth at the patch scale. Costs one gap
+evaluation and two binning passes over the points (linear, about 0.1 s per 10^6 points) and the
+plate's detail below ``h`` in the resting pose only: the figures are still computed on the full
+reconstructed surface.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import structlog
+from scipy.stats import norm
+
+from analysis.register import (
+    HeightField,
+    RegistrationError,
+    apply_transform,
+    deflection_gaps,
+    invert_transform,
+)
+
+log = structlog.get_logger(__name__)
+
+
+@dataclass(frozen=True)
+class RestSurface:
+    """The patch estimate of the plate the design rests on.
+
+    points_mm: (m, 3) one point per patch, measured frame: the patch centroid's x and y, and the
+    height whose gap to the design (at the pose it was made at) is the patch's mean gap.
+    counts: (m,) points per patch. noise_mm: sigma estimated from the data. cell_mm: the patch side.
+    min_count: the fewest points a kept patch holds. standard_error_mm: sigma / sqrt(min_count).
+    bound_mm: the highest patch error stays below this with probability ``confidence``.
+    target_met: bound_mm <= target_sigmas * noise_mm (False: the scan was too sparse for the cap).
+    """
+
+    points_mm: np.ndarray
+    counts: np.ndarray
+    noise_mm: float
+    cell_mm: float
+    min_count: int
+    standard_error_mm: float
+    bound_mm: float
+    confidence: float
+    target_sigmas: float
+    target_met: bool
+
+    def as_dict(self) -> dict:
+        """The report's record of the estimate (no arrays)."""
+        return {
+            "estimator": "patch mean of gaps to the design",
+            "patches": len(self.counts),
+            "cell_mm": round(self.cell_mm, 3),
+            "min_points": self.min_count,
+            "noise_mm": round(self.noise_mm, 5),
+            "standard_error_mm": round(self.standard_error_mm, 5),
+            "bound_mm": round(self.bound_mm, 5),
+            "confidence": self.confidence,
+            "target_sigmas": self.target_sigmas,
+            "target_met": self.target_met,
+        }
+
+
+# a patch's gap slope counts as real above this chi-square (2 degrees of freedom: p = 1e-6), so a
+# flat patch is held at its centroid alone with all but certainty
+SLOPE_CHI2 = 27.6
+
+
+def _extent(inv: np.ndarray, v: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of ``v`` per group ``inv`` of ``m`` groups."""
+    lo = np.full(m, np.inf)
+    hi = np.full(m, -np.inf)
+    np.minimum.at(lo, inv, v)
+    np.maximum.at(hi, inv, v)
+    return lo, hi
+
+
+TRIM_SIGMAS = 3.0
+
+
+def _patch_planes(
+    inv: np.ndarray, m: int, P: np.ndarray, gap: np.ndarray, w: np.ndarray, sigma: float
+) -> tuple[np.ndarray, ...]:
+    """Weighted plane of the gaps per patch: (centroid (m, 3), mean gap, slope x, slope y, dx (n,),
+    dy (n,) the points' offsets from their centroid, chi-square of the slope, weight sum)."""
+    n_w = np.bincount(inv, weights=w, minlength=m)
+    safe_n = np.maximum(n_w, 1.0)
+    mean = np.column_stack([np.bincount(inv, weights=w * P[:, k], minlength=m) / safe_n for k in range(3)])
+    mean_gap = np.bincount(inv, weights=w * gap, minlength=m) / safe_n
+    dx, dy = P[:, 0] - mean[inv, 0], P[:, 1] - mean[inv, 1]
+    dg = gap - mean_gap[inv]
+    sxx, sxy, syy = (np.bincount(inv, weights=w * v, minlength=m) for v in (dx * dx, dx * dy, dy * dy))
+    sxg = np.bincount(inv, weights=w * dx * dg, minlength=m)
+    syg = np.bincount(inv, weights=w * dy * dg, minlength=m)
+    det = sxx * syy - sxy**2
+    ok = det > 1e-12 * np.maximum(sxx * syy, 1e-300)
+    safe = np.where(ok, det, 1.0)
+    b_x = np.where(ok, (syy * sxg - sxy * syg) / safe, 0.0)
+    b_y = np.where(ok, (sxx * syg - sxy * sxg) / safe, 0.0)
+    chi2 = (b_x * sxg + b_y * syg) / max(sigma, 1e-12) ** 2  # the slope's explained sum over sigma^2
+    return mean, mean_gap, b_x, b_y, dx, dy, chi2, n_w
+
+
+def max_normal_quantile(count: int, confidence: float) -> float:
+    """q with P(max of ``count`` independent standard normals < q) = ``confidence``."""
+    if count < 1 or not 0.0 < confidence < 1.0:
+        raise RegistrationError(f"need count >= 1 and 0 < confidence < 1, got {count}, {confidence}")
+    # 1 - confidence^(1/M) without cancellation
+    return float(norm.isf(-math.expm1(math.log(confidence) / count)))
+
+
+def _cells(xy: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(inverse index (n,), counts (m,)) of the occupied ``cell_mm`` squares."""
+    inv, count, _ = _cells_with_border(np.floor(xy / cell_mm).astype(np.int64))
+    return inv, count
+
+
+def _plate_cells(xy_design_mm: np.ndarray, cell_mm: float) -> np.ndarray:
+    """(n, 2) cell indices of patches laid out in the design frame from the points' lowest corner,
+    the side stretched so that a whole number of patches spans the points: the edge patches then
+    sit the same way on the plate in every scan, whatever its placement on the bed."""
+    lo = xy_design_mm.min(axis=0)
+    span = np.maximum(xy_design_mm.max(axis=0) - lo, 1e-9)
+    n = np.maximum(np.round(span / cell_mm), 1.0)
+    ij = np.floor((xy_design_mm - lo) / (span / n)).astype(np.int64)
+    return np.minimum(ij, (n - 1).astype(np.int64))
+
+
+def _cells_with_border(ij: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cells of the (n, 2) integer indices: (inverse index (n,), counts (m,), border (m,) bool --
+    the cell lacks one of its four neighbours, the plate's edge)."""
+    ij = ij - (ij.min(axis=0) - 1)  # a free row and column on every side
+    width = int(ij[:, 1].max()) + 2
+    key = ij[:, 0] * width + ij[:, 1]
+    keys, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+    border = np.zeros(len(keys), dtype=bool)
+    for step in (1, -1, width, -width):
+        border |= ~np.isin(keys + step, keys, assume_unique=True)
+    return inv, count, border
+
+
+def noise_from_gaps(xy_mm: np.ndarray, gap_mm: np.ndarray, cell_mm: float = 2.0) -> float:
+    """Robust noise sigma (mm) of points from their gaps' spread about small cells' means.
+
+    xy_mm: (n, 2) positions; gap_mm: (n,) gaps to a design (the plate's shape taken out). Each
+    residual is scaled by sqrt(k / (k - 1)) for its cell of k points; cells of one point do not count.
+    """
+    inv, count = _cells(xy_mm, cell_mm)
+    mean = np.bincount(inv, weights=gap_mm) / count
+    k = count[inv]
+    use = k > 1
+    if use.sum() < 10:
+        raise RegistrationError("too few points share a cell to estimate the noise")
+    r = (gap_mm[use] - mean[inv[use]]) * np.sqrt(k[use] / (k[use] - 1.0))
+    return float(1.4826 * np.median(np.abs(r)))
+
+
+def rest_surface(
+    surface: HeightField,
+    points_mm: np.ndarray,
+    T_meas_design: np.ndarray,
+    *,
+    noise_mm: float | None = None,
+    target_sigmas: float = 0.25,
+    confidence: float = 0.99,
+    max_cell_mm: float = 20.0,
+    min_cell_mm: float = 1.0,
+    noise_cell_mm: float = 2.0,
+    edge_corners: bool = False,
+    up: np.ndarray = np.array([0.0, 0.0, 1.0]),
+) -> RestSurface:
+    """The patch estimate of the plate (see the module docstring) at the pose ``T_meas_design``.
+
+    surface: the design's height field; points_mm: (n, 3) plate top-surface points, measured frame;
+    T_meas_design: (4, 4) design -> measured, near the final pose (after ICP). noise_mm: None
+    estimates sigma from the data (:func:`noise_from_gaps`). ``edge_corners`` also holds sloped
+    patches on the plate's edge at their corners: without, a 600 x 400 sail with 1 mm springback
+    rests 0.14-0.17 mm below its raised edges, with, a third of that -- but the design then rests on
+    a few noisy corner extrapolations and the Zmax of a 1200 x 800 plate spread 0.22 mm over ten
+    scans instead of 0.05 (benchmarks/repeatability.py), so it is off by default. Raises
+    RegistrationError when fewer than 6 patches remain.
+    """
+    P = np.asarray(points_mm, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 6:
+        raise RegistrationError(f"points_mm must be (n >= 6, 3) mm, got shape {P.shape}")
+    if target_sigmas <= 0.0:
+        raise RegistrationError(f"target_sigmas must be positive, got {target_sigmas}")
+    gap, _, _, valid = deflection_gaps(surface, P, T_meas_design, up, geometry=False)
+    P, gap = P[valid], gap[valid]
+    if len(P) < 6:
+        raise RegistrationError("rest surface: fewer than 6 points lie over the design")
+    xy = P[:, :2]
+    sigma = noise_from_gaps(xy, gap, noise_cell_mm) if noise_mm is None else float(noise_mm)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    # the occupied area at 2 mm, so holes and an oblique footprint do not dilute the density
+    _, occ = _cells(xy, 2.0)
+    area = max(len(occ) * 4.0, 1.0)
+    density = len(P) / area
+    # n from the bound, h from n, M from h: a fixed point reached in a few rounds
+    patches = max(area / 25.0, 1.0)
+    for _ in range(4):
+        q = max_normal_quantile(math.ceil(patches), confidence)
+        n_min = max(math.ceil((q / target_sigmas) ** 2), 1)
+        cell = float(np.clip(math.sqrt(1.5 * n_min / density), min_cell_mm, max_cell_mm))
+        patches = max(2.0 * area / cell**2, 1.0)  # twice: the part-filled patches along the edges
+    n_min = min(n_min, max(int(0.66 * density * cell**2), 1))  # the cap: what a patch can hold
+    # patches anchored at the points' lower-left corner (any anchor is as good)
+    q = apply_transform(invert_transform(np.asarray(T_meas_design, dtype=np.float64)), P)
+    inv, count, border = _cells_with_border(_plate_cells(q[:, :2], cell))
+    keep = count >= n_min
+    if keep.sum() < 6:
+        raise RegistrationError(
+            f"rest surface: only {int(keep.sum())} patches of {cell:.1f} mm hold {n_min} points "
+            f"(span {hi - lo} mm)"
+        )
+    # per patch, the plane of the gaps about the centroid, fitted twice: the second time without the
+    # points more than TRIM_SIGMAS off the first plane (the edge band's points of the thickness face,
+    # outliers the segmentation's 6-sigma test let through). A patch on the plate's edge whose slope
+    # is significant (springback raising the edge) is held at the corners of its points' extent as
+    # well -- its centroid alone would let the design dip below the raised edge. Inside the plate
+    # the centroid serves: a plane extrapolated to the corners reads a dent's rim too high.
+    w = np.ones(len(P))
+    for _ in range(2):
+        mean, mean_gap, b_x, b_y, dx, dy, chi2, n_w = _patch_planes(inv, len(count), P, gap, w, sigma)
+        resid = gap - mean_gap[inv] - b_x[inv] * dx - b_y[inv] * dy
+        w = (np.abs(resid) <= TRIM_SIGMAS * sigma).astype(np.float64)
+    count = n_w.astype(np.int64)
+    keep &= count >= n_min
+    sloped = keep & border & (chi2 > SLOPE_CHI2) & edge_corners
+    reps = [mean[keep]]
+    rep_gap = [mean_gap[keep]]
+    rep_count = [count[keep].astype(np.float64)]
+    if sloped.any():
+        dx, dy = np.where(w > 0, dx, 0.0), np.where(w > 0, dy, 0.0)  # the extent of the points kept
+        x_lo, x_hi = _extent(inv, dx, len(count))
+        y_lo, y_hi = _extent(inv, dy, len(count))
+        for cx, cy in ((x_lo, y_lo), (x_hi, y_lo), (x_hi, y_hi), (x_lo, y_hi)):
+            c = mean[sloped].copy()
+            c[:, 0] += cx[sloped]
+            c[:, 1] += cy[sloped]
+            reps.append(c)
+            rep_gap.append(mean_gap[sloped] + b_x[sloped] * cx[sloped] + b_y[sloped] * cy[sloped])
+            # the plane at a corner of a uniform square patch has 7x the variance of the mean
+            rep_count.append(count[sloped] / 7.0)
+    rep, rep_g, count_eff = np.vstack(reps), np.concatenate(rep_gap), np.concatenate(rep_count)
+    # a point's own gap is linear in its height along up: move it so that its gap is the estimate
+    g_c, _, _, ok = deflection_gaps(surface, rep, T_meas_design, up, geometry=False)
+    up_n = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    rest = rep + np.outer(g_c - rep_g, up_n)
+    rest, count = rest[ok], count_eff[ok]
+    n_used = max(int(count.min()), 1)
+    se = sigma / math.sqrt(n_used)
+    bound = max_normal_quantile(len(count), confidence) * se
+    result = RestSurface(
+        points_mm=rest,
+        counts=count,
+        noise_mm=sigma,
+        cell_mm=cell,
+        min_count=n_used,
+        standard_error_mm=se,
+        bound_mm=bound,
+        confidence=confidence,
+        target_sigmas=target_sigmas,
+        target_met=bound <= target_sigmas * sigma * (1.0 + 1e-9),
+    )
+    log.debug("rest_surface", **result.as_dict())
+    return result
