@@ -285,6 +285,9 @@ class CadDesign:
     the outline sampled from the boundary curves, in order. T_design_file: 4x4 file (ship)
     coordinates in mm -> design frame. chord_error_mm: the largest distance between the
     tessellation and the exact surface, measured at the triangles' centroids and edge midpoints.
+    offset_mm: the surface the templates are cut from is the faces' offset by this much along
+    :meth:`normals` (0: the faces themselves; the other side of a turned-over plate, see
+    :mod:`analysis.moulded`); ``mesh`` and ``corners_mm`` are then those of the offset surface.
     """
 
     path: Path
@@ -300,6 +303,7 @@ class CadDesign:
     chord_error_mm: float
     area_mm2: float
     timings_s: dict[str, float] = field(default_factory=dict)
+    offset_mm: float = 0.0
 
     # -- exact surface ------------------------------------------------------------------------
     def evaluate(self, face: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -317,6 +321,15 @@ class CadDesign:
         _, Su, Sv = self.evaluate(face, uv)
         n = np.cross(Su, Sv)
         return n / np.linalg.norm(n, axis=1, keepdims=True) * self._orientation[face][:, None]
+
+    def _offset_points(self, face: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`evaluate` of the surface the templates are cut from (offset by ``offset_mm``)."""
+        S, Su, Sv = self.evaluate(face, uv)
+        if self.offset_mm:
+            n = np.cross(Su, Sv)
+            n *= (self._orientation[face] / np.linalg.norm(n, axis=1))[:, None]
+            S = S + self.offset_mm * n
+        return S, Su, Sv
 
     @cached_property
     def _orientation(self) -> np.ndarray:
@@ -396,9 +409,11 @@ class CadDesign:
             if not len(idx):
                 break
             f, w = face[idx], uv[idx].copy()
-            t = np.einsum("ij,j->i", self.evaluate(f, w)[0] - o[idx], d)
+            t = np.einsum("ij,j->i", self._offset_points(f, w)[0] - o[idx], d)
             for _ in range(iterations):
-                S, Su, Sv = self.evaluate(f, w)
+                # on an offset surface the Jacobian leaves out offset * dN: Newton becomes a
+                # contraction by about offset / radius per step (0.005 for 15 mm on a 3 m radius)
+                S, Su, Sv = self._offset_points(f, w)
                 J = np.stack([Su, Sv, np.broadcast_to(-d, Su.shape)], axis=2)
                 F = S - o[idx] - t[:, None] * d
                 if np.abs(F).max() < 1e-9:  # converged everywhere (quadratically, from a near seed)
@@ -408,7 +423,7 @@ class CadDesign:
                 w += step[:, :2]
                 t += step[:, 2]
                 self._clamp(f, w)
-            S, _, _ = self.evaluate(f, w)
+            S, _, _ = self._offset_points(f, w)
             F = S - o[idx] - t[:, None] * d
             ok = np.linalg.norm(F, axis=1) < 1e-6
             out[idx[ok]] = S[ok]

@@ -18,8 +18,8 @@ from matplotlib.figure import Figure
 
 from analysis.cad import CadDesign, read_design
 from analysis.mesh import TriMesh
-from analysis.pipeline import FAMILY_LETTER, design_corners_from_mesh, plate_frame
-from analysis.templates import DetectionLayout, DetectionLine, detection_lines
+from analysis.pipeline import design_corners_from_mesh, plate_frame
+from analysis.templates import DetectionLayout, DetectionLine, detection_lines, line_name
 
 
 @dataclass
@@ -73,7 +73,7 @@ def check_design(
         ends = np.vstack([line.start_mm, line.end_mm]) @ T_plate[:3, :3].T + T_plate[:3, 3]
         records.append(
             {
-                "name": f"{FAMILY_LETTER[line.family]}{line.index}",
+                "name": line_name(line),
                 "family": line.family,
                 "position_mm": round(line.position_mm, 2),
                 "start_plate_mm": np.round(ends[0, :2], 2).tolist(),
@@ -119,7 +119,7 @@ def preview_png(check: DesignCheck, path: str | Path, max_triangles: int = 60000
     for line in check.lines:
         ends = np.vstack([line.start_mm, line.end_mm])
         ax.plot(ends[:, 0], ends[:, 1], color=colours[line.family], lw=0.8)
-        name = f"{FAMILY_LETTER[line.family]}{line.index}"
+        name = line_name(line)
         ax.annotate(name, ends[0, :2], fontsize=6, color=colours[line.family],
                     textcoords="offset points", xytext=(-2, -9))  # fmt: skip
     s = check.summary

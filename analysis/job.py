@@ -181,7 +181,9 @@ class ReportInputs(_Strict):
 class DesignReport(_Strict):
     """The design the plate was judged against: a mesh, or a CAD file (:mod:`analysis.cad`) with its
     format, file units, faces, the tessellation's measured chord error (registration runs on it),
-    where the templates were cut, and ``T_design_file`` (file coordinates in mm -> design frame)."""
+    where the templates were cut, and ``T_design_file`` (file coordinates in mm -> design frame).
+    ``side``: which face of the plate faced the sensor (``moulded_down``: the design was offset
+    by ``thickness_mm`` and turned over, :mod:`analysis.moulded`)."""
 
     kind: Literal["mesh", "cad"] = "mesh"
     format: str = ""
@@ -190,6 +192,8 @@ class DesignReport(_Strict):
     chord_error_mm: float | None = None
     templates: Literal["mesh", "exact surface"] = "mesh"
     T_design_file: list[list[float]] | None = None
+    side: Literal["moulded_up", "moulded_down"] = "moulded_up"
+    thickness_mm: float | None = None
 
 
 class Report(_Strict):

@@ -51,6 +51,7 @@ from analysis.cloud_io import ScanCloud, write_cloud_ply
 from analysis.job import AnalysisJob, Report
 from analysis.mesh import MeshError, TriMesh
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
+from analysis.moulded import design_as_laid
 from analysis.placement import Placement, placement_transform
 from analysis.plates import canonical_corner_order
 from analysis.register import (
@@ -73,11 +74,17 @@ from analysis.template_fit import (
     fit_line_template,
     line_rest_samples,
 )
-from analysis.templates import TemplateCut, cut_templates, cut_templates_exact, detection_lines
+from analysis.templates import (
+    FAMILY_LETTER,
+    TemplateCut,
+    cut_templates,
+    cut_templates_exact,
+    detection_lines,
+    line_name,
+)
 
 log = structlog.get_logger(__name__)
 
-FAMILY_LETTER = {"transverse": "T", "longitudinal": "L", "diagonal": "D"}
 MAX_MAP_POINTS = 300_000
 HOLE_CELL_MM = 5.0
 
@@ -319,9 +326,12 @@ def inspect_cloud(
     turn (else the bed convention decides, see register()). The report records it under ``inputs``.
     design: a mesh, or a CAD design (:mod:`analysis.cad`): then registration runs on its
     tessellation, the corners come from the face's own boundary and the templates are cut from
-    the exact surface.
+    the exact surface. ``settings.design_side`` ``moulded_down``: the plate lies turned over, the
+    design is offset by ``settings.thickness_mm`` first (:func:`analysis.moulded.design_as_laid`).
     """
     settings = settings or InspectionSettings()
+    # the face the sensor sees: the design itself, or its other side when laid moulded side down
+    design = design_as_laid(design, settings.design_side, settings.thickness_mm)
     cad = design if isinstance(design, CadDesign) else None
     design = cad.mesh if cad is not None else design
     timings: dict[str, float] = {}
@@ -422,7 +432,7 @@ def inspect_cloud(
         ends_plate = ends @ T_plate_measured[:3, :3].T + T_plate_measured[:3, 3]
         rec = m.as_dict()
         rec.update(
-            name=f"{FAMILY_LETTER.get(m.family, '?')}{m.index}",
+            name=line_name(cut.line),
             start_plate_mm=[round(float(v), 2) for v in ends_plate[0, :2]],
             end_plate_mm=[round(float(v), 2) for v in ends_plate[1, :2]],
             noise_mm=m.noise_mm,
@@ -468,7 +478,11 @@ def inspect_cloud(
             "max_deviation_mm": float(np.nanmax(deviation)) if np.isfinite(deviation).any() else None,
         },
         "inputs": {"points": len(cloud), **(inputs or {}), "placement": nominal_placement},
-        "design": _design_record(cad),
+        "design": {
+            **_design_record(cad),
+            "side": settings.design_side,
+            "thickness_mm": settings.thickness_mm if settings.design_side == "moulded_down" else None,
+        },
         "timings_s": timings,
     }
     for other in modes[1:]:

@@ -33,6 +33,10 @@ class InspectionSettings:
     min_points_per_cell: int = 16
     size_tolerance: float = 0.05  # relative: a design more than 5 % off the plate's size is refused
     design_grid_mm: float = 1.0
+    # which face of the plate the design surface is and whether it faces up (analysis.moulded);
+    # moulded_down: the design is offset by thickness_mm and turned over
+    design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
+    thickness_mm: float = 0.0
     # which template judges the plate; compare: the report also carries the other's figures
     template_fit: TemplateFit = "rigid"
     template_fit_compare: bool = False

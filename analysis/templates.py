@@ -14,7 +14,7 @@ is a length edge (the design plate frame's x), edge 0->3 a width edge.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 import structlog
@@ -28,13 +28,44 @@ class TemplateError(ValueError):
     """Detection lines or section cuts that cannot be made: bad corners, bad layout, no intersection."""
 
 
+TemplateEdge = Literal["0-3", "1-2", "0-1", "3-2"]
+
+# edge a table template is measured from -> (family, measuring edge p0->p1, opposite edge q0->q1)
+_TABLE_EDGES: dict[str, tuple[str, tuple[int, int], tuple[int, int]]] = {
+    "0-3": ("transverse", (0, 1), (3, 2)),
+    "1-2": ("transverse", (1, 0), (2, 3)),
+    "0-1": ("longitudinal", (0, 3), (1, 2)),
+    "3-2": ("longitudinal", (3, 0), (2, 1)),
+}
+
+
+@dataclass(frozen=True)
+class TableTemplate:
+    """One row of a yard's template table (:mod:`analysis.template_table`, docs/designs.md).
+
+    name: the yard's template name (the report's line name). edge: the plate edge it is measured
+    from, named by its corners (``"0-3"``: the width edge through the reference corner, so the
+    distance runs along the length; ``"1-2"`` the opposite width edge; ``"0-1"`` the length edge
+    through the reference corner; ``"3-2"`` the opposite length edge). distance_mm: from that edge,
+    along the adjacent edge from the corner named first, in the base plane. angle_deg: in plan,
+    between the template and the edge the distance runs along (90: square to it).
+    """
+
+    name: str
+    edge: TemplateEdge
+    distance_mm: float
+    angle_deg: float = 90.0
+
+
 @dataclass(frozen=True)
 class DetectionLayout:
     """Where the detection lines go (defaults: the paper's 1200 x 800 mm sail plate).
 
     Transverse lines are spaced along the length and centred on it; longitudinal lines are spaced
     along the width and centred on it; ``diagonals`` adds the two corner-to-corner lines. Explicit
-    ``*_offsets_mm`` (distances from the reference corner) replace count and spacing.
+    ``*_offsets_mm`` (distances from the reference corner) replace count and spacing. ``templates``
+    (a yard's template table) adds one named line per row after those (set the counts to 0 and
+    ``diagonals`` off to keep only the table's).
     """
 
     transverse_count: int = 14
@@ -44,6 +75,7 @@ class DetectionLayout:
     diagonals: bool = True
     transverse_offsets_mm: tuple[float, ...] | None = None
     longitudinal_offsets_mm: tuple[float, ...] | None = None
+    templates: tuple[TableTemplate, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -57,6 +89,7 @@ class DetectionLine:
     position_mm: distance of the line from the reference corner along the edge it is spaced on
     (transverse: length edge, longitudinal: width edge; 0 for diagonals).
     chord_mm: horizontal distance from start to end.
+    name: the line's name (a template table's; empty: the family letter and index name it).
     """
 
     family: str
@@ -68,6 +101,15 @@ class DetectionLine:
     up: np.ndarray
     position_mm: float
     chord_mm: float
+    name: str = ""
+
+
+FAMILY_LETTER = {"transverse": "T", "longitudinal": "L", "diagonal": "D"}
+
+
+def line_name(line: DetectionLine) -> str:
+    """The line's name: the template table's, else family letter and index (``T3``, ``L1``, ``D2``)."""
+    return line.name or f"{FAMILY_LETTER.get(line.family, '?')}{line.index}"
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -82,14 +124,49 @@ def _horizontal(v: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 
 def _make_line(
-    family: str, index: int, a: np.ndarray, b: np.ndarray, up: np.ndarray, position: float
+    family: str, index: int, a: np.ndarray, b: np.ndarray, up: np.ndarray, position: float, name: str = ""
 ) -> DetectionLine:
     chord = _horizontal(b - a, up)
     direction = _unit(chord)
     normal = _unit(np.cross(direction, up))
     return DetectionLine(
-        family, index, a, b, direction, normal, up, float(position), float(np.linalg.norm(chord))
+        family, index, a, b, direction, normal, up, float(position), float(np.linalg.norm(chord)), name
     )
+
+
+def _table_line(c: np.ndarray, up: np.ndarray, row: TableTemplate, index: int) -> DetectionLine:
+    """The line of one template-table row: from the point at ``distance_mm`` along the measuring
+    edge, at ``angle_deg`` to it in plan, to where it meets the opposite edge (corner chords)."""
+    if row.edge not in _TABLE_EDGES:
+        raise TemplateError(
+            f"template {row.name}: unknown edge {row.edge!r} (one of {', '.join(_TABLE_EDGES)})"
+        )
+    family, (i0, i1), (j0, j1) = _TABLE_EDGES[row.edge]
+    p0, p1, q0, q1 = c[i0], c[i1], c[j0], c[j1]
+    edge_h = _horizontal(p1 - p0, up)
+    length = float(np.linalg.norm(edge_h))
+    if not 0.0 <= row.distance_mm <= length:
+        raise TemplateError(
+            f"template {row.name}: {row.distance_mm:g} mm from edge {row.edge} lies outside the plate "
+            f"(it is {length:.1f} mm across that way)"
+        )
+    a = p0 + (row.distance_mm / length) * (p1 - p0)
+    u = edge_h / length
+    v = np.cross(up, u)  # u turned +90 degrees about up
+    inward = 1.0 if _horizontal((q0 + q1) / 2 - p0, up) @ v > 0 else -1.0
+    ang = np.radians(row.angle_deg)
+    d = np.cos(ang) * u + inward * np.sin(ang) * v
+    # a + t d = q0 + s e in plan; crossing both sides with d: s = -(d x w) / (d x e), w = q0 - a
+    e = _horizontal(q1 - q0, up)
+    w = _horizontal(q0 - a, up)
+    den = float(np.cross(d, e) @ up)
+    s = -float(np.cross(d, w) @ up) / den if abs(den) > 1e-12 else np.nan
+    if not (np.isfinite(s) and -1e-9 <= s <= 1 + 1e-9):
+        raise TemplateError(
+            f"template {row.name}: at {row.angle_deg:g} deg from edge {row.edge} it leaves the plate "
+            "before reaching the opposite edge"
+        )
+    return _make_line(family, index, a, q0 + s * (q1 - q0), up, row.distance_mm, row.name)
 
 
 def _offsets(
@@ -163,6 +240,8 @@ def detection_lines(
     if layout.diagonals:
         lines.append(_make_line("diagonal", 1, c[0], c[2], up, 0.0))
         lines.append(_make_line("diagonal", 2, c[1], c[3], up, 0.0))
+    for k, row in enumerate(layout.templates):
+        lines.append(_table_line(c, up, row, k + 1))
     return lines
 
 

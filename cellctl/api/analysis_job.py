@@ -7,6 +7,8 @@ to the worker (``[analysis]`` -> :class:`~analysis.settings.InspectionSettings` 
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,14 +16,17 @@ from analysis.job import AnalysisJob
 from analysis.metrics import Tolerances
 from analysis.placement import Placement
 from analysis.settings import InspectionSettings
-from analysis.templates import DetectionLayout
+from analysis.templates import DetectionLayout, TableTemplate
 from cellctl.config import AnalysisSection, CellConfig
 
 __all__ = ["analysis_job", "inspection_settings"]
 
 
-def inspection_settings(section: AnalysisSection) -> InspectionSettings:
-    """InspectionSettings from the ``[analysis]`` section."""
+def inspection_settings(
+    section: AnalysisSection, templates: Sequence[TableTemplate | dict[str, Any]] = ()
+) -> InspectionSettings:
+    """InspectionSettings from the ``[analysis]`` section, with a template table's rows (the
+    trigger's or ``--template-table``) added to its line layout."""
     tol = section.tolerances
     return InspectionSettings(
         layout=DetectionLayout(
@@ -30,6 +35,7 @@ def inspection_settings(section: AnalysisSection) -> InspectionSettings:
             longitudinal_count=section.longitudinal_count,
             longitudinal_spacing_mm=section.longitudinal_spacing_mm,
             diagonals=section.diagonals,
+            templates=tuple(t if isinstance(t, TableTemplate) else TableTemplate(**t) for t in templates),
         ),
         tolerances=Tolerances(
             standard=tol.standard,
@@ -50,15 +56,22 @@ def analysis_job(
     design: str,
     placement: Placement | dict[str, Any],
     out_dir: Path,
+    analysis: dict[str, Any] | None = None,
 ) -> AnalysisJob:
     """The parameters the daemon sends with a job's cloud: the trigger's design and placement (as
-    the job record stores it), the cell's analysis settings, and the job's results directory."""
+    the job record stores it), the cell's analysis settings with the trigger's per-plate analysis
+    options (``analysis``: ``template_table`` rows, ``design_side``, ``thickness_mm``), and the job's results directory."""
+    analysis = analysis or {}
     return AnalysisJob(
         job_id=job_id,
         plate_id=plate_id,
         cell_id=cfg.cell.id,
         design=design,
         placement=Placement.model_validate(placement),
-        settings=inspection_settings(cfg.analysis),
+        settings=dataclasses.replace(
+            inspection_settings(cfg.analysis, analysis.get("template_table", ())),
+            design_side=analysis.get("design_side", "moulded_up"),
+            thickness_mm=float(analysis.get("thickness_mm", 0.0)),
+        ),
         out_dir=str(out_dir),
     )

@@ -11,6 +11,7 @@ offending field. The key expressions are in :mod:`cellctl.api.keys`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import socket
@@ -21,10 +22,11 @@ from pathlib import Path, PurePosixPath
 from typing import Annotated, Any, Literal, TypeVar
 
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from analysis.job import AnalysisJob, Report
 from analysis.placement import Placement
+from analysis.templates import TableTemplate
 from cellctl.api.keys import ControlAction
 from cellctl.api.transfer import ResultManifest, TransferSpec
 
@@ -113,12 +115,38 @@ def new_job_id() -> str:
 
 
 class TriggerRequest(Model):
-    """Start an inspection. ``design`` is a path relative to ``[cell] designs_dir``."""
+    """Start an inspection. ``design`` is a path relative to ``[cell] designs_dir``.
+
+    ``template_table``: the yard's template table of this plate, as rows (the CSV's content, read
+    by ``cellctl scan --template-table``, not a path): one named detection line per row, added to
+    the ``[analysis]`` layout (docs/designs.md). ``design_side``: which face of the plate the design
+    is and whether it faces up; ``moulded_down`` (the plate turned over) needs ``thickness_mm``, the
+    design is then offset by it (:mod:`analysis.moulded`).
+    """
 
     plate_id: Ident
     design: Annotated[str, Field(min_length=1, max_length=255)]
     placement: Placement
     note: Annotated[str, Field(max_length=500)] = ""
+    template_table: Annotated[tuple[TableTemplate, ...], Field(max_length=200)] = ()
+    design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
+    thickness_mm: Annotated[Finite, Field(ge=0.0, lt=1000.0)] = 0.0
+
+    @model_validator(mode="after")
+    def _thickness_when_turned(self) -> TriggerRequest:
+        if self.design_side == "moulded_down" and self.thickness_mm <= 0:
+            raise ValueError("thickness_mm: a plate laid moulded side down needs its thickness (> 0 mm)")
+        return self
+
+    def analysis_options(self) -> dict[str, Any]:
+        """The per-plate analysis options the job record keeps and the job's settings carry."""
+        out: dict[str, Any] = {}
+        if self.template_table:
+            out["template_table"] = [dataclasses.asdict(t) for t in self.template_table]
+        if self.design_side != "moulded_up":
+            out["design_side"] = self.design_side
+            out["thickness_mm"] = self.thickness_mm
+        return out
 
     @field_validator("design")
     @classmethod

@@ -24,6 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("file", help="design: .igs/.iges/.stp/.step (units from the file) or .ply/.stl/.obj (mm)")
     c.add_argument("--thickness", type=float, default=None, metavar="MM",
                    help="plate thickness: also give the other side's corners (offset along the normals)")  # fmt: skip
+    c.add_argument("--template-table", default=None, metavar="CSV",
+                   help="the yard's template table: also list the lines it places (docs/designs.md)")  # fmt: skip
     c.add_argument("--preview", default=None, metavar="PNG",
                    help="preview image path (default: <file stem>-check.png in the current directory)")  # fmt: skip
     c.add_argument("--no-preview", action="store_true", help="do not draw the preview")
@@ -43,6 +45,7 @@ def _fail(msg: str) -> int:
 
 def run_check(args: argparse.Namespace) -> int:
     from analysis.design_check import check_design, preview_png
+    from analysis.template_table import read_template_table
     from cellctl.api.analysis_job import inspection_settings
     from cellctl.config import AnalysisSection
 
@@ -52,7 +55,8 @@ def run_check(args: argparse.Namespace) -> int:
     except ConfigError as err:
         return _fail(f"{err.source}: " + "; ".join(err.problems))
     try:
-        check = check_design(args.file, inspection_settings(section).layout, args.thickness)
+        table = read_template_table(args.template_table) if args.template_table else ()
+        check = check_design(args.file, inspection_settings(section, table).layout, args.thickness)
     except ValueError as exc:  # the readers' errors are one-line ValueErrors naming the file
         return _fail(str(exc))
     if not args.no_preview:

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
+from cellctl.commands.scan_cmd import add_design_side_arguments
 from cellctl.config import ConfigError, load_config
 
 
@@ -34,6 +36,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="nominal placement of the design on the bed (mm, mm, deg); optional, it decides the "
         "reference corner of a design that is symmetric under a half turn",
     )
+    p.add_argument(
+        "--template-table",
+        default=None,
+        metavar="CSV",
+        help="the yard's template table (docs/designs.md): one named line per template, added to the layout",
+    )
+    add_design_side_arguments(p)
     p.add_argument("--plate-id", default="", help="plate id for the report (default: the cloud's file name)")
     p.add_argument(
         "--config", default=None, help="cell.toml for [analysis] settings (default: ./cell.toml if present)"
@@ -53,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from analysis.cloud_io import read_cloud
     from analysis.pipeline import inspect_cloud, write_results
     from analysis.report import write_report
+    from analysis.template_table import read_template_table
     from cellctl.api.analysis_job import inspection_settings
     from cellctl.commands.plan_cmd import parse_placement
     from cellctl.commands.tables import line_table
@@ -60,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         placement = parse_placement(args.placement, 0.0) if args.placement else None
+        table = read_template_table(args.template_table) if args.template_table else ()
     except ValueError as exc:
         return _fail(str(exc))
     cfg_path = args.config or ("cell.toml" if Path("cell.toml").is_file() else None)
@@ -71,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
         cloud = read_cloud(args.cloud)
         design = read_design(args.design)
         ins = inspect_cloud(
-            cloud, design, inspection_settings(section),
+            cloud, design, replace(inspection_settings(section, table), design_side=args.design_side,
+                                   thickness_mm=args.thickness),
             plate_id=args.plate_id or Path(args.cloud).stem,
             inputs={"cloud": str(args.cloud), "design": str(args.design)},
             nominal_placement=placement,

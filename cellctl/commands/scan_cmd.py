@@ -36,6 +36,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="X,Y,ANGLE_DEG or X,Y,Z,ANGLE_DEG of the plate frame on the bed (mm, deg)",
     )
     p.add_argument("--note", default="", help="free text stored with the job")
+    p.add_argument(
+        "--template-table",
+        default=None,
+        metavar="CSV",
+        help="the yard's template table of this plate (read here, sent as rows): one named line per template",
+    )
+    add_design_side_arguments(p)
     p.add_argument("--wait", action="store_true", help="wait for the report and print the verdict table")
     p.add_argument(
         "--timeout-s", type=float, default=1800.0, help="give up waiting after this (default 1800)"
@@ -80,6 +87,31 @@ def placement_payload(text: str, default_z_mm: float) -> dict[str, Any]:
     from cellctl.commands.plan_cmd import parse_placement
 
     return parse_placement(text, default_z_mm).model_dump()
+
+
+def add_design_side_arguments(p: argparse.ArgumentParser) -> None:
+    """``--design-side`` and ``--thickness`` (``scan`` and ``inspect``; docs/designs.md)."""
+    p.add_argument(
+        "--design-side",
+        choices=("moulded_up", "moulded_down"),
+        default="moulded_up",
+        help="the design is the plate's moulded face: does it face up on the bed (default), or was the "
+        "plate turned over (then the design is offset by --thickness)",
+    )
+    p.add_argument("--thickness", type=float, default=0.0, metavar="MM",
+                   help="plate thickness, needed with --design-side moulded_down")  # fmt: skip
+
+
+def template_table_rows(path: str | None) -> list[dict[str, Any]]:
+    """``--template-table CSV`` -> the trigger's ``template_table`` rows ([] without one;
+    TemplateTableError, a ValueError naming the file and line, for a bad table)."""
+    if path is None:
+        return []
+    import dataclasses
+
+    from analysis.template_table import read_template_table
+
+    return [dataclasses.asdict(t) for t in read_template_table(path)]
 
 
 class StatusFollower:
@@ -226,10 +258,15 @@ async def _scan(args: argparse.Namespace, cfg) -> int:
 
     try:
         placement = placement_payload(args.placement, cfg.scan.placement_z_mm)
+        table = template_table_rows(args.template_table)
     except ValueError as exc:
         print(f"cellctl scan: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
     req = {"plate_id": args.plate, "design": args.design, "placement": placement, "note": args.note}
+    if table:
+        req["template_table"] = table
+    if args.design_side != "moulded_up":
+        req.update(design_side=args.design_side, thickness_mm=args.thickness)
     keys = Keys(cfg.key_prefix)
     session = await _client_session(cfg, "scan")
     if session is None:

@@ -95,6 +95,7 @@ class Handover:
             params = analysis_job(
                 self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
                 placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
+                analysis=rec.analysis,
             )  # fmt: skip
             # waiting for a worker until the dispatcher assigns the job (the daemon's on_assigned
             # hook then says analysing): with no worker present the job says so (docs/operations.md)

@@ -112,6 +112,8 @@ class JobRecord:
         design_path: resolved absolute path. placement: ``{"pos_mm": [...], "rpy_deg": [...]}``.
         state: a :class:`cellctl.api.JobState` value. history: ``[{"state", "t_utc", "message"}]``.
         info: counters and results (profiles, points, scan_s, verdict, report path, ...).
+        analysis: the trigger's per-plate analysis options (``template_table`` rows, ``design_side``,
+        ``thickness_mm``), kept so a re-analysis judges the plate the same way.
     """
 
     job_id: str
@@ -124,6 +126,7 @@ class JobRecord:
     created_utc: str = field(default_factory=now_utc)
     history: list[dict[str, str]] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    analysis: dict[str, Any] = field(default_factory=dict)
 
     @property
     def terminal(self) -> bool:
@@ -255,6 +258,7 @@ class JobStore:
             if _is_placement(placement)
             else {"pos_mm": [0.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]},
             state=JobState.INTERRUPTED.value,
+            analysis=old["analysis"] if isinstance(old.get("analysis"), dict) else {},
         )
         raw = self.raw_dir(job_id)
         rec.history.append(
@@ -384,6 +388,8 @@ def _checked(rec: JobRecord) -> JobRecord:
         raise ValueError("history: expected a list of {state, t_utc, message}")
     if not isinstance(rec.info, dict):
         raise ValueError(f"info: expected an object, got {type(rec.info).__name__}")
+    if not isinstance(rec.analysis, dict):
+        raise ValueError(f"analysis: expected an object, got {type(rec.analysis).__name__}")
     if not _is_placement(rec.placement):
         raise ValueError("placement: expected {pos_mm: [x, y, z], rpy_deg: [r, p, y]}")
     return rec
