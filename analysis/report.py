@@ -45,9 +45,12 @@ log = structlog.get_logger(__name__)
 __all__ = [
     "CSV_COLUMNS",
     "LineSeries",
+    "PreviousLine",
+    "PreviousRound",
     "ReportError",
     "ResultsData",
     "load_results",
+    "previous_by_line",
     "render_html",
     "render_pdf",
     "write_csv",
@@ -153,6 +156,37 @@ class ResultsData:
     plate_size_mm: np.ndarray
     lines: list[LineSeries | None]
     holes_xy_mm: np.ndarray
+
+
+@dataclass(frozen=True)
+class PreviousLine:
+    """One line of the previous round: its name (``T1``, ``L2``, ``D1``), Zmax and SZ-average (mm),
+    and whether it passed."""
+
+    name: str
+    zmax_mm: float
+    sz_avg_mm: float
+    passed: bool
+
+
+@dataclass(frozen=True)
+class PreviousRound:
+    """The plate's previous forming round (the caller finds it; this module reads no job directory).
+
+    round: its number among the plate's analysed rounds (1 = the first); this report is round + 1.
+    """
+
+    round: int
+    job_id: str
+    created_utc: str
+    verdict: str
+    lines: tuple[PreviousLine, ...]
+
+
+def previous_by_line(report: dict, previous: PreviousRound) -> list[tuple[dict, PreviousLine | None]]:
+    """This report's lines, each with the previous round's line of the same name (None: no match)."""
+    by_name = {ln.name: ln for ln in previous.lines}
+    return [(ln, by_name.get(ln["name"])) for ln in report["lines"]]
 
 
 def _num(value: Any, where: str) -> float:
@@ -627,6 +661,37 @@ def _compare_html(report: dict) -> str:
     )
 
 
+def _previous_html(report: dict, previous: PreviousRound | None) -> str:
+    """The "Previous round" section: this round's and the previous round's figures per line."""
+    if previous is None:
+        return ""
+    rows = []
+    for ln, prev in previous_by_line(report, previous):
+        now_v = "pass" if ln["pass"] else "FAIL"
+        if prev is None:
+            cells = '<td>—</td><td>—</td><td class="t">—</td>'
+        else:
+            cells = (
+                f"<td>{_f(prev.zmax_mm, 2)}</td><td>{_f(prev.sz_avg_mm, 2)}</td>"
+                f'<td class="t">{"pass" if prev.passed else "FAIL"}</td>'
+            )
+        rows.append(
+            f'<tr data-line="{_e(ln["name"])}"><td class="t">{_e(ln["name"])}</td>'
+            f'<td>{_f(ln["zmax_mm"], 2)}</td><td>{_f(ln["sz_avg_mm"], 2)}</td><td class="t">{now_v}</td>'
+            f"{cells}</tr>"
+        )
+    n = previous.round
+    return (
+        f'<section id="previous-round" data-round="{n + 1}"><h2>Previous round</h2>'
+        f"<p>This is round {n + 1} of plate {_e(report['plate_id'])}; round {n}: job {_e(previous.job_id)}, "
+        f"{_e(previous.created_utc)}, verdict {_e(previous.verdict)}.</p>"
+        f'<table class="previous"><thead><tr><th>line</th><th>Zmax (mm), round {n + 1}</th>'
+        f"<th>SZ-average (mm), round {n + 1}</th><th>verdict, round {n + 1}</th>"
+        f"<th>Zmax (mm), round {n}</th><th>SZ-average (mm), round {n}</th><th>verdict, round {n}</th>"
+        "</tr></thead><tbody>" + "".join(rows) + "</tbody></table></section>"
+    )
+
+
 def _rework_html(regions: list[ReworkRegion], std: float) -> str:
     if not regions:
         return f"<p>No region of the plate lies beyond the standard range (±{std:g} mm).</p>"
@@ -697,8 +762,14 @@ def _registration_items(report: dict) -> list[tuple[str, str]]:
     return items
 
 
-def render_html(data: ResultsData, regions: list[ReworkRegion], svgs: dict[str, str]) -> str:
-    """The self-contained report page (a string). ``svgs``: "top", "coverage", "line{k}" -> inline SVG."""
+def render_html(
+    data: ResultsData,
+    regions: list[ReworkRegion],
+    svgs: dict[str, str],
+    previous: PreviousRound | None = None,
+) -> str:
+    """The self-contained report page (a string). ``svgs``: "top", "coverage", "line{k}" -> inline SVG.
+    ``previous``: the plate's previous round (a "Previous round" section); None for a first round."""
     rep = data.report
     std, lim, standard = _tolerances(rep)
     lines = rep["lines"]
@@ -754,6 +825,7 @@ purple boxes are the regions to rework.</figcaption></figure></section>
 reference corner (x along the length, y along the width).</p>{_rework_html(regions, std)}</section>
 <section id="tables"><h2>Detection lines (the paper's Tables 3–5)</h2>
 {"".join(_lines_table_html(rep, fam) for fam, _ in FAMILIES)}</section>
+{_previous_html(rep, previous)}
 {_compare_html(rep)}
 <section id="lines"><h2>Detection lines, one plot each</h2><div class="plots">{line_figs}</div></section>
 <section id="registration"><h2>Registration</h2>{_kv_table(_registration_items(rep))}
@@ -818,8 +890,74 @@ def _pdf_table(
     t.scale(1.0, 1.25)
 
 
-def render_pdf(data: ResultsData, regions: list[ReworkRegion], field: GriddedField, path: Path) -> int:
-    """``report.pdf`` (A4 portrait): summary and map, rework and coverage, tables, line plots.
+def _pdf_previous_pages(pdf: PdfPages, report: dict, previous: PreviousRound) -> int:
+    """The previous round's table in the PDF (the HTML's "Previous round" section); returns the pages."""
+    n = previous.round
+    header = [
+        "line",
+        f"Zmax r{n + 1}",
+        f"SZ-avg r{n + 1}",
+        f"verdict r{n + 1}",
+        f"Zmax r{n}",
+        f"SZ-avg r{n}",
+        f"verdict r{n}",
+    ]
+    body, colours = [], []
+    for ln, prev in previous_by_line(report, previous):
+        body.append(
+            [
+                ln["name"],
+                _f(ln["zmax_mm"], 2),
+                _f(ln["sz_avg_mm"], 2),
+                "pass" if ln["pass"] else "FAIL",
+                *(
+                    ["—", "—", "—"]
+                    if prev is None
+                    else [_f(prev.zmax_mm, 2), _f(prev.sz_avg_mm, 2), "pass" if prev.passed else "FAIL"]
+                ),
+            ]
+        )
+        row_c = ["white"] * len(header)
+        row_c[3] = "#d7f0dc" if ln["pass"] else "#fbd5d5"
+        if prev is not None:
+            row_c[6] = "#d7f0dc" if prev.passed else "#fbd5d5"
+        colours.append(row_c)
+    pages = 0
+    for start in range(0, max(len(body), 1), _TABLE_ROWS_PER_PDF_PAGE):
+        fig = Figure(figsize=_A4_PORTRAIT_IN)
+        _pdf_text_page(
+            fig,
+            0.96,
+            [
+                ("Previous round", {"size": 14, "fontweight": "bold"}),
+                (
+                    f"Round {n + 1} of plate {report['plate_id']}; round {n}: job {previous.job_id},"
+                    f" {previous.created_utc}, verdict {previous.verdict}",
+                    {},
+                ),
+            ],
+        )
+        _pdf_table(
+            fig.add_axes((0.04, 0.05, 0.92, 0.83)),
+            header,
+            body[start : start + _TABLE_ROWS_PER_PDF_PAGE],
+            colours[start : start + _TABLE_ROWS_PER_PDF_PAGE],
+            [0.16, 0.14, 0.14, 0.14, 0.14, 0.14, 0.14],
+        )
+        pdf.savefig(fig)
+        pages += 1
+    return pages
+
+
+def render_pdf(
+    data: ResultsData,
+    regions: list[ReworkRegion],
+    field: GriddedField,
+    path: Path,
+    previous: PreviousRound | None = None,
+) -> int:
+    """``report.pdf`` (A4 portrait): summary and map, rework and coverage, tables, the previous round
+    (when there is one), line plots.
 
     Returns the number of pages.
     """
@@ -969,6 +1107,8 @@ def render_pdf(data: ResultsData, regions: list[ReworkRegion], field: GriddedFie
             )
             pdf.savefig(fig)
             pages += 1
+        if previous is not None:
+            pages += _pdf_previous_pages(pdf, rep, previous)
         # then the line plots, three per page
         for start in range(0, len(lines), _LINES_PER_PDF_PAGE):
             fig = Figure(figsize=_A4_PORTRAIT_IN)
@@ -998,8 +1138,11 @@ def _rework_cell_mm(data: ResultsData) -> float:
     return max(5.0, _display_cell_mm(data))
 
 
-def write_report(results_dir: str | Path) -> list[Path]:
+def write_report(results_dir: str | Path, previous: PreviousRound | None = None) -> list[Path]:
     """Make ``report.csv``, ``report.html`` and ``report.pdf`` in ``results_dir`` from its stored results.
+
+    ``previous``: the plate's previous round, shown beside this round's figures per line (the caller
+    finds it: ``cellctl report`` from the plate history); None for a first round.
 
     Returns the paths written. Raises :class:`ReportError` if the directory's results are
     incomplete or malformed (nothing is written then).
@@ -1037,12 +1180,12 @@ def write_report(results_dir: str | Path) -> list[Path]:
     written = [write_csv(data.report, d / "report.csv")]
     html_path = d / "report.html"
     tmp = d / "report.html.tmp"
-    tmp.write_text(render_html(data, regions, svgs), encoding="utf-8")
+    tmp.write_text(render_html(data, regions, svgs, previous), encoding="utf-8")
     tmp.replace(html_path)
     written.append(html_path)
     pdf_path = d / "report.pdf"
     tmp = d / "report.pdf.tmp"
-    pages = render_pdf(data, regions, display, tmp)
+    pages = render_pdf(data, regions, display, tmp, previous)
     tmp.replace(pdf_path)
     written.append(pdf_path)
     log.info(

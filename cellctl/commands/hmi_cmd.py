@@ -69,7 +69,7 @@ def adduser(args: argparse.Namespace) -> int:
 
 
 def history(args: argparse.Namespace) -> int:
-    from cellctl.hmi.history import History, format_history
+    from cellctl.daemon.history import History, format_history
 
     cfg = _config(args.config)
     if cfg is None:

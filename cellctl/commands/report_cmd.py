@@ -19,7 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="regenerate report.html, report.pdf and report.csv from a job's stored results",
         description=(
             "Make the inspection report again from a results directory (report.json and results.npz). "
-            "JOB_OR_DIR is a directory, or a job id looked up in <[cell] data_dir>/jobs/<JOB>."
+            "JOB_OR_DIR is a directory, or a job id looked up in <[cell] data_dir>/jobs/<JOB>. A job's report "
+            "shows the plate's previous round (its latest earlier job with a report) per line."
         ),
     )
     p.add_argument("target", metavar="JOB_OR_DIR", help="results directory or job id")
@@ -76,6 +77,7 @@ def _open(path: Path) -> bool:
 def run(args: argparse.Namespace) -> int:
     # Imported here: `cellctl --help` must not pay for matplotlib.
     from analysis.report import ReportError, write_report
+    from cellctl.daemon.history import previous_round_for
 
     try:
         results_dir = resolve_results_dir(args.target, args.config)
@@ -87,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellctl report: {exc}", file=sys.stderr)
         return 2
     try:
-        written = write_report(results_dir)
+        # the plate's previous round (a job directory of the same plate before this one), if any
+        written = write_report(results_dir, previous_round_for(results_dir))
     except ReportError as exc:
         print(f"cellctl report: {exc}", file=sys.stderr)
         return 2

@@ -23,8 +23,8 @@ from aiohttp import WSMsgType, web
 
 from cellctl.api import DESIGN_SUFFIXES, ApiCallError
 from cellctl.config import CellConfig
+from cellctl.daemon.history import History
 from cellctl.hmi.auth import ACTION_ROLE, ZENOH_ROLE, Authenticator, Session, allowed, role_cap
-from cellctl.hmi.history import History
 from cellctl.hmi.link import CellLink
 
 log = structlog.get_logger(__name__)

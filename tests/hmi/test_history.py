@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.hmi.history import History, format_history
+from cellctl.daemon.history import History, format_history
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -4,6 +4,10 @@ The job directories stay the record (``job.json``, ``report.json``); the index i
 start (:meth:`History.rebuild`) and updated as jobs end (:meth:`History.index_job`). A plate is
 formed in rounds (heat, inspect, heat again): its rounds are its finished jobs in creation order,
 each with Zmax per line, so the rounds can be set side by side.
+
+One implementation for both readers: the HMI keeps the index in the data directory; the report
+render (``cellctl report``, the daemon's render child) asks :func:`previous_round_for` for the
+previous round of the job it renders, from an index of that plate's job directories in memory.
 """
 
 from __future__ import annotations
@@ -12,9 +16,12 @@ import json
 import sqlite3
 import threading
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
+
+if TYPE_CHECKING:
+    from analysis.report import PreviousRound
 
 log = structlog.get_logger(__name__)
 
@@ -50,11 +57,14 @@ def _line_summary(report: dict[str, Any]) -> list[dict[str, Any]]:
     ]
 
 
-def read_job_dir(job_dir: Path) -> dict[str, Any] | None:
-    """One row from a job directory; None when it holds no readable job.json."""
+def read_job_dir(job_dir: Path, plate_id: str | None = None) -> dict[str, Any] | None:
+    """One row from a job directory; None when it holds no readable job.json (or, with
+    ``plate_id``, a job of another plate: its report is not read then)."""
     try:
         rec = json.loads((job_dir / "job.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
+        return None
+    if plate_id is not None and rec.get("plate_id") != plate_id:
         return None
     report = None
     rp = job_dir / "report.json"
@@ -94,9 +104,10 @@ class History:
         with self._lock:
             self._db.close()
 
-    def rebuild(self) -> int:
-        """Index every job directory again (rows of vanished jobs are dropped); returns the count."""
-        rows = [r for d in sorted((self.data_dir / "jobs").glob("*/")) if (r := read_job_dir(d))]
+    def rebuild(self, plate_id: str | None = None) -> int:
+        """Index every job directory again (rows of vanished jobs are dropped); returns the count.
+        ``plate_id``: only that plate's jobs (the others are not indexed)."""
+        rows = [r for d in sorted((self.data_dir / "jobs").glob("*/")) if (r := read_job_dir(d, plate_id))]
         with self._lock, self._db:
             self._db.execute("DELETE FROM jobs")
             self._db.executemany(_UPSERT, rows)
@@ -157,6 +168,46 @@ class History:
                 (me["plate_id"], me["created_utc"]),
             ).fetchone()
         return _row(r) if r else None
+
+
+def previous_round_for(results_dir: str | Path) -> PreviousRound | None:
+    """The previous round of the job whose report is rendered from ``results_dir``, for the report.
+
+    ``results_dir`` is ``<data_dir>/jobs/<JOB>/results`` (or the job directory itself); the previous
+    round is the latest analysed job (one with a report) of the same plate created before this one,
+    as :meth:`History.previous_round` finds it, numbered as in :meth:`History.rounds`. None for a
+    first round, or for a results directory outside a job directory (``cellctl inspect --out``).
+    """
+    from analysis.report import PreviousLine, PreviousRound  # matplotlib: only when a report is made
+
+    d = Path(results_dir).resolve()
+    job_dir = d.parent if d.name == "results" and (d.parent / "job.json").is_file() else d
+    if job_dir.parent.name != "jobs" or (me := read_job_dir(job_dir)) is None:
+        return None
+    hist = History(job_dir.parent.parent, db_path=":memory:")
+    try:
+        hist.rebuild(plate_id=me["plate_id"])
+        prev = hist.previous_round(me["job_id"])
+        if prev is None:
+            return None
+        number = next(r["round"] for r in hist.rounds(me["plate_id"]) if r["job_id"] == prev["job_id"])
+    finally:
+        hist.close()
+    return PreviousRound(
+        round=number,
+        job_id=prev["job_id"],
+        created_utc=prev["created_utc"],
+        verdict=prev["verdict"],
+        lines=tuple(
+            PreviousLine(
+                name=ln["name"],
+                zmax_mm=float(ln["zmax_mm"]),
+                sz_avg_mm=float(ln["sz_avg_mm"]),
+                passed=bool(ln["pass"]),
+            )
+            for ln in prev["lines"]
+        ),
+    )
 
 
 _UPSERT = (
