@@ -194,3 +194,20 @@ def validate_literal(rapid_type: str, text: str) -> str:
     if rapid_type == "jointtarget":
         return format_jointtarget(value)  # type: ignore[arg-type]
     return text.strip()
+
+
+@dataclass(frozen=True)
+class ElogEntry:
+    """One event-log message, as the client reads it and the simulator keeps it. ``msgtype``: 1 info, 2 warning, 3 error; ``tstamp`` as the controller
+    writes it (``2024-01-10 T 14:53:00``, controller clock); texts empty unless a language was asked."""
+
+    seqnum: int
+    msgtype: int
+    code: int
+    title: str
+    desc: str
+    tstamp: str
+    conseqs: str = ""
+    causes: str = ""
+    actions: str = ""
+    args: tuple[str, ...] = ()

@@ -50,6 +50,7 @@ import structlog
 from drivers.abb_egm import rapid_values as _prog
 from drivers.abb_egm.digest import digest_response, parse_auth_params
 from drivers.abb_egm.rapid_values import (
+    ElogEntry,
     JointTarget,
     format_bool,
     format_jointtarget,
@@ -147,23 +148,6 @@ class ExecutionState:
 
     ctrlexecstate: str
     cycle: str
-
-
-@dataclass(frozen=True)
-class ElogEntry:
-    """One event-log message. ``msgtype``: 1 info, 2 warning, 3 error; ``tstamp`` as the controller
-    writes it (``2024-01-10 T 14:53:00``, controller clock); texts empty unless a language was asked."""
-
-    seqnum: int
-    msgtype: int
-    code: int
-    title: str
-    desc: str
-    tstamp: str
-    conseqs: str = ""
-    causes: str = ""
-    actions: str = ""
-    args: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -65,6 +65,7 @@ from drivers.abb_egm.rapid_values import (
     VAR_SAMPLE_RATE,
     VAR_STATUS,
     ControllerError,
+    ElogEntry,
     JointTarget,
     RapidValueError,
     format_bool,
@@ -151,26 +152,6 @@ class IoSignal:
 
 
 @dataclass(frozen=True)
-class ElogEvent:
-    """One event-log entry (domain 0). ``msgtype``: 1 info, 2 warning, 3 error.
-
-    ``tstamp`` is the controller's ``YYYY-MM-DD T HH:MM:SS`` (one space each side of the T, as the
-    ABB manual's and RobotWare 7's answers show it).
-    """
-
-    seqnum: int
-    msgtype: int
-    code: int
-    title: str
-    desc: str
-    tstamp: str
-    conseqs: str = ""
-    causes: str = ""
-    actions: str = ""
-    args: tuple[str, ...] = ()
-
-
-@dataclass(frozen=True)
 class EgmRunParams:
     """What the RAPID module hands to EGMSetupUC / EGMActJoint / EGMRunJoint (units in the names)."""
 
@@ -232,7 +213,7 @@ class ControllerModel:
         self._egm_params: EgmRunParams | None = None
         self._vars: dict[tuple[str, str, str], RapidVar] = {}
         self._signals: dict[str, IoSignal] = {}
-        self._events: deque[ElogEvent] = deque(maxlen=elog_capacity)
+        self._events: deque[ElogEntry] = deque(maxlen=elog_capacity)
         self._event_seq = 0
         self._listeners: list[Listener] = []
         # RAPID tasks of the system: name -> active (only the motion task runs the CellEgm program)
@@ -641,20 +622,20 @@ class ControllerModel:
 
     # ---- event log ----------------------------------------------------------------------------
 
-    def log_event(self, code: int, title: str, desc: str, severity: str = "info") -> ElogEvent:
+    def log_event(self, code: int, title: str, desc: str, severity: str = "info") -> ElogEntry:
         """Append an entry to event-log domain 0; ``severity`` is ``info`` / ``warning`` / ``error``."""
         if severity not in _SEVERITY:
             raise RapidValueError(f"unknown severity {severity!r}", code=RC_BAD_VALUE)
         self._event_seq += 1
         tstamp = time.strftime("%Y-%m-%d T %H:%M:%S", time.gmtime())
-        ev = ElogEvent(self._event_seq, _SEVERITY[severity], int(code), title, desc, tstamp)
+        ev = ElogEntry(self._event_seq, _SEVERITY[severity], int(code), title, desc, tstamp)
         self._events.append(ev)
         log.info("elog_event", code=code, title=title, severity=severity)
         self._notify("elog", {"seqnum": ev.seqnum, "code": ev.code, "msgtype": ev.msgtype, "title": title})
         return ev
 
     @property
-    def events(self) -> list[ElogEvent]:
+    def events(self) -> list[ElogEntry]:
         """Event log, newest first (as RWS lists it)."""
         return list(reversed(self._events))
 
