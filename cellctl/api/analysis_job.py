@@ -17,6 +17,7 @@ from analysis.metrics import Tolerances
 from analysis.placement import Placement
 from analysis.settings import InspectionSettings
 from analysis.templates import DetectionLayout, TableTemplate
+from cellctl.api.models import AnalysisOptions
 from cellctl.config import AnalysisSection, CellConfig
 
 __all__ = ["analysis_job", "inspection_settings"]
@@ -56,12 +57,12 @@ def analysis_job(
     design: str,
     placement: Placement | dict[str, Any],
     out_dir: Path,
-    analysis: dict[str, Any] | None = None,
+    analysis: AnalysisOptions | None = None,
 ) -> AnalysisJob:
     """The parameters the daemon sends with a job's cloud: the trigger's design and placement (as
     the job record stores it), the cell's analysis settings with the trigger's per-plate analysis
     options (``analysis``: ``template_table`` rows, ``design_side``, ``thickness_mm``), and the job's results directory."""
-    analysis = analysis or {}
+    analysis = analysis or AnalysisOptions()
     return AnalysisJob(
         job_id=job_id,
         plate_id=plate_id,
@@ -69,9 +70,9 @@ def analysis_job(
         design=design,
         placement=Placement.model_validate(placement),
         settings=dataclasses.replace(
-            inspection_settings(cfg.analysis, analysis.get("template_table", ())),
-            design_side=analysis.get("design_side", "moulded_up"),
-            thickness_mm=float(analysis.get("thickness_mm", 0.0)),
+            inspection_settings(cfg.analysis, analysis.template_table),
+            design_side=analysis.design_side,
+            thickness_mm=analysis.thickness_mm,
         ),
         out_dir=str(out_dir),
     )

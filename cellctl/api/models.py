@@ -11,7 +11,6 @@ offending field. The key expressions are in :mod:`cellctl.api.keys`.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import socket
@@ -41,6 +40,7 @@ __all__ = [
     "MAX_TRIGGER_BYTES",
     "TRIGGER_LOG",
     "AnalysisJob",
+    "AnalysisOptions",
     "ApiError",
     "CellState",
     "CellStatus",
@@ -114,14 +114,36 @@ def new_job_id() -> str:
 # --------------------------------------------------------------------------------------------- trigger
 
 
+class AnalysisOptions(Model):
+    """The per-plate analysis options a trigger may give, kept in the job record (a re-analysis judges
+    the plate the same way) and carried into the job's settings.
+
+    ``template_table``: the yard's template table of this plate, as rows (the CSV's content, read by
+    ``cellctl scan --template-table``, not a path): one named detection line per row, added to the
+    ``[analysis]`` layout (docs/designs.md). ``design_side``: which face of the plate the design is
+    and whether it faces up; ``moulded_down`` (the plate turned over) needs ``thickness_mm``, the
+    design is then offset by it (:mod:`analysis.moulded`).
+    """
+
+    template_table: Annotated[tuple[TableTemplate, ...], Field(max_length=200)] = ()
+    design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
+    thickness_mm: Annotated[Finite, Field(ge=0.0, lt=1000.0)] = 0.0
+
+    @model_validator(mode="after")
+    def _thickness_when_turned(self) -> AnalysisOptions:
+        if self.design_side == "moulded_down" and self.thickness_mm <= 0:
+            raise ValueError("thickness_mm: a plate laid moulded side down needs its thickness (> 0 mm)")
+        return self
+
+    def record(self) -> dict[str, Any]:
+        """The options as the job record stores them (JSON; only what differs from the defaults)."""
+        return self.model_dump(mode="json", exclude_defaults=True)
+
+
 class TriggerRequest(Model):
     """Start an inspection. ``design`` is a path relative to ``[cell] designs_dir``.
 
-    ``template_table``: the yard's template table of this plate, as rows (the CSV's content, read
-    by ``cellctl scan --template-table``, not a path): one named detection line per row, added to
-    the ``[analysis]`` layout (docs/designs.md). ``design_side``: which face of the plate the design
-    is and whether it faces up; ``moulded_down`` (the plate turned over) needs ``thickness_mm``, the
-    design is then offset by it (:mod:`analysis.moulded`).
+    ``template_table``, ``design_side``, ``thickness_mm``: the plate's :class:`AnalysisOptions`.
     """
 
     plate_id: Ident
@@ -133,20 +155,15 @@ class TriggerRequest(Model):
     thickness_mm: Annotated[Finite, Field(ge=0.0, lt=1000.0)] = 0.0
 
     @model_validator(mode="after")
-    def _thickness_when_turned(self) -> TriggerRequest:
-        if self.design_side == "moulded_down" and self.thickness_mm <= 0:
-            raise ValueError("thickness_mm: a plate laid moulded side down needs its thickness (> 0 mm)")
+    def _options_hold(self) -> TriggerRequest:
+        self.analysis_options()  # one rule for the options, in their model
         return self
 
-    def analysis_options(self) -> dict[str, Any]:
+    def analysis_options(self) -> AnalysisOptions:
         """The per-plate analysis options the job record keeps and the job's settings carry."""
-        out: dict[str, Any] = {}
-        if self.template_table:
-            out["template_table"] = [dataclasses.asdict(t) for t in self.template_table]
-        if self.design_side != "moulded_up":
-            out["design_side"] = self.design_side
-            out["thickness_mm"] = self.thickness_mm
-        return out
+        return AnalysisOptions(
+            template_table=self.template_table, design_side=self.design_side, thickness_mm=self.thickness_mm
+        )
 
     @field_validator("design")
     @classmethod

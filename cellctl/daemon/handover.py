@@ -22,6 +22,7 @@ from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import JobState
 from cellctl.api.analysis_job import analysis_job
 from cellctl.api.dispatch import Dispatcher, JobFailed
+from cellctl.api.models import AnalysisOptions
 from cellctl.api.transfer import TransferError, TransferSpec, store_results
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import ActiveJob, JobStore, JobStoreError
@@ -95,7 +96,7 @@ class Handover:
             params = analysis_job(
                 self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
                 placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
-                analysis=rec.analysis,
+                analysis=AnalysisOptions.model_validate(rec.analysis),
             )  # fmt: skip
             # waiting for a worker until the dispatcher assigns the job (the daemon's on_assigned
             # hook then says analysing): with no worker present the job says so (docs/operations.md)

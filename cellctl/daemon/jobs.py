@@ -27,10 +27,12 @@ from pathlib import Path
 from typing import Any
 
 import structlog
+from pydantic import ValidationError
 
 from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.session import AcquisitionSession
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
+from cellctl.api.models import AnalysisOptions
 from cellctl.motion import MotionExecutor
 
 log = structlog.get_logger(__name__)
@@ -258,7 +260,7 @@ class JobStore:
             if _is_placement(placement)
             else {"pos_mm": [0.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]},
             state=JobState.INTERRUPTED.value,
-            analysis=old["analysis"] if isinstance(old.get("analysis"), dict) else {},
+            analysis=_options_or_none(old.get("analysis")),
         )
         raw = self.raw_dir(job_id)
         rec.history.append(
@@ -388,8 +390,10 @@ def _checked(rec: JobRecord) -> JobRecord:
         raise ValueError("history: expected a list of {state, t_utc, message}")
     if not isinstance(rec.info, dict):
         raise ValueError(f"info: expected an object, got {type(rec.info).__name__}")
-    if not isinstance(rec.analysis, dict):
-        raise ValueError(f"analysis: expected an object, got {type(rec.analysis).__name__}")
+    try:  # the options a re-analysis will judge the plate by: a record of another shape is quarantined
+        AnalysisOptions.model_validate(rec.analysis)
+    except ValidationError as exc:
+        raise ValueError(f"analysis: {exc.errors()[0]['msg']} at {exc.errors()[0]['loc']}") from None
     if not _is_placement(rec.placement):
         raise ValueError("placement: expected {pos_mm: [x, y, z], rpy_deg: [r, p, y]}")
     return rec
@@ -401,3 +405,11 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON-able: {type(obj).__name__}")
+
+
+def _options_or_none(value: object) -> dict:
+    """A quarantined record's analysis options when they still validate, else none (the defaults)."""
+    try:
+        return AnalysisOptions.model_validate(value).record()
+    except ValidationError:
+        return {}

@@ -378,7 +378,7 @@ class CellDaemon:
             design_path=str(design_path),
             placement=req.placement.model_dump(),
             note=req.note,
-            analysis=req.analysis_options(),
+            analysis=req.analysis_options().record(),
         )
         # Decide again after the awaits above (another trigger may have been taken meanwhile); from
         # here to the reply nothing awaits, so two triggers can never both start.

@@ -11,7 +11,7 @@ import pytest
 from analysis.job import AnalysisJob
 from analysis.templates import TableTemplate
 from cellctl.api.analysis_job import analysis_job
-from cellctl.api.models import TriggerError, parse_trigger
+from cellctl.api.models import AnalysisOptions, TriggerError, parse_trigger
 from cellctl.commands.scan_cmd import template_table_rows
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import JobRecord, JobStore
@@ -34,11 +34,13 @@ def test_the_table_travels_as_rows_from_the_cli_to_the_workers_settings(tmp_path
     )
 
     store = JobStore(tmp_path / "data")
-    store.create(JobRecord("j1", "P1", "p.ply", "/d/p.ply", PLACEMENT, analysis=req.analysis_options()))
+    store.create(
+        JobRecord("j1", "P1", "p.ply", "/d/p.ply", PLACEMENT, analysis=req.analysis_options().record())
+    )
     rec = store.load("j1")  # the record on disk keeps the rows: a re-analysis uses the same table
     cfg = CellConfig.model_validate({"cell": {"id": "c1"}, "analysis": {"transverse_count": 3}})
     job = analysis_job(cfg, job_id="j1", plate_id="P1", design="/d/p.ply", placement=rec.placement,
-                       out_dir=tmp_path / "o", analysis=rec.analysis)  # fmt: skip
+                       out_dir=tmp_path / "o", analysis=AnalysisOptions.model_validate(rec.analysis))  # fmt: skip
     worker_side = AnalysisJob.model_validate_json(job.model_dump_json())
     assert worker_side.settings.layout.templates == req.template_table
     assert worker_side.settings.layout.transverse_count == 3
@@ -68,7 +70,8 @@ def test_the_design_side_and_thickness_travel_from_the_trigger_to_the_settings(t
     settings = AnalysisJob.model_validate_json(job.model_dump_json()).settings
     assert (settings.design_side, settings.thickness_mm) == ("moulded_down", 12.5)
     plain, _ = parse_trigger(json.dumps(base), tmp_path)
-    assert plain.analysis_options() == {}
+    assert plain.analysis_options() == AnalysisOptions()
+    assert plain.analysis_options().record() == {}  # a plain job's record carries no options
     for bad, field in (
         ({"design_side": "moulded_down"}, "needs its thickness"),
         ({"design_side": "sideways", "thickness_mm": 5}, "design_side"),

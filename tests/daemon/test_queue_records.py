@@ -102,3 +102,20 @@ def test_wait_for_job_ignores_an_end_it_saw_before_it_was_called():
     follower.jobs["mine"] = _progress("mine", "interrupted")  # what it ended as before the re-analysis
     state, message, _ = asyncio.run(wait_for_job(follower, "mine", 5.0, out=io.StringIO()))
     assert (state, message) == ("done", "report.json")
+
+
+def test_a_record_whose_analysis_options_do_not_validate_is_quarantined_not_fed_to_a_reanalysis(tmp_path):
+    import json
+
+    store = JobStore(tmp_path)
+    rec = store.create(_record("20260101T000002-aaaa0003", JobState.DONE))
+    path = store.root / rec.job_id / "job.json"
+    data = json.loads(path.read_text())
+    data["analysis"] = {"template_table": [{"name": "FR7"}], "design_side": "moulded_down"}
+    path.write_text(json.dumps(data))
+    found = JobStore(tmp_path).recover()
+    assert [r.job_id for r in found] == [rec.job_id]
+    back = store.load(rec.job_id)
+    assert back.state == "interrupted" and back.analysis == {}  # raw data stays re-analysable
+    assert "analysis" in back.info["quarantine_reason"]
+    assert (store.root / rec.job_id / "job.json.quarantined").exists()
