@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
 
 PY=${PYTHON:-python3}
 VENV=${VENV:-.venv}
-SYSTEM_PACKAGES=(libgl1 libgomp1 libusb-1.0-0 libegl1 libx11-6 chromium poppler-utils openssl)
+SYSTEM_PACKAGES=(libgl1 libgomp1 libusb-1.0-0 libegl1 libx11-6 chromium poppler-utils openssl iproute2)
 
 missing=()
 for pkg in "${SYSTEM_PACKAGES[@]}"; do
