@@ -7,6 +7,7 @@ import argparse
 import getpass
 import os
 import sys
+from pathlib import Path
 
 from cellctl.commands.scan_cmd import _config  # the configuration, or its problems printed
 from cellctl.config import DEFAULT_CONFIG_PATH
@@ -74,7 +75,15 @@ def history(args: argparse.Namespace) -> int:
     cfg = _config(args.config)
     if cfg is None:
         return 2
-    hist = History(cfg.cell.data_dir)
+    jobs_dir = Path(cfg.cell.data_dir) / "jobs"
+    if not jobs_dir.is_dir():
+        print(
+            f"cellctl history: {jobs_dir}: no job directory here (is [cell] data_dir right?)", file=sys.stderr
+        )
+        return 2
+    # an index in memory, rebuilt from the job directories (the record): reading the history needs no
+    # write access to the daemon's data directory and never touches its history.sqlite
+    hist = History(cfg.cell.data_dir, db_path=":memory:")
     try:
         hist.rebuild()
         print(format_history(hist, args.plate))

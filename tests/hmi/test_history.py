@@ -83,3 +83,21 @@ def test_cellctl_history_prints_a_plates_rounds(tmp_path: Path) -> None:
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert "2 round(s)" in out.stdout and "4.00!" in out.stdout and "1.50" in out.stdout
+
+
+@pytest.mark.process
+def test_cellctl_history_reads_without_writing_and_names_a_missing_data_dir(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    _job(data, "j1", "P1", "2026-11-01T10:00:00Z", [4.0])
+    cmd = [sys.executable, "-m", "cellctl", "history", "--config", str(REPO / "cell.toml")]
+    out = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, CELL_CELL__DATA_DIR=str(data)),
+                         timeout=60)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "j1" in out.stdout
+    assert not (data / "history.sqlite").exists()  # an inspector's read leaves the daemon's files alone
+    missing = tmp_path / "nowhere"
+    out = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, CELL_CELL__DATA_DIR=str(missing)),
+                         timeout=60)  # fmt: skip
+    assert out.returncode == 2
+    assert "no job directory here" in out.stderr and "Traceback" not in out.stderr
+    assert not missing.exists()
