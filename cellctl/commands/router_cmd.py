@@ -59,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"{err.source}: {problem}", file=sys.stderr)
         return 2
     except (ZenohSetupError, ValueError, zenoh.ZError) as exc:
-        print(f"cellctl router: {exc}", file=sys.stderr)
+        where = f"{args.zenoh_config}: " if args.zenoh_config else ""  # zenoh's message names no file
+        print(f"cellctl router: {where}{exc}", file=sys.stderr)
         return 2
 
     async def serve() -> int:
