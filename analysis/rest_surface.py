@@ -59,10 +59,11 @@ class RestSurface:
 
     points_mm: (m, 3) one point per patch, measured frame: the patch centroid's x and y, and the
     height whose gap to the design (at the pose it was made at) is the patch's mean gap.
-    counts: (m,) points per patch. noise_mm: sigma estimated from the data. cell_mm: the patch side.
+    counts: (m,) points per patch (an edge patch's plane: its effective count n_eff). noise_mm: sigma estimated from the data. cell_mm: the patch side.
     min_count: the fewest points a kept patch holds. standard_error_mm: sigma / sqrt(min_count).
     bound_mm: the highest patch error stays below this with probability ``confidence``.
     target_met: bound_mm <= target_sigmas * noise_mm (False: the scan was too sparse for the cap).
+    edge_patches: how many of the points are edge patches held at their outer extent.
     """
 
     points_mm: np.ndarray
@@ -75,11 +76,16 @@ class RestSurface:
     confidence: float
     target_sigmas: float
     target_met: bool
+    edge_patches: int = 0
 
     def as_dict(self) -> dict:
         """The report's record of the estimate (no arrays)."""
         return {
-            "estimator": "patch mean of gaps to the design",
+            "estimator": (
+                "patch means of gaps to the design, edge patches also at their outer extent"
+                if self.edge_patches
+                else "patch means of gaps to the design"
+            ),
             "patches": len(self.counts),
             "cell_mm": round(self.cell_mm, 3),
             "min_points": self.min_count,
@@ -92,17 +98,12 @@ class RestSurface:
         }
 
 
-# a patch's gap slope counts as real above this chi-square (2 degrees of freedom: p = 1e-6), so a
-# flat patch is held at its centroid alone with all but certainty
-SLOPE_CHI2 = 27.6
-
-
-def _extent(inv: np.ndarray, v: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) of ``v`` per group ``inv`` of ``m`` groups."""
+def _extent(inv: np.ndarray, v: np.ndarray, use: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of ``v[use]`` per group ``inv`` of ``m`` groups (+inf, -inf for an empty group)."""
     lo = np.full(m, np.inf)
     hi = np.full(m, -np.inf)
-    np.minimum.at(lo, inv, v)
-    np.maximum.at(hi, inv, v)
+    np.minimum.at(lo, inv[use], v[use])
+    np.maximum.at(hi, inv[use], v[use])
     return lo, hi
 
 
@@ -110,10 +111,10 @@ TRIM_SIGMAS = 3.0
 
 
 def _patch_planes(
-    inv: np.ndarray, m: int, P: np.ndarray, gap: np.ndarray, w: np.ndarray, sigma: float
+    inv: np.ndarray, m: int, P: np.ndarray, gap: np.ndarray, w: np.ndarray
 ) -> tuple[np.ndarray, ...]:
     """Weighted plane of the gaps per patch: (centroid (m, 3), mean gap, slope x, slope y, dx (n,),
-    dy (n,) the points' offsets from their centroid, chi-square of the slope, weight sum)."""
+    dy (n,) the points' offsets from their centroid, weight sum)."""
     n_w = np.bincount(inv, weights=w, minlength=m)
     safe_n = np.maximum(n_w, 1.0)
     mean = np.column_stack([np.bincount(inv, weights=w * P[:, k], minlength=m) / safe_n for k in range(3)])
@@ -128,8 +129,78 @@ def _patch_planes(
     safe = np.where(ok, det, 1.0)
     b_x = np.where(ok, (syy * sxg - sxy * syg) / safe, 0.0)
     b_y = np.where(ok, (sxx * syg - sxy * sxg) / safe, 0.0)
-    chi2 = (b_x * sxg + b_y * syg) / max(sigma, 1e-12) ** 2  # the slope's explained sum over sigma^2
-    return mean, mean_gap, b_x, b_y, dx, dy, chi2, n_w
+    return mean, mean_gap, b_x, b_y, dx, dy, n_w
+
+
+# the blocks an edge patch's plane is fitted on: the cells within this many cells of it, the next
+# radius for the patches whose plane is still too uncertain at its outer extent
+EDGE_RADII = (1, 2)
+
+
+def _edge_planes(
+    grid: _Grid, Q: np.ndarray, gap: np.ndarray, w: np.ndarray, n_min: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Edge patches held at their outer extent by the plane of a block around them.
+
+    Q: (n, 3) the points in the design frame (any origin); gap, w: their gaps and weights. For a
+    patch with the neighbour on one side of an axis missing (the plate's edge), the point of
+    evaluation is its kept points' extreme on that side (both axes at a corner, the centroid's
+    coordinate along an axis without an edge); the plane of the gaps (and of the heights, for the
+    point's place) is fitted on the weighted points of the cells within ``r`` of it and evaluated
+    there. Its variance at that point is ``sigma^2 / n_eff`` with ``1 / n_eff = 1 / n + d^T C^-1 d``
+    (``d`` the point's offset from the block's centroid, ``C`` the block's scatter): a patch is kept
+    at the first radius of :data:`EDGE_RADII` where ``n_eff >= n_min`` -- the same variance bound
+    as a patch mean. Returns (points (k, 3) design frame, gaps (k,), n_eff (k,)).
+    """
+    m = len(grid.count)
+    x, y, z = Q[:, 0], Q[:, 1], Q[:, 2]
+    S = np.column_stack(
+        [np.bincount(grid.inv, weights=w * c, minlength=m)
+         for c in (np.ones_like(x), x, y, gap, z, x * x, x * y, y * y, x * gap, y * gap, x * z, y * z)]
+    )  # fmt: skip
+    use = w > 0
+    n_c = np.maximum(S[:, 0], 1e-300)
+    cx, cy = S[:, 1] / n_c, S[:, 2] / n_c
+    x_lo, x_hi = _extent(grid.inv, x, use, m)
+    y_lo, y_hi = _extent(grid.inv, y, use, m)
+    miss = grid.missing
+    ex = np.where(miss[:, 0] & ~miss[:, 1], x_hi, np.where(miss[:, 1] & ~miss[:, 0], x_lo, cx))
+    ey = np.where(miss[:, 2] & ~miss[:, 3], y_hi, np.where(miss[:, 3] & ~miss[:, 2], y_lo, cy))
+    todo = np.flatnonzero((S[:, 0] > 0) & ((ex != cx) | (ey != cy)) & np.isfinite(ex) & np.isfinite(ey))
+    out_q, out_g, out_n = [], [], []
+    for r in EDGE_RADII:
+        if len(todo) == 0:
+            break
+        B = np.zeros((len(todo), S.shape[1]))
+        for di in range(-r, r + 1):
+            for dj in range(-r, r + 1):
+                at = grid.lookup(di, dj, todo)
+                B += np.where((at >= 0)[:, None], S[np.maximum(at, 0)], 0.0)
+        n = np.maximum(B[:, 0], 1e-300)
+        mx, my, mg, mz = B[:, 1] / n, B[:, 2] / n, B[:, 3] / n, B[:, 4] / n
+        cxx, cxy, cyy = B[:, 5] - n * mx * mx, B[:, 6] - n * mx * my, B[:, 7] - n * my * my
+        det = cxx * cyy - cxy**2
+        ok = (B[:, 0] >= 3) & (det > 1e-9 * np.maximum(cxx * cyy, 1e-300))
+        det = np.where(ok, det, 1.0)
+        dx, dy = ex[todo] - mx, ey[todo] - my
+
+        # the block's planes of the gap and of the height (from the sums x*v, y*v) at (ex, ey)
+        g_e, z_e = (
+            mean + ((cyy * vx - cxy * vy) * dx + (cxx * vy - cxy * vx) * dy) / det
+            for mean, vx, vy in (
+                (mg, B[:, 8] - n * mx * mg, B[:, 9] - n * my * mg),
+                (mz, B[:, 10] - n * mx * mz, B[:, 11] - n * my * mz),
+            )
+        )
+        n_eff = 1.0 / (1.0 / n + (cyy * dx * dx - 2.0 * cxy * dx * dy + cxx * dy * dy) / det)
+        good = ok & (n_eff >= n_min)
+        out_q.append(np.column_stack([ex[todo], ey[todo], z_e])[good])
+        out_g.append(g_e[good])
+        out_n.append(n_eff[good])
+        todo = todo[~good]
+    if not out_q:
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+    return np.vstack(out_q), np.concatenate(out_g), np.concatenate(out_n)
 
 
 def max_normal_quantile(count: int, confidence: float) -> float:
@@ -142,8 +213,8 @@ def max_normal_quantile(count: int, confidence: float) -> float:
 
 def _cells(xy: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(inverse index (n,), counts (m,)) of the occupied ``cell_mm`` squares."""
-    inv, count, _ = _cells_with_border(np.floor(xy / cell_mm).astype(np.int64))
-    return inv, count
+    g = _grid(np.floor(xy / cell_mm).astype(np.int64))
+    return g.inv, g.count
 
 
 def _plate_cells(xy_design_mm: np.ndarray, cell_mm: float) -> np.ndarray:
@@ -157,17 +228,35 @@ def _plate_cells(xy_design_mm: np.ndarray, cell_mm: float) -> np.ndarray:
     return np.minimum(ij, (n - 1).astype(np.int64))
 
 
-def _cells_with_border(ij: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cells of the (n, 2) integer indices: (inverse index (n,), counts (m,), border (m,) bool --
-    the cell lacks one of its four neighbours, the plate's edge)."""
+@dataclass(frozen=True)
+class _Grid:
+    """Occupied cells of integer indices: inv (n,) a point's cell, count (m,), keys (m,) sorted cell
+    keys, width (the key's stride in i), missing (m, 4) bool -- the neighbour at +i, -i, +j, -j is
+    absent (the cell lies on the plate's edge on that side)."""
+
+    inv: np.ndarray
+    count: np.ndarray
+    keys: np.ndarray
+    width: int
+    missing: np.ndarray
+
+    def lookup(self, di: int, dj: int, cells: np.ndarray) -> np.ndarray:
+        """(k,) the index of the cell (di, dj) away from each of ``cells``, -1 where none."""
+        want = self.keys[cells] + di * self.width + dj
+        at = np.minimum(np.searchsorted(self.keys, want), len(self.keys) - 1)
+        return np.where(self.keys[at] == want, at, -1)
+
+
+def _grid(ij: np.ndarray) -> _Grid:
+    """The occupied cells of the (n, 2) integer indices ``ij``."""
     ij = ij - (ij.min(axis=0) - 1)  # a free row and column on every side
     width = int(ij[:, 1].max()) + 2
     key = ij[:, 0] * width + ij[:, 1]
     keys, inv, count = np.unique(key, return_inverse=True, return_counts=True)
-    border = np.zeros(len(keys), dtype=bool)
-    for step in (1, -1, width, -width):
-        border |= ~np.isin(keys + step, keys, assume_unique=True)
-    return inv, count, border
+    missing = np.column_stack(
+        [~np.isin(keys + step, keys, assume_unique=True) for step in (width, -width, 1, -1)]
+    )
+    return _Grid(inv, count, keys, width, missing)
 
 
 def noise_from_gaps(xy_mm: np.ndarray, gap_mm: np.ndarray, cell_mm: float = 2.0) -> float:
@@ -197,18 +286,17 @@ def rest_surface(
     max_cell_mm: float = 20.0,
     min_cell_mm: float = 1.0,
     noise_cell_mm: float = 2.0,
-    edge_corners: bool = False,
+    edge_aware: bool = True,
     up: np.ndarray = np.array([0.0, 0.0, 1.0]),
 ) -> RestSurface:
     """The patch estimate of the plate (see the module docstring) at the pose ``T_meas_design``.
 
     surface: the design's height field; points_mm: (n, 3) plate top-surface points, measured frame;
     T_meas_design: (4, 4) design -> measured, near the final pose (after ICP). noise_mm: None
-    estimates sigma from the data (:func:`noise_from_gaps`). ``edge_corners`` also holds sloped
-    patches on the plate's edge at their corners: without, a 600 x 400 sail with 1 mm springback
-    rests 0.14-0.17 mm below its raised edges, with, a third of that -- but the design then rests on
-    a few noisy corner extrapolations and the Zmax of a 1200 x 800 plate spread 0.22 mm over ten
-    scans instead of 0.05 (benchmarks/repeatability.py), so it is off by default. Raises
+    estimates sigma from the data (:func:`noise_from_gaps`). ``edge_aware`` (the default) also
+    holds every patch on the plate's edge at its outer extent by the plane of a block around it
+    (:func:`_edge_planes`): without, a plate with raised (springback) edges lets the design sink
+    below them by the rise over half a patch (0.1-0.3 mm for 1 mm of springback). Raises
     RegistrationError when fewer than 6 patches remain.
     """
     P = np.asarray(points_mm, dtype=np.float64)
@@ -236,8 +324,9 @@ def rest_surface(
         patches = max(2.0 * area / cell**2, 1.0)  # twice: the part-filled patches along the edges
     n_min = min(n_min, max(int(0.66 * density * cell**2), 1))  # the cap: what a patch can hold
     # patches anchored at the points' lower-left corner (any anchor is as good)
-    q = apply_transform(invert_transform(np.asarray(T_meas_design, dtype=np.float64)), P)
-    inv, count, border = _cells_with_border(_plate_cells(q[:, :2], cell))
+    Q = apply_transform(invert_transform(np.asarray(T_meas_design, dtype=np.float64)), P)
+    grid = _grid(_plate_cells(Q[:, :2], cell))
+    inv, count = grid.inv, grid.count
     keep = count >= n_min
     if keep.sum() < 6:
         raise RegistrationError(
@@ -246,33 +335,27 @@ def rest_surface(
         )
     # per patch, the plane of the gaps about the centroid, fitted twice: the second time without the
     # points more than TRIM_SIGMAS off the first plane (the edge band's points of the thickness face,
-    # outliers the segmentation's 6-sigma test let through). A patch on the plate's edge whose slope
-    # is significant (springback raising the edge) is held at the corners of its points' extent as
-    # well -- its centroid alone would let the design dip below the raised edge. Inside the plate
-    # the centroid serves: a plane extrapolated to the corners reads a dent's rim too high.
+    # outliers the segmentation's 6-sigma test let through)
     w = np.ones(len(P))
     for _ in range(2):
-        mean, mean_gap, b_x, b_y, dx, dy, chi2, n_w = _patch_planes(inv, len(count), P, gap, w, sigma)
+        mean, mean_gap, b_x, b_y, dx, dy, n_w = _patch_planes(inv, len(count), P, gap, w)
         resid = gap - mean_gap[inv] - b_x[inv] * dx - b_y[inv] * dy
         w = (np.abs(resid) <= TRIM_SIGMAS * sigma).astype(np.float64)
     count = n_w.astype(np.int64)
     keep &= count >= n_min
-    sloped = keep & border & (chi2 > SLOPE_CHI2) & edge_corners
     reps = [mean[keep]]
     rep_gap = [mean_gap[keep]]
     rep_count = [count[keep].astype(np.float64)]
-    if sloped.any():
-        dx, dy = np.where(w > 0, dx, 0.0), np.where(w > 0, dy, 0.0)  # the extent of the points kept
-        x_lo, x_hi = _extent(inv, dx, len(count))
-        y_lo, y_hi = _extent(inv, dy, len(count))
-        for cx, cy in ((x_lo, y_lo), (x_hi, y_lo), (x_hi, y_hi), (x_lo, y_hi)):
-            c = mean[sloped].copy()
-            c[:, 0] += cx[sloped]
-            c[:, 1] += cy[sloped]
-            reps.append(c)
-            rep_gap.append(mean_gap[sloped] + b_x[sloped] * cx[sloped] + b_y[sloped] * cy[sloped])
-            # the plane at a corner of a uniform square patch has 7x the variance of the mean
-            rep_count.append(count[sloped] / 7.0)
+    n_edge = 0
+    if edge_aware:
+        # a template resting on a raised edge touches the edge itself: the edge patches are also
+        # held at their outer extent, by a plane fitted on a block big enough to keep the bound
+        origin = Q.min(axis=0)
+        e_q, e_g, e_n = _edge_planes(grid, Q - origin, gap, w, n_min)
+        n_edge = len(e_g)
+        reps.append(apply_transform(np.asarray(T_meas_design, dtype=np.float64), e_q + origin))
+        rep_gap.append(e_g)
+        rep_count.append(e_n)
     rep, rep_g, count_eff = np.vstack(reps), np.concatenate(rep_gap), np.concatenate(rep_count)
     # a point's own gap is linear in its height along up: move it so that its gap is the estimate
     g_c, _, _, ok = deflection_gaps(surface, rep, T_meas_design, up, geometry=False)
@@ -293,6 +376,7 @@ def rest_surface(
         confidence=confidence,
         target_sigmas=target_sigmas,
         target_met=bound <= target_sigmas * sigma * (1.0 + 1e-9),
+        edge_patches=n_edge,
     )
     log.debug("rest_surface", **result.as_dict())
     return result
