@@ -132,75 +132,87 @@ def _patch_planes(
     return mean, mean_gap, b_x, b_y, dx, dy, n_w
 
 
-# the blocks an edge patch's plane is fitted on: the cells within this many cells of it, the next
-# radius for the patches whose plane is still too uncertain at its outer extent
-EDGE_RADII = (1, 2)
+# the blocks an edge patch's surface is fitted on, tried in turn until its value at the edge keeps
+# the bound: (cells deep across each edge, cells either side along an edge)
+EDGE_BLOCKS = ((2, 2), (3, 2), (4, 2))
+# where an edge patch's value is placed: this share of a patch inside its outer extent
+EDGE_INSET = 0.2
 
 
-def _edge_planes(
-    grid: _Grid, Q: np.ndarray, gap: np.ndarray, w: np.ndarray, n_min: int
+def _edge_fits(
+    grid: _Grid, Q: np.ndarray, gap: np.ndarray, w: np.ndarray, n_min: int, inset_mm: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Edge patches held at their outer extent by the plane of a block around them.
+    """Edge patches held at their outer extent by a local fit of the gaps across the edge.
 
-    Q: (n, 3) the points in the design frame (any origin); gap, w: their gaps and weights. For a
-    patch with the neighbour on one side of an axis missing (the plate's edge), the point of
-    evaluation is its kept points' extreme on that side (both axes at a corner, the centroid's
-    coordinate along an axis without an edge); the plane of the gaps (and of the heights, for the
-    point's place) is fitted on the weighted points of the cells within ``r`` of it and evaluated
-    there. Its variance at that point is ``sigma^2 / n_eff`` with ``1 / n_eff = 1 / n + d^T C^-1 d``
-    (``d`` the point's offset from the block's centroid, ``C`` the block's scatter): a patch is kept
-    at the first radius of :data:`EDGE_RADII` where ``n_eff >= n_min`` -- the same variance bound
-    as a patch mean. Returns (points (k, 3) design frame, gaps (k,), n_eff (k,)).
+    Q: (n, 3) the points in the design frame; gap, w: their gaps and weights. An axis on which the
+    patch's neighbour is missing on one side is an edge axis; the patch is evaluated at its kept
+    points' extreme on that side (on both axes at a corner; at the centroid's coordinate along an
+    axis without an edge). The fit: weighted least squares of the gaps (and heights, for the point's
+    place) on a block of ``deep`` cells inward across every edge axis and ``2 along + 1`` cells
+    along the other, quadratic in the distance across each edge and along it. The value at
+    the point is the fit's intercept, its variance ``sigma^2 / n_eff`` with ``1 / n_eff`` the
+    intercept's entry of ``(X^T W X)^-1``; the first block of :data:`EDGE_BLOCKS` where
+    ``n_eff >= n_min`` (the bound of a patch mean) serves, a patch none suffices for is left out.
+    The point carrying the value is placed ``inset_mm`` inside the edge: on the footprint's very
+    edge a slide of the design by a millimetre would take it off the footprint, where the fit does
+    not constrain a point, and the fit could escape the edge that way (the design's tilt against
+    the plate over the inset, 1e-3 x a few mm, is what that costs).
+    A plane would read a curved rise by ``f'' W^2 / 12`` off (a dent's tail lifts the design, a
+    springback rise lets it sink); the quadratic leaves ``the third derivative times W^3 / 120``.
+    Returns (points (k, 3) design frame, gaps (k,), n_eff (k,)).
     """
     m = len(grid.count)
-    x, y, z = Q[:, 0], Q[:, 1], Q[:, 2]
-    S = np.column_stack(
-        [np.bincount(grid.inv, weights=w * c, minlength=m)
-         for c in (np.ones_like(x), x, y, gap, z, x * x, x * y, y * y, x * gap, y * gap, x * z, y * z)]
-    )  # fmt: skip
     use = w > 0
-    n_c = np.maximum(S[:, 0], 1e-300)
-    cx, cy = S[:, 1] / n_c, S[:, 2] / n_c
-    x_lo, x_hi = _extent(grid.inv, x, use, m)
-    y_lo, y_hi = _extent(grid.inv, y, use, m)
+    n_c = np.bincount(grid.inv, weights=w, minlength=m)
+    safe = np.maximum(n_c, 1e-300)
+    cen = np.column_stack([np.bincount(grid.inv, weights=w * Q[:, k], minlength=m) / safe for k in (0, 1)])
+    lo_hi = [_extent(grid.inv, Q[:, k], use, m) for k in (0, 1)]
     miss = grid.missing
-    ex = np.where(miss[:, 0] & ~miss[:, 1], x_hi, np.where(miss[:, 1] & ~miss[:, 0], x_lo, cx))
-    ey = np.where(miss[:, 2] & ~miss[:, 3], y_hi, np.where(miss[:, 3] & ~miss[:, 2], y_lo, cy))
-    todo = np.flatnonzero((S[:, 0] > 0) & ((ex != cx) | (ey != cy)) & np.isfinite(ex) & np.isfinite(ey))
+    # side per axis: +1 the edge lies on the + side, -1 on the - side, 0 no edge on this axis
+    side = np.column_stack(
+        [(miss[:, 2 * k] & ~miss[:, 2 * k + 1]).astype(int) - (miss[:, 2 * k + 1] & ~miss[:, 2 * k]) for k in (0, 1)]
+    )  # fmt: skip
+    cells = np.flatnonzero((n_c > 0) & side.any(axis=1))
+    order = np.argsort(grid.inv, kind="stable")
+    start = np.concatenate([[0], np.cumsum(grid.count)])
+    index = {int(key): i for i, key in enumerate(grid.keys)}
     out_q, out_g, out_n = [], [], []
-    for r in EDGE_RADII:
-        if len(todo) == 0:
-            break
-        B = np.zeros((len(todo), S.shape[1]))
-        for di in range(-r, r + 1):
-            for dj in range(-r, r + 1):
-                at = grid.lookup(di, dj, todo)
-                B += np.where((at >= 0)[:, None], S[np.maximum(at, 0)], 0.0)
-        n = np.maximum(B[:, 0], 1e-300)
-        mx, my, mg, mz = B[:, 1] / n, B[:, 2] / n, B[:, 3] / n, B[:, 4] / n
-        cxx, cxy, cyy = B[:, 5] - n * mx * mx, B[:, 6] - n * mx * my, B[:, 7] - n * my * my
-        det = cxx * cyy - cxy**2
-        ok = (B[:, 0] >= 3) & (det > 1e-9 * np.maximum(cxx * cyy, 1e-300))
-        det = np.where(ok, det, 1.0)
-        dx, dy = ex[todo] - mx, ey[todo] - my
-
-        # the block's planes of the gap and of the height (from the sums x*v, y*v) at (ex, ey)
-        g_e, z_e = (
-            mean + ((cyy * vx - cxy * vy) * dx + (cxx * vy - cxy * vx) * dy) / det
-            for mean, vx, vy in (
-                (mg, B[:, 8] - n * mx * mg, B[:, 9] - n * my * mg),
-                (mz, B[:, 10] - n * mx * mz, B[:, 11] - n * my * mz),
-            )
+    for c in cells:
+        sd = side[c]
+        at = np.array(
+            [lo_hi[k][1][c] if sd[k] > 0 else lo_hi[k][0][c] if sd[k] < 0 else cen[c, k] for k in (0, 1)]
         )
-        n_eff = 1.0 / (1.0 / n + (cyy * dx * dx - 2.0 * cxy * dx * dy + cxx * dy * dy) / det)
-        good = ok & (n_eff >= n_min)
-        out_q.append(np.column_stack([ex[todo], ey[todo], z_e])[good])
-        out_g.append(g_e[good])
-        out_n.append(n_eff[good])
-        todo = todo[~good]
+        for deep, along in EDGE_BLOCKS:
+            ranges = [range(-sd[k] * (deep - 1), 1) if sd[k] > 0 else range(0, deep) if sd[k] < 0
+                      else range(-along, along + 1) for k in (0, 1)]  # fmt: skip
+            block = [
+                index.get(int(grid.keys[c]) + di * grid.width + dj) for di in ranges[0] for dj in ranges[1]
+            ]
+            pts = np.concatenate([order[start[b] : start[b + 1]] for b in block if b is not None])
+            pts = pts[use[pts]]
+            d = (Q[pts, :2] - at) / max(float(np.ptp(Q[pts, :2], axis=0).max()), 1e-9)
+            cols = [np.ones(len(pts))]
+            for k in (0, 1):
+                cols += [d[:, k], d[:, k] ** 2]
+            X = np.column_stack(cols)
+            if len(pts) <= 2 * X.shape[1]:
+                continue
+            XtX = X.T @ X
+            try:
+                inv00 = float(np.linalg.solve(XtX, np.eye(len(XtX))[0])[0])
+                coef = np.linalg.solve(XtX, X.T @ np.column_stack([gap[pts], Q[pts, 2]]))
+            except np.linalg.LinAlgError:
+                continue
+            n_eff = 1.0 / inv00 if inv00 > 0 else 0.0
+            if n_eff >= n_min:
+                place = at - sd * inset_mm
+                out_q.append([place[0], place[1], coef[0, 1]])
+                out_g.append(coef[0, 0])
+                out_n.append(n_eff)
+                break
     if not out_q:
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0)
-    return np.vstack(out_q), np.concatenate(out_g), np.concatenate(out_n)
+    return np.asarray(out_q), np.asarray(out_g), np.asarray(out_n)
 
 
 def max_normal_quantile(count: int, confidence: float) -> float:
@@ -295,7 +307,7 @@ def rest_surface(
     T_meas_design: (4, 4) design -> measured, near the final pose (after ICP). noise_mm: None
     estimates sigma from the data (:func:`noise_from_gaps`). ``edge_aware`` (the default) also
     holds every patch on the plate's edge at its outer extent by the plane of a block around it
-    (:func:`_edge_planes`): without, a plate with raised (springback) edges lets the design sink
+    (:func:`_edge_fits`): without, a plate with raised (springback) edges lets the design sink
     below them by the rise over half a patch (0.1-0.3 mm for 1 mm of springback). Raises
     RegistrationError when fewer than 6 patches remain.
     """
@@ -351,7 +363,7 @@ def rest_surface(
         # a template resting on a raised edge touches the edge itself: the edge patches are also
         # held at their outer extent, by a plane fitted on a block big enough to keep the bound
         origin = Q.min(axis=0)
-        e_q, e_g, e_n = _edge_planes(grid, Q - origin, gap, w, n_min)
+        e_q, e_g, e_n = _edge_fits(grid, Q - origin, gap, w, n_min, EDGE_INSET * cell)
         n_edge = len(e_g)
         reps.append(apply_transform(np.asarray(T_meas_design, dtype=np.float64), e_q + origin))
         rep_gap.append(e_g)
