@@ -26,6 +26,12 @@ a stated confidence:
    bump that must still carry the template); a scan too sparse for the cap gets a larger bound, and
    the result says so.
 
+4. **Edges.** A template on a raised (springback) edge touches the edge itself, not a patch's
+   centroid inside it. Every patch on the plate's edge is also held at its outer extent by a local
+   quadratic of the gaps across and along the edge, fitted on a block of patches big enough that its
+   value there keeps the patches' bound (:func:`_edge_fits`); without, a plate with 1 mm springback
+   let the design sink 0.15 mm below its edges.
+
 Assumes independent noise between points (a correlated error -- a pass offset, a clock error on a
 slope -- is not divided by ``sqrt(n)``) and a plate smooth at the patch scale. Costs one gap
 evaluation and two binning passes over the points (linear, about 0.1 s per 10^6 points) and the
