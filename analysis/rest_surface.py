@@ -153,18 +153,18 @@ def _edge_fits(
     Q: (n, 3) the points in the design frame; gap, w: their gaps and weights. An axis on which the
     patch's neighbour is missing on one side is an edge axis; the patch is evaluated at its kept
     points' extreme on that side (on both axes at a corner; at the centroid's coordinate along an
-    axis without an edge). The fit: weighted least squares of the gaps (and heights, for the point's
-    place) on a block of ``deep`` cells inward across every edge axis and ``2 along + 1`` cells
+    axis without an edge). The fit: least squares of the kept points' gaps (and heights, for the
+    point's place) on a block of ``deep`` cells inward across every edge axis and ``2 along + 1`` cells
     along the other, quadratic in the distance across each edge and along it. The value at
     the point is the fit's intercept, its variance ``sigma^2 / n_eff`` with ``1 / n_eff`` the
-    intercept's entry of ``(X^T W X)^-1``; the first block of :data:`EDGE_BLOCKS` where
+    intercept's entry of ``(X^T X)^-1``; the first block of :data:`EDGE_BLOCKS` where
     ``n_eff >= n_min`` (the bound of a patch mean) serves, a patch none suffices for is left out.
     The point carrying the value is placed ``inset_mm`` inside the edge: on the footprint's very
     edge a slide of the design by a millimetre would take it off the footprint, where the fit does
     not constrain a point, and the fit could escape the edge that way (the design's tilt against
     the plate over the inset, 1e-3 x a few mm, is what that costs).
     A plane would read a curved rise by ``f'' W^2 / 12`` off (a dent's tail lifts the design, a
-    springback rise lets it sink); the quadratic leaves ``the third derivative times W^3 / 120``.
+    springback rise lets it sink); a quadratic leaves the third derivative times ``W^3 / 120``.
     Returns (points (k, 3) design frame, gaps (k,), n_eff (k,)).
     """
     m = len(grid.count)
