@@ -172,7 +172,7 @@ def write_faces(
     from OCP.IFSelect import IFSelect_RetDone
     from OCP.IGESControl import IGESControl_Controller, IGESControl_Writer
     from OCP.Interface import Interface_Static
-    from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
+    from OCP.STEPControl import STEPControl_AsIs, STEPControl_Controller, STEPControl_Writer
     from OCP.TopoDS import TopoDS_Compound
 
     from analysis.cad import _quiet_occ
@@ -203,6 +203,9 @@ def write_faces(
         if not writer.Write(str(path)):
             raise OSError(f"{path}: the IGES writer failed")
     elif suffix in (".stp", ".step"):
+        # the STEP parameters exist once its controller is initialised: before that the unit set
+        # here was silently dropped, and the first STEP file a process wrote came out in mm
+        STEPControl_Controller.Init_s()
         Interface_Static.SetCVal_s("write.step.unit", units.upper())
         Interface_Static.SetCVal_s("xstep.cascade.unit", "MM")
         writer = STEPControl_Writer()

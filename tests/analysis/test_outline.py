@@ -29,6 +29,7 @@ from analysis.plates import (
 )
 from analysis.segment import segment_plate
 from analysis.synth import ScanSettings, synthesize_scan
+from tests.support.surfaces import ship_pose
 
 COARSE = ScanSettings(point_pitch_mm=1.0, points_per_profile=50, profile_step_mm=2.0)
 
@@ -38,17 +39,6 @@ OUTLINES = {
     "trapezoid_bowed": {"corner_angle_deg": 80.0, "top_length_mm": 1000.0, "bow_mm": (0.0, 0.0, 16.0, 0.0)},
     "bowed_in_and_out": {"corner_angle_deg": 98.0, "bow_mm": (-12.0, 8.0, 24.0, -8.0)},
 }
-
-
-def ship_pose() -> np.ndarray:
-    """A side-shell pose: stood up 75 degrees, turned 20, 13 m above the keel (mm)."""
-    a, b = np.radians(75.0), np.radians(20.0)
-    Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-    Rz = np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]])
-    T = np.eye(4)
-    T[:3, :3] = Rz @ Rx
-    T[:3, 3] = [61000.0, 9000.0, 13000.0]
-    return T
 
 
 def _angle_deg(u: np.ndarray, v: np.ndarray) -> float:
