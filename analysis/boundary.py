@@ -2,25 +2,27 @@
 
 Steps, on the top-surface points from ``segment``:
 
-1. **Plate axes in the base plane.** The minimum-area rectangle around the points' XY convex hull
-   gives the plate's long axis ``u`` and the perpendicular ``v`` (counter-clockwise from ``u``);
-   nothing assumes the plate lies square to the bed.
+1. **Raster axes in the base plane.** The minimum-area rectangle around the points' XY convex hull
+   gives the raster's axes ``u`` and ``v`` (counter-clockwise from ``u``); nothing assumes the
+   plate lies square to the bed, nor that it is a rectangle.
 2. **Boundary feature points.** The XY projection is rasterised (``pixel_mm``) in the (u, v)
-   frame; for each ``bin_mm`` strip across an edge, the outermost top-surface point is that
-   edge's feature point (where the scan leaves the plate); its height is extrapolated to it from
-   the points just inside (``z_window_mm``), as the outermost points may be the first hundredths
-   of the thickness face. Strips within ``corner_margin_mm`` of
-   a corner are left out: corners are where the data is incomplete, and they are recovered by
-   intersection instead.
+   frame. The outline of the occupied area is split into four edges at its four largest turns
+   (:func:`analysis.outline.outline_corners` on its convex hull: any corner angle, bowed edges);
+   each outline point belongs to the edge whose chord it lies nearest. For each ``bin_mm`` strip
+   along a chord, the outermost point is that edge's feature point (where the scan leaves the
+   plate); its height is extrapolated to it from the points just inside (``z_window_mm``), as the
+   outermost points may be the first hundredths of the thickness face. Strips within
+   ``corner_margin_mm`` of a corner are left out: corners are where the data is incomplete, and
+   they are recovered by intersection instead.
 3. **Outlier removal by curvature.** Along each edge, feature points where the discrete curvature
    of the edge curve jumps (second difference beyond ``outlier_mad`` robust deviations) or that lie
    off a cubic spline through the others are dropped, repeatedly.
 4. **Cubic splines per edge.** Each edge is a least-squares cubic spline (knots ``knot_mm`` apart
-   for the base-plane offset, whose curves are gentle, ``z_knot_mm`` for the height)
-   of its cross-edge offset and
-   its height over the along-edge coordinate (the XY base-plane projection plus z).
-5. **Corners.** Neighbouring projected edges are intersected in the base plane; the corner's height
-   is the mean of the two edges' height splines at the intersection, as the paper takes it.
+   for the base-plane offset, whose curves are gentle, ``z_knot_mm`` for the height) of its offset
+   from its chord and of its height over the along-chord coordinate.
+5. **Corners.** Neighbouring projected edges are intersected in the base plane (Newton's method on
+   the two along-edge coordinates: the splines meet wherever they meet, at any angle); the corner's
+   height is the mean of the two edges' height splines at the intersection, as the paper takes it.
 
 Corner order is the project convention (see ``plates``): counter-clockwise seen from +z, corner 0
 starts a long edge, of the two long edges the one whose direction is closest to the bed's +x.

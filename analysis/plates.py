@@ -3,16 +3,18 @@
 Conventions (shared by ``synth``, ``segment``, ``boundary``, ``register``, ``templates``):
 
 * **Design plate frame.** x runs along the plate's length, y along its width, z up. The origin is the
-  centre of the design's XY footprint, which is the rectangle ``[-L/2, L/2] x [-W/2, W/2]``
-  (``L = length_mm >= W = width_mm``). ``length_mm`` and ``width_mm`` are therefore footprint
-  (projected) sizes, not arc lengths. The design mesh is the plate's *top* (scanned) surface
+  centre of the design's XY footprint, by default the rectangle ``[-L/2, L/2] x [-W/2, W/2]``
+  (``L = length_mm >= W = width_mm``); a parallelogram, trapezoid or bowed outline
+  (``corner_angle_deg``, ``top_length_mm``, ``bow_mm``) has its corners' mean there. ``length_mm``
+  and ``width_mm`` are footprint (projected) sizes, not arc lengths. The design mesh is the plate's *top* (scanned) surface
   ``z = height(x, y)``; the bottom is ``thickness_mm`` below it along z and the thickness faces are
   the vertical planes over the footprint's edges.
 * **Heights.** Every shape has ``height(0, 0) = 0``. The sail is a dish (synclastic, both curvatures
   positive, edges higher than the centre), the saddle is anticlastic, the twisted plate is the
   hyperbolic paraboloid ``z = k x y``, the cylinder bends about the y axis.
 * **Corners.** ``design_corners`` returns (4, 3) mm ordered counter-clockwise seen from +z, starting
-  at the reference corner ``(-L/2, -W/2)``: c0 (-,-), c1 (+,-), c2 (+,+), c3 (-,+). Edge k runs from
+  at the reference corner ``(-L/2, -W/2)``: c0 (-,-), c1 (+,-), c2 (+,+), c3 (-,+) (any outline:
+  c0 -> c1 is edge 0 along +x, c3 -> c2 the opposite length edge). Edge k runs from
   corner k to corner k+1, so edges 0 and 2 are the long edges and edge 0 runs along +x.
   ``boundary.find_corners`` orders measured corners the same way (corner 0 starts a long edge,
   see :func:`canonical_corner_order`), so design and measured corners correspond up to a half turn
@@ -46,6 +48,7 @@ __all__ = [
     "design_corners",
     "design_height_mm",
     "design_mesh",
+    "edge_inward_distances",
     "footprint_bounds",
     "footprint_contains",
     "footprint_grid",
