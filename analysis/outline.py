@@ -88,10 +88,10 @@ def outline_corners(
     samples_mm: (k, 3) points along the closed outline, in order. up: (3,) the base plane's normal
     (turning angles are measured in that plane). candidates: optional (k,) bool, the samples that
     may be corners (a CAD wire's vertices); default every sample.
-    The turning angle at a sample is taken between the chords to the points ``1 %`` of the
+    The turning angle at a sample is taken between the chords to the points 0.5 % of the
     perimeter before and after it (a mesh's jagged boundary or a bowed edge's gentle curve turns
-    little over that span); the largest turn wins, the outline within 5 % of the perimeter of it is
-    suppressed, four times. When fewer than four turns exceed 20 degrees (rounded corners) the
+    little over that span); the largest turn wins, the outline within 2 % of the perimeter of it is
+    set aside (a strip up to about 20 times longer than wide keeps its short edges), four times. When fewer than four turns exceed 20 degrees (rounded corners) the
     points farthest out along the footprint's diagonals are taken instead.
     Raises :class:`OutlineError` when no four distinct corners are found.
     """
@@ -106,7 +106,7 @@ def outline_corners(
     per = float(s[-1])
     if per <= 0:
         raise OutlineError("the outline has zero length")
-    span = 0.01 * per
+    span = 0.005 * per
 
     def at(arc: np.ndarray) -> np.ndarray:  # points of the closed outline at arc lengths (any value)
         a = np.mod(arc, per)
@@ -130,7 +130,7 @@ def outline_corners(
             break
         picks.append(j)
         gap = np.abs(s[:-1] - s[j])
-        free &= np.minimum(gap, per - gap) > 0.05 * per
+        free &= np.minimum(gap, per - gap) > 4.0 * span
     if len(picks) < 4:
         xy = h - h.mean(axis=0)
         _, _, axes = np.linalg.svd(xy, full_matrices=False)

@@ -161,3 +161,11 @@ def test_corners_of_a_scanned_non_rectangular_plate_are_found_as_a_rectangles_ar
         np.testing.assert_allclose(ends[0, :2], res.corners_mm[k, :2], atol=1e-6)
         np.testing.assert_allclose(ends[1, :2], res.corners_mm[(k + 1) % 4, :2], atol=1e-6)
         assert edge.rms_mm < 0.35, (k, edge.rms_mm)
+
+
+def test_a_long_strip_keeps_both_corners_of_its_short_edges() -> None:
+    """A 6000 x 400 mm sheared strip: the corners of a short edge lie 0.03 of the perimeter apart."""
+    spec = plate_spec("flat", length_mm=6000.0, width_mm=400.0, corner_angle_deg=75.0)
+    np.testing.assert_allclose(
+        design_corners_from_mesh(design_mesh(spec, pitch_mm=20.0)), design_corners(spec), atol=1e-6
+    )
