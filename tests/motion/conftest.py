@@ -30,6 +30,7 @@ from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD
+from drivers.fault_channel import send_fault_request
 from drivers.runtime import precise_event_loop
 
 REPO = Path(__file__).resolve().parents[2]
@@ -66,14 +67,7 @@ class Controller:
     async def faults(self, **egm: Any) -> dict[str, Any]:
         """Set EGM wire faults over the simulator's fault channel (``faults(stop_sending=True)``);
         returns its reply (the knobs in force and its counters)."""
-        host, port = self.addresses["fault"]
-        reader, writer = await asyncio.open_connection(host, port)
-        try:
-            writer.write(json.dumps({"egm": egm}).encode() + b"\n")
-            await writer.drain()
-            reply = json.loads(await asyncio.wait_for(reader.readline(), 30.0))
-        finally:
-            writer.close()
+        reply = await send_fault_request(self.addresses["fault"], {"egm": egm})
         assert reply["ok"], reply
         return reply
 

@@ -11,8 +11,8 @@ Run it on its own::
 
 It prints one JSON line with its addresses on stdout and runs until SIGINT or SIGTERM.
 
-With ``--fault-port`` (0: any free port) it serves its **fault channel** on TCP: one JSON object a
-line, ``{"egm": {"stop_sending": true, "loss_fraction": 0.2, ...}}`` (the knobs of
+With ``--fault-port`` (0: any free port) it serves its **fault channel** on TCP
+(:mod:`drivers.fault_channel`): one JSON object a line, ``{"egm": {"stop_sending": true, "loss_fraction": 0.2, ...}}`` (the knobs of
 :class:`~drivers.abb_egm.sim.egm.EgmFaults`; a knob left out stays as it is, ``{}`` only reads),
 answered by one line ``{"ok": true, "egm": {...the knobs in force...}, "stats": {...counters...}}``
 or ``{"ok": false, "error": "..."}``. The panel (motors, RAPID) is RWS's, as on a real controller.
@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import dataclasses
 import json
 import os
@@ -36,6 +35,7 @@ import structlog
 from drivers.abb_egm.sim.egm import EgmControllerSim, EgmFaults, EgmSimConfig, FaultError
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
+from drivers.fault_channel import start_fault_server
 from drivers.runtime import precise_event_loop
 
 __all__ = ["ControllerSim", "ControllerSimConfig", "main"]
@@ -98,8 +98,8 @@ class ControllerSim:
         try:
             await self.egm.start()
             if self.config.fault_port is not None:
-                self._fault_server = await asyncio.start_server(
-                    self._serve_faults, self.config.rws_host, self.config.fault_port
+                self._fault_server = await start_fault_server(
+                    self.config.rws_host, self.config.fault_port, self.apply_faults
                 )
         except BaseException:
             await self.egm.stop()
@@ -135,22 +135,6 @@ class ControllerSim:
         except FaultError as exc:
             return {"ok": False, "error": str(exc)}
         return {"ok": True, "egm": dataclasses.asdict(faults), "stats": dataclasses.asdict(self.egm.stats)}
-
-    async def _serve_faults(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        try:
-            while line := await reader.readline():
-                try:
-                    reply = self.apply_faults(json.loads(line))
-                except ValueError as exc:  # not JSON
-                    reply = {"ok": False, "error": f"not a JSON line: {exc}"}
-                writer.write(json.dumps(reply).encode() + b"\n")
-                await writer.drain()
-        except (ConnectionError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, ValueError):
-            pass  # a client gone or a line beyond the stream limit: drop this connection only
-        finally:
-            writer.close()
-            with contextlib.suppress(ConnectionError):
-                await writer.wait_closed()
 
     def addresses(self) -> dict:
         """``{"egm_local": [host, port], "egm_sensor": [host, port], "rws_url": str, "rws_profile": str}``."""
