@@ -12,6 +12,7 @@ import numpy as np
 
 from analysis.placement import T_from_pos_rpy
 from cellctl.planning.plan import PlanInputError
+from drivers.abb_egm.kinematics import LinearTrack
 
 __all__ = ["PlannerSettings"]
 
@@ -35,6 +36,8 @@ class PlannerSettings:
     Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
     sensor origin, ``T_flange_sensor`` (4, 4) mm, ``wrist_margin_deg`` (min |q5|),
     ``max_waypoint_joint_step_deg`` (a larger jump between neighbouring waypoints is a flip).
+    Track: ``track`` (usable travel, speed and acceleration limits, frame in the world) or None
+    for a fixed base; with one, configurations are ``axes_mm_deg`` (track mm, then six joints).
     Coverage prediction: ``coverage_cell_mm``, ``coverage_profile_step_mm``, ``coverage_rays``,
     ``max_incidence_deg``.
     """
@@ -71,9 +74,12 @@ class PlannerSettings:
     coverage_profile_step_mm: float = 3.0
     coverage_rays: int = 21
     max_incidence_deg: float = 80.0
+    track: LinearTrack | None = None
 
     def __post_init__(self) -> None:
         for f in fields(self):
+            if f.name == "track":  # validated by LinearTrack itself
+                continue
             v = getattr(self, f.name)
             arr = np.asarray(v, dtype=np.float64) if f.name != "speed_mm_s" or v is not None else None
             if arr is not None and not np.all(np.isfinite(arr)):
@@ -178,4 +184,5 @@ class PlannerSettings:
             edge_tilt_deg=s.edge_tilt_deg,
             link_clearance_mm=s.link_clearance_mm,
             approach_mm=s.approach_mm,
+            track=None if r.track is None else r.track.linear_track(),
         )
