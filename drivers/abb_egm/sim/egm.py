@@ -725,9 +725,9 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             speed = np.concatenate([ext_v[: self._n_ext] if ok else np.zeros(self._n_ext), speed])
         if np.any(ref < self.q_min_deg) or np.any(ref > self.q_max_deg):
             bad = np.flatnonzero((ref < self.q_min_deg) | (ref > self.q_max_deg))
-            names = [self._axis_name(i) for i in bad]
+            names = ["track" if i < self._n_ext else int(i - self._n_ext + 1) for i in bad]
             self._end_session(
-                f"reference outside the axis limits on {names}: {ref[bad].round(3).tolist()}",
+                f"reference outside the axis limits on axis {names}: {ref[bad].round(3).tolist()}",
                 EVENT_EGM_JOINT_LIMIT,
                 error=True,
             )
