@@ -123,7 +123,7 @@ def test_more_than_six_external_axes_or_a_non_finite_track_is_refused():
     m.header.mtype = egm_pb2.EgmHeader.MSGTYPE_DATA
     m.feedBack.joints.joints.extend(Q_START.tolist())
     m.feedBack.externalJoints.joints.extend([0.0] * 7)
-    with pytest.raises(EgmDecodeError, match="feedBack.externalJoints"):
+    with pytest.raises(EgmDecodeError, match=r"feedBack\.externalJoints"):
         decode_robot(m.SerializeToString())
 
 
