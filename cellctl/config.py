@@ -269,6 +269,14 @@ class RobotSection(Section):
                 raise ValueError(
                     f"workspace {axis}: workspace_min_mm ({lo}) must be below workspace_max_mm ({hi})"
                 )
+        if self.track is not None:
+            travel = self.track.travel_max_mm - self.track.travel_min_mm
+            if self.egm_max_pos_deviation_deg < travel:
+                raise ValueError(
+                    f"egm_max_pos_deviation_deg ({self.egm_max_pos_deviation_deg:g}) is below the track's travel "
+                    f"({travel:g} mm): EGMActJoint's \\MaxPosDeviation also bounds the track (in mm), so a long "
+                    "move would end the session (docs/robot-setup.md, 'Linear track')"
+                )
         if self.rws_profile == "rws2" and not self.rws_url.startswith("https://"):
             raise ValueError(
                 "rws_profile 'rws2' (RobotWare 7) speaks HTTPS: rws_url must start with https://"
