@@ -66,6 +66,7 @@ WORKSPACE_BOUND_MM = 4_000.0
 TRACK_TRAVEL_BOUND_MM = 50_000.0
 TRACK_SPEED_BOUND_MM_S = 3_000.0
 TRACK_ACCEL_BOUND_MM_S2 = 10_000.0
+TRACK_JERK_BOUND_MM_S3 = 1_000_000.0
 #: profiles per second: the HD8's top rate (the simulator's max_rate_hz)
 LASER_RATE_BOUND_HZ = 1_000.0
 
@@ -131,7 +132,8 @@ class TrackSection(Section):
     track position 0 and ``direction`` the world direction of + travel (normalised); the base keeps
     the world's orientation. Travel, speed and acceleration are checked like the arm's joints; the
     travel is shrunk by ``margin_mm`` at both ends. On the controller the track is a mechanical unit
-    in the robot's motion group (docs/robot-setup.md, "Linear track").
+    in the robot's motion group (docs/robot-setup.md, "Linear track"). ``jerk_max_mm_s3`` bounds
+    the track's jerk in plans and stops, as ``joint_jerk_max_deg_s3`` does the joints'.
     """
 
     travel_min_mm: Finite = 0.0
@@ -139,6 +141,7 @@ class TrackSection(Section):
     margin_mm: NonNegativeFloat = 10.0
     speed_max_mm_s: Annotated[float, Field(gt=0, le=TRACK_SPEED_BOUND_MM_S, allow_inf_nan=False)] = 1000.0
     accel_max_mm_s2: Annotated[float, Field(gt=0, le=TRACK_ACCEL_BOUND_MM_S2, allow_inf_nan=False)] = 2000.0
+    jerk_max_mm_s3: Annotated[float, Field(gt=0, le=TRACK_JERK_BOUND_MM_S3, allow_inf_nan=False)] = 20000.0
     origin_mm: Vec3 = [0.0, 0.0, 0.0]
     direction: Vec3 = [1.0, 0.0, 0.0]
 
@@ -164,6 +167,7 @@ class TrackSection(Section):
             travel_max_mm=self.travel_max_mm - self.margin_mm,
             speed_max_mm_s=self.speed_max_mm_s,
             accel_max_mm_s2=self.accel_max_mm_s2,
+            jerk_max_mm_s3=self.jerk_max_mm_s3,
         )
 
 

@@ -160,7 +160,7 @@ class SafetyEnvelope:
             return self.tcp_mm(q[0])[None]
         return fk_batch(q[:, -N_ARM_JOINTS:], self.limits.T_flange_tcp)[:, :3, 3]
 
-    def _world(self, q: np.ndarray, p_base: np.ndarray) -> np.ndarray:
+    def world_mm(self, q: np.ndarray, p_base: np.ndarray) -> np.ndarray:
         """TCP positions in the world frame (the TCP speed cap's frame): the base's, plus the carriage."""
         track = self.limits.track
         return p_base if track is None else p_base + track.base_pos_mm(q[..., 0])
@@ -193,7 +193,7 @@ class SafetyEnvelope:
             ok = bool(
                 np.all(np.abs(arm - last_arm) <= lim.joint_speed_max_deg_s * dt * (1 + _SPEED_TOLERANCE))
             )
-            dp = self._world(q, p) - self._world(self._last_q, self._last_p)
+            dp = self.world_mm(q, p) - self.world_mm(self._last_q, self._last_p)
             ok = ok and float(np.linalg.norm(dp)) <= lim.tcp_speed_max_mm_s * dt * (1 + _SPEED_TOLERANCE)
             if track is not None:
                 v_track = (q[0] - self._last_q[0]) / dt
@@ -263,10 +263,10 @@ class SafetyEnvelope:
             )  # fmt: skip
         if q_prev is not None:
             qq = np.vstack([q_prev[None], q])
-            pp = np.vstack([self._world(q_prev7, p_prev)[None], self._world(q7, p)])
+            pp = np.vstack([self.world_mm(q_prev7, p_prev)[None], self.world_mm(q7, p)])
             cyc = np.atleast_1d(np.asarray(cycles, dtype=np.float64))
         else:
-            qq, pp = q, self._world(q7, p)
+            qq, pp = q, self.world_mm(q7, p)
             cyc = np.atleast_1d(np.asarray(cycles, dtype=np.float64))
             if qq.shape[0] < 2:
                 return p

@@ -72,7 +72,7 @@ class LinearTrack:
     ``origin_mm`` (3,): the robot base origin in the world frame at track position 0.
     ``direction`` (3,): the world direction of + travel (normalised here).
     ``travel_min_mm`` / ``travel_max_mm``: the track's travel; ``speed_max_mm_s`` /
-    ``accel_max_mm_s2`` its speed and acceleration limits.
+    ``accel_max_mm_s2`` / ``jerk_max_mm_s3`` its speed, acceleration and jerk limits.
     The base keeps the world's orientation: ``T_world_base(s) = [I | origin_mm + s * direction]``.
     """
 
@@ -82,6 +82,7 @@ class LinearTrack:
     travel_max_mm: float
     speed_max_mm_s: float
     accel_max_mm_s2: float = 2000.0
+    jerk_max_mm_s3: float = 20000.0
 
     def __post_init__(self) -> None:
         origin = np.asarray(self.origin_mm, dtype=np.float64)
@@ -101,8 +102,8 @@ class LinearTrack:
             raise KinematicsError(
                 f"LinearTrack: travel_min_mm ({self.travel_min_mm}) must be below travel_max_mm ({self.travel_max_mm})"
             )
-        if not (self.speed_max_mm_s > 0 and self.accel_max_mm_s2 > 0):
-            raise KinematicsError("LinearTrack: speed_max_mm_s and accel_max_mm_s2 must be positive")
+        if not (self.speed_max_mm_s > 0 and self.accel_max_mm_s2 > 0 and self.jerk_max_mm_s3 > 0):
+            raise KinematicsError("LinearTrack: speed, acceleration and jerk limits must be positive")
         origin.flags.writeable = False
         d = d / norm
         d.flags.writeable = False

@@ -34,7 +34,7 @@ def fresh(track_mm: float = 2000.0) -> SafetyEnvelope:
 
 
 def test_track_limits_come_from_cell_toml_shrunk_by_the_margin():
-    cfg = parse_config({"robot": {"track": {"travel_min_mm": -100.0, "travel_max_mm": 5000.0, "margin_mm": 25.0,
+    cfg = parse_config({"robot": {"egm_max_pos_deviation_deg": 6000.0, "track": {"travel_min_mm": -100.0, "travel_max_mm": 5000.0, "margin_mm": 25.0,
                                             "speed_max_mm_s": 800.0, "accel_max_mm_s2": 1500.0}}})  # fmt: skip
     limits = EnvelopeLimits.from_settings(PlannerSettings.from_config(cfg), CYCLE_S)
     assert limits.n_axes == 7
