@@ -128,8 +128,10 @@ class SafetyEnvelope:
         self._n = limits.n_axes
         self._last_q: np.ndarray | None = None
         self._last_p: np.ndarray | None = None
-        #: the track's last accepted speed, mm/s (the acceleration rule's memory); 0 after a reset
+        #: the track's last accepted speed, mm/s, and the time it was measured over, s (the
+        #: acceleration rule's memory); at rest after a reset
         self._last_v_track = 0.0
+        self._last_dt_track: float | None = None
         self.accepted = 0
         self.violations = 0
 
@@ -137,6 +139,7 @@ class SafetyEnvelope:
         """Forget the last set-point, or set it to where the robot is at rest (``q_deg`` (6,), or
         ``axes_mm_deg`` (7,) with a track)."""
         self._last_v_track = 0.0
+        self._last_dt_track = None
         if q_deg is None:
             self._last_q = self._last_p = None
         else:
@@ -198,13 +201,24 @@ class SafetyEnvelope:
             if track is not None:
                 v_track = (q[0] - self._last_q[0]) / dt
                 ok = ok and abs(v_track) <= track.speed_max_mm_s * (1 + _SPEED_TOLERANCE)
-                ok = ok and abs(v_track - self._last_v_track) <= track.accel_max_mm_s2 * dt * (
+                # the two speeds are means over their steps: their centres lie half of each apart
+                gap = 0.5 * (dt + (self._last_dt_track or dt))
+                ok = ok and abs(v_track - self._last_v_track) <= track.accel_max_mm_s2 * gap * (
                     1 + _ACCEL_TOLERANCE
                 )
         if not ok:
             self.violations += 1
-            self._check_rows(q[None], self._last_q, self._last_p, cycles, v_prev=self._last_v_track)
+            self._check_rows(
+                q[None],
+                self._last_q,
+                self._last_p,
+                cycles,
+                v_prev=self._last_v_track,
+                dt_prev=self._last_dt_track,
+            )
             raise EnvelopeViolation("input", f"set-point {q.round(4).tolist()} rejected")  # not reached
+        if self._last_q is not None:
+            self._last_dt_track = cycles * lim.cycle_s
         self._last_q, self._last_p = q.copy(), p
         self._last_v_track = v_track
         self.accepted += 1
@@ -235,11 +249,11 @@ class SafetyEnvelope:
 
     def _check_rows(
         self, q7: np.ndarray, q_prev7: np.ndarray | None, p_prev: np.ndarray | None, cycles,
-        v_prev: float = 0.0,
+        v_prev: float = 0.0, dt_prev: float | None = None,
     ) -> np.ndarray:  # fmt: skip
         lim = self.limits
         if lim.track is not None:
-            self._check_track(q7, q_prev7, cycles, v_prev)
+            self._check_track(q7, q_prev7, cycles, v_prev, dt_prev)
         q = q7[:, -N_ARM_JOINTS:]
         q_prev = None if q_prev7 is None else q_prev7[-N_ARM_JOINTS:]
         below, above = q < lim.q_min_deg, q > lim.q_max_deg
@@ -292,10 +306,14 @@ class SafetyEnvelope:
             )  # fmt: skip
         return p
 
-    def _check_track(self, q: np.ndarray, q_prev: np.ndarray | None, cycles, v_prev: float) -> None:
+    def _check_track(
+        self, q: np.ndarray, q_prev: np.ndarray | None, cycles, v_prev: float, dt_prev: float | None = None
+    ) -> None:
         """The track's rules on ``q`` (n, 7): travel, speed (step per cycle), acceleration (change of
-        the step). ``q_prev`` (7,) is the last accepted set-point (the robot at ``v_prev`` mm/s) or
-        None for a whole trajectory, which starts and ends at rest."""
+        the step). ``q_prev`` (7,) is the last accepted set-point (the robot at ``v_prev`` mm/s,
+        measured over ``dt_prev`` s; None: at rest) or None for a whole trajectory, which starts and
+        ends at rest. A speed is the mean over its step, so a change of speed is divided by the time
+        between the two steps' centres (steps of several cycles, after lost packets, count right)."""
         track = self.limits.track
         s = q[:, 0]
         sample = lambda i: int(i) if q.shape[0] > 1 else None  # noqa: E731 - one-line index rule
@@ -331,12 +349,13 @@ class SafetyEnvelope:
                 f"track moves at {abs(v[i]):.1f} mm/s, above its limit {track.speed_max_mm_s:.1f} mm/s",
                 value=abs(v[i]), limit=track.speed_max_mm_s, sample=i + 1 if q_prev is None else None,
             )  # fmt: skip
-        # speeds start from v0 (at rest for a trajectory); each change over its step's duration
+        # speeds start from v0 (at rest for a trajectory, and end at rest); each change over the
+        # time between the centres of its two steps
         if q_prev is None:
-            vv, dtt = np.concatenate([[0.0], v, [0.0]]), np.concatenate([dt, dt[-1:]])
+            vv, ww = np.concatenate([[0.0], v, [0.0]]), np.concatenate([dt[:1], dt, dt[-1:]])
         else:
-            vv, dtt = np.concatenate([[v0], v]), dt
-        accel = np.abs(np.diff(vv)) / dtt
+            vv, ww = np.concatenate([[v0], v]), np.concatenate([[dt_prev or dt[0]], dt])
+        accel = np.abs(np.diff(vv)) / (0.5 * (ww[:-1] + ww[1:]))
         hard = accel > track.accel_max_mm_s2 * (1 + _ACCEL_TOLERANCE)
         if hard.any():
             i = int(np.argmax(hard))

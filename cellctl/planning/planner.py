@@ -19,7 +19,13 @@ from analysis.mesh import TriMesh
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
-from cellctl.planning.joint_path import check_reach, first_configuration, sensor_kinematics, solve_joint_path
+from cellctl.planning.joint_path import (
+    check_reach,
+    first_configuration,
+    in_base_frame,
+    sensor_kinematics,
+    solve_joint_path,
+)
 from cellctl.planning.plan import (
     CoverageReport,
     Placement,
@@ -72,7 +78,8 @@ def plan_scan(
 
     Args:
         design: the design top surface, plate frame, mm.
-        placement: the plate frame's nominal pose on the bed (base frame).
+        placement: the plate frame's nominal pose on the bed (base frame; the world frame with a
+            track, whose positions the planner chooses along each pass).
         settings: sensor, scan and robot numbers (defaults: the cell.toml defaults).
         with_coverage: run the ray-cast coverage prediction (the plan's ``coverage`` is zero otherwise).
         cycle_s: EGM cycle the plan is checked against the safety envelope at.
@@ -98,10 +105,12 @@ def plan_scan(
     candidates = []
     for sign in (1.0, -1.0):
         segments, margin = build_segments(surface, placement, settings, sign=sign)
+        # with a track: the poses the arm reaches, relative to its base at the track's positions
+        base_segments, _ = in_base_frame(segments, settings)
         if sign > 0:
             # out of reach is out of reach either way round: say so before any inverse kinematics
-            check_reach(segments, settings)
-        sweep = segments[1]
+            check_reach(base_segments, settings)
+        sweep = base_segments[1]
         q0 = first_configuration(kin, pose_matrix(sweep.pos_mm[:1], sweep.R_base_sensor[:1])[0], settings)
         cost = np.inf if q0 is None else abs(q0[3]) + abs(q0[5])
         candidates.append((cost, sign, segments, margin))

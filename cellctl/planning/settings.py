@@ -140,6 +140,32 @@ class PlannerSettings:
         return self.line_width_mm * (1.0 - self.overlap_fraction)
 
     @property
+    def n_axes(self) -> int:
+        """Axes in a configuration: 6 joints, or the track (mm) and 6 joints (``axes_mm_deg``)."""
+        return 6 + (self.track is not None)
+
+    @property
+    def axis_speed_max(self) -> np.ndarray:
+        """(n_axes,) speed limits: the track's (mm/s) first when there is one, then the joints' (deg/s)."""
+        return self._with_track(self.joint_speed_max_deg_s, "speed_max_mm_s")
+
+    @property
+    def axis_accel_max(self) -> np.ndarray:
+        """(n_axes,) acceleration limits, the track's (mm/s^2) first when there is one."""
+        return self._with_track(self.joint_accel_max_deg_s2, "accel_max_mm_s2")
+
+    @property
+    def axis_jerk_max(self) -> np.ndarray:
+        """(n_axes,) jerk limits, the track's (mm/s^3) first when there is one."""
+        return self._with_track(self.joint_jerk_max_deg_s3, "jerk_max_mm_s3")
+
+    def _with_track(self, joints: tuple[float, ...], track_field: str) -> np.ndarray:
+        arm = np.asarray(joints, dtype=np.float64)
+        if self.track is None:
+            return arm
+        return np.concatenate([[float(getattr(self.track, track_field))], arm])
+
+    @property
     def q_min_deg(self) -> np.ndarray:
         """(6,) lower joint limits shrunk by the margin, deg."""
         return np.asarray(self.joint_lower_deg) + self.joint_margin_deg

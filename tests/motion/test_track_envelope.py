@@ -171,3 +171,21 @@ def test_trapezoidal_track_moves_are_judged_by_their_speed_and_acceleration(v_pe
         with pytest.raises(EnvelopeViolation) as info:
             env.check_trajectory(t, q)
         assert info.value.rule == ("track_speed" if not ok_speed else "track_accel")
+
+
+def test_steps_of_several_cycles_after_lost_packets_are_judged_on_the_same_acceleration():
+    # a constant 900 mm/s^2 (within the limit) sent with irregular gaps: 1, 5, 1, 3, 1 cycles. Each
+    # speed is a mean over its step, so the change between a 5-cycle and a 1-cycle step spans three
+    # cycles, not one: the rule must not see 2.7 times the acceleration it is
+    env = fresh(1000.0)
+    accel, t, k = 900.0, 0.0, 0
+    for gap in [1, 5, 1, 3, 1, 1, 4, 1, 2, 1] * 3:
+        k += gap
+        t = k * CYCLE_S
+        env.check(axes(1000.0 + 0.5 * accel * t * t), cycles=gap)
+    # and a true step change of the speed in a multi-cycle gap is still refused
+    s_now = 1000.0 + 0.5 * accel * t * t
+    v_now = accel * t
+    with pytest.raises(EnvelopeViolation) as info:
+        env.check(axes(s_now + (v_now + 40.0) * 3 * CYCLE_S), cycles=3)
+    assert info.value.rule == "track_accel"
