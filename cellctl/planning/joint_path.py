@@ -69,16 +69,24 @@ def sensor_kinematics(settings: PlannerSettings) -> RobotKinematics:
     return RobotKinematics(tools={"sensor": np.asarray(settings.T_flange_sensor, dtype=np.float64)})
 
 
-def track_positions(segments: list[Segment], settings: PlannerSettings) -> list[np.ndarray] | None:
+#: the sensor's along-rail offsets from the base the planner tries, in order: abreast first, then a
+#: little ahead or behind (abreast, the wrist of the IRB 4600 can need a larger joint-6 turn between
+#: neighbouring waypoints on the links around a plate's corners than it does a little off it)
+TRACK_LEADS_MM = (0.0, -200.0, 200.0, -400.0, 400.0)
+
+
+def track_positions(
+    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0
+) -> list[np.ndarray] | None:
     """The track's position (n,) mm at every waypoint of every segment, or None without a track.
 
     The carriage follows the sensor's along-rail coordinate ``a = (p - origin) . direction`` at one
     lead for the whole plan, ``s = a - lead``: the arm's reach along the rail is the same on every
     pass, and the track's path is as smooth as the sensor's (sweeps along the rail move it at the
-    scan speed, sweeps across hold it). The lead is the one nearest 0 (the sensor abreast of the
-    base, where the arm reaches as it would for a plate in front of a fixed robot) that keeps every
-    waypoint inside the usable travel; a plan longer than the travel is clipped at the ends of the
-    travel, where the arm then reaches along the rail (or the joint path refuses it).
+    scan speed, sweeps across hold it). The lead is the one nearest ``lead_mm`` (0: the sensor
+    abreast of the base, where the arm reaches as it would for a plate in front of a fixed robot)
+    that keeps every waypoint inside the usable travel; a plan longer than the travel is clipped at
+    the ends of the travel, where the arm then reaches along the rail (or the joint path refuses it).
     """
     track = settings.track
     if track is None:
@@ -87,17 +95,17 @@ def track_positions(segments: list[Segment], settings: PlannerSettings) -> list[
     a = np.concatenate(along)
     lead_lo = float(a.max()) - track.travel_max_mm
     lead_hi = float(a.min()) - track.travel_min_mm
-    lead = float(np.clip(0.0, lead_lo, lead_hi)) if lead_lo <= lead_hi else 0.5 * (lead_lo + lead_hi)
+    lead = float(np.clip(lead_mm, lead_lo, lead_hi)) if lead_lo <= lead_hi else 0.5 * (lead_lo + lead_hi)
     return [np.clip(x - lead, track.travel_min_mm, track.travel_max_mm) for x in along]
 
 
 def in_base_frame(
-    segments: list[Segment], settings: PlannerSettings
+    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0
 ) -> tuple[list[Segment], list[np.ndarray] | None]:
     """The segments' sensor poses in the robot base frame at the chosen track positions (copies;
     the segments themselves stay in the world frame), and those track positions (None: no track,
     the segments are returned as they are)."""
-    s = track_positions(segments, settings)
+    s = track_positions(segments, settings, lead_mm)
     if s is None:
         return segments, None
     track = settings.track
@@ -203,6 +211,7 @@ def solve_joint_path(
     settings: PlannerSettings,
     kin: RobotKinematics | None = None,
     q_start_deg: np.ndarray | None = None,
+    track_lead_mm: float = 0.0,
 ) -> JointPathResult:
     """Fill ``segment.q_deg`` for every segment, in order, with continuity.
 
@@ -212,6 +221,8 @@ def solve_joint_path(
         kin: kinematics with the ``"sensor"`` tool (built from the settings when None), of the arm
             alone: with a track the joints are solved in the base frame at the track's positions.
         q_start_deg: (6,) seed for the first waypoint; chosen from elbow-up seeds when None.
+        track_lead_mm: with a track, the preferred along-rail offset of the sensor from the base
+            (:func:`track_positions`).
 
     Raises:
         PlanRefused: a waypoint is unreachable, outside the joint margins, too close to the wrist
@@ -219,7 +230,7 @@ def solve_joint_path(
     """
     kin = kin or sensor_kinematics(settings)
     world_segments = segments
-    segments, track_mm = in_base_frame(world_segments, settings)
+    segments, track_mm = in_base_frame(world_segments, settings, track_lead_mm)
     check_reach(segments, settings)
     ws_lo, ws_hi = np.asarray(settings.workspace_min_mm), np.asarray(settings.workspace_max_mm)
     lo, hi = settings.q_min_deg, settings.q_max_deg

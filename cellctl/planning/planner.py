@@ -20,6 +20,7 @@ from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnv
 from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
 from cellctl.planning.joint_path import (
+    TRACK_LEADS_MM,
     check_reach,
     first_configuration,
     in_base_frame,
@@ -119,14 +120,20 @@ def plan_scan(
 
     t2 = time.perf_counter()
     refusal: PlanRefused | None = None
+    # with a track, each orientation is tried at a few along-rail offsets of the sensor from the base
+    leads = TRACK_LEADS_MM if settings.track is not None else (0.0,)
+    path = None
     for _, sign, segs_try, margin_try in candidates:
-        try:
-            path = solve_joint_path(segs_try, settings, kin)
-            segments, margin = segs_try, margin_try
+        for lead in leads:
+            try:
+                path = solve_joint_path(segs_try, settings, kin, track_lead_mm=lead)
+                segments, margin = segs_try, margin_try
+                break
+            except PlanRefused as exc:
+                log.info("plan_orientation_refused", sign=sign, track_lead_mm=lead, reason=str(exc))
+                refusal = refusal or exc
+        if path is not None:
             break
-        except PlanRefused as exc:
-            log.info("plan_orientation_refused", sign=sign, reason=str(exc))
-            refusal = refusal or exc
     else:
         assert refusal is not None
         raise refusal
