@@ -195,10 +195,14 @@ def check_reach(segments: list[Segment], settings: PlannerSettings) -> None:
         if far.any():
             i = int(np.argmax(far))
             share = float(np.mean(sweep_d <= _REACH_MM)) if sweep_d.size else 0.0
+            advice = (
+                "lay the plate closer to the track (the track carries the arm along it, not across)"
+                if settings.track is not None
+                else "split the plate into several placements or add a rail"
+            )
             raise PlanRefused(
                 f"the wrist centre would be {dist[i]:.0f} mm from the shoulder, beyond the arm's "
-                f"{_REACH_MM:.0f} mm; {share:.0%} of the sweep waypoints are in reach: split the plate "
-                "into several placements or add a rail",
+                f"{_REACH_MM:.0f} mm; {share:.0%} of the sweep waypoints are in reach: {advice}",
                 pass_label=seg.label,
                 point_index=i,
                 limit=f"reach {_REACH_MM:.0f} mm",
