@@ -636,6 +636,20 @@ class CellConfig(BaseSettings):
         # The file's values arrive as init kwargs; the environment overrides them.
         return (env_settings, init_settings)
 
+    @model_validator(mode="after")
+    def _sim_track_start_on_the_track(self) -> CellConfig:
+        track = self.robot.track
+        start = self.sim.egm_track_start_mm
+        if (
+            track is not None
+            and not track.travel_min_mm + track.margin_mm <= start <= track.travel_max_mm - track.margin_mm
+        ):
+            raise ValueError(
+                f"sim.egm_track_start_mm ({start:g}) is outside the track's usable travel "
+                f"[{track.travel_min_mm + track.margin_mm:g}, {track.travel_max_mm - track.margin_mm:g}] mm"
+            )
+        return self
+
     @property
     def key_prefix(self) -> str:
         """The Zenoh key prefix with the cell id filled in."""

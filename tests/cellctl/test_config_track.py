@@ -46,3 +46,14 @@ def test_bad_track_is_refused_with_its_reason(track: dict, expected: str):
 def test_max_pos_deviation_below_the_track_travel_is_refused():
     with pytest.raises(ConfigError, match="MaxPosDeviation also bounds the track"):
         parse_config({"robot": {"egm_max_pos_deviation_deg": 1000.0, "track": {"travel_max_mm": 3000.0}}})
+
+
+def test_simulated_track_start_outside_the_travel_is_refused():
+    with pytest.raises(ConfigError, match="egm_track_start_mm"):
+        parse_config(
+            {"robot": {**ROBOT, "track": {"travel_max_mm": 3000.0}}, "sim": {"egm_track_start_mm": 3500.0}}
+        )
+    cfg = parse_config(
+        {"robot": {**ROBOT, "track": {"travel_max_mm": 3000.0}}, "sim": {"egm_track_start_mm": 1500.0}}
+    )
+    assert cfg.sim.egm_track_start_mm == 1500.0
