@@ -146,7 +146,9 @@ def test_track_follows_the_reference_and_its_feedback_comes_back_in_external_joi
             # the history rows are axes_mm_deg, the track first
             rows = ep.history.arrays().q_deg
             assert rows.shape[1] == 7
-            assert rows[0, 0] == pytest.approx(TRACK_START_MM) and rows[-1, 0] == pytest.approx(target[0], abs=0.05)
+            assert rows[0, 0] == pytest.approx(TRACK_START_MM) and rows[-1, 0] == pytest.approx(
+                target[0], abs=0.05
+            )
             # the simulator's true trajectory, which the sensor simulator reads, carries it too
             assert sim.trajectory.arrays()[1].shape[1] == 7
         finally:
@@ -219,7 +221,9 @@ def test_a_joint_reference_without_the_track_is_ignored_by_a_robot_on_a_track():
         try:
             ep.command_joints(Q_START + np.array([3.0, 0, 0, 0, 0, 0]))
             await wait_until(lambda: sim.stats.sensor_ignored > 20, 0.2)
-            np.testing.assert_allclose(sim.axes_mm_deg, np.concatenate([[TRACK_START_MM], Q_START]), atol=1e-9)
+            np.testing.assert_allclose(
+                sim.axes_mm_deg, np.concatenate([[TRACK_START_MM], Q_START]), atol=1e-9
+            )
         finally:
             await sim.stop()
             await ep.close()
