@@ -81,10 +81,17 @@ def trigger(fleet: Fleet, cell: int, plate_id: str) -> str:
 
 
 def trigger_all(fleet: Fleet, plates: list[tuple[int, str]]) -> dict[str, int]:
-    """Trigger several scans at once (one `cellctl scan` each, in parallel); job id -> cell."""
-    with ThreadPoolExecutor(max_workers=len(plates)) as pool:
-        ids = list(pool.map(lambda cp: trigger(fleet, *cp), plates))
-    return {job: cell for job, (cell, _) in zip(ids, plates, strict=True)}
+    """Trigger several scans: each cell's one after the other, the cells in parallel (one
+    `cellctl scan` at a time per daemon: six at once on a loaded machine kept a daemon from
+    answering one for two minutes); job id -> cell, in trigger order per cell."""
+    by_cell: dict[int, list[str]] = {}
+    for cell, plate in plates:
+        by_cell.setdefault(cell, []).append(plate)
+    with ThreadPoolExecutor(max_workers=len(by_cell)) as pool:
+        done = pool.map(
+            lambda item: [(trigger(fleet, item[0], p), item[0]) for p in item[1]], by_cell.items()
+        )
+        return {job: cell for per_cell in done for job, cell in per_cell}
 
 
 def jobs(fleet: Fleet, cell: int) -> dict[str, dict[str, Any]]:
