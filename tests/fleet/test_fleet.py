@@ -2,7 +2,7 @@
 own network namespace (and every process in its own mount namespace, /dev/shm included), the
 server's link slowed to 20 ms and 1 % loss: by netem where the kernel has it, else by a relay in
 user space (tests/support/slow_link.py; this CI kernel has no sch_netem). One fleet serves every
-case (started once, ~1 min); namespaces are removed whatever happens (the fixture's finalizer, and
+case (started once); namespaces are removed whatever happens (the fixture's finalizer, and
 leftovers of a killed run by name at the start). Waits are on job states, never fixed sleeps; the
 only timed pauses are the faults' own durations (router down 3 s, link cut 10 s)."""
 
