@@ -570,9 +570,13 @@ class Worker:
                 "job_reported", job_id=spec.job_id, ok=outcome.ok, seconds=round(time.perf_counter() - t0, 3)
             )
         except asyncio.CancelledError:
-            self._event(
-                spec, "cancelled", "worker stopping" if self._stopping else "cancelled by the dispatcher"
-            )
+            with contextlib.suppress(Exception):  # the link may be down: the restart below must run
+                self._event(
+                    keys,
+                    spec,
+                    "cancelled",
+                    "worker stopping" if self._stopping else "cancelled by the dispatcher",
+                )
             if not self._stopping:  # the analysis child may be mid-job: start a clean one
                 await self._restart_runner()
             raise

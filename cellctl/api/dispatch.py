@@ -387,7 +387,13 @@ class Dispatcher:
         elif ev.event == "rejected":
             self._requeue(job, f"rejected: {ev.message}", count=False, backoff_s=self.settings.busy_backoff_s)
         elif ev.event in ("failed", "cancelled"):
-            self._requeue(job, f"worker {ev.worker_id}: {ev.event}: {ev.message}")
+            # Not straight back to the same worker (it may be stopping, or its analysis restarting):
+            # another one first, this one after the busy back-off.
+            self._requeue(
+                job,
+                f"worker {ev.worker_id}: {ev.event}: {ev.message}",
+                backoff_s=self.settings.busy_backoff_s,
+            )
 
     def _on_report(self, sample: zenoh.Sample) -> None:
         try:

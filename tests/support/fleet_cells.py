@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -16,9 +17,10 @@ from tests.support.netns_fleet import ROUTER_PORT, Fleet
 FINAL = ("done", "failed", "aborted", "interrupted", "cancelled")
 
 
-def configure(fleet: Fleet) -> None:
+def configure(fleet: Fleet, server_connect: str | None = None) -> None:
     """cell.toml of every host: the router's, each cell's (peer, connecting to the router), the
-    server's (client, [worker] cells = cell/*)."""
+    server's (client, [worker] cells = cell/*; connecting to ``server_connect``, a slow-link relay,
+    when given, else to the router)."""
     hub = f"tcp/{fleet.router_ip}:{ROUTER_PORT}"
     (fleet.host_dir("r") / "cell.toml").write_text(
         f'[cell]\nid = "hub"\n\n[router]\nlisten = ["tcp/0.0.0.0:{ROUTER_PORT}"]\n', encoding="utf-8"
@@ -32,9 +34,17 @@ def configure(fleet: Fleet) -> None:
         cfg["analysis"].update(ack_timeout_s=10.0, heartbeat_timeout_s=8.0, max_attempts=5)
         path.write_text(to_toml(cfg), encoding="utf-8")
     (fleet.host_dir("s") / "cell.toml").write_text(
-        f'[cell]\nid = "srv"\n\n[zenoh]\nmode = "client"\nconnect = ["{hub}"]\nlisten = []\n'
+        f'[cell]\nid = "srv"\n\n[zenoh]\nmode = "client"\nconnect = ["{server_connect or hub}"]\nlisten = []\n'
         'multicast_scouting = false\n\n[worker]\ncells = ["cell/*"]\n', encoding="utf-8"
     )  # fmt: skip
+
+
+def slow_server_link(fleet: Fleet, delay_ms: float = 20.0, loss_pct: float = 1.0) -> tuple[str, str | None]:
+    """Delay and loss on the server's link: kernel netem where the kernel has it, else the user-space
+    relay (``Fleet.slow_link``). Returns (which, the endpoint the server connects to or None)."""
+    if fleet.netem("s", delay_ms, loss_pct):
+        return "netem", None
+    return "user-space relay", fleet.slow_link("s", delay_ms, loss_pct)
 
 
 def start(fleet: Fleet) -> None:
@@ -68,6 +78,20 @@ def trigger(fleet: Fleet, cell: int, plate_id: str) -> str:
         if time.monotonic() > deadline:
             raise RuntimeError(f"trigger at c{cell} failed: {r.stdout} {r.stderr}")
         time.sleep(1.0)
+
+
+def trigger_all(fleet: Fleet, plates: list[tuple[int, str]]) -> dict[str, int]:
+    """Trigger several scans: each cell's one after the other, the cells in parallel (one
+    `cellctl scan` at a time per daemon: six at once on a loaded machine kept a daemon from
+    answering one for two minutes); job id -> cell, in trigger order per cell."""
+    by_cell: dict[int, list[str]] = {}
+    for cell, plate in plates:
+        by_cell.setdefault(cell, []).append(plate)
+    with ThreadPoolExecutor(max_workers=len(by_cell)) as pool:
+        done = pool.map(
+            lambda item: [(trigger(fleet, item[0], p), item[0]) for p in item[1]], by_cell.items()
+        )
+        return {job: cell for per_cell in done for job, cell in per_cell}
 
 
 def jobs(fleet: Fleet, cell: int) -> dict[str, dict[str, Any]]:

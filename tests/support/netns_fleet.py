@@ -4,8 +4,10 @@ Hosts: ``<p>-r`` runs `cellctl router`; ``<p>-c<i>`` one simulated cell each (`c
 `cellctl run`, talking over that namespace's loopback); ``<p>-s`` the analysis server (workers).
 Each non-router host has one veth pair to the router host, on a private /30 inside these
 namespaces only (10.77.<link>.0/30). Every process also runs in a mount namespace of its own with an
-empty tmpfs over every other host's directory, so no file is reachable across hosts: what a worker
-needs comes over Zenoh. ``tc netem`` can slow the server's link, ``ip link`` cut it.
+empty tmpfs over every other host's directory and over /dev/shm (Zenoh's shared memory would
+otherwise carry the payloads), so no file is reachable across hosts: what a worker
+needs comes over Zenoh. ``tc netem`` can slow the server's link where the kernel has netem, else a
+relay in user space (:meth:`Fleet.slow_link`, tests/support/slow_link.py); ``ip link`` cuts it.
 
 Used by tests/fleet/test_fleet.py and benchmarks/fleet.py. Namespaces are named with a prefix
 (:data:`PREFIX`) so that leftovers of a killed run are removed by :func:`remove_leftovers`.
@@ -137,10 +139,33 @@ class Fleet:
                 raise
         return True
 
+    def slow_link(self, host: str, delay_ms: float = 20.0, loss_pct: float = 1.0) -> str:
+        """Delay and loss in user space where the kernel has no netem: a relay
+        (tests/support/slow_link.py) in the host's namespace, listening on its loopback and
+        relaying to the router across the host's link. Returns the endpoint the host's processes
+        connect to instead of the router's."""
+        name = f"link-{host}"
+        logs = self.host_dir(host) / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        argv = ["--target", f"{self.router_ip}:{ROUTER_PORT}", "--delay-ms", str(delay_ms),
+                "--loss-pct", str(loss_pct)]  # fmt: skip
+        cmd = ["ip", "netns", "exec", self.ns(host), sys.executable, "-m", "tests.support.slow_link", *argv]
+        with (logs / f"{name}.out").open("wb") as out, (logs / f"{name}.log").open("wb") as err:
+            p = subprocess.Popen(cmd, stdout=out, stderr=err, stdin=subprocess.DEVNULL, env=env, cwd=REPO)
+        self.procs.append(Proc(name, host, argv, p, logs / f"{name}.log"))
+        return f"tcp/127.0.0.1:{self.wait_ready(name, 30)['port']}"
+
     def link(self, host: str, up: bool) -> None:
-        """Cut (or restore) a host's link."""
-        a, _, _, _ = self.links[host]
-        self.exec(host, ["ip", "link", "set", a, "up" if up else "down"])
+        """Cut (or restore) a host's link, as a pulled cable does: the router's end goes down, so
+        the host sees its carrier lost. (Setting the host's own end down would also delete its
+        route to the router, which nothing puts back when it comes up again: the host would stay
+        cut off for good. The route is put back on restore all the same.)"""
+        a, b, _, ip_r = self.links[host]
+        self.exec("r", ["ip", "link", "set", b, "up" if up else "down"])
+        if up:
+            self.exec(host, ["ip", "link", "set", a, "up"])
+            self.exec(host, ["ip", "route", "replace", f"{self.router_ip}/32", "via", ip_r])
 
     def link_bytes(self, host: str) -> int:
         """Bytes through a host's link so far (both directions)."""
@@ -170,11 +195,14 @@ class Fleet:
 
     def start(self, name: str, host: str, cellctl_args: list[str], env: dict[str, str] | None = None) -> Proc:
         """`python -m cellctl <args>` on ``host`` (its namespace, its directory as cwd), with every
-        other host's directory hidden under an empty tmpfs."""
+        other host's directory hidden under an empty tmpfs, and a /dev/shm of its own."""
         others = [self.host_dir(h) for h in self.hosts if h != host]
-        mounts = " && ".join(
-            f"mount -t tmpfs -o size=1m,mode=0700 tmpfs {shlex.quote(str(d))}" for d in others
-        )
+        hidden = [f"mount -t tmpfs -o size=1m,mode=0700 tmpfs {shlex.quote(str(d))}" for d in others]
+        # /dev/shm too: Zenoh 1.x hands every message over 3 kB through a shared-memory segment
+        # when the other end can open it (transport/shared_memory, on by default), so with the
+        # host's /dev/shm shared a cloud crossed the "link" as a reference (0.5 MB on the wire
+        # for a 9 MB job). Each process gets its own, as on a machine of its own.
+        mounts = " && ".join([*hidden, "mount -t tmpfs -o size=256m,mode=1777 tmpfs /dev/shm"])
         argv = [sys.executable, "-m", "cellctl", "--log-format", "json", *cellctl_args]
         script = f"{mounts} && cd {shlex.quote(str(self.host_dir(host)))} && exec {shlex.join(argv)}"
         cmd = [

@@ -365,6 +365,39 @@ def test_sigterm_mid_analysis_hands_the_job_back_and_exits_zero(hub, start_worke
     assert "analysis_process_ready" in holder.log() and holder.log().count("analysis_process_ready") == 1
 
 
+def test_a_job_cancelled_mid_analysis_is_handed_back_and_the_worker_analyses_the_next_one_afresh(
+    hub, start_worker
+):
+    # The dispatcher cancels a job it took back (heartbeat lost over a cut link). The worker must
+    # say "cancelled" (so the job is retried at once) and restart its analysis process: the old
+    # child is still busy with the cancelled cloud, and its late answer must not become the next
+    # job's report.
+    record = hub.tmp / "calls.txt"
+    w1 = start_worker("w1")
+    retries: list[tuple[str, str, str]] = []
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: len(disp.workers) == 1, 30, "the worker")
+        payload, centroid_c = _cloud_bytes("jobC", offset_mm=50.0)
+        fut = disp.submit(_job(hub, "jobC", "P1", record_path=str(record), sleep_s=3.0), payload)
+        await _wait_for(lambda: len(_records(record)) >= 1, 20, "analysis start")
+        disp.session.put(Keys(hub.prefix).worker_cancel("w1", "jobC"), b"")
+        env_c = await asyncio.wait_for(fut, 60)
+        payload, centroid_d = _cloud_bytes("jobD", offset_mm=-50.0)
+        env_d = await asyncio.wait_for(disp.submit(_job(hub, "jobD", "P1", sleep_s=0.0), payload), 60)
+        return env_c, centroid_c, env_d, centroid_d
+
+    env_c, centroid_c, env_d, centroid_d = _run(
+        hub, scenario, hooks=DispatchHooks(on_retry=lambda *a: retries.append(a))
+    )
+    assert retries and "cancelled by the dispatcher" in retries[0][2], retries
+    assert env_c.ok and env_c.attempt == 2 and env_c.report.job_id == "jobC"
+    assert env_d.ok and env_d.attempt == 1 and env_d.report.job_id == "jobD"
+    np.testing.assert_allclose(_observed(hub, "jobC")["centroid_mm"], centroid_c, atol=1e-3)
+    np.testing.assert_allclose(_observed(hub, "jobD")["centroid_mm"], centroid_d, atol=1e-3)
+    assert w1.log().count("analysis_process_ready") == 2, w1.log()[-3000:]
+
+
 def test_a_forged_report_from_a_peer_naming_another_worker_is_refused_and_the_real_one_counts(
     hub, start_worker
 ):
