@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from analysis.mesh import TriMesh
 from analysis.placement import placement_transform
 from analysis.plates import (
     design_corners,
@@ -177,3 +178,27 @@ def test_a_rectangle_plans_exactly_as_along_its_bounds():
         assert m_got == m_want and [s.label for s in got] == [s.label for s in want]
         for a, b in zip(got, want, strict=True):
             assert np.array_equal(a.pos_mm, b.pos_mm) and np.array_equal(a.R_base_sensor, b.R_base_sensor)
+
+
+def test_a_design_without_a_four_cornered_boundary_falls_back_to_its_bounds():
+    mesh = design_mesh(plate_spec("sail", **SHAPE, **OUTLINES["parallelogram_70"]), pitch_mm=20.0)
+    # a triangle soup (no shared vertices, as an unwelded STL): every edge is a border, no outline
+    soup = TriMesh(
+        mesh.triangle_vertices_mm.reshape(-1, 3), np.arange(3 * len(mesh.triangles)).reshape(-1, 3)
+    )
+    assert design_outline(soup) is None
+    surface = design_surface(soup)
+    assert surface.outline_xy is None
+    segments, _ = build_segments(surface, SAIL_PLACEMENT, SETTINGS)
+    T = placement_transform(SAIL_PLACEMENT)
+    xs = []
+    for seg in (s for s in segments if s.kind == "edge"):
+        look = (seg.pos_mm - T[:3, 3]) @ T[:3, :3] + SETTINGS.standoff_mm * (
+            seg.R_base_sensor[:, :, 2] @ T[:3, :3]
+        )
+        xs.append(look[:, :2])
+    pts = np.concatenate(xs)
+    # every edge pass runs along a side of the footprint's bounds
+    on_x = np.minimum(np.abs(pts[:, 0] - surface.x_min_mm), np.abs(pts[:, 0] - surface.x_max_mm))
+    on_y = np.minimum(np.abs(pts[:, 1] - surface.y_min_mm), np.abs(pts[:, 1] - surface.y_max_mm))
+    assert np.minimum(on_x, on_y).max() < 1e-6
