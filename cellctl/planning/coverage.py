@@ -5,36 +5,57 @@ The plan is built in the plate's design frame (x along the length, y across, z u
 along the plate's longer footprint axis, the laser line across them; the sensor looks along the
 surface normal from the standoff, so the curved surface stays inside the depth range, which is
 checked for every waypoint (including the height change the placement uncertainty can bring). The
-passes cover the footprint grown by the placement-uncertainty margin. Edge passes run along the four
-edges with the sensor tilted outward, so the edge and the thickness face are lit. Links lift over the
+passes cover the outline grown by the placement-uncertainty margin: each pass runs only as far as the
+plate (and the margin) reaches inside its strip, so a sheared or tapered plate is not swept over its
+bounding box's empty corners. Edge passes follow the design's own outline (the mesh's boundary loop
+and its four corners, :mod:`analysis.outline`): along each edge between two corners, following a
+bowed edge's curve, with the sensor tilted outward along the outline's outward normal in the plate
+plane, so the edge and the thickness face are lit whatever the corner angles. Links lift over the
 surface between passes; the approach and retract move along the normal.
 
 The predicted coverage casts the laser fan of every simulated profile onto the design with open3d's
-``RaycastingScene`` and counts the footprint cells that receive a valid return.
+``RaycastingScene`` and counts the cells of the plate (cell centre inside the outline) that receive
+a valid return.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import open3d as o3d
 import structlog
 from scipy.interpolate import RectBivariateSpline
-from scipy.ndimage import distance_transform_edt
+from scipy.ndimage import binary_erosion, distance_transform_edt
 
 from analysis.mesh import TriMesh
+from analysis.outline import OutlineError, mesh_boundary_loops, outline_corners
 from analysis.placement import Placement, placement_transform
+from analysis.plates import canonical_corner_order
 from cellctl.planning.plan import CoverageReport, PlanInputError, PlanRefused, Segment
 from cellctl.planning.settings import PlannerSettings
 
-__all__ = ["DesignSurface", "build_segments", "design_surface", "placement_margin_mm", "predict_coverage"]
+__all__ = [
+    "DesignSurface",
+    "EdgeFaceCoverage",
+    "OutlineEdgeCurve",
+    "build_segments",
+    "design_outline",
+    "design_surface",
+    "placement_margin_mm",
+    "predict_coverage",
+    "predict_edge_face_coverage",
+]
 
 log = structlog.get_logger(__name__)
 
 _GRID_PITCH_MM = 10.0
 _DEPTH_SAMPLES = 11
 _LINK_MAX_ROT_STEP_DEG = 3.0
+_OUTLINE_STEP_MM = 2.0  # the outline is resampled this finely for the raster passes' reach
+_STRAIGHT_TOL_MM = 0.05  # an edge whose outline strays less from its chord is taken as straight
+_BOW_DEGREE = 4  # polynomial across the chord: a parabolic or circular bow of 2 % to well under 0.1 mm
 
 
 def _raycasting_scene(mesh: TriMesh) -> o3d.t.geometry.RaycastingScene:
@@ -47,12 +68,105 @@ def _raycasting_scene(mesh: TriMesh) -> o3d.t.geometry.RaycastingScene:
 
 
 @dataclass(frozen=True)
+class OutlineEdgeCurve:
+    """One edge of the design's outline in plan (plate frame, mm), from corner ``a`` to corner ``b``.
+
+    ``p(s) = a + s e + bow(s) n`` for chord coordinates ``s`` in [0, chord_mm]; ``e`` the unit chord
+    direction, ``n`` its outward normal (the outline runs counter-clockwise seen from +z), ``bow`` a
+    polynomial in ``s / chord_mm`` with coefficients ``bow_coef`` (lowest first; all zero for a
+    straight edge). Beyond the corners the edge continues along its end tangent.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    e: np.ndarray
+    n: np.ndarray
+    chord_mm: float
+    bow_coef: np.ndarray
+
+    @property
+    def straight(self) -> bool:
+        return not np.any(self.bow_coef)
+
+    def at(self, s_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(points (m, 2), unit tangents (m, 2) along e, unit outward normals (m, 2)) at chord
+        coordinates ``s_mm`` (m,)."""
+        s = np.atleast_1d(np.asarray(s_mm, dtype=np.float64))
+        s0 = np.clip(s, 0.0, self.chord_mm)
+        t = s0 / self.chord_mm
+        c = np.polynomial.polynomial.polyval(t, self.bow_coef)
+        dc = (
+            np.polynomial.polynomial.polyval(t, np.polynomial.polynomial.polyder(self.bow_coef))
+            / self.chord_mm
+        )
+        tangent = _unit(self.e[None] + dc[:, None] * self.n[None])
+        outward = _unit(self.n[None] - dc[:, None] * self.e[None])
+        pts = self.a[None] + s0[:, None] * self.e[None] + c[:, None] * self.n[None]
+        return pts + (s - s0)[:, None] * tangent, tangent, outward
+
+    def path(self, run_mm: float, step_mm: float, forward: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """An edge pass's surface points (m, 2), travel directions and outward normals ((2,) for a
+        straight edge, else (m, 2)): from ``run_mm`` before the first corner to ``run_mm`` beyond
+        the second, from ``a`` to ``b`` when ``forward``, else back."""
+        s = _samples(-run_mm, self.chord_mm + run_mm, step_mm)
+        if self.straight:
+            p_from, d = (self.a, self.e) if forward else (self.b, -self.e)
+            return p_from[None] + s[:, None] * d[None], d, self.n
+        xy, tangent, outward = self.at(s if forward else self.chord_mm - s)
+        return xy, tangent if forward else -tangent, outward
+
+
+def _edge_curve(chain_xy: np.ndarray) -> OutlineEdgeCurve:
+    """The edge through outline points ``chain_xy`` (m, 2), corner to corner, counter-clockwise."""
+    a, b = chain_xy[0].copy(), chain_xy[-1].copy()
+    e = _unit(b - a)
+    n = np.array([e[1], -e[0]])
+    chord = float(np.linalg.norm(b - a))
+    rel = chain_xy - a
+    c = rel @ n
+    coef = np.zeros(_BOW_DEGREE + 1)
+    if np.abs(c).max() > _STRAIGHT_TOL_MM:
+        deg = min(_BOW_DEGREE, len(chain_xy) - 1)
+        coef[: deg + 1] = np.polynomial.polynomial.polyfit((rel @ e) / chord, c, deg)
+    return OutlineEdgeCurve(a, b, e, n, chord, coef)
+
+
+def design_outline(design: TriMesh) -> tuple[np.ndarray, np.ndarray] | None:
+    """The design's outline in plan: ``(outline_xy (k, 2), corner_index (4,))`` or None.
+
+    outline_xy: the mesh's outer boundary loop (plate frame), counter-clockwise seen from +z,
+    starting at the reference corner (corner 0 of :func:`analysis.plates.canonical_corner_order`);
+    corner_index: the four corners' indices into it, ascending (the first is 0). None when the mesh
+    has no open boundary with four corners (the planner then follows the footprint's bounds).
+    """
+    loops = mesh_boundary_loops(design)
+    if not loops:
+        return None
+    loop = design.vertices_mm[loops[0]]
+    try:
+        idx = outline_corners(loop, np.array([0.0, 0.0, 1.0]))
+    except OutlineError:
+        return None
+    xy = loop[:, :2].astype(np.float64)
+    area = 0.5 * float(np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1]))
+    if area < 0:
+        xy = xy[::-1]
+        idx = np.sort(len(xy) - 1 - idx)
+    c0 = canonical_corner_order(np.column_stack([xy[idx], np.zeros(4)]))[0, :2]
+    first = int(idx[np.argmin(np.linalg.norm(xy[idx] - c0, axis=1))])
+    xy = np.roll(xy, -first, axis=0)
+    idx = np.sort((idx - first) % len(xy))
+    return xy, idx
+
+
+@dataclass(frozen=True)
 class DesignSurface:
     """A smooth height field z(x, y) fitted to a design's top surface (plate frame, mm).
 
     ``x_min_mm``..``y_max_mm``: the footprint (the mesh's XY bounds). ``valid`` (nx, ny) bool: grid
     cells where a vertical ray hit the mesh. Outside the footprint, heights are extrapolated along the
-    tangent plane at the nearest footprint point.
+    tangent plane at the nearest footprint point. ``outline_xy`` / ``corner_index``: the design's
+    outline (see :func:`design_outline`), None when it has none with four corners.
     """
 
     x_min_mm: float
@@ -63,6 +177,8 @@ class DesignSurface:
     ys_mm: np.ndarray
     valid: np.ndarray
     spline: RectBivariateSpline
+    outline_xy: np.ndarray | None = None
+    corner_index: np.ndarray | None = None
 
     @property
     def size_mm(self) -> tuple[float, float]:
@@ -103,6 +219,84 @@ class DesignSurface:
         )
         return inb & self.valid[ix.astype(int), iy.astype(int)]
 
+    def outline_edges(self) -> tuple[OutlineEdgeCurve, ...]:
+        """The outline's four edges, edge k from corner k to corner k + 1 (counter-clockwise); the
+        footprint's bounds when the design has no four-cornered outline."""
+        if self.outline_xy is None or self.corner_index is None:
+            xy = np.array(
+                [
+                    [self.x_min_mm, self.y_min_mm],
+                    [self.x_max_mm, self.y_min_mm],
+                    [self.x_max_mm, self.y_max_mm],
+                    [self.x_min_mm, self.y_max_mm],
+                ]
+            )
+            return tuple(_edge_curve(xy[[k, (k + 1) % 4]]) for k in range(4))
+        ring = np.vstack([self.outline_xy, self.outline_xy[:1]])
+        ci = [*self.corner_index.tolist(), len(self.outline_xy)]
+        return tuple(_edge_curve(ring[ci[k] : ci[k + 1] + 1]) for k in range(4))
+
+    @cached_property
+    def _dense_outline(self) -> np.ndarray | None:
+        """(m, 2) the closed outline resampled every ``_OUTLINE_STEP_MM`` or finer (vertices kept)."""
+        if self.outline_xy is None:
+            return None
+        ring = np.vstack([self.outline_xy, self.outline_xy[:1]])
+        seg = np.diff(ring, axis=0)
+        n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / _OUTLINE_STEP_MM).astype(np.int64))
+        j = np.repeat(np.arange(len(seg)), n)
+        frac = np.arange(j.size) - np.repeat(np.cumsum(n) - n, n)
+        return ring[j] + (frac / n[j])[:, None] * seg[j]
+
+    def reach_along(
+        self, along: np.ndarray, across: np.ndarray, lo_mm: float, hi_mm: float
+    ) -> tuple[float, float] | None:
+        """(min, max) of the plate's coordinate along ``along`` (2,) within the strip ``lo_mm`` <=
+        coordinate along ``across`` (2,) <= ``hi_mm``; None without an outline or when the strip
+        misses the plate. For a convex outline the extremes lie on the outline."""
+        pts = self._dense_outline
+        if pts is None:
+            return None
+        c = pts @ across
+        a = pts[(c >= lo_mm) & (c <= hi_mm)] @ along
+        if a.size == 0:
+            return None
+        return float(a.min()), float(a.max())
+
+    def on_plate(self, cx_mm: np.ndarray, cy_mm: np.ndarray) -> np.ndarray:
+        """(nx, ny) bool: the grid points ``cx_mm`` (nx,) x ``cy_mm`` (ny,) over the plate: inside the
+        outline (even-odd rule) and not over a hole of the sampled surface (a hole is where the
+        vertical rays missed the mesh over at least two grid steps)."""
+        X, Y = np.meshgrid(cx_mm, cy_mm, indexing="ij")
+        holes = binary_erosion(~self.valid, border_value=0)
+        ix = np.clip(np.rint((X - self.xs_mm[0]) / (self.xs_mm[1] - self.xs_mm[0])), 0, len(self.xs_mm) - 1)
+        iy = np.clip(np.rint((Y - self.ys_mm[0]) / (self.ys_mm[1] - self.ys_mm[0])), 0, len(self.ys_mm) - 1)
+        solid = ~holes[ix.astype(int), iy.astype(int)]
+        if self.outline_xy is None:
+            return solid & self.inside(X.ravel(), Y.ravel()).reshape(X.shape)
+        p0 = self.outline_xy
+        p1 = np.roll(p0, -1, axis=0)
+        inside = np.zeros(X.shape, dtype=bool)
+        for i, x in enumerate(np.asarray(cx_mm, dtype=np.float64)):
+            cross = (p0[:, 0] <= x) != (p1[:, 0] <= x)
+            if not cross.any():
+                continue
+            a, b = p0[cross], p1[cross]
+            y_cross = np.sort(a[:, 1] + (x - a[:, 0]) * (b[:, 1] - a[:, 1]) / (b[:, 0] - a[:, 0]))
+            inside[i] = np.searchsorted(y_cross, cy_mm) % 2 == 1
+        return inside & solid
+
+
+def _fill_outside(xs: np.ndarray, ys: np.ndarray, Z: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Heights ``Z`` (nx, ny) with the cells not ``valid`` filled: quadric fit + nearest residual."""
+    X, Y = np.meshgrid((xs - xs.mean()) / np.ptp(xs), (ys - ys.mean()) / np.ptp(ys), indexing="ij")
+    A = np.stack([np.ones_like(X), X, Y, X * X, X * Y, Y * Y], axis=-1)
+    coef, *_ = np.linalg.lstsq(A[valid], Z[valid], rcond=None)
+    base = A @ coef
+    _, (ix, iy) = distance_transform_edt(~valid, return_indices=True)
+    residual = (Z - base)[ix, iy]
+    return np.where(valid, Z, base + residual)
+
 
 def design_surface(design: TriMesh) -> DesignSurface:
     """Fit a :class:`DesignSurface` to a design mesh (top surface, plate frame, mm).
@@ -137,11 +331,30 @@ def design_surface(design: TriMesh) -> DesignSurface:
         )
     Z = hi[2] + 100.0 - np.where(valid, t, 0.0)
     if not valid.all():
-        # holes and a non-rectangular outline: fill with the nearest sampled height so the spline is smooth
-        _, (ix, iy) = distance_transform_edt(~valid, return_indices=True)
-        Z = Z[ix, iy]
+        # holes and a non-rectangular outline: continue the surface over the empty cells of the bounds
+        # along the least-squares quadric through it, shifted by the nearest sample's residual, so the
+        # fill meets the surface without a step and the spline (and the normals near the outline's
+        # corners) stays smooth
+        Z = _fill_outside(xs, ys, Z, valid)
     spline = RectBivariateSpline(xs, ys, Z, kx=3, ky=3)
-    return DesignSurface(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), xs, ys, valid, spline)
+    outline = design_outline(design)
+    if outline is None:
+        log.warning(
+            "design_outline_missing", note="no four-cornered open boundary; edge passes follow the bounds"
+        )
+    outline_xy, corner_index = outline if outline is not None else (None, None)
+    return DesignSurface(
+        float(lo[0]),
+        float(hi[0]),
+        float(lo[1]),
+        float(hi[1]),
+        xs,
+        ys,
+        valid,
+        spline,
+        outline_xy,
+        corner_index,
+    )
 
 
 def placement_margin_mm(surface: DesignSurface, settings: PlannerSettings) -> float:
@@ -151,6 +364,19 @@ def placement_margin_mm(surface: DesignSurface, settings: PlannerSettings) -> fl
     half_diag = 0.5 * float(np.hypot(L, W))
     return settings.placement_uncertainty_mm + half_diag * float(
         np.sin(np.deg2rad(settings.placement_uncertainty_deg))
+    )
+
+
+def _outline_drift_mm(surface: DesignSurface, settings: PlannerSettings) -> float:
+    """The farthest any point of the outline moves at a corner of the placement uncertainty (the
+    shift in x and y at once, the rotation about the plate frame's origin)."""
+    pts = (
+        np.array([e.a for e in surface.outline_edges()]) if surface.outline_xy is None else surface.outline_xy
+    )
+    r = float(np.max(np.linalg.norm(pts, axis=1)))
+    du = settings.placement_uncertainty_mm
+    return float(np.hypot(du, du)) + 2.0 * r * float(
+        np.sin(np.deg2rad(settings.placement_uncertainty_deg) / 2)
     )
 
 
@@ -167,7 +393,8 @@ def _sensor_frames(
     outward_xy: np.ndarray | None = None,
     tilt_deg: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Sensor poses looking at surface points ``xy`` (n, 2) plate frame.
+    """Sensor poses looking at surface points ``xy`` (n, 2) plate frame; ``travel_xy`` and
+    ``outward_xy`` are (2,) or one per point (n, 2).
 
     Returns ``(pos_mm (n, 3), R_plate_sensor (n, 3, 3), surface_pt_mm (n, 3), normal (n, 3))``: the
     sensor z axis along minus the normal (tilted ``tilt_deg`` towards ``-outward`` for edge passes),
@@ -178,12 +405,14 @@ def _sensor_frames(
     pts = np.column_stack([xy, h])
     z = -n
     if outward_xy is not None and tilt_deg > 0:
-        o = np.broadcast_to(np.array([outward_xy[0], outward_xy[1], 0.0]), n.shape)
+        o = np.zeros_like(n)
+        o[:, :2] = outward_xy
         o = _unit(o - np.sum(o * n, axis=1, keepdims=True) * n)
         a = np.deg2rad(tilt_deg)
         # looking in from outside and above, so the vertical thickness face is lit
         z = _unit(-n * np.cos(a) - o * np.sin(a))
-    t3 = np.broadcast_to(np.array([travel_xy[0], travel_xy[1], 0.0]), z.shape)
+    t3 = np.zeros_like(z)
+    t3[:, :2] = travel_xy
     y = sign * _unit(t3 - np.sum(t3 * z, axis=1, keepdims=True) * z)
     x = np.cross(y, z)
     R = np.stack([x, y, z], axis=2)
@@ -315,8 +544,16 @@ def build_segments(
     centres = np.array([0.5 * (lo_c + hi_c)]) if n_pass == 1 else np.linspace(first, last, n_pass)
 
     sweeps: list[tuple[str, str, np.ndarray, np.ndarray]] = []  # (kind, label, pos, R) plate frame
+    # how far any plate point can move at a corner of the uncertainty box (shift in x and y at once)
+    drift = _outline_drift_mm(surface, settings)
     for i, c in enumerate(centres):
-        a0, a1 = (lo_a - margin, hi_a + margin) if i % 2 == 0 else (hi_a + margin, lo_a - margin)
+        # the pass reaches as far as the plate does inside the strip it may see under the uncertainty,
+        # never beyond the footprint's bounds plus the margin (a rectangle keeps its passes)
+        reach = surface.reach_along(a2, c2, c - w / 2 - drift, c + w / 2 + drift)
+        lo_i, hi_i = lo_a - margin, hi_a + margin
+        if reach is not None:
+            lo_i, hi_i = max(lo_i, reach[0] - drift), min(hi_i, reach[1] + drift)
+        a0, a1 = (lo_i, hi_i) if i % 2 == 0 else (hi_i, lo_i)
         s = _samples(a0, a1, settings.waypoint_step_mm)
         xy = s[:, None] * a2[None] + c * c2[None]
         pos, R, _, _ = _sensor_frames(surface, xy, a2, sign, settings.standoff_mm)
@@ -325,39 +562,28 @@ def build_segments(
         sweeps.append(("scan", label, pos, R))
 
     if settings.edge_passes:
-        corners = np.array(
-            [
-                [surface.x_min_mm, surface.y_min_mm],
-                [surface.x_max_mm, surface.y_min_mm],
-                [surface.x_max_mm, surface.y_max_mm],
-                [surface.x_min_mm, surface.y_max_mm],
-            ]
-        )
-        outward = np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+        edges = surface.outline_edges()
         run = settings.placement_uncertainty_mm + w / 2
+        paths = {
+            (e, ccw): edges[e].path(run, settings.waypoint_step_mm, forward=ccw)
+            for e in range(4)
+            for ccw in (True, False)
+        }
         end_xy = sweeps[-1][2][-1, :2]
         best = None
         for start in range(4):
             for ccw in (True, False):
                 order = [(start + k) % 4 for k in range(4)] if ccw else [(start - k) % 4 for k in range(4)]
-                e0 = order[0]
-                p_from, p_to = (
-                    (corners[e0], corners[(e0 + 1) % 4]) if ccw else (corners[(e0 + 1) % 4], corners[e0])
-                )
-                d = _unit(p_to - p_from)
-                dist = float(np.linalg.norm(p_from - run * d - end_xy))
+                dist = float(np.linalg.norm(paths[(order[0], ccw)][0][0] - end_xy))
                 if best is None or dist < best[0]:
                     best = (dist, order, ccw)
         _, order, ccw = best
         prev_x = sweeps[-1][3][-1, :, 0]
         for k, e in enumerate(order):
-            p_from, p_to = (corners[e], corners[(e + 1) % 4]) if ccw else (corners[(e + 1) % 4], corners[e])
-            d = _unit(p_to - p_from)
-            s = _samples(-run, float(np.linalg.norm(p_to - p_from)) + run, settings.waypoint_step_mm)
-            xy = p_from[None] + s[:, None] * d[None]
+            xy, travel, outward = paths[(e, ccw)]
             # the sensor's line direction is kept as close as possible to the previous pass's (less wrist roll)
             options = [
-                _sensor_frames(surface, xy, d, sg, settings.standoff_mm, outward[e], settings.edge_tilt_deg)
+                _sensor_frames(surface, xy, travel, sg, settings.standoff_mm, outward, settings.edge_tilt_deg)
                 for sg in (1.0, -1.0)
             ]
             pos, R, _, _ = max(options, key=lambda o: float(o[1][0, :, 0] @ prev_x))
@@ -432,6 +658,40 @@ def _resample_sweep(seg: Segment, step_mm: float) -> tuple[np.ndarray, np.ndarra
     return pos, x, z
 
 
+def _laser_fans(
+    segments: list[Segment], settings: PlannerSettings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The simulated profiles' rays (base frame): ``(origins (r, 3), unit directions (r, 3), the
+    sensor's view axis per ray (r, 3), profiles)``; one fan of ``coverage_rays`` rays as wide as the
+    line at the standoff every ``coverage_profile_step_mm`` along each sweep."""
+    sweeps = [s for s in segments if s.is_sweep]
+    if not sweeps:
+        raise PlanInputError("segments: no sweep to predict coverage from")
+    parts = [_resample_sweep(s, settings.coverage_profile_step_mm) for s in sweeps]
+    pos = np.concatenate([p[0] for p in parts])
+    x = np.concatenate([p[1] for p in parts])
+    z = np.concatenate([p[2] for p in parts])
+    u = np.linspace(-settings.line_width_mm / 2, settings.line_width_mm / 2, settings.coverage_rays)
+    dirs = _unit(settings.standoff_mm * z[:, None, :] + u[None, :, None] * x[:, None, :]).reshape(-1, 3)
+    return np.repeat(pos, u.size, axis=0), dirs, np.repeat(z, u.size, axis=0), int(pos.shape[0])
+
+
+def _uncertainty_corners(placement: Placement, settings: PlannerSettings) -> list[Placement]:
+    """The placement moved to the four corners of its uncertainty (shift and rotation)."""
+    du, dd = settings.placement_uncertainty_mm, settings.placement_uncertainty_deg
+    if not (du > 0 or dd > 0):
+        return []
+    return [
+        Placement.on_bed(
+            placement.x_mm + sx * du,
+            placement.y_mm + sy * du,
+            placement.yaw_deg + sa * dd,
+            z_mm=placement.z_mm,
+        )
+        for sx, sy, sa in ((1, 1, 1), (-1, -1, -1), (1, -1, -1), (-1, 1, 1))
+    ]
+
+
 def predict_coverage(
     segments: list[Segment],
     design: TriMesh,
@@ -444,21 +704,12 @@ def predict_coverage(
     Every ``coverage_profile_step_mm`` along each sweep a fan of ``coverage_rays`` rays, as wide as the
     laser line at the standoff, is cast onto the placed design; returns inside the depth range and
     below ``max_incidence_deg`` count. The footprint is divided into square cells of
-    ``coverage_cell_mm``; a cell over the surface is seen when it holds at least one return. The same
-    rays are cast against the plate moved to four corners of the placement uncertainty (shift and
-    rotation) for ``worst_fraction``.
+    ``coverage_cell_mm``; a cell of the plate (its centre inside the design's outline, not over a
+    hole) is seen when it holds at least one return: the fraction is of the plate, not of its
+    bounds. The same rays are cast against the plate moved to four corners of the placement
+    uncertainty (shift and rotation) for ``worst_fraction``.
     """
-    sweeps = [s for s in segments if s.is_sweep]
-    if not sweeps:
-        raise PlanInputError("segments: no sweep to predict coverage from")
-    parts = [_resample_sweep(s, settings.coverage_profile_step_mm) for s in sweeps]
-    pos = np.concatenate([p[0] for p in parts])
-    x = np.concatenate([p[1] for p in parts])
-    z = np.concatenate([p[2] for p in parts])
-    u = np.linspace(-settings.line_width_mm / 2, settings.line_width_mm / 2, settings.coverage_rays)
-    dirs = _unit(settings.standoff_mm * z[:, None, :] + u[None, :, None] * x[:, None, :]).reshape(-1, 3)
-    origins = np.repeat(pos, u.size, axis=0)
-    zrep = np.repeat(z, u.size, axis=0)
+    origins, dirs, zrep, n_profiles = _laser_fans(segments, settings)
     rays = o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32))
     cos_max = np.cos(np.deg2rad(settings.max_incidence_deg))
 
@@ -467,8 +718,7 @@ def predict_coverage(
     ny = max(1, int(np.ceil((surface.y_max_mm - surface.y_min_mm) / cell)))
     cx = surface.x_min_mm + (np.arange(nx) + 0.5) * (surface.x_max_mm - surface.x_min_mm) / nx
     cy = surface.y_min_mm + (np.arange(ny) + 0.5) * (surface.y_max_mm - surface.y_min_mm) / ny
-    CX, CY = np.meshgrid(cx, cy, indexing="ij")
-    surface_cells = surface.inside(CX.ravel(), CY.ravel()).reshape(nx, ny)
+    surface_cells = surface.on_plate(cx, cy)
     total = int(surface_cells.sum())
     if total == 0:
         raise PlanInputError("design: no footprint cell lies over the surface")
@@ -499,16 +749,8 @@ def predict_coverage(
 
     frac, n_seen = fraction(placement)
     worst = frac
-    du, dd = settings.placement_uncertainty_mm, settings.placement_uncertainty_deg
-    if du > 0 or dd > 0:
-        for sx, sy, sa in ((1, 1, 1), (-1, -1, -1), (1, -1, -1), (-1, 1, 1)):
-            moved = Placement.on_bed(
-                placement.x_mm + sx * du,
-                placement.y_mm + sy * du,
-                placement.yaw_deg + sa * dd,
-                z_mm=placement.z_mm,
-            )
-            worst = min(worst, fraction(moved)[0])
+    for moved in _uncertainty_corners(placement, settings):
+        worst = min(worst, fraction(moved)[0])
     log.debug("coverage_predicted", fraction=frac, worst=worst, rays=int(origins.shape[0]))
     return CoverageReport(
         fraction=frac,
@@ -516,6 +758,95 @@ def predict_coverage(
         cells_total=total,
         cells_seen=n_seen,
         cell_mm=cell,
-        profiles=int(pos.shape[0]),
+        profiles=n_profiles,
         rays=int(origins.shape[0]),
     )
+
+
+@dataclass(frozen=True)
+class EdgeFaceCoverage:
+    """Predicted coverage of the plate's thickness faces (the outline's four edge faces).
+
+    fraction / worst_fraction: of the outline's length, in pieces of ``coverage_cell_mm``, whose face
+    receives a valid return, at the nominal placement / the worst corner of the placement
+    uncertainty. per_edge: the nominal fraction of each edge (edge k from corner k to k + 1).
+    """
+
+    fraction: float
+    worst_fraction: float
+    per_edge: tuple[float, float, float, float]
+    pieces_total: int
+
+
+def _edge_face_mesh(
+    surface: DesignSurface, thickness_mm: float, piece_mm: float
+) -> tuple[TriMesh, np.ndarray]:
+    """The thickness face below the outline (plate frame) as a mesh of vertical quads, one per piece
+    of ``piece_mm`` along each edge, and the edge (m,) of each piece (triangles j and j + m are piece j)."""
+    tops, bottoms, owner = [], [], []
+    for k, ed in enumerate(surface.outline_edges()):
+        n_piece = max(1, int(np.ceil(ed.chord_mm / piece_mm)))
+        xy, _, _ = ed.at(np.linspace(0.0, ed.chord_mm, n_piece + 1))
+        h, _, _ = surface.height_and_gradient(xy[:, 0], xy[:, 1])
+        top = np.column_stack([xy, h])
+        tops.append(top[:-1])
+        bottoms.append(top[1:])
+        owner.extend([k] * n_piece)
+    a = np.concatenate(tops)
+    b = np.concatenate(bottoms)
+    down = np.array([0.0, 0.0, thickness_mm])
+    m = len(a)
+    vertices = np.concatenate([a, b, b - down, a - down])
+    i = np.arange(m)
+    # outward-facing quads (a, a - t, b - t) and (a, b - t, b): the outline runs counter-clockwise
+    triangles = np.concatenate(
+        [np.column_stack([i, i + 3 * m, i + 2 * m]), np.column_stack([i, i + 2 * m, i + m])]
+    )
+    return TriMesh(vertices, triangles), np.asarray(owner, dtype=np.int64)
+
+
+def predict_edge_face_coverage(
+    segments: list[Segment],
+    design: TriMesh,
+    surface: DesignSurface,
+    placement: Placement,
+    settings: PlannerSettings,
+    thickness_mm: float,
+) -> EdgeFaceCoverage:
+    """Predicted coverage of the thickness faces: the laser fans of every sweep (as in
+    :func:`predict_coverage`) cast onto the design together with a vertical face ``thickness_mm``
+    deep under its outline; a piece of the face is seen when a ray inside the depth range and below
+    ``max_incidence_deg`` lands on it first (the top surface shadows what it hides)."""
+    if not thickness_mm > 0:
+        raise PlanInputError(f"thickness_mm: must be positive, got {thickness_mm!r}")
+    origins, dirs, zrep, _ = _laser_fans(segments, settings)
+    rays = o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32))
+    cos_max = np.cos(np.deg2rad(settings.max_incidence_deg))
+    faces, owner = _edge_face_mesh(surface, thickness_mm, settings.coverage_cell_mm)
+    n_top = design.triangles.shape[0]
+    both = TriMesh(
+        np.concatenate([design.vertices_mm, faces.vertices_mm]),
+        np.concatenate([design.triangles, faces.triangles + len(design.vertices_mm)]),
+    )
+    m = len(owner)
+    n_edge_pieces = np.bincount(owner, minlength=4)
+
+    def seen_per_edge(pl: Placement) -> np.ndarray:
+        hit = _raycasting_scene(both.transformed(placement_transform(pl))).cast_rays(rays)
+        t = hit["t_hit"].numpy().astype(np.float64)
+        prim = hit["primitive_ids"].numpy().astype(np.int64)
+        nrm = hit["primitive_normals"].numpy().astype(np.float64)
+        ok = np.isfinite(t) & (prim >= n_top) & (prim < n_top + 2 * m)
+        depth = t * np.sum(dirs * zrep, axis=1)
+        ok &= (depth >= settings.depth_min_mm) & (depth <= settings.depth_max_mm)
+        ok &= np.abs(np.sum(nrm * dirs, axis=1)) >= cos_max
+        pieces = np.unique((prim[ok] - n_top) % m)
+        return np.bincount(owner[pieces], minlength=4)
+
+    total = int(n_edge_pieces.sum())
+    seen = seen_per_edge(placement)
+    worst = float(seen.sum()) / total
+    for moved in _uncertainty_corners(placement, settings):
+        worst = min(worst, float(seen_per_edge(moved).sum()) / total)
+    per_edge = tuple(float(v) for v in seen / n_edge_pieces)
+    return EdgeFaceCoverage(float(seen.sum()) / total, worst, per_edge, total)  # type: ignore[arg-type]
