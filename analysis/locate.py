@@ -72,6 +72,8 @@ class LocateSettings:
     beyond ``max(trim_mm, 3 x median)`` are outliers). ``ambiguity_mm``, ``yaw_hint_deg``,
     ``convention_yaw_deg``, ``allow_face_down``: see the module docstring. ``max_rms_mm``,
     ``min_boundary_points``: below these the result is refused (LocateError).
+    ``min_constraint_points``: below it the result says it is not ``constrained`` (more passes, across
+    the first, are needed).
     """
 
     bed_z_mm: float | None = None
@@ -94,6 +96,7 @@ class LocateSettings:
     allow_face_down: bool = False
     max_rms_mm: float = 2.0
     min_boundary_points: int = 30
+    min_constraint_points: float = 40.0
     max_fit_points: int = 6000
     seed: int = 0
 
@@ -139,6 +142,9 @@ class LocateResult:
     boundary_points, inliers, plate_points: counts. ambiguous: the half-turned fit was as good.
     resolved_by: ``"fit"``, ``"hint"`` or ``"convention"`` (how the half turn was decided).
     alternative_rms_mm: the half-turned fit's RMS. iterations: of the fine fit.
+    constraint_points: the smaller eigenvalue of the sum of the inliers' outline normals' outer
+    products (about: boundary points, 1 per ``boundary_cell_mm``, that pin the weaker direction);
+    near 0 when the passes crossed only edges of one direction (the fit may then slide along them).
     """
 
     placement: Placement
@@ -153,6 +159,8 @@ class LocateResult:
     resolved_by: str
     alternative_rms_mm: float
     iterations: int
+    constraint_points: float = 0.0
+    constrained: bool = True
     candidates: list[dict[str, float]] = field(default_factory=list)
 
     def summary(self) -> dict[str, object]:
@@ -169,6 +177,7 @@ class LocateResult:
             "ambiguous": self.ambiguous,
             "resolved_by": self.resolved_by,
             "alternative_rms_mm": round(self.alternative_rms_mm, 4),
+            "constraint_points": round(self.constraint_points, 1),
         }
 
 
@@ -403,6 +412,13 @@ def _coverage(bxy: np.ndarray, outline: DesignOutline, fit: _Fit, within_mm: flo
     return float(np.mean(np.isfinite(d)))
 
 
+def _constraint(bxy: np.ndarray, outline: DesignOutline, fit: _Fit, st: LocateSettings) -> float:
+    q = (bxy - fit.t_mm) @ _rot(fit.yaw_rad)
+    d, j = cKDTree(outline.xy_mm).query(q)
+    n = outline.normal[j[d <= max(st.trim_mm, 3.0 * float(np.median(d)))]]
+    return float(np.linalg.eigvalsh(n.T @ n)[0]) if len(n) else 0.0
+
+
 def fit_outline(
     boundary: PlateBoundary, outline: DesignOutline, settings: LocateSettings | None = None
 ) -> LocateResult:
@@ -491,6 +507,8 @@ def fit_outline(
         resolved_by=resolved_by,
         alternative_rms_mm=float(alt_rms),
         iterations=best.iterations,
+        constraint_points=(cp := _constraint(bxy, ol, best, st) * len(b) / len(bxy)),
+        constrained=cp >= st.min_constraint_points,
         candidates=[
             {
                 "yaw_deg": round(_wrap_deg(np.rad2deg(f.yaw_rad)), 3),

@@ -45,6 +45,9 @@ def tiny_cell_config(
     # The HTML/PDF render (a child process of tens of CPU-seconds) has its own tests
     # (tests/zenoh/test_daemon_html_step.py); here it would only compete with the next scan.
     cfg["daemon"]["write_html_report"] = False
+    # The locate run has its own e2e tests (tests/e2e/test_locate_e2e.py): here a given placement is
+    # trusted, and every job starts its scan at once.
+    cfg["locate"]["check_given"] = False
     cfg["analysis"].update(
         transverse_count=2, transverse_spacing_mm=80.0, longitudinal_count=1, longitudinal_spacing_mm=100.0,
         ack_timeout_s=5.0, heartbeat_timeout_s=5.0,
