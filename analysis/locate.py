@@ -141,7 +141,9 @@ class LocateResult:
     coverage: fraction of the outline with a boundary point within ``coverage_mm``.
     boundary_points, inliers, plate_points: counts. ambiguous: the half-turned fit was as good.
     resolved_by: ``"fit"``, ``"hint"`` or ``"convention"`` (how the half turn was decided).
-    alternative_rms_mm: the half-turned fit's RMS. iterations: of the fine fit.
+    score_mm, alternative_score_mm: the fit's and the half-turned fit's robust score (RMS of the
+    point-to-outline distances of every boundary point, each capped at ``trim_mm``): what decides
+    between them. iterations: of the fine fit.
     constraint_points: the smaller eigenvalue of the sum of the inliers' outline normals' outer
     products (about: boundary points, 1 per ``boundary_cell_mm``, that pin the weaker direction);
     near 0 when the passes crossed only edges of one direction (the fit may then slide along them).
@@ -157,7 +159,8 @@ class LocateResult:
     plate_points: int
     ambiguous: bool
     resolved_by: str
-    alternative_rms_mm: float
+    score_mm: float
+    alternative_score_mm: float
     iterations: int
     constraint_points: float = 0.0
     constrained: bool = True
@@ -176,7 +179,8 @@ class LocateResult:
             "plate_points": self.plate_points,
             "ambiguous": self.ambiguous,
             "resolved_by": self.resolved_by,
-            "alternative_rms_mm": round(self.alternative_rms_mm, 4),
+            "score_mm": round(self.score_mm, 4),
+            "alternative_score_mm": round(self.alternative_score_mm, 4),
             "constraint_points": round(self.constraint_points, 1),
         }
 
@@ -468,7 +472,6 @@ def fit_outline(
     ambiguous, resolved_by, alt_rms = False, "fit", np.inf
     if partner is not None:
         pf = partner[2]
-        alt_rms = pf.score
         pz0, phrms = _heights(plate, ol, pf)
         if pf.score - best.score <= st.ambiguity_mm and abs(phrms - hrms) <= st.ambiguity_mm:
             ambiguous = True
@@ -478,7 +481,8 @@ def fit_outline(
             da = abs(_wrap_deg(np.rad2deg(best.yaw_rad) - ref))
             db = abs(_wrap_deg(np.rad2deg(pf.yaw_rad) - ref))
             if db < da:
-                best, z0, hrms = pf, pz0, phrms
+                best, pf, z0, hrms = pf, best, pz0, phrms
+        alt_rms = pf.score
     if st.allow_face_down:
         other = next((x for x in fits if x[0] != face_down), None)
         if other is not None and other[2].score - best.score <= st.ambiguity_mm:
@@ -505,7 +509,8 @@ def fit_outline(
         plate_points=len(boundary.plate_mm),
         ambiguous=ambiguous,
         resolved_by=resolved_by,
-        alternative_rms_mm=float(alt_rms),
+        score_mm=best.score,
+        alternative_score_mm=float(alt_rms),
         iterations=best.iterations,
         constraint_points=(cp := _constraint(bxy, ol, best, st) * len(b) / len(bxy)),
         constrained=cp >= st.min_constraint_points,

@@ -547,7 +547,9 @@ class LocateSection(Section):
     ``[scan] placement_z_mm``), so that its edges are within the sensor's depth range below them, and
     never nearer than ``[laser] depth_min_mm`` to its highest point; at ``speed_mm_s``,
     ``pass_spacing_mm`` apart:
-    one family along the bed's longer side over the whole bed, one across it over the middle square.
+    one family along the bed's longer side over the whole bed; one across it over the middle square
+    when the first leaves the fit sliding, or finds the plate's edges within ``across_within_deg`` of
+    square to its passes (an edge crossed square-on is seen only to a profile's spacing).
     ``bed_z_mm``: the bed's top face (points up to ``min_height_mm`` above it are no plate).
     A given placement is checked (``check_given``) and refused when the plate found lies more than
     ``max_offset_mm`` / ``max_angle_deg`` from it. ``convention_yaw_deg``: a plate that looks the same
@@ -565,6 +567,7 @@ class LocateSection(Section):
     standoff_mm: PositiveFloat = 75.0
     speed_mm_s: PositiveFloat = 225.0
     pass_spacing_mm: Annotated[float, Field(ge=20.0, le=2000.0, allow_inf_nan=False)] = 300.0
+    across_within_deg: Annotated[float, Field(ge=0.0, le=45.0, allow_inf_nan=False)] = 20.0
     max_offset_mm: PositiveFloat = 20.0
     max_angle_deg: PositiveFloat = 1.0
     convention_yaw_deg: Annotated[float, Field(ge=-180.0, le=180.0, allow_inf_nan=False)] = 0.0

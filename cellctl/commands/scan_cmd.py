@@ -258,7 +258,9 @@ async def _scan(args: argparse.Namespace, cfg) -> int:
     from cellctl.commands.tables import line_table
 
     try:
-        placement = None if args.placement is None else placement_payload(args.placement, cfg.scan.placement_z_mm)
+        placement = (
+            None if args.placement is None else placement_payload(args.placement, cfg.scan.placement_z_mm)
+        )
         table = template_table_rows(args.template_table)
     except ValueError as exc:
         print(f"cellctl scan: error: {exc}", file=sys.stderr)

@@ -27,7 +27,15 @@ from analysis.plates import design_mesh, plate_spec
 from cellctl.config import CellConfig
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 
-__all__ = ["LocatePlan", "given_placement_refusal", "locate_plans", "locate_settings"]
+__all__ = [
+    "LocatePlan",
+    "face_down_refusal",
+    "given_placement_refusal",
+    "locate_height_mm",
+    "locate_plans",
+    "locate_settings",
+    "needs_across",
+]
 
 
 @dataclass(frozen=True)
@@ -107,6 +115,20 @@ def locate_settings(cfg: CellConfig, design: TriMesh, yaw_hint_deg: float | None
         allow_face_down=loc.allow_face_down,
         max_rms_mm=loc.max_rms_mm,
     )
+
+
+def needs_across(cfg: CellConfig, found: LocateResult) -> bool:
+    """Whether the passes across should run after those along: the first fit slides along one
+    direction, or the plate's outline (taken as its design's x / y edges) lies within ``[locate]
+    across_within_deg`` of square to the first passes. An edge crossed square-on is seen only to a
+    profile's spacing along the pass (a step of 1 mm at 225 mm/s and 200 Hz): a short plate's yaw
+    then needs the edges the other family crosses."""
+    if not found.constrained:
+        return True
+    lo, hi = np.asarray(cfg.locate.bed_min_xy_mm), np.asarray(cfg.locate.bed_max_xy_mm)
+    pass_yaw = 0.0 if (hi - lo)[0] >= (hi - lo)[1] else 90.0
+    d = (found.placement.yaw_deg - pass_yaw) % 90.0
+    return min(d, 90.0 - d) < cfg.locate.across_within_deg
 
 
 def given_placement_refusal(cfg: CellConfig, found: LocateResult, given: Placement) -> str | None:

@@ -35,7 +35,13 @@ from cellctl.acquisition.session import AcquisitionSession, SessionSettings, pas
 from cellctl.api import CellState, JobState
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import ActiveJob, JobStore
-from cellctl.daemon.locate import face_down_refusal, given_placement_refusal, locate_plans, locate_settings
+from cellctl.daemon.locate import (
+    face_down_refusal,
+    given_placement_refusal,
+    locate_plans,
+    locate_settings,
+    needs_across,
+)
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
@@ -132,7 +138,8 @@ class ScanRunner:
 
     async def _locate(self, job: ActiveJob, design: TriMesh) -> bool:
         """The locate run: passes along the bed, the outline fit, and passes across it when the first
-        left the fit sliding along one direction. Each run's cloud is on disk before it is fitted.
+        left the fit sliding along one direction or crossed the plate's edges square-on
+        (:func:`~cellctl.daemon.locate.needs_across`). Each run's cloud is on disk before it is fitted.
 
         True with ``job.record.placement`` the placement found; False when the job ended (the plate
         was not found, a given placement is refused, the run was stopped or failed)."""
@@ -166,7 +173,7 @@ class ScanRunner:
             except LocateError as exc:
                 found, reason = None, str(exc)
                 continue
-            if found.constrained:
+            if not needs_across(cfg, found):
                 break
         locate_s = round(time.perf_counter() - t0, 3)
         if found is None:
