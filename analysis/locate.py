@@ -83,9 +83,9 @@ class LocateSettings:
     closing_px: int = 2
     boundary_cell_mm: float = 1.0
     outline_step_mm: float = 2.0
-    coarse_yaw_step_deg: float = 3.0
-    vote_cell_mm: float = 8.0
-    coarse_points: int = 250
+    coarse_yaw_step_deg: float = 5.0
+    vote_cell_mm: float = 12.0
+    coarse_points: int = 200
     coarse_hypotheses: int = 6
     icp_iterations: int = 40
     trim_mm: float = 5.0
@@ -216,13 +216,16 @@ def plate_boundary(clouds: list[ScanCloud], settings: LocateSettings | None = No
         pid = np.asarray(cloud.pass_id)[idx]
         prof = np.asarray(cloud.profile_index)[idx].astype(np.int64)
         col = np.asarray(cloud.point_index)[idx].astype(np.int64)
-        order = np.argsort(pid, kind="stable")
-        cuts = np.flatnonzero(np.diff(pid[order])) + 1
-        for sel in np.split(order, cuts):
+        # the publication may thin the line: the columns present, ranked
+        present = np.zeros(int(col.max()) + 1, dtype=bool)
+        present[col] = True
+        rank = np.cumsum(present) - 1
+        n_cols = int(present.sum())
+        for p in np.unique(pid):  # a handful of passes: one mask each
+            sel = np.flatnonzero(pid == p)
             r = prof[sel] - prof[sel].min()
-            # the publication may thin the line: rank the columns present
-            cols, c = np.unique(col[sel], return_inverse=True)
-            grid = np.zeros((int(r.max()) + 1, len(cols)), dtype=bool)
+            c = rank[col[sel]]
+            grid = np.zeros((int(r.max()) + 1, n_cols), dtype=bool)
             grid[r, c] = True
             # Beyond the first and last profile the pass saw nothing there (no plate): padded empty.
             # Beyond the line's ends it saw nothing at all: padded with copies of the end columns, so

@@ -566,8 +566,8 @@ class LocateSection(Section):
     min_height_mm: NonNegativeFloat = 5.0
     standoff_mm: PositiveFloat = 75.0
     speed_mm_s: PositiveFloat = 225.0
-    pass_spacing_mm: Annotated[float, Field(ge=20.0, le=2000.0, allow_inf_nan=False)] = 300.0
-    across_within_deg: Annotated[float, Field(ge=0.0, le=45.0, allow_inf_nan=False)] = 20.0
+    pass_spacing_mm: Annotated[float, Field(ge=20.0, le=2000.0, allow_inf_nan=False)] = 350.0
+    across_within_deg: Annotated[float, Field(ge=0.0, le=45.0, allow_inf_nan=False)] = 10.0
     max_offset_mm: PositiveFloat = 20.0
     max_angle_deg: PositiveFloat = 1.0
     convention_yaw_deg: Annotated[float, Field(ge=-180.0, le=180.0, allow_inf_nan=False)] = 0.0
