@@ -66,7 +66,8 @@ class LocateSettings:
     plate; None: the bed is not in the cloud). ``range_z_mm``: (lowest, highest) world z the sensor
     measures on the locate passes (flat passes at one height): a boundary point within
     ``range_margin_mm`` of either is where the surface left the range, no edge. None: no such
-    rejection. ``closing_px``: small holes in a pass's grid closed before its boundary is taken.
+    rejection. ``column_step``: every k-th point along the laser line is read (0.4 mm at the
+    HD8's 0.1 mm pitch; the profiles are 1 mm apart along the pass). ``closing_px``: small holes in a pass's grid closed before its boundary is taken.
     ``boundary_cell_mm``: boundary points thinned to one per cell. ``coarse_yaw_step_deg``,
     ``vote_cell_mm``: the coarse search. ``icp_iterations``, ``trim_mm``: the fine fit (residuals
     beyond ``max(trim_mm, 3 x median)`` are outliers). ``ambiguity_mm``, ``yaw_hint_deg``,
@@ -81,6 +82,7 @@ class LocateSettings:
     range_z_mm: tuple[float, float] | None = None
     range_margin_mm: float = 3.0
     closing_px: int = 2
+    column_step: int = 4
     boundary_cell_mm: float = 1.0
     outline_step_mm: float = 2.0
     coarse_yaw_step_deg: float = 5.0
@@ -97,7 +99,7 @@ class LocateSettings:
     max_rms_mm: float = 2.0
     min_boundary_points: int = 30
     min_constraint_points: float = 40.0
-    max_fit_points: int = 6000
+    max_fit_points: int = 3000
     seed: int = 0
 
 
@@ -209,6 +211,8 @@ def plate_boundary(clouds: list[ScanCloud], settings: LocateSettings | None = No
         keep = np.isfinite(xyz).all(axis=1) & (cloud.pass_id > 0)
         if st.bed_z_mm is not None:
             keep &= xyz[:, 2] > st.bed_z_mm + st.min_height_mm
+        if st.column_step > 1:  # along the line the points are far denser than along the pass
+            keep &= np.asarray(cloud.point_index) % st.column_step == 0
         idx = np.nonzero(keep)[0]
         if not len(idx):
             continue
