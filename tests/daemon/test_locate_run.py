@@ -3,6 +3,8 @@ and the job record that keeps none until the plate is found."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from pydantic import ValidationError
@@ -95,3 +97,29 @@ def test_a_trigger_may_leave_out_the_placement_and_the_record_keeps_none_until_f
 def test_a_bed_without_extent_is_refused():
     with pytest.raises(ValidationError, match="bed_min_xy_mm"):
         LocateSection(bed_min_xy_mm=[1000.0, 0.0], bed_max_xy_mm=[900.0, 100.0])
+
+
+def test_how_the_placement_was_found_travels_to_the_report_inputs():
+    from analysis.job import AnalysisJob, ReportInputs
+    from cellctl.api.analysis_job import analysis_job
+
+    finding = {
+        "source": "located",
+        "given": None,
+        "rms_mm": 0.7,
+        "coverage": 0.3,
+        "resolved_by": "convention",
+    }
+    job = analysis_job(
+        CellConfig(), job_id="j", plate_id="P", design="/d/p.ply", placement=None, out_dir=Path("/tmp/x"),
+        placement_found=finding,
+    )  # fmt: skip
+    again = AnalysisJob.model_validate_json(job.model_dump_json())
+    assert again.placement_found is not None and again.placement_found.source == "located"
+    inputs = ReportInputs.model_validate({"points": 10, "placement_found": again.placement_found})
+    assert inputs.model_dump(mode="json")["placement_found"]["rms_mm"] == 0.7
+    with pytest.raises(ValidationError):
+        analysis_job(
+            CellConfig(), job_id="j", plate_id="P", design="/d/p.ply", placement=None, out_dir=Path("/tmp/x"),
+            placement_found={"source": "guessed"},
+        )  # fmt: skip
