@@ -56,9 +56,11 @@ def cell(tmp_path_factory):
     cfg = load_config(path).model_dump(mode="json")
     x, y, yaw = _random_lay(SEED)
     cfg["sim"]["placement"].update(pos_mm=[x, y, cfg["sim"]["placement"]["pos_mm"][2]], angle_deg=yaw)
+    # a 300 mm plate's edges are short levers for its yaw: the passes across run within 20 deg of square
     cfg["locate"].update(
-        check_given=True, bed_min_xy_mm=list(BED_MIN), bed_max_xy_mm=list(BED_MAX), pass_spacing_mm=120.0
-    )
+        check_given=True, bed_min_xy_mm=list(BED_MIN), bed_max_xy_mm=list(BED_MAX), pass_spacing_mm=120.0,
+        across_within_deg=20.0,
+    )  # fmt: skip
     path.write_text(to_toml(cfg), encoding="utf-8")
     c = Cell(out, path)
     c.start(worker=False)
