@@ -1,4 +1,10 @@
-"""One scan of a job: plan, pre-flight, drivers to a known state, motion with the acquisition session.
+"""One scan of a job: locate, plan, pre-flight, drivers to a known state, motion with the acquisition session.
+
+Without a placement in the trigger (or with ``[locate] check_given``) the scan starts with the
+locate run (docs/locate.md): its passes (:mod:`cellctl.daemon.locate`) go through the same
+acquisition as the scan, each run's cloud is written to the job's ``locate/`` folder, the design's
+outline is fitted to it (:mod:`analysis.locate`), and the scan is planned from the placement found
+(a given placement off by more than the bound fails the job with the reason).
 
 :class:`ScanRunner` holds what a scan needs of the cell (configuration, job store, the named
 drivers) and tells its host (the daemon) about job and cell states through :class:`ScanHost`. The
