@@ -109,7 +109,10 @@ class ScanRunner:
             if not await self._locate(job, design):
                 return False
         else:
-            host.job_state(job, JobState.PLANNING, "placement as given", placement_found={"source": "given"})
+            host.job_state(
+                job, JobState.PLANNING, "placement as given (not checked: [locate] check_given = false)",
+                placement_found={"source": "given", "given": rec.placement},
+            )  # fmt: skip
         planned = await self._plan(job, design)
         if planned is None:
             return False
