@@ -79,6 +79,7 @@ class LocateSettings:
 
     bed_z_mm: float | None = None
     min_height_mm: float = 5.0
+    plate_z_mm: tuple[float, float] | None = None
     range_z_mm: tuple[float, float] | None = None
     range_margin_mm: float = 3.0
     closing_px: int = 2
@@ -211,6 +212,8 @@ def plate_boundary(clouds: list[ScanCloud], settings: LocateSettings | None = No
         keep = np.isfinite(xyz).all(axis=1) & (cloud.pass_id > 0)
         if st.bed_z_mm is not None:
             keep &= xyz[:, 2] > st.bed_z_mm + st.min_height_mm
+        if st.plate_z_mm is not None:
+            keep &= (xyz[:, 2] >= st.plate_z_mm[0]) & (xyz[:, 2] <= st.plate_z_mm[1])
         if st.column_step > 1:  # along the line the points are far denser than along the pass
             keep &= np.asarray(cloud.point_index) % st.column_step == 0
         idx = np.nonzero(keep)[0]

@@ -551,6 +551,8 @@ class LocateSection(Section):
     when the first leaves the fit sliding, or finds the plate's edges within ``across_within_deg`` of
     square to its passes (an edge crossed square-on is seen only to a profile's spacing).
     ``bed_z_mm``: the bed's top face (points up to ``min_height_mm`` above it are no plate).
+    ``plate_band_mm``: points further than this below the design's lowest point or above its highest
+    (the plate at ``[scan] placement_z_mm``) are no plate (supports beside a turned plate, clamps).
     A given placement is checked (``check_given``) and refused when the plate found lies more than
     ``max_offset_mm`` / ``max_angle_deg`` from it. ``convention_yaw_deg``: a plate that looks the same
     turned by 180 deg is taken at the yaw within 90 deg of this, when no placement is given.
@@ -564,6 +566,7 @@ class LocateSection(Section):
     bed_max_xy_mm: Annotated[list[Finite], Field(min_length=2, max_length=2)] = [2200.0, 700.0]
     bed_z_mm: Finite = 100.0
     min_height_mm: NonNegativeFloat = 5.0
+    plate_band_mm: PositiveFloat = 8.0
     standoff_mm: PositiveFloat = 75.0
     speed_mm_s: PositiveFloat = 225.0
     pass_spacing_mm: Annotated[float, Field(ge=20.0, le=2000.0, allow_inf_nan=False)] = 350.0

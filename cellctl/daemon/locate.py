@@ -106,9 +106,12 @@ def locate_settings(cfg: CellConfig, design: TriMesh, yaw_hint_deg: float | None
     """:class:`analysis.locate.LocateSettings` of ``[locate]``, the sensor range at the locate height."""
     loc, las = cfg.locate, cfg.laser
     h = locate_height_mm(cfg, design)
+    z = design.vertices_mm[:, 2]
+    z0 = cfg.scan.placement_z_mm
     return LocateSettings(
         bed_z_mm=loc.bed_z_mm,
         min_height_mm=loc.min_height_mm,
+        plate_z_mm=(z0 + float(z.min()) - loc.plate_band_mm, z0 + float(z.max()) + loc.plate_band_mm),
         range_z_mm=(h - las.depth_max_mm, h - las.depth_min_mm),
         yaw_hint_deg=yaw_hint_deg,
         convention_yaw_deg=loc.convention_yaw_deg,

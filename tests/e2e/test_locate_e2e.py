@@ -56,10 +56,11 @@ def cell(tmp_path_factory):
     cfg = load_config(path).model_dump(mode="json")
     x, y, yaw = _random_lay(SEED)
     cfg["sim"]["placement"].update(pos_mm=[x, y, cfg["sim"]["placement"]["pos_mm"][2]], angle_deg=yaw)
-    # a 300 mm plate's edges are short levers for its yaw: the passes across run within 20 deg of square
+    # a 300 mm plate's edges are short levers for its yaw (half a millimetre of pose or clock error at
+    # its ends is 0.2 deg): the passes across always run
     cfg["locate"].update(
         check_given=True, bed_min_xy_mm=list(BED_MIN), bed_max_xy_mm=list(BED_MAX), pass_spacing_mm=120.0,
-        across_within_deg=20.0,
+        across_within_deg=45.0,
     )  # fmt: skip
     path.write_text(to_toml(cfg), encoding="utf-8")
     c = Cell(out, path)
@@ -97,6 +98,9 @@ async def _job(cell: Cell, trigger: dict, *, abort_when_planned: bool) -> tuple[
                     )
                     break
                 await asyncio.sleep(0.5)
+        rec = cell.job_record(acc.job_id)
+        if rec["state"] in ("failed", "aborted", "interrupted", "done"):  # ended before we followed it
+            return acc.job_id, rec["state"], rec["history"][-1]["message"]
         state, message, _ = await wait_for_job(follower, acc.job_id, 240.0)
         return acc.job_id, state, message
     finally:
