@@ -17,7 +17,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.plates import FormingError, PlateSpec, design_height_mm, forming_dz_mm
+from analysis.plates import (
+    FormingError,
+    PlateSpec,
+    design_height_mm,
+    edge_inward_distances,
+    footprint_bounds,
+    footprint_contains,
+    forming_dz_mm,
+    is_rectangle,
+)
 from analysis.register import HeightField, apply_transform, deflection_gaps, invert_transform
 
 
@@ -61,10 +70,17 @@ def template_lift(
     surface: the design's height field; spec: its plate (the footprint); the grid of design points
     every ``step_mm`` stays ``inset_mm`` inside the footprint's edges.
     """
-    x = np.arange(-spec.length_mm / 2 + inset_mm, spec.length_mm / 2 - inset_mm + 1e-9, step_mm)
-    y = np.arange(-spec.width_mm / 2 + inset_mm, spec.width_mm / 2 - inset_mm + 1e-9, step_mm)
-    X, Y = np.meshgrid(x, y)
-    x, y = X.ravel(), Y.ravel()
+    if is_rectangle(spec):
+        x = np.arange(-spec.length_mm / 2 + inset_mm, spec.length_mm / 2 - inset_mm + 1e-9, step_mm)
+        y = np.arange(-spec.width_mm / 2 + inset_mm, spec.width_mm / 2 - inset_mm + 1e-9, step_mm)
+        X, Y = np.meshgrid(x, y)
+        x, y = X.ravel(), Y.ravel()
+    else:  # any outline: the grid over its bounds, kept inset_mm inside every edge
+        x0, x1, y0, y1 = footprint_bounds(spec)
+        X, Y = np.meshgrid(np.arange(x0, x1 + 1e-9, step_mm), np.arange(y0, y1 + 1e-9, step_mm))
+        x, y = X.ravel(), Y.ravel()
+        keep = np.all([d >= inset_mm for d, _, _ in edge_inward_distances(spec, x, y)], axis=0)
+        x, y = x[keep], y[keep]
     true_pts = apply_transform(T_true, np.column_stack([x, y, design_height_mm(spec, x, y)]))
     gap, _, _, valid = deflection_gaps(surface, true_pts, T_fit, geometry=False)
     g = gap[valid]
@@ -88,7 +104,7 @@ def true_line_zmax(
     check_dents_only(error)
     p = np.asarray(start_mm)[None, :] + np.outer(s_mm, direction)
     q = apply_transform(invert_transform(T_true), p)
-    inside = (np.abs(q[:, 0]) <= spec.length_mm / 2) & (np.abs(q[:, 1]) <= spec.width_mm / 2)
+    inside = footprint_contains(spec, q[:, 0], q[:, 1])
     if not inside.any():
         return float("nan")
     return float(np.abs(forming_dz_mm(spec, error, q[inside, 0], q[inside, 1])).max())

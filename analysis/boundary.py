@@ -2,25 +2,27 @@
 
 Steps, on the top-surface points from ``segment``:
 
-1. **Plate axes in the base plane.** The minimum-area rectangle around the points' XY convex hull
-   gives the plate's long axis ``u`` and the perpendicular ``v`` (counter-clockwise from ``u``);
-   nothing assumes the plate lies square to the bed.
+1. **Raster axes in the base plane.** The minimum-area rectangle around the points' XY convex hull
+   gives the raster's axes ``u`` and ``v`` (counter-clockwise from ``u``); nothing assumes the
+   plate lies square to the bed, nor that it is a rectangle.
 2. **Boundary feature points.** The XY projection is rasterised (``pixel_mm``) in the (u, v)
-   frame; for each ``bin_mm`` strip across an edge, the outermost top-surface point is that
-   edge's feature point (where the scan leaves the plate); its height is extrapolated to it from
-   the points just inside (``z_window_mm``), as the outermost points may be the first hundredths
-   of the thickness face. Strips within ``corner_margin_mm`` of
-   a corner are left out: corners are where the data is incomplete, and they are recovered by
-   intersection instead.
+   frame. The outline of the occupied area is split into four edges at its four largest turns
+   (:func:`analysis.outline.outline_corners` on its convex hull: any corner angle, bowed edges);
+   each outline point belongs to the edge whose chord it lies nearest. For each ``bin_mm`` strip
+   along a chord, the outermost point is that edge's feature point (where the scan leaves the
+   plate); its height is extrapolated to it from the points just inside (``z_window_mm``), as the
+   outermost points may be the first hundredths of the thickness face. Strips within
+   ``corner_margin_mm`` of a corner are left out: corners are where the data is incomplete, and
+   they are recovered by intersection instead.
 3. **Outlier removal by curvature.** Along each edge, feature points where the discrete curvature
    of the edge curve jumps (second difference beyond ``outlier_mad`` robust deviations) or that lie
    off a cubic spline through the others are dropped, repeatedly.
 4. **Cubic splines per edge.** Each edge is a least-squares cubic spline (knots ``knot_mm`` apart
-   for the base-plane offset, whose curves are gentle, ``z_knot_mm`` for the height)
-   of its cross-edge offset and
-   its height over the along-edge coordinate (the XY base-plane projection plus z).
-5. **Corners.** Neighbouring projected edges are intersected in the base plane; the corner's height
-   is the mean of the two edges' height splines at the intersection, as the paper takes it.
+   for the base-plane offset, whose curves are gentle, ``z_knot_mm`` for the height) of its offset
+   from its chord and of its height over the along-chord coordinate.
+5. **Corners.** Neighbouring projected edges are intersected in the base plane (Newton's method on
+   the two along-edge coordinates: the splines meet wherever they meet, at any angle); the corner's
+   height is the mean of the two edges' height splines at the intersection, as the paper takes it.
 
 Corner order is the project convention (see ``plates``): counter-clockwise seen from +z, corner 0
 starts a long edge, of the two long edges the one whose direction is closest to the bed's +x.
@@ -37,8 +39,9 @@ import numpy as np
 import structlog
 from scipy import ndimage
 from scipy.interpolate import make_lsq_spline
-from scipy.spatial import ConvexHull
+from scipy.spatial import ConvexHull, QhullError
 
+from analysis.outline import OutlineError, outline_corners
 from analysis.plates import canonical_corner_order
 
 __all__ = ["BoundaryError", "BoundaryResult", "BoundarySettings", "EdgeFit", "find_corners"]
@@ -230,6 +233,10 @@ class _EdgeSpline:
         tc = np.clip(t, self._lo, self._hi)
         return self._s(tc) + self._d(tc) * (t - tc)
 
+    def derivative(self, t):
+        """dc/dt, the end tangents' slope beyond the data."""
+        return self._d(np.clip(np.asarray(t, dtype=np.float64), self._lo, self._hi))
+
 
 def _cubic_spline(t: np.ndarray, c: np.ndarray, knot_mm: float) -> _EdgeSpline:
     """Least-squares cubic B-spline c(t) with interior knots about ``knot_mm`` apart (t increasing)."""
@@ -321,103 +328,116 @@ def find_corners(points_mm: np.ndarray, settings: BoundarySettings | None = None
     # Only points near the outline can be feature points: a band a few pixels wide.
     band_img = occ & ~ndimage.binary_erosion(occ, iterations=3, border_value=0)
     idx_all = np.flatnonzero(band_img.ravel()[lin])
-    rows_a = np.flatnonzero(occ.any(axis=1))
-    cols_b = np.flatnonzero(occ.any(axis=0))
-    a_lo, a_hi = a0 + rows_a[0] * px, a0 + (rows_a[-1] + 1) * px
-    b_lo, b_hi = b0 + cols_b[0] * px, b0 + (cols_b[-1] + 1) * px
-    # Per pixel column / row: the outermost occupied pixel; points within a pixel of it are candidates.
-    big = np.iinfo(np.int64).max // 4
-    col_min = np.where(occ.any(axis=1), np.argmax(occ, axis=1), big)
-    col_max = np.where(occ.any(axis=1), nb - 1 - np.argmax(occ[:, ::-1], axis=1), -big)
-    row_min = np.where(occ.any(axis=0), np.argmax(occ, axis=0), big)
-    row_max = np.where(occ.any(axis=0), na - 1 - np.argmax(occ[::-1], axis=0), -big)
     timings["raster"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
+    # Approximate corners: where the outline of the occupied area turns most (any corner angle;
+    # a bowed edge turns it little). Only to split the outline into four edges: the corners
+    # themselves come from the edge splines below.
+    bi, bj = np.nonzero(band_img)
+    band_ab = np.column_stack([a0 + (bi + 0.5) * px, b0 + (bj + 0.5) * px])
+    try:
+        hull = band_ab[ConvexHull(band_ab).vertices]  # counter-clockwise
+        q = hull[outline_corners(np.column_stack([hull, np.zeros(len(hull))]), np.array([0.0, 0.0, 1.0]))]
+    except (OutlineError, QhullError) as exc:
+        raise BoundaryError(f"the points outline no four-sided plate ({str(exc).splitlines()[0]})") from None
+    along_v = np.roll(q, -1, axis=0) - q
+    chord = np.linalg.norm(along_v, axis=1)
+    along_v /= chord[:, None]
+    out_v = np.column_stack([along_v[:, 1], -along_v[:, 0]])  # right of a counter-clockwise edge
+    pa, pb = a[idx_all], b[idx_all]
+    # Each outline point belongs to the edge whose chord it lies nearest.
+    dist = np.empty((4, len(idx_all)))
+    t_on = np.empty((4, len(idx_all)))
+    c_on = np.empty((4, len(idx_all)))
+    for k in range(4):
+        t_on[k] = (pa - q[k, 0]) * along_v[k, 0] + (pb - q[k, 1]) * along_v[k, 1]
+        c_on[k] = (pa - q[k, 0]) * out_v[k, 0] + (pb - q[k, 1]) * out_v[k, 1]
+        beyond = np.maximum(np.maximum(-t_on[k], t_on[k] - chord[k]), 0.0)
+        dist[k] = np.hypot(c_on[k], beyond)
+    owner = np.argmin(dist, axis=0)
     m = st.corner_margin_mm
-    ia_on, ib_on = ia[idx_all], ib[idx_all]
-    # Edge 0 (v min), edge 1 (u max), edge 2 (v max), edge 3 (u min): (along, outward-cross) coordinates.
-    d = int(np.ceil(st.z_window_mm[1] / px)) + 1
-    specs = [
-        (ib_on <= col_min[ia_on] + d, a, -b, a_lo + m, a_hi - m),
-        (ia_on >= row_max[ib_on] - d, b, a, b_lo + m, b_hi - m),
-        (ib_on >= col_max[ia_on] - d, a, b, a_lo + m, a_hi - m),
-        (ia_on <= row_min[ib_on] + d, b, -a, b_lo + m, b_hi - m),
-    ]
     fits = []
-    for k, (sel, along_all, outward_all, lo, hi) in enumerate(specs):
+    for k in range(4):
+        sel = owner == k
         cand = idx_all[sel]
-        pick, z_edge = _edge_samples(
-            along_all[cand], outward_all[cand], P[cand, 2], cand, max(st.bin_mm, px), lo, hi, st.z_window_mm
+        t_all, c_all = t_on[k, sel], c_on[k, sel]
+        pick_local, z_edge = _edge_samples(
+            t_all,
+            c_all,
+            P[cand, 2],
+            np.arange(len(cand)),
+            max(st.bin_mm, px),
+            m,
+            chord[k] - m,
+            st.z_window_mm,
         )
-        if len(pick) < st.min_points_per_edge:
-            raise BoundaryError(f"edge {k}: {len(pick)} feature points (need {st.min_points_per_edge})")
-        t = along_all[pick]
+        if len(pick_local) < st.min_points_per_edge:
+            raise BoundaryError(f"edge {k}: {len(pick_local)} feature points (need {st.min_points_per_edge})")
+        t = t_all[pick_local]
         order = np.argsort(t)
-        pick, t, z_edge = pick[order], t[order], z_edge[order]
+        pick_local, t, z_edge = pick_local[order], t[order], z_edge[order]
         distinct = np.r_[True, np.diff(t) > 1e-9]  # the spline needs increasing abscissae
-        pick, t, z_edge = pick[distinct], t[distinct], z_edge[distinct]
-        c = outward_all[pick]
+        pick_local, t, z_edge = pick_local[distinct], t[distinct], z_edge[distinct]
+        c = c_all[pick_local]
         keep, cs, rms = _robust_spline_fit(t, c, st)
         zs = _cubic_spline(t[keep], z_edge[keep], st.z_knot_mm)
-        fits.append((pick, keep, cs, zs, rms))
+        fits.append((cand[pick_local], keep, cs, zs, rms))
     timings["edges"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()
 
-    # Each edge k: along coordinate t, outward offset c(t). In (a, b): edge 0 is b = -c0(a),
-    # edge 1 a = c1(b), edge 2 b = c2(a), edge 3 a = -c3(b).
-    def b_of(k: int, aa: float) -> float:
-        return float(-fits[0][2](aa)) if k == 0 else float(fits[2][2](aa))
+    def on_edge(k: int, tt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Point of edge k's curve at along-coordinate tt and its derivative, in (a, b)."""
+        cs = fits[k][2]
+        p = q[k] + tt * along_v[k] + float(cs(tt)) * out_v[k]
+        return p, along_v[k] + float(cs.derivative(tt)) * out_v[k]
 
-    def a_of(k: int, bb: float) -> float:
-        return float(fits[1][2](bb)) if k == 1 else float(-fits[3][2](bb))
-
-    # Corner j joins edge j-1 and edge j: c0 = e3 & e0, c1 = e0 & e1, c2 = e1 & e2, c3 = e2 & e3.
-    pairs = [(0, 3, a_lo, b_lo), (0, 1, a_hi, b_lo), (2, 1, a_hi, b_hi), (2, 3, a_lo, b_hi)]
-    corners_ab = []
+    # Corner j joins edge j-1 (near its end) and edge j (near its start): Newton on the two
+    # along-coordinates, as the splines meet wherever they meet (no right angle assumed).
+    corners_ab = np.empty((4, 2))
+    t_ends = np.empty((4, 2))  # per edge: along-coordinates of its start and end corners
     heights = []
-    for long_k, short_k, aa, bb in pairs:
+    for j in range(4):
+        i = (j - 1) % 4
+        ta, tb = float(chord[i]), 0.0
         for _ in range(50):
-            bb_new = b_of(long_k, aa)
-            aa_new = a_of(short_k, bb_new)
-            done = abs(aa_new - aa) < 1e-6 and abs(bb_new - bb) < 1e-6
-            aa, bb = aa_new, bb_new
-            if done:
+            pa_, da_ = on_edge(i, ta)
+            pb_, db_ = on_edge(j, tb)
+            J = np.column_stack([da_, -db_])
+            if abs(np.linalg.det(J)) < 1e-9:
+                raise BoundaryError(f"edges {i} and {j} are parallel: no corner between them")
+            step = np.linalg.solve(J, pb_ - pa_)
+            ta, tb = ta + float(step[0]), tb + float(step[1])
+            if np.abs(step).max() < 1e-9:
                 break
-        corners_ab.append((aa, bb))
-        heights.append(0.5 * (float(fits[long_k][3](aa)) + float(fits[short_k][3](bb))))
-    corners_ab = np.asarray(corners_ab)
+        if abs(ta - chord[i]) > 0.25 * chord[i] or abs(tb) > 0.25 * chord[j]:
+            raise BoundaryError(f"edges {i} and {j} do not meet near their ends: no corner between them")
+        corners_ab[j] = on_edge(j, tb)[0]
+        t_ends[j, 0], t_ends[i, 1] = tb, ta
+        heights.append(0.5 * (float(fits[i][3](ta)) + float(fits[j][3](tb))))
     corners_xy = centre + corners_ab[:, :1] * u + corners_ab[:, 1:] * v
     corners = np.column_stack([corners_xy, heights])
 
-    # Edge objects, oriented from corner k to corner k+1.
-    axes = [(u, -v), (v, u), (u, v), (v, -u)]
-    t_ends = [
-        (corners_ab[0, 0], corners_ab[1, 0]),
-        (corners_ab[1, 1], corners_ab[2, 1]),
-        (corners_ab[2, 0], corners_ab[3, 0]),
-        (corners_ab[3, 1], corners_ab[0, 1]),
-    ]
+    # Edge objects, oriented from corner k to corner k+1, in the bed's XY.
     edges = []
     for k, (pick, keep, cs, zs, rms) in enumerate(fits):
-        along_v, out_v = axes[k]
         edges.append(
             EdgeFit(
                 points_mm=P[pick[keep]],
                 n_outliers=int((~keep).sum()),
                 rms_mm=rms,
-                _origin=centre,
-                _along=along_v,
-                _cross=out_v,
+                _origin=centre + q[k, 0] * u + q[k, 1] * v,
+                _along=along_v[k, 0] * u + along_v[k, 1] * v,
+                _cross=out_v[k, 0] * u + out_v[k, 1] * v,
                 _cross_spline=cs,
                 _z_spline=zs,
-                _t0=float(t_ends[k][0]),
-                _t1=float(t_ends[k][1]),
+                _t0=float(t_ends[k, 0]),
+                _t1=float(t_ends[k, 1]),
             )
         )
-    # The (u, v) construction already follows the convention; canonical_corner_order decides by
-    # edge lengths, which matters only for a near-square plate. Roll edges with the corners.
+    # Into the project's order (corner 0 starts a long edge pointing into the bed's +x half plane):
+    # roll the edges with the corners.
     canon = canonical_corner_order(corners)
     shift = int(np.argmin([np.abs(np.roll(corners, -s, axis=0) - canon).sum() for s in range(4)]))
     corners = np.roll(corners, -shift, axis=0)

@@ -31,6 +31,13 @@ import numpy as np
 import structlog
 
 from analysis.mesh import MeshError, TriMesh, load_mesh
+from analysis.outline import (  # noqa: F401 - canonical_corner_order_in_plane: analysis.moulded's
+    OutlineError,
+    canonical_corner_order_in_plane,
+    frame_design_mesh,
+    outline_corners,
+    plate_frame_from_surface,
+)
 from analysis.plates import canonical_corner_order
 
 log = structlog.get_logger(__name__)
@@ -839,87 +846,6 @@ def _boundary(shape, path: Path) -> list[tuple[np.ndarray, np.ndarray]]:
     return loops
 
 
-def _corners(samples: np.ndarray, vertex: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """Four corners of a closed outline (k, 3): its vertices where the outline turns most.
-
-    At each vertex of the boundary wire, the turning angle between the incoming and outgoing
-    directions (in the base plane); the four largest are the corners when they stand out (> 20
-    degrees), else the outline's points farthest out along the footprint's diagonals.
-    """
-    h = samples - np.outer(samples @ up, up)
-    idx = np.nonzero(vertex)[0]
-    k = len(h)
-    step = max(1, min(3, k // 40))
-    d_in = h[idx] - h[(idx - step) % k]
-    d_out = h[(idx + step) % k] - h[idx]
-    cosang = np.einsum("ij,ij->i", d_in, d_out) / (
-        np.linalg.norm(d_in, axis=1) * np.linalg.norm(d_out, axis=1) + 1e-300
-    )
-    turn = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
-    order = np.argsort(-turn)
-    if len(idx) >= 4 and turn[order[3]] > 20.0 and (len(idx) == 4 or turn[order[4]] < 20.0):
-        picks = np.sort(idx[order[:4]])
-        return samples[picks]
-    xy = h - h.mean(axis=0)
-    _, _, axes = np.linalg.svd(xy, full_matrices=False)
-    uv = xy @ axes[:2].T
-    uv /= np.abs(uv).max(axis=0)
-    picks = sorted({int(np.argmax(uv @ np.array(s))) for s in ((-1, -1), (1, -1), (1, 1), (-1, 1))})
-    if len(picks) < 4:
-        raise DesignError("cannot find four distinct corners on the design's boundary")
-    return samples[picks]
-
-
-def plate_frame_from_surface(
-    vertices_mm: np.ndarray, triangles: np.ndarray, corners_mm: np.ndarray
-) -> np.ndarray:
-    """4x4 transform file frame -> design frame, found from the plate itself.
-
-    z: the normal of the area-weighted least-squares plane through the surface (the plate's base
-    plane), turned to the side the surface's normals point to (the design side up); x: along the
-    long edges, mean of the two long edges' directions in that plane; origin: the corners' centre
-    projected onto the plane (:func:`read_cad_in_process` then moves it along z onto the surface). A plate already lying in its file's frame (base plane within 0.5
-    degrees of +z, corners centred on the origin within 1 mm) keeps that frame: the identity.
-    """
-    tv = vertices_mm[triangles]
-    nrm = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
-    area = 0.5 * np.linalg.norm(nrm, axis=1)
-    cen = tv.mean(axis=1)
-    mean = (cen * area[:, None]).sum(axis=0) / area.sum()
-    X = (cen - mean) * np.sqrt(area)[:, None]
-    _, _, vt = np.linalg.svd(X, full_matrices=False)
-    z = vt[2]
-    if nrm.sum(axis=0) @ z < 0:
-        z = -z
-    c = canonical_corner_order_in_plane(corners_mm, z)
-    centre = c.mean(axis=0)
-    if z[2] > np.cos(np.radians(0.5)) and np.linalg.norm(centre[:2]) < 1.0:
-        return np.eye(4)
-    e_a = c[1] - c[0]
-    e_b = c[2] - c[3]
-    x = (e_a / np.linalg.norm(e_a) + e_b / np.linalg.norm(e_b)) / 2
-    x -= (x @ z) * z
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.vstack([x, y, z])
-    origin = centre - ((centre - mean) @ z) * z
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = -R @ origin
-    return T
-
-
-def canonical_corner_order_in_plane(corners_mm: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """:func:`canonical_corner_order` seen from ``up`` instead of +z (corners in any frame)."""
-    z = up / np.linalg.norm(up)
-    a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = a - (a @ z) * z
-    x /= np.linalg.norm(x)
-    R = np.vstack([x, np.cross(z, x), z])
-    local = corners_mm @ R.T
-    return canonical_corner_order(local) @ R
-
-
 def read_cad(
     path: str | Path,
     deflection_mm: float | None = None,
@@ -1090,8 +1016,8 @@ def read_cad_in_process(
     up = mesh_file.triangle_normals().T @ mesh_file.triangle_areas_mm2()
     up /= max(np.linalg.norm(up), 1e-300)
     try:
-        corners_file = _corners(samples, vflag, up)
-    except DesignError as exc:
+        corners_file = samples[outline_corners(samples, up, candidates=vflag)]
+    except OutlineError as exc:
         raise DesignError(f"{path}: {exc}") from None
     T = plate_frame_from_surface(V, Tr, corners_file)
 
@@ -1145,7 +1071,11 @@ def read_design(path: str | Path) -> TriMesh | CadDesign:
     if suffix in CAD_SUFFIXES:
         return read_cad(path)
     if suffix in MESH_SUFFIXES:
-        return load_mesh(path)
+        # a mesh in ship coordinates is moved into its own plate frame, as a CAD design is
+        try:
+            return frame_design_mesh(load_mesh(path)).mesh
+        except OutlineError as exc:
+            raise DesignError(f"{path}: {exc}") from None
     raise DesignError(
         f"{path}: unsupported design format {Path(path).suffix!r} (use {', '.join(DESIGN_SUFFIXES)})"
     )

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.plates import PlateSpec, design_height_mm
+from analysis.plates import PlateSpec, design_height_mm, footprint_bounds, is_rectangle, outline_edges
 
 UNIT_MM = {"mm": 1.0, "m": 1000.0}
 
@@ -101,23 +101,45 @@ def _uv_of_xy(spec: PlateSpec, margin_mm: float, x: float, y: float) -> tuple[fl
 
 def plate_faces(spec: PlateSpec, *, trimmed: bool = False, split: tuple[int, int] = (1, 1)) -> list:
     """TopoDS faces of the plate's top surface: one face, or ``split`` (nx, ny) faces sharing edges,
-    or (``trimmed``) a larger surface trimmed to the footprint by a boundary in its parameters."""
+    or (``trimmed``) a larger surface trimmed to the footprint by a boundary in its parameters. A
+    plate whose outline is not a rectangle (:mod:`analysis.plates`) is always one trimmed face."""
     from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeEdge, BRepBuilderAPI_MakeFace, BRepBuilderAPI_MakeWire
     from OCP.BRepLib import BRepLib
-    from OCP.Geom2d import Geom2d_Line
+    from OCP.Geom2d import Geom2d_BezierCurve, Geom2d_Line
     from OCP.gp import gp_Dir2d, gp_Pnt2d
+    from OCP.OCP.collections import Array1_gp_Pnt2d
 
-    if trimmed:
-        margin = 0.1 * spec.width_mm
+    rectangle = is_rectangle(spec)
+    if not rectangle and (spec.kind == "cylinder" or split != (1, 1)):
+        raise ValueError(
+            "a non-rectangular outline is written as one trimmed face of a sail, saddle, twisted or flat plate"
+        )
+    if trimmed or not rectangle:
+        # the surface must reach beyond the whole outline (a sheared or bowed one too)
+        x_min, x_max, y_min, y_max = footprint_bounds(spec)
+        beyond = max(x_max - spec.length_mm / 2, -spec.length_mm / 2 - x_min,
+                     y_max - spec.width_mm / 2, -spec.width_mm / 2 - y_min, 0.0)  # fmt: skip
+        margin = 0.1 * spec.width_mm + beyond
         surf = plate_surface(spec, margin)
-        hl, hw = spec.length_mm / 2, spec.width_mm / 2
-        uv = [_uv_of_xy(spec, margin, x, y) for x, y in ((-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw))]
         wire = BRepBuilderAPI_MakeWire()
-        for k in range(4):
-            a, b = np.array(uv[k]), np.array(uv[(k + 1) % 4])
-            d = b - a
-            line = Geom2d_Line(gp_Pnt2d(*a), gp_Dir2d(*d))
-            wire.Add(BRepBuilderAPI_MakeEdge(line, surf, 0.0, float(np.linalg.norm(d))).Edge())
+        for ed in outline_edges(spec):
+            # u, v are linear in x, y off the cylinder: a straight edge is a line in (u, v), a
+            # parabolic bow the quadratic Bezier through its chord ends and twice its sagitta
+            a = np.array(_uv_of_xy(spec, margin, *ed.a))
+            b = np.array(_uv_of_xy(spec, margin, *(ed.a + ed.chord_mm * ed.e)))
+            if ed.k_per_mm == 0.0:
+                d = b - a
+                line = Geom2d_Line(gp_Pnt2d(*a), gp_Dir2d(*d))
+                wire.Add(BRepBuilderAPI_MakeEdge(line, surf, 0.0, float(np.linalg.norm(d))).Edge())
+                continue
+            sag = ed.k_per_mm * ed.chord_mm**2 / 4.0
+            mid = ed.a + 0.5 * ed.chord_mm * ed.e + 2.0 * sag * ed.n
+            m = np.array(_uv_of_xy(spec, margin, *mid))
+            poles = Array1_gp_Pnt2d(1, 3)
+            for i, pt in enumerate((a, m, b)):
+                poles.SetValue(i + 1, gp_Pnt2d(*pt))
+            curve = Geom2d_BezierCurve(poles)
+            wire.Add(BRepBuilderAPI_MakeEdge(curve, surf, 0.0, 1.0).Edge())
         face = BRepBuilderAPI_MakeFace(surf, wire.Wire(), True).Face()
         BRepLib.BuildCurves3d_s(face)
         return [face]
@@ -150,7 +172,7 @@ def write_faces(
     from OCP.IFSelect import IFSelect_RetDone
     from OCP.IGESControl import IGESControl_Controller, IGESControl_Writer
     from OCP.Interface import Interface_Static
-    from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
+    from OCP.STEPControl import STEPControl_AsIs, STEPControl_Controller, STEPControl_Writer
     from OCP.TopoDS import TopoDS_Compound
 
     from analysis.cad import _quiet_occ
@@ -181,6 +203,9 @@ def write_faces(
         if not writer.Write(str(path)):
             raise OSError(f"{path}: the IGES writer failed")
     elif suffix in (".stp", ".step"):
+        # the STEP parameters exist once its controller is initialised: before that the unit set
+        # here was silently dropped, and the first STEP file a process wrote came out in mm
+        STEPControl_Controller.Init_s()
         Interface_Static.SetCVal_s("write.step.unit", units.upper())
         Interface_Static.SetCVal_s("xstep.cascade.unit", "MM")
         writer = STEPControl_Writer()

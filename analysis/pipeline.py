@@ -52,8 +52,8 @@ from analysis.job import AnalysisJob, Report
 from analysis.mesh import MeshError, TriMesh
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
 from analysis.moulded import design_as_laid
+from analysis.outline import design_corners_from_mesh, frame_design_mesh
 from analysis.placement import Placement, placement_transform
-from analysis.plates import canonical_corner_order
 from analysis.register import (
     HeightField,
     RegistrationError,
@@ -75,7 +75,6 @@ from analysis.template_fit import (
     line_rest_samples,
 )
 from analysis.templates import (
-    FAMILY_LETTER,
     TemplateCut,
     cut_templates,
     cut_templates_exact,
@@ -122,33 +121,6 @@ class Inspection:
 
 
 # ---------------------------------------------------------------------------------------- helpers
-
-
-def design_corners_from_mesh(design: TriMesh) -> np.ndarray:
-    """(4, 3) corners of a design mesh's footprint in the project's order (corner 0 = reference).
-
-    The boundary vertices (on edges used by one triangle) are split by the footprint's principal
-    axes; each corner is the boundary vertex farthest out along one of the four diagonal directions.
-    """
-    tri = design.triangles
-    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
-    key = edges[:, 0] * len(design.vertices_mm) + edges[:, 1]  # one int64 per edge: a 1-D unique
-    uniq, counts = np.unique(key, return_counts=True)
-    once = uniq[counts == 1]
-    border = np.unique(np.concatenate([once // len(design.vertices_mm), once % len(design.vertices_mm)]))
-    if len(border) < 4:
-        raise InspectionError(
-            "the design mesh has no open boundary: is it a closed solid, not a top surface?"
-        )
-    V = design.vertices_mm[border]
-    xy = V[:, :2] - V[:, :2].mean(axis=0)
-    _, _, axes = np.linalg.svd(xy, full_matrices=False)
-    uv = xy @ axes.T
-    uv /= np.abs(uv).max(axis=0)
-    picks = [int(np.argmax(uv @ np.array(s))) for s in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
-    if len(set(picks)) < 4:
-        raise InspectionError("cannot find four distinct corners on the design's boundary")
-    return canonical_corner_order(V[picks])
 
 
 def _side_lengths(corners: np.ndarray) -> tuple[float, float]:
@@ -330,6 +302,10 @@ def inspect_cloud(
     design is offset by ``settings.thickness_mm`` first (:func:`analysis.moulded.design_as_laid`).
     """
     settings = settings or InspectionSettings()
+    T_design_file = None
+    if isinstance(design, TriMesh):  # a mesh in ship coordinates: into its own plate frame first
+        framed = frame_design_mesh(design)
+        design, T_design_file = framed.mesh, framed.T_design_file
     # the face the sensor sees: the design itself, or its other side when laid moulded side down
     design = design_as_laid(design, settings.design_side, settings.thickness_mm)
     cad = design if isinstance(design, CadDesign) else None
@@ -479,22 +455,22 @@ def inspect_cloud(
         },
         "inputs": {"points": len(cloud), **(inputs or {}), "placement": nominal_placement},
         "design": {
-            **_design_record(cad),
+            **_design_record(cad, T_design_file),
             "side": settings.design_side,
             "thickness_mm": settings.thickness_mm if settings.design_side == "moulded_down" else None,
         },
         "timings_s": timings,
     }
     for other in modes[1:]:
-        v = judged[other][0]
+        v, other_cuts, _ = judged[other]
         report["template_fit_compare"] = {
             "template_fit": other,
             "verdict": v.verdict,
-            "lines": [
-                {"name": f"{FAMILY_LETTER.get(m.family, '?')}{m.index}", "family": m.family, "index": m.index,
+            "lines": [  # named as the main table names them (a template table's names, else T3, L1, ...)
+                {"name": line_name(cut.line), "family": m.family, "index": m.index,
                  "sz_avg_mm": m.sz_avg_mm, "zmax_mm": m.zmax_mm, "cmax_per_mm": m.cmax_per_mm,
                  "grade": m.grade, "pass": m.passed}
-                for m in v.lines
+                for m, cut in zip(v.lines, other_cuts, strict=True)
             ],
         }  # fmt: skip
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
@@ -521,10 +497,12 @@ def inspect_cloud(
     )
 
 
-def _design_record(cad: CadDesign | None) -> dict[str, Any]:
-    """What the report says about the design: a mesh, or the CAD file's format, units and faces."""
+def _design_record(cad: CadDesign | None, T_design_file: np.ndarray | None = None) -> dict[str, Any]:
+    """What the report says about the design: a mesh (and how it was moved into its own frame, if
+    it was given in another pose), or the CAD file's format, units and faces."""
     if cad is None:
-        return {"kind": "mesh"}
+        moved = T_design_file is not None and not np.array_equal(T_design_file, np.eye(4))
+        return {"kind": "mesh", "T_design_file": T_design_file.tolist() if moved else None}
     return {
         "kind": "cad",
         "format": cad.facts.fmt,

@@ -3,16 +3,18 @@
 Conventions (shared by ``synth``, ``segment``, ``boundary``, ``register``, ``templates``):
 
 * **Design plate frame.** x runs along the plate's length, y along its width, z up. The origin is the
-  centre of the design's XY footprint, which is the rectangle ``[-L/2, L/2] x [-W/2, W/2]``
-  (``L = length_mm >= W = width_mm``). ``length_mm`` and ``width_mm`` are therefore footprint
-  (projected) sizes, not arc lengths. The design mesh is the plate's *top* (scanned) surface
+  centre of the design's XY footprint, by default the rectangle ``[-L/2, L/2] x [-W/2, W/2]``
+  (``L = length_mm >= W = width_mm``); a parallelogram, trapezoid or bowed outline
+  (``corner_angle_deg``, ``top_length_mm``, ``bow_mm``) has its corners' mean there. ``length_mm``
+  and ``width_mm`` are footprint (projected) sizes, not arc lengths. The design mesh is the plate's *top* (scanned) surface
   ``z = height(x, y)``; the bottom is ``thickness_mm`` below it along z and the thickness faces are
   the vertical planes over the footprint's edges.
 * **Heights.** Every shape has ``height(0, 0) = 0``. The sail is a dish (synclastic, both curvatures
   positive, edges higher than the centre), the saddle is anticlastic, the twisted plate is the
   hyperbolic paraboloid ``z = k x y``, the cylinder bends about the y axis.
 * **Corners.** ``design_corners`` returns (4, 3) mm ordered counter-clockwise seen from +z, starting
-  at the reference corner ``(-L/2, -W/2)``: c0 (-,-), c1 (+,-), c2 (+,+), c3 (-,+). Edge k runs from
+  at the reference corner ``(-L/2, -W/2)``: c0 (-,-), c1 (+,-), c2 (+,+), c3 (-,+) (any outline:
+  c0 -> c1 is edge 0 along +x, c3 -> c2 the opposite length edge). Edge k runs from
   corner k to corner k+1, so edges 0 and 2 are the long edges and edge 0 runs along +x.
   ``boundary.find_corners`` orders measured corners the same way (corner 0 starts a long edge,
   see :func:`canonical_corner_order`), so design and measured corners correspond up to a half turn
@@ -37,6 +39,7 @@ __all__ = [
     "EdgeSpringback",
     "FormingError",
     "GaussianBump",
+    "OutlineEdge",
     "PlateError",
     "PlateKind",
     "PlateSpec",
@@ -45,10 +48,17 @@ __all__ = [
     "design_corners",
     "design_height_mm",
     "design_mesh",
+    "edge_inward_distances",
+    "footprint_bounds",
+    "footprint_contains",
+    "footprint_grid",
     "formed_corners",
     "formed_height_mm",
     "forming_dz_mm",
+    "is_rectangle",
     "load_design",
+    "outline_corners_xy",
+    "outline_edges",
     "plate_spec",
     "surface_gradient",
 ]
@@ -68,6 +78,11 @@ class PlateSpec:
     radius_x_mm: bending radius of sections along x (sail, saddle, cylinder).
     radius_y_mm: bending radius of sections along y (sail, saddle).
     twist_per_mm: k of ``z = k x y`` for the twisted plate (1/mm).
+    Outline (default: the rectangle ``length_mm x width_mm``): edge 0 (corner 0 -> 1) runs along +x
+    and is ``length_mm`` long, the opposite edge 2 is parallel to it ``width_mm`` away (in plan) and
+    ``top_length_mm`` long (default ``length_mm``: a parallelogram; else a trapezoid), the corner
+    angle at corner 0 is ``corner_angle_deg`` (60-120). ``bow_mm``: per edge, the sagitta of a
+    parabolic bow in plan (positive outward) over the edge's chord. The corners' mean is the origin.
     """
 
     kind: PlateKind = "sail"
@@ -77,8 +92,20 @@ class PlateSpec:
     radius_x_mm: float = 4000.0
     radius_y_mm: float = 3000.0
     twist_per_mm: float = 4.0e-5
+    corner_angle_deg: float = 90.0
+    top_length_mm: float | None = None
+    bow_mm: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "bow_mm", tuple(float(b) for b in self.bow_mm))
+        if len(self.bow_mm) != 4 or not np.isfinite(self.bow_mm).all():
+            raise PlateError(f"bow_mm: four finite edge bows (mm) expected, got {self.bow_mm!r}")
+        if not 60.0 <= self.corner_angle_deg <= 120.0:
+            raise PlateError(f"corner_angle_deg: {self.corner_angle_deg!r} is outside 60-120 degrees")
+        if self.top_length_mm is not None and not (
+            np.isfinite(self.top_length_mm) and self.top_length_mm > 0
+        ):
+            raise PlateError(f"top_length_mm: must be a positive finite number, got {self.top_length_mm!r}")
         if self.kind not in PLATE_KINDS:
             raise PlateError(f"kind: unknown plate kind {self.kind!r} (one of {', '.join(PLATE_KINDS)})")
         for name in ("length_mm", "width_mm", "thickness_mm", "radius_x_mm", "radius_y_mm"):
@@ -257,15 +284,14 @@ def forming_dz_mm(
             gy -= g * dy / b.sigma_mm**2
     if error.springback is not None and error.springback.amplitude_mm != 0:
         a, s = error.springback.amplitude_mm, error.springback.decay_mm
-        hl, hw = spec.length_mm / 2, spec.width_mm / 2
         # Distances to the four edges; outside the footprint they go negative and the field keeps
         # growing smoothly, which the ray caster needs for its Newton steps near the edges.
-        e_xp, e_xm = np.exp(np.minimum(-(hl - x) / s, 30.0)), np.exp(np.minimum(-(hl + x) / s, 30.0))
-        e_yp, e_ym = np.exp(np.minimum(-(hw - y) / s, 30.0)), np.exp(np.minimum(-(hw + y) / s, 30.0))
-        dz += a * (e_xp + e_xm + e_yp + e_ym)
-        if with_gradient:
-            gx += a * (e_xp - e_xm) / s
-            gy += a * (e_yp - e_ym) / s
+        for dist, ddx, ddy in edge_inward_distances(spec, x, y):
+            ex = np.exp(np.minimum(-dist / s, 30.0))
+            dz += a * ex
+            if with_gradient:
+                gx -= a * ex * ddx / s
+                gy -= a * ex * ddy / s
     if error.bend_fraction != 0:
         dz += error.bend_fraction * design_height_mm(spec, x, y)
         if with_gradient:
@@ -293,6 +319,135 @@ def surface_gradient(
     return design_height_mm(spec, x, y) + dz, hx + gx, hy + gy
 
 
+# ------------------------------------------------------------------------------------- outline
+
+
+def is_rectangle(spec: PlateSpec) -> bool:
+    """True for the plain ``length_mm x width_mm`` rectangle (the default outline)."""
+    return (
+        spec.corner_angle_deg == 90.0
+        and spec.top_length_mm in (None, spec.length_mm)
+        and not any(spec.bow_mm)
+    )
+
+
+def outline_corners_xy(spec: PlateSpec) -> np.ndarray:
+    """(4, 2) the outline's corners in plan (design frame, mm), counter-clockwise from corner 0."""
+    L, W = spec.length_mm, spec.width_mm
+    top = spec.length_mm if spec.top_length_mm is None else spec.top_length_mm
+    if is_rectangle(spec):
+        return np.array([[-L / 2, -W / 2], [L / 2, -W / 2], [L / 2, W / 2], [-L / 2, W / 2]])
+    shear = W / np.tan(np.radians(spec.corner_angle_deg))
+    x0 = -(L + 2 * shear + top) / 4  # the corners' mean on the origin
+    return np.array([[x0, -W / 2], [x0 + L, -W / 2], [x0 + shear + top, W / 2], [x0 + shear, W / 2]])
+
+
+@dataclass(frozen=True)
+class OutlineEdge:
+    """Edge k of the outline in plan: ``p(s) = a + s e + bow(s) n`` for ``s`` in [0, chord_mm].
+
+    a: (2,) corner k; e: (2,) unit chord direction to corner k + 1; n: (2,) unit outward normal of
+    the chord; bow(s) = k s (chord - s) with k = 4 sagitta / chord^2 (parabolic bow, 0 at the corners).
+    """
+
+    a: np.ndarray
+    e: np.ndarray
+    n: np.ndarray
+    chord_mm: float
+    k_per_mm: float
+
+    def bow(self, s: np.ndarray) -> np.ndarray:
+        """Outward offset (mm) of the edge from its chord at chord coordinate s (0 beyond the chord)."""
+        sc = np.clip(s, 0.0, self.chord_mm)
+        return self.k_per_mm * sc * (self.chord_mm - sc)
+
+    def slope(self, s: np.ndarray) -> np.ndarray:
+        """d bow / ds (0 beyond the chord)."""
+        inside = (s >= 0.0) & (s <= self.chord_mm)
+        return np.where(inside, self.k_per_mm * (self.chord_mm - 2.0 * s), 0.0)
+
+    def point(self, s: np.ndarray) -> np.ndarray:
+        """(m, 2) edge points at chord coordinates s (straight continuation beyond the chord)."""
+        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+        return self.a + np.outer(s, self.e) + np.outer(self.bow(s), self.n)
+
+    def outward(self, s: np.ndarray) -> np.ndarray:
+        """(m, 2) unit outward normals of the edge curve at s."""
+        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+        v = self.n[None, :] - self.slope(s)[:, None] * self.e[None, :]
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def outline_edges(spec: PlateSpec) -> tuple[OutlineEdge, ...]:
+    """The outline's four edges, edge k from corner k to corner k + 1."""
+    c = outline_corners_xy(spec)
+    out = []
+    for k in range(4):
+        a, b = c[k], c[(k + 1) % 4]
+        chord = float(np.linalg.norm(b - a))
+        e = (b - a) / chord
+        out.append(OutlineEdge(a, e, np.array([e[1], -e[0]]), chord, 4.0 * spec.bow_mm[k] / chord**2))
+    return tuple(out)
+
+
+def edge_inward_distances(
+    spec: PlateSpec, x_mm: np.ndarray, y_mm: np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per edge: (inward distance (mm) from the edge curve, measured across its chord, and its x and
+    y derivatives) at design-frame (x, y); positive inside. A point is on the plate when all four
+    are >= 0."""
+    x = np.asarray(x_mm, dtype=np.float64)
+    y = np.asarray(y_mm, dtype=np.float64)
+    out = []
+    for ed in outline_edges(spec):
+        s = (x - ed.a[0]) * ed.e[0] + (y - ed.a[1]) * ed.e[1]
+        c = (x - ed.a[0]) * ed.n[0] + (y - ed.a[1]) * ed.n[1]
+        sl = ed.slope(s)
+        out.append((ed.bow(s) - c, sl * ed.e[0] - ed.n[0], sl * ed.e[1] - ed.n[1]))
+    return out
+
+
+def footprint_contains(spec: PlateSpec, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+    """True where design-frame (x, y) lies on the plate's footprint (edges included)."""
+    if is_rectangle(spec):
+        return (np.abs(x_mm) <= spec.length_mm / 2) & (np.abs(y_mm) <= spec.width_mm / 2)
+    inside = np.ones(np.broadcast_shapes(np.shape(x_mm), np.shape(y_mm)), dtype=bool)
+    for d, _, _ in edge_inward_distances(spec, x_mm, y_mm):
+        inside &= d >= -1e-9
+    return inside
+
+
+def footprint_bounds(spec: PlateSpec) -> tuple[float, float, float, float]:
+    """(x_min, x_max, y_min, y_max) of the footprint, bowed edges included (mm)."""
+    pts = np.concatenate([ed.point(np.linspace(0.0, ed.chord_mm, 65)) for ed in outline_edges(spec)])
+    return float(pts[:, 0].min()), float(pts[:, 0].max()), float(pts[:, 1].min()), float(pts[:, 1].max())
+
+
+def footprint_grid(spec: PlateSpec, nu: int, nv: int) -> tuple[np.ndarray, np.ndarray]:
+    """(X, Y) (nu, nv) a grid over the footprint reaching its edges exactly (design frame, mm).
+
+    A rectangle: the regular grid. Any other outline: the Coons patch of its four edge curves
+    (u along edges 0 and 2, v along edges 3 and 1), so the grid's border lies on the outline.
+    """
+    u = np.linspace(0.0, 1.0, nu)
+    v = np.linspace(0.0, 1.0, nv)
+    if is_rectangle(spec):
+        X, Y = np.meshgrid(spec.length_mm * (u - 0.5), spec.width_mm * (v - 0.5), indexing="ij")
+        return X, Y
+    e0, e1, e2, e3 = outline_edges(spec)
+    c = outline_corners_xy(spec)
+    bottom = e0.point(u * e0.chord_mm)
+    top = e2.point((1.0 - u) * e2.chord_mm)
+    left = e3.point((1.0 - v) * e3.chord_mm)
+    right = e1.point(v * e1.chord_mm)
+    U, V = u[:, None, None], v[None, :, None]
+    P = (
+        (1 - V) * bottom[:, None] + V * top[:, None] + (1 - U) * left[None] + U * right[None]
+        - ((1 - U) * (1 - V) * c[0] + U * (1 - V) * c[1] + U * V * c[2] + (1 - U) * V * c[3])
+    )  # fmt: skip
+    return P[..., 0], P[..., 1]
+
+
 def design_mesh(spec: PlateSpec, *, pitch_mm: float = 5.0, error: FormingError | None = None) -> TriMesh:
     """The design top surface as a regular triangle mesh in the design frame (mm).
 
@@ -301,11 +456,10 @@ def design_mesh(spec: PlateSpec, *, pitch_mm: float = 5.0, error: FormingError |
     """
     if not pitch_mm > 0:
         raise PlateError(f"pitch_mm: must be positive, got {pitch_mm!r}")
-    nx = max(2, int(np.ceil(spec.length_mm / pitch_mm)) + 1)
-    ny = max(2, int(np.ceil(spec.width_mm / pitch_mm)) + 1)
-    xs = np.linspace(-spec.length_mm / 2, spec.length_mm / 2, nx)
-    ys = np.linspace(-spec.width_mm / 2, spec.width_mm / 2, ny)
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    edges = outline_edges(spec)
+    nx = max(2, int(np.ceil(max(edges[0].chord_mm, edges[2].chord_mm) / pitch_mm)) + 1)
+    ny = max(2, int(np.ceil(max(edges[1].chord_mm, edges[3].chord_mm) / pitch_mm)) + 1)
+    X, Y = footprint_grid(spec, nx, ny)
     Z = formed_height_mm(spec, error, X, Y) if error is not None else design_height_mm(spec, X, Y)
     vertices = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
     idx = np.arange(nx * ny).reshape(nx, ny)
@@ -317,9 +471,9 @@ def design_mesh(spec: PlateSpec, *, pitch_mm: float = 5.0, error: FormingError |
 
 
 def design_corners(spec: PlateSpec) -> np.ndarray:
-    """(4, 3) float64 mm: the design's top corners, counter-clockwise from +z, from (-L/2, -W/2)."""
-    hl, hw = spec.length_mm / 2, spec.width_mm / 2
-    xy = np.array([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
+    """(4, 3) float64 mm: the design's top corners, counter-clockwise from +z, from the reference
+    corner (``(-L/2, -W/2)`` for a rectangle)."""
+    xy = outline_corners_xy(spec)
     return np.column_stack([xy, design_height_mm(spec, xy[:, 0], xy[:, 1])])
 
 

@@ -495,6 +495,13 @@ def _surface_normals(slope: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
+# The corners' weight against the surface's in the fine fits (see icp_point_to_plane): their share of
+# the surface's weight when the surface's residual RMS equals the corners' accuracy, CORNER_SIGMA_MM
+# (about what the boundary finder gives); the share follows the ratio of the two variances.
+BOUNDARY_WEIGHT = 1e-1
+CORNER_SIGMA_MM = 1.0
+
+
 def icp_point_to_plane(
     surface: HeightField,
     measured_points_mm: np.ndarray,
@@ -508,7 +515,7 @@ def icp_point_to_plane(
     seed: int = 0,
     design_corners_mm: np.ndarray | None = None,
     measured_corners_mm: np.ndarray | None = None,
-    boundary_weight: float = 1e-3,
+    boundary_weight: float = BOUNDARY_WEIGHT,
 ) -> IcpResult:
     """Point-to-plane ICP, vectorised: correspondences by vertical projection onto the height field.
 
@@ -522,7 +529,15 @@ def icp_point_to_plane(
     non-penetrating fit does.
     design_corners_mm, measured_corners_mm: optional matched (4, 3) corners (design frame /
     measured frame, same order) that anchor the plate in its own plane; their in-plane residuals
-    enter with total weight ``boundary_weight`` times the number of surface points.
+    enter with total weight ``boundary_weight * (rms / CORNER_SIGMA_MM)^2`` times the number of
+    surface points, ``rms`` the surface residuals' RMS at that step. The weights follow
+    the two terms' information: a surface the rigid design fits to its noise holds the in-plane pose
+    itself (a curved plate, whose slopes see every in-plane motion), and noisy corners must not pull
+    it away; a surface whose residuals are forming error the design cannot follow says little about
+    the in-plane pose, above all on a nearly flat plate whose surface hardly sees the yaw, and the
+    corners hold it. (With a constant share, 1e-2 let 1 mm corner noise move a curved plate by more
+    than a millimetre, and 1e-5 let a nearly flat formed plate turn by a degree.) The RMS, not a
+    robust scale: a local dent is forming error the in-plane pose must not follow either.
     """
     corners = _matched_corners(design_corners_mm, measured_corners_mm)
     P = _subsample(_check_points("measured_points_mm", measured_points_mm, 6), max_points, seed)
@@ -546,14 +561,15 @@ def icp_point_to_plane(
         c = pu.mean(axis=0)
         scale = float(np.sqrt(((pu - c) ** 2).sum(axis=1).mean())) or 1.0
         J = np.hstack([np.cross(pu - c, nu) / scale, nu])
-        K, e = _corner_terms(T_inv, corners, c, scale, boundary_weight * inl / 8.0)
+        rms = float(np.sqrt(np.mean(ru**2)))
+        share = boundary_weight * (rms / CORNER_SIGMA_MM) ** 2
+        K, e = _corner_terms(T_inv, corners, c, scale, share * inl / 8.0)
         H = J.T @ J + K.T @ K
         H[np.diag_indices(6)] += 1e-12 * np.trace(H)
         x = np.linalg.solve(H, -(J.T @ ru + K.T @ e))
         omega, t = x[:3] / scale, x[3:]
         R = rotation_from_vector(omega)
         T_inv = make_transform(R, c - R @ c + t) @ T_inv
-        rms = float(np.sqrt(np.mean(ru**2)))
         sigma = 1.4826 * float(np.median(np.abs(ru)))
         threshold = max(
             min(threshold, 3.0 * sigma + 3.0 * np.linalg.norm(x[:3]) + np.linalg.norm(t)), min_distance_mm
@@ -854,7 +870,7 @@ def nonpenetrating_fit(
     max_distance_mm: float = 25.0,
     design_corners_mm: np.ndarray | None = None,
     measured_corners_mm: np.ndarray | None = None,
-    boundary_weight: float = 1e-3,
+    boundary_weight: float = BOUNDARY_WEIGHT,
     subsample: int = 20_000,
     rel_tolerance: float = 1e-5,
 ) -> NonPenetratingResult:
@@ -873,8 +889,13 @@ def nonpenetrating_fit(
     is removed by a pure lift along ``up`` (which raises every gap by exactly the same amount), so
     the result has zero penetrating points. Points off the footprint or more than
     ``max_distance_mm`` from the surface are not constrained (they are not on this plate).
-    With matched corners the in-plane corner residuals are added to the objective as in
-    :func:`icp_point_to_plane` (the QP stays exact; ``objective_mm2`` reports the gaps alone).
+    With matched corners the in-plane corner residuals are added to the objective, weighted as in
+    :func:`icp_point_to_plane` by the two terms' information, with the RMS gap as the surface's
+    scale (the QP stays exact; ``objective_mm2`` reports the gaps alone). Resting the unformed
+    design on a formed plate is one-sided: whatever in-plane motion lowers the gaps pays for
+    forming error with it, and on a nearly flat plate the surface hardly sees the yaw; large gaps
+    hand the in-plane pose to the corners. (With a constant share of 1e-3 the e2e cell's plate
+    turned 1.7 degrees off the true plate, 5-6 mm at its corners.)
     The first iterations run on a seeded ``subsample`` of the points, the last ones on all.
     The outer loop stops when a step moves less than ``tolerance_mm`` or, with every point
     feasible, lowers the objective by less than ``rel_tolerance`` of itself.
@@ -999,6 +1020,8 @@ def _onesided_iterations(
 ) -> tuple[np.ndarray, int, int, int, bool, np.ndarray]:
     """Outer correspondence loop of the one-sided fit on the points ``P`` (measured frame).
 
+    The corners weigh as in :func:`icp_point_to_plane`, with the RMS gap as the surface's scale.
+
     Each step is confined to a trust region of ``trust_mm`` per parameter (translation in mm,
     rotation in mm at the points' RMS radius): the correspondences are only valid near the current
     pose, and a weakly determined direction (sliding along a nearly spherical plate) would
@@ -1039,7 +1062,8 @@ def _onesided_iterations(
         J = J6.T
         lift = np.concatenate([np.zeros(3), -u])  # moving the points down along u lifts every gap by 1
         damping = DAMPING * float(np.einsum("ij,ij->", J6, J6)) / 6.0
-        K, e = _corner_terms(T_inv, corners, c, scale, boundary_weight * len(s) / 8.0)
+        share = boundary_weight * float(s @ s) / len(s) / CORNER_SIGMA_MM**2
+        K, e = _corner_terms(T_inv, corners, c, scale, share * len(s) / 8.0)
         x, steps, active = _solve_onesided_qp(J, s, lift, damping, K, e, box=trust)
         qp_steps += steps
         # a step that turns back on the last one means the linear model is overreaching: shrink
@@ -1164,7 +1188,7 @@ def register(
     up: np.ndarray = np.array([0.0, 0.0, 1.0]),
     grid_step_mm: float = 1.0,
     icp_points: int = 100_000,
-    boundary_weight: float = 1e-3,
+    boundary_weight: float = BOUNDARY_WEIGHT,
     nonpen_cell_mm: float | None = None,
     rest_points: Callable[[np.ndarray], np.ndarray] | None = None,
     nominal_transform: np.ndarray | None = None,

@@ -26,6 +26,12 @@ a stated confidence:
    bump that must still carry the template); a scan too sparse for the cap gets a larger bound, and
    the result says so.
 
+4. **Edges.** A template on a raised (springback) edge touches the edge itself, not a patch's
+   centroid inside it. Every patch on the plate's edge is also held at its outer extent by a local
+   quadratic of the gaps across and along the edge, fitted on a block of patches big enough that its
+   value there keeps the patches' bound (:func:`_edge_fits`); without, a plate with 1 mm springback
+   let the design sink 0.15 mm below its edges.
+
 Assumes independent noise between points (a correlated error -- a pass offset, a clock error on a
 slope -- is not divided by ``sqrt(n)``) and a plate smooth at the patch scale. Costs one gap
 evaluation and two binning passes over the points (linear, about 0.1 s per 10^6 points) and the
@@ -59,10 +65,11 @@ class RestSurface:
 
     points_mm: (m, 3) one point per patch, measured frame: the patch centroid's x and y, and the
     height whose gap to the design (at the pose it was made at) is the patch's mean gap.
-    counts: (m,) points per patch. noise_mm: sigma estimated from the data. cell_mm: the patch side.
+    counts: (m,) points per patch (an edge patch's plane: its effective count n_eff). noise_mm: sigma estimated from the data. cell_mm: the patch side.
     min_count: the fewest points a kept patch holds. standard_error_mm: sigma / sqrt(min_count).
     bound_mm: the highest patch error stays below this with probability ``confidence``.
     target_met: bound_mm <= target_sigmas * noise_mm (False: the scan was too sparse for the cap).
+    edge_patches: how many of the points are edge patches held at their outer extent.
     """
 
     points_mm: np.ndarray
@@ -75,11 +82,16 @@ class RestSurface:
     confidence: float
     target_sigmas: float
     target_met: bool
+    edge_patches: int = 0
 
     def as_dict(self) -> dict:
         """The report's record of the estimate (no arrays)."""
         return {
-            "estimator": "patch mean of gaps to the design",
+            "estimator": (
+                "patch means of gaps to the design, edge patches also at their outer extent"
+                if self.edge_patches
+                else "patch means of gaps to the design"
+            ),
             "patches": len(self.counts),
             "cell_mm": round(self.cell_mm, 3),
             "min_points": self.min_count,
@@ -92,17 +104,12 @@ class RestSurface:
         }
 
 
-# a patch's gap slope counts as real above this chi-square (2 degrees of freedom: p = 1e-6), so a
-# flat patch is held at its centroid alone with all but certainty
-SLOPE_CHI2 = 27.6
-
-
-def _extent(inv: np.ndarray, v: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) of ``v`` per group ``inv`` of ``m`` groups."""
+def _extent(inv: np.ndarray, v: np.ndarray, use: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of ``v[use]`` per group ``inv`` of ``m`` groups (+inf, -inf for an empty group)."""
     lo = np.full(m, np.inf)
     hi = np.full(m, -np.inf)
-    np.minimum.at(lo, inv, v)
-    np.maximum.at(hi, inv, v)
+    np.minimum.at(lo, inv[use], v[use])
+    np.maximum.at(hi, inv[use], v[use])
     return lo, hi
 
 
@@ -110,10 +117,10 @@ TRIM_SIGMAS = 3.0
 
 
 def _patch_planes(
-    inv: np.ndarray, m: int, P: np.ndarray, gap: np.ndarray, w: np.ndarray, sigma: float
+    inv: np.ndarray, m: int, P: np.ndarray, gap: np.ndarray, w: np.ndarray
 ) -> tuple[np.ndarray, ...]:
     """Weighted plane of the gaps per patch: (centroid (m, 3), mean gap, slope x, slope y, dx (n,),
-    dy (n,) the points' offsets from their centroid, chi-square of the slope, weight sum)."""
+    dy (n,) the points' offsets from their centroid, weight sum)."""
     n_w = np.bincount(inv, weights=w, minlength=m)
     safe_n = np.maximum(n_w, 1.0)
     mean = np.column_stack([np.bincount(inv, weights=w * P[:, k], minlength=m) / safe_n for k in range(3)])
@@ -128,8 +135,90 @@ def _patch_planes(
     safe = np.where(ok, det, 1.0)
     b_x = np.where(ok, (syy * sxg - sxy * syg) / safe, 0.0)
     b_y = np.where(ok, (sxx * syg - sxy * sxg) / safe, 0.0)
-    chi2 = (b_x * sxg + b_y * syg) / max(sigma, 1e-12) ** 2  # the slope's explained sum over sigma^2
-    return mean, mean_gap, b_x, b_y, dx, dy, chi2, n_w
+    return mean, mean_gap, b_x, b_y, dx, dy, n_w
+
+
+# the blocks an edge patch's surface is fitted on, tried in turn until its value at the edge keeps
+# the bound: (cells deep across each edge, cells either side along an edge)
+EDGE_BLOCKS = ((2, 2), (3, 2), (4, 2))
+# where an edge patch's value is placed: this share of a patch inside its outer extent
+EDGE_INSET = 0.2
+
+
+def _edge_fits(
+    grid: _Grid, Q: np.ndarray, gap: np.ndarray, w: np.ndarray, n_min: int, inset_mm: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Edge patches held at their outer extent by a local fit of the gaps across the edge.
+
+    Q: (n, 3) the points in the design frame; gap, w: their gaps and weights. An axis on which the
+    patch's neighbour is missing on one side is an edge axis; the patch is evaluated at its kept
+    points' extreme on that side (on both axes at a corner; at the centroid's coordinate along an
+    axis without an edge). The fit: least squares of the kept points' gaps (and heights, for the
+    point's place) on a block of ``deep`` cells inward across every edge axis and ``2 along + 1`` cells
+    along the other, quadratic in the distance across each edge and along it. The value at
+    the point is the fit's intercept, its variance ``sigma^2 / n_eff`` with ``1 / n_eff`` the
+    intercept's entry of ``(X^T X)^-1``; the first block of :data:`EDGE_BLOCKS` where
+    ``n_eff >= n_min`` (the bound of a patch mean) serves, a patch none suffices for is left out.
+    The point carrying the value is placed ``inset_mm`` inside the edge: on the footprint's very
+    edge a slide of the design by a millimetre would take it off the footprint, where the fit does
+    not constrain a point, and the fit could escape the edge that way (the design's tilt against
+    the plate over the inset, 1e-3 x a few mm, is what that costs).
+    A plane would read a curved rise by ``f'' W^2 / 12`` off (a dent's tail lifts the design, a
+    springback rise lets it sink); a quadratic leaves the third derivative times ``W^3 / 120``.
+    Returns (points (k, 3) design frame, gaps (k,), n_eff (k,)).
+    """
+    m = len(grid.count)
+    use = w > 0
+    n_c = np.bincount(grid.inv, weights=w, minlength=m)
+    safe = np.maximum(n_c, 1e-300)
+    cen = np.column_stack([np.bincount(grid.inv, weights=w * Q[:, k], minlength=m) / safe for k in (0, 1)])
+    lo_hi = [_extent(grid.inv, Q[:, k], use, m) for k in (0, 1)]
+    miss = grid.missing
+    # side per axis: +1 the edge lies on the + side, -1 on the - side, 0 no edge on this axis
+    side = np.column_stack(
+        [(miss[:, 2 * k] & ~miss[:, 2 * k + 1]).astype(int) - (miss[:, 2 * k + 1] & ~miss[:, 2 * k]) for k in (0, 1)]
+    )  # fmt: skip
+    cells = np.flatnonzero((n_c > 0) & side.any(axis=1))
+    order = np.argsort(grid.inv, kind="stable")
+    start = np.concatenate([[0], np.cumsum(grid.count)])
+    index = {int(key): i for i, key in enumerate(grid.keys)}
+    out_q, out_g, out_n = [], [], []
+    for c in cells:
+        sd = side[c]
+        at = np.array(
+            [lo_hi[k][1][c] if sd[k] > 0 else lo_hi[k][0][c] if sd[k] < 0 else cen[c, k] for k in (0, 1)]
+        )
+        for deep, along in EDGE_BLOCKS:
+            ranges = [range(-sd[k] * (deep - 1), 1) if sd[k] > 0 else range(0, deep) if sd[k] < 0
+                      else range(-along, along + 1) for k in (0, 1)]  # fmt: skip
+            block = [
+                index.get(int(grid.keys[c]) + di * grid.width + dj) for di in ranges[0] for dj in ranges[1]
+            ]
+            pts = np.concatenate([order[start[b] : start[b + 1]] for b in block if b is not None])
+            pts = pts[use[pts]]
+            d = (Q[pts, :2] - at) / max(float(np.ptp(Q[pts, :2], axis=0).max()), 1e-9)
+            cols = [np.ones(len(pts))]
+            for k in (0, 1):
+                cols += [d[:, k], d[:, k] ** 2]
+            X = np.column_stack(cols)
+            if len(pts) <= 2 * X.shape[1]:
+                continue
+            XtX = X.T @ X
+            try:
+                inv00 = float(np.linalg.solve(XtX, np.eye(len(XtX))[0])[0])
+                coef = np.linalg.solve(XtX, X.T @ np.column_stack([gap[pts], Q[pts, 2]]))
+            except np.linalg.LinAlgError:
+                continue
+            n_eff = 1.0 / inv00 if inv00 > 0 else 0.0
+            if n_eff >= n_min:
+                place = at - sd * inset_mm
+                out_q.append([place[0], place[1], coef[0, 1]])
+                out_g.append(coef[0, 0])
+                out_n.append(n_eff)
+                break
+    if not out_q:
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+    return np.asarray(out_q), np.asarray(out_g), np.asarray(out_n)
 
 
 def max_normal_quantile(count: int, confidence: float) -> float:
@@ -142,8 +231,8 @@ def max_normal_quantile(count: int, confidence: float) -> float:
 
 def _cells(xy: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(inverse index (n,), counts (m,)) of the occupied ``cell_mm`` squares."""
-    inv, count, _ = _cells_with_border(np.floor(xy / cell_mm).astype(np.int64))
-    return inv, count
+    g = _grid(np.floor(xy / cell_mm).astype(np.int64))
+    return g.inv, g.count
 
 
 def _plate_cells(xy_design_mm: np.ndarray, cell_mm: float) -> np.ndarray:
@@ -157,17 +246,35 @@ def _plate_cells(xy_design_mm: np.ndarray, cell_mm: float) -> np.ndarray:
     return np.minimum(ij, (n - 1).astype(np.int64))
 
 
-def _cells_with_border(ij: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cells of the (n, 2) integer indices: (inverse index (n,), counts (m,), border (m,) bool --
-    the cell lacks one of its four neighbours, the plate's edge)."""
+@dataclass(frozen=True)
+class _Grid:
+    """Occupied cells of integer indices: inv (n,) a point's cell, count (m,), keys (m,) sorted cell
+    keys, width (the key's stride in i), missing (m, 4) bool -- the neighbour at +i, -i, +j, -j is
+    absent (the cell lies on the plate's edge on that side)."""
+
+    inv: np.ndarray
+    count: np.ndarray
+    keys: np.ndarray
+    width: int
+    missing: np.ndarray
+
+    def lookup(self, di: int, dj: int, cells: np.ndarray) -> np.ndarray:
+        """(k,) the index of the cell (di, dj) away from each of ``cells``, -1 where none."""
+        want = self.keys[cells] + di * self.width + dj
+        at = np.minimum(np.searchsorted(self.keys, want), len(self.keys) - 1)
+        return np.where(self.keys[at] == want, at, -1)
+
+
+def _grid(ij: np.ndarray) -> _Grid:
+    """The occupied cells of the (n, 2) integer indices ``ij``."""
     ij = ij - (ij.min(axis=0) - 1)  # a free row and column on every side
     width = int(ij[:, 1].max()) + 2
     key = ij[:, 0] * width + ij[:, 1]
     keys, inv, count = np.unique(key, return_inverse=True, return_counts=True)
-    border = np.zeros(len(keys), dtype=bool)
-    for step in (1, -1, width, -width):
-        border |= ~np.isin(keys + step, keys, assume_unique=True)
-    return inv, count, border
+    missing = np.column_stack(
+        [~np.isin(keys + step, keys, assume_unique=True) for step in (width, -width, 1, -1)]
+    )
+    return _Grid(inv, count, keys, width, missing)
 
 
 def noise_from_gaps(xy_mm: np.ndarray, gap_mm: np.ndarray, cell_mm: float = 2.0) -> float:
@@ -197,18 +304,17 @@ def rest_surface(
     max_cell_mm: float = 20.0,
     min_cell_mm: float = 1.0,
     noise_cell_mm: float = 2.0,
-    edge_corners: bool = False,
+    edge_aware: bool = True,
     up: np.ndarray = np.array([0.0, 0.0, 1.0]),
 ) -> RestSurface:
     """The patch estimate of the plate (see the module docstring) at the pose ``T_meas_design``.
 
     surface: the design's height field; points_mm: (n, 3) plate top-surface points, measured frame;
     T_meas_design: (4, 4) design -> measured, near the final pose (after ICP). noise_mm: None
-    estimates sigma from the data (:func:`noise_from_gaps`). ``edge_corners`` also holds sloped
-    patches on the plate's edge at their corners: without, a 600 x 400 sail with 1 mm springback
-    rests 0.14-0.17 mm below its raised edges, with, a third of that -- but the design then rests on
-    a few noisy corner extrapolations and the Zmax of a 1200 x 800 plate spread 0.22 mm over ten
-    scans instead of 0.05 (benchmarks/repeatability.py), so it is off by default. Raises
+    estimates sigma from the data (:func:`noise_from_gaps`). ``edge_aware`` (the default) also
+    holds every patch on the plate's edge at its outer extent by the plane of a block around it
+    (:func:`_edge_fits`): without, a plate with raised (springback) edges lets the design sink
+    below them by the rise over half a patch (0.1-0.3 mm for 1 mm of springback). Raises
     RegistrationError when fewer than 6 patches remain.
     """
     P = np.asarray(points_mm, dtype=np.float64)
@@ -236,8 +342,9 @@ def rest_surface(
         patches = max(2.0 * area / cell**2, 1.0)  # twice: the part-filled patches along the edges
     n_min = min(n_min, max(int(0.66 * density * cell**2), 1))  # the cap: what a patch can hold
     # patches anchored at the points' lower-left corner (any anchor is as good)
-    q = apply_transform(invert_transform(np.asarray(T_meas_design, dtype=np.float64)), P)
-    inv, count, border = _cells_with_border(_plate_cells(q[:, :2], cell))
+    Q = apply_transform(invert_transform(np.asarray(T_meas_design, dtype=np.float64)), P)
+    grid = _grid(_plate_cells(Q[:, :2], cell))
+    inv, count = grid.inv, grid.count
     keep = count >= n_min
     if keep.sum() < 6:
         raise RegistrationError(
@@ -246,33 +353,27 @@ def rest_surface(
         )
     # per patch, the plane of the gaps about the centroid, fitted twice: the second time without the
     # points more than TRIM_SIGMAS off the first plane (the edge band's points of the thickness face,
-    # outliers the segmentation's 6-sigma test let through). A patch on the plate's edge whose slope
-    # is significant (springback raising the edge) is held at the corners of its points' extent as
-    # well -- its centroid alone would let the design dip below the raised edge. Inside the plate
-    # the centroid serves: a plane extrapolated to the corners reads a dent's rim too high.
+    # outliers the segmentation's 6-sigma test let through)
     w = np.ones(len(P))
     for _ in range(2):
-        mean, mean_gap, b_x, b_y, dx, dy, chi2, n_w = _patch_planes(inv, len(count), P, gap, w, sigma)
+        mean, mean_gap, b_x, b_y, dx, dy, n_w = _patch_planes(inv, len(count), P, gap, w)
         resid = gap - mean_gap[inv] - b_x[inv] * dx - b_y[inv] * dy
         w = (np.abs(resid) <= TRIM_SIGMAS * sigma).astype(np.float64)
     count = n_w.astype(np.int64)
     keep &= count >= n_min
-    sloped = keep & border & (chi2 > SLOPE_CHI2) & edge_corners
     reps = [mean[keep]]
     rep_gap = [mean_gap[keep]]
     rep_count = [count[keep].astype(np.float64)]
-    if sloped.any():
-        dx, dy = np.where(w > 0, dx, 0.0), np.where(w > 0, dy, 0.0)  # the extent of the points kept
-        x_lo, x_hi = _extent(inv, dx, len(count))
-        y_lo, y_hi = _extent(inv, dy, len(count))
-        for cx, cy in ((x_lo, y_lo), (x_hi, y_lo), (x_hi, y_hi), (x_lo, y_hi)):
-            c = mean[sloped].copy()
-            c[:, 0] += cx[sloped]
-            c[:, 1] += cy[sloped]
-            reps.append(c)
-            rep_gap.append(mean_gap[sloped] + b_x[sloped] * cx[sloped] + b_y[sloped] * cy[sloped])
-            # the plane at a corner of a uniform square patch has 7x the variance of the mean
-            rep_count.append(count[sloped] / 7.0)
+    n_edge = 0
+    if edge_aware:
+        # a template resting on a raised edge touches the edge itself: the edge patches are also
+        # held at their outer extent, by a plane fitted on a block big enough to keep the bound
+        origin = Q.min(axis=0)
+        e_q, e_g, e_n = _edge_fits(grid, Q - origin, gap, w, n_min, EDGE_INSET * cell)
+        n_edge = len(e_g)
+        reps.append(apply_transform(np.asarray(T_meas_design, dtype=np.float64), e_q + origin))
+        rep_gap.append(e_g)
+        rep_count.append(e_n)
     rep, rep_g, count_eff = np.vstack(reps), np.concatenate(rep_gap), np.concatenate(rep_count)
     # a point's own gap is linear in its height along up: move it so that its gap is the estimate
     g_c, _, _, ok = deflection_gaps(surface, rep, T_meas_design, up, geometry=False)
@@ -293,6 +394,7 @@ def rest_surface(
         confidence=confidence,
         target_sigmas=target_sigmas,
         target_met=bound <= target_sigmas * sigma * (1.0 + 1e-9),
+        edge_patches=n_edge,
     )
     log.debug("rest_surface", **result.as_dict())
     return result

@@ -54,7 +54,11 @@ from analysis.plates import (
     canonical_corner_order,
     default_forming_error,
     design_mesh,
+    footprint_bounds,
+    footprint_contains,
+    footprint_grid,
     formed_corners,
+    outline_edges,
     plate_spec,
     surface_gradient,
 )
@@ -226,9 +230,7 @@ def _place(spec: PlateSpec, error: FormingError, placement: Placement, scene: Be
     """T_bed_design: rotate, then lower the plate until its bottom touches the highest support under it
     (the placement's height is not used)."""
     R = placement_transform(placement)[:3, :3]
-    u = np.linspace(-spec.length_mm / 2, spec.length_mm / 2, 241)
-    v = np.linspace(-spec.width_mm / 2, spec.width_mm / 2, 161)
-    U, V = np.meshgrid(u, v, indexing="ij")
+    U, V = footprint_grid(spec, 241, 161)
     Z, _, _ = surface_gradient(spec, error, U, V)
     bottom = np.column_stack([U.ravel(), V.ravel(), Z.ravel() - spec.thickness_mm]) @ R.T
     bottom[:, :2] += (placement.x_mm, placement.y_mm)
@@ -250,9 +252,7 @@ def _place(spec: PlateSpec, error: FormingError, placement: Placement, scene: Be
 
 def _height_range(spec: PlateSpec, error: FormingError) -> tuple[float, float]:
     """Bounds of the formed top surface's height over the footprint (mm), with a safety margin."""
-    u = np.linspace(-spec.length_mm / 2, spec.length_mm / 2, 241)
-    v = np.linspace(-spec.width_mm / 2, spec.width_mm / 2, 161)
-    U, V = np.meshgrid(u, v, indexing="ij")
+    U, V = footprint_grid(spec, 241, 161)
     Z, _, _ = surface_gradient(spec, error, U, V)
     return float(Z.min()) - 5.0, float(Z.max()) + 5.0
 
@@ -309,7 +309,8 @@ def _cast(
     R, p0 = T[:3, :3], T[:3, 3]
     od = (o - p0) @ R
     dd = d @ R
-    hl, hw, th = spec.length_mm / 2, spec.width_mm / 2, spec.thickness_mm
+    x_min, x_max, y_min, y_max = footprint_bounds(spec)
+    th = spec.thickness_mm
     z_lo, z_hi = _height_range(spec, error)
     z_lo -= th
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -319,10 +320,10 @@ def _cast(
     ya, yb = od[:, 1] + t_hi * dd[:, 1], od[:, 1] + t_lo * dd[:, 1]
     near = (
         (dd[:, 2] < 0)
-        & (np.minimum(xa, xb) <= hl + 1.0)
-        & (np.maximum(xa, xb) >= -hl - 1.0)
-        & (np.minimum(ya, yb) <= hw + 1.0)
-        & (np.maximum(ya, yb) >= -hw - 1.0)
+        & (np.minimum(xa, xb) <= x_max + 1.0)
+        & (np.maximum(xa, xb) >= x_min - 1.0)
+        & (np.minimum(ya, yb) <= y_max + 1.0)
+        & (np.maximum(ya, yb) >= y_min - 1.0)
     )
     sub = np.flatnonzero(near)
     if len(sub) == 0:
@@ -345,44 +346,54 @@ def _cast(
     x = o_s[:, 0] + t * d_s[:, 0]
     y = o_s[:, 1] + t * d_s[:, 1]
     z, gx, gy = surface_gradient(spec, error, x, y)
-    ok = (np.abs(o_s[:, 2] + t * d_s[:, 2] - z) < 1e-5) & (np.abs(x) <= hl) & (np.abs(y) <= hw) & (t > 0)
+    ok = (np.abs(o_s[:, 2] + t * d_s[:, 2] - z) < 1e-5) & footprint_contains(spec, x, y) & (t > 0)
     hit = ok & (t < t_best[sub])
     if hit.any():
         nd = np.column_stack([-gx[hit], -gy[hit], np.ones(int(hit.sum()))])
         nd /= np.linalg.norm(nd, axis=1, keepdims=True)
         t_best[sub[hit]] = t[hit]
         normal[sub[hit]] = nd @ R.T
-    # Thickness faces: vertical planes x = +-L/2, y = +-W/2 in the design frame, facing the ray.
+    # Thickness faces: vertical walls over the outline's edges, facing the ray. In edge k's chord
+    # frame (s along, c outward) the wall is c = k s (chord - s): a quadratic in the ray's t.
     with np.errstate(divide="ignore", invalid="ignore"):
-        for axis, half, other_half in ((0, hl, hw), (1, hw, hl)):
-            lo_s, hi_s = (xa[sub], xb[sub]) if axis == 0 else (ya[sub], yb[sub])
-            for sign in (1.0, -1.0):
-                # Only rays whose path through the plate's height slab crosses the face's plane.
-                w = sign * half
-                cross = np.flatnonzero((np.minimum(lo_s, hi_s) <= w) & (np.maximum(lo_s, hi_s) >= w))
-                if len(cross) == 0:
-                    continue
-                tw_c = (w - o_s[cross, axis]) / d_s[cross, axis]
-                q_c = o_s[cross] + tw_c[:, None] * d_s[cross]
-                keep = (
-                    (d_s[cross, axis] * sign < 0)
-                    & (tw_c > 0)
-                    & (np.abs(q_c[:, 1 - axis]) <= other_half)
-                    & (q_c[:, 2] <= z_hi)
-                    & (q_c[:, 2] >= z_lo)
-                )
-                cand = cross[keep]
-                if len(cand) == 0:
-                    continue
-                tw, q = tw_c[keep], q_c[keep]
-                zt, _, _ = surface_gradient(spec, error, q[:, 0], q[:, 1])
-                inside = (q[:, 2] <= zt) & (q[:, 2] >= zt - th) & (tw < t_best[sub[cand]])
-                if inside.any():
-                    nd = np.zeros(3)
-                    nd[axis] = sign
-                    rows = sub[cand[inside]]
-                    t_best[rows] = tw[inside]
-                    normal[rows] = R @ nd
+        for ed in outline_edges(spec):
+            s0 = (o_s[:, 0] - ed.a[0]) * ed.e[0] + (o_s[:, 1] - ed.a[1]) * ed.e[1]
+            s1 = d_s[:, 0] * ed.e[0] + d_s[:, 1] * ed.e[1]
+            c0 = (o_s[:, 0] - ed.a[0]) * ed.n[0] + (o_s[:, 1] - ed.a[1]) * ed.n[1]
+            c1 = d_s[:, 0] * ed.n[0] + d_s[:, 1] * ed.n[1]
+            kb, L = ed.k_per_mm, ed.chord_mm
+            qa = -kb * s1 * s1
+            qb = kb * s1 * (L - 2.0 * s0) - c1
+            qc = kb * s0 * (L - s0) - c0
+            lin = np.abs(qa) < 1e-14 * np.maximum(np.abs(qb), 1e-300)
+            disc = qb * qb - 4.0 * qa * qc
+            root = np.sqrt(np.maximum(disc, 0.0))
+            qd = np.where(lin, 1.0, 2.0 * qa)
+            roots = [
+                np.where(lin, -qc / qb, (-qb - root) / qd),
+                np.where(lin, np.inf, (-qb + root) / qd),
+            ]
+            tw = np.full(len(sub), np.inf)
+            for r in roots:
+                sr = s0 + r * s1
+                nrm_xy = ed.outward(sr)
+                facing = nrm_xy[:, 0] * d_s[:, 0] + nrm_xy[:, 1] * d_s[:, 1] < 0
+                zr = o_s[:, 2] + r * d_s[:, 2]
+                good = (disc >= 0) & (r > 0) & (sr >= 0) & (sr <= L) & facing & (zr <= z_hi) & (zr >= z_lo)
+                tw = np.where(good & (r < tw), r, tw)
+            cand = np.flatnonzero(np.isfinite(tw))
+            if len(cand) == 0:
+                continue
+            tw = tw[cand]
+            q = o_s[cand] + tw[:, None] * d_s[cand]
+            zt, _, _ = surface_gradient(spec, error, q[:, 0], q[:, 1])
+            inside = (q[:, 2] <= zt) & (q[:, 2] >= zt - th) & (tw < t_best[sub[cand]])
+            if inside.any():
+                sq = (q[inside, 0] - ed.a[0]) * ed.e[0] + (q[inside, 1] - ed.a[1]) * ed.e[1]
+                nd = np.column_stack([ed.outward(sq), np.zeros(int(inside.sum()))])
+                rows = sub[cand[inside]]
+                t_best[rows] = tw[inside]
+                normal[rows] = nd @ R.T
     return _Hits(t_best, normal)
 
 
@@ -470,24 +481,23 @@ def synthesize_scan(
 
     if settings.edge_passes:
         alpha = np.deg2rad(settings.edge_view_deg)
-        corners_d = formed_corners(spec, error)
         w = (j - (settings.points_per_profile - 1) / 2) * settings.point_pitch_mm
-        for e in range(4):
-            a_d, b_d = corners_d[e, :2], corners_d[(e + 1) % 4, :2]
-            along_d = (b_d - a_d) / np.linalg.norm(b_d - a_d)
-            out_d = np.array([along_d[1], -along_d[0]])  # right of a CCW edge = outward
-            length = float(np.linalg.norm(b_d - a_d))
-            s = np.arange(-settings.margin_mm, length + settings.margin_mm, settings.profile_step_mm)
-            exy = a_d + s[:, None] * along_d
+        for e, ed in enumerate(outline_edges(spec)):
+            # along the edge curve (a bowed edge too), the line across it, the view tilted outward
+            s = np.arange(-settings.margin_mm, ed.chord_mm + settings.margin_mm, settings.profile_step_mm)
+            exy = ed.point(s)
             ez, _, _ = surface_gradient(spec, error, exy[:, 0], exy[:, 1])
             edge_bed = np.column_stack([exy, ez]) @ R.T + T[:3, 3]
-            n_out = R @ np.array([out_d[0], out_d[1], 0.0])
-            n_out[2] = 0.0
-            n_out /= np.linalg.norm(n_out)
+            out_d = ed.outward(s)
+            n_out = np.column_stack([out_d, np.zeros(len(s))]) @ R.T
+            n_out[:, 2] = 0.0
+            n_out /= np.linalg.norm(n_out, axis=1, keepdims=True)
             d1 = -np.sin(alpha) * n_out + np.array([0.0, 0.0, -np.cos(alpha)])
             u1 = np.cos(alpha) * n_out + np.array([0.0, 0.0, -np.sin(alpha)])
-            o = (edge_bed[:, None, :] + w[None, :, None] * u1 - 300.0 * d1).reshape(-1, 3)
-            d = np.tile(d1, (len(o), 1))
+            o = (edge_bed[:, None, :] + w[None, :, None] * u1[:, None, :] - 300.0 * d1[:, None, :]).reshape(
+                -1, 3
+            )
+            d = np.repeat(d1, len(w), axis=0)
             hits = _cast(o, d, spec, error, T, scene)
             pts, keep, outl = _sense(o, d, hits, settings, rng)
             out_pts.append(pts)

@@ -105,16 +105,73 @@ def line_rest_samples(
         bin_mm = float(np.clip(1.5 * n_min / per_mm, 1.0, max_bin_mm))
         bins = max(2.0 * length / bin_mm, 1.0)
     n_min = min(n_min, max(int(0.66 * per_mm * bin_mm), 1))
-    k = np.floor((s - s.min()) / bin_mm).astype(np.int64)
-    count = np.bincount(k)
+    # a whole number of bins from one end of the section to the other: the end bins then sit the
+    # same way on the plate in every scan (a partial end bin, kept or dropped as the density and the
+    # placement change, moved the line's support by up to a bin and its Zmax by 0.1 mm)
+    s0 = float(s.min())
+    n_bins = max(round(length / bin_mm), 1)
+    bin_mm = length / n_bins
+    k = np.minimum(np.floor((s - s0) / bin_mm).astype(np.int64), n_bins - 1)
+    count = np.bincount(k, minlength=n_bins)
     keep = count >= n_min
     if keep.sum() < 3:
         raise TemplateFitError(f"{line.family} line {line.index}: fewer than 3 bins of {n_min} points")
-    s_mean = np.bincount(k, weights=s)[keep] / count[keep]
-    g_mean = np.bincount(k, weights=g)[keep] / count[keep]
+    safe = np.maximum(count, 1)
+    s_mean = (np.bincount(k, weights=s, minlength=n_bins) / safe)[keep]
+    g_mean = (np.bincount(k, weights=g, minlength=n_bins) / safe)[keep]
+    counts = count[keep].astype(np.float64)
+    # the ends: a template on a raised edge touches the section's end, not its end bin's centroid
+    ends = [_end_sample(s, g, k, n_bins, end, n_min, noise_mm) for end in (0, n_bins - 1)]
+    ends = [e for e in ends if e is not None]
+    if ends:
+        s_mean = np.concatenate([s_mean, [e[0] for e in ends]])
+        g_mean = np.concatenate([g_mean, [e[1] for e in ends]])
+        counts = np.concatenate([counts, [e[2] for e in ends]])
+    order = np.argsort(s_mean)
+    s_mean, g_mean, counts = s_mean[order], g_mean[order], counts[order]
     h = np.interp(s_mean, sd, hd) - g_mean
-    bound = max_normal_quantile(int(keep.sum()), confidence) * noise_mm / math.sqrt(int(count[keep].min()))
-    return LineRest(s_mean, h, count[keep], bin_mm, bound, confidence)
+    bound = max_normal_quantile(len(counts), confidence) * noise_mm / math.sqrt(float(counts.min()))
+    return LineRest(s_mean, h, counts, bin_mm, bound, confidence)
+
+
+# trimmed like the 3D patches (analysis.rest_surface.TRIM_SIGMAS): the thickness face's points
+END_TRIM_SIGMAS = 3.0
+
+
+def _end_sample(
+    s: np.ndarray, g: np.ndarray, k: np.ndarray, n_bins: int, end: int, n_min: int, noise_mm: float
+) -> tuple[float, float, float] | None:
+    """The section's end held by a line of the gaps: (s at the end, gap there, n_eff) or None.
+
+    The line is fitted on the end bin and its neighbours (one, then two), points more than
+    END_TRIM_SIGMAS off a first fit left out, and evaluated at the outermost point; its variance
+    there is ``sigma^2 / n_eff``, ``1 / n_eff = 1 / n + (s_end - mean s)^2 / S_ss``. The first
+    block where ``n_eff >= n_min`` (the bins' variance bound) serves; None if none does.
+    """
+    step = 1 if end == 0 else -1
+    for r in (1, 2):
+        if r >= n_bins:
+            return None
+        lo, hi = sorted((end, end + step * r))
+        sel = (k >= lo) & (k <= hi)
+        ss, gg = s[sel], g[sel]
+        if len(ss) < 3:
+            continue
+        at = float(ss.min() if end == 0 else ss.max())
+        use = np.ones(len(ss), dtype=bool)
+        for trim in (True, False):
+            m_s, m_g = float(ss[use].mean()), float(gg[use].mean())
+            sss = float(((ss[use] - m_s) ** 2).sum())
+            if sss <= 0.0 or use.sum() < 3:
+                break
+            slope = float(((ss[use] - m_s) * (gg[use] - m_g)).sum()) / sss
+            if trim:
+                use = np.abs(gg - m_g - slope * (ss - m_s)) <= END_TRIM_SIGMAS * noise_mm
+        else:
+            n_eff = 1.0 / (1.0 / int(use.sum()) + (at - m_s) ** 2 / sss)
+            if n_eff >= n_min:
+                return at, m_g + slope * (at - m_s), n_eff
+    return None
 
 
 @dataclass(frozen=True)

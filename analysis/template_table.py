@@ -17,9 +17,20 @@ from pathlib import Path
 
 from analysis.templates import TableTemplate
 
-__all__ = ["EDGE_ALIASES", "TemplateTableError", "parse_template_table", "read_template_table"]
+__all__ = [
+    "EDGE_ALIASES",
+    "MAX_NAME_CHARS",
+    "MAX_ROWS",
+    "TemplateTableError",
+    "name_problem",
+    "parse_template_table",
+    "read_template_table",
+    "row_problem",
+]
 
 MAX_ROWS = 200
+MAX_NAME_CHARS = 40
+MAX_DISTANCE_MM = 100_000.0  # 100 m: beyond any plate
 # accepted spellings of each column (case and surrounding blanks ignored)
 COLUMNS = {
     "name": ("name", "template", "template_name"),
@@ -38,6 +49,35 @@ EDGE_ALIASES = {
 
 class TemplateTableError(ValueError):
     """A template table that cannot be used; the message names the file, the line and the problem."""
+
+
+def name_problem(name: str) -> str | None:
+    """Why ``name`` cannot be a template's name (None: it can). A name is 1 to 40 printable ASCII
+    characters without quotes or backslashes (yards name templates ``FR34``, ``T-07 +200``): it
+    goes into reports and file names as it is, and a trigger's size stays bounded whatever JSON
+    encoder sends it (no escapes longer than two bytes)."""
+    if not name or name != name.strip():
+        return f"template name {name!r} is empty or starts or ends with a blank"
+    if len(name) > MAX_NAME_CHARS:
+        return f"template name {name[:20]!r}... has {len(name)} characters, at most {MAX_NAME_CHARS}"
+    bad = sorted({ch for ch in name if not (" " <= ch <= "~") or ch in '"\\'})
+    if bad:
+        return f"template name {name!r} holds {''.join(bad)!r}: printable ASCII without quotes or backslashes only"
+    return None
+
+
+def row_problem(row: TableTemplate) -> str | None:
+    """Why a template row cannot be used (None: it can): its name (:func:`name_problem`), a distance
+    outside 0..100 000 mm, an angle outside 30..150 degrees. The one rule for a CSV's rows and a
+    trigger's."""
+    problem = name_problem(row.name)
+    if problem:
+        return problem
+    if not (math.isfinite(row.distance_mm) and 0.0 <= row.distance_mm <= MAX_DISTANCE_MM):
+        return f"template {row.name}: distance {row.distance_mm:g} mm is outside 0..{MAX_DISTANCE_MM:g} mm"
+    if not (math.isfinite(row.angle_deg) and 30.0 <= row.angle_deg <= 150.0):
+        return f"template {row.name}: angle {row.angle_deg:g} deg is outside 30..150 deg (90: square to the edge)"
+    return None
 
 
 def _number(text: str, what: str, where: str) -> float:
@@ -98,7 +138,10 @@ def parse_template_table(text: str, source: str = "template table") -> tuple[Tab
             raise TemplateTableError(
                 f"{where}: angle {angle:g} deg is outside 30..150 deg (90: square to the edge)"
             )
-        rows.append(TableTemplate(name, EDGE_ALIASES[raw_edge], distance, angle))  # type: ignore[arg-type]
+        row = TableTemplate(name, EDGE_ALIASES[raw_edge], distance, angle)  # type: ignore[arg-type]
+        if (problem := row_problem(row)) is not None:
+            raise TemplateTableError(f"{where}: {problem}")
+        rows.append(row)
     if not rows:
         raise TemplateTableError(f"{source}: no template rows after the header")
     if len(rows) > MAX_ROWS:

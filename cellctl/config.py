@@ -32,7 +32,7 @@ from pydantic import (
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from analysis.placement import Placement
-from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S
+from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S, LinearTrack
 
 ENV_PREFIX = "CELL_"
 ENV_DELIMITER = "__"
@@ -62,6 +62,11 @@ JOINT_ACCEL_BOUND_DEG_S2 = 10_000.0
 JOINT_JERK_BOUND_DEG_S3 = 1_000_000.0
 #: each workspace coordinate, mm: the 2.55 m reach plus tool, sensor and stand-off, with room
 WORKSPACE_BOUND_MM = 4_000.0
+#: a linear track: travel, speed and acceleration bounds (floor tracks run to tens of metres at ~2 m/s)
+TRACK_TRAVEL_BOUND_MM = 50_000.0
+TRACK_SPEED_BOUND_MM_S = 3_000.0
+TRACK_ACCEL_BOUND_MM_S2 = 10_000.0
+TRACK_JERK_BOUND_MM_S3 = 1_000_000.0
 #: profiles per second: the HD8's top rate (the simulator's max_rate_hz)
 LASER_RATE_BOUND_HZ = 1_000.0
 
@@ -119,6 +124,53 @@ class CellSection(Section):
     designs_dir: Path = Path("designs")
 
 
+class TrackSection(Section):
+    """``[robot.track]``: the linear track the robot base rides on (absent: a fixed base).
+
+    The track is the seventh axis, first in the chain: a configuration is ``axes_mm_deg`` (track mm,
+    then the six joints in deg). ``origin_mm`` is the robot base origin in the cell's world frame at
+    track position 0 and ``direction`` the world direction of + travel (normalised); the base keeps
+    the world's orientation. Travel, speed and acceleration are checked like the arm's joints; the
+    travel is shrunk by ``margin_mm`` at both ends. On the controller the track is a mechanical unit
+    in the robot's motion group (docs/robot-setup.md, "Linear track"). ``jerk_max_mm_s3`` bounds
+    the track's jerk in plans and stops, as ``joint_jerk_max_deg_s3`` does the joints'.
+    """
+
+    travel_min_mm: Finite = 0.0
+    travel_max_mm: Finite = 6000.0
+    margin_mm: NonNegativeFloat = 10.0
+    speed_max_mm_s: Annotated[float, Field(gt=0, le=TRACK_SPEED_BOUND_MM_S, allow_inf_nan=False)] = 1000.0
+    accel_max_mm_s2: Annotated[float, Field(gt=0, le=TRACK_ACCEL_BOUND_MM_S2, allow_inf_nan=False)] = 2000.0
+    jerk_max_mm_s3: Annotated[float, Field(gt=0, le=TRACK_JERK_BOUND_MM_S3, allow_inf_nan=False)] = 20000.0
+    origin_mm: Vec3 = [0.0, 0.0, 0.0]
+    direction: Vec3 = [1.0, 0.0, 0.0]
+
+    @model_validator(mode="after")
+    def _travel_usable(self) -> TrackSection:
+        lo, hi = self.travel_min_mm, self.travel_max_mm
+        if max(abs(lo), abs(hi)) > TRACK_TRAVEL_BOUND_MM:
+            raise ValueError(f"track travel [{lo}, {hi}] mm reaches beyond +-{TRACK_TRAVEL_BOUND_MM:g} mm")
+        if not lo < hi:
+            raise ValueError(f"track: travel_min_mm ({lo}) must be below travel_max_mm ({hi})")
+        if 2 * self.margin_mm >= hi - lo:
+            raise ValueError("track: margin_mm leaves no usable travel")
+        if sum(v * v for v in self.direction) < 1e-12:
+            raise ValueError("track: direction must not be the zero vector")
+        return self
+
+    def linear_track(self) -> LinearTrack:
+        """The kinematic track with the usable travel (the hard travel shrunk by the margin)."""
+        return LinearTrack(
+            origin_mm=self.origin_mm,
+            direction=self.direction,
+            travel_min_mm=self.travel_min_mm + self.margin_mm,
+            travel_max_mm=self.travel_max_mm - self.margin_mm,
+            speed_max_mm_s=self.speed_max_mm_s,
+            accel_max_mm_s2=self.accel_max_mm_s2,
+            jerk_max_mm_s3=self.jerk_max_mm_s3,
+        )
+
+
 class RobotSection(Section):
     # EGM (UDP): the controller sends to egm_host:egm_port and we answer to its source address.
     egm_host: str = "127.0.0.1"
@@ -167,6 +219,8 @@ class RobotSection(Section):
     wrist_margin_deg: Annotated[float, Field(ge=0, lt=90, allow_inf_nan=False)] = 5.0
     # Mounting: flange -> sensor (laser) frame, from the hand-eye calibration.
     sensor_in_flange: Pose = Pose(pos_mm=[0.0, 0.0, 150.0])
+    # The linear track (seventh axis), or None for a fixed base.
+    track: TrackSection | None = None
 
     @field_validator("rws_url")
     @classmethod
@@ -218,6 +272,14 @@ class RobotSection(Section):
             if not lo < hi:
                 raise ValueError(
                     f"workspace {axis}: workspace_min_mm ({lo}) must be below workspace_max_mm ({hi})"
+                )
+        if self.track is not None:
+            travel = self.track.travel_max_mm - self.track.travel_min_mm
+            if self.egm_max_pos_deviation_deg < travel:
+                raise ValueError(
+                    f"egm_max_pos_deviation_deg ({self.egm_max_pos_deviation_deg:g}) is below the track's travel "
+                    f"({travel:g} mm): EGMActJoint's \\MaxPosDeviation also bounds the track (in mm), so a long "
+                    "move would end the session (docs/robot-setup.md, 'Linear track')"
                 )
         if self.rws_profile == "rws2" and not self.rws_url.startswith("https://"):
             raise ValueError(
@@ -449,6 +511,7 @@ class SimFaults(Section):
 class SimSection(Section):
     egm_cycle_ms: Annotated[float, Field(ge=1, le=100, allow_inf_nan=False)] = 4.032
     egm_q_start_deg: Joint6 = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]
+    egm_track_start_mm: Finite = 0.0  # the simulated track's position at start (with [robot.track])
     egm_stream_when_idle: bool = True
     rws_port: Port = 8080
     rws_users: dict[str, str] = {"Default User": "CELL_RWS_PASSWORD"}
@@ -620,6 +683,20 @@ class CellConfig(BaseSettings):
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         # The file's values arrive as init kwargs; the environment overrides them.
         return (env_settings, init_settings)
+
+    @model_validator(mode="after")
+    def _sim_track_start_on_the_track(self) -> CellConfig:
+        track = self.robot.track
+        start = self.sim.egm_track_start_mm
+        if (
+            track is not None
+            and not track.travel_min_mm + track.margin_mm <= start <= track.travel_max_mm - track.margin_mm
+        ):
+            raise ValueError(
+                f"sim.egm_track_start_mm ({start:g}) is outside the track's usable travel "
+                f"[{track.travel_min_mm + track.margin_mm:g}, {track.travel_max_mm - track.margin_mm:g}] mm"
+            )
+        return self
 
     @property
     def key_prefix(self) -> str:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import multiprocessing.process
 import os
 import shutil
@@ -10,6 +9,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from tests.support.skiplog import SKIP_LOG_ENV, log_entry
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SHARED = REPO_ROOT.parent / "shared"
@@ -27,9 +28,8 @@ SPAWN_EVENTS = (
     "os.spawn",
     "os.system",
 )
-# Where every skip is written (one JSON object a line: nodeid, reason) when set; .ci/run checks the
-# file against tests/skip_allowlist.txt and counts the fallbacks.
-SKIP_LOG_ENV = "CELLCTL_SKIP_LOG"
+# Every skip is written to the file SKIP_LOG_ENV names (tests/support/skiplog.py); .ci/run checks it
+# against tests/skip_allowlist.txt and counts the fallbacks.
 
 _current: dict[str, object] = {"item": None}
 
@@ -80,8 +80,7 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     else:
         reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
         reason = reason.removeprefix("Skipped: ")
-    with open(path, "a", encoding="utf-8") as f:
-        f.write(json.dumps({"nodeid": report.nodeid, "when": report.when, "reason": reason}) + "\n")
+    log_entry(report.nodeid, report.when, reason)
 
 
 @pytest.fixture(scope="session")

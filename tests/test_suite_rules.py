@@ -39,6 +39,10 @@ CASES = textwrap.dedent(
 
     def test_fallback():
         pytest.skip("fallback: simulators starved (laser overruns 3)")
+
+    def test_retried():
+        from tests.support.skiplog import record_fallback
+        record_fallback("fallback: simulators starved (controller overruns 9 of 90 cycles): scanned again")
     """
 )
 
@@ -63,21 +67,27 @@ def test_unmarked_spawns_are_refused_and_skips_are_checked_against_the_allowlist
     assert "FAILED test_cases.py::test_unmarked_multiprocessing " in out, out
     assert "PASSED test_cases.py::test_marked_spawn" in out, out
     assert "is not marked @pytest.mark.process or @pytest.mark.e2e" in out, out
+    # a fallback taken without skipping passes, is warned in the summary and logged as a retry
+    assert "PASSED test_cases.py::test_retried" in out and "FallbackWarning" in out, out
     skips = [json.loads(line) for line in log.read_text().splitlines()]
-    assert [(s["nodeid"], s["reason"]) for s in skips] == [
-        ("test_cases.py::test_plain_skip", "no reason anyone allowed"),
-        ("test_cases.py::test_fallback", "fallback: simulators starved (laser overruns 3)"),
-    ]
+    assert [(s["nodeid"], s["reason"], s["kind"]) for s in skips] == [
+        ("test_cases.py::test_plain_skip", "no reason anyone allowed", "skip"),
+        ("test_cases.py::test_fallback", "fallback: simulators starved (laser overruns 3)", "skip"),
+        ("test_cases.py::test_retried",
+         "fallback: simulators starved (controller overruns 9 of 90 cycles): scanned again", "retry"),
+    ]  # fmt: skip
 
     allow = tmp_path / "allow.txt"
     allow.write_text(
         "# comment\ntest_cases.py::test_fallback | fallback: simulators starved | the test says so\n"
+        "test_cases.py::test_retried | fallback: simulators starved | the test says so\n"
     )
-    refused = _check(log, allow, max_fallbacks=1)
+    refused = _check(log, allow, max_fallbacks=2)
     assert refused.returncode == 1 and "skip NOT allowed: test_cases.py::test_plain_skip" in refused.stderr
-    assert "1 fallbacks" in refused.stdout
+    assert "2 skipped, 2 fallbacks (1 of them retries that went on)" in refused.stdout, refused.stdout
+    assert "retry allowed (fallback: simulators starved): test_cases.py::test_retried" in refused.stdout
 
     allow.write_text(allow.read_text() + "test_cases.py::test_plain_* | no reason | a test of the check\n")
-    assert _check(log, allow, max_fallbacks=1).returncode == 0
-    too_many = _check(log, allow, max_fallbacks=0)
-    assert too_many.returncode == 1 and "1 cases fell back, more than 0" in too_many.stderr
+    assert _check(log, allow, max_fallbacks=2).returncode == 0
+    too_many = _check(log, allow, max_fallbacks=1)
+    assert too_many.returncode == 1 and "2 fallbacks, more than 1" in too_many.stderr

@@ -31,7 +31,7 @@ from cellctl.acquisition.clock_sync import (
 from cellctl.acquisition.poses import T_from_pos_rpy
 from cellctl.acquisition.rawstore import RawWriter
 from cellctl.config import CellConfig
-from drivers.abb_egm.kinematics import fk_batch
+from drivers.abb_egm.kinematics import LinearTrack, fk_batch
 from drivers.laser.source import ProfileBatch
 
 __all__ = [
@@ -54,6 +54,19 @@ KIND_PASS_BEGIN = 4
 KIND_PASS_END = 5
 CLOCK_IDS = {"sensor": 0, "robot": 1}
 _FIT_FIELDS = tuple(f for f in ClockFit.__slots__)
+
+
+def _track_json(track: LinearTrack) -> dict[str, Any]:
+    """A track's fields as plain JSON values (job.json keeps them beside the hand-eye)."""
+    return {
+        "origin_mm": [float(v) for v in track.origin_mm],
+        "direction": [float(v) for v in track.direction],
+        "travel_min_mm": float(track.travel_min_mm),
+        "travel_max_mm": float(track.travel_max_mm),
+        "speed_max_mm_s": float(track.speed_max_mm_s),
+        "accel_max_mm_s2": float(track.accel_max_mm_s2),
+        "jerk_max_mm_s3": float(track.jerk_max_mm_s3),
+    }
 
 
 @dataclass(frozen=True)
@@ -83,6 +96,9 @@ class AcquisitionSettings:
             beside them (``poses.interpolate_joints``): on the synthetic scan motion within 7 um
             over 100 ms where the chord is 0.17 mm off. 100 ms covers the 50 ms loss bursts of
             issue 10's fault list with one more burst right behind it.
+        track: the linear track's fields (:class:`~drivers.abb_egm.kinematics.LinearTrack`, JSON-able)
+            when the robot rides on one (cell.toml ``[robot.track]``), else None. The feedback rows
+            are then ``axes_mm_deg`` (track mm, then joints) and the poses are in the world frame.
     """
 
     sensor_in_flange_pos_mm: tuple[float, float, float] = (0.0, 0.0, 150.0)
@@ -97,19 +113,32 @@ class AcquisitionSettings:
     robot_sync_config: ClockSyncConfig = field(default_factory=ClockSyncConfig)
     max_pending_profiles: int = 4000
     max_sample_gap_ms: float = 100.0
+    track: dict[str, Any] | None = None
 
     @classmethod
     def from_config(cls, cfg: CellConfig, epoch_ns: int) -> AcquisitionSettings:
         """The settings cell.toml implies: ``[robot.sensor_in_flange]``, ``[laser] latency_ms`` and
         ``sensor_clock``."""
         mount = cfg.robot.sensor_in_flange
+        track = None if cfg.robot.track is None else _track_json(cfg.robot.track.linear_track())
         return cls(
+            track=track,
             sensor_in_flange_pos_mm=tuple(mount.pos_mm),
             sensor_in_flange_rpy_deg=tuple(mount.rpy_deg),
             latency_ms=cfg.laser.latency_ms,
             sensor_clock=cfg.laser.sensor_clock,
             epoch_ns=epoch_ns,
         )
+
+    @property
+    def linear_track(self) -> LinearTrack | None:
+        """The track the robot rides on, or None."""
+        return None if self.track is None else LinearTrack(**self.track)
+
+    @property
+    def n_axes(self) -> int:
+        """Values per feedback sample: 6 joints, or the track and 6 joints."""
+        return 6 + (self.track is not None)
 
     @property
     def T_flange_sensor(self) -> np.ndarray:
@@ -201,6 +230,8 @@ class Acquisition:
         self.fits: list[tuple[str, ClockFit]] = []
         self.schedule = PassSchedule()
         self._T_fs = settings.T_flange_sensor
+        self._track = settings.linear_track
+        self._n_axes = settings.n_axes
         self._latency_ns = round(settings.latency_ms * 1e6)
         self._track_t = _Growable((), np.int64)
         self._track_T = _Growable((3, 4), np.float64)
@@ -218,14 +249,15 @@ class Acquisition:
     def feed_robot(
         self, t_host_ns: np.ndarray, t_ctrl_us: np.ndarray, q_deg: np.ndarray
     ) -> list[AssembledBatch]:
-        """Joint feedback samples (m,) host receive ns, (m,) controller clock us (-1: none), (m, 6) deg.
+        """Joint feedback samples (m,) host receive ns, (m,) controller clock us (-1: none), (m, 6) deg
+        (``axes_mm_deg`` (m, 7) with a track).
 
         Returns the batches this made assemblable.
         """
         t_host = np.ascontiguousarray(t_host_ns, dtype=np.int64)
         t_ctrl = np.ascontiguousarray(t_ctrl_us, dtype=np.int64)
         q = np.ascontiguousarray(q_deg, dtype=np.float64)
-        if t_host.ndim != 1 or t_ctrl.shape != t_host.shape or q.shape != (len(t_host), 6):
+        if t_host.ndim != 1 or t_ctrl.shape != t_host.shape or q.shape != (len(t_host), self._n_axes):
             raise ValueError(
                 f"robot samples: t_host_ns {t_host.shape}, t_ctrl_us {t_ctrl.shape}, q_deg {q.shape}"
             )
@@ -255,7 +287,7 @@ class Acquisition:
         self.stats.robot_samples_dropped += int((~keep).sum())
         if keep.any():
             # FK once per sample (250 Hz), not once per profile: profiles blend the bracketing poses
-            self._track_T.extend(fk_batch(q[keep], self._T_fs)[:, :3, :])
+            self._track_T.extend(fk_batch(q[keep], self._T_fs, track=self._track)[:, :3, :])
             self._track_t.extend(t[keep])
         return self._drain()
 

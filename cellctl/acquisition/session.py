@@ -115,7 +115,9 @@ class AcquisitionSession:
         """Hand the feedback that arrived since the last pump to the acquisition."""
         a = self.feedback.since(self._last_robot_ns)
         if len(a):
-            self._guarded(self.acq.feed_robot, a.t_host_ns, a.t_ctrl_us, a.q_deg[:, :6])
+            self._guarded(
+                self.acq.feed_robot, a.t_host_ns, a.t_ctrl_us, a.q_deg[:, : self.acq.settings.n_axes]
+            )
             self._last_robot_ns = int(a.t_host_ns[-1])
 
     async def _consume(self) -> None:

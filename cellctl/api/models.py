@@ -21,10 +21,20 @@ from pathlib import Path, PurePosixPath
 from typing import Annotated, Any, Literal, TypeVar
 
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from analysis.job import AnalysisJob, Report
 from analysis.placement import Placement
+from analysis.template_table import MAX_ROWS as MAX_TEMPLATE_ROWS
+from analysis.template_table import row_problem
 from analysis.templates import TableTemplate
 from cellctl.api.keys import ControlAction
 from cellctl.api.transfer import ResultManifest, TransferSpec
@@ -78,7 +88,10 @@ __all__ = [
 ]
 
 API_VERSION = 1
-MAX_TRIGGER_BYTES = 16 * 1024
+# The largest valid trigger as any JSON encoder writes it (json.dumps escapes non-ASCII as \uXXXX):
+# 200 template rows of at most ~150 bytes, a note and a design path of escaped characters, the
+# placement. tests/security/test_trigger_limits.py builds that trigger and checks it fits.
+MAX_TRIGGER_BYTES = 48 * 1024
 DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".igs", ".iges", ".stp", ".step", ".npz", ".json")
 JSON = "application/json"
 
@@ -114,6 +127,25 @@ def new_job_id() -> str:
 # --------------------------------------------------------------------------------------------- trigger
 
 
+def _usable_rows(rows: tuple[TableTemplate, ...]) -> tuple[TableTemplate, ...]:
+    """The template rows as a CSV's are checked (analysis.template_table.row_problem), names unique."""
+    seen: set[str] = set()
+    for k, row in enumerate(rows):
+        if (problem := row_problem(row)) is not None:
+            raise ValueError(f"row {k + 1}: {problem}")
+        if row.name in seen:
+            raise ValueError(f"row {k + 1}: template {row.name!r} appears twice")
+        seen.add(row.name)
+    return rows
+
+
+TemplateRows = Annotated[
+    tuple[TableTemplate, ...],
+    Field(max_length=MAX_TEMPLATE_ROWS),
+    AfterValidator(_usable_rows),
+]
+
+
 class AnalysisOptions(Model):
     """The per-plate analysis options a trigger may give, kept in the job record (a re-analysis judges
     the plate the same way) and carried into the job's settings.
@@ -125,7 +157,7 @@ class AnalysisOptions(Model):
     design is then offset by it (:mod:`analysis.moulded`).
     """
 
-    template_table: Annotated[tuple[TableTemplate, ...], Field(max_length=200)] = ()
+    template_table: TemplateRows = ()
     design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
     thickness_mm: Annotated[Finite, Field(ge=0.0, lt=1000.0)] = 0.0
 
@@ -154,7 +186,7 @@ class TriggerRequest(Model):
     design: Annotated[str, Field(min_length=1, max_length=255)]
     placement: Placement | None = None
     note: Annotated[str, Field(max_length=500)] = ""
-    template_table: Annotated[tuple[TableTemplate, ...], Field(max_length=200)] = ()
+    template_table: TemplateRows = ()
     design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
     thickness_mm: Annotated[Finite, Field(ge=0.0, lt=1000.0)] = 0.0
 

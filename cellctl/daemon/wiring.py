@@ -42,6 +42,8 @@ def egm_endpoint_config(robot: RobotSection) -> EgmEndpointConfig:
         reply_thread_cpus=tuple(robot.egm_reply_cpus),
         switch_interval_s=robot.egm_switch_interval_s,
         reply_spin_us=robot.egm_reply_spin_us,
+        # the track's position travels in externalJoints beside the joints (docs/robot-setup.md)
+        n_external=0 if robot.track is None else 1,
     )
 
 

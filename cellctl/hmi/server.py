@@ -21,7 +21,7 @@ import numpy as np
 import structlog
 from aiohttp import WSMsgType, web
 
-from cellctl.api import DESIGN_SUFFIXES, ApiCallError
+from cellctl.api import DESIGN_SUFFIXES, MAX_TRIGGER_BYTES, ApiCallError
 from cellctl.config import CellConfig
 from cellctl.daemon.history import History
 from cellctl.hmi.auth import ACTION_ROLE, ZENOH_ROLE, Authenticator, Session, allowed, role_cap
@@ -40,7 +40,7 @@ DOWNLOADS = {
     "report.json": ("results/report.json", "application/json"),
     "cloud.ply": ("results/cloud.ply", "application/octet-stream"),
 }
-MAX_BODY_BYTES = 16 * 1024
+MAX_BODY_BYTES = MAX_TRIGGER_BYTES  # a trigger is the largest body the HMI takes
 MAP_MAX_POINTS = 30_000
 _SECURITY_HEADERS = {
     "Content-Security-Policy": (

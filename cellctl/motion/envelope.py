@@ -6,6 +6,12 @@ limits times the cycle). A violation raises :class:`EnvelopeViolation`; the enve
 set-point into range, because a silently altered reference hides the fault that produced it. The
 executor answers a violation with a smooth stop.
 
+With a linear track (``EnvelopeLimits.track``) a set-point is ``axes_mm_deg`` (7,): the track
+position in mm first, then the six joints. The track is checked like the joints: its travel
+(``track_travel``), its speed as the step per cycle (``track_speed``) and its acceleration as the
+change of that step (``track_accel``); the workspace box stays in the base frame (it rides with the
+carriage), and the TCP speed cap applies in the world frame, the track's motion included.
+
 The same rules check a whole planned trajectory at once (:meth:`SafetyEnvelope.check_trajectory`),
 vectorised over its samples, so a plan that would trip the envelope is refused before it runs.
 """
@@ -16,21 +22,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics, fk_batch
+from drivers.abb_egm.kinematics import JOINT_NAMES, N_ARM_JOINTS, LinearTrack, RobotKinematics, fk_batch
 
 __all__ = ["EnvelopeLimits", "EnvelopeViolation", "SafetyEnvelope"]
 
 #: a set-point may exceed a speed limit by this fraction before it is a violation (rounding, not slack)
 _SPEED_TOLERANCE = 1e-3
+#: the same for the track's acceleration, from second differences of the set-points: a jerk-limited
+#: profile sampled at the EGM cycle differs from its continuous acceleration by ~jerk x cycle
+_ACCEL_TOLERANCE = 2e-2
 
 
 class EnvelopeViolation(Exception):
     """A set-point outside the envelope.
 
     Attributes:
-        rule: ``"joint_limit"``, ``"workspace"``, ``"tcp_speed"``, ``"joint_step"`` or ``"input"``.
-        joint: 0-based joint index (joint rules) or None.
-        value: the offending value (deg, mm, mm/s or deg per step).
+        rule: ``"joint_limit"``, ``"workspace"``, ``"tcp_speed"``, ``"joint_step"``, ``"track_travel"``,
+            ``"track_speed"``, ``"track_accel"`` or ``"input"``.
+        joint: 0-based arm joint index (joint rules) or None.
+        value: the offending value (deg, mm, mm/s, mm/s^2 or deg per step).
         limit: the limit it broke, same unit.
         sample: index into a checked trajectory, or None for a single set-point.
     """
@@ -57,6 +67,7 @@ class EnvelopeLimits:
     joint_speed_max_deg_s: (6,) joint speed limits; the step per cycle is this times ``cycle_s``.
     cycle_s: EGM cycle, s.
     T_flange_tcp: (4, 4) flange -> TCP (sensor) transform, mm.
+    track: the linear track (usable travel, speed and acceleration limits), or None for a fixed base.
     """
 
     q_min_deg: np.ndarray
@@ -67,6 +78,12 @@ class EnvelopeLimits:
     joint_speed_max_deg_s: np.ndarray
     cycle_s: float
     T_flange_tcp: np.ndarray
+    track: LinearTrack | None = None
+
+    @property
+    def n_axes(self) -> int:
+        """Values in a set-point: 6 joints, or the track and 6 joints."""
+        return N_ARM_JOINTS + (self.track is not None)
 
     def __post_init__(self) -> None:
         for name in ("q_min_deg", "q_max_deg", "joint_speed_max_deg_s"):
@@ -97,6 +114,7 @@ class EnvelopeLimits:
             joint_speed_max_deg_s=np.asarray(settings.joint_speed_max_deg_s),
             cycle_s=cycle_s,
             T_flange_tcp=settings.T_flange_sensor,
+            track=getattr(settings, "track", None),
         )
 
 
@@ -107,13 +125,21 @@ class SafetyEnvelope:
         self.limits = limits
         # pinocchio for single set-points (tens of us); the vectorised numpy FK for whole trajectories
         self._kin = RobotKinematics(tools={"tcp": limits.T_flange_tcp})
+        self._n = limits.n_axes
         self._last_q: np.ndarray | None = None
         self._last_p: np.ndarray | None = None
+        #: the track's last accepted speed, mm/s, and the time it was measured over, s (the
+        #: acceleration rule's memory); at rest after a reset
+        self._last_v_track = 0.0
+        self._last_dt_track: float | None = None
         self.accepted = 0
         self.violations = 0
 
     def reset(self, q_deg: np.ndarray | None = None) -> None:
-        """Forget the last set-point, or set it to where the robot is (``q_deg`` (6,))."""
+        """Forget the last set-point, or set it to where the robot is at rest (``q_deg`` (6,), or
+        ``axes_mm_deg`` (7,) with a track)."""
+        self._last_v_track = 0.0
+        self._last_dt_track = None
         if q_deg is None:
             self._last_q = self._last_p = None
         else:
@@ -127,58 +153,92 @@ class SafetyEnvelope:
         return None if self._last_q is None else self._last_q.copy()
 
     def tcp_mm(self, q_deg: np.ndarray) -> np.ndarray:
-        """TCP (sensor origin) position (3,) mm at one configuration ``q_deg`` (6,) deg."""
-        return self._kin.fk(q_deg, "tcp").pos_mm
+        """TCP (sensor origin) position (3,) mm in the base frame at one configuration ``q_deg`` (6,)
+        deg, or ``axes_mm_deg`` (7,) (only the arm's joints place the TCP relative to the base)."""
+        return self._kin.fk(np.asarray(q_deg)[-N_ARM_JOINTS:], "tcp").pos_mm
 
     def _tcp(self, q: np.ndarray) -> np.ndarray:
+        """(n, 3) TCP positions in the base frame (the workspace box's frame)."""
         if q.shape[0] == 1:
             return self.tcp_mm(q[0])[None]
-        return fk_batch(q, self.limits.T_flange_tcp)[:, :3, 3]
+        return fk_batch(q[:, -N_ARM_JOINTS:], self.limits.T_flange_tcp)[:, :3, 3]
+
+    def world_mm(self, q: np.ndarray, p_base: np.ndarray) -> np.ndarray:
+        """TCP positions in the world frame (the TCP speed cap's frame): the base's, plus the carriage."""
+        track = self.limits.track
+        return p_base if track is None else p_base + track.base_pos_mm(q[..., 0])
 
     def check(self, q_deg: np.ndarray, cycles: int = 1) -> np.ndarray:
-        """Check one set-point ``q_deg`` (6,) deg, ``cycles`` EGM cycles after the last accepted one.
+        """Check one set-point ``q_deg`` (6,) deg (``axes_mm_deg`` (7,) with a track), ``cycles``
+        EGM cycles after the last accepted one.
 
-        Returns the TCP position (3,) mm. Raises :class:`EnvelopeViolation` (the set-point is then
-        not accepted and the last accepted one is kept).
+        Returns the TCP position (3,) mm in the base frame. Raises :class:`EnvelopeViolation` (the
+        set-point is then not accepted and the last accepted one is kept).
         """
         q = np.asarray(q_deg, dtype=np.float64)
-        if q.shape != (6,) or not np.all(np.isfinite(q)):
+        if q.shape != (self._n,) or not np.all(np.isfinite(q)):
             self.violations += 1
-            raise EnvelopeViolation("input", f"set-point must be 6 finite values, got {q!r}")
+            raise EnvelopeViolation("input", f"set-point must be {self._n} finite values, got {q!r}")
         cycles = max(1, int(cycles))
         lim = self.limits
+        track = lim.track
+        arm = q[-N_ARM_JOINTS:]
         # fast path (runs every EGM cycle): plain comparisons; the detailed check only to explain a failure
-        p = self.tcp_mm(q)
-        ok = bool(np.all(q >= lim.q_min_deg) and np.all(q <= lim.q_max_deg))
+        p = self.tcp_mm(arm)
+        ok = bool(np.all(arm >= lim.q_min_deg) and np.all(arm <= lim.q_max_deg))
         ok = ok and bool(np.all(p >= lim.workspace_min_mm) and np.all(p <= lim.workspace_max_mm))
+        if track is not None:
+            ok = ok and track.travel_min_mm <= q[0] <= track.travel_max_mm
+        v_track = 0.0
         if ok and self._last_q is not None:
             dt = cycles * lim.cycle_s
+            last_arm = self._last_q[-N_ARM_JOINTS:]
             ok = bool(
-                np.all(np.abs(q - self._last_q) <= lim.joint_speed_max_deg_s * dt * (1 + _SPEED_TOLERANCE))
+                np.all(np.abs(arm - last_arm) <= lim.joint_speed_max_deg_s * dt * (1 + _SPEED_TOLERANCE))
             )
-            ok = ok and float(np.linalg.norm(p - self._last_p)) <= lim.tcp_speed_max_mm_s * dt * (
-                1 + _SPEED_TOLERANCE
-            )
+            dp = self.world_mm(q, p) - self.world_mm(self._last_q, self._last_p)
+            ok = ok and float(np.linalg.norm(dp)) <= lim.tcp_speed_max_mm_s * dt * (1 + _SPEED_TOLERANCE)
+            if track is not None:
+                v_track = (q[0] - self._last_q[0]) / dt
+                ok = ok and abs(v_track) <= track.speed_max_mm_s * (1 + _SPEED_TOLERANCE)
+                # the two speeds are means over their steps: their centres lie half of each apart
+                gap = 0.5 * (dt + (self._last_dt_track or dt))
+                ok = ok and abs(v_track - self._last_v_track) <= track.accel_max_mm_s2 * gap * (
+                    1 + _ACCEL_TOLERANCE
+                )
         if not ok:
             self.violations += 1
-            self._check_rows(q[None], self._last_q, self._last_p, cycles)
+            self._check_rows(
+                q[None],
+                self._last_q,
+                self._last_p,
+                cycles,
+                v_prev=self._last_v_track,
+                dt_prev=self._last_dt_track,
+            )
             raise EnvelopeViolation("input", f"set-point {q.round(4).tolist()} rejected")  # not reached
+        if self._last_q is not None:
+            self._last_dt_track = cycles * lim.cycle_s
         self._last_q, self._last_p = q.copy(), p
+        self._last_v_track = v_track
         self.accepted += 1
         return p
 
     def check_trajectory(self, t_s: np.ndarray, q_deg: np.ndarray) -> None:
-        """Check a sampled trajectory ``q_deg`` (n, 6) at times ``t_s`` (n,) s against every rule.
+        """Check a sampled trajectory ``q_deg`` (n, 6) (``axes_mm_deg`` (n, 7) with a track) at
+        times ``t_s`` (n,) s against every rule.
 
         Sample it at the EGM cycle first (the executor sends one set-point per cycle): the step and
-        speed rules are then exactly the per-cycle rules.
+        speed rules are then exactly the per-cycle rules. The trajectory starts and ends at rest.
         """
         q = np.asarray(q_deg, dtype=np.float64)
         t = np.asarray(t_s, dtype=np.float64)
-        if q.ndim != 2 or q.shape[1] != 6 or t.shape != (q.shape[0],):
+        if q.ndim != 2 or q.shape[1] != self._n or t.shape != (q.shape[0],):
             raise EnvelopeViolation(
-                "input", f"expected t_s (n,) and q_deg (n, 6), got {t.shape} and {q.shape}"
+                "input", f"expected t_s (n,) and q_deg (n, {self._n}), got {t.shape} and {q.shape}"
             )
+        if not np.all(np.isfinite(q)):
+            raise EnvelopeViolation("input", "the trajectory has non-finite values")
         if q.shape[0] == 0:
             return
         dt = np.diff(t)
@@ -188,9 +248,14 @@ class SafetyEnvelope:
         self._check_rows(q, None, None, cycles)
 
     def _check_rows(
-        self, q: np.ndarray, q_prev: np.ndarray | None, p_prev: np.ndarray | None, cycles
-    ) -> np.ndarray:
+        self, q7: np.ndarray, q_prev7: np.ndarray | None, p_prev: np.ndarray | None, cycles,
+        v_prev: float = 0.0, dt_prev: float | None = None,
+    ) -> np.ndarray:  # fmt: skip
         lim = self.limits
+        if lim.track is not None:
+            self._check_track(q7, q_prev7, cycles, v_prev, dt_prev)
+        q = q7[:, -N_ARM_JOINTS:]
+        q_prev = None if q_prev7 is None else q_prev7[-N_ARM_JOINTS:]
         below, above = q < lim.q_min_deg, q > lim.q_max_deg
         if below.any() or above.any():
             i, j = np.argwhere(below | above)[0]
@@ -212,10 +277,10 @@ class SafetyEnvelope:
             )  # fmt: skip
         if q_prev is not None:
             qq = np.vstack([q_prev[None], q])
-            pp = np.vstack([p_prev[None], p])
+            pp = np.vstack([self.world_mm(q_prev7, p_prev)[None], self.world_mm(q7, p)])
             cyc = np.atleast_1d(np.asarray(cycles, dtype=np.float64))
         else:
-            qq, pp = q, p
+            qq, pp = q, self.world_mm(q7, p)
             cyc = np.atleast_1d(np.asarray(cycles, dtype=np.float64))
             if qq.shape[0] < 2:
                 return p
@@ -240,3 +305,63 @@ class SafetyEnvelope:
                 value=speed[i], limit=lim.tcp_speed_max_mm_s, sample=i + 1 if q_prev is None else None,
             )  # fmt: skip
         return p
+
+    def _check_track(
+        self, q: np.ndarray, q_prev: np.ndarray | None, cycles, v_prev: float, dt_prev: float | None = None
+    ) -> None:
+        """The track's rules on ``q`` (n, 7): travel, speed (step per cycle), acceleration (change of
+        the step). ``q_prev`` (7,) is the last accepted set-point (the robot at ``v_prev`` mm/s,
+        measured over ``dt_prev`` s; None: at rest) or None for a whole trajectory, which starts and
+        ends at rest. A speed is the mean over its step, so a change of speed is divided by the time
+        between the two steps' centres (steps of several cycles, after lost packets, count right)."""
+        track = self.limits.track
+        s = q[:, 0]
+        sample = lambda i: int(i) if q.shape[0] > 1 else None  # noqa: E731 - one-line index rule
+        out = (s < track.travel_min_mm) | (s > track.travel_max_mm)
+        if out.any():
+            i = int(np.argmax(out))
+            side, bound = (
+                ("lower", track.travel_min_mm)
+                if s[i] < track.travel_min_mm
+                else ("upper", track.travel_max_mm)
+            )
+            raise EnvelopeViolation(
+                "track_travel",
+                f"track at {s[i]:.2f} mm beyond its {side} travel limit {bound:.2f} mm (with margin)",
+                value=s[i], limit=bound, sample=sample(i),
+            )  # fmt: skip
+        cyc = np.atleast_1d(np.asarray(cycles, dtype=np.float64))
+        if q_prev is not None:
+            ss = np.concatenate([[q_prev[0]], s])
+            v0 = float(v_prev)
+        else:
+            ss = s
+            v0 = 0.0
+        if ss.shape[0] < 2:
+            return
+        dt = cyc * self.limits.cycle_s
+        v = np.diff(ss) / dt
+        fast = np.abs(v) > track.speed_max_mm_s * (1 + _SPEED_TOLERANCE)
+        if fast.any():
+            i = int(np.argmax(fast))
+            raise EnvelopeViolation(
+                "track_speed",
+                f"track moves at {abs(v[i]):.1f} mm/s, above its limit {track.speed_max_mm_s:.1f} mm/s",
+                value=abs(v[i]), limit=track.speed_max_mm_s, sample=i + 1 if q_prev is None else None,
+            )  # fmt: skip
+        # speeds start from v0 (at rest for a trajectory, and end at rest); each change over the
+        # time between the centres of its two steps
+        if q_prev is None:
+            vv, ww = np.concatenate([[0.0], v, [0.0]]), np.concatenate([dt[:1], dt, dt[-1:]])
+        else:
+            vv, ww = np.concatenate([[v0], v]), np.concatenate([[dt_prev or dt[0]], dt])
+        accel = np.abs(np.diff(vv)) / (0.5 * (ww[:-1] + ww[1:]))
+        hard = accel > track.accel_max_mm_s2 * (1 + _ACCEL_TOLERANCE)
+        if hard.any():
+            i = int(np.argmax(hard))
+            raise EnvelopeViolation(
+                "track_accel",
+                f"track accelerates at {accel[i]:.1f} mm/s^2, above its limit {track.accel_max_mm_s2:.1f} mm/s^2",
+                value=accel[i], limit=track.accel_max_mm_s2,
+                sample=min(i, q.shape[0] - 1) if q_prev is None else None,
+            )  # fmt: skip

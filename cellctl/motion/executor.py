@@ -116,13 +116,18 @@ class ExecutorConfig:
 
     @classmethod
     def from_config(cls, cfg, **changes) -> ExecutorConfig:
-        """From a :class:`cellctl.config.CellConfig`: ``[robot]`` joint limits, ``tracking_error_max_mm``
-        and ``egm_watchdog_s`` (a controller silent this long has stalled)."""
+        """From a :class:`cellctl.config.CellConfig`: ``[robot]`` joint limits (with ``[robot.track]``
+        the track's first), ``tracking_error_max_mm`` and ``egm_watchdog_s`` (a controller silent
+        this long has stalled)."""
         r = cfg.robot
+        track = None if r.track is None else r.track.linear_track()
+        v, a, j = _axis_limits(
+            track, r.joint_speed_max_deg_s, r.joint_accel_max_deg_s2, r.joint_jerk_max_deg_s3
+        )
         values = {
-            "joint_speed_max_deg_s": tuple(r.joint_speed_max_deg_s),
-            "joint_accel_max_deg_s2": tuple(r.joint_accel_max_deg_s2),
-            "joint_jerk_max_deg_s3": tuple(r.joint_jerk_max_deg_s3),
+            "joint_speed_max_deg_s": v,
+            "joint_accel_max_deg_s2": a,
+            "joint_jerk_max_deg_s3": j,
             "tracking_error_max_mm": r.tracking_error_max_mm,
             "feedback_timeout_s": r.egm_watchdog_s,
         }
@@ -131,13 +136,27 @@ class ExecutorConfig:
 
     @classmethod
     def from_settings(cls, settings, **changes) -> ExecutorConfig:
-        """Limits from :class:`cellctl.planning.PlannerSettings` (``cell.toml [robot]``)."""
-        return cls(
-            joint_speed_max_deg_s=tuple(settings.joint_speed_max_deg_s),
-            joint_accel_max_deg_s2=tuple(settings.joint_accel_max_deg_s2),
-            joint_jerk_max_deg_s3=tuple(settings.joint_jerk_max_deg_s3),
-            **changes,
+        """Limits from :class:`cellctl.planning.PlannerSettings` (``cell.toml [robot]``; with a track
+        its speed, acceleration and jerk first)."""
+        v, a, j = _axis_limits(
+            getattr(settings, "track", None),
+            settings.joint_speed_max_deg_s,
+            settings.joint_accel_max_deg_s2,
+            settings.joint_jerk_max_deg_s3,
         )
+        return cls(joint_speed_max_deg_s=v, joint_accel_max_deg_s2=a, joint_jerk_max_deg_s3=j, **changes)
+
+
+def _axis_limits(track, v, a, j) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+    """Per-axis speed, acceleration and jerk limits: the joints', with a track's (mm) in front."""
+    v, a, j = tuple(map(float, v)), tuple(map(float, a)), tuple(map(float, j))
+    if track is None:
+        return v, a, j
+    return (
+        (track.speed_max_mm_s, *v),
+        (track.accel_max_mm_s2, *a),
+        (track.jerk_max_mm_s3, *j),
+    )
 
 
 @dataclass(frozen=True)
@@ -165,8 +184,8 @@ class ExecutionResult:
     """How an execution ended, with the record of what was commanded.
 
     state: FINISHED, ABORTED or FAULTED. fault: reason (FAULTED only). cycles: references sent.
-    max_tracking_error_mm: worst monitored tracking error. t_host_s (n,), q_ref_deg (n, 6),
-    qd_ref_deg_s (n, 6), t_traj_s (n,), cycle (n,) int: one row per reference (host monotonic time of
+    max_tracking_error_mm: worst monitored tracking error. t_host_s (n,), q_ref_deg (n, n_axes),
+    qd_ref_deg_s (n, n_axes) (with a track ``axes_mm_deg``, its mm first), t_traj_s (n,), cycle (n,) int: one row per reference (host monotonic time of
     the packet it answered, the reference, the trajectory time it came from, the controller cycle
     it is meant for, counted from the first feedback).
     """
@@ -264,12 +283,17 @@ class MotionExecutor:
         segment_kinds: Sequence[str] | None = None,
         on_progress: Callable[[ProgressEvent], None] | None = None,
     ) -> None:
-        if trajectory.t_s.size < 2 or trajectory.q_deg.shape != (trajectory.t_s.size, 6):
-            raise ExecutorError("trajectory needs at least 2 samples of 6 joints")
+        #: axes commanded: the six joints, or the track and the six joints (``axes_mm_deg``)
+        self._n = n = envelope.limits.n_axes
+        if trajectory.t_s.size < 2 or trajectory.q_deg.shape != (trajectory.t_s.size, n):
+            raise ExecutorError(f"trajectory needs at least 2 samples of {n} axes")
         self.endpoint = endpoint
         self.trajectory = trajectory
         self.envelope = envelope
         self.config = cfg = config or ExecutorConfig()
+        limits = (cfg.joint_speed_max_deg_s, cfg.joint_accel_max_deg_s2, cfg.joint_jerk_max_deg_s3)
+        if any(len(v) != n for v in limits):
+            raise ExecutorError(f"the executor's limits must cover {n} axes (a track's first)")
         n_seg = int(trajectory.segment.max()) + 1
         self.segment_labels = list(segment_labels or [f"segment {i + 1}" for i in range(n_seg)])
         self.segment_kinds = list(segment_kinds or ["scan"] * n_seg)
@@ -287,13 +311,13 @@ class MotionExecutor:
         self._amax = np.asarray(cfg.joint_accel_max_deg_s2, dtype=np.float64)
         self._jmax = np.asarray(cfg.joint_jerk_max_deg_s3, dtype=np.float64)
         self._scaler = _TimeScaler(cfg.cycle_s, *self._rate_limits_at(0.0))
-        self._otg = Ruckig(6, cfg.cycle_s)
-        self._inp = InputParameter(6)
-        self._out = OutputParameter(6)
+        self._otg = Ruckig(self._n, cfg.cycle_s)
+        self._inp = InputParameter(self._n)
+        self._out = OutputParameter(self._n)
         self._inp.synchronization = Synchronization.No
         self._set_limits(1.0)
-        self._ref_q = np.zeros(6)
-        self._ref_qd = np.zeros(6)
+        self._ref_q = np.zeros(n)
+        self._ref_qd = np.zeros(n)
         self._last_seqno: int | None = None
         self._last_t_ctrl_us: int | None = None
         self._fb_count = 0
@@ -315,7 +339,7 @@ class MotionExecutor:
         self._joint_stop = False
         self._approach = False  # until the arm reached the plan's start (pause holds it in joint space)
         self._ff_qd: np.ndarray | None = None
-        self._last_sent_qd = np.zeros(6)
+        self._last_sent_qd = np.zeros(self._n)
 
     #: trajectory time ahead of a ramp's start whose peaks bound the ramp (a ramp covers less)
     _RAMP_WINDOW_S = 1.5
@@ -416,11 +440,11 @@ class MotionExecutor:
         except ExecutorError as exc:
             self._enter_fault(str(exc), hold=False)
             return self._finish()
-        q_fb = first.q_deg[:6].astype(np.float64)
-        self._ref_q, self._ref_qd = q_fb.copy(), np.zeros(6)
+        q_fb = self._axes(first)
+        self._ref_q, self._ref_qd = q_fb.copy(), np.zeros(self._n)
         self._inp.current_position = q_fb.tolist()
-        self._inp.current_velocity = [0.0] * 6
-        self._inp.current_acceleration = [0.0] * 6
+        self._inp.current_velocity = [0.0] * self._n
+        self._inp.current_acceleration = [0.0] * self._n
         self.envelope.reset(q_fb)
         self._last_seqno, self._last_t_ctrl_us = first.seqno, first.feedback_time_us
         q0 = self.trajectory.q_deg[0]
@@ -458,7 +482,7 @@ class MotionExecutor:
             self._handle_requests()
             self._fb_count += 1
             if self._fb_count % 4 == 0:  # a monitor: 16 ms of latency costs nothing, the CPU does
-                self._monitor_tracking(fb.q_deg[:6])
+                self._monitor_tracking(self._axes(fb))
             for _ in range(cycles):
                 self._advance()
                 if self.state in _TERMINAL:
@@ -495,8 +519,12 @@ class MotionExecutor:
                 fb = await self.endpoint.wait_for_feedback(min(left, 1.0))
             except TimeoutError:
                 continue
-            if fb.ok_to_command and fb.q_deg.shape[0] >= 6:
+            if fb.ok_to_command and fb.q_deg.shape[0] >= 6 and fb.axes_mm_deg.shape[0] >= self._n:
                 return fb
+
+    def _axes(self, fb) -> np.ndarray:
+        """The feedback of the commanded axes: ``q_deg`` (6,), or ``axes_mm_deg`` (7,) with a track."""
+        return np.asarray(fb.axes_mm_deg[: self._n], dtype=np.float64)
 
     def _cycles_since(self, seqno: int | None, t_ctrl_us: int | None) -> int:
         """EGM cycles since the previous feedback: from the controller's clock when it sends one
@@ -524,7 +552,8 @@ class MotionExecutor:
         slow enough that the TCP stays well under the envelope's speed cap."""
         dq = q_to - q_from
         u = np.linspace(0.0, 1.0, 33)
-        p = fk_batch(q_from[None] + u[:, None] * dq[None], self.envelope.limits.T_flange_tcp)[:, :3, 3]
+        lim = self.envelope.limits
+        p = fk_batch(q_from[None] + u[:, None] * dq[None], lim.T_flange_tcp, track=lim.track)[:, :3, 3]
         dp_du = float(np.max(np.linalg.norm(np.diff(p, axis=0), axis=1)) * (u.size - 1))
         u_dot = np.min(self.config.move_to_start_speed_fraction * self._vmax / np.maximum(np.abs(dq), 1e-9))
         if dp_du > 0:
@@ -572,8 +601,8 @@ class MotionExecutor:
         """pause / resume / abort before the arm reached the plan's start (a joint-space move)."""
         if req == "pause" and s == ExecState.MOVING_TO_START:
             self._inp.control_interface = ControlInterface.Velocity
-            self._inp.target_velocity = [0.0] * 6
-            self._inp.target_acceleration = [0.0] * 6
+            self._inp.target_velocity = [0.0] * self._n
+            self._inp.target_acceleration = [0.0] * self._n
             self._inp.synchronization = Synchronization.No
             self._set_state(ExecState.PAUSING)
         elif req == "resume" and s in (ExecState.PAUSING, ExecState.PAUSED):
@@ -588,8 +617,8 @@ class MotionExecutor:
 
     def _begin_joint_stop(self, state: ExecState) -> None:
         self._inp.control_interface = ControlInterface.Velocity
-        self._inp.target_velocity = [0.0] * 6
-        self._inp.target_acceleration = [0.0] * 6
+        self._inp.target_velocity = [0.0] * self._n
+        self._inp.target_acceleration = [0.0] * self._n
         self._inp.synchronization = Synchronization.No
         self._set_limits(1.0)
         self._joint_stop = True
@@ -619,7 +648,7 @@ class MotionExecutor:
         reason = f"controller stalled: no feedback for {cfg.feedback_timeout_s} s"
         # The controller keeps the last reference while silent; drop the speed feed-forward so the
         # arm settles on it instead of drifting on, and wait to see whether the controller returns.
-        self.endpoint.command_joints(self._ref_q, np.zeros(6) if cfg.feedforward else None)
+        self.endpoint.command_joints(self._ref_q, np.zeros(self._n) if cfg.feedforward else None)
         self.fault = reason
         log.warning(
             "executor_fault", reason=reason, state=self.state.value, t_traj_s=round(self._scaler.tau, 3)
@@ -644,14 +673,14 @@ class MotionExecutor:
         if s == ExecState.MOVING_TO_START:
             inp.control_interface = ControlInterface.Position
             inp.target_position = traj.q_deg[0].tolist()
-            inp.target_velocity = [0.0] * 6
-            inp.target_acceleration = [0.0] * 6
+            inp.target_velocity = [0.0] * self._n
+            inp.target_acceleration = [0.0] * self._n
             res = self._otg_update()
             fb = self.endpoint.latest
             at_start = (
                 res == Result.Finished
                 and fb is not None
-                and np.max(np.abs(fb.q_deg[:6] - traj.q_deg[0])) <= self.config.start_tolerance_deg
+                and np.max(np.abs(self._axes(fb) - traj.q_deg[0])) <= self.config.start_tolerance_deg
             )
             if at_start:
                 self._approach = False
@@ -709,7 +738,7 @@ class MotionExecutor:
             log.warning("executor_ruckig_error", error=str(exc))
         if res not in (Result.Working, Result.Finished) and not self._joint_stop:
             # a target acceleration the limits cannot meet: track the velocity only
-            inp.target_acceleration = [0.0] * 6
+            inp.target_acceleration = [0.0] * self._n
             try:
                 res = self._otg.update(inp, out)
             except Exception:
@@ -746,13 +775,13 @@ class MotionExecutor:
             if self.state == ExecState.FAULT_STOPPING or last is None:
                 # the stop itself left the envelope: hold the last accepted reference
                 if last is not None:
-                    self.endpoint.command_joints(last, np.zeros(6) if self.config.feedforward else None)
+                    self.endpoint.command_joints(last, np.zeros(self._n) if self.config.feedforward else None)
                 self._enter_fault(f"envelope violated during the stop: {exc}", hold=False)
                 return
             # fall back to the last accepted state and stop smoothly from it
             self._inp.current_position = last.tolist()
             self._inp.current_velocity = self._last_sent_qd.tolist()
-            self._inp.current_acceleration = [0.0] * 6
+            self._inp.current_acceleration = [0.0] * self._n
             self._ref_q, self._ref_qd = last, self._last_sent_qd.copy()
             self._begin_fault_stop(f"envelope: {exc}")
             self.endpoint.command_joints(last, self._last_sent_qd if self.config.feedforward else None)
@@ -761,7 +790,7 @@ class MotionExecutor:
         self.endpoint.command_joints(q, ff if self.config.feedforward else None)
         self._ff_qd = None
         self._last_sent_qd = np.array(qd, dtype=np.float64)
-        self._tcp_hist.append(p)
+        self._tcp_hist.append(self.envelope.world_mm(q, p))
         self._rec_t.append(t_host_ns / 1e9)
         self._rec_q.append(q.copy())
         self._rec_qd.append(qd.copy())
@@ -771,7 +800,8 @@ class MotionExecutor:
     def _monitor_tracking(self, q_fb: np.ndarray) -> None:
         if len(self._tcp_hist) < 2 or self.state in _TERMINAL:
             return
-        p_fb = self.envelope.tcp_mm(np.asarray(q_fb[:6], dtype=np.float64))
+        q_fb = np.asarray(q_fb, dtype=np.float64)
+        p_fb = self.envelope.world_mm(q_fb, self.envelope.tcp_mm(q_fb))
         hist = np.asarray(self._tcp_hist)
         # distance to the commanded polyline of the last window (the controller lags the reference)
         a, b = hist[:-1], hist[1:]
@@ -847,8 +877,8 @@ class MotionExecutor:
             cycles=n,
             max_tracking_error_mm=self._max_track,
             t_host_s=np.asarray(self._rec_t),
-            q_ref_deg=np.asarray(self._rec_q).reshape(n, 6),
-            qd_ref_deg_s=np.asarray(self._rec_qd).reshape(n, 6),
+            q_ref_deg=np.asarray(self._rec_q).reshape(n, self._n),
+            qd_ref_deg_s=np.asarray(self._rec_qd).reshape(n, self._n),
             t_traj_s=np.asarray(self._rec_tau),
             cycle=np.asarray(self._rec_cycle, dtype=np.int64),
             lost_cycles=self._lost,

@@ -6,11 +6,17 @@ waypoint is solved warm-started from its predecessor, so the configuration canno
 neighbours. Each waypoint is checked against the configured joint limits shrunk by the margin, the
 wrist-singularity margin (|q5|), the joint jump between neighbours and the sensor workspace box; the
 first violation refuses the plan with the pass, the point and the limit.
+
+With a linear track (``settings.track``) the planner first chooses the track's position at every
+waypoint (:func:`track_positions`): the carriage follows the sensor's along-rail coordinate, so the
+arm works at the same reach along the rail on every pass, where the waypoints' base-frame poses are
+those of the plate beside a fixed robot. The arm's joints are then solved in the base frame at that
+track position exactly as without a track; a segment's configurations are ``axes_mm_deg``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -18,7 +24,15 @@ from cellctl.planning.plan import PlanRefused, Segment, pose_matrix
 from cellctl.planning.settings import PlannerSettings
 from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics
 
-__all__ = ["JointPathResult", "check_reach", "first_configuration", "sensor_kinematics", "solve_joint_path"]
+__all__ = [
+    "JointPathResult",
+    "check_reach",
+    "first_configuration",
+    "in_base_frame",
+    "sensor_kinematics",
+    "solve_joint_path",
+    "track_positions",
+]
 
 #: IK must reach the pose this closely, or the point counts as unreachable
 _POS_TOL_MM = 0.05
@@ -53,6 +67,53 @@ class JointPathResult:
 def sensor_kinematics(settings: PlannerSettings) -> RobotKinematics:
     """Robot kinematics with the laser sensor frame registered as tool ``"sensor"``."""
     return RobotKinematics(tools={"sensor": np.asarray(settings.T_flange_sensor, dtype=np.float64)})
+
+
+#: the sensor's along-rail offsets from the base the planner tries, in order: abreast first, then a
+#: little ahead or behind (abreast, the wrist of the IRB 4600 can need a larger joint-6 turn between
+#: neighbouring waypoints on the links around a plate's corners than it does a little off it)
+TRACK_LEADS_MM = (0.0, -200.0, 200.0, -400.0, 400.0)
+
+
+def track_positions(
+    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0
+) -> list[np.ndarray] | None:
+    """The track's position (n,) mm at every waypoint of every segment, or None without a track.
+
+    The carriage follows the sensor's along-rail coordinate ``a = (p - origin) . direction`` at one
+    lead for the whole plan, ``s = a - lead``: the arm's reach along the rail is the same on every
+    pass, and the track's path is as smooth as the sensor's (sweeps along the rail move it at the
+    scan speed, sweeps across hold it). The lead is the one nearest ``lead_mm`` (0: the sensor
+    abreast of the base, where the arm reaches as it would for a plate in front of a fixed robot)
+    that keeps every waypoint inside the usable travel; a plan longer than the travel is clipped at
+    the ends of the travel, where the arm then reaches along the rail (or the joint path refuses it).
+    """
+    track = settings.track
+    if track is None:
+        return None
+    along = [(seg.pos_mm - track.origin_mm) @ track.direction for seg in segments]
+    a = np.concatenate(along)
+    lead_lo = float(a.max()) - track.travel_max_mm
+    lead_hi = float(a.min()) - track.travel_min_mm
+    lead = float(np.clip(lead_mm, lead_lo, lead_hi)) if lead_lo <= lead_hi else 0.5 * (lead_lo + lead_hi)
+    return [np.clip(x - lead, track.travel_min_mm, track.travel_max_mm) for x in along]
+
+
+def in_base_frame(
+    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0
+) -> tuple[list[Segment], list[np.ndarray] | None]:
+    """The segments' sensor poses in the robot base frame at the chosen track positions (copies;
+    the segments themselves stay in the world frame), and those track positions (None: no track,
+    the segments are returned as they are)."""
+    s = track_positions(segments, settings, lead_mm)
+    if s is None:
+        return segments, None
+    track = settings.track
+    # the base keeps the world's orientation: only the carriage's translation comes off
+    base = [
+        replace(seg, pos_mm=seg.pos_mm - track.base_pos_mm(si)) for seg, si in zip(segments, s, strict=True)
+    ]
+    return base, s
 
 
 def _unreachable(kin: RobotKinematics, q: np.ndarray, pos_err_mm: float, rot_err_deg: float) -> str:
@@ -134,10 +195,14 @@ def check_reach(segments: list[Segment], settings: PlannerSettings) -> None:
         if far.any():
             i = int(np.argmax(far))
             share = float(np.mean(sweep_d <= _REACH_MM)) if sweep_d.size else 0.0
+            advice = (
+                "lay the plate closer to the track (the track carries the arm along it, not across)"
+                if settings.track is not None
+                else "split the plate into several placements or add a rail"
+            )
             raise PlanRefused(
                 f"the wrist centre would be {dist[i]:.0f} mm from the shoulder, beyond the arm's "
-                f"{_REACH_MM:.0f} mm; {share:.0%} of the sweep waypoints are in reach: split the plate "
-                "into several placements or add a rail",
+                f"{_REACH_MM:.0f} mm; {share:.0%} of the sweep waypoints are in reach: {advice}",
                 pass_label=seg.label,
                 point_index=i,
                 limit=f"reach {_REACH_MM:.0f} mm",
@@ -150,26 +215,32 @@ def solve_joint_path(
     settings: PlannerSettings,
     kin: RobotKinematics | None = None,
     q_start_deg: np.ndarray | None = None,
+    track_lead_mm: float = 0.0,
 ) -> JointPathResult:
     """Fill ``segment.q_deg`` for every segment, in order, with continuity.
 
     Args:
-        segments: the plan's segments (base frame sensor poses).
-        settings: limits and margins.
-        kin: kinematics with the ``"sensor"`` tool (built from the settings when None).
+        segments: the plan's segments (base frame sensor poses; world frame with a track).
+        settings: limits and margins (and the track).
+        kin: kinematics with the ``"sensor"`` tool (built from the settings when None), of the arm
+            alone: with a track the joints are solved in the base frame at the track's positions.
         q_start_deg: (6,) seed for the first waypoint; chosen from elbow-up seeds when None.
+        track_lead_mm: with a track, the preferred along-rail offset of the sensor from the base
+            (:func:`track_positions`).
 
     Raises:
         PlanRefused: a waypoint is unreachable, outside the joint margins, too close to the wrist
             singularity, outside the workspace box, or would need a configuration jump.
     """
     kin = kin or sensor_kinematics(settings)
+    world_segments = segments
+    segments, track_mm = in_base_frame(world_segments, settings, track_lead_mm)
     check_reach(segments, settings)
     ws_lo, ws_hi = np.asarray(settings.workspace_min_mm), np.asarray(settings.workspace_max_mm)
     lo, hi = settings.q_min_deg, settings.q_max_deg
     q_prev: np.ndarray | None = None
     min_wrist, min_room, max_step, count = np.inf, np.inf, 0.0, 0
-    for seg in segments:
+    for k, seg in enumerate(segments):
         out = np.zeros((seg.pos_mm.shape[0], 6))
         Ts = pose_matrix(seg.pos_mm, seg.R_base_sensor)
         outside = np.any((seg.pos_mm < ws_lo) | (seg.pos_mm > ws_hi), axis=1)
@@ -253,5 +324,5 @@ def solve_joint_path(
             )
             min_room = min(min_room, room)
             count += 1
-        seg.q_deg = out
+        world_segments[k].q_deg = out if track_mm is None else np.column_stack([track_mm[k], out])
     return JointPathResult(float(min_wrist), float(min_room), float(max_step), count)

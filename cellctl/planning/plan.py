@@ -96,9 +96,11 @@ class Segment:
 
     kind: approach, scan (raster pass), edge (edge pass), link (between passes), retract.
     label: e.g. ``"scan 3"`` (1-based pass numbers), used in refusals and progress events.
-    pos_mm: (n, 3) sensor origin waypoints, base frame, mm.
-    R_base_sensor: (n, 3, 3) sensor orientations, base frame.
-    q_deg: (n, 6) joint configurations (filled by the joint path), deg.
+    pos_mm: (n, 3) sensor origin waypoints, base frame (the world frame with a track), mm.
+    R_base_sensor: (n, 3, 3) sensor orientations, base frame (world frame with a track; the base
+        keeps the world's orientation, so the two agree).
+    q_deg: (n, 6) joint configurations (filled by the joint path), deg; with a track (n, 7)
+        ``axes_mm_deg``: the track position in mm, then the joints.
     t_start_s / duration_s: when the segment runs in the timed trajectory (filled by the timing).
     length_mm: path length of the sensor origin.
     """

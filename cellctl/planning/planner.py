@@ -19,7 +19,14 @@ from analysis.mesh import TriMesh
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
-from cellctl.planning.joint_path import check_reach, first_configuration, sensor_kinematics, solve_joint_path
+from cellctl.planning.joint_path import (
+    TRACK_LEADS_MM,
+    check_reach,
+    first_configuration,
+    in_base_frame,
+    sensor_kinematics,
+    solve_joint_path,
+)
 from cellctl.planning.plan import (
     CoverageReport,
     Placement,
@@ -72,7 +79,8 @@ def plan_scan(
 
     Args:
         design: the design top surface, plate frame, mm.
-        placement: the plate frame's nominal pose on the bed (base frame).
+        placement: the plate frame's nominal pose on the bed (base frame; the world frame with a
+            track, whose positions the planner chooses along each pass).
         settings: sensor, scan and robot numbers (defaults: the cell.toml defaults).
         with_coverage: run the ray-cast coverage prediction (the plan's ``coverage`` is zero otherwise).
         cycle_s: EGM cycle the plan is checked against the safety envelope at.
@@ -98,10 +106,12 @@ def plan_scan(
     candidates = []
     for sign in (1.0, -1.0):
         segments, margin = build_segments(surface, placement, settings, sign=sign)
+        # with a track: the poses the arm reaches, relative to its base at the track's positions
+        base_segments, _ = in_base_frame(segments, settings)
         if sign > 0:
             # out of reach is out of reach either way round: say so before any inverse kinematics
-            check_reach(segments, settings)
-        sweep = segments[1]
+            check_reach(base_segments, settings)
+        sweep = base_segments[1]
         q0 = first_configuration(kin, pose_matrix(sweep.pos_mm[:1], sweep.R_base_sensor[:1])[0], settings)
         cost = np.inf if q0 is None else abs(q0[3]) + abs(q0[5])
         candidates.append((cost, sign, segments, margin))
@@ -110,14 +120,20 @@ def plan_scan(
 
     t2 = time.perf_counter()
     refusal: PlanRefused | None = None
+    # with a track, each orientation is tried at a few along-rail offsets of the sensor from the base
+    leads = TRACK_LEADS_MM if settings.track is not None else (0.0,)
+    path = None
     for _, sign, segs_try, margin_try in candidates:
-        try:
-            path = solve_joint_path(segs_try, settings, kin)
-            segments, margin = segs_try, margin_try
+        for lead in leads:
+            try:
+                path = solve_joint_path(segs_try, settings, kin, track_lead_mm=lead)
+                segments, margin = segs_try, margin_try
+                break
+            except PlanRefused as exc:
+                log.info("plan_orientation_refused", sign=sign, track_lead_mm=lead, reason=str(exc))
+                refusal = refusal or exc
+        if path is not None:
             break
-        except PlanRefused as exc:
-            log.info("plan_orientation_refused", sign=sign, reason=str(exc))
-            refusal = refusal or exc
     else:
         assert refusal is not None
         raise refusal

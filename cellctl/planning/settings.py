@@ -12,6 +12,7 @@ import numpy as np
 
 from analysis.placement import T_from_pos_rpy
 from cellctl.planning.plan import PlanInputError
+from drivers.abb_egm.kinematics import LinearTrack
 
 __all__ = ["PlannerSettings"]
 
@@ -35,6 +36,8 @@ class PlannerSettings:
     Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
     sensor origin, ``T_flange_sensor`` (4, 4) mm, ``wrist_margin_deg`` (min |q5|),
     ``max_waypoint_joint_step_deg`` (a larger jump between neighbouring waypoints is a flip).
+    Track: ``track`` (usable travel, speed and acceleration limits, frame in the world) or None
+    for a fixed base; with one, configurations are ``axes_mm_deg`` (track mm, then six joints).
     Coverage prediction: ``coverage_cell_mm``, ``coverage_profile_step_mm``, ``coverage_rays``,
     ``max_incidence_deg``.
     """
@@ -71,9 +74,12 @@ class PlannerSettings:
     coverage_profile_step_mm: float = 3.0
     coverage_rays: int = 21
     max_incidence_deg: float = 80.0
+    track: LinearTrack | None = None
 
     def __post_init__(self) -> None:
         for f in fields(self):
+            if f.name == "track":  # validated by LinearTrack itself
+                continue
             v = getattr(self, f.name)
             arr = np.asarray(v, dtype=np.float64) if f.name != "speed_mm_s" or v is not None else None
             if arr is not None and not np.all(np.isfinite(arr)):
@@ -134,6 +140,32 @@ class PlannerSettings:
         return self.line_width_mm * (1.0 - self.overlap_fraction)
 
     @property
+    def n_axes(self) -> int:
+        """Axes in a configuration: 6 joints, or the track (mm) and 6 joints (``axes_mm_deg``)."""
+        return 6 + (self.track is not None)
+
+    @property
+    def axis_speed_max(self) -> np.ndarray:
+        """(n_axes,) speed limits: the track's (mm/s) first when there is one, then the joints' (deg/s)."""
+        return self._with_track(self.joint_speed_max_deg_s, "speed_max_mm_s")
+
+    @property
+    def axis_accel_max(self) -> np.ndarray:
+        """(n_axes,) acceleration limits, the track's (mm/s^2) first when there is one."""
+        return self._with_track(self.joint_accel_max_deg_s2, "accel_max_mm_s2")
+
+    @property
+    def axis_jerk_max(self) -> np.ndarray:
+        """(n_axes,) jerk limits, the track's (mm/s^3) first when there is one."""
+        return self._with_track(self.joint_jerk_max_deg_s3, "jerk_max_mm_s3")
+
+    def _with_track(self, joints: tuple[float, ...], track_field: str) -> np.ndarray:
+        arm = np.asarray(joints, dtype=np.float64)
+        if self.track is None:
+            return arm
+        return np.concatenate([[float(getattr(self.track, track_field))], arm])
+
+    @property
     def q_min_deg(self) -> np.ndarray:
         """(6,) lower joint limits shrunk by the margin, deg."""
         return np.asarray(self.joint_lower_deg) + self.joint_margin_deg
@@ -178,4 +210,5 @@ class PlannerSettings:
             edge_tilt_deg=s.edge_tilt_deg,
             link_clearance_mm=s.link_clearance_mm,
             approach_mm=s.approach_mm,
+            track=None if r.track is None else r.track.linear_track(),
         )

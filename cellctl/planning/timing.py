@@ -16,6 +16,10 @@ too), so the parameter's rate is the TCP speed.
 
 Joint limits are used with safety factors (toppra checks them on a grid only; the tracker needs
 room). Units: joint angles in deg (deg/s, deg/s^2, deg/s^3), positions in mm, time in s.
+
+With a linear track the path is seven-dimensional (``axes_mm_deg``: the track in mm, then the
+joints): toppra and the time law time track and arm together, under the track's speed,
+acceleration and jerk limits beside the joints', and the TCP speed is the world frame's.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from ruckig import InputParameter, Result, Ruckig, Trajectory
 from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.plan import PlanRefused, Segment
 from cellctl.planning.settings import PlannerSettings
-from drivers.abb_egm.kinematics import fk_batch
+from drivers.abb_egm.kinematics import LinearTrack, fk_batch
 
 __all__ = ["RAMP_ALLOWANCE_MM", "TcpSpeedConstraint", "TimingResult", "tcp_speed_mm_s", "time_segments"]
 
@@ -57,34 +61,43 @@ class TcpSpeedConstraint(ta_constraint.LinearConstraint):
     central difference of the vectorised forward kinematics along ``q'(s)``.
     """
 
-    def __init__(self, v_max_mm_s: float, T_flange_tool: np.ndarray) -> None:
+    def __init__(
+        self, v_max_mm_s: float, T_flange_tool: np.ndarray, track: LinearTrack | None = None
+    ) -> None:
         super().__init__()
         self.v_max_mm_s = float(v_max_mm_s)
         self.T_flange_tool = np.asarray(T_flange_tool, dtype=np.float64)
-        self.dof = 6
+        self.track = track
+        self.dof = 6 + (track is not None)
         self._format_string = f"    TCP speed limit: {self.v_max_mm_s} mm/s\n"
 
     def compute_constraint_params(self, path, gridpoints):
         """toppra hook: ``(a, b, c, F, g, ubound, xbound)`` with only ``xbound`` set (x = sdot^2)."""
-        dpds = _tool_velocity(path(gridpoints), path(gridpoints, 1), self.T_flange_tool)
+        dpds = _tool_velocity(path(gridpoints), path(gridpoints, 1), self.T_flange_tool, self.track)
         speed = np.maximum(np.linalg.norm(dpds, axis=1), 1e-9)
         xbound = np.zeros((len(gridpoints), 2))
         xbound[:, 1] = (self.v_max_mm_s / speed) ** 2
         return None, None, None, None, None, None, xbound
 
 
-def _tool_velocity(q_deg: np.ndarray, qd: np.ndarray, T_flange_tool: np.ndarray) -> np.ndarray:
-    """Tool point velocity (n, 3) for joint rates ``qd`` (n, 6) at ``q_deg`` (n, 6), per unit of qd."""
+def _tool_velocity(
+    q_deg: np.ndarray, qd: np.ndarray, T_flange_tool: np.ndarray, track: LinearTrack | None = None
+) -> np.ndarray:
+    """Tool point velocity (n, 3) for joint rates ``qd`` (n, 6) at ``q_deg`` (n, 6), per unit of qd
+    (``axes_mm_deg`` (n, 7) with a track: the world frame's velocity, carriage included)."""
     scale = np.maximum(np.abs(qd).max(axis=1, keepdims=True), 1e-12)
     h = 1e-3 / scale  # a 1e-3 deg probe along the direction of motion
-    p_plus = fk_batch(q_deg + h * qd, T_flange_tool)[:, :3, 3]
-    p_minus = fk_batch(q_deg - h * qd, T_flange_tool)[:, :3, 3]
+    p_plus = fk_batch(q_deg + h * qd, T_flange_tool, track=track)[:, :3, 3]
+    p_minus = fk_batch(q_deg - h * qd, T_flange_tool, track=track)[:, :3, 3]
     return (p_plus - p_minus) / (2 * h)
 
 
-def tcp_speed_mm_s(q_deg: np.ndarray, qd_deg_s: np.ndarray, T_flange_tool: np.ndarray) -> np.ndarray:
-    """Speed (n,) mm/s of the tool point for states ``q_deg`` (n, 6) deg and ``qd_deg_s`` (n, 6) deg/s."""
-    return np.linalg.norm(_tool_velocity(q_deg, qd_deg_s, T_flange_tool), axis=1)
+def tcp_speed_mm_s(
+    q_deg: np.ndarray, qd_deg_s: np.ndarray, T_flange_tool: np.ndarray, track: LinearTrack | None = None
+) -> np.ndarray:
+    """Speed (n,) mm/s of the tool point for states ``q_deg`` (n, 6) deg and ``qd_deg_s`` (n, 6) deg/s
+    (``axes_mm_deg`` (n, 7) and mm/s first with a track)."""
+    return np.linalg.norm(_tool_velocity(q_deg, qd_deg_s, T_flange_tool, track), axis=1)
 
 
 @dataclass(frozen=True)
@@ -123,16 +136,16 @@ def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -
     d2q/ds2 * sdot^2 + dq/ds * sddot and the jerk d3q/ds3 * sdot^3 + 3 d2q/ds2 * sdot * sddot +
     dq/ds * sdddot; V, A, J are chosen so each stays under its limit on every joint.
     """
-    vmax = _VEL_FACTOR * np.asarray(settings.joint_speed_max_deg_s, dtype=np.float64)
-    amax = _ACC_FACTOR * np.asarray(settings.joint_accel_max_deg_s2, dtype=np.float64)
-    jmax = _JERK_FACTOR * np.asarray(settings.joint_jerk_max_deg_s3, dtype=np.float64)
+    vmax = _VEL_FACTOR * settings.axis_speed_max
+    amax = _ACC_FACTOR * settings.axis_accel_max
+    jmax = _JERK_FACTOR * settings.axis_jerk_max
     d1 = path(grid, 1)
     d2 = path(grid, 2)
     d3 = np.abs(np.diff(d2, axis=0)) / np.maximum(np.diff(grid), 1e-9)[:, None]
     m1 = np.maximum(np.abs(d1).max(axis=0), 1e-9)
     m2 = np.abs(d2).max(axis=0)
-    m3 = d3.max(axis=0) if d3.size else np.zeros(6)
-    dpds = np.linalg.norm(_tool_velocity(path(grid), d1, settings.T_flange_sensor), axis=1)
+    m3 = d3.max(axis=0) if d3.size else np.zeros(settings.n_axes)
+    dpds = np.linalg.norm(_tool_velocity(path(grid), d1, settings.T_flange_sensor, settings.track), axis=1)
     v = min(v_tcp / max(float(dpds.max()), 1e-9), float(np.min(vmax / m1)))
     # the centripetal term may use at most half of the acceleration budget
     v0 = min(v, float(np.min(np.sqrt(0.5 * amax / np.maximum(m2, 1e-12)))))
@@ -162,14 +175,14 @@ def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -
 def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float):
     s = _path_parameter(seg)
     path = ta.SplineInterpolator(s, seg.q_deg)
-    vlim = _VEL_FACTOR * np.asarray(settings.joint_speed_max_deg_s, dtype=np.float64)
-    alim = _ACC_FACTOR * np.asarray(settings.joint_accel_max_deg_s2, dtype=np.float64)
+    vlim = _VEL_FACTOR * settings.axis_speed_max
+    alim = _ACC_FACTOR * settings.axis_accel_max
     constraints = [
         ta_constraint.JointVelocityConstraint(vlim),
         ta_constraint.JointAccelerationConstraint(
             alim, discretization_scheme=ta_constraint.DiscretizationType.Interpolation
         ),
-        TcpSpeedConstraint(v_tcp, settings.T_flange_sensor),
+        TcpSpeedConstraint(v_tcp, settings.T_flange_sensor, settings.track),
     ]
     n_grid = int(np.clip(np.ceil(s[-1] / _GRID_STEP_MM), 20, 1500)) + 1
     grid = np.linspace(0.0, s[-1], n_grid)
@@ -234,11 +247,11 @@ def time_segments(segments: list[Segment], settings: PlannerSettings, *, dt_s: f
         seg.t_start_s, seg.duration_s = t0, float(t[-1])
         if seg.is_sweep:
             sweep_len += seg.length_mm
-            p = fk_batch(q, settings.T_flange_sensor)[:, :3, 3]
+            p = fk_batch(q, settings.T_flange_sensor, track=settings.track)[:, :3, 3]
             travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
             interior = (travelled > RAMP_ALLOWANCE_MM) & (travelled < travelled[-1] - RAMP_ALLOWANCE_MM)
             if interior.any():
-                speed = tcp_speed_mm_s(q[interior], qd[interior], settings.T_flange_sensor)
+                speed = tcp_speed_mm_s(q[interior], qd[interior], settings.T_flange_sensor, settings.track)
                 worst_dev = max(worst_dev, float(np.max(np.abs(speed / v_scan - 1.0))))
             else:
                 worst_dev = max(worst_dev, 1.0)  # a pass too short to reach the scan speed

@@ -297,25 +297,24 @@ class SimFaultControl:
                 await rws.stop()
 
     def _apply_laser(self, k: LaserKnobs) -> None:
-        sensor = self.cell.sensor
-        if k.disconnect_after_frames is not None:
-            if k.disconnect_after_frames == 0:
-                sensor.faults.disconnect_after_frames = None
-            else:
-                sensor.disconnect_after(k.disconnect_after_frames)
+        # the sensor's own fault channel applies them (drivers/laser/sim/sensor.py); the knobs here
+        # were validated already, so it cannot refuse them
+        knobs: dict[str, Any] = {
+            "disconnect_after_frames": k.disconnect_after_frames,
+            "drop_frames": k.drop_frames,
+            "drop_probability": k.drop_probability,
+            "stall_s": k.stall_s,
+            "stall_acquire": k.stall_acquire,
+            "clock_jump_us": None if k.clock_jump_ms is None else k.clock_jump_ms * 1e3,
+        }
         if k.corrupt is not None:
-            sensor.corrupt_next(k.corrupt.groups, k.corrupt.mode)
-            if k.corrupt.probability is not None:
-                sensor.faults.corrupt_probability = k.corrupt.probability
-        if k.stall_s is not None:
-            sensor.stall(k.stall_s, acquire=k.stall_acquire)
+            knobs.update(corrupt_groups=k.corrupt.groups, corrupt_mode=k.corrupt.mode,
+                         corrupt_probability=k.corrupt.probability)  # fmt: skip
+        reply = self.cell.sensor.apply_faults({"laser": {n: v for n, v in knobs.items() if v is not None}})
+        if not reply["ok"]:
+            raise RuntimeError(f"the sensor refused validated knobs: {reply['error']}")
         if k.clock_jump_ms is not None:
-            sensor.jump_timestamp(k.clock_jump_ms * 1e3)
             self.clock_jump_ms += k.clock_jump_ms
-        if k.drop_frames is not None:
-            sensor.drop_next(k.drop_frames)
-        if k.drop_probability is not None:
-            sensor.faults.drop_probability = k.drop_probability
 
     def state(self, applied: list[str] | None = None) -> FaultState:
         """The knobs in force and the counters of both simulators."""

@@ -97,6 +97,8 @@ class SimulatedCell:
 
         cfg, sim = self.cfg, self.cfg.sim
         users = tuple((u, os.environ.get(env, ABB_DEFAULT_PASSWORD)) for u, env in sim.rws_users.items())
+        # the robot on its track: the true trajectory holds axes_mm_deg, the sensor sees world poses
+        track = None if cfg.robot.track is None else cfg.robot.track.linear_track()
         f = sim.faults
         self.controller = ControllerSim(
             ControllerSimConfig(
@@ -110,6 +112,8 @@ class SimulatedCell:
                 sensor_port=cfg.robot.egm_port,
                 cycle_s=sim.egm_cycle_ms * 1e-3,
                 q_start_deg=tuple(sim.egm_q_start_deg),
+                track=track,
+                track_start_mm=sim.egm_track_start_mm,
                 stream_when_idle=sim.egm_stream_when_idle,
                 ctrl_clock_offset_s=1000.0,
                 seed=sim.plate.seed,
@@ -136,7 +140,7 @@ class SimulatedCell:
             # a controller cycle that fell behind the sensor's on a loaded machine: the arm's last
             # joint velocity continues for those milliseconds (as SimCell does) rather than fail
             q, _late = trajectory.q_deg_continued(t_true_s)
-            return fk_batch(q, T_fs)
+            return fk_batch(q, T_fs, track=track)
 
         las = cfg.laser
         self.sensor = LaserSimulator(

@@ -6,6 +6,11 @@ Shared by the sensor-side endpoint (:mod:`drivers.abb_egm.endpoint`) and the con
 Units at this boundary are the controller's: joints in degrees, positions in millimetres,
 orientations as unit quaternions with the scalar first (w, x, y, z), header ``tm`` in milliseconds,
 ``EgmClock`` as integer microseconds since 1970-01-01.
+
+Additional axes in the robot's motion group (a linear track) travel in ``externalJoints`` beside
+the arm's ``joints``, in both directions: ``feedBack`` / ``planned`` of ``EgmRobot`` and ``planned``
+/ ``speedRef`` of ``EgmSensor``. egm.proto's comment on ``EgmJoints``: degrees, "mm for linear
+external axes" (so a track's position is in mm and its speed in mm/s).
 """
 
 from __future__ import annotations
@@ -41,6 +46,8 @@ __all__ = [
 _U32 = 2**32
 #: The EGM manual caps repeated fields at 6 (7 for 7-axis robots); more is a malformed message.
 MAX_AXES = 7
+#: additional (external) axes in one message: the manual's cap of 6 on a repeated field
+MAX_EXTERNAL_AXES = 6
 
 
 class EgmError(Exception):
@@ -118,6 +125,8 @@ class RobotMessage:
     Arrays are float64: ``feedback_q_deg`` / ``planned_q_deg`` (n_axes,) deg,
     ``*_pos_mm`` (3,) mm, ``*_quat_wxyz`` (4,) unit quaternion, scalar first.
     ``feedback_time_us`` is the controller's ``EgmClock`` in integer microseconds since the epoch.
+    ``feedback_external_joints`` / ``planned_external_joints`` (n_ext,): the additional axes
+    (``externalJoints``), deg for a rotational axis and mm for a linear one (a track).
     """
 
     seqno: int | None = None
@@ -139,13 +148,17 @@ class RobotMessage:
     move_index: int | None = None
     measured_force_fc_active: bool | None = None
     measured_force: np.ndarray | None = None
+    feedback_external_joints: np.ndarray | None = None
+    planned_external_joints: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class SensorMessage:
     """One ``EgmSensor`` (sensor -> controller, position guidance).
 
-    Joint mode: ``planned_q_deg`` (n_axes,) deg, optional ``speed_ref_q_deg_s`` (n_axes,) deg/s.
+    Joint mode: ``planned_q_deg`` (n_axes,) deg, optional ``speed_ref_q_deg_s`` (n_axes,) deg/s;
+    additional axes in ``planned_external_joints`` (n_ext,) and ``speed_ref_external_joints``
+    (n_ext,): deg and deg/s, or mm and mm/s for a linear axis (a track).
     Pose mode: ``planned_pos_mm`` (3,) mm with ``planned_quat_wxyz`` (4,) or ``planned_euler_deg`` (3,)
     (Euler wins on the controller if both are given), optional ``speed_ref_cart`` (6,) mm/s and deg/s.
     """
@@ -159,6 +172,8 @@ class SensorMessage:
     planned_quat_wxyz: np.ndarray | None = None
     planned_euler_deg: np.ndarray | None = None
     speed_ref_cart: np.ndarray | None = None
+    planned_external_joints: np.ndarray | None = None
+    speed_ref_external_joints: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -304,6 +319,16 @@ def robot_from_pb(m: egm_pb2.EgmRobot, data: bytes = b"") -> RobotMessage:
             if m.HasField("measuredForce")
             else None
         ),
+        feedback_external_joints=(
+            _repeated(fb.externalJoints.joints, name, "feedBack.externalJoints", data, MAX_EXTERNAL_AXES)
+            if fb.HasField("externalJoints")
+            else None
+        ),
+        planned_external_joints=(
+            _repeated(pl.externalJoints.joints, name, "planned.externalJoints", data, MAX_EXTERNAL_AXES)
+            if pl is not None and pl.HasField("externalJoints")
+            else None
+        ),
     )
 
 
@@ -363,6 +388,16 @@ def decode_sensor(data: bytes, *, require_correction_mtype: bool = True) -> Sens
         speed_ref_cart=(
             _repeated(sr.cartesians.value, name, "speedRef.cartesians", data, max_len=6)
             if sr is not None and sr.HasField("cartesians")
+            else None
+        ),
+        planned_external_joints=(
+            _repeated(pl.externalJoints.joints, name, "planned.externalJoints", data, MAX_EXTERNAL_AXES)
+            if pl is not None and pl.HasField("externalJoints")
+            else None
+        ),
+        speed_ref_external_joints=(
+            _repeated(sr.externalJoints.joints, name, "speedRef.externalJoints", data, MAX_EXTERNAL_AXES)
+            if sr is not None and sr.HasField("externalJoints")
             else None
         ),
     )
@@ -426,6 +461,10 @@ def encode_robot(msg: RobotMessage) -> bytes:
         _set_pose(fb.cartesian, msg.feedback_pos_mm, msg.feedback_quat_wxyz, None, name, "feedBack.cartesian")
     if msg.feedback_time_us is not None:
         _set_clock(fb.time, msg.feedback_time_us)
+    if msg.feedback_external_joints is not None:
+        fb.externalJoints.joints.extend(
+            _vector(msg.feedback_external_joints, name, "feedBack.externalJoints", max_len=MAX_EXTERNAL_AXES)
+        )
     if msg.planned_q_deg is not None:
         m.planned.joints.joints.extend(_vector(msg.planned_q_deg, name, "planned.joints"))
     if msg.planned_pos_mm is not None:
@@ -434,6 +473,10 @@ def encode_robot(msg: RobotMessage) -> bytes:
         )
     if msg.planned_time_us is not None:
         _set_clock(m.planned.time, msg.planned_time_us)
+    if msg.planned_external_joints is not None:
+        m.planned.externalJoints.joints.extend(
+            _vector(msg.planned_external_joints, name, "planned.externalJoints", max_len=MAX_EXTERNAL_AXES)
+        )
     if msg.motor_state is not None:
         m.motorState.state = int(msg.motor_state)
     if msg.mci_state is not None:
@@ -508,6 +551,14 @@ def encode_sensor(msg: SensorMessage, *, with_header: bool = True) -> bytes:
         m.speedRef.joints.joints.extend(_vector(msg.speed_ref_q_deg_s, name, "speedRef.joints"))
     if msg.speed_ref_cart is not None:
         m.speedRef.cartesians.value.extend(_vector(msg.speed_ref_cart, name, "speedRef.cartesians", 6))
+    if msg.planned_external_joints is not None:
+        m.planned.externalJoints.joints.extend(
+            _vector(msg.planned_external_joints, name, "planned.externalJoints", max_len=MAX_EXTERNAL_AXES)
+        )
+    if msg.speed_ref_external_joints is not None:
+        m.speedRef.externalJoints.joints.extend(
+            _vector(msg.speed_ref_external_joints, name, "speedRef.externalJoints", max_len=MAX_EXTERNAL_AXES)
+        )
     try:
         return m.SerializeToString()
     except EncodeError as exc:

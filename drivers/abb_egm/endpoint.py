@@ -98,6 +98,9 @@ class EgmEndpointConfig:
     ``malformed_log_interval_s``: at most one log line per interval for malformed packets.
     ``jitter_window``: receive intervals kept for the jitter figure.
     ``n_axes``: joints in the reference (6 for the IRB 4600).
+    ``n_external``: additional axes of the robot's motion group in ``externalJoints`` (1 for a linear
+    track, 0 for none). With them, references, the state's ``axes_mm_deg`` and the history's rows
+    hold the external axes first, then the joints (``axes_mm_deg``: track mm, then joints deg).
 
     Reply path (see the module docstring): ``reply_thread`` serves the controller from a dedicated
     thread instead of the asyncio loop. For that thread: ``reply_thread_priority`` > 0 asks for
@@ -127,6 +130,7 @@ class EgmEndpointConfig:
     malformed_log_interval_s: float = 1.0
     jitter_window: int = 2_500
     n_axes: int = 6
+    n_external: int = 0
     reply_thread: bool = False
     reply_thread_priority: int = 0
     reply_thread_cpus: tuple[int, ...] = ()
@@ -158,7 +162,8 @@ class EgmState:
     """The latest ``EgmRobot`` as the endpoint saw it.
 
     ``t_host_ns``: host receive time (``time.monotonic_ns``); ``feedback_time_us``: controller clock
-    (us since the epoch) or None; ``q_deg`` (n_axes,) deg; ``pos_mm`` (3,) and ``quat_wxyz`` (4,) or None.
+    (us since the epoch) or None; ``q_deg`` (n_axes,) deg; ``pos_mm`` (3,) and ``quat_wxyz`` (4,) or None;
+    ``external_joints`` (n_ext,) the additional axes (a track in mm) or None when none were sent.
     """
 
     seqno: int | None
@@ -174,6 +179,14 @@ class EgmState:
     rapid_exec_state: RapidState | None
     convergence_met: bool | None
     utilization_pct: float | None
+    external_joints: np.ndarray | None = None
+
+    @property
+    def axes_mm_deg(self) -> np.ndarray:
+        """Every axis of the motion group: the external axes (a track, mm) first, then the joints."""
+        if self.external_joints is None or self.external_joints.shape[0] == 0:
+            return self.q_deg
+        return np.concatenate([self.external_joints, self.q_deg])
 
     @property
     def ok_to_command(self) -> bool:
@@ -187,7 +200,8 @@ class FeedbackArrays:
 
     ``t_host_ns`` (n,) int64 host receive time, ``t_ctrl_us`` (n,) int64 controller clock (-1 where the
     controller sent none), ``seqno`` (n,) int64, ``q_deg`` (n, n_axes) deg, ``pos_mm`` (n, 3) mm and
-    ``quat_wxyz`` (n, 4) (NaN where the controller sent no pose).
+    ``quat_wxyz`` (n, 4) (NaN where the controller sent no pose). With external axes (a track) the
+    rows of ``q_deg`` are ``axes_mm_deg``: the external axes first (mm), then the joints.
     """
 
     t_host_ns: np.ndarray
@@ -375,10 +389,20 @@ class _Reference:
     q_deg: np.ndarray | None = None
 
 
-def _joint_reference(q_deg: np.ndarray, speed_deg_s: np.ndarray | None = None) -> _Reference:
+def _joint_reference(q_deg: np.ndarray, speed_deg_s: np.ndarray | None = None, n_ext: int = 0) -> _Reference:
+    """A joint-mode reference; with ``n_ext`` external axes the first ``n_ext`` values of ``q_deg``
+    (and of ``speed_deg_s``) go to ``externalJoints``, the rest to ``joints``."""
+    ext = q_deg[:n_ext] if n_ext else None
+    ext_v = speed_deg_s[:n_ext] if n_ext and speed_deg_s is not None else None
     try:
         body = encode_sensor(
-            SensorMessage(planned_q_deg=q_deg, speed_ref_q_deg_s=speed_deg_s), with_header=False
+            SensorMessage(
+                planned_q_deg=q_deg[n_ext:],
+                speed_ref_q_deg_s=None if speed_deg_s is None else speed_deg_s[n_ext:],
+                planned_external_joints=ext,
+                speed_ref_external_joints=ext_v,
+            ),
+            with_header=False,
         )
     except EgmEncodeError as exc:
         raise EgmEndpointError(str(exc)) from None
@@ -407,7 +431,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     ) -> None:
         self.config = config or EgmEndpointConfig()
         self.stats = EgmStatistics(_intervals_us=deque(maxlen=self.config.jitter_window))
-        self.history = FeedbackHistory(self.config.history_len, self.config.n_axes)
+        self.history = FeedbackHistory(self.config.history_len, self.config.n_external + self.config.n_axes)
         self._on_watchdog = on_watchdog
         self._clock_ns = clock_ns
         self._transport: asyncio.DatagramTransport | None = None
@@ -524,14 +548,16 @@ class EgmEndpoint(asyncio.DatagramProtocol):
 
     def command_joints(self, q_deg: np.ndarray, speed_deg_s: np.ndarray | None = None) -> None:
         """Joint mode: from the next reply on, send ``q_deg`` (n_axes,) deg and the optional feed-forward
-        ``speed_deg_s`` (n_axes,) deg/s as ``planned.joints`` / ``speedRef.joints``.
+        ``speed_deg_s`` (n_axes,) deg/s as ``planned.joints`` / ``speedRef.joints``. With external
+        axes both are ``axes_mm_deg`` (n_external + n_axes,): the first values go to ``externalJoints``.
 
         When the controller starts a new session (seqno back to 0) the endpoint drops the reference
         and holds the arm where the session found it, so a stale target never makes it jump.
         """
-        q = self._vector(q_deg, self.config.n_axes, "q_deg")
-        qd = None if speed_deg_s is None else self._vector(speed_deg_s, self.config.n_axes, "speed_deg_s")
-        ref = _joint_reference(q, qd)
+        n = self.config.n_external + self.config.n_axes
+        q = self._vector(q_deg, n, "q_deg")
+        qd = None if speed_deg_s is None else self._vector(speed_deg_s, n, "speed_deg_s")
+        ref = _joint_reference(q, qd, self.config.n_external)
         with self._ref_lock:
             self._reference = ref
 
@@ -557,7 +583,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     def hold(self) -> None:
         """Reference := the latest feedback joints (the robot stops where it is)."""
         latest = self._latest
-        ref = None if latest is None else _joint_reference(latest.q_deg.copy())
+        ref = None if latest is None else self._hold_reference(latest.axes_mm_deg.copy())
         with self._ref_lock:
             self._reference = ref
 
@@ -566,6 +592,14 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         """The joint reference being sent (None in pose mode or before the first packet)."""
         ref = self._reference
         return None if ref is None or ref.q_deg is None else ref.q_deg.copy()
+
+    def _hold_reference(self, axes: np.ndarray) -> _Reference | None:
+        """A reference that holds the robot at ``axes`` (what the controller reported), or None when
+        the report lacks an axis the reference needs."""
+        n = self.config.n_external + self.config.n_axes
+        if self.config.n_external and axes.shape[0] < n:
+            return None
+        return _joint_reference(axes[:n].copy(), None, self.config.n_external)
 
     @staticmethod
     def _vector(values, n: int, name: str) -> np.ndarray:
@@ -626,7 +660,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 msg = self._convert(pb, data, addr, t_rx_ns)
                 if msg is None:
                     return
-                self._reference = _joint_reference(msg.feedback_q_deg[: self.config.n_axes].copy())
+                self._reference = self._hold_reference(_axes_of(msg, self.config.n_external))
             ref = self._reference
         # The reply goes out before the conversion, state and history (on this VM, putting them first
         # raised the reply thread's p50 from ~200 to ~450 us). On the reply thread the state therefore
@@ -953,6 +987,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
 
     def _update_state(self, msg: RobotMessage, t_rx_ns: int) -> None:
         q = msg.feedback_q_deg
+        n_ext = self.config.n_external
         state = EgmState(
             seqno=msg.seqno,
             tm_ms=msg.tm_ms,
@@ -967,12 +1002,19 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             rapid_exec_state=msg.rapid_exec_state,
             convergence_met=msg.mci_convergence_met,
             utilization_pct=msg.utilization_pct,
+            external_joints=msg.feedback_external_joints,
         )
         previous = self._latest
         self._latest = state
-        if q.shape[0] >= self.config.n_axes:
+        ext = msg.feedback_external_joints
+        if q.shape[0] >= self.config.n_axes and (n_ext == 0 or (ext is not None and ext.shape[0] >= n_ext)):
             self.history.append(
-                t_rx_ns, msg.feedback_time_us, msg.seqno, q, msg.feedback_pos_mm, msg.feedback_quat_wxyz
+                t_rx_ns,
+                msg.feedback_time_us,
+                msg.seqno,
+                _axes_of(msg, n_ext),
+                msg.feedback_pos_mm,
+                msg.feedback_quat_wxyz,
             )
         if previous is None or (
             previous.motor_state,
@@ -1048,6 +1090,18 @@ class EgmEndpoint(asyncio.DatagramProtocol):
 
 
 _IDLE_RECEIVE_TIMEOUT_NS = 100_000_000
+
+
+def _axes_of(msg: RobotMessage, n_ext: int) -> np.ndarray:
+    """The feedback of every axis, ``axes_mm_deg`` order: ``n_ext`` external axes, then the joints
+    (just the joints without external axes; fewer values when the controller sent fewer)."""
+    if n_ext == 0:
+        return msg.feedback_q_deg
+    ext = msg.feedback_external_joints
+    ext = np.zeros(0) if ext is None else ext[:n_ext]
+    if ext.shape[0] < n_ext:
+        return ext  # too short for a reference: the caller refuses it
+    return np.concatenate([ext, msg.feedback_q_deg])
 
 
 def _set_receive_timeout(sock: socket.socket, timeout_ns: int) -> None:

@@ -7,6 +7,13 @@ Units: the public API speaks the controller's units, degrees and millimetres; pi
 radians and metres. The conversion happens only in :func:`_q_rad`, :func:`_T_mm` and :func:`_T_m`.
 Frames: ``base`` (robot base), ``flange`` (ABB tool0), and named tool frames given as
 ``T_flange_tool`` (4, 4) homogeneous transforms in mm.
+
+The track: a robot on a linear track (:class:`LinearTrack`) is a seven-axis machine whose first
+joint is prismatic. Its configuration is one vector, ``axes_mm_deg`` (7,): the track position in mm
+first, then the six arm joints in degrees (the order of the kinematic chain and of EGM's feedback:
+``externalJoints`` then ``joints``). With a track, every pose is in the cell's world frame; the
+robot base keeps the world's orientation and moves along the track's direction. Without one, the
+world frame is the base frame and a configuration is the six-vector ``q_deg``.
 """
 
 from __future__ import annotations
@@ -19,11 +26,13 @@ import pinocchio as pin
 
 __all__ = [
     "JOINT_NAMES",
+    "N_ARM_JOINTS",
     "QD_MAX_DEG_S",
     "Q_MAX_DEG",
     "Q_MIN_DEG",
     "IkResult",
     "KinematicsError",
+    "LinearTrack",
     "Pose",
     "RobotKinematics",
     "fk_batch",
@@ -44,6 +53,7 @@ _JOINT_XYZ_M = np.array(
     ]
 )
 _JOINT_AXES = "zyyxyx"
+N_ARM_JOINTS = 6
 Q_MIN_DEG = np.array([-180.0, -90.0, -180.0, -400.0, -125.0, -400.0])
 Q_MAX_DEG = np.array([180.0, 150.0, 75.0, 400.0, 120.0, 400.0])
 QD_MAX_DEG_S = np.array([175.0, 175.0, 175.0, 250.0, 250.0, 360.0])
@@ -53,6 +63,64 @@ _R_LINK6_FLANGE = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 
 class KinematicsError(ValueError):
     """Bad input to a kinematics function (wrong shape, unknown frame, non-finite values)."""
+
+
+@dataclass(frozen=True, slots=True)
+class LinearTrack:
+    """A linear track carrying the robot base: the first, prismatic joint of a seven-axis chain.
+
+    ``origin_mm`` (3,): the robot base origin in the world frame at track position 0.
+    ``direction`` (3,): the world direction of + travel (normalised here).
+    ``travel_min_mm`` / ``travel_max_mm``: the track's travel; ``speed_max_mm_s`` /
+    ``accel_max_mm_s2`` / ``jerk_max_mm_s3`` its speed, acceleration and jerk limits.
+    The base keeps the world's orientation: ``T_world_base(s) = [I | origin_mm + s * direction]``.
+    """
+
+    origin_mm: np.ndarray
+    direction: np.ndarray
+    travel_min_mm: float
+    travel_max_mm: float
+    speed_max_mm_s: float
+    accel_max_mm_s2: float = 2000.0
+    jerk_max_mm_s3: float = 20000.0
+
+    def __post_init__(self) -> None:
+        origin = np.asarray(self.origin_mm, dtype=np.float64)
+        d = np.asarray(self.direction, dtype=np.float64)
+        if (
+            origin.shape != (3,)
+            or d.shape != (3,)
+            or not (np.all(np.isfinite(origin)) and np.all(np.isfinite(d)))
+        ):
+            raise KinematicsError("LinearTrack: origin_mm and direction must be 3 finite values each")
+        norm = float(np.linalg.norm(d))
+        if norm < 1e-9:
+            raise KinematicsError("LinearTrack: direction must not be the zero vector")
+        if not (np.isfinite(self.travel_min_mm) and np.isfinite(self.travel_max_mm)):
+            raise KinematicsError("LinearTrack: travel limits must be finite")
+        if not self.travel_min_mm < self.travel_max_mm:
+            raise KinematicsError(
+                f"LinearTrack: travel_min_mm ({self.travel_min_mm}) must be below travel_max_mm ({self.travel_max_mm})"
+            )
+        if not (self.speed_max_mm_s > 0 and self.accel_max_mm_s2 > 0 and self.jerk_max_mm_s3 > 0):
+            raise KinematicsError("LinearTrack: speed, acceleration and jerk limits must be positive")
+        origin.flags.writeable = False
+        d = d / norm
+        d.flags.writeable = False
+        object.__setattr__(self, "origin_mm", origin)
+        object.__setattr__(self, "direction", d)
+
+    def base_pos_mm(self, track_mm) -> np.ndarray:
+        """World position of the robot base origin at track position(s) ``track_mm`` (scalar or (n,)):
+        (3,) or (n, 3) mm."""
+        s = np.asarray(track_mm, dtype=np.float64)
+        return self.origin_mm + s[..., None] * self.direction
+
+    def T_world_base(self, track_mm: float) -> np.ndarray:
+        """(4, 4) robot base in the world frame at track position ``track_mm``, mm."""
+        T = np.eye(4)
+        T[:3, 3] = self.base_pos_mm(float(track_mm))
+        return T
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,7 +154,21 @@ class IkResult:
 
 
 def _q_rad(q_deg: np.ndarray) -> np.ndarray:
+    """Controller units -> pinocchio units: (6,) deg -> rad, or (7,) [mm, deg...] -> [m, rad...]."""
+    if q_deg.shape[-1] == N_ARM_JOINTS + 1:
+        out = np.deg2rad(q_deg)
+        out[..., 0] = q_deg[..., 0] / 1000.0
+        return out
     return np.deg2rad(q_deg)
+
+
+def _q_ctrl(q_pin: np.ndarray) -> np.ndarray:
+    """Pinocchio units -> controller units (inverse of :func:`_q_rad`)."""
+    if q_pin.shape[-1] == N_ARM_JOINTS + 1:
+        out = np.rad2deg(q_pin)
+        out[..., 0] = q_pin[..., 0] * 1000.0
+        return out
+    return np.rad2deg(q_pin)
 
 
 def _T_mm(M: pin.SE3) -> np.ndarray:
@@ -101,10 +183,11 @@ def _T_m(T_mm: np.ndarray) -> pin.SE3:
 
 def _as_q(q_deg, n_joints: int = 6) -> np.ndarray:
     q = np.asarray(q_deg, dtype=np.float64)
+    name = "axes_mm_deg" if n_joints == N_ARM_JOINTS + 1 else "q_deg"
     if q.shape != (n_joints,):
-        raise KinematicsError(f"q_deg must have shape ({n_joints},), got {q.shape}")
+        raise KinematicsError(f"{name} must have shape ({n_joints},), got {q.shape}")
     if not np.all(np.isfinite(q)):
-        raise KinematicsError(f"q_deg has non-finite values: {q}")
+        raise KinematicsError(f"{name} has non-finite values: {q}")
     return q
 
 
@@ -146,9 +229,9 @@ def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
 # model
 
 
-def _build_model() -> tuple[pin.Model, int]:
+def _build_model(track: LinearTrack | None = None) -> tuple[pin.Model, int]:
     model = pin.Model()
-    model.name = "irb4600_40_255"
+    model.name = "irb4600_40_255" if track is None else "irb4600_40_255_on_track"
     joint_models = {"x": pin.JointModelRX, "y": pin.JointModelRY, "z": pin.JointModelRZ}
     parent = 0
     prev_frame = model.getFrameId("universe")
@@ -156,6 +239,23 @@ def _build_model() -> tuple[pin.Model, int]:
     lower, upper = np.deg2rad(Q_MIN_DEG), np.deg2rad(Q_MAX_DEG)
     # The description has no inertias; a small nominal body keeps pinocchio's algorithms well defined.
     inertia = pin.Inertia.FromSphere(1.0, 0.05)
+    if track is not None:
+        # the carriage: a prismatic joint along the track's direction at the base's position at 0,
+        # in metres (the unit boundary converts); the arm's chain hangs from it
+        jid = model.addJoint(
+            0,
+            pin.JointModelPrismaticUnaligned(np.array(track.direction)),
+            pin.SE3(np.eye(3), np.array(track.origin_mm) / 1000.0),
+            "track",
+            np.zeros(1),
+            np.array([track.speed_max_mm_s / 1000.0]),
+            np.array([track.travel_min_mm / 1000.0]),
+            np.array([track.travel_max_mm / 1000.0]),
+        )
+        model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
+        jf = model.addJointFrame(jid, prev_frame)
+        prev_frame = model.addBodyFrame("carriage", jid, pin.SE3.Identity(), jf)
+        parent = jid
     for i, name in enumerate(JOINT_NAMES):
         placement = pin.SE3(np.eye(3), _JOINT_XYZ_M[i])
         jid = model.addJoint(
@@ -179,24 +279,38 @@ def _build_model() -> tuple[pin.Model, int]:
 
 
 class RobotKinematics:
-    """IRB 4600-40/2.55 kinematics with the flange and optional named tool frames.
+    """IRB 4600-40/2.55 kinematics with the flange and optional named tool frames, on an optional track.
 
     Args:
         tools: name -> ``T_flange_tool`` (4, 4), translation in mm (e.g. the laser sensor frame).
+        track: the linear track the base rides on, or None. With a track every configuration is
+            ``axes_mm_deg`` (7,) (track mm, then the six joints in deg) and poses are in the world
+            frame; without one a configuration is ``q_deg`` (6,) and poses are in the base frame.
 
     Not thread-safe: one pinocchio ``Data`` is reused by every call (create one instance per thread).
     """
 
-    def __init__(self, tools: Mapping[str, np.ndarray] | None = None) -> None:
-        self.model, self._flange_id = _build_model()
+    def __init__(
+        self, tools: Mapping[str, np.ndarray] | None = None, track: LinearTrack | None = None
+    ) -> None:
+        self.track = track
+        #: axes in a configuration: 6 (arm) or 7 (track, then arm)
+        self.n_axes = N_ARM_JOINTS + (track is not None)
+        self.model, self._flange_id = _build_model(track)
         self._frames: dict[str, int] = {"flange": self._flange_id}
         self._T_flange_tool_mm: dict[str, np.ndarray] = {"flange": np.eye(4)}
         for name, T in (tools or {}).items():
             self.add_tool(name, T)
         self.data = self.model.createData()
-        self.q_min_deg = Q_MIN_DEG.copy()
-        self.q_max_deg = Q_MAX_DEG.copy()
-        self.qd_max_deg_s = QD_MAX_DEG_S.copy()
+        # limits per axis in controller units (with a track: mm and mm/s first, then deg and deg/s)
+        if track is None:
+            self.q_min_deg = Q_MIN_DEG.copy()
+            self.q_max_deg = Q_MAX_DEG.copy()
+            self.qd_max_deg_s = QD_MAX_DEG_S.copy()
+        else:
+            self.q_min_deg = np.concatenate([[track.travel_min_mm], Q_MIN_DEG])
+            self.q_max_deg = np.concatenate([[track.travel_max_mm], Q_MAX_DEG])
+            self.qd_max_deg_s = np.concatenate([[track.speed_max_mm_s], QD_MAX_DEG_S])
 
     def add_tool(self, name: str, T_flange_tool: np.ndarray) -> None:
         """Add (or replace) a tool frame ``name`` fixed to the flange; ``T_flange_tool`` in mm."""
@@ -226,30 +340,33 @@ class RobotKinematics:
             raise KinematicsError(f"unknown frame {frame!r}; known: {sorted(self._frames)}") from None
 
     def fk(self, q_deg: np.ndarray, frame: str = "flange") -> Pose:
-        """Pose of ``frame`` in the base frame at joint angles ``q_deg`` (6,) deg."""
+        """Pose of ``frame`` at ``q_deg`` (6,) deg, in the base frame; with a track at ``axes_mm_deg``
+        (7,), in the world frame (the returned ``T_base_frame`` is then ``T_world_frame``)."""
         fid = self._fid(frame)
-        q = _as_q(q_deg)
+        q = _as_q(q_deg, self.n_axes)
         pin.framesForwardKinematics(self.model, self.data, _q_rad(q))
         T = _T_mm(self.data.oMf[fid])
         return Pose(pos_mm=T[:3, 3].copy(), quat_wxyz=quat_wxyz_from_matrix(T[:3, :3]), T_base_frame=T)
 
     def jacobian(self, q_deg: np.ndarray, frame: str = "flange") -> np.ndarray:
-        """Geometric Jacobian (6, 6) of ``frame`` at ``q_deg`` (6,), base-aligned axes at the frame origin.
+        """Geometric Jacobian (6, n_axes) of ``frame`` at ``q_deg`` (6,) or ``axes_mm_deg`` (7,),
+        base- (world-) aligned axes at the frame origin.
 
         Rows 0..2 map joint rates in deg/s to linear velocity in mm/s (mm/deg); rows 3..5 map them
-        to angular velocity in deg/s (deg/deg).
+        to angular velocity in deg/s (deg/deg). A track's column maps mm/s to mm/s (and no rotation).
         """
         fid = self._fid(frame)
-        q = _q_rad(_as_q(q_deg))
+        q = _q_rad(_as_q(q_deg, self.n_axes))
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
         J = pin.getFrameJacobian(self.model, self.data, fid, pin.LOCAL_WORLD_ALIGNED).copy()
-        J[:3] *= 1000.0 * np.pi / 180.0  # m/rad -> mm/deg
+        arm = slice(self.n_axes - N_ARM_JOINTS, None)
+        J[:3, arm] *= 1000.0 * np.pi / 180.0  # m/rad -> mm/deg (a track's m/m column is already mm/mm)
         return J
 
     def within_limits(self, q_deg: np.ndarray, margin_deg: float = 0.0) -> bool:
-        """True if every joint is inside its limits shrunk by ``margin_deg``."""
-        q = _as_q(q_deg)
+        """True if every axis is inside its limits shrunk by ``margin_deg`` (a track: by that many mm)."""
+        q = _as_q(q_deg, self.n_axes)
         return bool(np.all(q >= self.q_min_deg + margin_deg) and np.all(q <= self.q_max_deg - margin_deg))
 
     def ik(
@@ -263,19 +380,23 @@ class RobotKinematics:
         max_iterations: int = 200,
         damping: float = 1e-6,
         max_step_deg: float = 5.0,
+        move_track: bool = False,
     ) -> IkResult:
         """Damped least-squares inverse kinematics near a seed, within the joint limits.
 
         Args:
-            T_base_target: target pose of ``frame`` (4, 4), translation in mm.
-            q_seed_deg: (6,) deg, the start; the solution is the branch nearest to it.
+            T_base_target: target pose of ``frame`` (4, 4), translation in mm (world frame with a track).
+            q_seed_deg: (6,) deg, or ``axes_mm_deg`` (7,) with a track: the start; the solution is the
+                branch nearest to it.
+            move_track: with a track, let the solver move it too; by default the track stays at the
+                seed's position (the planner chooses track positions, the arm reaches from there).
             tol_mm, tol_deg: convergence tolerances on position and rotation error.
             damping: lambda of the damped pseudo-inverse; keeps steps bounded near singularities.
             max_step_deg: largest joint change per iteration, so the solver does not jump branches.
         """
         fid = self._fid(frame)
         target = _T_m(_as_T(T_base_target, "T_base_target"))
-        q = _q_rad(np.clip(_as_q(q_seed_deg), self.q_min_deg, self.q_max_deg))
+        q = _q_rad(np.clip(_as_q(q_seed_deg, self.n_axes), self.q_min_deg, self.q_max_deg))
         lo, hi = _q_rad(self.q_min_deg), _q_rad(self.q_max_deg)
         max_step = np.deg2rad(max_step_deg)
         tol_m, tol_rad = tol_mm / 1000.0, np.deg2rad(tol_deg)
@@ -294,6 +415,8 @@ class RobotKinematics:
                 break
             J = pin.computeFrameJacobian(self.model, self.data, q, fid, pin.LOCAL)
             J = pin.Jlog6(current_to_target.inverse()) @ J
+            if self.track is not None and not move_track:
+                J[:, 0] = 0.0  # a zero column: the damped step leaves the track where it is
             dq = J.T @ np.linalg.solve(J @ J.T + damping * np.eye(6), err)
             step = np.max(np.abs(dq))
             if step > max_step:
@@ -301,7 +424,7 @@ class RobotKinematics:
             q = np.clip(q + dq, lo, hi)
         _, q_best, pos_err, rot_err = best
         return IkResult(
-            q_deg=np.rad2deg(q_best),
+            q_deg=_q_ctrl(q_best),
             converged=bool(pos_err < tol_m and rot_err < tol_rad),
             iterations=iterations,
             pos_err_mm=pos_err * 1000.0,
@@ -309,8 +432,9 @@ class RobotKinematics:
         )
 
     def fk_batch(self, q_deg: np.ndarray, frame: str = "flange") -> np.ndarray:
-        """Poses of ``frame`` for many configurations: ``q_deg`` (n, 6) deg -> (n, 4, 4), mm."""
-        return fk_batch(q_deg, self._T_flange_tool_mm[self._fid_name(frame)])
+        """Poses of ``frame`` for many configurations: ``q_deg`` (n, 6) deg (or ``axes_mm_deg``
+        (n, 7) with a track) -> (n, 4, 4), mm."""
+        return fk_batch(q_deg, self._T_flange_tool_mm[self._fid_name(frame)], track=self.track)
 
     def _fid_name(self, frame: str) -> str:
         self._fid(frame)
@@ -348,17 +472,28 @@ def _link6_to_tool(T_flange_tool: np.ndarray | None) -> np.ndarray:
     return G
 
 
-def fk_batch(q_deg: np.ndarray, T_flange_tool: np.ndarray | None = None) -> np.ndarray:
+def fk_batch(
+    q_deg: np.ndarray, T_flange_tool: np.ndarray | None = None, track: LinearTrack | None = None
+) -> np.ndarray:
     """Vectorised forward kinematics for many configurations (numpy only, no per-sample loop).
 
     Args:
-        q_deg: (n, 6) joint angles, deg.
+        q_deg: (n, 6) joint angles, deg; with ``track``, ``axes_mm_deg`` (n, 7): track mm, then joints.
         T_flange_tool: optional (4, 4) tool transform, mm; identity gives the flange.
+        track: the linear track the base rides on; the poses are then in the world frame.
 
     Returns:
-        (n, 4, 4) ``T_base_tool`` with translations in mm. Agrees with :meth:`RobotKinematics.fk`.
+        (n, 4, 4) ``T_base_tool`` (``T_world_tool`` with a track), translations in mm. Agrees with
+        :meth:`RobotKinematics.fk`.
     """
     q = np.asarray(q_deg, dtype=np.float64)
+    if track is not None:
+        if q.ndim != 2 or q.shape[1] != N_ARM_JOINTS + 1:
+            raise KinematicsError(f"axes_mm_deg must have shape (n, 7), got {q.shape}")
+        T = fk_batch(q[:, 1:], T_flange_tool)
+        # the base keeps the world's orientation: the carriage only adds its translation
+        T[:, :3, 3] += track.base_pos_mm(q[:, 0])
+        return T
     if q.ndim != 2 or q.shape[1] != 6:
         raise KinematicsError(f"q_deg must have shape (n, 6), got {q.shape}")
     q_rad = _q_rad(q)

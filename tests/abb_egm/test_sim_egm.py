@@ -210,12 +210,29 @@ def test_rapid_sample_rate_of_8_ms_sends_every_second_servo_cycle():
         model.motors_on()
         model.start_rapid()
         sim, ep = await start_pair(sim_kwargs={"model": model})
-        await asyncio.sleep(0.4)
-        # the controller's own send times (feedBack.time) step by two servo cycles
-        a = ep.history.arrays()
-        session = a.t_ctrl_us[a.t_host_ns > a.t_host_ns[-1] - 300_000_000]
-        assert np.median(np.diff(session)) == pytest.approx(2 * CYCLE_S * 1e6, abs=1.0)
+
+        def session() -> tuple[np.ndarray, np.ndarray]:
+            # the session's messages, by their own numbering (seqno restarts at 0 with a session)
+            a = ep.history.arrays()
+            first = np.flatnonzero(a.seqno == 0)
+            k = first[-1] if first.size else a.seqno.size
+            return a.seqno[k:], a.t_ctrl_us[k:]
+
+        await wait_until(lambda: session()[0].size > 60, 0.5)
+        overruns = sim.stats.overruns  # every cycle it ran late, since it started
+        seq, t_ctrl_us = session()
         await stop_pair(sim, ep)
+        # Counted against the controller's own numbering and clock (feedBack.time, its schedule), not
+        # the host's: consecutive messages (seqno + 1; a datagram lost on a loaded host drops out)
+        # lie whole servo cycles apart, two of them, except next to a cycle the simulator could only
+        # run late -- it reports each (an overdue tick integrates the missed cycles and sends once,
+        # which shifts the send before and the one after).
+        consecutive = np.diff(seq) == 1
+        assert consecutive.sum() >= 50
+        steps = np.diff(t_ctrl_us)[consecutive] / (CYCLE_S * 1e6)
+        np.testing.assert_allclose(steps, np.round(steps), atol=1e-3)
+        irregular = int(np.count_nonzero(np.round(steps) != 2))
+        assert irregular <= 2 * overruns, (irregular, overruns, np.round(steps))
 
     run(main)
 
@@ -343,9 +360,11 @@ def test_injected_delay_shows_in_every_reply_latency():
         await asyncio.sleep(0.1)
         sim.reset_reply_latency()
         await wait_until(lambda: sim.reply_latency()[0].size > 50, 0.4)
-        latency_us, missed = sim.reply_latency()
-        assert latency_us.min() >= 5000.0
-        assert missed.mean() > 0.9  # a 5 ms delay puts every reply after the next 4 ms send
+        latency_us, _ = sim.reply_latency()
+        # every reply arrives after the next send was due (one 4.032 ms cycle on): against the
+        # controller's schedule, not against the next actual send (``missed``), which a loaded
+        # host delays as well
+        assert latency_us.size > 50 and latency_us.min() >= 5000.0 > CYCLE_S * 1e6
         assert sim.session_running
         await stop_pair(sim, ep)
 

@@ -116,3 +116,52 @@ def test_composed_sim_starts_egm_when_the_program_starts_and_reports_positions_t
 
     with asyncio.Runner(loop_factory=precise_event_loop) as runner:
         runner.run(main())
+
+
+def test_sim_process_fault_channel_sets_egm_faults_over_tcp_and_refuses_bad_requests():
+    """The fault channel of ``--fault-port``: one JSON line in, one out, on the same connection;
+    a refused request changes nothing and leaves the channel serving. The effect is observed over
+    EGM (``stop_sending``: the feedback stops, and resumes when it is switched off)."""
+
+    async def main():
+        ep = EgmEndpoint(EgmEndpointConfig(port=0))
+        _, port = await ep.start()
+        proc = _spawn("--egm-port", str(port), "--start", "--fault-port", "0",
+                      "--q-start-deg", "0", "10", "-10", "0", "30", "0")  # fmt: skip
+        try:
+            addresses = json.loads(await asyncio.wait_for(asyncio.to_thread(proc.stdout.readline), 30.0))
+            await ep.wait_for_feedback(10.0)
+            np.testing.assert_allclose(ep.latest.q_deg, [0.0, 10.0, -10.0, 0.0, 30.0, 0.0], atol=1e-6)
+            reader, writer = await asyncio.open_connection(*addresses["fault"])
+
+            async def ask(line: bytes) -> dict:
+                writer.write(line + b"\n")
+                await writer.drain()
+                return json.loads(await asyncio.wait_for(reader.readline(), 10.0))
+
+            state = await ask(b"{}")
+            assert state["ok"] and state["egm"]["stop_sending"] is False and state["stats"]["sent"] > 0
+            bad = await ask(json.dumps({"egm": {"bogus_knob": 1}}).encode())
+            assert not bad["ok"] and "bogus_knob" in bad["error"]
+            assert not (await ask(json.dumps({"egm": {"loss_fraction": 2.0}}).encode()))["ok"]
+            assert not (await ask(json.dumps({"rws": {}}).encode()))["ok"]
+            assert "not a JSON line" in (await ask(b"{nope"))["error"]
+            stopped = await ask(json.dumps({"egm": {"stop_sending": True}}).encode())
+            assert stopped["ok"] and stopped["egm"]["stop_sending"] is True
+            assert stopped["egm"]["loss_fraction"] == 0.0  # the refused request changed nothing
+            await asyncio.sleep(0.1)  # what was in flight
+            with pytest.raises(TimeoutError):
+                await ep.wait_for_feedback(0.5)
+            assert (await ask(json.dumps({"egm": {"stop_sending": False}}).encode()))["ok"]
+            await ep.wait_for_feedback(10.0)
+            writer.close()
+            proc.send_signal(signal.SIGTERM)
+            assert await asyncio.wait_for(asyncio.to_thread(proc.wait), 10.0) == 0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            await ep.close()
+
+    with asyncio.Runner(loop_factory=precise_event_loop) as runner:
+        runner.run(main())

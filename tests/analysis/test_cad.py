@@ -178,6 +178,24 @@ def test_corrupted_iges_and_step_are_refused_by_name(tmp_path: Path) -> None:
     _one_line(exc, str(bad_step))
 
 
+def test_a_surface_entity_no_face_can_be_made_from_is_refused_as_unsupported(tmp_path: Path) -> None:
+    """Files in good order whose one surface OpenCASCADE cannot make a face from: an IGES 128 whose
+    degree its poles cannot carry, a STEP B-spline surface with knot multiplicities that do not add up."""
+    igs = write_design(SAIL, tmp_path / "a.igs").read_text(encoding="latin-1")
+    assert "128,2,2,2,2," in igs  # upper indices 2, 2; degrees 2, 2
+    bad_igs = tmp_path / "degree.igs"
+    bad_igs.write_text(igs.replace("128,2,2,2,2,", "128,2,2,5,2,", 1), encoding="latin-1")
+    step = write_design(SAIL, tmp_path / "a.step").read_text(encoding="latin-1")
+    assert "(3,3),(3,3),(0.,1.),(0.,1.)" in step
+    bad_step = tmp_path / "knots.step"
+    bad_step.write_text(step.replace("(3,3),(3,3),(0.,1.),(0.,1.)", "(3,3),(2,3),(0.,1.),(0.,1.)", 1))
+    for path, entity in ((bad_igs, "128 x1"), (bad_step, "B_SPLINE")):
+        with pytest.raises(DesignError) as exc:
+            read_cad(path)
+        _one_line(exc, str(path), "unsupported entity")
+        assert entity in str(exc.value), str(exc.value)
+
+
 def test_missing_units_are_refused(tmp_path: Path) -> None:
     lines = write_design(SAIL, tmp_path / "u.igs").read_text(encoding="latin-1").splitlines()
     g = "".join(line[:72] for line in lines if line[72:73] == "G")

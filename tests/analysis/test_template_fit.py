@@ -84,3 +84,32 @@ def test_unknown_mode_and_too_few_samples_are_refused():
         check_mode("floating")
     with pytest.raises(TemplateFitError, match="at least 3"):
         fit_line_template(np.arange(10.0), np.zeros(10), np.array([1.0]), np.array([0.0]))
+
+
+def test_a_line_template_rests_on_raised_ends_not_below_them():
+    # 1 mm of springback decaying over 60 mm at both ends of a straight 400 mm section: the template
+    # touches the ends, where the plate stands highest; end-bin centroids alone let it sink by the
+    # rise over half a bin (about 0.1 mm here). The ends are held by a line through the end bins.
+    rng = np.random.default_rng(5)
+    line = _make_line("transverse", 1, np.array([0.0, 0.0, 0.0]), np.array([0.0, 400.0, 0.0]),
+                      np.array([0.0, 0.0, 1.0]), 0.0)  # fmt: skip
+    sigma, a, d = 0.05, 1.0, 60.0
+
+    def plate(s):
+        return a * (np.exp(-s / d) + np.exp(-(400.0 - s) / d))
+
+    xy = rng.uniform([-5.0, 0.0], [5.0, 400.0], (8_000, 2))
+    P = np.column_stack([xy, plate(xy[:, 1]) + rng.normal(0.0, sigma, len(xy))])
+    s = np.arange(0.0, 401.0)
+    rest = line_rest_samples(P, -P[:, 2], line, s, np.zeros_like(s), sigma)
+    assert rest.bound_mm <= 0.25 * sigma * 1.0001
+    assert rest.s_mm[0] < 1.0 and rest.s_mm[-1] > 399.0  # the ends themselves carry the template
+    fit = fit_line_template(s, np.zeros_like(s), rest.s_mm, rest.h_mm)
+    assert fit.penetrating_after == 0
+    ends = np.array([xy[:, 1].min(), xy[:, 1].max()])
+    sink = fit.moved_heights(s, np.zeros_like(s), ends) - plate(ends)
+    assert np.abs(sink).max() < 0.05, sink
+    # without the end samples (the bins' centroids alone) the template sinks below both ends
+    inner = slice(1, -1)
+    old = fit_line_template(s, np.zeros_like(s), rest.s_mm[inner], rest.h_mm[inner])
+    assert (old.moved_heights(s, np.zeros_like(s), ends) - plate(ends)).max() < -0.05

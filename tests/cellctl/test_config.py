@@ -45,13 +45,14 @@ def test_shipped_cell_toml_validates(repo_root: Path) -> None:
 def _unset_fields(model: type[BaseModel], data: dict, text: str, path: str = "") -> list[str]:
     """Fields of ``model`` (recursively through nested sections) that ``data`` does not set. A field
     whose default is None (an optional file; TOML has no null) counts as set when a commented
-    ``# name =`` line documents it."""
+    ``# name =`` line (or, for an optional section, a commented ``# [section]`` table) documents it."""
     unset = []
     for name, field in model.model_fields.items():
         key = field.alias or name
         where = f"{path}.{key}" if path else key
         if key not in data:
-            if not (field.default is None and re.search(rf"^# {re.escape(key)} = ", text, re.MULTILINE)):
+            documented = re.search(rf"^# ({re.escape(key)} = |\[{re.escape(where)}\])", text, re.MULTILINE)
+            if not (field.default is None and documented):
                 unset.append(where)
             continue
         nested = [a for a in (field.annotation, *typing.get_args(field.annotation))

@@ -16,7 +16,7 @@ from analysis.job import Report
 from analysis.mesh import load_mesh
 from analysis.pipeline import design_corners_from_mesh
 from analysis.placement import Placement, placement_transform
-from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+from cellctl.api import MAX_TRIGGER_BYTES, ApiCallError, Keys, TriggerAccepted, call
 from cellctl.api.session import close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
@@ -64,7 +64,7 @@ def test_malformed_oversized_and_unknown_field_triggers_each_get_an_error_and_ch
             await wait_status(follower, lambda s: s.state.value == "idle")
             bad = {
                 "malformed": b"{not json",
-                "too_large": json.dumps(_trigger(cell, note="x" * 20000)).encode(),
+                "too_large": json.dumps(_trigger(cell, note="x" * MAX_TRIGGER_BYTES)).encode(),
                 "unknown": json.dumps({**_trigger(cell), "speed": 5}).encode(),
                 "outside": json.dumps(_trigger(cell, design="../cell.toml")).encode(),
                 "missing": json.dumps(_trigger(cell, design="nope.ply")).encode(),

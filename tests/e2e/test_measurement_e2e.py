@@ -119,14 +119,6 @@ def test_the_reported_deviations_are_the_forming_error_the_simulator_put_in(cell
     )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="known defect: the registration turns the design 1.7 deg off the true plate (5-6 mm at the "
-    "corners): the surface hardly sees the yaw of a nearly flat plate and the unformed design pays for "
-    "part of the forming error with it; the corners' weight (analysis/register.py boundary_weight 1e-3) "
-    "is too weak to hold it, and 1e-2 fails test_register's 1 mm corner-noise case",
-)
 def test_the_registered_design_lies_where_the_true_plate_lies(cell: Cell, scanned):
     """The registration against the truth: the design, registered onto the cloud, sits where the
     simulator put the plate (``T_base_plate`` in sim-truth.json)."""

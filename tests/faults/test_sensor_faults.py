@@ -19,6 +19,7 @@ from tests.support.faultcell import (
     STALL_WHEN_CONTROLLER_STARVED,
     expect_done,
     module_cell,
+    overruns,
     run_job,
 )
 
@@ -53,8 +54,12 @@ def test_disconnect_mid_pass_reconnects_and_replays_the_missed_frames_without_du
     _gap_reported_exactly(run)
     assert run.check.cloud_duplicate_points == 0 and run.check.cloud_points > 0
     expect_done(run, *STARVED)
-    assert sensor["missing_frames"] == 0 and sensor["gaps"] == 0, sensor
-    assert _contiguous(run.check.raw_frame_index)
+    # The only frames allowed missing are those a starved simulator could not render in time: it
+    # skips and counts them (overrun_frames), so they never existed to be replayed. Idle: none.
+    overrun = run.sim_delta("laser", "overrun_frames")
+    assert sensor["missing_frames"] == overrun, (sensor, overruns(run))  # and on disk: see above
+    if overrun == 0:
+        assert sensor["gaps"] == 0 and _contiguous(run.check.raw_frame_index), sensor
 
 
 def test_corrupt_frames_are_skipped_counted_and_the_gap_is_reported(cell):

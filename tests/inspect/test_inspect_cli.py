@@ -66,13 +66,10 @@ def test_inspect_writes_results_and_exit_code_follows_the_verdict(
     truth = json.loads((small_scan / "scan-truth.json").read_text())
     assert truth["forming_error"]["bumps"], "the default forming error has dents/bumps"
     res = np.load(out / "results.npz")
-    # non-penetrating: the design rests on the plate. Within 40 mm of the edges the default forming
-    # error's 1 mm springback rises above the resting patches' centroids and the design sinks below
-    # it (up to 0.27 mm here; docs/metrology.md, "Known limit: raised edges")
-    xy, (length, width) = res["plate_xy_mm"], res["plate_size_mm"]
-    inner = (xy[:, 0] > 40) & (xy[:, 0] < length - 40) & (xy[:, 1] > 40) & (xy[:, 1] < width - 40)
-    assert res["plate_deviation_mm"][inner].min() > -0.1
-    assert res["plate_deviation_mm"].min() > -0.35
+    # non-penetrating: the design rests on the plate, on its raised edges too (the default forming
+    # error's 1 mm springback; docs/metrology.md, "Edges"): nowhere is the plate more than 0.1 mm
+    # above the template
+    assert res["plate_deviation_mm"].min() > -0.1
 
 
 def _inspect_error(exe: list[str], tmp: Path, cloud: Path, design: Path) -> str:

@@ -102,3 +102,24 @@ def test_inspect_refuses_moulded_side_down_without_a_thickness(
     assert r.returncode == 2 and "Traceback" not in r.stderr
     err = [ln for ln in r.stderr.splitlines() if ln.startswith("cellctl inspect:")]
     assert len(err) == 1 and "needs its thickness" in err[0], r.stderr
+
+
+@pytest.mark.slow
+def test_the_compared_fit_names_the_lines_as_the_table_does() -> None:
+    from analysis.pipeline import inspect_cloud
+    from analysis.plates import plate_spec
+    from analysis.settings import InspectionSettings
+    from analysis.synth import ScanSettings, synthesize_scan
+    from analysis.template_table import parse_template_table
+    from analysis.templates import DetectionLayout
+
+    spec = plate_spec("sail", length_mm=600, width_mm=400)
+    scan = synthesize_scan(spec, settings=ScanSettings.coarse(), seed=3)
+    layout = DetectionLayout(2, 200.0, 0, 100.0, False, templates=parse_template_table(TABLE))
+    settings = InspectionSettings(layout=layout, template_fit_compare=True)
+    report = inspect_cloud(scan.cloud, scan.design_mesh(2.0), settings).report
+    main = [ln["name"] for ln in report["lines"]]
+    other = [ln["name"] for ln in report["template_fit_compare"]["lines"]]
+    assert main == ["T1", "T2", *NAMES]
+    assert set(other) <= set(main) and set(NAMES) & set(other), other  # not T*/L* for the table's lines
+    assert not {"T3", "T4", "L1"} & set(other), other

@@ -1,4 +1,5 @@
-"""Helpers for the HD8 driver tests: run a coroutine with a deadline, start a simulator on loopback."""
+"""Helpers for the HD8 driver tests: run a coroutine with a deadline, start a simulator on loopback,
+set its faults and read its counters over its fault channel (a socket, as its data and commands)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.fault_channel import send_fault_request
 from drivers.laser.client import HD8Client, HD8ClientConfig
 from drivers.laser.sim.scene import Scene, plane_scene
 from drivers.laser.sim.sensor import LaserSimulator, SimConfig, fixed_pose
@@ -39,11 +41,13 @@ async def sim_and_client(
     config: SimConfig | None = None,
     client_config: HD8ClientConfig | None = None,
 ) -> AsyncIterator[tuple[LaserSimulator, HD8Client]]:
-    """A simulator on ephemeral loopback ports and a connected client; both closed afterwards."""
+    """A simulator on ephemeral loopback ports (control, data, fault channel) and a connected client;
+    both closed afterwards."""
     sim = LaserSimulator(
         scene if scene is not None else plane_scene(0.0),
         fixed_pose(T_world_sensor if T_world_sensor is not None else looking_down(100.0)),
         config=config or SimConfig(),
+        fault_port=0,
     )
     ctl, dat = await sim.start()
     client = HD8Client("127.0.0.1", ctl, dat, config=client_config)
@@ -65,3 +69,17 @@ async def collect(client: HD8Client, n_frames: int) -> list[Any]:
         if got >= n_frames:
             break
     return out
+
+
+async def sensor_faults(sim: LaserSimulator, **laser: Any) -> dict[str, Any]:
+    """Set fault knobs over the simulator's fault channel (``sensor_faults(sim, drop_frames=7)``;
+    none: only read); returns its reply: the knobs in force and its counters (``["stats"]``)."""
+    assert sim.fault_address is not None, "start the simulator with fault_port=0"
+    reply = await send_fault_request(sim.fault_address, {"laser": laser})
+    assert reply["ok"], reply
+    return reply
+
+
+async def sensor_stats(sim: LaserSimulator) -> dict[str, Any]:
+    """The simulator's counters, read over its fault channel."""
+    return (await sensor_faults(sim))["stats"]

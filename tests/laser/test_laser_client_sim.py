@@ -1,4 +1,11 @@
-"""The HD8 client against the sensor simulator over loopback TCP: delivery, faults, control, clock."""
+"""The HD8 client against the sensor simulator over loopback TCP: delivery, faults, control, clock.
+
+The simulator is driven through its sockets only: commands and data as the HD8 protocol has them,
+faults and counters over its fault channel (``sensor_faults``, ``sensor_stats``). In process, and
+said where it happens, are only what no protocol carries: the simulator's ground truth (its true
+clock, ``sensor_time_us`` / ``exposure_mid_true_s``, to check the stamps against), the hardware
+trigger edge (``sim.trigger``, an electrical input on a real sensor), the settings it took, and its
+restart."""
 
 from __future__ import annotations
 
@@ -11,8 +18,9 @@ import pytest
 import structlog.testing
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from laser_helpers import collect, looking_down, run, sim_and_client
+from laser_helpers import collect, looking_down, run, sensor_faults, sensor_stats, sim_and_client
 
+from drivers.fault_channel import send_fault_request
 from drivers.laser import protocol as P
 from drivers.laser.client import HD8Client, HD8ClientConfig
 from drivers.laser.sim.scene import plane_scene
@@ -55,7 +63,7 @@ def test_disconnect_mid_stream_resumes_without_duplicates_or_reordering() -> Non
             client.add_listener(events.append)
             await client.start()
             first = await collect(client, 100)
-            sim.disconnect_after(150)
+            await sensor_faults(sim, disconnect_after_frames=150)
             rest = await collect(client, 600)
             fi = frames_of(first + rest)
             np.testing.assert_array_equal(fi, np.arange(fi[0], fi[0] + len(fi)))  # no loss, no dup
@@ -63,7 +71,7 @@ def test_disconnect_mid_stream_resumes_without_duplicates_or_reordering() -> Non
             assert client.stats.gaps == 0
             kinds = [e.kind for e in events]
             assert SourceEventKind.DISCONNECTED in kinds and SourceEventKind.RECONNECTED in kinds
-            assert sim.stats.data_connections == 2
+            assert (await sensor_stats(sim))["data_connections"] == 2
 
     run(scenario())
 
@@ -73,7 +81,7 @@ def test_corrupted_frame_group_is_skipped_and_counted() -> None:
         async with sim_and_client(config=FAST) as (sim, client):
             await client.start()
             await collect(client, 50)
-            sim.corrupt_next(1, mode="payload")
+            await sensor_faults(sim, corrupt_groups=1, corrupt_mode="payload")
             batches = await collect(client, 300)
             assert client.stats.decode_errors == 1
             assert client.stats.reconnects == 0  # framing stayed intact: no reconnect needed
@@ -90,7 +98,7 @@ def test_broken_framing_reconnects_and_replays_the_lost_frames() -> None:
         async with sim_and_client(config=FAST, client_config=cfg) as (sim, client):
             await client.start()
             first = await collect(client, 50)
-            sim.corrupt_next(1, mode="framing")
+            await sensor_faults(sim, corrupt_groups=1, corrupt_mode="framing")
             rest = await collect(client, 400)
             fi = frames_of(first + rest)
             np.testing.assert_array_equal(fi, np.arange(fi[0], fi[0] + len(fi)))
@@ -106,7 +114,7 @@ def test_dropped_frames_show_up_as_a_counted_gap() -> None:
             client.add_listener(events.append)
             await client.start()
             await collect(client, 20)
-            sim.drop_next(7)
+            await sensor_faults(sim, drop_frames=7)
             await collect(client, 200)
             assert client.stats.gaps == 1 and client.stats.missing_frames == 7
             gap = [e for e in events if e.kind == SourceEventKind.GAP]
@@ -121,7 +129,7 @@ def test_watchdog_reports_stall_and_resumption() -> None:
         async with sim_and_client(config=FAST, client_config=cfg) as (sim, client):
             await client.start()
             await collect(client, 20)
-            sim.stall(0.5, acquire=True)
+            await sensor_faults(sim, stall_s=0.5, stall_acquire=True)
             kinds = []
             while SourceEventKind.RESUMED not in kinds:
                 kinds.append((await asyncio.wait_for(client.events.get(), 3.0)).kind)
@@ -142,14 +150,14 @@ def test_close_ends_promptly_while_the_stream_is_busy() -> None:
     from drivers.laser.client import _CLOSE_TIMEOUT_S
 
     async def scenario() -> None:
-        sim = LaserSimulator(plane_scene(0.0), fixed_pose(looking_down(100.0)), config=FAST)
+        sim = LaserSimulator(plane_scene(0.0), fixed_pose(looking_down(100.0)), config=FAST, fault_port=0)
         ctl, dat = await sim.start()
         client = HD8Client("127.0.0.1", ctl, dat, config=HD8ClientConfig(watchdog_timeout_s=0.15))
         try:
             await client.connect()
             await client.start()
             await collect(client, 20)
-            sim.stall(0.5, acquire=True)
+            await sensor_faults(sim, stall_s=0.5, stall_acquire=True)
             while (await asyncio.wait_for(client.events.get(), 3.0)).kind != SourceEventKind.RESUMED:
                 pass
             await collect(client, 300)  # the held backlog is streaming in
@@ -241,7 +249,7 @@ def test_simulator_answers_malformed_commands_and_keeps_serving() -> None:
             await w.drain()
             assert await asyncio.wait_for(r.read(), 2.0) == b""
             w.close()
-            assert sim.stats.malformed_commands == 4
+            assert (await sensor_stats(sim))["malformed_commands"] == 4
             await client.command(P.CommandId.KEEP_ALIVE)  # the other connection still works
             await client.start()
             assert len(frames_of(await collect(client, 10))) >= 10
@@ -257,7 +265,7 @@ def test_simulator_drops_a_data_client_that_sends_no_subscribe() -> None:
             await w.drain()
             assert await asyncio.wait_for(r.read(), 2.0) == b""
             w.close()
-            assert sim.stats.malformed_commands == 1
+            assert (await sensor_stats(sim))["malformed_commands"] == 1
 
     run(scenario())
 
@@ -308,7 +316,7 @@ def test_timestamp_jump_fault_steps_the_sensor_clock() -> None:
         async with sim_and_client(config=FAST) as (sim, client):
             await client.start()
             a = ProfileBatch.concat(await collect(client, 30))
-            sim.jump_timestamp(250_000)
+            await sensor_faults(sim, clock_jump_us=250_000)
             b = ProfileBatch.concat(await collect(client, 100))
             d = np.diff(np.concatenate([a.sensor_time_us, b.sensor_time_us]).astype(np.int64))
             assert d.max() > 250_000 and np.median(d) == pytest.approx(1000, abs=2)
@@ -374,7 +382,7 @@ def test_producer_overrun_skips_frames_and_flags_them() -> None:
     t0 = {"t": time.monotonic()}
 
     async def scenario() -> None:
-        sim = LaserSimulator(plane_scene(0.0), slow_pose, config=cfg)
+        sim = LaserSimulator(plane_scene(0.0), slow_pose, config=cfg, fault_port=0)
         ctl, dat = await sim.start()
         client = HD8Client("127.0.0.1", ctl, dat)
         try:
@@ -382,7 +390,7 @@ def test_producer_overrun_skips_frames_and_flags_them() -> None:
             t0["t"] = time.monotonic()
             await client.start()
             b = ProfileBatch.concat(await collect(client, 300))
-            assert sim.stats.overrun_frames >= 100
+            assert (await sensor_stats(sim))["overrun_frames"] >= 100
             d = np.diff(b.frame_index.astype(np.int64))
             jumps = np.flatnonzero(d > 1)
             assert d.max() >= 100  # the long block, 200 frames minus the 50 kept in the backlog
@@ -504,8 +512,7 @@ def test_client_delivers_strictly_increasing_frames_whatever_the_sensor_repeats_
 def test_random_drops_and_corruption_are_counted_and_never_break_order() -> None:
     async def scenario() -> None:
         async with sim_and_client(config=FAST) as (sim, client):
-            sim.faults.drop_probability = 0.05
-            sim.faults.corrupt_probability = 0.1
+            await sensor_faults(sim, drop_probability=0.05, corrupt_probability=0.1)
             await client.start()
             st = client.stats
             batches = []
@@ -515,7 +522,7 @@ def test_random_drops_and_corruption_are_counted_and_never_break_order() -> None
             b = ProfileBatch.concat(batches)
             assert np.all(np.diff(b.frame_index.astype(np.int64)) > 0)
             assert st.reconnects == 0 and st.duplicates_dropped == 0
-            assert sim.stats.frames_dropped_fault > 0
+            assert (await sensor_stats(sim))["frames_dropped_fault"] > 0
 
     run(scenario())
 
@@ -584,7 +591,7 @@ def test_frames_held_by_a_stall_are_released_in_order_under_network_jitter(seed)
         async with sim_and_client(config=cfg, client_config=ccfg) as (sim, client):
             await client.start()
             first = await collect(client, 20)
-            sim.stall(0.4, acquire=True)
+            await sensor_faults(sim, stall_s=0.4, stall_acquire=True)
             b = ProfileBatch.concat([*first, *(await collect(client, 500))])
             fi = b.frame_index.astype(np.int64)
             np.testing.assert_array_equal(fi, np.arange(fi[0], fi[0] + len(fi)))
@@ -611,7 +618,7 @@ def test_external_trigger_mode_gives_one_frame_per_edge_exposed_at_the_edge() ->
                 edges.append(t)
                 await asyncio.sleep(0.004)
             b = ProfileBatch.concat(await collect(client, 12))
-            assert len(b) == 12 and sim.stats.triggers_ignored == 12
+            assert len(b) == 12 and (await sensor_stats(sim))["triggers_ignored"] == 12
             truth = sim.sensor_time_us(np.asarray(edges) + FAST.exposure_ns * 0.5e-9)
             np.testing.assert_allclose(b.sensor_time_us.astype(np.float64), np.floor(truth), atol=1.0)
 
@@ -633,3 +640,25 @@ def test_rendering_in_a_worker_process_streams_the_same_scene() -> None:
             assert abs(float(np.nanmean(b.z_mm)) - 100.0) < 0.005
 
     run(scenario(), timeout_s=60.0)
+
+
+def test_fault_channel_refuses_bad_requests_and_changes_nothing_then() -> None:
+    async def scenario() -> None:
+        async with sim_and_client(config=FAST) as (sim, client):
+            address = sim.fault_address
+            for bad in ({"laser": {"bogus": 1}}, {"laser": {"drop_probability": 1.5}}, {"egm": {}}, [1]):
+                reply = await send_fault_request(address, bad)
+                assert not reply["ok"] and reply["error"], (bad, reply)
+            state = await sensor_faults(sim)
+            assert state["faults"]["drop_probability"] == 0.0 and state["faults"]["stall_remaining_s"] == 0.0
+            set_ = await sensor_faults(sim, drop_frames=3, disconnect_after_frames=10)
+            assert set_["faults"]["drop_frames"] == 3 and set_["faults"]["disconnect_after_frames"] == 10
+            assert (await sensor_faults(sim, disconnect_after_frames=0))["faults"][
+                "disconnect_after_frames"
+            ] is None
+            await client.start()
+            fi = frames_of(await collect(client, 50))
+            # the first three frames never left the sensor; the disarmed disconnect never came
+            assert fi[0] == 3 and np.all(np.diff(fi) == 1) and client.stats.reconnects == 0
+
+    run(scenario())

@@ -1,12 +1,24 @@
-"""Shared plans and the loopback harness (EGM endpoint + controller simulator) for the motion tests."""
+"""Shared plans and the loopback harness (EGM endpoint + controller simulator) for the motion tests.
+
+The controller simulator runs as its own process (``python -m drivers.abb_egm.sim``) and is reached
+only over its sockets: EGM through the endpoint (its feedback is the arm's true position, as the
+controller reports it), RWS for the panel (motors off), its fault channel for wire faults.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
-from collections.abc import Awaitable, Callable
+import signal
+import subprocess
+import sys
+import tempfile
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -16,8 +28,12 @@ from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import ExecutionResult, ExecutorConfig, MotionExecutor
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
+from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
+from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD
+from drivers.fault_channel import send_fault_request
 from drivers.runtime import precise_event_loop
+
+REPO = Path(__file__).resolve().parents[2]
 
 SAIL_PLACEMENT = Placement.on_bed(1500.0, 0.0, 3.0, z_mm=300.0)
 #: a small plate and fast sweeps keep the executions short; the geometry is the real planner's
@@ -40,14 +56,79 @@ def small_plan() -> ScanPlan:
     return plan_scan(mesh, SMALL_PLACEMENT, SMALL_SETTINGS)
 
 
+@dataclass
+class Controller:
+    """The simulated controller process, seen only through its sockets."""
+
+    proc: subprocess.Popen
+    addresses: dict[str, Any]
+    endpoint: EgmEndpoint
+
+    async def faults(self, **egm: Any) -> dict[str, Any]:
+        """Set EGM wire faults over the simulator's fault channel (``faults(stop_sending=True)``);
+        returns its reply (the knobs in force and its counters)."""
+        reply = await send_fault_request(self.addresses["fault"], {"egm": egm})
+        assert reply["ok"], reply
+        return reply
+
+    async def motors_off(self) -> None:
+        """Switch the motors off through RWS, as the pendant's or a cell PC's request would."""
+        config = RwsClientConfig(
+            base_url=self.addresses["rws_url"], password=ABB_DEFAULT_PASSWORD, timeout_s=30.0
+        )
+        async with RwsClient(config) as rws:
+            await rws.motors_off()
+
+    @property
+    def q_deg(self) -> np.ndarray:
+        """The joints the controller last reported over EGM (6,) deg."""
+        return np.array(self.endpoint.latest.q_deg, dtype=np.float64)
+
+
+@contextlib.asynccontextmanager
+async def controller_process(
+    endpoint: EgmEndpoint, port: int, q_start_deg: np.ndarray
+) -> AsyncIterator[Controller]:
+    """``python -m drivers.abb_egm.sim`` sending EGM to ``port``, its program running, its arm at
+    ``q_start_deg``, with RWS and its fault channel on free ports; stopped by SIGTERM afterwards."""
+    args = ["--egm-port", str(port), "--rws-port", "0", "--fault-port", "0", "--start", "--seed", "1",
+            "--q-start-deg", *(repr(float(q)) for q in q_start_deg)]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    with tempfile.TemporaryFile() as err:
+        proc = await asyncio.to_thread(
+            subprocess.Popen,
+            [sys.executable, "-m", "drivers.abb_egm.sim", *args],
+            cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True, env=env,
+        )  # fmt: skip
+        try:
+            with contextlib.suppress(AttributeError, PermissionError, OSError):
+                os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(10))  # as realtime_priority
+            line = await asyncio.wait_for(asyncio.to_thread(proc.stdout.readline), 60.0)
+            if not line:
+                err.seek(0)
+                raise RuntimeError(
+                    f"controller simulator ended: {err.read()[-2000:].decode(errors='replace')}"
+                )
+            yield Controller(proc, json.loads(line), endpoint)
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+            try:
+                await asyncio.wait_for(asyncio.to_thread(proc.wait), 20.0)
+            except TimeoutError:
+                proc.kill()
+                proc.wait()
+            proc.stdout.close()
+
+
 @contextlib.contextmanager
 def realtime_priority(priority: int = 10):
     """Run the block under SCHED_FIFO when permitted, as a cell PC runs its EGM loop.
 
-    The executor and the simulator share this process and the machine is shared with other jobs;
-    without it, a descheduled process makes the simulated arm drift on its last reference (which is
-    what a real controller does when the sensor stalls). Both mostly sleep, so the priority costs
-    the other jobs little. Restored afterwards; a no-op without the privilege.
+    The machine is shared with other jobs; without it, a descheduled executor makes the simulated
+    arm drift on its last reference (which is what a real controller does when the sensor stalls).
+    It mostly sleeps, so the priority costs the other jobs little. Restored afterwards; a no-op
+    without the privilege. (The simulator's process gets the same where permitted.)
     """
     try:
         before = os.sched_getscheduler(0), os.sched_getparam(0)
@@ -72,16 +153,15 @@ class Execution:
     """What one execution over loopback produced."""
 
     result: ExecutionResult
-    sim: EgmControllerSim
     true_t_s: np.ndarray
     true_q_deg: np.ndarray
     feedback_t_s: np.ndarray
 
     def undisturbed(self, recovery_s: float = 0.6, gap_cycles: float = 3.0) -> np.ndarray:
         """(n,) bool over the true trajectory: False within ``recovery_s`` after a gap of more than
-        ``gap_cycles`` EGM cycles in the feedback's arrival. Such a gap means this process (which
-        runs both the simulator and the executor) was not scheduled: the simulated arm then drifted
-        on its last reference, which says nothing about the executor."""
+        ``gap_cycles`` EGM cycles in the feedback's arrival. Such a gap means the simulator or this
+        process was not scheduled: the simulated arm then drifted on its last reference, which says
+        nothing about the executor."""
         t = self.feedback_t_s
         gaps = np.flatnonzero(np.diff(t) > gap_cycles * 0.004032)
         ok = np.ones(self.true_t_s.shape, dtype=bool)
@@ -96,35 +176,43 @@ async def execute(
     *,
     q_start_offset_deg: np.ndarray | None = None,
     config: ExecutorConfig | None = None,
-    control: Callable[[MotionExecutor, EgmControllerSim], Awaitable[None]] | None = None,
+    control: Callable[[MotionExecutor, Controller], Awaitable[None]] | None = None,
     timeout_s: float = 120.0,
 ) -> Execution:
-    """Start an endpoint (ephemeral port) and the controller simulator sending to it, execute
-    ``plan``, run ``control(executor, sim)`` alongside (pause, faults, ...), and return the result
-    with the simulator's true trajectory."""
+    """Start an endpoint (ephemeral port) and the controller simulator's process sending to it,
+    execute ``plan``, run ``control(executor, controller)`` alongside (pause, faults, ...), and return
+    the result with the arm's true trajectory as the controller reported it over EGM."""
     endpoint = EgmEndpoint(EgmEndpointConfig(host="127.0.0.1", port=0))
     _, port = await endpoint.start()
     q0 = plan.trajectory.q_deg[0] + (np.zeros(6) if q_start_offset_deg is None else q_start_offset_deg)
-    sim = EgmControllerSim(
-        EgmSimConfig(sensor_host="127.0.0.1", sensor_port=port, q_start_deg=tuple(q0), seed=1)
-    )
-    await sim.start()
     try:
-        executor = MotionExecutor.for_plan(endpoint, plan, settings, config)
-        side = asyncio.get_running_loop().create_task(control(executor, sim)) if control else None
-        with realtime_priority():
-            result = await asyncio.wait_for(executor.run(), timeout_s)
-            if side is not None:
-                side.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await side
-            await asyncio.sleep(0.3)  # let the arm settle on the last reference
+        async with controller_process(endpoint, port, q0) as controller:
+            await endpoint.wait_for_feedback(30.0)
+            await wait_until(lambda: endpoint.ok_to_command, 30.0, "the EGM session running")
+            executor = MotionExecutor.for_plan(endpoint, plan, settings, config)
+            side = asyncio.get_running_loop().create_task(control(executor, controller)) if control else None
+            with realtime_priority():
+                result = await asyncio.wait_for(executor.run(), timeout_s)
+                if side is not None:
+                    side.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await side
+                await asyncio.sleep(0.3)  # let the arm settle on the last reference
+            fb = endpoint.history.arrays()
     finally:
-        await sim.stop()
         await endpoint.close()
-    t, q = sim.trajectory.arrays()
-    feedback_t_s = endpoint.history.arrays().t_host_ns / 1e9
-    return Execution(result, sim, t, q, feedback_t_s)
+    t_s = fb.t_host_ns / 1e9
+    return Execution(result, t_s, fb.q_deg[:, :6], t_s)
+
+
+async def wait_until(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
+    """Poll until ``pred()`` holds (raises TimeoutError naming ``what``)."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout_s
+    while not pred():
+        if loop.time() > end:
+            raise TimeoutError(f"{what}: not within {timeout_s} s")
+        await asyncio.sleep(0.01)
 
 
 async def wait_for_state(executor: MotionExecutor, state: str, timeout_s: float = 30.0) -> None:

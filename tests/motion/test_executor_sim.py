@@ -1,4 +1,5 @@
-"""The executor against the controller simulator over loopback UDP (EGM wire protocol only)."""
+"""The executor against the controller simulator's process over loopback: EGM for the motion, RWS and
+the simulator's fault channel for what happens to it (tests/motion/conftest.py)."""
 
 from __future__ import annotations
 
@@ -15,11 +16,15 @@ from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, fk_batch
 from tests.motion.conftest import (
     SAIL_PLACEMENT,
     SMALL_SETTINGS,
+    Controller,
+    controller_process,
     execute,
     run_async,
     wait_for_segment,
     wait_for_state,
 )
+
+pytestmark = pytest.mark.process  # the controller simulator is a process of its own
 
 CYCLE_S = 0.004032
 
@@ -58,7 +63,7 @@ def within_limits_and_workspace(q: np.ndarray, settings: PlannerSettings) -> Non
     )
 
 
-# The machine running the tests is shared: a descheduled test process makes the simulated arm drift
+# The machine running the tests is shared: a descheduled process makes the simulated arm drift
 # on its last reference for a while (as a real controller does when the sensor PC stalls). The
 # fault threshold is raised for the runs that must finish, and the path accuracy is asserted outside
 # the recovery windows after such gaps (Execution.undisturbed); undisturbed runs stay within about
@@ -97,14 +102,14 @@ def test_full_small_plate_plan_executes_within_one_millimetre_of_the_planned_pat
 def test_pause_then_resume_continues_the_pass_it_paused_in_with_jerk_limited_stops(small_plan):
     seen = {}
 
-    async def control(executor: MotionExecutor, sim) -> None:
+    async def control(executor: MotionExecutor, controller: Controller) -> None:
         await wait_for_segment(executor, "scan 2", 0.2)
         executor.pause()
         await wait_for_state(executor, "paused")
         seen["paused"] = executor.progress()
-        seen["q_paused"] = sim.q_deg
+        seen["q_paused"] = controller.q_deg
         await asyncio.sleep(0.5)
-        seen["q_after_wait"] = sim.q_deg
+        seen["q_after_wait"] = controller.q_deg
         executor.resume()
         await wait_for_state(executor, "running")
         seen["resumed"] = executor.progress()
@@ -132,14 +137,14 @@ def test_pause_during_the_move_to_the_start_holds_in_joint_space_and_resume_cont
     resume continues the approach, then the plan runs from its start."""
     seen = {}
 
-    async def control(executor: MotionExecutor, sim) -> None:
+    async def control(executor: MotionExecutor, controller: Controller) -> None:
         await wait_for_state(executor, "moving_to_start")
         await asyncio.sleep(0.3)  # under way
         executor.pause()
         await wait_for_state(executor, "paused")
-        seen["q_paused"] = sim.q_deg
+        seen["q_paused"] = controller.q_deg
         await asyncio.sleep(0.5)
-        seen["q_after_wait"] = sim.q_deg
+        seen["q_after_wait"] = controller.q_deg
         seen["t_traj_paused"] = executor.progress().t_traj_s
         executor.resume()
         await wait_for_state(executor, "moving_to_start")
@@ -165,7 +170,7 @@ def test_pause_during_the_move_to_the_start_holds_in_joint_space_and_resume_cont
 
 
 def test_abort_from_the_middle_of_a_pass_stops_smoothly_and_ends_aborted(small_plan):
-    async def control(executor, sim) -> None:
+    async def control(executor, controller) -> None:
         await wait_for_segment(executor, "scan 1", 0.5)
         executor.abort()
 
@@ -181,9 +186,9 @@ def test_abort_from_the_middle_of_a_pass_stops_smoothly_and_ends_aborted(small_p
 
 
 def test_stalled_controller_leads_to_a_fault_naming_the_stall(small_plan):
-    async def control(executor, sim) -> None:
+    async def control(executor, controller) -> None:
         await wait_for_segment(executor, "scan 1", 0.3)
-        sim.set_faults(stop_sending=True)
+        await controller.faults(stop_sending=True)
 
     cfg = ExecutorConfig.from_settings(SMALL_SETTINGS, stall_give_up_s=0.3, tracking_error_max_mm=25.0)
     ex = run_async(execute(small_plan, SMALL_SETTINGS, config=cfg, control=control))
@@ -196,9 +201,9 @@ def test_stalled_controller_leads_to_a_fault_naming_the_stall(small_plan):
 
 
 def test_motors_off_mid_pass_faults_and_stops_streaming_the_plan(small_plan):
-    async def control(executor, sim) -> None:
+    async def control(executor, controller) -> None:
         await wait_for_segment(executor, "scan 1", 0.5)
-        sim.motors_on = False
+        await controller.motors_off()  # through RWS
 
     ex = run_async(execute(small_plan, SMALL_SETTINGS, config=TOLERANT, control=control))
     r = ex.result
@@ -242,26 +247,22 @@ def test_envelope_violation_is_a_fault_and_no_violating_reference_is_ever_sent(s
 
     async def run():
         from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-        from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
 
         endpoint = EgmEndpoint(EgmEndpointConfig(port=0))
         _, port = await endpoint.start()
-        sim = EgmControllerSim(
-            EgmSimConfig(sensor_port=port, q_start_deg=tuple(small_plan.trajectory.q_deg[0]))
-        )
-        await sim.start()
         try:
-            ex = MotionExecutor(
-                endpoint,
-                small_plan.trajectory,
-                SafetyEnvelope(tight),
-                TOLERANT,
-                segment_labels=[s.label for s in small_plan.segments],
-                segment_kinds=[s.kind for s in small_plan.segments],
-            )
-            return await ex.run()
+            async with controller_process(endpoint, port, small_plan.trajectory.q_deg[0]):
+                await endpoint.wait_for_feedback(30.0)
+                ex = MotionExecutor(
+                    endpoint,
+                    small_plan.trajectory,
+                    SafetyEnvelope(tight),
+                    TOLERANT,
+                    segment_labels=[s.label for s in small_plan.segments],
+                    segment_kinds=[s.kind for s in small_plan.segments],
+                )
+                return await ex.run()
         finally:
-            await sim.stop()
             await endpoint.close()
 
     r = run_async(run())
@@ -286,11 +287,11 @@ def test_full_sail_plate_plan_executes_on_the_simulator():
 
 
 def test_lost_controller_packets_advance_the_plan_by_the_controller_clock(small_plan):
-    async def control(executor, sim) -> None:
+    async def control(executor, controller) -> None:
         await wait_for_segment(executor, "scan 1", 0.1)
-        sim.set_faults(loss_fraction=0.2)
+        await controller.faults(loss_fraction=0.2)
         await wait_for_segment(executor, "scan 1", 0.7)
-        sim.set_faults(loss_fraction=0.0)
+        await controller.faults(loss_fraction=0.0)
         executor.abort()
 
     ex = run_async(execute(small_plan, SMALL_SETTINGS, config=TOLERANT, control=control))
@@ -306,7 +307,7 @@ def test_lost_controller_packets_advance_the_plan_by_the_controller_clock(small_
 def test_progress_events_stream_to_an_async_consumer_until_the_end(small_plan):
     got = []
 
-    async def control(executor, sim) -> None:
+    async def control(executor, controller) -> None:
         async def consume() -> None:
             async for ev in executor.events():
                 got.append(ev)

@@ -86,3 +86,59 @@ def test_the_refusal_names_the_field_but_never_echoes_a_file_outside(designs):
     err = _refused(_req(design="escape/secret.stl"), designs)
     # neither the file's content nor where the symlink really points is told to the caller
     assert "confidential" not in str(err) and str(designs.parent / "outside") not in str(err)
+
+
+def _largest_valid_trigger(rows: int) -> bytes:
+    """The largest trigger the model accepts, as the most verbose JSON encoder writes it: every
+    string at its longest in characters that escape longest (astral characters as two \\uXXXX
+    escapes, "/" as "\\/"), every number with the most digits, ``rows`` template rows."""
+    astral = "\U0001f6a2"  # a ship: 12 bytes escaped
+    row = {
+        "name": "/" * 40,
+        "edge": "0-3",
+        "distance_mm": 1.2345678901234567e-05,
+        "angle_deg": 30.000000000000004,
+    }
+    body = {
+        "plate_id": "P" * 64,
+        "design": astral * 251 + ".stl",
+        "placement": {"pos_mm": [-1.2345678901234567e-05] * 3, "rpy_deg": [-1.2345678901234567e-05] * 3},
+        "note": astral * 500,
+        "template_table": [{**row, "name": f"{k:03d}" + "/" * 37} for k in range(rows)],
+        "design_side": "moulded_down",
+        "thickness_mm": 1.2345678901234567e-05,
+    }
+    return json.dumps(body).replace("/", "\\/").encode()
+
+
+def test_the_largest_valid_trigger_with_200_template_rows_fits_the_size_limit(designs: Path) -> None:
+    from cellctl.api.models import TriggerRequest
+
+    raw = _largest_valid_trigger(200)
+    req = TriggerRequest.model_validate_json(raw)  # valid in every field (the design file aside)
+    assert len(req.template_table) == 200 and len(req.note) == 500
+    assert len(raw) <= MAX_TRIGGER_BYTES, (len(raw), MAX_TRIGGER_BYTES)
+    # and a real one through parse_trigger: a full table of 200 rows is accepted
+    rows = [{"name": f"FR{k}", "edge": "0-3", "distance_mm": 5.0 * k, "angle_deg": 90.0} for k in range(200)]
+    req, _ = parse_trigger(json.dumps(_req(template_table=rows)), designs)
+    assert len(req.template_table) == 200
+
+
+def test_a_template_table_of_201_rows_or_a_bad_row_is_refused_by_name(designs: Path) -> None:
+    rows = [{"name": f"FR{k}", "edge": "0-3", "distance_mm": 5.0 * k} for k in range(201)]
+    err = _refused(_req(template_table=rows), designs)
+    assert (err.code, err.field) == ("invalid", "template_table"), err
+    assert "at most 200" in err.message, err.message
+    for bad, words in (
+        ({"name": "x" * 41, "edge": "0-3", "distance_mm": 1.0}, ("row 1", "at most 40")),
+        ({"name": 'say "hi"', "edge": "0-3", "distance_mm": 1.0}, ("row 1", "printable ASCII")),
+        ({"name": "FR1", "edge": "0-3", "distance_mm": float("nan")}, ("row 1", "distance")),
+        ({"name": "FR1", "edge": "0-3", "distance_mm": 1.0, "angle_deg": 10.0}, ("row 1", "30..150")),
+    ):
+        err = _refused(_req(template_table=[bad]), designs)
+        assert err.field == "template_table" and all(w in err.message for w in words), err.message
+    twice = [
+        {"name": "FR1", "edge": "0-3", "distance_mm": 1.0},
+        {"name": "FR1", "edge": "1-2", "distance_mm": 2.0},
+    ]
+    assert "appears twice" in _refused(_req(template_table=twice), designs).message

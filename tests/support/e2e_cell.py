@@ -48,9 +48,11 @@ def tiny_cell_config(
     # The locate run has its own e2e tests (tests/e2e/test_locate_e2e.py): here a given placement is
     # trusted, and every job starts its scan at once.
     cfg["locate"]["check_given"] = False
+    # The daemon's own heartbeat and acknowledgement timeouts (cell.toml's): the 5 s these cells once
+    # had predate the workers' liveliness tokens, by which the daemon now sees a killed or cut-off
+    # worker at once; short timeouts only made a worker slowed by load look lost (a second attempt).
     cfg["analysis"].update(
-        transverse_count=2, transverse_spacing_mm=80.0, longitudinal_count=1, longitudinal_spacing_mm=100.0,
-        ack_timeout_s=5.0, heartbeat_timeout_s=5.0,
+        transverse_count=2, transverse_spacing_mm=80.0, longitudinal_count=1, longitudinal_spacing_mm=100.0
     )  # fmt: skip
     cfg["analysis"]["tolerances"].update(tolerances or {})
     (out / "designs").mkdir(parents=True, exist_ok=True)

@@ -14,7 +14,7 @@ import numpy as np
 
 from analysis.mesh import TriMesh
 
-__all__ = ["L_MM", "W_MM", "corners", "grid_mesh", "lopsided", "sail"]
+__all__ = ["L_MM", "W_MM", "corners", "grid_mesh", "lopsided", "sail", "ship_pose"]
 
 L_MM, W_MM = 1200.0, 800.0
 
@@ -48,3 +48,14 @@ def corners(f: Surface = sail) -> np.ndarray:
     """(4, 3) the plate's corners on ``f``, counter-clockwise from (-L/2, -W/2)."""
     c = np.array([[-L_MM / 2, -W_MM / 2], [L_MM / 2, -W_MM / 2], [L_MM / 2, W_MM / 2], [-L_MM / 2, W_MM / 2]])
     return np.column_stack([c, f(c[:, 0], c[:, 1])])
+
+
+def ship_pose() -> np.ndarray:
+    """T_ship_design (4, 4) mm: a side-shell pose, stood up 75 degrees, turned 20, 13 m above the keel."""
+    a, b = np.radians(75.0), np.radians(20.0)
+    Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    Rz = np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3] = Rz @ Rx
+    T[:3, 3] = [61000.0, 9000.0, 13000.0]
+    return T

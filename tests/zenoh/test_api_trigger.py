@@ -124,7 +124,13 @@ def test_trigger_queryable_answers_errors_and_keeps_serving_over_zenoh(hub, desi
             declare_async_queryable(daemon, keys.trigger, lambda q: handle_trigger(q, designs, accept))
             client = open_session(build_zenoh_config(hub.section, role="connect"))
             out = []
-            for payload in (b"{bad", _req(colour="red"), _req(design="../secret.stl"), b"y" * 20000, _req()):
+            for payload in (
+                b"{bad",
+                _req(colour="red"),
+                _req(design="../secret.stl"),
+                b"y" * (MAX_TRIGGER_BYTES + 1),
+                _req(),
+            ):
                 try:
                     out.append(await call(client, keys.trigger, payload, TriggerAccepted, timeout_s=5))
                 except ApiCallError as exc:

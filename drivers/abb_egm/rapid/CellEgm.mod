@@ -8,7 +8,8 @@ MODULE CellEgm
     !   time, so the session lasts until the daemon ends it) -> EGMReset.
     !
     ! The daemon writes the PERS data below through RWS before it starts the program, then streams
-    ! joint references (EgmSensor, MSGTYPE_CORRECTION, planned.joints in degrees) every 4 ms to the
+    ! joint references (EgmSensor, MSGTYPE_CORRECTION, planned.joints in degrees; with a track also
+    ! planned.externalJoints in mm, see EGM_TRACK) every 4 ms to the
     ! UdpUc device EGM_DEVICE. It ends the session by writing egm_end := TRUE (or by setting the
     ! digital output DO_EGM_END). egm_status tells the daemon how the last session ended.
     !
@@ -50,6 +51,12 @@ MODULE CellEgm
     ! Convergence band per joint (deg). Narrow, and with the long condition time above the
     ! session does not end on convergence while the daemon holds the robot still.
     CONST egm_minmax EGM_CONV:=[-0.1,0.1];
+    ! The linear track ([robot.track] in cell.toml): TRUE when the robot rides on one. The track is
+    ! an additional axis of this task's motion group (docs/robot-setup.md, "Linear track"); EGM then
+    ! guides it with the arm as the 7th axis: its reference and feedback travel in externalJoints
+    ! (mm), and \MaxPosDeviation applies to it in mm. Convergence band for it (mm):
+    CONST bool EGM_TRACK:=FALSE;
+    CONST egm_minmax EGM_CONV_TRACK:=[-0.1,0.1];
 
     VAR egmident egm_id;
     VAR intnum end_var_int;
@@ -67,12 +74,22 @@ MODULE CellEgm
         EGMReset egm_id;
         EGMGetId egm_id;
         EGMSetupUC ROB_1,egm_id,EGM_MOTION_DATA,EGM_DEVICE\Joint\CommTimeout:=egm_comm_timeout_s;
-        EGMActJoint egm_id
-            \J1:=EGM_CONV\J2:=EGM_CONV\J3:=EGM_CONV\J4:=EGM_CONV\J5:=EGM_CONV\J6:=EGM_CONV
-            \LpFilter:=egm_lp_filter_hz
-            \SampleRate:=egm_sample_rate_ms
-            \MaxPosDeviation:=egm_max_pos_dev_deg
-            \MaxSpeedDeviation:=egm_max_speed_dev_dps;
+        IF EGM_TRACK THEN
+            EGMActJoint egm_id
+                \J1:=EGM_CONV\J2:=EGM_CONV\J3:=EGM_CONV\J4:=EGM_CONV\J5:=EGM_CONV\J6:=EGM_CONV
+                \J7:=EGM_CONV_TRACK
+                \LpFilter:=egm_lp_filter_hz
+                \SampleRate:=egm_sample_rate_ms
+                \MaxPosDeviation:=egm_max_pos_dev_deg
+                \MaxSpeedDeviation:=egm_max_speed_dev_dps;
+        ELSE
+            EGMActJoint egm_id
+                \J1:=EGM_CONV\J2:=EGM_CONV\J3:=EGM_CONV\J4:=EGM_CONV\J5:=EGM_CONV\J6:=EGM_CONV
+                \LpFilter:=egm_lp_filter_hz
+                \SampleRate:=egm_sample_rate_ms
+                \MaxPosDeviation:=egm_max_pos_dev_deg
+                \MaxSpeedDeviation:=egm_max_speed_dev_dps;
+        ENDIF
         ! The end request reaches EGMRunJoint through a trap, because EGMRunJoint blocks this task.
         IDelete end_var_int;
         CONNECT end_var_int WITH EndEgmTrap;
@@ -82,10 +99,17 @@ MODULE CellEgm
         ISignalDO DO_EGM_END,1,end_sig_int;
         ! Without \NoWaitCond, so a communication timeout comes to the ERROR handler below instead
         ! of stopping the program with a fatal error.
-        EGMRunJoint egm_id,EGM_STOP_HOLD\J1\J2\J3\J4\J5\J6
-            \CondTime:=egm_cond_time_s
-            \RampInTime:=egm_ramp_in_s
-            \PosCorrGain:=egm_pos_corr_gain;
+        IF EGM_TRACK THEN
+            EGMRunJoint egm_id,EGM_STOP_HOLD\J1\J2\J3\J4\J5\J6\J7
+                \CondTime:=egm_cond_time_s
+                \RampInTime:=egm_ramp_in_s
+                \PosCorrGain:=egm_pos_corr_gain;
+        ELSE
+            EGMRunJoint egm_id,EGM_STOP_HOLD\J1\J2\J3\J4\J5\J6
+                \CondTime:=egm_cond_time_s
+                \RampInTime:=egm_ramp_in_s
+                \PosCorrGain:=egm_pos_corr_gain;
+        ENDIF
         egm_status:=2;
         CleanUp;
     ERROR

@@ -10,12 +10,19 @@ Run it on its own::
     python -m drivers.abb_egm.sim --egm-port 6511 --rws-port 8080 [--motors-on --start] [faults]
 
 It prints one JSON line with its addresses on stdout and runs until SIGINT or SIGTERM.
+
+With ``--fault-port`` (0: any free port) it serves its **fault channel** on TCP
+(:mod:`drivers.fault_channel`): one JSON object a line, ``{"egm": {"stop_sending": true, "loss_fraction": 0.2, ...}}`` (the knobs of
+:class:`~drivers.abb_egm.sim.egm.EgmFaults`; a knob left out stays as it is, ``{}`` only reads),
+answered by one line ``{"ok": true, "egm": {...the knobs in force...}, "stats": {...counters...}}``
+or ``{"ok": false, "error": "..."}``. The panel (motors, RAPID) is RWS's, as on a real controller.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import os
 import signal
@@ -25,9 +32,10 @@ from dataclasses import dataclass
 
 import structlog
 
-from drivers.abb_egm.sim.egm import EgmControllerSim, EgmFaults, EgmSimConfig
+from drivers.abb_egm.sim.egm import EgmControllerSim, EgmFaults, EgmSimConfig, FaultError
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
+from drivers.fault_channel import start_fault_server
 from drivers.runtime import precise_event_loop
 
 __all__ = ["ControllerSim", "ControllerSimConfig", "main"]
@@ -43,7 +51,8 @@ class ControllerSimConfig:
     """Everything the simulated controller needs besides the EGM settings.
 
     ``rws_users`` maps user name to password. ``motors_on`` / ``start_program`` put the controller
-    in that state at start (as an operator at the cabinet would).
+    in that state at start (as an operator at the cabinet would). ``fault_port``: serve the fault
+    channel (module docstring) on this TCP port of ``rws_host`` (0: any free port; None: off).
     """
 
     rws_host: str = "127.0.0.1"
@@ -53,6 +62,7 @@ class ControllerSimConfig:
     rws_max_sessions: int = 70
     motors_on: bool = False
     start_program: bool = False
+    fault_port: int | None = None
 
 
 class ControllerSim:
@@ -80,13 +90,19 @@ class ControllerSim:
             max_sessions=self.config.rws_max_sessions,
         )
         self._started = False
+        self._fault_server: asyncio.Server | None = None
 
     async def start(self) -> dict:
-        """Start RWS, then EGM; returns the addresses (see :meth:`addresses`)."""
+        """Start RWS, then EGM (and the fault channel); returns the addresses (see :meth:`addresses`)."""
         await self.rws.start()
         try:
             await self.egm.start()
+            if self.config.fault_port is not None:
+                self._fault_server = await start_fault_server(
+                    self.config.rws_host, self.config.fault_port, self.apply_faults
+                )
         except BaseException:
+            await self.egm.stop()
             await self.rws.stop()
             raise
         self._started = True
@@ -101,18 +117,37 @@ class ControllerSim:
         if not self._started:
             return
         self._started = False
+        if self._fault_server is not None:
+            self._fault_server.close()
+            self._fault_server = None
         await self.egm.stop()
         await self.rws.stop()
+
+    def apply_faults(self, request: object) -> dict:
+        """One fault-channel request (the decoded JSON object) applied; returns the reply object."""
+        try:
+            if not isinstance(request, dict) or set(request) - {"egm"}:
+                raise FaultError(f"want an object with an 'egm' section, got {request!r:.200}")
+            knobs = request.get("egm", {})
+            if not isinstance(knobs, dict):
+                raise FaultError(f"egm: want an object of fault knobs, got {knobs!r:.200}")
+            faults = self.egm.set_faults(**knobs) if knobs else self.egm.faults
+        except FaultError as exc:
+            return {"ok": False, "error": str(exc)}
+        return {"ok": True, "egm": dataclasses.asdict(faults), "stats": dataclasses.asdict(self.egm.stats)}
 
     def addresses(self) -> dict:
         """``{"egm_local": [host, port], "egm_sensor": [host, port], "rws_url": str, "rws_profile": str}``."""
         cfg = self.egm.config
-        return {
+        addresses = {
             "egm_local": list(self.egm.local_address),
             "egm_sensor": [cfg.sensor_host, cfg.sensor_port],
             "rws_url": self.rws.base_url,
             "rws_profile": self.rws.profile,
         }
+        if self._fault_server is not None:
+            addresses["fault"] = list(self._fault_server.sockets[0].getsockname()[:2])
+        return addresses
 
     async def __aenter__(self) -> ControllerSim:
         await self.start()
@@ -153,6 +188,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--reorder", type=float, default=0.0, help="reorder fraction")
     p.add_argument("--corrupt", type=float, default=0.0, help="corrupted-bytes fraction")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument(
+        "--fault-port", type=int, default=None, help="serve the fault channel here (0: any free port)"
+    )
+    p.add_argument("--q-start-deg", type=float, nargs=6, default=None, help="the arm's joints at start, deg")
     return p
 
 
@@ -169,6 +208,7 @@ async def _serve(args: argparse.Namespace) -> int:
             rws_users=((args.rws_user, password),),
             motors_on=args.motors_on or args.start,
             start_program=args.start,
+            fault_port=args.fault_port,
         ),
         EgmSimConfig(
             sensor_host=args.egm_host,
@@ -177,6 +217,7 @@ async def _serve(args: argparse.Namespace) -> int:
             cycle_s=args.cycle_ms / 1000.0,
             comm_timeout_s=args.comm_timeout_s,
             seed=args.seed,
+            **({} if args.q_start_deg is None else {"q_start_deg": tuple(args.q_start_deg)}),
         ),
         EgmFaults(
             loss_fraction=args.loss,

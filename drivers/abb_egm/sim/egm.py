@@ -16,6 +16,14 @@ in error and ends the session; no sensor message for the communication timeout e
 state and the EGM arguments come from the model (RWS drives them) and session ends are reported to
 it; without one the simulator runs standalone (``motors_on`` / ``egm_enabled`` attributes).
 
+A linear track (``EgmSimConfig.track``) is a seventh axis in the robot's motion group: its position
+(mm) goes out in ``feedBack.externalJoints`` / ``planned.externalJoints`` and its reference comes in
+``EgmSensor.planned.externalJoints`` (speed feed-forward in ``speedRef.externalJoints``, mm/s). It
+moves by the same law, filter and limits as the joints (its travel and speed from the track); the
+state vector is then ``axes_mm_deg`` (track first), the true trajectory records it, and the
+cartesian feedback is the flange in the world frame. A joint reference without the track's value
+is ignored, as one without six joints is.
+
 Fault knobs (:class:`EgmFaults`) act on the wire: loss (random and bursts), delay and jitter,
 duplicates, reordering, corrupted bytes, stop sending, and loss of the sensor's replies.
 """
@@ -47,7 +55,7 @@ from drivers.abb_egm.codec import (
     decode_sensor,
     encode_robot,
 )
-from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S, RobotKinematics, fk_batch
+from drivers.abb_egm.kinematics import LinearTrack, RobotKinematics, fk_batch
 from drivers.abb_egm.ring import ring_indices, ring_search, ring_start
 
 __all__ = [
@@ -99,6 +107,9 @@ class EgmSimConfig:
 
     The EGM arguments below are used when no ControllerModel is attached, or the model has none
     (outside its EGM phase); with a model in its EGM phase the RAPID variables win.
+
+    ``track``: the linear track the robot rides on (None: a fixed base); ``track_start_mm`` its
+    position at start. With a track, ``MaxPosDeviation`` applies to it in mm.
     """
 
     sensor_host: str = "127.0.0.1"
@@ -122,6 +133,8 @@ class EgmSimConfig:
     history_capacity: int = 2**17  # true-trajectory samples kept (about 528 s at 4.032 ms)
     latency_capacity: int = 2**16  # reply latency samples kept
     seed: int | None = None
+    track: LinearTrack | None = None
+    track_start_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -299,9 +312,12 @@ class TrajectoryRecorder:
         q[late] = qs[-1] + v * (t[late] - ts[-1])[:, None]
         return q, late
 
-    def T_base_frame_at(self, t_s: np.ndarray, T_flange_tool: np.ndarray | None = None) -> np.ndarray:
-        """Poses at times ``t_s`` (m,): (m, 4, 4), mm, of the flange or of ``T_flange_tool``'s frame."""
-        return fk_batch(self.q_deg_at(t_s), T_flange_tool)
+    def T_base_frame_at(
+        self, t_s: np.ndarray, T_flange_tool: np.ndarray | None = None, track: LinearTrack | None = None
+    ) -> np.ndarray:
+        """Poses at times ``t_s`` (m,): (m, 4, 4), mm, of the flange or of ``T_flange_tool``'s frame
+        (in the world frame when the record holds ``axes_mm_deg`` of a robot on ``track``)."""
+        return fk_batch(self.q_deg_at(t_s), T_flange_tool, track=track)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -356,21 +372,31 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self.faults = faults or EgmFaults()
         self.model = model
         self.clock = clock
-        self.kin = kinematics or RobotKinematics()
+        self.kin = kinematics or RobotKinematics(track=cfg.track)
+        if self.kin.track is not cfg.track:
+            raise ValueError("the kinematics must be built with the configured track")
+        #: values in the state: the six joints, or the track (mm) and the six joints (``axes_mm_deg``)
+        self.n_axes = self.kin.n_axes
+        self._n_ext = self.n_axes - 6
         self.stats = EgmSimStats()
-        self.trajectory = TrajectoryRecorder(cfg.history_capacity)
-        self.q_min_deg, self.q_max_deg = Q_MIN_DEG.copy(), Q_MAX_DEG.copy()
-        self.qd_max_deg_s = QD_MAX_DEG_S.copy()
+        self.trajectory = TrajectoryRecorder(cfg.history_capacity, self.n_axes)
+        # the same limits for every axis of the motion group (a track's in mm and mm/s)
+        self.q_min_deg, self.q_max_deg = self.kin.q_min_deg.copy(), self.kin.q_max_deg.copy()
+        self.qd_max_deg_s = self.kin.qd_max_deg_s.copy()
         q0 = np.array(cfg.q_start_deg, dtype=np.float64)
         if q0.shape != (6,):
             raise ValueError(f"q_start_deg must have 6 values, got {q0.shape}")
+        if cfg.track is not None:
+            if not cfg.track.travel_min_mm <= cfg.track_start_mm <= cfg.track.travel_max_mm:
+                raise ValueError(f"track_start_mm {cfg.track_start_mm} is outside the track's travel")
+            q0 = np.concatenate([[cfg.track_start_mm], q0])
         self._q_deg = q0.copy()
-        self._v_deg_s = np.zeros(6)  # filtered joint speed
+        self._v_deg_s = np.zeros(self.n_axes)  # filtered axis speed
         self._utilization = 0.0
         self._ctrl_offset_s = 0.0
         self._clock_minus_loop_s = 0.0
         self._ref_q_deg = q0.copy()
-        self._speed_ref_deg_s = np.zeros(6)
+        self._speed_ref_deg_s = np.zeros(self.n_axes)
         self._rng = np.random.default_rng(cfg.seed)
         # standalone knobs (ignored when a model is attached)
         self.motors_on = True
@@ -484,12 +510,17 @@ class EgmControllerSim(asyncio.DatagramProtocol):
 
     @property
     def q_deg(self) -> np.ndarray:
-        """Current true joint angles (6,) deg."""
+        """Current true joint angles (6,) deg (the arm's; the track's position is in ``axes_mm_deg``)."""
+        return self._q_deg[self._n_ext :].copy()
+
+    @property
+    def axes_mm_deg(self) -> np.ndarray:
+        """Current true state of every axis: (6,) deg, or (7,) track mm then joints deg."""
         return self._q_deg.copy()
 
     @property
     def reference_q_deg(self) -> np.ndarray:
-        """The joint reference the controller is following (6,) deg."""
+        """The reference the controller is following, every axis ((6,) or (7,) like ``axes_mm_deg``)."""
         return self._ref_q_deg.copy()
 
     @property
@@ -503,9 +534,10 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         return self._running
 
     def position(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(q_deg (6,), flange pos_mm (3,), quat_wxyz (4,)) for RWS position reads."""
+        """(q_deg (6,), flange pos_mm (3,), quat_wxyz (4,)) for RWS position reads (the flange in the
+        world frame with a track)."""
         pose = self.kin.fk(self._q_deg)
-        return self._q_deg.copy(), pose.pos_mm, pose.quat_wxyz
+        return self._q_deg[self._n_ext :].copy(), pose.pos_mm, pose.quat_wxyz
 
     def reply_latency(self, *, kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Measured reply latencies: ``latency_us`` (n,) from our send of EgmRobot k (stamped right at the
@@ -626,7 +658,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
                 self._integrate(dt, t_k, params)
             elif motors_on:
                 # outside a session the arm settles: commanded speed 0 through the same filter
-                self._filter_and_move(np.zeros(6), dt, params["lp_filter_hz"])
+                self._filter_and_move(np.zeros(self.n_axes), dt, params["lp_filter_hz"])
             self.trajectory.append(t_k + dt, self._q_deg)
         self.stats.cycles += steps
 
@@ -640,7 +672,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self._session_t0 = t
         self._session_q0 = self._q_deg.copy()
         self._ref_q_deg = self._q_deg.copy()
-        self._speed_ref_deg_s = np.zeros(6)
+        self._speed_ref_deg_s = np.zeros(self.n_axes)
         self._last_sensor_t = t
         self._converged_since = None
         self._newest_sensor = None
@@ -650,7 +682,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
     def _end_session(self, reason: str, event_code: int | None, *, error: bool = False) -> None:
         self._running = False
         self._mci = MciState.ERROR if error else MciState.STOPPED
-        self._speed_ref_deg_s = np.zeros(6)
+        self._speed_ref_deg_s = np.zeros(self.n_axes)
         self.ended_sessions.append((reason, event_code))
         log.info("egm_sim_session_ended", reason=reason, event_code=event_code, error=error)
         if event_code is not None or reason.startswith("convergence"):
@@ -669,6 +701,12 @@ class EgmControllerSim(asyncio.DatagramProtocol):
                 self.stats.sensor_ignored += 1
                 return
             ref = msg.planned_q_deg[:6]
+            if self._n_ext:
+                ext = msg.planned_external_joints
+                if ext is None or ext.shape[0] < self._n_ext:
+                    self.stats.sensor_ignored += 1
+                    return
+                ref = np.concatenate([ext[: self._n_ext], ref])
         else:
             if msg.planned_pos_mm is None:
                 self.stats.sensor_ignored += 1
@@ -681,10 +719,15 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             if msg.speed_ref_q_deg_s is not None and msg.speed_ref_q_deg_s.shape[0] >= 6
             else np.zeros(6)
         )
+        if self._n_ext:
+            ext_v = msg.speed_ref_external_joints
+            ok = ext_v is not None and ext_v.shape[0] >= self._n_ext
+            speed = np.concatenate([ext_v[: self._n_ext] if ok else np.zeros(self._n_ext), speed])
         if np.any(ref < self.q_min_deg) or np.any(ref > self.q_max_deg):
             bad = np.flatnonzero((ref < self.q_min_deg) | (ref > self.q_max_deg))
+            names = ["track" if i < self._n_ext else int(i - self._n_ext + 1) for i in bad]
             self._end_session(
-                f"reference outside joint limits on axis {(bad + 1).tolist()}: {ref[bad].round(3).tolist()} deg",
+                f"reference outside the axis limits on axis {names}: {ref[bad].round(3).tolist()}",
                 EVENT_EGM_JOINT_LIMIT,
                 error=True,
             )
@@ -704,6 +747,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
     def _pose_to_joints(self, msg: SensorMessage) -> np.ndarray | None:
         from drivers.abb_egm.kinematics import matrix_from_quat_wxyz  # local: pose mode is rare
 
+        # with a track the solver holds the carriage at the reference's position (the pose is the flange's)
         T = np.eye(4)
         T[:3, 3] = msg.planned_pos_mm
         if msg.planned_euler_deg is not None:  # Euler wins over the quaternion (proto comment)
@@ -745,14 +789,14 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         v_cmd = k * err + self._speed_ref_deg_s
         worst = float(np.max(np.abs(v_cmd)))
         if worst > params["max_speed_deviation_deg_s"]:
-            axis = int(np.argmax(np.abs(v_cmd))) + 1
+            axis = self._axis_name(int(np.argmax(np.abs(v_cmd))))
             self._end_session(
-                f"speed deviation {worst:.1f} deg/s on axis {axis} above MaxSpeedDeviation "
+                f"speed deviation {worst:.1f} deg/s on {axis} above MaxSpeedDeviation "
                 f"{params['max_speed_deviation_deg_s']:.1f} deg/s",
                 EVENT_EGM_SPEED_DEVIATION,
                 error=True,
             )
-            self._filter_and_move(np.zeros(6), dt, params["lp_filter_hz"])
+            self._filter_and_move(np.zeros(self.n_axes), dt, params["lp_filter_hz"])
             return
         self._filter_and_move(v_cmd, dt, params["lp_filter_hz"])
         if np.all(np.abs(self._ref_q_deg - self._q_deg) < self.config.convergence_deg):
@@ -775,18 +819,23 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self._v_deg_s[at_limit] = 0.0
         self._q_deg = np.clip(q, self.q_min_deg, self.q_max_deg)
 
+    def _axis_name(self, i: int) -> str:
+        """Name of state index ``i``: ``track`` or ``axis k`` (1-based arm joint, as the controller says)."""
+        return "track" if i < self._n_ext else f"axis {i - self._n_ext + 1}"
+
     def _send_robot(self, t_true: float, motors_on: bool, rapid_running: bool) -> None:
         pose = self.kin.fk(self._q_deg)
+        n = self._n_ext
         t_ctrl_us = round((t_true + self._ctrl_offset_s) * 1e6)
         msg = RobotMessage(
             seqno=self._seqno,
             tm_ms=(t_ctrl_us // 1000) % _U32,
             mtype=MessageType.DATA,
-            feedback_q_deg=self._q_deg,
+            feedback_q_deg=self._q_deg[n:],
             feedback_pos_mm=pose.pos_mm,
             feedback_quat_wxyz=pose.quat_wxyz,
             feedback_time_us=t_ctrl_us,
-            planned_q_deg=self._ref_q_deg,
+            planned_q_deg=self._ref_q_deg[n:],
             planned_time_us=t_ctrl_us,
             motor_state=MotorState.ON if motors_on else MotorState.OFF,
             mci_state=self._mci,
@@ -794,6 +843,8 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             rapid_exec_state=RapidState.RUNNING if rapid_running else RapidState.STOPPED,
             utilization_pct=self._utilization,
             move_index=self._move_index,
+            feedback_external_joints=self._q_deg[:n] if n else None,
+            planned_external_joints=self._ref_q_deg[:n] if n else None,
         )
         payload = encode_robot(msg)
         seqno = self._seqno

@@ -25,6 +25,7 @@ import asyncio
 import collections
 import concurrent.futures
 import contextlib
+import dataclasses
 import json
 import math
 import multiprocessing
@@ -37,8 +38,9 @@ from typing import Literal
 
 import numpy as np
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from drivers.fault_channel import start_fault_server
 from drivers.laser import protocol as P
 from drivers.laser._ratelimit import RateLimitedLog
 from drivers.laser.sim.optics import LaserOptics, render_points, render_uniform
@@ -156,6 +158,35 @@ class SimFaults:
     stall_acquire: bool = True
 
 
+class LaserFaultKnobs(BaseModel):
+    """The HD8 simulator's fault knobs on its fault channel; a knob left out stays as it is.
+
+    ``disconnect_after_frames`` (0 disarms), ``corrupt_groups`` (the next groups, in
+    ``corrupt_mode``), ``corrupt_probability``, ``drop_frames``, ``drop_probability``, ``stall_s``
+    (with ``stall_acquire``), ``clock_jump_us``: see :class:`SimFaults` and the helper methods.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    disconnect_after_frames: int | None = Field(None, ge=0, le=10**9)
+    corrupt_groups: int | None = Field(None, ge=0, le=10**9)
+    corrupt_mode: Literal["payload", "framing"] = "payload"
+    corrupt_probability: float | None = Field(None, ge=0.0, le=1.0)
+    drop_frames: int | None = Field(None, ge=0, le=10**9)
+    drop_probability: float | None = Field(None, ge=0.0, le=1.0)
+    stall_s: float | None = Field(None, ge=0.0, le=600.0, allow_inf_nan=False)
+    stall_acquire: bool = True
+    clock_jump_us: float | None = Field(None, ge=-1e12, le=1e12, allow_inf_nan=False)
+
+
+class LaserFaultRequest(BaseModel):
+    """A fault-channel request: ``{"laser": {...LaserFaultKnobs...}}``; ``{}`` only reads the state."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    laser: LaserFaultKnobs = LaserFaultKnobs()
+
+
 @dataclass
 class SimStats:
     """Counters of the simulator."""
@@ -210,6 +241,8 @@ class LaserSimulator:
         config: sensor model; see :class:`SimConfig`.
         clock: the true time base, seconds (must advance at real-time rate; asyncio sleeps on it).
         host, control_port, data_port: where to listen (port 0 = any free port).
+        fault_port: serve the fault channel (:class:`LaserFaultRequest`, :mod:`drivers.fault_channel`)
+            on this port (0: any free port; None: off); its address is :attr:`fault_address`.
     """
 
     def __init__(
@@ -222,8 +255,11 @@ class LaserSimulator:
         host: str = "127.0.0.1",
         control_port: int = 0,
         data_port: int = 0,
+        fault_port: int | None = None,
     ) -> None:
         self.scene = scene if isinstance(scene, Scene) else Scene(*scene)
+        self._fault_port = fault_port
+        self._fault_server: asyncio.Server | None = None
         self.pose_at = pose_at
         self.config = config or SimConfig()
         self.clock = clock
@@ -296,6 +332,9 @@ class LaserSimulator:
         ctl = await asyncio.start_server(self._serve_control, self.host, self._ports[0])
         dat = await asyncio.start_server(self._serve_data, self.host, self._ports[1])
         self._servers = [ctl, dat]
+        if self._fault_port is not None:
+            self._fault_server = await start_fault_server(self.host, self._fault_port, self.apply_faults)
+            self._servers.append(self._fault_server)
         ports = (ctl.sockets[0].getsockname()[1], dat.sockets[0].getsockname()[1])
         log.info("hd8sim_listening", host=self.host, control_port=ports[0], data_port=ports[1])
         return ports
@@ -343,6 +382,43 @@ class LaserSimulator:
         )
 
     # ------------------------------------------------------------------------------ faults
+
+    @property
+    def fault_address(self) -> tuple[str, int] | None:
+        """``(host, port)`` of the fault channel once started, None when it is off."""
+        if self._fault_server is None:
+            return None
+        return self.host, int(self._fault_server.sockets[0].getsockname()[1])
+
+    def apply_faults(self, request: object) -> dict:
+        """One fault-channel request (decoded JSON, see :class:`LaserFaultRequest`) applied; returns
+        the reply: ``{"ok": true, "faults": {...in force...}, "stats": {...}}`` or ``{"ok": false,
+        "error": ...}`` (then nothing changed)."""
+        try:
+            k = LaserFaultRequest.model_validate(request).laser
+        except ValidationError as exc:
+            return {"ok": False, "error": str(exc)}
+        if k.disconnect_after_frames is not None:
+            if k.disconnect_after_frames == 0:
+                self.faults.disconnect_after_frames = None
+            else:
+                self.disconnect_after(k.disconnect_after_frames)
+        if k.corrupt_groups is not None:
+            self.corrupt_next(k.corrupt_groups, k.corrupt_mode)
+        if k.corrupt_probability is not None:
+            self.faults.corrupt_mode = k.corrupt_mode
+            self.faults.corrupt_probability = k.corrupt_probability
+        if k.drop_frames is not None:
+            self.drop_next(k.drop_frames)
+        if k.drop_probability is not None:
+            self.faults.drop_probability = k.drop_probability
+        if k.stall_s is not None:
+            self.stall(k.stall_s, acquire=k.stall_acquire)
+        if k.clock_jump_us is not None:
+            self.jump_timestamp(k.clock_jump_us)
+        faults = dataclasses.asdict(self.faults)
+        faults["stall_remaining_s"] = max(0.0, faults.pop("stall_until_s") - self.clock())
+        return {"ok": True, "faults": faults, "stats": dataclasses.asdict(self.stats)}
 
     def disconnect_after(self, n_frames: int) -> None:
         """Abort all data connections after ``n_frames`` more frames have been sent."""
@@ -903,9 +979,13 @@ async def _run(args: argparse.Namespace) -> None:
         host=args.host,
         control_port=args.control_port,
         data_port=args.data_port,
+        fault_port=args.fault_port,
     )
     ctl, dat = await sim.start()
-    print(json.dumps({"control_port": ctl, "data_port": dat, "host": args.host}), flush=True)
+    ready = {"control_port": ctl, "data_port": dat, "host": args.host}
+    if sim.fault_address is not None:
+        ready["fault_port"] = sim.fault_address[1]
+    print(json.dumps(ready), flush=True)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -920,6 +1000,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--control-port", type=int, default=0)
     ap.add_argument("--data-port", type=int, default=0)
+    ap.add_argument(
+        "--fault-port", type=int, default=None, help="serve the fault channel here (0: any free port)"
+    )
     ap.add_argument("--scene", choices=("plane", "step"), default="plane")
     ap.add_argument("--step-mm", type=float, default=10.0, help="step height for --scene step")
     ap.add_argument("--standoff", type=float, default=100.0, help="sensor height above the floor, mm")
