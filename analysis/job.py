@@ -24,6 +24,7 @@ __all__ = [
     "CompareLine",
     "LineFitReport",
     "LineReport",
+    "PlacementFinding",
     "RegistrationReport",
     "Report",
     "ReportInputs",
@@ -38,12 +39,36 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class PlacementFinding(_Strict):
+    """Where the placement the scan was planned from came from, and how well the outline fitted.
+
+    source: ``given`` (the trigger's, not checked), ``located`` (found by the locate run, none
+    given), ``checked`` (given, and confirmed by the locate run; the found one is used).
+    given: the trigger's placement (None when none was given). rms_mm: RMS of the outline fit of the
+    locate run (mm); coverage: fraction of the design's outline its passes saw; offset_mm /
+    offset_deg: the found placement's distance from the given one; resolved_by: how a half turn was
+    decided (``fit``, ``hint``, ``convention``); locate_s: the locate run's time (motion and fit).
+    """
+
+    source: Literal["given", "located", "checked"]
+    given: Placement | None = None
+    rms_mm: float | None = None
+    height_rms_mm: float | None = None
+    coverage: float | None = None
+    boundary_points: int | None = None
+    offset_mm: float | None = None
+    offset_deg: float | None = None
+    resolved_by: str | None = None
+    locate_s: float | None = None
+
+
 class AnalysisJob(_Strict):
     """One analysis to run on one cloud (the job parameters a worker receives).
 
     design: path of the design surface (absolute, or relative to the worker's directory).
     placement: the operator's nominal placement of the design on the bed; it decides the reference
     corner of a design that looks the same after a half turn (None: the bed convention decides).
+    placement_found: how that placement was found (the locate run), recorded in the report's inputs.
     out_dir: where to write the results directory (None: only the report is returned).
     """
 
@@ -52,6 +77,7 @@ class AnalysisJob(_Strict):
     cell_id: str = ""
     design: Annotated[str, Field(min_length=1)]
     placement: Placement | None = None
+    placement_found: PlacementFinding | None = None
     settings: InspectionSettings = InspectionSettings()
     out_dir: str | None = None
 
@@ -176,6 +202,7 @@ class ReportInputs(_Strict):
     design: str = ""
     cloud: str | None = None
     placement: Placement | None = None
+    placement_found: PlacementFinding | None = None
 
 
 class DesignReport(_Strict):

@@ -584,7 +584,8 @@ def analyse_job(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
         raise InspectionError(str(exc)) from None
     ins = inspect_cloud(
         cloud, design, job.settings, nominal_placement=job.placement,
-        plate_id=job.plate_id, job_id=job.job_id, cell_id=job.cell_id, inputs={"design": job.design},
+        plate_id=job.plate_id, job_id=job.job_id, cell_id=job.cell_id,
+        inputs={"design": job.design, "placement_found": job.placement_found},
     )  # fmt: skip
     if job.out_dir:
         write_results(ins, job.out_dir)

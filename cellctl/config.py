@@ -602,6 +602,53 @@ class RouterSection(Section):
         return ZenohSection._endpoints_parse(v)
 
 
+class LocateSection(Section):
+    """The locate run: a few fast flat passes over the bed that find the plate (docs/locate.md).
+
+    The bed is ``bed_min_xy_mm`` .. ``bed_max_xy_mm`` in the world (robot base) frame: plates lie
+    within it. The passes fly ``standoff_mm`` above the design's highest edge (the plate lying at
+    ``[scan] placement_z_mm``), so that its edges are within the sensor's depth range below them, and
+    never nearer than ``[laser] depth_min_mm`` to its highest point; at ``speed_mm_s``,
+    ``pass_spacing_mm`` apart:
+    one family along the bed's longer side over the whole bed; one across it over the middle square
+    when the first leaves the fit sliding, or finds the plate's edges within ``across_within_deg`` of
+    square to its passes (an edge crossed square-on is seen only to a profile's spacing).
+    ``bed_z_mm``: the bed's top face (points up to ``min_height_mm`` above it are no plate).
+    ``plate_band_mm``: points further than this below the design's lowest point or above its highest
+    (the plate at ``[scan] placement_z_mm``) are no plate (supports beside a turned plate, clamps).
+    A given placement is checked (``check_given``) and refused when the plate found lies more than
+    ``max_offset_mm`` / ``max_angle_deg`` from it. ``convention_yaw_deg``: a plate that looks the same
+    turned by 180 deg is taken at the yaw within 90 deg of this, when no placement is given.
+    ``allow_face_down``: the mirrored outline is fitted too (a plate the right way up is required
+    to plan, so a face-down find is refused with that reason). ``max_rms_mm``: a worse outline fit
+    is refused.
+    """
+
+    check_given: bool = True
+    bed_min_xy_mm: Annotated[list[Finite], Field(min_length=2, max_length=2)] = [800.0, -700.0]
+    bed_max_xy_mm: Annotated[list[Finite], Field(min_length=2, max_length=2)] = [2200.0, 700.0]
+    bed_z_mm: Finite = 100.0
+    min_height_mm: NonNegativeFloat = 5.0
+    plate_band_mm: PositiveFloat = 8.0
+    standoff_mm: PositiveFloat = 75.0
+    speed_mm_s: PositiveFloat = 225.0
+    pass_spacing_mm: Annotated[float, Field(ge=20.0, le=2000.0, allow_inf_nan=False)] = 350.0
+    across_within_deg: Annotated[float, Field(ge=0.0, le=45.0, allow_inf_nan=False)] = 10.0
+    max_offset_mm: PositiveFloat = 20.0
+    max_angle_deg: PositiveFloat = 1.0
+    convention_yaw_deg: Annotated[float, Field(ge=-180.0, le=180.0, allow_inf_nan=False)] = 0.0
+    allow_face_down: bool = False
+    max_rms_mm: PositiveFloat = 2.0
+
+    @model_validator(mode="after")
+    def _bed_has_extent(self) -> LocateSection:
+        if not all(lo < hi for lo, hi in zip(self.bed_min_xy_mm, self.bed_max_xy_mm, strict=True)):
+            raise ValueError(
+                f"bed_min_xy_mm {self.bed_min_xy_mm} must be below bed_max_xy_mm {self.bed_max_xy_mm} on x and y"
+            )
+        return self
+
+
 class CellConfig(BaseSettings):
     """The whole `cell.toml`."""
 
@@ -623,6 +670,7 @@ class CellConfig(BaseSettings):
     daemon: DaemonSection = DaemonSection()
     worker: WorkerSection = WorkerSection()
     router: RouterSection = RouterSection()
+    locate: LocateSection = LocateSection()
 
     @classmethod
     def settings_customise_sources(

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from analysis.job import AnalysisJob
+from analysis.job import AnalysisJob, PlacementFinding
 from analysis.metrics import Tolerances
 from analysis.placement import Placement
 from analysis.settings import InspectionSettings
@@ -55,20 +55,23 @@ def analysis_job(
     job_id: str,
     plate_id: str,
     design: str,
-    placement: Placement | dict[str, Any],
+    placement: Placement | dict[str, Any] | None,
     out_dir: Path,
     analysis: AnalysisOptions | None = None,
+    placement_found: dict[str, Any] | None = None,
 ) -> AnalysisJob:
     """The parameters the daemon sends with a job's cloud: the trigger's design and placement (as
     the job record stores it), the cell's analysis settings with the trigger's per-plate analysis
-    options (``analysis``: ``template_table`` rows, ``design_side``, ``thickness_mm``), and the job's results directory."""
+    options (``analysis``: ``template_table`` rows, ``design_side``, ``thickness_mm``), and the job's results directory.
+    ``placement_found``: the job record's ``info["placement_found"]`` (how the placement was found)."""
     analysis = analysis or AnalysisOptions()
     return AnalysisJob(
         job_id=job_id,
         plate_id=plate_id,
         cell_id=cfg.cell.id,
         design=design,
-        placement=Placement.model_validate(placement),
+        placement=None if placement is None else Placement.model_validate(placement),
+        placement_found=None if placement_found is None else PlacementFinding.model_validate(placement_found),
         settings=dataclasses.replace(
             inspection_settings(cfg.analysis, analysis.template_table),
             design_side=analysis.design_side,

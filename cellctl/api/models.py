@@ -175,12 +175,16 @@ class AnalysisOptions(Model):
 class TriggerRequest(Model):
     """Start an inspection. ``design`` is a path relative to ``[cell] designs_dir``.
 
+    ``placement``: where the plate lies (optional). Without it the cell finds the plate by a locate
+    run; with it the locate run checks it (``[locate] check_given``) and the job fails, saying by how
+    much, when the plate lies further from it than ``[locate] max_offset_mm`` / ``max_angle_deg``
+    (docs/locate.md). A plate that looks the same turned by half a turn is taken at the given yaw.
     ``template_table``, ``design_side``, ``thickness_mm``: the plate's :class:`AnalysisOptions`.
     """
 
     plate_id: Ident
     design: Annotated[str, Field(min_length=1, max_length=255)]
-    placement: Placement
+    placement: Placement | None = None
     note: Annotated[str, Field(max_length=500)] = ""
     template_table: TemplateRows = ()
     design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"

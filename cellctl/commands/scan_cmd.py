@@ -32,8 +32,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--placement",
-        required=True,
-        help="X,Y,ANGLE_DEG or X,Y,Z,ANGLE_DEG of the plate frame on the bed (mm, deg)",
+        default=None,
+        help="X,Y,ANGLE_DEG or X,Y,Z,ANGLE_DEG of the plate frame on the bed (mm, deg); without it the "
+        "cell finds the plate by a locate run (with it, the locate run checks it: docs/locate.md)",
     )
     p.add_argument("--note", default="", help="free text stored with the job")
     p.add_argument(
@@ -257,12 +258,16 @@ async def _scan(args: argparse.Namespace, cfg) -> int:
     from cellctl.commands.tables import line_table
 
     try:
-        placement = placement_payload(args.placement, cfg.scan.placement_z_mm)
+        placement = (
+            None if args.placement is None else placement_payload(args.placement, cfg.scan.placement_z_mm)
+        )
         table = template_table_rows(args.template_table)
     except ValueError as exc:
         print(f"cellctl scan: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    req = {"plate_id": args.plate, "design": args.design, "placement": placement, "note": args.note}
+    req = {"plate_id": args.plate, "design": args.design, "note": args.note}
+    if placement is not None:
+        req["placement"] = placement
     if table:
         req["template_table"] = table
     if args.design_side != "moulded_up":

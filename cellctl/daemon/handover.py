@@ -97,6 +97,7 @@ class Handover:
                 self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
                 placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
                 analysis=AnalysisOptions.model_validate(rec.analysis),
+                placement_found=rec.info.get("placement_found"),
             )  # fmt: skip
             # waiting for a worker until the dispatcher assigns the job (the daemon's on_assigned
             # hook then says analysing): with no worker present the job says so (docs/operations.md)

@@ -111,7 +111,9 @@ class JobRecord:
 
     Attributes:
         job_id, plate_id: identity. design: the trigger's design path (relative to designs_dir);
-        design_path: resolved absolute path. placement: ``{"pos_mm": [...], "rpy_deg": [...]}``.
+        design_path: resolved absolute path. placement: ``{"pos_mm": [...], "rpy_deg": [...]}``, the
+        placement the scan is planned from: the trigger's, or (after the locate run) the one found;
+        None until then when the trigger gave none (``info["locate"]`` says which and how well).
         state: a :class:`cellctl.api.JobState` value. history: ``[{"state", "t_utc", "message"}]``.
         info: counters and results (profiles, points, scan_s, verdict, report path, ...).
         analysis: the trigger's per-plate analysis options (``template_table`` rows, ``design_side``,
@@ -122,7 +124,7 @@ class JobRecord:
     plate_id: str
     design: str
     design_path: str
-    placement: dict[str, Any]
+    placement: dict[str, Any] | None
     note: str = ""
     state: str = JobState.QUEUED.value
     created_utc: str = field(default_factory=now_utc)
@@ -256,9 +258,7 @@ class JobStore:
             plate_id=text("plate_id") or "unknown",
             design=text("design"),
             design_path=text("design_path"),
-            placement=placement
-            if _is_placement(placement)
-            else {"pos_mm": [0.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]},
+            placement=placement if _is_placement(placement) else None,
             state=JobState.INTERRUPTED.value,
             analysis=_options_or_none(old.get("analysis")),
         )
@@ -394,8 +394,8 @@ def _checked(rec: JobRecord) -> JobRecord:
         AnalysisOptions.model_validate(rec.analysis)
     except ValidationError as exc:
         raise ValueError(f"analysis: {exc.errors()[0]['msg']} at {exc.errors()[0]['loc']}") from None
-    if not _is_placement(rec.placement):
-        raise ValueError("placement: expected {pos_mm: [x, y, z], rpy_deg: [r, p, y]}")
+    if rec.placement is not None and not _is_placement(rec.placement):
+        raise ValueError("placement: expected {pos_mm: [x, y, z], rpy_deg: [r, p, y]} or null")
     return rec
 
 

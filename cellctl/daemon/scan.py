@@ -1,4 +1,10 @@
-"""One scan of a job: plan, pre-flight, drivers to a known state, motion with the acquisition session.
+"""One scan of a job: locate, plan, pre-flight, drivers to a known state, motion with the acquisition session.
+
+Without a placement in the trigger (or with ``[locate] check_given``) the scan starts with the
+locate run (docs/locate.md): its passes (:mod:`cellctl.daemon.locate`) go through the same
+acquisition as the scan, each run's cloud is written to the job's ``locate/`` folder, the design's
+outline is fitted to it (:mod:`analysis.locate`), and the scan is planned from the placement found
+(a given placement off by more than the bound fails the job with the reason).
 
 :class:`ScanRunner` holds what a scan needs of the cell (configuration, job store, the named
 drivers) and tells its host (the daemon) about job and cell states through :class:`ScanHost`. The
@@ -23,15 +29,25 @@ from typing import Any, Protocol
 import structlog
 
 from analysis.cad import design_mesh_from_file
-from analysis.mesh import MeshError
+from analysis.cloud_io import ScanCloud, write_cloud_npz
+from analysis.locate import LocateError, LocateResult, locate_plate, placement_offset
+from analysis.mesh import MeshError, TriMesh
 from analysis.placement import Placement
 from analysis.plates import PlateError
+from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.acquisition.rawstore import RawWriter
 from cellctl.acquisition.session import AcquisitionSession, SessionSettings, pass_windows_s
 from cellctl.api import CellState, JobState
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import ActiveJob, JobStore
+from cellctl.daemon.locate import (
+    face_down_refusal,
+    given_placement_refusal,
+    locate_plans,
+    locate_settings,
+    needs_across,
+)
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
@@ -84,32 +100,138 @@ class ScanRunner:
         host, rec = self.host, job.record
         host.to_cell(CellState.PLANNING, f"planning job {rec.job_id}")
         host.job_state(job, JobState.PLANNING)
-        planned = await self._plan(job)
+        try:
+            design = await asyncio.to_thread(design_mesh_from_file, Path(rec.design_path))
+        except (MeshError, PlateError) as exc:
+            host.job_state(job, JobState.FAILED, f"plan refused: {exc}")
+            return False
+        if rec.placement is None or self.cfg.locate.check_given:
+            if not await self._locate(job, design):
+                return False
+        else:
+            host.job_state(
+                job, JobState.PLANNING, "placement as given (not checked: [locate] check_given = false)",
+                placement_found={"source": "given", "given": rec.placement},
+            )  # fmt: skip
+        planned = await self._plan(job, design)
         if planned is None:
             return False
         plan, settings = planned
-        if host.stop_requested(job):
-            if job.stop_reason == "abort":
-                host.job_state(job, JobState.ABORTED, "aborted by request before the scan; nothing moved")
-            else:
-                host.job_state(job, JobState.INTERRUPTED, "stopped before the scan")
+        if self._stopped_before_motion(job) or not await self._preflight(job, plan):
             return False
+        return await self._acquire(job, plan, settings, raw_dir=self.store.raw_dir(rec.job_id)) is not None
+
+    def _stopped_before_motion(self, job: ActiveJob) -> bool:
+        """True (and the job ended) when a stop was asked for before the next motion."""
+        if not self.host.stop_requested(job):
+            return False
+        if job.stop_reason == "abort":
+            self.host.job_state(job, JobState.ABORTED, "aborted by request before the scan; nothing moved")
+        else:
+            self.host.job_state(job, JobState.INTERRUPTED, "stopped before the scan")
+        return True
+
+    async def _preflight(self, job: ActiveJob, plan: ScanPlan) -> bool:
+        """Before motion: the raw files of this plan must fit (False: the job failed, nothing moved)."""
         d = self.cfg.daemon
         est = raw_bytes_estimate(
             plan.scan_time_s, rate_hz=self.cfg.laser.rate_hz,
             points_per_profile=self.cfg.laser.points_per_profile, settle_s=d.settle_s,
         )  # fmt: skip
-        try:  # before motion: the raw files of this scan must fit
+        try:
             await asyncio.to_thread(check_data_dir, self.store.root, est.bytes, d.min_free_mb)
         except PreflightError as exc:
-            host.job_state(job, JobState.FAILED, f"pre-flight: {exc}; nothing moved")
+            self.host.job_state(job, JobState.FAILED, f"pre-flight: {exc}; nothing moved")
             return False
-        return await self._acquire(job, plan, settings)
+        return True
 
-    async def _plan(self, job: ActiveJob) -> tuple[ScanPlan, PlannerSettings] | None:
+    async def _locate(self, job: ActiveJob, design: TriMesh) -> bool:
+        """The locate run: passes along the bed, the outline fit, and passes across it when the first
+        left the fit sliding along one direction or crossed the plate's edges square-on
+        (:func:`~cellctl.daemon.locate.needs_across`). Each run's cloud is on disk before it is fitted.
+
+        True with ``job.record.placement`` the placement found; False when the job ended (the plate
+        was not found, a given placement is refused, the run was stopped or failed)."""
+        host, rec, cfg = self.host, job.record, self.cfg
+        given = None if rec.placement is None else Placement.model_validate(rec.placement)
+        t0 = time.perf_counter()
+        try:
+            plans = await asyncio.to_thread(locate_plans, cfg, design)
+        except (PlanInputError, PlanRefused) as exc:
+            host.job_state(
+                job, JobState.FAILED, f"locate run refused by the planner: {exc} ([locate] bed, standoff)"
+            )
+            return False
+        lst = locate_settings(cfg, design, None if given is None else given.yaw_deg)
+        clouds: list[ScanCloud] = []
+        found: LocateResult | None = None
+        reason = ""
+        for lp in plans:
+            if self._stopped_before_motion(job) or not await self._preflight(job, lp.plan):
+                return False
+            raw_dir = self.store.job_dir(rec.job_id) / "locate" / lp.name.replace(" ", "-")
+            scan = await self._acquire(job, lp.plan, lp.settings, raw_dir=raw_dir, phase=lp.name)
+            if scan is None:
+                return False
+            cloud = scan.scan_cloud()
+            # acquired data reaches disk before anything else can fail
+            await asyncio.to_thread(write_cloud_npz, cloud, raw_dir / "cloud.npz")
+            clouds.append(cloud)
+            try:
+                found = await asyncio.to_thread(locate_plate, clouds, design, lst)
+            except LocateError as exc:
+                found, reason = None, str(exc)
+                continue
+            if not needs_across(cfg, found):
+                break
+        locate_s = round(time.perf_counter() - t0, 3)
+        if found is None:
+            host.job_state(
+                job, JobState.FAILED, f"locate: the plate was not found: {reason}", locate_s=locate_s
+            )
+            return False
+        if not found.constrained:
+            reason = (
+                f"the locate passes pinned the plate in one direction only ({found.constraint_points:.0f} "
+                "boundary points across it); is the plate narrower than [locate] pass_spacing_mm?"
+            )
+            host.job_state(
+                job, JobState.FAILED, f"locate: {reason}", locate_s=locate_s, locate=found.summary()
+            )
+            return False
+        finding: dict[str, Any] = {
+            "source": "located" if given is None else "checked",
+            "given": None if given is None else given.model_dump(),
+            "rms_mm": round(found.rms_mm, 4),
+            "height_rms_mm": round(found.height_rms_mm, 4),
+            "coverage": round(found.coverage, 4),
+            "boundary_points": found.boundary_points,
+            "resolved_by": found.resolved_by,
+            "locate_s": locate_s,
+        }
+        if given is not None:
+            d_mm, d_deg = placement_offset(found.placement, given)
+            finding.update(offset_mm=round(d_mm, 3), offset_deg=round(d_deg, 4))
+        refusal = face_down_refusal(found) or (
+            None if given is None else given_placement_refusal(cfg, found, given)
+        )
+        info = {"placement_found": finding, "locate": found.summary(), "locate_s": locate_s}
+        if refusal is not None:
+            host.job_state(job, JobState.FAILED, f"placement refused: {refusal}", **info)
+            return False
+        rec.placement = found.placement.model_dump()
+        f = found.placement
+        host.job_state(
+            job, JobState.PLANNING,
+            f"plate {finding['source']} at x {f.x_mm:.1f}, y {f.y_mm:.1f}, z {f.z_mm:.1f} mm, yaw {f.yaw_deg:.2f} deg "
+            f"(outline fit RMS {found.rms_mm:.2f} mm, {found.coverage:.0%} of the outline seen) in {locate_s:.1f} s",
+            **info,
+        )  # fmt: skip
+        return True
+
+    async def _plan(self, job: ActiveJob, design: TriMesh) -> tuple[ScanPlan, PlannerSettings] | None:
         rec = job.record
         try:
-            design = await asyncio.to_thread(design_mesh_from_file, Path(rec.design_path))
             placement = Placement.model_validate(rec.placement)
             settings = PlannerSettings.from_config(self.cfg)
             t0 = time.perf_counter()
@@ -137,7 +259,12 @@ class ScanRunner:
             raise
         return client
 
-    async def _acquire(self, job: ActiveJob, plan: ScanPlan, settings: PlannerSettings) -> bool:
+    async def _acquire(
+        self, job: ActiveJob, plan: ScanPlan, settings: PlannerSettings, *, raw_dir: Path, phase: str = "scan"
+    ) -> AssembledScan | None:
+        """Run ``plan`` with the acquisition session, raw files into ``raw_dir``. The assembled scan
+        when the motion finished (for the scan, also ``job.cloud``); None when it ended otherwise (the
+        job's state says how). ``phase``: ``"scan"``, or the name of a locate run."""
         cfg, host, rec, drv = self.cfg, self.host, job.record, self.drivers
         client = await self._sensor_ready()
         writer: RawWriter | None = None
@@ -156,8 +283,13 @@ class ScanRunner:
             # the session just started (the controller ends it after its communication timeout).
             writer = await asyncio.to_thread(
                 RawWriter,
-                self.store.raw_dir(rec.job_id),
-                {"acquisition": acq_settings.to_json(), "job_id": rec.job_id, "plate_id": rec.plate_id},
+                raw_dir,
+                {
+                    "acquisition": acq_settings.to_json(),
+                    "job_id": rec.job_id,
+                    "plate_id": rec.plate_id,
+                    "phase": phase,
+                },
             )
             acq = Acquisition(acq_settings, writer, keep_batches=True)
             egm0 = _counters(drv.endpoint.stats, _EGM_COUNTERS)
@@ -192,8 +324,9 @@ class ScanRunner:
             # The arm waits while the clock fits gather their first pairs (and a sensor that has just
             # started streaming settles) before the first reference moves it.
             await session.start()
-            host.to_cell(CellState.SCANNING, f"scanning job {rec.job_id}")
-            host.job_state(job, JobState.SCANNING)
+            what = "scanning" if phase == "scan" else f"{phase} run of"
+            host.to_cell(CellState.SCANNING, f"{what} job {rec.job_id}")
+            host.job_state(job, JobState.SCANNING, "" if phase == "scan" else f"{phase} run")
             tracker = asyncio.create_task(
                 session.track(
                     lambda: executor.progress().t_traj_s,
@@ -225,15 +358,20 @@ class ScanRunner:
                 "egm": {k: v - egm0[k] for k, v in _counters(drv.endpoint.stats, _EGM_COUNTERS).items()},
                 "sensor": _counters(client.stats, _SENSOR_COUNTERS),
             }
+            if result.state == ExecState.FINISHED and phase != "scan":
+                host.job_state(
+                    job, JobState.SCANNING, f"{phase} run complete", **{phase.replace(" ", "_"): info}
+                )
+                return acq.cloud()
             if result.state == ExecState.FINISHED:
                 # The live cloud is bit for bit what `cellctl reassemble --live` rebuilds from the raw
                 # files; rebuilding with whole-scan clock fits costs tens of seconds, so it is left to
                 # re-analysis (the report is due seconds after the last profile).
                 job.cloud = acq.cloud()
                 host.job_state(job, JobState.SCANNING, "scan complete", cloud="live", **info)
-                return True
+                return job.cloud
             await self._ended_early(job, result, info)
-            return False
+            return None
         finally:
             job.executor = None
             if session is not None:

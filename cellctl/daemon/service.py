@@ -363,7 +363,7 @@ class CellDaemon:
 
     async def _accept(self, req: TriggerRequest, design_path: Path) -> TriggerAccepted:
         self._check_cell_accepts()  # before the slower checks: a refusal costs nothing
-        if any(abs(v) > 1e-9 for v in req.placement.rpy_deg[:2]):
+        if req.placement is not None and any(abs(v) > 1e-9 for v in req.placement.rpy_deg[:2]):
             raise TriggerError(
                 "invalid", "placement.rpy_deg", "plates lie flat on the bed: roll and pitch must be 0"
             )
@@ -376,7 +376,7 @@ class CellDaemon:
             plate_id=req.plate_id,
             design=req.design,
             design_path=str(design_path),
-            placement=req.placement.model_dump(),
+            placement=None if req.placement is None else req.placement.model_dump(),
             note=req.note,
             analysis=req.analysis_options().record(),
         )

@@ -45,6 +45,9 @@ def tiny_cell_config(
     # The HTML/PDF render (a child process of tens of CPU-seconds) has its own tests
     # (tests/zenoh/test_daemon_html_step.py); here it would only compete with the next scan.
     cfg["daemon"]["write_html_report"] = False
+    # The locate run has its own e2e tests (tests/e2e/test_locate_e2e.py): here a given placement is
+    # trusted, and every job starts its scan at once.
+    cfg["locate"]["check_given"] = False
     # The daemon's own heartbeat and acknowledgement timeouts (cell.toml's): the 5 s these cells once
     # had predate the workers' liveliness tokens, by which the daemon now sees a killed or cut-off
     # worker at once; short timeouts only made a worker slowed by load look lost (a second attempt).

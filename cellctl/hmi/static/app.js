@@ -165,13 +165,20 @@ async function preview() {
   $("start-preview-info").textContent = `${size[0].toFixed(0)} x ${size[1].toFixed(0)} mm, height ${size[2].toFixed(0)} mm`;
 }
 $("start-design").addEventListener("change", preview);
+$("start-locate").addEventListener("change", () => {
+  for (const id of ["start-x", "start-y", "start-z", "start-yaw"]) {
+    $(id).disabled = $("start-locate").checked; $(id).required = !$("start-locate").checked;
+  }
+});
 $("start-plate").addEventListener("keydown", (e) => { if (e.key === "Enter") { e.preventDefault(); $("start-design").focus(); } }); // a barcode scanner ends with Enter
 $("start-form").addEventListener("submit", async (e) => {
   e.preventDefault();
   $("start-error").textContent = ""; $("start-ok").textContent = "";
   const num = (id) => Number($(id).value);
-  const body = { plate_id: $("start-plate").value.trim(), design: $("start-design").value,
-    placement: { pos_mm: [num("start-x"), num("start-y"), num("start-z")], rpy_deg: [0, 0, num("start-yaw")] }, note: $("start-note").value };
+  const body = { plate_id: $("start-plate").value.trim(), design: $("start-design").value, note: $("start-note").value };
+  // without a placement the cell finds the plate (a locate run); with one, the locate run checks it
+  if (!$("start-locate").checked)
+    body.placement = { pos_mm: [num("start-x"), num("start-y"), num("start-z")], rpy_deg: [0, 0, num("start-yaw")] };
   $("start-submit").disabled = true;
   const res = await api("POST", "/api/trigger", body);
   $("start-submit").disabled = false;

@@ -1,0 +1,125 @@
+"""The locate run's plans and verdicts (cellctl/daemon/locate.py), the trigger without a placement,
+and the job record that keeps none until the plate is found."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from analysis.locate import LocateResult
+from analysis.placement import Placement
+from analysis.plates import design_mesh, plate_spec
+from cellctl.api.models import TriggerRequest
+from cellctl.config import CellConfig, LocateSection
+from cellctl.daemon.jobs import JobRecord, _checked
+from cellctl.daemon.locate import (
+    face_down_refusal,
+    given_placement_refusal,
+    locate_height_mm,
+    locate_plans,
+    locate_settings,
+    needs_across,
+)
+
+SAIL = design_mesh(plate_spec("sail", length_mm=1200.0, width_mm=800.0), pitch_mm=20.0)
+
+
+def _found(
+    x: float, y: float, yaw: float, *, constrained: bool = True, face_down: bool = False
+) -> LocateResult:
+    return LocateResult(
+        placement=Placement.on_bed(x, y, yaw, z_mm=300.0), face_down=face_down, rms_mm=0.5, height_rms_mm=0.3,
+        coverage=0.3, boundary_points=900, inliers=880, plate_points=10_000, ambiguous=True,
+        resolved_by="convention", score_mm=0.6, alternative_score_mm=0.6, iterations=9,
+        constraint_points=300.0 if constrained else 2.0, constrained=constrained,
+    )  # fmt: skip
+
+
+def test_the_passes_fly_flat_over_the_bed_along_it_and_across_it_at_the_locate_height():
+    cfg = CellConfig()
+    h = locate_height_mm(cfg, SAIL)
+    # the sail's highest edge (its corners) is 72 mm above its centre: 75 mm above that
+    assert h == pytest.approx(cfg.scan.placement_z_mm + 71.67 + 75.0, abs=0.5)
+    along, across = locate_plans(cfg, SAIL)
+    for lp in (along, across):
+        for seg in lp.plan.passes:
+            assert np.allclose(seg.pos_mm[:, 2], h, atol=1e-6)  # flat, at the locate height
+            assert np.allclose(seg.R_base_sensor[:, :, 2], [0.0, 0.0, -1.0], atol=1e-6)  # looking down
+    d_along = along.plan.passes[0].pos_mm[-1] - along.plan.passes[0].pos_mm[0]
+    d_across = across.plan.passes[0].pos_mm[-1] - across.plan.passes[0].pos_mm[0]
+    assert abs(d_along[1]) < 1e-6 and abs(d_across[0]) < 1e-6  # along x, then along y
+    lo, hi = np.asarray(cfg.locate.bed_min_xy_mm), np.asarray(cfg.locate.bed_max_xy_mm)
+    xy = np.concatenate([s.pos_mm[:, :2] for s in along.plan.passes])
+    assert np.all(xy >= lo - 1e-6) and np.all(xy <= hi + 1e-6)
+    # the passes' spacing is the configured one
+    ys = sorted({round(float(s.pos_mm[0, 1]), 3) for s in along.plan.passes})
+    assert np.allclose(np.diff(ys), np.diff(ys)[0]) and np.diff(ys)[0] <= cfg.locate.pass_spacing_mm + 1e-6
+    st = locate_settings(cfg, SAIL, 12.0)
+    assert st.range_z_mm == pytest.approx((h - cfg.laser.depth_max_mm, h - cfg.laser.depth_min_mm))
+    assert st.yaw_hint_deg == 12.0
+
+
+def test_a_given_placement_off_by_more_than_the_bound_is_refused_saying_by_how_much():
+    cfg = CellConfig()
+    found = _found(1500.0, 0.0, 3.0)
+    assert given_placement_refusal(cfg, found, Placement.on_bed(1510.0, 5.0, 3.5, z_mm=300.0)) is None
+    why = given_placement_refusal(cfg, found, Placement.on_bed(1600.0, 0.0, 3.0, z_mm=300.0))
+    assert why is not None and "100.0 mm and 0.00 deg" in why and "allows 20 mm / 1 deg" in why
+    why = given_placement_refusal(cfg, found, Placement.on_bed(1500.0, 0.0, 5.0, z_mm=300.0))
+    assert why is not None and "2.00 deg" in why
+    assert face_down_refusal(found) is None
+    assert "face down" in face_down_refusal(_found(1500.0, 0.0, 3.0, face_down=True))
+
+
+def test_the_passes_across_run_when_the_first_leave_the_fit_sliding_or_meet_the_edges_square_on():
+    cfg = CellConfig()
+    assert needs_across(cfg, _found(1500.0, 0.0, 40.0, constrained=False))
+    assert needs_across(cfg, _found(1500.0, 0.0, 3.0))
+    assert needs_across(cfg, _found(1500.0, 0.0, -86.0))
+    assert not needs_across(cfg, _found(1500.0, 0.0, 25.0))
+    assert not needs_across(cfg, _found(1500.0, 0.0, -70.0))
+
+
+def test_a_trigger_may_leave_out_the_placement_and_the_record_keeps_none_until_found():
+    req = TriggerRequest.model_validate({"plate_id": "P1", "design": "plate.ply"})
+    assert req.placement is None
+    rec = JobRecord(job_id="j", plate_id="P1", design="plate.ply", design_path="/d/plate.ply", placement=None)
+    assert _checked(rec) is rec
+    with pytest.raises(ValueError, match="placement"):
+        _checked(
+            JobRecord(job_id="j", plate_id="P1", design="p.ply", design_path="/d/p.ply", placement={"x": 1})
+        )
+
+
+def test_a_bed_without_extent_is_refused():
+    with pytest.raises(ValidationError, match="bed_min_xy_mm"):
+        LocateSection(bed_min_xy_mm=[1000.0, 0.0], bed_max_xy_mm=[900.0, 100.0])
+
+
+def test_how_the_placement_was_found_travels_to_the_report_inputs():
+    from analysis.job import AnalysisJob, ReportInputs
+    from cellctl.api.analysis_job import analysis_job
+
+    finding = {
+        "source": "located",
+        "given": None,
+        "rms_mm": 0.7,
+        "coverage": 0.3,
+        "resolved_by": "convention",
+    }
+    job = analysis_job(
+        CellConfig(), job_id="j", plate_id="P", design="/d/p.ply", placement=None, out_dir=Path("/tmp/x"),
+        placement_found=finding,
+    )  # fmt: skip
+    again = AnalysisJob.model_validate_json(job.model_dump_json())
+    assert again.placement_found is not None and again.placement_found.source == "located"
+    inputs = ReportInputs.model_validate({"points": 10, "placement_found": again.placement_found})
+    assert inputs.model_dump(mode="json")["placement_found"]["rms_mm"] == 0.7
+    with pytest.raises(ValidationError):
+        analysis_job(
+            CellConfig(), job_id="j", plate_id="P", design="/d/p.ply", placement=None, out_dir=Path("/tmp/x"),
+            placement_found={"source": "guessed"},
+        )  # fmt: skip
