@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 
 from analysis.cloud_io import ScanCloud
 from analysis.mesh import TriMesh
+from analysis.outline import mesh_free_edges
 from analysis.placement import Placement
 
 __all__ = [
@@ -267,24 +268,23 @@ def plate_boundary(clouds: list[ScanCloud], settings: LocateSettings | None = No
 
 
 def design_outline(mesh: TriMesh, step_mm: float = 2.0) -> DesignOutline:
-    """The free edges of ``mesh`` (edges of one triangle only) on its x-y plane, sampled every
-    ``step_mm``, with normals pointing away from the triangle each edge belongs to.
+    """The free edges of ``mesh`` (:func:`analysis.outline.mesh_free_edges`) on its x-y plane,
+    sampled every ``step_mm``, with normals pointing away from the triangle each edge belongs to.
+
+    Every free edge counts, not only the outer loop: a hole's edge or a separate piece's outline is
+    an edge the locate passes see as well. Each edge is sampled on its own (at the middles of
+    ``ceil(length / step_mm)`` equal parts), not the chained loop resampled by arc length.
 
     Raises:
         LocateError: a mesh without free edges (closed) or with no extent in x-y.
     """
     if step_mm <= 0:
         raise LocateError(f"outline step must be positive, got {step_mm}")
-    t = mesh.triangles
-    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-    opposite = np.concatenate([t[:, 2], t[:, 0], t[:, 1]])
-    key = np.sort(e, axis=1)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    free = counts[inv.ravel()] == 1
-    if not free.any():
+    e, opposite = mesh_free_edges(mesh)  # every free edge: holes' edges are edges the passes see too
+    if not len(e):
         raise LocateError("the design mesh has no free edges: no outline to fit")
     v = mesh.vertices_mm
-    a, b, o = v[e[free, 0], :2], v[e[free, 1], :2], v[opposite[free], :2]
+    a, b, o = v[e[:, 0], :2], v[e[:, 1], :2], v[opposite, :2]
     d = b - a
     seg_len = np.linalg.norm(d, axis=1)
     ok = seg_len > 1e-9

@@ -6,7 +6,8 @@ plan). The same three steps serve a triangle mesh (PLY, STL, OBJ) and a CAD desi
 (:mod:`analysis.cad`, which samples its outline from the faces' free boundary):
 
 1. **Outline.** The closed boundary curve of the surface: for a mesh, its edges used by one
-   triangle chained into loops (:func:`mesh_boundary_loops`).
+   triangle (:func:`mesh_free_edges`, the one place that finds them) chained into loops
+   (:func:`mesh_boundary_loops`).
 2. **Corners.** Where the outline turns most (:func:`outline_corners`): the turning angle at each
    outline point between the chords to the points a fixed arc length before and after it, the four
    largest turns kept apart from each other. Corner angles of 60 to 120 degrees turn the outline by
@@ -33,6 +34,7 @@ __all__ = [
     "design_corners_from_mesh",
     "frame_design_mesh",
     "mesh_boundary_loops",
+    "mesh_free_edges",
     "outline_corners",
     "plate_frame_from_surface",
 ]
@@ -46,20 +48,32 @@ class OutlineError(MeshError):
     """A design whose outline has no four corners: a closed solid, a round plate, a bad boundary."""
 
 
+def mesh_free_edges(mesh: TriMesh) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh's free edges (each used by one triangle only): ``(edges (m, 2), opposite (m,))``.
+
+    edges: vertex indices, each edge in its triangle's own direction (so each boundary loop runs one
+    way round), in triangle order (every triangle's edge 0-1, then 1-2, then 2-0); opposite: the
+    third vertex of the triangle each edge belongs to (the side the surface lies on). Every free
+    edge is listed: the outer outline, holes' edges and the edges of every separate piece. Empty
+    (0, 2) and (0,) arrays for a closed mesh.
+    """
+    tri = mesh.triangles
+    n = len(mesh.vertices_mm)
+    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]).astype(np.int64)
+    opposite = np.concatenate([tri[:, 2], tri[:, 0], tri[:, 1]]).astype(np.int64)
+    key = np.sort(e, axis=1)
+    _, inv, counts = np.unique(key[:, 0] * n + key[:, 1], return_inverse=True, return_counts=True)
+    once = counts[inv.ravel()] == 1
+    return e[once], opposite[once]
+
+
 def mesh_boundary_loops(mesh: TriMesh) -> list[np.ndarray]:
-    """Closed loops of the mesh's boundary (edges used by one triangle), as vertex index arrays.
+    """Closed loops of the mesh's boundary (:func:`mesh_free_edges` chained), as vertex index arrays.
 
     Each loop lists its vertices in order, without repeating the first one, longest loop first.
     A boundary vertex shared by two loops (a pinched mesh) ends one loop and starts the next.
     """
-    tri = mesh.triangles
-    n = len(mesh.vertices_mm)
-    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
-    key = np.sort(e, axis=1)
-    k1 = key[:, 0] * n + key[:, 1]
-    _, inv, counts = np.unique(k1, return_inverse=True, return_counts=True)
-    once = counts[inv] == 1
-    directed = e[once]  # the triangle's own direction: each boundary loop runs one way round
+    directed, _ = mesh_free_edges(mesh)
     if len(directed) == 0:
         return []
     nxt = {int(a): int(b) for a, b in directed}

@@ -22,6 +22,7 @@ import numpy as np
 
 from analysis.locate import LocateResult, LocateSettings, placement_offset
 from analysis.mesh import TriMesh
+from analysis.outline import mesh_free_edges
 from analysis.placement import Placement
 from analysis.plates import design_mesh, plate_spec
 from cellctl.config import CellConfig
@@ -62,12 +63,11 @@ def locate_height_mm(cfg: CellConfig, design: TriMesh) -> float:
 
 
 def design_outline_z_mm(design: TriMesh) -> np.ndarray:
-    """Heights (design frame, mm) of the vertices on the design's outline (its free edges)."""
-    t = design.triangles
-    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    u, counts = np.unique(e, axis=0, return_counts=True)
-    free = u[counts == 1].ravel()
-    return design.vertices_mm[free if len(free) else np.arange(len(design.vertices_mm)), 2]
+    """Heights (design frame, mm) of the vertices on the design's outline: every free edge's
+    (:func:`analysis.outline.mesh_free_edges`, holes' edges included); every vertex's for a closed
+    mesh (no free edge)."""
+    edges, _ = mesh_free_edges(design)
+    return design.vertices_mm[np.unique(edges) if len(edges) else np.arange(len(design.vertices_mm)), 2]
 
 
 def locate_plans(cfg: CellConfig, design: TriMesh) -> list[LocatePlan]:

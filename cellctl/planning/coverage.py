@@ -41,8 +41,8 @@ __all__ = [
     "EdgeFaceCoverage",
     "OutlineEdgeCurve",
     "build_segments",
-    "design_outline",
     "design_surface",
+    "outline_in_plan",
     "placement_margin_mm",
     "predict_coverage",
     "predict_edge_face_coverage",
@@ -131,7 +131,7 @@ def _edge_curve(chain_xy: np.ndarray) -> OutlineEdgeCurve:
     return OutlineEdgeCurve(a, b, e, n, chord, coef)
 
 
-def design_outline(design: TriMesh) -> tuple[np.ndarray, np.ndarray] | None:
+def outline_in_plan(design: TriMesh) -> tuple[np.ndarray, np.ndarray] | None:
     """The design's outline in plan: ``(outline_xy (k, 2), corner_index (4,))`` or None.
 
     outline_xy: the mesh's outer boundary loop (plate frame), counter-clockwise seen from +z,
@@ -166,7 +166,7 @@ class DesignSurface:
     ``x_min_mm``..``y_max_mm``: the footprint (the mesh's XY bounds). ``valid`` (nx, ny) bool: grid
     cells where a vertical ray hit the mesh. Outside the footprint, heights are extrapolated along the
     tangent plane at the nearest footprint point. ``outline_xy`` / ``corner_index``: the design's
-    outline (see :func:`design_outline`), None when it has none with four corners.
+    outline (see :func:`outline_in_plan`), None when it has none with four corners.
     """
 
     x_min_mm: float
@@ -337,7 +337,7 @@ def design_surface(design: TriMesh) -> DesignSurface:
         # corners) stays smooth
         Z = _fill_outside(xs, ys, Z, valid)
     spline = RectBivariateSpline(xs, ys, Z, kx=3, ky=3)
-    outline = design_outline(design)
+    outline = outline_in_plan(design)
     if outline is None:
         log.warning(
             "design_outline_missing", note="no four-cornered open boundary; edge passes follow the bounds"

@@ -14,7 +14,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.boundary import find_corners
-from analysis.outline import design_corners_from_mesh, frame_design_mesh, mesh_boundary_loops
+from analysis.mesh import TriMesh
+from analysis.outline import (
+    design_corners_from_mesh,
+    frame_design_mesh,
+    mesh_boundary_loops,
+    mesh_free_edges,
+)
 from analysis.placement import Placement
 from analysis.plates import (
     FormingError,
@@ -29,7 +35,7 @@ from analysis.plates import (
 )
 from analysis.segment import segment_plate
 from analysis.synth import ScanSettings, synthesize_scan
-from tests.support.surfaces import ship_pose
+from tests.support.surfaces import grid_mesh, sail, ship_pose
 
 COARSE = ScanSettings(point_pitch_mm=1.0, points_per_profile=50, profile_step_mm=2.0)
 
@@ -71,6 +77,33 @@ def test_a_bowed_edge_bows_by_its_sagitta_and_the_mesh_border_lies_on_the_outlin
     assert np.min(off, axis=0).max() < 1e-9
     inside = mesh.vertices_mm[:, :2] * (1 - 1e-9)
     assert footprint_contains(spec, inside[:, 0], inside[:, 1]).all()
+
+
+def test_free_edges_are_every_edge_of_one_triangle_with_that_triangles_third_vertex() -> None:
+    full = grid_mesh(sail, step_mm=100.0)  # 12 x 8 squares of 100 mm: the border's 40 edges
+    centre = full.triangle_vertices_mm.mean(axis=1)[:, :2]
+    plate = full.triangles[np.abs(centre).max(axis=1) > 100.0]  # a 2 x 2 hole in the middle: 8 more
+    piece = grid_mesh(sail, step_mm=400.0)  # 3 x 2 squares, a separate piece 2 m along x: 10 more
+    n = len(full.vertices_mm)
+    mesh = TriMesh(
+        np.vstack([full.vertices_mm, piece.vertices_mm + np.array([2000.0, 0.0, 0.0])]),
+        np.vstack([plate, piece.triangles + n]),
+    )
+    edges, opposite = mesh_free_edges(mesh)
+    assert edges.shape == (40 + 8 + 10, 2) and opposite.shape == (58,)
+    tri = [set(t) for t in mesh.triangles.tolist()]
+    for (a, b), o in zip(edges.tolist(), opposite.tolist(), strict=True):
+        assert {a, b, o} in tri  # the edge's own triangle, in its direction
+        assert sum({a, b} <= t for t in tri) == 1
+    # the loops chain exactly these edges: the outer border, the hole, the piece; longest first
+    loops = mesh_boundary_loops(mesh)
+    assert [len(lp) for lp in loops] == [40, 10, 8]
+    chained = {(int(a), int(b)) for lp in loops for a, b in zip(lp, np.roll(lp, -1), strict=True)}
+    assert chained == {tuple(e) for e in edges.tolist()}
+    # a closed surface (two triangles back to back) has none
+    closed = TriMesh(np.eye(3) * 10.0, np.array([[0, 1, 2], [0, 2, 1]]))
+    e0, o0 = mesh_free_edges(closed)
+    assert e0.shape == (0, 2) and o0.shape == (0,) and mesh_boundary_loops(closed) == []
 
 
 def test_outlines_outside_60_to_120_degrees_are_refused() -> None:

@@ -26,8 +26,8 @@ from analysis.plates import (
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from cellctl.planning.coverage import (
     build_segments,
-    design_outline,
     design_surface,
+    outline_in_plan,
     predict_edge_face_coverage,
 )
 from tests.motion.conftest import SAIL_PLACEMENT
@@ -69,9 +69,9 @@ def _plate_frame(plan: ScanPlan, seg) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("outline", list(OUTLINES))
-def test_design_outline_starts_at_the_reference_corner_and_runs_counter_clockwise(outline):
+def test_outline_in_plan_starts_at_the_reference_corner_and_runs_counter_clockwise(outline):
     spec = plate_spec("sail", **SHAPE, **OUTLINES[outline])
-    xy, corners = design_outline(design_mesh(spec, pitch_mm=10.0))
+    xy, corners = outline_in_plan(design_mesh(spec, pitch_mm=10.0))
     np.testing.assert_allclose(xy[corners], design_corners(spec)[:, :2], atol=1e-6)
     assert corners[0] == 0
     assert np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1]) > 0
@@ -186,7 +186,7 @@ def test_a_design_without_a_four_cornered_boundary_falls_back_to_its_bounds():
     soup = TriMesh(
         mesh.triangle_vertices_mm.reshape(-1, 3), np.arange(3 * len(mesh.triangles)).reshape(-1, 3)
     )
-    assert design_outline(soup) is None
+    assert outline_in_plan(soup) is None
     surface = design_surface(soup)
     assert surface.outline_xy is None
     segments, _ = build_segments(surface, SAIL_PLACEMENT, SETTINGS)
