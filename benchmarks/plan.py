@@ -4,8 +4,10 @@ For the sail plate at the cell.toml default placement (1500, 0, 300 mm, 3 deg) w
 scan settings (HD8: 50 mm line, 200 Hz, 0.5 mm profile spacing -> 100 mm/s): planning time
 (surface fit, passes, joint path, timing, envelope check, ray-cast coverage), planned scan time,
 the ratio of scan time to pure sweep time (sweep length / scan speed; target <= 1.2) and the
-predicted coverage of the top surface (target >= 0.99). Planning is repeated ``--repeat`` times and
-the median reported.
+predicted coverage of the top surface (target >= 0.99), and the planned scan time in parts:
+``approach_s``, ``sweep_s`` (on the passes, ramps included), ``transitions_s`` (the links and
+turnarounds between passes, issue 22) and ``retract_s``, with the longest single transition
+``transition_max_s``. Planning is repeated ``--repeat`` times and the median reported.
 
 For the large plate (6000 x 2500, a gentle sail) at a placement in front of the robot: the outcome
 (refused or planned) with the reason, and how long it took to decide.
@@ -103,6 +105,9 @@ def main() -> int:
         "scan_time_s": round(plan.scan_time_s, 2),
         "sweep_time_s": round(plan.sweep_time_s, 2),
         "sweep_ratio": round(plan.sweep_ratio, 4),
+        # the planned scan time in parts: approach + passes + transitions between them + retract
+        **{k: s[k] for k in ("approach_s", "sweep_s", "transitions_s", "retract_s")},
+        "transition_max_s": max(t["transition_s"] for t in s["pass_times"]),
         "coverage": round(plan.coverage.fraction, 5),
         "coverage_worst_over_uncertainty": round(plan.coverage.worst_fraction, 5),
         "scan_speed_mm_s": plan.scan_speed_mm_s,

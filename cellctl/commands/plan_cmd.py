@@ -142,9 +142,10 @@ def run_plan(args: argparse.Namespace) -> int:
     print(
         f"passes: {summary['passes']} raster + {summary['edge_passes']} edge (margin {summary['margin_mm']} mm)"
     )
-    for seg in plan.passes:
+    for seg, times in zip(plan.passes, summary["pass_times"], strict=True):
         print(
             f"  {seg.label:>8}: {seg.length_mm:8.1f} mm, {seg.duration_s:7.2f} s from t = {seg.t_start_s:8.2f} s"
+            f" (transition before it {times['transition_s']:5.2f} s)"
         )
     print(
         f"coverage: {summary['coverage']:.2%} of the top surface (worst over the placement uncertainty "
@@ -153,6 +154,10 @@ def run_plan(args: argparse.Namespace) -> int:
     print(
         f"scan time: {summary['scan_time_s']:.1f} s at {summary['scan_speed_mm_s']} mm/s; sweep time "
         f"{summary['sweep_time_s']:.1f} s; ratio {summary['sweep_ratio']:.3f}"
+    )
+    print(
+        f"  = approach {summary['approach_s']:.1f} s + passes {summary['sweep_s']:.1f} s + transitions "
+        f"{summary['transitions_s']:.1f} s + retract {summary['retract_s']:.1f} s"
     )
     if args.out:
         print(f"plan written to {args.out}")

@@ -51,7 +51,8 @@ from cellctl.daemon.locate import (
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
-from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, plan_scan
+from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan
+from cellctl.planning.cache import PlanCache
 from drivers.laser.client import HD8Client
 
 __all__ = ["ScanHost", "ScanRunner"]
@@ -235,13 +236,17 @@ class ScanRunner:
             placement = Placement.model_validate(rec.placement)
             settings = PlannerSettings.from_config(self.cfg)
             t0 = time.perf_counter()
-            plan = await asyncio.to_thread(plan_scan, design, placement, settings, with_coverage=False)
+            # a plan for the same design, placement and settings is reused after the envelope check
+            cache = PlanCache(self.store.root.parent / "plan-cache")
+            got = await asyncio.to_thread(cache.plan, design, placement, settings, with_coverage=False)
         except (MeshError, PlateError, PlanInputError, PlanRefused) as exc:
             self.host.job_state(job, JobState.FAILED, f"plan refused: {exc}")
             return None
+        plan = got.plan
         self.host.job_state(
-            job, JobState.PLANNING, "planned", plan=plan.summary(), plan_s=round(time.perf_counter() - t0, 3)
-        )
+            job, JobState.PLANNING, "planned", plan=plan.summary(), plan_s=round(time.perf_counter() - t0, 3),
+            plan_cache="hit" if got.hit else "miss",
+        )  # fmt: skip
         return plan, settings
 
     async def _sensor_ready(self) -> HD8Client:

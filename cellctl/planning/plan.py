@@ -178,6 +178,37 @@ class ScanPlan:
         """The sweep segments (raster and edge passes), in execution order."""
         return [s for s in self.segments if s.is_sweep]
 
+    def pass_times(self) -> list[dict[str, Any]]:
+        """Per pass, in execution order: its label, when it starts, how long it runs (s), and
+        ``transition_s``, the planned time from the previous pass's end to its start (the links and
+        turnarounds between them; 0 for the first pass, which the approach leads to)."""
+        out: list[dict[str, Any]] = []
+        between = 0.0
+        for seg in self.segments:
+            if seg.is_sweep:
+                out.append(
+                    {
+                        "label": seg.label,
+                        "t_start_s": round(seg.t_start_s, 3),
+                        "duration_s": round(seg.duration_s, 3),
+                        "transition_s": round(between if out else 0.0, 3),
+                    }
+                )
+                between = 0.0
+            elif seg.kind == "link":
+                between += seg.duration_s
+        return out
+
+    def time_parts_s(self) -> dict[str, float]:
+        """The planned scan time in parts (s): ``approach_s``, ``sweep_s`` (on the passes, ramps
+        included), ``transitions_s`` (links and turnarounds between passes) and ``retract_s``; they
+        add up to ``scan_time_s`` (within one trajectory sample at each segment joint)."""
+        parts = {"approach_s": 0.0, "sweep_s": 0.0, "transitions_s": 0.0, "retract_s": 0.0}
+        name = {"approach": "approach_s", "link": "transitions_s", "retract": "retract_s"}
+        for seg in self.segments:
+            parts["sweep_s" if seg.is_sweep else name[seg.kind]] += seg.duration_s
+        return parts
+
     def summary(self) -> dict[str, Any]:
         """A short JSON-ready summary (what ``cellctl plan`` prints)."""
         return {
@@ -192,6 +223,8 @@ class ScanPlan:
             "sweep_time_s": round(self.sweep_time_s, 3),
             "scan_time_s": round(self.scan_time_s, 3),
             "sweep_ratio": round(self.sweep_ratio, 4),
+            **{k: round(v, 3) for k, v in self.time_parts_s().items()},
+            "pass_times": self.pass_times(),
             "margin_mm": round(self.margin_mm, 2),
             "timings_s": {k: round(v, 4) for k, v in self.timings_s.items()},
         }
@@ -258,6 +291,7 @@ class ScanPlan:
                 for s in d["segments"]
             ]
             tr = d["trajectory"]
+            n_t = len(tr["t_s"])
             sm = d["summary"]
             return cls(
                 placement=_placement(d["placement"]),
@@ -265,9 +299,9 @@ class ScanPlan:
                 segments=segs,
                 trajectory=TimedTrajectory(
                     t_s=np.asarray(tr["t_s"], dtype=np.float64),
-                    q_deg=np.asarray(tr["q_deg"], dtype=np.float64).reshape(-1, 6),
-                    qd_deg_s=np.asarray(tr["qd_deg_s"], dtype=np.float64).reshape(-1, 6),
-                    qdd_deg_s2=np.asarray(tr["qdd_deg_s2"], dtype=np.float64).reshape(-1, 6),
+                    q_deg=_samples(tr["q_deg"], n_t),
+                    qd_deg_s=_samples(tr["qd_deg_s"], n_t),
+                    qdd_deg_s2=_samples(tr["qdd_deg_s2"], n_t),
                     segment=np.asarray(tr["segment"], dtype=np.int64),
                 ),
                 coverage=CoverageReport(**d["coverage"]),
@@ -285,6 +319,14 @@ class ScanPlan:
             if isinstance(exc, PlanInputError):
                 raise
             raise PlanInputError(f"not a scan plan: {exc}") from exc
+
+
+def _samples(rows: Any, n_t: int) -> np.ndarray:
+    """(n_t, axes) trajectory samples: 6 joints, or with a track 7 axes (track mm, then joints)."""
+    a = np.asarray(rows, dtype=np.float64)
+    if a.ndim != 2 or a.shape[0] != n_t or a.shape[1] not in (6, 7):
+        raise PlanInputError(f"trajectory: expected ({n_t}, 6 or 7) samples, got shape {a.shape}")
+    return a
 
 
 def _placement(d: dict[str, Any]) -> Placement:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -240,3 +241,19 @@ def test_vectorised_and_single_trajectory_samples_agree(small_plan, fractions):
         np.testing.assert_allclose(qd[k], qd1, atol=1e-9)
         np.testing.assert_allclose(qdd[k], qdd1, atol=1e-7)
         assert seg[k] == s1
+
+
+def test_the_planned_time_parts_add_up_to_the_scan_time_and_name_each_transition(small_plan):
+    s = small_plan.summary()
+    parts = s["approach_s"] + s["sweep_s"] + s["transitions_s"] + s["retract_s"]
+    assert abs(parts - small_plan.scan_time_s) <= CYCLE_S
+    assert min(s["approach_s"], s["sweep_s"], s["transitions_s"], s["retract_s"]) > 0
+    times = s["pass_times"]
+    assert [t["label"] for t in times] == [p.label for p in small_plan.passes]
+    assert times[0]["transition_s"] == 0.0
+    # each transition is the gap between the previous pass's end and this pass's start
+    for prev, cur in itertools.pairwise(times):
+        gap = cur["t_start_s"] - (prev["t_start_s"] + prev["duration_s"])
+        assert abs(cur["transition_s"] - gap) <= 0.002
+    assert abs(sum(t["transition_s"] for t in times) - s["transitions_s"]) <= 0.001 * len(times)
+    assert abs(sum(t["duration_s"] for t in times) - s["sweep_s"]) <= 0.001 * len(times)
