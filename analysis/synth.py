@@ -692,12 +692,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     o.add_argument(
         "--corner-angle-deg",
+        metavar="DEG",
         type=float,
         default=90.0,
         help="angle at corner 0 between edges 0 and 3, 60-120 (default 90; else a parallelogram)",
     )
     o.add_argument(
         "--top-length-mm",
+        metavar="MM",
         type=float,
         default=None,
         help="length of edge 2 (default --length-mm; else a trapezoid); the corners at 1 and 2 must "
