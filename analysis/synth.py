@@ -58,6 +58,7 @@ from analysis.plates import (
     footprint_contains,
     footprint_grid,
     formed_corners,
+    outline_corners_xy,
     outline_edges,
     plate_spec,
     surface_gradient,
@@ -617,6 +618,59 @@ def parse_deform(items: list[str] | None, spec: PlateSpec) -> FormingError:
     return FormingError(bumps=tuple(bumps), springback=springback, bend_fraction=bend)
 
 
+MAX_BOW_FRACTION = 0.02  # the largest bow (sagitta / edge length) the analysis is tested for
+
+
+def parse_bows(text: str) -> tuple[float, float, float, float]:
+    """``--bow-mm B0,B1,B2,B3``: four finite numbers (mm), one per edge; PlateError otherwise."""
+    try:
+        bows = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        bows = ()
+    if len(bows) != 4 or not np.isfinite(bows).all():
+        raise PlateError(f"--bow-mm: four comma-separated bows in mm (edges 0-3) expected, got {text!r}")
+    return bows  # type: ignore[return-value]
+
+
+def check_outline_range(spec: PlateSpec) -> None:
+    """Refuse an outline outside what the analysis handles (issue 18): every corner 60-120 degrees,
+    edges 0 and 2 the long pair, each edge's bow at most 2 % of its length. Raises PlateError with
+    the command-line option to blame; a spec in range passes silently.
+    """
+    # corner_angle_deg itself (60-120) and top_length_mm > 0 are PlateSpec's own checks.
+    c = outline_corners_xy(spec)
+    top = spec.length_mm if spec.top_length_mm is None else spec.top_length_mm
+    lengths = [float(np.linalg.norm(c[(k + 1) % 4] - c[k])) for k in range(4)]
+    for k in range(4):
+        a, b = c[(k - 1) % 4] - c[k], c[(k + 1) % 4] - c[k]
+        angle = float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+        if not 60.0 - 1e-9 <= angle <= 120.0 + 1e-9:
+            raise PlateError(
+                f"--top-length-mm {top:g}: the corner at corner {k} would be {angle:.1f} degrees, "
+                f"outside 60-120 (edge 2 from {_top_range(spec)} mm for this plate)"
+            )
+    if lengths[0] + lengths[2] < lengths[1] + lengths[3]:
+        raise PlateError(
+            f"outline: edges 0 and 2 ({lengths[0]:.1f}, {lengths[2]:.1f} mm) must be the long pair, edges 1 "
+            f"and 3 are {lengths[1]:.1f}, {lengths[3]:.1f} mm (lengthen --top-length-mm or narrow --width-mm)"
+        )
+    for k, (bow, chord) in enumerate(zip(spec.bow_mm, lengths, strict=True)):
+        if abs(bow) > MAX_BOW_FRACTION * chord + 1e-9:
+            raise PlateError(
+                f"--bow-mm: edge {k}'s bow {bow:g} mm exceeds 2 % of its {chord:.1f} mm length "
+                f"({MAX_BOW_FRACTION * chord:.1f} mm)"
+            )
+
+
+def _top_range(spec: PlateSpec) -> str:
+    """'lo-hi': the edge-2 lengths that keep corners 1 and 2 within 60-120 degrees."""
+    shear = spec.width_mm / np.tan(np.radians(spec.corner_angle_deg))
+    # c2 - c1 = (shear + top - length, width): the angle at corner 1 is 180 - atan2(width, that x).
+    lo = spec.length_mm - shear - spec.width_mm / np.tan(np.radians(60.0))
+    hi = spec.length_mm - shear + spec.width_mm / np.tan(np.radians(60.0))
+    return f"{max(lo, 0.0):.1f}-{hi:.1f}"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``cellctl synth`` argument parser."""
     p = argparse.ArgumentParser(
@@ -630,6 +684,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--length-mm", type=float, default=1200.0, help="footprint length along x (default 1200)")
     p.add_argument("--width-mm", type=float, default=800.0, help="footprint width along y (default 800)")
     p.add_argument("--thickness-mm", type=float, default=15.0, help="plate thickness (default 15)")
+    o = p.add_argument_group(
+        "outline",
+        "A four-sided outline other than the rectangle. Corners count counter-clockwise seen from "
+        "above, corner 0 first; edge k runs from corner k to corner k+1: edge 0 (0-1) along +x, "
+        "--length-mm long; edge 2 (3-2) parallel to it, --width-mm away; edges 1 and 3 the sides.",
+    )
+    o.add_argument(
+        "--corner-angle-deg",
+        metavar="DEG",
+        type=float,
+        default=90.0,
+        help="angle at corner 0 between edges 0 and 3, 60-120 (default 90; else a parallelogram)",
+    )
+    o.add_argument(
+        "--top-length-mm",
+        metavar="MM",
+        type=float,
+        default=None,
+        help="length of edge 2 (default --length-mm; else a trapezoid); the corners at 1 and 2 must "
+        "also be 60-120 degrees and edges 0 and 2 the long pair",
+    )
+    o.add_argument(
+        "--bow-mm",
+        metavar="B0,B1,B2,B3",
+        default="0,0,0,0",
+        help="per edge 0-3: sagitta of a parabolic bow in plan, positive outward, each at most 2%% of "
+        "its edge's length (default 0,0,0,0)",
+    )
     p.add_argument("--deform", action="append", metavar="ITEM",
                    help="none | default | dent:x=,y=,depth=,sigma= | bump:x=,y=,height=,sigma= | "
                    "springback:amp=,decay= | bend:FRACTION | FILE.json (repeatable; default: default)")  # fmt: skip
@@ -665,9 +747,22 @@ def synth_main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # argparse already printed the message
         return 0 if exc.code == 0 else 2
     try:
+        if not 60.0 <= args.corner_angle_deg <= 120.0:  # also refuses nan
+            raise PlateError(f"--corner-angle-deg {args.corner_angle_deg:g}: outside 60-120 degrees")
+        if args.top_length_mm is not None and not (
+            np.isfinite(args.top_length_mm) and args.top_length_mm > 0
+        ):
+            raise PlateError(f"--top-length-mm {args.top_length_mm:g}: must be a positive length")
         spec = plate_spec(
-            args.plate, length_mm=args.length_mm, width_mm=args.width_mm, thickness_mm=args.thickness_mm
+            args.plate,
+            length_mm=args.length_mm,
+            width_mm=args.width_mm,
+            thickness_mm=args.thickness_mm,
+            corner_angle_deg=args.corner_angle_deg,
+            top_length_mm=args.top_length_mm,
+            bow_mm=parse_bows(args.bow_mm),
         )
+        check_outline_range(spec)
         error = parse_deform(args.deform, spec)
         settings = ScanSettings(
             point_pitch_mm=args.point_pitch_mm,

@@ -19,7 +19,9 @@ subsample (``--baseline-points``) and its pose is then checked on all points. Pr
 object; logs go to stderr.
 
 ``rest_1e6_*``: the pipeline's way since issue 21 -- ``analysis.rest_surface`` (noise from the data,
-patch means of the gaps) and the fit on those patches, timed together; ``*_lift_mm``: the median
+patch means of the gaps, plus, on patches at the plate's edge, a local quadratic of the gaps read at
+the patch's outer extent so a raised edge is not averaged away -- docs/metrology.md) and the fit on
+those points, timed together; ``*_lift_mm``: the median
 height of the rested design above the design resting on the noise-free plate.
 """
 
