@@ -75,8 +75,11 @@ class RapidValueError(ControllerError, ValueError):
 # --------------------------------------------------------------------------------------------------
 
 _NUM_RE = re.compile(r"^\s*[-+]?(\d+(\.\d*)?|\.\d+)([eE][-+]?\d+)?\s*$")
-# RAPID uses 9E+09 for "axis not used" in the external axes of a jointtarget.
+# RAPID uses 9E+09 for "axis not used" in the external axes of a jointtarget / robtarget. RWS prints
+# it in more than one way: ``9E+09``, ``8.999999e+009`` (ABB's RWS 1.0 robtarget example), and a
+# RAPID num is a 32-bit float (9E9 stored is 8999999488); anything from EXTAX_UNUSED_MIN up is unused.
 EXTAX_UNUSED = 9e9
+EXTAX_UNUSED_MIN = 8.99e9
 
 
 def format_num(value: float) -> str:
@@ -131,6 +134,18 @@ def parse_string(text: str) -> str:
     if re.search(r'(?<!")"(?!")', inner.replace('""', "")):
         raise RapidValueError(f"unescaped quote in RAPID string literal: {text!r}", code=RC_BAD_VALUE)
     return inner.replace('""', '"').replace("\\\\", "\\")
+
+
+def extax_or_none(value: float) -> float | None:
+    """An external axis' value, or None where RAPID's 9E9 marks the axis unused."""
+    return None if abs(value) >= EXTAX_UNUSED_MIN else float(value)
+
+
+def format_extax(value: float) -> str:
+    """Format an external axis for RWS: ``9E+09`` for an unused axis, else a num (6 decimals)."""
+    if abs(value) >= EXTAX_UNUSED_MIN:
+        return "9E+09"
+    return format_num(round(float(value), 6))
 
 
 @dataclass(frozen=True)

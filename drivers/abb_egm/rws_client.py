@@ -172,12 +172,41 @@ class SignalState:
     lvalue: float
 
 
+#: ``eax_a..eax_f``: six values, None for an unused axis
+ExternalAxes = tuple[float | None, ...]
+_NO_EXTERNAL_AXES: ExternalAxes = (None, None, None, None, None, None)
+
+
 @dataclass(frozen=True)
 class CartesianPose:
-    """Flange pose in the base frame: ``pos_mm`` (3,), ``quat_wxyz`` (4,) scalar first (RAPID q1..q4)."""
+    """Flange pose in the base frame: ``pos_mm`` (3,), ``quat_wxyz`` (4,) scalar first (RAPID q1..q4).
+
+    ``external_axes_mm``: the robtarget's ``eax_a..eax_f``, None where the controller reports 9E9 (axis
+    unused); a linear track in the robot's motion group is in mm (a rotational axis would be in deg).
+    """
 
     pos_mm: np.ndarray
     quat_wxyz: np.ndarray
+    external_axes_mm: ExternalAxes = _NO_EXTERNAL_AXES
+
+
+@dataclass(frozen=True)
+class MechunitJoints:
+    """The mechanical unit's jointtarget: ``q_deg`` (6,) the arm's joints (``rax_1..rax_6``) and
+    ``external_axes_mm`` its ``eax_a..eax_f`` (a linear track in mm, a rotational axis in deg), None
+    where the controller reports 9E9 (axis unused). Some controllers report 0, not 9E9, for an axis
+    they do not have (ABB's RWS 1.0 example, an RWS 2.0 answer): whether a track is present is the
+    cell's configuration, not this answer."""
+
+    q_deg: np.ndarray
+    external_axes_mm: ExternalAxes
+
+
+def _external_axes(item: Mapping[str, Any]) -> ExternalAxes:
+    """``eax_a..eax_f`` of a jointtarget / robtarget item (None for 9E9; absent fields are unused)."""
+    return tuple(
+        _prog.extax_or_none(float(item[f"eax_{c}"])) if f"eax_{c}" in item else None for c in "abcdef"
+    )
 
 
 @dataclass(frozen=True)
@@ -859,8 +888,14 @@ class RwsClient:
     @_parses_answer
     async def get_joint_position(self) -> np.ndarray:
         """Robot joints, (6,) float, degrees."""
+        return (await self.get_mechunit_joints()).q_deg
+
+    @_parses_answer
+    async def get_mechunit_joints(self) -> MechunitJoints:
+        """The jointtarget: the arm's joints (deg) and the external axes (a track in mm)."""
         item = await self._get_state(f"/rw/motionsystem/mechunits/{self.config.mechunit}/jointtarget")
-        return np.array([float(item[f"rax_{i}"]) for i in range(1, 7)])
+        q = np.array([float(item[f"rax_{i}"]) for i in range(1, 7)])
+        return MechunitJoints(q, _external_axes(item))
 
     @_parses_answer
     async def get_cartesian(self) -> CartesianPose:
@@ -871,7 +906,7 @@ class RwsClient:
         )
         pos = np.array([float(item[k]) for k in ("x", "y", "z")])
         quat = np.array([float(item[f"q{i}"]) for i in range(1, 5)])
-        return CartesianPose(pos, quat)
+        return CartesianPose(pos, quat, _external_axes(item))
 
     # ---- state changes ------------------------------------------------------------------------
 

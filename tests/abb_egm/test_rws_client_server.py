@@ -385,6 +385,14 @@ def test_joint_and_cartesian_position_come_from_the_position_source(profile: str
             pose = await client.get_cartesian()
             np.testing.assert_allclose(pose.pos_mm, [1000.0, -200.5, 900.0])
             np.testing.assert_allclose(pose.quat_wxyz, quat)
+            # no additional axis: eax_a..eax_f are 9E+09 on the wire, None in the client
+            assert (await client.get_mechunit_joints()).external_axes_mm == (None,) * 6
+            assert pose.external_axes_mm == (None,) * 6
+            model.set_external_axes_source(lambda: np.array([1234.5678, 9e9, 9e9, 9e9, 9e9, 9e9]))
+            mj = await client.get_mechunit_joints()
+            np.testing.assert_allclose(mj.q_deg, q)
+            assert mj.external_axes_mm == (1234.5678, None, None, None, None, None)
+            assert (await client.get_cartesian()).external_axes_mm == mj.external_axes_mm
 
     run(body)
 

@@ -150,6 +150,10 @@ def test_client_reads_the_joint_target_of_the_captured_answers(profile, fixture,
     path = "/rw/motionsystem/mechunits/ROB_1/jointtarget"
     q, _ = _call(profile, {path: (200, ctype, _text(fixture))}, lambda c: c.get_joint_position())
     np.testing.assert_array_equal(q, joints)
+    # both answers print 0 (not 9E9) in eax_a..eax_f: a 0 is a value, not "unused"
+    mj, _ = _call(profile, {path: (200, ctype, _text(fixture))}, lambda c: c.get_mechunit_joints())
+    np.testing.assert_array_equal(mj.q_deg, joints)
+    assert mj.external_axes_mm == (0.0,) * 6
 
 
 def test_client_reads_the_robot_target_of_the_manual() -> None:
@@ -159,6 +163,24 @@ def test_client_reads_the_robot_target_of_the_manual() -> None:
     np.testing.assert_array_equal(pose.pos_mm, [515, 0, 712])
     np.testing.assert_array_equal(pose.quat_wxyz, [0.7071068, 0, 0.7071068, 0])
     assert "coordinate=Base" in requests[0] and "tool=tool0" in requests[0]
+    # the manual prints an unused external axis as 8.999999e+009: RAPID's 9E9, so None
+    assert pose.external_axes_mm == (None,) * 6
+
+
+@pytest.mark.parametrize(
+    ("printed", "value"),
+    [("9E+09", None), ("8.999999e+009", None), ("8999999488", None), ("-9E+09", None),
+     ("0", 0.0), ("1250.5", 1250.5), ("-350", -350.0)],
+)  # fmt: skip
+def test_client_reads_an_external_axis_as_its_value_or_none_for_9e9(printed, value) -> None:
+    """9E9 as RWS prints it (the simulator, ABB's manual, and 9E9 stored as a 32-bit RAPID num)."""
+    path = "/rw/motionsystem/mechunits/ROB_1/jointtarget"
+    body = _text("rws2/ichbinmeraj_get_ms_mechunits_ROB_1_jointtarget.json").replace(
+        '"eax_a" : "0"', f'"eax_a" : "{printed}"'
+    )
+    assert f'"eax_a" : "{printed}"' in body
+    mj, _ = _call("rws2", {path: (200, JSON2, body)}, lambda c: c.get_mechunit_joints())
+    assert mj.external_axes_mm == (value, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 def test_client_lists_the_signals_of_the_robotware_7_answer() -> None:

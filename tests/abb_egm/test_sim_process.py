@@ -15,6 +15,7 @@ import pytest
 
 from drivers.abb_egm.codec import MciState, MotorState
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
+from drivers.abb_egm.kinematics import LinearTrack
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD, ControllerSim, ControllerSimConfig
 from drivers.abb_egm.sim.controller import main as sim_main
@@ -75,18 +76,34 @@ def test_sim_entry_point_rejects_a_bad_fault_value_with_a_clear_message(capsys):
     assert "loss_fraction" in err and "Traceback" not in err
 
 
-def test_composed_sim_starts_egm_when_the_program_starts_and_reports_positions_to_rws():
+TRACK = LinearTrack(
+    origin_mm=[0.0, -1000.0, 0.0], direction=[1.0, 0.0, 0.0], travel_min_mm=0.0, travel_max_mm=3000.0,
+    speed_max_mm_s=400.0, accel_max_mm_s2=2000.0,
+)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("profile", "track"),
+    [("rws1", None), ("rws1", TRACK), ("rws2", TRACK)],
+    ids=["arm", "track", "track-rws2"],
+)
+def test_composed_sim_starts_egm_when_the_program_starts_and_reports_positions_to_rws(profile, track):
     """Driven only through its protocols: motors and program through RWS, motion through EGM; the
-    joints RWS reports are the ones the EGM feedback carried (two independent observations)."""
+    joints RWS reports are the ones the EGM feedback carried (two independent observations). With a
+    track, its position comes back in the jointtarget's and robtarget's ``eax_a`` (mm), the other
+    external axes unused; without one, all six are unused."""
 
     async def main():
-        ep = EgmEndpoint(EgmEndpointConfig(port=0))
+        n_ext = 0 if track is None else 1
+        ep = EgmEndpoint(EgmEndpointConfig(port=0, n_external=n_ext))
         _, port = await ep.start()
-        sim = ControllerSim(ControllerSimConfig(), EgmSimConfig(sensor_port=port))
+        egm_cfg = EgmSimConfig(sensor_port=port, track=track, track_start_mm=1000.0)
+        sim = ControllerSim(ControllerSimConfig(rws_profile=profile), egm_cfg)
         addresses = await sim.start()
-        assert addresses["rws_url"].startswith("http://127.0.0.1:")
-        rws = RwsClient(RwsClientConfig(base_url=addresses["rws_url"], profile="rws1",
-                                        username="Default User", password=ABB_DEFAULT_PASSWORD))  # fmt: skip
+        assert addresses["rws_url"].startswith("http")
+        tls = {} if profile == "rws1" else {"tls_ca_file": sim.rws.cert_path}
+        rws = RwsClient(RwsClientConfig(base_url=addresses["rws_url"], profile=profile,
+                                        username="Default User", password=ABB_DEFAULT_PASSWORD, **tls))  # fmt: skip
         try:
             await ep.wait_for_feedback(10.0)
             assert not ep.ok_to_command
@@ -97,18 +114,29 @@ def test_composed_sim_starts_egm_when_the_program_starts_and_reports_positions_t
                 if ep.ok_to_command:
                     break
             assert ep.ok_to_command
-            target = ep.latest.q_deg + np.array([2.0, 0, 0, 0, 0, 0])
+            step = np.array([2.0, 0, 0, 0, 0, 0]) if track is None else np.array([25.0, 2.0, 0, 0, 0, 0, 0])
+            target = ep.latest.axes_mm_deg + step
             ep.command_joints(target)
             for _ in range(2500):  # until the feedback reached the target (about 0.3 s idle)
                 await ep.wait_for_feedback(10.0)
-                if np.abs(ep.latest.q_deg - target).max() < 0.01:
+                if np.abs(ep.latest.axes_mm_deg - target).max() < 0.01:
                     break
-            fed_back = ep.latest.q_deg
+            fed_back = ep.latest.axes_mm_deg
             np.testing.assert_allclose(fed_back, target, atol=0.01)
-            q_rws = await rws.get_joint_position()
+            joints = await rws.get_mechunit_joints()
             # the arm holds the target: what RWS reads now is what EGM fed back
-            np.testing.assert_allclose(q_rws, fed_back, atol=0.01)
-            assert q_rws[0] > 1.0
+            np.testing.assert_allclose(joints.q_deg, fed_back[n_ext:], atol=0.01)
+            assert joints.q_deg[0] > 1.0
+            np.testing.assert_allclose(await rws.get_joint_position(), joints.q_deg, atol=0.01)
+            pose = await rws.get_cartesian()
+            if track is None:
+                assert joints.external_axes_mm == pose.external_axes_mm == (None,) * 6
+            else:
+                # the track: eax_a in mm, the same in the robtarget, the others unused
+                assert joints.external_axes_mm[0] == pytest.approx(fed_back[0], abs=0.01)
+                assert joints.external_axes_mm[0] > 1020.0
+                assert joints.external_axes_mm[1:] == pose.external_axes_mm[1:] == (None,) * 5
+                assert pose.external_axes_mm[0] == pytest.approx(joints.external_axes_mm[0], abs=0.01)
         finally:
             await rws.close()
             await sim.stop()

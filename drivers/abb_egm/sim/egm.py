@@ -56,6 +56,7 @@ from drivers.abb_egm.codec import (
     encode_robot,
 )
 from drivers.abb_egm.kinematics import LinearTrack, RobotKinematics, fk_batch
+from drivers.abb_egm.rapid_values import EXTAX_UNUSED
 from drivers.abb_egm.ring import ring_indices, ring_search, ring_start
 
 __all__ = [
@@ -185,6 +186,7 @@ class ControllerModelLike(Protocol):
     def egm_params(self) -> Any: ...
     def egm_session_ended(self, reason: str, event_code: int | None) -> None: ...
     def set_position_source(self, fn: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None: ...
+    def set_external_axes_source(self, fn: Callable[[], np.ndarray]) -> None: ...
 
 
 # ---------------------------------------------------------------------------------------------
@@ -439,6 +441,8 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self.ended_sessions: list[tuple[str, int | None]] = []
         if model is not None:
             model.set_position_source(self.position)
+            if cfg.track is not None:
+                model.set_external_axes_source(self.external_axes)
 
     # ---- lifecycle ----------------------------------------------------------------------------
 
@@ -538,6 +542,13 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         world frame with a track)."""
         pose = self.kin.fk(self._q_deg)
         return self._q_deg[self._n_ext :].copy(), pose.pos_mm, pose.quat_wxyz
+
+    def external_axes(self) -> np.ndarray:
+        """The six external axes for RWS position reads (``eax_a..eax_f``): the track's position (mm) in
+        the first, 9E9 (unused) in the others; all unused without a track."""
+        ext = np.full(6, EXTAX_UNUSED)
+        ext[: self._n_ext] = self._q_deg[: self._n_ext]
+        return ext
 
     def reply_latency(self, *, kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Measured reply latencies: ``latency_us`` (n,) from our send of EgmRobot k (stamped right at the

@@ -21,6 +21,8 @@ What the EGM simulator needs from here (the contract with ``egm.py``):
   suspended (MCI stopped), not ended: a restart continues it.
 - ``set_position_source(fn)``: ``fn()`` returns ``(q_deg (6,), pos_mm (3,), quat_wxyz (4,))`` of the
   flange in the base frame; the RWS position endpoints read through it.
+- ``set_external_axes_source(fn)``: ``fn()`` returns the six external axes of the motion group
+  (``eax_a..eax_f``: mm for a linear track, 9E9 where unused); all unused until one is set.
 - ``subscribe(cb)``: ``cb(kind, data)`` on every change; kinds are ``"ctrlstate"``, ``"opmode"``,
   ``"execution"``, ``"rapid-data"``, ``"signal"``, ``"elog"``, ``"egm"`` (``data["wanted"]``).
 - ``motors_off()`` / ``emergency_stop()`` / ``guard_stop()`` are the fault knobs' entry points.
@@ -43,6 +45,7 @@ import numpy as np
 import structlog
 
 from drivers.abb_egm.rapid_values import (
+    EXTAX_UNUSED,
     RAPID_MODULE,
     RAPID_TASK,
     RC_BAD_VALUE,
@@ -88,6 +91,7 @@ OpMode = Literal["AUTO", "MANR", "MANF"]
 RapidState = Literal["running", "stopped"]
 Listener = Callable[[str, dict], None]
 PositionSource = Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]
+ExternalAxesSource = Callable[[], np.ndarray]
 
 
 # Event log codes. 41822 is documented (reference §2.5); 10010..10013 are the controller's
@@ -219,6 +223,7 @@ class ControllerModel:
         # RAPID tasks of the system: name -> active (only the motion task runs the CellEgm program)
         self.tasks_active: dict[str, bool] = {task: True}
         self._position_source: PositionSource = _home_pose
+        self._external_axes_source: ExternalAxesSource = lambda: np.full(6, EXTAX_UNUSED)
         self._egm_wanted_last = False
         self._define_program_data()
         self._define_signals()
@@ -653,3 +658,14 @@ class ControllerModel:
         """Current ``(q_deg (6,), pos_mm (3,), quat_wxyz (4,))``; the all-zero pose until a source is set."""
         q_deg, pos_mm, quat = self._position_source()
         return np.asarray(q_deg, dtype=float), np.asarray(pos_mm, dtype=float), np.asarray(quat, dtype=float)
+
+    def set_external_axes_source(self, fn: ExternalAxesSource) -> None:
+        """``fn()`` -> the six external axes ``eax_a..eax_f`` (a track in mm, 9E9 where unused)."""
+        self._external_axes_source = fn
+
+    def external_axes(self) -> np.ndarray:
+        """Current external axes (6,) (``eax_a..eax_f``; 9E9 where unused); all unused until a source is set."""
+        ext = np.asarray(self._external_axes_source(), dtype=float)
+        if ext.shape != (6,):
+            raise ValueError(f"the external axes source must give 6 values, got {ext.shape}")
+        return ext

@@ -49,7 +49,13 @@ import structlog
 from aiohttp import WSMsgType, web
 
 from drivers.abb_egm.digest import digest_response, parse_auth_params
-from drivers.abb_egm.rapid_values import RC_IO_ACCESS_DENIED, ControllerError, RapidValueError, format_num
+from drivers.abb_egm.rapid_values import (
+    RC_IO_ACCESS_DENIED,
+    ControllerError,
+    RapidValueError,
+    format_extax,
+    format_num,
+)
 from drivers.abb_egm.sim.model import (
     AccessDenied,
     ControllerModel,
@@ -1184,7 +1190,7 @@ class RwsServer:
         q_deg, _, _ = self.model.position()
         item: dict[str, Any] = {"_type": "ms-jointtarget", "_title": self.mechunit}
         item.update({f"rax_{i + 1}": format_num(round(float(v), 6)) for i, v in enumerate(q_deg)})
-        item.update({f"eax_{c}": "9E+09" for c in "abcdef"})
+        item.update(self._external_axes_items())
         return self._respond(r, [item], "motionsystem")
 
     async def _get_robtarget(self, r: _Request) -> web.Response:
@@ -1201,8 +1207,15 @@ class RwsServer:
         item.update({k: format_num(round(float(v), 6)) for k, v in zip("xyz", pos_mm, strict=True)})
         item.update({f"q{i + 1}": format_num(round(float(v), 9)) for i, v in enumerate(quat)})
         item.update({"cf1": "0", "cf4": "0", "cf6": "0", "cfx": "0"})
-        item.update({f"eax_{c}": "9E+09" for c in "abcdef"})
+        item.update(self._external_axes_items())
         return self._respond(r, [item], "motionsystem")
+
+    def _external_axes_items(self) -> dict[str, str]:
+        """``eax_a..eax_f`` of a jointtarget / robtarget: an additional axis of the robot's motion group
+        (a track, mm) in ``eax_a``, 9E+09 where an axis is unused."""
+        return {
+            f"eax_{c}": format_extax(v) for c, v in zip("abcdef", self.model.external_axes(), strict=True)
+        }
 
     async def _get_system(self, r: _Request) -> web.Response:
         major, minor = ("7", "16") if self.profile == "rws2" else ("6", "15")
