@@ -174,11 +174,19 @@ def _surface_up(vertices_mm: np.ndarray, triangles: np.ndarray) -> tuple[np.ndar
     nrm = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
     area = 0.5 * np.linalg.norm(nrm, axis=1)
     cen = tv.mean(axis=1)
+    if not area.sum() > 0:  # every triangle degenerate: no plane; leave the refusal to the caller's checks
+        return np.array([0.0, 0.0, 1.0]), vertices_mm.mean(axis=0)
     mean = (cen * area[:, None]).sum(axis=0) / area.sum()
     X = (cen - mean) * np.sqrt(area)[:, None]
-    _, _, vt = np.linalg.svd(X, full_matrices=False)
-    z = vt[2]
-    if nrm.sum(axis=0) @ z < 0:
+    _, sv, vt = np.linalg.svd(X, full_matrices=True)
+    n_sum = nrm.sum(axis=0)
+    if len(sv) < 2 or sv[1] <= 1e-9 * sv[0] or not sv[0] > 0:
+        # fewer than three triangles, or their centres on one line: the plane through the centres
+        # is undetermined, the area-weighted normal is the best estimate (a single flat facet's own)
+        z = n_sum / np.linalg.norm(n_sum) if np.linalg.norm(n_sum) > 0 else np.array([0.0, 0.0, 1.0])
+    else:
+        z = vt[2]
+    if n_sum @ z < 0:
         z = -z
     return z, mean
 

@@ -202,3 +202,16 @@ def test_a_long_strip_keeps_both_corners_of_its_short_edges() -> None:
     np.testing.assert_allclose(
         design_corners_from_mesh(design_mesh(spec, pitch_mm=20.0)), design_corners(spec), atol=1e-6
     )
+
+
+def test_the_plane_of_a_mesh_of_one_or_two_triangles_is_their_normal_not_an_index_error():
+    """Found by tests/fuzz/test_fuzz_files.py: two triangles gave a 2 x 3 SVD and `vt[2]` raised."""
+    from analysis.outline import _surface_up
+
+    v = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [100.0, 100.0, 5.0]])
+    z2, _ = _surface_up(v, np.array([[0, 1, 2], [1, 3, 2]]))
+    z1, _ = _surface_up(v, np.array([[0, 1, 2]]))
+    z0, _ = _surface_up(v, np.array([[0, 1, 1]]))  # degenerate: no area at all
+    assert np.allclose(z1, [0.0, 0.0, 1.0])
+    assert z2[2] > 0.99 and np.isclose(np.linalg.norm(z2), 1.0)
+    assert np.allclose(z0, [0.0, 0.0, 1.0])
