@@ -34,6 +34,7 @@ def test_unknown_fault_names_are_refused_naming_them(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.e2e
+@pytest.mark.long  # a minute and a half of jobs under mixed faults, each of which tests/faults checks alone in CI
 @pytest.mark.timeout(900)
 def test_short_soak_every_job_completes_or_is_recoverable_with_no_data_lost(tmp_path):
     faults = ["link_cut", "egm_loss_1pct"]

@@ -272,6 +272,7 @@ def test_envelope_violation_is_a_fault_and_no_violating_reference_is_ever_sent(s
 
 
 @pytest.mark.slow
+@pytest.mark.long  # three minutes of real time; the small plate's full plan above checks the same in CI
 def test_full_sail_plate_plan_executes_on_the_simulator():
     # the real sail plan at 225 mm/s (the cell.toml default of 100 mm/s would take six minutes)
     settings = PlannerSettings(speed_mm_s=225.0)
