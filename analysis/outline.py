@@ -178,9 +178,11 @@ def _surface_up(vertices_mm: np.ndarray, triangles: np.ndarray) -> tuple[np.ndar
         return np.array([0.0, 0.0, 1.0]), vertices_mm.mean(axis=0)
     mean = (cen * area[:, None]).sum(axis=0) / area.sum()
     X = (cen - mean) * np.sqrt(area)[:, None]
-    _, sv, vt = np.linalg.svd(X, full_matrices=True)
     n_sum = nrm.sum(axis=0)
-    if len(sv) < 2 or sv[1] <= 1e-9 * sv[0] or not sv[0] > 0:
+    sv = vt = None
+    if len(X) >= 3:  # full_matrices=False: U of a large mesh would be n x n
+        _, sv, vt = np.linalg.svd(X, full_matrices=False)
+    if sv is None or sv[1] <= 1e-9 * sv[0] or not sv[0] > 0:
         # fewer than three triangles, or their centres on one line: the plane through the centres
         # is undetermined, the area-weighted normal is the best estimate (a single flat facet's own)
         z = n_sum / np.linalg.norm(n_sum) if np.linalg.norm(n_sum) > 0 else np.array([0.0, 0.0, 1.0])
