@@ -295,7 +295,7 @@ def frame_design_mesh(mesh: TriMesh) -> FramedMesh:
             shift[2, 3] = -foot
             T = shift @ T
             framed = mesh.transformed(T)
-        log.info("design_framed", tilt_deg=round(float(np.degrees(np.arccos(np.clip(z[2], -1, 1)))), 3),
+        log.debug("design_framed", tilt_deg=round(float(np.degrees(np.arccos(np.clip(z[2], -1, 1)))), 3),
                  origin_file_mm=np.round(np.linalg.inv(T)[:3, 3], 3).tolist())  # fmt: skip
     corners = corners_file @ T[:3, :3].T + T[:3, 3]
     return FramedMesh(framed, canonical_corner_order(corners), T)
