@@ -32,6 +32,7 @@ from drivers.abb_egm.kinematics import LinearTrack, RobotKinematics
 from drivers.abb_egm.sim.egm import EVENT_EGM_JOINT_LIMIT, EgmControllerSim, EgmSimConfig
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.runtime import precise_event_loop
+from tests.support.waits import wait_until
 
 Q_START = np.array([0.0, 10.0, -10.0, 0.0, 30.0, 0.0])
 TRACK = LinearTrack(
@@ -56,16 +57,6 @@ async def start_pair(model: ControllerModel | None = None, n_external: int = 1):
     await sim.start()
     await ep.wait_for_feedback(1.0)
     return sim, ep
-
-
-async def wait_until(pred: Callable[[], bool], timeout_s: float) -> None:
-    """Wait for ``pred``: an event, not a timing check; the bound is ten times the idle time (>= 10 s)."""
-    timeout_s = max(10.0, 10.0 * timeout_s)
-    deadline = asyncio.get_running_loop().time() + timeout_s
-    while not pred():
-        if asyncio.get_running_loop().time() > deadline:
-            raise AssertionError(f"condition not met within {timeout_s} s")
-        await asyncio.sleep(0.005)
 
 
 # ---- codec ------------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ from drivers.abb_egm.sim.egm import (
 )
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.runtime import precise_event_loop
+from tests.support.waits import wait_until
 
 CYCLE_S = 0.004032
 Q_START = np.array([0.0, 10.0, -10.0, 0.0, 30.0, 0.0])
@@ -55,17 +56,6 @@ async def start_pair(sim_kwargs=None, cfg_kwargs=None, ep_kwargs=None):
 async def stop_pair(sim, ep):
     await sim.stop()
     await ep.close()
-
-
-async def wait_until(pred: Callable[[], bool], timeout_s: float) -> None:
-    """Wait for ``pred``; ``timeout_s`` is the time it takes on an idle machine, the bound is ten
-    times that (at least 10 s): waits on an event, not a timing check (figures: benchmarks/)."""
-    timeout_s = max(10.0, 10.0 * timeout_s)
-    deadline = asyncio.get_running_loop().time() + timeout_s
-    while not pred():
-        if asyncio.get_running_loop().time() > deadline:
-            raise AssertionError(f"condition not met within {timeout_s} s")
-        await asyncio.sleep(0.005)
 
 
 def test_egm_round_trip_joint_step_converges_within_a_hundredth_of_a_degree():

@@ -18,15 +18,12 @@ from analysis.mesh import load_mesh
 from analysis.placement import Placement
 from cellctl.acquisition.pipeline import KIND_ROBOT
 from cellctl.acquisition.rawstore import RawReader
-from cellctl.api import Keys, TriggerAccepted, call
-from cellctl.api.session import close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml
-from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
 from cellctl.config import load_config
-from cellctl.planning import PlannerSettings
+from cellctl.planning import PlannerSettings, PlanRefused
 from cellctl.planning.coverage import build_segments, design_surface
 from cellctl.planning.joint_path import check_reach
-from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
+from tests.support.e2e_cell import Cell, tiny_cell_config, trigger_demo_plate
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.process]
 
@@ -59,30 +56,13 @@ def test_a_plate_beyond_reach_is_scanned_from_the_moving_track_and_analysed(tmp_
     surface = design_surface(load_mesh(out / "designs" / DEMO_DESIGN))
     segments, _ = build_segments(surface, Placement.on_bed(*PLATE_POS_MM[:2], cfg.sim.placement.angle_deg,
                                                            z_mm=PLATE_POS_MM[2]), fixed)  # fmt: skip
-    with pytest.raises(Exception, match="reach"):
+    with pytest.raises(PlanRefused, match="reach"):
         check_reach(segments, fixed)
 
     cell = Cell(out, config)
     cell.start()
     try:
-
-        async def go():
-            session = await open_client(cell.cfg)
-            keys = Keys(cell.cfg.key_prefix)
-            follower = StatusFollower(session, keys)
-            try:
-                await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 120.0)
-                pl = cell.cfg.sim.placement
-                req = {"plate_id": "track-plate", "design": DEMO_DESIGN,
-                       "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]}}  # fmt: skip
-                acc = await call(session, keys.trigger, json.dumps(req), TriggerAccepted)
-                state, message, report = await wait_for_job(follower, acc.job_id, 300.0)
-                return acc, state, message, report
-            finally:
-                follower.close()
-                await asyncio.to_thread(close_session, session)
-
-        acc, state, message, report = asyncio.run(go())
+        acc, (state, message, report) = asyncio.run(trigger_demo_plate(cell.cfg, "track-plate"))
     finally:
         codes = cell.stop()
     assert state == "done", (message, (out / "logs").as_posix())

@@ -10,12 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.api import Keys, TriggerAccepted, call
-from cellctl.api.session import close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_html_report
-from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
 from cellctl.config import load_config
-from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
+from tests.support.e2e_cell import Cell, tiny_cell_config, trigger_demo_plate
 from tests.support.isolated import hidden_mounts_command, start_hidden
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
@@ -44,22 +41,7 @@ def test_a_worker_that_sees_none_of_the_daemons_files_completes_a_job_rendered_a
             wdir / "logs",
         )  # fmt: skip
 
-        async def go():
-            session = await open_client(cell.cfg)
-            keys = Keys(cell.cfg.key_prefix)
-            follower = StatusFollower(session, keys)
-            try:
-                await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 120.0)
-                pl = cell.cfg.sim.placement
-                req = {"plate_id": "far-plate", "design": DEMO_DESIGN,
-                       "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]}}  # fmt: skip
-                acc = await call(session, keys.trigger, json.dumps(req), TriggerAccepted)
-                return acc, await wait_for_job(follower, acc.job_id, 300.0)
-            finally:
-                follower.close()
-                await asyncio.to_thread(close_session, session)
-
-        acc, (state, message, _report) = asyncio.run(go())
+        acc, (state, message, _report) = asyncio.run(trigger_demo_plate(cell.cfg, "far-plate"))
         assert state == "done", message
         html = wait_html_report(Path(cell.cfg.cell.data_dir), acc.job_id, 300.0)
         results = cell.jobs_dir / acc.job_id / "results"

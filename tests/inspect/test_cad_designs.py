@@ -17,20 +17,10 @@ from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.settings import InspectionSettings
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
+from tests.support.surfaces import ship_pose
 
 SETTINGS = InspectionSettings(layout=DetectionLayout(5, 100.0, 3, 100.0, True))
 DENT_MM = 1.5
-
-
-def _ship_pose() -> np.ndarray:
-    """A side-shell pose: stood up 75 degrees, turned 20, 13 m above the keel."""
-    a, b = np.radians(75.0), np.radians(20.0)
-    Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-    Rz = np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]])
-    T = np.eye(4)
-    T[:3, :3] = Rz @ Rx
-    T[:3, 3] = [61000.0, 9000.0, 13000.0]
-    return T
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +33,7 @@ def dented(tmp_path_factory: pytest.TempPathFactory):
     files = {
         "iges": write_design(spec, d / "plate.igs"),
         "step_m": write_design(spec, d / "plate.step", units="m"),
-        "step_ship": write_design(spec, d / "ship.step", units="m", T_file_design=_ship_pose()),
+        "step_ship": write_design(spec, d / "ship.step", units="m", T_file_design=ship_pose()),
     }
     return spec, scan, files
 

@@ -127,3 +127,31 @@ async def wait_status(follower, pred, timeout_s: float = 90.0):
             return st
         await follower.next(0.5)
     raise TimeoutError(f"status condition not met within {timeout_s} s; last {follower.latest}")
+
+
+async def trigger_demo_plate(
+    cfg, plate_id: str, timeout_s: float = 300.0
+) -> tuple[Any, tuple[str, str, Any]]:
+    """Wait until the cell is idle with a worker, trigger the demo design at the simulated plate's
+    placement (a typed TriggerRequest) and follow the job: ``(TriggerAccepted, (state, message, report))``."""
+    from analysis.placement import Placement
+    from cellctl.api import Keys, TriggerAccepted, TriggerRequest, call
+    from cellctl.api.session import close_session
+    from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
+
+    session = await open_client(cfg)
+    keys = Keys(cfg.key_prefix)
+    follower = StatusFollower(session, keys)
+    try:
+        await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 120.0)
+        pl = cfg.sim.placement
+        req = TriggerRequest(
+            plate_id=plate_id,
+            design=DEMO_DESIGN,
+            placement=Placement(pos_mm=tuple(pl.pos_mm), rpy_deg=(0.0, 0.0, pl.angle_deg)),
+        )
+        acc = await call(session, keys.trigger, req.model_dump_json(exclude_none=True), TriggerAccepted)
+        return acc, await wait_for_job(follower, acc.job_id, timeout_s)
+    finally:
+        follower.close()
+        await asyncio.to_thread(close_session, session)
