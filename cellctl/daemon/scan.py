@@ -326,9 +326,10 @@ class ScanRunner:
                 on_write_error=write_failed, on_assembled=host.live_feed(rec.job_id),
             )  # fmt: skip
             job.session = session
-            # The arm waits while the clock fits gather their first pairs (and a sensor that has just
-            # started streaming settles) before the first reference moves it.
-            await session.start()
+            # The plan waits while the clock fits gather their first pairs (and a sensor that has just
+            # started streaming settles) before its first reference; the move to the plan's start
+            # (no pass records during it) overlaps that wait.
+            executor.start_not_before_s = await session.start(wait_settle=False)
             what = "scanning" if phase == "scan" else f"{phase} run of"
             host.to_cell(CellState.SCANNING, f"{what} job {rec.job_id}")
             host.job_state(job, JobState.SCANNING, "" if phase == "scan" else f"{phase} run")
@@ -356,6 +357,7 @@ class ScanRunner:
                 "scan_s": round(scan_s, 3),
                 "profiles": job.profiles,
                 "execution": result.state.value,
+                "move_to_start_s": round(result.move_to_start_s, 3),
                 "max_tracking_error_mm": round(float(result.max_tracking_error_mm), 3),
                 "last_profile_utc_s": t_last_profile,
                 "acquisition": json.loads(json.dumps(acq.quality(), default=_plain)),
