@@ -1,8 +1,8 @@
 """Timing: toppra for feasibility and the time-optimal bound, a jerk-limited time law for execution.
 
-Each segment is timed on its own, rest to rest, along a cubic spline of its joint waypoints
-parameterised by the sensor's arc length (plus a small rotation term so pure reorientations advance
-too), so the parameter's rate is the TCP speed.
+Each segment is timed on its own, rest to rest (but see the flying turnarounds below), along a
+cubic spline of its joint waypoints parameterised by the sensor's arc length (plus a small rotation
+term so pure reorientations advance too), so the parameter's rate is the TCP speed.
 
 1. toppra (joint velocity and acceleration limits plus a first-order TCP-speed constraint,
    :class:`TcpSpeedConstraint`) decides whether the segment can be timed at all and gives the
@@ -16,6 +16,12 @@ too), so the parameter's rate is the TCP speed.
 
 Joint limits are used with safety factors (toppra checks them on a grid only; the tracker needs
 room). Units: joint angles in deg (deg/s, deg/s^2, deg/s^3), positions in mm, time in s.
+
+Segments joined by a *flying* turnaround (``Segment.flying``: the raster's neighbouring passes) are
+timed as one path instead (:func:`_time_chain`): one spline through all their waypoints, each
+segment's own cruise rate, and the rate at a join the lower of its two sides', so the arm does not
+stop between the passes; on the turnaround itself the rate is the largest its curvature allows
+under the joint acceleration and jerk limits (:func:`_flying_rate`).
 
 With a linear track the path is seven-dimensional (``axes_mm_deg``: the track in mm, then the
 joints): toppra and the time law time track and arm together, under the track's speed,
@@ -141,6 +147,34 @@ def _arc_parameter(pos_mm: np.ndarray, R: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(ds)])
 
 
+def _path_peaks(path, settings: PlannerSettings, grid: np.ndarray):
+    """Peaks over ``grid`` per axis of the path's first, second and third derivatives (the third
+    from differences of the second), and the largest tool speed per unit of the path parameter."""
+    d1 = path(grid, 1)
+    d2 = path(grid, 2)
+    d3 = np.abs(np.diff(d2, axis=0)) / np.maximum(np.diff(grid), 1e-9)[:, None]
+    m1 = np.maximum(np.abs(d1).max(axis=0), 1e-9)
+    m2 = np.abs(d2).max(axis=0)
+    m3 = d3.max(axis=0) if d3.size else np.zeros(settings.n_axes)
+    dpds = np.linalg.norm(_tool_velocity(path(grid), d1, settings.T_flange_sensor, settings.track), axis=1)
+    return m1, m2, m3, float(dpds.max())
+
+
+def _law_samples(law: Trajectory, path, s0: float, s1: float, dt_s: float):
+    """A 1-axis law of the path parameter from ``s0`` sampled every ``dt_s`` or a little less:
+    ``(t, q, qd, qdd)``, the parameter clipped to ``[s0, s1]``."""
+    T = float(law.duration)
+    n = max(2, int(np.ceil(T / dt_s)) + 1)
+    t = np.linspace(0.0, T, n)
+    sv = np.array([np.ravel(law.at_time(float(x))) for x in t]).reshape(n, 3)  # s, sdot, sddot
+    ss = np.clip(s0 + sv[:, 0], s0, s1)
+    d1 = path(ss, 1)
+    q = path(ss)
+    qd = d1 * sv[:, 1:2]
+    qdd = path(ss, 2) * sv[:, 1:2] ** 2 + d1 * sv[:, 2:3]
+    return t, q, qd, qdd
+
+
 def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -> tuple[float, float, float]:
     """Cruise rate V, acceleration A and jerk J of the path parameter that keep the joint limits and
     the TCP speed everywhere on the path.
@@ -152,14 +186,8 @@ def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -
     vmax = _VEL_FACTOR * settings.axis_speed_max
     amax = _ACC_FACTOR * settings.axis_accel_max
     jmax = _JERK_FACTOR * settings.axis_jerk_max
-    d1 = path(grid, 1)
-    d2 = path(grid, 2)
-    d3 = np.abs(np.diff(d2, axis=0)) / np.maximum(np.diff(grid), 1e-9)[:, None]
-    m1 = np.maximum(np.abs(d1).max(axis=0), 1e-9)
-    m2 = np.abs(d2).max(axis=0)
-    m3 = d3.max(axis=0) if d3.size else np.zeros(settings.n_axes)
-    dpds = np.linalg.norm(_tool_velocity(path(grid), d1, settings.T_flange_sensor, settings.track), axis=1)
-    v = min(v_tcp / max(float(dpds.max()), 1e-9), float(np.min(vmax / m1)))
+    m1, m2, m3, dpds = _path_peaks(path, settings, grid)
+    v = min(v_tcp / max(dpds, 1e-9), float(np.min(vmax / m1)))
     # the centripetal term may use at most half of the acceleration budget
     v0 = min(v, float(np.min(np.sqrt(0.5 * amax / np.maximum(m2, 1e-12)))))
     # The acceleration budget and the jerk budget compete (3 q'' V A); a small grid search over the
@@ -199,15 +227,10 @@ def _flying_rate(
     vmax = _VEL_FACTOR * settings.axis_speed_max
     amax = _ACC_FACTOR * settings.axis_accel_max
     jmax = _JERK_FACTOR * settings.axis_jerk_max
-    d1 = path(grid, 1)
-    d2 = path(grid, 2)
-    d3 = np.abs(np.diff(d2, axis=0)) / np.maximum(np.diff(grid), 1e-9)[:, None]
-    m1 = np.maximum(np.abs(d1).max(axis=0), 1e-9)
-    m2 = np.maximum(np.abs(d2).max(axis=0), 1e-12)
-    m3 = np.maximum(d3.max(axis=0), 1e-15)
-    dpds = np.linalg.norm(_tool_velocity(path(grid), d1, settings.T_flange_sensor, settings.track), axis=1)
+    m1, m2, m3, dpds = _path_peaks(path, settings, grid)
+    m2, m3 = np.maximum(m2, 1e-12), np.maximum(m3, 1e-15)
     v = 0.9 * min(
-        v_tcp / max(float(dpds.max()), 1e-9),
+        v_tcp / max(dpds, 1e-9),
         float(np.min(vmax / m1)),
         float(np.min(np.sqrt(amax / m2))),
         float(np.min(np.cbrt(jmax / m3))),
@@ -252,15 +275,7 @@ def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float
     res = otg.calculate(inp, law)
     if res not in (Result.Working, Result.Finished):
         raise PlanRefused(f"the time law could not be computed ({res})", pass_label=seg.label)
-    T = float(law.duration)
-    n = max(2, int(np.ceil(T / dt_s)) + 1)
-    t = np.linspace(0.0, T, n)
-    sv = np.array([np.ravel(law.at_time(float(x))) for x in t]).reshape(n, 3)  # s, sdot, sddot
-    ss = np.clip(sv[:, 0], 0.0, s[-1])
-    d1 = path(ss, 1)
-    q = path(ss)
-    qd = d1 * sv[:, 1:2]
-    qdd = path(ss, 2) * sv[:, 1:2] ** 2 + d1 * sv[:, 2:3]
+    t, q, qd, qdd = _law_samples(law, path, 0.0, float(s[-1]), dt_s)
     return t, q, qd, qdd, float(optimal.duration)
 
 
@@ -380,16 +395,7 @@ def _time_chain(segs: list[Segment], speeds: list[float], settings: PlannerSetti
     out = []
     for k, law in enumerate(timed):
         assert law is not None
-        T = float(law.duration)
-        n = max(2, int(np.ceil(T / dt_s)) + 1)
-        t = np.linspace(0.0, T, n)
-        sv = np.array([np.ravel(law.at_time(float(x))) for x in t]).reshape(n, 3)  # s, sdot, sddot
-        ss = np.clip(bounds[k] + sv[:, 0], bounds[k], bounds[k + 1])
-        d1 = path(ss, 1)
-        q = path(ss)
-        qd = d1 * sv[:, 1:2]
-        qdd = path(ss, 2) * sv[:, 1:2] ** 2 + d1 * sv[:, 2:3]
-        out.append((t, q, qd, qdd))
+        out.append(_law_samples(law, path, float(bounds[k]), float(bounds[k + 1]), dt_s))
     return out, float(optimal.duration)
 
 
