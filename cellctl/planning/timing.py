@@ -55,6 +55,8 @@ _JERK_FACTOR = 0.6
 _ROT_WEIGHT_MM_PER_RAD = 100.0
 _GRID_STEP_MM = 4.0
 _TURN_GRID_STEP_MM = 0.5
+#: a turnaround is flown at this share of the largest rate its limits allow (the rest: its joins)
+_FLYING_SHARE = 0.95
 #: the sweep's ends where the speed may ramp (the passes reach this far beyond what they must cover)
 RAMP_ALLOWANCE_MM = 25.0
 #: planned transit speeds stay at or below this share of the envelope's TCP speed cap
@@ -229,7 +231,7 @@ def _flying_rate(
     jmax = _JERK_FACTOR * settings.axis_jerk_max
     m1, m2, m3, dpds = _path_peaks(path, settings, grid)
     m2, m3 = np.maximum(m2, 1e-12), np.maximum(m3, 1e-15)
-    v = 0.9 * min(
+    v = _FLYING_SHARE * min(
         v_tcp / max(dpds, 1e-9),
         float(np.min(vmax / m1)),
         float(np.min(np.sqrt(amax / m2))),
