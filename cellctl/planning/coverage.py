@@ -667,7 +667,10 @@ def build_segments(
             n_link += 1
             prev = segments[-1]
             turn = None
-            if prev.is_sweep and settings.flying_turns and _FLY.get((prev.kind, kind), False):
+            # with a track the carriage would reverse at speed in every turnaround, at its
+            # acceleration limit: track plans keep the links at rest at both ends for now
+            fly = settings.flying_turns and settings.track is None
+            if prev.is_sweep and fly and _FLY.get((prev.kind, kind), False):
                 turn = _turnaround(
                     surface, f"link {n_link}", prev.pos_mm[-1], prev.R_base_sensor[-1],
                     _unit(prev.pos_mm[-1] - prev.pos_mm[-2]), pos[0], R[0], _unit(pos[1] - pos[0]),

@@ -32,7 +32,8 @@ class PlannerSettings:
     ``transit_speed_mm_s`` on links, edge passes (``edge_passes``, tilted ``edge_tilt_deg`` outward so
     the thickness face is lit), placement uncertainty (``placement_uncertainty_mm`` shift,
     ``placement_uncertainty_deg`` rotation), ``flying_turns`` (neighbouring raster passes joined by
-    a turnaround flown at speed outside the plate; off: a hump link, at rest at both ends),
+    a turnaround flown at speed outside the plate; off, and with a track: a hump link, at rest at
+    both ends),
     ``link_clearance_mm`` lift on links, ``approach_mm``
     along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
     Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
