@@ -8,10 +8,13 @@ wrist-singularity margin (|q5|), the joint jump between neighbours and the senso
 first violation refuses the plan with the pass, the point and the limit.
 
 With a linear track (``settings.track``) the planner first chooses the track's position at every
-waypoint (:func:`track_positions`): the carriage follows the sensor's along-rail coordinate, so the
-arm works at the same reach along the rail on every pass, where the waypoints' base-frame poses are
-those of the plate beside a fixed robot. The arm's joints are then solved in the base frame at that
-track position exactly as without a track; a segment's configurations are ``axes_mm_deg``.
+waypoint (:func:`track_positions`). When one carriage position lets the arm reach the whole plan
+the carriage holds there (``hold_mm``, :func:`hold_position_mm`: the plate's footprint centre abreast
+of the base, where a rail-less cell has the plate), and the plan is the rail-less cell's. Otherwise
+the carriage follows the sensor's along-rail coordinate, so the arm works at the same reach along
+the rail on every pass, where the waypoints' base-frame poses are those of the plate beside a fixed
+robot. The arm's joints are then solved in the base frame at those track positions exactly as
+without a track; a segment's configurations are ``axes_mm_deg``.
 """
 
 from __future__ import annotations
@@ -25,13 +28,16 @@ from cellctl.planning.settings import PlannerSettings
 from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics
 
 __all__ = [
+    "REACH_MM",
     "JointPathResult",
     "check_reach",
     "first_configuration",
+    "hold_position_mm",
     "in_base_frame",
     "sensor_kinematics",
     "solve_joint_path",
     "track_positions",
+    "wrist_distances_mm",
 ]
 
 #: IK must reach the pose this closely, or the point counts as unreachable
@@ -75,10 +81,25 @@ def sensor_kinematics(settings: PlannerSettings) -> RobotKinematics:
 TRACK_LEADS_MM = (0.0, -200.0, 200.0, -400.0, 400.0)
 
 
+def hold_position_mm(centre_world_mm: np.ndarray, settings: PlannerSettings) -> float | None:
+    """The carriage position that puts ``centre_world_mm`` (the plate's footprint centre, world
+    frame) abreast of the robot base, clipped to the usable travel; None without a track.
+
+    Held for a whole scan it gives the arm the plate where a rail-less cell has it (the track's
+    along-rail axis through the base), so a plate within the fixed arm's reach gets the same plan."""
+    track = settings.track
+    if track is None:
+        return None
+    along = float((np.asarray(centre_world_mm, dtype=np.float64) - track.origin_mm) @ track.direction)
+    return float(np.clip(along, track.travel_min_mm, track.travel_max_mm))
+
+
 def track_positions(
-    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0
+    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0, hold_mm: float | None = None
 ) -> list[np.ndarray] | None:
     """The track's position (n,) mm at every waypoint of every segment, or None without a track.
+
+    ``hold_mm`` (not None): the carriage holds that position for the whole plan.
 
     The carriage follows the sensor's along-rail coordinate ``a = (p - origin) . direction`` at one
     lead for the whole plan, ``s = a - lead``: the arm's reach along the rail is the same on every
@@ -91,6 +112,8 @@ def track_positions(
     track = settings.track
     if track is None:
         return None
+    if hold_mm is not None:
+        return [np.full(seg.pos_mm.shape[0], float(hold_mm)) for seg in segments]
     along = [(seg.pos_mm - track.origin_mm) @ track.direction for seg in segments]
     a = np.concatenate(along)
     lead_lo = float(a.max()) - track.travel_max_mm
@@ -100,12 +123,12 @@ def track_positions(
 
 
 def in_base_frame(
-    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0
+    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0, hold_mm: float | None = None
 ) -> tuple[list[Segment], list[np.ndarray] | None]:
     """The segments' sensor poses in the robot base frame at the chosen track positions (copies;
     the segments themselves stay in the world frame), and those track positions (None: no track,
     the segments are returned as they are)."""
-    s = track_positions(segments, settings, lead_mm)
+    s = track_positions(segments, settings, lead_mm, hold_mm)
     if s is None:
         return segments, None
     track = settings.track
@@ -170,31 +193,39 @@ def first_configuration(
 
 #: shoulder (joint 2 axis) offset and height, and the longest shoulder -> wrist-centre distance, mm
 _SHOULDER_X_MM, _SHOULDER_Z_MM = 175.0, 495.0
-_REACH_MM = 1095.0 + float(np.hypot(1270.0, 175.0))
+REACH_MM = 1095.0 + float(np.hypot(1270.0, 175.0))
 _WRIST_TO_FLANGE_MM = 135.0
+
+
+def wrist_distances_mm(segments: list[Segment], settings: PlannerSettings) -> list[np.ndarray]:
+    """Per segment, (n,) distances of the wrist centre from the shoulder (joint 2 axis), mm, for
+    base-frame sensor poses; the arm reaches no further than ``REACH_MM``.
+
+    The wrist centre sits 135 mm behind the flange along the flange's z axis."""
+    T_sensor_flange = np.linalg.inv(np.asarray(settings.T_flange_sensor, dtype=np.float64))
+    out = []
+    for seg in segments:
+        T = pose_matrix(seg.pos_mm, seg.R_base_sensor) @ T_sensor_flange
+        wrist = T[:, :3, 3] - _WRIST_TO_FLANGE_MM * T[:, :3, 2]
+        r_xy = np.hypot(wrist[:, 0], wrist[:, 1])
+        out.append(np.hypot(r_xy - _SHOULDER_X_MM, wrist[:, 2] - _SHOULDER_Z_MM))
+    return out
 
 
 def check_reach(segments: list[Segment], settings: PlannerSettings) -> None:
     """Refuse early, with the share of the sweeps in reach, when wrist centres lie beyond the arm.
 
-    The wrist centre sits 135 mm behind the flange along the flange's z axis; it must lie within
-    upper arm + forearm of the shoulder (joint 2 axis). This is a necessary condition only (IK
-    checks the rest), but it names the reason plainly for a plate too large for a rail-less cell.
+    The wrist centre must lie within upper arm + forearm of the shoulder (:func:`wrist_distances_mm`).
+    This is a necessary condition only (IK checks the rest), but it names the reason plainly for a
+    plate too large for a rail-less cell.
     """
-    T_sensor_flange = np.linalg.inv(np.asarray(settings.T_flange_sensor, dtype=np.float64))
-    dist_all = []
-    for seg in segments:
-        T = pose_matrix(seg.pos_mm, seg.R_base_sensor) @ T_sensor_flange
-        wrist = T[:, :3, 3] - _WRIST_TO_FLANGE_MM * T[:, :3, 2]
-        r_xy = np.hypot(wrist[:, 0], wrist[:, 1])
-        dist = np.hypot(r_xy - _SHOULDER_X_MM, wrist[:, 2] - _SHOULDER_Z_MM)
-        dist_all.append((seg, dist))
+    dist_all = list(zip(segments, wrist_distances_mm(segments, settings), strict=True))
     sweep_d = np.concatenate([d for seg, d in dist_all if seg.is_sweep] or [np.zeros(0)])
     for seg, dist in dist_all:
-        far = dist > _REACH_MM
+        far = dist > REACH_MM
         if far.any():
             i = int(np.argmax(far))
-            share = float(np.mean(sweep_d <= _REACH_MM)) if sweep_d.size else 0.0
+            share = float(np.mean(sweep_d <= REACH_MM)) if sweep_d.size else 0.0
             advice = (
                 "lay the plate closer to the track (the track carries the arm along it, not across)"
                 if settings.track is not None
@@ -202,10 +233,10 @@ def check_reach(segments: list[Segment], settings: PlannerSettings) -> None:
             )
             raise PlanRefused(
                 f"the wrist centre would be {dist[i]:.0f} mm from the shoulder, beyond the arm's "
-                f"{_REACH_MM:.0f} mm; {share:.0%} of the sweep waypoints are in reach: {advice}",
+                f"{REACH_MM:.0f} mm; {share:.0%} of the sweep waypoints are in reach: {advice}",
                 pass_label=seg.label,
                 point_index=i,
-                limit=f"reach {_REACH_MM:.0f} mm",
+                limit=f"reach {REACH_MM:.0f} mm",
                 pos_mm=seg.pos_mm[i],
             )
 
@@ -216,6 +247,7 @@ def solve_joint_path(
     kin: RobotKinematics | None = None,
     q_start_deg: np.ndarray | None = None,
     track_lead_mm: float = 0.0,
+    track_hold_mm: float | None = None,
 ) -> JointPathResult:
     """Fill ``segment.q_deg`` for every segment, in order, with continuity.
 
@@ -227,6 +259,8 @@ def solve_joint_path(
         q_start_deg: (6,) seed for the first waypoint; chosen from elbow-up seeds when None.
         track_lead_mm: with a track, the preferred along-rail offset of the sensor from the base
             (:func:`track_positions`).
+        track_hold_mm: with a track, hold the carriage at this position for the whole plan instead
+            (None: follow the passes).
 
     Raises:
         PlanRefused: a waypoint is unreachable, outside the joint margins, too close to the wrist
@@ -234,7 +268,7 @@ def solve_joint_path(
     """
     kin = kin or sensor_kinematics(settings)
     world_segments = segments
-    segments, track_mm = in_base_frame(world_segments, settings, track_lead_mm)
+    segments, track_mm = in_base_frame(world_segments, settings, track_lead_mm, track_hold_mm)
     check_reach(segments, settings)
     ws_lo, ws_hi = np.asarray(settings.workspace_min_mm), np.asarray(settings.workspace_max_mm)
     lo, hi = settings.q_min_deg, settings.q_max_deg
