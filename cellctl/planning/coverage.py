@@ -533,6 +533,7 @@ def build_segments(
     sign: float = 1.0,
     edge_tilts_deg: Mapping[str, float] | None = None,
     edge_reverse: bool = False,
+    raster_cache: dict | None = None,
 ) -> tuple[list[Segment], float]:
     """The ordered segments of a scan (base frame) and the placement margin used (mm).
 
@@ -544,6 +545,9 @@ def build_segments(
     does not depend on their tilts). The edge passes go round the plate the way whose first edge
     starts nearest the last raster pass's end; ``edge_reverse`` goes round the other way (the
     sensor's heading then turns the other way, and so do the wrist's joints 4 and 6).
+    ``raster_cache``: a dict the caller keeps across calls with the same surface and settings; the
+    raster passes (plate frame, which depend on neither the placement, the edge tilts nor the edge
+    order) are then computed once per ``sign``.
 
     Raises:
         PlanRefused: the line would leave the depth range somewhere.
@@ -561,10 +565,11 @@ def build_segments(
     first, last = lo_c - margin + w / 2, hi_c + margin - w / 2
     centres = np.array([0.5 * (lo_c + hi_c)]) if n_pass == 1 else np.linspace(first, last, n_pass)
 
-    sweeps: list[tuple[str, str, np.ndarray, np.ndarray]] = []  # (kind, label, pos, R) plate frame
+    # (kind, label, pos, R) plate frame; the raster passes from the caller's cache when it has them
+    sweeps: list[tuple[str, str, np.ndarray, np.ndarray]] = list((raster_cache or {}).get(sign, ()))
     # how far any plate point can move at a corner of the uncertainty box (shift in x and y at once)
     drift = _outline_drift_mm(surface, settings)
-    for i, c in enumerate(centres):
+    for i, c in enumerate(() if sweeps else centres):
         # the pass reaches as far as the plate does inside the strip it may see under the uncertainty,
         # never beyond the footprint's bounds plus the margin (a rectangle keeps its passes)
         reach = surface.reach_along(a2, c2, c - w / 2 - drift, c + w / 2 + drift)
@@ -580,6 +585,8 @@ def build_segments(
         label = f"scan {i + 1}"
         _check_depth(surface, label, pos, R, settings, margin)
         sweeps.append(("scan", label, pos, R))
+    if raster_cache is not None:
+        raster_cache.setdefault(sign, tuple(sweeps))
 
     if settings.edge_passes:
         edges = surface.outline_edges()

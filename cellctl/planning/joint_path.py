@@ -241,6 +241,17 @@ def check_reach(segments: list[Segment], settings: PlannerSettings) -> None:
             )
 
 
+def _same_waypoints(done: Segment, seg: Segment, track_mm: np.ndarray | None) -> bool:
+    """``done`` (solved) has the same waypoints as ``seg`` and, with a track, the same track positions."""
+    if done.q_deg is None or done.label != seg.label or done.pos_mm.shape != seg.pos_mm.shape:
+        return False
+    if not (
+        np.array_equal(done.pos_mm, seg.pos_mm) and np.array_equal(done.R_base_sensor, seg.R_base_sensor)
+    ):
+        return False
+    return track_mm is None or np.array_equal(done.q_deg[:, 0], track_mm)
+
+
 def solve_joint_path(
     segments: list[Segment],
     settings: PlannerSettings,
@@ -248,6 +259,7 @@ def solve_joint_path(
     q_start_deg: np.ndarray | None = None,
     track_lead_mm: float = 0.0,
     track_hold_mm: float | None = None,
+    solved: list[Segment] | None = None,
 ) -> JointPathResult:
     """Fill ``segment.q_deg`` for every segment, in order, with continuity.
 
@@ -261,6 +273,9 @@ def solve_joint_path(
             (:func:`track_positions`).
         track_hold_mm: with a track, hold the carriage at this position for the whole plan instead
             (None: follow the passes).
+        solved: the segments of an earlier attempt (another list): its leading segments with the same
+            waypoints and track positions as these keep their joints (the solve is deterministic),
+            and the solve goes on from there.
 
     Raises:
         PlanRefused: a waypoint is unreachable, outside the joint margins, too close to the wrist
@@ -274,7 +289,30 @@ def solve_joint_path(
     lo, hi = settings.q_min_deg, settings.q_max_deg
     q_prev: np.ndarray | None = None
     min_wrist, min_room, max_step, count = np.inf, np.inf, 0.0, 0
+    for seg in world_segments:
+        seg.q_deg = None  # a refused attempt leaves joints only on the segments it solved
+    reuse = 0
+    while solved is not None and reuse < min(len(solved), len(segments)):
+        if not _same_waypoints(
+            solved[reuse], world_segments[reuse], None if track_mm is None else track_mm[reuse]
+        ):
+            break
+        reuse += 1
     for k, seg in enumerate(segments):
+        if k < reuse:
+            q_all = solved[k].q_deg.copy()
+            q = q_all[:, -6:]
+            steps = np.abs(np.diff(q, axis=0) if q_prev is None else np.diff(np.vstack([q_prev, q]), axis=0))
+            max_step = max(max_step, float(steps.max(initial=0.0)))
+            min_wrist = min(min_wrist, float(np.abs(q[:, 4]).min()))
+            room = np.minimum(
+                q - np.asarray(settings.joint_lower_deg), np.asarray(settings.joint_upper_deg) - q
+            )
+            min_room = min(min_room, float(room.min()))
+            count += q.shape[0]
+            q_prev = q[-1]
+            world_segments[k].q_deg = q_all
+            continue
         out = np.zeros((seg.pos_mm.shape[0], 6))
         Ts = pose_matrix(seg.pos_mm, seg.R_base_sensor)
         outside = np.any((seg.pos_mm < ws_lo) | (seg.pos_mm > ws_hi), axis=1)

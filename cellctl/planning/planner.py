@@ -99,16 +99,21 @@ def _lower_edge_tilts(segments: list, settings: PlannerSettings, tilts: dict[str
 
 
 def _build(
-    surface, placement: Placement, settings: PlannerSettings, sign: float, *, edge_reverse: bool
+    surface,
+    placement: Placement,
+    settings: PlannerSettings,
+    sign: float,
+    *,
+    edge_reverse: bool,
+    raster_cache: dict,
 ) -> tuple[list, float, dict[str, float]]:
     """The segments (:func:`build_segments`), the margin, and the edge passes' tilts lowered to keep
     them in reach (by label; empty when none was)."""
     tilts: dict[str, float] = {}
-    segments, margin = build_segments(surface, placement, settings, sign=sign, edge_reverse=edge_reverse)
+    kwargs = {"sign": sign, "edge_reverse": edge_reverse, "raster_cache": raster_cache}
+    segments, margin = build_segments(surface, placement, settings, **kwargs)
     while _lower_edge_tilts(segments, settings, tilts):
-        segments, margin = build_segments(
-            surface, placement, settings, sign=sign, edge_tilts_deg=tilts, edge_reverse=edge_reverse
-        )
+        segments, margin = build_segments(surface, placement, settings, edge_tilts_deg=tilts, **kwargs)
     return segments, margin, tilts
 
 
@@ -169,8 +174,11 @@ def plan_scan(
     # (less roll on joints 4 and 6), and fall back to the other when the first is refused.
     t1 = time.perf_counter()
     built = []
+    raster_cache: dict = {}
     for sign in (1.0, -1.0):
-        segments, margin, tilts = _build(surface, placement, settings, sign, edge_reverse=False)
+        segments, margin, tilts = _build(
+            surface, placement, settings, sign, edge_reverse=False, raster_cache=raster_cache
+        )
         if sign > 0:
             # out of reach is out of reach either way round (the carriage following the passes
             # gives the arm the most room): say so before any inverse kinematics
@@ -218,10 +226,19 @@ def plan_scan(
                     continue
             # the wrist ran out of turns on joint 4 or 6 going round the edges: go round the other way
             if sign not in reversed_built:
-                reversed_built[sign] = (sign, *_build(surface, placement, settings, sign, edge_reverse=True))
+                reversed_built[sign] = (
+                    sign,
+                    *_build(surface, placement, settings, sign, edge_reverse=True, raster_cache=raster_cache),
+                )
             try:
+                # the raster passes are the same: their joints carry over from the attempt just refused
                 path = solve_joint_path(
-                    reversed_built[sign][1], settings, kin, track_lead_mm=lead, track_hold_mm=hold
+                    reversed_built[sign][1],
+                    settings,
+                    kin,
+                    track_lead_mm=lead,
+                    track_hold_mm=hold,
+                    solved=option[1],
                 )
                 _, segments, margin, edge_tilts = reversed_built[sign]
                 edge_reverse = True
