@@ -73,11 +73,11 @@ def check_plan_envelope(
 
 #: an edge pass whose wrist centres come nearer the arm's full stretch than this is tilted less
 EDGE_REACH_MARGIN_MM = 40.0
-#: its tilt is lowered in these steps, down to the least that still lights the thickness face (the
-#: laser meets the vertical face at 90 deg - tilt from its normal, inside the coverage prediction's
-#: 80 deg incidence limit from 10 deg; 15 deg keeps every face piece seen, see tests/motion/test_long_plate.py)
+#: its tilt is lowered in these steps, down to the least that still lights the thickness face
+#: (predict_edge_face_coverage on the sail: every face piece seen from 20 deg, none at 17.5 deg,
+#: where the rays reaching the face meet it beyond the 80 deg incidence limit; tests/motion/test_long_plate.py)
 EDGE_TILT_STEP_DEG = 5.0
-EDGE_TILT_MIN_DEG = 15.0
+EDGE_TILT_MIN_DEG = 20.0
 
 
 def _lower_edge_tilts(segments: list, settings: PlannerSettings, tilts: dict[str, float]) -> bool:
