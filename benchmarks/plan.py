@@ -60,7 +60,6 @@ def main() -> int:
         logger_factory=structlog.PrintLoggerFactory(sys.stderr),
     )
 
-    from analysis.placement import Placement
     from analysis.plates import design_mesh, plate_spec
     from cellctl.config import load_config
     from cellctl.planning import PlannerSettings, PlanRefused, plan_scan
