@@ -765,17 +765,23 @@ def predict_coverage(
     if total == 0:
         raise PlanInputError("design: no footprint cell lies over the surface")
 
+    # the depth along the view axis per unit of ray length, the same for every placement
+    depth_per_t = np.sum(dirs * zrep, axis=1)
+
     def fraction(pl: Placement) -> tuple[float, int]:
         T = placement_transform(pl)
         scene = _raycasting_scene(design.transformed(T))
         hit = scene.cast_rays(rays)
-        t = hit["t_hit"].numpy().astype(np.float64)
-        nrm = hit["primitive_normals"].numpy().astype(np.float64)
-        ok = np.isfinite(t)
-        depth = t * np.sum(dirs * zrep, axis=1)
-        cos_inc = np.abs(np.sum(nrm * dirs, axis=1))
-        ok &= (depth >= settings.depth_min_mm) & (depth <= settings.depth_max_mm) & (cos_inc >= cos_max)
-        p = origins[ok] + t[ok, None] * dirs[ok]
+        t_hit = hit["t_hit"].numpy()
+        # only the rays that hit are looked at (a 6 m plate casts millions of rays per placement)
+        idx = np.flatnonzero(np.isfinite(t_hit))
+        t = t_hit[idx].astype(np.float64)
+        nrm = hit["primitive_normals"].numpy()[idx].astype(np.float64)
+        d = dirs[idx]
+        depth = t * depth_per_t[idx]
+        cos_inc = np.abs(np.sum(nrm * d, axis=1))
+        ok = (depth >= settings.depth_min_mm) & (depth <= settings.depth_max_mm) & (cos_inc >= cos_max)
+        p = origins[idx[ok]] + t[ok, None] * d[ok]
         local = (p - T[:3, 3]) @ T[:3, :3]  # base -> plate frame
         ix = np.floor((local[:, 0] - surface.x_min_mm) / (surface.x_max_mm - surface.x_min_mm) * nx).astype(
             np.int64
