@@ -718,6 +718,15 @@ def _laser_fans(
     return np.repeat(pos, u.size, axis=0), dirs, np.repeat(z, u.size, axis=0), int(pos.shape[0])
 
 
+def _ray_tensor(origins: np.ndarray, dirs: np.ndarray) -> o3d.core.Tensor:
+    """(r, 6) float32 rays for open3d's ray casting (written straight into float32: no (r, 6)
+    float64 copy on the way; the values are those of ``np.hstack(...).astype(np.float32)``)."""
+    out = np.empty((origins.shape[0], 6), dtype=np.float32)
+    out[:, :3] = origins
+    out[:, 3:] = dirs
+    return o3d.core.Tensor(out)
+
+
 def _uncertainty_corners(placement: Placement, settings: PlannerSettings) -> list[Placement]:
     """The placement moved to the four corners of its uncertainty (shift and rotation)."""
     du, dd = settings.placement_uncertainty_mm, settings.placement_uncertainty_deg
@@ -752,7 +761,7 @@ def predict_coverage(
     uncertainty (shift and rotation) for ``worst_fraction``.
     """
     origins, dirs, zrep, n_profiles = _laser_fans(segments, settings)
-    rays = o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32))
+    rays = _ray_tensor(origins, dirs)
     cos_max = np.cos(np.deg2rad(settings.max_incidence_deg))
 
     cell = settings.coverage_cell_mm
@@ -868,7 +877,7 @@ def predict_edge_face_coverage(
     if not thickness_mm > 0:
         raise PlanInputError(f"thickness_mm: must be positive, got {thickness_mm!r}")
     origins, dirs, zrep, _ = _laser_fans(segments, settings)
-    rays = o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32))
+    rays = _ray_tensor(origins, dirs)
     cos_max = np.cos(np.deg2rad(settings.max_incidence_deg))
     faces, owner = _edge_face_mesh(surface, thickness_mm, settings.coverage_cell_mm)
     n_top = design.triangles.shape[0]
