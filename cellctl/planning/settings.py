@@ -33,9 +33,8 @@ class PlannerSettings:
     the thickness face is lit), ``sweep_pitch_deg`` (the sensor leaning along every pass, about its
     laser line, keeping the wrist clear of its singularity), placement uncertainty (``placement_uncertainty_mm`` shift,
     ``placement_uncertainty_deg`` rotation), ``flying_turns`` (neighbouring raster passes joined by
-    a turnaround flown at speed outside the plate; off: a hump link, at rest at both ends; with the
-    carriage moving, the turnaround is timed at rest at both ends), ``link_clearance_mm`` lift on
-    links, ``approach_mm``
+    a turnaround flown at speed outside the plate; off: a hump link, at rest at both ends),
+    ``link_clearance_mm`` lift on links, ``approach_mm``
     along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
     Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
     sensor origin, ``T_flange_sensor`` (4, 4) mm, ``wrist_margin_deg`` (min |q5|),

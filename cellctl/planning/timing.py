@@ -281,19 +281,12 @@ def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float
     return t, q, qd, qdd, float(optimal.duration)
 
 
-def _chains(segments: list[Segment], track: LinearTrack | None = None) -> list[list[int]]:
-    """Runs of segment indices timed as one path: a flying turnaround joins the segments either side.
-
-    With a track whose carriage moves along the turnaround (it follows the passes), the carriage
-    would reverse at speed at its acceleration limit: such a turnaround is timed at rest at both
-    ends like any link (a held carriage flies it as a fixed base does)."""
-
-    def flies(seg: Segment) -> bool:
-        return seg.flying and (track is None or float(np.ptp(seg.q_deg[:, 0])) < 1e-6)
-
+def _chains(segments: list[Segment]) -> list[list[int]]:
+    """Runs of segment indices timed as one path: a flying turnaround joins the segments either side
+    (with a track, its carriage is one more axis under its speed, acceleration and jerk limits)."""
     chains: list[list[int]] = [[0]]
     for k in range(1, len(segments)):
-        if flies(segments[k]) or flies(segments[k - 1]):
+        if segments[k].flying or segments[k - 1].flying:
             chains[-1].append(k)
         else:
             chains.append([k])
@@ -433,7 +426,7 @@ def time_segments(segments: list[Segment], settings: PlannerSettings, *, dt_s: f
         if seg.q_deg is None:
             raise PlanRefused("the segment has no joint path", pass_label=seg.label)
     timed: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-    for chain in _chains(segments, settings.track):
+    for chain in _chains(segments):
         segs = [segments[k] for k in chain]
         speeds = [v_scan if seg.is_sweep else max(v_transit, v_scan) for seg in segs]
         if len(segs) == 1:
