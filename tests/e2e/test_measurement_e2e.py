@@ -1,63 +1,80 @@
 """The measurement end to end: a full-process job (sim, daemon, worker through Zenoh on loopback) on
-the simulated plate with its known forming error, its figures compared with ``sim-truth.json``.
+the simulated plate with its known forming error, its figures compared with ``sim-truth.json``; and
+the worker that did it shares none of the daemon's files.
 
 Its own cell: the shared one of test_cell_e2e.py runs a plate without forming error (its half-turn
 case needs one that a half turn maps onto itself), against which a measurement proves nothing. One
-scan (about a minute of CI) serves both cases here.
+scan (about 45 s of CI) serves every case here: its worker runs in a mount namespace of its own with
+the daemon's directory hidden (the design comes by hash over Zenoh, the results go back over
+Zenoh), and the daemon renders HTML and PDF from its own copy. The cases on the figures read the
+results the daemon stored, which is what any worker's results become.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cellctl.api import Keys, TriggerAccepted, call
-from cellctl.api.session import close_session
-from cellctl.commands.demo_cmd import DEMO_DESIGN
-from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
-from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
+from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_html_report
+from cellctl.config import load_config
+from tests.support.e2e_cell import Cell, tiny_cell_config, trigger_demo_plate
+from tests.support.isolated import hidden_mounts_command, start_hidden
 from tests.support.truth_check import TruthDeviation
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 
 @pytest.fixture(scope="module")
-def cell(tmp_path_factory):
+def worker_dir(tmp_path_factory) -> Path:
+    """The worker's own directory: its cell.toml and data directory, nothing of the daemon's."""
+    return tmp_path_factory.mktemp("worker")
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory, worker_dir: Path):
+    """The cell (sim, daemon rendering HTML and PDF) and its only worker, "far", which sees none of
+    the daemon's files."""
     out = tmp_path_factory.mktemp("measured")
+    wdir = worker_dir
     c = Cell(out, tiny_cell_config(out))  # the default forming error: a dent, a bump, spring-back
-    c.start()
+    c.procs.env["CELL_DAEMON__WRITE_HTML_REPORT"] = "true"
+    # the worker's own cell.toml, in its own directory: its data dir is relative to its cwd
+    wcfg = load_config(c.config_path).model_dump(mode="json")
+    wcfg["worker"]["data_dir"] = "own-data"
+    (wdir / "cell.toml").write_text(to_toml(wcfg), encoding="utf-8")
+    worker = None
+    c.start(worker=False)
     try:
+        worker = start_hidden(
+            "worker", [out], wdir, ["worker", "--config", "cell.toml", "--worker-id", "far"], c.procs.env,
+            wdir / "logs",
+        )  # fmt: skip
         yield c
     finally:
+        if worker is not None:
+            worker.terminate()
+            try:
+                worker.wait(30)
+            except subprocess.TimeoutExpired:
+                worker.kill()
+                worker.wait()
         codes = c.stop()
         assert all(code == 0 for code in codes.values()), (codes, (out / "logs").as_posix())
 
 
 @pytest.fixture(scope="module")
 def scanned(cell: Cell):
-    """One job on the plate: its id, final state and message."""
-    pl = cell.cfg.sim.placement
-    req = {"plate_id": "measured", "design": DEMO_DESIGN,
-           "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]}}  # fmt: skip
-
-    async def go():
-        session = await open_client(cell.cfg)
-        keys = Keys(cell.cfg.key_prefix)
-        follower = StatusFollower(session, keys)
-        try:
-            await wait_status(follower, lambda s: s.state.value == "idle" and s.workers)
-            acc = await call(session, keys.trigger, json.dumps(req), TriggerAccepted)
-            state, message, _ = await wait_for_job(follower, acc.job_id, 240.0)
-            return acc.job_id, state, message
-        finally:
-            follower.close()
-            await asyncio.to_thread(close_session, session)
-
-    return asyncio.run(go())
+    """One job on the plate: its id, final state and message, and the HTML report the daemon
+    rendered after it (None if none within 300 s; waited for here, so that the cell never stops
+    in the middle of the render)."""
+    acc, (state, message, _report) = asyncio.run(trigger_demo_plate(cell.cfg, "measured"))
+    html = wait_html_report(Path(cell.cfg.cell.data_dir), acc.job_id, 300.0) if state == "done" else None
+    return acc.job_id, state, message, html
 
 
 def _truth(cell: Cell, job_dir: Path, report: dict) -> TruthDeviation:
@@ -81,7 +98,7 @@ def test_the_reported_deviations_are_the_forming_error_the_simulator_put_in(cell
     """The measurement end to end: per-line Zmax, the deviation along each line and the deviation
     field of the job's results equal what the simulated plate's known forming error gives
     (``sim-truth.json``) on the same lines, for the registration the analysis reported."""
-    job_id, state, message = scanned
+    job_id, state, message, _ = scanned
     assert state == "done", message
     job_dir = cell.jobs_dir / job_id
     report = json.loads((job_dir / "report.json").read_text())
@@ -122,7 +139,7 @@ def test_the_reported_deviations_are_the_forming_error_the_simulator_put_in(cell
 def test_the_registered_design_lies_where_the_true_plate_lies(cell: Cell, scanned):
     """The registration against the truth: the design, registered onto the cloud, sits where the
     simulator put the plate (``T_base_plate`` in sim-truth.json)."""
-    job_id, state, message = scanned
+    job_id, state, message, _ = scanned
     assert state == "done", message
     job_dir = cell.jobs_dir / job_id
     report = json.loads((job_dir / "report.json").read_text())
@@ -133,3 +150,34 @@ def test_the_registered_design_lies_where_the_true_plate_lies(cell: Cell, scanne
     moved = (truth.M @ corners.T)[:3] - corners.T[:3]
     assert np.hypot(moved[0], moved[1]).max() < REGISTRATION_INPLANE_TOL_MM, moved
     assert np.abs(moved[2]).max() < REGISTRATION_HEIGHT_TOL_MM, moved
+
+
+def test_a_worker_that_sees_none_of_the_daemons_files_completes_a_job_rendered_at_the_daemon(
+    cell: Cell, worker_dir: Path, scanned
+):
+    """The worker's namespace hides the daemon's directory: the design came by hash over Zenoh, the
+    results went back over Zenoh into the daemon's results directory, and the daemon rendered HTML
+    and PDF from its own copy."""
+    wdir = worker_dir
+    design = Path(cell.cfg.cell.designs_dir) / DEMO_DESIGN
+    # the premise: in the worker's namespace the design (and all of the daemon's data) is unreachable
+    probe = subprocess.run(hidden_mounts_command([cell.out], wdir, ["test", "-e", str(design)]), check=False)
+    assert design.exists() and probe.returncode == 1
+    job_id, state, message, html = scanned
+    assert state == "done", message
+    results = cell.jobs_dir / job_id / "results"
+    rec = cell.job_record(job_id)
+    assert rec["info"]["worker_id"] == "far"
+    # everything the job keeps came over Zenoh into the daemon's results directory
+    for name in ("report.json", "report.csv", "results.npz", "cloud.ply"):
+        assert (results / name).stat().st_size > 0, name
+    assert json.loads((results / "report.json").read_text())["job_id"] == job_id
+    assert rec["info"]["results_bytes"] >= sum(
+        (results / n).stat().st_size for n in ("results.npz", "cloud.ply")
+    )
+    assert html is not None and Path(html).stat().st_size > 0
+    assert (results / "report.pdf").stat().st_size > 0
+    # the worker cached the design by its hash in its own directory, and kept no results
+    cached = list((wdir / "own-data" / "designs").glob(f"*/{DEMO_DESIGN}"))
+    assert len(cached) == 1 and cached[0].read_bytes() == design.read_bytes()
+    assert not any((wdir / "own-data" / "jobs").iterdir())
