@@ -4,7 +4,7 @@ worker that did it shares none of the daemon's files; and the job leaks no secre
 
 Its own cell: the shared one of test_cell_e2e.py runs a plate without forming error (its half-turn
 case needs one that a half turn maps onto itself), against which a measurement proves nothing. One
-scan (about 45 s of CI) serves every case here:
+scan (about a minute of CI) serves every case here:
 
 * its only worker runs in a mount namespace of its own with the daemon's directory hidden (the
   design comes by hash over Zenoh, the results go back over Zenoh), and the daemon renders HTML and
@@ -76,7 +76,9 @@ def cell(tmp_path_factory, worker_dir: Path, secrets_env: dict[str, str]):
     """The cell (sim, daemon rendering HTML and PDF, access control on) and its only worker, "far",
     which sees none of the daemon's files."""
     out = tmp_path_factory.mktemp("measured")
-    c = Cell(out, tiny_cell_config(out))  # the default forming error: a dent, a bump, spring-back
+    # the default forming error (a dent, a bump, spring-back); the arm starts at cell.toml's home,
+    # 1.6 m up: of the tiny cells, this one's first job makes the long approach to the plan's start
+    c = Cell(out, tiny_cell_config(out, parked=False))
     c.procs.env.update(secrets_env)
     c.procs.env["CELL_DAEMON__WRITE_HTML_REPORT"] = "true"
     # the worker's own cell.toml, in its own directory: its data dir is relative to its cwd
