@@ -91,17 +91,14 @@ class Cell:
         env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
         self.procs = Processes(out / "logs", config, env)
 
-    def start(self, *, sim: bool = True, run: bool = True, worker: bool = True) -> dict[str, Any]:
-        """Start the processes at once, then wait for the simulator's ready line (returned; {} without
-        ``sim``). Nothing waits for the simulator: the daemon listens for EGM and reaches RWS and the
-        sensor per job, the worker retries the daemon; so their start-ups (seconds of imports each)
-        overlap the simulator's instead of following it."""
-        p = self.procs.start("sim", "sim") if sim else None
+    def start(self, *, sim: bool = True, run: bool = True, worker: bool = True) -> None:
+        if sim:
+            p = self.procs.start("sim", "sim")
+            wait_ready_line(self.out / "logs" / "sim.out", p, 120.0)
         if run:
             self.procs.start("run", "run")
         if worker:
             self.procs.start("worker", "worker")
-        return {} if p is None else wait_ready_line(self.out / "logs" / "sim.out", p, 300.0)
 
     def proc(self, name: str):
         return next(p for n, p in self.procs.procs if n == name)

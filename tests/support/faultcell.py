@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from cellctl.api import ApiCallError, CellStatus, Keys, TriggerAccepted, call
-from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml
+from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_ready_line
 from cellctl.config import load_config
 from cellctl.simcell.faults import FaultState, open_fault_session, send_faults
 from tests.support.e2e_cell import REPO, Cell, open_client, tiny_cell_config, wait_status
@@ -122,15 +122,18 @@ class FaultCell(Cell):
             cell.start(worker=worker)
         return cell
 
-    def start(self, *, sim: bool = True, run: bool = True, worker: bool = True) -> dict[str, Any]:
-        ready = super().start(sim=sim, run=run, worker=worker)
+    def start(self, *, sim: bool = True, run: bool = True, worker: bool = True) -> None:
         if sim:
-            self.ready = ready
+            p = self.procs.start("sim", "sim")
+            self.ready = wait_ready_line(self.out / "logs" / "sim.out", p, 300.0)
             if not self.ready.get("fault_control"):
                 raise RuntimeError(
                     f"the simulator serves no fault channel; see {self.out / 'logs' / 'sim.log'}"
                 )
-        return ready
+        if run:
+            self.procs.start("run", "run")
+        if worker:
+            self.procs.start("worker", "worker")
 
     def start_process(self, name: str) -> None:
         """(Re)start one of ``run`` / ``worker`` (``sim`` too, waiting for its ready line)."""
