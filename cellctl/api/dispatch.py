@@ -608,7 +608,7 @@ class Dispatcher:
                     await asyncio.to_thread(
                         put,
                         self.keys.worker_stream_end(worker_id, job.job_id, attempt),
-                        end.to_json().encode(),
+                        end.to_json(),
                     )
                     log.info(
                         "stream_sent", job_id=job.job_id, worker_id=worker_id, attempt=attempt, chunks=sent
@@ -621,7 +621,10 @@ class Dispatcher:
             log.warning("stream_send_failed", job_id=job.job_id, worker_id=worker_id, error=str(exc))
             if job.worker_id == worker_id and job.attempt == attempt:
                 st.pump = None
-                self._requeue(job, f"stream send failed: {exc}", count=True)
+                self._cancel_on(worker_id, job.job_id)  # it holds the attempt: free it for the retry
+                self._requeue(
+                    job, f"stream send failed: {exc}", count=True, backoff_s=self.settings.busy_backoff_s
+                )
 
     async def _on_job_cloud(self, query: zenoh.Query) -> None:
         job_id = str(query.key_expr).rsplit("/", 2)[-2]
