@@ -65,7 +65,7 @@ from analysis.register import (
 )
 from analysis.report import write_csv
 from analysis.rest_surface import RestSurface, rest_surface
-from analysis.segment import SegmentResult, segment_plate
+from analysis.segment import PassCells, SegmentResult, pass_cells, segment_plate
 from analysis.settings import TEMPLATE_FITS, InspectionSettings
 from analysis.template_fit import (
     LineFitResult,
@@ -329,7 +329,7 @@ def inspect_cloud(
     cell_id: str = "",
     inputs: dict[str, Any] | None = None,
     nominal_placement: Placement | None = None,
-    segment: SegmentResult | None = None,
+    passes: dict[int, PassCells] | None = None,
 ) -> Inspection:
     """Inspect one scanned plate against its design; see the module docstring for the stages.
 
@@ -343,8 +343,8 @@ def inspect_cloud(
     the exact surface. ``settings.design_side`` ``moulded_down``: the plate lies turned over, the
     design is offset by ``settings.thickness_mm`` first (:func:`analysis.moulded.design_as_laid`).
     Or a :class:`PreparedDesign` made beforehand for these settings (a streamed cloud: the design's
-    part was done during the scan). segment: the cloud's segmentation when already made
-    (:class:`CloudStream`), else it is made here.
+    part was done during the scan). passes: the cells of the passes already segmented
+    (:func:`analysis.segment.pass_cells`, by pass id; :class:`CloudStream`).
     """
     settings = settings or InspectionSettings()
     timings: dict[str, float] = {}
@@ -359,7 +359,7 @@ def inspect_cloud(
     with ThreadPoolExecutor(1, thread_name_prefix="design-field") as pool:
         prepared = design if isinstance(design, PreparedDesign) else prepare_design(design, settings, pool)
         lap("design")
-        seg = segment if segment is not None else segment_plate(cloud)
+        seg = segment_plate(cloud, passes=passes)
         lap("segment")
         bnd = find_corners(seg.points_mm)
         lap("boundary")
@@ -616,11 +616,11 @@ def _read_job_design(job: AnalysisJob) -> TriMesh | CadDesign:
 
 
 def _inspect_job(cloud: ScanCloud, design: TriMesh | CadDesign | PreparedDesign, job: AnalysisJob,
-                 segment: SegmentResult | None = None) -> dict[str, Any]:  # fmt: skip
+                 passes: dict[int, PassCells] | None = None) -> dict[str, Any]:  # fmt: skip
     ins = inspect_cloud(
         cloud, design, job.settings, nominal_placement=job.placement,
         plate_id=job.plate_id, job_id=job.job_id, cell_id=job.cell_id,
-        inputs={"design": job.design, "placement_found": job.placement_found}, segment=segment,
+        inputs={"design": job.design, "placement_found": job.placement_found}, passes=passes,
     )  # fmt: skip
     if job.out_dir:
         write_results(ins, job.out_dir)
@@ -659,24 +659,46 @@ class CloudStream:
     done as the chunks arrive, :meth:`finish` runs the rest.
 
     At the start the design is read, framed and rasterised (on a second thread); :meth:`add` takes
-    the chunks in order. :meth:`finish` concatenates them -- the cloud the daemon would have sent
-    whole, point for point -- and runs :func:`inspect_cloud` with the prepared design, so the figures
-    are the whole-cloud analysis' (the same functions on the same arrays)."""
+    the chunks in order and segments each pass they complete into cells and regions
+    (:func:`analysis.segment.pass_cells`; pass 0, which files the transit of the whole scan, waits
+    for the end, and a pass seen again in a later chunk is made again at the end). :meth:`finish`
+    concatenates the chunks -- the cloud the daemon would have sent whole, point for point -- and
+    runs :func:`inspect_cloud` with the prepared design and those cells: the same functions on the
+    same arrays as the whole-cloud analysis, so the figures are its figures."""
 
     def __init__(self, job: AnalysisJob) -> None:
         self.job = job
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="design-field")
         self.prepared = prepare_design(_read_job_design(job), job.settings, self._pool)
         self._chunks: list[ScanCloud] = []
-        self.timings_s: dict[str, float] = {}
+        self._cells: dict[int, PassCells | None] = {}
+        self._seen: set[int] = set()
+        self._points = 0
+        self.timings_s: dict[str, float] = {"pass_cells": 0.0}
 
     def add(self, chunk: ScanCloud) -> None:
-        """The next chunk of the cloud (in order)."""
+        """The next chunk of the cloud (in order); the passes in it segmented into cells."""
+        t0 = time.perf_counter()
         self._chunks.append(chunk)
+        offset, self._points = self._points, self._points + len(chunk)
+        if chunk.organised and len(chunk):
+            pid = chunk.pass_id
+            for k in np.unique(pid).tolist():
+                if k in self._seen:  # a pass across chunks: its cells are made from the whole cloud
+                    self._cells.pop(k, None)
+                    continue
+                self._seen.add(k)
+                if k == 0:
+                    continue  # the transit of the whole scan is filed under pass 0
+                local = np.nonzero(pid == k)[0]
+                self._cells[k] = pass_cells(
+                    chunk.xyz_mm[local], chunk.profile_index[local], chunk.point_index[local], local + offset
+                )
+        self.timings_s["pass_cells"] += round(time.perf_counter() - t0, 4)
 
     @property
     def points(self) -> int:
-        return sum(len(c) for c in self._chunks)
+        return self._points
 
     def finish(self) -> dict[str, Any]:
         """The report of the whole cloud (and the results directory with ``job.out_dir``)."""
@@ -686,13 +708,15 @@ class CloudStream:
             self._chunks = []
             self.prepared.height_field()  # raises the rasterisation's error, if any
             self.timings_s["concat"] = round(time.perf_counter() - t0, 4)
-            return _inspect_job(cloud, self.prepared, self.job)
+            cells = {k: c for k, c in self._cells.items() if c is not None}
+            return _inspect_job(cloud, self.prepared, self.job, cells)
         finally:
             self.close()
 
     def close(self) -> None:
         """Drop the chunks and stop the design thread (a cancelled stream)."""
         self._chunks = []
+        self._cells = {}
         self._pool.shutdown(wait=False, cancel_futures=True)
 
 

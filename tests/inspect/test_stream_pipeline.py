@@ -10,6 +10,7 @@ from analysis.job import AnalysisJob
 from analysis.mesh import save_mesh
 from analysis.pipeline import CloudStream, InspectionError, analyse_job, concat_clouds
 from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
+from analysis.segment import pass_cells, segment_plate
 from analysis.settings import InspectionSettings
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
@@ -48,6 +49,8 @@ def test_the_streamed_analysis_gives_every_line_the_whole_cloud_figures(plate) -
     stream = CloudStream(job)
     for c in chunks:
         stream.add(c)
+    made = sorted(k for k, c in stream._cells.items() if c is not None)
+    assert made == sorted({int(c.pass_id[0]) for c in chunks} - {0}), made  # every pass but 0, before the end
     streamed = stream.finish()
     whole = analyse_job(concat_clouds(chunks), job)
     assert streamed["verdict"] == whole["verdict"]
@@ -85,3 +88,19 @@ def test_a_design_that_cannot_be_read_fails_when_the_stream_opens(tmp_path) -> N
     bad.write_text("not a mesh")
     with pytest.raises(InspectionError):
         CloudStream(AnalysisJob(job_id="J2", design=str(bad)))
+
+
+def test_passes_segmented_one_by_one_select_the_whole_cloud_segmentation(plate) -> None:
+    cloud, _ = plate
+    chunks = _pass_chunks(cloud)
+    cat = concat_clouds(chunks)
+    cells, offset = {}, 0
+    for c in chunks:
+        k = int(c.pass_id[0])
+        cells[k] = pass_cells(c.xyz_mm, c.profile_index, c.point_index, np.arange(len(c)) + offset)
+        offset += len(c)
+    whole = segment_plate(cat)
+    streamed = segment_plate(cat, passes=cells)
+    np.testing.assert_array_equal(streamed.mask, whole.mask)
+    assert streamed.noise_sigma_mm == whole.noise_sigma_mm
+    assert streamed.plate_area_mm2 == pytest.approx(whole.plate_area_mm2, rel=1e-9)
