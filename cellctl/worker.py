@@ -506,6 +506,7 @@ class Worker:
         self._current: JobSpec | None = None
         self._current_cell: str | None = None
         self._stream: _StreamInbox | None = None
+        self._restarting: asyncio.Task[None] | None = None
         self._served: dict[str, Keys] = {}
         self._entities: list[Any] = []
         # cells whose offer was turned down while busy (prefix -> when first), and since when idle
@@ -628,6 +629,26 @@ class Worker:
             and self._current.attempt == spec.attempt
         ):
             return  # the same offer again
+        cur, task = self._current, self._task
+        if (
+            cur is not None
+            and cur.stream
+            and cur.job_id == spec.job_id
+            and spec.attempt > cur.attempt
+            and task
+        ):
+            # The dispatcher took this streamed job back (a link cut, its cancel lost) and offers it
+            # again: the old attempt's stream will never end, so it makes way for the new one.
+            log.info("job_superseded", job_id=spec.job_id, attempt=cur.attempt, by_attempt=spec.attempt)
+            task.cancel()
+
+            async def take_over() -> None:
+                with contextlib.suppress(BaseException):
+                    await task
+                self._on_job(keys, sample)
+
+            asyncio.get_running_loop().create_task(take_over())
+            return
         why = self._turn_down(keys, spec)
         if why is not None:
             log.info("job_turned_down", job_id=spec.job_id, cell=keys.prefix, reason=why)
@@ -733,6 +754,11 @@ class Worker:
 
     def _on_cancel(self, sample: zenoh.Sample) -> None:
         job_id = Keys.last_chunk(str(sample.key_expr))
+        said = sample.payload.to_bytes().decode(errors="replace").strip()
+        attempt = int(said) if said.isdigit() else None  # empty: whichever attempt is held
+        if attempt is not None and self._current is not None and attempt < self._current.attempt:
+            log.info("job_cancel_ignored", job_id=job_id, attempt=attempt, holding=self._current.attempt)
+            return
         if self._current is not None and self._current.job_id == job_id and self._task is not None:
             log.info("job_cancelled", job_id=job_id)
             self._task.cancel()
@@ -748,6 +774,9 @@ class Worker:
         t0 = time.perf_counter()
         out_dir: Path | None = None
         try:
+            if self._restarting is not None and not self._restarting.done():
+                with contextlib.suppress(Exception):
+                    await asyncio.shield(self._restarting)  # the analysis child of the previous job
             cloud = await asyncio.to_thread(sample.payload.to_bytes)
             del sample
             job = spec.job
@@ -887,6 +916,13 @@ class Worker:
         return manifest
 
     async def _restart_runner(self) -> None:
+        # A task of its own, shielded: a second cancellation of the job (its cancel message after
+        # a take-over) must not leave a child half started whose hello the next job would read.
+        if self._restarting is None or self._restarting.done():
+            self._restarting = asyncio.get_running_loop().create_task(self._restart())
+        await asyncio.shield(self._restarting)
+
+    async def _restart(self) -> None:
         await asyncio.to_thread(self.runner.kill)  # kill() joins the child: not on the loop
         try:
             await self.runner.start()

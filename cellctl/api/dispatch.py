@@ -265,9 +265,16 @@ class Dispatcher:
         if job is None:
             return
         if job.worker_id is not None:
-            self._cancel_on(job.worker_id, job_id)
+            self._cancel_on(job.worker_id, job_id, job.attempt)
         self._release(job)
-        self._fail(job, reason)
+        self._jobs.pop(job_id, None)
+        self.collector.forget(job_id)
+        with contextlib.suppress(ValueError):
+            self._queue.remove(job_id)
+        log.info("job_abandoned", job_id=job_id, reason=reason)
+        if not job.future.done():
+            job.future.set_exception(JobFailed(job_id, reason))
+        self._pump()
 
     def _stream(self, job_id: str) -> _Stream:
         job = self._jobs.get(job_id)
@@ -436,9 +443,12 @@ class Dispatcher:
         if not job.future.done():
             job.future.set_exception(JobFailed(job.job_id, reason))
 
-    def _cancel_on(self, worker_id: str, job_id: str) -> None:
+    def _cancel_on(self, worker_id: str, job_id: str, attempt: int | None = None) -> None:
+        # the payload names the attempt taken back: a late cancel must not stop a newer attempt
         with contextlib.suppress(Exception):
-            self.session.put(self.keys.worker_cancel(worker_id, job_id), b"")
+            self.session.put(
+                self.keys.worker_cancel(worker_id, job_id), b"" if attempt is None else str(attempt)
+            )
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         worker_id = Keys.last_chunk(str(sample.key_expr))
@@ -621,7 +631,7 @@ class Dispatcher:
             log.warning("stream_send_failed", job_id=job.job_id, worker_id=worker_id, error=str(exc))
             if job.worker_id == worker_id and job.attempt == attempt:
                 st.pump = None
-                self._cancel_on(worker_id, job.job_id)  # it holds the attempt: free it for the retry
+                self._cancel_on(worker_id, job.job_id, attempt)  # it holds the attempt: free it for the retry
                 self._requeue(
                     job, f"stream send failed: {exc}", count=True, backoff_s=self.settings.busy_backoff_s
                 )
@@ -674,7 +684,7 @@ class Dispatcher:
                 elif s.job_timeout_s is not None and now - self._attempt_start(job) > s.job_timeout_s:
                     reason = f"attempt took longer than {s.job_timeout_s} s"
                 if reason:
-                    self._cancel_on(job.worker_id, job.job_id)
+                    self._cancel_on(job.worker_id, job.job_id, job.attempt)
                     # The worker is suspect: give it time to recover before it gets work again.
                     self._requeue(job, reason, backoff_s=max(s.ack_timeout_s, s.heartbeat_timeout_s))
             self._pump()
