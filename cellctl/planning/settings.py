@@ -30,7 +30,8 @@ class PlannerSettings:
     Scan: ``standoff_mm`` along the surface normal, ``overlap_fraction`` between neighbouring
     passes, ``speed_mm_s`` (None: as fast as the sensor rate allows at ``profile_spacing_mm``),
     ``transit_speed_mm_s`` on links, edge passes (``edge_passes``, tilted ``edge_tilt_deg`` outward so
-    the thickness face is lit), placement uncertainty (``placement_uncertainty_mm`` shift,
+    the thickness face is lit), ``sweep_pitch_deg`` (the sensor leaning along every pass, about its
+    laser line, keeping the wrist clear of its singularity), placement uncertainty (``placement_uncertainty_mm`` shift,
     ``placement_uncertainty_deg`` rotation), ``link_clearance_mm`` lift on links, ``approach_mm``
     along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
     Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
@@ -38,6 +39,8 @@ class PlannerSettings:
     ``max_waypoint_joint_step_deg`` (a larger jump between neighbouring waypoints is a flip).
     Track: ``track`` (usable travel, speed and acceleration limits, frame in the world) or None
     for a fixed base; with one, configurations are ``axes_mm_deg`` (track mm, then six joints).
+    ``track_hold``: hold the carriage at one position when the arm reaches the whole plan from there
+    (False: the carriage always follows the passes).
     Coverage prediction: ``coverage_cell_mm``, ``coverage_profile_step_mm``, ``coverage_rays``,
     ``max_incidence_deg``.
     """
@@ -53,6 +56,7 @@ class PlannerSettings:
     transit_speed_mm_s: float = 250.0
     edge_passes: bool = True
     edge_tilt_deg: float = 30.0
+    sweep_pitch_deg: float = 0.0
     placement_uncertainty_mm: float = 30.0
     placement_uncertainty_deg: float = 2.0
     link_clearance_mm: float = 30.0
@@ -75,10 +79,11 @@ class PlannerSettings:
     coverage_rays: int = 21
     max_incidence_deg: float = 80.0
     track: LinearTrack | None = None
+    track_hold: bool = True
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            if f.name == "track":  # validated by LinearTrack itself
+            if f.name in ("track", "track_hold"):  # validated by LinearTrack itself / a bool
                 continue
             v = getattr(self, f.name)
             arr = np.asarray(v, dtype=np.float64) if f.name != "speed_mm_s" or v is not None else None
@@ -116,6 +121,10 @@ class PlannerSettings:
             )
         if not 0 <= self.edge_tilt_deg < 80:
             raise PlanInputError(f"settings.edge_tilt_deg: must be in [0, 80), got {self.edge_tilt_deg!r}")
+        if not 0 <= self.sweep_pitch_deg < 45:
+            raise PlanInputError(
+                f"settings.sweep_pitch_deg: must be in [0, 45), got {self.sweep_pitch_deg!r}"
+            )
         if self.placement_uncertainty_mm < 0 or not 0 <= self.placement_uncertainty_deg < 45:
             raise PlanInputError("settings.placement_uncertainty_mm/_deg: must be >= 0 (and deg < 45)")
         if self.coverage_rays < 2:
@@ -208,7 +217,9 @@ class PlannerSettings:
             T_flange_sensor=T_from_pos_rpy(r.sensor_in_flange.pos_mm, r.sensor_in_flange.rpy_deg),
             wrist_margin_deg=r.wrist_margin_deg,
             edge_tilt_deg=s.edge_tilt_deg,
+            sweep_pitch_deg=s.sweep_pitch_deg,
             link_clearance_mm=s.link_clearance_mm,
             approach_mm=s.approach_mm,
             track=None if r.track is None else r.track.linear_track(),
+            track_hold=True if r.track is None else r.track.hold,
         )
