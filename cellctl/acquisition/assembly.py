@@ -238,13 +238,14 @@ class AssembledScan:
             "t_ns": self.t_ns[r],
         }
 
-    def cloud_arrays(self, column_step: int | np.ndarray = 1) -> dict[str, np.ndarray]:
+    def cloud_arrays(self, column_step: int | np.ndarray = 1, t0_ns: int | None = None) -> dict[str, np.ndarray]:
         """The valid points (thinned as in :meth:`points`) in the cloud vocabulary of
         :mod:`analysis.cloud_io`: ``xyz_mm`` float32, ``pass_id`` with transit filed under pass 0,
-        ``profile_index``, ``point_index``, ``t_s`` (s from the scan's first profile). No copy
-        beyond the selection: the caller picks its storage dtypes."""
+        ``profile_index``, ``point_index``, ``t_s`` (s from ``t0_ns``, by default this scan's first
+        profile; a part of a scan gives its scan's). No copy beyond the selection: the caller picks
+        its storage dtypes."""
         pts = self.points(column_step)
-        t0 = int(self.t_ns.min()) if len(self) else 0
+        t0 = t0_ns if t0_ns is not None else int(self.t_ns.min()) if len(self) else 0
         return {
             "xyz_mm": pts["xyz_mm"],
             "pass_id": np.maximum(pts["pass_id"], 0),

@@ -335,6 +335,11 @@ class Acquisition:
         """Everything assembled so far as one organised cloud."""
         return AssembledScan.concat(self._batches, self._width)
 
+    def batches_since(self, k: int) -> list[AssembledBatch]:
+        """The batches assembled after the first ``k`` (in order; with ``keep_batches``): a consumer
+        that follows the scan while it runs (the cloud streamed pass by pass)."""
+        return self._batches[k:]
+
     def quality(self) -> dict[str, Any]:
         """Clock fit reports and counters (for the job record and logs)."""
         return {

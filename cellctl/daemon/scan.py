@@ -49,6 +49,7 @@ from cellctl.daemon.locate import (
     needs_across,
 )
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
+from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan
@@ -82,6 +83,8 @@ class ScanHost(Protocol):
     def on_progress(self, job: ActiveJob, ev: ProgressEvent) -> None: ...
 
     def live_feed(self, job_id: str) -> Callable[[list, int], None] | None: ...
+
+    async def cloud_stream(self, job: ActiveJob) -> ScanStream | None: ...
 
 
 class ScanRunner:
@@ -326,6 +329,7 @@ class ScanRunner:
         writer: RawWriter | None = None
         session: AcquisitionSession | None = None
         tracker: asyncio.Task[None] | None = None
+        stream: ScanStream | None = None
         program_started = True
         try:
             acq_settings = AcquisitionSettings.from_config(cfg, epoch_ns=time.monotonic_ns())
@@ -342,6 +346,11 @@ class ScanRunner:
                 },
             )
             acq = Acquisition(acq_settings, writer, keep_batches=True)
+            if phase == "scan":
+                # the analysis follows the scan: each pass's points go out once the pass is on disk
+                stream = await host.cloud_stream(job)
+                if stream is not None:
+                    stream.follow(acq, writer)
             egm0 = _counters(drv.endpoint.stats, _EGM_COUNTERS)
             executor = MotionExecutor.for_plan(
                 drv.endpoint,
@@ -394,6 +403,8 @@ class ScanRunner:
             job.profiles = session.profiles
             await asyncio.to_thread(writer.close)
             writer = None
+            if stream is not None and result.state == ExecState.FINISHED:
+                await stream.finish()  # the rows after the last pass, and the end of the stream
             with contextlib.suppress(Exception):
                 await drv.program.end()
             program_started = False
@@ -425,6 +436,9 @@ class ScanRunner:
             await self._ended_early(job, result, info)
             return None
         finally:
+            if stream is not None and not stream.finished:
+                with contextlib.suppress(Exception):
+                    await stream.abandon("the scan ended before its last profile")
             job.executor = None
             if session is not None:
                 job.profiles = max(job.profiles, session.profiles)
