@@ -13,6 +13,11 @@ in a temporary directory), triggers one scan over Zenoh and waits for the report
 * ``overhead_ratio``: ``total_s`` / the pure sweep time (the plan's sweep length at the scan speed,
   ``sweep_time_s``): 1.0 would be a cell that only sweeps;
 * ``transitions_s``: the plan's time on the links and turnarounds between passes;
+* ``startup_s``: from the trigger (the job accepted) to the scan's start (design, plan, sensor and
+  EGM bring-up); ``execution_beyond_plan_s``: ``scan_s`` minus the planned scan time, of which
+  ``move_to_start_s`` is the move to the plan's start; ``processes_up_s``: the processes' start-up
+  before the trigger (inside ``total_s``, which is measured from their start);
+  ``trigger_to_report_s``: from the trigger to the report stored;
 * plus the plan's figures, profile and point counts and the analysis timings.
 
 Targets (issue 8): report <= 15 s after the last profile, total <= 4.5 min. Issue 22's: total <=
@@ -53,6 +58,13 @@ def _peak_mb(pid: int) -> float:
         except OSError:
             continue
     return round(total, 1)
+
+
+def _utc_s(stamp: str) -> float:
+    """A job history time stamp (ISO 8601, Z) as Unix seconds."""
+    from datetime import datetime
+
+    return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
 
 
 def main() -> int:
@@ -123,6 +135,9 @@ def main() -> int:
     info = rec["info"]
     last = info["last_profile_utc_s"]
     events = {h["message"]: h["t_utc"] for h in rec["history"]}
+    # the first entry of each state (the scan starts with the first "scanning")
+    for h in rec["history"]:
+        events.setdefault(h["state"], h["t_utc"])
     created = rec["history"][0]["t_utc"]
     total_s = info["report_utc_s"] - t0
     sweep_s = info["plan"]["sweep_time_s"]
@@ -133,6 +148,14 @@ def main() -> int:
         "total_s": round(total_s, 2),
         "overhead_ratio": round(total_s / sweep_s, 3) if sweep_s > 0 else None,
         "transitions_s": info["plan"]["transitions_s"],
+        # issue 22 item 2: the trigger to the scan's start (design, plan, bring-up), the execution
+        # beyond the plan (the move to the plan's start, mostly), the processes' own start-up (before
+        # the trigger, inside total_s) and the trigger to the report
+        "startup_s": round(_utc_s(events["scanning"]) - _utc_s(created), 3) if "scanning" in events else None,
+        "execution_beyond_plan_s": round(info["scan_s"] - info["plan"]["scan_time_s"], 3),
+        "move_to_start_s": info.get("move_to_start_s"),
+        "processes_up_s": round(_utc_s(created) - t0, 2),
+        "trigger_to_report_s": round(info["report_utc_s"] - _utc_s(created), 2),
         "html_after_last_profile_s": info.get("html_after_last_profile_s"),
         "daemon_peak_mb": peaks["daemon"],
         "worker_peak_mb": peaks["worker"],

@@ -150,12 +150,17 @@ class AcquisitionSession:
 
     # ---- life cycle ------------------------------------------------------------------------------
 
-    async def start(self) -> None:
-        """Pump the feedback so far, start consuming and streaming, and wait ``settle_s``."""
+    async def start(self, *, wait_settle: bool = True) -> float:
+        """Pump the feedback so far, start consuming and streaming, and wait ``settle_s`` (or, with
+        ``wait_settle=False``, leave the wait to the caller: the move to the plan's start overlaps
+        it). Returns the host monotonic time (s) the settle ends at."""
         self.pump_feedback()
         self._consumer = asyncio.create_task(self._consume(), name="sensor-consumer")
         await self.sensor.start()
-        await asyncio.sleep(self.settings.settle_s)
+        settled_at = time.monotonic() + self.settings.settle_s
+        if wait_settle:
+            await asyncio.sleep(self.settings.settle_s)
+        return settled_at
 
     async def track(self, playback_s: Callable[[], float], ended: Callable[[], bool]) -> None:
         """Mark passes and pump feedback every ``marker_period_s`` until ``ended()``; closes the last

@@ -117,13 +117,56 @@ class ScanRunner:
                 job, JobState.PLANNING, "placement as given (not checked: [locate] check_given = false)",
                 placement_found={"source": "given", "given": rec.placement},
             )  # fmt: skip
-        planned = await self._plan(job, design)
-        if planned is None:
-            return False
-        plan, settings = planned
-        if self._stopped_before_motion(job) or not await self._preflight(job, plan):
-            return False
-        return await self._acquire(job, plan, settings, raw_dir=self.store.raw_dir(rec.job_id)) is not None
+        # The sensor and the EGM program come up while the scan is planned: nothing moves until the
+        # executor runs the plan, which has passed the envelope check by then.
+        bring_up = asyncio.create_task(self._bring_up(), name="bring-up")
+        handed_over = False
+        try:
+            planned = await self._plan(job, design)
+            if planned is None:
+                return False
+            plan, settings = planned
+            if self._stopped_before_motion(job) or not await self._preflight(job, plan):
+                return False
+            handed_over = True
+            raw_dir = self.store.raw_dir(rec.job_id)
+            return await self._acquire(job, plan, settings, raw_dir=raw_dir, ready=bring_up) is not None
+        finally:
+            if not handed_over:
+                await self._drop_bring_up(bring_up)
+
+    async def _bring_up(self) -> HD8Client:
+        """The sensor connected, stopped and configured, and the EGM program (re)started with its
+        feedback arriving; the arm holds where it is. Raises (everything it started ended again)."""
+        cfg, drv = self.cfg, self.drivers
+        client = await self._sensor_ready()
+        try:
+            # an EGM session the controller still runs (the previous daemon died mid-scan) ends first
+            with contextlib.suppress(Exception):
+                await drv.program.end()
+            await drv.program.start()
+            await drv.endpoint.wait_for_feedback(cfg.daemon.feedback_timeout_s)
+        except BaseException:
+            with contextlib.suppress(Exception):
+                await drv.program.end()
+            with contextlib.suppress(Exception):
+                await client.close()
+            raise
+        return client
+
+    async def _drop_bring_up(self, task: asyncio.Task[HD8Client]) -> None:
+        """A bring-up the scan did not use (the plan was refused, a stop came first): cancel it or end
+        what it started."""
+        if not task.done():
+            task.cancel()
+        try:
+            client = await task
+        except BaseException:  # cancelled, or it failed (and ended what it started)
+            return
+        with contextlib.suppress(Exception):
+            await self.drivers.program.end()
+        with contextlib.suppress(Exception):
+            await client.close()
 
     def _stopped_before_motion(self, job: ActiveJob) -> bool:
         """True (and the job ended) when a stop was asked for before the next motion."""
@@ -268,25 +311,27 @@ class ScanRunner:
         return client
 
     async def _acquire(
-        self, job: ActiveJob, plan: ScanPlan, settings: PlannerSettings, *, raw_dir: Path, phase: str = "scan"
+        self,
+        job: ActiveJob,
+        plan: ScanPlan,
+        settings: PlannerSettings,
+        *,
+        raw_dir: Path,
+        phase: str = "scan",
+        ready: asyncio.Task[HD8Client] | None = None,
     ) -> AssembledScan | None:
         """Run ``plan`` with the acquisition session, raw files into ``raw_dir``. The assembled scan
         when the motion finished (for the scan, also ``job.cloud``); None when it ended otherwise (the
-        job's state says how). ``phase``: ``"scan"``, or the name of a locate run."""
+        job's state says how). ``phase``: ``"scan"``, or the name of a locate run. ``ready``: a
+        :meth:`_bring_up` already under way (started while planning), else it runs here."""
         cfg, host, rec, drv = self.cfg, self.host, job.record, self.drivers
-        client = await self._sensor_ready()
+        client = await (ready if ready is not None else self._bring_up())
         writer: RawWriter | None = None
         session: AcquisitionSession | None = None
         tracker: asyncio.Task[None] | None = None
         stream: ScanStream | None = None
-        program_started = False
+        program_started = True
         try:
-            # an EGM session the controller still runs (the previous daemon died mid-scan) ends first
-            with contextlib.suppress(Exception):
-                await drv.program.end()
-            program_started = True
-            await drv.program.start()
-            await drv.endpoint.wait_for_feedback(cfg.daemon.feedback_timeout_s)
             acq_settings = AcquisitionSettings.from_config(cfg, epoch_ns=time.monotonic_ns())
             # Off the loop: the files are fsync'ed, and a busy disk must not hold up the EGM replies of
             # the session just started (the controller ends it after its communication timeout).
@@ -335,9 +380,10 @@ class ScanRunner:
                 on_write_error=write_failed, on_assembled=host.live_feed(rec.job_id),
             )  # fmt: skip
             job.session = session
-            # The arm waits while the clock fits gather their first pairs (and a sensor that has just
-            # started streaming settles) before the first reference moves it.
-            await session.start()
+            # The plan waits while the clock fits gather their first pairs (and a sensor that has just
+            # started streaming settles) before its first reference; the move to the plan's start
+            # (no pass records during it) overlaps that wait.
+            executor.start_not_before_s = await session.start(wait_settle=False)
             what = "scanning" if phase == "scan" else f"{phase} run of"
             host.to_cell(CellState.SCANNING, f"{what} job {rec.job_id}")
             host.job_state(job, JobState.SCANNING, "" if phase == "scan" else f"{phase} run")
@@ -367,6 +413,7 @@ class ScanRunner:
                 "scan_s": round(scan_s, 3),
                 "profiles": job.profiles,
                 "execution": result.state.value,
+                "move_to_start_s": round(result.move_to_start_s, 3),
                 "max_tracking_error_mm": round(float(result.max_tracking_error_mm), 3),
                 "last_profile_utc_s": t_last_profile,
                 "acquisition": json.loads(json.dumps(acq.quality(), default=_plain)),

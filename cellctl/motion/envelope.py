@@ -13,7 +13,11 @@ change of that step (``track_accel``); the workspace box stays in the base frame
 carriage), and the TCP speed cap applies in the world frame, the track's motion included.
 
 The same rules check a whole planned trajectory at once (:meth:`SafetyEnvelope.check_trajectory`),
-vectorised over its samples, so a plan that would trip the envelope is refused before it runs.
+vectorised over its samples, so a plan that would trip the envelope is refused before it runs. A
+whole trajectory is also held to the joints' acceleration limits (``joint_accel``, from second
+differences of its samples at the EGM cycle, as the track's): a plan, or a cached plan edited on
+disk, whose accelerations the arm cannot follow is refused before anything moves. (Single
+set-points come from the executor's own jerk-limited generators, inside the same limits.)
 """
 
 from __future__ import annotations
@@ -37,10 +41,10 @@ class EnvelopeViolation(Exception):
     """A set-point outside the envelope.
 
     Attributes:
-        rule: ``"joint_limit"``, ``"workspace"``, ``"tcp_speed"``, ``"joint_step"``, ``"track_travel"``,
-            ``"track_speed"``, ``"track_accel"`` or ``"input"``.
+        rule: ``"joint_limit"``, ``"workspace"``, ``"tcp_speed"``, ``"joint_step"``, ``"joint_accel"``,
+            ``"track_travel"``, ``"track_speed"``, ``"track_accel"`` or ``"input"``.
         joint: 0-based arm joint index (joint rules) or None.
-        value: the offending value (deg, mm, mm/s, mm/s^2 or deg per step).
+        value: the offending value (deg, mm, mm/s, deg/s^2, mm/s^2 or deg per step).
         limit: the limit it broke, same unit.
         sample: index into a checked trajectory, or None for a single set-point.
     """
@@ -68,6 +72,8 @@ class EnvelopeLimits:
     cycle_s: EGM cycle, s.
     T_flange_tcp: (4, 4) flange -> TCP (sensor) transform, mm.
     track: the linear track (usable travel, speed and acceleration limits), or None for a fixed base.
+    joint_accel_max_deg_s2: (6,) joint acceleration limits a whole trajectory is checked against, or
+        None (not checked).
     """
 
     q_min_deg: np.ndarray
@@ -79,6 +85,7 @@ class EnvelopeLimits:
     cycle_s: float
     T_flange_tcp: np.ndarray
     track: LinearTrack | None = None
+    joint_accel_max_deg_s2: np.ndarray | None = None
 
     @property
     def n_axes(self) -> int:
@@ -96,6 +103,13 @@ class EnvelopeLimits:
             if arr.shape != (3,) or not np.all(np.isfinite(arr)):
                 raise ValueError(f"EnvelopeLimits.{name}: expected 3 finite values, got {arr}")
             object.__setattr__(self, name, arr)
+        if self.joint_accel_max_deg_s2 is not None:
+            arr = np.asarray(self.joint_accel_max_deg_s2, dtype=np.float64)
+            if arr.shape != (6,) or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+                raise ValueError(
+                    f"EnvelopeLimits.joint_accel_max_deg_s2: expected 6 positive values, got {arr}"
+                )
+            object.__setattr__(self, "joint_accel_max_deg_s2", arr)
         if np.any(self.q_min_deg >= self.q_max_deg):
             raise ValueError("EnvelopeLimits: q_min_deg must be below q_max_deg on every joint")
         if not (self.cycle_s > 0 and self.tcp_speed_max_mm_s > 0):
@@ -115,6 +129,7 @@ class EnvelopeLimits:
             cycle_s=cycle_s,
             T_flange_tcp=settings.T_flange_sensor,
             track=getattr(settings, "track", None),
+            joint_accel_max_deg_s2=np.asarray(settings.joint_accel_max_deg_s2),
         )
 
 
@@ -246,6 +261,28 @@ class SafetyEnvelope:
             raise EnvelopeViolation("input", "t_s must increase")
         cycles = dt / self.limits.cycle_s
         self._check_rows(q, None, None, cycles)
+        self._check_joint_accel(q[:, -N_ARM_JOINTS:], dt)
+
+    def _check_joint_accel(self, q: np.ndarray, dt: np.ndarray) -> None:
+        """The joints' accelerations along a whole trajectory ``q`` (n, 6) sampled ``dt`` (n - 1,) s
+        apart, at rest before and after: each change of the mean speed over a step, divided by the
+        time between the two steps' centres (the track's rule, per joint)."""
+        amax = self.limits.joint_accel_max_deg_s2
+        if amax is None or q.shape[0] < 2:
+            return
+        v = np.diff(q, axis=0) / dt[:, None]
+        zero = np.zeros((1, q.shape[1]))
+        vv = np.vstack([zero, v, zero])
+        ww = np.concatenate([dt[:1], dt, dt[-1:]])
+        accel = np.abs(np.diff(vv, axis=0)) / (0.5 * (ww[:-1] + ww[1:]))[:, None]
+        hard = accel > amax[None] * (1 + _ACCEL_TOLERANCE)
+        if hard.any():
+            i, j = np.argwhere(hard)[0]
+            raise EnvelopeViolation(
+                "joint_accel",
+                f"{JOINT_NAMES[j]} accelerates at {accel[i, j]:.1f} deg/s^2, above its limit {amax[j]:.1f} deg/s^2",
+                joint=int(j), value=accel[i, j], limit=amax[j], sample=min(int(i), q.shape[0] - 1),
+            )  # fmt: skip
 
     def _check_rows(
         self, q7: np.ndarray, q_prev7: np.ndarray | None, p_prev: np.ndarray | None, cycles,

@@ -77,6 +77,9 @@ class ExecState(enum.StrEnum):
 
 
 _TERMINAL = (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED)
+#: the move to the plan's start keeps the TCP under this share of the envelope's speed cap, as the
+#: planned transits do (the straight joint-space line's TCP speed is estimated on 129 points)
+_START_TCP_FRACTION = 0.9
 
 
 @dataclass(frozen=True)
@@ -87,8 +90,12 @@ class ExecutorConfig:
     controller. start_timeout_s: wait this long for the first commandable feedback.
     tracking_error_max_mm: fault-stop threshold on the TCP tracking error; tracking_window_s: how far
     back the commanded path is searched (covers the controller's lag). start_tolerance_deg: the robot
-    counts as at the plan's start within this; otherwise it first moves there at
-    move_to_start_speed_fraction of the joint speed limits. feedforward: send the joint speed
+    counts as at the plan's start within this; otherwise it first moves there, and the plan starts
+    once the move's references are there and the arm within start_settle_tolerance_deg (the plan
+    starts at rest on its approach, well before the first pass: the arm's last lag of at most
+    ~1 mm at the TCP decays there, far inside the tracking limit), at
+    move_to_start_speed_fraction of the joint speed limits, its TCP under ``_START_TCP_FRACTION`` of
+    the envelope's cap. feedforward: send the joint speed
     reference too; feedforward_lead_s: how far ahead on the plan the speed reference is taken (the
     time constant of the controller's low-pass filter, 1 / (2 pi 20 Hz) by default).
     joint_*_max: limits of the move to the start and of the stops (deg/s, deg/s^2, deg/s^3).
@@ -104,7 +111,8 @@ class ExecutorConfig:
     tracking_error_max_mm: float = 5.0
     tracking_window_s: float = 0.3
     start_tolerance_deg: float = 0.01
-    move_to_start_speed_fraction: float = 0.2
+    start_settle_tolerance_deg: float = 0.05
+    move_to_start_speed_fraction: float = 0.5
     feedforward: bool = True
     feedforward_lead_s: float = 0.008
     joint_speed_max_deg_s: tuple[float, ...] = (175.0, 175.0, 175.0, 250.0, 250.0, 360.0)
@@ -187,7 +195,9 @@ class ExecutionResult:
     max_tracking_error_mm: worst monitored tracking error. t_host_s (n,), q_ref_deg (n, n_axes),
     qd_ref_deg_s (n, n_axes) (with a track ``axes_mm_deg``, its mm first), t_traj_s (n,), cycle (n,) int: one row per reference (host monotonic time of
     the packet it answered, the reference, the trajectory time it came from, the controller cycle
-    it is meant for, counted from the first feedback).
+    it is meant for, counted from the first feedback). move_to_start_s: controller time of the move
+    to the plan's start (0: the arm was there), of which start_settle_s waited, after the move's
+    references had reached the start, for the arm to come within ``start_tolerance_deg``.
     """
 
     state: ExecState
@@ -201,6 +211,8 @@ class ExecutionResult:
     cycle: np.ndarray
     lost_cycles: int = 0
     events: list[ProgressEvent] = field(default_factory=list)
+    move_to_start_s: float = 0.0
+    start_settle_s: float = 0.0
 
 
 class _TimeScaler:
@@ -340,6 +352,12 @@ class MotionExecutor:
         self._approach = False  # until the arm reached the plan's start (pause holds it in joint space)
         self._ff_qd: np.ndarray | None = None
         self._last_sent_qd = np.zeros(self._n)
+        #: controller cycles of the move to the start, and of its wait for the arm to settle there
+        self._start_cycles = 0
+        self._settle_cycles = 0
+        #: host monotonic time before which the plan does not start (the sensor's settle, which the
+        #: move to the start overlaps); 0: at once
+        self.start_not_before_s = 0.0
 
     #: trajectory time ahead of a ramp's start whose peaks bound the ramp (a ramp covers less)
     _RAMP_WINDOW_S = 1.5
@@ -435,8 +453,14 @@ class MotionExecutor:
             raise ExecutorError("an executor runs once; create a new one")
         self._started = True
         cfg = self.config
+        q0 = self.trajectory.q_deg[0]
         try:
             first = await self._wait_commandable()
+            wait_s = self.start_not_before_s - time.monotonic()
+            if wait_s > 0 and np.max(np.abs(self._axes(first) - q0)) <= cfg.start_tolerance_deg:
+                # at the start already: the plan waits out what is left of the settle, the arm at rest
+                await asyncio.sleep(wait_s)
+                first = await self._wait_commandable()
         except ExecutorError as exc:
             self._enter_fault(str(exc), hold=False)
             return self._finish()
@@ -447,7 +471,6 @@ class MotionExecutor:
         self._inp.current_acceleration = [0.0] * self._n
         self.envelope.reset(q_fb)
         self._last_seqno, self._last_t_ctrl_us = first.seqno, first.feedback_time_us
-        q0 = self.trajectory.q_deg[0]
         if np.max(np.abs(q_fb - q0)) > cfg.start_tolerance_deg:
             self._set_state(ExecState.MOVING_TO_START)
             self._approach = True
@@ -551,13 +574,13 @@ class MotionExecutor:
         """Limits for the move to the plan's start: a straight line in joint space (phase-synchronised)
         slow enough that the TCP stays well under the envelope's speed cap."""
         dq = q_to - q_from
-        u = np.linspace(0.0, 1.0, 33)
+        u = np.linspace(0.0, 1.0, 129)
         lim = self.envelope.limits
         p = fk_batch(q_from[None] + u[:, None] * dq[None], lim.T_flange_tcp, track=lim.track)[:, :3, 3]
         dp_du = float(np.max(np.linalg.norm(np.diff(p, axis=0), axis=1)) * (u.size - 1))
         u_dot = np.min(self.config.move_to_start_speed_fraction * self._vmax / np.maximum(np.abs(dq), 1e-9))
         if dp_du > 0:
-            u_dot = min(u_dot, 0.5 * self.envelope.limits.tcp_speed_max_mm_s / dp_du)
+            u_dot = min(u_dot, _START_TCP_FRACTION * self.envelope.limits.tcp_speed_max_mm_s / dp_du)
         self._inp.max_velocity = np.maximum(np.abs(dq) * u_dot, 1e-3).tolist()
         self._inp.max_acceleration = self._amax.tolist()
         self._inp.max_jerk = self._jmax.tolist()
@@ -676,11 +699,14 @@ class MotionExecutor:
             inp.target_velocity = [0.0] * self._n
             inp.target_acceleration = [0.0] * self._n
             res = self._otg_update()
+            self._start_cycles += 1
+            self._settle_cycles += res == Result.Finished
             fb = self.endpoint.latest
             at_start = (
                 res == Result.Finished
                 and fb is not None
-                and np.max(np.abs(self._axes(fb) - traj.q_deg[0])) <= self.config.start_tolerance_deg
+                and np.max(np.abs(self._axes(fb) - traj.q_deg[0])) <= self.config.start_settle_tolerance_deg
+                and time.monotonic() >= self.start_not_before_s
             )
             if at_start:
                 self._approach = False
@@ -883,6 +909,8 @@ class MotionExecutor:
             cycle=np.asarray(self._rec_cycle, dtype=np.int64),
             lost_cycles=self._lost,
             events=list(self._events),
+            move_to_start_s=self._start_cycles * self.config.cycle_s,
+            start_settle_s=self._settle_cycles * self.config.cycle_s,
         )
 
 

@@ -525,6 +525,63 @@ def _link(
     return Segment(kind=kind, label=label, pos_mm=pos, R_base_sensor=_slerp_frames(R0, R1, u))
 
 
+#: a turnaround's tangents at its ends, as a multiple of the distance between them (the quintic's
+#: loop: larger is rounder and longer, smaller tighter and slower)
+_TURN_TANGENT_FACTOR = 2.0
+#: waypoints of a turnaround: its tight curve needs them closer than the passes'
+_TURN_STEP_MM = 3.0
+#: which pass-to-pass links are flown at speed: (kind before, kind after)
+_FLY = {("scan", "scan"): True, ("scan", "edge"): True}
+#: a turnaround may come this much closer to the (extrapolated) surface than the standoff
+_TURN_CLEARANCE_TOL_MM = 5.0
+
+
+def _turnaround(
+    surface: DesignSurface,
+    label: str,
+    p0: np.ndarray,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    p1: np.ndarray,
+    R1: np.ndarray,
+    t1: np.ndarray,
+    settings: PlannerSettings,
+) -> Segment | None:
+    """A turnaround flown at speed from one pass's end to the next pass's start (plate frame), or
+    None where it would not keep its clearance (the caller then links them by a hump).
+
+    The path is a quintic Hermite curve: position and direction of travel (``t0``, ``t1``, unit) of
+    the two passes at its ends and zero second derivative there, so the curvature grows smoothly
+    from the straight pass and the joint path is continuous in speed and acceleration across the
+    joins (:func:`~cellctl.planning.timing.time_segments` times the passes and the turnaround as one
+    path). It loops outside the pass ends, beyond the plate: the speed never drops to zero there.
+    The sensor turns on a smooth-step geodesic from ``R0`` to ``R1`` (no angular speed at the joins).
+    """
+    dist = float(np.linalg.norm(p1 - p0))
+    if dist < 1e-6:
+        return None
+    m = _TURN_TANGENT_FACTOR * dist
+    length_guess = 2.0 * m
+    n = max(16, int(np.ceil(length_guess / _TURN_STEP_MM))) + 1
+    u = np.linspace(0.0, 1.0, n)[:, None]
+    # quintic Hermite basis with zero second derivatives at both ends
+    h00 = 1 - 10 * u**3 + 15 * u**4 - 6 * u**5
+    h10 = u - 6 * u**3 + 8 * u**4 - 3 * u**5
+    h01 = 10 * u**3 - 15 * u**4 + 6 * u**5
+    h11 = -4 * u**3 + 7 * u**4 - 3 * u**5
+    pos = h00 * p0[None] + h10 * (m * t0)[None] + h01 * p1[None] + h11 * (m * t1)[None]
+    h, _, _ = surface.height_and_gradient(pos[:, 0], pos[:, 1])
+    # no lower above the (extrapolated) surface than at the lower of its two ends
+    clearance = float(min(pos[0, 2] - h[0], pos[-1, 2] - h[-1]))
+    if float(np.max(h + clearance - pos[:, 2])) > _TURN_CLEARANCE_TOL_MM:
+        return None
+    w = u[:, 0]
+    smooth = w**3 * (10 - 15 * w + 6 * w**2)
+    return Segment(
+        kind="link", label=label, pos_mm=pos, R_base_sensor=_slerp_frames(R0, R1, smooth), flying=True
+    )
+
+
 def build_segments(
     surface: DesignSurface,
     placement: Placement,
@@ -651,6 +708,17 @@ def build_segments(
         if j > 0:
             n_link += 1
             prev = segments[-1]
+            turn = None
+            if prev.is_sweep and settings.flying_turns and _FLY.get((prev.kind, kind), False):
+                turn = _turnaround(
+                    surface, f"link {n_link}", prev.pos_mm[-1], prev.R_base_sensor[-1],
+                    _unit(prev.pos_mm[-1] - prev.pos_mm[-2]), pos[0], R[0], _unit(pos[1] - pos[0]),
+                    settings,
+                )  # fmt: skip
+            if turn is not None:
+                segments.append(turn)
+                segments.append(Segment(kind, label, pos, R))
+                continue
             segments.append(
                 _link(
                     surface,

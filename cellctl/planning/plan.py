@@ -103,6 +103,8 @@ class Segment:
         ``axes_mm_deg``: the track position in mm, then the joints.
     t_start_s / duration_s: when the segment runs in the timed trajectory (filled by the timing).
     length_mm: path length of the sensor origin.
+    flying: a turnaround joined to the passes before and after it at speed (continuous direction
+        and zero curvature at both ends): the timing runs the three as one path without stopping.
     """
 
     kind: str
@@ -113,6 +115,7 @@ class Segment:
     t_start_s: float = 0.0
     duration_s: float = 0.0
     length_mm: float = 0.0
+    flying: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in SEGMENT_KINDS:
@@ -253,6 +256,7 @@ class ScanPlan:
                     "pos_mm": s.pos_mm.round(4).tolist(),
                     "R_base_sensor": s.R_base_sensor.round(9).tolist(),
                     "q_deg": None if s.q_deg is None else s.q_deg.round(6).tolist(),
+                    "flying": s.flying,
                 }
                 for s in self.segments
             ],
@@ -292,6 +296,7 @@ class ScanPlan:
                     t_start_s=float(s["t_start_s"]),
                     duration_s=float(s["duration_s"]),
                     length_mm=float(s["length_mm"]),
+                    flying=bool(s.get("flying", False)),
                 )
                 for s in d["segments"]
             ]

@@ -32,7 +32,9 @@ class PlannerSettings:
     ``transit_speed_mm_s`` on links, edge passes (``edge_passes``, tilted ``edge_tilt_deg`` outward so
     the thickness face is lit), ``sweep_pitch_deg`` (the sensor leaning along every pass, about its
     laser line, keeping the wrist clear of its singularity), placement uncertainty (``placement_uncertainty_mm`` shift,
-    ``placement_uncertainty_deg`` rotation), ``link_clearance_mm`` lift on links, ``approach_mm``
+    ``placement_uncertainty_deg`` rotation), ``flying_turns`` (neighbouring raster passes joined by
+    a turnaround flown at speed outside the plate; off: a hump link, at rest at both ends),
+    ``link_clearance_mm`` lift on links, ``approach_mm``
     along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
     Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
     sensor origin, ``T_flange_sensor`` (4, 4) mm, ``wrist_margin_deg`` (min |q5|),
@@ -56,6 +58,7 @@ class PlannerSettings:
     transit_speed_mm_s: float = 250.0
     edge_passes: bool = True
     edge_tilt_deg: float = 30.0
+    flying_turns: bool = True
     sweep_pitch_deg: float = 0.0
     placement_uncertainty_mm: float = 30.0
     placement_uncertainty_deg: float = 2.0

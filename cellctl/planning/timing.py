@@ -1,8 +1,8 @@
 """Timing: toppra for feasibility and the time-optimal bound, a jerk-limited time law for execution.
 
-Each segment is timed on its own, rest to rest, along a cubic spline of its joint waypoints
-parameterised by the sensor's arc length (plus a small rotation term so pure reorientations advance
-too), so the parameter's rate is the TCP speed.
+Each segment is timed on its own, rest to rest (but see the flying turnarounds below), along a
+cubic spline of its joint waypoints parameterised by the sensor's arc length (plus a small rotation
+term so pure reorientations advance too), so the parameter's rate is the TCP speed.
 
 1. toppra (joint velocity and acceleration limits plus a first-order TCP-speed constraint,
    :class:`TcpSpeedConstraint`) decides whether the segment can be timed at all and gives the
@@ -16,6 +16,12 @@ too), so the parameter's rate is the TCP speed.
 
 Joint limits are used with safety factors (toppra checks them on a grid only; the tracker needs
 room). Units: joint angles in deg (deg/s, deg/s^2, deg/s^3), positions in mm, time in s.
+
+Segments joined by a *flying* turnaround (``Segment.flying``: the raster's neighbouring passes) are
+timed as one path instead (:func:`_time_chain`): one spline through all their waypoints, each
+segment's own cruise rate, and the rate at a join the lower of its two sides', so the arm does not
+stop between the passes; on the turnaround itself the rate is the largest its curvature allows
+under the joint acceleration and jerk limits (:func:`_flying_rate`).
 
 With a linear track the path is seven-dimensional (``axes_mm_deg``: the track in mm, then the
 joints): toppra and the time law time track and arm together, under the track's speed,
@@ -48,6 +54,9 @@ _JERK_FACTOR = 0.6
 #: weight of rotation in the path parameter (mm per rad), so pure reorientations still advance s
 _ROT_WEIGHT_MM_PER_RAD = 100.0
 _GRID_STEP_MM = 4.0
+_TURN_GRID_STEP_MM = 0.5
+#: a turnaround is flown at this share of the largest rate its limits allow (the rest: its joins)
+_FLYING_SHARE = 0.95
 #: the sweep's ends where the speed may ramp (the passes reach this far beyond what they must cover)
 RAMP_ALLOWANCE_MM = 25.0
 #: planned transit speeds stay at or below this share of the envelope's TCP speed cap
@@ -62,10 +71,16 @@ class TcpSpeedConstraint(ta_constraint.LinearConstraint):
     """
 
     def __init__(
-        self, v_max_mm_s: float, T_flange_tool: np.ndarray, track: LinearTrack | None = None
+        self,
+        v_max_mm_s: float,
+        T_flange_tool: np.ndarray,
+        track: LinearTrack | None = None,
+        v_max_at=None,
     ) -> None:
         super().__init__()
         self.v_max_mm_s = float(v_max_mm_s)
+        #: optional ``v_max_at(s) -> (n,) mm/s`` per path parameter (a chain: passes and turnarounds)
+        self.v_max_at = v_max_at
         self.T_flange_tool = np.asarray(T_flange_tool, dtype=np.float64)
         self.track = track
         self.dof = 6 + (track is not None)
@@ -76,7 +91,8 @@ class TcpSpeedConstraint(ta_constraint.LinearConstraint):
         dpds = _tool_velocity(path(gridpoints), path(gridpoints, 1), self.T_flange_tool, self.track)
         speed = np.maximum(np.linalg.norm(dpds, axis=1), 1e-9)
         xbound = np.zeros((len(gridpoints), 2))
-        xbound[:, 1] = (self.v_max_mm_s / speed) ** 2
+        v_max = self.v_max_mm_s if self.v_max_at is None else self.v_max_at(np.asarray(gridpoints))
+        xbound[:, 1] = (v_max / speed) ** 2
         return None, None, None, None, None, None, xbound
 
 
@@ -120,12 +136,45 @@ class TimingResult:
 
 
 def _path_parameter(seg: Segment) -> np.ndarray:
-    dp = np.linalg.norm(np.diff(seg.pos_mm, axis=0), axis=1)
-    R = seg.R_base_sensor
+    return _arc_parameter(seg.pos_mm, seg.R_base_sensor)
+
+
+def _arc_parameter(pos_mm: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """The path parameter (n,) mm at waypoints ``pos_mm`` (n, 3) with orientations ``R`` (n, 3, 3):
+    arc length, with rotation weighted in, so pure reorientations advance too."""
+    dp = np.linalg.norm(np.diff(pos_mm, axis=0), axis=1)
     tr = np.einsum("nij,nij->n", R[:-1], R[1:])  # trace(R_a^T R_b)
     dth = np.arccos(np.clip((tr - 1) / 2, -1.0, 1.0))
     ds = np.maximum(np.hypot(dp, _ROT_WEIGHT_MM_PER_RAD * dth), 1e-6)
     return np.concatenate([[0.0], np.cumsum(ds)])
+
+
+def _path_peaks(path, settings: PlannerSettings, grid: np.ndarray):
+    """Peaks over ``grid`` per axis of the path's first, second and third derivatives (the third
+    from differences of the second), and the largest tool speed per unit of the path parameter."""
+    d1 = path(grid, 1)
+    d2 = path(grid, 2)
+    d3 = np.abs(np.diff(d2, axis=0)) / np.maximum(np.diff(grid), 1e-9)[:, None]
+    m1 = np.maximum(np.abs(d1).max(axis=0), 1e-9)
+    m2 = np.abs(d2).max(axis=0)
+    m3 = d3.max(axis=0) if d3.size else np.zeros(settings.n_axes)
+    dpds = np.linalg.norm(_tool_velocity(path(grid), d1, settings.T_flange_sensor, settings.track), axis=1)
+    return m1, m2, m3, float(dpds.max())
+
+
+def _law_samples(law: Trajectory, path, s0: float, s1: float, dt_s: float):
+    """A 1-axis law of the path parameter from ``s0`` sampled every ``dt_s`` or a little less:
+    ``(t, q, qd, qdd)``, the parameter clipped to ``[s0, s1]``."""
+    T = float(law.duration)
+    n = max(2, int(np.ceil(T / dt_s)) + 1)
+    t = np.linspace(0.0, T, n)
+    sv = np.array([np.ravel(law.at_time(float(x))) for x in t]).reshape(n, 3)  # s, sdot, sddot
+    ss = np.clip(s0 + sv[:, 0], s0, s1)
+    d1 = path(ss, 1)
+    q = path(ss)
+    qd = d1 * sv[:, 1:2]
+    qdd = path(ss, 2) * sv[:, 1:2] ** 2 + d1 * sv[:, 2:3]
+    return t, q, qd, qdd
 
 
 def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -> tuple[float, float, float]:
@@ -139,19 +188,13 @@ def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -
     vmax = _VEL_FACTOR * settings.axis_speed_max
     amax = _ACC_FACTOR * settings.axis_accel_max
     jmax = _JERK_FACTOR * settings.axis_jerk_max
-    d1 = path(grid, 1)
-    d2 = path(grid, 2)
-    d3 = np.abs(np.diff(d2, axis=0)) / np.maximum(np.diff(grid), 1e-9)[:, None]
-    m1 = np.maximum(np.abs(d1).max(axis=0), 1e-9)
-    m2 = np.abs(d2).max(axis=0)
-    m3 = d3.max(axis=0) if d3.size else np.zeros(settings.n_axes)
-    dpds = np.linalg.norm(_tool_velocity(path(grid), d1, settings.T_flange_sensor, settings.track), axis=1)
-    v = min(v_tcp / max(float(dpds.max()), 1e-9), float(np.min(vmax / m1)))
+    m1, m2, m3, dpds = _path_peaks(path, settings, grid)
+    v = min(v_tcp / max(dpds, 1e-9), float(np.min(vmax / m1)))
     # the centripetal term may use at most half of the acceleration budget
     v0 = min(v, float(np.min(np.sqrt(0.5 * amax / np.maximum(m2, 1e-12)))))
     # The acceleration budget and the jerk budget compete (3 q'' V A); a small grid search over the
     # cruise rate and the share of acceleration used picks the fastest feasible rest-to-rest law.
-    length = float(grid[-1])
+    length = float(grid[-1] - grid[0])
     best: tuple[float, float, float, float] | None = None
     for v in v0 * 0.85 ** np.arange(25):
         a_max = float(np.min((amax - m2 * v * v) / m1))
@@ -170,6 +213,34 @@ def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -
             "no jerk-limited timing fits the joint limits", limit="joint acceleration / jerk limits"
         )
     return best[1], best[2], best[3]
+
+
+def _flying_rate(
+    path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray
+) -> tuple[float, float, float]:
+    """Cruise rate V, acceleration A and jerk J of the path parameter on a flying turnaround.
+
+    It is flown at about one rate (the passes either side meet it there), so the centripetal term
+    q'' V^2 may use the acceleration budget and q''' V^3 the jerk budget that a rest-to-rest law
+    shares with speeding up: V is 90 % of the largest rate the joint speed, acceleration and jerk
+    limits and the TCP speed allow on every point; A and J are what then remains (for a join that
+    has to be slower than V), so |q'''| V^3 + 3 |q''| V A + |q'| J stays under the jerk limits.
+    """
+    vmax = _VEL_FACTOR * settings.axis_speed_max
+    amax = _ACC_FACTOR * settings.axis_accel_max
+    jmax = _JERK_FACTOR * settings.axis_jerk_max
+    m1, m2, m3, dpds = _path_peaks(path, settings, grid)
+    m2, m3 = np.maximum(m2, 1e-12), np.maximum(m3, 1e-15)
+    v = _FLYING_SHARE * min(
+        v_tcp / max(dpds, 1e-9),
+        float(np.min(vmax / m1)),
+        float(np.min(np.sqrt(amax / m2))),
+        float(np.min(np.cbrt(jmax / m3))),
+    )
+    jerk_left = jmax - m3 * v**3  # at least 27 % of the budget at 90 % of the bound
+    a = float(np.min(np.minimum((amax - m2 * v * v) / m1, 0.5 * jerk_left / (3 * m2 * v))))
+    j = float(np.min(0.5 * jerk_left / m1))
+    return v, a, j
 
 
 def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float):
@@ -206,16 +277,129 @@ def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float
     res = otg.calculate(inp, law)
     if res not in (Result.Working, Result.Finished):
         raise PlanRefused(f"the time law could not be computed ({res})", pass_label=seg.label)
-    T = float(law.duration)
-    n = max(2, int(np.ceil(T / dt_s)) + 1)
-    t = np.linspace(0.0, T, n)
-    sv = np.array([np.ravel(law.at_time(float(x))) for x in t]).reshape(n, 3)  # s, sdot, sddot
-    ss = np.clip(sv[:, 0], 0.0, s[-1])
-    d1 = path(ss, 1)
-    q = path(ss)
-    qd = d1 * sv[:, 1:2]
-    qdd = path(ss, 2) * sv[:, 1:2] ** 2 + d1 * sv[:, 2:3]
+    t, q, qd, qdd = _law_samples(law, path, 0.0, float(s[-1]), dt_s)
     return t, q, qd, qdd, float(optimal.duration)
+
+
+def _chains(segments: list[Segment]) -> list[list[int]]:
+    """Runs of segment indices timed as one path: a flying turnaround joins the segments either side
+    (with a track, its carriage is one more axis under its speed, acceleration and jerk limits)."""
+    chains: list[list[int]] = [[0]]
+    for k in range(1, len(segments)):
+        if segments[k].flying or segments[k - 1].flying:
+            chains[-1].append(k)
+        else:
+            chains.append([k])
+    return chains
+
+
+def _flying_law(length: float, v_in: float, v_out: float, v: float, a: float, j: float) -> Trajectory | None:
+    """A jerk-limited 1-axis law over ``length`` from rate ``v_in`` to ``v_out`` (no acceleration at
+    either end) cruising at up to ``v``; None when it would have to run backwards or overshoot."""
+    otg = Ruckig(1)
+    inp = InputParameter(1)
+    inp.current_position, inp.target_position = [0.0], [float(length)]
+    inp.current_velocity, inp.target_velocity = [float(v_in)], [float(v_out)]
+    inp.max_velocity, inp.max_acceleration, inp.max_jerk = [float(v)], [float(a)], [float(j)]
+    inp.min_velocity = [0.0]
+    law = Trajectory(1)
+    try:
+        res = otg.calculate(inp, law)
+    except RuntimeError:
+        return None
+    if res not in (Result.Working, Result.Finished):
+        return None
+    ext = law.position_extrema[0]
+    if ext.min < -1e-6 or ext.max > length + 1e-6:
+        return None
+    return law
+
+
+def _time_chain(segs: list[Segment], speeds: list[float], settings: PlannerSettings, dt_s: float):
+    """Time segments joined by flying turnarounds as one path that does not stop at the joins.
+
+    One cubic spline runs through all their joint waypoints (continuous in speed and acceleration
+    across the joins); each segment gets its own cruise rate, acceleration and jerk
+    (:func:`_time_law` on its stretch of the path) and a jerk-limited law from the rate at its start
+    to the rate at its end, no acceleration at either: the rate at a join is the lower of the two
+    segments' cruise rates (a turnaround tighter than the pass's speed allows slows the pass's end
+    down, within its ramp allowance), at rest at the chain's ends. Returns, per segment, the sampled
+    ``(t, q, qd, qdd)`` from its own start, and toppra's time-optimal duration of the whole chain.
+    """
+    pos = [segs[0].pos_mm]
+    rot = [segs[0].R_base_sensor]
+    qs = [segs[0].q_deg]
+    for seg in segs[1:]:  # each segment starts where the previous one ended: that waypoint once
+        pos.append(seg.pos_mm[1:])
+        rot.append(seg.R_base_sensor[1:])
+        qs.append(seg.q_deg[1:])
+    ends = np.cumsum([len(segs[0].q_deg)] + [len(seg.q_deg) - 1 for seg in segs[1:]]) - 1
+    s = _arc_parameter(np.concatenate(pos), np.concatenate(rot))
+    path = ta.SplineInterpolator(s, np.concatenate(qs))
+    bounds = np.concatenate([[0.0], s[ends]])
+    # a turnaround's tight curve is sampled finely: its rate comes from the peaks of q'' and q'''
+    grids = [
+        np.linspace(a, b, int(np.clip(np.ceil((b - a) / (_TURN_GRID_STEP_MM if seg.flying else _GRID_STEP_MM)),
+                                      100 if seg.flying else 20, 1500)) + 1)
+        for seg, a, b in zip(segs, bounds[:-1], bounds[1:], strict=True)
+    ]  # fmt: skip
+    laws = []
+    for seg, v_tcp, grid in zip(segs, speeds, grids, strict=True):
+        try:
+            laws.append((_flying_rate if seg.flying else _time_law)(path, v_tcp, settings, grid))
+        except PlanRefused as exc:
+            raise PlanRefused(exc.reason, pass_label=seg.label, limit=exc.limit) from None
+    grid_all = np.unique(np.concatenate(grids))
+    vlim = _VEL_FACTOR * settings.axis_speed_max
+    alim = _ACC_FACTOR * settings.axis_accel_max
+    constraints = [
+        ta_constraint.JointVelocityConstraint(vlim),
+        ta_constraint.JointAccelerationConstraint(
+            alim, discretization_scheme=ta_constraint.DiscretizationType.Interpolation
+        ),
+        TcpSpeedConstraint(
+            max(speeds),
+            settings.T_flange_sensor,
+            settings.track,
+            v_max_at=lambda x: np.asarray(speeds)[
+                np.clip(np.searchsorted(bounds, x, side="right") - 1, 0, len(segs) - 1)
+            ],
+        ),
+    ]
+    optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid_all, parametrizer="ParametrizeConstAccel")
+    optimal = optimal.compute_trajectory(0.0, 0.0)
+    if optimal is None:
+        raise PlanRefused(
+            "toppra found no feasible timing for these passes and turnarounds",
+            pass_label=segs[0].label,
+            limit="joint velocity / acceleration limits",
+        )
+    # the rates at the joins: the lower cruise rate of the two sides; halved where a segment's law
+    # cannot reach it (too short to change speed), and at rest as the last resort
+    joins = np.array([0.0] + [min(laws[k][0], laws[k + 1][0]) for k in range(len(segs) - 1)] + [0.0])
+    timed: list[Trajectory | None] = [None] * len(segs)
+    for attempt in range(8):
+        failed = []
+        for k, (v, a, j) in enumerate(laws):
+            if timed[k] is None:
+                timed[k] = _flying_law(bounds[k + 1] - bounds[k], joins[k], joins[k + 1], v, a, j)
+                if timed[k] is None:
+                    failed.append(k)
+        if not failed:
+            break
+        for k in failed:
+            for i in (k, k + 1):
+                joins[i] = 0.0 if attempt >= 6 else 0.5 * joins[i]
+                for n in (i - 1, i):  # both segments at a changed join are timed again
+                    if 0 <= n < len(segs):
+                        timed[n] = None
+    else:
+        raise PlanRefused("the time law could not be computed", pass_label=segs[0].label)
+    out = []
+    for k, law in enumerate(timed):
+        assert law is not None
+        out.append(_law_samples(law, path, float(bounds[k]), float(bounds[k + 1]), dt_s))
+    return out, float(optimal.duration)
 
 
 def time_segments(segments: list[Segment], settings: PlannerSettings, *, dt_s: float = 0.02) -> TimingResult:
@@ -238,12 +422,21 @@ def time_segments(segments: list[Segment], settings: PlannerSettings, *, dt_s: f
     worst_dev = 0.0
     sweep_len = 0.0
     optimal_s = 0.0
-    for k, seg in enumerate(segments):
+    for seg in segments:
         if seg.q_deg is None:
             raise PlanRefused("the segment has no joint path", pass_label=seg.label)
-        v = v_scan if seg.is_sweep else max(v_transit, v_scan)
-        t, q, qd, qdd, t_opt = _time_one(seg, v, settings, dt_s)
+    timed: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+    for chain in _chains(segments):
+        segs = [segments[k] for k in chain]
+        speeds = [v_scan if seg.is_sweep else max(v_transit, v_scan) for seg in segs]
+        if len(segs) == 1:
+            t, q, qd, qdd, t_opt = _time_one(segs[0], speeds[0], settings, dt_s)
+            timed.append((t, q, qd, qdd))
+        else:
+            parts, t_opt = _time_chain(segs, speeds, settings, dt_s)
+            timed.extend(parts)
         optimal_s += t_opt
+    for k, (seg, (t, q, qd, qdd)) in enumerate(zip(segments, timed, strict=True)):
         seg.t_start_s, seg.duration_s = t0, float(t[-1])
         if seg.is_sweep:
             sweep_len += seg.length_mm
@@ -255,7 +448,7 @@ def time_segments(segments: list[Segment], settings: PlannerSettings, *, dt_s: f
                 worst_dev = max(worst_dev, float(np.max(np.abs(speed / v_scan - 1.0))))
             else:
                 worst_dev = max(worst_dev, 1.0)  # a pass too short to reach the scan speed
-        first = 0 if k == 0 else 1  # the joint between segments is one sample (both at rest)
+        first = 0 if k == 0 else 1  # the joint between segments is one sample (the same state)
         ts.append(t[first:] + t0)
         qs.append(q[first:])
         qds.append(qd[first:])

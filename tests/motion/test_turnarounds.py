@@ -1,0 +1,116 @@
+"""Flying turnarounds (issue 22): neighbouring raster passes joined at speed outside the plate,
+timed with the passes as one path; the plan stays inside the envelope and covers the same."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from analysis.plates import design_mesh, plate_spec
+from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
+from cellctl.planning.timing import tcp_speed_mm_s
+from drivers.abb_egm.kinematics import fk_batch
+from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
+
+CYCLE_S = 0.004032
+
+
+@pytest.fixture(scope="module")
+def design():
+    return design_mesh(plate_spec("sail", length_mm=300.0, width_mm=200.0), pitch_mm=5.0)
+
+
+@pytest.fixture(scope="module")
+def plans(design) -> tuple[ScanPlan, ScanPlan]:
+    flying = plan_scan(design, SMALL_PLACEMENT, SMALL_SETTINGS)
+    stop_and_go = plan_scan(design, SMALL_PLACEMENT, SMALL_SETTINGS.with_(flying_turns=False))
+    return flying, stop_and_go
+
+
+def _speed_in(plan: ScanPlan, k: int) -> np.ndarray:
+    tr = plan.trajectory
+    m = tr.segment == k
+    return tcp_speed_mm_s(tr.q_deg[m], tr.qd_deg_s[m], SMALL_SETTINGS.T_flange_sensor)
+
+
+def test_neighbouring_raster_passes_are_joined_by_turnarounds_flown_at_speed(plans):
+    flying, _ = plans
+    segs = flying.segments
+    turns = [k for k, s in enumerate(segs) if s.flying]
+    raster_links = [
+        k for k in range(1, len(segs) - 1) if segs[k - 1].kind == "scan" and segs[k + 1].kind == "scan"
+    ]
+    assert raster_links and set(raster_links) <= set(turns)
+    for k in turns:
+        v = _speed_in(flying, k)
+        # never at rest on the turnaround or at its joins with the passes
+        assert v.min() > 0.3 * flying.scan_speed_mm_s, (segs[k].label, v.min())
+        # outside the plate: beyond where the pass before it ends, along that pass
+        d = segs[k - 1].pos_mm[-1] - segs[k - 1].pos_mm[-2]
+        d /= np.linalg.norm(d)
+        ahead = (segs[k].pos_mm - segs[k - 1].pos_mm[-1]) @ d
+        assert ahead.max() > 5.0 and ahead.min() >= min(0.0, float(ahead[-1])) - 1e-6
+
+
+def test_the_joins_are_continuous_in_joint_speed_and_acceleration(plans):
+    flying, _ = plans
+    tr = flying.trajectory
+    t = np.arange(0.0, tr.duration_s, CYCLE_S)
+    _, qd, qdd, _ = tr.sample_many(t)
+    # per cycle, the speed changes no more than the acceleration limit allows, the acceleration no
+    # more than the jerk limit: at the joins as everywhere
+    dv = np.abs(np.diff(qd, axis=0)) / CYCLE_S
+    assert np.all(dv <= 1.02 * np.asarray(SMALL_SETTINGS.joint_accel_max_deg_s2))
+    da = np.abs(np.diff(qdd, axis=0)) / CYCLE_S
+    assert np.all(da <= 1.05 * np.asarray(SMALL_SETTINGS.joint_jerk_max_deg_s3))
+
+
+def test_flying_turnarounds_are_faster_cover_the_same_and_keep_the_scan_speed(plans):
+    flying, stop_and_go = plans
+    assert flying.scan_time_s < stop_and_go.scan_time_s - 0.2 * sum(1 for s in flying.segments if s.flying)
+    assert flying.time_parts_s()["sweep_s"] < stop_and_go.time_parts_s()["sweep_s"]  # fewer speed ramps
+    assert flying.sweep_length_mm == pytest.approx(stop_and_go.sweep_length_mm)
+    assert flying.coverage.fraction == pytest.approx(stop_and_go.coverage.fraction, abs=1e-3)
+    assert flying.coverage.fraction >= 0.99
+    assert flying.scan_speed_deviation <= max(stop_and_go.scan_speed_deviation, 0.05) + 1e-6
+    # the parts still add up, and every pass reports the time from the previous one
+    parts = flying.time_parts_s()
+    assert sum(parts.values()) == pytest.approx(flying.scan_time_s, abs=len(flying.segments) * 0.02)
+    assert all(p["transition_s"] > 0 for p in flying.pass_times()[1:])
+
+
+def test_a_turnaround_keeps_its_height_above_the_surface(plans):
+    flying, _ = plans
+    for k, s in enumerate(flying.segments):
+        if s.flying:
+            lowest_end = min(flying.segments[k - 1].pos_mm[-1, 2], flying.segments[k + 1].pos_mm[0, 2])
+            assert s.pos_mm[:, 2].min() >= lowest_end - 5.0 - 1e-6
+
+
+def test_the_flying_flag_survives_the_json_round_trip(plans):
+    flying, _ = plans
+    back = ScanPlan.from_json(flying.to_json())
+    assert [s.flying for s in back.segments] == [s.flying for s in flying.segments]
+
+
+def test_the_sensor_path_stays_on_the_passes_at_the_joins(plans):
+    """The chain's one spline through all waypoints must not bend the passes near their ends."""
+    flying, _ = plans
+    tr = flying.trajectory
+    for k, s in enumerate(flying.segments):
+        if s.kind != "scan":
+            continue
+        m = tr.segment == k
+        p = fk_batch(tr.q_deg[m], SMALL_SETTINGS.T_flange_sensor)[:, :3, 3]
+        a, b = s.pos_mm[0], s.pos_mm[-1]
+        d = (b - a) / np.linalg.norm(b - a)
+        off = p - a
+        lateral = np.linalg.norm(off - (off @ d)[:, None] * d[None], axis=1)
+        # the raster line itself bends with the surface (a few mm over the plate); no more than that
+        ref = s.pos_mm - a
+        ref_lateral = np.linalg.norm(ref - (ref @ d)[:, None] * d[None], axis=1)
+        assert lateral.max() <= ref_lateral.max() + 0.5, (s.label, lateral.max(), ref_lateral.max())
+
+
+def test_default_settings_fly_the_turnarounds():
+    assert PlannerSettings().flying_turns
