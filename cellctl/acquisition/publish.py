@@ -23,6 +23,8 @@ from cellctl.api.cloud_codec import Cloud, encode_cloud
 
 __all__ = ["PublishSettings", "column_steps", "encode_scan", "publication_cloud"]
 
+_WIRE_DTYPES = {"pass_id": np.uint16, "profile_index": np.uint32, "point_index": np.uint16}
+
 
 @dataclass(frozen=True)
 class PublishSettings:
@@ -82,7 +84,8 @@ def publication_cloud(
     """The valid points of ``scan`` as a :class:`~cellctl.api.cloud_codec.Cloud`, thinned by ``column_step``
     (see :meth:`AssembledScan.points`), in the cloud vocabulary (:meth:`AssembledScan.cloud_arrays`:
     transit under pass 0, exposure times in s from the first profile) at the codec's dtypes."""
-    pts = scan.cloud_arrays(column_step)
+    # filled at the wire's dtypes block by block: no whole-scan int64 temporaries (a 6 m plate's 33 M points)
+    pts = scan.cloud_arrays(column_step, dtypes=_WIRE_DTYPES)
     for name in ("pass_id", "point_index"):
         if pts[name].size and int(pts[name].max()) > 65535:
             raise AssemblyError(f"{name} {int(pts[name].max())} does not fit the cloud's u16")
@@ -90,9 +93,9 @@ def publication_cloud(
         xyz_mm=pts["xyz_mm"],
         job_id=job_id,
         plate_id=plate_id,
-        pass_id=pts["pass_id"].astype(np.uint16),
-        profile_index=pts["profile_index"].astype(np.uint32),
-        point_index=pts["point_index"].astype(np.uint16),
+        pass_id=pts["pass_id"].astype(np.uint16, copy=False),
+        profile_index=pts["profile_index"].astype(np.uint32, copy=False),
+        point_index=pts["point_index"].astype(np.uint16, copy=False),
         t_s=pts["t_s"],
         meta=dict(meta or {}),
     )

@@ -296,7 +296,9 @@ class ScanRunner:
                     "phase": phase,
                 },
             )
-            acq = Acquisition(acq_settings, writer, keep_batches=True)
+            # the whole scan's arrays reserved once at the plan's profile count (a 6 m plate: 340 000)
+            expected = (plan.scan_time_s + cfg.daemon.settle_s + 10.0) * cfg.laser.rate_hz * 1.1
+            acq = Acquisition(acq_settings, writer, keep_batches=True, expected_profiles=round(expected))
             egm0 = _counters(drv.endpoint.stats, _EGM_COUNTERS)
             executor = MotionExecutor.for_plan(
                 drv.endpoint,
