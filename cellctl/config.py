@@ -335,6 +335,10 @@ class ScanSection(Section):
     # their own, usually finer, pitch.
     publish_pitch_mm: NonNegativeFloat = 0.5
     edge_publish_pitch_mm: NonNegativeFloat = 0.5
+    # At most this many points published (0: no bound): a larger scan is thinned further by a whole
+    # factor (cellctl.acquisition.publish.budget_steps) so the worker's memory and time stay as
+    # measured for that many points (docs/operations.md: a 6 m plate). The raw files keep every point.
+    publish_max_points: Annotated[int, Field(ge=0)] = 40_000_000
 
 
 ZenohRole = Literal["operator", "worker", "viewer", "daemon"]

@@ -17,11 +17,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import structlog
 
 from cellctl.acquisition.assembly import AssembledScan, AssemblyError
 from cellctl.api.cloud_codec import Cloud, encode_cloud
 
-__all__ = ["PublishSettings", "column_steps", "encode_scan", "publication_cloud"]
+__all__ = ["PublishSettings", "budget_steps", "column_steps", "encode_scan", "publication_cloud"]
+
+log = structlog.get_logger(__name__)
 
 _WIRE_DTYPES = {"pass_id": np.uint16, "profile_index": np.uint32, "point_index": np.uint16}
 
@@ -71,6 +74,24 @@ def column_steps(pass_id: np.ndarray, first_edge_pass: int | None, settings: Pub
     if first_edge_pass is None or raster == edge:
         return np.full(pid.shape, raster, dtype=np.int64)
     return np.where(pid >= first_edge_pass, edge, raster).astype(np.int64)
+
+
+def budget_steps(steps: np.ndarray, valid_per_profile: np.ndarray, max_points: int) -> np.ndarray:
+    """``steps`` (per profile) raised by one whole factor when the points they keep would exceed
+    ``max_points`` (``[scan] publish_max_points``; 0: no budget), so the analysis of any plate stays
+    within the memory and time measured for that many points (docs/operations.md, a 6 m plate). The
+    ratio of the edge to the raster pitch is kept; the raw files keep every point whatever this says.
+
+    valid_per_profile: (n,) valid points of each profile at full density."""
+    steps = np.asarray(steps, dtype=np.int64)
+    if max_points <= 0 or not steps.size:
+        return steps
+    kept = float(np.sum(np.asarray(valid_per_profile, dtype=np.float64) / steps))
+    if kept <= max_points:
+        return steps
+    factor = int(np.ceil(kept / max_points))
+    log.info("publication_thinned_to_budget", points=round(kept), max_points=max_points, factor=factor)
+    return steps * factor
 
 
 def publication_cloud(

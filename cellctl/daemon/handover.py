@@ -17,7 +17,7 @@ from typing import Any, Protocol
 
 import structlog
 
-from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan
+from cellctl.acquisition.publish import PublishSettings, budget_steps, column_steps, encode_scan
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import JobState
 from cellctl.api.analysis_job import analysis_job
@@ -81,6 +81,7 @@ class Handover:
             # plan.passes), so the plan's raster count is the first edge pass.
             first_edge = (rec.info.get("plan") or {}).get("passes")
             steps = column_steps(scan_cloud.pass_id, first_edge, PublishSettings.from_config(self.cfg))
+            steps = budget_steps(steps, scan_cloud.valid.sum(axis=1), self.cfg.scan.publish_max_points)
             meta = {"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": rec.placement}
             # thinned and encoded in one pass off the loop: the only copy of the points is the payload
             payload, job.points = await asyncio.to_thread(
