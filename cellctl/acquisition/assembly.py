@@ -9,7 +9,7 @@ as NaN with ``valid`` False. All work is per batch on whole arrays.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -251,6 +251,59 @@ class AssembledScan:
             "t_ns": self.t_ns[r],
         }
 
+    def _column_step(self, column_step: int | np.ndarray) -> np.ndarray:
+        n = len(self)
+        step = np.asarray(column_step, dtype=np.int64)
+        if step.ndim == 1 and step.shape == (n,) and n and step.min() == step.max():
+            step = step[0]  # one step for every profile: strided views, 5x cheaper
+        if step.ndim == 1 and step.shape != (n,):
+            raise AssemblyError(f"column_step must be an int or ({n},), got {step.shape}")
+        if step.size and int(step.min()) < 1:
+            raise AssemblyError(f"column_step must be >= 1, got {int(step.min())}")
+        return step
+
+    def _kept(self, lo: int, step: np.ndarray) -> np.ndarray:
+        """Valid and kept points of rows ``lo`` .. ``lo + _BLOCK_ROWS``: (rows, kept columns) bool."""
+        v = self.valid[lo : lo + _BLOCK_ROWS]
+        if step.ndim == 0:
+            k = int(step)
+            return v[:, ::k] if k > 1 else v
+        w = v.shape[1]
+        s = step[lo : lo + _BLOCK_ROWS]
+        return v & (np.arange(w, dtype=np.int32)[None, :] % s[:, None].astype(np.int32) == 0)
+
+    def _block(self, lo: int, step: np.ndarray, t0: int) -> dict[str, np.ndarray]:
+        """The cloud arrays (default dtypes) of rows ``lo`` .. ``lo + _BLOCK_ROWS``."""
+        r, col = np.nonzero(self._kept(lo, step))
+        if step.ndim == 0:
+            point, col = col, col * int(step)
+        else:
+            point = col // step[lo : lo + _BLOCK_ROWS][r]
+        rows = r + lo
+        return {
+            "xyz_mm": self.xyz_mm[rows, col],
+            "pass_id": np.maximum(self.pass_id[rows], 0),
+            "profile_index": self.profile_index[rows],
+            "point_index": point.astype(np.int32),
+            "t_s": (self.t_ns[rows] - t0) * 1e-9,
+        }
+
+    def _check_fits(self, dt: dict[str, np.dtype | type]) -> None:
+        n, w = len(self), self.valid.shape[1] if self.valid.ndim == 2 else 0
+        for name, top in (("pass_id", int(self.pass_id.max()) if n else 0), ("point_index", max(w - 1, 0)),
+                          ("profile_index", int(self.profile_index.max()) if n else 0)):  # fmt: skip
+            kind = np.dtype(dt[name])
+            if kind.kind in "iu" and top > np.iinfo(kind).max:
+                raise AssemblyError(f"{name} {top} does not fit the cloud's {kind}")
+
+    def cloud_blocks(self, column_step: int | np.ndarray = 1) -> Iterator[dict[str, np.ndarray]]:
+        """:meth:`cloud_arrays` block of rows by block of rows (times from the scan's first profile):
+        what a file writer streams, a block's points in memory at a time."""
+        step = self._column_step(column_step)
+        t0 = int(self.t_ns.min()) if len(self) else 0
+        for lo in range(0, len(self), _BLOCK_ROWS):
+            yield self._block(lo, step, t0)
+
     def cloud_arrays(
         self, column_step: int | np.ndarray = 1, dtypes: dict[str, np.dtype | type] | None = None
     ) -> dict[str, np.ndarray]:
@@ -264,31 +317,11 @@ class AssembledScan:
         temporaries, not int64 indices and times for every point. A value beyond the dtype's range
         raises :class:`AssemblyError`."""
         dt = {**CLOUD_DTYPES, **(dtypes or {})}
-        n, w = self.valid.shape if self.valid.ndim == 2 else (len(self), 0)
-        step = np.asarray(column_step, dtype=np.int64)
-        if step.ndim == 1 and step.shape == (n,) and n and step.min() == step.max():
-            step = step[0]
-        if step.ndim == 1 and step.shape != (n,):
-            raise AssemblyError(f"column_step must be an int or ({n},), got {step.shape}")
-        if step.size and int(step.min()) < 1:
-            raise AssemblyError(f"column_step must be >= 1, got {int(step.min())}")
-        for name, top in (("pass_id", int(self.pass_id.max()) if n else 0), ("point_index", max(w - 1, 0)),
-                          ("profile_index", int(self.profile_index.max()) if n else 0)):  # fmt: skip
-            kind = np.dtype(dt[name])
-            if kind.kind in "iu" and top > np.iinfo(kind).max:
-                raise AssemblyError(f"{name} {top} does not fit the cloud's {kind}")
-        t0 = int(self.t_ns.min()) if n else 0
-        blocks = range(0, n, _BLOCK_ROWS)
-
-        def kept(lo: int) -> np.ndarray:
-            v = self.valid[lo : lo + _BLOCK_ROWS]
-            if step.ndim == 0:
-                k = int(step)
-                return v[:, ::k] if k > 1 else v
-            s = step[lo : lo + _BLOCK_ROWS]
-            return v & (np.arange(w, dtype=np.int32)[None, :] % s[:, None].astype(np.int32) == 0)
-
-        counts = [int(np.count_nonzero(kept(lo))) for lo in blocks]
+        step = self._column_step(column_step)
+        self._check_fits(dt)
+        t0 = int(self.t_ns.min()) if len(self) else 0
+        blocks = range(0, len(self), _BLOCK_ROWS)
+        counts = [int(np.count_nonzero(self._kept(lo, step))) for lo in blocks]
         total = sum(counts)
         out = {
             "xyz_mm": np.empty((total, 3), dt["xyz_mm"]),
@@ -296,21 +329,10 @@ class AssembledScan:
         }
         at = 0
         for lo, c in zip(blocks, counts, strict=True):
-            if not c:
-                continue
-            r, col = np.nonzero(kept(lo))
-            if step.ndim == 0:
-                point, col = col, col * int(step)
-            else:
-                point = col // step[lo : lo + _BLOCK_ROWS][r]
-            rows = r + lo
-            sl = slice(at, at + c)
-            out["xyz_mm"][sl] = self.xyz_mm[rows, col]
-            out["pass_id"][sl] = np.maximum(self.pass_id[rows], 0)
-            out["profile_index"][sl] = self.profile_index[rows]
-            out["point_index"][sl] = point
-            out["t_s"][sl] = (self.t_ns[rows] - t0) * 1e-9
-            at += c
+            if c:
+                for f, a in self._block(lo, step, t0).items():
+                    out[f][at : at + c] = a
+                at += c
         return out
 
     def scan_cloud(self, column_step: int | np.ndarray = 1) -> ScanCloud:
