@@ -193,8 +193,31 @@ def synth_part(args: argparse.Namespace) -> dict:
                   point_index=c.point_index.astype(np.uint16))  # fmt: skip
     out = Path(args.work)
     (out / "cloud.bin").write_bytes(encode_cloud(cloud))
-    save_mesh(design_mesh(spec, pitch_mm=10.0), out / "design.stl")
+    save_mesh(design_mesh(spec, pitch_mm=10.0), out / "design.ply")
     return {"synth_points": cloud.n_points, "synth_peak_mb": _hwm_mb()}
+
+
+def _trace_peaks(period_s: float = 0.5) -> None:
+    """Print (stderr) the threads' stacks each time the RSS passes its previous peak by 200 MB."""
+    import threading
+    import traceback
+
+    def run() -> None:
+        top = 0.0
+        me = threading.get_ident()
+        while True:
+            rss = _rss_mb()
+            if rss > top + 200:
+                top = rss
+                lines = [f"--- rss {rss:.0f} MB"]
+                for tid, frame in sys._current_frames().items():
+                    if tid != me:
+                        st = traceback.extract_stack(frame)[-4:]
+                        lines += [f"  {f.filename.split('/')[-1]}:{f.lineno} {f.name}" for f in st] + ["  ."]
+                print("\n".join(lines), file=sys.stderr, flush=True)
+            time.sleep(period_s)
+
+    threading.Thread(target=run, daemon=True).start()
 
 
 def worker_part(args: argparse.Namespace) -> dict:
@@ -204,17 +227,21 @@ def worker_part(args: argparse.Namespace) -> dict:
     from analysis.templates import DetectionLayout
     from cellctl.api.cloud_codec import decode_cloud
 
+    if args.trace:
+        _trace_peaks()
     work = Path(args.work)
     raw = (work / "cloud.bin").read_bytes()
     t0 = time.perf_counter()
+    c0 = time.process_time()
     cloud = decode_cloud(raw)
     settings = InspectionSettings(layout=DetectionLayout(transverse_count=None, longitudinal_count=None))
-    job = AnalysisJob(design=str(work / "design.stl"), settings=settings, out_dir=str(work / "results"),
+    job = AnalysisJob(design=str(work / "design.ply"), settings=settings, out_dir=str(work / "results"),
                       job_id="long", plate_id="long")  # fmt: skip
     report = analyse_job(cloud.scan_cloud(), job)
     return {
         "worker_peak_mb": _hwm_mb(),
         "analysis_s": round(time.perf_counter() - t0, 1),
+        "analysis_cpu_s": round(time.process_time() - c0, 1),
         "analysis_stages_s": report["timings_s"],
         "analysed_points": len(cloud.xyz_mm),
         "lines": len(report["lines"]),
@@ -241,6 +268,7 @@ def main() -> int:
     p.add_argument("--publish-pitch-mm", type=float, default=0.5)
     p.add_argument("--presize", action="store_true", help="tell the acquisition the expected profile count")
     p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--trace", action="store_true", help="worker side: print the stacks at each new RSS peak")
     p.add_argument("--dir", default=None, help="where the daemon side's raw files go")
     p.add_argument("--work", default=None, help="the worker side's work directory")
     args = p.parse_args()
@@ -273,7 +301,7 @@ def main() -> int:
         with tempfile.TemporaryDirectory(prefix="long-plate-") as tmp:
             work = args.work or tmp
             Path(work).mkdir(parents=True, exist_ok=True)
-            extra = [*common, "--work", work, "--seed", str(args.seed)]
+            extra = [*common, "--work", work, "--seed", str(args.seed), *(["--trace"] if args.trace else [])]
             if not (Path(work) / "cloud.bin").exists():
                 out.update(_child("synth", args, extra))
             out.update(_child("analysis", args, extra))
