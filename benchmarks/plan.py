@@ -1,4 +1,4 @@
-"""Scan planning benchmark: the 1200 x 800 sail plate and a 6000 x 2500 plate on a rail-less cell.
+"""Scan planning benchmark: the 1200 x 800 sail plate, and a 6000 x 2000 plate on the long-plate cell.
 
 For the sail plate at the cell.toml default placement (1500, 0, 300 mm, 3 deg) with the cell.toml
 scan settings (HD8: 50 mm line, 200 Hz, 0.5 mm profile spacing -> 100 mm/s): planning time
@@ -9,16 +9,21 @@ predicted coverage of the top surface (target >= 0.99), and the planned scan tim
 turnarounds between passes, issue 22) and ``retract_s``, with the longest single transition
 ``transition_max_s``. Planning is repeated ``--repeat`` times and the median reported.
 
-For the large plate (6000 x 2500, a gentle sail) at a placement in front of the robot: the outcome
-(refused or planned) with the reason, and how long it took to decide.
+``large``: the 6000 x 2000 plate (a gentle sail, radii 20 / 10 m) on the long-plate cell
+(``--large-config``, default docs/examples/cell-track.toml: the robot on a riser on a 7 m track, the
+plate's long side along the rail, docs/robot-setup.md "The long-plate cell") at that cell's
+``[sim.placement]``: the outcome (planned or refused, with the reason), ``scan_time_s``,
+``sweep_time_s``, ``sweep_ratio`` (target <= 1.2), ``passes``, the planner's ``choices`` (track hold
+or follow, edge tilts lowered, edge order), the stages' times and ``decide_s`` (how long planning
+took, coverage included).
 
-``--track``: the same with the robot on a 6 m linear track along +y, its base at the middle of the
-travel where the rail-less base is (the planner then moves the carriage along each pass); a
-``[robot.track]`` in the ``--config`` file does the same with that track. The output's ``track``
-names the track used (null: none).
+``--track``: the sail with the robot on a 6 m linear track along +y, its base at the middle of the
+travel where the rail-less base is (the plate within the fixed arm's reach: the carriage holds and
+the plan is the rail-less one); a ``[robot.track]`` in the ``--config`` file does the same with that
+track. The output's ``track`` names the track used (null: none) and the planner's choice.
 
-Usage: ``python benchmarks/plan.py [--repeat 3] [--config cell.toml] [--track]``. Prints one JSON
-object; logs go to stderr.
+Usage: ``python benchmarks/plan.py [--repeat 3] [--config cell.toml] [--track] [--large-config F]``.
+Prints one JSON object; logs go to stderr.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import statistics
 import sys
 import time
@@ -43,13 +49,17 @@ def main() -> int:
     p.add_argument("--repeat", type=int, default=3, help="planning runs of the sail plate (median reported)")
     p.add_argument("--config", default=str(REPO / "cell.toml"), help="cell.toml with the scan settings")
     p.add_argument("--track", action="store_true", help="plan with a 6 m track along +y (base at mid-travel)")
+    p.add_argument(
+        "--large-config",
+        default=str(REPO / "docs" / "examples" / "cell-track.toml"),
+        help="the long-plate cell the 6000 x 2000 plate is planned on",
+    )
     args = p.parse_args()
     structlog.configure(
         wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING),
         logger_factory=structlog.PrintLoggerFactory(sys.stderr),
     )
 
-    from analysis.placement import Placement
     from analysis.plates import design_mesh, plate_spec
     from cellctl.config import load_config
     from cellctl.planning import PlannerSettings, PlanRefused, plan_scan
@@ -77,25 +87,35 @@ def main() -> int:
     assert plan is not None
     s = plan.summary()
 
+    large_cfg = load_config(args.large_config)
+    large_settings = PlannerSettings.from_config(large_cfg)
     large = design_mesh(
-        plate_spec("sail", length_mm=6000.0, width_mm=2500.0, radius_x_mm=20000.0, radius_y_mm=10000.0),
+        plate_spec("sail", length_mm=6000.0, width_mm=2000.0, radius_x_mm=20000.0, radius_y_mm=10000.0),
         pitch_mm=25.0,
     )
-    # long side across the robot, the near edge 750 mm in front of the base
-    large_placement = Placement.on_bed(2000.0, 0.0, 90.0, z_mm=placement.z_mm)
+    # the long side (the design's x) along the rail, as the cell lays it
+    large_placement = large_cfg.sim.placement.to_placement()
     t0 = time.perf_counter()
     try:
-        big = plan_scan(large, large_placement, settings)
+        big = plan_scan(large, large_placement, large_settings)
         large_out = {
             "outcome": "planned",
-            "passes": big.summary()["passes"],
             "scan_time_s": round(big.scan_time_s, 2),
+            "sweep_time_s": round(big.sweep_time_s, 2),
+            "sweep_ratio": round(big.sweep_ratio, 4),
+            "passes": big.summary()["passes"],
+            "edge_passes": big.summary()["edge_passes"],
             "coverage": round(big.coverage.fraction, 5),
+            "choices": big.choices,
+            "track_range_mm": round(float(np.ptp(big.trajectory.q_deg[:, 0])), 1),
+            "stages_s": {k: round(v, 3) for k, v in big.timings_s.items()},
         }
     except PlanRefused as exc:
         large_out = {"outcome": "refused", **{k: v for k, v in exc.to_dict().items() if k != "message"}}
     large_out["decide_s"] = round(time.perf_counter() - t0, 3)
-    large_out["placement"] = large_placement.__dict__
+    large_out["plate"] = "sail 6000 x 2000"
+    large_out["config"] = os.path.relpath(Path(args.large_config).resolve(), REPO)
+    large_out["placement"] = large_placement.model_dump()
 
     result = {
         "plate": "sail 1200 x 800 x 15",
@@ -124,6 +144,7 @@ def main() -> int:
             "direction": settings.track.direction.tolist(),
             "travel_mm": [settings.track.travel_min_mm, settings.track.travel_max_mm],
             "range_used_mm": round(float(np.ptp(plan.trajectory.q_deg[:, 0])), 1),
+            "choice": plan.choices.get("track"),
         },
     }
     print(json.dumps(result))

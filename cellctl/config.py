@@ -328,6 +328,10 @@ class ScanSection(Section):
     placement_uncertainty_deg: NonNegativeFloat = 2.0
     placement_z_mm: Finite = 300.0
     edge_tilt_deg: Annotated[float, Field(ge=0, lt=80, allow_inf_nan=False)] = 30.0
+    # The sensor leans this much along the passes (about its laser line), so that the arm's forearm
+    # never lines up with the sensor axis (the wrist singularity, |joint 5| -> 0) where a sensor
+    # looking straight down would need it: a plate low under the base (a riser) reached near and far.
+    sweep_pitch_deg: Annotated[float, Field(ge=0, lt=45, allow_inf_nan=False)] = 0.0
     link_clearance_mm: NonNegativeFloat = 30.0
     approach_mm: PositiveFloat = 100.0
     # Column pitch of the cloud published to the analysis (every k-th point of each profile; the raw

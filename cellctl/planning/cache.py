@@ -41,7 +41,7 @@ __all__ = ["PLAN_CACHE_VERSION", "CachedPlan", "PlanCache", "plan_key"]
 log = structlog.get_logger(__name__)
 
 #: bump when the planner plans differently from the same inputs (or the stored plan's format changes)
-PLAN_CACHE_VERSION = "cellctl.plan_cache/1+cellctl.scan_plan/1"
+PLAN_CACHE_VERSION = "cellctl.plan_cache/2+cellctl.scan_plan/1"  # 2: the carriage holds when it can
 
 
 def _plain(value: Any) -> Any:

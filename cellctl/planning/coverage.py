@@ -20,6 +20,7 @@ a valid return.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -392,13 +393,15 @@ def _sensor_frames(
     standoff_mm: float,
     outward_xy: np.ndarray | None = None,
     tilt_deg: float = 0.0,
+    pitch_deg: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Sensor poses looking at surface points ``xy`` (n, 2) plate frame; ``travel_xy`` and
     ``outward_xy`` are (2,) or one per point (n, 2).
 
     Returns ``(pos_mm (n, 3), R_plate_sensor (n, 3, 3), surface_pt_mm (n, 3), normal (n, 3))``: the
     sensor z axis along minus the normal (tilted ``tilt_deg`` towards ``-outward`` for edge passes),
-    the sensor y axis along ``sign * travel`` and the laser line (x) across it.
+    the sensor y axis along ``sign * travel`` and the laser line (x) across it; ``pitch_deg`` leans
+    the sensor's view about its line towards ``+travel`` (the line stays where it was).
     """
     h, gx, gy = surface.height_and_gradient(xy[:, 0], xy[:, 1])
     n = _unit(np.column_stack([-gx, -gy, np.ones_like(gx)]))
@@ -413,7 +416,11 @@ def _sensor_frames(
         z = _unit(-n * np.cos(a) - o * np.sin(a))
     t3 = np.zeros_like(z)
     t3[:, :2] = travel_xy
-    y = sign * _unit(t3 - np.sum(t3 * z, axis=1, keepdims=True) * z)
+    y = _unit(t3 - np.sum(t3 * z, axis=1, keepdims=True) * z)
+    if pitch_deg > 0:
+        b = np.deg2rad(pitch_deg)
+        z, y = z * np.cos(b) + y * np.sin(b), y * np.cos(b) - z * np.sin(b)
+    y = sign * y
     x = np.cross(y, z)
     R = np.stack([x, y, z], axis=2)
     return pts - standoff_mm * z, R, pts, n
@@ -519,13 +526,28 @@ def _link(
 
 
 def build_segments(
-    surface: DesignSurface, placement: Placement, settings: PlannerSettings, *, sign: float = 1.0
+    surface: DesignSurface,
+    placement: Placement,
+    settings: PlannerSettings,
+    *,
+    sign: float = 1.0,
+    edge_tilts_deg: Mapping[str, float] | None = None,
+    edge_reverse: bool = False,
+    raster_cache: dict | None = None,
 ) -> tuple[list[Segment], float]:
     """The ordered segments of a scan (base frame) and the placement margin used (mm).
 
     Order: approach, raster passes (serpentine) with links, links to and along the four edge passes
     (nearest edge first, around the plate), retract. ``sign`` (+1 / -1) picks which way the sensor's
-    y axis points along the raster passes; the joint path tries both.
+    y axis points along the raster passes; the joint path tries both. ``edge_tilts_deg``: the tilt
+    of some edge passes by label (``"edge 2"``) where it differs from ``settings.edge_tilt_deg``
+    (the planner lowers it on an edge the arm cannot reach at the full tilt; the edge passes' order
+    does not depend on their tilts). The edge passes go round the plate the way whose first edge
+    starts nearest the last raster pass's end; ``edge_reverse`` goes round the other way (the
+    sensor's heading then turns the other way, and so do the wrist's joints 4 and 6).
+    ``raster_cache``: a dict the caller keeps across calls with the same surface and settings; the
+    raster passes (plate frame, which depend on neither the placement, the edge tilts nor the edge
+    order) are then computed once per ``sign``.
 
     Raises:
         PlanRefused: the line would leave the depth range somewhere.
@@ -543,10 +565,11 @@ def build_segments(
     first, last = lo_c - margin + w / 2, hi_c + margin - w / 2
     centres = np.array([0.5 * (lo_c + hi_c)]) if n_pass == 1 else np.linspace(first, last, n_pass)
 
-    sweeps: list[tuple[str, str, np.ndarray, np.ndarray]] = []  # (kind, label, pos, R) plate frame
+    # (kind, label, pos, R) plate frame; the raster passes from the caller's cache when it has them
+    sweeps: list[tuple[str, str, np.ndarray, np.ndarray]] = list((raster_cache or {}).get(sign, ()))
     # how far any plate point can move at a corner of the uncertainty box (shift in x and y at once)
     drift = _outline_drift_mm(surface, settings)
-    for i, c in enumerate(centres):
+    for i, c in enumerate(() if sweeps else centres):
         # the pass reaches as far as the plate does inside the strip it may see under the uncertainty,
         # never beyond the footprint's bounds plus the margin (a rectangle keeps its passes)
         reach = surface.reach_along(a2, c2, c - w / 2 - drift, c + w / 2 + drift)
@@ -556,10 +579,14 @@ def build_segments(
         a0, a1 = (lo_i, hi_i) if i % 2 == 0 else (hi_i, lo_i)
         s = _samples(a0, a1, settings.waypoint_step_mm)
         xy = s[:, None] * a2[None] + c * c2[None]
-        pos, R, _, _ = _sensor_frames(surface, xy, a2, sign, settings.standoff_mm)
+        pos, R, _, _ = _sensor_frames(
+            surface, xy, a2, sign, settings.standoff_mm, pitch_deg=settings.sweep_pitch_deg
+        )
         label = f"scan {i + 1}"
         _check_depth(surface, label, pos, R, settings, margin)
         sweeps.append(("scan", label, pos, R))
+    if raster_cache is not None:
+        raster_cache.setdefault(sign, tuple(sweeps))
 
     if settings.edge_passes:
         edges = surface.outline_edges()
@@ -571,19 +598,34 @@ def build_segments(
         }
         end_xy = sweeps[-1][2][-1, :2]
         best = None
+        best_way: dict[bool, tuple[float, list[int]]] = {}  # per way round: the order from its nearest start
         for start in range(4):
             for ccw in (True, False):
                 order = [(start + k) % 4 for k in range(4)] if ccw else [(start - k) % 4 for k in range(4)]
                 dist = float(np.linalg.norm(paths[(order[0], ccw)][0][0] - end_xy))
                 if best is None or dist < best[0]:
                     best = (dist, order, ccw)
+                if ccw not in best_way or dist < best_way[ccw][0]:
+                    best_way[ccw] = (dist, order)
         _, order, ccw = best
+        if edge_reverse:
+            ccw = not ccw
+            order = best_way[ccw][1]
         prev_x = sweeps[-1][3][-1, :, 0]
         for k, e in enumerate(order):
             xy, travel, outward = paths[(e, ccw)]
             # the sensor's line direction is kept as close as possible to the previous pass's (less wrist roll)
             options = [
-                _sensor_frames(surface, xy, travel, sg, settings.standoff_mm, outward, settings.edge_tilt_deg)
+                _sensor_frames(
+                    surface,
+                    xy,
+                    travel,
+                    sg,
+                    settings.standoff_mm,
+                    outward,
+                    (edge_tilts_deg or {}).get(f"edge {k + 1}", settings.edge_tilt_deg),
+                    settings.sweep_pitch_deg,
+                )
                 for sg in (1.0, -1.0)
             ]
             pos, R, _, _ = max(options, key=lambda o: float(o[1][0, :, 0] @ prev_x))

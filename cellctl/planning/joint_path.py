@@ -8,10 +8,13 @@ wrist-singularity margin (|q5|), the joint jump between neighbours and the senso
 first violation refuses the plan with the pass, the point and the limit.
 
 With a linear track (``settings.track``) the planner first chooses the track's position at every
-waypoint (:func:`track_positions`): the carriage follows the sensor's along-rail coordinate, so the
-arm works at the same reach along the rail on every pass, where the waypoints' base-frame poses are
-those of the plate beside a fixed robot. The arm's joints are then solved in the base frame at that
-track position exactly as without a track; a segment's configurations are ``axes_mm_deg``.
+waypoint (:func:`track_positions`). When one carriage position lets the arm reach the whole plan
+the carriage holds there (``hold_mm``, :func:`hold_position_mm`: the plate's footprint centre abreast
+of the base, where a rail-less cell has the plate), and the plan is the rail-less cell's. Otherwise
+the carriage follows the sensor's along-rail coordinate, so the arm works at the same reach along
+the rail on every pass, where the waypoints' base-frame poses are those of the plate beside a fixed
+robot. The arm's joints are then solved in the base frame at those track positions exactly as
+without a track; a segment's configurations are ``axes_mm_deg``.
 """
 
 from __future__ import annotations
@@ -25,13 +28,16 @@ from cellctl.planning.settings import PlannerSettings
 from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics
 
 __all__ = [
+    "REACH_MM",
     "JointPathResult",
     "check_reach",
     "first_configuration",
+    "hold_position_mm",
     "in_base_frame",
     "sensor_kinematics",
     "solve_joint_path",
     "track_positions",
+    "wrist_distances_mm",
 ]
 
 #: IK must reach the pose this closely, or the point counts as unreachable
@@ -75,10 +81,25 @@ def sensor_kinematics(settings: PlannerSettings) -> RobotKinematics:
 TRACK_LEADS_MM = (0.0, -200.0, 200.0, -400.0, 400.0)
 
 
+def hold_position_mm(centre_world_mm: np.ndarray, settings: PlannerSettings) -> float | None:
+    """The carriage position that puts ``centre_world_mm`` (the plate's footprint centre, world
+    frame) abreast of the robot base, clipped to the usable travel; None without a track.
+
+    Held for a whole scan it gives the arm the plate where a rail-less cell has it (the track's
+    along-rail axis through the base), so a plate within the fixed arm's reach gets the same plan."""
+    track = settings.track
+    if track is None:
+        return None
+    along = float((np.asarray(centre_world_mm, dtype=np.float64) - track.origin_mm) @ track.direction)
+    return float(np.clip(along, track.travel_min_mm, track.travel_max_mm))
+
+
 def track_positions(
-    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0
+    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0, hold_mm: float | None = None
 ) -> list[np.ndarray] | None:
     """The track's position (n,) mm at every waypoint of every segment, or None without a track.
+
+    ``hold_mm`` (not None): the carriage holds that position for the whole plan.
 
     The carriage follows the sensor's along-rail coordinate ``a = (p - origin) . direction`` at one
     lead for the whole plan, ``s = a - lead``: the arm's reach along the rail is the same on every
@@ -91,6 +112,8 @@ def track_positions(
     track = settings.track
     if track is None:
         return None
+    if hold_mm is not None:
+        return [np.full(seg.pos_mm.shape[0], float(hold_mm)) for seg in segments]
     along = [(seg.pos_mm - track.origin_mm) @ track.direction for seg in segments]
     a = np.concatenate(along)
     lead_lo = float(a.max()) - track.travel_max_mm
@@ -100,12 +123,12 @@ def track_positions(
 
 
 def in_base_frame(
-    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0
+    segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0, hold_mm: float | None = None
 ) -> tuple[list[Segment], list[np.ndarray] | None]:
     """The segments' sensor poses in the robot base frame at the chosen track positions (copies;
     the segments themselves stay in the world frame), and those track positions (None: no track,
     the segments are returned as they are)."""
-    s = track_positions(segments, settings, lead_mm)
+    s = track_positions(segments, settings, lead_mm, hold_mm)
     if s is None:
         return segments, None
     track = settings.track
@@ -170,31 +193,39 @@ def first_configuration(
 
 #: shoulder (joint 2 axis) offset and height, and the longest shoulder -> wrist-centre distance, mm
 _SHOULDER_X_MM, _SHOULDER_Z_MM = 175.0, 495.0
-_REACH_MM = 1095.0 + float(np.hypot(1270.0, 175.0))
+REACH_MM = 1095.0 + float(np.hypot(1270.0, 175.0))
 _WRIST_TO_FLANGE_MM = 135.0
+
+
+def wrist_distances_mm(segments: list[Segment], settings: PlannerSettings) -> list[np.ndarray]:
+    """Per segment, (n,) distances of the wrist centre from the shoulder (joint 2 axis), mm, for
+    base-frame sensor poses; the arm reaches no further than ``REACH_MM``.
+
+    The wrist centre sits 135 mm behind the flange along the flange's z axis."""
+    T_sensor_flange = np.linalg.inv(np.asarray(settings.T_flange_sensor, dtype=np.float64))
+    out = []
+    for seg in segments:
+        T = pose_matrix(seg.pos_mm, seg.R_base_sensor) @ T_sensor_flange
+        wrist = T[:, :3, 3] - _WRIST_TO_FLANGE_MM * T[:, :3, 2]
+        r_xy = np.hypot(wrist[:, 0], wrist[:, 1])
+        out.append(np.hypot(r_xy - _SHOULDER_X_MM, wrist[:, 2] - _SHOULDER_Z_MM))
+    return out
 
 
 def check_reach(segments: list[Segment], settings: PlannerSettings) -> None:
     """Refuse early, with the share of the sweeps in reach, when wrist centres lie beyond the arm.
 
-    The wrist centre sits 135 mm behind the flange along the flange's z axis; it must lie within
-    upper arm + forearm of the shoulder (joint 2 axis). This is a necessary condition only (IK
-    checks the rest), but it names the reason plainly for a plate too large for a rail-less cell.
+    The wrist centre must lie within upper arm + forearm of the shoulder (:func:`wrist_distances_mm`).
+    This is a necessary condition only (IK checks the rest), but it names the reason plainly for a
+    plate too large for a rail-less cell.
     """
-    T_sensor_flange = np.linalg.inv(np.asarray(settings.T_flange_sensor, dtype=np.float64))
-    dist_all = []
-    for seg in segments:
-        T = pose_matrix(seg.pos_mm, seg.R_base_sensor) @ T_sensor_flange
-        wrist = T[:, :3, 3] - _WRIST_TO_FLANGE_MM * T[:, :3, 2]
-        r_xy = np.hypot(wrist[:, 0], wrist[:, 1])
-        dist = np.hypot(r_xy - _SHOULDER_X_MM, wrist[:, 2] - _SHOULDER_Z_MM)
-        dist_all.append((seg, dist))
+    dist_all = list(zip(segments, wrist_distances_mm(segments, settings), strict=True))
     sweep_d = np.concatenate([d for seg, d in dist_all if seg.is_sweep] or [np.zeros(0)])
     for seg, dist in dist_all:
-        far = dist > _REACH_MM
+        far = dist > REACH_MM
         if far.any():
             i = int(np.argmax(far))
-            share = float(np.mean(sweep_d <= _REACH_MM)) if sweep_d.size else 0.0
+            share = float(np.mean(sweep_d <= REACH_MM)) if sweep_d.size else 0.0
             advice = (
                 "lay the plate closer to the track (the track carries the arm along it, not across)"
                 if settings.track is not None
@@ -202,12 +233,23 @@ def check_reach(segments: list[Segment], settings: PlannerSettings) -> None:
             )
             raise PlanRefused(
                 f"the wrist centre would be {dist[i]:.0f} mm from the shoulder, beyond the arm's "
-                f"{_REACH_MM:.0f} mm; {share:.0%} of the sweep waypoints are in reach: {advice}",
+                f"{REACH_MM:.0f} mm; {share:.0%} of the sweep waypoints are in reach: {advice}",
                 pass_label=seg.label,
                 point_index=i,
-                limit=f"reach {_REACH_MM:.0f} mm",
+                limit=f"reach {REACH_MM:.0f} mm",
                 pos_mm=seg.pos_mm[i],
             )
+
+
+def _same_waypoints(done: Segment, seg: Segment, track_mm: np.ndarray | None) -> bool:
+    """``done`` (solved) has the same waypoints as ``seg`` and, with a track, the same track positions."""
+    if done.q_deg is None or done.label != seg.label or done.pos_mm.shape != seg.pos_mm.shape:
+        return False
+    if not (
+        np.array_equal(done.pos_mm, seg.pos_mm) and np.array_equal(done.R_base_sensor, seg.R_base_sensor)
+    ):
+        return False
+    return track_mm is None or np.array_equal(done.q_deg[:, 0], track_mm)
 
 
 def solve_joint_path(
@@ -216,6 +258,8 @@ def solve_joint_path(
     kin: RobotKinematics | None = None,
     q_start_deg: np.ndarray | None = None,
     track_lead_mm: float = 0.0,
+    track_hold_mm: float | None = None,
+    solved: list[Segment] | None = None,
 ) -> JointPathResult:
     """Fill ``segment.q_deg`` for every segment, in order, with continuity.
 
@@ -227,6 +271,11 @@ def solve_joint_path(
         q_start_deg: (6,) seed for the first waypoint; chosen from elbow-up seeds when None.
         track_lead_mm: with a track, the preferred along-rail offset of the sensor from the base
             (:func:`track_positions`).
+        track_hold_mm: with a track, hold the carriage at this position for the whole plan instead
+            (None: follow the passes).
+        solved: the segments of an earlier attempt (another list): its leading segments with the same
+            waypoints and track positions as these keep their joints (the solve is deterministic),
+            and the solve goes on from there.
 
     Raises:
         PlanRefused: a waypoint is unreachable, outside the joint margins, too close to the wrist
@@ -234,13 +283,36 @@ def solve_joint_path(
     """
     kin = kin or sensor_kinematics(settings)
     world_segments = segments
-    segments, track_mm = in_base_frame(world_segments, settings, track_lead_mm)
+    segments, track_mm = in_base_frame(world_segments, settings, track_lead_mm, track_hold_mm)
     check_reach(segments, settings)
     ws_lo, ws_hi = np.asarray(settings.workspace_min_mm), np.asarray(settings.workspace_max_mm)
     lo, hi = settings.q_min_deg, settings.q_max_deg
     q_prev: np.ndarray | None = None
     min_wrist, min_room, max_step, count = np.inf, np.inf, 0.0, 0
+    for seg in world_segments:
+        seg.q_deg = None  # a refused attempt leaves joints only on the segments it solved
+    reuse = 0
+    while solved is not None and reuse < min(len(solved), len(segments)):
+        if not _same_waypoints(
+            solved[reuse], world_segments[reuse], None if track_mm is None else track_mm[reuse]
+        ):
+            break
+        reuse += 1
     for k, seg in enumerate(segments):
+        if k < reuse:
+            q_all = solved[k].q_deg.copy()
+            q = q_all[:, -6:]
+            steps = np.abs(np.diff(q, axis=0) if q_prev is None else np.diff(np.vstack([q_prev, q]), axis=0))
+            max_step = max(max_step, float(steps.max(initial=0.0)))
+            min_wrist = min(min_wrist, float(np.abs(q[:, 4]).min()))
+            room = np.minimum(
+                q - np.asarray(settings.joint_lower_deg), np.asarray(settings.joint_upper_deg) - q
+            )
+            min_room = min(min_room, float(room.min()))
+            count += q.shape[0]
+            q_prev = q[-1]
+            world_segments[k].q_deg = q_all
+            continue
         out = np.zeros((seg.pos_mm.shape[0], 6))
         Ts = pose_matrix(seg.pos_mm, seg.R_base_sensor)
         outside = np.any((seg.pos_mm < ws_lo) | (seg.pos_mm > ws_hi), axis=1)

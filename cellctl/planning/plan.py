@@ -172,6 +172,10 @@ class ScanPlan:
     scan_speed_deviation: float
     toppra_time_s: float = 0.0
     timings_s: dict[str, float] = field(default_factory=dict)
+    #: what the planner chose where it had a choice: with a track, ``track`` (``{"mode": "hold",
+    #: "hold_mm": ...}`` or ``{"mode": "follow", "lead_mm": ...}``); ``edge_tilt_deg`` for edge passes
+    #: tilted less than the setting to stay in reach (by label)
+    choices: dict[str, Any] = field(default_factory=dict)
 
     @property
     def passes(self) -> list[Segment]:
@@ -227,6 +231,7 @@ class ScanPlan:
             "pass_times": self.pass_times(),
             "margin_mm": round(self.margin_mm, 2),
             "timings_s": {k: round(v, 4) for k, v in self.timings_s.items()},
+            "choices": self.choices,
         }
 
     def to_dict(self) -> dict[str, Any]:
@@ -314,6 +319,7 @@ class ScanPlan:
                 scan_speed_deviation=float(sm["scan_speed_deviation"]),
                 toppra_time_s=float(sm.get("toppra_time_s", 0.0)),
                 timings_s=dict(sm.get("timings_s", {})),
+                choices=dict(sm.get("choices", {})),
             )
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, PlanInputError):

@@ -16,16 +16,20 @@ import numpy as np
 import structlog
 
 from analysis.mesh import TriMesh
+from analysis.placement import placement_transform
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
 from cellctl.planning.joint_path import (
+    REACH_MM,
     TRACK_LEADS_MM,
     check_reach,
     first_configuration,
+    hold_position_mm,
     in_base_frame,
     sensor_kinematics,
     solve_joint_path,
+    wrist_distances_mm,
 )
 from cellctl.planning.plan import (
     CoverageReport,
@@ -67,6 +71,72 @@ def check_plan_envelope(
         ) from exc
 
 
+#: an edge pass whose wrist centres come nearer the arm's full stretch than this is tilted less
+EDGE_REACH_MARGIN_MM = 40.0
+#: its tilt is lowered in these steps, down to the least that still lights the thickness face
+#: (predict_edge_face_coverage on the sail: every face piece seen from 20 deg, none at 17.5 deg,
+#: where the rays reaching the face meet it beyond the 80 deg incidence limit; tests/motion/test_long_plate.py)
+EDGE_TILT_STEP_DEG = 5.0
+EDGE_TILT_MIN_DEG = 20.0
+
+
+def _lower_edge_tilts(segments: list, settings: PlannerSettings, tilts: dict[str, float]) -> bool:
+    """Lower the tilt (in ``tilts``, by label) of every edge pass whose wrist centres come within
+    ``EDGE_REACH_MARGIN_MM`` of the arm's reach, with the carriage following the passes; True when
+    one was lowered (the segments must then be built again)."""
+    if not settings.edge_passes:
+        return False
+    base, _ = in_base_frame(segments, settings)
+    lowered = False
+    for seg, dist in zip(base, wrist_distances_mm(base, settings), strict=True):
+        if seg.kind != "edge" or dist.max() <= REACH_MM - EDGE_REACH_MARGIN_MM:
+            continue
+        tilt = tilts.get(seg.label, settings.edge_tilt_deg)
+        if tilt > EDGE_TILT_MIN_DEG:
+            tilts[seg.label] = max(EDGE_TILT_MIN_DEG, tilt - EDGE_TILT_STEP_DEG)
+            lowered = True
+    return lowered
+
+
+def _build(
+    surface,
+    placement: Placement,
+    settings: PlannerSettings,
+    sign: float,
+    *,
+    edge_reverse: bool,
+    raster_cache: dict,
+) -> tuple[list, float, dict[str, float]]:
+    """The segments (:func:`build_segments`), the margin, and the edge passes' tilts lowered to keep
+    them in reach (by label; empty when none was)."""
+    tilts: dict[str, float] = {}
+    kwargs = {"sign": sign, "edge_reverse": edge_reverse, "raster_cache": raster_cache}
+    segments, margin = build_segments(surface, placement, settings, **kwargs)
+    while _lower_edge_tilts(segments, settings, tilts):
+        segments, margin = build_segments(surface, placement, settings, edge_tilts_deg=tilts, **kwargs)
+    return segments, margin, tilts
+
+
+def _wrist_wound(exc: PlanRefused) -> bool:
+    """The refusal is joint 4 or 6 at a limit on an edge pass or a link (the wrist's turns used up)."""
+    return (exc.pass_label or "").startswith(("edge", "link")) and (exc.limit or "").startswith(
+        ("joint_4", "joint_6")
+    )
+
+
+def _by_wrist_roll(built: list[tuple], settings: PlannerSettings, kin, hold_mm: float | None) -> list[tuple]:
+    """The pass orientations (sign, segments, margin, edge tilts) in the order the wrist likes them:
+    least roll on joints 4 and 6 at the first sweep's first pose (unreachable last), with the
+    carriage held at ``hold_mm`` (None: following the passes abreast)."""
+    costs = []
+    for option in built:
+        sweep = in_base_frame(option[1], settings, 0.0, hold_mm)[0][1]
+        q0 = first_configuration(kin, pose_matrix(sweep.pos_mm[:1], sweep.R_base_sensor[:1])[0], settings)
+        costs.append((np.inf if q0 is None else abs(q0[3]) + abs(q0[5]), option))
+    costs.sort(key=lambda c: c[0])
+    return [c[1] for c in costs]
+
+
 def plan_scan(
     design: TriMesh,
     placement: Placement,
@@ -103,41 +173,96 @@ def plan_scan(
     # The sensor may look along the pass either way round; take the one the wrist likes better
     # (less roll on joints 4 and 6), and fall back to the other when the first is refused.
     t1 = time.perf_counter()
-    candidates = []
+    built = []
+    raster_cache: dict = {}
     for sign in (1.0, -1.0):
-        segments, margin = build_segments(surface, placement, settings, sign=sign)
-        # with a track: the poses the arm reaches, relative to its base at the track's positions
-        base_segments, _ = in_base_frame(segments, settings)
+        segments, margin, tilts = _build(
+            surface, placement, settings, sign, edge_reverse=False, raster_cache=raster_cache
+        )
         if sign > 0:
-            # out of reach is out of reach either way round: say so before any inverse kinematics
-            check_reach(base_segments, settings)
-        sweep = base_segments[1]
-        q0 = first_configuration(kin, pose_matrix(sweep.pos_mm[:1], sweep.R_base_sensor[:1])[0], settings)
-        cost = np.inf if q0 is None else abs(q0[3]) + abs(q0[5])
-        candidates.append((cost, sign, segments, margin))
-    candidates.sort(key=lambda c: c[0])
+            # out of reach is out of reach either way round (the carriage following the passes
+            # gives the arm the most room): say so before any inverse kinematics
+            check_reach(in_base_frame(segments, settings)[0], settings)
+        built.append((sign, segments, margin, tilts))
+    # With a track: first hold the carriage where the plate's footprint centre is abreast of the
+    # base (a plate within the fixed arm's reach then gets the rail-less cell's plan), then follow
+    # the passes at a few along-rail offsets of the sensor from the base.
+    if settings.track is None:
+        modes: list[tuple[float | None, float]] = [(None, 0.0)]
+    else:
+        centre = placement_transform(placement) @ np.array(
+            [
+                0.5 * (surface.x_min_mm + surface.x_max_mm),
+                0.5 * (surface.y_min_mm + surface.y_max_mm),
+                0.0,
+                1.0,
+            ]
+        )
+        modes = [(hold_position_mm(centre[:3], settings), 0.0)] + [(None, lead) for lead in TRACK_LEADS_MM]
     timings["passes_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    refusal: PlanRefused | None = None
-    # with a track, each orientation is tried at a few along-rail offsets of the sensor from the base
-    leads = TRACK_LEADS_MM if settings.track is not None else (0.0,)
+    refusals: dict[bool, PlanRefused] = {}  # the first refusal when following / holding
+    reversed_built: dict[float, tuple] = {}
     path = None
-    for _, sign, segs_try, margin_try in candidates:
-        for lead in leads:
+    for hold, lead in modes:
+        for option in _by_wrist_roll(built, settings, kin, hold):
+            sign = option[0]
             try:
-                path = solve_joint_path(segs_try, settings, kin, track_lead_mm=lead)
-                segments, margin = segs_try, margin_try
+                path = solve_joint_path(option[1], settings, kin, track_lead_mm=lead, track_hold_mm=hold)
+                _, segments, margin, edge_tilts = option
+                edge_reverse = False
                 break
             except PlanRefused as exc:
-                log.info("plan_orientation_refused", sign=sign, track_lead_mm=lead, reason=str(exc))
-                refusal = refusal or exc
+                log.info(
+                    "plan_orientation_refused",
+                    sign=sign,
+                    track_hold_mm=hold,
+                    track_lead_mm=lead,
+                    reason=str(exc),
+                )
+                refusals.setdefault(hold is None, exc)
+                if not _wrist_wound(exc):
+                    continue
+            # the wrist ran out of turns on joint 4 or 6 going round the edges: go round the other way
+            if sign not in reversed_built:
+                reversed_built[sign] = (
+                    sign,
+                    *_build(surface, placement, settings, sign, edge_reverse=True, raster_cache=raster_cache),
+                )
+            try:
+                # the raster passes are the same: their joints carry over from the attempt just refused
+                path = solve_joint_path(
+                    reversed_built[sign][1],
+                    settings,
+                    kin,
+                    track_lead_mm=lead,
+                    track_hold_mm=hold,
+                    solved=option[1],
+                )
+                _, segments, margin, edge_tilts = reversed_built[sign]
+                edge_reverse = True
+                break
+            except PlanRefused as exc:
+                log.info(
+                    "plan_orientation_refused", sign=sign, track_hold_mm=hold, track_lead_mm=lead,
+                    edge_reverse=True, reason=str(exc),
+                )  # fmt: skip
         if path is not None:
             break
     else:
-        assert refusal is not None
-        raise refusal
+        # the reason given is the carriage following the passes' (it gives the arm the most room)
+        raise refusals.get(True) or refusals[False]
     timings["joint_path_s"] = time.perf_counter() - t2
+    choices: dict = {}
+    if settings.track is not None:
+        choices["track"] = (
+            {"mode": "hold", "hold_mm": hold} if hold is not None else {"mode": "follow", "lead_mm": lead}
+        )
+    if edge_tilts:
+        choices["edge_tilt_deg"] = dict(edge_tilts)
+    if edge_reverse:
+        choices["edge_order"] = "reversed"
 
     t3 = time.perf_counter()
     timing = time_segments(segments, settings)
@@ -171,6 +296,7 @@ def plan_scan(
         scan_speed_deviation=timing.scan_speed_deviation,
         toppra_time_s=timing.toppra_time_s,
         timings_s=timings,
+        choices=choices,
     )
     log.info(
         "scan_planned",

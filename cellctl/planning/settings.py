@@ -30,7 +30,8 @@ class PlannerSettings:
     Scan: ``standoff_mm`` along the surface normal, ``overlap_fraction`` between neighbouring
     passes, ``speed_mm_s`` (None: as fast as the sensor rate allows at ``profile_spacing_mm``),
     ``transit_speed_mm_s`` on links, edge passes (``edge_passes``, tilted ``edge_tilt_deg`` outward so
-    the thickness face is lit), placement uncertainty (``placement_uncertainty_mm`` shift,
+    the thickness face is lit), ``sweep_pitch_deg`` (the sensor leaning along every pass, about its
+    laser line, keeping the wrist clear of its singularity), placement uncertainty (``placement_uncertainty_mm`` shift,
     ``placement_uncertainty_deg`` rotation), ``link_clearance_mm`` lift on links, ``approach_mm``
     along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
     Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
@@ -53,6 +54,7 @@ class PlannerSettings:
     transit_speed_mm_s: float = 250.0
     edge_passes: bool = True
     edge_tilt_deg: float = 30.0
+    sweep_pitch_deg: float = 0.0
     placement_uncertainty_mm: float = 30.0
     placement_uncertainty_deg: float = 2.0
     link_clearance_mm: float = 30.0
@@ -116,6 +118,10 @@ class PlannerSettings:
             )
         if not 0 <= self.edge_tilt_deg < 80:
             raise PlanInputError(f"settings.edge_tilt_deg: must be in [0, 80), got {self.edge_tilt_deg!r}")
+        if not 0 <= self.sweep_pitch_deg < 45:
+            raise PlanInputError(
+                f"settings.sweep_pitch_deg: must be in [0, 45), got {self.sweep_pitch_deg!r}"
+            )
         if self.placement_uncertainty_mm < 0 or not 0 <= self.placement_uncertainty_deg < 45:
             raise PlanInputError("settings.placement_uncertainty_mm/_deg: must be >= 0 (and deg < 45)")
         if self.coverage_rays < 2:
@@ -208,6 +214,7 @@ class PlannerSettings:
             T_flange_sensor=T_from_pos_rpy(r.sensor_in_flange.pos_mm, r.sensor_in_flange.rpy_deg),
             wrist_margin_deg=r.wrist_margin_deg,
             edge_tilt_deg=s.edge_tilt_deg,
+            sweep_pitch_deg=s.sweep_pitch_deg,
             link_clearance_mm=s.link_clearance_mm,
             approach_mm=s.approach_mm,
             track=None if r.track is None else r.track.linear_track(),

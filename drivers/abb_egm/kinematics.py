@@ -196,9 +196,18 @@ def _as_T(T, name: str) -> np.ndarray:
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise KinematicsError(f"{name} must be a finite (4, 4) transform, got shape {T.shape}")
     R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+    # np.allclose(R @ R.T, I, atol=1e-6) (rtol 1e-5) and det(R) >= 0, without their per-call
+    # overhead: the planner's inverse kinematics checks every one of its tens of thousands of targets
+    if not np.all(np.abs(R @ R.T - _EYE3) <= _ORTHONORMAL_TOL):
+        raise KinematicsError(f"{name} rotation part is not a rotation matrix")
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:
         raise KinematicsError(f"{name} rotation part is not a rotation matrix")
     return T
+
+
+_EYE3 = np.eye(3)
+_ORTHONORMAL_TOL = 1e-6 + 1e-5 * _EYE3
 
 
 # ---------------------------------------------------------------------------------------------
