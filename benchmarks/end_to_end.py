@@ -19,10 +19,10 @@ Targets (issue 8): report <= 15 s after the last profile, total <= 4.5 min. Issu
 1.1 x sweep + 5 s, report <= 3 s after the last profile.
 
 ``--plate long`` (issue 20): the 6000 x 2000 mm plate on the long cell (``--config``, default
-``examples/cell-long.toml``: the robot on its track), triggered WITHOUT a placement: the cell locates
+``docs/examples/cell-track.toml``: the robot on a riser on its 7 m track), triggered WITHOUT a placement: the cell locates
 the plate first (docs/locate.md). Adds ``locate_s``, ``placement_found`` and its error from the
 simulated truth, ``scan_ratio`` (``scan_s`` / ``sweep_time_s``; issue 20's target <= 1.2) and
-``track_travel_mm``. ``--length-mm`` / ``--width-mm`` run another plate on that cell (stated in the
+``plan_choices`` (the carriage's mode with a track). ``--length-mm`` / ``--width-mm`` run another plate on that cell (stated in the
 JSON as ``plate_mm``); ``--no-placement`` locates on any plate.
 Usage: ``python benchmarks/end_to_end.py [--plate demo|sail|long] [--small] [--keep DIR]``;
 ``--small`` (= ``--plate demo``) runs the demo's 600 x 400 mm plate instead. Prints one JSON object;
@@ -90,7 +90,9 @@ def main() -> int:
     )
     p.add_argument("--keep", default=None, help="work directory to keep (default: a temporary one)")
     p.add_argument(
-        "--config", default=None, help="base cell.toml (default: cell.toml; long: examples/cell-long.toml)"
+        "--config",
+        default=None,
+        help="base cell.toml (default: cell.toml; long: docs/examples/cell-track.toml)",
     )
     p.add_argument(
         "--timeout-s", type=float, default=None, help="give up after this (default 3600; long 7200)"
@@ -98,7 +100,7 @@ def main() -> int:
     args = p.parse_args()
     plate = args.plate or ("demo" if args.small else "sail")
     long_plate = plate == "long"
-    config = args.config or str(REPO / ("examples/cell-long.toml" if long_plate else "cell.toml"))
+    config = args.config or str(REPO / ("docs/examples/cell-track.toml" if long_plate else "cell.toml"))
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="cellctl-e2e-bench-"))
     (work / "logs").mkdir(parents=True, exist_ok=True)
     (work / "designs").mkdir(parents=True, exist_ok=True)
@@ -187,6 +189,7 @@ def main() -> int:
         "locate_s": info.get("locate_s"),
         "plan_s": info.get("plan_s"),
         "track": cfg.robot.track is not None,
+        "plan_choices": info["plan"].get("choices"),
     }
     found = info.get("placement_found")
     if found is not None:
