@@ -201,6 +201,11 @@ def main() -> int:
             d_mm, d_deg = placement_offset(
                 Placement.model_validate(rec["placement"]), cfg.sim.placement.to_placement()
             )
+            if found.get("resolved_by") == "convention" and d_deg > 90.0:
+                # an outline the same half a turn round: the bed's convention chose the other of
+                # the two equal yaws (docs/locate.md); the plate is found all the same
+                d_deg = 180.0 - d_deg
+                out["half_turn_by_convention"] = True
             out.update(placement_err_mm=round(d_mm, 3), placement_err_deg=round(d_deg, 4))
     if long_plate:
         out["targets"] = {"scan_ratio_max": 1.2}

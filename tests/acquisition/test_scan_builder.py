@@ -107,3 +107,18 @@ def test_cloud_arrays_refuse_a_dtype_too_small() -> None:
     b.append(_batch(rng, 70_000, 3, 4))
     with pytest.raises(AssemblyError, match="profile_index 70002 does not fit"):
         b.scan().cloud_arrays(dtypes={"profile_index": np.uint16})
+
+
+@pytest.mark.parametrize("expected", [0, 50, 100_000])
+def test_acquisition_cloud_is_the_same_whatever_the_reserve(expected: int) -> None:
+    """Reserved short (grows), long (pages never touched) or not at all: bit for bit the same scan."""
+    from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
+    from tests.acquisition.synthetic import feed, make_run
+
+    run = make_run(2.0)
+    ref = Acquisition(AcquisitionSettings(epoch_ns=run.epoch_ns))
+    feed(ref, run)
+    acq = Acquisition(AcquisitionSettings(epoch_ns=run.epoch_ns), expected_profiles=expected)
+    feed(acq, run)
+    assert len(acq.cloud()) > 100
+    assert acq.cloud().digest() == ref.cloud().digest()
