@@ -88,6 +88,11 @@ def main() -> int:
     p.add_argument(
         "--no-placement", action="store_true", help="trigger without a placement (the cell locates)"
     )
+    p.add_argument(
+        "--given-placement",
+        action="store_true",
+        help="with --plate long: trigger with the true placement (no locate)",
+    )
     p.add_argument("--keep", default=None, help="work directory to keep (default: a temporary one)")
     p.add_argument(
         "--config",
@@ -130,7 +135,13 @@ def main() -> int:
         async def drive():
             timeout_s = args.timeout_s or (7200.0 if long_plate else 3600.0)
             task = asyncio.ensure_future(
-                drive_scan(cfg_dict, cfg, procs, timeout_s, placement=not (long_plate or args.no_placement))
+                drive_scan(
+                    cfg_dict,
+                    cfg,
+                    procs,
+                    timeout_s,
+                    placement=args.given_placement or not (long_plate or args.no_placement),
+                )
             )
             while not task.done():  # sample peaks while the worker's analysis child is alive
                 peaks["daemon"] = max(peaks.get("daemon", 0.0), _peak_mb(daemon.pid))
