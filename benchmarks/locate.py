@@ -1,7 +1,7 @@
 """The locate run: time and placement error over random placements of the 1200 x 800 sail plate.
 
 ``--plate long``: a 6000 x 2000 mm plate (``--length-mm`` / ``--width-mm`` for another) on the long
-cell's bed (``docs/examples/cell-track.toml``, else the 8 m track cell ``examples/cell-track-6000x1200.toml``),
+cell's bed (``docs/examples/cell-track.toml``),
 laid within ``--yaw-spread-deg`` (3) of the bed's long axis: a 6 m plate fits a long bed only along
 it. The JSON names the config, the plate and the spread.
 
