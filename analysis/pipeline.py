@@ -65,7 +65,7 @@ from analysis.register import (
 )
 from analysis.report import write_csv
 from analysis.rest_surface import RestSurface, rest_surface
-from analysis.segment import SegmentResult, segment_plate
+from analysis.segment import PassCells, SegmentResult, pass_cells, segment_plate
 from analysis.settings import TEMPLATE_FITS, InspectionSettings
 from analysis.template_fit import (
     LineFitResult,
@@ -278,9 +278,50 @@ def _per_line_cuts(
 # --------------------------------------------------------------------------------------- pipeline
 
 
+@dataclass
+class PreparedDesign:
+    """What the inspection needs of the design alone (:func:`prepare_design`): the face the sensor
+    sees in its own frame, its corners, and its height field (``field`` a future while it is being
+    rasterised). Made before the scan's last profile when the cloud is streamed."""
+
+    mesh: TriMesh
+    cad: CadDesign | None
+    T_design_file: np.ndarray | None
+    corners_mm: np.ndarray
+    field: Any  # HeightField, or a concurrent.futures.Future of one
+
+    def height_field(self) -> HeightField:
+        f = self.field
+        return f.result() if hasattr(f, "result") else f
+
+
+def prepare_design(
+    design: TriMesh | CadDesign, settings: InspectionSettings, pool: ThreadPoolExecutor | None = None
+) -> PreparedDesign:
+    """The design's part of the inspection, independent of the cloud: framed into its own plate frame
+    (a mesh in ship coordinates), turned to the face the sensor sees (``settings.design_side``), its
+    corners, and its height field (rasterised on ``pool`` when given: numpy releases the GIL, so it
+    runs on the second core while the scan is segmented)."""
+    T_design_file = None
+    if isinstance(design, TriMesh):  # a mesh in ship coordinates: into its own plate frame first
+        framed = frame_design_mesh(design)
+        design, T_design_file = framed.mesh, framed.T_design_file
+    # the face the sensor sees: the design itself, or its other side when laid moulded side down
+    design = design_as_laid(design, settings.design_side, settings.thickness_mm)
+    cad = design if isinstance(design, CadDesign) else None
+    mesh = cad.mesh if cad is not None else design
+    field: Any = (
+        pool.submit(height_field_from_mesh, mesh, settings.design_grid_mm)
+        if pool is not None
+        else height_field_from_mesh(mesh, settings.design_grid_mm)
+    )
+    corners = cad.corners_mm if cad is not None else design_corners_from_mesh(mesh)
+    return PreparedDesign(mesh, cad, T_design_file, corners, field)
+
+
 def inspect_cloud(
     cloud: ScanCloud,
-    design: TriMesh | CadDesign,
+    design: TriMesh | CadDesign | PreparedDesign,
     settings: InspectionSettings | None = None,
     *,
     plate_id: str = "",
@@ -288,6 +329,7 @@ def inspect_cloud(
     cell_id: str = "",
     inputs: dict[str, Any] | None = None,
     nominal_placement: Placement | None = None,
+    passes: dict[int, PassCells] | None = None,
 ) -> Inspection:
     """Inspect one scanned plate against its design; see the module docstring for the stages.
 
@@ -300,16 +342,11 @@ def inspect_cloud(
     tessellation, the corners come from the face's own boundary and the templates are cut from
     the exact surface. ``settings.design_side`` ``moulded_down``: the plate lies turned over, the
     design is offset by ``settings.thickness_mm`` first (:func:`analysis.moulded.design_as_laid`).
+    Or a :class:`PreparedDesign` made beforehand for these settings (a streamed cloud: the design's
+    part was done during the scan). passes: the cells of the passes already segmented
+    (:func:`analysis.segment.pass_cells`, by pass id; :class:`CloudStream`).
     """
     settings = settings or InspectionSettings()
-    T_design_file = None
-    if isinstance(design, TriMesh):  # a mesh in ship coordinates: into its own plate frame first
-        framed = frame_design_mesh(design)
-        design, T_design_file = framed.mesh, framed.T_design_file
-    # the face the sensor sees: the design itself, or its other side when laid moulded side down
-    design = design_as_laid(design, settings.design_side, settings.thickness_mm)
-    cad = design if isinstance(design, CadDesign) else None
-    design = cad.mesh if cad is not None else design
     timings: dict[str, float] = {}
     t = time.perf_counter()
 
@@ -319,16 +356,16 @@ def inspect_cloud(
         timings[stage] = round(now - t, 4)
         t = now
 
-    # The design's height field depends on the design alone: rasterise it on the second core while
-    # the scan is segmented (numpy releases the GIL in both).
     with ThreadPoolExecutor(1, thread_name_prefix="design-field") as pool:
-        design_field = pool.submit(height_field_from_mesh, design, settings.design_grid_mm)
-        seg = segment_plate(cloud)
+        prepared = design if isinstance(design, PreparedDesign) else prepare_design(design, settings, pool)
+        lap("design")
+        seg = segment_plate(cloud, passes=passes)
         lap("segment")
         bnd = find_corners(seg.points_mm)
         lap("boundary")
-        surface: HeightField = design_field.result()
-    design_c = cad.corners_mm if cad is not None else design_corners_from_mesh(design)
+        surface: HeightField = prepared.height_field()
+    design, cad, T_design_file = prepared.mesh, prepared.cad, prepared.T_design_file
+    design_c = prepared.corners_mm
     _check_size(design_c, bnd.corners_mm, settings.size_tolerance)
     cell_mm = surface_cell_mm(
         seg.points_mm, seg.plate_area_mm2, settings.grid_mm, settings.min_points_per_cell
@@ -571,22 +608,116 @@ def _json_default(o: Any) -> Any:
 # ------------------------------------------------------------------------------------- worker API
 
 
+def _read_job_design(job: AnalysisJob) -> TriMesh | CadDesign:
+    try:
+        return read_design(job.design)
+    except MeshError as exc:
+        raise InspectionError(str(exc)) from None
+
+
+def _inspect_job(cloud: ScanCloud, design: TriMesh | CadDesign | PreparedDesign, job: AnalysisJob,
+                 passes: dict[int, PassCells] | None = None) -> dict[str, Any]:  # fmt: skip
+    ins = inspect_cloud(
+        cloud, design, job.settings, nominal_placement=job.placement,
+        plate_id=job.plate_id, job_id=job.job_id, cell_id=job.cell_id,
+        inputs={"design": job.design, "placement_found": job.placement_found}, passes=passes,
+    )  # fmt: skip
+    if job.out_dir:
+        write_results(ins, job.out_dir)
+    return ins.report
+
+
 def analyse_job(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
     """Worker entry point: ``cloud`` the scan (organised or not), ``job`` the job's parameters
     (design, nominal placement, settings, ``out_dir``).
 
     Returns the report (the :class:`~analysis.job.Report` schema, as a dict); with ``out_dir`` also
-    writes the results directory there.
+    writes the results directory there. ``analyse_job.stream`` is the same analysis for a cloud
+    that arrives in chunks (:class:`CloudStream`).
     """
-    try:
-        design = read_design(job.design)
-    except MeshError as exc:
-        raise InspectionError(str(exc)) from None
-    ins = inspect_cloud(
-        cloud, design, job.settings, nominal_placement=job.placement,
-        plate_id=job.plate_id, job_id=job.job_id, cell_id=job.cell_id,
-        inputs={"design": job.design, "placement_found": job.placement_found},
-    )  # fmt: skip
-    if job.out_dir:
-        write_results(ins, job.out_dir)
-    return ins.report
+    return _inspect_job(cloud, _read_job_design(job), job)
+
+
+def concat_clouds(chunks: list[ScanCloud]) -> ScanCloud:
+    """Clouds one after the other (all organised, or none; times kept only when every one has them)."""
+    if not chunks:
+        raise InspectionError("the cloud is empty: no chunk arrived")
+    if len(chunks) == 1:
+        return chunks[0]
+    cat = lambda name: np.concatenate([getattr(c, name) for c in chunks])  # noqa: E731
+    organised = all(c.organised for c in chunks)
+    return ScanCloud(
+        cat("xyz_mm"),
+        *((cat("pass_id"), cat("profile_index"), cat("point_index")) if organised else (None, None, None)),
+        t_s=cat("t_s") if all(c.t_s is not None for c in chunks) else None,
+    )
+
+
+class CloudStream:
+    """The analysis of a cloud that arrives in chunks while the plate is scanned (the daemon cuts
+    the scan's rows, in time order, where a pass ends): whatever does not need the whole cloud is
+    done as the chunks arrive, :meth:`finish` runs the rest.
+
+    At the start the design is read, framed and rasterised (on a second thread); :meth:`add` takes
+    the chunks in order and segments each pass they complete into cells and regions
+    (:func:`analysis.segment.pass_cells`; pass 0, which files the transit of the whole scan, waits
+    for the end, and a pass seen again in a later chunk is made again at the end). :meth:`finish`
+    concatenates the chunks -- the cloud the daemon would have sent whole, point for point -- and
+    runs :func:`inspect_cloud` with the prepared design and those cells: the same functions on the
+    same arrays as the whole-cloud analysis, so the figures are its figures."""
+
+    def __init__(self, job: AnalysisJob) -> None:
+        self.job = job
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="design-field")
+        self.prepared = prepare_design(_read_job_design(job), job.settings, self._pool)
+        self._chunks: list[ScanCloud] = []
+        self._cells: dict[int, PassCells | None] = {}
+        self._seen: set[int] = set()
+        self._points = 0
+        self.timings_s: dict[str, float] = {"pass_cells": 0.0}
+
+    def add(self, chunk: ScanCloud) -> None:
+        """The next chunk of the cloud (in order); the passes in it segmented into cells."""
+        t0 = time.perf_counter()
+        self._chunks.append(chunk)
+        offset, self._points = self._points, self._points + len(chunk)
+        if chunk.organised and len(chunk):
+            pid = chunk.pass_id
+            for k in np.unique(pid).tolist():
+                if k in self._seen:  # a pass across chunks: its cells are made from the whole cloud
+                    self._cells.pop(k, None)
+                    continue
+                self._seen.add(k)
+                if k == 0:
+                    continue  # the transit of the whole scan is filed under pass 0
+                local = np.nonzero(pid == k)[0]
+                self._cells[k] = pass_cells(
+                    chunk.xyz_mm[local], chunk.profile_index[local], chunk.point_index[local], local + offset
+                )
+        self.timings_s["pass_cells"] += round(time.perf_counter() - t0, 4)
+
+    @property
+    def points(self) -> int:
+        return self._points
+
+    def finish(self) -> dict[str, Any]:
+        """The report of the whole cloud (and the results directory with ``job.out_dir``)."""
+        try:
+            t0 = time.perf_counter()
+            cloud = concat_clouds(self._chunks)
+            self._chunks = []
+            self.prepared.height_field()  # raises the rasterisation's error, if any
+            self.timings_s["concat"] = round(time.perf_counter() - t0, 4)
+            cells = {k: c for k, c in self._cells.items() if c is not None}
+            return _inspect_job(cloud, self.prepared, self.job, cells)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Drop the chunks and stop the design thread (a cancelled stream)."""
+        self._chunks = []
+        self._cells = {}
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+analyse_job.stream = CloudStream  # type: ignore[attr-defined]

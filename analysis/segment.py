@@ -44,7 +44,15 @@ from scipy.sparse.csgraph import connected_components
 
 from analysis.cloud_io import ScanCloud
 
-__all__ = ["NoPlateError", "SegmentError", "SegmentResult", "SegmentSettings", "segment_plate"]
+__all__ = [
+    "NoPlateError",
+    "PassCells",
+    "SegmentError",
+    "SegmentResult",
+    "SegmentSettings",
+    "pass_cells",
+    "segment_plate",
+]
 
 log = structlog.get_logger(__name__)
 
@@ -129,10 +137,17 @@ def _profiles_from_zero(cloud: ScanCloud) -> ScanCloud:
     return ScanCloud(cloud.xyz_mm, pass_idx.astype(np.int32), local.astype(np.int32), cloud.point_index)
 
 
-def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | None = None) -> SegmentResult:
+def segment_plate(
+    cloud: ScanCloud | np.ndarray,
+    settings: SegmentSettings | None = None,
+    *,
+    passes: dict[int, PassCells] | None = None,
+) -> SegmentResult:
     """Extract the plate's top surface from a scan cloud.
 
     cloud: a :class:`ScanCloud` (organised or not) or an (n, 3) float array in mm.
+    passes: cells already made by :func:`pass_cells` (a streamed scan), by the pass id of ``cloud``;
+    made here for the other passes (used only by the scan-grid route, with these settings).
     Returns a :class:`SegmentResult`; raises :class:`NoPlateError` when no smooth region reaches
     ``min_plate_area_mm2`` and :class:`SegmentError` on unusable input.
     """
@@ -147,6 +162,8 @@ def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | Non
     if not np.isfinite(cloud.xyz_mm).all():
         raise SegmentError("xyz_mm holds non-finite coordinates")
     if cloud.organised:
+        dense = np.unique(cloud.pass_id)  # _profiles_from_zero numbers the passes densely
+        done = {int(k): passes[int(pid)] for k, pid in enumerate(dense) if passes and int(pid) in passes}
         cloud = _profiles_from_zero(cloud)
         n_grid = (
             (int(cloud.pass_id.max()) + 1)
@@ -154,26 +171,13 @@ def segment_plate(cloud: ScanCloud | np.ndarray, settings: SegmentSettings | Non
             * (int(cloud.point_index.max()) + 1)
         )
         if n_grid <= max(8 * len(cloud), 1_000_000):
-            return _segment_grid(cloud, settings)
+            return _segment_grid(cloud, settings, done)
         # Indices this sparse are not a scan grid (a renumbered or merged file): do not allocate it.
         log.warning("segment_sparse_organisation", points=len(cloud), grid_places=n_grid)
     return _segment_delaunay(cloud, settings)
 
 
 # --------------------------------------------------------------------------------------------- grid
-
-
-@dataclass
-class _PassCells:
-    rows: np.ndarray  # (P,) profile index -> grid row (identity when profiles are dense)
-    idx: np.ndarray  # (P, W) int64 point index or -1
-    by: int
-    bx: int
-    mean: np.ndarray  # (Pc, Wc, 3)
-    normal: np.ndarray  # (Pc, Wc, 3), NaN where undefined
-    count: np.ndarray  # (Pc, Wc)
-    smooth: np.ndarray  # (Pc, Wc) bool
-    labels: np.ndarray  # (Pc, Wc) global region label or -1
 
 
 def _cells(X5: np.ndarray, V5: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -241,73 +245,119 @@ def _grid_pitch(points: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
     return float(np.median(d_pt)), float(np.median(d_pr))
 
 
-def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
+@dataclass
+class PassCells:
+    """One pass's cells and regions (:func:`pass_cells`), made from that pass's points alone: a
+    streamed scan computes them as each pass arrives, the whole scan in :func:`segment_plate`.
+
+    index: (k,) the pass's points' indices in the whole cloud; centre: the pass's own origin of its
+    float32 coordinates ``p32`` (k, 3); idx: (Pp, Wp) grid -> position in the pass (-1: empty);
+    labels: (Pc, Wc) region label within the pass, -1 outside (offset per pass when joined).
+    """
+
+    index: np.ndarray
+    centre: np.ndarray
+    p32: np.ndarray
+    idx: np.ndarray
+    by: int
+    bx: int
+    mean: np.ndarray  # (Pc, Wc, 3) in the pass's coordinates (about ``centre``)
+    normal: np.ndarray  # (Pc, Wc, 3), NaN where undefined
+    count: np.ndarray  # (Pc, Wc)
+    labels: np.ndarray
+    n_labels: int
+    pitch_mm: float
+
+
+def pass_cells(
+    xyz_mm: np.ndarray,
+    profile_index: np.ndarray,
+    point_index: np.ndarray,
+    index: np.ndarray,
+    settings: SegmentSettings | None = None,
+) -> PassCells | None:
+    """The cells of one pass (step 1 and the per-pass part of step 2 of the module docstring): its
+    points ``xyz_mm`` (k, 3) in the cloud's order, their profile (any origin: numbered from the
+    pass's first) and point indices, and ``index`` (k,) their indices in the whole cloud. None for
+    a pass of fewer than three profiles."""
+    st = settings or SegmentSettings()
+    n = len(xyz_mm)
+    if n == 0:
+        return None
+    prof = profile_index.astype(np.int64) - int(profile_index.min())
+    P, width = int(prof.max()) + 1, int(point_index.max()) + 1
+    if P < 3:
+        return None
+    # Cell statistics in float32 about the pass's centre: half the memory traffic, and at +-2 m
+    # the rounding (0.1 um) is far below the sensor noise. The selection is exact per point.
+    centre = xyz_mm[:: max(1, n // 1000)].mean(axis=0)
+    p32 = np.subtract(xyz_mm, centre, dtype=np.float32)  # no float64 temporary
+    # (profile, point) -> position in the pass; duplicated places (a malformed file) keep the last
+    itype = np.int32 if n < 2**31 - 1 else np.int64
+    grid = np.full(P * width, -1, dtype=itype)
+    grid[prof * width + point_index] = np.arange(n, dtype=itype)
+    idx = grid.reshape(P, width)
+    pitch_pt, pitch_pr = _grid_pitch(xyz_mm, idx)
+    bx = max(1, round(st.cell_mm / max(pitch_pt, 1e-6)))
+    by = max(1, round(st.cell_mm / max(pitch_pr, 1e-6)))
+    Pp, Wp = -(-P // by) * by, -(-width // bx) * bx
+    idxp = np.full((Pp, Wp), -1, np.int64)
+    idxp[:P, :width] = idx
+    V = idxp >= 0
+    Pc, Wc = Pp // by, Wp // bx
+    X = p32[np.where(V, idxp, 0)]
+    X[~V] = 0.0  # empty grid places add nothing to the cell sums
+    X5 = X.reshape(Pc, by, Wc, bx, 3)
+    V5 = V.reshape(Pc, by, Wc, bx)
+    min_count = st.min_cell_fill * by * bx
+    cnt, csum, mean = _cells(X5, V5)
+    normal = _normals(mean, cnt >= min_count)
+    # Take gross outliers out of their cells' sums: one outlier must not tilt a cell. They are
+    # rare, so the cells are corrected rather than summed again.
+    with np.errstate(invalid="ignore"):
+        gross = V5 & (np.abs(_plane_residual(X5, mean, normal)) > st.gross_outlier_mm)
+    if gross.any():
+        gi, ga, gj, gb = np.nonzero(gross)
+        np.subtract.at(cnt, (gi, gj), 1.0)
+        np.subtract.at(csum, (gi, gj), X5[gi, ga, gj, gb])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(cnt[..., None] > 0, csum / cnt[..., None], np.nan)
+    ok = cnt >= min_count
+    normal = _normals(mean, ok)
+    smooth = _smooth(normal, float(np.cos(np.deg2rad(st.max_normal_angle_deg))))
+    lab, nlab = ndimage.label(smooth)
+    return PassCells(np.asarray(index), centre, p32, idxp, by, bx, mean, normal, cnt,
+                     np.where(lab > 0, lab - 1, -1), int(nlab), max(pitch_pt, pitch_pr))  # fmt: skip
+
+
+def _segment_grid(
+    cloud: ScanCloud, st: SegmentSettings, done: dict[int, PassCells] | None = None
+) -> SegmentResult:
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     pts = cloud.xyz_mm
     n = len(pts)
-    # Cell statistics in float32 about the cloud's centre: half the memory traffic, and at
-    # +-2 m the rounding (0.1 um) is far below the sensor noise. The selection is exact per point.
-    p32 = np.subtract(pts, pts[:: max(1, n // 1000)].mean(axis=0), dtype=np.float32)  # no float64 temporary
     pass_id = cloud.pass_id.astype(np.int64)
     n_pass = int(pass_id.max()) + 1
-    width = int(cloud.point_index.max()) + 1
-    n_rows = int(cloud.profile_index.max()) + 1
-    # One index grid for all passes: (pass, profile, point) -> point index. Duplicated indices
-    # (a malformed file) keep the last point, which is harmless for segmentation.
-    lin = (pass_id * n_rows + cloud.profile_index) * width + cloud.point_index
-    itype = np.int32 if n < 2**31 - 1 else np.int64  # half the memory traffic for the usual sizes
-    grid = np.full(n_pass * n_rows * width, -1, dtype=itype)
-    grid[lin] = np.arange(n, dtype=itype)
-    grid = grid.reshape(n_pass, n_rows, width)
-    present = (grid >= 0).any(axis=2)
-    rows_per_pass = np.where(present.any(axis=1), n_rows - np.argmax(present[:, ::-1], axis=1), 0)
+    order = np.argsort(pass_id, kind="stable")  # each pass's points in the cloud's order
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(pass_id, minlength=n_pass))])
     timings["grid"] = time.perf_counter() - t0
 
     cos_max = float(np.cos(np.deg2rad(st.max_normal_angle_deg)))
-    passes: list[_PassCells | None] = []
-    pitches: list[float] = []
+    passes: list[PassCells | None] = []
+    offsets: list[int] = []
     next_label = 0
     t1 = time.perf_counter()
     for p in range(n_pass):
-        P = int(rows_per_pass[p])
-        if P < 3:
-            passes.append(None)
-            continue
-        idx = grid[p, :P]
-        pitch_pt, pitch_pr = _grid_pitch(pts, idx)
-        pitches.append(max(pitch_pt, pitch_pr))
-        bx = max(1, round(st.cell_mm / max(pitch_pt, 1e-6)))
-        by = max(1, round(st.cell_mm / max(pitch_pr, 1e-6)))
-        Pp, Wp = -(-P // by) * by, -(-width // bx) * bx
-        idxp = np.full((Pp, Wp), -1, np.int64)
-        idxp[:P, :width] = idx
-        V = idxp >= 0
-        Pc, Wc = Pp // by, Wp // bx
-        X = p32[np.where(V, idxp, 0)]
-        X[~V] = 0.0  # empty grid places add nothing to the cell sums
-        X5 = X.reshape(Pc, by, Wc, bx, 3)
-        V5 = V.reshape(Pc, by, Wc, bx)
-        min_count = st.min_cell_fill * by * bx
-        cnt, csum, mean = _cells(X5, V5)
-        normal = _normals(mean, cnt >= min_count)
-        # Take gross outliers out of their cells' sums: one outlier must not tilt a cell. They are
-        # rare, so the cells are corrected rather than summed again.
-        with np.errstate(invalid="ignore"):
-            gross = V5 & (np.abs(_plane_residual(X5, mean, normal)) > st.gross_outlier_mm)
-        if gross.any():
-            gi, ga, gj, gb = np.nonzero(gross)
-            np.subtract.at(cnt, (gi, gj), 1.0)
-            np.subtract.at(csum, (gi, gj), X5[gi, ga, gj, gb])
-            with np.errstate(invalid="ignore", divide="ignore"):
-                mean = np.where(cnt[..., None] > 0, csum / cnt[..., None], np.nan)
-        ok = cnt >= min_count
-        normal = _normals(mean, ok)
-        smooth = _smooth(normal, cos_max)
-        lab, nlab = ndimage.label(smooth)
-        labels = np.where(lab > 0, lab - 1 + next_label, -1)
-        next_label += nlab
-        passes.append(_PassCells(np.arange(P), idxp, by, bx, mean, normal, cnt, smooth, labels))
+        pc = (done or {}).get(p)
+        if pc is None:
+            sel = order[bounds[p] : bounds[p + 1]]
+            pc = pass_cells(pts[sel], cloud.profile_index[sel], cloud.point_index[sel], sel, st)
+        passes.append(pc)
+        offsets.append(next_label)
+        if pc is not None:
+            next_label += pc.n_labels
+    pitches = [pc.pitch_mm for pc in passes if pc is not None]
     timings["cells_and_regions"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
@@ -316,12 +366,12 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     # Join regions across passes where they share space with agreeing normals.
     keys, labs, nrms = [], [], []
     v = st.link_voxel_mm
-    for pc in passes:
+    for pc, off in zip(passes, offsets, strict=True):
         if pc is None:
             continue
         sel = pc.labels >= 0
-        keys.append(np.floor(pc.mean[sel] / v).astype(np.int64))
-        labs.append(pc.labels[sel])
+        keys.append(np.floor((pc.mean[sel] + pc.centre) / v).astype(np.int64))
+        labs.append(pc.labels[sel] + off)
         nrms.append(pc.normal[sel])
     K = np.concatenate(keys)
     L = np.concatenate(labs)
@@ -346,10 +396,10 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     # Select points: plate cells and the band around them, against the nearest plate cell's plane.
     t3 = time.perf_counter()
     cand_idx, cand_r, interior_r, area = [], [], [], 0.0
-    for pc in passes:
+    for pc, off in zip(passes, offsets, strict=True):
         if pc is None:
             continue
-        plate = (pc.labels >= 0) & (group[np.maximum(pc.labels, 0)] == plate_group)
+        plate = (pc.labels >= 0) & (group[np.maximum(pc.labels, 0) + off] == plate_group)
         if not plate.any():
             continue
         cell_area = _cell_area(pc.mean, plate)
@@ -362,11 +412,11 @@ def _segment_grid(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
         by, bx = pc.by, pc.bx
         dn = pc.normal[di, dj]
         dn[~band] = np.nan
-        X5 = p32[np.maximum(pc.idx, 0)].reshape(Pc, by, Wc, bx, 3)
+        X5 = pc.p32[np.maximum(pc.idx, 0)].reshape(Pc, by, Wc, bx, 3)
         with np.errstate(invalid="ignore"):
             r5 = _plane_residual(X5, pc.mean[di, dj], dn)
         sel5 = (pc.idx.reshape(Pc, by, Wc, bx) >= 0) & np.isfinite(r5)
-        cand_idx.append(pc.idx.reshape(Pc, by, Wc, bx)[sel5])
+        cand_idx.append(pc.index[pc.idx.reshape(Pc, by, Wc, bx)[sel5]])
         cand_r.append(r5[sel5])
         inner5 = sel5 & plate[:, None, :, None]
         interior_r.append(r5[inner5][::4])

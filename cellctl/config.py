@@ -144,6 +144,9 @@ class TrackSection(Section):
     jerk_max_mm_s3: Annotated[float, Field(gt=0, le=TRACK_JERK_BOUND_MM_S3, allow_inf_nan=False)] = 20000.0
     origin_mm: Vec3 = [0.0, 0.0, 0.0]
     direction: Vec3 = [1.0, 0.0, 0.0]
+    #: hold the carriage still when the arm reaches the whole plan from one position (a plate within
+    #: the fixed arm's reach then gets the rail-less plan); false: the carriage always follows the passes
+    hold: bool = True
 
     @model_validator(mode="after")
     def _travel_usable(self) -> TrackSection:

@@ -36,7 +36,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +53,7 @@ from cellctl.api import (
     default_worker_id,
     now_utc,
 )
+from cellctl.api.models import StreamChunk, StreamEnd
 from cellctl.api.session import (
     ZenohSetupError,
     async_get,
@@ -104,6 +105,12 @@ class WorkerSettings:
     # a free slot is held this long for a cell passed over while busy (longer than the dispatcher's
     # busy back-off, 2 s, so that cell's next offer finds it)
     fair_hold_s: float = 4.0
+    # a streamed job: after StreamEnd a missing chunk is awaited this long before the whole cloud
+    # is fetched from the daemon; no chunk at all for stream_idle_s (a pass takes minutes at most)
+    # gives the attempt up; the whole cloud's fetch may take cloud_timeout_s
+    stream_grace_s: float = 2.0
+    stream_idle_s: float = 900.0
+    cloud_timeout_s: float = 120.0
 
     @classmethod
     def from_config(cls, config: Any, **override: Any) -> WorkerSettings:
@@ -113,6 +120,21 @@ class WorkerSettings:
         values = {"analysis": a.callable, "heartbeat_s": a.heartbeat_s, "data_dir": config.worker.data_dir}
         values.update({k: v for k, v in override.items() if v is not None})
         return cls(**values)
+
+
+@dataclass
+class _StreamInbox:
+    """The chunks of the streamed job this worker holds, as they arrive (any order, duplicates)."""
+
+    job_id: str
+    attempt: int
+    chunks: dict[int, tuple[StreamChunk, bytes]] = field(default_factory=dict)
+    end: StreamEnd | None = None
+    next_seq: int = 0
+    points: int = 0
+    duplicates: int = 0
+    corrupt: int = 0
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
 
 
 @dataclass(frozen=True)
@@ -172,8 +194,97 @@ def limit_blas_threads(n: int) -> None:
             os.environ.setdefault(var, str(n))
 
 
+def _outcome_text(result: Any, timings_s: dict[str, float]) -> str:
+    if not isinstance(result, Report):
+        result = Report.model_validate_json(json.dumps(result, default=_json_default, allow_nan=False))
+    return json.dumps({"ok": True, "report": result.model_dump(mode="json"), "timings_s": timings_s},
+                      allow_nan=False)  # fmt: skip
+
+
+def _error_text(exc: BaseException, t0: float) -> str:
+    return json.dumps(
+        {
+            "ok": False,
+            "error": f"{type(exc).__name__}: {exc}",
+            "traceback": traceback.format_exc(limit=8),
+            "timings_s": {"total": time.perf_counter() - t0},
+        }
+    )
+
+
+class _ChildStream:
+    """A streamed job in the analysis child: the analysis' own stream (``fn.stream``, e.g.
+    :class:`analysis.pipeline.CloudStream`) fed chunk by chunk, or, for an analysis without one, the
+    chunks kept and the callable run on their concatenation. An error is kept for :meth:`finish`."""
+
+    def __init__(self, fn: Callable[..., Any], spec_raw: bytes) -> None:
+        self.fn = fn
+        self.error: BaseException | None = None
+        self.decode_s = 0.0
+        self.stream: Any = None
+        self.clouds: list[Any] = []
+        self.t_open = time.perf_counter()
+        try:
+            self.job = AnalysisJob.model_validate_json(spec_raw)
+            factory = getattr(fn, "stream", None)
+            self.stream = factory(self.job) if factory is not None else None
+        except Exception as exc:
+            self.error = exc
+        self.open_s = time.perf_counter() - self.t_open
+
+    def add(self, raw: bytes) -> None:
+        if self.error is not None:
+            return
+        from cellctl.api.cloud_codec import decode_cloud
+
+        t0 = time.perf_counter()
+        try:
+            cloud = decode_cloud(raw).scan_cloud()
+            if self.stream is not None:
+                self.stream.add(cloud)
+            else:
+                self.clouds.append(cloud)
+        except Exception as exc:
+            self.error = exc
+        self.decode_s += time.perf_counter() - t0
+
+    def finish(self) -> str:
+        t0 = time.perf_counter()
+        try:
+            if self.error is not None:
+                raise self.error
+            if self.stream is not None:
+                result = self.stream.finish()
+            else:
+                from analysis.pipeline import concat_clouds
+
+                result = self.fn(concat_clouds(self.clouds), self.job)
+            timings = {
+                "stream_open": self.open_s,
+                "decode": self.decode_s,
+                "analysis": time.perf_counter() - t0,
+            }
+            return _outcome_text(result, timings)
+        except Exception as exc:
+            return _error_text(exc, t0)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        self.clouds = []
+        if self.stream is not None and hasattr(self.stream, "close"):
+            with contextlib.suppress(Exception):
+                self.stream.close()
+        self.stream = None
+
+
 def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1) -> None:
-    """Entry point of the spawned analysis process: load the callable, then serve jobs from the pipe."""
+    """Entry point of the spawned analysis process: load the callable, then serve jobs from the pipe.
+
+    Messages from the parent are pairs of frames (a JSON header ``{"op": ...}``, a body): ``job``
+    (body: the cloud; header ``spec``) answered with the outcome; ``open`` (a streamed job, header
+    ``spec``), ``chunk`` (body: the next chunk) and ``finish`` (answered with the outcome); ``drop``
+    forgets an open stream."""
     limit_blas_threads(blas_threads)  # before the analysis (and numpy) is imported
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when the child stops
@@ -185,41 +296,42 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
     from cellctl.api.cloud_codec import decode_cloud
 
     conn.send_bytes(json.dumps({"ready": True}).encode())
+    stream: _ChildStream | None = None
     while True:
         try:
-            spec_raw = conn.recv_bytes()
-            cloud_raw = conn.recv_bytes()
+            head = json.loads(conn.recv_bytes())
+            body = conn.recv_bytes()
         except (EOFError, OSError):
             return
+        op = head.get("op")
+        if op == "open":
+            if stream is not None:
+                stream.close()
+            stream = _ChildStream(fn, head["spec"].encode())
+            continue
+        if op == "chunk":
+            if stream is not None:
+                stream.add(body)
+            continue
+        if op == "drop":
+            if stream is not None:
+                stream.close()
+            stream = None
+            continue
         t0 = time.perf_counter()
-        try:
-            job = AnalysisJob.model_validate_json(spec_raw)
-            cloud = decode_cloud(cloud_raw)
-            t1 = time.perf_counter()
-            result = fn(cloud.scan_cloud(), job)
-            if not isinstance(result, Report):
-                result = Report.model_validate_json(
-                    json.dumps(result, default=_json_default, allow_nan=False)
-                )
-            t2 = time.perf_counter()
-            text = json.dumps(
-                {
-                    "ok": True,
-                    "report": result.model_dump(mode="json"),
-                    "timings_s": {"decode": t1 - t0, "analysis": t2 - t1},
-                },
-                allow_nan=False,
-            )
-        except Exception as exc:
-            text = json.dumps(
-                {
-                    "ok": False,
-                    "error": f"{type(exc).__name__}: {exc}",
-                    "traceback": traceback.format_exc(limit=8),
-                    "timings_s": {"total": time.perf_counter() - t0},
-                }
-            )
-        del cloud_raw
+        if op == "finish":
+            text = stream.finish() if stream is not None else _error_text(RuntimeError("no open stream"), t0)
+            stream = None
+        else:  # "job": the whole cloud
+            try:
+                job = AnalysisJob.model_validate_json(head["spec"])
+                cloud = decode_cloud(body)
+                t1 = time.perf_counter()
+                result = fn(cloud.scan_cloud(), job)
+                text = _outcome_text(result, {"decode": t1 - t0, "analysis": time.perf_counter() - t1})
+            except Exception as exc:
+                text = _error_text(exc, t0)
+        del body
         try:
             conn.send_bytes(text.encode("utf-8"))
         except (BrokenPipeError, OSError):
@@ -285,20 +397,43 @@ class AnalysisProcess:
                 proc.join(0.1)
                 raise AnalysisCrashed(f"analysis process died (exit code {proc.exitcode})")
 
-    async def run(self, job: AnalysisJob, cloud: bytes) -> AnalysisOutcome:
-        """Analyse one cloud in the child. AnalysisCrashed if the child dies meanwhile."""
+    async def _send(self, head: dict[str, Any], body: bytes | bytearray = b"") -> None:
         if self._proc is None or not self._proc.is_alive():
             raise AnalysisCrashed("analysis process is not running")
-        spec = job.model_dump_json().encode("utf-8")
+        head_raw = json.dumps(head).encode("utf-8")
 
         def send() -> None:
-            self._conn.send_bytes(spec)
-            self._conn.send_bytes(cloud)
+            self._conn.send_bytes(head_raw)
+            self._conn.send_bytes(body)
 
         try:
             await asyncio.to_thread(send)
         except (BrokenPipeError, OSError) as exc:
             raise AnalysisCrashed(f"analysis process unreachable: {exc}") from None
+
+    async def run(self, job: AnalysisJob, cloud: bytes) -> AnalysisOutcome:
+        """Analyse one cloud in the child. AnalysisCrashed if the child dies meanwhile."""
+        await self._send({"op": "job", "spec": job.model_dump_json()}, cloud)
+        return await self._outcome()
+
+    async def open_stream(self, job: AnalysisJob) -> None:
+        """Start a streamed job in the child (the analysis prepares what needs no cloud)."""
+        await self._send({"op": "open", "spec": job.model_dump_json()})
+
+    async def add_chunk(self, chunk: bytes | bytearray) -> None:
+        """The next chunk of the open stream (an encoded cloud), in order."""
+        await self._send({"op": "chunk"}, chunk)
+
+    async def finish_stream(self) -> AnalysisOutcome:
+        """The open stream is complete: the analysis finishes and reports."""
+        await self._send({"op": "finish"})
+        return await self._outcome()
+
+    async def drop_stream(self) -> None:
+        """Forget the open stream (the whole cloud follows by :meth:`run`)."""
+        await self._send({"op": "drop"})
+
+    async def _outcome(self) -> AnalysisOutcome:
         raw = await asyncio.to_thread(self._wait_result)
         out = json.loads(raw)
         if not out["ok"]:
@@ -370,6 +505,8 @@ class Worker:
         self.malformed = _RateLimitedLog()
         self._current: JobSpec | None = None
         self._current_cell: str | None = None
+        self._stream: _StreamInbox | None = None
+        self._restarting: asyncio.Task[None] | None = None
         self._served: dict[str, Keys] = {}
         self._entities: list[Any] = []
         # cells whose offer was turned down while busy (prefix -> when first), and since when idle
@@ -439,6 +576,7 @@ class Worker:
         wid, ents = self.worker_id, self._entities
         ents.append(subscribe(self.session, keys.worker_job(wid), lambda s: self._on_job(keys, s)))
         ents.append(subscribe(self.session, keys.worker_cancel(wid), self._on_cancel))
+        ents.append(subscribe(self.session, keys.worker_stream(wid), self._on_stream))
         ents.append(
             declare_async_queryable(self.session, keys.worker_info(wid), lambda q: self._on_info(keys, q))
         )
@@ -491,6 +629,26 @@ class Worker:
             and self._current.attempt == spec.attempt
         ):
             return  # the same offer again
+        cur, task = self._current, self._task
+        if (
+            cur is not None
+            and cur.stream
+            and cur.job_id == spec.job_id
+            and spec.attempt > cur.attempt
+            and task
+        ):
+            # The dispatcher took this streamed job back (a link cut, its cancel lost) and offers it
+            # again: the old attempt's stream will never end, so it makes way for the new one.
+            log.info("job_superseded", job_id=spec.job_id, attempt=cur.attempt, by_attempt=spec.attempt)
+            task.cancel()
+
+            async def take_over() -> None:
+                with contextlib.suppress(BaseException):
+                    await task
+                self._on_job(keys, sample)
+
+            asyncio.get_running_loop().create_task(take_over())
+            return
         why = self._turn_down(keys, spec)
         if why is not None:
             log.info("job_turned_down", job_id=spec.job_id, cell=keys.prefix, reason=why)
@@ -498,11 +656,109 @@ class Worker:
             return
         self._passed_over.pop(keys.prefix, None)
         self._current, self._current_cell = spec, keys.prefix
+        # the inbox exists before "accepted" goes out: the dispatcher streams only after it
+        self._stream = _StreamInbox(spec.job_id, spec.attempt) if spec.stream else None
         self._event(keys, spec, "accepted")
         self._task = asyncio.get_running_loop().create_task(self._run(keys, spec, sample))
 
+    def _on_stream(self, sample: zenoh.Sample) -> None:
+        """A chunk or the end of the streamed job held: kept once, checked against its checksum;
+        anything for another job or attempt is ignored."""
+        key = str(sample.key_expr)
+        job_id, attempt, last = key.rsplit("/", 3)[-3:]
+        inbox = self._stream
+        if inbox is None or job_id != inbox.job_id or attempt != str(inbox.attempt):
+            log.debug("stream_message_ignored", key=key)
+            return
+        try:
+            if last == "end":
+                end = StreamEnd.model_validate_json(sample.payload.to_bytes())
+                if end.job_id != inbox.job_id or end.attempt != inbox.attempt:
+                    raise ValueError("StreamEnd does not match the key")
+                inbox.end = end
+            else:
+                if sample.attachment is None:
+                    raise ValueError("no StreamChunk attachment")
+                head = StreamChunk.model_validate_json(sample.attachment.to_bytes())
+                if (head.job_id, str(head.attempt), str(head.seq)) != (job_id, attempt, last):
+                    raise ValueError("StreamChunk attachment does not match the key")
+                if head.seq < inbox.next_seq or head.seq in inbox.chunks:
+                    inbox.duplicates += 1
+                    return
+                data = sample.payload.to_bytes()
+                if hashlib.sha256(data).hexdigest() != head.sha256:
+                    inbox.corrupt += 1
+                    log.warning("stream_chunk_corrupt", job_id=job_id, seq=head.seq, bytes=len(data))
+                    return
+                inbox.chunks[head.seq] = (head, data)
+        except ValueError as exc:
+            self.malformed.warn("stream_message_malformed", key=key, error=str(exc)[:300])
+            return
+        inbox.wake.set()
+
+    async def _run_stream(self, keys: Keys, spec: JobSpec, job: AnalysisJob) -> AnalysisOutcome:
+        """A streamed job: the chunks go to the analysis child in ``seq`` order as they arrive; after
+        StreamEnd with every chunk the analysis finishes. A chunk still missing ``stream_grace_s``
+        after the end (or totals that disagree): the whole cloud from the daemon, analysed whole."""
+        inbox = self._stream
+        assert inbox is not None
+        st = self.settings
+        await self.runner.open_stream(job)
+        while True:
+            inbox.wake.clear()
+            while inbox.next_seq in inbox.chunks:
+                head, data = inbox.chunks.pop(inbox.next_seq)
+                await self.runner.add_chunk(data)
+                inbox.next_seq += 1
+                inbox.points += head.points
+            end = inbox.end
+            if end is not None and inbox.next_seq >= end.chunks:
+                if inbox.next_seq == end.chunks and inbox.points == end.points:
+                    out = await self.runner.finish_stream()
+                    return self._stream_outcome(out, inbox, fallback=False)
+                why = f"{inbox.next_seq} chunks of {inbox.points} points, the end says {end.chunks} of {end.points}"
+                return await self._stream_fallback(keys, spec, job, inbox, why)
+            try:
+                await asyncio.wait_for(inbox.wake.wait(), st.stream_grace_s if end else st.stream_idle_s)
+            except TimeoutError:
+                if end is None:
+                    raise TransferError(
+                        f"stream of job {spec.job_id}: nothing for {st.stream_idle_s} s"
+                    ) from None
+                why = f"chunk {inbox.next_seq} of {end.chunks} missing {st.stream_grace_s} s after the end"
+                return await self._stream_fallback(keys, spec, job, inbox, why)
+
+    async def _stream_fallback(
+        self, keys: Keys, spec: JobSpec, job: AnalysisJob, inbox: _StreamInbox, why: str
+    ) -> AnalysisOutcome:
+        """The stream is incomplete: the whole cloud from the daemon (``Keys.job_cloud``), analysed whole."""
+        log.warning("stream_incomplete", job_id=spec.job_id, reason=why, corrupt=inbox.corrupt)
+        await self.runner.drop_stream()
+        replies = await async_get(
+            self.session, keys.job_cloud(spec.job_id), timeout_s=self.settings.cloud_timeout_s
+        )
+        ok = [r.ok for r in replies if r.ok is not None]
+        if not ok:
+            err = replies[0].err.payload.to_bytes().decode(errors="replace") if replies else "no reply"
+            raise TransferError(f"stream incomplete ({why}) and the whole cloud unavailable: {err}")
+        cloud = await asyncio.to_thread(ok[0].payload.to_bytes)
+        log.info("stream_cloud_fetched", job_id=spec.job_id, bytes=len(cloud))
+        out = await self.runner.run(job, cloud)
+        return self._stream_outcome(out, inbox, fallback=True)
+
+    @staticmethod
+    def _stream_outcome(out: AnalysisOutcome, inbox: _StreamInbox, *, fallback: bool) -> AnalysisOutcome:
+        extra = {"stream_chunks": float(inbox.next_seq), "stream_duplicates": float(inbox.duplicates),
+                 "stream_fallback": float(fallback)}  # fmt: skip
+        return replace(out, timings_s={**out.timings_s, **extra})
+
     def _on_cancel(self, sample: zenoh.Sample) -> None:
         job_id = Keys.last_chunk(str(sample.key_expr))
+        said = sample.payload.to_bytes().decode(errors="replace").strip()
+        attempt = int(said) if said.isdigit() else None  # empty: whichever attempt is held
+        if attempt is not None and self._current is not None and attempt < self._current.attempt:
+            log.info("job_cancel_ignored", job_id=job_id, attempt=attempt, holding=self._current.attempt)
+            return
         if self._current is not None and self._current.job_id == job_id and self._task is not None:
             log.info("job_cancelled", job_id=job_id)
             self._task.cancel()
@@ -518,6 +774,9 @@ class Worker:
         t0 = time.perf_counter()
         out_dir: Path | None = None
         try:
+            if self._restarting is not None and not self._restarting.done():
+                with contextlib.suppress(Exception):
+                    await asyncio.shield(self._restarting)  # the analysis child of the previous job
             cloud = await asyncio.to_thread(sample.payload.to_bytes)
             del sample
             job = spec.job
@@ -529,7 +788,15 @@ class Worker:
                     self._event(keys, spec, "failed", str(exc))
                     return
             try:
-                outcome = await self.runner.run(job, cloud)
+                if spec.stream:
+                    outcome = await self._run_stream(keys, spec, job)
+                else:
+                    outcome = await self.runner.run(job, cloud)
+            except TransferError as exc:
+                log.warning("stream_failed", job_id=spec.job_id, error=str(exc))
+                self._event(keys, spec, "failed", str(exc))
+                await self._restart_runner()  # the child may hold half a stream
+                return
             except AnalysisCrashed as exc:
                 log.error("analysis_crashed", job_id=spec.job_id, error=str(exc))
                 self._event(keys, spec, "failed", str(exc))
@@ -587,6 +854,7 @@ class Worker:
                 self._event(keys, spec, "failed", f"{type(exc).__name__}: {exc}")
         finally:
             hb.cancel()
+            self._stream = None
             self._current = self._current_cell = None
             self._task = None
             self._idle_since = time.monotonic()
@@ -648,6 +916,13 @@ class Worker:
         return manifest
 
     async def _restart_runner(self) -> None:
+        # A task of its own, shielded: a second cancellation of the job (its cancel message after
+        # a take-over) must not leave a child half started whose hello the next job would read.
+        if self._restarting is None or self._restarting.done():
+            self._restarting = asyncio.get_running_loop().create_task(self._restart())
+        await asyncio.shield(self._restarting)
+
+    async def _restart(self) -> None:
         await asyncio.to_thread(self.runner.kill)  # kill() joins the child: not on the loop
         try:
             await self.runner.start()

@@ -305,11 +305,15 @@ class AssembledScan:
             yield self._block(lo, step, t0)
 
     def cloud_arrays(
-        self, column_step: int | np.ndarray = 1, dtypes: dict[str, np.dtype | type] | None = None
+        self,
+        column_step: int | np.ndarray = 1,
+        t0_ns: int | None = None,
+        dtypes: dict[str, np.dtype | type] | None = None,
     ) -> dict[str, np.ndarray]:
         """The valid points (thinned as in :meth:`points`) in the cloud vocabulary of
         :mod:`analysis.cloud_io`: ``xyz_mm`` float32, ``pass_id`` with transit filed under pass 0,
-        ``profile_index``, ``point_index``, ``t_s`` (s from the scan's first profile).
+        ``profile_index``, ``point_index``, ``t_s`` (s from ``t0_ns``, by default this scan's first
+        profile; a part of a scan gives its scan's).
 
         dtypes: the storage dtype of each array (default :data:`CLOUD_DTYPES`; the publication asks for
         the wire's u16/u32): the arrays are filled block of rows by block of rows at those dtypes, so a
@@ -319,7 +323,7 @@ class AssembledScan:
         dt = {**CLOUD_DTYPES, **(dtypes or {})}
         step = self._column_step(column_step)
         self._check_fits(dt)
-        t0 = int(self.t_ns.min()) if len(self) else 0
+        t0 = t0_ns if t0_ns is not None else int(self.t_ns.min()) if len(self) else 0
         blocks = range(0, len(self), _BLOCK_ROWS)
         counts = [int(np.count_nonzero(self._kept(lo, step))) for lo in blocks]
         total = sum(counts)
@@ -369,6 +373,7 @@ class ScanBuilder:
         self._reserve = max(int(expected_profiles), 0)
         self._arrays: dict[str, np.ndarray] | None = None
         self.n = 0
+        self._ends: list[int] = []  # the row after each appended batch
 
     def _allocate(self, like: AssembledBatch, rows: int) -> dict[str, np.ndarray]:
         return {
@@ -394,6 +399,18 @@ class ScanBuilder:
         for f in self._FIELDS:
             a[f][self.n : self.n + k] = getattr(batch, f)
         self.n += k
+        self._ends.append(self.n)
+
+    def batches_since(self, k: int) -> list[AssembledBatch]:
+        """The batches appended after the first ``k``, in order, as views of the rows (no copy)."""
+        if self._arrays is None:
+            return []
+        a = self._arrays
+        starts = [0, *self._ends[:-1]]
+        return [
+            AssembledBatch(*(a[f][lo:hi] for f in self._FIELDS))
+            for lo, hi in zip(starts[k:], self._ends[k:], strict=True)
+        ]
 
     def scan(self, width: int = 0) -> AssembledScan:
         """The rows so far as an :class:`AssembledScan` of views (no copy; an empty scan of ``width``

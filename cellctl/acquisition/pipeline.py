@@ -345,6 +345,11 @@ class Acquisition:
         batches do not change it, they may reallocate the arrays behind it)."""
         return self._rows.scan(self._width)
 
+    def batches_since(self, k: int) -> list[AssembledBatch]:
+        """The batches assembled after the first ``k`` (in order; with ``keep_batches``): a consumer
+        that follows the scan while it runs (the cloud streamed pass by pass)."""
+        return self._rows.batches_since(k)
+
     def quality(self) -> dict[str, Any]:
         """Clock fit reports and counters (for the job record and logs)."""
         return {

@@ -22,7 +22,14 @@ import structlog
 from cellctl.acquisition.assembly import AssembledScan, AssemblyError
 from cellctl.api.cloud_codec import Cloud, encode_cloud
 
-__all__ = ["PublishSettings", "budget_steps", "column_steps", "encode_scan", "publication_cloud"]
+__all__ = [
+    "PublishSettings",
+    "budget_steps",
+    "column_steps",
+    "encode_scan",
+    "pass_end_cut",
+    "publication_cloud",
+]
 
 log = structlog.get_logger(__name__)
 
@@ -101,12 +108,14 @@ def publication_cloud(
     plate_id: str,
     column_step: int | np.ndarray = 1,
     meta: dict[str, Any] | None = None,
+    t0_ns: int | None = None,
 ) -> Cloud:
     """The valid points of ``scan`` as a :class:`~cellctl.api.cloud_codec.Cloud`, thinned by ``column_step``
     (see :meth:`AssembledScan.points`), in the cloud vocabulary (:meth:`AssembledScan.cloud_arrays`:
-    transit under pass 0, exposure times in s from the first profile) at the codec's dtypes."""
+    transit under pass 0, exposure times in s from the first profile, or from ``t0_ns`` for a part
+    of a scan) at the codec's dtypes."""
     # filled at the wire's dtypes block by block: no whole-scan int64 temporaries (a 6 m plate's 33 M points)
-    pts = scan.cloud_arrays(column_step, dtypes=_WIRE_DTYPES)
+    pts = scan.cloud_arrays(column_step, t0_ns, dtypes=_WIRE_DTYPES)
     for name in ("pass_id", "point_index"):
         if pts[name].size and int(pts[name].max()) > 65535:
             raise AssemblyError(f"{name} {int(pts[name].max())} does not fit the cloud's u16")
@@ -129,8 +138,25 @@ def encode_scan(
     plate_id: str,
     column_step: int | np.ndarray = 1,
     meta: dict[str, Any] | None = None,
+    t0_ns: int | None = None,
 ) -> tuple[bytearray, int]:
     """:func:`publication_cloud` encoded by :func:`~cellctl.api.cloud_codec.encode_cloud`: ``(payload,
     n_points)``. One pass over the kept points; run it off the event loop."""
-    cloud = publication_cloud(scan, job_id=job_id, plate_id=plate_id, column_step=column_step, meta=meta)
+    cloud = publication_cloud(
+        scan, job_id=job_id, plate_id=plate_id, column_step=column_step, meta=meta, t0_ns=t0_ns
+    )
     return encode_cloud(cloud), cloud.n_points
+
+
+def pass_end_cut(pass_id: np.ndarray) -> tuple[int, int] | None:
+    """Where a run of rows (time order, ``pass_id`` -1 for transit) can be cut after a finished pass:
+    ``(rows, pass)`` for the last row of pass ``pass >= 0`` followed by a row of another pass or of
+    transit (the pass is complete up to there), or None when no pass has ended in these rows."""
+    pid = np.asarray(pass_id)
+    if pid.size < 2:
+        return None
+    ends = np.nonzero((pid[:-1] >= 0) & (pid[1:] != pid[:-1]))[0]
+    if not ends.size:
+        return None
+    i = int(ends[-1])
+    return i + 1, int(pid[i])

@@ -309,3 +309,20 @@ def peek_meta(buf: bytes | bytearray | memoryview) -> dict[str, Any]:
     if not isinstance(meta, dict):
         raise CloudFormatError("metadata must be a JSON object", field="meta", offset=start)
     return {**meta, "n_points": int(n)}
+
+
+def concat_encoded(payloads: list[bytes | bytearray]) -> bytearray:
+    """Encoded clouds of one job, one after the other, as one encoded cloud (the ids and ``meta`` of
+    the first; every per-point array present in all of them). A streamed job's chunks -> its cloud."""
+    if not payloads:
+        raise CloudFormatError("no cloud to concatenate")
+    clouds = [decode_cloud(p) for p in payloads]
+    first = clouds[0]
+    if len(clouds) == 1:
+        return encode_cloud(first)
+    arrays = {
+        name: np.concatenate([getattr(c, name) for c in clouds])
+        for name in ("xyz_mm", *OPTIONAL_FIELDS)
+        if all(getattr(c, name) is not None for c in clouds)
+    }
+    return encode_cloud(Cloud(job_id=first.job_id, plate_id=first.plate_id, meta=first.meta, **arrays))

@@ -23,6 +23,14 @@ Protocol (keys in :class:`cellctl.api.Keys`, payloads in docs/api.md):
    incomplete or corrupt is refused (``refused_results``) and the job retried, like a lost attempt.
    The verified files wait in :meth:`Dispatcher.take_results` for the daemon to store.
 
+7. A streamed job (:meth:`Dispatcher.submit_stream`, the cloud pass by pass while the plate is
+   scanned) goes to a worker at once with an empty job message (JobSpec ``stream``); once the
+   attempt is ``accepted``, every chunk stored so far and then each new one is put on
+   ``Keys.worker_stream`` (StreamChunk attachment, in ``seq`` order, BLOCK), and StreamEnd when the
+   daemon ends the stream. The chunks are kept here until the job resolves: a retry (the worker
+   gone, a heartbeat missed) replays them to the next worker from ``seq`` 0. ``Keys.job_cloud``
+   serves the whole cloud (the chunks concatenated) to a worker that missed a chunk.
+
 No worker at all: jobs wait in the queue and go out when a worker appears. The dispatcher persists
 nothing; :class:`DispatchHooks` lets the daemon record every transition.
 """
@@ -31,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import time
 from collections import deque
 from collections.abc import Callable
@@ -43,8 +52,9 @@ from pydantic import ValidationError
 
 from analysis.job import AnalysisJob
 from cellctl.api.cloud_codec import ENCODING as CLOUD_ENCODING
+from cellctl.api.cloud_codec import concat_encoded
 from cellctl.api.keys import Keys
-from cellctl.api.models import JobEvent, JobSpec, ReportEnvelope
+from cellctl.api.models import JobEvent, JobSpec, ReportEnvelope, StreamChunk, StreamEnd
 from cellctl.api.session import declare_async_queryable, subscribe
 from cellctl.api.transfer import (
     MAX_RESULT_BYTES,
@@ -121,6 +131,22 @@ class _Worker:
 
 
 @dataclass
+class _Stream:
+    """A streamed job's chunks (pass index, points, sha256, payload) as the daemon gave them."""
+
+    chunks: list[tuple[int, int, str, bytes | bytearray]] = field(default_factory=list)
+    ended: bool = False
+    ended_at: float = 0.0
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    pump: asyncio.Task[None] | None = None
+    whole: bytearray | None = None
+
+    @property
+    def points(self) -> int:
+        return sum(c[1] for c in self.chunks)
+
+
+@dataclass
 class _Job:
     job_id: str
     plate_id: str
@@ -136,6 +162,7 @@ class _Job:
     tried: set[str] = field(default_factory=set)
     last_reason: str = ""
     transfer: TransferSpec | None = None
+    stream: _Stream | None = None
 
 
 class Dispatcher:
@@ -192,6 +219,9 @@ class Dispatcher:
         self._entities.append(subscribe(self.session, self.keys.report("*"), self._on_report))
         self._entities.append(subscribe(self.session, f"{self.keys.prefix}/results/**", self._on_chunk))
         self._entities.append(declare_async_queryable(self.session, self.keys.design("*"), self._on_design))
+        self._entities.append(
+            declare_async_queryable(self.session, self.keys.job_cloud("*"), self._on_job_cloud)
+        )
         self._watchdog = asyncio.get_running_loop().create_task(self._watch())
         if self.settings.shm_pool_mb > 0:
             try:
@@ -199,8 +229,66 @@ class Dispatcher:
             except Exception as exc:  # the shm API is marked unstable: fall back to the copy path
                 log.warning("shm_unavailable", error=str(exc))
 
+    def submit_stream(
+        self, params: AnalysisJob, *, transfer: TransferSpec | None = None
+    ) -> asyncio.Future[ReportEnvelope]:
+        """Queue a job whose cloud follows in chunks (:meth:`stream_chunk`, then :meth:`end_stream`);
+        the future as :meth:`submit`'s. The job goes to a worker now, so that it analyses the chunks
+        as they come."""
+        return self.submit(params, b"", transfer=transfer, stream=True)
+
+    def stream_chunk(self, job_id: str, pass_index: int, payload: bytes | bytearray, points: int) -> int:
+        """The next chunk of a streamed job's cloud (an encoded cloud of the rows since the previous
+        chunk); its ``seq``. Sent on to the worker holding the job once it accepted."""
+        st = self._stream(job_id)
+        if st.ended:
+            raise ValueError(f"job {job_id!r}: the stream has ended")
+        st.chunks.append((pass_index, points, hashlib.sha256(payload).hexdigest(), payload))
+        st.wake.set()
+        return len(st.chunks) - 1
+
+    def end_stream(self, job_id: str) -> None:
+        """No more chunks: the worker gets StreamEnd (with the totals) after the last one."""
+        st = self._stream(job_id)
+        st.ended, st.ended_at = True, time.monotonic()
+        st.wake.set()
+        log.info("stream_ended", job_id=job_id, chunks=len(st.chunks), points=st.points)
+
+    def stream_payloads(self, job_id: str) -> list[bytes | bytearray]:
+        """The chunks of a pending streamed job so far, in order."""
+        return [c[3] for c in self._stream(job_id).chunks]
+
+    def abandon(self, job_id: str, reason: str) -> None:
+        """Give up a pending job (its scan ended early): the worker holding it is told to stop, the
+        future fails with JobFailed."""
+        job = self._jobs.get(job_id)
+        if job is None:
+            return
+        if job.worker_id is not None:
+            self._cancel_on(job.worker_id, job_id, job.attempt)
+        self._release(job)
+        self._jobs.pop(job_id, None)
+        self.collector.forget(job_id)
+        with contextlib.suppress(ValueError):
+            self._queue.remove(job_id)
+        log.info("job_abandoned", job_id=job_id, reason=reason)
+        if not job.future.done():
+            job.future.set_exception(JobFailed(job_id, reason))
+        self._pump()
+
+    def _stream(self, job_id: str) -> _Stream:
+        job = self._jobs.get(job_id)
+        if job is None or job.stream is None:
+            raise ValueError(f"job {job_id!r} is not a pending streamed job")
+        return job.stream
+
     def submit(
-        self, params: AnalysisJob, cloud: bytes | bytearray, *, transfer: TransferSpec | None = None
+        self,
+        params: AnalysisJob,
+        cloud: bytes | bytearray,
+        *,
+        transfer: TransferSpec | None = None,
+        stream: bool = False,
     ) -> asyncio.Future[ReportEnvelope]:
         """Queue a cloud (encoded by :func:`cellctl.api.cloud_codec.encode_cloud`) for analysis with
         the job's parameters (``params.job_id`` names the job). With ``transfer`` the design must have
@@ -216,7 +304,9 @@ class Dispatcher:
         if job_id in self._jobs:
             raise ValueError(f"job {job_id!r} is already pending")
         fut: asyncio.Future[ReportEnvelope] = asyncio.get_running_loop().create_future()
-        self._jobs[job_id] = _Job(job_id, plate_id, cloud, params, fut, transfer=transfer)
+        self._jobs[job_id] = _Job(
+            job_id, plate_id, cloud, params, fut, transfer=transfer, stream=_Stream() if stream else None
+        )
         self._queue.append(job_id)
         log.info("job_queued", job_id=job_id, plate_id=plate_id, bytes=len(cloud), workers=len(self._workers))
         self._call(self.hooks.on_queued, job_id)
@@ -276,7 +366,9 @@ class Dispatcher:
         job.tried.add(worker.worker_id)
         worker.job_id = job.job_id
         worker.last_assigned = now
-        spec = JobSpec(attempt=job.attempt, job=job.params, transfer=job.transfer)
+        spec = JobSpec(
+            attempt=job.attempt, job=job.params, transfer=job.transfer, stream=job.stream is not None
+        )
         log.info("job_assigned", job_id=job.job_id, worker_id=worker.worker_id, attempt=job.attempt)
         self._call(self.hooks.on_assigned, job.job_id, worker.worker_id, job.attempt)
         task = asyncio.get_running_loop().create_task(self._send(job, worker.worker_id, spec))
@@ -317,6 +409,9 @@ class Dispatcher:
                 self._requeue(job, f"send failed: {exc}", count=True)
 
     def _release(self, job: _Job, backoff_s: float = 0.0) -> None:
+        if job.stream is not None and job.stream.pump is not None:
+            job.stream.pump.cancel()  # a retry replays the chunks from seq 0
+            job.stream.pump = None
         worker = self._workers.get(job.worker_id or "")
         if worker is not None and worker.job_id == job.job_id:
             worker.job_id = None
@@ -348,9 +443,12 @@ class Dispatcher:
         if not job.future.done():
             job.future.set_exception(JobFailed(job.job_id, reason))
 
-    def _cancel_on(self, worker_id: str, job_id: str) -> None:
+    def _cancel_on(self, worker_id: str, job_id: str, attempt: int | None = None) -> None:
+        # the payload names the attempt taken back: a late cancel must not stop a newer attempt
         with contextlib.suppress(Exception):
-            self.session.put(self.keys.worker_cancel(worker_id, job_id), b"")
+            self.session.put(
+                self.keys.worker_cancel(worker_id, job_id), b"" if attempt is None else str(attempt)
+            )
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         worker_id = Keys.last_chunk(str(sample.key_expr))
@@ -384,6 +482,10 @@ class Dispatcher:
         job.last_seen = time.monotonic()
         if ev.event in ("accepted", "heartbeat"):
             job.accepted = True
+            if job.stream is not None and job.stream.pump is None and ev.worker_id is not None:
+                job.stream.pump = asyncio.get_running_loop().create_task(
+                    self._pump_stream(job, ev.worker_id, ev.attempt), name=f"stream-{job.job_id}"
+                )
         elif ev.event == "rejected":
             self._requeue(job, f"rejected: {ev.message}", count=False, backoff_s=self.settings.busy_backoff_s)
         elif ev.event in ("failed", "cancelled"):
@@ -488,6 +590,64 @@ class Dispatcher:
         job.last_seen = time.monotonic()  # a large bundle is progress, like a heartbeat
         self.collector.add(head, sample.payload.to_bytes())
 
+    async def _pump_stream(self, job: _Job, worker_id: str, attempt: int) -> None:
+        """Put a streamed job's chunks, in order, to the worker holding this attempt; StreamEnd last."""
+        st = job.stream
+        assert st is not None
+        sent = 0
+
+        def put(key: str, data: bytes | bytearray, attachment: str | None = None) -> None:
+            self.session.put(
+                key, data, attachment=attachment, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+
+        try:
+            while job.worker_id == worker_id and job.attempt == attempt:
+                st.wake.clear()
+                while sent < len(st.chunks):
+                    pass_index, points, sha, data = st.chunks[sent]
+                    head = StreamChunk(job_id=job.job_id, attempt=attempt, seq=sent, pass_index=pass_index,
+                                       points=points, sha256=sha)  # fmt: skip
+                    key = self.keys.worker_stream(worker_id, job.job_id, attempt, sent)
+                    await asyncio.to_thread(put, key, self._payload(data), head.to_json())
+                    sent += 1
+                if st.ended:
+                    end = StreamEnd(
+                        job_id=job.job_id, attempt=attempt, chunks=len(st.chunks), points=st.points
+                    )
+                    await asyncio.to_thread(
+                        put,
+                        self.keys.worker_stream_end(worker_id, job.job_id, attempt),
+                        end.to_json(),
+                    )
+                    log.info(
+                        "stream_sent", job_id=job.job_id, worker_id=worker_id, attempt=attempt, chunks=sent
+                    )
+                    return
+                await st.wake.wait()
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            log.warning("stream_send_failed", job_id=job.job_id, worker_id=worker_id, error=str(exc))
+            if job.worker_id == worker_id and job.attempt == attempt:
+                st.pump = None
+                self._cancel_on(worker_id, job.job_id, attempt)  # it holds the attempt: free it for the retry
+                self._requeue(
+                    job, f"stream send failed: {exc}", count=True, backoff_s=self.settings.busy_backoff_s
+                )
+
+    async def _on_job_cloud(self, query: zenoh.Query) -> None:
+        job_id = str(query.key_expr).rsplit("/", 2)[-2]
+        job = self._jobs.get(job_id)
+        st = job.stream if job is not None else None
+        if st is None or not st.ended:
+            query.reply_err(f"no complete streamed cloud for job {job_id[:64]} here".encode())
+            return
+        if st.whole is None:
+            st.whole = await asyncio.to_thread(concat_encoded, [c[3] for c in st.chunks])
+        log.info("stream_cloud_served", job_id=job_id, bytes=len(st.whole))
+        query.reply(query.key_expr, bytes(st.whole))
+
     async def _on_design(self, query: zenoh.Query) -> None:
         sha = Keys.last_chunk(str(query.key_expr))
         data = await asyncio.to_thread(self.designs.read, sha)
@@ -500,6 +660,13 @@ class Dispatcher:
         self.malformed += 1
         if self.malformed <= 10 or self.malformed % 100 == 0:  # rate limited
             log.warning(event, key=key, count=self.malformed, error=str(exc)[:300])
+
+    @staticmethod
+    def _attempt_start(job: _Job) -> float:
+        # a streamed job's attempt is timed from the stream's end (the scan may take long)
+        if job.stream is None:
+            return job.assigned_at
+        return max(job.assigned_at, job.stream.ended_at) if job.stream.ended else time.monotonic()
 
     async def _watch(self) -> None:
         s = self.settings
@@ -514,10 +681,10 @@ class Dispatcher:
                     reason = f"no acknowledgement within {s.ack_timeout_s} s"
                 elif job.accepted and now - job.last_seen > s.heartbeat_timeout_s:
                     reason = f"no heartbeat for {s.heartbeat_timeout_s} s"
-                elif s.job_timeout_s is not None and now - job.assigned_at > s.job_timeout_s:
+                elif s.job_timeout_s is not None and now - self._attempt_start(job) > s.job_timeout_s:
                     reason = f"attempt took longer than {s.job_timeout_s} s"
                 if reason:
-                    self._cancel_on(job.worker_id, job.job_id)
+                    self._cancel_on(job.worker_id, job.job_id, job.attempt)
                     # The worker is suspect: give it time to recover before it gets work again.
                     self._requeue(job, reason, backoff_s=max(s.ack_timeout_s, s.heartbeat_timeout_s))
             self._pump()

@@ -37,6 +37,8 @@ from cellctl.api.models import (
     JobSpec,
     LiveCloudChunk,
     ReportEnvelope,
+    StreamChunk,
+    StreamEnd,
     TriggerRequest,
 )
 from cellctl.api.transfer import DesignRef, ResultChunk, ResultFile, ResultManifest, TransferSpec
@@ -50,7 +52,7 @@ MODELS: dict[str, type] = {
         TriggerRequest, Placement, JobSpec, AnalysisJob, InspectionSettings, DetectionLayout, Tolerances,
         JobEvent, ReportEnvelope, Report, RegistrationReport, LineReport, ScanCoverage, SurfaceReport,
         ReportInputs, DesignReport, DaemonStats, EgmStats, LiveCloudChunk, TransferSpec, DesignRef, ResultChunk,
-        ResultManifest, ResultFile,
+        ResultManifest, ResultFile, StreamChunk, StreamEnd,
     )
 }  # fmt: skip
 DOC = Path(__file__).resolve().parents[2] / "docs" / "api.md"

@@ -58,6 +58,21 @@ class Keys:
         """Publication to one worker: the cloud (binary) with the JobSpec JSON as attachment."""
         return f"{self.prefix}/workers/{worker_id}/jobs/{job_id}"
 
+    def worker_stream(
+        self, worker_id: str, job_id: str = "*", attempt: int | str = "*", seq: int | str = "*"
+    ) -> str:
+        """Publication to one worker: one chunk of a streamed job's cloud (binary, StreamChunk
+        attachment), for one attempt."""
+        return f"{self.prefix}/workers/{worker_id}/stream/{job_id}/{attempt}/{seq}"
+
+    def worker_stream_end(self, worker_id: str, job_id: str = "*", attempt: int | str = "*") -> str:
+        """Publication to one worker: StreamEnd JSON, the streamed cloud is complete."""
+        return f"{self.prefix}/workers/{worker_id}/stream/{job_id}/{attempt}/end"
+
+    def job_cloud(self, job_id: str = "*") -> str:
+        """Queryable on the daemon: a streamed job's whole cloud (binary), for a worker missing a chunk."""
+        return f"{self.prefix}/jobs/{job_id}/cloud"
+
     def worker_cancel(self, worker_id: str, job_id: str = "*") -> str:
         """Publication to one worker: stop analysing this job (it was given to another worker)."""
         return f"{self.prefix}/workers/{worker_id}/cancel/{job_id}"

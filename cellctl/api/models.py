@@ -73,6 +73,8 @@ __all__ = [
     "RefusalLog",
     "Report",
     "ReportEnvelope",
+    "StreamChunk",
+    "StreamEnd",
     "TriggerAccepted",
     "TriggerError",
     "TriggerRequest",
@@ -511,6 +513,9 @@ class JobSpec(Model):
     attempt: Annotated[int, Field(ge=1)]
     job: AnalysisJob
     transfer: TransferSpec | None = None
+    #: True: the job message carries no cloud; it comes pass by pass as StreamChunks on
+    #: ``Keys.worker_stream`` (after this attempt's ``accepted``), closed by a StreamEnd
+    stream: bool = False
 
     @property
     def job_id(self) -> str:
@@ -519,6 +524,32 @@ class JobSpec(Model):
     @property
     def plate_id(self) -> str:
         return self.job.plate_id
+
+
+class StreamChunk(Model):
+    """The daemon -> the worker holding a streamed job, as the attachment of one chunk on
+    ``Keys.worker_stream``: the payload is a cloud (``cellctl.api.cloud_codec``) of the rows assembled
+    since the previous chunk, cut where a pass ended. The chunks in ``seq`` order, concatenated, are
+    the job's cloud; ``sha256`` is the payload's."""
+
+    job_id: str
+    attempt: Annotated[int, Field(ge=1)]
+    seq: Annotated[int, Field(ge=0)]
+    #: the pass this chunk completes (-1: the rows after the last pass, at the scan's end)
+    pass_index: Annotated[int, Field(ge=-1)]
+    points: Annotated[int, Field(ge=0)]
+    sha256: Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
+
+
+class StreamEnd(Model):
+    """The daemon -> the worker holding a streamed job, on ``Keys.worker_stream_end``: the stream is
+    complete with ``chunks`` chunks (seq 0 .. chunks - 1) of ``points`` points in all. A worker
+    missing a chunk fetches the whole cloud on ``Keys.job_cloud``."""
+
+    job_id: str
+    attempt: Annotated[int, Field(ge=1)]
+    chunks: Annotated[int, Field(ge=0)]
+    points: Annotated[int, Field(ge=0)]
 
 
 class JobEvent(Model):

@@ -6,6 +6,10 @@ rebuilt from the raw files, is thinned and encoded off the loop, submitted to th
 and the worker's report stored as ``report.json``. The job's states are told to the daemon through
 ``set_state``; any failure fails the job, it never leaves it hanging. The HTML / PDF render of the
 stored report is :mod:`cellctl.daemon.render`.
+
+A live scan streams its cloud instead (:meth:`Handover.open_stream`, :mod:`cellctl.daemon.stream`):
+the job goes to a worker when the scan starts and the cloud follows pass by pass; after the last
+profile only the last chunk is left to send. ``cloud.bin`` is then the chunks' concatenation.
 """
 
 from __future__ import annotations
@@ -21,12 +25,14 @@ from cellctl.acquisition.publish import PublishSettings, budget_steps, column_st
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import JobState
 from cellctl.api.analysis_job import analysis_job
+from cellctl.api.cloud_codec import concat_encoded
 from cellctl.api.dispatch import Dispatcher, JobFailed
 from cellctl.api.models import AnalysisOptions
 from cellctl.api.transfer import TransferError, TransferSpec, store_results
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import ActiveJob, JobStore, JobStoreError
 from cellctl.daemon.render import render_report
+from cellctl.daemon.stream import ScanStream
 from cellctl.logging import bind_context
 
 __all__ = ["Handover", "SetJobState", "render_html"]
@@ -54,6 +60,70 @@ class Handover:
         self.store = store
         self.dispatcher = dispatcher
         self._job_state = set_state
+        self._streams: dict[str, ScanStream] = {}
+
+    def _params(self, job: ActiveJob) -> Any:
+        rec = job.record
+        return analysis_job(
+            self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
+            placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
+            analysis=AnalysisOptions.model_validate(rec.analysis),
+            placement_found=rec.info.get("placement_found"),
+        )  # fmt: skip
+
+    def _meta(self, job: ActiveJob) -> dict[str, Any]:
+        return {"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": job.record.placement}
+
+    @staticmethod
+    def _first_edge(job: ActiveJob) -> int | None:
+        # The plan puts the raster passes first and the edge passes after them (pass ids index
+        # plan.passes), so the plan's raster count is the first edge pass.
+        return (job.record.info.get("plan") or {}).get("passes")
+
+    async def open_stream(self, job: ActiveJob) -> ScanStream:
+        """A streamed analysis for the scan about to start (planned: the plan is in the record): the
+        job goes to a worker now, :class:`ScanStream` sends the cloud pass by pass."""
+        rec = job.record
+        transfer = TransferSpec(
+            design=await asyncio.to_thread(self.dispatcher.designs.register, Path(rec.design_path))
+        )
+        fut = self.dispatcher.submit_stream(self._params(job), transfer=transfer)
+        stream = ScanStream(
+            self.dispatcher, fut, job_id=rec.job_id, plate_id=rec.plate_id,
+            settings=PublishSettings.from_config(self.cfg), first_edge_pass=self._first_edge(job),
+            meta=self._meta(job), on_abandon=lambda: self._streams.pop(rec.job_id, None),
+        )  # fmt: skip
+        self._streams[rec.job_id] = stream
+        return stream
+
+    async def _publish_whole(self, job: ActiveJob) -> tuple[Any, bytearray]:
+        """The whole cloud thinned, encoded and submitted (a re-analysis, a scan not streamed)."""
+        rec = job.record
+        t0 = time.perf_counter()
+        scan_cloud = job.cloud
+        job.cloud = None
+        if scan_cloud is None:  # re-analysis: whole-scan clock fits from the raw files
+            scan_cloud = (await asyncio.to_thread(reassemble, self.store.raw_dir(rec.job_id))).cloud
+        steps = column_steps(scan_cloud.pass_id, self._first_edge(job), PublishSettings.from_config(self.cfg))
+        steps = budget_steps(steps, scan_cloud.valid.sum(axis=1), self.cfg.scan.publish_max_points)
+        # thinned and encoded in one pass off the loop: the only copy of the points is the payload
+        payload, job.points = await asyncio.to_thread(
+            encode_scan, scan_cloud, job_id=rec.job_id, plate_id=rec.plate_id, column_step=steps,
+            meta=self._meta(job),
+        )  # fmt: skip
+        del scan_cloud, steps
+        assemble_s = time.perf_counter() - t0
+        # waiting for a worker until the dispatcher assigns the job (the daemon's on_assigned
+        # hook then says analysing): with no worker present the job says so (docs/operations.md)
+        self._job_state(
+            job, JobState.WAITING_FOR_WORKER, "cloud published", points=job.points,
+            cloud_bytes=len(payload), assemble_s=round(assemble_s, 3), published_utc_s=time.time(),
+        )  # fmt: skip
+        # nothing shared but Zenoh: the design goes by hash, the results come back as bytes
+        transfer = TransferSpec(
+            design=await asyncio.to_thread(self.dispatcher.designs.register, Path(rec.design_path))
+        )
+        return self.dispatcher.submit(self._params(job), payload, transfer=transfer), payload
 
     async def analyse(self, job: ActiveJob) -> None:
         """Publish the cloud to the workers and store the report; any failure fails the job (logged),
@@ -70,52 +140,35 @@ class Handover:
         rec = job.record
         bind_context(job_id=rec.job_id)
         job.fraction = 0.0
-        self._job_state(job, JobState.WAITING_FOR_WORKER, "cloud being assembled")
+        stream = self._streams.pop(rec.job_id, None)
+        if stream is not None and not stream.finished:  # the scan did not end the stream: whole cloud
+            await stream.abandon("the scan did not complete the stream")
+            stream = None
+        if stream is None:
+            self._job_state(job, JobState.WAITING_FOR_WORKER, "cloud being assembled")
         try:
-            t0 = time.perf_counter()
-            scan_cloud = job.cloud
-            job.cloud = None
-            if scan_cloud is None:  # re-analysis: whole-scan clock fits from the raw files
-                scan_cloud = (await asyncio.to_thread(reassemble, self.store.raw_dir(rec.job_id))).cloud
-            # The plan puts the raster passes first and the edge passes after them (pass ids index
-            # plan.passes), so the plan's raster count is the first edge pass.
-            first_edge = (rec.info.get("plan") or {}).get("passes")
-            steps = column_steps(scan_cloud.pass_id, first_edge, PublishSettings.from_config(self.cfg))
-            steps = budget_steps(steps, scan_cloud.valid.sum(axis=1), self.cfg.scan.publish_max_points)
-            meta = {"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": rec.placement}
-            # thinned and encoded in one pass off the loop: the only copy of the points is the payload
-            payload, job.points = await asyncio.to_thread(
-                encode_scan,
-                scan_cloud,
-                job_id=rec.job_id,
-                plate_id=rec.plate_id,
-                column_step=steps,
-                meta=meta,
-            )
-            del scan_cloud, steps
-            assemble_s = time.perf_counter() - t0
-            params = analysis_job(
-                self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
-                placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
-                analysis=AnalysisOptions.model_validate(rec.analysis),
-                placement_found=rec.info.get("placement_found"),
-            )  # fmt: skip
-            # waiting for a worker until the dispatcher assigns the job (the daemon's on_assigned
-            # hook then says analysing): with no worker present the job says so (docs/operations.md)
-            self._job_state(
-                job, JobState.WAITING_FOR_WORKER, "cloud published", points=job.points,
-                cloud_bytes=len(payload), assemble_s=round(assemble_s, 3), published_utc_s=time.time(),
-            )  # fmt: skip
-            # nothing shared but Zenoh: the design goes by hash, the results come back as bytes
-            transfer = TransferSpec(
-                design=await asyncio.to_thread(self.dispatcher.designs.register, Path(rec.design_path))
-            )
-            fut = self.dispatcher.submit(params, payload, transfer=transfer)
+            if stream is not None:
+                job.cloud = None
+                job.points = stream.points
+                payloads = self.dispatcher.stream_payloads(rec.job_id)
+                worker_id = self.dispatcher.assignment(rec.job_id)[0]
+                job.worker_id = worker_id
+                self._job_state(
+                    job, JobState.ANALYSING if worker_id else JobState.WAITING_FOR_WORKER,
+                    f"cloud streamed in {stream.chunks} chunks" + (f", analysing on {worker_id}" if worker_id else ""),
+                    points=stream.points, cloud_bytes=stream.bytes, stream_chunks=stream.chunks,
+                    assemble_s=round(stream.encode_s, 3), published_utc_s=time.time(),
+                )  # fmt: skip
+                fut = stream.future
+                payload: Any = None
+            else:
+                fut, payload = await self._publish_whole(job)
+                payloads = None
             # the published bytes, kept with the job (cellctl.api.cloud_codec layout); written while the
             # worker analyses, and on disk before the job is done
             cloud_path = self.store.job_dir(rec.job_id) / "cloud.bin"
-            written = asyncio.ensure_future(asyncio.to_thread(cloud_path.write_bytes, payload))
-            del payload
+            written = asyncio.ensure_future(asyncio.to_thread(_write_cloud, cloud_path, payload, payloads))
+            del payload, payloads
             try:
                 env = await fut
             finally:
@@ -161,6 +214,13 @@ class Handover:
             and (self.store.results_dir(rec.job_id) / "report.json").exists()
         ):
             await render_html(self.store, job)
+
+
+def _write_cloud(
+    path: Path, payload: bytes | bytearray | None, chunks: list[bytes | bytearray] | None
+) -> None:
+    """cloud.bin: the published bytes, or a streamed job's chunks as one cloud."""
+    path.write_bytes(payload if payload is not None else concat_encoded(chunks or []))
 
 
 async def render_html(store: JobStore, job: ActiveJob) -> None:

@@ -49,6 +49,7 @@ from cellctl.daemon.locate import (
     needs_across,
 )
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
+from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan
@@ -82,6 +83,8 @@ class ScanHost(Protocol):
     def on_progress(self, job: ActiveJob, ev: ProgressEvent) -> None: ...
 
     def live_feed(self, job_id: str) -> Callable[[list, int], None] | None: ...
+
+    async def cloud_stream(self, job: ActiveJob) -> ScanStream | None: ...
 
 
 class ScanRunner:
@@ -275,6 +278,7 @@ class ScanRunner:
         writer: RawWriter | None = None
         session: AcquisitionSession | None = None
         tracker: asyncio.Task[None] | None = None
+        stream: ScanStream | None = None
         program_started = False
         try:
             # an EGM session the controller still runs (the previous daemon died mid-scan) ends first
@@ -299,6 +303,11 @@ class ScanRunner:
             # the whole scan's arrays reserved once at the plan's profile count (a 6 m plate: 340 000)
             expected = (plan.scan_time_s + cfg.daemon.settle_s + 10.0) * cfg.laser.rate_hz * 1.1
             acq = Acquisition(acq_settings, writer, keep_batches=True, expected_profiles=round(expected))
+            if phase == "scan":
+                # the analysis follows the scan: each pass's points go out once the pass is on disk
+                stream = await host.cloud_stream(job)
+                if stream is not None:
+                    stream.follow(acq, writer)
             egm0 = _counters(drv.endpoint.stats, _EGM_COUNTERS)
             executor = MotionExecutor.for_plan(
                 drv.endpoint,
@@ -350,6 +359,8 @@ class ScanRunner:
             job.profiles = session.profiles
             await asyncio.to_thread(writer.close)
             writer = None
+            if stream is not None and result.state == ExecState.FINISHED:
+                await stream.finish()  # the rows after the last pass, and the end of the stream
             with contextlib.suppress(Exception):
                 await drv.program.end()
             program_started = False
@@ -380,6 +391,9 @@ class ScanRunner:
             await self._ended_early(job, result, info)
             return None
         finally:
+            if stream is not None and not stream.finished:
+                with contextlib.suppress(Exception):
+                    await stream.abandon("the scan ended before its last profile")
             job.executor = None
             if session is not None:
                 job.profiles = max(job.profiles, session.profiles)

@@ -68,6 +68,7 @@ from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore, JobStoreError, R
 from cellctl.daemon.preflight import PreflightError, probe_writable
 from cellctl.daemon.scan import ScanRunner
 from cellctl.daemon.states import CellStateMachine, Transition
+from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, build_drivers, rws_password
 from cellctl.logging import bind_context
 from cellctl.motion import ProgressEvent
@@ -646,6 +647,17 @@ class CellDaemon:
             self.session, self.keys.live_cloud(job_id), job_id, rate_hz=self.cfg.laser.rate_hz
         )
         return feed.add
+
+    async def cloud_stream(self, job: ActiveJob) -> ScanStream | None:
+        """The scan's cloud streamed to a worker pass by pass (cellctl/daemon/stream.py); None when it
+        cannot be (the cloud then goes whole after the scan)."""
+        if self.handover is None:
+            return None
+        try:
+            return await self.handover.open_stream(job)
+        except Exception as exc:
+            log.warning("stream_not_opened", job_id=job.record.job_id, error=str(exc))
+            return None
 
     def job_state(self, job: ActiveJob, state: JobState, message: str = "", **info: Any) -> None:
         self._job_state(job, state, message, **info)

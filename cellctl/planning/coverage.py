@@ -718,6 +718,15 @@ def _laser_fans(
     return np.repeat(pos, u.size, axis=0), dirs, np.repeat(z, u.size, axis=0), int(pos.shape[0])
 
 
+def _ray_tensor(origins: np.ndarray, dirs: np.ndarray) -> o3d.core.Tensor:
+    """(r, 6) float32 rays for open3d's ray casting (written straight into float32: no (r, 6)
+    float64 copy on the way; the values are those of ``np.hstack(...).astype(np.float32)``)."""
+    out = np.empty((origins.shape[0], 6), dtype=np.float32)
+    out[:, :3] = origins
+    out[:, 3:] = dirs
+    return o3d.core.Tensor(out)
+
+
 def _uncertainty_corners(placement: Placement, settings: PlannerSettings) -> list[Placement]:
     """The placement moved to the four corners of its uncertainty (shift and rotation)."""
     du, dd = settings.placement_uncertainty_mm, settings.placement_uncertainty_deg
@@ -752,7 +761,7 @@ def predict_coverage(
     uncertainty (shift and rotation) for ``worst_fraction``.
     """
     origins, dirs, zrep, n_profiles = _laser_fans(segments, settings)
-    rays = o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32))
+    rays = _ray_tensor(origins, dirs)
     cos_max = np.cos(np.deg2rad(settings.max_incidence_deg))
 
     cell = settings.coverage_cell_mm
@@ -765,17 +774,23 @@ def predict_coverage(
     if total == 0:
         raise PlanInputError("design: no footprint cell lies over the surface")
 
+    # the depth along the view axis per unit of ray length, the same for every placement
+    depth_per_t = np.sum(dirs * zrep, axis=1)
+
     def fraction(pl: Placement) -> tuple[float, int]:
         T = placement_transform(pl)
         scene = _raycasting_scene(design.transformed(T))
         hit = scene.cast_rays(rays)
-        t = hit["t_hit"].numpy().astype(np.float64)
-        nrm = hit["primitive_normals"].numpy().astype(np.float64)
-        ok = np.isfinite(t)
-        depth = t * np.sum(dirs * zrep, axis=1)
-        cos_inc = np.abs(np.sum(nrm * dirs, axis=1))
-        ok &= (depth >= settings.depth_min_mm) & (depth <= settings.depth_max_mm) & (cos_inc >= cos_max)
-        p = origins[ok] + t[ok, None] * dirs[ok]
+        t_hit = hit["t_hit"].numpy()
+        # only the rays that hit are looked at (a 6 m plate casts millions of rays per placement)
+        idx = np.flatnonzero(np.isfinite(t_hit))
+        t = t_hit[idx].astype(np.float64)
+        nrm = hit["primitive_normals"].numpy()[idx].astype(np.float64)
+        d = dirs[idx]
+        depth = t * depth_per_t[idx]
+        cos_inc = np.abs(np.sum(nrm * d, axis=1))
+        ok = (depth >= settings.depth_min_mm) & (depth <= settings.depth_max_mm) & (cos_inc >= cos_max)
+        p = origins[idx[ok]] + t[ok, None] * d[ok]
         local = (p - T[:3, 3]) @ T[:3, :3]  # base -> plate frame
         ix = np.floor((local[:, 0] - surface.x_min_mm) / (surface.x_max_mm - surface.x_min_mm) * nx).astype(
             np.int64
@@ -862,7 +877,7 @@ def predict_edge_face_coverage(
     if not thickness_mm > 0:
         raise PlanInputError(f"thickness_mm: must be positive, got {thickness_mm!r}")
     origins, dirs, zrep, _ = _laser_fans(segments, settings)
-    rays = o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32))
+    rays = _ray_tensor(origins, dirs)
     cos_max = np.cos(np.deg2rad(settings.max_incidence_deg))
     faces, owner = _edge_face_mesh(surface, thickness_mm, settings.coverage_cell_mm)
     n_top = design.triangles.shape[0]

@@ -198,7 +198,8 @@ def plan_scan(
                 1.0,
             ]
         )
-        modes = [(hold_position_mm(centre[:3], settings), 0.0)] + [(None, lead) for lead in TRACK_LEADS_MM]
+        follow: list[tuple[float | None, float]] = [(None, lead) for lead in TRACK_LEADS_MM]
+        modes = ([(hold_position_mm(centre[:3], settings), 0.0)] if settings.track_hold else []) + follow
     timings["passes_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()

@@ -39,6 +39,8 @@ class PlannerSettings:
     ``max_waypoint_joint_step_deg`` (a larger jump between neighbouring waypoints is a flip).
     Track: ``track`` (usable travel, speed and acceleration limits, frame in the world) or None
     for a fixed base; with one, configurations are ``axes_mm_deg`` (track mm, then six joints).
+    ``track_hold``: hold the carriage at one position when the arm reaches the whole plan from there
+    (False: the carriage always follows the passes).
     Coverage prediction: ``coverage_cell_mm``, ``coverage_profile_step_mm``, ``coverage_rays``,
     ``max_incidence_deg``.
     """
@@ -77,10 +79,11 @@ class PlannerSettings:
     coverage_rays: int = 21
     max_incidence_deg: float = 80.0
     track: LinearTrack | None = None
+    track_hold: bool = True
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            if f.name == "track":  # validated by LinearTrack itself
+            if f.name in ("track", "track_hold"):  # validated by LinearTrack itself / a bool
                 continue
             v = getattr(self, f.name)
             arr = np.asarray(v, dtype=np.float64) if f.name != "speed_mm_s" or v is not None else None
@@ -218,4 +221,5 @@ class PlannerSettings:
             link_clearance_mm=s.link_clearance_mm,
             approach_mm=s.approach_mm,
             track=None if r.track is None else r.track.linear_track(),
+            track_hold=True if r.track is None else r.track.hold,
         )

@@ -122,3 +122,19 @@ def test_acquisition_cloud_is_the_same_whatever_the_reserve(expected: int) -> No
     feed(acq, run)
     assert len(acq.cloud()) > 100
     assert acq.cloud().digest() == ref.cloud().digest()
+
+
+def test_batches_since_are_the_appended_batches() -> None:
+    rng = np.random.default_rng(6)
+    b = ScanBuilder(5)
+    batches = [_batch(rng, 4 * k, 4, 3) for k in range(6)]
+    for x in batches[:3]:
+        b.append(x)
+    first = b.batches_since(1)
+    for x in batches[3:]:
+        b.append(x)  # grows past the reserve: the views taken before stay as they were
+    got = b.batches_since(2)
+    assert len(first) == 2 and len(got) == 4
+    assert AssembledScan.concat(first).digest() == AssembledScan.concat(batches[1:3]).digest()
+    assert AssembledScan.concat(got).digest() == AssembledScan.concat(batches[2:]).digest()
+    assert b.batches_since(6) == []

@@ -1,59 +1,155 @@
 """The measurement end to end: a full-process job (sim, daemon, worker through Zenoh on loopback) on
-the simulated plate with its known forming error, its figures compared with ``sim-truth.json``.
+the simulated plate with its known forming error, its figures compared with ``sim-truth.json``; the
+worker that did it shares none of the daemon's files; and the job leaks no secret.
 
 Its own cell: the shared one of test_cell_e2e.py runs a plate without forming error (its half-turn
 case needs one that a half turn maps onto itself), against which a measurement proves nothing. One
-scan (about a minute of CI) serves both cases here.
+scan (about a minute of CI) serves every case here:
+
+* its only worker runs in a mount namespace of its own with the daemon's directory hidden (the
+  design comes by hash over Zenoh, the results go back over Zenoh), and the daemon renders HTML and
+  PDF from its own copy; the cases on the figures read the results the daemon stored, which is what
+  any worker's results become;
+* the cell runs with known, unique secret values (the RWS password from the environment, the Zenoh
+  password from a secrets file and the dictionary, access control on); afterwards every log line,
+  every file under the data directories (the daemon's and the worker's: job.json, report.json,
+  results, raw files, the renders), every error reply and every state, event and report
+  publication is searched for them. That case runs last: it stops the cell, so that every log is
+  complete.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
+import uuid
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
 
-from cellctl.api import Keys, TriggerAccepted, call
-from cellctl.api.session import close_session
-from cellctl.commands.demo_cmd import DEMO_DESIGN
-from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
-from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, wait_status
+from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+from cellctl.api.session import close_session, subscribe
+from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_html_report
+from cellctl.commands.scan_cmd import StatusFollower
+from cellctl.config import load_config
+from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, trigger_demo_plate, wait_status
+from tests.support.isolated import hidden_mounts_command, start_hidden
 from tests.support.truth_check import TruthDeviation
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
+RWS_SECRET = f"rws-{uuid.uuid4().hex}"
+ZENOH_SECRET = f"zen-{uuid.uuid4().hex}"
+
 
 @pytest.fixture(scope="module")
-def cell(tmp_path_factory):
+def worker_dir(tmp_path_factory) -> Path:
+    """The worker's own directory: its cell.toml and data directory, nothing of the daemon's."""
+    return tmp_path_factory.mktemp("worker")
+
+
+@pytest.fixture(scope="module")
+def secrets_env(tmp_path_factory) -> dict[str, str]:
+    """The cell's secrets: the RWS password in the environment, the Zenoh password and the
+    dictionary of user passwords in secrets files (mode 600 in a directory of mode 700)."""
+    secrets = tmp_path_factory.mktemp("secrets")
+    secrets.chmod(0o700)
+    pw_file = secrets / "zenoh.secret"
+    pw_file.write_text(ZENOH_SECRET + "\n")
+    pw_file.chmod(0o600)
+    dictionary = secrets / "zenoh-users.txt"
+    dictionary.write_text(f"cellctl:{ZENOH_SECRET}\n")
+    dictionary.chmod(0o600)
+    return {
+        "CELL_RWS_PASSWORD": RWS_SECRET,
+        "CELL_ZENOH__ACCESS__ENABLED": "true",
+        "CELL_ZENOH__ACCESS__PASSWORD_FILE": str(pw_file),
+        "CELL_ZENOH__ACCESS__DICTIONARY_FILE": str(dictionary),
+    }
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory, worker_dir: Path, secrets_env: dict[str, str]):
+    """The cell (sim, daemon rendering HTML and PDF, access control on) and its only worker, "far",
+    which sees none of the daemon's files."""
     out = tmp_path_factory.mktemp("measured")
-    c = Cell(out, tiny_cell_config(out))  # the default forming error: a dent, a bump, spring-back
-    c.start()
+    # the default forming error (a dent, a bump, spring-back); the arm starts at cell.toml's home,
+    # 1.6 m up: of the tiny cells, this one's first job makes the long approach to the plan's start
+    c = Cell(out, tiny_cell_config(out, parked=False))
+    c.procs.env.update(secrets_env)
+    c.procs.env["CELL_DAEMON__WRITE_HTML_REPORT"] = "true"
+    # the worker's own cell.toml, in its own directory: its data dir is relative to its cwd
+    wcfg = load_config(c.config_path).model_dump(mode="json")
+    wcfg["worker"]["data_dir"] = "own-data"
+    (worker_dir / "cell.toml").write_text(to_toml(wcfg), encoding="utf-8")
+    with pytest.MonkeyPatch.context() as mp:  # our own client's config, with the access settings
+        for k, v in secrets_env.items():
+            mp.setenv(k, v)
+        c.cfg = load_config(c.config_path)
+    assert c.cfg.zenoh.access.enabled
+    c.start(worker=False)
     try:
+        far = start_hidden(
+            "worker", [out], worker_dir, ["worker", "--config", "cell.toml", "--worker-id", "far"],
+            c.procs.env, worker_dir / "logs",
+        )  # fmt: skip
+        c.procs.procs.append(("far", far))  # stopped first, like a cell's own worker
         yield c
     finally:
-        codes = c.stop()
+        codes = c.stop()  # nothing left to stop when the secrets case ran (it stops the cell)
         assert all(code == 0 for code in codes.values()), (codes, (out / "logs").as_posix())
 
 
-@pytest.fixture(scope="module")
-def scanned(cell: Cell):
-    """One job on the plate: its id, final state and message."""
-    pl = cell.cfg.sim.placement
-    req = {"plate_id": "measured", "design": DEMO_DESIGN,
-           "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]}}  # fmt: skip
+class Scanned(NamedTuple):
+    """The module's one job: id, final state and message, the HTML report the daemon rendered after
+    it, and what its client saw: every publication and every reply."""
 
-    async def go():
+    job_id: str
+    state: str
+    message: str
+    html: str | None
+    published: list[bytes]
+    replies: list[str]
+
+
+@pytest.fixture(scope="module")
+def scanned(cell: Cell) -> Scanned:
+    """A trigger the daemon refuses (a design path reaching for the secrets file), then one job on
+    the plate, followed to its end and on to its HTML report (None if none within 300 s; waited for
+    here, so that the cell never stops in the middle of the render)."""
+    published: list[bytes] = []
+    replies: list[str] = []
+
+    async def go() -> Scanned:
         session = await open_client(cell.cfg)
         keys = Keys(cell.cfg.key_prefix)
         follower = StatusFollower(session, keys)
+        subs = [
+            subscribe(session, key, lambda s: published.append(s.payload.to_bytes()))
+            for key in (keys.state, keys.report("*"), keys.job_event("*"))
+        ]
         try:
-            await wait_status(follower, lambda s: s.state.value == "idle" and s.workers)
-            acc = await call(session, keys.trigger, json.dumps(req), TriggerAccepted)
-            state, message, _ = await wait_for_job(follower, acc.job_id, 240.0)
-            return acc.job_id, state, message
+            await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 180.0)
+            pl = cell.cfg.sim.placement
+            bad = {"plate_id": "measured", "design": "../zenoh.secret",
+                   "placement": {"pos_mm": list(pl.pos_mm), "rpy_deg": [0.0, 0.0, pl.angle_deg]}}  # fmt: skip
+            with pytest.raises(ApiCallError) as refused:
+                await call(session, keys.trigger, json.dumps(bad), TriggerAccepted)
+            replies.append(str(refused.value))
+            acc, (state, message, _report) = await trigger_demo_plate(cell.cfg, "measured")
+            replies.extend([acc.model_dump_json(), message])
+            html = None
+            if state == "done":
+                html = await asyncio.to_thread(
+                    wait_html_report, Path(cell.cfg.cell.data_dir), acc.job_id, 300.0
+                )
+            return Scanned(acc.job_id, state, message, html, published, replies)
         finally:
+            for s in subs:
+                s.undeclare()
             follower.close()
             await asyncio.to_thread(close_session, session)
 
@@ -81,7 +177,7 @@ def test_the_reported_deviations_are_the_forming_error_the_simulator_put_in(cell
     """The measurement end to end: per-line Zmax, the deviation along each line and the deviation
     field of the job's results equal what the simulated plate's known forming error gives
     (``sim-truth.json``) on the same lines, for the registration the analysis reported."""
-    job_id, state, message = scanned
+    job_id, state, message = scanned.job_id, scanned.state, scanned.message
     assert state == "done", message
     job_dir = cell.jobs_dir / job_id
     report = json.loads((job_dir / "report.json").read_text())
@@ -122,7 +218,7 @@ def test_the_reported_deviations_are_the_forming_error_the_simulator_put_in(cell
 def test_the_registered_design_lies_where_the_true_plate_lies(cell: Cell, scanned):
     """The registration against the truth: the design, registered onto the cloud, sits where the
     simulator put the plate (``T_base_plate`` in sim-truth.json)."""
-    job_id, state, message = scanned
+    job_id, state, message = scanned.job_id, scanned.state, scanned.message
     assert state == "done", message
     job_dir = cell.jobs_dir / job_id
     report = json.loads((job_dir / "report.json").read_text())
@@ -133,3 +229,63 @@ def test_the_registered_design_lies_where_the_true_plate_lies(cell: Cell, scanne
     moved = (truth.M @ corners.T)[:3] - corners.T[:3]
     assert np.hypot(moved[0], moved[1]).max() < REGISTRATION_INPLANE_TOL_MM, moved
     assert np.abs(moved[2]).max() < REGISTRATION_HEIGHT_TOL_MM, moved
+
+
+def test_a_worker_that_sees_none_of_the_daemons_files_completes_a_job_rendered_at_the_daemon(
+    cell: Cell, worker_dir: Path, scanned
+):
+    """The worker's namespace hides the daemon's directory: the design came by hash over Zenoh, the
+    results went back over Zenoh into the daemon's results directory, and the daemon rendered HTML
+    and PDF from its own copy."""
+    wdir = worker_dir
+    design = Path(cell.cfg.cell.designs_dir) / DEMO_DESIGN
+    # the premise: in the worker's namespace the design (and all of the daemon's data) is unreachable
+    probe = subprocess.run(hidden_mounts_command([cell.out], wdir, ["test", "-e", str(design)]), check=False)
+    assert design.exists() and probe.returncode == 1
+    job_id, state, message, html = scanned.job_id, scanned.state, scanned.message, scanned.html
+    assert state == "done", message
+    results = cell.jobs_dir / job_id / "results"
+    rec = cell.job_record(job_id)
+    assert rec["info"]["worker_id"] == "far"
+    # everything the job keeps came over Zenoh into the daemon's results directory
+    for name in ("report.json", "report.csv", "results.npz", "cloud.ply"):
+        assert (results / name).stat().st_size > 0, name
+    assert json.loads((results / "report.json").read_text())["job_id"] == job_id
+    assert rec["info"]["results_bytes"] >= sum(
+        (results / n).stat().st_size for n in ("results.npz", "cloud.ply")
+    )
+    assert html is not None and Path(html).stat().st_size > 0
+    assert (results / "report.pdf").stat().st_size > 0
+    # the worker cached the design by its hash in its own directory, and kept no results
+    cached = list((wdir / "own-data" / "designs").glob(f"*/{DEMO_DESIGN}"))
+    assert len(cached) == 1 and cached[0].read_bytes() == design.read_bytes()
+    assert not any((wdir / "own-data" / "jobs").iterdir())
+
+
+def _files_under(root: Path) -> list[Path]:
+    return [p for p in root.rglob("*") if p.is_file()]
+
+
+def test_the_job_leaks_neither_password_to_logs_files_replies_or_publications(
+    cell: Cell, worker_dir: Path, scanned: Scanned
+):
+    """Runs last: stops the cell (every process must end by itself on SIGTERM), then searches."""
+    codes = cell.stop()
+    assert codes and all(code == 0 for code in codes.values()), codes
+    assert scanned.state == "done", scanned.message
+    job_dir = cell.jobs_dir / scanned.job_id
+    assert (job_dir / "job.json").is_file() and (job_dir / "report.json").is_file()
+    searched = {
+        "logs": _files_under(cell.out / "logs"),
+        "data": _files_under(Path(cell.cfg.cell.data_dir)),
+        "worker": _files_under(worker_dir),
+    }
+    assert searched["logs"] and len(searched["data"]) >= 3 and searched["worker"]
+    assert scanned.published and scanned.replies
+    for secret in (RWS_SECRET, ZENOH_SECRET):
+        needle = secret.encode()
+        for where, files in searched.items():
+            leaked = [str(p) for p in files if needle in p.read_bytes()]
+            assert not leaked, f"{where}: {leaked}"
+        assert not [p for p in scanned.published if needle in p]
+        assert not [r for r in scanned.replies if secret in r]

@@ -35,10 +35,17 @@ def _track_config(out) -> object:
     path = tiny_cell_config(out, forming_error="none")
     cfg = load_config(path).model_dump(mode="json")
     cfg["robot"]["track"] = {
-        "travel_min_mm": 0.0, "travel_max_mm": 4000.0, "margin_mm": 10.0, "speed_max_mm_s": 500.0,
-        "accel_max_mm_s2": 1000.0, "jerk_max_mm_s3": 10000.0, "origin_mm": [0.0, 0.0, 0.0],
+        "travel_min_mm": 0.0,
+        "travel_max_mm": 4000.0,
+        "margin_mm": 10.0,
+        "speed_max_mm_s": 500.0,
+        "accel_max_mm_s2": 1000.0,
+        "jerk_max_mm_s3": 10000.0,
+        "origin_mm": [0.0, 0.0, 0.0],
         "direction": [0.0, 1.0, 0.0],
-    }  # fmt: skip
+        # the carriage follows the passes though one position would reach them (hold = false)
+        "hold": False,
+    }
     cfg["robot"]["egm_max_pos_deviation_deg"] = 5000.0  # covers the track's travel, in mm
     cfg["sim"]["egm_track_start_mm"] = TRACK_START_MM
     cfg["sim"]["placement"]["pos_mm"] = PLATE_POS_MM
@@ -74,6 +81,8 @@ def test_a_plate_beyond_reach_is_scanned_from_the_moving_track_and_analysed(tmp_
     assert q.shape[1] == 7
     assert q[:, 0].min() >= 10.0 - 1e-6 and q[:, 0].max() <= 3990.0 + 1e-6
     assert q[:, 0].max() - q[:, 0].min() > 100.0, "the track did not move during the scan"
+    # not only on the way to the start: the carriage follows the passes over the scan's last 3/4
+    assert np.ptp(q[len(q) // 4 :, 0]) > 100.0, "the track did not move while scanning"
     # the worker measured the plate where it lies in the world: the report passes its inspection
     stored = json.loads((job_dir / "report.json").read_text())
     assert stored["job_id"] == acc.job_id and report is not None

@@ -48,10 +48,14 @@ def test_worker_killed_mid_analysis_the_restarted_worker_completes_the_job_once(
                 await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 120.0)
                 acc = await call(session, keys.trigger, json.dumps(cell.trigger_request()), TriggerAccepted)
                 job_id = seen["job_id"] = acc.job_id
-                # the worker acknowledged the cloud: its analysis child is working on it
+                # the scan is over and the worker analyses the streamed cloud (it holds the job from
+                # the scan's start; tests/faults/test_stream_worker_kill.py kills it mid-stream)
                 await wait_until(
                     lambda: (
-                        [e for e in cell.log_events("worker", "job_started") if e.get("job_id") == job_id]
+                        (
+                            [e for e in cell.log_events("worker", "job_started") if e.get("job_id") == job_id]
+                            and cell.job_record(job_id)["state"] == "analysing"
+                        )
                         or cell.job_record(job_id)["state"] in FINAL
                     ),
                     240.0,

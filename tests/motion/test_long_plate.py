@@ -129,3 +129,33 @@ def test_the_6000_x_2000_plate_plans_on_the_long_plate_cell_within_the_sweep_rat
         plan.segments, design, surface, placement, settings, LONG_SPEC.thickness_mm
     )
     assert min(faces.per_edge) >= 0.99
+
+
+def test_the_edges_go_round_the_other_way_and_the_raster_passes_come_from_the_cache_unchanged():
+    mesh = design_mesh(plate_spec("sail"), pitch_mm=10.0)
+    surface = design_surface(mesh)
+    placement = Placement.on_bed(1500.0, 0.0, 3.0, z_mm=300.0)
+    settings = PlannerSettings()
+    cache: dict = {}
+    plain, _ = build_segments(surface, placement, settings)
+    cached, _ = build_segments(surface, placement, settings, raster_cache=cache)
+    again, _ = build_segments(surface, placement, settings, raster_cache=cache)
+    reverse, _ = build_segments(surface, placement, settings, raster_cache=cache, edge_reverse=True)
+    assert set(cache) == {1.0}
+    for a, b, c in zip(plain, cached, again, strict=True):
+        assert a.label == b.label == c.label
+        assert np.array_equal(a.pos_mm, b.pos_mm) and np.array_equal(a.pos_mm, c.pos_mm)
+        assert np.array_equal(a.R_base_sensor, c.R_base_sensor)
+    scans = [s for s in plain if s.kind == "scan"]
+    assert [s.label for s in reverse if s.kind == "scan"] == [s.label for s in scans]
+
+    def heading_turns(segments) -> float:
+        """How far the sensor's line turns about the vertical over the edge passes (deg, signed)."""
+        x = np.concatenate([s.R_base_sensor[:, :2, 0] for s in segments if s.kind == "edge"])
+        a = np.unwrap(np.arctan2(x[:, 1], x[:, 0]))
+        return float(np.rad2deg(a[-1] - a[0]))
+
+    # round the plate one way, then the other: the line's heading turns the other way
+    forward, backward = heading_turns(plain), heading_turns(reverse)
+    assert abs(forward) > 180.0 and abs(backward) > 180.0
+    assert np.sign(forward) != np.sign(backward)

@@ -62,3 +62,28 @@ def test_a_held_carriage_stays_put_on_every_waypoint_and_a_following_one_moves_a
     assert np.all(held[0] == 2800.0)
     following = track_positions([seg], s)
     np.testing.assert_allclose(following[0], pos[:, 1] + 3000.0)
+
+
+def test_track_hold_off_makes_the_carriage_follow_the_passes_even_within_reach():
+    """``[robot.track] hold = false``: the commissioning engineer's way to see the carriage scan."""
+    demo = design_mesh(plate_spec("sail", length_mm=600.0, width_mm=400.0), pitch_mm=10.0)
+    placement = Placement.on_bed(1500.0, 0.0, 0.0, z_mm=300.0)
+    held = plan_scan(demo, placement, PlannerSettings(track=TRACK), with_coverage=False)
+    followed = plan_scan(demo, placement, PlannerSettings(track=TRACK, track_hold=False), with_coverage=False)
+    assert held.choices["track"]["mode"] == "hold"
+    assert followed.choices["track"]["mode"] == "follow"
+    carriage = np.concatenate([s.q_deg[:, 0] for s in followed.segments if s.kind == "scan"])
+    assert float(np.ptp(carriage)) > 100.0  # the carriage moves from pass to pass across the plate
+    assert float(np.ptp(np.concatenate([s.q_deg[:, 0] for s in held.segments]))) == 0.0
+
+
+def test_track_hold_is_read_from_cell_toml():
+    from pathlib import Path
+
+    from cellctl.config import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[2] / "docs/examples/cell-track.toml")
+    assert PlannerSettings.from_config(cfg).track_hold is True
+    data = cfg.model_dump()
+    data["robot"]["track"]["hold"] = False
+    assert PlannerSettings.from_config(type(cfg).model_validate(data)).track_hold is False
