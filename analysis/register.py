@@ -669,7 +669,9 @@ def _ray_gaps(
     workers = _gap_workers()
     if workers < 2 or n < 2 * _PARALLEL_MIN_POINTS:
         return _ray_gaps_serial(surface, measured_points_mm, T_inv, u, newton_steps, geometry)
-    bounds = np.linspace(0, n, workers + 1).astype(int)
+    # blocks of at most _GAP_BLOCK_POINTS, two at a time: the per-point temporaries of a block (about
+    # 40 float64 columns) stay bounded whatever the cloud (a 6 m plate's 28 M points: ~9 GB at once)
+    bounds = np.linspace(0, n, max(workers, -(-n // _GAP_BLOCK_POINTS)) + 1).astype(int)
     parts = list(
         _gap_pool().map(
             lambda ab: _ray_gaps_serial(
@@ -687,6 +689,7 @@ def _ray_gaps(
 
 
 _PARALLEL_MIN_POINTS = 100_000
+_GAP_BLOCK_POINTS = 1_000_000
 _POOL: ThreadPoolExecutor | None = None
 
 

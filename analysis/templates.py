@@ -66,11 +66,16 @@ class DetectionLayout:
     ``*_offsets_mm`` (distances from the reference corner) replace count and spacing. ``templates``
     (a yard's template table) adds one named line per row after those (set the counts to 0 and
     ``diagonals`` off to keep only the table's).
+
+    A count of None is the paper's rule scaled to the plate (:func:`paper_line_count`): as many lines
+    as fit at the spacing with one spacing left at each end (14 at 80 mm and 7 at 100 mm on the
+    paper's 1200 x 800 mm plate, 74 and 19 on a 6000 x 2000 mm one); with a template table given,
+    None means the table's lines only in that family's place (no spaced lines).
     """
 
-    transverse_count: int = 14
+    transverse_count: int | None = 14
     transverse_spacing_mm: float = 80.0
-    longitudinal_count: int = 7
+    longitudinal_count: int | None = 7
     longitudinal_spacing_mm: float = 100.0
     diagonals: bool = True
     transverse_offsets_mm: tuple[float, ...] | None = None
@@ -169,9 +174,25 @@ def _table_line(c: np.ndarray, up: np.ndarray, row: TableTemplate, index: int) -
     return _make_line(family, index, a, q0 + s * (q1 - q0), up, row.distance_mm, row.name)
 
 
+#: a measured side this much (of a spacing) short of a whole number of spacings still counts them:
+#: the paper's 1200 mm side measured 1199.8 mm keeps its 14 lines at 80 mm
+_COUNT_SLACK = 0.05
+
+
+def paper_line_count(side_mm: float, spacing_mm: float) -> int:
+    """Lines at ``spacing_mm`` along a side of ``side_mm`` by the paper's rule: one spacing from each
+    end, then every spacing (the paper's 1200 x 800 mm plate: 14 at 80 mm, 7 at 100 mm; at least one,
+    at the middle, on a side shorter than two spacings)."""
+    if not (side_mm > 0 and spacing_mm > 0):
+        raise TemplateError(f"side {side_mm} mm and spacing {spacing_mm} mm must be positive")
+    return max(int(np.floor(side_mm / spacing_mm + _COUNT_SLACK)) - 1, 1)
+
+
 def _offsets(
-    count: int, spacing: float, explicit: tuple[float, ...] | None, length: float, name: str
+    count: int | None, spacing: float, explicit: tuple[float, ...] | None, length: float, name: str
 ) -> np.ndarray:
+    if explicit is None and count is None:
+        count = paper_line_count(length, spacing) if spacing > 0 else -1
     if explicit is not None:
         off = np.asarray(explicit, dtype=np.float64)
     else:
@@ -215,8 +236,10 @@ def detection_lines(
     wid_a = float(np.linalg.norm(h[3] - h[0]))
     wid_b = float(np.linalg.norm(h[2] - h[1]))
     lines: list[DetectionLine] = []
+    # a template table given: the None ("auto") counts leave the lines to the table
+    auto = 0 if layout.templates else None
     t_off = _offsets(
-        layout.transverse_count,
+        auto if layout.transverse_count is None else layout.transverse_count,
         layout.transverse_spacing_mm,
         layout.transverse_offsets_mm,
         min(len_a, len_b),
@@ -227,7 +250,7 @@ def detection_lines(
     for k, (a, b, off) in enumerate(zip(starts, ends, t_off, strict=True)):
         lines.append(_make_line("transverse", k + 1, a, b, up, off))
     l_off = _offsets(
-        layout.longitudinal_count,
+        auto if layout.longitudinal_count is None else layout.longitudinal_count,
         layout.longitudinal_spacing_mm,
         layout.longitudinal_offsets_mm,
         min(wid_a, wid_b),

@@ -1,5 +1,10 @@
 """The locate run: time and placement error over random placements of the 1200 x 800 sail plate.
 
+``--plate long``: a 6000 x 2000 mm plate (``--length-mm`` / ``--width-mm`` for another) on the long
+cell's bed (``docs/examples/cell-track.toml``),
+laid within ``--yaw-spread-deg`` (3) of the bed's long axis: a 6 m plate fits a long bed only along
+it. The JSON names the config, the plate and the spread.
+
 Mode ``optics`` (what this measures): the locate passes are the real ones of ``cell.toml``
 (:func:`cellctl.daemon.locate.locate_plans`: the planner's passes at the locate height over the
 ``[locate]`` bed), the sensor is the laser simulator's optics (``drivers.laser.sim.optics``:
@@ -44,15 +49,26 @@ from drivers.laser.sim.scene import SceneRaycaster
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _lay(rng: np.random.Generator, cfg, length_mm: float, width_mm: float) -> tuple[float, float, float]:
+def _lay(
+    rng: np.random.Generator, cfg, length_mm: float, width_mm: float, yaw_spread_deg: float | None = None
+) -> tuple[float, float, float]:
+    """A random lay wholly on the bed: any yaw within 90 deg of the convention, or within
+    ``yaw_spread_deg`` of the bed's long axis (a 6 m plate fits a long bed only along it)."""
     lo, hi = np.asarray(cfg.locate.bed_min_xy_mm), np.asarray(cfg.locate.bed_max_xy_mm)
-    while True:
-        yaw = float(rng.uniform(-89.9, 89.9)) + cfg.locate.convention_yaw_deg
+    axis_deg = 0.0 if (hi - lo)[0] >= (hi - lo)[1] else 90.0
+    for _ in range(100_000):
+        if yaw_spread_deg is None:
+            yaw = float(rng.uniform(-89.9, 89.9)) + cfg.locate.convention_yaw_deg
+        else:
+            yaw = axis_deg + float(rng.uniform(-yaw_spread_deg, yaw_spread_deg))
+            # the same outline half a turn round, within 90 deg of the convention (as the daemon reads it)
+            yaw = cfg.locate.convention_yaw_deg + (yaw - cfg.locate.convention_yaw_deg + 90.0) % 180.0 - 90.0
         a = np.deg2rad(yaw)
         hx = abs(np.cos(a)) * length_mm / 2 + abs(np.sin(a)) * width_mm / 2
         hy = abs(np.sin(a)) * length_mm / 2 + abs(np.cos(a)) * width_mm / 2
         if 2 * hx < hi[0] - lo[0] and 2 * hy < hi[1] - lo[1]:
             return float(rng.uniform(lo[0] + hx, hi[0] - hx)), float(rng.uniform(lo[1] + hy, hi[1] - hy)), yaw
+    raise SystemExit(f"a {length_mm:g} x {width_mm:g} mm plate does not fit the [locate] bed {lo} .. {hi}")
 
 
 def _render(plan, speed_mm_s: float, rate_hz: float, rc, optics, rng) -> ScanCloud:
@@ -88,10 +104,30 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--placements", type=int, default=20)
     ap.add_argument("--seed", type=int, default=20)
-    ap.add_argument("--config", default=str(REPO / "cell.toml"))
+    ap.add_argument("--config", default=None, help="default cell.toml; --plate long: the long cell's example")
+    ap.add_argument("--plate", choices=["sail", "long"], default="sail",
+                    help="long: a 6000 x 2000 mm plate (--length-mm/--width-mm) on the long cell's bed")  # fmt: skip
+    ap.add_argument("--length-mm", type=float, default=None)
+    ap.add_argument("--width-mm", type=float, default=None)
+    ap.add_argument("--yaw-spread-deg", type=float, default=None,
+                    help="lays within this of the bed's long axis (default: any yaw; --plate long: 3)")  # fmt: skip
     args = ap.parse_args(argv)
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
+    long_plate = args.plate == "long"
+    if args.config is None:
+        long_cell = REPO / "docs" / "examples" / "cell-track.toml"
+        fallback = REPO / "examples" / "cell-track-6000x1200.toml"
+        args.config = (
+            str(REPO / "cell.toml") if not long_plate else str(long_cell if long_cell.exists() else fallback)
+        )
     cfg = load_config(args.config)
+    if long_plate or args.length_mm or args.width_mm:
+        plate = cfg.sim.plate.model_copy(
+            update={"length_mm": args.length_mm or (6000.0 if long_plate else cfg.sim.plate.length_mm),
+                    "width_mm": args.width_mm or (2000.0 if long_plate else cfg.sim.plate.width_mm)}
+        )  # fmt: skip
+        cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"plate": plate})})
+    spread = args.yaw_spread_deg if args.yaw_spread_deg is not None else (3.0 if long_plate else None)
     sp = cfg.sim.plate
     spec = plate_spec(sp.kind, length_mm=sp.length_mm, width_mm=sp.width_mm, thickness_mm=sp.thickness_mm,
                       radius_x_mm=sp.radius_x_mm, radius_y_mm=sp.radius_y_mm)  # fmt: skip
@@ -110,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     rows = []
     for _ in range(args.placements):
-        x, y, yaw = _lay(rng, cfg, sp.length_mm, sp.width_mm)
+        x, y, yaw = _lay(rng, cfg, sp.length_mm, sp.width_mm, spread)
         truth_pl = Placement.on_bed(x, y, yaw, z_mm=cfg.sim.placement.pos_mm[2])
         truth = plate_truth(sp.kind, pos_mm=(x, y, truth_pl.z_mm), angle_deg=yaw, forming_error=True,
                             length_mm=sp.length_mm, width_mm=sp.width_mm, thickness_mm=sp.thickness_mm,
@@ -152,6 +188,9 @@ def main(argv: list[str] | None = None) -> int:
         "mode_note": "real locate passes of cell.toml, laser simulator optics over the simulated scene; "
         "no robot tracking or clock error (the e2e test has those)",
         "plate": f"{sp.kind} {sp.length_mm:g} x {sp.width_mm:g} mm",
+        "config": args.config,
+        "yaw_spread_deg": spread,
+        "track": cfg.robot.track is not None,
         "bed_mm": [cfg.locate.bed_min_xy_mm, cfg.locate.bed_max_xy_mm],
         "pass_spacing_mm": cfg.locate.pass_spacing_mm,
         "passes": [lp.plan.summary()["passes"] for lp in plans],

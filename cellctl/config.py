@@ -342,6 +342,10 @@ class ScanSection(Section):
     # their own, usually finer, pitch.
     publish_pitch_mm: NonNegativeFloat = 0.5
     edge_publish_pitch_mm: NonNegativeFloat = 0.5
+    # At most this many points published (0: no bound): a larger scan is thinned further by a whole
+    # factor (cellctl.acquisition.publish.budget_steps) so the worker's memory and time stay as
+    # measured for that many points (docs/operations.md: a 6 m plate). The raw files keep every point.
+    publish_max_points: Annotated[int, Field(ge=0)] = 40_000_000
 
 
 ZenohRole = Literal["operator", "worker", "viewer", "daemon"]
@@ -438,9 +442,12 @@ class TolerancesSection(Section):
 
 
 class AnalysisSection(Section):
-    transverse_count: Annotated[int, Field(ge=0, le=500)] = 14
+    # "auto": the paper's spacing rule over the whole plate (analysis.templates.paper_line_count: 14 and 7
+    # on the paper's 1200 x 800 mm plate, 74 and 19 on a 6000 x 2000 mm one); with a template table
+    # given, "auto" leaves the lines to the table
+    transverse_count: Annotated[int, Field(ge=0, le=500)] | Literal["auto"] = "auto"
     transverse_spacing_mm: PositiveFloat = 80.0
-    longitudinal_count: Annotated[int, Field(ge=0, le=500)] = 7
+    longitudinal_count: Annotated[int, Field(ge=0, le=500)] | Literal["auto"] = "auto"
     longitudinal_spacing_mm: PositiveFloat = 100.0
     diagonals: bool = True
     sample_step_mm: PositiveFloat = 1.0

@@ -9,7 +9,7 @@ as NaN with ``valid`` False. All work is per batch on whole arrays.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,11 +23,24 @@ log = structlog.get_logger(__name__)
 #: |coordinate| beyond this (mm, base frame) is not a measurement: 100 m, far beyond any rail cell
 MAX_ABS_MM = 1.0e5
 
+#: storage dtypes of :meth:`AssembledScan.cloud_arrays` unless asked otherwise
+CLOUD_DTYPES: dict[str, type] = {
+    "xyz_mm": np.float32,
+    "pass_id": np.int32,
+    "profile_index": np.int64,
+    "point_index": np.int32,
+    "t_s": np.float64,
+}
+#: rows per block when the cloud's arrays are filled (x 500 points: 8 M points' temporaries at most)
+_BLOCK_ROWS = 16384
+
 __all__ = [
+    "CLOUD_DTYPES",
     "AssembledBatch",
     "AssembledScan",
     "AssemblyError",
     "PassSchedule",
+    "ScanBuilder",
     "assemble_batch",
 ]
 
@@ -238,21 +251,93 @@ class AssembledScan:
             "t_ns": self.t_ns[r],
         }
 
-    def cloud_arrays(self, column_step: int | np.ndarray = 1, t0_ns: int | None = None) -> dict[str, np.ndarray]:
+    def _column_step(self, column_step: int | np.ndarray) -> np.ndarray:
+        n = len(self)
+        step = np.asarray(column_step, dtype=np.int64)
+        if step.ndim == 1 and step.shape == (n,) and n and step.min() == step.max():
+            step = step[0]  # one step for every profile: strided views, 5x cheaper
+        if step.ndim == 1 and step.shape != (n,):
+            raise AssemblyError(f"column_step must be an int or ({n},), got {step.shape}")
+        if step.size and int(step.min()) < 1:
+            raise AssemblyError(f"column_step must be >= 1, got {int(step.min())}")
+        return step
+
+    def _kept(self, lo: int, step: np.ndarray) -> np.ndarray:
+        """Valid and kept points of rows ``lo`` .. ``lo + _BLOCK_ROWS``: (rows, kept columns) bool."""
+        v = self.valid[lo : lo + _BLOCK_ROWS]
+        if step.ndim == 0:
+            k = int(step)
+            return v[:, ::k] if k > 1 else v
+        w = v.shape[1]
+        s = step[lo : lo + _BLOCK_ROWS]
+        return v & (np.arange(w, dtype=np.int32)[None, :] % s[:, None].astype(np.int32) == 0)
+
+    def _block(self, lo: int, step: np.ndarray, t0: int) -> dict[str, np.ndarray]:
+        """The cloud arrays (default dtypes) of rows ``lo`` .. ``lo + _BLOCK_ROWS``."""
+        r, col = np.nonzero(self._kept(lo, step))
+        if step.ndim == 0:
+            point, col = col, col * int(step)
+        else:
+            point = col // step[lo : lo + _BLOCK_ROWS][r]
+        rows = r + lo
+        return {
+            "xyz_mm": self.xyz_mm[rows, col],
+            "pass_id": np.maximum(self.pass_id[rows], 0),
+            "profile_index": self.profile_index[rows],
+            "point_index": point.astype(np.int32),
+            "t_s": (self.t_ns[rows] - t0) * 1e-9,
+        }
+
+    def _check_fits(self, dt: dict[str, np.dtype | type]) -> None:
+        n, w = len(self), self.valid.shape[1] if self.valid.ndim == 2 else 0
+        for name, top in (("pass_id", int(self.pass_id.max()) if n else 0), ("point_index", max(w - 1, 0)),
+                          ("profile_index", int(self.profile_index.max()) if n else 0)):  # fmt: skip
+            kind = np.dtype(dt[name])
+            if kind.kind in "iu" and top > np.iinfo(kind).max:
+                raise AssemblyError(f"{name} {top} does not fit the cloud's {kind}")
+
+    def cloud_blocks(self, column_step: int | np.ndarray = 1) -> Iterator[dict[str, np.ndarray]]:
+        """:meth:`cloud_arrays` block of rows by block of rows (times from the scan's first profile):
+        what a file writer streams, a block's points in memory at a time."""
+        step = self._column_step(column_step)
+        t0 = int(self.t_ns.min()) if len(self) else 0
+        for lo in range(0, len(self), _BLOCK_ROWS):
+            yield self._block(lo, step, t0)
+
+    def cloud_arrays(
+        self,
+        column_step: int | np.ndarray = 1,
+        t0_ns: int | None = None,
+        dtypes: dict[str, np.dtype | type] | None = None,
+    ) -> dict[str, np.ndarray]:
         """The valid points (thinned as in :meth:`points`) in the cloud vocabulary of
         :mod:`analysis.cloud_io`: ``xyz_mm`` float32, ``pass_id`` with transit filed under pass 0,
         ``profile_index``, ``point_index``, ``t_s`` (s from ``t0_ns``, by default this scan's first
-        profile; a part of a scan gives its scan's). No copy beyond the selection: the caller picks
-        its storage dtypes."""
-        pts = self.points(column_step)
+        profile; a part of a scan gives its scan's).
+
+        dtypes: the storage dtype of each array (default :data:`CLOUD_DTYPES`; the publication asks for
+        the wire's u16/u32): the arrays are filled block of rows by block of rows at those dtypes, so a
+        whole scan (a 6 m plate: 33 M published points of 170 M) costs its output and one block's
+        temporaries, not int64 indices and times for every point. A value beyond the dtype's range
+        raises :class:`AssemblyError`."""
+        dt = {**CLOUD_DTYPES, **(dtypes or {})}
+        step = self._column_step(column_step)
+        self._check_fits(dt)
         t0 = t0_ns if t0_ns is not None else int(self.t_ns.min()) if len(self) else 0
-        return {
-            "xyz_mm": pts["xyz_mm"],
-            "pass_id": np.maximum(pts["pass_id"], 0),
-            "profile_index": pts["profile_index"],
-            "point_index": pts["point_index"],
-            "t_s": (pts["t_ns"] - t0) * 1e-9,
+        blocks = range(0, len(self), _BLOCK_ROWS)
+        counts = [int(np.count_nonzero(self._kept(lo, step))) for lo in blocks]
+        total = sum(counts)
+        out = {
+            "xyz_mm": np.empty((total, 3), dt["xyz_mm"]),
+            **{f: np.empty(total, dt[f]) for f in ("pass_id", "profile_index", "point_index", "t_s")},
         }
+        at = 0
+        for lo, c in zip(blocks, counts, strict=True):
+            if c:
+                for f, a in self._block(lo, step, t0).items():
+                    out[f][at : at + c] = a
+                at += c
+        return out
 
     def scan_cloud(self, column_step: int | np.ndarray = 1) -> ScanCloud:
         """:meth:`cloud_arrays` as the analysis' :class:`~analysis.cloud_io.ScanCloud`."""
@@ -267,3 +352,69 @@ class AssembledScan:
             h.update(str(a.shape).encode())
             h.update(a.tobytes())
         return h.hexdigest()
+
+
+class ScanBuilder:
+    """The whole scan's rows, appended batch by batch into one set of arrays (no list of batches to
+    concatenate at the end: :meth:`scan` is a view, the scan's points exist once in memory).
+
+    A 6000 x 2000 mm plate is about 340 000 profiles of 500 points: 2.2 GB of ``xyz_mm`` + ``valid``.
+    Kept as batches and concatenated, the scan needed twice that at its end; here the arrays are
+    sized from ``expected_profiles`` (the plan's profile count) and grown by half again when a scan
+    runs longer (numpy's untouched pages cost no memory, so an estimate on the high side is free).
+
+    Args:
+        expected_profiles: rows to reserve (0: start small and grow).
+    """
+
+    _FIELDS = AssembledScan.__slots__
+
+    def __init__(self, expected_profiles: int = 0) -> None:
+        self._reserve = max(int(expected_profiles), 0)
+        self._arrays: dict[str, np.ndarray] | None = None
+        self.n = 0
+        self._ends: list[int] = []  # the row after each appended batch
+
+    def _allocate(self, like: AssembledBatch, rows: int) -> dict[str, np.ndarray]:
+        return {
+            f: np.empty((rows, *getattr(like, f).shape[1:]), getattr(like, f).dtype) for f in self._FIELDS
+        }
+
+    def append(self, batch: AssembledBatch) -> None:
+        """Append one batch's rows (their width must be the scan's)."""
+        k = len(batch.t_ns)
+        if self._arrays is None:
+            self._arrays = self._allocate(batch, max(self._reserve, k, 256))
+        a = self._arrays
+        if batch.xyz_mm.shape[1:] != a["xyz_mm"].shape[1:]:
+            raise AssemblyError(
+                f"batch of {batch.xyz_mm.shape[1]} points per profile in a scan of {a['xyz_mm'].shape[1]}"
+            )
+        cap = len(a["t_ns"])
+        if self.n + k > cap:
+            grown = self._allocate(batch, max(self.n + k, cap + cap // 2))
+            for f in self._FIELDS:
+                grown[f][: self.n] = a[f][: self.n]
+            self._arrays = a = grown
+        for f in self._FIELDS:
+            a[f][self.n : self.n + k] = getattr(batch, f)
+        self.n += k
+        self._ends.append(self.n)
+
+    def batches_since(self, k: int) -> list[AssembledBatch]:
+        """The batches appended after the first ``k``, in order, as views of the rows (no copy)."""
+        if self._arrays is None:
+            return []
+        a = self._arrays
+        starts = [0, *self._ends[:-1]]
+        return [
+            AssembledBatch(*(a[f][lo:hi] for f in self._FIELDS))
+            for lo, hi in zip(starts[k:], self._ends[k:], strict=True)
+        ]
+
+    def scan(self, width: int = 0) -> AssembledScan:
+        """The rows so far as an :class:`AssembledScan` of views (no copy; an empty scan of ``width``
+        points per profile before the first batch)."""
+        if self._arrays is None:
+            return AssembledScan.concat([], width)
+        return AssembledScan(*(self._arrays[f][: self.n] for f in self._FIELDS))

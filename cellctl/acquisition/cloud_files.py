@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.cloud_io import write_cloud_ply
 from cellctl.acquisition.assembly import AssembledScan
 
 __all__ = ["LAS_SCALE_MM", "CloudFileError", "read_las", "write_las", "write_ply"]
@@ -37,9 +36,44 @@ class CloudFileError(ValueError):
     """A cloud file cannot be written or read (names the file and the field)."""
 
 
+#: the organised-PLY vertex of :func:`analysis.cloud_io.write_cloud_ply`, as :func:`write_ply` streams it
+_PLY_VERTEX = np.dtype(
+    [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("pass", "<i4"),
+        ("profile", "<i4"),
+        ("point", "<i4"),
+        ("t_s", "<f8"),
+    ]
+)
+_PLY_COMMENT = "cellctl scan cloud: robot base frame, mm"
+
+
 def write_ply(scan: AssembledScan, path: str | Path) -> Path:
-    """Write the valid points of ``scan`` as binary PLY; returns the path."""
-    return write_cloud_ply(scan.scan_cloud(), path, comment="cellctl scan cloud: robot base frame, mm")
+    """Write the valid points of ``scan`` as binary PLY (the layout of
+    :func:`analysis.cloud_io.write_cloud_ply`, byte for byte); returns the path.
+
+    Written block of rows by block of rows (:meth:`AssembledScan.cloud_blocks`): a 6 m plate's
+    170 M points need a block's records in memory, not 7 GB of float64 copies."""
+    path = Path(path)
+    if len(scan) and int(scan.profile_index.max()) > np.iinfo(np.int32).max:
+        raise CloudFileError(f"{path}: profile index {int(scan.profile_index.max())} does not fit int32")
+    props = "".join(
+        f"property {'float' if n in 'xyz' else 'double' if n == 't_s' else 'int'} {n}\n"
+        for n in _PLY_VERTEX.names
+    )
+    head = f"ply\nformat binary_little_endian 1.0\ncomment {_PLY_COMMENT}\nelement vertex {scan.n_valid}\n"
+    with path.open("wb") as f:
+        f.write((head + props + "end_header\n").encode("ascii"))
+        for b in scan.cloud_blocks():
+            rec = np.empty(len(b["t_s"]), _PLY_VERTEX)
+            rec["x"], rec["y"], rec["z"] = b["xyz_mm"].T
+            rec["pass"], rec["profile"], rec["point"] = b["pass_id"], b["profile_index"], b["point_index"]
+            rec["t_s"] = b["t_s"]
+            f.write(rec.tobytes())
+    return path
 
 
 _LAS_POINT = np.dtype(
@@ -78,25 +112,26 @@ def _extra_bytes_vlr() -> bytes:
 
 
 def write_las(cloud: AssembledScan, path: str | Path) -> Path:
-    """Write the valid points of ``cloud`` as LAS 1.4, point format 6 + extra bytes; returns the path."""
+    """Write the valid points of ``cloud`` as LAS 1.4, point format 6 + extra bytes; returns the path.
+
+    Two passes over blocks of rows (:meth:`AssembledScan.cloud_blocks`): the extent for the header,
+    then the records; a block's points in memory at a time (a 6 m plate: 170 M points)."""
     path = Path(path)
-    pts = cloud.cloud_arrays()
-    xyz = pts["xyz_mm"].astype(np.float64)
-    n = len(xyz)
-    lo = np.floor(xyz.min(axis=0)) if n else np.zeros(3)
-    hi = xyz.max(axis=0) if n else np.zeros(3)
-    scaled = np.rint((xyz - lo) / LAS_SCALE_MM)
-    if n and scaled.max() > np.iinfo(np.int32).max:
+    n = cloud.n_valid
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    pass_max = 0
+    for b in cloud.cloud_blocks():
+        if len(b["t_s"]):
+            lo = np.minimum(lo, b["xyz_mm"].min(axis=0).astype(np.float64))
+            hi = np.maximum(hi, b["xyz_mm"].max(axis=0).astype(np.float64))
+            pass_max = max(pass_max, int(b["pass_id"].max()))
+    lo = np.floor(lo) if n else np.zeros(3)
+    hi = hi if n else np.zeros(3)
+    if n and np.rint((hi - lo) / LAS_SCALE_MM).max() > np.iinfo(np.int32).max:
         raise CloudFileError(f"{path}: cloud extent {hi - lo} mm does not fit int32 at {LAS_SCALE_MM} mm")
-    if n and pts["pass_id"].max() >= 65535:
-        raise CloudFileError(f"{path}: pass id {pts['pass_id'].max()} does not fit point_source_id")
-    rec = np.zeros(n, dtype=_LAS_POINT)
-    rec["X"], rec["Y"], rec["Z"] = scaled.astype(np.int32).T
-    rec["returns"] = 0x11  # return 1 of 1
-    rec["point_source_id"] = (pts["pass_id"] + 1).astype(np.uint16)
-    rec["gps_time"] = pts["t_s"]
-    rec["profile"] = pts["profile_index"].astype(np.uint32)
-    rec["point"] = pts["point_index"].astype(np.uint16)
+    if n and pass_max >= 65535:
+        raise CloudFileError(f"{path}: pass id {pass_max} does not fit point_source_id")
     vlr = _extra_bytes_vlr()
     today = _dt.date.today()
     by_return = [n] + [0] * 14
@@ -143,7 +178,16 @@ def write_las(cloud: AssembledScan, path: str | Path) -> Path:
     with open(path, "wb") as f:
         f.write(header)
         f.write(vlr)
-        f.write(rec.tobytes())
+        for b in cloud.cloud_blocks():
+            rec = np.zeros(len(b["t_s"]), dtype=_LAS_POINT)
+            scaled = np.rint((b["xyz_mm"].astype(np.float64) - lo) / LAS_SCALE_MM).astype(np.int32)
+            rec["X"], rec["Y"], rec["Z"] = scaled.T
+            rec["returns"] = 0x11  # return 1 of 1
+            rec["point_source_id"] = (b["pass_id"] + 1).astype(np.uint16)
+            rec["gps_time"] = b["t_s"]
+            rec["profile"] = b["profile_index"].astype(np.uint32)
+            rec["point"] = b["point_index"].astype(np.uint16)
+            f.write(rec.tobytes())
     return path
 
 

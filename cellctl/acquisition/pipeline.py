@@ -20,7 +20,13 @@ from typing import Any, Literal
 import numpy as np
 import structlog
 
-from cellctl.acquisition.assembly import AssembledBatch, AssembledScan, PassSchedule, assemble_batch
+from cellctl.acquisition.assembly import (
+    AssembledBatch,
+    AssembledScan,
+    PassSchedule,
+    ScanBuilder,
+    assemble_batch,
+)
 from cellctl.acquisition.clock_sync import (
     ClockFit,
     ClockSync,
@@ -202,8 +208,10 @@ class Acquisition:
     Args:
         settings: hand-eye, latency, clock choices (stored in ``job.json`` by the writer's owner).
         writer: the job's raw writer, or None (replay, tests).
-        keep_batches: keep assembled batches in memory for :meth:`cloud` (False for long soak runs
+        keep_batches: keep the assembled rows in memory for :meth:`cloud` (False for long soak runs
             where only the raw files and a consumer of :meth:`feed_profiles`' return value matter).
+        expected_profiles: profiles the scan is expected to have (the plan's duration x the sensor
+            rate): the whole-scan arrays are reserved once at that size (:class:`ScanBuilder`).
         fixed_fits: ``{"sensor": ClockFit, "robot": ClockFit, "frames": line}`` to use instead of the
             online fits (the final assembly after a scan, with fits over the whole scan; see
             :mod:`.reassemble`); ``frames`` is a :meth:`FrameTimeline.line` for the ms counter.
@@ -218,6 +226,7 @@ class Acquisition:
         keep_batches: bool = True,
         fixed_fits: dict | None = None,
         clocks_only: bool = False,
+        expected_profiles: int = 0,
     ) -> None:
         self.settings = settings
         self.fixed_fits = dict(fixed_fits or {})
@@ -240,7 +249,7 @@ class Acquisition:
         self._unwrap = CounterUnwrapper()
         frames_line = self.fixed_fits.get("frames")
         self._timeline = FrameTimeline(line=frames_line) if frames_line is not None else FrameTimeline()
-        self._batches: list[AssembledBatch] = []
+        self._rows = ScanBuilder(expected_profiles)
         self._next_profile = 0
         self._width = 0
 
@@ -332,13 +341,14 @@ class Acquisition:
     # ---- results --------------------------------------------------------------------------------
 
     def cloud(self) -> AssembledScan:
-        """Everything assembled so far as one organised cloud."""
-        return AssembledScan.concat(self._batches, self._width)
+        """Everything assembled so far as one organised cloud (views of the acquisition's arrays: later
+        batches do not change it, they may reallocate the arrays behind it)."""
+        return self._rows.scan(self._width)
 
     def batches_since(self, k: int) -> list[AssembledBatch]:
         """The batches assembled after the first ``k`` (in order; with ``keep_batches``): a consumer
         that follows the scan while it runs (the cloud streamed pass by pass)."""
-        return self._batches[k:]
+        return self._rows.batches_since(k)
 
     def quality(self) -> dict[str, Any]:
         """Clock fit reports and counters (for the job record and logs)."""
@@ -422,7 +432,7 @@ class Acquisition:
         if ab.valid is not batch.valid:  # (the same array when every profile had a pose)
             self.stats.profiles_without_pose += int((~ab.valid.any(axis=1) & batch.valid.any(axis=1)).sum())
         if self.keep_batches:
-            self._batches.append(ab)
+            self._rows.append(ab)
         return ab
 
 

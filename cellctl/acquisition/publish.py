@@ -17,11 +17,23 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import structlog
 
 from cellctl.acquisition.assembly import AssembledScan, AssemblyError
 from cellctl.api.cloud_codec import Cloud, encode_cloud
 
-__all__ = ["PublishSettings", "column_steps", "encode_scan", "pass_end_cut", "publication_cloud"]
+__all__ = [
+    "PublishSettings",
+    "budget_steps",
+    "column_steps",
+    "encode_scan",
+    "pass_end_cut",
+    "publication_cloud",
+]
+
+log = structlog.get_logger(__name__)
+
+_WIRE_DTYPES = {"pass_id": np.uint16, "profile_index": np.uint32, "point_index": np.uint16}
 
 
 @dataclass(frozen=True)
@@ -71,6 +83,24 @@ def column_steps(pass_id: np.ndarray, first_edge_pass: int | None, settings: Pub
     return np.where(pid >= first_edge_pass, edge, raster).astype(np.int64)
 
 
+def budget_steps(steps: np.ndarray, valid_per_profile: np.ndarray, max_points: int) -> np.ndarray:
+    """``steps`` (per profile) raised by one whole factor when the points they keep would exceed
+    ``max_points`` (``[scan] publish_max_points``; 0: no budget), so the analysis of any plate stays
+    within the memory and time measured for that many points (docs/operations.md, a 6 m plate). The
+    ratio of the edge to the raster pitch is kept; the raw files keep every point whatever this says.
+
+    valid_per_profile: (n,) valid points of each profile at full density."""
+    steps = np.asarray(steps, dtype=np.int64)
+    if max_points <= 0 or not steps.size:
+        return steps
+    kept = float(np.sum(np.asarray(valid_per_profile, dtype=np.float64) / steps))
+    if kept <= max_points:
+        return steps
+    factor = int(np.ceil(kept / max_points))
+    log.info("publication_thinned_to_budget", points=round(kept), max_points=max_points, factor=factor)
+    return steps * factor
+
+
 def publication_cloud(
     scan: AssembledScan,
     *,
@@ -84,7 +114,8 @@ def publication_cloud(
     (see :meth:`AssembledScan.points`), in the cloud vocabulary (:meth:`AssembledScan.cloud_arrays`:
     transit under pass 0, exposure times in s from the first profile, or from ``t0_ns`` for a part
     of a scan) at the codec's dtypes."""
-    pts = scan.cloud_arrays(column_step, t0_ns)
+    # filled at the wire's dtypes block by block: no whole-scan int64 temporaries (a 6 m plate's 33 M points)
+    pts = scan.cloud_arrays(column_step, t0_ns, dtypes=_WIRE_DTYPES)
     for name in ("pass_id", "point_index"):
         if pts[name].size and int(pts[name].max()) > 65535:
             raise AssemblyError(f"{name} {int(pts[name].max())} does not fit the cloud's u16")
@@ -92,9 +123,9 @@ def publication_cloud(
         xyz_mm=pts["xyz_mm"],
         job_id=job_id,
         plate_id=plate_id,
-        pass_id=pts["pass_id"].astype(np.uint16),
-        profile_index=pts["profile_index"].astype(np.uint32),
-        point_index=pts["point_index"].astype(np.uint16),
+        pass_id=pts["pass_id"].astype(np.uint16, copy=False),
+        profile_index=pts["profile_index"].astype(np.uint32, copy=False),
+        point_index=pts["point_index"].astype(np.uint16, copy=False),
         t_s=pts["t_s"],
         meta=dict(meta or {}),
     )

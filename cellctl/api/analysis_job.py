@@ -31,9 +31,9 @@ def inspection_settings(
     tol = section.tolerances
     return InspectionSettings(
         layout=DetectionLayout(
-            transverse_count=section.transverse_count,
+            transverse_count=None if section.transverse_count == "auto" else section.transverse_count,
             transverse_spacing_mm=section.transverse_spacing_mm,
-            longitudinal_count=section.longitudinal_count,
+            longitudinal_count=None if section.longitudinal_count == "auto" else section.longitudinal_count,
             longitudinal_spacing_mm=section.longitudinal_spacing_mm,
             diagonals=section.diagonals,
             templates=tuple(t if isinstance(t, TableTemplate) else TableTemplate(**t) for t in templates),

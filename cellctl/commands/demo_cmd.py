@@ -207,10 +207,11 @@ def wait_html_report(data_dir: Path, job_id: str, timeout_s: float = 120.0) -> s
 
 
 async def drive_scan(
-    cfg_dict: dict[str, Any], cfg: Any, procs: Processes, timeout_s: float
+    cfg_dict: dict[str, Any], cfg: Any, procs: Processes, timeout_s: float, *, placement: bool = True
 ) -> tuple[str, dict | None, str]:
     """Wait for the daemon and a worker, trigger the scan of the simulated plate, wait for its report.
 
+    placement: send the simulated plate's true placement (False: none, the cell locates the plate).
     Returns ``(job_id, report or None, the report's path)``; raises DemoError on any failure.
     """
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
@@ -244,7 +245,7 @@ async def drive_scan(
         req = {
             "plate_id": "demo-sail" if cfg.sim.plate.length_mm < 1200 else "sail-1200x800",
             "design": DEMO_DESIGN,
-            "placement": pl.to_placement().model_dump(),
+            "placement": pl.to_placement().model_dump() if placement else None,
             "note": "cellctl demo",
         }
         try:

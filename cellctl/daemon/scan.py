@@ -345,7 +345,9 @@ class ScanRunner:
                     "phase": phase,
                 },
             )
-            acq = Acquisition(acq_settings, writer, keep_batches=True)
+            # the whole scan's arrays reserved once at the plan's profile count (a 6 m plate: 340 000)
+            expected = (plan.scan_time_s + cfg.daemon.settle_s + 10.0) * cfg.laser.rate_hz * 1.1
+            acq = Acquisition(acq_settings, writer, keep_batches=True, expected_profiles=round(expected))
             if phase == "scan":
                 # the analysis follows the scan: each pass's points go out once the pass is on disk
                 stream = await host.cloud_stream(job)

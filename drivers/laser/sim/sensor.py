@@ -903,7 +903,11 @@ def _worker_init(
 ) -> None:
     """Build the renderer's scene and noise source (in the worker process, or in ``state``)."""
     state = _WORKER_STATE if state is None else state
-    state["raycaster"] = SceneRaycaster(Scene(vertices_mm, triangles))
+    state["raycaster"] = rc = SceneRaycaster(Scene(vertices_mm, triangles))
+    # Embree builds its BVH on the first cast: build it now, at start-up. Built when the first frame
+    # is due, a 6 m plate's scene (about 10^6 triangles) took over a second in the renderer, which
+    # inherits the simulator's real-time priority: the EGM session starved and timed out.
+    rc.cast(np.zeros((1, 3)), np.array([[0.0, 0.0, -1.0]]))
     state["optics"] = optics
     state["rng"] = np.random.default_rng(seed)
 

@@ -1,0 +1,314 @@
+"""Memory and time of a 6000 x 2000 mm plate's data, without the robot: the daemon's acquisition
+path and the analysis worker's pipeline, each in its own process, peak RSS (VmHWM) measured.
+
+* ``daemon``: a long-plate-sized profile stream (default 340 000 profiles of 500 points at 200 Hz,
+  57 passes, 250 Hz of joint feedback) through :class:`cellctl.acquisition.pipeline.Acquisition` with
+  its raw writer (fsync'ed chunks in a temporary directory), the whole scan taken as the daemon
+  takes it (``Acquisition.cloud``), then thinned and encoded for publication as
+  :mod:`cellctl.daemon.handover` does (``column_steps`` + ``encode_scan`` at ``--publish-pitch-mm``)
+  and the payload written as ``cloud.bin``. Peaks per stage (``/proc/self/clear_refs`` resets VmHWM
+  between stages).
+* ``worker``: a synthetic scan of a 6000 x 2000 x 15 mm formed plate (``analysis.synth``) at the
+  published density (0.5 mm along the line, 1 mm between profiles: what the cell publishes from the
+  HD8), encoded with the cloud codec in a first process; a second process does what the worker's
+  analysis child does: decode the bytes, ``analysis.pipeline.analyse_job`` with the plate's
+  detection lines (the paper's spacing over the whole plate) and the results directory written.
+  Its VmHWM and the analysis time are the worker's figures.
+
+Prints one JSON object: ``daemon_peak_mb``, ``daemon_stages_mb`` (acquire / cloud / publish),
+``daemon_s``, ``profiles``, ``raw_points``, ``published_points``, ``cloud_bytes``,
+``worker_peak_mb``, ``analysis_s``, ``analysis_stages_s``, ``analysed_points``, ``lines``,
+``verdict``, ``load_avg_1min``. ``--part daemon|worker`` runs one side only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+
+def _hwm_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return round(int(line.split()[1]) / 1024.0, 1)
+    return float("nan")
+
+
+def _rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return round(int(line.split()[1]) / 1024.0, 1)
+    return float("nan")
+
+
+def _reset_hwm() -> None:
+    """Reset VmHWM to the current RSS (Linux: ``5`` into clear_refs)."""
+    with contextlib.suppress(OSError):
+        Path("/proc/self/clear_refs").write_text("5")
+
+
+# ---- daemon side -------------------------------------------------------------------------------
+
+
+def daemon_part(args: argparse.Namespace) -> dict:
+    import numpy as np
+
+    from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
+    from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan
+    from cellctl.acquisition.rawstore import RawWriter
+    from drivers.laser import protocol as P
+
+    rate_hz, width, batch = 200.0, args.width, args.batch
+    n_profiles = args.profiles
+    n_passes = args.passes
+    per_pass = n_profiles // n_passes
+    scale = P.ProfileScale(x_scale_nm=100_000, z_scale_nm=2000, x_offset_um=-25_000, z_offset_um=100_000)
+    rng = np.random.default_rng(0)
+    epoch_ns = 10**12
+    settings = AcquisitionSettings(epoch_ns=epoch_ns)
+    stages: dict[str, float] = {}
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
+        writer = RawWriter(Path(tmp) / "job", {"acquisition": settings.to_json()})
+        expected = n_profiles if args.presize else None
+        acq = Acquisition(
+            settings, writer, keep_batches=True, **({"expected_profiles": expected} if expected else {})
+        )
+        t_r_step = 0.004032
+        next_r = 0.0
+        pass_open = False
+        for k0 in range(0, n_profiles, batch):
+            k = np.arange(k0, min(n_profiles, k0 + batch))
+            t_s = k / rate_hz
+            # the robot samples received up to this group's arrival (250 Hz of joints)
+            t_r = np.arange(next_r, t_s[-1] + 0.01, t_r_step)
+            if len(t_r):
+                next_r = t_r[-1] + t_r_step
+                q = np.column_stack(
+                    [5 * np.sin(t_r / 70), 15 + 2 * np.sin(t_r / 50), 29 + np.cos(t_r / 30),
+                     0 * t_r, 45 + 0 * t_r, 180 + 0 * t_r]
+                )  # fmt: skip
+                host = epoch_ns + np.rint((t_r + 0.0002) * 1e9).astype(np.int64)
+                ctrl = np.rint(t_r * 1e6).astype(np.int64) + 555_000_000
+                acq.feed_robot(host, ctrl, q)
+            p = int(k0 // per_pass)
+            if not pass_open and p < n_passes:
+                acq.begin_pass(p, epoch_ns + int(t_s[0] * 1e9) - 1000)
+                pass_open = True
+            t_us = np.rint(t_s * 1e6).astype(np.uint64) + 1_000_000
+            z = 100.0 + rng.normal(0, 5, (len(k), width))
+            valid = rng.random((len(k), width)) > 0.02
+            raw = P.encode_frame_group(
+                frame_index=k.astype(np.uint64), sensor_time_us=t_us,
+                hd8_ms=(t_us // 1000).astype(np.uint32), encoder=np.zeros(len(k), np.int64),
+                status=np.zeros(len(k), np.uint32), exposure_ns=np.full(len(k), 500_000, np.uint32),
+                scale=scale, z_raw=P.quantize_mm(z, valid, scale.z_scale_nm, scale.z_offset_um),
+            )  # fmt: skip
+            msgs = P.MessageFramer().feed(raw)
+            acq.feed_profiles(P.decode_group(msgs, epoch_ns + int(t_us[-1] - 1_000_000) * 1000 + 1_000_000))
+            if pass_open and (int((k0 + batch) // per_pass) != p):
+                acq.end_pass(epoch_ns + int(t_s[-1] * 1e9) + 1000)
+                pass_open = False
+        acq.finish()
+        writer.close()
+        stages["acquire"] = _hwm_mb()
+        acquire_s = time.perf_counter() - t0
+        _reset_hwm()
+        # as cellctl/daemon/scan.py: the whole scan taken while the acquisition is still alive
+        scan = acq.take_cloud() if hasattr(acq, "take_cloud") else acq.cloud()
+        raw_points = scan.n_valid
+        profiles = len(scan)
+        del acq
+        stages["cloud"] = _hwm_mb()
+        _reset_hwm()
+        t1 = time.perf_counter()
+        steps = column_steps(
+            scan.pass_id,
+            n_passes - 4,
+            PublishSettings(pitch_mm=args.publish_pitch_mm, edge_pitch_mm=args.publish_pitch_mm),
+        )
+        payload, n_points = encode_scan(scan, job_id="long", plate_id="long", column_step=steps)
+        del scan, steps
+        (Path(tmp) / "cloud.bin").write_bytes(payload)
+        publish_s = time.perf_counter() - t1
+        stages["publish"] = _hwm_mb()
+        raw_bytes = writer.bytes_written
+    return {
+        "daemon_stages_mb": stages,
+        "daemon_peak_mb": max(stages.values()),
+        "daemon_acquire_s": round(acquire_s, 1),
+        "daemon_publish_s": round(publish_s, 1),
+        "profiles": profiles,
+        "raw_points": raw_points,
+        "raw_mb": round(raw_bytes / 1e6, 1),
+        "published_points": n_points,
+        "cloud_bytes": len(payload),
+        "daemon_presized": bool(args.presize),
+    }
+
+
+# ---- worker side -------------------------------------------------------------------------------
+
+
+def _long_spec():
+    from analysis.plates import plate_spec
+
+    # the sail's curvature over a plate five times as long and 2.5 times as wide: Rx, Ry scaled so
+    # the depth stays a formed shell plate's (about 225 mm along, 70 mm across), not a bowl
+    return plate_spec("sail", length_mm=6000.0, width_mm=2000.0, radius_x_mm=20000.0, radius_y_mm=7500.0)
+
+
+def synth_part(args: argparse.Namespace) -> dict:
+    import numpy as np
+
+    from analysis.mesh import save_mesh
+    from analysis.plates import default_forming_error, design_mesh
+    from analysis.synth import BedScene, ScanSettings, SupportBox, synthesize_scan
+    from cellctl.api.cloud_codec import Cloud, encode_cloud
+
+    spec = _long_spec()
+    # beams every metre under a 6 m plate, across its full width
+    scene = BedScene(supports=tuple(SupportBox(x - 40.0, x + 40.0, -1300.0, 1300.0, 60.0)
+                                    for x in (-2500.0, -1500.0, -500.0, 500.0, 1500.0, 2500.0)))  # fmt: skip
+    pitch = args.publish_pitch_mm
+    st = ScanSettings(point_pitch_mm=pitch, points_per_profile=round(49.9 / pitch) + 1, profile_step_mm=1.0,
+                      pass_overlap_mm=5.0)  # fmt: skip
+    from analysis.placement import Placement
+
+    scan = synthesize_scan(spec, default_forming_error(spec), settings=st, scene=scene,
+                           placement=Placement.on_bed(10.0, -5.0, 0.4), seed=args.seed)  # fmt: skip
+    c = scan.cloud
+    cloud = Cloud(xyz_mm=c.xyz_mm.astype(np.float32), job_id="long", plate_id="long",
+                  pass_id=c.pass_id.astype(np.uint16), profile_index=c.profile_index.astype(np.uint32),
+                  point_index=c.point_index.astype(np.uint16))  # fmt: skip
+    out = Path(args.work)
+    (out / "cloud.bin").write_bytes(encode_cloud(cloud))
+    save_mesh(design_mesh(spec, pitch_mm=10.0), out / "design.ply")
+    return {"synth_points": cloud.n_points, "synth_peak_mb": _hwm_mb()}
+
+
+def _trace_peaks(period_s: float = 0.5) -> None:
+    """Print (stderr) the threads' stacks each time the RSS passes its previous peak by 200 MB."""
+    import threading
+    import traceback
+
+    def run() -> None:
+        top = 0.0
+        me = threading.get_ident()
+        while True:
+            rss = _rss_mb()
+            if rss > top + 200:
+                top = rss
+                lines = [f"--- rss {rss:.0f} MB"]
+                for tid, frame in sys._current_frames().items():
+                    if tid != me:
+                        st = traceback.extract_stack(frame)[-4:]
+                        lines += [f"  {f.filename.split('/')[-1]}:{f.lineno} {f.name}" for f in st] + ["  ."]
+                print("\n".join(lines), file=sys.stderr, flush=True)
+            time.sleep(period_s)
+
+    threading.Thread(target=run, daemon=True).start()
+
+
+def worker_part(args: argparse.Namespace) -> dict:
+    from analysis.job import AnalysisJob
+    from analysis.pipeline import analyse_job
+    from analysis.settings import InspectionSettings
+    from analysis.templates import DetectionLayout
+    from cellctl.api.cloud_codec import decode_cloud
+
+    if args.trace:
+        _trace_peaks()
+    work = Path(args.work)
+    raw = (work / "cloud.bin").read_bytes()
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    cloud = decode_cloud(raw)
+    settings = InspectionSettings(layout=DetectionLayout(transverse_count=None, longitudinal_count=None))
+    job = AnalysisJob(design=str(work / "design.ply"), settings=settings, out_dir=str(work / "results"),
+                      job_id="long", plate_id="long")  # fmt: skip
+    report = analyse_job(cloud.scan_cloud(), job)
+    return {
+        "worker_peak_mb": _hwm_mb(),
+        "analysis_s": round(time.perf_counter() - t0, 1),
+        "analysis_cpu_s": round(time.process_time() - c0, 1),
+        "analysis_stages_s": report["timings_s"],
+        "analysed_points": len(cloud.xyz_mm),
+        "lines": len(report["lines"]),
+        "verdict": report["verdict"],
+    }
+
+
+def _child(part: str, args: argparse.Namespace, extra: list[str]) -> dict:
+    cmd = [sys.executable, __file__, "--part", part, *extra]
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    if r.returncode != 0:
+        raise SystemExit(f"{part} failed:\n{r.stderr[-4000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--part", choices=["all", "daemon", "worker", "synth", "analysis"], default="all")
+    p.add_argument("--profiles", type=int, default=340_000)
+    p.add_argument("--passes", type=int, default=57)
+    p.add_argument("--width", type=int, default=500)
+    p.add_argument("--batch", type=int, default=20, help="profiles per frame group")
+    p.add_argument("--publish-pitch-mm", type=float, default=0.5)
+    p.add_argument("--presize", action="store_true", help="tell the acquisition the expected profile count")
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--trace", action="store_true", help="worker side: print the stacks at each new RSS peak")
+    p.add_argument("--dir", default=None, help="where the daemon side's raw files go")
+    p.add_argument("--work", default=None, help="the worker side's work directory")
+    args = p.parse_args()
+    import structlog
+
+    structlog.configure(
+        logger_factory=structlog.PrintLoggerFactory(sys.stderr),
+        wrapper_class=structlog.make_filtering_bound_logger(30),
+    )
+    if args.part == "daemon":
+        print(json.dumps(daemon_part(args)))
+        return 0
+    if args.part == "synth":
+        print(json.dumps(synth_part(args)))
+        return 0
+    if args.part == "analysis":
+        print(json.dumps(worker_part(args)))
+        return 0
+    out: dict = {"plate_mm": [6000.0, 2000.0], "publish_pitch_mm": args.publish_pitch_mm}
+    common = ["--publish-pitch-mm", str(args.publish_pitch_mm)]
+    if args.part in ("all", "daemon"):
+        extra = [*common, "--profiles", str(args.profiles), "--passes", str(args.passes),
+                 "--width", str(args.width), "--batch", str(args.batch)]  # fmt: skip
+        if args.presize:
+            extra.append("--presize")
+        if args.dir:
+            extra += ["--dir", args.dir]
+        out.update(_child("daemon", args, extra))
+    if args.part in ("all", "worker"):
+        with tempfile.TemporaryDirectory(prefix="long-plate-") as tmp:
+            work = args.work or tmp
+            Path(work).mkdir(parents=True, exist_ok=True)
+            extra = [*common, "--work", work, "--seed", str(args.seed), *(["--trace"] if args.trace else [])]
+            if not (Path(work) / "cloud.bin").exists():
+                out.update(_child("synth", args, extra))
+            out.update(_child("analysis", args, extra))
+    out["load_avg_1min"] = round(os.getloadavg()[0], 2)
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
