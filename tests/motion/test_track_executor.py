@@ -27,7 +27,11 @@ TRACK = LinearTrack(
     speed_max_mm_s=500.0, accel_max_mm_s2=1000.0, jerk_max_mm_s3=10000.0,
 )  # fmt: skip
 SETTINGS = PlannerSettings(
-    speed_mm_s=200.0, placement_uncertainty_mm=5.0, placement_uncertainty_deg=0.5, track=TRACK
+    speed_mm_s=200.0,
+    placement_uncertainty_mm=5.0,
+    placement_uncertainty_deg=0.5,
+    track=TRACK,
+    track_hold=False,  # these tests are of the carriage following the passes ([robot.track] hold = false)
 )
 PLACEMENT = Placement.on_bed(1500.0, 2000.0, 90.0, z_mm=300.0)
 
@@ -128,7 +132,14 @@ def test_pause_resume_and_abort_ramp_all_seven_axes(track_plan):
         executor.pause()
         await wait_for_state(executor, "paused")
         seen["reference"] = executor.endpoint.reference_q_deg
-        await asyncio.sleep(0.3)  # the controller's law settles the last few tenths of a mm
+        # the controller's law settles the last few tenths of a mm: wait until it has (<= 3 s)
+        last, deadline = sim.axes_mm_deg, asyncio.get_running_loop().time() + 3.0
+        while asyncio.get_running_loop().time() < deadline:
+            await asyncio.sleep(0.1)
+            now = sim.axes_mm_deg
+            if np.max(np.abs(now - last)) < 0.002:
+                break
+            last = now
         seen["paused"] = sim.axes_mm_deg
         await asyncio.sleep(0.5)
         seen["after_wait"] = sim.axes_mm_deg
