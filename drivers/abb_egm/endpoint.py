@@ -900,7 +900,13 @@ class EgmEndpoint(asyncio.DatagramProtocol):
 
     def _convert(self, pb, data: bytes, addr: tuple[str, int], t_rx_ns: int) -> RobotMessage | None:
         try:
-            return robot_from_pb(pb, data)
+            msg = robot_from_pb(pb, data)
+            # a flipped byte can leave well-formed protobuf with fewer joints than the arm has: such
+            # feedback must never become the robot's state (the envelope and the executor take n_axes)
+            fb = msg.feedback_q_deg
+            if fb is not None and len(fb) < self.config.n_axes:
+                raise ValueError(f"feedBack.joints has {len(fb)} values, the arm has {self.config.n_axes}")
+            return msg
         except Exception as exc:  # well-formed protobuf with unusable values (NaN, 8 axes, ...)
             self.stats.received -= 1
             self._malformed(exc, addr, t_rx_ns)

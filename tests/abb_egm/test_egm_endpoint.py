@@ -278,6 +278,34 @@ def test_malformed_packets_are_counted_logged_rate_limited_and_never_stop_the_en
 
 
 @pytest.mark.usefixtures("reply_path")
+def test_feedback_with_fewer_joints_than_the_arm_is_malformed_and_never_the_state():
+    """A flipped byte can leave well-formed protobuf with 2 joints (the EGM fault suite found one that
+    reached the executor's tracking monitor as a (2,) configuration): counted malformed, not taken."""
+
+    async def body(ep, ctl):
+        ctl.send(robot(0))
+        await ctl.recv()
+        ctl.send(robot(1, q=Q0[:2]))
+        await ctl.settled()
+        assert ep.stats.malformed == 1
+        assert ep.latest.seqno == 0
+        np.testing.assert_array_equal(ep.latest.q_deg, Q0)
+        ctl.send(robot(2))
+        await ctl.recv()
+        assert ep.latest.seqno == 2 and ep.latest.q_deg.shape == (6,)
+        assert ep.history.arrays().seqno.tolist() == [0, 2]
+
+    run(body)
+
+    async def first(ep, ctl):  # nor the first message of a session (the held reference comes from it)
+        ctl.send(robot(0, q=Q0[:2]))
+        assert await ctl.nothing(0.1)
+        assert ep.stats.malformed == 1 and ep.latest is None
+
+    run(first)
+
+
+@pytest.mark.usefixtures("reply_path")
 def test_watchdog_reports_a_quiet_controller_once_and_its_return():
     events = []
     seen = {}
