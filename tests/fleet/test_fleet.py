@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import time
 from collections import Counter
@@ -53,12 +54,13 @@ def _stored(fleet, cell, job_id) -> bool:
 
 
 def _analysing(recs, job_id):
-    """The worker analysing the job now ("analysing on w0 (attempt 1)"), else None."""
+    """The worker analysing the job now ("analysing on w0 (attempt 1)", or for a streamed scan
+    "cloud streamed in 28 chunks, analysing on w0"), else None."""
     r = recs[job_id]
-    last = r["history"][-1]
-    if r["state"] != "analysing" or not last["message"].startswith("analysing on "):
+    found = re.search(r"analysing on (\S+)", r["history"][-1]["message"])
+    if r["state"] != "analysing" or found is None:
         return None
-    return last["message"].split()[2]
+    return found.group(1)
 
 
 def _reported_once(fleet, ids):
