@@ -734,14 +734,11 @@ class Worker:
         """The stream is incomplete: the whole cloud from the daemon (``Keys.job_cloud``), analysed whole."""
         log.warning("stream_incomplete", job_id=spec.job_id, reason=why, corrupt=inbox.corrupt)
         await self.runner.drop_stream()
-        replies = await async_get(
-            self.session, keys.job_cloud(spec.job_id), timeout_s=self.settings.cloud_timeout_s
+        cloud = await self._get_bytes(
+            keys.job_cloud(spec.job_id),
+            self.settings.cloud_timeout_s,
+            f"stream incomplete ({why}) and the whole cloud unavailable",
         )
-        ok = [r.ok for r in replies if r.ok is not None]
-        if not ok:
-            err = replies[0].err.payload.to_bytes().decode(errors="replace") if replies else "no reply"
-            raise TransferError(f"stream incomplete ({why}) and the whole cloud unavailable: {err}")
-        cloud = await asyncio.to_thread(ok[0].payload.to_bytes)
         log.info("stream_cloud_fetched", job_id=spec.job_id, bytes=len(cloud))
         out = await self.runner.run(job, cloud)
         return self._stream_outcome(out, inbox, fallback=True)
@@ -875,19 +872,24 @@ class Worker:
         update["out_dir"] = str(out_dir.resolve())
         return spec.job.model_copy(update=update), out_dir
 
+    async def _get_bytes(self, key: str, timeout_s: float, what: str) -> bytes:
+        """The payload of the first good reply to a query on ``key``; none -> TransferError naming
+        ``what`` and the first error reply (or "no reply")."""
+        replies = await async_get(self.session, key, timeout_s=timeout_s)
+        ok = [r.ok for r in replies if r.ok is not None]
+        if not ok:
+            why = replies[0].err.payload.to_bytes().decode(errors="replace") if replies else "no reply"
+            raise TransferError(f"{what}: {why}")
+        return await asyncio.to_thread(ok[0].payload.to_bytes)
+
     async def _design(self, keys: Keys, ref: Any) -> Path:
         cache = self.settings.data_dir / "designs"
         path = await asyncio.to_thread(cached_design, cache, ref)
         if path is not None:
             return path
-        replies = await async_get(
-            self.session, keys.design(ref.sha256), timeout_s=self.settings.design_timeout_s
+        data = await self._get_bytes(
+            keys.design(ref.sha256), self.settings.design_timeout_s, f"design {ref.name} ({ref.sha256[:12]})"
         )
-        ok = [r.ok for r in replies if r.ok is not None]
-        if not ok:
-            why = replies[0].err.payload.to_bytes().decode(errors="replace") if replies else "no reply"
-            raise TransferError(f"design {ref.name} ({ref.sha256[:12]}): {why}")
-        data = ok[0].payload.to_bytes()
         path = await asyncio.to_thread(cache_design, cache, ref, data)
         log.info("design_cached", name=ref.name, sha256=ref.sha256[:12], bytes=len(data))
         return path

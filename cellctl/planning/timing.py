@@ -243,18 +243,25 @@ def _flying_rate(
     return v, a, j
 
 
+def _toppra_constraints(settings: PlannerSettings, tcp: TcpSpeedConstraint) -> list:
+    """toppra's constraints of every timed path: the axes' speed and acceleration limits (with the
+    planner's headroom factors) and ``tcp``, the sensor's speed cap."""
+    return [
+        ta_constraint.JointVelocityConstraint(_VEL_FACTOR * settings.axis_speed_max),
+        ta_constraint.JointAccelerationConstraint(
+            _ACC_FACTOR * settings.axis_accel_max,
+            discretization_scheme=ta_constraint.DiscretizationType.Interpolation,
+        ),
+        tcp,
+    ]
+
+
 def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float):
     s = _path_parameter(seg)
     path = ta.SplineInterpolator(s, seg.q_deg)
-    vlim = _VEL_FACTOR * settings.axis_speed_max
-    alim = _ACC_FACTOR * settings.axis_accel_max
-    constraints = [
-        ta_constraint.JointVelocityConstraint(vlim),
-        ta_constraint.JointAccelerationConstraint(
-            alim, discretization_scheme=ta_constraint.DiscretizationType.Interpolation
-        ),
-        TcpSpeedConstraint(v_tcp, settings.T_flange_sensor, settings.track),
-    ]
+    constraints = _toppra_constraints(
+        settings, TcpSpeedConstraint(v_tcp, settings.T_flange_sensor, settings.track)
+    )
     n_grid = int(np.clip(np.ceil(s[-1] / _GRID_STEP_MM), 20, 1500)) + 1
     grid = np.linspace(0.0, s[-1], n_grid)
     optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid, parametrizer="ParametrizeConstAccel")
@@ -350,13 +357,8 @@ def _time_chain(segs: list[Segment], speeds: list[float], settings: PlannerSetti
         except PlanRefused as exc:
             raise PlanRefused(exc.reason, pass_label=seg.label, limit=exc.limit) from None
     grid_all = np.unique(np.concatenate(grids))
-    vlim = _VEL_FACTOR * settings.axis_speed_max
-    alim = _ACC_FACTOR * settings.axis_accel_max
-    constraints = [
-        ta_constraint.JointVelocityConstraint(vlim),
-        ta_constraint.JointAccelerationConstraint(
-            alim, discretization_scheme=ta_constraint.DiscretizationType.Interpolation
-        ),
+    constraints = _toppra_constraints(
+        settings,
         TcpSpeedConstraint(
             max(speeds),
             settings.T_flange_sensor,
@@ -365,7 +367,7 @@ def _time_chain(segs: list[Segment], speeds: list[float], settings: PlannerSetti
                 np.clip(np.searchsorted(bounds, x, side="right") - 1, 0, len(segs) - 1)
             ],
         ),
-    ]
+    )
     optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid_all, parametrizer="ParametrizeConstAccel")
     optimal = optimal.compute_trajectory(0.0, 0.0)
     if optimal is None:
