@@ -32,16 +32,18 @@ import os
 import shutil
 import signal
 import socket
+import sys
 import threading
 import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import structlog
 import zenoh
+from pydantic import BaseModel, ConfigDict
 
 from analysis.job import AnalysisJob, Report
 from cellctl.api import (
@@ -212,6 +214,17 @@ def _error_text(exc: BaseException, t0: float) -> str:
     )
 
 
+class ChildRequest(BaseModel):
+    """The header of one request from the worker to its analysis child (the body follows as raw
+    bytes): ``job`` (body: the whole cloud) and ``open`` carry ``spec``, the AnalysisJob's JSON;
+    ``chunk`` (body: the next encoded chunk), ``finish`` and ``drop`` carry nothing."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    op: Literal["job", "open", "chunk", "finish", "drop"]
+    spec: str | None = None
+
+
 class _ChildStream:
     """A streamed job in the analysis child: the analysis' own stream (``fn.stream``, e.g.
     :class:`analysis.pipeline.CloudStream`) fed chunk by chunk, or, for an analysis without one, the
@@ -299,15 +312,26 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
     stream: _ChildStream | None = None
     while True:
         try:
-            head = json.loads(conn.recv_bytes())
+            raw_head = conn.recv_bytes()
             body = conn.recv_bytes()
         except (EOFError, OSError):
             return
-        op = head.get("op")
+        try:
+            head = ChildRequest.model_validate_json(raw_head)
+            if head.op in ("job", "open") and head.spec is None:
+                raise ValueError(f"a {head.op!r} request without its job spec")
+        except ValueError as exc:  # pydantic's ValidationError is one
+            # only the worker writes to this pipe: a request it cannot have meant is a broken
+            # pipe protocol, and answering it could pair an answer with the wrong request. Exit:
+            # the worker sees the child die (AnalysisCrashed), restarts it and retries the job.
+            print(f"analysis child: unusable request from the worker: {exc}", file=sys.stderr)
+            sys.exit(2)
+        t0 = time.perf_counter()
+        op = head.op
         if op == "open":
             if stream is not None:
                 stream.close()
-            stream = _ChildStream(fn, head["spec"].encode())
+            stream = _ChildStream(fn, head.spec.encode())
             continue
         if op == "chunk":
             if stream is not None:
@@ -318,13 +342,12 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
                 stream.close()
             stream = None
             continue
-        t0 = time.perf_counter()
         if op == "finish":
             text = stream.finish() if stream is not None else _error_text(RuntimeError("no open stream"), t0)
             stream = None
         else:  # "job": the whole cloud
             try:
-                job = AnalysisJob.model_validate_json(head["spec"])
+                job = AnalysisJob.model_validate_json(head.spec)
                 cloud = decode_cloud(body)
                 t1 = time.perf_counter()
                 result = fn(cloud.scan_cloud(), job)
@@ -397,10 +420,10 @@ class AnalysisProcess:
                 proc.join(0.1)
                 raise AnalysisCrashed(f"analysis process died (exit code {proc.exitcode})")
 
-    async def _send(self, head: dict[str, Any], body: bytes | bytearray = b"") -> None:
+    async def _send(self, head: ChildRequest, body: bytes | bytearray = b"") -> None:
         if self._proc is None or not self._proc.is_alive():
             raise AnalysisCrashed("analysis process is not running")
-        head_raw = json.dumps(head).encode("utf-8")
+        head_raw = head.model_dump_json(exclude_none=True).encode("utf-8")
 
         def send() -> None:
             self._conn.send_bytes(head_raw)
@@ -413,25 +436,25 @@ class AnalysisProcess:
 
     async def run(self, job: AnalysisJob, cloud: bytes) -> AnalysisOutcome:
         """Analyse one cloud in the child. AnalysisCrashed if the child dies meanwhile."""
-        await self._send({"op": "job", "spec": job.model_dump_json()}, cloud)
+        await self._send(ChildRequest(op="job", spec=job.model_dump_json()), cloud)
         return await self._outcome()
 
     async def open_stream(self, job: AnalysisJob) -> None:
         """Start a streamed job in the child (the analysis prepares what needs no cloud)."""
-        await self._send({"op": "open", "spec": job.model_dump_json()})
+        await self._send(ChildRequest(op="open", spec=job.model_dump_json()))
 
     async def add_chunk(self, chunk: bytes | bytearray) -> None:
         """The next chunk of the open stream (an encoded cloud), in order."""
-        await self._send({"op": "chunk"}, chunk)
+        await self._send(ChildRequest(op="chunk"), chunk)
 
     async def finish_stream(self) -> AnalysisOutcome:
         """The open stream is complete: the analysis finishes and reports."""
-        await self._send({"op": "finish"})
+        await self._send(ChildRequest(op="finish"))
         return await self._outcome()
 
     async def drop_stream(self) -> None:
         """Forget the open stream (the whole cloud follows by :meth:`run`)."""
-        await self._send({"op": "drop"})
+        await self._send(ChildRequest(op="drop"))
 
     async def _outcome(self) -> AnalysisOutcome:
         raw = await asyncio.to_thread(self._wait_result)

@@ -50,3 +50,26 @@ def test_an_explicit_blas_setting_in_the_environment_wins(monkeypatch, tmp_path)
         "OPENBLAS_NUM_THREADS": "2",
         "MKL_NUM_THREADS": "1",
     }
+
+
+def test_a_request_the_child_cannot_use_ends_it_and_the_worker_sees_a_crash_not_a_wrong_answer(tmp_path):
+    """Only the worker writes the pipe: an unknown op (or a job without its spec) is a broken pipe
+    protocol; the child exits rather than answer it (an answer could pair with the wrong request)."""
+    from cellctl.worker import AnalysisCrashed
+
+    payload = encode_cloud(Cloud(xyz_mm=np.zeros((4, 3), np.float32), job_id="j1", plate_id="p1"))
+
+    async def go(head: bytes):
+        proc = AnalysisProcess(FN, blas_threads=1)
+        await proc.start()
+        try:
+            proc._conn.send_bytes(head)  # what no ChildRequest can be
+            proc._conn.send_bytes(b"")
+            job = AnalysisJob(job_id="j1", plate_id="p1", design="none.stl", out_dir=str(tmp_path))
+            with pytest.raises(AnalysisCrashed):
+                await proc.run(job, bytes(payload))
+        finally:
+            proc.kill()
+
+    asyncio.run(go(b'{"op": "nope"}'))
+    asyncio.run(go(b'{"op": "job"}'))
