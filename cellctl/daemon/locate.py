@@ -82,6 +82,9 @@ def locate_plans(cfg: CellConfig, design: TriMesh) -> list[LocatePlan]:
         edge_passes=False,
         placement_uncertainty_mm=0.0,
         placement_uncertainty_deg=0.0,
+        # the locate passes span the whole bed: a turnaround flown beyond its ends would leave the
+        # arm's reach (the default bed: joint 3 at 73.02 deg on link 2); they stop and go, as before
+        flying_turns=False,
     )
     lo, hi = np.asarray(loc.bed_min_xy_mm), np.asarray(loc.bed_max_xy_mm)
     centre = (lo + hi) / 2
