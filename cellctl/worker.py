@@ -136,6 +136,8 @@ class _StreamInbox:
     points: int = 0
     duplicates: int = 0
     corrupt: int = 0
+    # set when the daemon that streams this job is gone (its liveliness token ended) before the end
+    daemon_gone: bool = False
     wake: asyncio.Event = field(default_factory=asyncio.Event)
 
 
@@ -603,6 +605,11 @@ class Worker:
         ents.append(
             declare_async_queryable(self.session, keys.worker_info(wid), lambda q: self._on_info(keys, q))
         )
+        ents.append(
+            subscribe(
+                self.session, keys.daemon_alive, lambda s: self._on_daemon_token(keys, s), liveliness=True
+            )
+        )
         # The token comes last: once the dispatcher sees it, the job subscriber already exists.
         ents.append(self.session.liveliness().declare_token(keys.worker_alive(wid)))
         log.info("worker_serves_cell", worker_id=wid, prefix=prefix)
@@ -611,6 +618,19 @@ class Worker:
         if sample.kind == zenoh.SampleKind.PUT:
             key = str(sample.key_expr)
             self._serve_cell(key[: -len("/alive/daemon")])
+
+    def _on_daemon_token(self, keys: Keys, sample: zenoh.Sample) -> None:
+        """The daemon of a served cell went away (killed, its link down): a stream it was sending to
+        this worker can never end, so the attempt is given up now rather than after ``stream_idle_s``
+        (a restarted daemon's re-analysis of the same job would find this worker busy with it)."""
+        inbox = self._stream
+        if sample.kind != zenoh.SampleKind.DELETE or inbox is None or inbox.end is not None:
+            return
+        if self._current_cell != keys.prefix:
+            return
+        log.warning("stream_daemon_gone", job_id=inbox.job_id, attempt=inbox.attempt, cell=keys.prefix)
+        inbox.daemon_gone = True
+        inbox.wake.set()
 
     async def _on_info(self, keys: Keys, query: zenoh.Query) -> None:
         # Reply on our own key, not the (possibly wildcard) query key: replies on one key are
@@ -735,6 +755,10 @@ class Worker:
                 inbox.next_seq += 1
                 inbox.points += head.points
             end = inbox.end
+            if end is None and inbox.daemon_gone:
+                raise TransferError(
+                    f"stream of job {spec.job_id}: the daemon sending it is gone (its liveliness token ended)"
+                )
             if end is not None and inbox.next_seq >= end.chunks:
                 if inbox.next_seq == end.chunks and inbox.points == end.points:
                     out = await self.runner.finish_stream()

@@ -91,7 +91,7 @@ def _rule(rule_id: str, flow: str, messages: list[str], prefix: str, keys: list[
 # user's session sends in, "egress" what is forwarded to it. Keys are relative to the cell's prefix
 # (cellctl.api.Keys). Declarations flowing out reveal key names only, so every role receives them.
 _READ_KEYS = ["state", "reports/*", "jobs/*/event", "jobs/*/live"]
-_WORKER_IN_KEYS = ["workers/*/jobs/*", "workers/*/cancel/*"]
+_WORKER_IN_KEYS = ["workers/*/jobs/*", "workers/*/cancel/*", "workers/*/stream/**"]
 _DECLARATIONS = [
     "declare_subscriber",
     "declare_queryable",
@@ -126,8 +126,10 @@ def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
         _rule("work_declare", "ingress", ["declare_subscriber"], prefix, _WORKER_IN_KEYS),
         _rule("work_receive", "egress", ["put"], prefix, _WORKER_IN_KEYS),
         _rule("work_publish", "ingress", ["put"], prefix, ["jobs/*/event", "reports/*", "results/**"]),
-        _rule("work_designs", "ingress", ["query"], prefix, ["designs/*"]),
-        _rule("work_designs_replies", "egress", ["reply"], prefix, ["designs/*"]),
+        _rule("work_designs", "ingress", ["query"], prefix, ["designs/*", "jobs/*/cloud"]),
+        _rule("work_designs_replies", "egress", ["reply"], prefix, ["designs/*", "jobs/*/cloud"]),
+        # the daemon's token: a stream from a daemon that is gone is given up (cellctl.worker)
+        _rule("work_daemon_alive", "ingress", ["declare_liveliness_subscriber"], prefix, ["alive/daemon"]),
         _rule("work_alive", "ingress", ["liveliness_token"], prefix, ["alive/workers/*"]),
         _rule("work_info", "ingress", ["declare_queryable", "reply"], prefix, ["workers/*/info"]),
         _rule("work_info_queries", "egress", ["query"], prefix, ["workers/*/info"]),

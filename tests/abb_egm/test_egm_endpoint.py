@@ -377,8 +377,14 @@ def test_wait_for_feedback_times_out_without_traffic():
     async def body(ep, ctl):
         with pytest.raises(TimeoutError):
             await ep.wait_for_feedback(0.05)
+        # wait first, then send: the endpoint resolves waiters with the *next* feedback, and on the
+        # thread reply path a packet sent before the waiter is registered can be handled first
+        # 10 s is generous: a loaded machine delays the reply thread
+        waiter = asyncio.ensure_future(ep.wait_for_feedback(10.0))
+        await asyncio.sleep(0)  # one loop step: the waiter is registered
+        assert not waiter.done()
         ctl.send(robot(0))
-        state = await ep.wait_for_feedback(10.0)  # generous: a loaded machine delays the reply thread
+        state = await waiter
         assert state.seqno == 0
 
     run(body)

@@ -297,9 +297,15 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
             envelope = await asyncio.wait_for(
                 disp.submit(AnalysisJob(job_id="jobS", plate_id="P1", design="p.stl"), payload), 60
             )
+            # a streamed job (issue 22): the chunks' keys and the whole cloud's query are the role's too
+            fut = disp.submit_stream(AnalysisJob(job_id="jobT", plate_id="P1", design="p.stl"))
+            disp.stream_chunk("jobT", 0, payload, 500)
+            disp.stream_chunk("jobT", 1, payload, 500)
+            disp.end_stream("jobT")
+            streamed = await asyncio.wait_for(fut, 60)
             bob = _client(port, "bob")
             announced = await list_workers(bob, KEYS, timeout_s=5)
-            return envelope, announced
+            return envelope, streamed, announced
         finally:
             close_session(bob)
             await disp.close()
@@ -313,7 +319,7 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
             stdout=out, stderr=subprocess.STDOUT, env=env, cwd=tmp_path,
         )  # fmt: skip
     try:
-        envelope, announced = asyncio.run(main())
+        envelope, streamed, announced = asyncio.run(main())
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -322,6 +328,8 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
             proc.kill()
             proc.wait(5)
     assert envelope.ok and envelope.worker_id == "w1" and envelope.report.inputs.points == 500
+    assert streamed.ok and streamed.report.inputs.points == 1000, streamed.error
+    assert streamed.timings_s["stream_chunks"] == 2 and streamed.timings_s["stream_fallback"] == 0
     assert [a.worker_id for a in announced] == ["w1"]
 
 

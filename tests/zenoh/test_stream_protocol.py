@@ -14,7 +14,7 @@ import pytest
 
 from cellctl.api import JobEvent, JobSpec, Keys, ReportEnvelope, StreamChunk, StreamEnd, list_workers
 from cellctl.api.cloud_codec import ENCODING, Cloud, concat_encoded, decode_cloud, encode_cloud
-from cellctl.api.dispatch import Dispatcher, JobFailed
+from cellctl.api.dispatch import Dispatcher, DispatchSettings, JobFailed
 from cellctl.api.session import (
     build_zenoh_config,
     close_session,
@@ -213,3 +213,61 @@ def test_a_stream_missing_a_chunk_with_no_whole_cloud_fails_the_attempt_not_the_
     failed = [e for e in events if e.event == "failed"]
     assert len(failed) == 1 and "whole cloud unavailable" in failed[0].message, events
     assert w.proc.poll() is None  # a failed attempt (the dispatcher retries it), the worker serves on
+
+
+def test_a_daemon_gone_mid_stream_frees_the_worker_for_its_restart_to_reanalyse_the_same_job(
+    hub, start_worker
+):
+    """kill -9 of the daemon mid-scan (tests/faults/test_daemon_crash.py at full scale): its stream
+    never ends. The worker sees the daemon's liveliness token end and gives the attempt up, so the
+    restarted daemon's re-analysis of the same job (attempt 1 again, the whole cloud) is taken at once,
+    not after the offer's acknowledgement timeout and a second attempt."""
+    start_worker("w1")
+    keys = Keys(hub.prefix)
+    chunks, centroid = _chunks("jobK")
+
+    async def first_daemon() -> None:
+        session = open_session(
+            build_zenoh_config(hub.section, role="serve", key_prefix=hub.prefix), what="test daemon"
+        )
+        events: list[JobEvent] = []
+        try:
+            token = session.liveliness().declare_token(keys.daemon_alive)
+            alive: list[str] = []
+            subs = [
+                subscribe(
+                    session, keys.worker_alive("*"), lambda s: alive.append(str(s.key_expr)), liveliness=True
+                ),
+                subscribe(
+                    session,
+                    keys.job_event("*"),
+                    lambda s: events.append(JobEvent.model_validate_json(s.payload.to_bytes())),
+                ),
+            ]
+            await _wait_for(lambda: alive, 30, "worker token")
+            await asyncio.sleep(0.5)
+            spec = JobSpec(attempt=1, job=_job(hub, "jobK"), stream=True)
+            session.put(keys.worker_job("w1", "jobK"), b"", encoding=ENCODING, attachment=spec.to_json())
+            await _wait_for(lambda: any(e.event == "accepted" for e in events), 30, "accepted")
+            head = StreamChunk(job_id="jobK", attempt=1, seq=0, pass_index=0, points=500,
+                               sha256=hashlib.sha256(chunks[0]).hexdigest())  # fmt: skip
+            session.put(keys.worker_stream("w1", "jobK", 1, 0), bytes(chunks[0]), attachment=head.to_json())
+            await asyncio.sleep(0.5)
+            del token, subs  # the session ends below with no cancel and no end: as a kill -9 leaves it
+        finally:
+            close_session(session)
+
+    asyncio.run(first_daemon())
+
+    async def restarted(disp: Dispatcher):
+        await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
+        return await asyncio.wait_for(disp.submit(_job(hub, "jobK"), concat_encoded(chunks)), 60)
+
+    settings = DispatchSettings(
+        ack_timeout_s=20.0, heartbeat_timeout_s=60.0, job_timeout_s=120.0, max_attempts=3
+    )
+    env = _run(hub, restarted, settings)
+    assert env.ok and env.attempt == 1, (env.attempt, env.error)  # taken at once, not after a second offer
+    seen = _observed(hub, "jobK")
+    assert seen["n_points"] == 2000
+    np.testing.assert_allclose(seen["centroid_mm"], centroid, atol=1e-3)
