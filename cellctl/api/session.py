@@ -126,8 +126,11 @@ def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
         _rule("work_declare", "ingress", ["declare_subscriber"], prefix, _WORKER_IN_KEYS),
         _rule("work_receive", "egress", ["put"], prefix, _WORKER_IN_KEYS),
         _rule("work_publish", "ingress", ["put"], prefix, ["jobs/*/event", "reports/*", "results/**"]),
-        _rule("work_designs", "ingress", ["query"], prefix, ["designs/*", "jobs/*/cloud"]),
-        _rule("work_designs_replies", "egress", ["reply"], prefix, ["designs/*", "jobs/*/cloud"]),
+        _rule("work_designs", "ingress", ["query"], prefix, ["designs/*"]),
+        _rule("work_designs_replies", "egress", ["reply"], prefix, ["designs/*"]),
+        # a streamed job's whole cloud, when a chunk is missing after its end
+        _rule("work_cloud", "ingress", ["query"], prefix, ["jobs/*/cloud"]),
+        _rule("work_cloud_replies", "egress", ["reply"], prefix, ["jobs/*/cloud"]),
         # the daemon's token: a stream from a daemon that is gone is given up (cellctl.worker)
         _rule("work_daemon_alive", "ingress", ["declare_liveliness_subscriber"], prefix, ["alive/daemon"]),
         _rule("work_alive", "ingress", ["liveliness_token"], prefix, ["alive/workers/*"]),
