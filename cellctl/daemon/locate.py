@@ -185,12 +185,15 @@ def _world_design(cfg: CellConfig, design: TriMesh, found: LocateResult) -> tupl
     return world[_outline_vertices(design)], world
 
 
-def across_plans(cfg: CellConfig, design: TriMesh, found: LocateResult) -> list[LocatePlan]:
+def across_plans(
+    cfg: CellConfig, design: TriMesh, found: LocateResult, start_near_xy_mm: np.ndarray | None = None
+) -> list[LocatePlan]:
     """Passes across the bed planned from a first fit (see the module docstring): ``[locate]
     across_passes`` passes at 20 .. 80 % of the plate's extent along the bed, each over the whole
     bed's width and ``_ACROSS_OVERRUN_MM`` beyond, flown ``[locate] standoff_mm`` above the highest
     outline point in its strip (never nearer than ``[laser] depth_min_mm`` to the design there);
-    one plan each.
+    one plan each. ``start_near_xy_mm``: where the arm is (the last run's end, world x-y): the
+    passes go from the nearest, each starting at the bed's side nearer the previous one's end.
 
     Raises:
         PlanRefused, PlanInputError: the planner's, for a pass it cannot fly.
@@ -212,18 +215,39 @@ def across_plans(cfg: CellConfig, design: TriMesh, found: LocateResult) -> list[
         top = vertices[np.abs(w_all - s) <= half, 2]
         edge_top = float(edge.max()) if len(edge) else float(outline[:, 2].max())
         heights.append(max(edge_top + loc.standoff_mm, float(top.max(initial=edge_top)) + las.depth_min_mm))
-    yaw = 90.0 if long_axis == 0 else 0.0  # the flat strip's x (its one pass) across the bed
+    # the flat strip's x (its one pass, which the planner flies from its -x end) along +v, or -v
+    yaw_up = 0.0 if v_axis == 0 else 90.0
     # the sensor's lean along these passes: the cell's, then more where the wrist would pass near its
     # singularity (a pass across the bed runs towards the arm's base, lower than the passes along)
     pitches = [p for p in (settings.sweep_pitch_deg + d for d in _ACROSS_EXTRA_PITCH_DEG) if p < 45.0]
+    # one after the other from where the arm is: the nearest pass first, each starting at the end of
+    # the bed nearer the previous one's end (the move to a pass's start is a straight line in joint
+    # space: from the far corner of the bed it can dip below the workspace box)
+    prev = None if start_near_xy_mm is None else np.asarray(start_near_xy_mm, dtype=np.float64)
+    order = (
+        np.arange(n)
+        if prev is None or abs(prev @ u - positions[0]) <= abs(prev @ u - positions[-1])
+        else np.arange(n)[::-1]
+    )
     out = []
-    for k, (s_k, h) in enumerate(zip(positions, heights, strict=True)):
+    for k in order:
+        s_k, h = float(positions[k]), heights[k]
         centre = np.empty(2)
         centre[long_axis] = s_k
         centre[v_axis] = (lo[v_axis] + hi[v_axis]) / 2
+        up_first = prev is None or abs(prev[v_axis] - lo[v_axis]) <= abs(prev[v_axis] - hi[v_axis])
+        # the way it runs: up (+v) or down; the strip turned half a turn leans the sensor the other way
+        ways = [
+            (yaw_up, not up_first),
+            (yaw_up + 180.0, up_first),
+            (yaw_up, up_first),
+            (yaw_up + 180.0, not up_first),
+        ]
         refused: PlanRefused | None = None
-        for pitch, overrun in itertools.product(pitches, (_ACROSS_OVERRUN_MM, 0.0)):
-            st = settings.with_(sweep_pitch_deg=pitch)
+        for (yaw, reverse), pitch, overrun in itertools.product(
+            ways, list(pitches), (_ACROSS_OVERRUN_MM, 0.0)
+        ):
+            st = settings.with_(sweep_pitch_deg=pitch, passes_reversed=reverse)
             placement = Placement.on_bed(float(centre[0]), float(centre[1]), yaw, z_mm=_bed_plate_z_mm(h, st))
             # past the bed's sides by the overrun, or (at the end of the arm's reach) the bed only
             strip = _flat(float(hi[v_axis] - lo[v_axis]) + 2 * overrun, las.line_width_mm)
@@ -232,8 +256,9 @@ def across_plans(cfg: CellConfig, design: TriMesh, found: LocateResult) -> list[
             except PlanRefused as exc:
                 refused = exc
                 continue
-            out.append(LocatePlan.of(cfg, f"locate across {k + 1}", plan, st, across=True))
+            out.append(LocatePlan.of(cfg, f"locate across {len(out) + 1}", plan, st, across=True))
             pitches.insert(0, pitches.pop(pitches.index(pitch)))  # the next pass tries it first
+            prev = plan.passes[-1].pos_mm[-1, :2]
             break
         else:
             assert refused is not None
@@ -263,7 +288,7 @@ def next_locate_plans(
         return []
     if found is not None:
         try:
-            return across_plans(cfg, design, found)
+            return across_plans(cfg, design, found, run[-1].plan.passes[-1].pos_mm[-1, :2])
         except (PlanRefused, PlanInputError) as exc:
             log.warning(
                 "locate_across_planned_refused", reason=str(exc), fallback="locate across the bed's middle"
