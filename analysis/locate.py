@@ -207,7 +207,7 @@ def plate_boundary(
     ``ranges_z_mm``: each cloud's (lowest, highest) world z the sensor measured on its passes, in
     the clouds' order (passes flown at different heights); None: ``settings.range_z_mm`` for all.
 
-    Each pass (``pass_id`` > 0; transit under 0 is ignored) is a grid of profiles x line points; a
+    Each pass (``pass_id`` > 0, numbered from 1; the transit, under 0, is ignored) is a grid of profiles x line points; a
     plate point with a missing neighbour on that grid (after closing holes of ``closing_px``) is a
     boundary point. The ends of the laser line are no boundary; the ends of a pass are (the locate
     passes run from bed edge to bed edge, beyond the plate).

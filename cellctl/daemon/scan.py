@@ -225,7 +225,8 @@ class ScanRunner:
                 scan = await self._acquire(job, lp.plan, lp.settings, raw_dir=raw_dir, phase=lp.name)
                 if scan is None:
                     return False
-                cloud = scan.scan_cloud()
+                # its passes from 1, the transit apart under 0: the fit reads pass by pass
+                cloud = scan.scan_cloud(transit_apart=True)
                 # acquired data reaches disk before anything else can fail
                 await asyncio.to_thread(write_cloud_npz, cloud, raw_dir / "cloud.npz")
                 clouds.append(cloud)
