@@ -67,7 +67,11 @@ class LocateSettings:
     plate; None: the bed is not in the cloud). ``range_z_mm``: (lowest, highest) world z the sensor
     measures on the locate passes (flat passes at one height): a boundary point within
     ``range_margin_mm`` of either is where the surface left the range, no edge. None: no such
-    rejection. ``column_step``: every k-th point along the laser line is read (0.4 mm at the
+    rejection. ``wall_step_mm``: a point this much lower than a neighbour on its pass's grid is on
+    the plate's thickness face (a formed plate's edge face is square to its surface, so it leans
+    out and a sensor leaning towards it sees it), not its top: no plate point, so that the edge is
+    the top's; 0: kept. A cloud's own range, where its passes fly at their own height, is given to
+    :func:`plate_boundary` (``ranges_z_mm``). ``column_step``: every k-th point along the laser line is read (0.4 mm at the
     HD8's 0.1 mm pitch; the profiles are 1 mm apart along the pass). ``closing_px``: small holes in a pass's grid closed before its boundary is taken.
     ``boundary_cell_mm``: boundary points thinned to one per cell. ``coarse_yaw_step_deg``,
     ``vote_cell_mm``: the coarse search. ``icp_iterations``, ``trim_mm``: the fine fit (residuals
@@ -83,6 +87,7 @@ class LocateSettings:
     plate_z_mm: tuple[float, float] | None = None
     range_z_mm: tuple[float, float] | None = None
     range_margin_mm: float = 3.0
+    wall_step_mm: float = 1.0
     closing_px: int = 2
     column_step: int = 4
     boundary_cell_mm: float = 1.0
@@ -192,10 +197,17 @@ class LocateResult:
 # ------------------------------------------------------------------------------------------ boundary
 
 
-def plate_boundary(clouds: list[ScanCloud], settings: LocateSettings | None = None) -> PlateBoundary:
+def plate_boundary(
+    clouds: list[ScanCloud],
+    settings: LocateSettings | None = None,
+    ranges_z_mm: list[tuple[float, float] | None] | None = None,
+) -> PlateBoundary:
     """The plate's points and its boundary crossings in organised locate clouds (world frame, mm).
 
-    Each pass (``pass_id`` > 0; transit under 0 is ignored) is a grid of profiles x line points; a
+    ``ranges_z_mm``: each cloud's (lowest, highest) world z the sensor measured on its passes, in
+    the clouds' order (passes flown at different heights); None: ``settings.range_z_mm`` for all.
+
+    Each pass (``pass_id`` > 0, numbered from 1; the transit, under 0, is ignored) is a grid of profiles x line points; a
     plate point with a missing neighbour on that grid (after closing holes of ``closing_px``) is a
     boundary point. The ends of the laser line are no boundary; the ends of a pass are (the locate
     passes run from bed edge to bed edge, beyond the plate).
@@ -204,9 +216,13 @@ def plate_boundary(clouds: list[ScanCloud], settings: LocateSettings | None = No
         LocateError: a cloud without its scan organisation, or no plate points at all.
     """
     st = settings or LocateSettings()
+    if ranges_z_mm is None:
+        ranges_z_mm = [st.range_z_mm] * len(clouds)
+    elif len(ranges_z_mm) != len(clouds):
+        raise LocateError(f"{len(ranges_z_mm)} depth ranges for {len(clouds)} locate clouds")
     plate_parts, edge_parts = [], []
     dropped = 0
-    for cloud in clouds:
+    for cloud, range_z in zip(clouds, ranges_z_mm, strict=True):
         if cloud.pass_id is None:
             raise LocateError("the locate cloud has no scan organisation (pass, profile, point)")
         xyz = cloud.xyz_mm
@@ -235,6 +251,9 @@ def plate_boundary(clouds: list[ScanCloud], settings: LocateSettings | None = No
             c = rank[col[sel]]
             grid = np.zeros((int(r.max()) + 1, n_cols), dtype=bool)
             grid[r, c] = True
+            if st.wall_step_mm > 0:
+                wall = _on_wall(r, c, xyz[idx[sel], 2], grid.shape, st.wall_step_mm)
+                grid[r[wall], c[wall]] = False
             # Beyond the first and last profile the pass saw nothing there (no plate): padded empty.
             # Beyond the line's ends it saw nothing at all: padded with copies of the end columns, so
             # that the line's end is never taken for an edge.
@@ -245,23 +264,36 @@ def plate_boundary(clouds: list[ScanCloud], settings: LocateSettings | None = No
                 g = ndimage.binary_closing(g, iterations=st.closing_px) | g
             inner = ndimage.binary_erosion(g)[k:-k, k:-k]
             on_edge = ~inner[r, c]
-            edge_parts.append(xyz[idx[sel[on_edge]]])
+            edge = xyz[idx[sel[on_edge]]]
+            if range_z is not None:  # where the surface left the depth range: no edge
+                ok = (edge[:, 2] > range_z[0] + st.range_margin_mm) & (
+                    edge[:, 2] < range_z[1] - st.range_margin_mm
+                )
+                dropped += int((~ok).sum())
+                edge = edge[ok]
+            edge_parts.append(edge)
     if not plate_parts:
         raise LocateError(
             "no plate points in the locate cloud: nothing above the bed within the sensor's range"
         )
     plate = np.concatenate(plate_parts)
     edge = np.concatenate(edge_parts) if edge_parts else np.empty((0, 3))
-    if st.range_z_mm is not None and len(edge):
-        lo, hi = st.range_z_mm
-        ok = (edge[:, 2] > lo + st.range_margin_mm) & (edge[:, 2] < hi - st.range_margin_mm)
-        dropped = int((~ok).sum())
-        edge = edge[ok]
     if len(edge) and st.boundary_cell_mm > 0:
         cell = np.floor(edge[:, :2] / st.boundary_cell_mm).astype(np.int64)
         _, first = np.unique(cell, axis=0, return_index=True)
         edge = edge[np.sort(first)]
     return PlateBoundary(plate_mm=plate, boundary_mm=edge, dropped_range=dropped)
+
+
+def _on_wall(
+    r: np.ndarray, c: np.ndarray, z: np.ndarray, shape: tuple[int, int], step_mm: float
+) -> np.ndarray:
+    """Points (grid rows ``r``, columns ``c``, heights ``z``) more than ``step_mm`` below one of their
+    four grid neighbours: on a face that falls away from the top, not on the top."""
+    zg = np.full((shape[0] + 2, shape[1] + 2), -np.inf)
+    zg[r + 1, c + 1] = z
+    above = np.maximum.reduce([zg[r, c + 1], zg[r + 2, c + 1], zg[r + 1, c], zg[r + 1, c + 2]])
+    return above - z > step_mm
 
 
 # ------------------------------------------------------------------------------------------- outline
@@ -536,12 +568,16 @@ def fit_outline(
 
 
 def locate_plate(
-    clouds: list[ScanCloud], design: TriMesh, settings: LocateSettings | None = None
+    clouds: list[ScanCloud],
+    design: TriMesh,
+    settings: LocateSettings | None = None,
+    ranges_z_mm: list[tuple[float, float] | None] | None = None,
 ) -> LocateResult:
-    """The placement of ``design`` in locate clouds: :func:`plate_boundary`, :func:`design_outline`,
-    :func:`fit_outline`."""
+    """The placement of ``design`` in locate clouds: :func:`plate_boundary` (``ranges_z_mm``: each
+    cloud's depth range in world z, see there), :func:`design_outline`, :func:`fit_outline`."""
     st = settings or LocateSettings()
-    return fit_outline(plate_boundary(clouds, st), design_outline(design, st.outline_step_mm), st)
+    boundary = plate_boundary(clouds, st, ranges_z_mm)
+    return fit_outline(boundary, design_outline(design, st.outline_step_mm), st)
 
 
 def placement_offset(found: Placement, given: Placement) -> tuple[float, float]:

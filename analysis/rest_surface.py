@@ -265,16 +265,29 @@ class _Grid:
         return np.where(self.keys[at] == want, at, -1)
 
 
+# a grid's box of at most this many cells, and of at most 8 a point, is counted densely (8 bytes a
+# cell, twice; 3-4 x faster than the sort on a plate's points), else sorted
+_DENSE_GRID_MAX_CELLS = 40_000_000
+
+
 def _grid(ij: np.ndarray) -> _Grid:
     """The occupied cells of the (n, 2) integer indices ``ij``."""
     ij = ij - (ij.min(axis=0) - 1)  # a free row and column on every side
     width = int(ij[:, 1].max()) + 2
     key = ij[:, 0] * width + ij[:, 1]
-    keys, inv, count = np.unique(key, return_inverse=True, return_counts=True)
-    missing = np.column_stack(
-        [~np.isin(keys + step, keys, assume_unique=True) for step in (width, -width, 1, -1)]
-    )
-    return _Grid(inv, count, keys, width, missing)
+    span = (int(ij[:, 0].max()) + 2) * width
+    steps = (width, -width, 1, -1)
+    if span > min(_DENSE_GRID_MAX_CELLS, 8 * len(key)):  # a sparse grid: sort
+        keys, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+        missing = np.column_stack([~np.isin(keys + step, keys, assume_unique=True) for step in steps])
+        return _Grid(inv, count, keys, width, missing)
+    # every cell of the box counted at once (np.unique's sort of millions of keys took seconds)
+    dense = np.bincount(key, minlength=span)
+    keys = np.flatnonzero(dense)
+    rank = np.cumsum(dense > 0, dtype=np.int64) - 1
+    occupied = dense > 0
+    missing = np.column_stack([~occupied[keys + step] for step in steps])
+    return _Grid(rank[key], dense[keys], keys, width, missing)
 
 
 def noise_from_gaps(xy_mm: np.ndarray, gap_mm: np.ndarray, cell_mm: float = 2.0) -> float:

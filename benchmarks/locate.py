@@ -6,21 +6,24 @@ laid within ``--yaw-spread-deg`` (3) of the bed's long axis: a 6 m plate fits a 
 it. The JSON names the config, the plate and the spread.
 
 Mode ``optics`` (what this measures): the locate passes are the real ones of ``cell.toml``
-(:func:`cellctl.daemon.locate.locate_plans`: the planner's passes at the locate height over the
-``[locate]`` bed), the sensor is the laser simulator's optics (``drivers.laser.sim.optics``:
+(:func:`cellctl.daemon.locate.next_locate_plans`, the daemon's order: the planner's passes at the
+locate height along the ``[locate]`` bed, then passes across planned from the first fit at the
+heights of the outline they cross, or the square family across the bed's middle), the sensor is the laser simulator's optics (``drivers.laser.sim.optics``:
 ray-cast fan, resampled 500-point line, depth noise ``[sim] depth_noise_mm``, outliers) over the
 simulated cell's scene (the formed plate with its forming error, supports, bed) at ``--placements``
 random placements on the bed (any yaw within 90 deg of the bed convention, the plate wholly on the
 bed). Sensor poses are the passes' waypoints at the profile spacing (speed / rate); robot tracking
-and clock errors are not in it (the e2e test, tests/e2e/test_locate_e2e.py, has them). The daemon's
-rule decides whether the passes across run (:func:`cellctl.daemon.locate.needs_across`).
+and clock errors are not in it (the e2e test, tests/e2e/test_locate_e2e.py, has them). A fit that
+stays pinned in one direction only is an error, as the daemon fails the job.
 
 Figures: ``located`` (placements found without error), ``within`` (found within 2 mm and 0.2 deg),
 ``max_pos_err_mm`` / ``max_angle_err_deg`` (xy of the design origin, yaw; a half-turn-symmetric
 plate is compared with the convention's yaw, as the daemon decides it), ``max_z_err_mm``,
-``locate_s_max`` / ``locate_s_mean``: the locate run's time = the planned motion of the families
-run (program start and sensor settle of ``[daemon] settle_s`` each) + the fit's CPU time;
-``fit_s_max`` (wall) / ``fit_cpu_s_max``; ``across_runs``: placements that needed the passes across. One JSON object on stdout.
+``locate_s_max`` / ``locate_s_mean``: the locate run's time = the planned motion of the runs (each
+with the sensor settle of ``[daemon] settle_s``) + the fits' time + the time to plan the passes
+across (those along are planned once, for every lay); ``fit_s_max`` (wall) / ``fit_cpu_s_max``;
+``across_runs``: placements that needed passes across; ``across_plan_s_max``; per lay (stderr)
+``runs`` and ``across_heights_mm`` (the sensor's z on each pass across). One JSON object on stdout.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from analysis.locate import LocateError, locate_plate, placement_offset
 from analysis.placement import Placement
 from analysis.plates import design_mesh, plate_spec
 from cellctl.config import load_config
-from cellctl.daemon.locate import locate_plans, locate_settings, needs_across
+from cellctl.daemon.locate import LocatePlan, locate_settings, next_locate_plans
 from cellctl.simcell.truth import plate_truth
 from drivers.laser.sim.optics import LaserOptics, render_uniform
 from drivers.laser.sim.scene import SceneRaycaster
@@ -133,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
                       radius_x_mm=sp.radius_x_mm, radius_y_mm=sp.radius_y_mm)  # fmt: skip
     design = design_mesh(spec, pitch_mm=5.0)
     t0 = time.perf_counter()
-    plans = locate_plans(cfg, design)
+    first = next_locate_plans(cfg, design, [], None)  # the family along the bed: every lay's
     plan_s = time.perf_counter() - t0
     optics = LaserOptics(
         width=cfg.laser.points_per_profile,
@@ -154,24 +157,36 @@ def main(argv: list[str] | None = None) -> int:
         rc = SceneRaycaster(truth.scene())
         st = locate_settings(cfg, design, None)
         clouds: list[ScanCloud] = []
-        motion_s = fit_s = fit_cpu_s = 0.0
+        run: list[LocatePlan] = []
+        motion_s = fit_s = fit_cpu_s = across_plan_s = 0.0
         found, error = None, ""
-        for lp in plans:
-            clouds.append(_render(lp.plan, lp.plan.scan_speed_mm_s, cfg.laser.rate_hz, rc, optics, rng))
-            motion_s += lp.plan.scan_time_s + cfg.daemon.settle_s
+        while True:
+            t = time.perf_counter()
+            plans = first if not run else next_locate_plans(cfg, design, run, found)
+            if run:
+                across_plan_s += time.perf_counter() - t
+            if not plans:
+                break
+            for lp in plans:
+                clouds.append(_render(lp.plan, lp.plan.scan_speed_mm_s, cfg.laser.rate_hz, rc, optics, rng))
+                motion_s += lp.plan.scan_time_s + cfg.daemon.settle_s
+                run.append(lp)
             t, c = time.perf_counter(), time.process_time()
             try:
-                found = locate_plate(clouds, design, st)
+                found = locate_plate(clouds, design, st, [lp.range_z_mm for lp in run])
                 error = ""
             except LocateError as exc:
                 found, error = None, str(exc)
             fit_s += time.perf_counter() - t
             fit_cpu_s += time.process_time() - c
-            if found is not None and not needs_across(cfg, found):
-                break
-        row = {"truth": [round(x, 2), round(y, 2), round(yaw, 3)], "families": len(clouds),
-               "locate_s": round(motion_s + fit_s, 2), "fit_s": round(fit_s, 3),
-               "fit_cpu_s": round(fit_cpu_s, 3)}  # fmt: skip
+        if found is not None and not found.constrained:
+            found, error = None, f"pinned in one direction only ({found.constraint_points:.0f} points across)"
+        row = {"truth": [round(x, 2), round(y, 2), round(yaw, 3)], "runs": [lp.name for lp in run],
+               "motion_s": round(motion_s, 2), "locate_s": round(motion_s + fit_s + across_plan_s, 2),
+               "fit_s": round(fit_s, 3), "fit_cpu_s": round(fit_cpu_s, 3),
+               "across_plan_s": round(across_plan_s, 3),
+               "across_heights_mm": [round(float(lp.plan.passes[0].pos_mm[0, 2]), 1)
+                                     for lp in run if lp.across]}  # fmt: skip
         if found is not None:
             d_mm, d_deg = placement_offset(found.placement, truth_pl)
             row.update(pos_err_mm=round(d_mm, 3), angle_err_deg=round(d_deg, 4),
@@ -193,8 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         "track": cfg.robot.track is not None,
         "bed_mm": [cfg.locate.bed_min_xy_mm, cfg.locate.bed_max_xy_mm],
         "pass_spacing_mm": cfg.locate.pass_spacing_mm,
-        "passes": [lp.plan.summary()["passes"] for lp in plans],
-        "family_motion_s": [round(lp.plan.scan_time_s + cfg.daemon.settle_s, 2) for lp in plans],
+        "along_passes": first[0].plan.summary()["passes"],
+        "along_motion_s": round(first[0].plan.scan_time_s + cfg.daemon.settle_s, 2),
         "plan_s": round(plan_s, 3),
         "placements": len(rows),
         "located": len(ok),
@@ -208,7 +223,8 @@ def main(argv: list[str] | None = None) -> int:
         "fit_s_max": max(r["fit_s"] for r in rows),
         "fit_cpu_s_max": max(r["fit_cpu_s"] for r in rows),
         "load_1min": round(os.getloadavg()[0], 1),
-        "across_runs": sum(1 for r in rows if r["families"] > 1),
+        "across_runs": sum(1 for r in rows if len(r["runs"]) > 1),
+        "across_plan_s_max": max(r["across_plan_s"] for r in rows),
         "errors": [r["error"] for r in rows if "error" in r],
     }
     print(json.dumps(out))

@@ -626,7 +626,10 @@ class LocateSection(Section):
     ``pass_spacing_mm`` apart:
     one family along the bed's longer side over the whole bed; one across it over the middle square
     when the first leaves the fit sliding, or finds the plate's edges within ``across_within_deg`` of
-    square to its passes (an edge crossed square-on is seen only to a profile's spacing).
+    square to its passes (an edge crossed square-on is seen only to a profile's spacing). Where the
+    first found the plate's yaw and place along the bed, the passes across are ``across_passes``
+    passes at 20 .. 80 % of its extent along the bed, each over the bed's width at the height of the
+    outline it crosses (``standoff_mm`` above it); else the square family at the locate height.
     ``bed_z_mm``: the bed's top face (points up to ``min_height_mm`` above it are no plate).
     ``plate_band_mm``: points further than this below the design's lowest point or above its highest
     (the plate at ``[scan] placement_z_mm``) are no plate (supports beside a turned plate, clamps).
@@ -648,6 +651,7 @@ class LocateSection(Section):
     speed_mm_s: PositiveFloat = 225.0
     pass_spacing_mm: Annotated[float, Field(ge=20.0, le=2000.0, allow_inf_nan=False)] = 350.0
     across_within_deg: Annotated[float, Field(ge=0.0, le=45.0, allow_inf_nan=False)] = 10.0
+    across_passes: Annotated[int, Field(ge=1, le=6)] = 2
     max_offset_mm: PositiveFloat = 20.0
     max_angle_deg: PositiveFloat = 1.0
     convention_yaw_deg: Annotated[float, Field(ge=-180.0, le=180.0, allow_inf_nan=False)] = 0.0

@@ -272,7 +272,9 @@ class AssembledScan:
         s = step[lo : lo + _BLOCK_ROWS]
         return v & (np.arange(w, dtype=np.int32)[None, :] % s[:, None].astype(np.int32) == 0)
 
-    def _block(self, lo: int, step: np.ndarray, t0: int) -> dict[str, np.ndarray]:
+    def _block(
+        self, lo: int, step: np.ndarray, t0: int, transit_apart: bool = False
+    ) -> dict[str, np.ndarray]:
         """The cloud arrays (default dtypes) of rows ``lo`` .. ``lo + _BLOCK_ROWS``."""
         r, col = np.nonzero(self._kept(lo, step))
         if step.ndim == 0:
@@ -282,7 +284,7 @@ class AssembledScan:
         rows = r + lo
         return {
             "xyz_mm": self.xyz_mm[rows, col],
-            "pass_id": np.maximum(self.pass_id[rows], 0),
+            "pass_id": self.pass_id[rows] + 1 if transit_apart else np.maximum(self.pass_id[rows], 0),
             "profile_index": self.profile_index[rows],
             "point_index": point.astype(np.int32),
             "t_s": (self.t_ns[rows] - t0) * 1e-9,
@@ -290,7 +292,7 @@ class AssembledScan:
 
     def _check_fits(self, dt: dict[str, np.dtype | type]) -> None:
         n, w = len(self), self.valid.shape[1] if self.valid.ndim == 2 else 0
-        for name, top in (("pass_id", int(self.pass_id.max()) if n else 0), ("point_index", max(w - 1, 0)),
+        for name, top in (("pass_id", int(self.pass_id.max()) + 1 if n else 0), ("point_index", max(w - 1, 0)),
                           ("profile_index", int(self.profile_index.max()) if n else 0)):  # fmt: skip
             kind = np.dtype(dt[name])
             if kind.kind in "iu" and top > np.iinfo(kind).max:
@@ -309,6 +311,8 @@ class AssembledScan:
         column_step: int | np.ndarray = 1,
         t0_ns: int | None = None,
         dtypes: dict[str, np.dtype | type] | None = None,
+        *,
+        transit_apart: bool = False,
     ) -> dict[str, np.ndarray]:
         """The valid points (thinned as in :meth:`points`) in the cloud vocabulary of
         :mod:`analysis.cloud_io`: ``xyz_mm`` float32, ``pass_id`` with transit filed under pass 0,
@@ -319,7 +323,11 @@ class AssembledScan:
         the wire's u16/u32): the arrays are filled block of rows by block of rows at those dtypes, so a
         whole scan (a 6 m plate: 33 M published points of 170 M) costs its output and one block's
         temporaries, not int64 indices and times for every point. A value beyond the dtype's range
-        raises :class:`AssemblyError`."""
+        raises :class:`AssemblyError`.
+
+        transit_apart: the plan's passes numbered from 1 and the transit alone under pass 0 (the
+        locate run's clouds, read pass by pass), instead of the scan's first pass sharing pass 0
+        with the transit."""
         dt = {**CLOUD_DTYPES, **(dtypes or {})}
         step = self._column_step(column_step)
         self._check_fits(dt)
@@ -334,14 +342,14 @@ class AssembledScan:
         at = 0
         for lo, c in zip(blocks, counts, strict=True):
             if c:
-                for f, a in self._block(lo, step, t0).items():
+                for f, a in self._block(lo, step, t0, transit_apart).items():
                     out[f][at : at + c] = a
                 at += c
         return out
 
-    def scan_cloud(self, column_step: int | np.ndarray = 1) -> ScanCloud:
+    def scan_cloud(self, column_step: int | np.ndarray = 1, *, transit_apart: bool = False) -> ScanCloud:
         """:meth:`cloud_arrays` as the analysis' :class:`~analysis.cloud_io.ScanCloud`."""
-        return ScanCloud(**self.cloud_arrays(column_step))
+        return ScanCloud(**self.cloud_arrays(column_step, transit_apart=transit_apart))
 
     def digest(self) -> str:
         """SHA-256 over every array's bytes: equal digests mean bit-for-bit equal clouds."""

@@ -42,11 +42,11 @@ from cellctl.api import CellState, JobState
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import ActiveJob, JobStore
 from cellctl.daemon.locate import (
+    LocatePlan,
     face_down_refusal,
     given_placement_refusal,
-    locate_plans,
     locate_settings,
-    needs_across,
+    next_locate_plans,
 )
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.stream import ScanStream
@@ -195,42 +195,47 @@ class ScanRunner:
     async def _locate(self, job: ActiveJob, design: TriMesh) -> bool:
         """The locate run: passes along the bed, the outline fit, and passes across it when the first
         left the fit sliding along one direction or crossed the plate's edges square-on
-        (:func:`~cellctl.daemon.locate.needs_across`). Each run's cloud is on disk before it is fitted.
+        (:func:`~cellctl.daemon.locate.next_locate_plans`: across at the heights of the outline the
+        first fit puts under them). Each run's cloud is on disk before it is fitted.
 
         True with ``job.record.placement`` the placement found; False when the job ended (the plate
         was not found, a given placement is refused, the run was stopped or failed)."""
         host, rec, cfg = self.host, job.record, self.cfg
         given = None if rec.placement is None else Placement.model_validate(rec.placement)
         t0 = time.perf_counter()
-        try:
-            plans = await asyncio.to_thread(locate_plans, cfg, design)
-        except (PlanInputError, PlanRefused) as exc:
-            host.job_state(
-                job, JobState.FAILED, f"locate run refused by the planner: {exc} ([locate] bed, standoff)"
-            )
-            return False
         lst = locate_settings(cfg, design, None if given is None else given.yaw_deg)
+        run: list[LocatePlan] = []
         clouds: list[ScanCloud] = []
         found: LocateResult | None = None
         reason = ""
-        for lp in plans:
-            if self._stopped_before_motion(job) or not await self._preflight(job, lp.plan):
-                return False
-            raw_dir = self.store.job_dir(rec.job_id) / "locate" / lp.name.replace(" ", "-")
-            scan = await self._acquire(job, lp.plan, lp.settings, raw_dir=raw_dir, phase=lp.name)
-            if scan is None:
-                return False
-            cloud = scan.scan_cloud()
-            # acquired data reaches disk before anything else can fail
-            await asyncio.to_thread(write_cloud_npz, cloud, raw_dir / "cloud.npz")
-            clouds.append(cloud)
+        while True:
             try:
-                found = await asyncio.to_thread(locate_plate, clouds, design, lst)
+                plans = await asyncio.to_thread(next_locate_plans, cfg, design, run, found)
+            except (PlanInputError, PlanRefused) as exc:
+                host.job_state(
+                    job, JobState.FAILED, f"locate run refused by the planner: {exc} ([locate] bed, standoff)"
+                )
+                return False
+            if not plans:
+                break
+            for lp in plans:
+                if self._stopped_before_motion(job) or not await self._preflight(job, lp.plan):
+                    return False
+                raw_dir = self.store.job_dir(rec.job_id) / "locate" / lp.name.replace(" ", "-")
+                scan = await self._acquire(job, lp.plan, lp.settings, raw_dir=raw_dir, phase=lp.name)
+                if scan is None:
+                    return False
+                # its passes from 1, the transit apart under 0: the fit reads pass by pass
+                cloud = scan.scan_cloud(transit_apart=True)
+                # acquired data reaches disk before anything else can fail
+                await asyncio.to_thread(write_cloud_npz, cloud, raw_dir / "cloud.npz")
+                clouds.append(cloud)
+                run.append(lp)
+            try:
+                ranges = [lp.range_z_mm for lp in run]
+                found = await asyncio.to_thread(locate_plate, clouds, design, lst, ranges)
             except LocateError as exc:
                 found, reason = None, str(exc)
-                continue
-            if not needs_across(cfg, found):
-                break
         locate_s = round(time.perf_counter() - t0, 3)
         if found is None:
             host.job_state(

@@ -633,7 +633,7 @@ def build_segments(
         lo_i, hi_i = lo_a - margin, hi_a + margin
         if reach is not None:
             lo_i, hi_i = max(lo_i, reach[0] - drift), min(hi_i, reach[1] + drift)
-        a0, a1 = (lo_i, hi_i) if i % 2 == 0 else (hi_i, lo_i)
+        a0, a1 = (lo_i, hi_i) if (i + settings.passes_reversed) % 2 == 0 else (hi_i, lo_i)
         s = _samples(a0, a1, settings.waypoint_step_mm)
         xy = s[:, None] * a2[None] + c * c2[None]
         pos, R, _, _ = _sensor_frames(

@@ -34,6 +34,8 @@ class PlannerSettings:
     laser line, keeping the wrist clear of its singularity), placement uncertainty (``placement_uncertainty_mm`` shift,
     ``placement_uncertainty_deg`` rotation), ``flying_turns`` (neighbouring raster passes joined by
     a turnaround flown at speed outside the plate; off: a hump link, at rest at both ends),
+    ``passes_reversed`` (the serpentine's first raster pass runs from the far end of the passes'
+    axis, +x of the plate frame for a plate longer in x; the sensor's lean along that axis stays),
     ``link_clearance_mm`` lift on links, ``approach_mm``
     along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
     Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
@@ -59,6 +61,7 @@ class PlannerSettings:
     edge_passes: bool = True
     edge_tilt_deg: float = 30.0
     flying_turns: bool = True
+    passes_reversed: bool = False
     sweep_pitch_deg: float = 0.0
     placement_uncertainty_mm: float = 30.0
     placement_uncertainty_deg: float = 2.0

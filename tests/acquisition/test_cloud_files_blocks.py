@@ -63,3 +63,14 @@ def test_las_is_the_same_whatever_the_blocks(tmp_path, monkeypatch: pytest.Monke
     a = write_las(scan, tmp_path / "a.las").read_bytes()
     monkeypatch.setattr(asm, "_BLOCK_ROWS", 3)
     assert write_las(scan, tmp_path / "b.las").read_bytes() == a
+
+
+def test_the_transit_apart_numbers_the_passes_from_one(block_rows: int) -> None:
+    """The scan's cloud files the transit with its first pass under pass 0; the locate run's keeps
+    them apart (passes from 1, the transit alone under 0), so its first pass is read as a pass."""
+    scan = _scan()
+    whole, apart = scan.scan_cloud(), scan.scan_cloud(transit_apart=True)
+    row_pass = np.repeat(scan.pass_id[:, None], scan.valid.shape[1], axis=1)[scan.valid]
+    np.testing.assert_array_equal(apart.pass_id, row_pass + 1)
+    np.testing.assert_array_equal(whole.pass_id, np.maximum(row_pass, 0))
+    np.testing.assert_array_equal(whole.xyz_mm, apart.xyz_mm)

@@ -186,3 +186,68 @@ def test_no_plate_and_the_wrong_design_are_refused_with_a_reason():
     small = design_mesh(plate_spec("sail", length_mm=700.0, width_mm=500.0), pitch_mm=20.0)
     with pytest.raises(LocateError, match="does not fit"):
         fit_outline(plate_boundary(locate_clouds(truth), _settings()), design_outline(small), _settings())
+
+
+def test_each_cloud_is_read_in_its_own_depth_range():
+    """Passes flown at their own heights (the locate run's passes across): each cloud's edge points
+    are kept or dropped by its own depth range. Read in the first cloud's range, the second's
+    range exits pass for edges and its real edges are dropped: the fit fails."""
+    truth = Placement.on_bed(1500.0, 0.0, 0.0, z_mm=300.0)
+    high = locate_clouds(truth, sensor_z_mm=470.0)[0]  # along: world z 340 .. 400 measured
+    low = locate_clouds(truth, sensor_z_mm=420.0)[1]  # across, lower: world z 290 .. 350
+    ranges = [(470.0 - RANGE[1], 470.0 - RANGE[0]), (420.0 - RANGE[1], 420.0 - RANGE[0])]
+    st = LocateSettings(range_z_mm=ranges[0])
+    own = plate_boundary([high, low], st, ranges)
+    # the long edges the low passes cross (326 .. 340 mm, below the high range) are kept
+    assert np.sum(own.boundary_mm[:, 2] < ranges[0][0]) > 100
+    assert own.dropped_range > 0  # and where the surface left the low range is no edge
+    res = locate_plate([high, low], MESH, st, ranges)
+    d_mm, d_deg = placement_offset(res.placement, truth)
+    assert res.constrained and d_mm < 2.0 and d_deg < 0.2, res.summary()
+    assert not locate_plate([high], MESH, st).constrained  # the high passes alone slide across
+    with pytest.raises(LocateError, match="does not fit"):
+        locate_plate([high, low], MESH, st)  # one range for both
+    with pytest.raises(LocateError, match="2 depth ranges for 1 locate clouds"):
+        plate_boundary([high], st, ranges)
+
+
+def _with_wall(cloud: ScanCloud, rows: int = 4, drop_mm: float = 2.5, out_mm: float = 0.3) -> ScanCloud:
+    """``cloud`` with a thickness face seen where its fullest pass enters the plate: ``rows``
+    profiles before its first plate profile, each ``drop_mm`` lower and ``out_mm`` further out (a
+    leaning sensor looking at a face that leans out, square to a curved plate's surface)."""
+    on = cloud.pass_id == np.bincount(cloud.pass_id).argmax()
+    first = int(cloud.profile_index[on].min())
+    row = np.flatnonzero(on & (cloud.profile_index == first))
+    xyz, pid, prof, pt = [cloud.xyz_mm], [cloud.pass_id], [cloud.profile_index], [cloud.point_index]
+    for k in range(1, rows + 1):
+        p = cloud.xyz_mm[row].copy()
+        p[:, 0] -= out_mm * k  # the pass runs along +x: the face lies before the top's edge
+        p[:, 2] -= drop_mm * k
+        xyz.append(p)
+        pid.append(cloud.pass_id[row])
+        prof.append(cloud.profile_index[row] - k)
+        pt.append(cloud.point_index[row])
+    return ScanCloud(np.concatenate(xyz), np.concatenate(pid), np.concatenate(prof), np.concatenate(pt))
+
+
+def test_a_thickness_face_in_view_is_no_part_of_the_top():
+    """The edge is where the plate's top ends: points falling away below it (its face, seen by a
+    leaning sensor) are dropped before the boundary is taken."""
+    truth = Placement.on_bed(1500.0, 0.0, 0.0, z_mm=300.0)
+    along = locate_clouds(truth, sensor_z_mm=470.0)[0]
+    st = LocateSettings(range_z_mm=(340.0, 400.0), range_margin_mm=0.0)
+    x_edge = truth.x_mm - PLATE.length_mm / 2
+
+    fullest = along.pass_id == np.bincount(along.pass_id).argmax()
+    y_pass = float(np.median(along.xyz_mm[fullest, 1]))
+
+    def entry_edge_x(cloud, settings):  # where the fullest pass enters the plate
+        b = plate_boundary([cloud], settings).boundary_mm
+        near = b[(np.abs(b[:, 0] - x_edge) < 10.0) & (np.abs(b[:, 1] - y_pass) < 20.0)]
+        return float(np.median(near[:, 0]))
+
+    assert abs(entry_edge_x(along, st) - x_edge) < 1.2  # the top's edge, to a profile's spacing
+    walled = _with_wall(along)
+    assert abs(entry_edge_x(walled, st) - x_edge) < 1.2
+    kept = LocateSettings(range_z_mm=(340.0, 400.0), range_margin_mm=0.0, wall_step_mm=0.0)
+    assert entry_edge_x(walled, kept) < x_edge - 1.0  # read as top, the face moves the edge out

@@ -11,18 +11,22 @@ from pydantic import ValidationError
 
 from analysis.locate import LocateResult
 from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.plates import design_height_mm, design_mesh, plate_spec
 from cellctl.api.models import TriggerRequest
-from cellctl.config import CellConfig, LocateSection
+from cellctl.config import CellConfig, LocateSection, load_config
 from cellctl.daemon.jobs import JobRecord, _checked
 from cellctl.daemon.locate import (
+    across_plans,
     face_down_refusal,
     given_placement_refusal,
     locate_height_mm,
     locate_plans,
     locate_settings,
     needs_across,
+    next_locate_plans,
 )
+
+REPO = Path(__file__).resolve().parents[2]
 
 SAIL = design_mesh(plate_spec("sail", length_mm=1200.0, width_mm=800.0), pitch_mm=20.0)
 
@@ -123,3 +127,71 @@ def test_how_the_placement_was_found_travels_to_the_report_inputs():
             CellConfig(), job_id="j", plate_id="P", design="/d/p.ply", placement=None, out_dir=Path("/tmp/x"),
             placement_found={"source": "guessed"},
         )  # fmt: skip
+
+
+def test_the_passes_across_a_deep_plate_fly_at_the_height_of_the_edges_they_cross():
+    """The long cell's 6000 x 2000 sail: its long edges fall from 275 mm (corners) to 50 mm (their
+    middles) above its centre, and one height above its highest edge sees down to 60 mm below it.
+    Planned from a first fit that has the yaw and the place along the bed, each pass across runs
+    over the bed's whole width and its depth range holds the long edges where it crosses them; the
+    second starts where the first ended, and the move between them stays in the workspace box."""
+    cfg = load_config(REPO / "docs" / "examples" / "cell-track.toml")
+    spec = plate_spec("sail", length_mm=6000.0, width_mm=2000.0, radius_x_mm=20000.0, radius_y_mm=10000.0)
+    design = design_mesh(spec, pitch_mm=50.0)
+    truth = Placement.on_bed(
+        1250.0, 300.0, 90.0, z_mm=cfg.scan.placement_z_mm
+    )  # long side along the rail (y)
+    # a first fit: yaw and y right, x slid 400 mm across the bed (the passes along cannot tell)
+    found = _found(850.0, 300.0, 90.0, constrained=False)
+    along_end = np.array([375.0, -3325.9])  # where the passes along end: the near side, the -y end
+    plans = across_plans(cfg, design, found, along_end)
+    assert [lp.name for lp in plans] == ["locate across 1", "locate across 2"] and all(
+        lp.across for lp in plans
+    )
+    one_height = locate_settings(cfg, design, None).range_z_mm
+    lo, hi = cfg.locate.bed_min_xy_mm, cfg.locate.bed_max_xy_mm
+    margin = 3.0  # analysis.locate's range_margin_mm
+    ys = []
+    for lp in plans:
+        (seg,) = lp.plan.passes
+        y_pass = float(seg.pos_mm[0, 1])
+        ys.append(y_pass)
+        assert np.allclose(seg.pos_mm[:, 1], y_pass, atol=1e-6)  # across the rail, at one place along it
+        assert np.allclose(seg.pos_mm[:, 2], seg.pos_mm[0, 2], atol=1e-6)  # flat
+        # the laser line (the sensor leans along the pass) sweeps the bed's whole width
+        line_x = seg.pos_mm[:, 0] + lp.settings.standoff_mm * seg.R_base_sensor[:, 0, 2]
+        assert line_x.min() < lo[0] + 1.0 and line_x.max() > hi[0] - 1.0
+        # where the truth's long edges cross it (design x = pass's place along the plate, y = +-1000)
+        edge_z = truth.z_mm + float(design_height_mm(spec, np.array(y_pass - truth.y_mm), np.array(1000.0)))
+        assert lp.range_z_mm[0] + margin < edge_z < lp.range_z_mm[1] - margin, (lp.range_z_mm, edge_z)
+        assert not one_height[0] < edge_z  # the passes along, above the highest edge, cannot see it
+    # at 20 and 80 % of the plate's extent along the rail, the nearer one first
+    assert ys == pytest.approx([300.0 - 1800.0, 300.0 + 1800.0], abs=1.0)
+    first, second = (lp.plan.passes[0].pos_mm for lp in plans)
+    assert abs(first[0, 0] - along_end[0]) < abs(first[-1, 0] - along_end[0])  # from the near side
+    assert abs(second[0, 0] - first[-1, 0]) < 1.0  # the second from where the first ended
+    # the move to the second's start: a straight line in joint space, the TCP inside the box
+    from drivers.abb_egm.kinematics import fk_batch
+
+    q_a, q_b = plans[0].plan.trajectory.q_deg[-1], plans[1].plan.trajectory.q_deg[0]
+    u = np.linspace(0.0, 1.0, 257)[:, None]
+    tcp = fk_batch((q_a + u * (q_b - q_a))[:, -6:], plans[1].settings.T_flange_sensor)[:, :3, 3]
+    assert np.all(tcp >= np.asarray(cfg.robot.workspace_min_mm)) and np.all(tcp <= cfg.robot.workspace_max_mm)
+
+
+def test_the_locate_run_goes_along_then_across_as_the_fit_asks():
+    cfg = CellConfig()
+    (along,) = next_locate_plans(cfg, SAIL, [], None)
+    assert along.name == "locate along" and not along.across
+    h = locate_height_mm(cfg, SAIL)
+    assert along.range_z_mm == pytest.approx((h - cfg.laser.depth_max_mm, h - cfg.laser.depth_min_mm))
+    assert next_locate_plans(cfg, SAIL, [along], _found(1500.0, 0.0, 25.0)) == []  # constrained, not square
+    # sliding: passes across planned from the fit, at 20 and 80 % of the plate's 1200 mm along x
+    planned = next_locate_plans(cfg, SAIL, [along], _found(1500.0, 0.0, 0.0, constrained=False))
+    assert [lp.name for lp in planned] == ["locate across 1", "locate across 2"]
+    xs = [float(lp.plan.passes[0].pos_mm[0, 0]) for lp in planned]
+    assert xs == pytest.approx([1500.0 - 360.0, 1500.0 + 360.0], abs=1.0)
+    # no fit: the square family over the bed's middle, at the locate height
+    (square,) = next_locate_plans(cfg, SAIL, [along], None)
+    assert square.name == "locate across" and square.across and len(square.plan.passes) > 1
+    assert next_locate_plans(cfg, SAIL, [along, *planned], None) == []  # nothing after passes across

@@ -202,3 +202,16 @@ def test_a_design_without_a_four_cornered_boundary_falls_back_to_its_bounds():
     on_x = np.minimum(np.abs(pts[:, 0] - surface.x_min_mm), np.abs(pts[:, 0] - surface.x_max_mm))
     on_y = np.minimum(np.abs(pts[:, 1] - surface.y_min_mm), np.abs(pts[:, 1] - surface.y_max_mm))
     assert np.minimum(on_x, on_y).max() < 1e-6
+
+
+def test_reversed_passes_run_the_serpentine_from_the_far_end_leaning_the_same_way():
+    mesh = design_mesh(plate_spec("sail"), pitch_mm=10.0)
+    surface = design_surface(mesh)
+    settings = dataclasses.replace(SETTINGS, sweep_pitch_deg=15.0)
+    fwd, _ = build_segments(surface, SAIL_PLACEMENT, settings)
+    rev, _ = build_segments(surface, SAIL_PLACEMENT, dataclasses.replace(settings, passes_reversed=True))
+    scans = [[s for s in segs if s.kind == "scan"] for segs in (fwd, rev)]
+    assert len(scans[0]) == len(scans[1]) > 1
+    for a, b in zip(*scans, strict=True):
+        # the same pass, run the other way round, the sensor leaning the same way
+        assert np.allclose(a.pos_mm[::-1], b.pos_mm) and np.allclose(a.R_base_sensor[::-1], b.R_base_sensor)
