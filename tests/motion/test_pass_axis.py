@@ -70,7 +70,9 @@ def test_an_axis_that_cannot_win_is_not_solved_and_its_estimate_is_said():
     # the bound holds for the plan made: no timing is shorter than it
     assert lower_bound_s(plan.segments, PlannerSettings()) <= plan.scan_time_s
     # a plan's estimate from itself is its bound plus its own non-sweep time above the bound
-    assert estimate_s(plan.segments, plan.segments, PlannerSettings()) == pytest.approx(plan.scan_time_s, rel=0.02)
+    assert estimate_s(plan.segments, plan.segments, PlannerSettings()) == pytest.approx(
+        plan.scan_time_s, rel=0.02
+    )
 
 
 def test_an_unknown_pass_axis_is_refused_by_name():
