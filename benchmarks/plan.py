@@ -17,6 +17,9 @@ plate's long side along the rail, docs/robot-setup.md "The long-plate cell") at 
 or follow, edge tilts lowered, edge order), the stages' times and ``decide_s`` (how long planning
 took, coverage included).
 
+``choices``: the planner's (for the sail: the axis its passes run along, ``pass_axis``, with each
+axis' lower bound, estimate and time, or why it was not solved).
+
 ``--track``: the sail with the robot on a 6 m linear track along +y, its base at the middle of the
 travel where the rail-less base is (the plate within the fixed arm's reach: the carriage holds and
 the plan is the rail-less one); a ``[robot.track]`` in the ``--config`` file does the same with that
@@ -136,6 +139,7 @@ def main() -> int:
         "passes": s["passes"],
         "edge_passes": s["edge_passes"],
         "stages_s": {k: round(v, 3) for k, v in plan.timings_s.items()},
+        "choices": plan.choices,
         "large": large_out,
         "track": None
         if settings.track is None

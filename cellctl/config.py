@@ -327,6 +327,9 @@ class ScanSection(Section):
     profile_spacing_mm: PositiveFloat = 0.5
     transit_speed_mm_s: PositiveFloat = 250.0
     edge_passes: bool = True
+    # The raster passes run along the plate's "longer" or "shorter" footprint axis, or "fastest":
+    # whichever gives the shorter timed scan within the limits (the other where one is refused).
+    pass_axis: Literal["fastest", "longer", "shorter"] = "fastest"
     placement_uncertainty_mm: NonNegativeFloat = 30.0
     placement_uncertainty_deg: NonNegativeFloat = 2.0
     placement_z_mm: Finite = 300.0

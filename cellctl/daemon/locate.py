@@ -129,6 +129,8 @@ def _planner_settings(cfg: CellConfig) -> PlannerSettings:
         # the locate passes span the whole bed: a turnaround flown beyond its ends would leave the
         # arm's reach (the default bed: joint 3 at 73.02 deg on link 2); they stop and go, as before
         flying_turns=False,
+        # each locate plan is a strip of the bed whose passes run along it, as the run intends
+        pass_axis="longer",
     )
 
 

@@ -48,12 +48,12 @@ from cellctl.daemon.locate import (
     locate_settings,
     next_locate_plans,
 )
+from cellctl.daemon.plan_process import PlanProcess, PlanProcessError
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan
-from cellctl.planning.cache import PlanCache
 from drivers.laser.client import HD8Client
 
 __all__ = ["ScanHost", "ScanRunner"]
@@ -95,6 +95,7 @@ class ScanRunner:
         self.store = store
         self.drivers = drivers
         self.host = host
+        self.planner = PlanProcess()
 
     async def scan(self, job: ActiveJob) -> bool:
         """Plan, execute and acquire. True when the scan completed (raw files closed, ``job.cloud`` set).
@@ -287,11 +288,16 @@ class ScanRunner:
             placement = Placement.model_validate(rec.placement)
             settings = PlannerSettings.from_config(self.cfg)
             t0 = time.perf_counter()
-            # a plan for the same design, placement and settings is reused after the envelope check
-            cache = PlanCache(self.store.root.parent / "plan-cache")
-            got = await asyncio.to_thread(cache.plan, design, placement, settings, with_coverage=False)
+            # a plan for the same design, placement and settings is reused after the envelope check;
+            # planned in a child process: the EGM session coming up meanwhile is answered every cycle
+            got = await self.planner.plan(
+                design, placement, settings, self.store.root.parent / "plan-cache", job_id=rec.job_id
+            )
         except (MeshError, PlateError, PlanInputError, PlanRefused) as exc:
             self.host.job_state(job, JobState.FAILED, f"plan refused: {exc}")
+            return None
+        except PlanProcessError as exc:
+            self.host.job_state(job, JobState.FAILED, f"plan failed: {exc}; nothing moved")
             return None
         plan = got.plan
         self.host.job_state(

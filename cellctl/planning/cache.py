@@ -42,7 +42,8 @@ log = structlog.get_logger(__name__)
 
 #: bump when the planner plans differently from the same inputs (or the stored plan's format changes)
 PLAN_CACHE_VERSION = (
-    "cellctl.plan_cache/3+cellctl.scan_plan/1"  # 2: the carriage holds when it can; 3: flying turnarounds
+    # 2: the carriage holds when it can; 3: flying turnarounds; 4: the passes along either axis
+    "cellctl.plan_cache/4+cellctl.scan_plan/1"
 )
 
 

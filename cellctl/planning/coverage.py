@@ -34,7 +34,7 @@ from analysis.mesh import TriMesh
 from analysis.outline import OutlineError, mesh_boundary_loops, outline_corners
 from analysis.placement import Placement, placement_transform
 from analysis.plates import canonical_corner_order
-from cellctl.planning.plan import CoverageReport, PlanInputError, PlanRefused, Segment
+from cellctl.planning.plan import PASS_AXES, CoverageReport, PlanInputError, PlanRefused, Segment
 from cellctl.planning.settings import PlannerSettings
 
 __all__ = [
@@ -591,6 +591,7 @@ def build_segments(
     edge_tilts_deg: Mapping[str, float] | None = None,
     edge_reverse: bool = False,
     raster_cache: dict | None = None,
+    axis: str = "longer",
 ) -> tuple[list[Segment], float]:
     """The ordered segments of a scan (base frame) and the placement margin used (mm).
 
@@ -604,14 +605,18 @@ def build_segments(
     sensor's heading then turns the other way, and so do the wrist's joints 4 and 6).
     ``raster_cache``: a dict the caller keeps across calls with the same surface and settings; the
     raster passes (plate frame, which depend on neither the placement, the edge tilts nor the edge
-    order) are then computed once per ``sign``.
+    order) are then computed once per ``sign``. ``axis``: the raster passes run along the
+    footprint's ``"longer"`` axis (x when the two are equal) or its ``"shorter"`` one (the planner
+    tries both when ``settings.pass_axis`` is ``"fastest"``).
 
     Raises:
         PlanRefused: the line would leave the depth range somewhere.
     """
     margin = placement_margin_mm(surface, settings)
     L, W = surface.size_mm
-    along_x = L >= W
+    if axis not in PASS_AXES:
+        raise PlanInputError(f"axis: {axis!r} is not one of {PASS_AXES}")
+    along_x = (L >= W) == (axis == "longer")
     a2 = np.array([1.0, 0.0]) if along_x else np.array([0.0, 1.0])
     c2 = np.array([0.0, 1.0]) if along_x else np.array([1.0, 0.0])
     lo_a, hi_a = (surface.x_min_mm, surface.x_max_mm) if along_x else (surface.y_min_mm, surface.y_max_mm)

@@ -8,6 +8,7 @@ laser's frame (rays along +z, the laser line along x, the pass along +/-y).
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +20,7 @@ from analysis.placement import Placement
 from cellctl.motion.trajectory import TimedTrajectory
 
 __all__ = [
+    "PASS_AXES",
     "SEGMENT_KINDS",
     "CoverageReport",
     "PlanInputError",
@@ -32,6 +34,8 @@ SegmentKind = Literal["approach", "scan", "edge", "link", "retract"]
 SEGMENT_KINDS: tuple[str, ...] = ("approach", "scan", "edge", "link", "retract")
 #: segments during which the sensor records (constant TCP speed)
 SWEEP_KINDS: tuple[str, ...] = ("scan", "edge")
+#: the footprint axis the raster passes run along (``PlannerSettings.pass_axis`` adds "fastest")
+PASS_AXES: tuple[str, ...] = ("longer", "shorter")
 
 
 class PlanInputError(ValueError):
@@ -67,6 +71,11 @@ class PlanRefused(Exception):
         if pass_label is not None:
             where = f"{pass_label}" + (f", point {point_index}" if point_index is not None else "") + ": "
         super().__init__(where + reason + (f" [limit: {limit}]" if limit else ""))
+
+    def __reduce__(self):
+        # across a process boundary (the daemon plans in a child process) with every field
+        fields = {"pass_label": self.pass_label, "point_index": self.point_index, "limit": self.limit}
+        return functools.partial(type(self), pos_mm=self.pos_mm, **fields), (self.reason,)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready description of the refusal."""

@@ -11,6 +11,7 @@ from a worker thread or process, never on the event loop.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import structlog
@@ -23,6 +24,7 @@ from cellctl.planning.coverage import build_segments, design_surface, predict_co
 from cellctl.planning.joint_path import (
     REACH_MM,
     TRACK_LEADS_MM,
+    JointPathResult,
     check_reach,
     first_configuration,
     hold_position_mm,
@@ -32,17 +34,19 @@ from cellctl.planning.joint_path import (
     wrist_distances_mm,
 )
 from cellctl.planning.plan import (
+    PASS_AXES,
     CoverageReport,
     Placement,
     PlanInputError,
     PlanRefused,
     ScanPlan,
+    Segment,
     pose_matrix,
 )
 from cellctl.planning.settings import PlannerSettings
-from cellctl.planning.timing import time_segments
+from cellctl.planning.timing import TimingResult, time_segments
 
-__all__ = ["check_plan_envelope", "plan_scan"]
+__all__ = ["check_plan_envelope", "estimate_s", "lower_bound_s", "plan_scan"]
 
 log = structlog.get_logger(__name__)
 
@@ -104,13 +108,14 @@ def _build(
     settings: PlannerSettings,
     sign: float,
     *,
+    axis: str,
     edge_reverse: bool,
     raster_cache: dict,
 ) -> tuple[list, float, dict[str, float]]:
     """The segments (:func:`build_segments`), the margin, and the edge passes' tilts lowered to keep
     them in reach (by label; empty when none was)."""
     tilts: dict[str, float] = {}
-    kwargs = {"sign": sign, "edge_reverse": edge_reverse, "raster_cache": raster_cache}
+    kwargs = {"sign": sign, "axis": axis, "edge_reverse": edge_reverse, "raster_cache": raster_cache}
     segments, margin = build_segments(surface, placement, settings, **kwargs)
     while _lower_edge_tilts(segments, settings, tilts):
         segments, margin = build_segments(surface, placement, settings, edge_tilts_deg=tilts, **kwargs)
@@ -137,6 +142,171 @@ def _by_wrist_roll(built: list[tuple], settings: PlannerSettings, kin, hold_mm: 
     return [c[1] for c in costs]
 
 
+def lower_bound_s(segments: list[Segment], settings: PlannerSettings) -> float:
+    """No timing of these segments is shorter: the sweeps at the scan speed, everything else at the
+    TCP speed cap (which the envelope holds every set-point to), s."""
+    return float(
+        sum(
+            s.length_mm / (settings.scan_speed_mm_s if s.is_sweep else settings.tcp_speed_max_mm_s)
+            for s in segments
+        )
+    )
+
+
+def estimate_s(segments: list[Segment], timed: list[Segment], settings: PlannerSettings) -> float:
+    """The scan time of ``segments`` (not yet solved) as :func:`lower_bound_s` plus, for each of
+    their links, turnarounds, approach and retract, the mean time a timed plan's (``timed``, the same
+    plate along its other axis) took above its own bound: its sweeps at the scan speed (optimistic:
+    a pass slowed by a limit along one axis may not be along the other), its turnarounds as slow as
+    the other axis' (the same pass step, loops and speeds), s."""
+    others = [s for s in timed if not s.is_sweep]
+    excess = sum(s.duration_s - s.length_mm / settings.tcp_speed_max_mm_s for s in others) / max(
+        len(others), 1
+    )
+    n_other = sum(1 for s in segments if not s.is_sweep)
+    return lower_bound_s(segments, settings) + n_other * max(excess, 0.0)
+
+
+def _orientations(
+    surface, placement: Placement, settings: PlannerSettings, axis: str, raster_cache: dict
+) -> list[tuple]:
+    """The passes along ``axis`` with the sensor looking either way round: (sign, segments, margin,
+    edge tilts) for sign +1 and -1, their raster passes computed once per sign into ``raster_cache``
+    (one per axis).
+
+    Raises:
+        PlanRefused: out of reach (either way round: the carriage following the passes gives the arm
+            the most room, said before any inverse kinematics), or out of the depth range.
+    """
+    built = []
+    for sign in (1.0, -1.0):
+        segments, margin, tilts = _build(
+            surface, placement, settings, sign, axis=axis, edge_reverse=False, raster_cache=raster_cache
+        )
+        if sign > 0:
+            check_reach(in_base_frame(segments, settings)[0], settings)
+        built.append((sign, segments, margin, tilts))
+    return built
+
+
+@dataclass
+class _Solved:
+    """One axis's plan before the coverage prediction: its joint path, segments, timing, choices."""
+
+    axis: str
+    path: JointPathResult
+    segments: list[Segment]
+    margin: float
+    timing: TimingResult
+    choices: dict
+
+
+def _solve(
+    surface,
+    placement: Placement,
+    settings: PlannerSettings,
+    kin,
+    axis: str,
+    built: list[tuple],
+    raster_cache: dict,
+) -> _Solved:
+    """The joint path and timing of the passes along ``axis`` (:func:`_orientations`' ``built``, its
+    ``raster_cache``).
+
+    The sensor may look along the pass either way round; the one the wrist likes better (less roll on
+    joints 4 and 6) is tried first, the other when the first is refused. With a track: first hold the
+    carriage where the plate's footprint centre is abreast of the base (a plate within the fixed
+    arm's reach then gets the rail-less cell's plan), then follow the passes at a few along-rail
+    offsets of the sensor from the base.
+
+    Raises:
+        PlanRefused: no orientation, carriage mode or edge order is within the limits (the reason
+            given is the carriage following the passes': it gives the arm the most room).
+    """
+    if settings.track is None:
+        modes: list[tuple[float | None, float]] = [(None, 0.0)]
+    else:
+        centre = placement_transform(placement) @ np.array(
+            [
+                0.5 * (surface.x_min_mm + surface.x_max_mm),
+                0.5 * (surface.y_min_mm + surface.y_max_mm),
+                0.0,
+                1.0,
+            ]
+        )
+        follow: list[tuple[float | None, float]] = [(None, lead) for lead in TRACK_LEADS_MM]
+        modes = ([(hold_position_mm(centre[:3], settings), 0.0)] if settings.track_hold else []) + follow
+    refusals: dict[bool, PlanRefused] = {}  # the first refusal when following / holding
+    reversed_built: dict[float, tuple] = {}
+    path = None
+    for hold, lead in modes:
+        for option in _by_wrist_roll(built, settings, kin, hold):
+            sign = option[0]
+            try:
+                path = solve_joint_path(option[1], settings, kin, track_lead_mm=lead, track_hold_mm=hold)
+                _, segments, margin, edge_tilts = option
+                edge_reverse = False
+                break
+            except PlanRefused as exc:
+                log.info(
+                    "plan_orientation_refused",
+                    axis=axis,
+                    sign=sign,
+                    track_hold_mm=hold,
+                    track_lead_mm=lead,
+                    reason=str(exc),
+                )
+                refusals.setdefault(hold is None, exc)
+                if not _wrist_wound(exc):
+                    continue
+            # the wrist ran out of turns on joint 4 or 6 going round the edges: go round the other way
+            if sign not in reversed_built:
+                reversed_built[sign] = (
+                    sign,
+                    *_build(
+                        surface,
+                        placement,
+                        settings,
+                        sign,
+                        axis=axis,
+                        edge_reverse=True,
+                        raster_cache=raster_cache,
+                    ),
+                )
+            try:
+                # the raster passes are the same: their joints carry over from the attempt just refused
+                path = solve_joint_path(
+                    reversed_built[sign][1],
+                    settings,
+                    kin,
+                    track_lead_mm=lead,
+                    track_hold_mm=hold,
+                    solved=option[1],
+                )
+                _, segments, margin, edge_tilts = reversed_built[sign]
+                edge_reverse = True
+                break
+            except PlanRefused as exc:
+                log.info(
+                    "plan_orientation_refused", axis=axis, sign=sign, track_hold_mm=hold, track_lead_mm=lead,
+                    edge_reverse=True, reason=str(exc),
+                )  # fmt: skip
+        if path is not None:
+            break
+    else:
+        raise refusals.get(True) or refusals[False]
+    choices: dict = {}
+    if settings.track is not None:
+        choices["track"] = (
+            {"mode": "hold", "hold_mm": hold} if hold is not None else {"mode": "follow", "lead_mm": lead}
+        )
+    if edge_tilts:
+        choices["edge_tilt_deg"] = dict(edge_tilts)
+    if edge_reverse:
+        choices["edge_order"] = "reversed"
+    return _Solved(axis, path, segments, margin, time_segments(segments, settings), choices)
+
+
 def plan_scan(
     design: TriMesh,
     placement: Placement,
@@ -157,7 +327,15 @@ def plan_scan(
 
     Raises:
         PlanInputError: unusable design or settings.
-        PlanRefused: the plate cannot be scanned with these limits; names the pass, point and limit.
+        PlanRefused: the plate cannot be scanned with these limits; names the pass, point and limit
+            (with ``pass_axis`` "fastest", the passes along the longer axis' reason).
+
+    ``pass_axis`` "fastest": the passes along each footprint axis are built, and the axis whose
+    :func:`lower_bound_s` is smaller is solved and timed first (the inverse kinematics and timing
+    are most of the planning time); the other is solved only when its :func:`estimate_s` (its bound
+    plus its turnarounds as slow as the first's) is below that plan's scan time, or when the first
+    is refused, and the faster plan is kept. The plan's ``choices["pass_axis"]`` says which axis,
+    and for each its bound, estimate and scan time, or why it was skipped or refused.
     """
     settings = settings or PlannerSettings()
     if not isinstance(design, TriMesh):
@@ -170,104 +348,50 @@ def plan_scan(
     kin = sensor_kinematics(settings)
     timings["surface_s"] = time.perf_counter() - t0
 
-    # The sensor may look along the pass either way round; take the one the wrist likes better
-    # (less roll on joints 4 and 6), and fall back to the other when the first is refused.
+    # The passes run along the footprint's longer or shorter axis (pass_axis; "fastest": the one
+    # whose timed scan is shorter, the other where one is refused). An axis whose passes cannot be
+    # timed shorter than the plan already in hand (lower_bound_s) is not solved at all.
+    axes = PASS_AXES if settings.pass_axis == "fastest" else (settings.pass_axis,)
     t1 = time.perf_counter()
-    built = []
-    raster_cache: dict = {}
-    for sign in (1.0, -1.0):
-        segments, margin, tilts = _build(
-            surface, placement, settings, sign, edge_reverse=False, raster_cache=raster_cache
-        )
-        if sign > 0:
-            # out of reach is out of reach either way round (the carriage following the passes
-            # gives the arm the most room): say so before any inverse kinematics
-            check_reach(in_base_frame(segments, settings)[0], settings)
-        built.append((sign, segments, margin, tilts))
-    # With a track: first hold the carriage where the plate's footprint centre is abreast of the
-    # base (a plate within the fixed arm's reach then gets the rail-less cell's plan), then follow
-    # the passes at a few along-rail offsets of the sensor from the base.
-    if settings.track is None:
-        modes: list[tuple[float | None, float]] = [(None, 0.0)]
-    else:
-        centre = placement_transform(placement) @ np.array(
-            [
-                0.5 * (surface.x_min_mm + surface.x_max_mm),
-                0.5 * (surface.y_min_mm + surface.y_max_mm),
-                0.0,
-                1.0,
-            ]
-        )
-        follow: list[tuple[float | None, float]] = [(None, lead) for lead in TRACK_LEADS_MM]
-        modes = ([(hold_position_mm(centre[:3], settings), 0.0)] if settings.track_hold else []) + follow
+    options: dict[str, list[tuple] | PlanRefused] = {}
+    caches: dict[str, dict] = {axis: {} for axis in axes}
+    for axis in axes:
+        try:
+            options[axis] = _orientations(surface, placement, settings, axis, caches[axis])
+        except PlanRefused as exc:
+            options[axis] = exc
     timings["passes_s"] = time.perf_counter() - t1
+    bounds = {a: lower_bound_s(o[0][1], settings) for a, o in options.items() if isinstance(o, list)}
 
     t2 = time.perf_counter()
-    refusals: dict[bool, PlanRefused] = {}  # the first refusal when following / holding
-    reversed_built: dict[float, tuple] = {}
-    path = None
-    for hold, lead in modes:
-        for option in _by_wrist_roll(built, settings, kin, hold):
-            sign = option[0]
-            try:
-                path = solve_joint_path(option[1], settings, kin, track_lead_mm=lead, track_hold_mm=hold)
-                _, segments, margin, edge_tilts = option
-                edge_reverse = False
-                break
-            except PlanRefused as exc:
-                log.info(
-                    "plan_orientation_refused",
-                    sign=sign,
-                    track_hold_mm=hold,
-                    track_lead_mm=lead,
-                    reason=str(exc),
-                )
-                refusals.setdefault(hold is None, exc)
-                if not _wrist_wound(exc):
-                    continue
-            # the wrist ran out of turns on joint 4 or 6 going round the edges: go round the other way
-            if sign not in reversed_built:
-                reversed_built[sign] = (
-                    sign,
-                    *_build(surface, placement, settings, sign, edge_reverse=True, raster_cache=raster_cache),
-                )
-            try:
-                # the raster passes are the same: their joints carry over from the attempt just refused
-                path = solve_joint_path(
-                    reversed_built[sign][1],
-                    settings,
-                    kin,
-                    track_lead_mm=lead,
-                    track_hold_mm=hold,
-                    solved=option[1],
-                )
-                _, segments, margin, edge_tilts = reversed_built[sign]
-                edge_reverse = True
-                break
-            except PlanRefused as exc:
-                log.info(
-                    "plan_orientation_refused", sign=sign, track_hold_mm=hold, track_lead_mm=lead,
-                    edge_reverse=True, reason=str(exc),
-                )  # fmt: skip
-        if path is not None:
-            break
-    else:
-        # the reason given is the carriage following the passes' (it gives the arm the most room)
-        raise refusals.get(True) or refusals[False]
+    best: _Solved | None = None
+    refusals = {a: o for a, o in options.items() if isinstance(o, PlanRefused)}
+    considered: dict[str, dict] = {a: {"refused": str(o)} for a, o in refusals.items()}
+    for axis in sorted(bounds, key=bounds.get):
+        considered[axis] = {"lower_bound_s": round(bounds[axis], 2)}
+        if best is not None:
+            guess = estimate_s(options[axis][0][1], best.segments, settings)
+            considered[axis]["estimate_s"] = round(guess, 2)
+            if guess >= best.timing.scan_time_s:
+                considered[axis]["skipped"] = f"estimated {guess:.1f} s, not below {best.axis}'s"
+                continue
+        try:
+            solved = _solve(surface, placement, settings, kin, axis, options[axis], caches[axis])
+        except PlanRefused as exc:
+            considered[axis]["refused"] = str(exc)
+            refusals[axis] = exc
+            continue
+        considered[axis]["scan_time_s"] = round(solved.timing.scan_time_s, 2)
+        if best is None or solved.timing.scan_time_s < best.timing.scan_time_s:
+            best = solved
     timings["joint_path_s"] = time.perf_counter() - t2
-    choices: dict = {}
-    if settings.track is not None:
-        choices["track"] = (
-            {"mode": "hold", "hold_mm": hold} if hold is not None else {"mode": "follow", "lead_mm": lead}
-        )
-    if edge_tilts:
-        choices["edge_tilt_deg"] = dict(edge_tilts)
-    if edge_reverse:
-        choices["edge_order"] = "reversed"
-
-    t3 = time.perf_counter()
-    timing = time_segments(segments, settings)
-    timings["timing_s"] = time.perf_counter() - t3
+    if best is None:
+        # refused along every axis: the reason given is the passes along the longer one's
+        raise refusals.get("longer") or next(iter(refusals.values()))
+    path, segments, margin, timing = best.path, best.segments, best.margin, best.timing
+    choices = dict(best.choices)
+    if len(axes) > 1:
+        choices["pass_axis"] = {"axis": best.axis, "considered": considered}
 
     # the plan must pass the same envelope every executed set-point passes, at the EGM cycle
     t_env = time.perf_counter()

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from analysis.placement import T_from_pos_rpy
-from cellctl.planning.plan import PlanInputError
+from cellctl.planning.plan import PASS_AXES, PlanInputError
 from drivers.abb_egm.kinematics import LinearTrack
 
 __all__ = ["PlannerSettings"]
@@ -34,7 +34,9 @@ class PlannerSettings:
     laser line, keeping the wrist clear of its singularity), placement uncertainty (``placement_uncertainty_mm`` shift,
     ``placement_uncertainty_deg`` rotation), ``flying_turns`` (neighbouring raster passes joined by
     a turnaround flown at speed outside the plate; off: a hump link, at rest at both ends),
-    ``passes_reversed`` (the serpentine's first raster pass runs from the far end of the passes'
+    ``pass_axis``: the raster passes run along the footprint's ``"longer"`` or ``"shorter"`` axis,
+    or ``"fastest"``: the one whose timed scan is shorter within the limits (the other where one is
+    refused; :func:`~cellctl.planning.planner.plan_scan`), ``passes_reversed`` (the serpentine's first raster pass runs from the far end of the passes'
     axis, +x of the plate frame for a plate longer in x; the sensor's lean along that axis stays),
     ``link_clearance_mm`` lift on links, ``approach_mm``
     along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
@@ -61,6 +63,7 @@ class PlannerSettings:
     edge_passes: bool = True
     edge_tilt_deg: float = 30.0
     flying_turns: bool = True
+    pass_axis: str = "fastest"
     passes_reversed: bool = False
     sweep_pitch_deg: float = 0.0
     placement_uncertainty_mm: float = 30.0
@@ -89,7 +92,7 @@ class PlannerSettings:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            if f.name in ("track", "track_hold"):  # validated by LinearTrack itself / a bool
+            if f.name in ("track", "track_hold", "pass_axis"):  # by LinearTrack itself / a bool / below
                 continue
             v = getattr(self, f.name)
             arr = np.asarray(v, dtype=np.float64) if f.name != "speed_mm_s" or v is not None else None
@@ -138,6 +141,10 @@ class PlannerSettings:
         T = np.asarray(self.T_flange_sensor, dtype=np.float64)
         if T.shape != (4, 4):
             raise PlanInputError(f"settings.T_flange_sensor: must be (4, 4), got {T.shape}")
+        if self.pass_axis not in (*PASS_AXES, "fastest"):
+            raise PlanInputError(
+                f"settings.pass_axis: {self.pass_axis!r} is not one of {(*PASS_AXES, 'fastest')}"
+            )
         for name in ("joint_lower_deg", "joint_upper_deg", "joint_speed_max_deg_s", "joint_accel_max_deg_s2"):
             if len(getattr(self, name)) != 6:
                 raise PlanInputError(f"settings.{name}: needs 6 values")
@@ -209,6 +216,7 @@ class PlannerSettings:
             profile_spacing_mm=s.profile_spacing_mm,
             transit_speed_mm_s=s.transit_speed_mm_s,
             edge_passes=s.edge_passes,
+            pass_axis=s.pass_axis,
             placement_uncertainty_mm=s.placement_uncertainty_mm,
             placement_uncertainty_deg=s.placement_uncertainty_deg,
             joint_lower_deg=tuple(r.joint_lower_deg),
