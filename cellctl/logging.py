@@ -19,7 +19,6 @@ from pydantic import SecretBytes, SecretStr
 
 LogFormat = Literal["auto", "json", "console"]
 REDACTED = "***"
-_configured: tuple[LogFormat, int] = ("auto", logging.INFO)
 _SECRET_KEY_WORDS = ("password", "passwd", "secret", "token", "authorization", "cookie", "credential")
 
 
@@ -60,8 +59,6 @@ def configure_logging(
     if not isinstance(level_no, int):
         raise ValueError(f"unknown log level {level!r}")
     use_json = fmt == "json" or (fmt == "auto" and not _isatty(stream))
-    global _configured
-    _configured = ("json" if use_json else "console", level_no)
     shared: list[Any] = [
         structlog.contextvars.merge_contextvars,
         structlog.processors.add_log_level,
@@ -91,12 +88,6 @@ def configure_logging(
     root.handlers[:] = [handler]
     root.setLevel(max(level_no, logging.INFO) if level_no < logging.INFO else level_no)
     logging.getLogger("toppra").setLevel(logging.WARNING)
-
-
-def logging_configured() -> tuple[LogFormat, int]:
-    """(format, level) of this process's :func:`configure_logging` (a child process it starts logs
-    the same way, to the stderr it inherits); ("auto", INFO) before any."""
-    return _configured
 
 
 def _isatty(stream: TextIO) -> bool:

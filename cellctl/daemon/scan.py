@@ -48,12 +48,12 @@ from cellctl.daemon.locate import (
     locate_settings,
     next_locate_plans,
 )
-from cellctl.daemon.plan_process import PlanProcess, PlanProcessError
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan
+from cellctl.planning.cache import PlanCache
 from drivers.laser.client import HD8Client
 
 __all__ = ["ScanHost", "ScanRunner"]
@@ -95,7 +95,6 @@ class ScanRunner:
         self.store = store
         self.drivers = drivers
         self.host = host
-        self.planner = PlanProcess()
 
     async def scan(self, job: ActiveJob) -> bool:
         """Plan, execute and acquire. True when the scan completed (raw files closed, ``job.cloud`` set).
@@ -118,14 +117,19 @@ class ScanRunner:
                 job, JobState.PLANNING, "placement as given (not checked: [locate] check_given = false)",
                 placement_found={"source": "given", "given": rec.placement},
             )  # fmt: skip
-        # The sensor and the EGM program come up while the scan is planned: nothing moves until the
-        # executor runs the plan, which has passed the envelope check by then.
-        bring_up = asyncio.create_task(self._bring_up(), name="bring-up")
+        # The sensor comes up while the scan is planned, the EGM program once it is planned: from the
+        # program's start the controller wants an answer every cycle and ends the session after its
+        # communication timeout (1 s), and the planner's thread holds the interpreter for up to 0.3 s
+        # on the sail, 2-3 s on a 6 m plate (the long cell's scan faulted "no commandable feedback"
+        # right after its plan). Nothing moves until the executor runs the plan.
+        planned_event = asyncio.Event()
+        bring_up = asyncio.create_task(self._bring_up(after=planned_event), name="bring-up")
         handed_over = False
         try:
             planned = await self._plan(job, design)
             if planned is None:
                 return False
+            planned_event.set()
             plan, settings = planned
             if self._stopped_before_motion(job) or not await self._preflight(job, plan):
                 return False
@@ -136,12 +140,15 @@ class ScanRunner:
             if not handed_over:
                 await self._drop_bring_up(bring_up)
 
-    async def _bring_up(self) -> HD8Client:
-        """The sensor connected, stopped and configured, and the EGM program (re)started with its
-        feedback arriving; the arm holds where it is. Raises (everything it started ended again)."""
+    async def _bring_up(self, after: asyncio.Event | None = None) -> HD8Client:
+        """The sensor connected, stopped and configured, and (once ``after`` is set, when given) the
+        EGM program (re)started with its feedback arriving; the arm holds where it is. Raises
+        (everything it started ended again)."""
         cfg, drv = self.cfg, self.drivers
         client = await self._sensor_ready()
         try:
+            if after is not None:
+                await after.wait()
             # an EGM session the controller still runs (the previous daemon died mid-scan) ends first
             with contextlib.suppress(Exception):
                 await drv.program.end()
@@ -288,16 +295,11 @@ class ScanRunner:
             placement = Placement.model_validate(rec.placement)
             settings = PlannerSettings.from_config(self.cfg)
             t0 = time.perf_counter()
-            # a plan for the same design, placement and settings is reused after the envelope check;
-            # planned in a child process: the EGM session coming up meanwhile is answered every cycle
-            got = await self.planner.plan(
-                design, placement, settings, self.store.root.parent / "plan-cache", job_id=rec.job_id
-            )
+            # a plan for the same design, placement and settings is reused after the envelope check
+            cache = PlanCache(self.store.root.parent / "plan-cache")
+            got = await asyncio.to_thread(cache.plan, design, placement, settings, with_coverage=False)
         except (MeshError, PlateError, PlanInputError, PlanRefused) as exc:
             self.host.job_state(job, JobState.FAILED, f"plan refused: {exc}")
-            return None
-        except PlanProcessError as exc:
-            self.host.job_state(job, JobState.FAILED, f"plan failed: {exc}; nothing moved")
             return None
         plan = got.plan
         self.host.job_state(

@@ -166,8 +166,6 @@ class CellDaemon:
             return 2
         self._scanner = ScanRunner(cfg, self.store, drv, self)
         periodic = None
-        # the planner's child process started and its imports done before the first trigger
-        warm = asyncio.create_task(self._scanner.planner.start(), name="plan-process")
         try:
             s = self.session
             self._entities.append(declare_async_queryable(s, self.keys.trigger, self._on_trigger))
@@ -212,8 +210,6 @@ class CellDaemon:
             await asyncio.to_thread(close_session, self.session)
             await drv.endpoint.close()
             await drv.rws.close()
-            warm.cancel()
-            self._scanner.planner.close()
         log.info("daemon_stopped")
         return 0
 
