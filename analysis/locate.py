@@ -15,6 +15,14 @@ edges are in the sensor's range; this module turns that cloud into the design's 
    fine, trimmed point-to-line ICP from the best hypotheses; then z from the plate's top (the median
    of measured minus design height). The result says the residual (RMS over the inliers), the part
    of the outline the passes saw (coverage) and how a half turn was decided.
+4. The along-pass shift. A timing error between the sensor and the arm (a latency not calibrated,
+   or calibrated at another load) puts every point of a pass a little ahead of (or behind) where it
+   was measured, along the pass's direction of travel: at the locate speed, 225 mm/s, 1 ms is
+   0.23 mm. Passes run both ways, so the shift turns the outline between them, which a short plate's
+   edges read as yaw (measured: 0.65 mm ahead on every pass of the simulated cell, 0.2-0.3 deg on a
+   300 mm plate at 45 deg). Where the boundary points come from passes run both ways, the chosen
+   fit is refined once more with that shift as a fourth unknown (``along_shift_mm``, bounded by
+   ``max_along_shift_mm``); it is reported with the result.
 
 The half turn. A rectangle (and most plates' outlines) looks the same turned by 180 deg. Both fits
 are made; when one is clearly better (boundary RMS and design-height RMS both lower by more than
@@ -79,7 +87,8 @@ class LocateSettings:
     ``convention_yaw_deg``, ``allow_face_down``: see the module docstring. ``max_rms_mm``,
     ``min_boundary_points``: below these the result is refused (LocateError).
     ``min_constraint_points``: below it the result says it is not ``constrained`` (more passes, across
-    the first, are needed).
+    the first, are needed). ``max_along_shift_mm``: the largest along-pass shift the final fit may
+    estimate (step 4 of the module docstring; 0: none estimated).
     """
 
     bed_z_mm: float | None = None
@@ -107,6 +116,7 @@ class LocateSettings:
     min_boundary_points: int = 30
     min_constraint_points: float = 40.0
     max_fit_points: int = 3000
+    max_along_shift_mm: float = 3.0
     seed: int = 0
 
 
@@ -117,11 +127,14 @@ class PlateBoundary:
     plate_mm: (n, 3) float64 points on the plate (above the bed), world frame.
     boundary_mm: (k, 3) float64 points where the plate ends (edge crossings), thinned.
     dropped_range: boundary points dropped because the surface left the depth range there.
+    travel_xy: (k, 2) unit vectors, world x-y: the direction of travel of each boundary point's pass
+    (zeros where a pass's direction could not be told); None: not known.
     """
 
     plate_mm: np.ndarray
     boundary_mm: np.ndarray
     dropped_range: int
+    travel_xy: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -152,7 +165,8 @@ class LocateResult:
     resolved_by: ``"fit"``, ``"hint"`` or ``"convention"`` (how the half turn was decided).
     score_mm, alternative_score_mm: the fit's and the half-turned fit's robust score (RMS of the
     point-to-outline distances of every boundary point, each capped at ``trim_mm``): what decides
-    between them. iterations: of the fine fit.
+    between them. iterations: of the fine fit. along_shift_mm: how far ahead along its pass's
+    travel every boundary point lay (step 4 of the module docstring; 0 when not estimated).
     constraint_points: the smaller eigenvalue of the sum of the inliers' outline normals' outer
     products (about: boundary points, 1 per ``boundary_cell_mm``, that pin the weaker direction);
     near 0 when the passes crossed only edges of one direction (the fit may then slide along them).
@@ -174,6 +188,7 @@ class LocateResult:
     constraint_points: float = 0.0
     constrained: bool = True
     candidates: list[dict[str, float]] = field(default_factory=list)
+    along_shift_mm: float = 0.0
 
     def summary(self) -> dict[str, object]:
         """JSON-ready figures for the job record and report."""
@@ -191,6 +206,7 @@ class LocateResult:
             "score_mm": round(self.score_mm, 4),
             "alternative_score_mm": round(self.alternative_score_mm, 4),
             "constraint_points": round(self.constraint_points, 1),
+            "along_shift_mm": round(self.along_shift_mm, 3),
         }
 
 
@@ -220,7 +236,7 @@ def plate_boundary(
         ranges_z_mm = [st.range_z_mm] * len(clouds)
     elif len(ranges_z_mm) != len(clouds):
         raise LocateError(f"{len(ranges_z_mm)} depth ranges for {len(clouds)} locate clouds")
-    plate_parts, edge_parts = [], []
+    plate_parts, edge_parts, travel_parts = [], [], []
     dropped = 0
     for cloud, range_z in zip(clouds, ranges_z_mm, strict=True):
         if cloud.pass_id is None:
@@ -272,17 +288,33 @@ def plate_boundary(
                 dropped += int((~ok).sum())
                 edge = edge[ok]
             edge_parts.append(edge)
+            travel_parts.append(np.broadcast_to(_travel_xy(prof[sel], xyz[idx[sel], :2]), (len(edge), 2)))
     if not plate_parts:
         raise LocateError(
             "no plate points in the locate cloud: nothing above the bed within the sensor's range"
         )
     plate = np.concatenate(plate_parts)
     edge = np.concatenate(edge_parts) if edge_parts else np.empty((0, 3))
+    travel = np.concatenate(travel_parts) if travel_parts else np.empty((0, 2))
     if len(edge) and st.boundary_cell_mm > 0:
         cell = np.floor(edge[:, :2] / st.boundary_cell_mm).astype(np.int64)
         _, first = np.unique(cell, axis=0, return_index=True)
-        edge = edge[np.sort(first)]
-    return PlateBoundary(plate_mm=plate, boundary_mm=edge, dropped_range=dropped)
+        keep_first = np.sort(first)
+        edge, travel = edge[keep_first], travel[keep_first]
+    return PlateBoundary(plate_mm=plate, boundary_mm=edge, dropped_range=dropped, travel_xy=travel)
+
+
+def _travel_xy(profile: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(2,) unit direction of travel of a pass from its points' positions against their profile
+    index (zeros when the pass's points span less than two profiles)."""
+    p = profile.astype(np.float64)
+    dp = p - p.mean()
+    den = float(dp @ dp)
+    if den <= 0.0:
+        return np.zeros(2)
+    slope = dp @ (xy - xy.mean(axis=0)) / den  # mm per profile along x and y
+    n = float(np.linalg.norm(slope))
+    return slope / n if n > 0 else np.zeros(2)
 
 
 def _on_wall(
@@ -353,6 +385,7 @@ class _Fit:
     inliers: int
     iterations: int
     score: float
+    along_shift_mm: float = 0.0
 
 
 def _coarse(
@@ -394,16 +427,26 @@ def _coarse(
 
 
 def _icp(
-    bxy: np.ndarray, outline: DesignOutline, tree: cKDTree, yaw: float, t: np.ndarray, st: LocateSettings
+    bxy: np.ndarray,
+    outline: DesignOutline,
+    tree: cKDTree,
+    yaw: float,
+    t: np.ndarray,
+    st: LocateSettings,
+    travel: np.ndarray | None = None,
 ) -> _Fit:
-    """Trimmed point-to-line ICP of world boundary points ``bxy`` onto the outline, from (yaw, t)."""
+    """Trimmed point-to-line ICP of world boundary points ``bxy`` onto the outline, from (yaw, t).
+    With ``travel`` ((n, 2) world unit vectors, each point's pass's direction of travel), the shift
+    along it is a fourth unknown (step 4 of the module docstring): each point is taken back by it."""
     t = np.asarray(t, dtype=np.float64).copy()
     inl = np.zeros(len(bxy), dtype=bool)
     it = 0
     res = np.zeros(len(bxy))
+    shift = 0.0
     for it in range(1, st.icp_iterations + 1):
         R = _rot(yaw)
-        q = (bxy - t) @ R  # world -> design frame
+        p = bxy if travel is None else bxy - shift * travel
+        q = (p - t) @ R  # world -> design frame
         d, j = tree.query(q)
         n = outline.normal[j]
         res = np.einsum("ij,ij->i", q - outline.xy_mm[j], n)
@@ -418,16 +461,20 @@ def _icp(
         # linearised: a small turn w and shift s of the points in the design frame
         qi, ni, ri = q[inl], n[inl], res[inl]
         A = np.column_stack([ni[:, 1] * qi[:, 0] - ni[:, 0] * qi[:, 1], ni[:, 0], ni[:, 1]])
+        if travel is not None:  # d res / d shift = -n . (R^T u)
+            A = np.column_stack([A, -np.einsum("ij,ij->i", ni, travel[inl] @ R)])
         x, *_ = np.linalg.lstsq(A, -ri, rcond=None)
-        w, s = float(x[0]), x[1:]
+        w, s = float(x[0]), x[1:3]
+        if travel is not None:
+            shift += float(x[3])
         # q' = Rw q + s with q = R^T (p - t)  =>  p = R Rw^T (q' - s) + t
         Rn = R @ _rot(w).T
         t = t - Rn @ s
         yaw = float(np.arctan2(Rn[1, 0], Rn[0, 0]))
-        if abs(w) < 1e-7 and np.linalg.norm(s) < 1e-4:
+        if abs(w) < 1e-7 and np.linalg.norm(s) < 1e-4 and (travel is None or abs(x[3]) < 1e-4):
             break
     R = _rot(yaw)
-    q = (bxy - t) @ R
+    q = ((bxy if travel is None else bxy - shift * travel) - t) @ R
     d, j = tree.query(q)
     res = np.einsum("ij,ij->i", q - outline.xy_mm[j], outline.normal[j])
     gate = max(st.trim_mm, 3.0 * float(np.median(d)))
@@ -435,7 +482,7 @@ def _icp(
     rms = float(np.sqrt(np.mean(res[inl] ** 2))) if inl.any() else np.inf
     # the score to compare fits: truncated squared distance over every point (outliers cost the cap)
     score = float(np.sqrt(np.mean(np.minimum(d, st.trim_mm) ** 2)))
-    return _Fit(yaw, t, rms, int(inl.sum()), it, score)
+    return _Fit(yaw, t, rms, int(inl.sum()), it, score, shift)
 
 
 def _heights(plate_mm: np.ndarray, outline: DesignOutline, fit: _Fit) -> tuple[float, float]:
@@ -483,8 +530,13 @@ def fit_outline(
         )
     rng = np.random.default_rng(st.seed)
     bxy = b[:, :2]
+    travel = boundary.travel_xy
+    if travel is not None and travel.shape != bxy.shape:
+        raise LocateError(f"{len(travel)} directions of travel for {len(bxy)} boundary points")
     if len(bxy) > st.max_fit_points:
-        bxy = bxy[rng.choice(len(bxy), st.max_fit_points, replace=False)]
+        pick = rng.choice(len(bxy), st.max_fit_points, replace=False)
+        bxy = bxy[pick]
+        travel = None if travel is None else travel[pick]
     plate = boundary.plate_mm
     if len(plate) > 20000:
         plate = plate[rng.choice(len(plate), 20000, replace=False)]
@@ -532,6 +584,12 @@ def fit_outline(
             if best not in [x[2] for x in fits if not x[0]]:
                 best = min((x[2] for x in fits if not x[0]), key=lambda f: f.score)
                 z0, hrms = _heights(plate, ol, best)
+    if st.max_along_shift_mm > 0 and travel is not None and _both_ways(travel):
+        refined = _icp(bxy, ol, cKDTree(ol.xy_mm), best.yaw_rad, best.t_mm, st, travel)
+        if abs(refined.along_shift_mm) <= st.max_along_shift_mm and refined.rms_mm <= best.rms_mm:
+            best = refined
+            bxy = bxy - best.along_shift_mm * travel
+            z0, hrms = _heights(plate, ol, best)
     if not np.isfinite(best.rms_mm) or best.rms_mm > st.max_rms_mm:
         raise LocateError(
             f"the design's outline does not fit the plate's edges: RMS {best.rms_mm:.2f} mm over "
@@ -556,6 +614,7 @@ def fit_outline(
         iterations=best.iterations,
         constraint_points=(cp := _constraint(bxy, ol, best, st) * len(b) / len(bxy)),
         constrained=cp >= st.min_constraint_points,
+        along_shift_mm=best.along_shift_mm,
         candidates=[
             {
                 "yaw_deg": round(_wrap_deg(np.rad2deg(f.yaw_rad)), 3),
@@ -565,6 +624,18 @@ def fit_outline(
             for fd, _, f in fits[:6]
         ],
     )
+
+
+def _both_ways(travel: np.ndarray) -> bool:
+    """Whether the boundary points come from passes run both ways along their main direction (the
+    along-pass shift is then told from the placement): a tenth of them at least each way."""
+    moving = travel[np.linalg.norm(travel, axis=1) > 0.5]
+    if len(moving) == 0:
+        return False
+    main = np.linalg.eigh(moving.T @ moving)[1][:, -1]  # the principal direction, either sign
+    along = moving @ main
+    least = 0.1 * len(moving)
+    return bool(np.count_nonzero(along > 0.5) >= least and np.count_nonzero(along < -0.5) >= least)
 
 
 def locate_plate(

@@ -560,6 +560,7 @@ class Worker:
             event=event,  # type: ignore[arg-type]
             message=message,
             t_utc=now_utc(),
+            offer_id=spec.offer_id,
         )
         self.session.put(keys.job_event(spec.job_id), ev.to_json(), encoding="application/json")
 
@@ -666,23 +667,27 @@ class Worker:
         except ValueError as exc:
             self.malformed.warn("job_message_malformed", key=key, error=str(exc)[:300])
             return
-        if (
-            self._current is not None
-            and self._current.job_id == spec.job_id
-            and self._current.attempt == spec.attempt
+        cur, task = self._current, self._task
+        if cur is not None and (cur.job_id, cur.attempt, cur.offer_id) == (
+            spec.job_id,
+            spec.attempt,
+            spec.offer_id,
         ):
             return  # the same offer again
-        cur, task = self._current, self._task
-        if (
-            cur is not None
-            and cur.stream
-            and cur.job_id == spec.job_id
-            and spec.attempt > cur.attempt
-            and task
-        ):
-            # The dispatcher took this streamed job back (a link cut, its cancel lost) and offers it
-            # again: the old attempt's stream will never end, so it makes way for the new one.
-            log.info("job_superseded", job_id=spec.job_id, attempt=cur.attempt, by_attempt=spec.attempt)
+        # Another offer of the job held: the dispatcher took this streamed job back (a link cut, its
+        # cancel lost) and offers it again, or a restarted daemon offers it afresh (the same attempt
+        # number, another offer): the old attempt's stream will never end, its daemon is not there
+        # to take its report, so it makes way for the new one.
+        again = cur is not None and cur.job_id == spec.job_id
+        newer = again and (
+            (cur.stream and spec.attempt > cur.attempt)
+            or (spec.attempt == cur.attempt and spec.offer_id != cur.offer_id)
+        )
+        if newer and task:
+            log.info(
+                "job_superseded", job_id=spec.job_id, attempt=cur.attempt, by_attempt=spec.attempt,
+                by_offer=spec.offer_id,
+            )  # fmt: skip
             task.cancel()
 
             async def take_over() -> None:
@@ -866,6 +871,7 @@ class Worker:
                 timings_s={**outcome.timings_s, "worker_total": time.perf_counter() - t0},
                 t_utc=now_utc(),
                 results=manifest,
+                offer_id=spec.offer_id,
             )
             payload = env.to_json()
             # Reports can be large (per-line curves): BLOCK, never silently dropped.

@@ -73,7 +73,9 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
 
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     path = os.environ.get(SKIP_LOG_ENV)
-    if not path or not report.skipped:
+    # under pytest-xdist (make test's unit tests) the controller sees every worker's reports: it
+    # alone writes them, once
+    if not path or not report.skipped or os.environ.get("PYTEST_XDIST_WORKER"):
         return
     if hasattr(report, "wasxfail"):  # an expected failure is a skip too: it proves nothing
         reason = f"xfail: {report.wasxfail}"

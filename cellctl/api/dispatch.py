@@ -40,6 +40,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import secrets
 import time
 from collections import deque
 from collections.abc import Callable
@@ -163,6 +164,12 @@ class _Job:
     last_reason: str = ""
     transfer: TransferSpec | None = None
     stream: _Stream | None = None
+    offer_id: str = ""
+
+    def answers(self, worker_id: str, attempt: int, offer_id: str) -> bool:
+        """Whether a worker's event or report is about this job's current offer (a restarted daemon
+        offers the same job and attempt number again: the old offer's messages are not its own)."""
+        return self.worker_id == worker_id and self.attempt == attempt and offer_id == self.offer_id
 
 
 class Dispatcher:
@@ -366,9 +373,11 @@ class Dispatcher:
         job.tried.add(worker.worker_id)
         worker.job_id = job.job_id
         worker.last_assigned = now
+        job.offer_id = secrets.token_hex(8)
         spec = JobSpec(
-            attempt=job.attempt, job=job.params, transfer=job.transfer, stream=job.stream is not None
-        )
+            attempt=job.attempt, job=job.params, transfer=job.transfer, stream=job.stream is not None,
+            offer_id=job.offer_id,
+        )  # fmt: skip
         log.info("job_assigned", job_id=job.job_id, worker_id=worker.worker_id, attempt=job.attempt)
         self._call(self.hooks.on_assigned, job.job_id, worker.worker_id, job.attempt)
         task = asyncio.get_running_loop().create_task(self._send(job, worker.worker_id, spec))
@@ -477,8 +486,8 @@ class Dispatcher:
             self._malformed("job_event_malformed", str(sample.key_expr), exc)
             return
         job = self._jobs.get(ev.job_id)
-        if job is None or job.worker_id != ev.worker_id or job.attempt != ev.attempt:
-            return  # an event of an attempt that was already taken back or resolved
+        if job is None or not job.answers(ev.worker_id, ev.attempt, ev.offer_id):
+            return  # an event of an attempt that was already taken back or resolved, or another offer
         job.last_seen = time.monotonic()
         if ev.event in ("accepted", "heartbeat"):
             job.accepted = True
@@ -507,10 +516,11 @@ class Dispatcher:
         if job is None:
             log.info("report_ignored", job_id=env.job_id, worker_id=env.worker_id, reason="not pending")
             return
-        if job.worker_id != env.worker_id or job.attempt != env.attempt:
+        if not job.answers(env.worker_id, env.attempt, env.offer_id):
             # Only the worker the job is assigned to, for its current attempt, reports it: anything
             # else (a peer on an open link naming another worker, a worker for a job it does not
-            # hold, a late report of an attempt taken back) is refused and the analysis goes on.
+            # hold, a late report of an attempt taken back, the report of a previous daemon's offer)
+            # is refused and the analysis goes on.
             self.refused_reports += 1
             log.warning(
                 "report_refused", job_id=env.job_id, worker_id=env.worker_id, attempt=env.attempt,
@@ -524,11 +534,7 @@ class Dispatcher:
 
     def _resolve_with_results(self, job: _Job, env: ReportEnvelope, *, waited: float) -> None:
         """Keep the report only with its verified result bundle; refuse it (a retry) otherwise."""
-        if (
-            self._jobs.get(job.job_id) is not job
-            or job.worker_id != env.worker_id
-            or job.attempt != env.attempt
-        ):
+        if self._jobs.get(job.job_id) is not job or not job.answers(env.worker_id, env.attempt, env.offer_id):
             return  # taken back (worker gone, timeout) while its chunks were awaited
         manifest = env.results
         assert manifest is not None

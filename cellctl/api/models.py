@@ -516,6 +516,10 @@ class JobSpec(Model):
     #: True: the job message carries no cloud; it comes pass by pass as StreamChunks on
     #: ``Keys.worker_stream`` (after this attempt's ``accepted``), closed by a StreamEnd
     stream: bool = False
+    #: unique to this offer (the dispatcher draws it): a restarted daemon offers the same job and
+    #: attempt number again, and its offer is another one; the worker echoes it in its JobEvents and
+    #: ReportEnvelope so that neither side takes the other offer's messages for its own ("": unnamed)
+    offer_id: Annotated[str, Field(pattern=r"^[0-9a-f]{0,32}$")] = ""
 
     @property
     def job_id(self) -> str:
@@ -561,6 +565,8 @@ class JobEvent(Model):
     event: Literal["accepted", "heartbeat", "done", "failed", "rejected", "cancelled"]
     message: str = ""
     t_utc: str = ""
+    #: the JobSpec's ``offer_id`` this event is about
+    offer_id: Annotated[str, Field(pattern=r"^[0-9a-f]{0,32}$")] = ""
 
 
 class LiveCloudChunk(Model):
@@ -589,6 +595,8 @@ class ReportEnvelope(Model):
     t_utc: str = ""
     #: the result bundle sent before this envelope (JobSpec ``transfer``); None: nothing sent
     results: ResultManifest | None = None
+    #: the JobSpec's ``offer_id`` this report answers
+    offer_id: Annotated[str, Field(pattern=r"^[0-9a-f]{0,32}$")] = ""
 
 
 class RefusalLog:

@@ -8,7 +8,6 @@ laser's frame (rays along +z, the laser line along x, the pass along +/-y).
 
 from __future__ import annotations
 
-import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -71,11 +70,6 @@ class PlanRefused(Exception):
         if pass_label is not None:
             where = f"{pass_label}" + (f", point {point_index}" if point_index is not None else "") + ": "
         super().__init__(where + reason + (f" [limit: {limit}]" if limit else ""))
-
-    def __reduce__(self):
-        # across a process boundary (the daemon plans in a child process) with every field
-        fields = {"pass_label": self.pass_label, "point_index": self.point_index, "limit": self.limit}
-        return functools.partial(type(self), pos_mm=self.pos_mm, **fields), (self.reason,)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready description of the refusal."""

@@ -251,3 +251,45 @@ def test_a_thickness_face_in_view_is_no_part_of_the_top():
     assert abs(entry_edge_x(walled, st) - x_edge) < 1.2
     kept = LocateSettings(range_z_mm=(340.0, 400.0), range_margin_mm=0.0, wall_step_mm=0.0)
     assert entry_edge_x(walled, kept) < x_edge - 1.0  # read as top, the face moves the edge out
+
+
+def _run_both_ways_late(clouds: list[ScanCloud], shift_mm: float) -> list[ScanCloud]:
+    """The passes run both ways (every second one backwards: its profiles counted from the other end)
+    and each point placed ``shift_mm`` ahead along its pass's travel, as a timing error places it."""
+    out = []
+    for cl in clouds:
+        xyz, prof = cl.xyz_mm.copy(), cl.profile_index.astype(np.int64).copy()
+        for k in np.unique(cl.pass_id):
+            m = cl.pass_id == k
+            lo, hi = int(prof[m].min()), int(prof[m].max())
+            if k % 2 == 0:
+                prof[m] = lo + hi - prof[m]
+            p = prof[m].astype(np.float64)
+            dp = p - p.mean()
+            u = dp @ (xyz[m, :2] - xyz[m, :2].mean(axis=0)) / (dp @ dp)
+            xyz[m, :2] += shift_mm * u / np.linalg.norm(u)
+        out.append(ScanCloud(xyz, cl.pass_id, prof.astype(np.int32), cl.point_index))
+    return out
+
+
+def test_a_timing_error_ahead_along_the_passes_is_estimated_not_read_as_yaw():
+    """A latency error puts every pass's points ahead along its travel; passes run both ways turn the
+    outline between them. On a 300 x 200 mm plate at 45 deg (tests/e2e/test_locate_e2e.py's seed
+    2109: 0.24 deg off at 0.65 mm) the fit estimates the shift instead of taking it for yaw."""
+    spec = plate_spec("sail", length_mm=300.0, width_mm=200.0)
+    mesh = design_mesh(spec, pitch_mm=5.0)
+    truth = Placement.on_bed(1470.0, 47.0, -43.3, z_mm=330.0)
+    bed_lo, bed_hi = np.array([1250.0, -250.0]), np.array([1750.0, 250.0])
+    clouds = locate_clouds(truth, spec=spec, bed_min=bed_lo, bed_max=bed_hi, spacing_mm=120.0)
+    late = _run_both_ways_late(clouds, 0.65)
+    plain = locate_plate(late, mesh, _settings(max_along_shift_mm=0.0))
+    fitted = locate_plate(late, mesh, _settings())
+    _, plain_deg = placement_offset(plain.placement, truth)
+    d_mm, d_deg = placement_offset(fitted.placement, truth)
+    assert plain.along_shift_mm == 0.0 and plain_deg > 0.1, plain_deg  # what the shift costs unseen
+    assert abs(fitted.along_shift_mm - 0.65) < 0.15, fitted.along_shift_mm
+    assert d_deg < 0.05 and d_mm < 0.5, (d_mm, d_deg)
+    assert fitted.summary()["along_shift_mm"] == round(fitted.along_shift_mm, 3)
+    # passes all run one way: the shift cannot be told from the placement, none is estimated
+    one_way = locate_plate(clouds, mesh, _settings())
+    assert one_way.along_shift_mm == 0.0

@@ -167,7 +167,8 @@ def test_a_result_that_arrives_incomplete_costs_a_retry_and_the_next_complete_on
 
         def answer(spec: JobSpec) -> None:
             attempts.append(spec.attempt)
-            ev = JobEvent(job_id=spec.job_id, worker_id="fw", attempt=spec.attempt, event="accepted")
+            ev = JobEvent(job_id=spec.job_id, worker_id="fw", attempt=spec.attempt, event="accepted",
+                          offer_id=spec.offer_id)  # fmt: skip
             s.put(keys.job_event(spec.job_id), ev.to_json())
             for i, (head, data) in enumerate(
                 zip(_heads(manifest, chunks, "jobR", "fw", spec.attempt), chunks, strict=True)
@@ -177,7 +178,8 @@ def test_a_result_that_arrives_incomplete_costs_a_retry_and_the_next_complete_on
                 s.put(keys.result_chunk("jobR", spec.attempt, i), data, attachment=head.to_json(),
                       congestion_control=zenoh.CongestionControl.BLOCK)  # fmt: skip
             env = ReportEnvelope(job_id="jobR", plate_id="P1", worker_id="fw", attempt=spec.attempt, ok=True,
-                                 report=minimal_report(spec.job, 1), results=manifest)  # fmt: skip
+                                 report=minimal_report(spec.job, 1), results=manifest,
+                                 offer_id=spec.offer_id)  # fmt: skip
             s.put(keys.report("jobR"), env.to_json())
 
         def on_job(sample: zenoh.Sample) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import secrets
 
 import numpy as np
 import pytest
@@ -246,7 +247,8 @@ def test_a_daemon_gone_mid_stream_frees_the_worker_for_its_restart_to_reanalyse_
             ]
             await _wait_for(lambda: alive, 30, "worker token")
             await asyncio.sleep(0.5)
-            spec = JobSpec(attempt=1, job=_job(hub, "jobK"), stream=True)
+            # the killed daemon's offer, named as every daemon names its offers
+            spec = JobSpec(attempt=1, job=_job(hub, "jobK"), stream=True, offer_id=secrets.token_hex(8))
             session.put(keys.worker_job("w1", "jobK"), b"", encoding=ENCODING, attachment=spec.to_json())
             await _wait_for(lambda: any(e.event == "accepted" for e in events), 30, "accepted")
             head = StreamChunk(job_id="jobK", attempt=1, seq=0, pass_index=0, points=500,
