@@ -13,11 +13,11 @@ $(STAMP): pyproject.toml constraints.txt scripts/setup.sh
 	bash scripts/setup.sh
 	touch $(STAMP)
 
-# The unit tests (no marker: no process, no cell) on both cores, then every cell test alone, one
-# at a time: real-time simulators must not share the cores with numerical tests. Both always run;
-# the exit status is the first failure's (5: a part that collected nothing).
-UNIT   := not long and not slow and not e2e and not process
-CELLS  := not long and (slow or e2e or process)
+# The unit tests (no marker) and the tests that only compute (`compute`, set by tests/conftest.py)
+# on both cores, then every cell test alone, one at a time: real-time simulators must not share the
+# cores with numerical tests. Both always run; the exit status is the first failure's.
+UNIT   := not long and (compute or not (slow or e2e or process))
+CELLS  := not long and not compute and (slow or e2e or process)
 
 test: setup
 	@$(BIN)/python -m pytest -m "$(UNIT)" -n 2 --dist loadfile; unit=$$?; \

@@ -71,6 +71,24 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
         _current["item"] = None
 
 
+# make test's first part runs on both cores (pytest-xdist): the unit tests, and these directories'
+# slow and process tests, which compute (planning, analysis, reports, CLI runs of them) and run no
+# real-time simulator; the executor's tests against the controller simulator stay in the second part
+PARALLEL_DIRS = ("analysis", "inspect", "motion", "report")
+REAL_TIME_MODULES = ("motion/test_executor_sim.py", "motion/test_track_executor.py")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    tests_dir = REPO_ROOT / "tests"
+    for item in items:
+        try:
+            rel = Path(str(item.path)).resolve().relative_to(tests_dir).as_posix()
+        except ValueError:
+            continue
+        if rel.split("/", 1)[0] in PARALLEL_DIRS and rel not in REAL_TIME_MODULES:
+            item.add_marker(pytest.mark.compute)
+
+
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     path = os.environ.get(SKIP_LOG_ENV)
     # under pytest-xdist (make test's unit tests) the controller sees every worker's reports: it

@@ -49,6 +49,9 @@ def _track_config(out) -> object:
     cfg["robot"]["egm_max_pos_deviation_deg"] = 5000.0  # covers the track's travel, in mm
     cfg["sim"]["egm_track_start_mm"] = TRACK_START_MM
     cfg["sim"]["placement"]["pos_mm"] = PLATE_POS_MM
+    # cell.toml's choice of axis (the tiny cells pin "longer"): here the faster passes run along the
+    # track, and the carriage follows them
+    cfg["scan"]["pass_axis"] = "fastest"
     path.write_text(to_toml(cfg), encoding="utf-8")
     return path
 
