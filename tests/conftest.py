@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import multiprocessing.process
 import os
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -72,20 +73,30 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
 
 
 # make test's first part runs on both cores (pytest-xdist): the unit tests, and these directories'
-# slow and process tests, which compute (planning, analysis, reports, CLI runs of them) and run no
-# real-time simulator; the executor's tests against the controller simulator stay in the second part
+# slow and process tests, which compute (planning, analysis, reports, CLI runs of them). A module
+# that names a simulator or a simulated cell runs one in real time (the executor's tests against
+# the controller simulator): it stays in the second part, one test at a time.
 PARALLEL_DIRS = ("analysis", "inspect", "motion", "report")
-REAL_TIME_MODULES = ("motion/test_executor_sim.py", "motion/test_track_executor.py")
+REAL_TIME = re.compile(
+    r"drivers\.abb_egm\.sim|drivers\.laser\.sim|cellctl\.simcell|controller_process"
+    r"|tests\.support\.(?:simcell|e2e_cell|faultcell|fleet_cells)"
+)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     tests_dir = REPO_ROOT / "tests"
+    real_time: dict[Path, bool] = {}
     for item in items:
+        path = Path(str(item.path)).resolve()
         try:
-            rel = Path(str(item.path)).resolve().relative_to(tests_dir).as_posix()
+            top = path.relative_to(tests_dir).parts[0]
         except ValueError:
             continue
-        if rel.split("/", 1)[0] in PARALLEL_DIRS and rel not in REAL_TIME_MODULES:
+        if top not in PARALLEL_DIRS:
+            continue
+        if path not in real_time:
+            real_time[path] = REAL_TIME.search(path.read_text(encoding="utf-8")) is not None
+        if not real_time[path]:
             item.add_marker(pytest.mark.compute)
 
 
