@@ -70,7 +70,7 @@ def _read_ply_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     open3d's PLY reader trusts the file: a binary PLY whose face lists disagree with its bytes
     crashed the process (segmentation fault, found by tests/fuzz). plyfile raises instead.
     """
-    from plyfile import PlyData
+    from plyfile import PlyData, PlyElementParseError
 
     from analysis.cloud_io import ply_header_overclaims
 
@@ -79,12 +79,21 @@ def _read_ply_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if overclaim:
         raise MeshError(f"{path}: {overclaim}")
     try:
-        ply = PlyData.read(str(path))
+        try:  # all triangles (what cellctl and most CAD exports write): read as one array, checked
+            ply = PlyData.read(str(path), known_list_len={"face": _TRIANGLE_LISTS})
+        except PlyElementParseError as exc:
+            if exc.message != "unexpected list length" and "end-of-file" not in exc.message:
+                raise
+            ply = PlyData.read(str(path))  # polygons of other sizes: list by list
         vert = ply["vertex"].data
         v = np.column_stack([np.asarray(vert[c], dtype=np.float64) for c in ("x", "y", "z")])
         faces = ply["face"].data
-        name = next(n for n in ("vertex_indices", "vertex_index") if n in (faces.dtype.names or ()))
-        polys = [np.asarray(f, dtype=np.int64) for f in faces[name]]
+        name = next(n for n in _TRIANGLE_LISTS if n in (faces.dtype.names or ()))
+        column = faces[name]
+        if column.dtype != object:  # the triangles' (m, 3) array
+            t = np.asarray(column, dtype=np.int64).reshape(-1, 3)
+            return v, t
+        polys = [np.asarray(f, dtype=np.int64) for f in column]
     except (KeyError, StopIteration):
         raise MeshError(f"{path}: PLY lacks vertex x, y, z or face vertex_indices") from None
     except Exception as exc:  # plyfile's own errors, truncated data: one line naming the file
@@ -92,6 +101,10 @@ def _read_ply_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     tris = [np.column_stack([np.full(len(f) - 2, f[0]), f[1:-1], f[2:]]) for f in polys if len(f) >= 3]
     t = np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
     return v, t
+
+
+#: the face list property's names, each read as 3 indices on the fast path of :func:`_read_ply_mesh`
+_TRIANGLE_LISTS = {"vertex_indices": 3, "vertex_index": 3}
 
 
 def _check_binary_stl(path: Path) -> None:
