@@ -196,7 +196,10 @@ def _edge_fits(
             ]
             pts = np.concatenate([order[start[b] : start[b + 1]] for b in block if b is not None])
             pts = pts[use[pts]]
-            d = (Q[pts, :2] - at) / max(float(np.ptp(Q[pts, :2], axis=0).max()), 1e-9)
+            # the block's kept points' spread: from its cells' extents (the same min and max)
+            cb = np.asarray([b for b in block if b is not None])
+            spread = max(float(lo_hi[k][1][cb].max() - lo_hi[k][0][cb].min()) for k in (0, 1))
+            d = (Q[pts, :2] - at) / max(spread, 1e-9)
             cols = [np.ones(len(pts))]
             for k in (0, 1):
                 cols += [d[:, k], d[:, k] ** 2]
@@ -290,13 +293,19 @@ def _grid(ij: np.ndarray) -> _Grid:
     return _Grid(rank[key], dense[keys], keys, width, missing)
 
 
-def noise_from_gaps(xy_mm: np.ndarray, gap_mm: np.ndarray, cell_mm: float = 2.0) -> float:
+def noise_from_gaps(
+    xy_mm: np.ndarray,
+    gap_mm: np.ndarray,
+    cell_mm: float = 2.0,
+    cells: tuple[np.ndarray, np.ndarray] | None = None,
+) -> float:
     """Robust noise sigma (mm) of points from their gaps' spread about small cells' means.
 
     xy_mm: (n, 2) positions; gap_mm: (n,) gaps to a design (the plate's shape taken out). Each
     residual is scaled by sqrt(k / (k - 1)) for its cell of k points; cells of one point do not count.
+    cells: ``_cells(xy_mm, cell_mm)`` when the caller has it already.
     """
-    inv, count = _cells(xy_mm, cell_mm)
+    inv, count = _cells(xy_mm, cell_mm) if cells is None else cells
     mean = np.bincount(inv, weights=gap_mm) / count
     k = count[inv]
     use = k > 1
@@ -340,10 +349,13 @@ def rest_surface(
     if len(P) < 6:
         raise RegistrationError("rest surface: fewer than 6 points lie over the design")
     xy = P[:, :2]
-    sigma = noise_from_gaps(xy, gap, noise_cell_mm) if noise_mm is None else float(noise_mm)
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
     # the occupied area at 2 mm, so holes and an oblique footprint do not dilute the density
-    _, occ = _cells(xy, 2.0)
+    cells_2mm = _cells(xy, 2.0)
+    occ = cells_2mm[1]
+    if noise_mm is not None:
+        sigma = float(noise_mm)
+    else:
+        sigma = noise_from_gaps(xy, gap, noise_cell_mm, cells_2mm if noise_cell_mm == 2.0 else None)
     area = max(len(occ) * 4.0, 1.0)
     density = len(P) / area
     # n from the bound, h from n, M from h: a fixed point reached in a few rounds
@@ -362,7 +374,7 @@ def rest_surface(
     if keep.sum() < 6:
         raise RegistrationError(
             f"rest surface: only {int(keep.sum())} patches of {cell:.1f} mm hold {n_min} points "
-            f"(span {hi - lo} mm)"
+            f"(span {np.ptp(xy, axis=0)} mm)"
         )
     # per patch, the plane of the gaps about the centroid, fitted twice: the second time without the
     # points more than TRIM_SIGMAS off the first plane (the edge band's points of the thickness face,

@@ -123,12 +123,23 @@ class SegmentResult:
         return self._cloud
 
 
+def dense_ranks(ids: np.ndarray) -> np.ndarray:
+    """(n,) int64: each of the non-negative integer ``ids`` replaced by its rank among the distinct
+    ids (``np.unique(ids, return_inverse=True)[1]``); counted, not sorted, when the ids are not much
+    sparser than the points (a scan's pass ids: 0.2 s of sorting 2.6 M points saved)."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if len(ids) == 0 or int(ids.min()) < 0 or int(ids.max()) > max(8 * len(ids), 1_000_000):
+        return np.unique(ids, return_inverse=True)[1].astype(np.int64)
+    rank = np.cumsum(np.bincount(ids) > 0) - 1
+    return rank[ids]
+
+
 def _profiles_from_zero(cloud: ScanCloud) -> ScanCloud:
     """Number each pass's profiles from 0: an acquisition numbers profiles by frame over the whole
     scan (and pass ids may be sparse), which would make the scan grid mostly empty places."""
     pid = cloud.pass_id.astype(np.int64)
     prof = cloud.profile_index.astype(np.int64)
-    _, pass_idx = np.unique(pid, return_inverse=True)
+    pass_idx = dense_ranks(pid)
     first = np.full(int(pass_idx.max()) + 1, np.iinfo(np.int64).max)
     np.minimum.at(first, pass_idx, prof)
     local = prof - first[pass_idx]

@@ -154,3 +154,12 @@ def test_edge_planes_keep_the_bound_and_do_not_lift_a_flat_edge(field):
     assert rest.counts.min() >= rest.min_count and rest.target_met
     lift = rg.deflection_gaps(field, true, fit.transform, geometry=False)[0]
     assert np.abs(lift).max() < 0.3 * noise, (lift.min(), lift.max())
+
+
+def test_noise_from_gaps_given_the_callers_cells_is_the_same_figure():
+    from analysis.rest_surface import _cells
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0.0, 200.0, (20_000, 2))
+    gap = rng.normal(0.0, 0.02, len(xy)) + 1e-3 * xy[:, 0]
+    assert noise_from_gaps(xy, gap, 2.0, _cells(xy, 2.0)) == noise_from_gaps(xy, gap, 2.0)

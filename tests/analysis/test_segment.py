@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from analysis.cloud_io import ScanCloud
 from analysis.placement import Placement
 from analysis.plates import FormingError, GaussianBump, formed_height_mm, plate_spec
-from analysis.segment import NoPlateError, SegmentError, SegmentSettings, segment_plate
+from analysis.segment import NoPlateError, SegmentError, SegmentSettings, dense_ranks, segment_plate
 from analysis.synth import ScanSettings, synthesize_scan
 
 COARSE = {"point_pitch_mm": 1.0, "points_per_profile": 50, "profile_step_mm": 2.0}
@@ -170,3 +170,17 @@ def test_dense_unorganised_cloud_fits_cell_planes_on_a_subsample_with_the_same_r
     assert not (sub.mask & ~_truth_top(scan, 0.2)).any()
     assert sub.mask.sum() >= 0.97 * full.mask.sum()
     assert sub.noise_sigma_mm == pytest.approx(0.02, rel=0.25)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.integers(min_value=0, max_value=40), min_size=1, max_size=300),
+    st.sampled_from([0, 1, 5_000_000, 2**31 - 2]),
+)
+def test_dense_ranks_are_np_unique_s_inverse_for_dense_and_sparse_ids(ids, spread):
+    # spread: ids far sparser than the points take the sorting route, the rest are counted
+    a = np.asarray(ids, dtype=np.int64) * max(spread, 1)
+    want = np.unique(a, return_inverse=True)[1]
+    got = dense_ranks(a)
+    assert got.dtype == np.int64
+    np.testing.assert_array_equal(got, want)
