@@ -44,7 +44,8 @@ from cellctl.planning.plan import (
     pose_matrix,
 )
 from cellctl.planning.settings import PlannerSettings
-from cellctl.planning.timing import TimingResult, time_segments
+from cellctl.planning.timing import TimingResult, rest_to_rest_s, time_segments
+from drivers.abb_egm.kinematics import fk_batch
 
 __all__ = ["check_plan_envelope", "estimate_s", "lower_bound_s", "plan_scan"]
 
@@ -120,6 +121,119 @@ def _build(
     while _lower_edge_tilts(segments, settings, tilts):
         segments, margin = build_segments(surface, placement, settings, edge_tilts_deg=tilts, **kwargs)
     return segments, margin, tilts
+
+
+#: a link flown as a line in joint space may come this much closer to the design surface (the
+#: sensor origin's height over it) than the lower of its two ends
+JOINT_LINK_CLEARANCE_TOL_MM = 5.0
+#: only links that turn the sensor at least this much (deg) are tried as lines in joint space
+JOINT_LINK_MIN_TURN_DEG = 10.0
+#: how far (mm) the sensor may be lifted at a joint-space link's middle to keep that clearance
+JOINT_LINK_MAX_LIFT_MM = 150.0
+
+
+def _position_jacobian(q: np.ndarray, settings: PlannerSettings, step_deg: float = 1e-3) -> np.ndarray:
+    """(3, n) d(sensor origin, mm) / d(axis) at ``q`` (n,), by central differences; the track's
+    column (with a track) is zero: a lift is made by the arm alone."""
+    n = q.shape[0]
+    dq = np.eye(n) * step_deg
+    p = fk_batch(np.vstack([q + dq, q - dq]), settings.T_flange_sensor, track=settings.track)[:, :3, 3]
+    J = ((p[:n] - p[n:]) / (2.0 * step_deg)).T
+    if n == 7:
+        J[:, 0] = 0.0
+    return J
+
+
+def _kept(seg: Segment, reason: str) -> None:
+    log.debug("joint_space_link_refused", link=seg.label, reason=reason)
+
+
+def _joint_space_link(seg: Segment, settings: PlannerSettings, clearance) -> Segment | None:
+    """``seg`` (a link at rest at both ends, joints solved) as a line in joint space between its
+    end configurations, lifted by the arm at its middle (``sin(pi u)``) as far as needed to stay
+    no lower over the design than its lower end less :data:`JOINT_LINK_CLEARANCE_TOL_MM`; None
+    where that line would leave the joint margins, come near the wrist singularity, jump between
+    waypoints, leave the workspace box, or need more than :data:`JOINT_LINK_MAX_LIFT_MM` of lift.
+    ``clearance(q)``: (n,) heights of the sensor origin over the design surface, mm."""
+    q0, q1 = seg.q_deg[0], seg.q_deg[-1]
+    u = np.linspace(0.0, 1.0, len(seg.q_deg))
+    bump = np.sin(np.pi * u)
+    line = q0[None] + u[:, None] * (q1 - q0)[None]
+    ends = clearance(np.vstack([q0, q1]))
+    floor = float(ends.min()) - JOINT_LINK_CLEARANCE_TOL_MM
+    J = _position_jacobian(0.5 * (q0 + q1), settings)
+    up_dq = np.linalg.pinv(J) @ np.array([0.0, 0.0, 1.0])  # the axes' change per mm of lift
+    lift = 0.0
+    for _ in range(20):
+        q = line + np.outer(bump * lift, up_dq)
+        c = clearance(q)
+        short = floor - float(c.min())
+        if short <= 0.0:
+            break
+        # aimed 0.5 mm above the floor: the lift converges from below, this ends it in a few rounds
+        lift += (short + 0.5) / max(float(bump[int(np.argmin(c))]), 0.2)
+        if lift > JOINT_LINK_MAX_LIFT_MM:
+            return _kept(seg, f"more than {JOINT_LINK_MAX_LIFT_MM:.0f} mm of lift needed")
+    else:
+        return _kept(seg, "no lift keeps the clearance")
+    arm = q[:, -6:]
+    if (arm < settings.q_min_deg).any() or (arm > settings.q_max_deg).any():
+        return _kept(seg, "beyond the joint margins")
+    if float(np.abs(arm[:, 4]).min()) < settings.wrist_margin_deg:
+        return _kept(seg, "near the wrist singularity")
+    if float(np.abs(np.diff(q[:, -6:], axis=0)).max()) > settings.max_waypoint_joint_step_deg:
+        return _kept(seg, "a joint step between waypoints beyond the continuity limit")
+    T = fk_batch(q, settings.T_flange_sensor, track=settings.track)
+    pos = T[:, :3, 3]
+    lo, hi = np.asarray(settings.workspace_min_mm), np.asarray(settings.workspace_max_mm)
+    if np.any((pos < lo) | (pos > hi)):
+        return _kept(seg, "outside the workspace box")
+    return Segment(kind=seg.kind, label=seg.label, pos_mm=pos, R_base_sensor=T[:, :3, :3], q_deg=q)
+
+
+def joint_space_links(
+    segments: list[Segment], settings: PlannerSettings, surface, placement: Placement
+) -> dict[str, float]:
+    """Replace, in ``segments`` (joints solved), every link at rest at both ends (the edge passes'
+    corners) by its line in joint space (:func:`_joint_space_link`) where that is faster: the
+    Cartesian hump through a corner turns the sensor on a geodesic, and the wrist's joints 4 and 6
+    then turn unevenly along it (on the sail, up to 104 deg on joint 6 with its peak rate several
+    times its mean), which a rest-to-rest law at one rate must take at the peak's pace. Returns
+    the seconds saved, by link label. Every sample of the timed plan still passes the envelope.
+    Only links that turn the sensor by at least :data:`JOINT_LINK_MIN_TURN_DEG` (a link between
+    neighbouring raster passes keeps its hump: without flying turnarounds it is the stop-and-go
+    plan). With a track only where the carriage stands still on the link (held): following the
+    passes, it keeps its lead on the sensor along every segment, which a line in joint space would
+    break."""
+    T_world_plate = placement_transform(placement)
+    T_plate_world = np.linalg.inv(T_world_plate)
+
+    def clearance(q: np.ndarray) -> np.ndarray:
+        p = fk_batch(q, settings.T_flange_sensor, track=settings.track)[:, :3, 3]
+        pp = p @ T_plate_world[:3, :3].T + T_plate_world[:3, 3]
+        return pp[:, 2] - surface.height_and_gradient(pp[:, 0], pp[:, 1])[0]
+
+    saved: dict[str, float] = {}
+    for k, seg in enumerate(segments):
+        if seg.kind != "link" or seg.flying or seg.q_deg is None or len(seg.q_deg) < 3:
+            continue
+        R0, R1 = seg.R_base_sensor[0], seg.R_base_sensor[-1]
+        turn_deg = float(np.degrees(np.arccos(np.clip((np.trace(R0.T @ R1) - 1.0) / 2.0, -1.0, 1.0))))
+        if turn_deg < JOINT_LINK_MIN_TURN_DEG:
+            continue
+        if seg.q_deg.shape[1] == 7 and float(np.ptp(seg.q_deg[:, 0])) > 1e-9:
+            continue  # the carriage follows the passes on this link
+        line = _joint_space_link(seg, settings, clearance)
+        if line is None:
+            continue
+        try:
+            before, after = rest_to_rest_s(seg, settings), rest_to_rest_s(line, settings)
+        except PlanRefused:
+            continue
+        if after < before:
+            segments[k] = line
+            saved[seg.label] = round(before - after, 3)
+    return saved
 
 
 def _wrist_wound(exc: PlanRefused) -> bool:
@@ -304,6 +418,9 @@ def _solve(
         choices["edge_tilt_deg"] = dict(edge_tilts)
     if edge_reverse:
         choices["edge_order"] = "reversed"
+    saved = joint_space_links(segments, settings, surface, placement)
+    if saved:
+        choices["joint_space_links_saved_s"] = saved
     return _Solved(axis, path, segments, margin, time_segments(segments, settings), choices)
 
 

@@ -44,7 +44,15 @@ from cellctl.planning.plan import PlanRefused, Segment
 from cellctl.planning.settings import PlannerSettings
 from drivers.abb_egm.kinematics import LinearTrack, fk_batch
 
-__all__ = ["RAMP_ALLOWANCE_MM", "TcpSpeedConstraint", "TimingResult", "tcp_speed_mm_s", "time_segments"]
+__all__ = [
+    "RAMP_ALLOWANCE_MM",
+    "TcpSpeedConstraint",
+    "TimingResult",
+    "rest_to_rest_s",
+    "tcp_speed_mm_s",
+    "time_segments",
+    "transit_speed_mm_s",
+]
 
 logging.getLogger("toppra").setLevel(logging.WARNING)
 
@@ -256,22 +264,19 @@ def _toppra_constraints(settings: PlannerSettings, tcp: TcpSpeedConstraint) -> l
     ]
 
 
-def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float):
+def _spline(seg: Segment):
+    """The spline of ``seg``'s joint waypoints over its path parameter, and its timing grid:
+    ``(path, s, grid)``."""
     s = _path_parameter(seg)
     path = ta.SplineInterpolator(s, seg.q_deg)
-    constraints = _toppra_constraints(
-        settings, TcpSpeedConstraint(v_tcp, settings.T_flange_sensor, settings.track)
-    )
     n_grid = int(np.clip(np.ceil(s[-1] / _GRID_STEP_MM), 20, 1500)) + 1
-    grid = np.linspace(0.0, s[-1], n_grid)
-    optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid, parametrizer="ParametrizeConstAccel")
-    optimal = optimal.compute_trajectory(0.0, 0.0)
-    if optimal is None:
-        raise PlanRefused(
-            "toppra found no feasible timing for this segment",
-            pass_label=seg.label,
-            limit="joint velocity / acceleration limits",
-        )
+    return path, s, np.linspace(0.0, s[-1], n_grid)
+
+
+def _rest_to_rest_law(
+    seg: Segment, path, s: np.ndarray, grid: np.ndarray, v_tcp: float, settings: PlannerSettings
+):
+    """The jerk-limited rest-to-rest time law of ``seg``'s spline (:func:`_time_law`, ruckig)."""
     try:
         v, a, j = _time_law(path, v_tcp, settings, grid)
     except PlanRefused as exc:
@@ -284,6 +289,38 @@ def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float
     res = otg.calculate(inp, law)
     if res not in (Result.Working, Result.Finished):
         raise PlanRefused(f"the time law could not be computed ({res})", pass_label=seg.label)
+    return law
+
+
+def transit_speed_mm_s(settings: PlannerSettings) -> float:
+    """The TCP speed a segment off the passes (link, approach, retract) is timed at: the transit
+    speed, under :data:`TCP_CAP_FRACTION` of the envelope's cap (the executor's tracker may briefly
+    run a little faster), never below the scan speed."""
+    v_transit = min(settings.transit_speed_mm_s, TCP_CAP_FRACTION * settings.tcp_speed_max_mm_s)
+    return max(v_transit, settings.scan_speed_mm_s)
+
+
+def rest_to_rest_s(seg: Segment, settings: PlannerSettings) -> float:
+    """The executed duration of ``seg`` (joints filled) timed on its own, at rest at both ends, at
+    the transit speed: what :func:`time_segments` gives a link that is not flown (s)."""
+    path, s, grid = _spline(seg)
+    return float(_rest_to_rest_law(seg, path, s, grid, transit_speed_mm_s(settings), settings).duration)
+
+
+def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float):
+    path, s, grid = _spline(seg)
+    constraints = _toppra_constraints(
+        settings, TcpSpeedConstraint(v_tcp, settings.T_flange_sensor, settings.track)
+    )
+    optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid, parametrizer="ParametrizeConstAccel")
+    optimal = optimal.compute_trajectory(0.0, 0.0)
+    if optimal is None:
+        raise PlanRefused(
+            "toppra found no feasible timing for this segment",
+            pass_label=seg.label,
+            limit="joint velocity / acceleration limits",
+        )
+    law = _rest_to_rest_law(seg, path, s, grid, v_tcp, settings)
     t, q, qd, qdd = _law_samples(law, path, 0.0, float(s[-1]), dt_s)
     return t, q, qd, qdd, float(optimal.duration)
 
@@ -417,8 +454,6 @@ def time_segments(segments: list[Segment], settings: PlannerSettings, *, dt_s: f
         PlanRefused: a segment cannot be timed within the limits.
     """
     v_scan = settings.scan_speed_mm_s
-    # headroom under the envelope's cap: the executor's tracker may briefly run a little faster
-    v_transit = min(settings.transit_speed_mm_s, TCP_CAP_FRACTION * settings.tcp_speed_max_mm_s)
     ts, qs, qds, qdds, segidx = [], [], [], [], []
     t0 = 0.0
     worst_dev = 0.0
@@ -430,7 +465,7 @@ def time_segments(segments: list[Segment], settings: PlannerSettings, *, dt_s: f
     timed: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     for chain in _chains(segments):
         segs = [segments[k] for k in chain]
-        speeds = [v_scan if seg.is_sweep else max(v_transit, v_scan) for seg in segs]
+        speeds = [v_scan if seg.is_sweep else transit_speed_mm_s(settings) for seg in segs]
         if len(segs) == 1:
             t, q, qd, qdd, t_opt = _time_one(segs[0], speeds[0], settings, dt_s)
             timed.append((t, q, qd, qdd))
