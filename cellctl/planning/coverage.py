@@ -488,7 +488,8 @@ def _slerp_frames(R0: np.ndarray, R1: np.ndarray, u: np.ndarray) -> np.ndarray:
     return R0[None] @ Rs
 
 
-def _rotation_angle_deg(R0: np.ndarray, R1: np.ndarray) -> float:
+def rotation_angle_deg(R0: np.ndarray, R1: np.ndarray) -> float:
+    """The angle (deg) of the rotation taking orientation ``R0`` (3, 3) to ``R1``."""
     return float(np.rad2deg(np.arccos(np.clip((np.trace(R0.T @ R1) - 1) / 2, -1.0, 1.0))))
 
 
@@ -506,7 +507,7 @@ def _link(
     """A smooth hump from pose 0 to pose 1 (plate frame): straight chord plus ``lift * sin(pi u)`` up,
     raised further where the chord would come closer to the surface than the standoff."""
     dist = float(np.linalg.norm(p1 - p0))
-    rot = _rotation_angle_deg(R0, R1)
+    rot = rotation_angle_deg(R0, R1)
     # denser than the passes: the spline through the joint waypoints must follow the smooth hump
     step = 0.5 * settings.waypoint_step_mm
     n = max(8, int(np.ceil(dist / step)), int(np.ceil(rot / _LINK_MAX_ROT_STEP_DEG))) + 1

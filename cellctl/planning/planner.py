@@ -20,7 +20,7 @@ from analysis.mesh import TriMesh
 from analysis.placement import placement_transform
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.motion.trajectory import TimedTrajectory
-from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
+from cellctl.planning.coverage import build_segments, design_surface, predict_coverage, rotation_angle_deg
 from cellctl.planning.joint_path import (
     REACH_MM,
     TRACK_LEADS_MM,
@@ -217,9 +217,7 @@ def joint_space_links(
     for k, seg in enumerate(segments):
         if seg.kind != "link" or seg.flying or seg.q_deg is None or len(seg.q_deg) < 3:
             continue
-        R0, R1 = seg.R_base_sensor[0], seg.R_base_sensor[-1]
-        turn_deg = float(np.degrees(np.arccos(np.clip((np.trace(R0.T @ R1) - 1.0) / 2.0, -1.0, 1.0))))
-        if turn_deg < JOINT_LINK_MIN_TURN_DEG:
+        if rotation_angle_deg(seg.R_base_sensor[0], seg.R_base_sensor[-1]) < JOINT_LINK_MIN_TURN_DEG:
             continue
         if seg.q_deg.shape[1] == 7 and float(np.ptp(seg.q_deg[:, 0])) > 1e-9:
             continue  # the carriage follows the passes on this link
