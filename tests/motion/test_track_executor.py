@@ -20,6 +20,10 @@ from drivers.abb_egm.kinematics import LinearTrack, fk_batch
 from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
 from tests.motion.conftest import realtime_priority, run_async, wait_for_segment, wait_for_state
 
+# Plans a 4 m track scan and runs the controller simulator in real time: with the cell tests, one
+# at a time (unmarked, it ran in the unit tests' parallel part beside the numerical tests).
+pytestmark = pytest.mark.slow
+
 CYCLE_S = 0.004032
 #: a track along world +y; the plate lies beside it (world x = 1500), its length along the rail
 TRACK = LinearTrack(

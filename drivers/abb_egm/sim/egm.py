@@ -428,7 +428,6 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         # reply latency probe: send time of each seqno (monotonic, and CLOCK_REALTIME to compare with
         # the kernel's receive stamps), latency of each matched reply in user space and kernel time
         self._send_t_ns = np.zeros(4096, dtype=np.int64)
-        self._send_real_ns = np.zeros(4096, dtype=np.int64)
         self._send_seq = np.full(4096, -1, dtype=np.int64)
         self._latency_us = np.zeros(cfg.latency_capacity)
         self._latency_missed = np.zeros(cfg.latency_capacity, dtype=bool)
@@ -920,7 +919,6 @@ class EgmControllerSim(asyncio.DatagramProtocol):
 
     def _stamp_send(self, slot: int) -> None:
         self._send_t_ns[slot] = time.monotonic_ns()
-        self._send_real_ns[slot] = time.time_ns()
 
     def _send_after(self, delay_s: float, payload: bytes) -> None:
         assert self._loop is not None
@@ -961,7 +959,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         t_rx_ns = time.monotonic_ns()
-        t_krx_real_ns = self._kernel_rx_stamp_ns()
+        t_krx_ns = self._kernel_rx_stamp_ns()
         f = self.faults
         if f.rx_loss_fraction > 0 and self._rng.random() < f.rx_loss_fraction:
             self.stats.sensor_dropped += 1
@@ -978,7 +976,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
                 )
             return
         self.stats.sensor_received += 1
-        self._probe_latency(msg.seqno, t_rx_ns, t_krx_real_ns)
+        self._probe_latency(msg.seqno, t_rx_ns, t_krx_ns)
         if not self._running:
             self.stats.sensor_ignored += 1
             return
@@ -1004,7 +1002,12 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         return True
 
     def _kernel_rx_stamp_ns(self) -> int | None:
-        """CLOCK_REALTIME ns at which the kernel received the datagram just read, or None."""
+        """The kernel's receive stamp of the datagram just read, on the monotonic clock (ns), or None.
+
+        The kernel stamps in CLOCK_REALTIME; the send stamps and the user-space reads are monotonic.
+        The stamp is carried over by the realtime-minus-monotonic offset read now, so every latency
+        is a difference on one clock (a realtime clock slewed or stepped between a send and its
+        reply would otherwise make a kernel latency longer than the user-space one)."""
         if not self._kernel_stamps or self._transport is None:
             return None
         sock = self._transport.get_extra_info("socket")
@@ -1012,9 +1015,12 @@ class EgmControllerSim(asyncio.DatagramProtocol):
             sec, nsec = struct.unpack("qq", fcntl.ioctl(sock.fileno(), _SIOCGSTAMPNS, bytes(16)))
         except OSError:
             return None
-        return sec * 1_000_000_000 + nsec
+        m0 = time.monotonic_ns()
+        real = time.time_ns()
+        m1 = time.monotonic_ns()
+        return sec * 1_000_000_000 + nsec - real + (m0 + m1) // 2
 
-    def _probe_latency(self, seqno: int | None, t_rx_ns: int, t_krx_real_ns: int | None = None) -> None:
+    def _probe_latency(self, seqno: int | None, t_rx_ns: int, t_krx_ns: int | None = None) -> None:
         if seqno is None:
             return
         slot = seqno % self._send_t_ns.shape[0]
@@ -1027,11 +1033,11 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         nxt = (seqno + 1) % self._send_t_ns.shape[0]
         next_sent = bool(self._send_seq[nxt] == (seqno + 1) % _U32)
         self._latency_missed[i] = next_sent and self._send_t_ns[nxt] <= t_rx_ns
-        if t_krx_real_ns is None:
+        if t_krx_ns is None:
             self._latency_kernel_us[i] = np.nan
             self._latency_kernel_missed[i] = self._latency_missed[i]
         else:
-            self._latency_kernel_us[i] = (t_krx_real_ns - self._send_real_ns[slot]) / 1000.0
-            self._latency_kernel_missed[i] = next_sent and self._send_real_ns[nxt] <= t_krx_real_ns
+            self._latency_kernel_us[i] = (t_krx_ns - self._send_t_ns[slot]) / 1000.0
+            self._latency_kernel_missed[i] = next_sent and self._send_t_ns[nxt] <= t_krx_ns
         self._send_seq[slot] = -1  # a duplicate reply is not a second sample
         self._latency_n += 1
