@@ -47,7 +47,7 @@ import structlog
 
 from analysis.boundary import BoundaryResult, find_corners
 from analysis.cad import CadDesign, read_design
-from analysis.cloud_io import ScanCloud, write_cloud_ply
+from analysis.cloud_io import ORGANISATION, ScanCloud, write_cloud_ply
 from analysis.job import AnalysisJob, Report
 from analysis.mesh import MeshError, TriMesh
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
@@ -653,6 +653,53 @@ def concat_clouds(chunks: list[ScanCloud]) -> ScanCloud:
     )
 
 
+class GrowingCloud:
+    """The chunks of a stream concatenated as they arrive, into arrays that grow by half (amortised:
+    each point is copied about three times over the scan, while the scan runs), so the end of the
+    stream costs a view and not a copy of the whole cloud. The same arrays as :func:`concat_clouds`
+    of the chunks: organised only when every chunk is, times only when every chunk has them. The
+    cloud's arrays are views of the buffers, which hold up to half again as many rows."""
+
+    _FIELDS = ("xyz_mm", *ORGANISATION, "t_s")
+
+    def __init__(self) -> None:
+        self._n = 0
+        self._chunks = 0
+        self._arrays: dict[str, np.ndarray | None] = dict.fromkeys(self._FIELDS)
+        self._dropped: set[str] = set()
+
+    def append(self, chunk: ScanCloud) -> None:
+        m = len(chunk)
+        self._chunks += 1
+        for name in self._FIELDS:
+            a = getattr(chunk, name)
+            if a is None or name in self._dropped:
+                self._dropped.add(name)
+                self._arrays[name] = None
+                continue
+            buf = self._arrays[name]
+            if buf is None or len(buf) < self._n + m:
+                grown = np.empty((max(self._n + m, int(1.5 * self._n), 1024), *a.shape[1:]), a.dtype)
+                if buf is not None:
+                    grown[: self._n] = buf[: self._n]
+                buf = self._arrays[name] = grown
+            buf[self._n : self._n + m] = a
+        self._n += m
+
+    def cloud(self) -> ScanCloud:
+        if self._chunks == 0:
+            raise InspectionError("the cloud is empty: no chunk arrived")
+        n, a = self._n, self._arrays
+        organised = all(name not in self._dropped for name in ORGANISATION)
+        xyz = a["xyz_mm"]
+        assert xyz is not None
+        return ScanCloud(
+            xyz[:n],
+            *((a[k][:n] for k in ORGANISATION) if organised else (None, None, None)),  # type: ignore[index]
+            t_s=None if "t_s" in self._dropped else a["t_s"][:n],  # type: ignore[index]
+        )
+
+
 class CloudStream:
     """The analysis of a cloud that arrives in chunks while the plate is scanned (the daemon cuts
     the scan's rows, in time order, where a pass ends): whatever does not need the whole cloud is
@@ -661,8 +708,9 @@ class CloudStream:
     At the start the design is read, framed and rasterised (on a second thread); :meth:`add` takes
     the chunks in order and segments each pass they complete into cells and regions
     (:func:`analysis.segment.pass_cells`; pass 0, which files the transit of the whole scan, waits
-    for the end, and a pass seen again in a later chunk is made again at the end). :meth:`finish`
-    concatenates the chunks -- the cloud the daemon would have sent whole, point for point -- and
+    for the end, and a pass seen again in a later chunk is made again at the end) and copies them
+    onto the end of the cloud so far (:class:`GrowingCloud`), so :meth:`finish` holds the chunks
+    concatenated -- the cloud the daemon would have sent whole, point for point -- and
     runs :func:`inspect_cloud` with the prepared design and those cells: the same functions on the
     same arrays as the whole-cloud analysis, so the figures are its figures."""
 
@@ -670,7 +718,7 @@ class CloudStream:
         self.job = job
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="design-field")
         self.prepared = prepare_design(_read_job_design(job), job.settings, self._pool)
-        self._chunks: list[ScanCloud] = []
+        self._cloud = GrowingCloud()
         self._cells: dict[int, PassCells | None] = {}
         self._seen: set[int] = set()
         self._points = 0
@@ -679,7 +727,7 @@ class CloudStream:
     def add(self, chunk: ScanCloud) -> None:
         """The next chunk of the cloud (in order); the passes in it segmented into cells."""
         t0 = time.perf_counter()
-        self._chunks.append(chunk)
+        self._cloud.append(chunk)
         offset, self._points = self._points, self._points + len(chunk)
         if chunk.organised and len(chunk):
             pid = chunk.pass_id
@@ -704,8 +752,8 @@ class CloudStream:
         """The report of the whole cloud (and the results directory with ``job.out_dir``)."""
         try:
             t0 = time.perf_counter()
-            cloud = concat_clouds(self._chunks)
-            self._chunks = []
+            cloud = self._cloud.cloud()
+            self._cloud = GrowingCloud()
             self.prepared.height_field()  # raises the rasterisation's error, if any
             self.timings_s["concat"] = round(time.perf_counter() - t0, 4)
             cells = {k: c for k, c in self._cells.items() if c is not None}
@@ -715,7 +763,7 @@ class CloudStream:
 
     def close(self) -> None:
         """Drop the chunks and stop the design thread (a cancelled stream)."""
-        self._chunks = []
+        self._cloud = GrowingCloud()
         self._cells = {}
         self._pool.shutdown(wait=False, cancel_futures=True)
 

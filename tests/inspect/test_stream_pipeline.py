@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from analysis.cloud_io import ScanCloud
 from analysis.job import AnalysisJob
 from analysis.mesh import save_mesh
-from analysis.pipeline import CloudStream, InspectionError, analyse_job, concat_clouds
+from analysis.pipeline import CloudStream, GrowingCloud, InspectionError, analyse_job, concat_clouds
 from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.segment import pass_cells, segment_plate
 from analysis.settings import InspectionSettings
@@ -104,3 +106,39 @@ def test_passes_segmented_one_by_one_select_the_whole_cloud_segmentation(plate) 
     np.testing.assert_array_equal(streamed.mask, whole.mask)
     assert streamed.noise_sigma_mm == whole.noise_sigma_mm
     assert streamed.plate_area_mm2 == pytest.approx(whole.plate_area_mm2, rel=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    sizes=st.lists(st.integers(0, 3000), min_size=1, max_size=12),
+    organised=st.lists(st.booleans(), min_size=12, max_size=12),
+    timed=st.lists(st.booleans(), min_size=12, max_size=12),
+    seed=st.integers(0, 2**16),
+)
+def test_the_stream_grows_the_cloud_chunk_by_chunk_into_the_arrays_concat_clouds_makes(
+    sizes, organised, timed, seed
+):
+    rng = np.random.default_rng(seed)
+    chunks = []
+    for k, m in enumerate(sizes):
+        org = (
+            (rng.integers(0, 30, m), rng.integers(0, 10**6, m), rng.integers(0, 500, m))
+            if organised[k]
+            else ()
+        )
+        chunks.append(
+            ScanCloud(rng.normal(size=(m, 3)) * 100.0, *org, t_s=rng.random(m) if timed[k] else None)
+        )
+    grown = GrowingCloud()
+    for c in chunks:
+        grown.append(c)
+    got, want = grown.cloud(), concat_clouds(chunks)
+    assert got.organised == want.organised and (got.t_s is None) == (want.t_s is None)
+    for name in ("xyz_mm", "pass_id", "profile_index", "point_index", "t_s"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert (a is None and b is None) or (a.dtype == b.dtype and np.array_equal(a, b)), name
+
+
+def test_a_stream_with_no_chunk_says_the_cloud_is_empty():
+    with pytest.raises(InspectionError, match="no chunk arrived"):
+        GrowingCloud().cloud()

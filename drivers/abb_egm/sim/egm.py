@@ -425,8 +425,8 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self._burst_until = -1.0
         self._held: bytes | None = None
         self._pending: set[asyncio.TimerHandle] = set()
-        # reply latency probe: send time of each seqno (monotonic, and CLOCK_REALTIME to compare with
-        # the kernel's receive stamps), latency of each matched reply in user space and kernel time
+        # reply latency probe: send time of each seqno (monotonic; the kernel's CLOCK_REALTIME receive
+        # stamps are carried onto it), latency of each matched reply in user space and kernel time
         self._send_t_ns = np.zeros(4096, dtype=np.int64)
         self._send_seq = np.full(4096, -1, dtype=np.int64)
         self._latency_us = np.zeros(cfg.latency_capacity)
