@@ -34,7 +34,15 @@ from analysis.mesh import TriMesh
 from analysis.outline import OutlineError, mesh_boundary_loops, outline_corners
 from analysis.placement import Placement, placement_transform
 from analysis.plates import canonical_corner_order
-from cellctl.planning.plan import PASS_AXES, CoverageReport, PlanInputError, PlanRefused, Segment
+from cellctl.planning.plan import (
+    PASS_AXES,
+    CoverageReport,
+    PlanInputError,
+    PlanRefused,
+    Segment,
+    rotation_angle_deg,
+    slerp_frames,
+)
 from cellctl.planning.settings import PlannerSettings
 
 __all__ = [
@@ -466,33 +474,6 @@ def _samples(a: float, b: float, step: float) -> np.ndarray:
     return np.linspace(a, b, n)
 
 
-def _slerp_frames(R0: np.ndarray, R1: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Rotations (m, 3, 3) on the geodesic from R0 to R1 at fractions ``u`` (m,)."""
-    dR = R0.T @ R1
-    angle = float(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
-    if angle < 1e-9:
-        return np.broadcast_to(R0, (u.size, 3, 3)).copy()
-    if np.pi - angle < 1e-6:
-        # half turn: the axis is the eigenvector of dR for eigenvalue 1
-        w, vecs = np.linalg.eigh(dR + dR.T)
-        axis = vecs[:, np.argmax(w)]
-    else:
-        axis = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / (2 * np.sin(angle))
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    th = u * angle
-    Rs = (
-        np.eye(3)[None]
-        + np.sin(th)[:, None, None] * K[None]
-        + (1 - np.cos(th))[:, None, None] * (K @ K)[None]
-    )
-    return R0[None] @ Rs
-
-
-def rotation_angle_deg(R0: np.ndarray, R1: np.ndarray) -> float:
-    """The angle (deg) of the rotation taking orientation ``R0`` (3, 3) to ``R1``."""
-    return float(np.rad2deg(np.arccos(np.clip((np.trace(R0.T @ R1) - 1) / 2, -1.0, 1.0))))
-
-
 def _link(
     surface: DesignSurface,
     label: str,
@@ -523,7 +504,7 @@ def _link(
     lift = min(lift_mm, 0.25 * dist) + max(0.0, extra)
     pos = chord.copy()
     pos[:, 2] += lift * bump
-    return Segment(kind=kind, label=label, pos_mm=pos, R_base_sensor=_slerp_frames(R0, R1, u))
+    return Segment(kind=kind, label=label, pos_mm=pos, R_base_sensor=slerp_frames(R0, R1, u))
 
 
 #: a turnaround's tangents at its ends, as a multiple of the distance between them (the quintic's
@@ -579,7 +560,7 @@ def _turnaround(
     w = u[:, 0]
     smooth = w**3 * (10 - 15 * w + 6 * w**2)
     return Segment(
-        kind="link", label=label, pos_mm=pos, R_base_sensor=_slerp_frames(R0, R1, smooth), flying=True
+        kind="link", label=label, pos_mm=pos, R_base_sensor=slerp_frames(R0, R1, smooth), flying=True
     )
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cellctl.planning.plan import PlanRefused, Segment, pose_matrix
+from cellctl.planning.plan import PlanRefused, Segment, pose_matrix, slerp_frames
 from cellctl.planning.settings import PlannerSettings
 from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics
 
@@ -36,6 +36,7 @@ __all__ = [
     "in_base_frame",
     "sensor_kinematics",
     "solve_joint_path",
+    "split_waypoints",
     "track_positions",
     "wrist_distances_mm",
 ]
@@ -252,6 +253,45 @@ def _same_waypoints(done: Segment, seg: Segment, track_mm: np.ndarray | None) ->
     return track_mm is None or np.array_equal(done.q_deg[:, 0], track_mm)
 
 
+#: a segment flown in the air (not a sweep) whose joints would step beyond the continuity limit
+#: between two waypoints has its waypoints split this many times at most before the plan is refused
+_MAX_SPLITS = 2
+#: ... into pieces this large at most, as a share of the continuity limit
+_SPLIT_STEP_SHARE = 0.5
+#: ... and each interval into no more than this many pieces
+_MAX_SPLIT_FACTOR = 8
+
+
+class _JointJump(PlanRefused):
+    """A configuration jump between waypoints ``point_index - 1`` and ``point_index`` of segment
+    ``segment_index``, ``step_deg`` on one joint."""
+
+    def __init__(self, reason: str, *, segment_index: int, step_deg: float, **where) -> None:
+        super().__init__(reason, **where)
+        self.segment_index = segment_index
+        self.step_deg = step_deg
+
+
+def split_waypoints(seg: Segment, factor: int) -> Segment:
+    """``seg`` with every interval between neighbouring waypoints split into ``factor`` pieces: the
+    positions on the chord between the two, the orientations on the geodesic between them (joints
+    not solved). A link's hump deviates from its chords by lift * (pi / n)^2 / 8: 0.06 mm for a
+    50 mm lift over 32 waypoints."""
+    if factor < 2:
+        return replace(seg, q_deg=None)
+    u = np.arange(factor) / factor
+    steps = np.diff(seg.pos_mm, axis=0)
+    pos = (seg.pos_mm[:-1, None, :] + u[None, :, None] * steps[:, None, :]).reshape(-1, 3)
+    R = [slerp_frames(seg.R_base_sensor[i], seg.R_base_sensor[i + 1], u) for i in range(len(steps))]
+    return replace(
+        seg,
+        pos_mm=np.vstack([pos, seg.pos_mm[-1:]]),
+        R_base_sensor=np.concatenate([*R, seg.R_base_sensor[-1:]]),
+        q_deg=None,
+        length_mm=seg.length_mm,
+    )
+
+
 def solve_joint_path(
     segments: list[Segment],
     settings: PlannerSettings,
@@ -262,6 +302,14 @@ def solve_joint_path(
     solved: list[Segment] | None = None,
 ) -> JointPathResult:
     """Fill ``segment.q_deg`` for every segment, in order, with continuity.
+
+    A segment flown in the air (a link, the approach, the retract) on which a joint would step
+    beyond the continuity limit between two waypoints is sampled finer there (the wrist near its
+    singularity turns joints 4 and 6 many times faster than the sensor turns: 15 deg per waypoint
+    for 3 deg of the sensor at joint 5 = 8 deg), and the plan goes on from there; a jump that stays
+    as large on the finer samples is a configuration flip, and refuses the plan. Such a segment is
+    replaced in ``segments`` by its finer one (:func:`split_waypoints`). Sweeps are never split:
+    their waypoints are the scan's.
 
     Args:
         segments: the plan's segments (base frame sensor poses; world frame with a track).
@@ -282,6 +330,40 @@ def solve_joint_path(
             singularity, outside the workspace box, or would need a configuration jump.
     """
     kin = kin or sensor_kinematics(settings)
+    splits: dict[int, int] = {}
+    while True:
+        try:
+            return _solve_once(segments, settings, kin, q_start_deg, track_lead_mm, track_hold_mm, solved)
+        except _JointJump as exc:
+            k, seg = exc.segment_index, segments[exc.segment_index]
+            if seg.is_sweep or exc.point_index == 0 or splits.get(k, 0) >= _MAX_SPLITS:
+                raise PlanRefused(
+                    exc.reason, pass_label=exc.pass_label, point_index=exc.point_index, limit=exc.limit,
+                    pos_mm=exc.pos_mm,
+                ) from None  # fmt: skip
+            factor = int(
+                np.clip(
+                    np.ceil(exc.step_deg / (_SPLIT_STEP_SHARE * settings.max_waypoint_joint_step_deg)),
+                    2,
+                    _MAX_SPLIT_FACTOR,
+                )
+            )
+            splits[k] = splits.get(k, 0) + 1
+            # the segments before keep the joints this attempt gave them (the solve is deterministic)
+            solved = [replace(s) for s in segments[:k]]
+            segments[k] = split_waypoints(seg, factor)
+
+
+def _solve_once(
+    segments: list[Segment],
+    settings: PlannerSettings,
+    kin: RobotKinematics,
+    q_start_deg: np.ndarray | None,
+    track_lead_mm: float,
+    track_hold_mm: float | None,
+    solved: list[Segment] | None,
+) -> JointPathResult:
+    """One pass of :func:`solve_joint_path` over ``segments``; a jump raises :class:`_JointJump`."""
     world_segments = segments
     segments, track_mm = in_base_frame(world_segments, settings, track_lead_mm, track_hold_mm)
     check_reach(segments, settings)
@@ -378,8 +460,10 @@ def solve_joint_path(
             step = float(np.max(np.abs(q - q_prev)))
             if step > settings.max_waypoint_joint_step_deg:
                 j = int(np.argmax(np.abs(q - q_prev)))
-                raise PlanRefused(
+                raise _JointJump(
                     f"configuration jump of {step:.1f} deg on {JOINT_NAMES[j]} between neighbouring waypoints",
+                    segment_index=k,
+                    step_deg=step,
                     pass_label=seg.label,
                     point_index=i,
                     limit=f"continuity {settings.max_waypoint_joint_step_deg} deg per waypoint",

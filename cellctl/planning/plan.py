@@ -27,6 +27,8 @@ __all__ = [
     "ScanPlan",
     "Segment",
     "pose_matrix",
+    "rotation_angle_deg",
+    "slerp_frames",
 ]
 
 SegmentKind = Literal["approach", "scan", "edge", "link", "retract"]
@@ -91,6 +93,33 @@ def pose_matrix(pos_mm: np.ndarray, R: np.ndarray) -> np.ndarray:
     T[:, :3, 3] = pos_mm
     T[:, 3, 3] = 1.0
     return T
+
+
+def slerp_frames(R0: np.ndarray, R1: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Rotations (m, 3, 3) on the geodesic from R0 to R1 at fractions ``u`` (m,)."""
+    dR = R0.T @ R1
+    angle = float(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
+    if angle < 1e-9:
+        return np.broadcast_to(R0, (u.size, 3, 3)).copy()
+    if np.pi - angle < 1e-6:
+        # half turn: the axis is the eigenvector of dR for eigenvalue 1
+        w, vecs = np.linalg.eigh(dR + dR.T)
+        axis = vecs[:, np.argmax(w)]
+    else:
+        axis = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / (2 * np.sin(angle))
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    th = u * angle
+    Rs = (
+        np.eye(3)[None]
+        + np.sin(th)[:, None, None] * K[None]
+        + (1 - np.cos(th))[:, None, None] * (K @ K)[None]
+    )
+    return R0[None] @ Rs
+
+
+def rotation_angle_deg(R0: np.ndarray, R1: np.ndarray) -> float:
+    """The angle (deg) of the rotation taking orientation ``R0`` (3, 3) to ``R1``."""
+    return float(np.rad2deg(np.arccos(np.clip((np.trace(R0.T @ R1) - 1) / 2, -1.0, 1.0))))
 
 
 @dataclass

@@ -20,7 +20,7 @@ from analysis.mesh import TriMesh
 from analysis.placement import placement_transform
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.motion.trajectory import TimedTrajectory
-from cellctl.planning.coverage import build_segments, design_surface, predict_coverage, rotation_angle_deg
+from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
 from cellctl.planning.joint_path import (
     REACH_MM,
     TRACK_LEADS_MM,
@@ -42,6 +42,7 @@ from cellctl.planning.plan import (
     ScanPlan,
     Segment,
     pose_matrix,
+    rotation_angle_deg,
 )
 from cellctl.planning.settings import PlannerSettings
 from cellctl.planning.timing import TimingResult, rest_to_rest_s, time_segments

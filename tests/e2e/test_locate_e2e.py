@@ -124,7 +124,8 @@ def test_a_plate_laid_at_random_is_found_within_2_mm_and_a_fifth_of_a_degree_and
     # at 225 mm/s and 200 Hz the profiles are 1.1 mm apart: an edge is seen within about a profile
     assert found["rms_mm"] < 2.0 and found["coverage"] > 0.1
     # the scan was planned from it (then aborted: the scan is the other e2e tests' subject)
-    assert any(h["message"] == "planned" for h in rec["history"]), (SEED, rec["history"])
+    steps = " | ".join(f"{h['state']}: {h['message']}" for h in rec["history"])
+    assert any(h["message"] == "planned" for h in rec["history"]), f"seed {SEED}: {steps}"
     assert state == "aborted", message
     # the locate runs' data reached the disk: raw files and the cloud the fit read
     locate_dir = cell.jobs_dir / job_id / "locate"
