@@ -77,8 +77,7 @@ def sensor_kinematics(settings: PlannerSettings) -> RobotKinematics:
 
 
 #: the sensor's along-rail offsets from the base the planner tries, in order: abreast first, then a
-#: little ahead or behind (abreast, the wrist of the IRB 4600 can need a larger joint-6 turn between
-#: neighbouring waypoints on the links around a plate's corners than it does a little off it)
+#: little ahead or behind (where a joint limit or the wrist margin refuses the plan abreast)
 TRACK_LEADS_MM = (0.0, -200.0, 200.0, -400.0, 400.0)
 
 
@@ -95,6 +94,10 @@ def hold_position_mm(centre_world_mm: np.ndarray, settings: PlannerSettings) -> 
     return float(np.clip(along, track.travel_min_mm, track.travel_max_mm))
 
 
+#: a carriage following the passes stays this far inside its usable travel
+TRACK_END_MARGIN_MM = 1.0
+
+
 def track_positions(
     segments: list[Segment], settings: PlannerSettings, lead_mm: float = 0.0, hold_mm: float | None = None
 ) -> list[np.ndarray] | None:
@@ -107,8 +110,10 @@ def track_positions(
     pass, and the track's path is as smooth as the sensor's (sweeps along the rail move it at the
     scan speed, sweeps across hold it). The lead is the one nearest ``lead_mm`` (0: the sensor
     abreast of the base, where the arm reaches as it would for a plate in front of a fixed robot)
-    that keeps every waypoint inside the usable travel; a plan longer than the travel is clipped at
-    the ends of the travel, where the arm then reaches along the rail (or the joint path refuses it).
+    that keeps every waypoint inside the usable travel (less :data:`TRACK_END_MARGIN_MM` at either
+    end: the timed path through a waypoint at the very end can overshoot it); a plan longer than
+    the travel is clipped there, where the arm then reaches along the rail (or the joint path
+    refuses it).
     """
     track = settings.track
     if track is None:
@@ -117,10 +122,12 @@ def track_positions(
         return [np.full(seg.pos_mm.shape[0], float(hold_mm)) for seg in segments]
     along = [(seg.pos_mm - track.origin_mm) @ track.direction for seg in segments]
     a = np.concatenate(along)
-    lead_lo = float(a.max()) - track.travel_max_mm
-    lead_hi = float(a.min()) - track.travel_min_mm
+    # kept off the travel's very ends: the timed path through waypoints at an end can overshoot it
+    lo, hi = track.travel_min_mm + TRACK_END_MARGIN_MM, track.travel_max_mm - TRACK_END_MARGIN_MM
+    lead_lo = float(a.max()) - hi
+    lead_hi = float(a.min()) - lo
     lead = float(np.clip(lead_mm, lead_lo, lead_hi)) if lead_lo <= lead_hi else 0.5 * (lead_lo + lead_hi)
-    return [np.clip(x - lead, track.travel_min_mm, track.travel_max_mm) for x in along]
+    return [np.clip(x - lead, lo, hi) for x in along]
 
 
 def in_base_frame(
