@@ -344,10 +344,7 @@ def solve_joint_path(
         except _JointJump as exc:
             k, seg = exc.segment_index, segments[exc.segment_index]
             if seg.is_sweep or exc.point_index == 0 or splits.get(k, 0) >= _MAX_SPLITS:
-                raise PlanRefused(
-                    exc.reason, pass_label=exc.pass_label, point_index=exc.point_index, limit=exc.limit,
-                    pos_mm=exc.pos_mm,
-                ) from None  # fmt: skip
+                raise
             factor = int(
                 np.clip(
                     np.ceil(exc.step_deg / (_SPLIT_STEP_SHARE * settings.max_waypoint_joint_step_deg)),
