@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
+import time
 from collections.abc import Awaitable, Callable
 
 import numpy as np
@@ -162,6 +163,26 @@ def test_communication_timeout_ends_the_session_with_event_41822_in_the_model():
         # no new session starts by itself
         await asyncio.sleep(0.05)
         assert not sim.session_running and sim.stats.sessions == 1
+        await stop_pair(sim, ep)
+
+    run(main)
+
+
+def test_a_stall_of_the_simulator_itself_is_not_taken_for_a_silent_sensor():
+    # The simulator's loop held for longer than the communication timeout (its process not scheduled
+    # on a loaded machine) sent nothing meanwhile: the sensor had nothing to answer, so the session
+    # goes on. A sensor silent as long while the simulator runs still ends it (the tests above).
+    async def main():
+        sim, ep = await start_pair(cfg_kwargs={"comm_timeout_s": 0.3})
+        ep.command_joints(Q_START)
+        await wait_until(lambda: sim.session_running, 0.5)
+        overruns = sim.stats.overruns
+        # the simulator's loop (and the endpoint's) held
+        asyncio.get_running_loop().call_soon(time.sleep, 0.6)
+        await asyncio.sleep(0.2)
+        assert sim.stats.overruns - overruns > 100  # it did stall
+        assert sim.session_running and not sim.ended_sessions
+        await wait_until(lambda: ep.ok_to_command, 0.5)
         await stop_pair(sim, ep)
 
     run(main)

@@ -649,6 +649,11 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         # newest reference and move for one cycle. Only the last of several overdue cycles sends.
         # The trajectory gets the position at the end of the cycle at once: the motion over the
         # cycle is fixed when the cycle starts, and readers then rarely ask beyond the newest sample.
+        if self._running and steps > 1:
+            # The simulator's own stall (its process not scheduled on a loaded machine) sent no
+            # feedback for those cycles, and a sensor cannot answer packets it never got: the stall
+            # does not count toward the communication timeout (a real controller does not stall).
+            self._last_sensor_t += (steps - 1) * dt
         send_due = False
         for k in range(steps):
             t_k = t_true - (steps - 1 - k) * dt
