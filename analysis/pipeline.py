@@ -686,6 +686,11 @@ class GrowingCloud:
             buf[self._n : self._n + m] = a
         self._n += m
 
+    @property
+    def fields(self) -> frozenset[str]:
+        """The fields the cloud keeps (a chunk without times drops them from the whole cloud)."""
+        return frozenset(f for f in self._FIELDS if f not in self._dropped)
+
     def cloud(self) -> ScanCloud:
         if self._chunks == 0:
             raise InspectionError("the cloud is empty: no chunk arrived")
@@ -712,7 +717,12 @@ class CloudStream:
     onto the end of the cloud so far (:class:`GrowingCloud`), so :meth:`finish` holds the chunks
     concatenated -- the cloud the daemon would have sent whole, point for point -- and
     runs :func:`inspect_cloud` with the prepared design and those cells: the same functions on the
-    same arrays as the whole-cloud analysis, so the figures are its figures."""
+    same arrays as the whole-cloud analysis, so the figures are its figures.
+
+    :meth:`ahead` runs that analysis before the stream has ended, once the sender says every pass
+    is in (the arm still retracts, and the rows of the retract seldom hold a point): its report
+    stands if the rest of the stream adds no point and changes no field of the cloud -- the cloud
+    :meth:`finish` would analyse is then the same arrays -- else :meth:`finish` analyses again."""
 
     def __init__(self, job: AnalysisJob) -> None:
         self.job = job
@@ -722,6 +732,8 @@ class CloudStream:
         self._cells: dict[int, PassCells | None] = {}
         self._seen: set[int] = set()
         self._points = 0
+        # the report made by ahead() and the cloud it was made of: (points, fields kept), report
+        self._ahead: tuple[tuple[int, frozenset[str]], dict[str, Any]] | None = None
         self.timings_s: dict[str, float] = {"pass_cells": 0.0}
 
     def add(self, chunk: ScanCloud) -> None:
@@ -729,6 +741,9 @@ class CloudStream:
         t0 = time.perf_counter()
         self._cloud.append(chunk)
         offset, self._points = self._points, self._points + len(chunk)
+        if self._ahead is not None and self._ahead[0] != self._state():
+            self._ahead = None  # the cloud changed: the report made ahead is not its report
+            self.timings_s["ahead_dropped"] = 1.0
         if chunk.organised and len(chunk):
             pid = chunk.pass_id
             for k in np.unique(pid).tolist():
@@ -748,16 +763,39 @@ class CloudStream:
     def points(self) -> int:
         return self._points
 
-    def finish(self) -> dict[str, Any]:
-        """The report of the whole cloud (and the results directory with ``job.out_dir``)."""
+    def _state(self) -> tuple[int, frozenset[str]]:
+        return self._points, self._cloud.fields
+
+    def _analyse(self) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        cloud = self._cloud.cloud()
+        self.prepared.height_field()  # raises the rasterisation's error, if any
+        self.timings_s["concat"] = round(time.perf_counter() - t0, 4)
+        cells = {k: c for k, c in self._cells.items() if c is not None}
+        return _inspect_job(cloud, self.prepared, self.job, cells)
+
+    def ahead(self) -> None:
+        """Every pass is in: analyse the cloud so far now, ahead of the stream's end. The report is
+        kept for :meth:`finish` while no later chunk changes the cloud; an analysis that fails here
+        is left to :meth:`finish`, which runs it again and raises its error."""
+        t0 = time.perf_counter()
+        state = self._state()
         try:
-            t0 = time.perf_counter()
-            cloud = self._cloud.cloud()
-            self._cloud = GrowingCloud()
-            self.prepared.height_field()  # raises the rasterisation's error, if any
-            self.timings_s["concat"] = round(time.perf_counter() - t0, 4)
-            cells = {k: c for k, c in self._cells.items() if c is not None}
-            return _inspect_job(cloud, self.prepared, self.job, cells)
+            report = self._analyse()
+        except Exception as exc:
+            log.info("analysis_ahead_failed", job_id=self.job.job_id, error=str(exc)[:200])
+            return
+        self._ahead = (state, report)
+        self.timings_s["ahead"] = round(time.perf_counter() - t0, 4)
+
+    def finish(self) -> dict[str, Any]:
+        """The report of the whole cloud (and the results directory with ``job.out_dir``): the one
+        made by :meth:`ahead` when the cloud has not changed since, else made now."""
+        try:
+            if self._ahead is not None and self._ahead[0] == self._state():
+                self.timings_s["ahead_kept"] = 1.0
+                return self._ahead[1]
+            return self._analyse()
         finally:
             self.close()
 
@@ -765,6 +803,7 @@ class CloudStream:
         """Drop the chunks and stop the design thread (a cancelled stream)."""
         self._cloud = GrowingCloud()
         self._cells = {}
+        self._ahead = None
         self._pool.shutdown(wait=False, cancel_futures=True)
 
 

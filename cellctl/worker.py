@@ -113,6 +113,9 @@ class WorkerSettings:
     stream_grace_s: float = 2.0
     stream_idle_s: float = 900.0
     cloud_timeout_s: float = 120.0
+    # the chunk the daemon marks ``last_pass`` starts the analysis at once (the arm retracts); the
+    # report stands when the rest of the stream adds no point, else the analysis runs again
+    analyse_ahead: bool = True
 
     @classmethod
     def from_config(cls, config: Any, **override: Any) -> WorkerSettings:
@@ -219,11 +222,12 @@ def _error_text(exc: BaseException, t0: float) -> str:
 class ChildRequest(BaseModel):
     """The header of one request from the worker to its analysis child (the body follows as raw
     bytes): ``job`` (body: the whole cloud) and ``open`` carry ``spec``, the AnalysisJob's JSON;
-    ``chunk`` (body: the next encoded chunk), ``finish`` and ``drop`` carry nothing."""
+    ``chunk`` (body: the next encoded chunk), ``ahead`` (every pass is in: analyse before the end),
+    ``finish`` and ``drop`` carry nothing."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    op: Literal["job", "open", "chunk", "finish", "drop"]
+    op: Literal["job", "open", "chunk", "ahead", "finish", "drop"]
     spec: str | None = None
 
 
@@ -263,6 +267,16 @@ class _ChildStream:
             self.error = exc
         self.decode_s += time.perf_counter() - t0
 
+    def ahead(self) -> None:
+        """Every pass is in: an analysis that can (``stream.ahead``) runs now, before the stream's
+        end; its report stands if nothing after changes the cloud."""
+        ahead = getattr(self.stream, "ahead", None)
+        if self.error is None and ahead is not None:
+            try:
+                ahead()
+            except Exception as exc:  # an analysis' own early run failed: the end runs it as always
+                print(f"analysis child: the analysis ahead of the end failed: {exc!r}", file=sys.stderr)
+
     def finish(self) -> str:
         t0 = time.perf_counter()
         try:
@@ -278,6 +292,8 @@ class _ChildStream:
                 "stream_open": self.open_s,
                 "decode": self.decode_s,
                 "analysis": time.perf_counter() - t0,
+                # the analysis made ahead of the stream's end, when it was kept
+                **{k: v for k, v in getattr(self.stream, "timings_s", {}).items() if k.startswith("ahead")},
             }
             return _outcome_text(result, timings)
         except Exception as exc:
@@ -338,6 +354,10 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
         if op == "chunk":
             if stream is not None:
                 stream.add(body)
+            continue
+        if op == "ahead":
+            if stream is not None:
+                stream.ahead()
             continue
         if op == "drop":
             if stream is not None:
@@ -448,6 +468,11 @@ class AnalysisProcess:
     async def add_chunk(self, chunk: bytes | bytearray) -> None:
         """The next chunk of the open stream (an encoded cloud), in order."""
         await self._send(ChildRequest(op="chunk"), chunk)
+
+    async def ahead_stream(self) -> None:
+        """Every pass of the open stream is in: the analysis runs now (the chunks after it are taken
+        once it is done; its report stands if they add nothing to the cloud)."""
+        await self._send(ChildRequest(op="ahead"))
 
     async def finish_stream(self) -> AnalysisOutcome:
         """The open stream is complete: the analysis finishes and reports."""
@@ -759,6 +784,9 @@ class Worker:
                 await self.runner.add_chunk(data)
                 inbox.next_seq += 1
                 inbox.points += head.points
+                if head.last_pass and st.analyse_ahead:
+                    # the arm retracts: the analysis runs now, the rest of the stream seldom adds a point
+                    await self.runner.ahead_stream()
             end = inbox.end
             if end is None and inbox.daemon_gone:
                 raise TransferError(

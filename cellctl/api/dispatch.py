@@ -133,9 +133,9 @@ class _Worker:
 
 @dataclass
 class _Stream:
-    """A streamed job's chunks (pass index, points, sha256, payload) as the daemon gave them."""
+    """A streamed job's chunks (pass index, points, sha256, payload, last pass) as the daemon gave them."""
 
-    chunks: list[tuple[int, int, str, bytes | bytearray]] = field(default_factory=list)
+    chunks: list[tuple[int, int, str, bytes | bytearray, bool]] = field(default_factory=list)
     ended: bool = False
     ended_at: float = 0.0
     wake: asyncio.Event = field(default_factory=asyncio.Event)
@@ -244,13 +244,22 @@ class Dispatcher:
         as they come."""
         return self.submit(params, b"", transfer=transfer, stream=True)
 
-    def stream_chunk(self, job_id: str, pass_index: int, payload: bytes | bytearray, points: int) -> int:
+    def stream_chunk(
+        self,
+        job_id: str,
+        pass_index: int,
+        payload: bytes | bytearray,
+        points: int,
+        *,
+        last_pass: bool = False,
+    ) -> int:
         """The next chunk of a streamed job's cloud (an encoded cloud of the rows since the previous
-        chunk); its ``seq``. Sent on to the worker holding the job once it accepted."""
+        chunk); its ``seq``. Sent on to the worker holding the job once it accepted. ``last_pass``:
+        it completes the plan's last pass (StreamChunk.last_pass)."""
         st = self._stream(job_id)
         if st.ended:
             raise ValueError(f"job {job_id!r}: the stream has ended")
-        st.chunks.append((pass_index, points, hashlib.sha256(payload).hexdigest(), payload))
+        st.chunks.append((pass_index, points, hashlib.sha256(payload).hexdigest(), payload, last_pass))
         st.wake.set()
         return len(st.chunks) - 1
 
@@ -611,9 +620,9 @@ class Dispatcher:
             while job.worker_id == worker_id and job.attempt == attempt:
                 st.wake.clear()
                 while sent < len(st.chunks):
-                    pass_index, points, sha, data = st.chunks[sent]
+                    pass_index, points, sha, data, last_pass = st.chunks[sent]
                     head = StreamChunk(job_id=job.job_id, attempt=attempt, seq=sent, pass_index=pass_index,
-                                       points=points, sha256=sha)  # fmt: skip
+                                       points=points, sha256=sha, last_pass=last_pass)  # fmt: skip
                     key = self.keys.worker_stream(worker_id, job.job_id, attempt, sent)
                     await asyncio.to_thread(put, key, self._payload(data), head.to_json())
                     sent += 1

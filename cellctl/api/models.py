@@ -543,6 +543,9 @@ class StreamChunk(Model):
     pass_index: Annotated[int, Field(ge=-1)]
     points: Annotated[int, Field(ge=0)]
     sha256: Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
+    #: this chunk completes the plan's last pass: what follows is the retract's rows (the worker may
+    #: analyse now; the chunks after it seldom hold a point)
+    last_pass: bool = False
 
 
 class StreamEnd(Model):

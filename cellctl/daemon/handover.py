@@ -80,6 +80,14 @@ class Handover:
         # plan.passes), so the plan's raster count is the first edge pass.
         return (job.record.info.get("plan") or {}).get("passes")
 
+    @staticmethod
+    def _last_pass(job: ActiveJob) -> int | None:
+        # the edge passes follow the raster passes: the last pass id is their count less one
+        plan = job.record.info.get("plan") or {}
+        if "passes" not in plan:
+            return None
+        return int(plan["passes"]) + int(plan.get("edge_passes") or 0) - 1
+
     async def open_stream(self, job: ActiveJob) -> ScanStream:
         """A streamed analysis for the scan about to start (planned: the plan is in the record): the
         job goes to a worker now, :class:`ScanStream` sends the cloud pass by pass."""
@@ -91,7 +99,8 @@ class Handover:
         stream = ScanStream(
             self.dispatcher, fut, job_id=rec.job_id, plate_id=rec.plate_id,
             settings=PublishSettings.from_config(self.cfg), first_edge_pass=self._first_edge(job),
-            meta=self._meta(job), on_abandon=lambda: self._streams.pop(rec.job_id, None),
+            meta=self._meta(job), last_pass=self._last_pass(job),
+            on_abandon=lambda: self._streams.pop(rec.job_id, None),
         )  # fmt: skip
         self._streams[rec.job_id] = stream
         return stream

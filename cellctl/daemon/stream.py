@@ -55,6 +55,7 @@ class ScanStream:
         settings: PublishSettings,
         first_edge_pass: int | None,
         meta: dict[str, Any],
+        last_pass: int | None = None,
         poll_s: float = 0.2,
         durable_timeout_s: float = 5.0,
         on_abandon: Callable[[], None] | None = None,
@@ -65,6 +66,7 @@ class ScanStream:
         self.plate_id = plate_id
         self.settings = settings
         self.first_edge_pass = first_edge_pass
+        self.last_pass = last_pass
         self.meta = dict(meta)
         self.poll_s = poll_s
         self.durable_timeout_s = durable_timeout_s
@@ -145,7 +147,13 @@ class ScanStream:
             meta=self.meta, t0_ns=self._t0_ns,
         )  # fmt: skip
         self.encode_s += time.perf_counter() - t0
-        seq = self.dispatcher.stream_chunk(self.job_id, pass_index, payload, n)
+        seq = self.dispatcher.stream_chunk(
+            self.job_id,
+            pass_index,
+            payload,
+            n,
+            last_pass=self.last_pass is not None and pass_index == self.last_pass,
+        )
         self.points += n
         self.bytes += len(payload)
         self.chunks += 1

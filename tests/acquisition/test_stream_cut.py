@@ -75,12 +75,16 @@ class _Acq:
 class _Dispatcher:
     def __init__(self) -> None:
         self.chunks: list[tuple[int, bytes, int]] = []
+        self.last_pass: list[bool] = []
         self.ended = False
         self.abandoned: str | None = None
 
-    def stream_chunk(self, job_id: str, pass_index: int, payload: bytes, points: int) -> int:
+    def stream_chunk(
+        self, job_id: str, pass_index: int, payload: bytes, points: int, *, last_pass: bool = False
+    ) -> int:
         assert not self.ended
         self.chunks.append((pass_index, payload, points))
+        self.last_pass.append(last_pass)
         return len(self.chunks) - 1
 
     def end_stream(self, job_id: str) -> None:
@@ -100,7 +104,7 @@ def test_the_chunks_concatenated_are_the_whole_cloud_byte_for_byte(seed: int) ->
         disp, acq = _Dispatcher(), _Acq()
         fut = asyncio.get_running_loop().create_future()
         stream = ScanStream(disp, fut, job_id="J", plate_id="P", settings=settings, first_edge_pass=3,
-                            meta=meta, poll_s=0.01)  # fmt: skip
+                            meta=meta, poll_s=0.01, last_pass=3)  # fmt: skip
         stream.follow(acq, None)
         for b in batches:  # the scan goes on: batches arrive, the stream cuts behind them
             acq.batches.append(b)
@@ -114,6 +118,8 @@ def test_the_chunks_concatenated_are_the_whole_cloud_byte_for_byte(seed: int) ->
     assert disp.ended and disp.abandoned is None
     passes = [c[0] for c in disp.chunks]
     assert passes[:4] == [0, 1, 2, 3] and passes[-1] == -1 and len(passes) == 5, passes
+    # the chunk completing the plan's last pass says so: the worker may analyse before the retract ends
+    assert disp.last_pass == [False, False, False, True, False]
     whole = AssembledScan.concat(batches)
     steps = column_steps(whole.pass_id, 3, settings)
     expected, n = encode_scan(whole, job_id="J", plate_id="P", column_step=steps, meta=meta)

@@ -67,6 +67,66 @@ def test_the_streamed_analysis_gives_every_line_the_whole_cloud_figures(plate) -
     assert streamed["timings_s"]["design"] < 0.05
 
 
+def _empty_like(chunk: ScanCloud) -> ScanCloud:
+    """A chunk of no rows with the fields of ``chunk`` (the retract's rows, none of which saw the plate)."""
+    none = np.zeros(0, dtype=np.int64)
+    return ScanCloud(np.zeros((0, 3)), none, none, none, t_s=None if chunk.t_s is None else np.zeros(0))
+
+
+def _figures(report: dict) -> list[tuple]:
+    return [(ln["name"], *(ln[f] for f in FIGURES)) for ln in report["lines"]]
+
+
+@pytest.mark.slow
+def test_the_analysis_made_ahead_stands_when_the_tail_adds_no_point_and_is_made_again_when_it_does(
+    plate,
+) -> None:
+    cloud, job = plate
+    chunks = _pass_chunks(cloud)
+    whole = analyse_job(concat_clouds(chunks), job)
+    # every pass in, then the retract's rows without a point: the report made ahead is the report
+    stream = CloudStream(job)
+    for c in chunks:
+        stream.add(c)
+    stream.ahead()
+    made = stream._ahead[1]
+    stream.add(_empty_like(chunks[-1]))
+    kept = stream.finish()
+    assert kept is made and stream.timings_s["ahead_kept"] == 1.0
+    assert _figures(kept) == _figures(whole)
+    assert kept["inputs"]["points"] == whole["inputs"]["points"]
+    # made ahead of the last pass: the pass's points change the cloud, the analysis runs again
+    stream = CloudStream(job)
+    for c in chunks[:-1]:
+        stream.add(c)
+    stream.ahead()
+    early = stream._ahead[1]
+    stream.add(chunks[-1])
+    again = stream.finish()
+    assert again is not early and stream.timings_s["ahead_dropped"] == 1.0
+    assert _figures(again) == _figures(whole)
+    assert early["inputs"]["points"] < again["inputs"]["points"] == whole["inputs"]["points"]
+    # a tail without times drops them from the whole cloud: that too is another cloud
+    stream = CloudStream(job)
+    for c in chunks:
+        stream.add(c)
+    stream.ahead()
+    if chunks[-1].t_s is not None:
+        none = np.zeros(0, dtype=np.int64)
+        stream.add(ScanCloud(np.zeros((0, 3)), none, none, none))
+        assert stream._ahead is None
+    stream.close()
+
+
+def test_an_analysis_that_fails_ahead_fails_at_the_end_with_its_error(plate) -> None:
+    _, job = plate
+    stream = CloudStream(job)
+    stream.ahead()  # nothing arrived yet: nothing is kept
+    assert stream._ahead is None
+    with pytest.raises(InspectionError, match="no chunk arrived"):
+        stream.finish()
+
+
 def test_the_chunks_concatenated_are_the_cloud_point_for_point(plate) -> None:
     cloud, _ = plate
     chunks = _pass_chunks(cloud)

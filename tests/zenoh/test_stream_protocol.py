@@ -71,6 +71,39 @@ def test_a_streamed_job_is_analysed_from_chunks_sent_before_and_after_the_worker
     assert env.timings_s["stream_chunks"] == 4 and env.timings_s["stream_fallback"] == 0
 
 
+@pytest.mark.parametrize("tail_points", [0, 500])
+def test_the_last_pass_starts_the_analysis_before_the_end_and_a_tail_with_points_makes_it_again(
+    hub, start_worker, tail_points
+):
+    """The chunk the daemon marks ``last_pass`` reaches the worker marked (through Zenoh) and the
+    analysis runs at once; the report made then is the job's when the retract's rows add no point,
+    and is made again from every chunk when they do."""
+    start_worker("w1", analysis="zworker_fns:centroid_streamed")
+    job_id = f"jobR{tail_points}"
+
+    async def scenario(disp: Dispatcher):
+        await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
+        chunks, _ = _chunks(job_id)
+        tail = _chunks(job_id, n_chunks=1, n=tail_points)[0][0]
+        fut = disp.submit_stream(_job(hub, job_id, ahead_sleep_s=1.0))
+        await _wait_for(lambda: disp._jobs[job_id].accepted, 30, "accepted")
+        for k in range(4):
+            disp.stream_chunk(job_id, k, chunks[k], 500, last_pass=k == 3)
+        # the retract's rows come while the analysis made ahead still runs
+        await asyncio.sleep(0.3)
+        disp.stream_chunk(job_id, -1, tail, tail_points)
+        disp.end_stream(job_id)
+        return await asyncio.wait_for(fut, 60)
+
+    env = _run(hub, scenario)
+    assert env.ok, env.error
+    seen = _observed(hub, job_id)
+    assert seen["ahead_points"] == 2000  # every pass in, before the tail
+    assert seen["n_points"] == 2000 + tail_points
+    assert seen["made"] == ("ahead" if tail_points == 0 else "finish")
+    assert env.timings_s["stream_chunks"] == 5 and env.timings_s["stream_fallback"] == 0
+
+
 def test_a_stream_abandoned_mid_scan_frees_the_worker_for_the_next_job(hub, start_worker):
     start_worker("w1")
 

@@ -84,3 +84,48 @@ def blas_environment(cloud: ScanCloud, job: AnalysisJob) -> Report:
     """Observe the BLAS thread settings the analysis process runs with."""
     observe(job, **{k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")})
     return minimal_report(job, len(cloud))
+
+
+class _CentroidStream:
+    """The stream of :func:`centroid_streamed`: the chunks kept; ``ahead`` makes the result early and
+    keeps it while no later chunk adds a point (as :class:`analysis.pipeline.CloudStream` does)."""
+
+    def __init__(self, job: AnalysisJob) -> None:
+        self.job = job
+        self.clouds: list[ScanCloud] = []
+        self.ahead_points: int | None = None
+        self.kept: Report | None = None
+
+    @property
+    def points(self) -> int:
+        return sum(len(c) for c in self.clouds)
+
+    def add(self, cloud: ScanCloud) -> None:
+        self.clouds.append(cloud)
+        if len(cloud):
+            self.kept = None
+
+    def _result(self, **seen: Any) -> Report:
+        xyz = np.concatenate([c.xyz_mm for c in self.clouds])
+        passes = sorted({int(p) for c in self.clouds if c.organised for p in np.unique(c.pass_id)})
+        observe(self.job, job_id=self.job.job_id, n_points=xyz.shape[0], centroid_mm=xyz.mean(axis=0).tolist(),
+                passes=passes, ahead_points=self.ahead_points, **seen)  # fmt: skip
+        return minimal_report(self.job, xyz.shape[0])
+
+    def ahead(self) -> None:
+        self.ahead_points = self.points
+        time.sleep(float(behaviour(self.job).get("ahead_sleep_s", 0.0)))
+        self.kept = self._result(made="ahead")
+
+    def finish(self) -> Report:
+        if self.kept is not None:
+            return self.kept
+        return self._result(made="finish")
+
+
+def centroid_streamed(cloud: ScanCloud, job: AnalysisJob) -> Report:
+    """:func:`centroid_after_sleep` for a whole cloud; a streamed one goes through its ``stream``."""
+    return centroid_after_sleep(cloud, job)
+
+
+centroid_streamed.stream = _CentroidStream  # type: ignore[attr-defined]
