@@ -80,6 +80,10 @@ _TERMINAL = (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED)
 #: the move to the plan's start keeps the TCP under this share of the envelope's speed cap, as the
 #: planned transits do (the straight joint-space line's TCP speed is estimated on 129 points)
 _START_TCP_FRACTION = 0.9
+#: shares of the joint jerk limits a playback-rate ramp's acceleration (3 q'' r r') and jerk (q' r'')
+#: may use: what the plan's time law leaves (it uses 80 %, ``cellctl.planning.timing``)
+_RAMP_JERK_SHARE_ACCEL = 0.12
+_RAMP_JERK_SHARE_JERK = 0.08
 
 
 @dataclass(frozen=True)
@@ -365,9 +369,9 @@ class MotionExecutor:
     def _rate_limits_at(self, tau: float) -> tuple[float, float]:
         """Playback-rate acceleration and jerk for a ramp starting at trajectory time ``tau``.
 
-        With the rate r(t) the joint jerk is q''' r^3 + 3 q'' r r' + q' r''. The plan uses 60 % of the
-        jerk budget; r' gets 25 % and r'' 15 %, bounded by the peaks of q' and q'' over the stretch of
-        trajectory the ramp can cover, so a pause on a slow pass stops in a short distance and keeps
+        With the rate r(t) the joint jerk is q''' r^3 + 3 q'' r r' + q' r''. The plan uses 80 % of the
+        jerk budget (``cellctl.planning.timing._JERK_FACTOR``); r' gets 12 % and r'' 8 %, bounded by
+        the peaks of q' and q'' over the stretch of trajectory the ramp can cover, so a pause on a slow pass stops in a short distance and keeps
         the jerk and acceleration limits.
         """
         cfg, traj = self.config, self.trajectory
@@ -377,10 +381,17 @@ class MotionExecutor:
         qdd_peak = np.maximum(np.abs(traj.qdd_deg_s2[i0:i1]).max(axis=0), 1e-6)
         a_r = cfg.rate_accel_per_s2 or float(
             np.clip(
-                min(np.min(0.5 * self._amax / qd_peak), np.min(0.25 * self._jmax / (3 * qdd_peak))), 0.2, 50.0
+                min(
+                    np.min(0.5 * self._amax / qd_peak),
+                    np.min(_RAMP_JERK_SHARE_ACCEL * self._jmax / (3 * qdd_peak)),
+                ),
+                0.2,
+                50.0,
             )
         )
-        j_r = cfg.rate_jerk_per_s3 or float(np.clip(np.min(0.15 * self._jmax / qd_peak), 1.0, 500.0))
+        j_r = cfg.rate_jerk_per_s3 or float(
+            np.clip(np.min(_RAMP_JERK_SHARE_JERK * self._jmax / qd_peak), 1.0, 500.0)
+        )
         return a_r, j_r
 
     def _ramp_rate(self, rate: float) -> None:

@@ -42,8 +42,9 @@ log = structlog.get_logger(__name__)
 
 #: bump when the planner plans differently from the same inputs (or the stored plan's format changes)
 PLAN_CACHE_VERSION = (
-    # 2: the carriage holds when it can; 3: flying turnarounds; 4: the passes along either axis
-    "cellctl.plan_cache/4+cellctl.scan_plan/1"
+    # 2: the carriage holds when it can; 3: flying turnarounds; 4: the passes along either axis;
+    # 5: timed with 80 % of the jerk limits (was 60 %)
+    "cellctl.plan_cache/5+cellctl.scan_plan/1"
 )
 
 

@@ -58,7 +58,9 @@ logging.getLogger("toppra").setLevel(logging.WARNING)
 
 _VEL_FACTOR = 0.95
 _ACC_FACTOR = 0.9
-_JERK_FACTOR = 0.6
+#: the plan's share of the joint jerk limits; the executor's pause / resume / abort ramps of the
+#: playback rate keep the rest (:meth:`cellctl.motion.executor.Executor._rate_limits_at`)
+_JERK_FACTOR = 0.8
 #: weight of rotation in the path parameter (mm per rad), so pure reorientations still advance s
 _ROT_WEIGHT_MM_PER_RAD = 100.0
 _GRID_STEP_MM = 4.0
