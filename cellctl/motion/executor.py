@@ -38,7 +38,7 @@ import structlog
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
 
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
-from cellctl.motion.trajectory import TimedTrajectory
+from cellctl.motion.trajectory import PLAN_JERK_SHARE, TimedTrajectory
 from drivers.abb_egm.endpoint import EgmEndpoint
 from drivers.abb_egm.kinematics import fk_batch
 
@@ -81,9 +81,9 @@ _TERMINAL = (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED)
 #: planned transits do (the straight joint-space line's TCP speed is estimated on 129 points)
 _START_TCP_FRACTION = 0.9
 #: shares of the joint jerk limits a playback-rate ramp's acceleration (3 q'' r r') and jerk (q' r'')
-#: may use: what the plan's time law leaves (it uses 80 %, ``cellctl.planning.timing``)
-_RAMP_JERK_SHARE_ACCEL = 0.12
-_RAMP_JERK_SHARE_JERK = 0.08
+#: may use: what the plan's time law leaves, split 60 / 40
+_RAMP_JERK_SHARE_ACCEL = 0.6 * (1.0 - PLAN_JERK_SHARE)
+_RAMP_JERK_SHARE_JERK = 0.4 * (1.0 - PLAN_JERK_SHARE)
 
 
 @dataclass(frozen=True)
@@ -369,10 +369,10 @@ class MotionExecutor:
     def _rate_limits_at(self, tau: float) -> tuple[float, float]:
         """Playback-rate acceleration and jerk for a ramp starting at trajectory time ``tau``.
 
-        With the rate r(t) the joint jerk is q''' r^3 + 3 q'' r r' + q' r''. The plan uses 80 % of the
-        jerk budget (``cellctl.planning.timing._JERK_FACTOR``); r' gets 12 % and r'' 8 %, bounded by
-        the peaks of q' and q'' over the stretch of trajectory the ramp can cover, so a pause on a slow pass stops in a short distance and keeps
-        the jerk and acceleration limits.
+        With the rate r(t) the joint jerk is q''' r^3 + 3 q'' r r' + q' r''. The plan uses
+        :data:`~cellctl.motion.trajectory.PLAN_JERK_SHARE` (80 %) of the jerk budget; r' gets 12 % and
+        r'' 8 %, bounded by the peaks of q' and q'' over the stretch of trajectory the ramp can cover,
+        so a pause on a slow pass stops in a short distance and keeps the jerk and acceleration limits.
         """
         cfg, traj = self.config, self.trajectory
         i0 = max(int(np.searchsorted(traj.t_s, tau, side="right")) - 1, 0)

@@ -13,7 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["TimedTrajectory"]
+__all__ = ["PLAN_JERK_SHARE", "TimedTrajectory"]
+
+#: the share of the joint jerk limits a plan's time law may use (:mod:`cellctl.planning.timing`);
+#: the executor's pause / resume / abort ramps of the playback rate keep the rest, so a stop
+#: anywhere on a plan keeps the limits (:meth:`cellctl.motion.executor.MotionExecutor._rate_limits_at`)
+PLAN_JERK_SHARE = 0.8
 
 
 @dataclass

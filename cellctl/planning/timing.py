@@ -39,7 +39,7 @@ import toppra.algorithm as ta_algo
 import toppra.constraint as ta_constraint
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
-from cellctl.motion.trajectory import TimedTrajectory
+from cellctl.motion.trajectory import PLAN_JERK_SHARE, TimedTrajectory
 from cellctl.planning.plan import PlanRefused, Segment
 from cellctl.planning.settings import PlannerSettings
 from drivers.abb_egm.kinematics import LinearTrack, fk_batch
@@ -58,9 +58,6 @@ logging.getLogger("toppra").setLevel(logging.WARNING)
 
 _VEL_FACTOR = 0.95
 _ACC_FACTOR = 0.9
-#: the plan's share of the joint jerk limits; the executor's pause / resume / abort ramps of the
-#: playback rate keep the rest (:meth:`cellctl.motion.executor.Executor._rate_limits_at`)
-_JERK_FACTOR = 0.8
 #: weight of rotation in the path parameter (mm per rad), so pure reorientations still advance s
 _ROT_WEIGHT_MM_PER_RAD = 100.0
 _GRID_STEP_MM = 4.0
@@ -197,7 +194,7 @@ def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -
     """
     vmax = _VEL_FACTOR * settings.axis_speed_max
     amax = _ACC_FACTOR * settings.axis_accel_max
-    jmax = _JERK_FACTOR * settings.axis_jerk_max
+    jmax = PLAN_JERK_SHARE * settings.axis_jerk_max
     m1, m2, m3, dpds = _path_peaks(path, settings, grid)
     v = min(v_tcp / max(dpds, 1e-9), float(np.min(vmax / m1)))
     # the centripetal term may use at most half of the acceleration budget
@@ -238,7 +235,7 @@ def _flying_rate(
     """
     vmax = _VEL_FACTOR * settings.axis_speed_max
     amax = _ACC_FACTOR * settings.axis_accel_max
-    jmax = _JERK_FACTOR * settings.axis_jerk_max
+    jmax = PLAN_JERK_SHARE * settings.axis_jerk_max
     m1, m2, m3, dpds = _path_peaks(path, settings, grid)
     m2, m3 = np.maximum(m2, 1e-12), np.maximum(m3, 1e-15)
     v = _FLYING_SHARE * min(
