@@ -134,18 +134,59 @@ def dense_ranks(ids: np.ndarray) -> np.ndarray:
     return rank[ids]
 
 
-def _profiles_from_zero(cloud: ScanCloud) -> ScanCloud:
-    """Number each pass's profiles from 0: an acquisition numbers profiles by frame over the whole
-    scan (and pass ids may be sparse), which would make the scan grid mostly empty places."""
+#: Within a pass whose grid would be mostly empty, a run of more than this many missing profiles
+#: is numbered as this many. The transit rows of a whole scan are one pass (pass 0), from the move
+#: to the start to the retract: when some near both ends see the plate (a scan that starts over it,
+#: where a stopped scan left the arm) that pass's grid spans every frame of the scan, and a cloud
+#: that sparse was taken for no scan grid at all (the slow Delaunay route, which mis-sized such a
+#: plate). Far more profiles than a cell spans, so no cell reaches across a shortened gap.
+MAX_PROFILE_GAP = 256
+
+
+def _local_profiles(profile_index: np.ndarray, point_index: np.ndarray) -> np.ndarray:
+    """One pass's profile indices numbered from 0 (n,) int64; when the pass's grid (profiles x
+    points) would be less than a quarter full, every run of more than :data:`MAX_PROFILE_GAP`
+    missing profiles is shortened to that. Decided by the pass's own points alone (a streamed pass
+    and the same pass in the whole cloud are numbered alike), and idempotent."""
+    p = profile_index.astype(np.int64) - int(profile_index.min())
+    span = int(p.max()) + 1
+    if span * (int(point_index.max()) + 1) <= 4 * len(p):
+        return p
+    # the profiles present, counted when the span is not much larger than the points, else sorted
+    present = np.flatnonzero(np.bincount(p)) if span <= max(8 * len(p), 1_000_000) else np.unique(p)
+    excess = np.maximum(np.diff(present) - 1 - MAX_PROFILE_GAP, 0)
+    if not excess.any():
+        return p
+    shift = np.concatenate([[0], np.cumsum(excess)])
+    return p - shift[np.searchsorted(present, p)]
+
+
+def _profiles_from_zero(cloud: ScanCloud) -> tuple[ScanCloud, int]:
+    """Number each pass's profiles from 0 (:func:`_local_profiles`): an acquisition numbers profiles
+    by frame over the whole scan (and pass ids may be sparse), which would make the scan grid mostly
+    empty places. Returns the cloud so numbered and its passes' grid places (profiles x points,
+    summed over the passes)."""
     pid = cloud.pass_id.astype(np.int64)
     prof = cloud.profile_index.astype(np.int64)
     pass_idx = dense_ranks(pid)
-    first = np.full(int(pass_idx.max()) + 1, np.iinfo(np.int64).max)
+    m = int(pass_idx.max()) + 1
+    first = np.full(m, np.iinfo(np.int64).max)
     np.minimum.at(first, pass_idx, prof)
     local = prof - first[pass_idx]
+    span, width = np.zeros(m, np.int64), np.zeros(m, np.int64)
+    np.maximum.at(span, pass_idx, local)
+    np.maximum.at(width, pass_idx, cloud.point_index.astype(np.int64))
+    span, width = span + 1, width + 1
+    for k in np.flatnonzero(span * width > 4 * np.bincount(pass_idx, minlength=m)).tolist():
+        sel = np.flatnonzero(pass_idx == k)
+        local[sel] = _local_profiles(local[sel], cloud.point_index[sel])
+        span[k] = int(local[sel].max()) + 1
+    places = int(np.sum(span * width))
     if np.array_equal(local, prof) and np.array_equal(pass_idx, pid):
-        return cloud
-    return ScanCloud(cloud.xyz_mm, pass_idx.astype(np.int32), local.astype(np.int32), cloud.point_index)
+        return cloud, places
+    return ScanCloud(
+        cloud.xyz_mm, pass_idx.astype(np.int32), local.astype(np.int32), cloud.point_index
+    ), places
 
 
 def segment_plate(
@@ -175,12 +216,7 @@ def segment_plate(
     if cloud.organised:
         dense = np.unique(cloud.pass_id)  # _profiles_from_zero numbers the passes densely
         done = {int(k): passes[int(pid)] for k, pid in enumerate(dense) if passes and int(pid) in passes}
-        cloud = _profiles_from_zero(cloud)
-        n_grid = (
-            (int(cloud.pass_id.max()) + 1)
-            * (int(cloud.profile_index.max()) + 1)
-            * (int(cloud.point_index.max()) + 1)
-        )
+        cloud, n_grid = _profiles_from_zero(cloud)
         if n_grid <= max(8 * len(cloud), 1_000_000):
             return _segment_grid(cloud, settings, done)
         # Indices this sparse are not a scan grid (a renumbered or merged file): do not allocate it.
@@ -295,7 +331,7 @@ def pass_cells(
     n = len(xyz_mm)
     if n == 0:
         return None
-    prof = profile_index.astype(np.int64) - int(profile_index.min())
+    prof = _local_profiles(profile_index, point_index)
     P, width = int(prof.max()) + 1, int(point_index.max()) + 1
     if P < 3:
         return None
@@ -456,7 +492,7 @@ def _segment_grid(
     )  # fmt: skip
     return SegmentResult(
         mask=mask,
-        points_mm=pts[mask],
+        points_mm=np.take(pts, np.flatnonzero(mask), axis=0),  # (a boolean index of (n, 3) takes 3x as long)
         source=cloud,
         noise_sigma_mm=sigma,
         inlier_tol_mm=tol,
@@ -634,7 +670,7 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     )  # fmt: skip
     return SegmentResult(
         mask=mask,
-        points_mm=pts[mask],
+        points_mm=np.take(pts, np.flatnonzero(mask), axis=0),  # (a boolean index of (n, 3) takes 3x as long)
         source=cloud,
         noise_sigma_mm=sigma,
         inlier_tol_mm=tol,

@@ -12,7 +12,14 @@ from hypothesis import strategies as st
 from analysis.cloud_io import ScanCloud
 from analysis.placement import Placement
 from analysis.plates import FormingError, GaussianBump, formed_height_mm, plate_spec
-from analysis.segment import NoPlateError, SegmentError, SegmentSettings, dense_ranks, segment_plate
+from analysis.segment import (
+    NoPlateError,
+    SegmentError,
+    SegmentSettings,
+    dense_ranks,
+    pass_cells,
+    segment_plate,
+)
 from analysis.synth import ScanSettings, synthesize_scan
 
 COARSE = {"point_pitch_mm": 1.0, "points_per_profile": 50, "profile_step_mm": 2.0}
@@ -141,6 +148,37 @@ def test_organisation_too_sparse_to_be_a_scan_grid_falls_back_to_delaunay():
     res = segment_plate(sparse)
     assert res.method == "delaunay"
     assert res.mask.sum() >= 0.95 * _truth_top(scan, 0.12).sum()
+
+
+def test_a_transit_pass_that_sees_the_plate_at_both_ends_of_the_scan_keeps_the_scan_grid():
+    """The daemon files the transit rows of a whole scan under pass 0 and numbers profiles by frame.
+    When rows near both ends see the plate (the scan starts over it, where a stopped scan left the
+    arm) that pass spans every frame: its grid was counted as all passes that long, the cloud was
+    taken for no scan grid and went the Delaunay way (which mis-sized the demo plate: CI, stop 36).
+    The pass's long run of missing frames is numbered short, the same in a streamed pass."""
+    scan = _scan("sail", seed=6, length_mm=450.0)
+    c = scan.cloud
+    pid = c.pass_id.astype(np.int64)
+    frames = np.bincount(pid, weights=None, minlength=pid.max() + 1) * 0
+    np.maximum.at(frames, pid, c.profile_index.astype(np.int64) + 1)
+    frame = c.profile_index + np.concatenate([[0], np.cumsum(frames)[:-1]])[pid]  # over the whole scan
+    first, last = pid == 0, pid == pid.max() - 4  # the first and the last raster pass
+    mid_first = np.median(c.profile_index[first])
+    mid_last = np.median(c.profile_index[last])
+    transit = (first & (np.abs(c.profile_index - mid_first) < 3)) | (
+        last & (np.abs(c.profile_index - mid_last) < 3)
+    )
+    assert transit.sum() > 100 and np.ptp(frame[transit]) > 0.5 * np.ptp(frame)
+    cloud = ScanCloud(c.xyz_mm, np.where(transit, 0, pid + 1), frame, c.point_index)
+    res = segment_plate(cloud)
+    assert res.method == "grid"
+    assert res.mask.sum() >= 0.99 * _truth_top(scan, 0.12).sum()
+    assert not (res.mask & ~_truth_top(scan, 0.2)).any()
+    # the transit pass's cells made from its own rows (as a streamed scan makes them): the same
+    sel = np.flatnonzero(transit)
+    pc = pass_cells(c.xyz_mm[sel], frame[sel], c.point_index[sel], sel)
+    assert pc is not None and pc.idx.shape[0] < 300 + 2 * 6  # two runs of 5 profiles, 256 apart
+    np.testing.assert_array_equal(segment_plate(cloud, passes={0: pc}).mask, res.mask)
 
 
 @settings(max_examples=8, deadline=None)
