@@ -58,6 +58,7 @@ from analysis.register import (
     HeightField,
     RegistrationError,
     RegistrationResult,
+    apply_transform,
     deflection_gaps,
     height_field_from_mesh,
     invert_transform,
@@ -152,11 +153,20 @@ def plate_frame(design_corners: np.ndarray) -> np.ndarray:
     return T
 
 
+def _xy_cells(points_mm: np.ndarray, cell_mm: float) -> tuple[np.ndarray, int, int]:
+    """The XY cell of every point, counted from the points' lowest corner: (flat index ``i * ny +
+    j`` (n,), nx, ny). Column by column (a reduction along axis 0 of an (n, 2) view is 20x slower)."""
+    i, j = (np.floor((points_mm[:, k] - points_mm[:, k].min()) / cell_mm).astype(np.int64) for k in (0, 1))
+    nx, ny = int(i.max()) + 1, int(j.max()) + 1
+    i *= ny
+    i += j
+    return i, nx, ny
+
+
 def _hole_fraction(points_mm: np.ndarray, cell_mm: float) -> float:
     """Empty cells lying between filled ones (left and right, or above and below), per filled cell."""
-    ij = np.floor((points_mm[:, :2] - points_mm[:, :2].min(axis=0)) / cell_mm).astype(np.int64)
-    nx, ny = int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1
-    occ = (np.bincount(ij[:, 0] * ny + ij[:, 1], minlength=nx * ny) > 0).reshape(nx, ny)
+    flat, nx, ny = _xy_cells(points_mm, cell_mm)
+    occ = (np.bincount(flat, minlength=nx * ny) > 0).reshape(nx, ny)
     inner = ~occ[1:-1, 1:-1]
     holes = inner & ((occ[:-2, 1:-1] & occ[2:, 1:-1]) | (occ[1:-1, :-2] & occ[1:-1, 2:]))
     return float(holes.sum() / max(occ.sum(), 1))
@@ -186,10 +196,7 @@ def height_grid_mesh(points_mm: np.ndarray, cell_mm: float) -> TriMesh:
 
     points_mm: (n, 3) top-surface points (z up). Two triangles per 2x2 block of filled cells.
     """
-    xy0 = points_mm[:, :2].min(axis=0)
-    ij = np.floor((points_mm[:, :2] - xy0) / cell_mm).astype(np.int64)
-    nx, ny = int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1
-    flat = ij[:, 0] * ny + ij[:, 1]
+    flat, nx, ny = _xy_cells(points_mm, cell_mm)
     count = np.bincount(flat, minlength=nx * ny)
     filled = count > 0
     mean = np.zeros((nx * ny, 3))
@@ -564,7 +571,7 @@ def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
     T_dm = invert_transform(ins.T_measured_design)
-    pts_design = ins.plate_points_mm @ T_dm[:3, :3].T + T_dm[:3, 3]
+    pts_design = apply_transform(T_dm, ins.plate_points_mm)
     files["cloud.ply"] = write_cloud_ply(
         ScanCloud(pts_design), out / "cloud.ply", extra={"deviation": ins.deviation_mm.astype(np.float32)},
         comment="cellctl registered cloud, design frame, mm; deviation mm, NaN off the design",
@@ -586,7 +593,8 @@ def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
         arrays[f"line{k}_design_z_mm"] = cut.design_h_mm
         arrays[f"line{k}_measured_z_mm"] = cut.measured_h_mm
         arrays[f"line{k}_deviation_mm"] = cut.design_h_mm - cut.measured_h_mm
-    np.savez_compressed(out / "results.npz", **arrays)
+    # uncompressed: zlib took 0.2 s of the time to the report for 2 MB saved beside cloud.ply's 37
+    np.savez(out / "results.npz", **arrays)
     files["results.npz"] = out / "results.npz"
     files["report.csv"] = write_csv(ins.report, out / "report.csv")
     # report.json last: its presence marks a complete results directory.

@@ -104,32 +104,42 @@ class RestSurface:
         }
 
 
-def _extent(inv: np.ndarray, v: np.ndarray, use: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) of ``v[use]`` per group ``inv`` of ``m`` groups (+inf, -inf for an empty group)."""
-    lo = np.full(m, np.inf)
-    hi = np.full(m, -np.inf)
-    np.minimum.at(lo, inv[use], v[use])
-    np.maximum.at(hi, inv[use], v[use])
-    return lo, hi
-
-
 TRIM_SIGMAS = 3.0
 
 
 def _patch_planes(
-    inv: np.ndarray, m: int, P: np.ndarray, gap: np.ndarray, w: np.ndarray
+    inv: np.ndarray,
+    m: int,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    gap: np.ndarray,
+    w: np.ndarray | None,
 ) -> tuple[np.ndarray, ...]:
     """Weighted plane of the gaps per patch: (centroid (m, 3), mean gap, slope x, slope y, dx (n,),
-    dy (n,) the points' offsets from their centroid, weight sum)."""
-    n_w = np.bincount(inv, weights=w, minlength=m)
+    dy (n,) the points' offsets from their centroid, weight sum). x, y, z: the points' coordinates
+    (contiguous columns: every sum below is one pass over them); w: their weights (None: all 1)."""
+
+    def wsum(v: np.ndarray) -> np.ndarray:
+        return np.bincount(inv, weights=v if w is None else w * v, minlength=m)
+
+    n_w = (
+        np.bincount(inv, minlength=m).astype(np.float64)
+        if w is None
+        else np.bincount(inv, weights=w, minlength=m)
+    )
     safe_n = np.maximum(n_w, 1.0)
-    mean = np.column_stack([np.bincount(inv, weights=w * P[:, k], minlength=m) / safe_n for k in range(3)])
-    mean_gap = np.bincount(inv, weights=w * gap, minlength=m) / safe_n
-    dx, dy = P[:, 0] - mean[inv, 0], P[:, 1] - mean[inv, 1]
-    dg = gap - mean_gap[inv]
-    sxx, sxy, syy = (np.bincount(inv, weights=w * v, minlength=m) for v in (dx * dx, dx * dy, dy * dy))
-    sxg = np.bincount(inv, weights=w * dx * dg, minlength=m)
-    syg = np.bincount(inv, weights=w * dy * dg, minlength=m)
+    mean = np.column_stack([wsum(v) / safe_n for v in (x, y, z)])
+    mean_gap = wsum(gap) / safe_n
+    dx = x - np.take(mean[:, 0], inv)
+    dy = y - np.take(mean[:, 1], inv)
+    dg = gap - np.take(mean_gap, inv)
+    wdx = dx if w is None else w * dx
+    wdy = dy if w is None else w * dy
+    sxx, sxy, syy, sxg, syg = (
+        np.bincount(inv, weights=a * b, minlength=m)
+        for a, b in ((wdx, dx), (wdx, dy), (wdy, dy), (wdx, dg), (wdy, dg))
+    )
     det = sxx * syy - sxy**2
     ok = det > 1e-12 * np.maximum(sxx * syy, 1e-300)
     safe = np.where(ok, det, 1.0)
@@ -167,55 +177,61 @@ def _edge_fits(
     springback rise lets it sink); a quadratic leaves the third derivative times ``W^3 / 120``.
     Returns (points (k, 3) design frame, gaps (k,), n_eff (k,)).
     """
-    m = len(grid.count)
-    use = w > 0
-    n_c = np.bincount(grid.inv, weights=w, minlength=m)
+    # the points sorted by patch (stable: each patch's in the cloud's order), so a block of patches
+    # is a few contiguous runs
+    order = np.argsort(grid.inv, kind="stable")
+    start = np.concatenate([[0], np.cumsum(grid.count)])
+    use_s = w[order] > 0
+    q_s = [np.take(Q[:, k], order) for k in range(3)]
+    gap_s = np.take(gap, order)
+    w_s = np.take(w, order)
+    n_c = np.add.reduceat(w_s, start[:-1])
     safe = np.maximum(n_c, 1e-300)
-    cen = np.column_stack([np.bincount(grid.inv, weights=w * Q[:, k], minlength=m) / safe for k in (0, 1)])
-    lo_hi = [_extent(grid.inv, Q[:, k], use, m) for k in (0, 1)]
+    cen = np.column_stack([np.add.reduceat(w_s * q_s[k], start[:-1]) / safe for k in (0, 1)])
+    # the kept points' extent per patch (+inf, -inf for a patch of none kept)
+    lo_hi = [
+        (np.minimum.reduceat(np.where(use_s, q_s[k], np.inf), start[:-1]),
+         np.maximum.reduceat(np.where(use_s, q_s[k], -np.inf), start[:-1]))
+        for k in (0, 1)
+    ]  # fmt: skip
     miss = grid.missing
     # side per axis: +1 the edge lies on the + side, -1 on the - side, 0 no edge on this axis
     side = np.column_stack(
         [(miss[:, 2 * k] & ~miss[:, 2 * k + 1]).astype(int) - (miss[:, 2 * k + 1] & ~miss[:, 2 * k]) for k in (0, 1)]
     )  # fmt: skip
     cells = np.flatnonzero((n_c > 0) & side.any(axis=1))
-    order = np.argsort(grid.inv, kind="stable")
-    start = np.concatenate([[0], np.cumsum(grid.count)])
     index = {int(key): i for i, key in enumerate(grid.keys)}
     out_q, out_g, out_n = [], [], []
     for c in cells:
         sd = side[c]
-        at = np.array(
-            [lo_hi[k][1][c] if sd[k] > 0 else lo_hi[k][0][c] if sd[k] < 0 else cen[c, k] for k in (0, 1)]
-        )
+        at = [lo_hi[k][1][c] if sd[k] > 0 else lo_hi[k][0][c] if sd[k] < 0 else cen[c, k] for k in (0, 1)]
         for deep, along in EDGE_BLOCKS:
             ranges = [range(-sd[k] * (deep - 1), 1) if sd[k] > 0 else range(0, deep) if sd[k] < 0
                       else range(-along, along + 1) for k in (0, 1)]  # fmt: skip
             block = [
                 index.get(int(grid.keys[c]) + di * grid.width + dj) for di in ranges[0] for dj in ranges[1]
             ]
-            pts = np.concatenate([order[start[b] : start[b + 1]] for b in block if b is not None])
-            pts = pts[use[pts]]
-            # the block's kept points' spread: from its cells' extents (the same min and max)
             cb = np.asarray([b for b in block if b is not None])
-            spread = max(float(lo_hi[k][1][cb].max() - lo_hi[k][0][cb].min()) for k in (0, 1))
-            d = (Q[pts, :2] - at) / max(spread, 1e-9)
+            pts = np.concatenate([np.arange(start[b], start[b + 1]) for b in cb])
+            pts = pts[use_s[pts]]
+            # the block's kept points' spread: from its cells' extents (the same min and max)
+            spread = max(max(float(lo_hi[k][1][cb].max() - lo_hi[k][0][cb].min()) for k in (0, 1)), 1e-9)
             cols = [np.ones(len(pts))]
             for k in (0, 1):
-                cols += [d[:, k], d[:, k] ** 2]
+                d = (q_s[k][pts] - at[k]) / spread
+                cols += [d, d**2]
             X = np.column_stack(cols)
             if len(pts) <= 2 * X.shape[1]:
                 continue
             XtX = X.T @ X
             try:
                 inv00 = float(np.linalg.solve(XtX, np.eye(len(XtX))[0])[0])
-                coef = np.linalg.solve(XtX, X.T @ np.column_stack([gap[pts], Q[pts, 2]]))
+                coef = np.linalg.solve(XtX, X.T @ np.column_stack([gap_s[pts], q_s[2][pts]]))
             except np.linalg.LinAlgError:
                 continue
             n_eff = 1.0 / inv00 if inv00 > 0 else 0.0
             if n_eff >= n_min:
-                place = at - sd * inset_mm
-                out_q.append([place[0], place[1], coef[0, 1]])
+                out_q.append([at[0] - sd[0] * inset_mm, at[1] - sd[1] * inset_mm, coef[0, 1]])
                 out_g.append(coef[0, 0])
                 out_n.append(n_eff)
                 break
@@ -234,19 +250,23 @@ def max_normal_quantile(count: int, confidence: float) -> float:
 
 def _cells(xy: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(inverse index (n,), counts (m,)) of the occupied ``cell_mm`` squares."""
-    g = _grid(np.floor(xy / cell_mm).astype(np.int64))
+    g = _grid(*(np.floor(xy[:, k] / cell_mm).astype(np.int64) for k in (0, 1)))
     return g.inv, g.count
 
 
-def _plate_cells(xy_design_mm: np.ndarray, cell_mm: float) -> np.ndarray:
-    """(n, 2) cell indices of patches laid out in the design frame from the points' lowest corner,
+def _plate_cells(
+    x_design_mm: np.ndarray, y_design_mm: np.ndarray, cell_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(i (n,), j (n,)) the cell indices of patches laid out in the design frame from the points' lowest corner,
     the side stretched so that a whole number of patches spans the points: the edge patches then
     sit the same way on the plate in every scan, whatever its placement on the bed."""
-    lo = xy_design_mm.min(axis=0)
-    span = np.maximum(xy_design_mm.max(axis=0) - lo, 1e-9)
-    n = np.maximum(np.round(span / cell_mm), 1.0)
-    ij = np.floor((xy_design_mm - lo) / (span / n)).astype(np.int64)
-    return np.minimum(ij, (n - 1).astype(np.int64))
+    out = []
+    for v in (x_design_mm, y_design_mm):
+        lo = float(v.min())
+        span = max(float(v.max()) - lo, 1e-9)
+        n = max(round(span / cell_mm), 1)
+        out.append(np.minimum(np.floor((v - lo) / (span / n)).astype(np.int64), n - 1))
+    return out[0], out[1]
 
 
 @dataclass(frozen=True)
@@ -273,12 +293,12 @@ class _Grid:
 _DENSE_GRID_MAX_CELLS = 40_000_000
 
 
-def _grid(ij: np.ndarray) -> _Grid:
-    """The occupied cells of the (n, 2) integer indices ``ij``."""
-    ij = ij - (ij.min(axis=0) - 1)  # a free row and column on every side
-    width = int(ij[:, 1].max()) + 2
-    key = ij[:, 0] * width + ij[:, 1]
-    span = (int(ij[:, 0].max()) + 2) * width
+def _grid(i: np.ndarray, j: np.ndarray) -> _Grid:
+    """The occupied cells of the (n,) integer indices ``i``, ``j``."""
+    i_lo, j_lo = int(i.min()) - 1, int(j.min()) - 1  # a free row and column on every side
+    width = int(j.max()) - j_lo + 2
+    key = (i - i_lo) * width + (j - j_lo)
+    span = (int(i.max()) - i_lo + 2) * width
     steps = (width, -width, 1, -1)
     if span > min(_DENSE_GRID_MAX_CELLS, 8 * len(key)):  # a sparse grid: sort
         keys, inv, count = np.unique(key, return_inverse=True, return_counts=True)
@@ -367,8 +387,9 @@ def rest_surface(
         patches = max(2.0 * area / cell**2, 1.0)  # twice: the part-filled patches along the edges
     n_min = min(n_min, max(int(0.66 * density * cell**2), 1))  # the cap: what a patch can hold
     # patches anchored at the points' lower-left corner (any anchor is as good)
+    # (the design frame's coordinates as contiguous columns: every per-patch sum is one pass)
     Q = apply_transform(invert_transform(np.asarray(T_meas_design, dtype=np.float64)), P)
-    grid = _grid(_plate_cells(Q[:, :2], cell))
+    grid = _grid(*_plate_cells(Q[:, 0], Q[:, 1], cell))
     inv, count = grid.inv, grid.count
     keep = count >= n_min
     if keep.sum() < 6:
@@ -379,9 +400,10 @@ def rest_surface(
     # per patch, the plane of the gaps about the centroid, fitted twice: the second time without the
     # points more than TRIM_SIGMAS off the first plane (the edge band's points of the thickness face,
     # outliers the segmentation's 6-sigma test let through)
-    w = np.ones(len(P))
+    x, y, z = (np.ascontiguousarray(P[:, k]) for k in range(3))
+    w = None
     for _ in range(2):
-        mean, mean_gap, b_x, b_y, dx, dy, n_w = _patch_planes(inv, len(count), P, gap, w)
+        mean, mean_gap, b_x, b_y, dx, dy, n_w = _patch_planes(inv, len(count), x, y, z, gap, w)
         resid = gap - mean_gap[inv] - b_x[inv] * dx - b_y[inv] * dy
         w = (np.abs(resid) <= TRIM_SIGMAS * sigma).astype(np.float64)
     count = n_w.astype(np.int64)
@@ -393,7 +415,7 @@ def rest_surface(
     if edge_aware:
         # a template resting on a raised edge touches the edge itself: the edge patches are also
         # held at their outer extent, by a plane fitted on a block big enough to keep the bound
-        origin = Q.min(axis=0)
+        origin = np.array([Q[:, k].min() for k in range(3)])
         e_q, e_g, e_n = _edge_fits(grid, Q - origin, gap, w, n_min, EDGE_INSET * cell)
         n_edge = len(e_g)
         reps.append(apply_transform(np.asarray(T_meas_design, dtype=np.float64), e_q + origin))
