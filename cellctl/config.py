@@ -600,6 +600,9 @@ class WorkerSection(Section):
     # the cells this worker takes jobs from: key prefixes ("cell/a", "cell/b") or one key expression
     # of them ("cell/*"); empty: the cell this file configures ([zenoh] key_prefix)
     cells: list[Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-*]+(/[A-Za-z0-9_\-*]+)*$")]] = []
+    # MB of touched heap the analysis process keeps ready while a streamed scan arrives (400 B a
+    # point received, at most this; cellctl.heap): page faults were half the sail's analysis. 0: off
+    heap_reserve_mb: int = Field(1536, ge=0, le=1 << 20)
 
 
 class RouterSection(Section):

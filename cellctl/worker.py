@@ -73,6 +73,7 @@ from cellctl.api.transfer import (
     cached_design,
     pack_results,
 )
+from cellctl.heap import HeapReserve, single_arena
 from drivers.runtime import stop_on_signals
 
 log = structlog.get_logger(__name__)
@@ -101,6 +102,10 @@ class WorkerSettings:
     # products are (n, 3) x (3, 3), memory-bound, and on a busy 2-core machine OpenBLAS' spinning
     # threads made one such product of 2.5 M points take 1.5 s instead of 0.1 s (load 8).
     blas_threads: int = 1
+    # MB of touched free heap the analysis process keeps ready while a streamed scan arrives (at
+    # most; cellctl.heap.RESERVE_BYTES_PER_POINT a point received), and it keeps what it frees until
+    # the job ends: page faults were half the analysis' time on the sail plate. 0: neither.
+    heap_reserve_mb: int = 1536
     # the worker's own files (design cache, a job's results until sent): never the daemon's
     data_dir: Path = Path("worker-data")
     design_timeout_s: float = 60.0
@@ -122,7 +127,12 @@ class WorkerSettings:
         """From ``[analysis]`` and ``[worker]`` of a CellConfig; keyword arguments override (the
         command line)."""
         a = config.analysis
-        values = {"analysis": a.callable, "heartbeat_s": a.heartbeat_s, "data_dir": config.worker.data_dir}
+        values = {
+            "analysis": a.callable,
+            "heartbeat_s": a.heartbeat_s,
+            "data_dir": config.worker.data_dir,
+            "heap_reserve_mb": config.worker.heap_reserve_mb,
+        }
         values.update({k: v for k, v in override.items() if v is not None})
         return cls(**values)
 
@@ -236,10 +246,13 @@ class _ChildStream:
     :class:`analysis.pipeline.CloudStream`) fed chunk by chunk, or, for an analysis without one, the
     chunks kept and the callable run on their concatenation. An error is kept for :meth:`finish`."""
 
-    def __init__(self, fn: Callable[..., Any], spec_raw: bytes) -> None:
+    def __init__(self, fn: Callable[..., Any], spec_raw: bytes, reserve: HeapReserve | None = None) -> None:
         self.fn = fn
         self.error: BaseException | None = None
         self.decode_s = 0.0
+        self.reserve = reserve
+        self.reserve_s = 0.0
+        self.points = 0
         self.stream: Any = None
         self.clouds: list[Any] = []
         self.t_open = time.perf_counter()
@@ -259,13 +272,18 @@ class _ChildStream:
         t0 = time.perf_counter()
         try:
             cloud = decode_cloud(raw).scan_cloud()
+            self.points += len(cloud)
             if self.stream is not None:
                 self.stream.add(cloud)
             else:
                 self.clouds.append(cloud)
         except Exception as exc:
             self.error = exc
-        self.decode_s += time.perf_counter() - t0
+        t1 = time.perf_counter()
+        self.decode_s += t1 - t0
+        if self.reserve is not None and self.error is None:
+            self.reserve.top_up(self.points)  # the scan goes on meanwhile: the child has time
+            self.reserve_s += time.perf_counter() - t1
 
     def ahead(self) -> None:
         """Every pass is in: an analysis that can (``stream.ahead``) runs now, before the stream's
@@ -292,6 +310,11 @@ class _ChildStream:
                 "stream_open": self.open_s,
                 "decode": self.decode_s,
                 "analysis": time.perf_counter() - t0,
+                **(
+                    {"heap_reserve": self.reserve_s, "heap_reserve_mb": self.reserve.touched_bytes / 2**20}
+                    if self.reserve is not None
+                    else {}
+                ),
                 # the analysis made ahead of the stream's end, when it was kept
                 **{k: v for k, v in getattr(self.stream, "timings_s", {}).items() if k.startswith("ahead")},
             }
@@ -309,14 +332,20 @@ class _ChildStream:
         self.stream = None
 
 
-def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1) -> None:
+def _child_main(
+    conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1, heap_reserve_mb: int = 0
+) -> None:
     """Entry point of the spawned analysis process: load the callable, then serve jobs from the pipe.
 
     Messages from the parent are pairs of frames (a JSON header ``{"op": ...}``, a body): ``job``
     (body: the cloud; header ``spec``) answered with the outcome; ``open`` (a streamed job, header
     ``spec``), ``chunk`` (body: the next chunk) and ``finish`` (answered with the outcome); ``drop``
-    forgets an open stream."""
+    forgets an open stream. ``heap_reserve_mb`` > 0: the process keeps the memory it frees and a
+    streamed job tops up a reserve of touched heap as its chunks arrive (:mod:`cellctl.heap`); the
+    free heap goes back to the system when that job is answered."""
     limit_blas_threads(blas_threads)  # before the analysis (and numpy) is imported
+    if heap_reserve_mb > 0:
+        single_arena()  # before the analysis starts its threads
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when the child stops
     try:
@@ -328,6 +357,7 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
 
     conn.send_bytes(json.dumps({"ready": True}).encode())
     stream: _ChildStream | None = None
+    reserve: HeapReserve | None = None
     while True:
         try:
             raw_head = conn.recv_bytes()
@@ -349,7 +379,12 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
         if op == "open":
             if stream is not None:
                 stream.close()
-            stream = _ChildStream(fn, head.spec.encode())
+            if reserve is not None:
+                reserve.stop()
+            reserve = HeapReserve(heap_reserve_mb << 20) if heap_reserve_mb > 0 else None
+            if reserve is not None and not reserve.start():
+                reserve = None  # not glibc: nothing to keep
+            stream = _ChildStream(fn, head.spec.encode(), reserve)
             continue
         if op == "chunk":
             if stream is not None:
@@ -363,6 +398,9 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
             if stream is not None:
                 stream.close()
             stream = None
+            if reserve is not None:
+                reserve.stop()
+            reserve = None
             continue
         if op == "finish":
             text = stream.finish() if stream is not None else _error_text(RuntimeError("no open stream"), t0)
@@ -381,18 +419,40 @@ def _child_main(conn: Any, analysis: str, parent_pid: int, blas_threads: int = 1
             conn.send_bytes(text.encode("utf-8"))
         except (BrokenPipeError, OSError):
             return
+        if reserve is not None:  # the streamed job is answered: an idle worker holds no peak
+            reserve.stop()
+            reserve = None
 
 
 class AnalysisProcess:
     """One spawned child process running the analysis callable, one job at a time."""
 
-    def __init__(self, analysis: str, *, start_timeout_s: float = 120.0, blas_threads: int = 1) -> None:
+    def __init__(
+        self,
+        analysis: str,
+        *,
+        start_timeout_s: float = 120.0,
+        blas_threads: int = 1,
+        heap_reserve_mb: int = 0,
+    ) -> None:
         self.analysis = analysis
         self.start_timeout_s = start_timeout_s
         self.blas_threads = blas_threads
+        self.heap_reserve_mb = heap_reserve_mb
         self._ctx = mp.get_context("spawn")
         self._proc: Any = None
         self._conn: Any = None
+
+    @classmethod
+    def from_settings(cls, settings: WorkerSettings) -> AnalysisProcess:
+        """The analysis process of a worker with these settings (callable, start timeout, BLAS
+        threads, heap reserve)."""
+        return cls(
+            settings.analysis,
+            start_timeout_s=settings.start_timeout_s,
+            blas_threads=settings.blas_threads,
+            heap_reserve_mb=settings.heap_reserve_mb,
+        )
 
     @property
     def pid(self) -> int | None:
@@ -407,7 +467,7 @@ class AnalysisProcess:
         parent, child = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(
             target=_child_main,
-            args=(child, self.analysis, os.getpid(), self.blas_threads),
+            args=(child, self.analysis, os.getpid(), self.blas_threads, self.heap_reserve_mb),
             name="cellctl-analysis",
         )
         proc.start()
@@ -548,9 +608,7 @@ class Worker:
         self.cells = tuple(cells)
         self.settings = settings
         self.worker_id = settings.worker_id or default_worker_id()
-        self.runner = runner or AnalysisProcess(
-            settings.analysis, start_timeout_s=settings.start_timeout_s, blas_threads=settings.blas_threads
-        )
+        self.runner = runner or AnalysisProcess.from_settings(settings)
         self.jobs_done = 0
         self.malformed = _RateLimitedLog()
         self._current: JobSpec | None = None
@@ -1033,7 +1091,7 @@ async def run_worker_async(
         log.error("worker_config_invalid", error=str(exc))
         return 2
     # The analysis callable is loaded first: a wrong dotted path fails now, not after connecting.
-    runner = AnalysisProcess(settings.analysis, start_timeout_s=settings.start_timeout_s)
+    runner = AnalysisProcess.from_settings(settings)
     try:
         await runner.start()
     except AnalysisLoadError as exc:
