@@ -193,8 +193,11 @@ class AcquisitionSession:
         (not streaming into nowhere until the next scan), close it. Nothing to do after :meth:`finish`."""
         if self._finished:
             return
-        if self._consumer is not None and not self._consumer.done():
-            self._consumer.cancel()
+        if self._consumer is not None:
+            if not self._consumer.done():
+                self._consumer.cancel()
+            # awaited even when it has ended: a consumer that ended on a failed write holds that
+            # error, which asyncio would else log as never retrieved (at the next job's start)
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._consumer
         with contextlib.suppress(Exception):
