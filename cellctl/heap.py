@@ -25,6 +25,8 @@ import ctypes
 import ctypes.util
 import math
 
+import numpy as np
+
 __all__ = [
     "RESERVE_BYTES_PER_POINT",
     "HeapReserve",
@@ -96,6 +98,7 @@ class HeapReserve:
     free heap at ``bytes_per_point`` x the points so far, :meth:`stop` restores glibc's usual
     policy and gives the free heap back.
 
+    ``max_bytes`` below 2 GiB: glibc trims a free top larger than its trim threshold, an int.
     A job whose reserve would pass ``max_bytes`` (a 6 m plate: 31 M points) stops keeping at that
     point: a heap that never shrinks would add its fragmentation to that analysis' peak (12.75 GB),
     and on so long a scan the faults are a small share of the analysis anyway.
@@ -119,27 +122,23 @@ class HeapReserve:
     def top_up(self, points: int) -> int:
         """Touch what the reserve for ``points`` lacks; returns the bytes the heap grew by (new pages
         touched)."""
-        free = free_heap_bytes()
-        if not self.active or free is None:
+        if not self.active or _LIBC is None:
             return 0
         if self.bytes_per_point * points > self.max_bytes:
             self.gave_up = True
             self.stop()
             return 0
-        need = self.target(points) - free
+        need = self.target(points) - int(_LIBC.mallinfo2().fordblks)
         if need < 64 * _PAGE:  # nothing worth a system call
             return 0
-        import numpy as np  # here: the analysis child limits BLAS threads before numpy is imported
-
-        grown_from = _LIBC.mallinfo2().arena if _LIBC is not None else 0
-
+        grown_from = _LIBC.mallinfo2().arena
         # the whole target in one block: the free heap is in pieces none of which holds it (else
         # it would hold the target), so malloc grows the heap's top by what the pieces lack; a block
         # of just the lack fits in a piece and grows nothing
         block = np.empty(math.ceil(self.target(points) / _PAGE) * _PAGE, dtype=np.uint8)
         block[::_PAGE] = 0  # one write a page faults the new ones in
         del block
-        grown = (_LIBC.mallinfo2().arena if _LIBC is not None else 0) - grown_from
+        grown = _LIBC.mallinfo2().arena - grown_from
         self.touched_bytes += grown
         return grown
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from analysis.cloud_io import ScanCloud
 from analysis.job import AnalysisJob, Report
+from analysis.pipeline import CloudStream, analyse_job
 
 
 def behaviour(job: AnalysisJob) -> dict[str, Any]:
@@ -129,3 +130,29 @@ def centroid_streamed(cloud: ScanCloud, job: AnalysisJob) -> Report:
 
 
 centroid_streamed.stream = _CentroidStream  # type: ignore[attr-defined]
+
+
+#: how long :func:`product_analysis_held` holds a job before the product's analysis runs
+HOLD_S = 60.0
+
+
+class _HeldCloudStream(CloudStream):
+    """The product's streamed analysis, held :data:`HOLD_S` at its end (and none made ahead of it)."""
+
+    def ahead(self) -> None:
+        return None
+
+    def finish(self) -> dict[str, Any]:
+        time.sleep(HOLD_S)
+        return super().finish()
+
+
+def product_analysis_held(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
+    """The product's analysis (:func:`analysis.pipeline.analyse_job`) after :data:`HOLD_S`: a worker
+    that is surely mid-analysis when a test kills it (the real analysis of the fault cell's small
+    plate takes well under a second, from the last pass)."""
+    time.sleep(HOLD_S)
+    return analyse_job(cloud, job)
+
+
+product_analysis_held.stream = _HeldCloudStream  # type: ignore[attr-defined]
