@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
 import structlog
 
 from analysis.cad import design_mesh_from_file
@@ -52,8 +53,9 @@ from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_e
 from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
-from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan
+from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, start_corner_near
 from cellctl.planning.cache import PlanCache
+from drivers.abb_egm.rws_client import RwsError
 from drivers.laser.client import HD8Client
 
 __all__ = ["ScanHost", "ScanRunner"]
@@ -295,6 +297,9 @@ class ScanRunner:
             placement = Placement.model_validate(rec.placement)
             settings = PlannerSettings.from_config(self.cfg)
             t0 = time.perf_counter()
+            corner = await self._start_corner(design, placement, settings)
+            if corner is not None:
+                settings = settings.with_(start_corner=corner)
             # a plan for the same design, placement and settings is reused after the envelope check
             cache = PlanCache(self.store.root.parent / "plan-cache")
             got = await asyncio.to_thread(cache.plan, design, placement, settings, with_coverage=False)
@@ -307,6 +312,31 @@ class ScanRunner:
             plan_cache="hit" if got.hit else "miss",
         )  # fmt: skip
         return plan, settings
+
+    async def _start_corner(
+        self, design: TriMesh, placement: Placement, settings: PlannerSettings
+    ) -> tuple[int, int] | None:
+        """The plate's corner nearest the arm (RWS: the mechanical unit's jointtarget, read before
+        the plan): the serpentine starts there, leaving the shortest move to the plan's start. None
+        (the planner's default corner, with a log line) when the controller does not say where the
+        arm is; nothing depends on it but the move's length."""
+        try:
+            joints = await self.drivers.rws.get_mechunit_joints()
+        except RwsError as exc:
+            log.warning("start_corner_unknown", reason=f"the arm's joints could not be read: {exc}")
+            return None
+        axes = joints.q_deg
+        if settings.track is not None:
+            track_mm = joints.external_axes_mm[0]
+            if track_mm is None:
+                log.warning("start_corner_unknown", reason="the controller reports no track position (eax_a)")
+                return None
+            axes = np.concatenate([[track_mm], axes])
+        try:
+            return start_corner_near(design, placement, settings, axes)
+        except PlanInputError as exc:
+            log.warning("start_corner_unknown", reason=str(exc))
+            return None
 
     async def _sensor_ready(self) -> HD8Client:
         """A connected sensor client, the sensor stopped and configured."""

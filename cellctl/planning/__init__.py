@@ -11,7 +11,7 @@ from cellctl.planning.plan import (
     ScanPlan,
     Segment,
 )
-from cellctl.planning.planner import plan_scan
+from cellctl.planning.planner import plan_scan, start_corner_near
 from cellctl.planning.settings import PlannerSettings
 
 __all__ = [
@@ -22,4 +22,5 @@ __all__ = [
     "ScanPlan",
     "Segment",
     "plan_scan",
+    "start_corner_near",
 ]

@@ -43,8 +43,9 @@ log = structlog.get_logger(__name__)
 #: bump when the planner plans differently from the same inputs (or the stored plan's format changes)
 PLAN_CACHE_VERSION = (
     # 2: the carriage holds when it can; 3: flying turnarounds; 4: the passes along either axis;
-    # 5: timed with 80 % of the jerk limits (was 60 %)
-    "cellctl.plan_cache/5+cellctl.scan_plan/1"
+    # 5: timed with 80 % of the jerk limits (was 60 %); 6: the U-turn, links that turn the sensor
+    # at rest as lines in joint space timed along the line, the start corner
+    "cellctl.plan_cache/6+cellctl.scan_plan/1"
 )
 
 

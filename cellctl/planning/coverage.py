@@ -508,14 +508,81 @@ def _link(
 
 
 #: a turnaround's tangents at its ends, as a multiple of the distance between them (the quintic's
-#: loop: larger is rounder and longer, smaller tighter and slower)
+#: loop, used where the two passes' ends are not side by side: larger is rounder and longer, smaller
+#: tighter and slower)
 _TURN_TANGENT_FACTOR = 2.0
 #: waypoints of a turnaround: its tight curve needs them closer than the passes'
 _TURN_STEP_MM = 3.0
 #: which pass-to-pass links are flown at speed: (kind before, kind after)
 _FLY = {("scan", "scan"): True, ("scan", "edge"): True}
+#: a link that turns the sensor at least this much (deg) is not flown: it goes at rest at both ends,
+#: as a line in joint space where that is faster (:func:`~cellctl.planning.planner.joint_space_links`;
+#: the wrist then turns at its own pace, where a flown link would turn it at the pace of its curve)
+JOINT_LINK_MIN_TURN_DEG = 10.0
 #: a turnaround may come this much closer to the (extrapolated) surface than the standoff
 _TURN_CLEARANCE_TOL_MM = 5.0
+#: the U-turn between neighbouring raster passes, in units of the pass step: it runs out
+#: ``_UTURN_OUT * (sin(pi t) + _UTURN_OUT_3 * sin(3 pi t))`` beyond the pass end and across
+#: ``h(t) + _UTURN_ACROSS_2 * 16 sin(2 pi t) t^2 (1 - t)^2`` (``h`` the quintic smooth step), for t in
+#: [0, 1]. The joints' jerk in the reversal along the pass bounds a turnaround's speed, not its
+#: length; these coefficients gave the sail's plan its shortest time, searched on the real plan with
+#: its timing (docs/operations.md, "Planning the scan": 0.36-0.37 s a turnaround where the quintic
+#: loop took 0.36-0.44 s)
+_UTURN_OUT = 0.695
+_UTURN_OUT_3 = 0.014
+_UTURN_ACROSS_2 = 0.04
+#: the U-turn is used where the next pass runs back within this angle of the previous one, with its
+#: start at most this share of the pass step ahead of or behind the previous pass's end (else the
+#: quintic loop)
+_UTURN_MAX_ANGLE_DEG = 10.0
+_UTURN_MAX_STAGGER = 0.5
+
+
+def _uturn_unit(n: int = 4001) -> tuple[np.ndarray, np.ndarray]:
+    """The U-turn for a unit pass step: ``(u, xy)``, ``xy`` (n, 2) from (0, 0) heading +x to (0, 1)
+    heading -x, at the fractions ``u`` (n,) of its arc length (uniform over [0, 1])."""
+    t = np.linspace(0.0, 1.0, n)
+    x = _UTURN_OUT * (np.sin(np.pi * t) + _UTURN_OUT_3 * np.sin(3 * np.pi * t))
+    y = 10 * t**3 - 15 * t**4 + 6 * t**5 + _UTURN_ACROSS_2 * 16 * np.sin(2 * np.pi * t) * (t * (1 - t)) ** 2
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+    u = np.linspace(0.0, 1.0, n)
+    return u, np.column_stack([np.interp(u * s[-1], s, x), np.interp(u * s[-1], s, y)])
+
+
+_UTURN = _uturn_unit()
+_UTURN_LENGTH = float(np.sum(np.linalg.norm(np.diff(_UTURN[1], axis=0), axis=1)))
+
+
+def _turn_path(p0: np.ndarray, t0: np.ndarray, p1: np.ndarray, t1: np.ndarray, step_mm: float) -> np.ndarray:
+    """The turnaround's positions (n, 3), waypoints about ``step_mm`` apart, from ``p0`` leaving along
+    ``t0`` to ``p1`` arriving along ``t1`` (unit vectors): the U-turn (:data:`_UTURN_OUT`) where the
+    passes lie side by side and run opposite ways, else the quintic Hermite loop. Both meet the
+    passes with their direction and zero curvature, so the joint path stays continuous in speed and
+    acceleration across the joins."""
+    chord = p1 - p0
+    ahead = float(chord @ t0)
+    side = chord - ahead * t0
+    across = float(np.linalg.norm(side))
+    opposite = float(t0 @ t1) <= -np.cos(np.radians(_UTURN_MAX_ANGLE_DEG))
+    if opposite and across > 1e-6 and abs(ahead) <= _UTURN_MAX_STAGGER * across:
+        length = _UTURN_LENGTH * across
+        u = np.linspace(0.0, 1.0, max(16, int(np.ceil(length / step_mm))) + 1)
+        xy = np.column_stack([np.interp(u, _UTURN[0], _UTURN[1][:, k]) for k in range(2)]) * across
+        pos = p0[None] + xy[:, :1] * t0[None] + xy[:, 1:] * (side / across)[None]
+        # what the planar U-turn leaves out (one end ahead of the other, the next pass not quite
+        # parallel) is blended in by terms that keep both ends' position, direction and zero curvature
+        u = u[:, None]
+        h01 = 10 * u**3 - 15 * u**4 + 6 * u**5
+        h11 = -4 * u**3 + 7 * u**4 - 3 * u**5
+        return pos + h01 * (p1 - pos[-1])[None] + h11 * (length * (t1 + t0))[None]
+    m = _TURN_TANGENT_FACTOR * float(np.linalg.norm(chord))
+    u = np.linspace(0.0, 1.0, max(16, int(np.ceil(2.0 * m / step_mm))) + 1)[:, None]
+    # quintic Hermite basis with zero second derivatives at both ends
+    h00 = 1 - 10 * u**3 + 15 * u**4 - 6 * u**5
+    h10 = u - 6 * u**3 + 8 * u**4 - 3 * u**5
+    h01 = 10 * u**3 - 15 * u**4 + 6 * u**5
+    h11 = -4 * u**3 + 7 * u**4 - 3 * u**5
+    return h00 * p0[None] + h10 * (m * t0)[None] + h01 * p1[None] + h11 * (m * t1)[None]
 
 
 def _turnaround(
@@ -532,32 +599,22 @@ def _turnaround(
     """A turnaround flown at speed from one pass's end to the next pass's start (plate frame), or
     None where it would not keep its clearance (the caller then links them by a hump).
 
-    The path is a quintic Hermite curve: position and direction of travel (``t0``, ``t1``, unit) of
-    the two passes at its ends and zero second derivative there, so the curvature grows smoothly
-    from the straight pass and the joint path is continuous in speed and acceleration across the
-    joins (:func:`~cellctl.planning.timing.time_segments` times the passes and the turnaround as one
-    path). It loops outside the pass ends, beyond the plate: the speed never drops to zero there.
+    The path (:func:`_turn_path`) meets each pass with its position and direction of travel
+    (``t0``, ``t1``, unit) and zero curvature, so the curvature grows smoothly from the straight
+    pass and the joint path is continuous in speed and acceleration across the joins
+    (:func:`~cellctl.planning.timing.time_segments` times the passes and the turnaround as one
+    path). It turns outside the pass ends, beyond the plate: the speed never drops to zero there.
     The sensor turns on a smooth-step geodesic from ``R0`` to ``R1`` (no angular speed at the joins).
     """
-    dist = float(np.linalg.norm(p1 - p0))
-    if dist < 1e-6:
+    if float(np.linalg.norm(p1 - p0)) < 1e-6:
         return None
-    m = _TURN_TANGENT_FACTOR * dist
-    length_guess = 2.0 * m
-    n = max(16, int(np.ceil(length_guess / _TURN_STEP_MM))) + 1
-    u = np.linspace(0.0, 1.0, n)[:, None]
-    # quintic Hermite basis with zero second derivatives at both ends
-    h00 = 1 - 10 * u**3 + 15 * u**4 - 6 * u**5
-    h10 = u - 6 * u**3 + 8 * u**4 - 3 * u**5
-    h01 = 10 * u**3 - 15 * u**4 + 6 * u**5
-    h11 = -4 * u**3 + 7 * u**4 - 3 * u**5
-    pos = h00 * p0[None] + h10 * (m * t0)[None] + h01 * p1[None] + h11 * (m * t1)[None]
+    pos = _turn_path(p0, t0, p1, t1, _TURN_STEP_MM)
     h, _, _ = surface.height_and_gradient(pos[:, 0], pos[:, 1])
     # no lower above the (extrapolated) surface than at the lower of its two ends
     clearance = float(min(pos[0, 2] - h[0], pos[-1, 2] - h[-1]))
     if float(np.max(h + clearance - pos[:, 2])) > _TURN_CLEARANCE_TOL_MM:
         return None
-    w = u[:, 0]
+    w = np.linspace(0.0, 1.0, len(pos))
     smooth = w**3 * (10 - 15 * w + 6 * w**2)
     return Segment(
         kind="link", label=label, pos_mm=pos, R_base_sensor=slerp_frames(R0, R1, smooth), flying=True
@@ -608,6 +665,13 @@ def build_segments(
     n_pass = 1 if width <= w else int(np.ceil((width - w) / settings.pass_step_mm)) + 1
     first, last = lo_c - margin + w / 2, hi_c + margin - w / 2
     centres = np.array([0.5 * (lo_c + hi_c)]) if n_pass == 1 else np.linspace(first, last, n_pass)
+    # the serpentine's start: the first pass's direction and the side the passes start from
+    reversed_first = settings.passes_reversed
+    if settings.start_corner is not None:
+        sx, sy = settings.start_corner
+        reversed_first = (sx if along_x else sy) > 0
+        if (sy if along_x else sx) > 0:
+            centres = centres[::-1]
 
     # (kind, label, pos, R) plate frame; the raster passes from the caller's cache when it has them
     sweeps: list[tuple[str, str, np.ndarray, np.ndarray]] = list((raster_cache or {}).get(sign, ()))
@@ -620,7 +684,7 @@ def build_segments(
         lo_i, hi_i = lo_a - margin, hi_a + margin
         if reach is not None:
             lo_i, hi_i = max(lo_i, reach[0] - drift), min(hi_i, reach[1] + drift)
-        a0, a1 = (lo_i, hi_i) if (i + settings.passes_reversed) % 2 == 0 else (hi_i, lo_i)
+        a0, a1 = (lo_i, hi_i) if (i + reversed_first) % 2 == 0 else (hi_i, lo_i)
         s = _samples(a0, a1, settings.waypoint_step_mm)
         xy = s[:, None] * a2[None] + c * c2[None]
         pos, R, _, _ = _sensor_frames(
@@ -696,7 +760,12 @@ def build_segments(
             n_link += 1
             prev = segments[-1]
             turn = None
-            if prev.is_sweep and settings.flying_turns and _FLY.get((prev.kind, kind), False):
+            if (
+                prev.is_sweep
+                and settings.flying_turns
+                and _FLY.get((prev.kind, kind), False)
+                and rotation_angle_deg(prev.R_base_sensor[-1], R[0]) < JOINT_LINK_MIN_TURN_DEG
+            ):
                 turn = _turnaround(
                     surface, f"link {n_link}", prev.pos_mm[-1], prev.R_base_sensor[-1],
                     _unit(prev.pos_mm[-1] - prev.pos_mm[-2]), pos[0], R[0], _unit(pos[1] - pos[0]),

@@ -137,6 +137,9 @@ class Segment:
     length_mm: path length of the sensor origin.
     flying: a turnaround joined to the passes before and after it at speed (continuous direction
         and zero curvature at both ends): the timing runs the three as one path without stopping.
+    joint_line: a link at rest at both ends whose joints run on a line in joint space (lifted at its
+        middle): the timing parameterises it by the joints' progress along that line, not by the
+        sensor's path, so its time law is the line's own (the slowest axis at its limits).
     """
 
     kind: str
@@ -148,6 +151,7 @@ class Segment:
     duration_s: float = 0.0
     length_mm: float = 0.0
     flying: bool = False
+    joint_line: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in SEGMENT_KINDS:
@@ -289,6 +293,7 @@ class ScanPlan:
                     "R_base_sensor": s.R_base_sensor.round(9).tolist(),
                     "q_deg": None if s.q_deg is None else s.q_deg.round(6).tolist(),
                     "flying": s.flying,
+                    "joint_line": s.joint_line,
                 }
                 for s in self.segments
             ],
@@ -329,6 +334,7 @@ class ScanPlan:
                     duration_s=float(s["duration_s"]),
                     length_mm=float(s["length_mm"]),
                     flying=bool(s.get("flying", False)),
+                    joint_line=bool(s.get("joint_line", False)),
                 )
                 for s in d["segments"]
             ]

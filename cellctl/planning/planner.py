@@ -20,7 +20,12 @@ from analysis.mesh import TriMesh
 from analysis.placement import placement_transform
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.motion.trajectory import TimedTrajectory
-from cellctl.planning.coverage import build_segments, design_surface, predict_coverage
+from cellctl.planning.coverage import (
+    JOINT_LINK_MIN_TURN_DEG,
+    build_segments,
+    design_surface,
+    predict_coverage,
+)
 from cellctl.planning.joint_path import (
     REACH_MM,
     TRACK_LEADS_MM,
@@ -48,7 +53,7 @@ from cellctl.planning.settings import PlannerSettings
 from cellctl.planning.timing import TimingResult, rest_to_rest_s, time_segments
 from drivers.abb_egm.kinematics import fk_batch
 
-__all__ = ["check_plan_envelope", "estimate_s", "lower_bound_s", "plan_scan"]
+__all__ = ["check_plan_envelope", "estimate_s", "lower_bound_s", "plan_scan", "start_corner_near"]
 
 log = structlog.get_logger(__name__)
 
@@ -127,8 +132,6 @@ def _build(
 #: a link flown as a line in joint space may come this much closer to the design surface (the
 #: sensor origin's height over it) than the lower of its two ends
 JOINT_LINK_CLEARANCE_TOL_MM = 5.0
-#: only links that turn the sensor at least this much (deg) are tried as lines in joint space
-JOINT_LINK_MIN_TURN_DEG = 10.0
 #: how far (mm) the sensor may be lifted at a joint-space link's middle to keep that clearance
 JOINT_LINK_MAX_LIFT_MM = 150.0
 
@@ -189,7 +192,9 @@ def _joint_space_link(seg: Segment, settings: PlannerSettings, clearance) -> Seg
     lo, hi = np.asarray(settings.workspace_min_mm), np.asarray(settings.workspace_max_mm)
     if np.any((pos < lo) | (pos > hi)):
         return _kept(seg, "outside the workspace box")
-    return Segment(kind=seg.kind, label=seg.label, pos_mm=pos, R_base_sensor=T[:, :3, :3], q_deg=q)
+    return Segment(
+        kind=seg.kind, label=seg.label, pos_mm=pos, R_base_sensor=T[:, :3, :3], q_deg=q, joint_line=True
+    )
 
 
 def joint_space_links(
@@ -423,6 +428,26 @@ def _solve(
     return _Solved(axis, path, segments, margin, time_segments(segments, settings), choices)
 
 
+def start_corner_near(
+    design: TriMesh, placement: Placement, settings: PlannerSettings, axes_mm_deg: np.ndarray
+) -> tuple[int, int]:
+    """The footprint's corner nearest the sensor at the arm's configuration ``axes_mm_deg`` ((6,)
+    joints in deg, or (7,) the track in mm then the joints with ``settings.track``), as
+    ``settings.start_corner`` takes it: ``(sx, sy)``, the sides of the plate frame's x and y (the
+    sides of the footprint's centre the sensor is on). The serpentine started there leaves the
+    shortest move to the plan's start (on the sail from the simulator's home, 1.20 m instead of
+    1.38 m of the sensor's path)."""
+    q = np.asarray(axes_mm_deg, dtype=np.float64)
+    if q.shape != (settings.n_axes,) or not np.all(np.isfinite(q)):
+        raise PlanInputError(f"start_corner_near: the arm's axes must be ({settings.n_axes},) finite values")
+    p_world = fk_batch(q[None], settings.T_flange_sensor, track=settings.track)[0, :3, 3]
+    T = placement_transform(placement)
+    p_plate = T[:3, :3].T @ (p_world - T[:3, 3])
+    xy = np.asarray(design.vertices_mm, dtype=np.float64)[:, :2]
+    centre = 0.5 * (xy.min(axis=0) + xy.max(axis=0))
+    return (1 if p_plate[0] >= centre[0] else -1, 1 if p_plate[1] >= centre[1] else -1)
+
+
 def plan_scan(
     design: TriMesh,
     placement: Placement,
@@ -508,6 +533,8 @@ def plan_scan(
     choices = dict(best.choices)
     if len(axes) > 1:
         choices["pass_axis"] = {"axis": best.axis, "considered": considered}
+    if settings.start_corner is not None:
+        choices["start_corner"] = list(settings.start_corner)
 
     # the plan must pass the same envelope every executed set-point passes, at the EGM cycle
     t_env = time.perf_counter()

@@ -38,6 +38,10 @@ class PlannerSettings:
     or ``"fastest"``: the one whose timed scan is shorter within the limits (the other where one is
     refused; :func:`~cellctl.planning.planner.plan_scan`), ``passes_reversed`` (the serpentine's first raster pass runs from the far end of the passes'
     axis, +x of the plate frame for a plate longer in x; the sensor's lean along that axis stays),
+    ``start_corner`` (``(sx, sy)``, each -1 or +1: the serpentine starts at the footprint's corner on
+    those sides of the plate frame's x and y, :func:`~cellctl.planning.planner.start_corner_near`
+    picks the one nearest the arm; it sets the first pass's direction and which side the passes
+    start from, overriding ``passes_reversed``; None: the first pass at the footprint's low side),
     ``link_clearance_mm`` lift on links, ``approach_mm``
     along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
     Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
@@ -65,6 +69,7 @@ class PlannerSettings:
     flying_turns: bool = True
     pass_axis: str = "fastest"
     passes_reversed: bool = False
+    start_corner: tuple[int, int] | None = None
     sweep_pitch_deg: float = 0.0
     placement_uncertainty_mm: float = 30.0
     placement_uncertainty_deg: float = 2.0
@@ -92,7 +97,7 @@ class PlannerSettings:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            if f.name in ("track", "track_hold", "pass_axis"):  # by LinearTrack itself / a bool / below
+            if f.name in ("track", "track_hold", "pass_axis", "start_corner"):  # LinearTrack / a bool / below
                 continue
             v = getattr(self, f.name)
             arr = np.asarray(v, dtype=np.float64) if f.name != "speed_mm_s" or v is not None else None
@@ -141,6 +146,12 @@ class PlannerSettings:
         T = np.asarray(self.T_flange_sensor, dtype=np.float64)
         if T.shape != (4, 4):
             raise PlanInputError(f"settings.T_flange_sensor: must be (4, 4), got {T.shape}")
+        if self.start_corner is not None and (
+            len(self.start_corner) != 2 or any(c not in (-1, 1) for c in self.start_corner)
+        ):
+            raise PlanInputError(
+                f"settings.start_corner: must be None or two of -1 / +1, got {self.start_corner!r}"
+            )
         if self.pass_axis not in (*PASS_AXES, "fastest"):
             raise PlanInputError(
                 f"settings.pass_axis: {self.pass_axis!r} is not one of {(*PASS_AXES, 'fastest')}"

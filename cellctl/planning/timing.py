@@ -142,8 +142,17 @@ class TimingResult:
     toppra_time_s: float
 
 
-def _path_parameter(seg: Segment) -> np.ndarray:
-    return _arc_parameter(seg.pos_mm, seg.R_base_sensor)
+def _path_parameter(seg: Segment, settings: PlannerSettings) -> np.ndarray:
+    """The path parameter (n,) mm of ``seg``'s waypoints: the sensor's arc length with rotation
+    weighted in (:func:`_arc_parameter`); on a line in joint space (``seg.joint_line``) the joints'
+    progress along it instead (the axes in units of their speed limits), scaled to the same total, so
+    the joints are nearly linear in it and its time law reaches the slowest axis's limits."""
+    arc = _arc_parameter(seg.pos_mm, seg.R_base_sensor)
+    if not seg.joint_line or seg.q_deg is None:
+        return arc
+    step = np.linalg.norm(np.diff(seg.q_deg, axis=0) / np.asarray(settings.axis_speed_max)[None], axis=1)
+    progress = np.concatenate([[0.0], np.cumsum(np.maximum(step, 1e-9))])
+    return progress * (arc[-1] / progress[-1])
 
 
 def _arc_parameter(pos_mm: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -263,10 +272,10 @@ def _toppra_constraints(settings: PlannerSettings, tcp: TcpSpeedConstraint) -> l
     ]
 
 
-def _spline(seg: Segment):
+def _spline(seg: Segment, settings: PlannerSettings):
     """The spline of ``seg``'s joint waypoints over its path parameter, and its timing grid:
     ``(path, s, grid)``."""
-    s = _path_parameter(seg)
+    s = _path_parameter(seg, settings)
     path = ta.SplineInterpolator(s, seg.q_deg)
     n_grid = int(np.clip(np.ceil(s[-1] / _GRID_STEP_MM), 20, 1500)) + 1
     return path, s, np.linspace(0.0, s[-1], n_grid)
@@ -302,12 +311,12 @@ def transit_speed_mm_s(settings: PlannerSettings) -> float:
 def rest_to_rest_s(seg: Segment, settings: PlannerSettings) -> float:
     """The executed duration of ``seg`` (joints filled) timed on its own, at rest at both ends, at
     the transit speed: what :func:`time_segments` gives a link that is not flown (s)."""
-    path, s, grid = _spline(seg)
+    path, s, grid = _spline(seg, settings)
     return float(_rest_to_rest_law(seg, path, s, grid, transit_speed_mm_s(settings), settings).duration)
 
 
 def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float):
-    path, s, grid = _spline(seg)
+    path, s, grid = _spline(seg, settings)
     constraints = _toppra_constraints(
         settings, TcpSpeedConstraint(v_tcp, settings.T_flange_sensor, settings.track)
     )

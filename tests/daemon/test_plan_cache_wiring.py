@@ -1,9 +1,13 @@
-"""The daemon's planning step reuses a plan from ``<data_dir>/plan-cache`` (in process, no cell)."""
+"""The daemon's planning step reuses a plan from ``<data_dir>/plan-cache`` (in process, no cell; the
+arm's position, which picks the start corner, from the RWS simulator on loopback)."""
 
 from __future__ import annotations
 
 import asyncio
+import types
 from typing import Any
+
+import numpy as np
 
 from analysis.placement import Placement
 from analysis.plates import design_mesh, plate_spec
@@ -11,6 +15,9 @@ from cellctl.api import JobState
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore
 from cellctl.daemon.scan import ScanRunner
+from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
+from drivers.abb_egm.sim.model import ControllerModel
+from drivers.abb_egm.sim.rws_server import RwsServer
 
 
 class _Host:
@@ -27,16 +34,32 @@ def test_the_second_scan_of_the_same_plate_and_placement_reuses_the_stored_plan(
     cfg = CellConfig()
     store = JobStore(tmp_path / "data")
     host = _Host()
-    runner = ScanRunner(cfg, store, drivers=None, host=host)  # planning needs no drivers
     design = design_mesh(plate_spec("sail", length_mm=200.0, width_mm=150.0), pitch_mm=5.0)
     placement = Placement.on_bed(1600.0, 100.0, 3.0, z_mm=300.0).model_dump()
 
-    def plan_once(job_id: str):
-        job = ActiveJob(JobRecord(job_id, "p", "d.ply", str(tmp_path / "d.ply"), placement))
-        return asyncio.run(runner._plan(job, design))
+    async def plan_twice():
+        model = ControllerModel()  # the arm at the simulator's home
+        model.set_position_source(
+            lambda: (np.array([0, 0, 0, 0, 30.0, 0]), np.zeros(3), np.array([1.0, 0, 0, 0]))
+        )
+        server = RwsServer(model, profile="rws1", host="127.0.0.1", port=0)  # type: ignore[arg-type]
+        await server.start()
+        client = RwsClient(RwsClientConfig(base_url=server.base_url, profile="rws1", password="robotics"))  # type: ignore[arg-type]
+        runner = ScanRunner(
+            cfg, store, drivers=types.SimpleNamespace(rws=client), host=host
+        )  # planning: RWS only
+        try:
+            return [
+                await runner._plan(
+                    ActiveJob(JobRecord(j, "p", "d.ply", str(tmp_path / "d.ply"), placement)), design
+                )
+                for j in ("j1", "j2")
+            ]
+        finally:
+            await client.close()
+            await server.stop()
 
-    first = plan_once("j1")
-    second = plan_once("j2")
+    first, second = asyncio.run(plan_twice())
     assert first is not None and second is not None
     planned = [info for state, msg, info in host.states if msg == "planned"]
     assert [i["plan_cache"] for i in planned] == ["miss", "hit"]

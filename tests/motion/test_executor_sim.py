@@ -103,7 +103,7 @@ def test_pause_then_resume_continues_the_pass_it_paused_in_with_jerk_limited_sto
     seen = {}
 
     async def control(executor: MotionExecutor, controller: Controller) -> None:
-        await wait_for_segment(executor, "scan 2", 0.2)
+        await wait_for_segment(executor, "scan 2", 0.05)
         executor.pause()
         await wait_for_state(executor, "paused")
         seen["paused"] = executor.progress()
@@ -113,14 +113,17 @@ def test_pause_then_resume_continues_the_pass_it_paused_in_with_jerk_limited_sto
         executor.resume()
         await wait_for_state(executor, "running")
         seen["resumed"] = executor.progress()
-        await wait_for_segment(executor, "scan 2", 0.9)
+        await wait_for_segment(executor, "scan 3", 0.5)
         executor.abort()
 
     ex = run_async(execute(small_plan, SMALL_SETTINGS, config=TOLERANT, control=control))
     r = ex.result
     assert r.state == ExecState.ABORTED, r.fault
-    assert seen["paused"].segment == "scan 2" and seen["resumed"].segment == "scan 2"
-    assert seen["resumed"].t_traj_s >= seen["paused"].t_traj_s  # continues, does not restart the pass
+    assert seen["paused"].segment == "scan 2"
+    # continues from where it paused (the resume's ramp may carry it into the turnaround), does not
+    # restart the pass
+    assert seen["resumed"].segment in ("scan 2", "link 2")
+    assert 0.0 <= seen["resumed"].t_traj_s - seen["paused"].t_traj_s < 1.0
     # held still while paused
     assert np.max(np.abs(seen["q_after_wait"] - seen["q_paused"])) < 0.05
     # the stop happened on the path: the true sensor stays on the planned path throughout
@@ -171,7 +174,8 @@ def test_pause_during_the_move_to_the_start_holds_in_joint_space_and_resume_cont
 
 def test_abort_from_the_middle_of_a_pass_stops_smoothly_and_ends_aborted(small_plan):
     async def control(executor, controller) -> None:
-        await wait_for_segment(executor, "scan 1", 0.5)
+        # the smooth stop runs on along the path: early enough that it ends inside the pass
+        await wait_for_segment(executor, "scan 1", 0.25)
         executor.abort()
 
     ex = run_async(execute(small_plan, SMALL_SETTINGS, config=TOLERANT, control=control))
@@ -314,7 +318,8 @@ def test_progress_events_stream_to_an_async_consumer_until_the_end(small_plan):
                 got.append(ev)
 
         task = asyncio.get_running_loop().create_task(consume())
-        await wait_for_segment(executor, "scan 1", 0.5)
+        # the smooth stop runs on along the path: early enough that it ends inside the pass
+        await wait_for_segment(executor, "scan 1", 0.25)
         executor.abort()
         await task
 

@@ -86,3 +86,38 @@ def test_a_link_is_replaced_only_where_the_line_is_faster_so_a_second_pass_chang
         np.testing.assert_array_equal(s.q_deg, q)
     corner = next(s for s in plan.segments if s.label in plan.choices["joint_space_links_saved_s"])
     assert rest_to_rest_s(corner, SMALL_SETTINGS) == pytest.approx(corner.duration_s, abs=0.03)
+
+
+def test_a_joint_line_is_timed_along_the_line_at_its_slowest_axis_limits(plan):
+    """A joint-space link is timed over the joints' progress along it (``Segment.joint_line``), so its
+    time law is the line's own: never slower than the same link timed over the sensor's arc length
+    (there the wrist turns unevenly and the law must take its peak rate everywhere), and at an edge
+    corner, where the wrist's joint 6 turns most, within a few per cent of that joint's own
+    jerk-limited rest-to-rest move (a link that swings the sensor fast is held by the TCP cap)."""
+    import dataclasses
+
+    from ruckig import InputParameter, Ruckig, Trajectory
+
+    from cellctl.motion.trajectory import PLAN_JERK_SHARE
+    from cellctl.planning import timing
+
+    def axis_alone(travel: float, k: int) -> float:
+        inp = InputParameter(1)
+        inp.current_position, inp.target_position = [0.0], [travel]
+        inp.max_velocity = [timing._VEL_FACTOR * SMALL_SETTINGS.axis_speed_max[k]]
+        inp.max_acceleration = [timing._ACC_FACTOR * SMALL_SETTINGS.axis_accel_max[k]]
+        inp.max_jerk = [PLAN_JERK_SHARE * SMALL_SETTINGS.axis_jerk_max[k]]
+        law = Trajectory(1)
+        Ruckig(1).calculate(inp, law)
+        return float(law.duration)
+
+    lines = [s for s in plan.segments if s.joint_line]
+    corners = [s for s in lines if abs(s.q_deg[-1, 5] - s.q_deg[0, 5]) > 45.0]
+    assert lines and corners
+    for seg in lines:
+        over_arc = rest_to_rest_s(dataclasses.replace(seg, joint_line=False), SMALL_SETTINGS)
+        assert seg.duration_s <= over_arc + 1e-9, (seg.label, seg.duration_s, over_arc)
+    for seg in corners:
+        travel = np.abs(seg.q_deg[-1] - seg.q_deg[0])
+        bound = max(axis_alone(float(d), k) for k, d in enumerate(travel) if d > 1e-6)
+        assert bound - 1e-6 <= seg.duration_s <= 1.05 * bound, (seg.label, seg.duration_s, bound)

@@ -78,3 +78,33 @@ def test_an_axis_that_cannot_win_is_not_solved_and_its_estimate_is_said():
 def test_an_unknown_pass_axis_is_refused_by_name():
     with pytest.raises(PlanInputError, match="pass_axis"):
         PlannerSettings(pass_axis="diagonal")
+
+
+@pytest.mark.parametrize("axis", ["longer", "shorter"])
+@pytest.mark.parametrize("corner", [(-1, -1), (-1, 1), (1, -1), (1, 1)])
+def test_the_serpentine_starts_at_the_corner_asked_for_and_covers_the_same_passes(axis, corner):
+    """``start_corner`` (the daemon picks the one nearest the arm): the first raster pass starts on
+    that corner's sides of the footprint and the passes go across from there; the passes are the
+    same lines as from the default corner, only their order and directions differ."""
+    from analysis.placement import placement_transform
+    from cellctl.planning.coverage import build_segments, design_surface
+
+    surface = design_surface(MESH)
+    T = placement_transform(PLACEMENT)
+
+    def raster(settings: PlannerSettings) -> list[np.ndarray]:
+        segs, _ = build_segments(surface, PLACEMENT, settings, axis=axis)
+        return [(s.pos_mm - T[:3, 3]) @ T[:3, :3] for s in segs if s.kind == "scan"]  # plate frame
+
+    asked = raster(PlannerSettings(start_corner=corner))
+    default = raster(PlannerSettings())
+    start = asked[0][0, :2]
+    assert (np.sign(start) == np.asarray(corner)).all()
+    across = 1 if axis == "longer" else 0  # the plate is longer in x: "longer" passes step across y
+    assert np.sign(asked[-1][-1, across]) == -corner[across]  # the last pass on the far side
+    assert (np.sign(default[0][0, :2]) == -1).all()  # the default starts at the low corner
+    assert sorted(float(p[:, across].mean()) for p in asked) == pytest.approx(
+        sorted(float(p[:, across].mean()) for p in default)
+    )
+    with pytest.raises(PlanInputError, match="start_corner"):
+        PlannerSettings(start_corner=(0, 1))

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import settings as hyp_settings
+from hypothesis import strategies as st
 
 from analysis.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
@@ -161,3 +164,65 @@ def test_turnarounds_use_the_jerk_budget_and_the_passes_keep_the_scan_speed_betw
     # a turnaround runs at the jerk its limit share allows (it is jerk-bound): above 60 % somewhere
     assert float(np.max(jerk[flying] / jmax)) > 0.6
     assert plan.time_parts_s()["transitions_s"] < 13.0
+
+
+def test_raster_turnarounds_are_u_turns_faster_than_the_quintic_loop_and_turning_links_go_at_rest(
+    cell_sail_plan,
+):
+    """The U-turn (coverage._UTURN_OUT) keeps the joints' jerk in the reversal lower than the quintic
+    Hermite loop did (0.36-0.44 s each on this plate, transitions 12.59 s); the link from the last
+    raster pass to the tilted edge passes turns the sensor 30 deg and goes at rest as a line in joint
+    space, timed along that line (0.64 s: the wrist's joint 4 at its limits; flown, 1.26 s)."""
+    from cellctl.planning.coverage import JOINT_LINK_MIN_TURN_DEG
+    from cellctl.planning.plan import rotation_angle_deg
+
+    segs = cell_sail_plan.segments
+    raster_turns = [s for k, s in enumerate(segs[1:-1], 1) if segs[k - 1].kind == segs[k + 1].kind == "scan"]
+    assert len(raster_turns) == 22 and all(s.flying for s in raster_turns)
+    assert max(s.duration_s for s in raster_turns) < 0.38
+    for s in segs:
+        if (
+            s.kind == "link"
+            and rotation_angle_deg(s.R_base_sensor[0], s.R_base_sensor[-1]) >= JOINT_LINK_MIN_TURN_DEG
+        ):
+            assert not s.flying and s.joint_line, s.label
+    assert cell_sail_plan.time_parts_s()["transitions_s"] < 11.2
+
+
+def _turning_angles(pos: np.ndarray) -> np.ndarray:
+    d = np.diff(pos, axis=0)
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", d[:-1], d[1:]), -1.0, 1.0)))
+
+
+@hyp_settings(max_examples=60, deadline=None)
+@given(
+    step=st.floats(20.0, 80.0),
+    stagger=st.floats(-0.5, 0.5),
+    rise=st.floats(-15.0, 15.0),
+    skew_deg=st.floats(-9.0, 9.0),
+    heading_deg=st.floats(0.0, 360.0),
+)
+def test_a_turnaround_meets_both_passes_in_position_and_direction_without_curvature(
+    step, stagger, rise, skew_deg, heading_deg
+):
+    """Whatever the pass ends (staggered, at another height, the next pass not quite parallel), the
+    turnaround starts and ends on them, leaves and arrives along them, and its curvature grows from
+    zero at both ends (the joint path stays continuous in speed and acceleration at the joins)."""
+    from cellctl.planning.coverage import _turn_path
+
+    h = np.radians(heading_deg)
+    t0 = np.array([np.cos(h), np.sin(h), 0.0])
+    side = np.array([-np.sin(h), np.cos(h), 0.0])
+    p0 = np.array([100.0, -50.0, 400.0])
+    p1 = p0 + step * side + stagger * step * t0 + np.array([0.0, 0.0, rise])
+    k = np.radians(skew_deg)
+    t1 = -(np.cos(k) * t0 + np.sin(k) * side)
+    pos = _turn_path(p0, t0, p1, t1, 0.25)  # finely sampled: the curve itself, not its waypoints
+    np.testing.assert_allclose(pos[0], p0, atol=1e-9)
+    np.testing.assert_allclose(pos[-1], p1, atol=1e-9)
+    first, last = pos[1] - pos[0], pos[-1] - pos[-2]
+    assert np.degrees(np.arccos(first @ t0 / np.linalg.norm(first))) < 1.0
+    assert np.degrees(np.arccos(last @ t1 / np.linalg.norm(last))) < 1.0
+    turn = _turning_angles(pos)
+    assert turn[0] < 0.15 * turn.max() and turn[-1] < 0.15 * turn.max()
