@@ -7,7 +7,10 @@ the ratio of scan time to pure sweep time (sweep length / scan speed; target <= 
 predicted coverage of the top surface (target >= 0.99), and the planned scan time in parts:
 ``approach_s``, ``sweep_s`` (on the passes, ramps included), ``transitions_s`` (the links and
 turnarounds between passes, issue 22) and ``retract_s``, with the longest single transition
-``transition_max_s``. Planning is repeated ``--repeat`` times and the median reported.
+``transition_max_s``. Planning is repeated ``--repeat`` times and the median reported. These plans
+start at the footprint's default corner; ``from_home_corner`` is the plan the daemon makes from the
+simulated arm's start (``[sim] egm_q_start_deg``, the end-to-end benchmark's): the passes started at
+the plate's corner nearest the arm (``start_corner``, ``scan_time_s``, ``sweep_s``, ``transitions_s``).
 
 ``large``: the 6000 x 2000 plate (a gentle sail, radii 20 / 10 m) on the long-plate cell
 (``--large-config``, default docs/examples/cell-track.toml: the robot on a riser on a 7 m track, the
@@ -65,7 +68,7 @@ def main() -> int:
 
     from analysis.plates import design_mesh, plate_spec
     from cellctl.config import load_config
-    from cellctl.planning import PlannerSettings, PlanRefused, plan_scan
+    from cellctl.planning import PlannerSettings, PlanRefused, plan_scan, start_corner_near
 
     cfg = load_config(args.config)
     settings = PlannerSettings.from_config(cfg)
@@ -89,6 +92,13 @@ def main() -> int:
         runs.append(time.perf_counter() - t0)
     assert plan is not None
     s = plan.summary()
+    # the daemon starts the passes at the corner nearest the arm: from the simulated arm's start
+    # ([sim] egm_q_start_deg, the end-to-end benchmark's), the plan it makes
+    q_home = np.asarray(cfg.sim.egm_q_start_deg, dtype=np.float64)
+    if settings.track is not None:
+        q_home = np.concatenate([[cfg.sim.egm_track_start_mm], q_home])
+    corner = start_corner_near(sail, placement, settings, q_home)
+    from_home = plan_scan(sail, placement, settings.with_(start_corner=corner), with_coverage=False)
 
     large_cfg = load_config(args.large_config)
     large_settings = PlannerSettings.from_config(large_cfg)
@@ -140,6 +150,11 @@ def main() -> int:
         "edge_passes": s["edge_passes"],
         "stages_s": {k: round(v, 3) for k, v in plan.timings_s.items()},
         "choices": plan.choices,
+        "from_home_corner": {
+            "start_corner": list(corner),
+            "scan_time_s": round(from_home.scan_time_s, 2),
+            **{k: from_home.summary()[k] for k in ("sweep_s", "transitions_s")},
+        },
         "large": large_out,
         "track": None
         if settings.track is None
