@@ -23,6 +23,7 @@ import asyncio
 import contextlib
 import json
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -42,9 +43,43 @@ class DemoError(Exception):
     """A demo step that failed (names the step and where its log is)."""
 
 
+#: the lowest port :func:`free_port` hands out
+_PORT_FLOOR = 20000
+#: ports this process has handed out (a port picked is free but not held: never give it twice)
+_PORTS_GIVEN: set[int] = set()
+
+
+def _ephemeral_floor() -> int:
+    """The lowest port of the kernel's ephemeral range (the local ports of outgoing connections)."""
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A free loopback port of the given socket kind (TCP or UDP)."""
-    with socket.socket(socket.AF_INET, kind) as s:
+    """A free loopback port of the given socket kind (TCP or UDP), below the kernel's ephemeral
+    range and not handed out before by this process.
+
+    The port is free when picked, not held: the process it is meant for binds it later. A port from
+    the ephemeral range (what binding port 0 gives) can meanwhile become the local port of any
+    outgoing connection on the machine, and the server then fails with "address already in use"
+    (seen in CI: a daemon's Zenoh listener). Below that range only a listener takes a port.
+    """
+    ceiling = _ephemeral_floor()
+    rng = random.SystemRandom()
+    for _ in range(200):
+        port = rng.randrange(_PORT_FLOOR, max(ceiling, _PORT_FLOOR + 1000))
+        if port in _PORTS_GIVEN:
+            continue
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _PORTS_GIVEN.add(port)
+        return port
+    with socket.socket(socket.AF_INET, kind) as s:  # a crowded range: whatever the kernel gives
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 

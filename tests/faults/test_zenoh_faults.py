@@ -21,8 +21,8 @@ import pytest
 
 from cellctl.api import TriggerAccepted, call
 from cellctl.commands.demo_cmd import Processes
-from cellctl.commands.scan_cmd import wait_for_job
 from tests.support.cellfaults import (
+    FINAL,
     FaultCell,
     expect_analysed,
     fault_cell_config,
@@ -106,8 +106,14 @@ def test_link_cut_during_scan_and_analysis_the_job_is_analysed_once_after_the_li
                 await asyncio.sleep(3.0)
                 fwd.restore()
 
-                state, message, _ = await wait_for_job(follower, job_id, 240.0)
-                seen["final"] = (state, message)
+                # the job's end from its record: the attempt after the first cut may have finished
+                # (a small plate's analysis takes well under a second) before this wait begins, and
+                # an end seen before wait_for_job is called is, to it, not this job's end
+                await wait_until(
+                    lambda: cell.job_record(job_id)["state"] in FINAL, 240.0, what="the job's end"
+                )
+                rec = cell.job_record(job_id)
+                seen["final"] = (rec["state"], rec["history"][-1]["message"])
                 seen["worker_alive_at_end"] = worker.poll() is None
             seen["overrun_frames"] = await sensor_overruns(cell)
             return seen
