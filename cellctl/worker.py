@@ -36,7 +36,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -202,13 +202,34 @@ def _watch_parent(parent_pid: int) -> None:
             os._exit(3)
 
 
+_BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def limit_blas_threads(n: int) -> None:
     """Ask the BLAS libraries for ``n`` threads (0: leave their default). Works only before numpy is
     first imported in this process (they read the environment when they load); an explicit setting
     in the environment wins."""
     if n > 0:
-        for var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        for var in _BLAS_THREAD_VARS:
             os.environ.setdefault(var, str(n))
+
+
+@contextlib.contextmanager
+def blas_threads_for_children(n: int) -> Iterator[None]:
+    """The environment a process spawned inside inherits asks its BLAS libraries for ``n`` threads
+    (0: unchanged; an explicit setting in the environment wins); this process's environment is
+    restored after. A spawned child imports numpy (and loads its OpenBLAS, which reads the variable
+    once) before its own code runs, so the variable must be there when the child starts."""
+    saved = {var: os.environ.get(var) for var in _BLAS_THREAD_VARS}
+    limit_blas_threads(n)
+    try:
+        yield
+    finally:
+        for var, value in saved.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
 
 
 def _outcome_text(result: Any, timings_s: dict[str, float]) -> str:
@@ -343,7 +364,7 @@ def _child_main(
     forgets an open stream. ``heap_reserve_mb`` > 0: the process keeps the memory it frees and a
     streamed job tops up a reserve of touched heap as its chunks arrive (:mod:`cellctl.heap`); the
     free heap goes back to the system when that job is answered."""
-    limit_blas_threads(blas_threads)  # before the analysis (and numpy) is imported
+    limit_blas_threads(blas_threads)  # for the libraries the analysis loads (the parent set it for numpy's)
     if heap_reserve_mb > 0:
         single_arena()  # before the analysis starts its threads
     threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
@@ -470,7 +491,8 @@ class AnalysisProcess:
             args=(child, self.analysis, os.getpid(), self.blas_threads, self.heap_reserve_mb),
             name="cellctl-analysis",
         )
-        proc.start()
+        with blas_threads_for_children(self.blas_threads):  # numpy's OpenBLAS loads before _child_main
+            proc.start()
         child.close()
         self._proc, self._conn = proc, parent
         ready = await asyncio.to_thread(parent.poll, self.start_timeout_s)

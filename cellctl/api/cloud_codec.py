@@ -40,7 +40,9 @@ from __future__ import annotations
 import json
 import struct
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -168,7 +170,24 @@ def encode_cloud(cloud: Cloud) -> bytearray:
             arrays[name] = _check_array(name, arr, n)
     if "t_s" in arrays and not np.isfinite(arrays["t_s"]).all():
         raise CloudFormatError("non-finite times", field="t_s")
-    meta = {**cloud.meta, "job_id": str(cloud.job_id), "plate_id": str(cloud.plate_id)}
+    prefix, offsets, total = _encoded_prefix(
+        cloud.job_id, cloud.plate_id, cloud.meta, n, {name: (a.dtype, a.nbytes) for name, a in arrays.items()}
+    )
+    out = bytearray(total)
+    out[: len(prefix)] = prefix
+    for name, arr in arrays.items():
+        dst = np.frombuffer(out, dtype=arr.dtype, count=arr.size, offset=offsets[name])
+        dst[:] = arr.reshape(-1)
+    return out
+
+
+def _encoded_prefix(
+    job_id: str, plate_id: str, meta: dict[str, Any], n: int, arrays: dict[str, tuple[np.dtype, int]]
+) -> tuple[bytes, dict[str, int], int]:
+    """The header, field table and metadata of a message of ``n`` points holding ``arrays`` (name ->
+    (dtype, bytes), in their order), padded up to the first array: ``(prefix, offsets of the arrays,
+    total size)``."""
+    meta = {**meta, "job_id": str(job_id), "plate_id": str(plate_id)}
     try:
         meta_bytes = json.dumps(meta, separators=(",", ":"), allow_nan=False).encode("utf-8")
     except (TypeError, ValueError) as exc:
@@ -180,26 +199,20 @@ def encode_cloud(cloud: Cloud) -> bytearray:
     data_offset = _pad(HEADER_SIZE + table_size + len(meta_bytes))
     offsets = {}
     pos = data_offset
-    for name, arr in arrays.items():
+    for name, (_, nbytes) in arrays.items():
         offsets[name] = pos
-        pos = _pad(pos + arr.nbytes)
+        pos = _pad(pos + nbytes)
     total = pos
-    out = bytearray(total)
     table = b"".join(
-        FIELD_ENTRY.pack(name.encode("ascii"), _CODE_OF[arr.dtype], FIELDS[name][1], offsets[name])
-        for name, arr in arrays.items()
+        FIELD_ENTRY.pack(name.encode("ascii"), _CODE_OF[dtype], FIELDS[name][1], offsets[name])
+        for name, (dtype, _) in arrays.items()
     )
     head = HEADER.pack(
         MAGIC, VERSION, HEADER_SIZE, n, len(arrays), 0, len(meta_bytes), data_offset, total, 0, 0
     )
     crc = zlib.crc32(head[:40] + table + meta_bytes)
-    out[:HEADER_SIZE] = head[:40] + struct.pack("<II", crc, 0)
-    out[HEADER_SIZE : HEADER_SIZE + table_size] = table
-    out[HEADER_SIZE + table_size : HEADER_SIZE + table_size + len(meta_bytes)] = meta_bytes
-    for name, arr in arrays.items():
-        dst = np.frombuffer(out, dtype=arr.dtype, count=arr.size, offset=offsets[name])
-        dst[:] = arr.reshape(-1)
-    return out
+    prefix = head[:40] + struct.pack("<II", crc, 0) + table + meta_bytes
+    return prefix + bytes(data_offset - len(prefix)), offsets, total
 
 
 def decode_cloud(buf: bytes | bytearray | memoryview, *, check_finite: bool = True) -> Cloud:
@@ -326,3 +339,32 @@ def concat_encoded(payloads: list[bytes | bytearray]) -> bytearray:
         if all(getattr(c, name) is not None for c in clouds)
     }
     return encode_cloud(Cloud(job_id=first.job_id, plate_id=first.plate_id, meta=first.meta, **arrays))
+
+
+def write_concatenated(path: str | Path, payloads: Sequence[bytes | bytearray]) -> int:
+    """Write :func:`concat_encoded` of ``payloads`` to ``path``, the same bytes, without building it in
+    memory: each array goes to the file straight from the chunks it is in (a streamed scan's cloud,
+    70 MB on the sail plate, written while its analysis runs). Returns the bytes written."""
+    if not payloads:
+        raise CloudFormatError("no cloud to concatenate")
+    clouds = [decode_cloud(p) for p in payloads]
+    first = clouds[0]
+    names = [
+        name for name in ("xyz_mm", *OPTIONAL_FIELDS) if all(getattr(c, name) is not None for c in clouds)
+    ]
+    n = sum(c.n_points for c in clouds)
+    fields = {
+        name: (getattr(first, name).dtype, sum(getattr(c, name).nbytes for c in clouds)) for name in names
+    }
+    prefix, offsets, total = _encoded_prefix(first.job_id, first.plate_id, first.meta, n, fields)
+    with open(path, "wb") as f:
+        f.write(prefix)
+        for name in names:
+            assert f.tell() == offsets[name]
+            for c in clouds:  # views into the chunks (decode_cloud copies nothing)
+                arr = getattr(c, name)
+                if arr.size:
+                    f.write(memoryview(np.ascontiguousarray(arr).reshape(-1)).cast("B"))
+            f.write(bytes(_pad(f.tell()) - f.tell()))
+        assert f.tell() == total
+    return total

@@ -25,7 +25,7 @@ from cellctl.acquisition.publish import PublishSettings, budget_steps, column_st
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import JobState
 from cellctl.api.analysis_job import analysis_job
-from cellctl.api.cloud_codec import concat_encoded
+from cellctl.api.cloud_codec import write_concatenated
 from cellctl.api.dispatch import Dispatcher, JobFailed
 from cellctl.api.models import AnalysisOptions
 from cellctl.api.transfer import TransferError, TransferSpec, store_results
@@ -228,8 +228,12 @@ class Handover:
 def _write_cloud(
     path: Path, payload: bytes | bytearray | None, chunks: list[bytes | bytearray] | None
 ) -> None:
-    """cloud.bin: the published bytes, or a streamed job's chunks as one cloud."""
-    path.write_bytes(payload if payload is not None else concat_encoded(chunks or []))
+    """cloud.bin: the published bytes, or a streamed job's chunks as one cloud (written from the
+    chunks, not built in memory first: it runs beside the analysis)."""
+    if payload is not None:
+        path.write_bytes(payload)
+    else:
+        write_concatenated(path, chunks or [])
 
 
 async def render_html(store: JobStore, job: ActiveJob) -> None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import time
 from collections.abc import Callable
@@ -127,12 +128,13 @@ class ScanRunner:
         planned_event = asyncio.Event()
         bring_up = asyncio.create_task(self._bring_up(after=planned_event), name="bring-up")
         handed_over = False
+        keep: Callable[[], None] | None = None
         try:
             planned = await self._plan(job, design)
             if planned is None:
                 return False
             planned_event.set()
-            plan, settings = planned
+            plan, settings, keep = planned
             if self._stopped_before_motion(job) or not await self._preflight(job, plan):
                 return False
             handed_over = True
@@ -141,6 +143,11 @@ class ScanRunner:
         finally:
             if not handed_over:
                 await self._drop_bring_up(bring_up)
+            if keep is not None:
+                # a fresh plan goes into the cache once the arm is at rest (and before the next job
+                # can start): writing it holds the interpreter ~0.1 s on the sail, which would sit
+                # between the plan and the motion, or hold up EGM replies during it
+                await asyncio.to_thread(keep)
 
     async def _bring_up(self, after: asyncio.Event | None = None) -> HD8Client:
         """The sensor connected, stopped and configured, and (once ``after`` is set, when given) the
@@ -291,7 +298,11 @@ class ScanRunner:
         )  # fmt: skip
         return True
 
-    async def _plan(self, job: ActiveJob, design: TriMesh) -> tuple[ScanPlan, PlannerSettings] | None:
+    async def _plan(
+        self, job: ActiveJob, design: TriMesh
+    ) -> tuple[ScanPlan, PlannerSettings, Callable[[], None] | None] | None:
+        """The scan's plan and settings, and for a fresh plan the call that writes it into the plan
+        cache (None on a cache hit); None when the plan was refused (the job failed)."""
         rec = job.record
         try:
             placement = Placement.model_validate(rec.placement)
@@ -302,7 +313,9 @@ class ScanRunner:
                 settings = settings.with_(start_corner=corner)
             # a plan for the same design, placement and settings is reused after the envelope check
             cache = PlanCache(self.store.root.parent / "plan-cache")
-            got = await asyncio.to_thread(cache.plan, design, placement, settings, with_coverage=False)
+            got = await asyncio.to_thread(
+                cache.plan, design, placement, settings, with_coverage=False, store=False
+            )
         except (MeshError, PlateError, PlanInputError, PlanRefused) as exc:
             self.host.job_state(job, JobState.FAILED, f"plan refused: {exc}")
             return None
@@ -311,7 +324,7 @@ class ScanRunner:
             job, JobState.PLANNING, "planned", plan=plan.summary(), plan_s=round(time.perf_counter() - t0, 3),
             plan_cache="hit" if got.hit else "miss",
         )  # fmt: skip
-        return plan, settings
+        return plan, settings, None if got.hit else functools.partial(cache.store, got.key, plan)
 
     async def _start_corner(
         self, design: TriMesh, placement: Placement, settings: PlannerSettings

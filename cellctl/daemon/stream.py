@@ -56,7 +56,7 @@ class ScanStream:
         first_edge_pass: int | None,
         meta: dict[str, Any],
         last_pass: int | None = None,
-        poll_s: float = 0.2,
+        poll_s: float = 0.05,
         durable_timeout_s: float = 5.0,
         on_abandon: Callable[[], None] | None = None,
     ) -> None:
@@ -91,6 +91,9 @@ class ScanStream:
         self._task = asyncio.get_running_loop().create_task(self._follow(), name=f"stream-{self.job_id}")
 
     async def _follow(self) -> None:
+        # every poll_s: the last pass's chunk starts the analysis, so its wait counts in the time to
+        # the report (at 0.2 s the chunk went out 0.14 s after the pass on the sail); a poll looks
+        # at the new rows' pass ids only (a pass is about 1 400 rows), well under a millisecond
         while True:
             await asyncio.sleep(self.poll_s)
             try:

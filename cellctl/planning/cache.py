@@ -44,8 +44,9 @@ log = structlog.get_logger(__name__)
 PLAN_CACHE_VERSION = (
     # 2: the carriage holds when it can; 3: flying turnarounds; 4: the passes along either axis;
     # 5: timed with 80 % of the jerk limits (was 60 %); 6: the U-turn, links that turn the sensor
-    # at rest as lines in joint space timed along the line, the start corner
-    "cellctl.plan_cache/6+cellctl.scan_plan/1"
+    # at rest as lines in joint space timed along the line, the start corner; 7: the closed-form
+    # IK (joints within 3e-5 deg of the damped solver's), toppra's bound on every other grid point
+    "cellctl.plan_cache/7+cellctl.scan_plan/1"
 )
 
 
@@ -158,8 +159,11 @@ class PlanCache:
         *,
         with_coverage: bool = True,
         cycle_s: float = 0.004032,
+        store: bool = True,
     ) -> CachedPlan:
-        """The cached plan for these inputs, or :func:`plan_scan`'s (then stored).
+        """The cached plan for these inputs, or :func:`plan_scan`'s (then stored, unless ``store`` is
+        False: the caller then writes it with :meth:`store` and the returned key when it has the time;
+        the daemon does once the arm is at rest, not between the plan and the motion).
 
         Raises what :func:`plan_scan` raises (a refusal is not cached)."""
         key = plan_key(design, placement, settings, with_coverage=with_coverage, cycle_s=cycle_s)
@@ -168,7 +172,8 @@ class PlanCache:
             log.info("plan_cache_hit", key=key[:12])
             return CachedPlan(cached, True, key)
         plan = plan_scan(design, placement, settings, with_coverage=with_coverage, cycle_s=cycle_s)
-        self.store(key, plan)
+        if store:
+            self.store(key, plan)
         return CachedPlan(plan, False, key)
 
     def _ignore(self, key: str, reason: str) -> None:

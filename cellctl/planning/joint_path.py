@@ -2,8 +2,10 @@
 
 The first waypoint is solved from a few elbow-up seeds and the solution with the most room (wrist
 away from its singularity, joints away from their limits, little wrist roll) is kept; every later
-waypoint is solved warm-started from its predecessor, so the configuration cannot flip between
-neighbours. Each waypoint is checked against the configured joint limits shrunk by the margin, the
+waypoint takes the closed-form solution (:func:`~drivers.abb_egm.kinematics.ik_branches`, a whole
+segment's waypoints at once) nearest its predecessor's, so the configuration cannot flip between
+neighbours; where none lies within a waypoint's step, the damped solver warm-started from the
+predecessor decides (and names the reason when the pose cannot be reached). Each waypoint is checked against the configured joint limits shrunk by the margin, the
 wrist-singularity margin (|q5|), the joint jump between neighbours and the sensor workspace box; the
 first violation refuses the plan with the pass, the point and the limit.
 
@@ -25,7 +27,7 @@ import numpy as np
 
 from cellctl.planning.plan import PlanRefused, Segment, pose_matrix, slerp_frames
 from cellctl.planning.settings import PlannerSettings
-from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics
+from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics, nearest_branch
 
 __all__ = [
     "REACH_MM",
@@ -179,19 +181,17 @@ def _score(q: np.ndarray, settings: PlannerSettings) -> float:
 def first_configuration(
     kin: RobotKinematics, T_base_sensor: np.ndarray, settings: PlannerSettings
 ) -> np.ndarray | None:
-    """The best IK solution for the first pose from the elbow-up seeds, or None if none converges
-    inside the margins."""
+    """The best IK solution for the first pose among those nearest the elbow-up seeds (each seed's
+    nearest closed-form solution inside the joint limits), or None if none lies inside the margins."""
     p = T_base_sensor[:3, 3]
     q1 = float(np.rad2deg(np.arctan2(p[1], p[0])))
+    branches = kin.ik_branches(T_base_sensor[None], frame="sensor")[0]
     best: tuple[float, np.ndarray] | None = None
     for q2, q3, q5 in _SEEDS_235:
         for q4, q6 in _SEEDS_46:
             seed = np.array([q1, q2, q3, q4, q5, q6])
-            r = kin.ik(T_base_sensor, seed, frame="sensor", max_iterations=150)
-            if not (r.converged or (r.pos_err_mm < _POS_TOL_MM and r.rot_err_deg < _ROT_TOL_DEG)):
-                continue
-            q = r.q_deg
-            if np.any(q < settings.q_min_deg) or np.any(q > settings.q_max_deg):
+            q = nearest_branch(branches, seed, kin.q_min_deg, kin.q_max_deg)
+            if q is None or np.any(q < settings.q_min_deg) or np.any(q > settings.q_max_deg):
                 continue
             s = _score(q, settings)
             if best is None or s > best[0]:
@@ -411,6 +411,7 @@ def _solve_once(
                 limit=f"workspace box {ws_lo.tolist()} .. {ws_hi.tolist()} mm",
                 pos_mm=seg.pos_mm[i],
             )
+        branches = kin.ik_branches(Ts, frame="sensor")  # every closed-form solution, all at once
         for i, T in enumerate(Ts):
             if q_prev is None:
                 q0 = q_start_deg if q_start_deg is not None else first_configuration(kin, T, settings)
@@ -432,16 +433,21 @@ def _solve_once(
                         pos_mm=T[:3, 3],
                     )
                 q_prev = np.asarray(q0, dtype=np.float64)
-            r = kin.ik(T, q_prev, frame="sensor", max_iterations=60, max_step_deg=5.0)
-            q = r.q_deg
-            if r.pos_err_mm > _POS_TOL_MM or r.rot_err_deg > _ROT_TOL_DEG:
-                raise PlanRefused(
-                    "the pose is unreachable",
-                    pass_label=seg.label,
-                    point_index=i,
-                    limit=_unreachable(kin, q, r.pos_err_mm, r.rot_err_deg),
-                    pos_mm=T[:3, 3],
-                )
+            q = nearest_branch(branches[i], q_prev, kin.q_min_deg, kin.q_max_deg)
+            if q is None or float(np.max(np.abs(q - q_prev))) > settings.max_waypoint_joint_step_deg:
+                # no closed-form solution within a waypoint's step of the last one: the damped
+                # solver from it finds where it leads, or says why there is none (the pose out of
+                # reach, a joint held at its limit)
+                r = kin.ik(T, q_prev, frame="sensor", max_iterations=60, max_step_deg=5.0)
+                q = r.q_deg
+                if r.pos_err_mm > _POS_TOL_MM or r.rot_err_deg > _ROT_TOL_DEG:
+                    raise PlanRefused(
+                        "the pose is unreachable",
+                        pass_label=seg.label,
+                        point_index=i,
+                        limit=_unreachable(kin, q, r.pos_err_mm, r.rot_err_deg),
+                        pos_mm=T[:3, 3],
+                    )
             below, above = q < lo, q > hi
             if below.any() or above.any():
                 j = int(np.argmax(below | above))

@@ -62,6 +62,10 @@ _ACC_FACTOR = 0.9
 _ROT_WEIGHT_MM_PER_RAD = 100.0
 _GRID_STEP_MM = 4.0
 _TURN_GRID_STEP_MM = 0.5
+#: toppra's feasibility check and time-optimal bound take every other point of that grid (and the
+#: segments' ends): the sail's bound moves by 0.06 % (180.76 s against 180.65 s on every point),
+#: its cost (most of a cold plan's timing) halves
+_TOPPRA_GRID_STRIDE = 2
 #: a turnaround is flown at this share of the largest rate its limits allow (the rest: its joins)
 _FLYING_SHARE = 0.95
 #: the sweep's ends where the speed may ramp (the passes reach this far beyond what they must cover)
@@ -320,7 +324,8 @@ def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float
     constraints = _toppra_constraints(
         settings, TcpSpeedConstraint(v_tcp, settings.T_flange_sensor, settings.track)
     )
-    optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid, parametrizer="ParametrizeConstAccel")
+    grid_toppra = np.concatenate([grid[:-1:_TOPPRA_GRID_STRIDE], grid[-1:]])
+    optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid_toppra, parametrizer="ParametrizeConstAccel")
     optimal = optimal.compute_trajectory(0.0, 0.0)
     if optimal is None:
         raise PlanRefused(
@@ -401,7 +406,6 @@ def _time_chain(segs: list[Segment], speeds: list[float], settings: PlannerSetti
             laws.append((_flying_rate if seg.flying else _time_law)(path, v_tcp, settings, grid))
         except PlanRefused as exc:
             raise PlanRefused(exc.reason, pass_label=seg.label, limit=exc.limit) from None
-    grid_all = np.unique(np.concatenate(grids))
     constraints = _toppra_constraints(
         settings,
         TcpSpeedConstraint(
@@ -413,7 +417,8 @@ def _time_chain(segs: list[Segment], speeds: list[float], settings: PlannerSetti
             ],
         ),
     )
-    optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid_all, parametrizer="ParametrizeConstAccel")
+    grid_toppra = np.unique(np.concatenate([g[::_TOPPRA_GRID_STRIDE] for g in grids] + [bounds]))
+    optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid_toppra, parametrizer="ParametrizeConstAccel")
     optimal = optimal.compute_trajectory(0.0, 0.0)
     if optimal is None:
         raise PlanRefused(

@@ -36,7 +36,9 @@ __all__ = [
     "Pose",
     "RobotKinematics",
     "fk_batch",
+    "ik_branches",
     "matrix_from_quat_wxyz",
+    "nearest_branch",
     "quat_wxyz_from_matrix",
 ]
 
@@ -440,6 +442,20 @@ class RobotKinematics:
             rot_err_deg=float(np.rad2deg(rot_err)),
         )
 
+    def ik_branches(self, T_base_target: np.ndarray, frame: str = "flange") -> np.ndarray:
+        """Every closed-form IK solution of ``frame`` at many poses: ``T_base_target`` (n, 4, 4), mm
+        -> (n, 8, 6) deg, NaN where a branch has none (:func:`ik_branches`). The arm alone: with a
+        track, solve in the base frame at the carriage's position (the planner does)."""
+        if self.track is not None:
+            raise KinematicsError(
+                "ik_branches solves the arm alone: give base-frame poses to a model without a track"
+            )
+        T = np.asarray(T_base_target, dtype=np.float64)
+        if T.ndim != 3 or T.shape[1:] != (4, 4):
+            raise KinematicsError(f"T_base_target must have shape (n, 4, 4), got {T.shape}")
+        T_tool_flange = _inverse_rigid(self._T_flange_tool_mm[self._fid_name(frame)])
+        return ik_branches(T @ T_tool_flange)
+
     def fk_batch(self, q_deg: np.ndarray, frame: str = "flange") -> np.ndarray:
         """Poses of ``frame`` for many configurations: ``q_deg`` (n, 6) deg (or ``axes_mm_deg``
         (n, 7) with a track) -> (n, 4, 4), mm."""
@@ -533,3 +549,111 @@ def fk_batch(
     T[:, 3, :3] = 0.0
     T[:, 3, 3] = 1.0
     return T
+
+
+# ---------------------------------------------------------------------------------------------
+# closed-form inverse kinematics
+#
+# The IRB 4600 has an ortho-parallel base (joint 1 vertical, joints 2 and 3 parallel to each other
+# and perpendicular to it) and a spherical wrist (joints 4, 5 and 6 meet in one point, the wrist
+# centre, 135 mm behind the flange). The wrist centre fixes joints 1-3 (a shoulder turned toward or
+# away from it, an elbow up or down); the orientation left over fixes joints 4-6 as x-y-x Euler
+# angles (two wrists, joint 5 positive or negative): eight branches. The lengths are the model's
+# (``_JOINT_XYZ_M``).
+
+_SHOULDER_R_MM = 1000.0 * _JOINT_XYZ_M[1, 0]  # joint 2 ahead of joint 1's axis
+_SHOULDER_Z_MM = 1000.0 * _JOINT_XYZ_M[0, 2]  # joint 2 above the base
+_UPPER_ARM_MM = 1000.0 * _JOINT_XYZ_M[2, 2]  # joint 2 -> joint 3
+#: joint 3 -> wrist centre: along the forearm (joint 4's axis) and across it
+_FOREARM_ALONG_MM = 1000.0 * _JOINT_XYZ_M[4, 0]
+_FOREARM_ACROSS_MM = 1000.0 * _JOINT_XYZ_M[3, 2]
+_FOREARM_MM = float(np.hypot(_FOREARM_ALONG_MM, _FOREARM_ACROSS_MM))
+_FOREARM_TILT_RAD = float(np.arctan2(_FOREARM_ACROSS_MM, _FOREARM_ALONG_MM))
+_WRIST_FLANGE_MM = 1000.0 * _JOINT_XYZ_M[5, 0]  # wrist centre -> flange along link 6's x axis
+
+
+def _inverse_rigid(T: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def _wrap_pi(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def ik_branches(T_base_flange: np.ndarray) -> np.ndarray:
+    """The eight closed-form IK solutions of the flange at many poses, vectorised.
+
+    Args:
+        T_base_flange: (n, 4, 4) flange poses in the base frame, mm (rotation parts must be rotations).
+
+    Returns:
+        (n, 8, 6) joint angles in deg, each in (-180, 180]; branch ``4 s + 2 e + w``: shoulder ``s``
+        (0: facing the wrist centre, 1: turned away), elbow ``e`` (0 and 1: the two solutions of the
+        planar arm), wrist ``w`` (0: joint 5 positive, 1: negative). NaN where a branch has no
+        solution (the wrist centre out of the arm's reach). Joint limits are not applied (nor the
+        other turns of joints 4 and 6 up to +-400 deg: :func:`nearest_branch` chooses among them).
+        At a wrist singularity (joint 5 at 0) joints 4 and 6 are one rotation: it goes to joint 6.
+    """
+    T = np.asarray(T_base_flange, dtype=np.float64)
+    n = T.shape[0]
+    R = T[:, :3, :3] @ _R_LINK6_FLANGE.T  # link_6 in the base frame
+    c = T[:, :3, 3] - _WRIST_FLANGE_MM * R[:, :, 0]  # the wrist centre
+    out = np.full((n, 8, 6), np.nan)
+    a, b = _UPPER_ARM_MM, _FOREARM_MM
+    for s in (0, 1):
+        q1 = np.arctan2(c[:, 1], c[:, 0]) + s * np.pi
+        r = np.hypot(c[:, 0], c[:, 1]) * (1.0 - 2.0 * s)
+        dx, dz = r - _SHOULDER_R_MM, c[:, 2] - _SHOULDER_Z_MM
+        # in the arm's plane (along r, down z), the upper arm points along q2 - pi/2 and the
+        # forearm's wrist offset along q2 + q3 - tilt; their difference is q3 + pi/2 - tilt
+        cos_d = (dx * dx + dz * dz - a * a - b * b) / (2.0 * a * b)
+        reach = np.abs(cos_d) <= 1.0 + 1e-12
+        d0 = np.arccos(np.clip(cos_d, -1.0, 1.0))
+        for e in (0, 1):
+            d = d0 if e == 0 else -d0
+            q2 = np.arctan2(-dz, dx) - np.arctan2(b * np.sin(d), a + b * np.cos(d)) + 0.5 * np.pi
+            q3 = d - 0.5 * np.pi + _FOREARM_TILT_RAD
+            phi = q2 + q3
+            c1, s1, c23, s23 = np.cos(q1), np.sin(q1), np.cos(phi), np.sin(phi)
+            # R_3 = Rz(q1) Ry(q2 + q3); M = R_3^T R = Rx(q4) Ry(q5) Rx(q6)
+            R3 = np.empty((n, 3, 3))
+            R3[:, 0, 0], R3[:, 0, 1], R3[:, 0, 2] = c1 * c23, -s1, c1 * s23
+            R3[:, 1, 0], R3[:, 1, 1], R3[:, 1, 2] = s1 * c23, c1, s1 * s23
+            R3[:, 2, 0], R3[:, 2, 1], R3[:, 2, 2] = -s23, 0.0, c23
+            M = np.einsum("nji,njk->nik", R3, R)
+            sin5 = np.hypot(M[:, 1, 0], M[:, 2, 0])
+            for w in (0, 1):
+                sign = 1.0 - 2.0 * w
+                q5 = np.arctan2(sign * sin5, M[:, 0, 0])
+                q4 = np.arctan2(sign * M[:, 1, 0], -sign * M[:, 2, 0])
+                q6 = np.arctan2(sign * M[:, 0, 1], sign * M[:, 0, 2])
+                singular = sin5 < 1e-9
+                if singular.any():  # Rx(q4 + q6): all of it on joint 6
+                    q4 = np.where(singular, 0.0, q4)
+                    q6 = np.where(singular, np.arctan2(M[:, 2, 1], M[:, 1, 1]) * np.sign(M[:, 0, 0]), q6)
+                q = np.stack([q1, q2, q3, q4, q5, q6], axis=-1)
+                q = np.rad2deg(_wrap_pi(q))
+                q[~reach] = np.nan
+                out[:, 4 * s + 2 * e + w] = q
+    return out
+
+
+def nearest_branch(
+    candidates_deg: np.ndarray, seed_deg: np.ndarray, q_min_deg: np.ndarray, q_max_deg: np.ndarray
+) -> np.ndarray | None:
+    """The solution nearest ``seed_deg`` (6,) (Euclidean, deg) among ``candidates_deg`` (m, 6) of
+    :func:`ik_branches`, each joint first turned by whole turns to lie nearest the seed's, and inside
+    ``[q_min_deg, q_max_deg]``; None when no candidate lies inside."""
+    q = candidates_deg + 360.0 * np.round((seed_deg - candidates_deg) / 360.0)
+    # a configuration exactly at a limit comes back a rounding error beyond it: inside, clipped
+    ok = np.all((q >= q_min_deg - _LIMIT_ROUNDING_DEG) & (q <= q_max_deg + _LIMIT_ROUNDING_DEG), axis=1)
+    if not ok.any():  # NaN rows fail the test above
+        return None
+    d = np.where(ok, np.sum((q - seed_deg) ** 2, axis=1), np.inf)
+    return np.clip(q[int(np.argmin(d))], q_min_deg, q_max_deg)
+
+
+_LIMIT_ROUNDING_DEG = 1e-9

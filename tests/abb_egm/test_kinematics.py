@@ -1,4 +1,5 @@
-"""IRB 4600-40/2.55 kinematics: known pose, FK/IK round trips, limits, Jacobian, batch FK."""
+"""IRB 4600-40/2.55 kinematics: known pose, FK/IK round trips, limits, Jacobian, batch FK, the
+closed-form IK's branches against FK and against the damped solver."""
 
 from __future__ import annotations
 
@@ -11,9 +12,12 @@ from drivers.abb_egm.kinematics import (
     Q_MAX_DEG,
     Q_MIN_DEG,
     KinematicsError,
+    LinearTrack,
     RobotKinematics,
     fk_batch,
+    ik_branches,
     matrix_from_quat_wxyz,
+    nearest_branch,
     quat_wxyz_from_matrix,
 )
 
@@ -139,3 +143,66 @@ def test_quaternion_matrix_conversions_round_trip(q):
     quat = -quat if quat[0] < 0 else quat
     back = quat_wxyz_from_matrix(matrix_from_quat_wxyz(quat))
     assert np.allclose(back, quat, atol=1e-9) or np.allclose(back, -quat, atol=1e-9)
+
+
+_anywhere = st.tuples(
+    *[st.floats(lo, hi) for lo, hi in zip(Q_MIN_DEG, Q_MAX_DEG, strict=True)]
+)  # joints 4 and 6 over their whole +-400 deg
+
+
+@settings(max_examples=200, deadline=None)
+@given(q=_anywhere)
+def test_the_closed_form_branches_hold_the_configuration_and_all_reproduce_its_pose(q):
+    q = np.array(q)
+    assume(abs(q[4]) > 0.5)  # off the wrist singularity, where joints 4 and 6 are one rotation
+    T = fk_batch(q[None])
+    branches = ik_branches(T)[0]
+    valid = ~np.isnan(branches[:, 0])
+    assert valid[:4].all()  # the shoulder facing the wrist centre reaches it, both elbows
+    # every branch puts the flange exactly there
+    np.testing.assert_allclose(fk_batch(branches[valid]), np.repeat(T, valid.sum(), axis=0), atol=1e-7)
+    # one branch is the configuration itself, up to whole turns of a joint
+    turns = (branches[valid] - q + 180.0) % 360.0 - 180.0
+    assert np.min(np.max(np.abs(turns), axis=1)) < 1e-6
+    # and from a seed near it, the nearest in the joint limits is exactly it (turns of 4 and 6 too)
+    got = nearest_branch(branches, q + 3.0 * np.sign(np.sin(np.arange(6.0) + 1.0)), Q_MIN_DEG, Q_MAX_DEG)
+    np.testing.assert_allclose(got, q, atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(q=_inner, offset=_offset)
+def test_the_nearest_closed_form_branch_is_where_the_damped_solver_converges(q, offset):
+    q = np.array(q)
+    assume(abs(q[4]) > 10.0)
+    q3_stretched = -90.0 + np.rad2deg(np.arctan2(0.175, 1.270))
+    assume(abs(q[2] - q3_stretched) > 12.0)
+    kin = RobotKinematics(tools={"sensor": T_FLANGE_SENSOR})
+    target = kin.fk(q, "sensor").T_base_frame
+    wrist_centre = kin.fk(q).T_base_frame[:3, 3] - 135.0 * kin.fk(q).T_base_frame[:3, 2]
+    assume(np.hypot(wrist_centre[0], wrist_centre[1]) > 100.0)
+    seed = q + np.array(offset)
+    damped = kin.ik(target, seed, "sensor")
+    assert damped.converged
+    closed = nearest_branch(kin.ik_branches(target[None], "sensor")[0], seed, kin.q_min_deg, kin.q_max_deg)
+    np.testing.assert_allclose(closed, damped.q_deg, atol=1e-3)
+
+
+def test_a_pose_out_of_reach_has_no_branch_and_one_beyond_the_limits_no_nearest():
+    target = KIN.fk(np.zeros(6)).T_base_frame.copy()
+    target[:3, 3] = [5000.0, 0.0, 1000.0]
+    assert np.isnan(ik_branches(target[None])).all()
+    # joint 3 at 80 deg (limit 75): the branch exists, but no solution inside narrowed limits
+    T = fk_batch(np.array([[0.0, 0.0, 80.0, 0.0, 30.0, 0.0]]))
+    branches = ik_branches(T)[0]
+    lo, hi = Q_MIN_DEG.copy(), Q_MAX_DEG.copy()
+    hi[2] = 75.0
+    got = nearest_branch(branches, np.array([0.0, 0.0, 70.0, 0.0, 30.0, 0.0]), lo, hi)
+    assert got is None or abs(got[2] - 80.0) > 1.0  # never the configuration beyond the limit
+
+
+def test_the_closed_form_refuses_a_model_on_a_track_and_bad_shapes():
+    track = LinearTrack(np.zeros(3), np.array([0.0, 1.0, 0.0]), 0.0, 6000.0, 1000.0)
+    with pytest.raises(KinematicsError, match="arm alone"):
+        RobotKinematics(track=track).ik_branches(np.eye(4)[None])
+    with pytest.raises(KinematicsError, match="shape"):
+        KIN.ik_branches(np.eye(4))

@@ -98,7 +98,7 @@ def _run(tmp_path, monkeypatch, *, plan_refused: bool) -> tuple[_Recorder, _Host
         finally:
             rec.planning = False
         rec.mark("planned")
-        return None if plan_refused else (SimpleNamespace(scan_time_s=1.0), None)
+        return None if plan_refused else (SimpleNamespace(scan_time_s=1.0), None, None)
 
     async def preflight(job: ActiveJob, plan: Any) -> bool:
         # the bring-up goes on beside the pre-flight: let it finish, then stop before any motion

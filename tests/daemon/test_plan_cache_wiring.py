@@ -1,5 +1,6 @@
 """The daemon's planning step reuses a plan from ``<data_dir>/plan-cache`` (in process, no cell; the
-arm's position, which picks the start corner, from the RWS simulator on loopback)."""
+arm's position, which picks the start corner, from the RWS simulator on loopback). A fresh plan is
+written by the call the step returns, which the runner makes once the arm is at rest."""
 
 from __future__ import annotations
 
@@ -49,18 +50,26 @@ def test_the_second_scan_of_the_same_plate_and_placement_reuses_the_stored_plan(
             cfg, store, drivers=types.SimpleNamespace(rws=client), host=host
         )  # planning: RWS only
         try:
-            return [
-                await runner._plan(
+            out = []
+            for j in ("j1", "j2"):
+                got = await runner._plan(
                     ActiveJob(JobRecord(j, "p", "d.ply", str(tmp_path / "d.ply"), placement)), design
                 )
-                for j in ("j1", "j2")
-            ]
+                # the fresh plan is not written between the plan and the motion: the runner writes
+                # it with the call it returns once the arm is at rest (a hit returns none)
+                cached = list((tmp_path / "data" / "plan-cache").glob("*.json"))
+                out.append((got, len(cached)))
+                if got is not None and got[2] is not None:
+                    await asyncio.to_thread(got[2])
+            return out
         finally:
             await client.close()
             await server.stop()
 
-    first, second = asyncio.run(plan_twice())
+    (first, cached_after_first), (second, cached_after_second) = asyncio.run(plan_twice())
     assert first is not None and second is not None
+    assert cached_after_first == 0 and first[2] is not None  # written later, by the returned call
+    assert cached_after_second == 1 and second[2] is None  # a hit: nothing more to write
     planned = [info for state, msg, info in host.states if msg == "planned"]
     assert [i["plan_cache"] for i in planned] == ["miss", "hit"]
     assert planned[0]["plan"] == planned[1]["plan"]

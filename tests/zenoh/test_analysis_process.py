@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +41,23 @@ def test_analysis_process_asks_blas_for_the_configured_threads(monkeypatch, tmp_
     monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
     monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
     report = _run_once(AnalysisProcess(FN, blas_threads=3), tmp_path)
-    assert report == {"OPENBLAS_NUM_THREADS": "3", "MKL_NUM_THREADS": "3"}
+    # OpenBLAS takes the setting up to the machine's cores
+    assert report == {
+        "OPENBLAS_NUM_THREADS": "3",
+        "MKL_NUM_THREADS": "3",
+        "numpy_openblas_threads": min(3, len(os.sched_getaffinity(0))),
+    }
+
+
+def test_numpy_in_the_analysis_process_runs_blas_on_one_thread(monkeypatch, tmp_path):
+    """numpy (and its OpenBLAS) is loaded in the child before its own code runs: the setting must be
+    in the environment the child starts with. (It was set inside the child: OpenBLAS ran on every
+    core, and on a busy 2-core cell PC its spinning threads slowed the analysis' matrix products.)"""
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
+    report = _run_once(AnalysisProcess(FN, blas_threads=1), tmp_path)
+    assert report["numpy_openblas_threads"] == 1
+    assert "OPENBLAS_NUM_THREADS" not in os.environ  # the worker's own environment is left as it was
 
 
 def test_an_explicit_blas_setting_in_the_environment_wins(monkeypatch, tmp_path):
@@ -49,6 +66,7 @@ def test_an_explicit_blas_setting_in_the_environment_wins(monkeypatch, tmp_path)
     assert _run_once(AnalysisProcess(FN, blas_threads=1), tmp_path) == {
         "OPENBLAS_NUM_THREADS": "2",
         "MKL_NUM_THREADS": "1",
+        "numpy_openblas_threads": min(2, len(os.sched_getaffinity(0))),
     }
 
 

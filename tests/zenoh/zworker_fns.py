@@ -81,9 +81,30 @@ def not_a_report(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
     return {"job_id": job.job_id, "n_points": len(cloud)}
 
 
+def _numpy_openblas_threads() -> int | None:
+    """The threads numpy's own OpenBLAS (loaded with numpy, before any analysis code) will use: asked
+    of the library itself through its exported getter; None when numpy carries no OpenBLAS."""
+    import ctypes
+
+    with open("/proc/self/maps") as maps:
+        paths = {line.split()[-1] for line in maps if "openblas" in line and line.rstrip().endswith(".so")}
+    for path in sorted(paths):
+        lib = ctypes.CDLL(path)
+        for name in ("scipy_openblas_get_num_threads64_", "openblas_get_num_threads64_"):
+            getter = getattr(lib, name, None)
+            if getter is not None:
+                return int(getter())
+    return None
+
+
 def blas_environment(cloud: ScanCloud, job: AnalysisJob) -> Report:
-    """Observe the BLAS thread settings the analysis process runs with."""
-    observe(job, **{k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")})
+    """Observe the BLAS thread settings the analysis process runs with, and what numpy's OpenBLAS
+    took from them."""
+    observe(
+        job,
+        **{k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")},
+        numpy_openblas_threads=_numpy_openblas_threads(),
+    )
     return minimal_report(job, len(cloud))
 
 
