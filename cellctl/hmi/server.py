@@ -22,6 +22,7 @@ import structlog
 from aiohttp import WSMsgType, web
 
 from cellctl.api import DESIGN_SUFFIXES, MAX_TRIGGER_BYTES, ApiCallError
+from cellctl.api.models import FINAL_JOB_STATES
 from cellctl.config import CellConfig
 from cellctl.daemon.history import History
 from cellctl.hmi.auth import ACTION_ROLE, ZENOH_ROLE, Authenticator, Session, allowed, role_cap
@@ -32,6 +33,7 @@ log = structlog.get_logger(__name__)
 STATIC = Path(__file__).with_name("static")
 COOKIE = "hmi_session"
 _JOB_ID = re.compile(r"^[A-Za-z0-9_.-]{1,80}$")
+_FINAL_STATES = frozenset(s.value for s in FINAL_JOB_STATES)
 #: files of a job a browser may download: (name, where in the job directory, content type)
 DOWNLOADS = {
     "report.html": ("results/report.html", "text/html"),
@@ -294,12 +296,18 @@ class HmiServer:
 
     def _job_ended(self, job_id: str) -> None:
         async def later() -> None:
-            # the daemon writes report.json right after the publication: index once it has
+            # report.json is on disk before the job is published done; the retries cover a slow disk
+            row, attempts = None, 0
             for delay in (0.5, 2.0, 5.0):
                 await asyncio.sleep(delay)
+                attempts += 1
                 row = await asyncio.to_thread(self.history.index_job, job_id) if self.history else None
                 if row and (row["verdict"] or row["state"] != "done"):
                     break
+            log.info(
+                "hmi_job_indexed", job_id=job_id, attempts=attempts, plate_id=row and row["plate_id"],
+                state=row and row["state"], verdict=row and row["verdict"],
+            )  # fmt: skip
             self._broadcast({"type": "history", "job_id": job_id})
 
         task = asyncio.get_running_loop().create_task(later())
@@ -334,7 +342,11 @@ class HmiServer:
             files = [n for n, (rel, _) in DOWNLOADS.items() if (d / rel).is_file()]
             if (d / "cloud.bin").is_file():
                 files.append("cloud.bin")
-            prev = self.history.previous_round(job_id) if self.history else None
+            prev = None
+            if self.history is not None:
+                if rec.get("state") in _FINAL_STATES:  # the index as the page sees it, not as it lags
+                    self.history.index_job(job_id)
+                prev = self.history.previous_round(job_id)
             return {"job": rec, "report": report, "files": files, "previous": prev}
 
         return web.json_response(await asyncio.to_thread(read))

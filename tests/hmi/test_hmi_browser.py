@@ -235,6 +235,11 @@ def test_operator_scans_a_plate_twice_and_sees_both_rounds(page, cell_hmi, shots
         f"location.hash.startsWith('#result/') && document.body.dataset.resultJob !== '{first_job}'",
         timeout=240_000,
     )
+    second_job = page.evaluate("document.body.dataset.resultJob")
+    shown = page.request.get(hmi.url + f"/api/jobs/{second_job}").json()
+    # what the page was given: a done job of the same plate with round one beside it
+    assert shown["job"]["state"] == "done" and shown["job"]["plate_id"] == PLATE, shown["job"]
+    assert shown["previous"] and shown["previous"]["job_id"] == first_job, shown["previous"]
     page.wait_for_selector("#result-lines th:has-text('prev. Zmax')", timeout=30_000)
     page.goto(hmi.url + f"/#history/{PLATE}")
     page.wait_for_function("document.getElementById('history-rounds').dataset.rounds === '2'", timeout=15_000)
