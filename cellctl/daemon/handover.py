@@ -27,7 +27,7 @@ from cellctl.api import JobState
 from cellctl.api.analysis_job import analysis_job
 from cellctl.api.cloud_codec import write_concatenated
 from cellctl.api.dispatch import Dispatcher, JobFailed
-from cellctl.api.models import AnalysisOptions
+from cellctl.api.models import AnalysisOptions, ReportEnvelope
 from cellctl.api.transfer import TransferError, TransferSpec, store_results
 from cellctl.config import CellConfig
 from cellctl.daemon.jobs import ActiveJob, JobStore, JobStoreError
@@ -159,8 +159,8 @@ class Handover:
             if stream is not None:
                 job.cloud = None
                 job.points = stream.points
-                payloads = self.dispatcher.stream_payloads(rec.job_id)
-                worker_id = self.dispatcher.assignment(rec.job_id)[0]
+                payloads, stream.payloads = stream.payloads, []
+                worker_id = _streamed_worker(self.dispatcher, rec.job_id, stream.future)
                 job.worker_id = worker_id
                 self._job_state(
                     job, JobState.ANALYSING if worker_id else JobState.WAITING_FOR_WORKER,
@@ -223,6 +223,16 @@ class Handover:
             and (self.store.results_dir(rec.job_id) / "report.json").exists()
         ):
             await render_html(self.store, job)
+
+
+def _streamed_worker(dispatcher: Dispatcher, job_id: str, fut: asyncio.Future[ReportEnvelope]) -> str | None:
+    """The worker analysing a streamed job: the dispatcher's holder while the job is pending, the
+    reporting worker once it has reported (a fast analysis can end before the handover looks)."""
+    if job_id in dispatcher.pending:
+        return dispatcher.assignment(job_id)[0]
+    if fut.done() and not fut.cancelled() and fut.exception() is None:
+        return fut.result().worker_id
+    return None
 
 
 def _write_cloud(

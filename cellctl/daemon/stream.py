@@ -62,6 +62,7 @@ class ScanStream:
     ) -> None:
         self.dispatcher = dispatcher
         self.future = future
+        self.payloads: list[bytes | bytearray] = []  # the chunks sent, once the stream has ended
         self.job_id = job_id
         self.plate_id = plate_id
         self.settings = settings
@@ -167,6 +168,9 @@ class ScanStream:
         go out as the last chunk and the stream ends."""
         await self._stop_following()
         await self._cut(final=True)
+        # the chunks as sent, kept here for cloud.bin: once the stream has ended the worker may
+        # report (and the dispatcher forget the job) before the handover asks for them
+        self.payloads = self.dispatcher.stream_payloads(self.job_id)
         self.dispatcher.end_stream(self.job_id)
         self.finished = True
 

@@ -87,6 +87,11 @@ class _Dispatcher:
         self.last_pass.append(last_pass)
         return len(self.chunks) - 1
 
+    def stream_payloads(self, job_id: str) -> list[bytes]:
+        if self.ended:  # as the real one: a worker may report as soon as the stream ends
+            raise ValueError(f"job {job_id!r} is not a pending streamed job")
+        return [c[1] for c in self.chunks]
+
     def end_stream(self, job_id: str) -> None:
         self.ended = True
 
@@ -112,6 +117,8 @@ def test_the_chunks_concatenated_are_the_whole_cloud_byte_for_byte(seed: int) ->
         await asyncio.sleep(0.05)
         await stream.finish()
         assert stream.finished and stream.points == sum(c[2] for c in disp.chunks)
+        # the chunks for cloud.bin stay with the stream: the job may be reported and forgotten
+        assert stream.payloads == [c[1] for c in disp.chunks]
         return disp
 
     disp = asyncio.run(go())
@@ -146,3 +153,28 @@ def test_a_stream_abandoned_before_the_end_gives_the_job_up() -> None:
 
     disp = asyncio.run(go())
     assert disp.abandoned == "aborted" and not disp.ended
+
+
+def test_the_worker_of_a_streamed_job_is_named_whether_or_not_it_has_reported() -> None:
+    from cellctl.api.models import ReportEnvelope
+    from cellctl.daemon.handover import _streamed_worker
+
+    class Disp:
+        pending: list[str] = []
+
+        def assignment(self, job_id: str) -> tuple[str | None, int]:
+            return "w-holding", 1
+
+    async def go() -> tuple[str | None, str | None, str | None]:
+        fut = asyncio.get_running_loop().create_future()
+        d = Disp()
+        d.pending = ["J"]
+        holding = _streamed_worker(d, "J", fut)
+        d.pending = []  # reported and forgotten before the handover looked (a fast analysis)
+        before = _streamed_worker(d, "J", fut)
+        fut.set_result(
+            ReportEnvelope(job_id="J", plate_id="P", worker_id="w-reported", attempt=1, ok=False, error="x")
+        )
+        return holding, before, _streamed_worker(d, "J", fut)
+
+    assert asyncio.run(go()) == ("w-holding", None, "w-reported")
