@@ -636,6 +636,12 @@ class CellDaemon:
 
     def to_cell(self, state: CellState, message: str) -> None:
         self.sm.to(state, message)
+        if state in (CellState.FAULTED, CellState.EMERGENCY_STOPPED):
+            # at once, not when the scan's task has wound down: an operator's reset in between
+            # would otherwise find the queue waiting and start the next job after the stop
+            self._cancel_queue(
+                f"cancelled: the cell went {state.value} ({message}); trigger it again once the cell is reset"
+            )
 
     def live_feed(self, job_id: str) -> Callable[[list, int], None] | None:
         """The scan's thinned live cloud for displays (``Keys.live_cloud``, cellctl/daemon/live.py)."""
