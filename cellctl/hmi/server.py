@@ -22,7 +22,6 @@ import structlog
 from aiohttp import WSMsgType, web
 
 from cellctl.api import DESIGN_SUFFIXES, MAX_TRIGGER_BYTES, ApiCallError
-from cellctl.api.models import FINAL_JOB_STATES
 from cellctl.config import CellConfig
 from cellctl.daemon.history import History
 from cellctl.hmi.auth import ACTION_ROLE, ZENOH_ROLE, Authenticator, Session, allowed, role_cap
@@ -33,7 +32,6 @@ log = structlog.get_logger(__name__)
 STATIC = Path(__file__).with_name("static")
 COOKIE = "hmi_session"
 _JOB_ID = re.compile(r"^[A-Za-z0-9_.-]{1,80}$")
-_FINAL_STATES = frozenset(s.value for s in FINAL_JOB_STATES)
 #: files of a job a browser may download: (name, where in the job directory, content type)
 DOWNLOADS = {
     "report.html": ("results/report.html", "text/html"),
@@ -342,11 +340,7 @@ class HmiServer:
             files = [n for n, (rel, _) in DOWNLOADS.items() if (d / rel).is_file()]
             if (d / "cloud.bin").is_file():
                 files.append("cloud.bin")
-            prev = None
-            if self.history is not None:
-                if rec.get("state") in _FINAL_STATES:  # the index as the page sees it, not as it lags
-                    self.history.index_job(job_id)
-                prev = self.history.previous_round(job_id)
+            prev = self.history.previous_round(job_id) if self.history else None
             return {"job": rec, "report": report, "files": files, "previous": prev}
 
         return web.json_response(await asyncio.to_thread(read))
