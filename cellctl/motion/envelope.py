@@ -284,15 +284,25 @@ class SafetyEnvelope:
                 joint=int(j), value=accel[i, j], limit=amax[j], sample=min(int(i), q.shape[0] - 1),
             )  # fmt: skip
 
-    def _check_rows(
-        self, q7: np.ndarray, q_prev7: np.ndarray | None, p_prev: np.ndarray | None, cycles,
-        v_prev: float = 0.0, dt_prev: float | None = None,
-    ) -> np.ndarray:  # fmt: skip
+    def check_path(self, q_deg: np.ndarray) -> None:
+        """Check the positions of a path ``q_deg`` (n, 6) (``axes_mm_deg`` (n, 7) with a track) that
+        has no time law yet: joint limits, track travel, workspace box. The move to the plan's
+        start gets its time law cycle by cycle (:mod:`cellctl.motion.executor`), where the speed
+        rules are checked; where it goes is known before it starts, and is checked here."""
+        q = np.asarray(q_deg, dtype=np.float64)
+        if q.ndim != 2 or q.shape[1] != self._n or not np.all(np.isfinite(q)):
+            raise EnvelopeViolation("input", f"expected finite q_deg (n, {self._n}), got shape {q.shape}")
+        if q.shape[0]:
+            self._check_positions(q)
+
+    def _check_positions(self, q7: np.ndarray, travel: bool = True) -> np.ndarray:
+        """The positional rules on ``q7`` (n, 6 or 7): track travel (unless ``travel`` is False: the
+        track's own rules checked it), joint limits, the workspace box. Returns the TCP positions
+        (n, 3) mm, base frame."""
         lim = self.limits
-        if lim.track is not None:
-            self._check_track(q7, q_prev7, cycles, v_prev, dt_prev)
+        if travel and lim.track is not None:
+            self._check_travel(q7[:, 0])
         q = q7[:, -N_ARM_JOINTS:]
-        q_prev = None if q_prev7 is None else q_prev7[-N_ARM_JOINTS:]
         below, above = q < lim.q_min_deg, q > lim.q_max_deg
         if below.any() or above.any():
             i, j = np.argwhere(below | above)[0]
@@ -312,6 +322,18 @@ class SafetyEnvelope:
                 f"TCP {'xyz'[k]} = {p[i, k]:.2f} mm outside the workspace box (limit {bound:.1f} mm)",
                 value=p[i, k], limit=bound, sample=int(i) if q.shape[0] > 1 else None,
             )  # fmt: skip
+        return p
+
+    def _check_rows(
+        self, q7: np.ndarray, q_prev7: np.ndarray | None, p_prev: np.ndarray | None, cycles,
+        v_prev: float = 0.0, dt_prev: float | None = None,
+    ) -> np.ndarray:  # fmt: skip
+        lim = self.limits
+        if lim.track is not None:
+            self._check_track(q7, q_prev7, cycles, v_prev, dt_prev)
+        p = self._check_positions(q7, travel=False)
+        q = q7[:, -N_ARM_JOINTS:]
+        q_prev = None if q_prev7 is None else q_prev7[-N_ARM_JOINTS:]
         if q_prev is not None:
             qq = np.vstack([q_prev[None], q])
             pp = np.vstack([self.world_mm(q_prev7, p_prev)[None], self.world_mm(q7, p)])
@@ -343,17 +365,10 @@ class SafetyEnvelope:
             )  # fmt: skip
         return p
 
-    def _check_track(
-        self, q: np.ndarray, q_prev: np.ndarray | None, cycles, v_prev: float, dt_prev: float | None = None
-    ) -> None:
-        """The track's rules on ``q`` (n, 7): travel, speed (step per cycle), acceleration (change of
-        the step). ``q_prev`` (7,) is the last accepted set-point (the robot at ``v_prev`` mm/s,
-        measured over ``dt_prev`` s; None: at rest) or None for a whole trajectory, which starts and
-        ends at rest. A speed is the mean over its step, so a change of speed is divided by the time
-        between the two steps' centres (steps of several cycles, after lost packets, count right)."""
+    def _check_travel(self, s: np.ndarray) -> None:
+        """The track's travel rule on carriage positions ``s`` (n,) mm."""
         track = self.limits.track
-        s = q[:, 0]
-        sample = lambda i: int(i) if q.shape[0] > 1 else None  # noqa: E731 - one-line index rule
+        sample = lambda i: int(i) if s.shape[0] > 1 else None  # noqa: E731 - one-line index rule
         out = (s < track.travel_min_mm) | (s > track.travel_max_mm)
         if out.any():
             i = int(np.argmax(out))
@@ -367,6 +382,18 @@ class SafetyEnvelope:
                 f"track at {s[i]:.2f} mm beyond its {side} travel limit {bound:.2f} mm (with margin)",
                 value=s[i], limit=bound, sample=sample(i),
             )  # fmt: skip
+
+    def _check_track(
+        self, q: np.ndarray, q_prev: np.ndarray | None, cycles, v_prev: float, dt_prev: float | None = None
+    ) -> None:
+        """The track's rules on ``q`` (n, 7): travel, speed (step per cycle), acceleration (change of
+        the step). ``q_prev`` (7,) is the last accepted set-point (the robot at ``v_prev`` mm/s,
+        measured over ``dt_prev`` s; None: at rest) or None for a whole trajectory, which starts and
+        ends at rest. A speed is the mean over its step, so a change of speed is divided by the time
+        between the two steps' centres (steps of several cycles, after lost packets, count right)."""
+        track = self.limits.track
+        s = q[:, 0]
+        self._check_travel(s)
         cyc = np.atleast_1d(np.asarray(cycles, dtype=np.float64))
         if q_prev is not None:
             ss = np.concatenate([[q_prev[0]], s])

@@ -78,12 +78,24 @@ class ExecState(enum.StrEnum):
 
 _TERMINAL = (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED)
 #: the move to the plan's start keeps the TCP under this share of the envelope's speed cap, as the
-#: planned transits do (the straight joint-space line's TCP speed is estimated on 129 points)
+#: planned transits do (the straight joint-space line's TCP speed is estimated on :func:`start_path`)
 _START_TCP_FRACTION = 0.9
 #: shares of the joint jerk limits a playback-rate ramp's acceleration (3 q'' r r') and jerk (q' r'')
 #: may use: what the plan's time law leaves, split 60 / 40
 _RAMP_JERK_SHARE_ACCEL = 0.6 * (1.0 - PLAN_JERK_SHARE)
 _RAMP_JERK_SHARE_JERK = 0.4 * (1.0 - PLAN_JERK_SHARE)
+#: the move to the plan's start is checked against the envelope's positional rules before it starts,
+#: sampled at least this finely in the joint that moves most (deg)
+_START_PATH_STEP_DEG = 0.05
+
+
+def start_path(q_from: np.ndarray, q_to: np.ndarray) -> np.ndarray:
+    """The move to the plan's start, sampled: a straight line in joint space (the executor moves on
+    it phase-synchronised, from rest), (n, axes) with n >= 129, consecutive rows at most
+    ``_START_PATH_STEP_DEG`` apart in every joint (deg; the track's mm alike) up to 4097 rows."""
+    dq = np.asarray(q_to, dtype=np.float64) - np.asarray(q_from, dtype=np.float64)
+    n = int(np.clip(np.ceil(float(np.max(np.abs(dq))) / _START_PATH_STEP_DEG), 128, 4096)) + 1
+    return q_from[None] + np.linspace(0.0, 1.0, n)[:, None] * dq[None]
 
 
 @dataclass(frozen=True)
@@ -483,6 +495,13 @@ class MotionExecutor:
         self.envelope.reset(q_fb)
         self._last_seqno, self._last_t_ctrl_us = first.seqno, first.feedback_time_us
         if np.max(np.abs(q_fb - q0)) > cfg.start_tolerance_deg:
+            try:  # where the move goes is known before it starts: refused then, not stopped mid-way
+                self.envelope.check_path(start_path(q_fb, q0))
+            except EnvelopeViolation as exc:
+                self._enter_fault(
+                    f"the move to the plan's start would leave the envelope, nothing moved: {exc}", hold=False
+                )
+                return self._finish()
             self._set_state(ExecState.MOVING_TO_START)
             self._approach = True
             self._set_start_limits(q_fb, q0)
@@ -585,10 +604,10 @@ class MotionExecutor:
         """Limits for the move to the plan's start: a straight line in joint space (phase-synchronised)
         slow enough that the TCP stays well under the envelope's speed cap."""
         dq = q_to - q_from
-        u = np.linspace(0.0, 1.0, 129)
+        path = start_path(q_from, q_to)
         lim = self.envelope.limits
-        p = fk_batch(q_from[None] + u[:, None] * dq[None], lim.T_flange_tcp, track=lim.track)[:, :3, 3]
-        dp_du = float(np.max(np.linalg.norm(np.diff(p, axis=0), axis=1)) * (u.size - 1))
+        p = fk_batch(path, lim.T_flange_tcp, track=lim.track)[:, :3, 3]
+        dp_du = float(np.max(np.linalg.norm(np.diff(p, axis=0), axis=1)) * (len(path) - 1))
         u_dot = np.min(self.config.move_to_start_speed_fraction * self._vmax / np.maximum(np.abs(dq), 1e-9))
         if dp_du > 0:
             u_dot = min(u_dot, _START_TCP_FRACTION * self.envelope.limits.tcp_speed_max_mm_s / dp_du)

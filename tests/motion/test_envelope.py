@@ -93,6 +93,32 @@ def test_trajectory_check_names_the_first_offending_sample():
     assert info.value.rule == "joint_limit" and info.value.sample == 30 and info.value.joint == 4
 
 
+def test_a_path_without_a_time_law_is_checked_on_positions_only_and_names_its_first_bad_row():
+    """The move to the plan's start (a joint-space line, its time law made cycle by cycle) is
+    checked before it starts: joint limits and the workspace box, not the speed rules."""
+    env = SafetyEnvelope(LIMITS)
+    far = Q_HOME + np.array([40.0, -10.0, 15.0, 30.0, -20.0, 60.0])  # one row apart: no speed rule
+    env.check_path(np.vstack([Q_HOME, far]))
+    assert env.last_q_deg is None and env.accepted == 0  # a check, not a set-point
+    line = Q_HOME[None] + np.linspace(0.0, 1.0, 41)[:, None] * np.array([0, 0, 0, 0, 80.0, 0])[None]
+    with pytest.raises(EnvelopeViolation) as info:
+        env.check_path(line)
+    first = int(np.argmax(line[:, 4] > LIMITS.q_max_deg[4]))
+    assert info.value.rule == "joint_limit" and info.value.joint == 4 and info.value.sample == first
+    z = fk_batch(line, LIMITS.T_flange_tcp)[:, 2, 3]
+    boxed = EnvelopeLimits.from_settings(
+        PlannerSettings(workspace_max_mm=(2600.0, 2000.0, float(np.median(z)))), CYCLE_S
+    )
+    inside = np.nonzero(line[:, 4] <= LIMITS.q_max_deg[4])[0]
+    with pytest.raises(EnvelopeViolation) as info:
+        SafetyEnvelope(boxed).check_path(line[inside])
+    assert info.value.rule == "workspace" and "z" in str(info.value)
+    assert info.value.sample == int(np.argmax(z[inside] > np.median(z)))
+    with pytest.raises(EnvelopeViolation) as info:
+        env.check_path(np.array([Q_HOME, [np.nan] * 6]))
+    assert info.value.rule == "input"
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     st.lists(st.floats(-1.0, 1.0), min_size=6, max_size=6),

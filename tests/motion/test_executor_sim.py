@@ -4,6 +4,7 @@ the simulator's fault channel for what happens to it (tests/motion/conftest.py).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from scipy.spatial import cKDTree
 
 from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, ExecState, ExecutorConfig, MotionExecutor, SafetyEnvelope
+from cellctl.motion.executor import start_path
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, fk_batch
 from tests.motion.conftest import (
@@ -273,6 +275,29 @@ def test_envelope_violation_is_a_fault_and_no_violating_reference_is_ever_sent(s
     assert r.state == ExecState.FAULTED
     assert "envelope" in r.fault and "joint_3" in r.fault
     assert np.all(r.q_ref_deg[:, 2] <= upper[2] + 1e-9) and np.all(r.q_ref_deg[:, 2] >= lower[2] - 1e-9)
+
+
+def test_a_move_to_the_start_that_would_leave_the_workspace_is_refused_before_anything_moves(small_plan):
+    """The arm stands where the plan is allowed, the plan is allowed, but the straight joint-space
+    line between them bulges out of the workspace box: the executor refuses it before the first
+    reference (it used to start and stop mid-way on the per-cycle check)."""
+    q0 = small_plan.trajectory.q_deg[0]
+    q_offset = np.array([0.0, -30.0, 30.0, 0.0, 0.0, 0.0])
+    T = SMALL_SETTINGS.T_flange_sensor
+    p_plan = fk_batch(small_plan.trajectory.q_deg, T)[:, :3, 3]
+    p_line = fk_batch(start_path(q0 + q_offset, q0), T)[:, :3, 3]
+    lo = np.minimum(p_plan.min(axis=0), p_line[0]) - 1.0
+    hi = np.maximum(p_plan.max(axis=0), p_line[0]) + 1.0
+    assert np.any(p_line > hi + 10.0)  # the line leaves the box by more than a few samples' chord
+    boxed = dataclasses.replace(SMALL_SETTINGS, workspace_min_mm=tuple(lo), workspace_max_mm=tuple(hi))
+    config = ExecutorConfig.from_settings(boxed, tracking_error_max_mm=25.0)
+    ex = run_async(execute(small_plan, boxed, config=config, q_start_offset_deg=q_offset))
+    r = ex.result
+    assert r.state == ExecState.FAULTED
+    assert "move to the plan's start" in r.fault and "workspace" in r.fault, r.fault
+    assert "moving_to_start" not in [e.state for e in r.events]
+    assert r.q_ref_deg.shape[0] == 0  # no reference was sent
+    assert np.max(np.abs(ex.true_q_deg - (q0 + q_offset))) < 0.05  # and the arm stood still
 
 
 @pytest.mark.slow

@@ -81,6 +81,15 @@ def test_track_jump_from_rest_is_refused_on_acceleration():
     assert info.value.rule == "track_accel" and info.value.limit == 1000.0
 
 
+def test_a_path_is_checked_on_the_track_travel_too():
+    env = SafetyEnvelope(LIMITS)
+    path = np.vstack([axes(2000.0), axes(3000.0), axes(LIMITS.track.travel_max_mm + 5.0)])
+    with pytest.raises(EnvelopeViolation) as info:
+        env.check_path(path)
+    assert info.value.rule == "track_travel" and info.value.sample == 2
+    env.check_path(path[:2])  # 1000 mm in one row: a path has no speed
+
+
 def test_arm_rules_still_apply_with_a_track():
     env = fresh()
     q = Q_HOME.copy()
