@@ -38,7 +38,14 @@ from analysis.outline import mesh_free_edges
 from analysis.placement import Placement, placement_transform
 from analysis.plates import design_mesh, plate_spec
 from cellctl.config import CellConfig
-from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, plan_scan
+from cellctl.planning import (
+    PlanInputError,
+    PlannerSettings,
+    PlanRefused,
+    ScanPlan,
+    plan_scan,
+    start_corner_near,
+)
 
 __all__ = [
     "LocatePlan",
@@ -146,7 +153,9 @@ def locate_plans(cfg: CellConfig, design: TriMesh) -> list[LocatePlan]:
     return [_along_plan(cfg, design), _across_square_plan(cfg, design)]
 
 
-def _bed_family(cfg: CellConfig, design: TriMesh, name: str, square: bool) -> LocatePlan:
+def _bed_family(
+    cfg: CellConfig, design: TriMesh, name: str, square: bool, start_axes: np.ndarray | None = None
+) -> LocatePlan:
     settings = _planner_settings(cfg)
     lo, hi, long_axis = _bed(cfg)
     centre, size = (lo + hi) / 2, hi - lo
@@ -157,6 +166,13 @@ def _bed_family(cfg: CellConfig, design: TriMesh, name: str, square: bool) -> Lo
     # the square: the planner's passes along its x, turned a quarter (across the bed)
     mesh, yaw = (_flat(W, W), yaw_long + 90.0) if square else (_flat(L, W), yaw_long)
     placement = Placement.on_bed(float(centre[0]), float(centre[1]), yaw, z_mm=z)
+    if start_axes is not None:
+        # the passes start at the bed's corner nearest the arm, as the scan's do (the shortest
+        # move to the run's start); an arm the planner cannot place leaves its default corner
+        try:
+            settings = settings.with_(start_corner=start_corner_near(mesh, placement, settings, start_axes))
+        except PlanInputError as exc:
+            log.warning("locate_start_corner_unknown", reason=str(exc))
     plan = plan_scan(mesh, placement, settings, with_coverage=False)
     return LocatePlan.of(cfg, name, plan, settings, across=square)
 
@@ -167,8 +183,8 @@ def _bed_plate_z_mm(sensor_z_mm: float, settings: PlannerSettings) -> float:
     return sensor_z_mm - settings.standoff_mm * float(np.cos(np.deg2rad(settings.sweep_pitch_deg)))
 
 
-def _along_plan(cfg: CellConfig, design: TriMesh) -> LocatePlan:
-    return _bed_family(cfg, design, "locate along", square=False)
+def _along_plan(cfg: CellConfig, design: TriMesh, start_axes: np.ndarray | None = None) -> LocatePlan:
+    return _bed_family(cfg, design, "locate along", square=False, start_axes=start_axes)
 
 
 def _across_square_plan(cfg: CellConfig, design: TriMesh) -> LocatePlan:
@@ -269,12 +285,17 @@ def across_plans(
 
 
 def next_locate_plans(
-    cfg: CellConfig, design: TriMesh, run: list[LocatePlan], found: LocateResult | None
+    cfg: CellConfig,
+    design: TriMesh,
+    run: list[LocatePlan],
+    found: LocateResult | None,
+    start_axes: np.ndarray | None = None,
 ) -> list[LocatePlan]:
     """The locate plans to run next, given those ``run`` so far and the fit of their clouds
     (None: no fit yet, or it failed); ``[]``: the run is over.
 
-    First the family along the bed. Then, when :func:`needs_across` says so (or there is no fit),
+    First the family along the bed, from the bed's corner nearest the arm when ``start_axes`` (the
+    arm's axes as the controller reports them: (6,) deg, or (7,) the track's mm first) is given. Then, when :func:`needs_across` says so (or there is no fit),
     passes across: planned from the first fit (:func:`across_plans`) where there is one, else (or
     when the planner refuses them) the square family at the bed's middle. Nothing after passes
     across.
@@ -283,7 +304,7 @@ def next_locate_plans(
         PlanRefused, PlanInputError: the planner's, for the families over the bed.
     """
     if not run:
-        return [_along_plan(cfg, design)]
+        return [_along_plan(cfg, design, start_axes)]
     if any(lp.across for lp in run):
         return []
     if found is not None and not needs_across(cfg, found):

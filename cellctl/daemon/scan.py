@@ -225,9 +225,11 @@ class ScanRunner:
         clouds: list[ScanCloud] = []
         found: LocateResult | None = None
         reason = ""
+        # the passes along the bed start at its corner nearest the arm
+        start_axes = await self._arm_axes(PlannerSettings.from_config(cfg))
         while True:
             try:
-                plans = await asyncio.to_thread(next_locate_plans, cfg, design, run, found)
+                plans = await asyncio.to_thread(next_locate_plans, cfg, design, run, found, start_axes)
             except (PlanInputError, PlanRefused) as exc:
                 host.job_state(
                     job, JobState.FAILED, f"locate run refused by the planner: {exc} ([locate] bed, standoff)"
@@ -326,13 +328,10 @@ class ScanRunner:
         )  # fmt: skip
         return plan, settings, None if got.hit else functools.partial(cache.store, got.key, plan)
 
-    async def _start_corner(
-        self, design: TriMesh, placement: Placement, settings: PlannerSettings
-    ) -> tuple[int, int] | None:
-        """The plate's corner nearest the arm (RWS: the mechanical unit's jointtarget, read before
-        the plan): the serpentine starts there, leaving the shortest move to the plan's start. None
-        (the planner's default corner, with a log line) when the controller does not say where the
-        arm is; nothing depends on it but the move's length."""
+    async def _arm_axes(self, settings: PlannerSettings) -> np.ndarray | None:
+        """Where the arm is (RWS: the mechanical unit's jointtarget): (6,) deg, or (7,) the track's mm
+        first. None (with a log line) when the controller does not say; only where a run starts
+        depends on it (:meth:`_start_corner`, the locate run's first passes)."""
         try:
             joints = await self.drivers.rws.get_mechunit_joints()
         except RwsError as exc:
@@ -345,6 +344,18 @@ class ScanRunner:
                 log.warning("start_corner_unknown", reason="the controller reports no track position (eax_a)")
                 return None
             axes = np.concatenate([[track_mm], axes])
+        return axes
+
+    async def _start_corner(
+        self, design: TriMesh, placement: Placement, settings: PlannerSettings
+    ) -> tuple[int, int] | None:
+        """The plate's corner nearest the arm (read before the plan): the serpentine starts there,
+        leaving the shortest move to the plan's start. None (the planner's default corner, with a
+        log line) when the controller does not say where the arm is; nothing depends on it but the
+        move's length."""
+        axes = await self._arm_axes(settings)
+        if axes is None:
+            return None
         try:
             return start_corner_near(design, placement, settings, axes)
         except PlanInputError as exc:

@@ -25,6 +25,7 @@ from cellctl.daemon.locate import (
     needs_across,
     next_locate_plans,
 )
+from drivers.abb_egm.kinematics import fk_batch
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -171,7 +172,6 @@ def test_the_passes_across_a_deep_plate_fly_at_the_height_of_the_edges_they_cros
     assert abs(first[0, 0] - along_end[0]) < abs(first[-1, 0] - along_end[0])  # from the near side
     assert abs(second[0, 0] - first[-1, 0]) < 1.0  # the second from where the first ended
     # the move to the second's start: a straight line in joint space, the TCP inside the box
-    from drivers.abb_egm.kinematics import fk_batch
 
     q_a, q_b = plans[0].plan.trajectory.q_deg[-1], plans[1].plan.trajectory.q_deg[0]
     u = np.linspace(0.0, 1.0, 257)[:, None]
@@ -195,3 +195,25 @@ def test_the_locate_run_goes_along_then_across_as_the_fit_asks():
     (square,) = next_locate_plans(cfg, SAIL, [along], None)
     assert square.name == "locate across" and square.across and len(square.plan.passes) > 1
     assert next_locate_plans(cfg, SAIL, [along, *planned], None) == []  # nothing after passes across
+
+
+def test_the_passes_along_the_bed_start_at_its_corner_nearest_the_arm():
+    """As the scan's serpentine does: the arm where the default run ends (its far corner) gets a run
+    that starts there; where the default starts, the default."""
+    cfg = CellConfig()
+    (default,) = next_locate_plans(cfg, SAIL, [], None)
+    T = default.settings.T_flange_sensor
+    ends = np.array([seg.pos_mm[k, :2] for seg in default.plan.passes for k in (0, -1)])
+    for q_arm in (default.plan.trajectory.q_deg[-1], default.plan.trajectory.q_deg[0]):
+        arm_xy = fk_batch(q_arm[None], T)[0, :2, 3]
+        (lp,) = next_locate_plans(cfg, SAIL, [], None, start_axes=q_arm)
+        first = lp.plan.passes[0].pos_mm[0, :2]
+        assert np.linalg.norm(first - arm_xy) == pytest.approx(
+            np.linalg.norm(ends - arm_xy, axis=1).min(), abs=1.0
+        )
+        assert len(lp.plan.passes) == len(default.plan.passes)
+    (far,) = next_locate_plans(cfg, SAIL, [], None, start_axes=default.plan.trajectory.q_deg[-1])
+    assert np.linalg.norm(far.plan.passes[0].pos_mm[0, :2] - default.plan.passes[0].pos_mm[0, :2]) > 500.0
+    # an arm the planner cannot place (non-finite axes): the default corner, no error
+    (unknown,) = next_locate_plans(cfg, SAIL, [], None, start_axes=np.full(6, np.nan))
+    assert np.allclose(unknown.plan.passes[0].pos_mm[0], default.plan.passes[0].pos_mm[0])
