@@ -67,6 +67,7 @@ __all__ = [
     "JobSpec",
     "JobState",
     "LiveCloudChunk",
+    "MotionCounters",
     "Model",
     "Placement",
     "QueuedJob",
@@ -385,8 +386,30 @@ FINAL_JOB_STATES = frozenset(
 )
 
 
+class MotionCounters(Model):
+    """How the motion process served the controller during a job's motion (issue 41).
+
+    ``egm_stale_cycles``: replies that answered a controller cycle with a reference computed for
+    another one, or that left more than one EGM cycle after the controller's packet arrived (the
+    controller had sent its next packet by then). ``egm_lost_cycles``: controller cycles for which
+    no packet reached the motion process (the controller's clock or sequence number jumped).
+    ``egm_reply_*_us``: reply latency, packet arrival (kernel) to reply sent, from a histogram of
+    10 us bins up to 2 ms. ``max_tracking_error_mm``: the worst monitored TCP tracking error.
+    ``cycles``: references sent.
+    """
+
+    cycles: Annotated[int, Field(ge=0)] = 0
+    egm_stale_cycles: Annotated[int, Field(ge=0)] = 0
+    egm_lost_cycles: Annotated[int, Field(ge=0)] = 0
+    egm_reply_p50_us: float | None = None
+    egm_reply_p99_us: float | None = None
+    egm_reply_max_us: float | None = None
+    max_tracking_error_mm: float = 0.0
+
+
 class JobProgress(Model):
-    """Where one job stands; ``fraction`` is 0..1 of the current stage."""
+    """Where one job stands; ``fraction`` is 0..1 of the current stage. ``motion``: the motion
+    process's counters while the job holds the robot (and at its end), else None."""
 
     job_id: str
     plate_id: str
@@ -397,6 +420,7 @@ class JobProgress(Model):
     points: Annotated[int, Field(ge=0)] = 0
     worker_id: str | None = None
     message: str = ""
+    motion: MotionCounters | None = None
 
 
 class QueuedJob(Model):
