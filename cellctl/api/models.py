@@ -473,6 +473,7 @@ class EgmStats(Model):
     sessions: int
     watchdog_events: int
     send_errors: int
+    stale: int = 0
     interval_mean_us: float | None = None
     interval_jitter_us: float | None = None
     interval_max_us: float | None = None

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import enum
+import threading
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Sequence
@@ -39,7 +40,8 @@ from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ru
 
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.motion.trajectory import PLAN_JERK_SHARE, TimedTrajectory
-from drivers.abb_egm.endpoint import EgmEndpoint
+from drivers.abb_egm.codec import RobotMessage
+from drivers.abb_egm.endpoint import EgmEndpoint, axes_of, ok_to_command
 from drivers.abb_egm.kinematics import fk_batch
 
 __all__ = [
@@ -354,11 +356,18 @@ class MotionExecutor:
         self._max_track = 0.0
         self._last_track = 0.0
         self._not_ok = 0
-        self._rec_t: list[float] = []
-        self._rec_q: list[np.ndarray] = []
-        self._rec_qd: list[np.ndarray] = []
-        self._rec_tau: list[float] = []
-        self._rec_cycle: list[int] = []
+        # the record of what was commanded: arrays sized for the plan (and grown by doubling past it),
+        # so a cycle writes into memory it already has
+        self._rec = _Record(int(trajectory.duration_s / cfg.cycle_s * 1.25) + 1024, n)
+        #: the per-cycle work and the silence check may run on different threads
+        self._lock = threading.Lock()
+        #: where progress events go, called on the thread of the cycle (None: the in-process run()'s
+        #: hand-over to its event loop); the motion process sets its channel here
+        self.sink: Callable[[ProgressEvent | None], None] | None = None
+        self._synced = False  # the first cycle after begin() takes the controller's count from there
+        self._real_move = False
+        self._last_rx_ns = 0
+        self._ended_cb: Callable[[], None] | None = None
         self._cycle = 0
         self._events: list[ProgressEvent] = []
         self._last_progress_t = -1e9
@@ -467,7 +476,11 @@ class MotionExecutor:
     # ---- the loop -----------------------------------------------------------------------------
 
     async def run(self) -> ExecutionResult:
-        """Execute the trajectory; returns when FINISHED, ABORTED or FAULTED (never raises for faults).
+        """Execute the trajectory in this process: the per-cycle work runs on the endpoint's reply
+        path as its cycle hook (each reference computed for the packet it answers), this coroutine
+        waits for the end and watches for a silent controller. Returns when FINISHED, ABORTED or
+        FAULTED (never raises for faults). The motion process (:mod:`cellctl.motion.process`) drives
+        the same methods from its own real-time thread.
 
         Raises:
             ExecutorError: called twice.
@@ -475,90 +488,159 @@ class MotionExecutor:
         if self._started:
             raise ExecutorError("an executor runs once; create a new one")
         self._started = True
-        cfg = self.config
-        q0 = self.trajectory.q_deg[0]
+        loop = asyncio.get_running_loop()
+        done = asyncio.Event()
+        if self.sink is None:
+            self.sink = lambda ev: loop.call_soon_threadsafe(self._deliver, ev)
+        self._ended_cb = lambda: loop.call_soon_threadsafe(done.set)
         try:
             first = await self._wait_commandable()
-            wait_s = self.start_not_before_s - time.monotonic()
-            if wait_s > 0 and np.max(np.abs(self._axes(first) - q0)) <= cfg.start_tolerance_deg:
-                # at the start already: the plan waits out what is left of the settle, the arm at rest
-                await asyncio.sleep(wait_s)
-                first = await self._wait_commandable()
         except ExecutorError as exc:
             self._enter_fault(str(exc), hold=False)
             return self._finish()
-        q_fb = self._axes(first)
-        self._ref_q, self._ref_qd = q_fb.copy(), np.zeros(self._n)
-        self._inp.current_position = q_fb.tolist()
-        self._inp.current_velocity = [0.0] * self._n
-        self._inp.current_acceleration = [0.0] * self._n
-        self.envelope.reset(q_fb)
-        self._last_seqno, self._last_t_ctrl_us = first.seqno, first.feedback_time_us
-        if np.max(np.abs(q_fb - q0)) > cfg.start_tolerance_deg:
-            try:  # where the move goes is known before it starts: refused then, not stopped mid-way
-                self.envelope.check_path(start_path(q_fb, q0))
-            except EnvelopeViolation as exc:
-                self._enter_fault(
-                    f"the move to the plan's start would leave the envelope, nothing moved: {exc}", hold=False
-                )
-                return self._finish()
+        if not self.begin(self._axes(first), first.t_host_ns):
+            return self._finish()
+        self.endpoint.set_cycle_hook(self.on_cycle)
+        try:
+            poll_s = max(self.config.feedback_timeout_s / 4.0, 0.005)
+            while self.state not in _TERMINAL:
+                try:
+                    async with asyncio.timeout(poll_s):
+                        await done.wait()
+                except TimeoutError:
+                    self.check_silence(time.monotonic_ns())
+        finally:
+            self.endpoint.set_cycle_hook(None)
+        await asyncio.sleep(0)  # the last progress events handed over to the loop arrive first
+        return self._finish()
+
+    def _deliver(self, ev: ProgressEvent | None) -> None:
+        """A progress event on the event loop (the in-process run()): queue and callback."""
+        if ev is None:
+            return
+        if self._queue.full():
+            self._queue.get_nowait()  # the newest progress matters more than the oldest
+        self._queue.put_nowait(ev)
+        if self._on_progress is not None:
+            try:
+                self._on_progress(ev)
+            except Exception:
+                log.exception("executor_progress_callback_failed")
+
+    # ---- the per-cycle work (any thread; the motion process's real-time one) ------------------
+
+    def begin(self, q_fb: np.ndarray, t_rx_ns: int) -> bool:
+        """Start from the arm's axes ``q_fb`` (a commandable feedback received at ``t_rx_ns``): the
+        move to the plan's start is checked and set up, or the plan starts where the arm is. Nothing
+        is sent; the cycles (:meth:`on_cycle`) do that. False when the execution ended here (the move
+        would leave the envelope); :meth:`result` says how."""
+        cfg = self.config
+        q0 = self.trajectory.q_deg[0]
+        q_fb = np.asarray(q_fb, dtype=np.float64)
+        with self._lock:
+            self._started = True
+            self._last_rx_ns = t_rx_ns
+            self._ref_q, self._ref_qd = q_fb.copy(), np.zeros(self._n)
+            self._inp.current_position = q_fb.tolist()
+            self._inp.current_velocity = [0.0] * self._n
+            self._inp.current_acceleration = [0.0] * self._n
+            self.envelope.reset(q_fb)
+            self._real_move = bool(np.max(np.abs(q_fb - q0)) > cfg.start_tolerance_deg)
+            if self._real_move:
+                try:  # where the move goes is known before it starts: refused then, not stopped mid-way
+                    self.envelope.check_path(start_path(q_fb, q0))
+                except EnvelopeViolation as exc:
+                    self._enter_fault(
+                        f"the move to the plan's start would leave the envelope, nothing moved: {exc}",
+                        hold=False,
+                    )
+                    return False
+            # at the start already, the plan still waits for start_not_before_s (the sensor's settle)
+            # with the arm at rest: a move of length zero
             self._set_state(ExecState.MOVING_TO_START)
             self._approach = True
             self._set_start_limits(q_fb, q0)
-        else:
-            self._set_state(ExecState.RUNNING)
-        self._scaler.set_tau(0.0)
-        while self.state not in _TERMINAL:
-            try:
-                fb = await self._next_feedback()
-            except TimeoutError:
-                await self._stalled()
-                break
-            except Exception as exc:  # the endpoint closed under us
-                self._enter_fault(f"EGM endpoint failed: {exc}", hold=False)
-                break
-            if not fb.ok_to_command:
+            self._scaler.set_tau(0.0)
+            self._synced = False
+        return True
+
+    def on_cycle(self, msg: RobotMessage, t_rx_ns: int) -> None:
+        """One controller packet: the EGM endpoint's cycle hook. Advances by the controller's cycles
+        since the previous packet, handles pause / resume / abort, monitors the tracking, and sets
+        the reference for this packet's reply (envelope-checked)."""
+        with self._lock:
+            if self.state in _TERMINAL:
+                return
+            self._last_rx_ns = t_rx_ns
+            if not ok_to_command(msg.motor_state, msg.mci_state, msg.rapid_exec_state):
                 # A real stop (motors off, RAPID stopped, e-stop) persists; one packet alone may be a
                 # corrupted datagram that still decoded. The next packet (one cycle) confirms it.
                 self._not_ok += 1
-                if self._not_ok < 2:
-                    continue
-                self._enter_fault(
-                    f"controller stopped EGM (motors {_name(fb.motor_state)}, EGM {_name(fb.mci_state)}, "
-                    f"RAPID {_name(fb.rapid_exec_state)})",
-                    hold=True,
-                )
-                break
+                if self._not_ok >= 2:
+                    self._enter_fault(
+                        f"controller stopped EGM (motors {_name(msg.motor_state)}, EGM {_name(msg.mci_state)}, "
+                        f"RAPID {_name(msg.rapid_exec_state)})",
+                        hold=True,
+                    )
+                    self._ended()
+                return
             self._not_ok = 0
-            cycles = self._cycles_since(fb.seqno, fb.feedback_time_us)
+            axes = axes_of(msg, self._n - 6)
+            if axes.shape[0] < self._n:
+                return  # an incomplete feedback: the reply repeats the last reference
+            if not self._synced:
+                self._synced = True
+                self._last_seqno, self._last_t_ctrl_us = msg.seqno, msg.feedback_time_us
+                cycles = 1
+            else:
+                cycles = self._cycles_since(msg.seqno, msg.feedback_time_us)
             self._cycle += cycles
             self._handle_requests()
             self._fb_count += 1
             if self._fb_count % 4 == 0:  # a monitor: 16 ms of latency costs nothing, the CPU does
-                self._monitor_tracking(self._axes(fb))
+                self._monitor_tracking(axes)
             for _ in range(cycles):
                 self._advance()
                 if self.state in _TERMINAL:
                     break
             if not self._held:
-                self._send(fb.t_host_ns, cycles)
+                self._send(t_rx_ns, cycles)
             self._maybe_progress()
-        return self._finish()
+            if self.state in _TERMINAL:
+                self._ended()
 
-    async def _next_feedback(self):
-        """The next feedback; TimeoutError when the controller is silent for ``feedback_timeout_s``.
-
-        One short grace wait follows a timeout: when this process itself was not scheduled for a
-        while, the controller's packets are already queued and arrive at once; only a controller
-        that stays silent through the grace is a stall.
-        """
+    def check_silence(self, now_ns: int) -> bool:
+        """Called when no packet came for a while: a controller silent for ``feedback_timeout_s`` and
+        a grace of half that (this process itself may not have been scheduled) has stalled. The
+        reference stays where the plan was, without speed feed-forward, so the arm settles there
+        when the controller keeps its last reference. True when the execution ended here."""
         cfg = self.config
-        try:
-            return await self.endpoint.wait_for_feedback(cfg.feedback_timeout_s)
-        except TimeoutError:
-            fb = await self.endpoint.wait_for_feedback(max(0.02, 0.5 * cfg.feedback_timeout_s))
-            log.warning("executor_feedback_late", timeout_s=cfg.feedback_timeout_s)
-            return fb
+        with self._lock:
+            if self.state in _TERMINAL or not self._started:
+                return self.state in _TERMINAL
+            quiet_s = (now_ns - self._last_rx_ns) / 1e9
+            if quiet_s < cfg.feedback_timeout_s + max(0.02, 0.5 * cfg.feedback_timeout_s):
+                return False
+            reason = f"controller stalled: no feedback for {cfg.feedback_timeout_s} s"
+            self.endpoint.command_joints(self._ref_q, np.zeros(self._n) if cfg.feedforward else None)
+            self.fault = reason
+            log.warning(
+                "executor_fault", reason=reason, state=self.state.value, t_traj_s=round(self._scaler.tau, 3),
+                quiet_s=round(quiet_s, 3),
+            )  # fmt: skip
+            self._set_state(ExecState.FAULTED)
+            self._ended()
+            return True
+
+    def _ended(self) -> None:
+        cb = self._ended_cb
+        if cb is not None:
+            cb()
+
+    @property
+    def done(self) -> bool:
+        """True once the execution reached FINISHED, ABORTED or FAULTED."""
+        return self.state in _TERMINAL
 
     async def _wait_commandable(self):
         deadline = time.monotonic() + self.config.start_timeout_s
@@ -696,23 +778,6 @@ class MotionExecutor:
             self._held = True
         self._set_state(ExecState.FAULTED)
 
-    async def _stalled(self) -> None:
-        cfg = self.config
-        reason = f"controller stalled: no feedback for {cfg.feedback_timeout_s} s"
-        # The controller keeps the last reference while silent; drop the speed feed-forward so the
-        # arm settles on it instead of drifting on, and wait to see whether the controller returns.
-        self.endpoint.command_joints(self._ref_q, np.zeros(self._n) if cfg.feedforward else None)
-        self.fault = reason
-        log.warning(
-            "executor_fault", reason=reason, state=self.state.value, t_traj_s=round(self._scaler.tau, 3)
-        )
-        try:
-            await self.endpoint.wait_for_feedback(cfg.stall_give_up_s)
-            self.endpoint.hold()  # back: stay where the arm settled
-        except Exception:  # still silent (TimeoutError) or the endpoint closed: nothing more to send
-            pass
-        self._set_state(ExecState.FAULTED)
-
     def _advance(self) -> None:
         """One cycle of the generators; updates the reference state."""
         s = self.state
@@ -729,8 +794,9 @@ class MotionExecutor:
             inp.target_velocity = [0.0] * self._n
             inp.target_acceleration = [0.0] * self._n
             res = self._otg_update()
-            self._start_cycles += 1
-            self._settle_cycles += res == Result.Finished
+            if self._real_move:
+                self._start_cycles += 1
+                self._settle_cycles += res == Result.Finished
             fb = self.endpoint.latest
             at_start = (
                 res == Result.Finished
@@ -847,11 +913,7 @@ class MotionExecutor:
         self._ff_qd = None
         self._last_sent_qd = np.array(qd, dtype=np.float64)
         self._tcp_hist.append(self.envelope.world_mm(q, p))
-        self._rec_t.append(t_host_ns / 1e9)
-        self._rec_q.append(q.copy())
-        self._rec_qd.append(qd.copy())
-        self._rec_tau.append(self._scaler.tau)
-        self._rec_cycle.append(self._cycle)
+        self._rec.add(t_host_ns / 1e9, q, qd, self._scaler.tau, self._cycle)
 
     def _monitor_tracking(self, q_fb: np.ndarray) -> None:
         if len(self._tcp_hist) < 2 or self.state in _TERMINAL:
@@ -900,14 +962,14 @@ class MotionExecutor:
         self._last_progress_t = now
         ev = self.progress()
         self._events.append(ev)
-        if self._queue.full():
-            self._queue.get_nowait()  # the newest progress matters more than the oldest
-        self._queue.put_nowait(ev)
-        if self._on_progress is not None:
-            try:
-                self._on_progress(ev)
-            except Exception:
-                log.exception("executor_progress_callback_failed")
+        sink = self.sink
+        if sink is None:
+            self._deliver(ev)
+            return
+        try:
+            sink(ev)
+        except Exception:  # a closed loop or channel: progress is for people, the motion goes on
+            log.exception("executor_progress_sink_failed")
 
     def _maybe_progress(self) -> None:
         self._emit(force=False)
@@ -918,7 +980,12 @@ class MotionExecutor:
         if self._queue.full():
             self._queue.get_nowait()
         self._queue.put_nowait(None)
-        n = len(self._rec_t)
+        return self.result()
+
+    def result(self) -> ExecutionResult:
+        """How the execution ended, with the record of what was commanded."""
+        rec = self._rec
+        n = rec.n
         log.info(
             "executor_done",
             state=self.state.value,
@@ -932,16 +999,42 @@ class MotionExecutor:
             fault=self.fault,
             cycles=n,
             max_tracking_error_mm=self._max_track,
-            t_host_s=np.asarray(self._rec_t),
-            q_ref_deg=np.asarray(self._rec_q).reshape(n, self._n),
-            qd_ref_deg_s=np.asarray(self._rec_qd).reshape(n, self._n),
-            t_traj_s=np.asarray(self._rec_tau),
-            cycle=np.asarray(self._rec_cycle, dtype=np.int64),
+            t_host_s=rec.t[:n].copy(),
+            q_ref_deg=rec.q[:n].copy(),
+            qd_ref_deg_s=rec.qd[:n].copy(),
+            t_traj_s=rec.tau[:n].copy(),
+            cycle=rec.cycle[:n].copy(),
             lost_cycles=self._lost,
             events=list(self._events),
             move_to_start_s=self._start_cycles * self.config.cycle_s,
             start_settle_s=self._settle_cycles * self.config.cycle_s,
         )
+
+
+class _Record:
+    """The per-cycle record (host time, reference, speed, playback time, cycle) in arrays that
+    double when full: a cycle writes into memory that exists."""
+
+    def __init__(self, capacity: int, n_axes: int) -> None:
+        self.n = 0
+        self.t = np.zeros(capacity)
+        self.q = np.zeros((capacity, n_axes))
+        self.qd = np.zeros((capacity, n_axes))
+        self.tau = np.zeros(capacity)
+        self.cycle = np.zeros(capacity, dtype=np.int64)
+
+    def add(self, t: float, q: np.ndarray, qd: np.ndarray, tau: float, cycle: int) -> None:
+        i = self.n
+        if i == self.t.shape[0]:
+            for name in ("t", "q", "qd", "tau", "cycle"):
+                a = getattr(self, name)
+                setattr(self, name, np.concatenate([a, np.zeros_like(a)]))
+        self.t[i] = t
+        self.q[i] = q
+        self.qd[i] = qd
+        self.tau[i] = tau
+        self.cycle[i] = cycle
+        self.n = i + 1
 
 
 def _name(value) -> str | None:

@@ -69,6 +69,8 @@ __all__ = [
     "FeedbackArrays",
     "FeedbackHistory",
     "HistoryRangeError",
+    "axes_of",
+    "latency_percentile_us",
     "ok_to_command",
 ]
 
@@ -77,8 +79,26 @@ log = structlog.get_logger(__name__)
 _U32 = 2**32
 #: a forward seqno jump beyond this (4 s of packets) waits for the next packet to confirm it
 _SEQNO_JUMP = 1000
-#: reply latency histogram bin edges (us); the last bin is open ended
-LATENCY_BIN_EDGES_US = np.array([0, 20, 50, 100, 200, 500, 1000, 2000, 4000, 10000], dtype=np.int64)
+#: reply latency histogram bin edges (us): 10 us bins up to 2 ms (fine enough to tell 0.3 ms from
+#: 0.5 ms), coarser beyond; the last bin is open ended
+LATENCY_BIN_EDGES_US = np.concatenate(
+    [np.arange(0, 2000, 10), [2000, 2500, 3000, 4000, 5000, 10000, 20000, 50000, 100000]]
+).astype(np.int64)
+
+
+def latency_percentile_us(counts: np.ndarray, q: float) -> float | None:
+    """The ``q`` (0..100) percentile of a :data:`LATENCY_BIN_EDGES_US` histogram, as the upper edge
+    of the bin it falls in (10 us resolution below 2 ms); None for an empty histogram."""
+    counts = np.asarray(counts, dtype=np.int64)
+    total = int(counts.sum())
+    if total == 0:
+        return None
+    i = int(np.searchsorted(np.cumsum(counts), q / 100.0 * total, side="left"))
+    edges = LATENCY_BIN_EDGES_US
+    return float(edges[i + 1]) if i + 1 < edges.shape[0] else float(edges[-1])
+
+
+CycleHook = Callable[["RobotMessage", int], None]
 
 
 class EgmEndpointError(Exception):
@@ -246,8 +266,10 @@ class FeedbackHistory:
         q_deg: np.ndarray,
         pos_mm: np.ndarray | None,
         quat_wxyz: np.ndarray | None,
+        states: tuple[object, object, object] | None = None,
     ) -> None:
-        """Add one sample (called by the endpoint for every in-order ``EgmRobot``)."""
+        """Add one sample (called by the endpoint for every in-order ``EgmRobot``). ``states``
+        (motor, EGM, RAPID) is for histories that keep them (the shared ring); this one does not."""
         with self._lock:
             i = self._next
             self._t_host_ns[i] = t_host_ns
@@ -347,6 +369,9 @@ class EgmStatistics:
     handled: int = 0
     watchdog_events: int = 0
     send_errors: int = 0
+    #: replies that left more than one cycle after their packet arrived, or that answered a cycle
+    #: for which the cycle hook set no reference of its own (see :meth:`EgmEndpoint.set_cycle_hook`)
+    stale: int = 0
     latency_counts: np.ndarray = field(
         default_factory=lambda: np.zeros(LATENCY_BIN_EDGES_US.shape[0], dtype=np.int64)
     )
@@ -373,6 +398,7 @@ class EgmStatistics:
             "sessions": self.sessions,
             "watchdog_events": self.watchdog_events,
             "send_errors": self.send_errors,
+            "stale": self.stale,
             "interval_mean_us": float(iv.mean()) if iv.size else None,
             "interval_jitter_us": float(iv.std()) if iv.size else None,
             "interval_max_us": float(iv.max()) if iv.size else None,
@@ -428,10 +454,17 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         *,
         on_watchdog: WatchdogCallback | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
+        history: FeedbackHistory | None = None,
     ) -> None:
         self.config = config or EgmEndpointConfig()
         self.stats = EgmStatistics(_intervals_us=deque(maxlen=self.config.jitter_window))
-        self.history = FeedbackHistory(self.config.history_len, self.config.n_external + self.config.n_axes)
+        #: the feedback history (a caller may hand one in, e.g. a ring in shared memory that another
+        #: process reads: anything with FeedbackHistory's ``append``)
+        self.history = history or FeedbackHistory(
+            self.config.history_len, self.config.n_external + self.config.n_axes
+        )
+        self._cycle_hook: CycleHook | None = None
+        self._hook_commanded = False  # set by command_joints / hold while the hook runs
         self._on_watchdog = on_watchdog
         self._clock_ns = clock_ns
         self._transport: asyncio.DatagramTransport | None = None
@@ -560,6 +593,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         ref = _joint_reference(q, qd, self.config.n_external)
         with self._ref_lock:
             self._reference = ref
+            self._hook_commanded = True
 
     def command_pose(
         self, pos_mm: np.ndarray, quat_wxyz: np.ndarray, speed_ref: np.ndarray | None = None
@@ -586,6 +620,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         ref = None if latest is None else self._hold_reference(latest.axes_mm_deg.copy())
         with self._ref_lock:
             self._reference = ref
+            self._hook_commanded = True
 
     @property
     def reference_q_deg(self) -> np.ndarray | None:
@@ -632,15 +667,22 @@ class EgmEndpoint(asyncio.DatagramProtocol):
 
     # ---- the reply path (both modes) ----------------------------------------------------------
 
-    def _on_datagram(self, data: bytes, addr: tuple[str, int], t_rx_ns: int) -> None:
-        """Handle one datagram: classify, reply at once, then update state and history.
+    def _on_datagram(
+        self, data: bytes, addr: tuple[str, int], t_rx_ns: int, t_arrival_real_ns: int | None = None
+    ) -> None:
+        """Handle one datagram: classify, reply at once, then update state and history (with a cycle
+        hook: classify, update, compute the reference for this packet, reply).
 
         Runs on the loop or on the reply thread; whatever belongs to the loop goes through ``_post``.
+        ``t_arrival_real_ns``: the kernel's arrival time of the datagram (CLOCK_REALTIME), when known.
         """
         try:
             pb = parse_robot_pb(data)  # about a microsecond; the full conversion waits for the reply
         except Exception as exc:  # EgmDecodeError, or anything else: one datagram never ends us
             self._malformed(exc, addr, t_rx_ns)
+            return
+        if self._cycle_hook is not None:
+            self._on_cycle_datagram(pb, data, addr, t_rx_ns, t_arrival_real_ns)
             return
         h = pb.header
         seqno = h.seqno if h.HasField("seqno") else None
@@ -660,16 +702,55 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 msg = self._convert(pb, data, addr, t_rx_ns)
                 if msg is None:
                     return
-                self._reference = self._hold_reference(_axes_of(msg, self.config.n_external))
+                self._reference = self._hold_reference(axes_of(msg, self.config.n_external))
             ref = self._reference
         # The reply goes out before the conversion, state and history (on this VM, putting them first
         # raised the reply thread's p50 from ~200 to ~450 us). On the reply thread the state therefore
         # lags the reply by that work: ``stats.handled`` counts datagrams whose work is complete.
         self._handover = None
-        self._reply(addr, t_rx_ns, ref)
+        self._reply(addr, t_rx_ns, ref, t_arrival_real_ns)
         self._record(pb, data, addr, t_rx_ns, msg, in_order)
         if self._handover is not None:
             # wake the loop only now: woken earlier, it would take the GIL while the reply waits
+            self._post(self._wake_waiters, self._handover)
+
+    def _on_cycle_datagram(
+        self, pb, data: bytes, addr: tuple[str, int], t_rx_ns: int, t_arrival_real_ns: int | None
+    ) -> None:
+        """The reply path with a cycle hook: the reference answers this very packet."""
+        if self._controller_addr != addr:
+            if self._controller_addr is not None:
+                self._post(log.warning, "egm_controller_address_changed", old=self._controller_addr, new=addr)
+            else:
+                self._post(log.info, "egm_controller_seen", host=addr[0], port=addr[1])
+            self._controller_addr = addr
+        self.stats.received += 1
+        h = pb.header
+        seqno = h.seqno if h.HasField("seqno") else None
+        tm_ms = h.tm if h.HasField("tm") else None
+        with self._ref_lock:
+            in_order = self._track_seqno(seqno, tm_ms)
+        msg = self._convert(pb, data, addr, t_rx_ns)
+        if msg is None:
+            return
+        self._handover = None
+        self._record(pb, data, addr, t_rx_ns, msg, in_order)
+        fresh = True
+        if in_order:
+            self._hook_commanded = False
+            hook = self._cycle_hook
+            if hook is not None:
+                try:
+                    hook(msg, t_rx_ns)
+                except Exception as exc:  # the hook's own faults are its to handle; never ours
+                    self._post(log.error, "egm_cycle_hook_failed", error=repr(exc))
+                fresh = self._hook_commanded
+        with self._ref_lock:
+            if self._reference is None:
+                self._reference = self._hold_reference(axes_of(msg, self.config.n_external))
+            ref = self._reference
+        self._reply(addr, t_rx_ns, ref, t_arrival_real_ns, fresh=fresh)
+        if self._handover is not None:
             self._post(self._wake_waiters, self._handover)
 
     def _record(
@@ -777,13 +858,23 @@ class EgmEndpoint(asyncio.DatagramProtocol):
 
     # ---- the reply thread ---------------------------------------------------------------------
 
+    # ---- per-cycle references ---------------------------------------------------------------
+
+    def set_cycle_hook(self, hook: CycleHook | None) -> None:
+        """Compute each reply's reference for the packet it answers: ``hook(msg, t_rx_ns)`` runs on
+        the reply path for every new in-order ``EgmRobot``, after the state and history took it and
+        before the reply, and sets the reference with :meth:`command_joints` (or :meth:`hold`). A
+        reply whose packet got no reference of its own from the hook counts as stale, as does any
+        reply that leaves more than one EGM cycle after its packet arrived. None removes the hook."""
+        self._cycle_hook = hook
+
     @property
     def reply_thread_native_id(self) -> int | None:
         """The reply thread's kernel thread id (for ``chrt`` / ``taskset``), or None in loop mode."""
         thread = self._thread
         return None if thread is None else thread.native_id
 
-    def _start_reply_thread(self) -> None:
+    def _bind_socket(self, idle_timeout_ns: int) -> socket.socket:
         cfg = self.config
         family = socket.AF_INET6 if ":" in cfg.host else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_DGRAM)
@@ -791,10 +882,19 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             sock.bind((cfg.host, cfg.port))
             # a kernel-side receive timeout keeps each receive one blocking syscall and still lets the
             # thread look at its stop flag every 100 ms
-            _set_receive_timeout(sock, _IDLE_RECEIVE_TIMEOUT_NS)
+            _set_receive_timeout(sock, idle_timeout_ns)
+            # the kernel stamps each datagram's arrival: the reply latency then includes any time the
+            # packet waited in the socket for this process (what the controller sees)
+            with contextlib.suppress(OSError, AttributeError):
+                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         except OSError:
             sock.close()
             raise
+        return sock
+
+    def _start_reply_thread(self) -> None:
+        cfg = self.config
+        sock = self._bind_socket(_IDLE_RECEIVE_TIMEOUT_NS)
         if cfg.switch_interval_s is not None:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(cfg.switch_interval_s)
@@ -802,6 +902,41 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._stop_thread = False
         self._thread = threading.Thread(target=self._serve, args=(sock,), name="egm-reply", daemon=True)
         self._thread.start()
+
+    # ---- serving from the calling thread (a process of its own) --------------------------------
+
+    def bind_blocking(self, idle_timeout_s: float = 0.005) -> tuple[str, int]:
+        """Bind the configured address for :meth:`serve_blocking` (no event loop, no thread): the
+        caller's own thread serves the controller. Returns the bound address."""
+        if self._transport is not None or self._thread is not None or self._sock is not None:
+            raise EgmEndpointError("endpoint already started")
+        self._sock = self._bind_socket(int(idle_timeout_s * 1e9))
+        self._stop_thread = False
+        addr = self.local_address
+        log.info("egm_endpoint_started", host=addr[0], port=addr[1], mode="blocking")
+        return addr
+
+    def serve_blocking(self, stop: Callable[[], bool], idle: Callable[[], None] | None = None) -> None:
+        """Serve the controller from the calling thread until ``stop()`` is true; ``idle()`` runs after
+        every datagram and every receive timeout (``bind_blocking``'s ``idle_timeout_s``), as does the
+        watchdog's check. The socket is closed on return."""
+        sock = self._sock
+        if sock is None:
+            raise EgmEndpointError("bind_blocking first")
+        try:
+            self._serve(sock, stop=stop, idle=idle)
+        finally:
+            sock.close()
+            self._sock = None
+            log.info("egm_endpoint_closed", **self.stats.snapshot())
+
+    def stop_blocking(self) -> None:
+        """Make a :meth:`serve_blocking` return (from another thread)."""
+        self._stop_thread = True
+        sock = self._sock
+        if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
 
     async def _stop_reply_thread(self) -> None:
         thread, sock = self._thread, self._sock
@@ -820,32 +955,45 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             sys.setswitchinterval(self._saved_switch_interval)
             self._saved_switch_interval = None
 
-    def _serve(self, sock: socket.socket) -> None:
-        """The reply thread: receive, handle, repeat until the stop flag is set."""
-        self._configure_reply_thread()
-        recvfrom = sock.recvfrom
+    def _serve(
+        self,
+        sock: socket.socket,
+        stop: Callable[[], bool] | None = None,
+        idle: Callable[[], None] | None = None,
+    ) -> None:
+        """The reply thread (or, from :meth:`serve_blocking`, the caller's thread): receive, handle,
+        repeat until the stop flag is set (or ``stop()`` is true)."""
+        idle_timeout_ns = _IDLE_RECEIVE_TIMEOUT_NS
+        if stop is None:
+            self._configure_reply_thread()
+            stop = self._stopping
+        else:
+            idle_timeout_ns = _receive_timeout_ns(sock)
         spin_ns = int(self.config.reply_spin_us * 1000)
         due_ns: int | None = None  # when the next packet is expected (spin mode)
         last_ns: int | None = None
-        while not self._stop_thread:
+        while not stop():
             try:
                 if spin_ns and due_ns is not None:
-                    data, addr = self._receive_spinning(sock, due_ns, spin_ns)
+                    data, addr, t_arrival = self._receive_spinning(sock, due_ns, spin_ns, idle_timeout_ns)
                 else:
                     if spin_ns:  # the spin shortened the receive timeout; sleep the long one again
-                        _set_receive_timeout(sock, _IDLE_RECEIVE_TIMEOUT_NS)
-                    data, addr = recvfrom(65535)
+                        _set_receive_timeout(sock, idle_timeout_ns)
+                    data, addr, t_arrival = _receive(sock)
             except (BlockingIOError, InterruptedError):  # the receive timeout: look at the stop flag
+                if idle is not None:
+                    self._watchdog_check()
+                    idle()
                 continue
             except OSError as exc:
-                if self._stop_thread:
+                if stop():
                     break
                 self.stats.send_errors += 1  # e.g. an ICMP error reported on the socket
                 self._post(log.warning, "egm_socket_error", error=str(exc))
                 time.sleep(0.001)  # a persistent error must not turn into a busy loop
                 continue
             t_rx_ns = self._clock_ns()
-            if self._stop_thread or addr is None:
+            if stop() or addr is None:
                 break
             if spin_ns:
                 now_ns = time.monotonic_ns()
@@ -854,14 +1002,22 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 due_ns = now_ns + period_ns if period_ns is not None and period_ns < 100_000_000 else None
                 last_ns = now_ns
             try:
-                self._on_datagram(data, addr, t_rx_ns)
+                self._on_datagram(data, addr, t_rx_ns, t_arrival)
             except Exception as exc:  # one datagram never ends the thread
                 self._post(log.error, "egm_reply_thread_error", error=repr(exc))
             finally:
                 self.stats.handled += 1
+            if idle is not None:
+                self._watchdog_check()
+                idle()
+
+    def _stopping(self) -> bool:
+        return self._stop_thread
 
     @staticmethod
-    def _receive_spinning(sock: socket.socket, due_ns: int, spin_ns: int) -> tuple[bytes, tuple]:
+    def _receive_spinning(
+        sock: socket.socket, due_ns: int, spin_ns: int, idle_timeout_ns: int = 100_000_000
+    ) -> tuple[bytes, tuple, int | None]:
         """Sleep until ``spin_ns`` before ``due_ns``, then poll without sleeping until a datagram
         comes or ``spin_ns`` after ``due_ns``; then fall back to the blocking receive."""
         # The sleep is a blocking receive with a microsecond timeout (SO_RCVTIMEO): a packet that comes
@@ -870,17 +1026,17 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         if wait_ns >= 1000:
             _set_receive_timeout(sock, wait_ns)
             try:
-                return sock.recvfrom(65535)  # early: no spin this cycle
+                return _receive(sock)  # early: no spin this cycle
             except BlockingIOError:
                 pass
         end_ns = due_ns + spin_ns
         while time.monotonic_ns() < end_ns:
             try:
-                return sock.recvfrom(65535, socket.MSG_DONTWAIT)
+                return _receive(sock, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 pass
-        _set_receive_timeout(sock, _IDLE_RECEIVE_TIMEOUT_NS)
-        return sock.recvfrom(65535)
+        _set_receive_timeout(sock, idle_timeout_ns)
+        return _receive(sock)
 
     def _configure_reply_thread(self) -> None:
         """Pin and prioritise the calling (reply) thread as configured; refusals are logged, not fatal."""
@@ -965,7 +1121,15 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._seqno_suspect = None
         self._post(log.info, "egm_session_seen", seqno=seqno, session=self.stats.sessions)
 
-    def _reply(self, addr: tuple[str, int], t_rx_ns: int, ref: _Reference | None) -> None:
+    def _reply(
+        self,
+        addr: tuple[str, int],
+        t_rx_ns: int,
+        ref: _Reference | None,
+        t_arrival_real_ns: int | None = None,
+        *,
+        fresh: bool = True,
+    ) -> None:
         if ref is None:
             return
         seqno = self._reply_seqno
@@ -984,7 +1148,13 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             self.stats.send_errors += 1
             self._post(log.warning, "egm_reply_send_failed", error=str(exc))
             return
-        latency_us = (self._clock_ns() - t_rx_ns) / 1000.0
+        if t_arrival_real_ns is not None:
+            # from the kernel's arrival stamp: a reply that waited in the socket counts its wait
+            latency_us = (time.time_ns() - t_arrival_real_ns) / 1000.0
+        else:
+            latency_us = (self._clock_ns() - t_rx_ns) / 1000.0
+        if not fresh or latency_us > self.config.cycle_s * 1e6:
+            self.stats.stale += 1
         self.stats.replies_sent += 1
         b = int(np.searchsorted(LATENCY_BIN_EDGES_US, latency_us, side="right")) - 1
         self.stats.latency_counts[max(b, 0)] += 1
@@ -1018,9 +1188,10 @@ class EgmEndpoint(asyncio.DatagramProtocol):
                 t_rx_ns,
                 msg.feedback_time_us,
                 msg.seqno,
-                _axes_of(msg, n_ext),
+                axes_of(msg, n_ext),
                 msg.feedback_pos_mm,
                 msg.feedback_quat_wxyz,
+                (msg.motor_state, msg.mci_state, msg.rapid_exec_state),
             )
         if previous is None or (
             previous.motor_state,
@@ -1077,6 +1248,9 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         if self._transport is None and self._thread is None:
             return
         self._schedule_watchdog()
+        self._watchdog_check()
+
+    def _watchdog_check(self) -> None:
         if self._last_rx_ns is None or self._quiet:
             return
         quiet_s = (self._clock_ns() - self._last_rx_ns) / 1e9
@@ -1096,9 +1270,26 @@ class EgmEndpoint(asyncio.DatagramProtocol):
 
 
 _IDLE_RECEIVE_TIMEOUT_NS = 100_000_000
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value where Python lacks the name
+_TIMESPEC = struct.Struct("qq")
 
 
-def _axes_of(msg: RobotMessage, n_ext: int) -> np.ndarray:
+def _receive(sock: socket.socket, flags: int = 0) -> tuple[bytes, tuple, int | None]:
+    """One datagram: (data, source address, the kernel's arrival time in CLOCK_REALTIME ns or None)."""
+    data, ancdata, _flags, addr = sock.recvmsg(65535, 64, flags)
+    for level, kind, payload in ancdata:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack_from(payload)
+            return data, addr, sec * 1_000_000_000 + nsec
+    return data, addr, None
+
+
+def _receive_timeout_ns(sock: socket.socket) -> int:
+    sec, usec = struct.unpack("ll", sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, 16))
+    return (sec * 1_000_000 + usec) * 1000 or _IDLE_RECEIVE_TIMEOUT_NS
+
+
+def axes_of(msg: RobotMessage, n_ext: int) -> np.ndarray:
     """The feedback of every axis, ``axes_mm_deg`` order: ``n_ext`` external axes, then the joints
     (just the joints without external axes; fewer values when the controller sent fewer)."""
     if n_ext == 0:
