@@ -122,10 +122,8 @@ class SharedFeedbackHistory:
         """Let go of the block (the writer also removes it)."""
         self._a.clear()
         self._head = None  # type: ignore[assignment]
-        try:
+        with contextlib.suppress(BufferError):  # a view still held: the mapping goes with the process
             self._shm.close()
-        except BufferError:  # a reader still holds a view; the mapping goes with the process
-            pass
         if self._owner:
             with contextlib.suppress(FileNotFoundError):
                 self._shm.unlink()
