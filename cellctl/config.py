@@ -187,6 +187,11 @@ class RobotSection(Section):
     egm_reply_cpus: list[Annotated[int, Field(ge=0, le=1023)]] = []
     egm_switch_interval_s: Annotated[float, Field(gt=0, le=0.005, allow_inf_nan=False)] = 2e-4
     egm_reply_spin_us: Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)] = 150.0
+    # the motion process (docs/operations.md "The motion process"): its cycle thread runs under
+    # SCHED_FIFO at egm_reply_priority, pinned to egm_reply_cpus; memory locked; a refusal is logged
+    # and shown in status, and with motion_realtime_required the daemon refuses to start instead
+    motion_lock_memory: bool = True
+    motion_realtime_required: bool = False
     # RWS (HTTP/HTTPS)
     rws_url: str = "http://127.0.0.1:8080"
     rws_profile: Literal["rws1", "rws2"] = "rws1"

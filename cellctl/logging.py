@@ -59,6 +59,8 @@ def configure_logging(
     if not isinstance(level_no, int):
         raise ValueError(f"unknown log level {level!r}")
     use_json = fmt == "json" or (fmt == "auto" and not _isatty(stream))
+    global _CURRENT
+    _CURRENT = ("json" if use_json else "console", logging.getLevelName(level_no).lower())
     shared: list[Any] = [
         structlog.contextvars.merge_contextvars,
         structlog.processors.add_log_level,
@@ -88,6 +90,14 @@ def configure_logging(
     root.handlers[:] = [handler]
     root.setLevel(max(level_no, logging.INFO) if level_no < logging.INFO else level_no)
     logging.getLogger("toppra").setLevel(logging.WARNING)
+
+
+_CURRENT: tuple[str, str] = ("json", "info")
+
+
+def current_logging() -> tuple[str, str]:
+    """(format, level) of the last :func:`configure_logging`: a child process logs the same way."""
+    return _CURRENT
 
 
 def _isatty(stream: TextIO) -> bool:

@@ -36,6 +36,7 @@ import structlog
 __all__ = [
     "heap_summary",
     "hold_cpu_wakeup_latency",
+    "lock_memory",
     "normal_priority",
     "precise_event_loop",
     "release_freed_memory",
@@ -95,6 +96,21 @@ def set_thread_realtime(priority: int, cpus: tuple[int, ...] = ()) -> list[str]:
         except (AttributeError, OSError) as exc:
             refused.append(f"SCHED_FIFO {priority}: {getattr(exc, 'strerror', None) or exc}")
     return refused
+
+
+def lock_memory() -> str | None:
+    """Lock every page of this process in RAM, now and later (``mlockall(MCL_CURRENT | MCL_FUTURE)``),
+    so a cycle never waits for a page to come back from swap or a lazily mapped one to be faulted in.
+    Returns None when granted, else the reason (needs CAP_IPC_LOCK or a large RLIMIT_MEMLOCK)."""
+    mcl_current, mcl_future = 1, 2
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.mlockall(mcl_current | mcl_future) == 0:
+            return None
+        err = ctypes.get_errno()
+        return f"mlockall: {os.strerror(err)}"
+    except (OSError, AttributeError) as exc:
+        return f"mlockall: {exc}"
 
 
 def use_realtime_loop(priority: int = 10) -> bool:

@@ -506,6 +506,9 @@ class DaemonStats(Model):
     rss_mb: float
     dispatch_malformed: Annotated[int, Field(ge=0)] = 0
     egm: EgmStats | None = None
+    #: what the OS granted the motion process (priority, sched_fifo, cpus, memory_locked) and what it
+    #: refused (``refused``, empty when nothing)
+    motion_realtime: dict[str, str | bool | int | list[int]] | None = None
     python_heap: HeapSummary | None = None
 
 

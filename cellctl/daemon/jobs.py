@@ -32,8 +32,8 @@ from pydantic import ValidationError
 from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.session import AcquisitionSession
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
-from cellctl.api.models import AnalysisOptions
-from cellctl.motion import MotionExecutor
+from cellctl.api.models import AnalysisOptions, MotionCounters
+from cellctl.motion.link import RemoteExecution
 
 log = structlog.get_logger(__name__)
 
@@ -142,7 +142,8 @@ class ActiveJob:
 
     def __init__(self, record: JobRecord) -> None:
         self.record = record
-        self.executor: MotionExecutor | None = None
+        self.executor: RemoteExecution | None = None
+        self.motion: MotionCounters | None = None  # the motion process's counters of this job
         self.profiles = 0
         self.points = 0
         self.fraction = 0.0

@@ -53,7 +53,7 @@ from cellctl.daemon.locate import (
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
-from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, MotionExecutor, ProgressEvent
+from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, ProgressEvent
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, start_corner_near
 from cellctl.planning.cache import PlanCache
 from drivers.abb_egm.rws_client import RwsError
@@ -105,6 +105,12 @@ class ScanRunner:
         False when it ended otherwise (the job's state says how); raises on an error (the job's
         ``stop_reason`` is ``"disk"`` when the raw files took no more)."""
         host, rec = self.host, job.record
+        if not self.drivers.motion.alive:
+            why = self.drivers.motion.death or "not running"
+            host.job_state(
+                job, JobState.FAILED, f"the motion process is gone ({why}): reset the cell (cellctl reset)"
+            )
+            return False
         host.to_cell(CellState.PLANNING, f"planning job {rec.job_id}")
         host.job_state(job, JobState.PLANNING)
         try:
@@ -162,7 +168,7 @@ class ScanRunner:
             with contextlib.suppress(Exception):
                 await drv.program.end()
             await drv.program.start()
-            await drv.endpoint.wait_for_feedback(cfg.daemon.feedback_timeout_s)
+            await drv.motion.wait_for_feedback(cfg.daemon.feedback_timeout_s)
         except BaseException:
             with contextlib.suppress(Exception):
                 await drv.program.end()
@@ -420,17 +426,25 @@ class ScanRunner:
                 stream = await host.cloud_stream(job)
                 if stream is not None:
                     stream.follow(acq, writer)
-            egm0 = _counters(drv.endpoint.stats, _EGM_COUNTERS)
-            executor = MotionExecutor.for_plan(
-                drv.endpoint,
-                plan,
-                settings,
+            egm0 = _counters(drv.motion.stats, _EGM_COUNTERS)
+
+            def progressed(ev: ProgressEvent) -> None:
+                job.motion = executor.counters
+                host.on_progress(job, ev)
+
+            # the plan runs in the motion process (its own real-time process: docs/architecture.md);
+            # its files (the plan it ran, the record of what it commanded) stay with the raw data
+            executor = drv.motion.execution(
+                plan.trajectory,
                 ExecutorConfig.from_settings(
                     settings,
                     tracking_error_max_mm=cfg.robot.tracking_error_max_mm,
                     feedback_timeout_s=cfg.robot.egm_watchdog_s,  # [robot] egm_watchdog_s, not 0.1 s
                 ),
-                on_progress=lambda ev: host.on_progress(job, ev),
+                segment_labels=[s.label for s in plan.segments],
+                segment_kinds=[s.kind for s in plan.segments],
+                work_dir=raw_dir,
+                on_progress=progressed,
             )
             job.executor = executor
             if job.stop_reason is not None:  # aborted while the program started: stop before motion
@@ -443,7 +457,7 @@ class ScanRunner:
                 executor.abort()
 
             session = AcquisitionSession(
-                acq, client, drv.endpoint.history,
+                acq, client, drv.motion.history,
                 pass_windows_s([s.t_start_s for s in plan.passes], [s.duration_s for s in plan.passes]),
                 SessionSettings(marker_period_s=cfg.daemon.marker_period_s, settle_s=cfg.daemon.settle_s),
                 on_write_error=write_failed, on_assembled=host.live_feed(rec.job_id),
@@ -478,16 +492,20 @@ class ScanRunner:
                 await drv.program.end()
             program_started = False
             job.executor = None
+            job.motion = executor.counters
             info = {
                 "scan_s": round(scan_s, 3),
                 "profiles": job.profiles,
                 "execution": result.state.value,
                 "move_to_start_s": round(result.move_to_start_s, 3),
                 "max_tracking_error_mm": round(float(result.max_tracking_error_mm), 3),
+                # how the motion process served the controller (issue 41): stale and lost cycles,
+                # reply latency, tracking
+                "motion": executor.counters.model_dump(),
                 "last_profile_utc_s": t_last_profile,
                 "acquisition": json.loads(json.dumps(acq.quality(), default=_plain)),
                 # what the links went through during this job: said plainly in the job record
-                "egm": {k: v - egm0[k] for k, v in _counters(drv.endpoint.stats, _EGM_COUNTERS).items()},
+                "egm": {k: v - egm0[k] for k, v in _counters(drv.motion.stats, _EGM_COUNTERS).items()},
                 "sensor": _counters(client.stats, _SENSOR_COUNTERS),
             }
             if result.state == ExecState.FINISHED and phase != "scan":

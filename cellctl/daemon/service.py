@@ -72,6 +72,7 @@ from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, build_drivers, rws_password
 from cellctl.logging import bind_context
 from cellctl.motion import ProgressEvent
+from cellctl.motion.link import MotionLinkError
 from drivers.runtime import (
     heap_summary,
     hold_cpu_wakeup_latency,
@@ -152,16 +153,18 @@ class CellDaemon:
             log.error("daemon_config_invalid", error=str(exc))
             return 2
         drv = self.drivers = build_drivers(cfg, password)
+        drv.motion.on_death = self._on_motion_death
         try:
-            await drv.endpoint.start()
-        except OSError as exc:
-            log.error("egm_bind_failed", host=cfg.robot.egm_host, port=cfg.robot.egm_port, error=str(exc))
+            # the motion process binds the EGM port and answers the controller from here on
+            await drv.motion.start()
+        except MotionLinkError as exc:
+            log.error("motion_start_failed", host=cfg.robot.egm_host, port=cfg.robot.egm_port, error=str(exc))
             return 2
         try:
             self.session = await asyncio.to_thread(open_session, zcfg, what="daemon session")
         except ZenohSetupError as exc:
             log.error("zenoh_open_failed", error=str(exc))
-            await drv.endpoint.close()
+            await drv.motion.close()
             await drv.rws.close()
             return 2
         self._scanner = ScanRunner(cfg, self.store, drv, self)
@@ -208,15 +211,21 @@ class CellDaemon:
                 with contextlib.suppress(Exception):
                     self._publisher.undeclare()
             await asyncio.to_thread(close_session, self.session)
-            await drv.endpoint.close()
+            await drv.motion.close()
             await drv.rws.close()
         log.info("daemon_stopped")
         return 0
 
     @property
     def endpoint_port(self) -> int | None:
-        addr = None if self.drivers is None else self.drivers.endpoint.local_address
-        return None if not addr else int(addr[1])
+        motion = None if self.drivers is None else self.drivers.motion
+        return None if motion is None or not motion.alive else int(motion.local_address[1])
+
+    def _on_motion_death(self, reason: str) -> None:
+        """The motion process ended on its own: a running scan fails with the reason (its execution
+        ends FAULTED), and the cell is faulted until ``reset`` brings up a new one."""
+        if self.sm.state not in (CellState.STOPPING, CellState.FAULTED, CellState.EMERGENCY_STOPPED):
+            self.sm.to(CellState.FAULTED, f"motion fault: {reason}; reset starts a new motion process")
 
     async def _shutdown(self) -> None:
         """Stop a scan smoothly (job interrupted, raw flushed), stop waiting for reports."""
@@ -250,7 +259,8 @@ class CellDaemon:
             heap = await asyncio.to_thread(heap_summary)  # a snapshot takes seconds
         body = DaemonStats(
             cell_id=self.cfg.cell.id, t_utc=now_utc(), rss_mb=rss_mb(),
-            egm=self.drivers.endpoint.stats.snapshot() if self.drivers is not None else None,
+            egm=(self.drivers.motion.stats.snapshot() or None) if self.drivers is not None else None,
+            motion_realtime=None if self.drivers is None else (self.drivers.motion.realtime or None),
             dispatch_malformed=0 if self.dispatcher is None else self.dispatcher.malformed, python_heap=heap,
         )  # fmt: skip
         query.reply(query.key_expr, body.to_json(), encoding=JSON)
@@ -286,6 +296,7 @@ class CellDaemon:
             points=job.points,
             worker_id=job.worker_id,
             message=(job.record.history[-1]["message"] if job.record.history else "")[:500],
+            motion=job.motion,
         )
 
     def status(self) -> CellStatus:
@@ -498,6 +509,19 @@ class CellDaemon:
             job_state=job.record.state,
         )
 
+    async def _motion_up(self) -> None:
+        """A motion process that is gone is started again (``reset``); ControlError if it cannot be."""
+        motion = None if self.drivers is None else self.drivers.motion
+        if motion is None or motion.alive:
+            return
+        try:
+            await motion.restart()
+        except MotionLinkError as exc:
+            raise ControlError(
+                "not_allowed", "payload", f"the motion process did not start again: {exc}"
+            ) from None
+        log.info("motion_process_restarted", pid=motion.pid)
+
     async def _reset(self, req: ControlRequest) -> ControlReply:
         """Clear ``emergency_stopped`` (the controller must be released and reset) or ``faulted``."""
         if req.job_id is not None:
@@ -510,11 +534,13 @@ class CellDaemon:
                     f"the controller is {ctrl or 'unreadable over RWS'}: release its emergency stop and "
                     "reset it (motors off) first",
                 )  # fmt: skip
+            await self._motion_up()
             if self.sm.state == CellState.EMERGENCY_STOPPED:  # unchanged while RWS answered
                 self.sm.to(
                     CellState.IDLE, f"reset by the operator after the emergency stop (controller {ctrl})"
                 )
         elif self.sm.state == CellState.FAULTED:
+            await self._motion_up()
             self.sm.to(CellState.IDLE, "reset by the operator after a fault")
         elif self.sm.state != CellState.IDLE:
             raise ControlError(

@@ -11,7 +11,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from cellctl.config import CellConfig, LaserSection, RobotSection, resolve_secret
-from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
+from cellctl.logging import current_logging
+from cellctl.motion import EnvelopeLimits
+from cellctl.motion.channel import RealtimeSpec
+from cellctl.motion.link import MotionLink, MotionSettings, envelope_spec
+from cellctl.planning import PlannerSettings
+from drivers.abb_egm.endpoint import EgmEndpointConfig
 from drivers.abb_egm.rws_client import CellEgmProgram, EgmProgramSettings, RwsClient, RwsClientConfig
 from drivers.laser.client import HD8Client, HD8ClientConfig
 
@@ -23,6 +28,7 @@ __all__ = [
     "hd8_client",
     "hd8_client_config",
     "laser_exposure_ns",
+    "motion_settings",
     "rws_client_config",
     "rws_password",
 ]
@@ -35,8 +41,8 @@ def egm_endpoint_config(robot: RobotSection) -> EgmEndpointConfig:
         port=robot.egm_port,
         watchdog_s=robot.egm_watchdog_s,
         history_len=robot.egm_history_len,
-        # replies from their own SCHED_FIFO thread, off the daemon's loop, with a short GIL hand-over
-        # (benchmarks/README.md, egm_latency; docs/robot-setup.md section 12)
+        # the motion process serves EGM from its own SCHED_FIFO thread (cellctl/motion/process.py);
+        # these are the endpoint's settings for an in-process reply thread (tests, tools)
         reply_thread=robot.egm_reply_thread,
         reply_thread_priority=robot.egm_reply_priority,
         reply_thread_cpus=tuple(robot.egm_reply_cpus),
@@ -44,6 +50,27 @@ def egm_endpoint_config(robot: RobotSection) -> EgmEndpointConfig:
         reply_spin_us=robot.egm_reply_spin_us,
         # the track's position travels in externalJoints beside the joints (docs/robot-setup.md)
         n_external=0 if robot.track is None else 1,
+    )
+
+
+def motion_settings(cfg: CellConfig) -> MotionSettings:
+    """``[robot]`` -> the motion process's settings: its EGM endpoint, the envelope every reference
+    passes (cell.toml's joint, track, workspace and speed limits) and its real-time settings."""
+    endpoint = egm_endpoint_config(cfg.robot)
+    limits = EnvelopeLimits.from_settings(PlannerSettings.from_config(cfg), cycle_s=endpoint.cycle_s)
+    fmt, level = current_logging()
+    return MotionSettings(
+        endpoint=endpoint,
+        envelope=envelope_spec(limits),
+        realtime=RealtimeSpec(
+            priority=cfg.robot.egm_reply_priority if cfg.daemon.realtime else 0,
+            cpus=list(cfg.robot.egm_reply_cpus),
+            lock_memory=cfg.robot.motion_lock_memory,
+            required=cfg.robot.motion_realtime_required,
+        ),
+        log_format=fmt,
+        log_level=level,
+        cell_id=cfg.cell.id,
     )
 
 
@@ -105,16 +132,16 @@ def laser_exposure_ns(laser: LaserSection) -> int:
 class CellDrivers:
     """The daemon's long-lived driver objects (the sensor client is made per scan: :func:`hd8_client`)."""
 
-    endpoint: EgmEndpoint
+    motion: MotionLink
     rws: RwsClient
     program: CellEgmProgram
 
 
 def build_drivers(cfg: CellConfig, password: str) -> CellDrivers:
-    """The EGM endpoint (not started), the RWS client and the EGM program of ``cfg``."""
+    """The motion process's link (not started), the RWS client and the EGM program of ``cfg``."""
     rws = RwsClient(rws_client_config(cfg.robot, password))
     return CellDrivers(
-        endpoint=EgmEndpoint(egm_endpoint_config(cfg.robot)),
+        motion=MotionLink(motion_settings(cfg)),
         rws=rws,
         program=CellEgmProgram(rws, egm_program_settings(cfg.robot)),
     )

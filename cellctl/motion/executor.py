@@ -45,6 +45,8 @@ from drivers.abb_egm.endpoint import EgmEndpoint, axes_of, ok_to_command
 from drivers.abb_egm.kinematics import fk_batch
 
 __all__ = [
+    "STATE_CODES",
+    "TERMINAL_STATES",
     "ExecState",
     "ExecutionResult",
     "ExecutorConfig",
@@ -79,6 +81,9 @@ class ExecState(enum.StrEnum):
 
 
 _TERMINAL = (ExecState.FINISHED, ExecState.ABORTED, ExecState.FAULTED)
+#: the states as small numbers (the motion process publishes its state in shared memory)
+STATE_CODES: dict[ExecState, int] = {s: i for i, s in enumerate(ExecState)}
+TERMINAL_STATES = _TERMINAL
 #: the move to the plan's start keeps the TCP under this share of the envelope's speed cap, as the
 #: planned transits do (the straight joint-space line's TCP speed is estimated on :func:`start_path`)
 _START_TCP_FRACTION = 0.9
@@ -365,6 +370,13 @@ class MotionExecutor:
         #: hand-over to its event loop); the motion process sets its channel here
         self.sink: Callable[[ProgressEvent | None], None] | None = None
         self._synced = False  # the first cycle after begin() takes the controller's count from there
+        self._pkt_key: tuple | None = None  # the packet whose controller cycle is _pkt_cycle
+        self._pkt_cycle = 0
+        self._ref_cycle = 0  # the controller cycle the last computed reference is for
+        self._sent_q: np.ndarray | None = None  # the last reference handed to the endpoint, and its
+        self._sent_ff: np.ndarray | None = None  # speed feed-forward
+        self._cycle_us = round(cfg.cycle_s * 1e6)
+        self._cycle_ns = round(cfg.cycle_s * 1e9)
         self._real_move = False
         self._last_rx_ns = 0
         self._ended_cb: Callable[[], None] | None = None
@@ -562,16 +574,28 @@ class MotionExecutor:
             self._set_start_limits(q_fb, q0)
             self._scaler.set_tau(0.0)
             self._synced = False
+            self._pkt_key = None
+            self._ref_cycle = self._pkt_cycle = 0
         return True
 
-    def on_cycle(self, msg: RobotMessage, t_rx_ns: int) -> None:
-        """One controller packet: the EGM endpoint's cycle hook. Advances by the controller's cycles
-        since the previous packet, handles pause / resume / abort, monitors the tracking, and sets
-        the reference for this packet's reply (envelope-checked)."""
+    def on_cycle(self, msg: RobotMessage, t_rx_ns: int, phase: str = "now") -> None:
+        """One controller packet: the EGM endpoint's cycle hook (see
+        :meth:`~drivers.abb_egm.endpoint.EgmEndpoint.set_cycle_hook`).
+
+        ``"next"`` (after the reply): check the controller's state, handle pause / resume / abort,
+        monitor the tracking, and prepare the next packet's reference, one cycle on (envelope-checked
+        before it is handed over). ``"now"`` (before the reply, when no prepared reference fits this
+        packet: the first one, a lost packet, a jump in the controller's clock): advance by the
+        controller's cycles to this packet's and set its reference."""
         with self._lock:
             if self.state in _TERMINAL:
                 return
             self._last_rx_ns = t_rx_ns
+            if phase == "now":
+                c = self._packet_cycle(msg)
+                if c is not None:
+                    self._step_to(c, t_rx_ns, None)
+                return
             if not ok_to_command(msg.motor_state, msg.mci_state, msg.rapid_exec_state):
                 # A real stop (motors off, RAPID stopped, e-stop) persists; one packet alone may be a
                 # corrupted datagram that still decoded. The next packet (one cycle) confirms it.
@@ -586,28 +610,56 @@ class MotionExecutor:
                 return
             self._not_ok = 0
             axes = axes_of(msg, self._n - 6)
-            if axes.shape[0] < self._n:
-                return  # an incomplete feedback: the reply repeats the last reference
-            if not self._synced:
-                self._synced = True
-                self._last_seqno, self._last_t_ctrl_us = msg.seqno, msg.feedback_time_us
-                cycles = 1
-            else:
-                cycles = self._cycles_since(msg.seqno, msg.feedback_time_us)
-            self._cycle += cycles
+            c = self._packet_cycle(msg)
+            if c is None or axes.shape[0] < self._n:
+                return  # an incomplete feedback: the next packet gets its reference on the spot
             self._handle_requests()
             self._fb_count += 1
             if self._fb_count % 4 == 0:  # a monitor: 16 ms of latency costs nothing, the CPU does
                 self._monitor_tracking(axes)
-            for _ in range(cycles):
-                self._advance()
-                if self.state in _TERMINAL:
-                    break
-            if not self._held:
-                self._send(t_rx_ns, cycles)
+            t_next = None if msg.feedback_time_us is None else msg.feedback_time_us + self._cycle_us
+            s_next = None if msg.seqno is None else (msg.seqno + 1) % _U32
+            self._step_to(c + 1, t_rx_ns + self._cycle_ns, (t_next, s_next))
             self._maybe_progress()
             if self.state in _TERMINAL:
                 self._ended()
+
+    def _packet_cycle(self, msg: RobotMessage) -> int | None:
+        """The controller cycle of ``msg``, counted from the first packet after :meth:`begin` (1),
+        by the controller's clock (else its sequence number); once per packet."""
+        key = (msg.seqno, msg.feedback_time_us)
+        if key == self._pkt_key:
+            return self._pkt_cycle
+        if msg.feedback_q_deg is None:
+            return None
+        if not self._synced:
+            self._synced = True
+            self._last_seqno, self._last_t_ctrl_us = msg.seqno, msg.feedback_time_us
+            self._pkt_cycle = self._ref_cycle + 1
+        else:
+            self._pkt_cycle += self._cycles_since(msg.seqno, msg.feedback_time_us)
+        self._pkt_key = key
+        return self._pkt_cycle
+
+    def _step_to(self, target: int, t_host_ns: int, prepare: tuple[int | None, int | None] | None) -> None:
+        """Advance the generators to controller cycle ``target`` and hand its reference over: set now
+        (``prepare`` None) or prepared for the packet ``prepare`` = (controller time us, seqno)."""
+        n = target - self._ref_cycle
+        for _ in range(max(n, 0)):
+            self._advance()
+            if self.state in _TERMINAL:
+                break
+        if n > 0:
+            self._ref_cycle = target
+            self._cycle = target
+        if self._held:
+            return
+        if n > 0:
+            self._send(t_host_ns, n, prepare)
+        elif prepare is None and self._sent_q is not None:
+            # this packet's reference was prepared but the packet did not match it (its clock moved
+            # by a fraction of a cycle): the same reference, set now
+            self.endpoint.command_joints(self._sent_q, self._sent_ff)
 
     def check_silence(self, now_ns: int) -> bool:
         """Called when no packet came for a while: a controller silent for ``feedback_timeout_s`` and
@@ -641,6 +693,32 @@ class MotionExecutor:
     def done(self) -> bool:
         """True once the execution reached FINISHED, ABORTED or FAULTED."""
         return self.state in _TERMINAL
+
+    @property
+    def playback_s(self) -> float:
+        """The plan's playback time of the last reference, s."""
+        return self._scaler.tau
+
+    @property
+    def cycles(self) -> int:
+        """References sent so far."""
+        return self._rec.n
+
+    @property
+    def lost_cycles(self) -> int:
+        """Controller cycles with no packet (its clock or sequence number jumped past them)."""
+        return self._lost
+
+    @property
+    def max_tracking_error_mm(self) -> float:
+        """The worst monitored TCP tracking error so far, mm."""
+        return self._max_track
+
+    def fail(self, reason: str) -> None:
+        """End before any motion (nothing was sent): FAULTED with ``reason``."""
+        with self._lock:
+            self._started = True
+            self._enter_fault(reason, hold=False)
 
     async def _wait_commandable(self):
         deadline = time.monotonic() + self.config.start_timeout_s
@@ -888,7 +966,9 @@ class MotionExecutor:
         self._enter_fault("the stop generator failed; holding the last reference", hold=False)
         return True
 
-    def _send(self, t_host_ns: int, cycles: int) -> None:
+    def _send(
+        self, t_host_ns: int, cycles: int, prepare: tuple[int | None, int | None] | None = None
+    ) -> None:
         q, qd = self._ref_q, self._ref_qd
         try:
             p = self.envelope.check(q, cycles)
@@ -909,7 +989,12 @@ class MotionExecutor:
             self.endpoint.command_joints(last, self._last_sent_qd if self.config.feedforward else None)
             return
         ff = self._ff_qd if self._ff_qd is not None else qd
-        self.endpoint.command_joints(q, ff if self.config.feedforward else None)
+        ff = ff if self.config.feedforward else None
+        if prepare is None:
+            self.endpoint.command_joints(q, ff)
+        else:
+            self.endpoint.prepare_joints(q, ff, for_t_ctrl_us=prepare[0], for_seqno=prepare[1])
+        self._sent_q, self._sent_ff = q, ff
         self._ff_qd = None
         self._last_sent_qd = np.array(qd, dtype=np.float64)
         self._tcp_hist.append(self.envelope.world_mm(q, p))

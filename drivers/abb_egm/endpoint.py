@@ -98,7 +98,7 @@ def latency_percentile_us(counts: np.ndarray, q: float) -> float | None:
     return float(edges[i + 1]) if i + 1 < edges.shape[0] else float(edges[-1])
 
 
-CycleHook = Callable[["RobotMessage", int], None]
+CycleHook = Callable[["RobotMessage", int, str], None]
 
 
 class EgmEndpointError(Exception):
@@ -460,11 +460,16 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self.stats = EgmStatistics(_intervals_us=deque(maxlen=self.config.jitter_window))
         #: the feedback history (a caller may hand one in, e.g. a ring in shared memory that another
         #: process reads: anything with FeedbackHistory's ``append``)
-        self.history = history or FeedbackHistory(
-            self.config.history_len, self.config.n_external + self.config.n_axes
+        self.history = (
+            history
+            if history is not None
+            else FeedbackHistory(self.config.history_len, self.config.n_external + self.config.n_axes)
         )
         self._cycle_hook: CycleHook | None = None
         self._hook_commanded = False  # set by command_joints / hold while the hook runs
+        #: the next packet's reference, computed ahead by the cycle hook: (reference, controller
+        #: time us or None, seqno or None) of the packet it is for
+        self._prepared: tuple | None = None
         self._on_watchdog = on_watchdog
         self._clock_ns = clock_ns
         self._transport: asyncio.DatagramTransport | None = None
@@ -593,6 +598,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         ref = _joint_reference(q, qd, self.config.n_external)
         with self._ref_lock:
             self._reference = ref
+            self._prepared = None
             self._hook_commanded = True
 
     def command_pose(
@@ -613,6 +619,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             raise EgmEndpointError(str(exc)) from None
         with self._ref_lock:
             self._reference = _Reference("pose", body)
+            self._prepared = None
 
     def hold(self) -> None:
         """Reference := the latest feedback joints (the robot stops where it is)."""
@@ -620,6 +627,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         ref = None if latest is None else self._hold_reference(latest.axes_mm_deg.copy())
         with self._ref_lock:
             self._reference = ref
+            self._prepared = None
             self._hook_commanded = True
 
     @property
@@ -717,7 +725,11 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     def _on_cycle_datagram(
         self, pb, data: bytes, addr: tuple[str, int], t_rx_ns: int, t_arrival_real_ns: int | None
     ) -> None:
-        """The reply path with a cycle hook: the reference answers this very packet."""
+        """The reply path with a cycle hook: every reply carries a reference computed for the cycle
+        it answers. The fast way: the hook prepared this packet's reference after the previous one
+        (:meth:`prepare_joints`, tagged with the controller clock or sequence number it expects), so
+        the reply goes out at once and the hook then prepares the next. Otherwise (the first packet,
+        a lost one, a clock that jumped) the hook computes this packet's reference before the reply."""
         if self._controller_addr != addr:
             if self._controller_addr is not None:
                 self._post(log.warning, "egm_controller_address_changed", old=self._controller_addr, new=addr)
@@ -730,28 +742,72 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         tm_ms = h.tm if h.HasField("tm") else None
         with self._ref_lock:
             in_order = self._track_seqno(seqno, tm_ms)
-        msg = self._convert(pb, data, addr, t_rx_ns)
-        if msg is None:
-            return
-        self._handover = None
-        self._record(pb, data, addr, t_rx_ns, msg, in_order)
-        fresh = True
-        if in_order:
-            self._hook_commanded = False
-            hook = self._cycle_hook
-            if hook is not None:
-                try:
-                    hook(msg, t_rx_ns)
-                except Exception as exc:  # the hook's own faults are its to handle; never ours
-                    self._post(log.error, "egm_cycle_hook_failed", error=repr(exc))
-                fresh = self._hook_commanded
-        with self._ref_lock:
-            if self._reference is None:
-                self._reference = self._hold_reference(axes_of(msg, self.config.n_external))
+            prepared = self._prepared
+            fast = in_order and prepared is not None and self._matches(prepared, pb, seqno)
+            if fast:
+                self._reference = prepared[0]
+            self._prepared = None
             ref = self._reference
-        self._reply(addr, t_rx_ns, ref, t_arrival_real_ns, fresh=fresh)
+        self._handover = None
+        hook = self._cycle_hook
+        if fast and ref is not None:
+            self._reply(addr, t_rx_ns, ref, t_arrival_real_ns)
+            msg = self._convert(pb, data, addr, t_rx_ns)
+            if msg is None:
+                return
+            self._record(pb, data, addr, t_rx_ns, msg, in_order)
+        else:
+            msg = self._convert(pb, data, addr, t_rx_ns)
+            if msg is None:
+                return
+            self._record(pb, data, addr, t_rx_ns, msg, in_order)
+            fresh = not in_order  # a duplicate or late packet repeats the reference of its cycle
+            if in_order and hook is not None:
+                self._hook_commanded = False
+                self._call_hook(hook, msg, t_rx_ns, "now")
+                fresh = self._hook_commanded
+            with self._ref_lock:
+                if self._reference is None:
+                    self._reference = self._hold_reference(axes_of(msg, self.config.n_external))
+                ref = self._reference
+            self._reply(addr, t_rx_ns, ref, t_arrival_real_ns, fresh=fresh)
+        if in_order and hook is not None:
+            self._call_hook(hook, msg, t_rx_ns, "next")
         if self._handover is not None:
             self._post(self._wake_waiters, self._handover)
+
+    def _call_hook(self, hook: CycleHook, msg: RobotMessage, t_rx_ns: int, phase: str) -> None:
+        try:
+            hook(msg, t_rx_ns, phase)
+        except Exception as exc:  # the hook's own faults are its to handle; never ours
+            self._post(log.error, "egm_cycle_hook_failed", error=repr(exc), phase=phase)
+
+    def _matches(self, prepared: tuple, pb, seqno: int | None) -> bool:
+        """Whether a prepared reference is for this packet's cycle: by the controller's clock when the
+        packet has one (within half a cycle), else by its sequence number."""
+        _ref, t_us, want_seqno = prepared
+        if t_us is not None and pb.HasField("feedBack") and pb.feedBack.HasField("time"):
+            t = int(pb.feedBack.time.sec) * 1_000_000 + int(pb.feedBack.time.usec)
+            return abs(t - t_us) * 2 < self.config.cycle_s * 1e6
+        return want_seqno is not None and seqno == want_seqno
+
+    def prepare_joints(
+        self,
+        q_deg: np.ndarray,
+        speed_deg_s: np.ndarray | None,
+        *,
+        for_t_ctrl_us: int | None,
+        for_seqno: int | None,
+    ) -> None:
+        """Joint mode, for the next packet only: the reference the reply to the packet of controller
+        time ``for_t_ctrl_us`` (or, without a clock, sequence number ``for_seqno``) carries. A packet
+        that is not that one gets the cycle hook's reference computed on the spot instead."""
+        n = self.config.n_external + self.config.n_axes
+        q = self._vector(q_deg, n, "q_deg")
+        qd = None if speed_deg_s is None else self._vector(speed_deg_s, n, "speed_deg_s")
+        ref = _joint_reference(q, qd, self.config.n_external)
+        with self._ref_lock:
+            self._prepared = (ref, for_t_ctrl_us, for_seqno)
 
     def _record(
         self, pb, data: bytes, addr: tuple[str, int], t_rx_ns: int, msg: RobotMessage | None, in_order: bool
@@ -861,12 +917,16 @@ class EgmEndpoint(asyncio.DatagramProtocol):
     # ---- per-cycle references ---------------------------------------------------------------
 
     def set_cycle_hook(self, hook: CycleHook | None) -> None:
-        """Compute each reply's reference for the packet it answers: ``hook(msg, t_rx_ns)`` runs on
-        the reply path for every new in-order ``EgmRobot``, after the state and history took it and
-        before the reply, and sets the reference with :meth:`command_joints` (or :meth:`hold`). A
-        reply whose packet got no reference of its own from the hook counts as stale, as does any
-        reply that leaves more than one EGM cycle after its packet arrived. None removes the hook."""
-        self._cycle_hook = hook
+        """Compute each reply's reference for the packet it answers: ``hook(msg, t_rx_ns, phase)``
+        runs on the reply path for every new in-order ``EgmRobot`` after the state and history took
+        it: with phase ``"next"`` after the reply, to :meth:`prepare_joints` the next packet's
+        reference, and first with phase ``"now"`` before the reply when no prepared reference fits
+        this packet, to set its reference with :meth:`command_joints` (or :meth:`hold`). A reply
+        whose packet got no reference of its own counts as stale, as does any reply that leaves more
+        than one EGM cycle after its packet arrived. None removes the hook."""
+        with self._ref_lock:
+            self._cycle_hook = hook
+            self._prepared = None
 
     @property
     def reply_thread_native_id(self) -> int | None:
@@ -1116,6 +1176,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
         self._reply_seqno = seqno
         # a stale reference from a previous session could make the robot jump: hold instead
         self._reference = None
+        self._prepared = None
         self._plaus = []
         self._suspect = None
         self._seqno_suspect = None

@@ -10,6 +10,8 @@ go). A reader that falls more than a ring behind loses the oldest rows, never ge
 The layout (one ``SharedMemory`` block, native byte order, 64-byte aligned arrays):
 
 ``header`` int64[8]: magic, capacity, n_axes, count (rows ever appended), writer pid, 3 spare;
+``status`` float64[4]: what the writer's user publishes beside the feedback (the motion process:
+execution id, its playback time and state code, written after each cycle; see :meth:`publish`);
 then ``capacity`` rows of ``t_host_ns`` int64, ``t_ctrl_us`` int64 (-1: none), ``seqno`` int64 (-1:
 none), ``index`` int64 (the row's number since the start, a check), ``state`` int16[3] (motor, EGM,
 RAPID states as the codec's enum values, -1: not sent), ``q_deg`` float64[n_axes] (with a track its mm
@@ -41,6 +43,7 @@ _ALIGN = 64
 def _layout(capacity: int, n_axes: int) -> tuple[dict[str, tuple[int, tuple[int, ...], type]], int]:
     fields = [
         ("header", (_HEADER,), np.int64),
+        ("status", (4,), np.float64),
         ("t_host_ns", (capacity,), np.int64),
         ("t_ctrl_us", (capacity,), np.int64),
         ("seqno", (capacity,), np.int64),
@@ -157,6 +160,19 @@ class SharedFeedbackHistory:
             st[j] = -1 if v is None else int(v)
         a["index"][i] = k
         self._head[3] = k + 1
+
+    def publish(self, a: float, b: float, c: float) -> None:
+        """Set the status words (the motion process: execution id, playback time s, state code);
+        the id goes last so a reader that sees it sees the rest of the same cycle or a newer one."""
+        st = self._a["status"]
+        st[1] = b
+        st[2] = c
+        st[0] = a
+
+    def status(self) -> tuple[float, float, float]:
+        """The status words as :meth:`publish` left them (zeros before the first)."""
+        st = self._a["status"]
+        return float(st[0]), float(st[1]), float(st[2])
 
     def clear(self) -> None:
         """Forget every sample (readers see an empty ring)."""
