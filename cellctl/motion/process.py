@@ -290,6 +290,14 @@ class MotionServer:
             deadline = time.monotonic() + _ORPHAN_STOP_S
             while not ex.done and time.monotonic() < deadline:
                 time.sleep(0.01)
+            # the reference is at rest; the arm follows it through the controller's filter: wait
+            # until it stands (or 3 s) before the process ends and the controller is left unanswered
+            settle = time.monotonic() + 3.0
+            while time.monotonic() < settle:
+                time.sleep(0.05)
+                recent = self.ring.arrays().q_deg[-25:]
+                if recent.shape[0] >= 25 and float(np.max(np.ptp(recent, axis=0))) < 0.002:
+                    break
         self._stop_when_idle = True
 
     def _control(self, cmd: ControlCommand) -> None:
