@@ -21,6 +21,14 @@ started), ``sim_cpu_fraction`` / ``endpoint_cpu_fraction`` (share of one core, t
 its whole run), ``endpoint_latency_max_us`` (the endpoint's own receive-to-send time, worst case),
 ``load_1min`` (the machine is shared: read the figures with it) and the settings used.
 
+``--motion-process`` (issue 41) puts the cell's own motion process on the other side instead of a
+bare endpoint: ``python -m cellctl.motion.process`` started by the daemon's
+:class:`~cellctl.motion.link.MotionLink` with cell.toml's real-time settings (SCHED_FIFO at
+``egm_reply_priority``, memory locked, spin), executing a scan plan (a 200 x 150 mm plate, again
+and again) the whole time, so each reply carries a reference computed for its cycle. It adds
+``stale_cycles`` (the motion process's own count) and ``motion_realtime``. ``--load N`` runs N busy
+processes (a tight Python loop each, normal priority) for the whole measurement.
+
 Prints exactly one JSON object on stdout; logs go to stderr.
 
     python benchmarks/egm_latency.py [--seconds 60] [--realtime] [--cpu-latency-us 0] \\
@@ -39,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import gc
 import json
 import os
@@ -46,6 +55,7 @@ import resource
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -144,9 +154,12 @@ def _figures(latency_us: np.ndarray, missed: np.ndarray, cycles: int, prefix: st
     }
 
 
-async def _measure(port: int, args: argparse.Namespace) -> dict:
+async def _measure(port: int, args: argparse.Namespace, q_start_deg: tuple[float, ...] | None = None) -> dict:
     seconds, cycle_ms = args.seconds, args.cycle_ms
-    sim = EgmControllerSim(EgmSimConfig(sensor_port=port, cycle_s=cycle_ms / 1000.0, comm_timeout_s=5.0))
+    extra = {} if q_start_deg is None else {"q_start_deg": tuple(q_start_deg)}
+    sim = EgmControllerSim(
+        EgmSimConfig(sensor_port=port, cycle_s=cycle_ms / 1000.0, comm_timeout_s=5.0, **extra)
+    )
     await sim.start()
     try:
         await asyncio.sleep(args.warmup_s)  # imports, first allocations, the endpoint's first packets
@@ -186,6 +199,55 @@ async def _measure(port: int, args: argparse.Namespace) -> dict:
             (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime) / seconds, 3
         ),
     }
+
+
+async def _motion_process(args: argparse.Namespace) -> dict:
+    """The measurement against the cell's motion process executing plans (``--motion-process``)."""
+    from analysis.placement import Placement
+    from analysis.plates import design_mesh, plate_spec
+    from cellctl.config import load_config
+    from cellctl.daemon.wiring import motion_settings
+    from cellctl.motion import ExecutorConfig
+    from cellctl.motion.link import MotionLink
+    from cellctl.planning import PlannerSettings, plan_scan
+
+    cfg = load_config(REPO / "cell.toml")
+    settings = PlannerSettings.from_config(cfg).with_(
+        placement_uncertainty_mm=5.0, placement_uncertainty_deg=0.5
+    )
+    mesh = design_mesh(plate_spec("sail", length_mm=200.0, width_mm=150.0), pitch_mm=5.0)
+    plan = plan_scan(mesh, Placement.on_bed(1600.0, 100.0, 3.0, z_mm=300.0), settings)
+    ms = motion_settings(cfg)
+    ms = dataclasses.replace(ms, endpoint=dataclasses.replace(ms.endpoint, port=0))
+    link = MotionLink(ms)
+    _host, port = await link.start()
+    stale = 0
+    try:
+        measure = asyncio.create_task(_measure(port, args, tuple(plan.trajectory.q_deg[0])))
+        await link.wait_for_feedback(30.0)
+        runs = 0
+        with tempfile.TemporaryDirectory() as tmp:
+            while not measure.done():
+                ex = link.execution(
+                    plan.trajectory, ExecutorConfig.from_settings(settings),
+                    segment_labels=[s.label for s in plan.segments], segment_kinds=[s.kind for s in plan.segments],
+                    work_dir=Path(tmp),
+                )  # fmt: skip
+                run = asyncio.create_task(ex.run())
+                await asyncio.wait({run, measure}, return_when=asyncio.FIRST_COMPLETED)
+                if not run.done():
+                    ex.abort()
+                result = await run
+                stale += ex.counters.egm_stale_cycles
+                runs += 1
+                if result.state.value == "faulted":
+                    print(f"egm_latency: execution faulted: {result.fault}", file=sys.stderr)
+                    break
+        out = await measure
+    finally:
+        await link.close()
+    out.update(stale_cycles=stale, executions=runs, motion_realtime=link.realtime)
+    return out
 
 
 def _pin(cpus: list[int], what: str) -> None:
@@ -235,8 +297,23 @@ def main() -> int:
         help="hold the CPUs' wake-up latency at this many us (/dev/cpu_dma_latency), as `cellctl run` does",
     )
     p.add_argument("--endpoint-child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--motion-process", action="store_true", help="the cell's motion process, executing plans")
+    p.add_argument("--load", type=int, default=0, help="N busy processes for the whole measurement")
     args = p.parse_args()
     _quiet_logging()
+    busy = [
+        subprocess.Popen([sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL)
+        for _ in range(0 if args.endpoint_child else args.load)
+    ]
+    try:
+        return _main(args)
+    finally:
+        for b in busy:
+            b.kill()
+            b.wait()
+
+
+def _main(args: argparse.Namespace) -> int:
     if args.endpoint_child:
         if args.realtime:
             # with a reply thread the loop runs below it (the thread asks for its own priority)
@@ -251,6 +328,12 @@ def main() -> int:
         from drivers.runtime import hold_cpu_wakeup_latency
 
         held = hold_cpu_wakeup_latency(args.cpu_latency_us)
+    if args.motion_process:
+        with asyncio.Runner(loop_factory=precise_event_loop) as runner:
+            result = runner.run(_motion_process(args))
+        result.update(realtime=realtime, cpu_latency_held=held, load=args.load, load_1min=os.getloadavg()[0])
+        print(json.dumps(result))
+        return 0
     child_argv = [a for a in sys.argv[1:] if a != "--realtime"] + (["--realtime"] if realtime else [])
     child = subprocess.Popen(
         [sys.executable, str(Path(__file__).resolve()), "--endpoint-child", *child_argv],
@@ -281,6 +364,7 @@ def main() -> int:
     result["spin_us"] = args.spin_us
     result["switch_interval_us"] = args.switch_interval_us
     result["cpu_latency_held"] = held
+    result["load"] = args.load
     result["load_1min"] = os.getloadavg()[0]
     print(json.dumps(result))
     return 0

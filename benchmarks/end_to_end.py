@@ -19,7 +19,19 @@ in a temporary directory), triggers one scan over Zenoh and waits for the report
   before the trigger (the service runs for months: not part of a job, so not in ``total_s``;
   ``total_with_processes_s`` adds it, the figure the runs before the seventh issue-22 session
   quoted as ``total_s``); ``trigger_to_report_s``: the same as ``total_s`` (kept for old scripts);
-* plus the plan's figures, profile and point counts and the analysis timings.
+* plus the plan's figures, profile and point counts and the analysis timings;
+* issue 41, how the motion process served the controller during the scan (job.json ``info.motion``):
+  ``egm_stale_cycles`` (replies computed for another cycle than the one they answer, or sent more
+  than a cycle after the packet arrived), ``egm_lost_cycles`` (controller cycles with no packet),
+  ``egm_reply_p50_us`` / ``egm_reply_p99_us`` / ``egm_reply_max_us`` (packet arrival to reply, 10 us
+  bins), ``max_tracking_error_mm``, and ``motion_realtime`` (what the OS granted the motion process);
+  ``accuracy_rms_mm``: the cloud's RMS distance to the simulator's true plate surface (points at
+  least 10 mm inside its edges), the figure a late reference would spoil.
+
+``--load N`` runs N busy processes (a tight Python loop each, normal priority) beside the cell from
+before the trigger to the report; ``--worker-busy`` runs, beside the cell's own worker, an analysis
+as large as the worker's (``cellctl inspect`` of a synthetic 1200 x 800 mm scan at 0.5 mm, 1.4 M
+points, again and again): the load of a worker still analysing the previous plate on the cell PC.
 
 Targets (issue 8): report <= 15 s after the last profile, total <= 4.5 min. Issue 22's: total <=
 1.1 x sweep + 5 s, report <= 3 s after the last profile.
@@ -41,6 +53,7 @@ import argparse
 import asyncio
 import json
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -67,6 +80,66 @@ def _peak_mb(pid: int) -> float:
         except OSError:
             continue
     return round(total, 1)
+
+
+def _busy_processes(n: int, worker_busy: bool, work: Path, env: dict) -> list[subprocess.Popen]:
+    """``n`` busy loops and, with ``worker_busy``, a large analysis in a loop (see the docstring)."""
+    procs = [
+        subprocess.Popen([sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL)
+        for _ in range(n)
+    ]
+    if worker_busy:
+        big = work / "busy"
+        cellctl = [sys.executable, "-m", "cellctl"]
+        subprocess.run(
+            [*cellctl, "synth", "--plate", "sail", "--out", str(big / "scan.ply"), "--profile-step-mm", "0.5"],
+            check=True, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        loop = (
+            f"while true; do {' '.join(cellctl)} inspect {big}/scan.ply --design {big}/scan-design.ply "
+            f"--out {big}/out >/dev/null 2>&1; done"
+        )
+        procs.append(
+            subprocess.Popen(["bash", "-c", loop], env=env, stdin=subprocess.DEVNULL, start_new_session=True)
+        )
+    return procs
+
+
+def _motion_realtime(log_path: Path) -> dict | None:
+    """What the OS granted the motion process, from the daemon's log (``motion_process_started``)."""
+    try:
+        for line in log_path.read_text().splitlines():
+            if '"motion_process_started"' in line:
+                ev = json.loads(line)
+                return {k: ev.get(k) for k in ("priority", "sched_fifo", "cpus", "memory_locked", "refused")}
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _accuracy_rms_mm(data_dir: Path, job_id: str) -> float | None:
+    """RMS distance of the job's cloud (cloud.bin, base frame) to the simulator's true top surface,
+    over the points at least 10 mm inside the plate's edges."""
+    import numpy as np
+
+    from analysis.plates import FormingError, PlateSpec
+    from cellctl.api.cloud_codec import decode_cloud
+    from cellctl.simcell.truth import PlateTruth
+
+    truth_path, cloud_path = data_dir / "sim-truth.json", data_dir / "jobs" / job_id / "cloud.bin"
+    if not truth_path.is_file() or not cloud_path.is_file():
+        return None
+    t = json.loads(truth_path.read_text())
+    truth = PlateTruth(
+        spec=PlateSpec(**t["plate"]),
+        error=None if t["forming_error"] is None else FormingError.from_dict(t["forming_error"]),
+        T_base_plate=np.asarray(t["T_base_plate"], dtype=np.float64),
+    )
+    xyz = decode_cloud(cloud_path.read_bytes()).xyz_mm.astype(np.float64)
+    d, inside = truth.distance_mm(xyz, edge_margin_mm=10.0)
+    # the bed and supports the sensor also sees lie far below the plate's top: not the plate's points
+    keep = inside & (np.abs(d) < 5.0)
+    return round(float(np.sqrt(np.mean(d[keep] ** 2))), 4) if keep.any() else None
 
 
 def _utc_s(stamp: str) -> float:
@@ -115,6 +188,8 @@ def main() -> int:
     p.add_argument(
         "--timeout-s", type=float, default=None, help="give up after this (default 3600; long 7200)"
     )
+    p.add_argument("--load", type=int, default=0, help="N busy processes beside the cell")
+    p.add_argument("--worker-busy", action="store_true", help="a large analysis running beside the scan")
     args = p.parse_args()
     plate = args.plate or ("demo" if args.small else "sail")
     long_plate = plate == "long"
@@ -138,11 +213,13 @@ def main() -> int:
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     procs = Processes(work / "logs", cfg_path, env)
     peaks: dict[str, float] = {}
+    busy: list[subprocess.Popen] = []
     try:
         sim = procs.start("sim", "sim")
         wait_ready_line(work / "logs" / "sim.out", sim, 180.0)
         daemon = procs.start("run", "run")
         worker = procs.start("worker", "worker")
+        busy = _busy_processes(args.load, args.worker_busy, work, env)
         t0 = time.time()
 
         async def drive():
@@ -173,6 +250,9 @@ def main() -> int:
         wait_html_report(cfg.cell.data_dir, job_id, 180.0)
         peaks["daemon"] = max(peaks["daemon"], _peak_mb(daemon.pid))
     finally:
+        for b in busy:
+            b.kill()
+            b.wait()
         procs.stop_all()
     rec = json.loads((Path(cfg.cell.data_dir) / "jobs" / job_id / "job.json").read_text())
     info = rec["info"]
@@ -226,7 +306,21 @@ def main() -> int:
         "plan_s": info.get("plan_s"),
         "track": cfg.robot.track is not None,
         "plan_choices": info["plan"].get("choices"),
+        "load": args.load,
+        "worker_busy": args.worker_busy,
     }
+    motion = info.get("motion") or {}
+    out.update(
+        egm_stale_cycles=motion.get("egm_stale_cycles"),
+        egm_lost_cycles=motion.get("egm_lost_cycles"),
+        egm_reply_p50_us=motion.get("egm_reply_p50_us"),
+        egm_reply_p99_us=motion.get("egm_reply_p99_us"),
+        egm_reply_max_us=motion.get("egm_reply_max_us"),
+        egm_cycles=motion.get("cycles"),
+        max_tracking_error_mm=info.get("max_tracking_error_mm"),
+        motion_realtime=_motion_realtime(work / "logs" / "run.log"),
+        accuracy_rms_mm=_accuracy_rms_mm(Path(cfg.cell.data_dir), job_id),
+    )
     found = info.get("placement_found")
     if found is not None:
         out["placement_found"] = found
