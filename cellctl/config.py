@@ -181,7 +181,8 @@ class RobotSection(Section):
     egm_comm_timeout_s: _seconds(60.0) = 1.0
     egm_watchdog_s: _seconds(10.0) = 0.1
     egm_history_len: Annotated[int, Field(ge=1000, le=10_000_000)] = 30_000
-    # EGM replies from their own thread (docs/robot-setup.md section 12, benchmarks/egm_latency.py)
+    # an in-process endpoint's reply thread (tools and tests that build an endpoint from cell.toml);
+    # the daemon's motion process always answers from its own real-time thread
     egm_reply_thread: bool = True
     egm_reply_priority: Annotated[int, Field(ge=0, le=99)] = 20
     egm_reply_cpus: list[Annotated[int, Field(ge=0, le=1023)]] = []

@@ -36,6 +36,7 @@ from cellctl.api.models import (
     JobEvent,
     JobSpec,
     LiveCloudChunk,
+    MotionCounters,
     ReportEnvelope,
     StreamChunk,
     StreamEnd,
@@ -52,7 +53,7 @@ MODELS: dict[str, type] = {
         TriggerRequest, Placement, JobSpec, AnalysisJob, InspectionSettings, DetectionLayout, Tolerances,
         JobEvent, ReportEnvelope, Report, RegistrationReport, LineReport, ScanCoverage, SurfaceReport,
         ReportInputs, DesignReport, DaemonStats, EgmStats, LiveCloudChunk, TransferSpec, DesignRef, ResultChunk,
-        ResultManifest, ResultFile, StreamChunk, StreamEnd,
+        ResultManifest, ResultFile, StreamChunk, StreamEnd, MotionCounters,
     )
 }  # fmt: skip
 DOC = Path(__file__).resolve().parents[2] / "docs" / "api.md"
