@@ -45,7 +45,11 @@ function connect() {
   const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
   S.ws = ws;
   ws.onopen = () => $("conn").classList.add("up");
-  ws.onclose = () => { $("conn").classList.remove("up"); if (S.me) setTimeout(connect, 1000); };
+  ws.onclose = (e) => {
+    $("conn").classList.remove("up");
+    if (e.code === 4401) { S.me = null; showLogin(); return; } // the session ended (log-out elsewhere, expiry)
+    if (S.me) setTimeout(connect, 1000);
+  };
   ws.onmessage = (m) => {
     const ev = JSON.parse(m.data);
     if (ev.type === "status") onStatus(ev.status, ev.t_server_ms);
