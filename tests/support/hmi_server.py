@@ -60,7 +60,7 @@ class FakeLink:
         if isinstance(r, ApiCallError):
             raise r
         if r is None:
-            raise ApiCallError("the fake cell has no reply queued", None)
+            raise ApiCallError("fake", None, "the fake cell has no reply queued")
         assert isinstance(r, kind), r
         return r
 
