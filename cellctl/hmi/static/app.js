@@ -5,6 +5,22 @@ const S = { me: null, status: null, statusAt: 0, liveJob: null, view: null, scan
 const $ = (id) => document.getElementById(id);
 const esc = (s) => String(s == null ? "" : s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
 const fmt = (v, d = 2) => (v == null || !isFinite(v) ? "-" : Number(v).toFixed(d));
+const FINAL = ["done", "failed", "aborted", "interrupted", "cancelled"];
+// a message may name files on the cell's server: show their names, never the server's paths
+const noPaths = (m) => String(m == null ? "" : m).replace(/(^|[\s'"(=])((?:\/[^\s'"():,;]+){2,})/g, (_, pre, p) => pre + p.split("/").pop());
+
+// ------------------------------------------------------------------ confirmation (once, in the page)
+function askConfirm(text, yes) {
+  return new Promise((resolve) => {
+    $("confirm-text").textContent = text;
+    $("confirm-yes").textContent = yes;
+    $("confirm").classList.remove("hidden");
+    const done = (v) => { $("confirm").classList.add("hidden"); $("confirm-yes").onclick = null; $("confirm-no").onclick = null; resolve(v); };
+    $("confirm-yes").onclick = () => done(true);
+    $("confirm-no").onclick = () => done(false);
+    $("confirm-no").focus();
+  });
+}
 
 async function api(method, path, body) {
   const headers = {};
@@ -29,6 +45,14 @@ async function afterLogin(me) {
   $("nav-start").classList.toggle("hidden", !me.may.includes("trigger"));
   connect();
   route();
+  refreshVerdicts();
+}
+// the verdicts of ended jobs (the history index): the state publication carries none
+async function refreshVerdicts() {
+  const res = await api("GET", "/api/jobs");
+  if (!res.ok) return;
+  S.verdicts = Object.fromEntries(res.data.jobs.map((j) => [j.job_id, j.verdict]));
+  if (S.status) renderCell(S.status);
 }
 $("login-form").addEventListener("submit", async (e) => {
   e.preventDefault();
@@ -63,7 +87,8 @@ setInterval(() => { if (S.me) renderBanner(); }, 1000);
 const PAGES = ["cell", "start", "scan", "result", "history"];
 function route() {
   const [page, arg] = (location.hash.replace(/^#/, "") || "cell").split("/");
-  const p = PAGES.includes(page) ? page : "cell";
+  let p = PAGES.includes(page) ? page : "cell";
+  if (p === "start" && !(S.me && S.me.may.includes("trigger"))) { p = "cell"; history.replaceState(null, "", "#cell"); } // not offered
   for (const name of PAGES) $("page-" + name).classList.toggle("active", name === p);
   for (const a of document.querySelectorAll("nav a")) a.classList.toggle("active", a.dataset.page === p);
   document.body.dataset.page = p;
@@ -78,17 +103,7 @@ window.addEventListener("hashchange", () => { if (S.me) route(); });
 function onStatus(st, tServer) {
   S.status = st; S.statusAt = Date.now();
   document.body.dataset.cellState = st.state;
-  $("cell-state").textContent = st.state.replace("_", " ");
-  $("cell-message").textContent = st.message;
-  const j = st.job;
-  $("cell-job").innerHTML = j ? `<b>${esc(j.plate_id)}</b> ${esc(j.job_id)}<br>${esc(j.state)} ${esc(j.stage)}` : "none";
-  $("cell-job-bar").style.width = j ? (100 * j.fraction).toFixed(1) + "%" : "0";
-  $("cell-queue").innerHTML = st.queue.map((q) => `<li>${esc(q.plate_id)} <small>${esc(q.job_id)}</small></li>`).join("") || "<li>empty</li>";
-  $("cell-analyses").innerHTML = st.analyses.map((a) => `<li>${esc(a.plate_id)}: ${esc(a.state)} ${esc(a.worker_id || "")}</li>`).join("") || "<li>none</li>";
-  $("cell-workers").innerHTML = st.workers.map((w) => `<li>${esc(w)}</li>`).join("") || "<li>no worker: reports wait</li>";
-  $("cell-recent").innerHTML = "<tr><th>plate</th><th>job</th><th>state</th><th>message</th><th></th></tr>" +
-    st.recent.slice().reverse().map((r) => `<tr class="clickable" data-job="${esc(r.job_id)}"><td>${esc(r.plate_id)}</td><td>${esc(r.job_id)}</td><td>${esc(r.state)}</td><td>${esc(r.message)}</td><td>${
-      ["interrupted", "failed"].includes(r.state) && S.me && S.me.may.includes("reanalyse") ? `<button class="reanalyse" data-job="${esc(r.job_id)}">Re-analyse</button>` : ""}</td></tr>`).join("");
+  renderCell(st);
   const resetable = ["faulted", "emergency_stopped"].includes(st.state);
   $("btn-reset").classList.toggle("hidden", !(resetable && $("btn-reset").dataset.allowed));
   renderBanner();
@@ -97,6 +112,25 @@ function onStatus(st, tServer) {
   // publication -> on screen (same clock on one machine; kept for benchmarks/hmi.py)
   S.statusLatencyMs = (S.statusLatencyMs || []).slice(-999).concat([Date.now() - Date.parse(st.t_utc)]);
   document.body.dataset.statusT = st.t_utc;
+}
+const jobWords = (j) => esc(j.state.replace(/_/g, " ")) + (j.stage && j.stage !== j.state ? ": " + esc(j.stage) : "");
+const verdictOf = (id) => (S.verdicts || {})[id] || null;
+function renderCell(st) {
+  $("cell-state").textContent = st.state.replace("_", " ");
+  $("cell-message").textContent = noPaths(st.message);
+  const j = st.job, active = j && !FINAL.includes(j.state);
+  // the job holding the robot; once it ended, the last job, said so (never "idle" beside "in progress")
+  $("cell-job-label").textContent = active ? "Job in progress" : "Last job";
+  const v = j && !active ? verdictOf(j.job_id) : null;
+  $("cell-job").innerHTML = j ? `<b>${esc(j.plate_id)}</b> <small>${esc(j.job_id)}</small><br>${jobWords(j)}${v ? ` · <span class="verdict-word ${esc(v)}">${esc(v.toUpperCase())}</span>` : ""}` : "none";
+  $("cell-job-bar").parentElement.classList.toggle("hidden", !active);
+  $("cell-job-bar").style.width = active ? (100 * j.fraction).toFixed(1) + "%" : "0";
+  $("cell-queue").innerHTML = st.queue.map((q) => `<div>${q.position}. <b>${esc(q.plate_id)}</b> <small>${esc(q.job_id)}</small></div>`).join("") || "<div class=\"none\">empty</div>";
+  $("cell-analyses").innerHTML = st.analyses.map((a) => `<li>${esc(a.plate_id)}: ${esc(a.state)} ${esc(a.worker_id || "")}</li>`).join("") || "<li>none</li>";
+  $("cell-workers").innerHTML = st.workers.map((w) => `<li>${esc(w)}</li>`).join("") || "<li>no worker: reports wait</li>";
+  $("cell-recent").innerHTML = "<tr><th>plate</th><th>job</th><th>state</th><th>verdict</th><th>message</th><th></th></tr>" +
+    st.recent.slice().reverse().map((r) => { const rv = verdictOf(r.job_id); return `<tr class="clickable ${rv === "fail" ? "fail" : ""}" data-job="${esc(r.job_id)}"><td>${esc(r.plate_id)}</td><td>${esc(r.job_id)}</td><td>${esc(r.state)}</td><td>${rv ? esc(rv.toUpperCase()) : "-"}</td><td>${esc(noPaths(r.message))}</td><td>${
+      ["interrupted", "failed"].includes(r.state) && S.me && S.me.may.includes("reanalyse") ? `<button class="reanalyse" data-job="${esc(r.job_id)}">Re-analyse</button>` : ""}</td></tr>`; }).join("");
 }
 function renderHealth() {
   const age = S.statusAt ? (Date.now() - S.statusAt) / 1000 : Infinity;
@@ -183,14 +217,28 @@ $("start-form").addEventListener("submit", async (e) => {
   // without a placement the cell finds the plate (a locate run); with one, the locate run checks it
   if (!$("start-locate").checked)
     body.placement = { pos_mm: [num("start-x"), num("start-y"), num("start-z")], rpy_deg: [0, 0, num("start-yaw")] };
+  const busy = plateBusy(body.plate_id);
+  if (busy && !(await askConfirm(`Plate ${body.plate_id} is already ${busy}. Start another scan of it?`, "Start another scan"))) {
+    $("start-error").textContent = "Not started."; return;
+  }
   $("start-submit").disabled = true;
   const res = await api("POST", "/api/trigger", body);
   $("start-submit").disabled = false;
   if (!res.ok) { $("start-error").textContent = "Not started. " + errText(res); return; }
+  $("start-plate").value = ""; $("start-note").value = ""; // a second press must not scan the same plate again
   $("start-ok").textContent = res.data.state === "queued" ? `Queued at position ${res.data.queue_position} (job ${res.data.job_id})` : `Started: job ${res.data.job_id}`;
   S.followJob = res.data.job_id;
   location.hash = "#scan";
 });
+
+// where the plate already is in the cell: "being scanned (job ...)", "queued (position 2)", or null
+function plateBusy(plate) {
+  const st = S.status;
+  if (!st) return null;
+  if (st.job && st.job.plate_id === plate && !FINAL.includes(st.job.state)) return `${st.job.state.replace(/_/g, " ")} (job ${st.job.job_id})`;
+  const q = st.queue.find((x) => x.plate_id === plate);
+  return q ? `queued (position ${q.position}, job ${q.job_id})` : null;
+}
 
 // ------------------------------------------------------------------ Scan page
 function scanJob() {
@@ -225,8 +273,10 @@ function onLive(ev) {
 }
 function renderScan() {
   const j = scanJob();
+  renderMotion(j);
   if (!j) { $("scan-job").textContent = "no scan in progress"; return; }
-  $("scan-job").innerHTML = `<b>${esc(j.plate_id)}</b> ${esc(j.job_id)}<br>${esc(j.state)}: ${esc(j.stage)} ${esc(j.message)}`;
+  $("scan-job").innerHTML = `<b>${esc(j.plate_id)}</b> ${esc(j.job_id)}<br>${jobWords(j)} ${esc(noPaths(j.message))}`;
+  $("scan-job").title = `${j.plate_id} ${j.job_id}: ${j.state} ${j.stage} ${noPaths(j.message)}`;
   const m = /\((\d+)\/(\d+)\)/.exec(j.stage || "");
   $("scan-pass").textContent = m ? `${m[1]} / ${m[2]}` : "-";
   const f = j.fraction || 0;
@@ -235,21 +285,36 @@ function renderScan() {
   $("scan-progress").dataset.fraction = String(f);
   if (["scanning", "paused"].includes(j.state)) {
     if (!S.scanStart || S.scanStart.job !== j.job_id) S.scanStart = { job: j.job_id, t: Date.now(), f };
-    const el = (Date.now() - S.scanStart.t) / 1000, df = f - S.scanStart.f;
-    $("scan-left").textContent = df > 0.02 ? Math.max(0, (el * (1 - f)) / df).toFixed(0) + " s" : "…";
+    // a pause stops the clock the estimate runs on: time left holds still instead of rising
+    if (j.state === "paused") { if (!S.scanStart.pausedAt) S.scanStart.pausedAt = Date.now(); }
+    else if (S.scanStart.pausedAt) { S.scanStart.t += Date.now() - S.scanStart.pausedAt; S.scanStart.pausedAt = null; }
+    const now = S.scanStart.pausedAt || Date.now();
+    const el = (now - S.scanStart.t) / 1000, df = f - S.scanStart.f;
+    const left = df > 0.02 ? Math.max(0, (el * (1 - f)) / df).toFixed(0) + " s" : "…";
+    $("scan-left").textContent = j.state === "paused" ? left + " (paused)" : left;
   } else $("scan-left").textContent = ["done", "waiting_for_worker", "analysing"].includes(j.state) ? "scan done" : "-";
   $("btn-pause").disabled = j.state !== "scanning";
   $("btn-resume").disabled = j.state !== "paused";
   $("btn-abort").disabled = !["planning", "scanning", "paused"].includes(j.state);
 }
+// the motion process's counters for the job (JobProgress.motion), when the cell publishes them
+function renderMotion(j) {
+  const m = j && j.motion, el = $("scan-motion");
+  el.classList.toggle("hidden", !m);
+  if (!m) return;
+  el.innerHTML = `<span class="label">Motion</span> <span data-k="stale">${m.egm_stale_cycles} stale cycle${m.egm_stale_cycles === 1 ? "" : "s"}</span> · <span data-k="lost">${m.egm_lost_cycles} lost cycle${m.egm_lost_cycles === 1 ? "" : "s"}</span> · <span data-k="p99">reply p99 ${m.egm_reply_p99_us == null ? "-" : fmt(m.egm_reply_p99_us, 0) + " µs"}</span> · <span data-k="track">max tracking error ${fmt(m.max_tracking_error_mm, 2)} mm</span>`;
+  el.classList.toggle("warn", m.egm_stale_cycles > 0 || m.egm_lost_cycles > 0);
+}
 for (const action of ["pause", "resume", "abort"]) {
   $("btn-" + action).addEventListener("click", async () => {
     const j = scanJob();
+    if (action === "abort" && !(await askConfirm(j ? `Abort the scan of plate ${j.plate_id} (job ${j.job_id})? The robot stops and the scan is lost.` : "Abort?", "Abort scan"))) return;
     const res = await api("POST", "/api/control/" + action, j ? { job_id: j.job_id } : {});
     $("scan-error").textContent = res.ok ? "" : action + " refused: " + errText(res);
   });
 }
 function onJobEnd(ev) {
+  if (ev.type === "history") refreshVerdicts();
   if (ev.type === "history" && S.followJob === ev.job_id) { S.followJob = null; location.hash = "#result/" + encodeURIComponent(ev.job_id); }
   else if (document.body.dataset.page === "history") loadHistory(S.historyPlate);
 }
@@ -267,7 +332,7 @@ async function loadResult(jobId) {
   const { job, report, files, previous } = res.data;
   document.body.dataset.resultJob = job.job_id;
   $("result-title").textContent = `Plate ${job.plate_id} · job ${job.job_id}`;
-  $("result-meta").innerHTML = `state ${esc(job.state)} · design ${esc(job.design)} · ${esc(job.created_utc)}<br>${esc((job.history.slice(-1)[0] || {}).message || "")}`;
+  $("result-meta").innerHTML = `state ${esc(job.state)} · design ${esc(job.design)} · ${esc(job.created_utc)}<br>${esc(noPaths((job.history.slice(-1)[0] || {}).message || ""))}`;
   $("result-downloads").innerHTML = files.map((f) => `<a href="/api/jobs/${encodeURIComponent(job.job_id)}/files/${f}" download>${esc(f)}</a>`).join("");
   const rb = $("btn-reanalyse");
   rb.classList.toggle("hidden", !(rb.dataset.allowed && ["interrupted", "failed"].includes(job.state)));

@@ -1,0 +1,316 @@
+"""The HMI's pages in a real browser against a status the test publishes (no cell).
+
+Playwright drives Debian's Chromium (as test_hmi_browser.py does) against an HMI server in this
+process with a fake link (tests/support/hmi_server.py): the test publishes the `CellStatus` the
+daemon would, queues the replies of triggers and controls, and reads what the page sent. Covers
+issue 44's flow on screen: the Scan page's motion counters, abort asked once, a second start of a
+plate already in the cell asked first, the Cell page's state, job and queue consistent with
+verdicts and no server paths, every control on a 1280 x 800 screen with touch targets of 48 px,
+and the Start form not offered to a viewer.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from playwright import sync_api as playwright_sync
+
+from cellctl.api import ControlReply, TriggerAccepted
+from tests.support.hmi_server import USERS, LocalHmi
+
+pytestmark = [pytest.mark.process, pytest.mark.timeout(180)]  # Chromium is a process of its own
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync"]  # fmt: skip
+DONE_JOB, FAILED_JOB = "20261201T100000-aaaa0001", "20261201T110000-aaaa0002"
+MOTION = {"cycles": 48211, "egm_stale_cycles": 3, "egm_lost_cycles": 1, "egm_reply_p50_us": 180.0,
+          "egm_reply_p99_us": 412.0, "egm_reply_max_us": 905.0, "max_tracking_error_mm": 0.437}  # fmt: skip
+
+
+def _job_dir(data: Path, job_id: str, plate: str, verdict: str) -> None:
+    d = data / "jobs" / job_id
+    d.mkdir(parents=True)
+    rec = {"job_id": job_id, "plate_id": plate, "design": "p.ply", "design_path": "/srv/cell/designs/p.ply",
+           "placement": {}, "state": "done", "created_utc": "2026-12-01T10:00:00Z",
+           "history": [{"state": "done", "t_utc": "2026-12-01T10:00:00Z", "message": "done"}], "info": {}}  # fmt: skip
+    (d / "job.json").write_text(json.dumps(rec))
+    lines = [{"family": "transverse", "index": 1, "name": "T1", "zmax_mm": 1.0 if verdict == "pass" else 4.0,
+              "sz_avg_mm": 0.5, "pass": verdict == "pass"}]  # fmt: skip
+    (d / "report.json").write_text(json.dumps({"verdict": verdict, "lines": lines}))
+
+
+def status(state: str = "idle", job: dict | None = None, queue: list | None = None, recent: list | None = None,
+           message: str = "") -> dict:  # fmt: skip
+    return {"cell_id": "cell-1", "state": state, "t_utc": "2026-12-07T10:00:00.000Z", "job": job,
+            "queued": len(queue or []), "queue": queue or [], "recent": recent or [], "workers": ["w1"],
+            "message": message}  # fmt: skip
+
+
+def job(state: str, plate: str = "P-7", job_id: str = "20261207T100000-bbbb0001", **kw) -> dict:
+    return {"job_id": job_id, "plate_id": plate, "state": state, "stage": kw.pop("stage", state), **kw}
+
+
+@pytest.fixture(scope="module")
+def hmi(tmp_path_factory) -> Iterator[LocalHmi]:
+    root = tmp_path_factory.mktemp("hmi-screens")
+    _job_dir(root / "data", DONE_JOB, "P-1", "pass")
+    _job_dir(root / "data", FAILED_JOB, "P-2", "fail")
+    (root / "designs").mkdir()
+    (root / "designs" / "p.ply").write_text("not a mesh")  # listed; its preview says it cannot be read
+    with LocalHmi(root) as h:
+        yield h
+
+
+@pytest.fixture(scope="module")
+def shots(tmp_path_factory) -> Path:
+    return Path(os.environ.get("HMI_SCREENSHOTS") or tmp_path_factory.mktemp("hmi-screens-shots"))
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    with playwright_sync.sync_playwright() as pw:
+        b = pw.chromium.launch_persistent_context(
+            str(tmp_path_factory.mktemp("chromium-profile")),
+            executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS, viewport={"width": 1280, "height": 800},
+            bypass_csp=True, has_touch=True,
+        )  # fmt: skip
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture
+def page(browser, hmi):
+    browser.clear_cookies()
+    hmi.link.sent.clear()
+    hmi.link.replies.clear()
+    p = browser.new_page()
+    errors: list[str] = []
+    p.on("pageerror", lambda e: errors.append(str(e)))
+    p.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    try:
+        yield p
+    finally:
+        p.close()
+    assert not [e for e in errors if not any(c in e for c in ("401", "403", "422", "429", "503"))], errors
+
+
+def login(page, hmi: LocalHmi, user: str, hash_: str = "#cell") -> None:
+    page.goto(hmi.url + "/" + hash_)
+    page.fill("#login-user", user)
+    page.fill("#login-password", USERS[user][1])
+    page.click("#login-submit")
+    page.wait_for_selector("#app:not(.hidden)")
+    page.wait_for_function("document.querySelector('#conn').classList.contains('up')")
+
+
+def publish(page, hmi: LocalHmi, st: dict) -> None:
+    """Publish ``st`` and wait until the page has it."""
+    st = dict(st, t_utc=f"2026-12-07T10:00:{publish.n % 60:02d}.{publish.n // 60 % 1000:03d}Z")
+    publish.n += 1
+    hmi.publish(st)
+    page.wait_for_function(f"document.body.dataset.statusT === '{st['t_utc']}'", timeout=10_000)
+
+
+publish.n = 0  # type: ignore[attr-defined]
+
+
+def test_the_scan_page_shows_the_motion_counters_when_the_cell_publishes_them(page, hmi, shots) -> None:
+    login(page, hmi, "olga", "#scan")
+    publish(page, hmi, status("scanning", job("scanning", stage="pass (2/6)", fraction=0.4, profiles=900)))
+    assert page.is_hidden("#scan-motion")  # no counters published: no line
+    publish(
+        page,
+        hmi,
+        status("scanning", job("scanning", stage="pass (2/6)", fraction=0.4, profiles=900, motion=MOTION)),
+    )
+    page.wait_for_selector("#scan-motion:not(.hidden)")
+    text = page.text_content("#scan-motion")
+    assert "3 stale cycles" in text and "1 lost cycle ·" in text, text
+    assert "reply p99 412 µs" in text and "max tracking error 0.44 mm" in text, text
+    box = page.locator("#scan-motion").bounding_box()
+    assert box and box["y"] + box["height"] <= 800  # on screen with the progress
+    page.screenshot(path=str(shots / "hmi-scan-motion.png"))
+    # counters without a reply histogram yet: a dash, not "null"
+    publish(
+        page,
+        hmi,
+        status("scanning", job("scanning", fraction=0.5, motion=dict(MOTION, egm_reply_p99_us=None))),
+    )
+    assert "reply p99 -" in page.text_content("#scan-motion")
+    publish(page, hmi, status("idle", None))
+    assert page.is_hidden("#scan-motion")
+
+
+def test_abort_asks_once_and_sends_one_abort_for_the_job_on_screen(page, hmi) -> None:
+    login(page, hmi, "olga", "#scan")
+    j = job("scanning", stage="pass (1/4)", fraction=0.2)
+    publish(page, hmi, status("scanning", j))
+    page.click("#btn-abort")
+    page.wait_for_selector("#confirm:not(.hidden)")
+    assert "P-7" in page.text_content("#confirm-text")
+    page.click("#confirm-no")  # changed their mind: nothing sent
+    page.wait_for_selector("#confirm.hidden", state="attached")
+    assert hmi.link.sent == []
+    hmi.link.replies.append(
+        ControlReply(action="abort", job_id=j["job_id"], state="idle", job_state="aborted")
+    )
+    page.click("#btn-abort")
+    page.click("#confirm-yes")
+    page.wait_for_function("document.getElementById('confirm').classList.contains('hidden')")
+    page.wait_for_timeout(300)
+    assert [(a, json.loads(b)) for a, b in hmi.link.sent] == [("abort", {"job_id": j["job_id"]})]
+    assert page.text_content("#scan-error") == ""
+    # pause asks nothing
+    hmi.link.replies.append(
+        ControlReply(action="pause", job_id=j["job_id"], state="paused", job_state="paused")
+    )
+    page.click("#btn-pause")
+    page.wait_for_function("document.getElementById('scan-error').textContent === ''")
+    page.wait_for_timeout(300)
+    assert [a for a, _ in hmi.link.sent] == ["abort", "pause"]
+    assert page.is_hidden("#confirm")
+
+
+def test_a_second_start_of_a_plate_in_the_cell_asks_first_and_the_form_forgets_the_plate(page, hmi) -> None:
+    login(page, hmi, "olga", "#start")
+    page.wait_for_selector("#start-design option", state="attached")
+    publish(page, hmi, status("scanning", job("scanning", plate="P-7", fraction=0.3),
+                              queue=[{"job_id": "20261207T100500-cccc0001", "plate_id": "P-8", "position": 1}]))  # fmt: skip
+    for k, v in (("#start-x", "1500"), ("#start-y", "0"), ("#start-z", "300"), ("#start-yaw", "0")):
+        page.fill(k, v)
+    for plate, words in (("P-7", "scanning"), ("P-8", "queued (position 1")):
+        page.fill("#start-plate", plate)
+        page.click("#start-submit")
+        page.wait_for_selector("#confirm:not(.hidden)")
+        assert words in page.text_content("#confirm-text"), page.text_content("#confirm-text")
+        page.click("#confirm-no")
+        assert page.text_content("#start-error") == "Not started."
+    assert hmi.link.sent == []
+    hmi.link.replies.append(
+        TriggerAccepted(job_id="20261207T101000-dddd0001", state="queued", queue_position=2)
+    )
+    page.fill("#start-plate", "P-7")
+    page.click("#start-submit")
+    page.click("#confirm-yes")
+    page.wait_for_function("location.hash === '#scan'")
+    assert [(a, json.loads(b)["plate_id"]) for a, b in hmi.link.sent] == [("trigger", "P-7")]
+    # a plate not in the cell starts without a question; the form forgot the last plate
+    page.goto(hmi.url + "/#start")
+    page.wait_for_selector("#start-design option", state="attached")
+    assert page.input_value("#start-plate") == ""
+    hmi.link.replies.append(
+        TriggerAccepted(job_id="20261207T101100-dddd0002", state="queued", queue_position=3)
+    )
+    page.fill("#start-plate", "P-9")
+    page.click("#start-submit")
+    page.wait_for_function("location.hash === '#scan'")
+    assert page.is_hidden("#confirm")
+    assert [json.loads(b)["plate_id"] for _, b in hmi.link.sent] == ["P-7", "P-9"]
+
+
+def test_the_cell_page_keeps_state_job_and_queue_consistent_with_verdicts_and_no_paths(
+    page, hmi, shots
+) -> None:
+    login(page, hmi, "vic")
+    recent = [
+        job(
+            "done",
+            plate="P-1",
+            job_id=DONE_JOB,
+            message="report written to /srv/cell/data/jobs/x/results/report.json",
+        ),
+        job("done", plate="P-2", job_id=FAILED_JOB, message="done (pass 3/8)"),
+    ]
+    publish(page, hmi, status("idle", recent[1], recent=recent))
+    assert page.text_content("#cell-state") == "idle"
+    assert page.text_content("#cell-job-label") == "Last job"
+    text = page.text_content("#cell-job")
+    assert "done done" not in text and "P-2" in text
+    page.wait_for_function("document.getElementById('cell-job').textContent.includes('FAIL')")
+    assert page.text_content("#cell-queue").strip() == "empty"
+    assert page.locator("#cell-queue ol, #cell-queue li").count() == 0  # no "1. empty"
+    rows = page.locator("#cell-recent tr[data-job]")
+    assert rows.count() == 2
+    table = page.text_content("#cell-recent")
+    assert "/srv/" not in table and "report.json" in table and "(pass 3/8)" in table
+    assert page.text_content(f"#cell-recent tr[data-job='{DONE_JOB}'] td:nth-child(4)") == "PASS"
+    assert page.text_content(f"#cell-recent tr[data-job='{FAILED_JOB}'] td:nth-child(4)") == "FAIL"
+    # a job in progress and two waiting
+    queue = [
+        {"job_id": f"20261207T1005{k}0-eeee000{k}", "plate_id": f"P-{k + 3}", "position": k} for k in (1, 2)
+    ]
+    publish(
+        page,
+        hmi,
+        status("scanning", job("scanning", stage="pass (1/4)", fraction=0.25), queue=queue, recent=recent),
+    )
+    assert page.text_content("#cell-job-label") == "Job in progress"
+    assert "scanning: pass (1/4)" in page.text_content("#cell-job")
+    lines = [t.strip() for t in page.locator("#cell-queue > div").all_text_contents()]
+    assert lines[0].startswith("1. P-4") and lines[1].startswith("2. P-5"), lines
+    page.screenshot(path=str(shots / "hmi-cell-queue.png"))
+
+
+def _small_or_off_screen(page) -> list[str]:
+    """Visible controls smaller than 48 x 48 px or outside the 1280 x 800 screen (a checkbox counts
+    with its label, which takes the touch)."""
+    return page.evaluate(
+        """() => {
+          const bad = [];
+          for (const el of document.querySelectorAll('button, a, input, select, label.check')) {
+            const r = el.getBoundingClientRect();
+            if (!r.width || !r.height || getComputedStyle(el).visibility === 'hidden') continue;
+            if (el.closest('.hidden') || el.closest('label.check') && el.tagName === 'INPUT') continue;
+            const name = el.id || el.textContent.trim().slice(0, 30) || el.tagName;
+            if (r.height < 48 || r.width < 48) bad.push(`${name}: ${r.width.toFixed(0)} x ${r.height.toFixed(0)}`);
+            if (el.closest('header, .actions, #page-start, #login') && (r.bottom > 800 || r.right > 1280))
+              bad.push(`${name}: off screen at ${r.left.toFixed(0)}, ${r.top.toFixed(0)}`);
+          }
+          return bad;
+        }"""
+    )
+
+
+def test_every_control_is_on_screen_at_1280_by_800_with_touch_targets_of_48_px(page, hmi, shots) -> None:
+    login(page, hmi, "erin", "#scan")
+    long = "the sensor reports a window of 312 mm at a stand-off of 180 mm; " * 4
+    publish(page, hmi, status("scanning", job("scanning", stage="pass (3/6)", fraction=0.6, message=long, motion=MOTION),
+                              message=long))  # fmt: skip
+    for btn in ("#btn-pause", "#btn-resume", "#btn-abort"):
+        box = page.locator(btn).bounding_box()
+        assert box and box["y"] + box["height"] <= 800, (btn, box)
+    page.screenshot(path=str(shots / "hmi-scan-1280.png"))
+    bad = {"scan": _small_or_off_screen(page)}
+    for hash_ in ("#cell", "#start", "#history/P-1"):
+        page.goto(hmi.url + "/" + hash_)
+        page.wait_for_timeout(500)
+        bad[hash_] = _small_or_off_screen(page)
+    page.goto(hmi.url + "/#history/P-1")
+    page.wait_for_selector("#history-jobs a")
+    bad["history links"] = _small_or_off_screen(page)
+    assert not any(bad.values()), bad
+    # the locate choice: the box beside its words, the placement greyed out when the cell finds the plate
+    page.goto(hmi.url + "/#start")
+    page.check("#start-locate")
+    assert page.is_disabled("#start-x")
+    opacity = page.evaluate("getComputedStyle(document.getElementById('start-x')).opacity")
+    assert float(opacity) < 0.5
+    cb, label = page.locator("#start-locate").bounding_box(), page.locator("label.check").bounding_box()
+    assert cb and label and cb["x"] - label["x"] < 20
+
+
+def test_a_viewer_is_not_offered_the_start_form_even_by_its_url(page, hmi) -> None:
+    login(page, hmi, "vic", "#start")
+    page.wait_for_function("document.body.dataset.page === 'cell'")
+    assert page.is_hidden("#page-start") and page.is_hidden("#nav-start")
+    assert page.evaluate("location.hash") == "#cell"
+    publish(page, hmi, status("scanning", job("scanning", fraction=0.1)))
+    page.goto(hmi.url + "/#scan")
+    assert page.is_hidden("#btn-abort") and page.is_hidden("#btn-pause")
