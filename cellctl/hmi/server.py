@@ -472,7 +472,8 @@ class HmiServer:
         job_id = request.match_info["job_id"]
         if not _ID.match(job_id):
             return _err(404, "no_job", "not a job id")
-        return web.json_response({"xyz_mm": self.link.live_cloud(job_id)})
+        xyz, seq = self.link.live_cloud(job_id)
+        return web.json_response({"xyz_mm": xyz, "seq": seq})
 
     async def job_file(self, request: web.Request) -> web.StreamResponse:
         d = self._job_dir(request.match_info["job_id"])

@@ -44,7 +44,7 @@ class FakeLink:
         self.on_job_end: Any = None
         self.sent: list[tuple[str, str]] = []
         self.replies: list[Any] = []  # TriggerAccepted / ControlReply / ApiCallError, first first
-        self.live: dict[str, list[list[float]]] = {}
+        self.live: dict[str, tuple[list[list[float]], int]] = {}  # job id -> (points, last chunk's seq)
 
     async def start(self) -> None:
         return None
@@ -52,8 +52,8 @@ class FakeLink:
     async def close(self) -> None:
         return None
 
-    def live_cloud(self, job_id: str) -> list[list[float]]:
-        return self.live.get(job_id, [])
+    def live_cloud(self, job_id: str) -> tuple[list[list[float]], int]:
+        return self.live.get(job_id, ([], -1))
 
     def _reply(self, kind: type) -> Any:
         r = self.replies.pop(0) if self.replies else None

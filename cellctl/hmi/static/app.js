@@ -246,16 +246,23 @@ function scanJob() {
   if (!st || !st.job) return null;
   return st.job;
 }
-async function loadScan() {
+function loadScan() {
   if (!S.view) S.view = PointView($("scan-view"));
-  const j = scanJob();
-  if (j && j.job_id !== S.liveJob) {
-    S.liveJob = j.job_id; S.livePoints = 0;
-    const res = await api("GET", "/api/jobs/" + encodeURIComponent(j.job_id) + "/live");
-    S.view.setPoints(new Float32Array(0), new Uint8Array(0));
-    if (res.ok && res.data.xyz_mm.length) addLive(res.data.xyz_mm);
-  }
   renderScan();
+}
+// the live view shows one job: a new job starts from an empty view, then the cloud so far (a page
+// opened or reloaded mid-scan), then the chunks that arrived meanwhile (those after the cloud's seq)
+async function loadLive(jobId) {
+  if (!S.view) S.view = PointView($("scan-view"));
+  S.liveJob = jobId; S.zRange = null; S.liveBuffer = []; S.liveLoading = jobId;
+  S.view.setPoints(new Float32Array(0), new Uint8Array(0));
+  S.livePoints = 0; $("scan-points").textContent = "0 points"; $("scan-points").dataset.points = "0";
+  const res = await api("GET", "/api/jobs/" + encodeURIComponent(jobId) + "/live");
+  if (S.liveJob !== jobId) return; // another job began meanwhile
+  const seq = res.ok ? res.data.seq : -1;
+  if (res.ok && res.data.xyz_mm.length) addLive(res.data.xyz_mm);
+  const later = S.liveBuffer; S.liveBuffer = null; S.liveLoading = null;
+  for (const ev of later) if (ev.seq > seq && ev.xyz_mm.length) addLive(ev.xyz_mm);
 }
 function addLive(pts) {
   const xyz = new Float32Array(pts.flat());
@@ -267,13 +274,29 @@ function addLive(pts) {
   $("scan-points").dataset.points = String(S.livePoints);
 }
 function onLive(ev) {
-  if (!S.view) S.view = PointView($("scan-view"));
-  if (ev.job_id !== S.liveJob) { S.liveJob = ev.job_id; S.zRange = null; S.view.setPoints(new Float32Array(0), new Uint8Array(0)); }
+  if (ev.job_id !== S.liveJob) loadLive(ev.job_id);
+  if (S.liveLoading === ev.job_id) { S.liveBuffer.push(ev); return; }
   if (ev.xyz_mm.length) addLive(ev.xyz_mm);
+}
+// the job the Scan page watches: when it ends the page says how (aborted, failed, ...) and a done
+// job leads to its result once indexed, whether it was started here or the page was (re)opened
+function watchScan(j) {
+  const st = S.status, w = S.watchJob;
+  if (w && (!j || j.job_id !== w || FINAL.includes(j.state))) {
+    const ended = [...st.recent, ...(st.job ? [st.job] : [])].find((x) => x.job_id === w && FINAL.includes(x.state));
+    if (ended || (j && j.job_id !== w)) {
+      S.watchJob = null;
+      if (ended && ended.state === "done") S.followJob = w;
+      else if (ended) $("scan-notice").textContent = `Plate ${ended.plate_id} · job ${ended.job_id} ${ended.state}${ended.message ? ": " + noPaths(ended.message) : ""}`;
+    }
+  }
+  if (j && !FINAL.includes(j.state) && S.watchJob !== j.job_id) { S.watchJob = j.job_id; }
 }
 function renderScan() {
   const j = scanJob();
   renderMotion(j);
+  if (j && j.job_id !== S.liveJob && !FINAL.includes(j.state)) loadLive(j.job_id); // a new job: not the last plate's cloud
+  if (document.body.dataset.page === "scan") watchScan(j);
   if (!j) { $("scan-job").textContent = "no scan in progress"; return; }
   $("scan-job").innerHTML = `<b>${esc(j.plate_id)}</b> ${esc(j.job_id)}<br>${jobWords(j)} ${esc(noPaths(j.message))}`;
   $("scan-job").title = `${j.plate_id} ${j.job_id}: ${j.state} ${j.stage} ${noPaths(j.message)}`;
@@ -311,11 +334,15 @@ for (const action of ["pause", "resume", "abort"]) {
     if (action === "abort" && !(await askConfirm(j ? `Abort the scan of plate ${j.plate_id} (job ${j.job_id})? The robot stops and the scan is lost.` : "Abort?", "Abort scan"))) return;
     const res = await api("POST", "/api/control/" + action, j ? { job_id: j.job_id } : {});
     $("scan-error").textContent = res.ok ? "" : action + " refused: " + errText(res);
+    if (res.ok && action === "abort" && j) $("scan-notice").textContent = `Plate ${j.plate_id} · job ${j.job_id} ${res.data.job_state || "aborted"}`;
   });
 }
 function onJobEnd(ev) {
   if (ev.type === "history") refreshVerdicts();
-  if (ev.type === "history" && S.followJob === ev.job_id) { S.followJob = null; location.hash = "#result/" + encodeURIComponent(ev.job_id); }
+  if (ev.type === "history" && S.followJob === ev.job_id) {
+    S.followJob = null;
+    if (["scan", "start"].includes(document.body.dataset.page)) location.hash = "#result/" + encodeURIComponent(ev.job_id);
+  }
   else if (document.body.dataset.page === "history") loadHistory(S.historyPlate);
 }
 
@@ -340,6 +367,8 @@ async function loadResult(jobId) {
   const v = $("result-verdict");
   v.className = "verdict" + (report ? " " + report.verdict : "");
   v.textContent = report ? report.verdict.toUpperCase() : job.state.toUpperCase();
+  // a job without a report (aborted, failed, not analysed yet): no empty views, the reason in words
+  for (const id of ["result-views", "result-lines-tile", "result-rework-tile", "result-plots-tile"]) $(id).classList.toggle("hidden", !report);
   if (!report) { $("result-lines").innerHTML = ""; $("result-plots").innerHTML = ""; $("result-rework").innerHTML = ""; return; }
   const tol = report.tolerances, stdMm = tol.deviation_standard_mm, limMm = tol.deviation_limit_mm;
   const prev = previous ? Object.fromEntries(previous.lines.map((l) => [l.name, l])) : {};
