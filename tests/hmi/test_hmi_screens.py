@@ -16,6 +16,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 from playwright import sync_api as playwright_sync
 
@@ -33,17 +34,26 @@ MOTION = {"cycles": 48211, "egm_stale_cycles": 3, "egm_lost_cycles": 1, "egm_rep
           "egm_reply_p99_us": 412.0, "egm_reply_max_us": 905.0, "max_tracking_error_mm": 0.437}  # fmt: skip
 
 
-def _job_dir(data: Path, job_id: str, plate: str, verdict: str | None, state: str = "done") -> None:
+def _job_dir(
+    data: Path,
+    job_id: str,
+    plate: str,
+    verdict: str | None,
+    state: str = "done",
+    n_lines: int = 1,
+    t: str = "10",
+) -> None:
     d = data / "jobs" / job_id
     d.mkdir(parents=True)
     rec = {"job_id": job_id, "plate_id": plate, "design": "p.ply", "design_path": "/srv/cell/designs/p.ply",
-           "placement": {}, "state": state, "created_utc": "2026-12-01T10:00:00Z",
+           "placement": {}, "state": state, "created_utc": f"2026-12-01T{t}:00:00Z",
            "history": [{"state": state, "t_utc": "2026-12-01T10:00:00Z", "message": f"{state} by olga"}], "info": {}}  # fmt: skip
     (d / "job.json").write_text(json.dumps(rec))
     if verdict is None:
         return
-    lines = [{"family": "transverse", "index": 1, "name": "T1", "zmax_mm": 1.0 if verdict == "pass" else 4.0,
-              "sz_avg_mm": 0.5, "pass": verdict == "pass"}]  # fmt: skip
+    zmax = 1.0 if verdict == "pass" else 4.0
+    lines = [{"family": "transverse", "index": k + 1, "name": f"T{k + 1}", "zmax_mm": zmax + 0.1 * k,
+              "sz_avg_mm": 0.5, "pass": verdict == "pass"} for k in range(n_lines)]  # fmt: skip
     tolerances = {"deviation_standard_mm": 1.0, "deviation_limit_mm": 2.0}
     report = {"verdict": verdict, "lines": lines, "tolerances": tolerances, "plate_size_mm": [400, 300, 5]}
     (d / "report.json").write_text(json.dumps(report))
@@ -66,6 +76,16 @@ def hmi(tmp_path_factory) -> Iterator[LocalHmi]:
     _job_dir(root / "data", DONE_JOB, "P-1", "pass")
     _job_dir(root / "data", FAILED_JOB, "P-2", "fail")
     _job_dir(root / "data", ABORTED_JOB, "P-3", None, state="aborted")
+    for k, verdict in enumerate(("fail", "pass")):  # a plate of 11 lines, two rounds
+        _job_dir(root / "data", f"20261202T1{k}0000-rrrr000{k}", "P-R", verdict, n_lines=11, t=f"1{k}")
+    # the deviation map and one line's profile of the done job
+    res = root / "data" / "jobs" / DONE_JOB / "results"
+    res.mkdir()
+    s_mm = np.linspace(0.0, 300.0, 120)
+    xy = np.stack(np.meshgrid(np.linspace(0, 400, 40), np.linspace(0, 300, 30)), -1).reshape(-1, 2)
+    np.savez(res / "results.npz", plate_xy_mm=xy, plate_deviation_mm=np.sin(xy[:, 0] / 80.0),
+             plate_size_mm=np.array([400.0, 300.0, 5.0]), line0_s_mm=s_mm, line0_deviation_mm=2.6 * np.sin(s_mm / 60.0))  # fmt: skip
+    (res / "report.csv").write_text("line,zmax\nT1,1.0\n")
     (root / "designs").mkdir()
     (root / "designs" / "p.ply").write_text("not a mesh")  # listed; its preview says it cannot be read
     with LocalHmi(root) as h:
@@ -295,7 +315,7 @@ def test_every_control_is_on_screen_at_1280_by_800_with_touch_targets_of_48_px(p
         assert box and box["y"] + box["height"] <= 800, (btn, box)
     page.screenshot(path=str(tmp_path / "hmi-scan-1280.png"))
     bad = {"scan": _small_or_off_screen(page)}
-    for hash_ in ("#cell", "#start", "#history/P-1"):
+    for hash_ in ("#cell", "#start", "#history/P-1", f"#result/{DONE_JOB}"):
         page.goto(hmi.url + "/" + hash_)
         page.wait_for_timeout(500)
         bad[hash_] = _small_or_off_screen(page)
@@ -381,3 +401,24 @@ def test_an_aborted_jobs_result_says_why_without_empty_views(page, hmi) -> None:
     for tile in ("#result-views", "#result-lines-tile", "#result-rework-tile", "#result-plots-tile"):
         assert page.is_hidden(tile), tile
     assert "aborted by olga" in page.text_content("#result-meta")
+
+
+def test_plots_have_ticks_on_both_axes_titles_clear_of_the_data_and_distinct_line_colours(
+    page, hmi, shots
+) -> None:
+    login(page, hmi, "vic", f"#result/{DONE_JOB}")
+    page.wait_for_function("document.querySelectorAll('#result-plots canvas[data-yticks]').length === 1")
+    plot = page.locator("#result-plots canvas").first
+    assert int(plot.get_attribute("data-yticks")) >= 3 and int(plot.get_attribute("data-xticks")) >= 3
+    # the title's line (baseline at 19 px) is above the plot area: the limit lines cannot cross it
+    assert int(plot.get_attribute("data-plot-top")) >= 24
+    page.goto(hmi.url + "/#history/P-R")
+    page.wait_for_function("document.getElementById('history-rounds').dataset.rounds === '2'")
+    page.wait_for_function("document.getElementById('history-convergence').dataset.series")
+    series = json.loads(page.get_attribute("#history-convergence", "data-series"))
+    assert [n for n, _, _ in series] == [f"T{k}" for k in range(1, 12)]
+    assert len({colour for _, colour, _ in series}) == 11  # 11 lines, 11 colours: none repeats
+    assert (
+        int(page.get_attribute("#history-convergence", "data-xticks")) == 2
+    )  # rounds 1 and 2, whole numbers
+    page.locator("#history-rounds").screenshot(path=str(shots / "hmi-history-convergence.png"))

@@ -424,18 +424,41 @@ $("btn-reanalyse").addEventListener("click", async () => {
   $("result-meta").textContent = res.ok ? "re-analysing" : "re-analyse refused: " + errText(res);
 });
 
-function plotAxes(c, title, xs, ys, yBands) {
-  const g = c.getContext("2d"), W = c.width, H = c.height, L = 46, B = 22;
+// a step of 1, 2 or 5 x 10^k giving at least n ticks over range (at most about 2.5 n)
+function niceStep(range, n) {
+  const raw = (range || 1) / n, p = Math.pow(10, Math.floor(Math.log10(raw))), m = raw / p;
+  return (m < 2 ? 1 : m < 5 ? 2 : 5) * p;
+}
+const tickText = (v, step) => (Math.abs(v) < step * 1e-6 ? "0" : v.toFixed(Math.max(0, -Math.floor(Math.log10(step) + 1e-9))));
+// axes with ticks and a grid on both; the title sits above the plot area (nothing drawn crosses it)
+// and the data are clipped to the area. opts: right (px kept for a legend), xStep (e.g. 1 for rounds)
+function plotAxes(c, title, xs, ys, yBands, opts = {}) {
+  const g = c.getContext("2d"), W = c.width, H = c.height, L = 52, B = 24, T = 30, R = opts.right || 12;
+  if (c.dataset.clipped) g.restore();
   g.fillStyle = "#06090b"; g.fillRect(0, 0, W, H);
   const xlo = Math.min(...xs), xhi = Math.max(...xs, xlo + 1);
   let ylo = Math.min(...ys, ...yBands.map((b) => -b)), yhi = Math.max(...ys, ...yBands);
   const pad = 0.1 * (yhi - ylo || 1); ylo -= pad; yhi += pad;
-  const X = (v) => L + ((v - xlo) / (xhi - xlo)) * (W - L - 8), Y = (v) => 8 + ((yhi - v) / (yhi - ylo)) * (H - B - 8);
-  g.fillStyle = "#9fb0bf"; g.font = "13px system-ui";
-  g.fillText(title, L + 4, 20);
-  g.fillText(yhi.toFixed(1), 2, 16); g.fillText(ylo.toFixed(1), 2, H - B); g.fillText(xlo.toFixed(0), L, H - 6); g.fillText(xhi.toFixed(0), W - 40, H - 6);
-  return { g, X, Y, W, H, L, B };
+  const X = (v) => L + ((v - xlo) / (xhi - xlo)) * (W - L - R), Y = (v) => T + ((yhi - v) / (yhi - ylo)) * (H - B - T);
+  g.font = "13px system-ui"; g.lineWidth = 1; g.setLineDash([]);
+  g.fillStyle = "#cfd8df"; g.textAlign = "left"; g.fillText(title, L, 19);
+  const ticks = (lo, hi, step) => { const out = []; for (let v = Math.ceil(lo / step) * step; v <= hi + step * 1e-9; v += step) out.push(v); return out; };
+  const ys_ = niceStep(yhi - ylo, Math.max(3, Math.floor((H - B - T) / 30))), xs_ = opts.xStep || niceStep(xhi - xlo, Math.max(3, Math.floor((W - L - R) / 70)));
+  const yt = ticks(ylo, yhi, ys_), xt = ticks(xlo, xhi, xs_);
+  g.strokeStyle = "#1c2630"; g.fillStyle = "#9fb0bf";
+  g.textAlign = "right";
+  for (const v of yt) { const y = Y(v); g.beginPath(); g.moveTo(L, y); g.lineTo(W - R, y); g.stroke(); g.fillText(tickText(v, ys_), L - 5, y + 4); }
+  g.textAlign = "center";
+  for (const v of xt) { const x = X(v); g.beginPath(); g.moveTo(x, T); g.lineTo(x, H - B); g.stroke(); g.fillText(tickText(v, xs_), x, H - 7); }
+  g.textAlign = "left";
+  g.strokeStyle = "#3a4a5a"; g.strokeRect(L, T, W - L - R, H - B - T);
+  c.dataset.yticks = String(yt.length); c.dataset.xticks = String(xt.length); c.dataset.plotTop = String(T);
+  g.save(); g.beginPath(); g.rect(L, T, W - L - R, H - B - T); g.clip(); c.dataset.clipped = "1";
+  return { g, X, Y, W, H, L, B, T, R };
 }
+// twelve colours apart on a dark ground; past twelve lines the colours come back dashed
+const SERIES = ["#4ea1ff", "#ffb000", "#3ddc84", "#ff5c5c", "#c77dff", "#00d1d1", "#fff06b", "#ff8ad8", "#b0b0b0", "#9bd45b", "#ff9152", "#8fb3ff"];
+const seriesStyle = (k) => ({ colour: SERIES[k % SERIES.length], dash: k < SERIES.length ? [] : [7, 4] });
 function plotLine(c, name, s, dv, stdMm, limMm, pass) {
   const { g, X, Y } = plotAxes(c, `${name}: deviation mm along s mm`, s, dv, [limMm]);
   g.fillStyle = "rgba(40,170,70,0.18)"; g.fillRect(X(s[0]), Y(stdMm), X(s[s.length - 1]) - X(s[0]), Y(-stdMm) - Y(stdMm));
@@ -471,13 +494,24 @@ async function loadHistory(plate) {
   const c = $("history-convergence");
   if (!rounds.length) { c.getContext("2d").clearRect(0, 0, c.width, c.height); return; }
   const xs = rounds.map((r) => r.round), all = rounds.flatMap((r) => r.lines.map((l) => Math.abs(l.zmax_mm)));
-  const { g, X, Y } = plotAxes(c, "convergence: |Zmax| per line (mm) by round", xs.length > 1 ? xs : [1, 2], all.length ? all : [0], [0]);
-  const palette = ["#6cf", "#fc6", "#9f9", "#f9c", "#c9f", "#9ff", "#fa8", "#ccc"];
+  const perCol = Math.max(1, Math.floor((c.height - 40) / 18)), cols = Math.ceil(names.length / perCol);
+  const { g, X, Y, T, W } = plotAxes(c, "convergence: |Zmax| per line (mm) by round", xs.length > 1 ? xs : [1, 2], all.length ? all : [0], [0], { right: 16 + 90 * cols, xStep: 1 });
   names.forEach((n, k) => {
-    g.strokeStyle = palette[k % palette.length]; g.fillStyle = g.strokeStyle; g.lineWidth = 2; g.beginPath();
-    rounds.forEach((r, i) => { const l = r.lines.find((x) => x.name === n); if (!l) return; const x = X(r.round), y = Y(Math.abs(l.zmax_mm)); i ? g.lineTo(x, y) : g.moveTo(x, y); g.fillRect(x - 3, y - 3, 6, 6); });
-    g.stroke(); g.fillText(n, c.width - 60, 20 + 14 * k);
+    const st = seriesStyle(k);
+    g.strokeStyle = st.colour; g.fillStyle = st.colour; g.lineWidth = 2; g.setLineDash(st.dash); g.beginPath();
+    let first = true;
+    rounds.forEach((r) => { const l = r.lines.find((x) => x.name === n); if (!l) return; const x = X(r.round), y = Y(Math.abs(l.zmax_mm)); first ? g.moveTo(x, y) : g.lineTo(x, y); first = false; });
+    g.stroke(); g.setLineDash([]);
+    rounds.forEach((r) => { const l = r.lines.find((x) => x.name === n); if (l) g.fillRect(X(r.round) - 3, Y(Math.abs(l.zmax_mm)) - 3, 6, 6); });
   });
+  // the legend beside the plot, never on its lines: a sample of each line's colour and dash, its name
+  g.restore(); delete c.dataset.clipped;
+  names.forEach((n, k) => {
+    const st = seriesStyle(k), x = W - 90 * cols + 90 * Math.floor(k / perCol), y = T + 10 + 18 * (k % perCol);
+    g.strokeStyle = st.colour; g.lineWidth = 3; g.setLineDash(st.dash); g.beginPath(); g.moveTo(x, y - 4); g.lineTo(x + 26, y - 4); g.stroke(); g.setLineDash([]);
+    g.fillStyle = "#e8ecef"; g.fillText(n, x + 32, y);
+  });
+  c.dataset.series = JSON.stringify(names.map((n, k) => [n, seriesStyle(k).colour, seriesStyle(k).dash.join(",")]));
 }
 $("history-form").addEventListener("submit", (e) => { e.preventDefault(); loadHistory(null); });
 $("history-jobs").addEventListener("click", (e) => {
