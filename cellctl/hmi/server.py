@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ipaddress
 import json
 import logging
 import re
@@ -61,6 +62,8 @@ DOWNLOADS = {
 MAX_BODY_BYTES = MAX_TRIGGER_BYTES  # a trigger is the largest body the HMI takes
 #: a log-in body: {"user": <= 64 characters, "password": ...}
 LOGIN_MAX_BYTES = 4096
+#: password checks running at once (each a thread)
+MAX_CONCURRENT_CHECKS = 2
 MAP_MAX_POINTS = 30_000
 _SECURITY_HEADERS = {
     "Content-Security-Policy": (
@@ -76,6 +79,20 @@ _SECURITY_HEADERS = {
 
 def _err(status: int, code: str, message: str, field: str = "") -> web.Response:
     return web.json_response({"code": code, "field": field, "message": message}, status=status)
+
+
+def client_key(remote: str | None) -> str:
+    """The limiter's key of a client address: an IPv6 address by its /64 (one host's addresses
+    are a whole /64, so single addresses would give an attacker as many fresh keys as it likes)."""
+    try:
+        ip = ipaddress.ip_address(remote or "")
+    except ValueError:
+        return remote or "?"
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.ipv4_mapped is not None:
+            return str(ip.ipv4_mapped)
+        return str(ipaddress.ip_network(f"{ip}/64", strict=False))
+    return str(ip)
 
 
 class _BodyError(Exception):
@@ -157,6 +174,9 @@ class HmiServer:
         self.data_dir = Path(cfg.cell.data_dir)
         self.designs_dir = Path(cfg.cell.designs_dir)
         self.history: History | None = None
+        # scrypt costs ~50 ms and 16 MB a check: a flood of log-ins from many addresses queues here
+        # instead of taking every worker thread from the history and the downloads
+        self._checks = asyncio.Semaphore(MAX_CONCURRENT_CHECKS)
         #: open websockets and the session token each was opened with
         self.sockets: dict[web.WebSocketResponse, str] = {}
         self.link = CellLink(cfg, self._broadcast)
@@ -240,7 +260,7 @@ class HmiServer:
             return _err(400, "malformed", 'expected {"user": ..., "password": ...}')
         if not valid_name(name):
             return _err(400, "invalid", "a user name is 1 to 64 letters, digits, _ . -", "user")
-        attempt = self.auth.limiter.reserve(request.remote or "?", name)
+        attempt = self.auth.limiter.reserve(client_key(request.remote), name)
         if not isinstance(attempt, Attempt):
             return web.json_response(
                 {
@@ -251,7 +271,8 @@ class HmiServer:
                 status=429,
                 headers={"Retry-After": str(int(attempt) + 1)},
             )
-        s = await asyncio.to_thread(self.auth.login, name, password)
+        async with self._checks:
+            s = await asyncio.to_thread(self.auth.login, name, password)
         self.auth.limiter.settle(attempt, ok=s is not None)
         if s is None:
             log.info("hmi_login_refused", user=name, peer=request.remote)

@@ -191,3 +191,12 @@ def test_the_hmis_zenoh_identity_caps_what_its_users_may_do() -> None:
     assert role_cap(False, "qa-screen", roles) == "engineer" and role_cap(True, "x", {}) == "engineer"
     assert not allowed("engineer", "reset", cap="viewer") and not allowed("operator", "trigger", cap="viewer")
     assert allowed("engineer", "reset", cap="engineer")
+
+
+def test_an_ipv6_client_is_limited_by_its_64_prefix() -> None:
+    from cellctl.hmi.server import client_key
+
+    assert client_key("2001:db8:1:2:aaaa::1") == client_key("2001:db8:1:2:bbbb::9") == "2001:db8:1:2::/64"
+    assert client_key("2001:db8:1:3::1") != client_key("2001:db8:1:2::1")
+    assert client_key("::ffff:10.0.0.7") == "10.0.0.7" == client_key("10.0.0.7")
+    assert client_key(None) == "?" and client_key("unix-socket") == "unix-socket"

@@ -25,6 +25,7 @@ ATTACKER, PANEL, OTHER = "127.0.0.1", "127.0.0.2", "127.0.0.3"
 def hmi(tmp_path: Path) -> Iterator[LocalHmi]:
     with LocalHmi(tmp_path) as h:
         yield h
+    assert "hmi_request_error" not in h.log.getvalue()  # no request ended in an exception
 
 
 def _count_checks(hmi: LocalHmi) -> list[str]:
@@ -111,6 +112,7 @@ def test_ten_thousand_junk_logins_leave_the_limiter_bounded(tmp_path: Path) -> N
         assert len(checked) == 20
         assert lim.entries() == 21  # one address, 20 names
         assert not hmi.server.sockets and len(hmi.auth.sessions) == 0
+    assert "hmi_request_error" not in hmi.log.getvalue()
 
 
 async def _run_batches(url: str, bodies: list[object]) -> list[int]:
