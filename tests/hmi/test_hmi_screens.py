@@ -404,7 +404,7 @@ def test_an_aborted_jobs_result_says_why_without_empty_views(page, hmi) -> None:
 
 
 def test_plots_have_ticks_on_both_axes_titles_clear_of_the_data_and_distinct_line_colours(
-    page, hmi, shots
+    page, hmi, tmp_path
 ) -> None:
     login(page, hmi, "vic", f"#result/{DONE_JOB}")
     page.wait_for_function("document.querySelectorAll('#result-plots canvas[data-yticks]').length === 1")
@@ -421,4 +421,4 @@ def test_plots_have_ticks_on_both_axes_titles_clear_of_the_data_and_distinct_lin
     assert (
         int(page.get_attribute("#history-convergence", "data-xticks")) == 2
     )  # rounds 1 and 2, whole numbers
-    page.locator("#history-rounds").screenshot(path=str(shots / "hmi-history-convergence.png"))
+    page.locator("#history-rounds").screenshot(path=str(tmp_path / "hmi-history-convergence.png"))

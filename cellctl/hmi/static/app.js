@@ -120,7 +120,7 @@ function renderCell(st) {
   $("cell-message").textContent = noPaths(st.message);
   const j = st.job, active = j && !FINAL.includes(j.state);
   // the job holding the robot; once it ended, the last job, said so (never "idle" beside "in progress")
-  $("cell-job-label").textContent = active ? "Job in progress" : "Last job";
+  $("cell-job-label").textContent = !j || active ? "Job in progress" : "Last job";
   const v = j && !active ? verdictOf(j.job_id) : null;
   $("cell-job").innerHTML = j ? `<b>${esc(j.plate_id)}</b> <small>${esc(j.job_id)}</small><br>${jobWords(j)}${v ? ` · <span class="verdict-word ${esc(v)}">${esc(v.toUpperCase())}</span>` : ""}` : "none";
   $("cell-job-bar").parentElement.classList.toggle("hidden", !active);
@@ -130,7 +130,7 @@ function renderCell(st) {
   $("cell-workers").innerHTML = st.workers.map((w) => `<li>${esc(w)}</li>`).join("") || "<li>no worker: reports wait</li>";
   $("cell-recent").innerHTML = "<tr><th>plate</th><th>job</th><th>state</th><th>verdict</th><th>message</th><th></th></tr>" +
     st.recent.slice().reverse().map((r) => { const rv = verdictOf(r.job_id); return `<tr class="clickable ${rv === "fail" ? "fail" : ""}" data-job="${esc(r.job_id)}"><td>${esc(r.plate_id)}</td><td>${esc(r.job_id)}</td><td>${esc(r.state)}</td><td>${rv ? esc(rv.toUpperCase()) : "-"}</td><td>${esc(noPaths(r.message))}</td><td>${
-      ["interrupted", "failed"].includes(r.state) && S.me && S.me.may.includes("reanalyse") ? `<button class="reanalyse" data-job="${esc(r.job_id)}">Re-analyse</button>` : ""}</td></tr>`; }).join("");
+      ["interrupted", "failed"].includes(r.state) && S.me && S.me.may.includes("reanalyse") ? `<button class="reanalyse" data-job="${esc(r.job_id)}">Re-analyse</button>` : ""}</td></tr>`; }).join("") + (st.recent.length ? "" : `<tr><td colspan="6" class="none">none yet</td></tr>`);
 }
 function renderHealth() {
   const age = S.statusAt ? (Date.now() - S.statusAt) / 1000 : Infinity;
@@ -424,10 +424,10 @@ $("btn-reanalyse").addEventListener("click", async () => {
   $("result-meta").textContent = res.ok ? "re-analysing" : "re-analyse refused: " + errText(res);
 });
 
-// a step of 1, 2 or 5 x 10^k giving at least n ticks over range (at most about 2.5 n)
+// the step of 1, 2 or 5 x 10^k giving the number of ticks over range closest to n
 function niceStep(range, n) {
-  const raw = (range || 1) / n, p = Math.pow(10, Math.floor(Math.log10(raw))), m = raw / p;
-  return (m < 2 ? 1 : m < 5 ? 2 : 5) * p;
+  const r = range || 1, p = Math.pow(10, Math.floor(Math.log10(r / n)));
+  return [1, 2, 5, 10].map((m) => m * p).reduce((a, b) => (Math.abs(r / b - n) < Math.abs(r / a - n) ? b : a));
 }
 const tickText = (v, step) => (Math.abs(v) < step * 1e-6 ? "0" : v.toFixed(Math.max(0, -Math.floor(Math.log10(step) + 1e-9))));
 // axes with ticks and a grid on both; the title sits above the plot area (nothing drawn crosses it)
