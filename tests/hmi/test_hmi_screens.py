@@ -422,3 +422,17 @@ def test_plots_have_ticks_on_both_axes_titles_clear_of_the_data_and_distinct_lin
         int(page.get_attribute("#history-convergence", "data-xticks")) == 2
     )  # rounds 1 and 2, whole numbers
     page.locator("#history-rounds").screenshot(path=str(tmp_path / "hmi-history-convergence.png"))
+
+
+def test_a_log_out_in_one_tab_closes_the_other_tabs_socket_and_shows_its_log_in(page, browser, hmi) -> None:
+    login(page, hmi, "olga", "#scan")
+    other = browser.new_page()  # the same browser: the same session cookie
+    try:
+        other.goto(hmi.url + "/#cell")
+        other.wait_for_function("document.querySelector('#conn').classList.contains('up')")
+        page.click("#logout")
+        other.wait_for_selector("#login:not(.hidden)", timeout=5_000)
+        assert not other.evaluate("document.querySelector('#conn').classList.contains('up')")
+        assert not hmi.server.sockets
+    finally:
+        other.close()
