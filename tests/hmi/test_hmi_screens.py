@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -128,6 +129,13 @@ def page(browser, hmi):
     assert not [e for e in errors if not any(c in e for c in expected)], errors
 
 
+def _until(pred, timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < deadline, "condition not met"
+        time.sleep(0.02)
+
+
 def login(page, hmi: LocalHmi, user: str, hash_: str = "#cell") -> None:
     page.goto(hmi.url + "/" + hash_)
     page.fill("#login-user", user)
@@ -190,8 +198,10 @@ def test_abort_asks_once_and_sends_one_abort_for_the_job_on_screen(page, hmi) ->
     )
     page.click("#btn-abort")
     page.click("#confirm-yes")
-    page.wait_for_function("document.getElementById('confirm').classList.contains('hidden')")
-    page.wait_for_timeout(300)
+    page.wait_for_function(
+        "document.getElementById('scan-notice').textContent.includes('aborted')"
+    )  # the reply
+    assert page.is_hidden("#confirm")
     assert [(a, json.loads(b)) for a, b in hmi.link.sent] == [("abort", {"job_id": j["job_id"]})]
     assert page.text_content("#scan-error") == ""
     # pause asks nothing
@@ -199,8 +209,7 @@ def test_abort_asks_once_and_sends_one_abort_for_the_job_on_screen(page, hmi) ->
         ControlReply(action="pause", job_id=j["job_id"], state="paused", job_state="paused")
     )
     page.click("#btn-pause")
-    page.wait_for_function("document.getElementById('scan-error').textContent === ''")
-    page.wait_for_timeout(300)
+    _until(lambda: not hmi.link.replies)  # the pause reached the cell and was answered
     assert [a for a, _ in hmi.link.sent] == ["abort", "pause"]
     assert page.is_hidden("#confirm")
 
@@ -315,9 +324,15 @@ def test_every_control_is_on_screen_at_1280_by_800_with_touch_targets_of_48_px(p
         assert box and box["y"] + box["height"] <= 800, (btn, box)
     page.screenshot(path=str(tmp_path / "hmi-scan-1280.png"))
     bad = {"scan": _small_or_off_screen(page)}
-    for hash_ in ("#cell", "#start", "#history/P-1", f"#result/{DONE_JOB}"):
+    shown = {
+        "#cell": "#cell-recent tr",
+        "#start": "#start-design option",
+        "#history/P-1": "#history-jobs a",
+        f"#result/{DONE_JOB}": "#result-downloads a",
+    }
+    for hash_, selector in shown.items():
         page.goto(hmi.url + "/" + hash_)
-        page.wait_for_timeout(500)
+        page.wait_for_selector(selector, state="attached")
         bad[hash_] = _small_or_off_screen(page)
     page.goto(hmi.url + "/#history/P-1")
     page.wait_for_selector("#history-jobs a")
