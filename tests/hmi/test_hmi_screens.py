@@ -43,6 +43,7 @@ def _job_dir(
     state: str = "done",
     n_lines: int = 1,
     t: str = "10",
+    failing_line: bool = False,
 ) -> None:
     d = data / "jobs" / job_id
     d.mkdir(parents=True)
@@ -53,8 +54,11 @@ def _job_dir(
     if verdict is None:
         return
     zmax = 1.0 if verdict == "pass" else 4.0
+    # transverse lines across the 400 x 300 mm plate at x = 100, 130, ...: from y = 0 to y = 300
     lines = [{"family": "transverse", "index": k + 1, "name": f"T{k + 1}", "zmax_mm": zmax + 0.1 * k,
-              "sz_avg_mm": 0.5, "pass": verdict == "pass"} for k in range(n_lines)]  # fmt: skip
+              "sz_avg_mm": 0.5, "pass": verdict == "pass" and not (failing_line and k == 0),
+              "start_plate_mm": [100.0 + 30 * k, 0.0], "end_plate_mm": [100.0 + 30 * k, 300.0]}
+             for k in range(n_lines)]  # fmt: skip
     tolerances = {"deviation_standard_mm": 1.0, "deviation_limit_mm": 2.0}
     report = {"verdict": verdict, "lines": lines, "tolerances": tolerances, "plate_size_mm": [400, 300, 5]}
     (d / "report.json").write_text(json.dumps(report))
@@ -74,7 +78,7 @@ def job(state: str, plate: str = "P-7", job_id: str = "20261207T100000-bbbb0001"
 @pytest.fixture(scope="module")
 def hmi(tmp_path_factory) -> Iterator[LocalHmi]:
     root = tmp_path_factory.mktemp("hmi-screens")
-    _job_dir(root / "data", DONE_JOB, "P-1", "pass")
+    _job_dir(root / "data", DONE_JOB, "P-1", "pass", failing_line=True)
     _job_dir(root / "data", FAILED_JOB, "P-2", "fail")
     _job_dir(root / "data", ABORTED_JOB, "P-3", None, state="aborted")
     for k, verdict in enumerate(("fail", "pass")):  # a plate of 11 lines, two rounds
@@ -451,3 +455,24 @@ def test_a_log_out_in_one_tab_closes_the_other_tabs_socket_and_shows_its_log_in(
         assert not hmi.server.sockets
     finally:
         other.close()
+
+
+def test_the_top_view_shows_the_plate_frame_the_lines_and_the_numbered_rework_regions(
+    page, hmi, tmp_path
+) -> None:
+    login(page, hmi, "vic", f"#result/{DONE_JOB}")
+    page.wait_for_function("document.getElementById('result-top').dataset.regions")
+    top = page.locator("#result-top")
+    assert top.get_attribute("data-lines") == "T1"
+    # line 0's deviation 2.6 sin(s / 60) passes the 2 mm limit twice: above it near s = 94, below near s = 283
+    assert top.get_attribute("data-regions") == "2"
+    items = page.locator("#result-rework li").all_text_contents()
+    assert len(items) == 2, items
+    assert (
+        items[0].startswith("1 line T1: from (100, ") and "below the design here: it must come up" in items[0]
+    )
+    assert (
+        items[1].startswith("2 line T1: from (100, ")
+        and "above the design here: it must come down" in items[1]
+    )
+    page.locator("#result-views").screenshot(path=str(tmp_path / "hmi-result-top.png"))

@@ -388,12 +388,12 @@ async function loadResult(jobId) {
       col.set(bandColour(map.deviation_mm[i], stdMm, limMm), 3 * i);
     }
     if (!S.res3d) S.res3d = PointView($("result-3d"));
-    if (!S.resTop) S.resTop = PointView($("result-top"), { top: true });
     S.res3d.setZScale(0.15 * Math.max(...report.plate_size_mm) / amax);
-    S.res3d.setPoints(d3, col); S.resTop.setPoints(top, col);
+    S.res3d.setPoints(d3, col);
   }
-  // rework regions: runs beyond the limit along each line, placed from the reference corner
-  const rework = [];
+  // rework regions: runs beyond the limit along each line, placed in the plate frame (mm from the
+  // reference corner); the deviation is design minus plate: > 0, the plate lies below the design
+  const rework = [], regions = [];
   $("result-plots").innerHTML = "";
   report.lines.forEach((l, k) => {
     const ld = map && map.lines[k];
@@ -402,22 +402,79 @@ async function loadResult(jobId) {
     if (ld) plotLine(c, lname(l), ld.s_mm, ld.deviation_mm, stdMm, limMm, l.pass);
     if (!ld || l.pass) return;
     const s = ld.s_mm, dv = ld.deviation_mm, s0 = s[0], s1 = s[s.length - 1];
-    const at = (sv) => {
-      if (!l.start_plate_mm || !l.end_plate_mm) return `s = ${sv.toFixed(0)} mm`;
-      const t = (sv - s0) / Math.max(s1 - s0, 1e-9), p = l.start_plate_mm.map((a, j) => a + t * (l.end_plate_mm[j] - a));
-      return `(${p[0].toFixed(0)}, ${p[1].toFixed(0)}) mm`;
+    const pos = (sv) => {
+      if (!l.start_plate_mm || !l.end_plate_mm) return null;
+      const t = (sv - s0) / Math.max(s1 - s0, 1e-9);
+      return l.start_plate_mm.map((a, j) => a + t * (l.end_plate_mm[j] - a));
     };
-    let i = 0;
+    const at = (sv) => { const p = pos(sv); return p ? `(${p[0].toFixed(0)}, ${p[1].toFixed(0)}) mm` : `s = ${sv.toFixed(0)} mm along the line`; };
+    let i = 0, found = 0;
     while (i < s.length) {
       if (Math.abs(dv[i]) <= limMm) { i++; continue; }
       let j = i, worst = 0;
       while (j < s.length && Math.abs(dv[j]) > limMm) { if (Math.abs(dv[j]) > Math.abs(worst)) worst = dv[j]; j++; }
-      rework.push(`<li>line ${esc(lname(l))}: from ${at(s[i])} to ${at(s[j - 1])}, worst ${worst.toFixed(2)} mm (${worst > 0 ? "design above the plate" : "plate above the design"})</li>`);
-      i = j;
+      const no = regions.length + 1;
+      regions.push({ no, p0: pos(s[i]), p1: pos(s[j - 1]), worst });
+      rework.push(`<li data-region="${no}"><b>${no}</b> line ${esc(lname(l))}: from ${at(s[i])} to ${at(s[j - 1])}: ${reworkWords(worst)}</li>`);
+      found++; i = j;
     }
-    if (!rework.length) rework.push(`<li>line ${esc(lname(l))}: Zmax ${fmt(l.zmax_mm)} mm at ${fmt(l.zmax_at_mm, 0)} mm</li>`);
+    if (!found) rework.push(`<li>line ${esc(lname(l))}: Zmax ${fmt(l.zmax_mm)} mm at ${fmt(l.zmax_at_mm, 0)} mm along the line</li>`);
   });
   $("result-rework").innerHTML = rework.join("") || "<li>none: every line within the limit</li>";
+  if (map) drawPlateMap($("result-top"), map, report, regions, stdMm, limMm, lname);
+}
+// which way the plate must go, in the words of the shop floor (d = design - plate)
+const reworkWords = (worst) => (worst > 0
+  ? `the plate lies ${worst.toFixed(2)} mm below the design here: it must come up`
+  : `the plate lies ${(-worst).toFixed(2)} mm above the design here: it must come down`);
+
+// the top view in the plate frame: mm from the reference corner (origin bottom left, x to the
+// right, y up), the deviation coloured by band, the detection lines drawn and named, the rework
+// regions numbered as in the list
+function drawPlateMap(c, map, report, regions, stdMm, limMm, lname) {
+  const [lx, ly] = map.plate_size_mm, g = c.getContext("2d"), W = c.width, H = c.height;
+  const L = 52, B = 36, T = 26, R = 40, k = Math.min((W - L - R) / lx, (H - T - B) / ly);
+  const X = (x) => L + x * k, Y = (y) => H - B - y * k;
+  g.fillStyle = "#06090b"; g.fillRect(0, 0, W, H);
+  g.strokeStyle = "#3a4a5a"; g.lineWidth = 1; g.strokeRect(X(0), Y(ly), lx * k, ly * k);
+  const cell = Math.max(2, Math.ceil(k * Math.sqrt((lx * ly) / Math.max(map.xy_mm.length, 1))));
+  map.xy_mm.forEach(([x, y], i) => { g.fillStyle = `rgb(${bandColour(map.deviation_mm[i], stdMm, limMm).join(",")})`; g.fillRect(X(x) - cell / 2, Y(y) - cell / 2, cell, cell); });
+  // axes in mm
+  g.font = "13px system-ui"; g.fillStyle = "#9fb0bf";
+  const xs = niceStep(lx, Math.max(2, Math.floor((lx * k) / 80))), ys = niceStep(ly, Math.max(2, Math.floor((ly * k) / 50)));
+  g.textAlign = "center";
+  for (let v = 0; v <= lx + 1e-6; v += xs) { g.fillRect(X(v), Y(0), 1, 5); g.fillText(tickText(v, xs), X(v), Y(0) + 18); }
+  g.fillText("x mm", X(lx / 2), H - 3);
+  g.textAlign = "right";
+  for (let v = 0; v <= ly + 1e-6; v += ys) { g.fillRect(X(0) - 5, Y(v), 5, 1); g.fillText(tickText(v, ys), X(0) - 7, Y(v) + 4); }
+  g.save(); g.translate(12, Y(ly / 2)); g.rotate(-Math.PI / 2); g.textAlign = "center"; g.fillText("y mm", 0, 0); g.restore();
+  // the reference corner
+  g.fillStyle = "#ffffff"; g.beginPath(); g.arc(X(0), Y(0), 6, 0, 2 * Math.PI); g.fill();
+  g.textAlign = "left"; g.fillText("reference corner (0, 0)", X(0) + 10, Y(0) - 8);
+  // the detection lines and their names
+  const drawn = [];
+  for (const l of report.lines) {
+    if (!l.start_plate_mm || !l.end_plate_mm) continue;
+    const [a, b] = [l.start_plate_mm, l.end_plate_mm];
+    g.strokeStyle = l.pass ? "rgba(255,255,255,0.85)" : "#ff6b6b"; g.lineWidth = 2; g.setLineDash([6, 4]);
+    g.beginPath(); g.moveTo(X(a[0]), Y(a[1])); g.lineTo(X(b[0]), Y(b[1])); g.stroke(); g.setLineDash([]);
+    const name = lname(l), tx = X(b[0]) + 4, ty = Y(b[1]) - 4, w = g.measureText(name).width + 6;
+    g.fillStyle = "rgba(6,9,11,0.8)"; g.fillRect(tx - 3, ty - 13, w, 17);
+    g.fillStyle = l.pass ? "#ffffff" : "#ff9a9a"; g.fillText(name, tx, ty);
+    drawn.push(name);
+  }
+  // the rework regions, numbered as in the list
+  let shown = 0;
+  for (const r of regions) {
+    if (!r.p0 || !r.p1) continue;
+    g.strokeStyle = "#ff2d2d"; g.lineWidth = 7; g.lineCap = "round";
+    g.beginPath(); g.moveTo(X(r.p0[0]), Y(r.p0[1])); g.lineTo(X(r.p1[0]), Y(r.p1[1])); g.stroke(); g.lineCap = "butt";
+    const mx = (X(r.p0[0]) + X(r.p1[0])) / 2, my = (Y(r.p0[1]) + Y(r.p1[1])) / 2;
+    g.fillStyle = "#ffffff"; g.beginPath(); g.arc(mx + 14, my - 14, 10, 0, 2 * Math.PI); g.fill();
+    g.fillStyle = "#a00000"; g.textAlign = "center"; g.font = "bold 13px system-ui"; g.fillText(String(r.no), mx + 14, my - 9.5);
+    g.font = "13px system-ui"; g.textAlign = "left"; shown++;
+  }
+  c.dataset.lines = drawn.join(","); c.dataset.regions = String(shown); c.dataset.scaleMmPerPx = (1 / k).toFixed(3);
 }
 $("btn-reanalyse").addEventListener("click", async () => {
   const res = await api("POST", "/api/control/reanalyse", { job_id: $("btn-reanalyse").dataset.job });
