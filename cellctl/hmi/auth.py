@@ -13,15 +13,17 @@ engineer's those of a Zenoh ``operator``. The server checks every request agains
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import hmac
 import os
 import re
 import secrets
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from cellctl.config import ConfigError, check_secret_file_mode
 
@@ -37,9 +39,15 @@ ACTION_ROLE = {
     "reset": "engineer",
     "reanalyse": "engineer",
 }
-_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+NAME_MAX = 64
+_NAME = re.compile(rf"^[A-Za-z0-9_.-]{{1,{NAME_MAX}}}$")
 _SCRYPT = {"n": 2**14, "r": 8, "p": 1}
 SESSION_TTL_S = 12 * 3600.0
+
+
+def valid_name(name: str) -> bool:
+    """Whether ``name`` is a user name the users file could hold (1 to 64 letters, digits, _ . -)."""
+    return bool(_NAME.match(name))
 
 
 class AuthError(Exception):
@@ -140,36 +148,130 @@ class Session:
     expires: float
 
 
+class _Window:
+    """Times of recent attempts per key, within ``window_s``, for at most ``max_keys`` keys.
+
+    Keys are dropped when their last attempt leaves the window and, when the table is full, the key
+    used longest ago is dropped first (LRU), so the table's size is bounded whatever the clients send.
+    Reading (:meth:`count`) never creates a key."""
+
+    def __init__(self, window_s: float, max_keys: int) -> None:
+        self.window_s = window_s
+        self.max_keys = max_keys
+        self._t: OrderedDict[str, deque[float]] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def _trim(self, key: str, now: float) -> deque[float] | None:
+        q = self._t.get(key)
+        if q is None:
+            return None
+        while q and now - q[0] > self.window_s:
+            q.popleft()
+        if not q:
+            del self._t[key]
+            return None
+        return q
+
+    def count(self, key: str, now: float) -> int:
+        q = self._trim(key, now)
+        return len(q) if q else 0
+
+    def oldest(self, key: str, now: float) -> float:
+        q = self._trim(key, now)
+        return q[0] if q else now
+
+    def add(self, key: str, now: float) -> None:
+        q = self._trim(key, now)
+        if q is None:
+            # the table is in order of last attempt: drop the keys whose last one left the window
+            while self._t:
+                head, hq = next(iter(self._t.items()))
+                if hq and now - hq[-1] <= self.window_s:
+                    break
+                del self._t[head]
+            while len(self._t) >= self.max_keys:
+                self._t.popitem(last=False)  # the key used longest ago
+            q = self._t[key] = deque()
+        self._t.move_to_end(key)
+        q.append(now)
+
+    def remove(self, key: str, t: float) -> None:
+        q = self._t.get(key)
+        if q is None:
+            return
+        with contextlib.suppress(ValueError):
+            q.remove(t)
+        if not q:
+            del self._t[key]
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """A log-in attempt counted before its password is checked (:meth:`LoginLimiter.reserve`)."""
+
+    address: str
+    user: str
+    t: float
+
+
 @dataclass
 class LoginLimiter:
-    """At most ``max_failures`` failed log-ins per key (``user:<name>``) in ``window_s``; keys
-    starting ``ip:`` (a client address, which several users may share) allow ``max_failures_ip``."""
+    """Failed log-ins, counted per client address and per user name (docs/hmi.md, "Log-in limits").
+
+    An attempt is counted *before* its password is checked (:meth:`reserve`) and only uncounted when
+    the password was right (:meth:`settle`), so parallel attempts are limited exactly like
+    sequential ones. Per address: at most ``max_failures_ip`` in ``window_s``, whatever the user
+    names. Per user name: at most ``max_failures`` in ``window_s``, enforced only against addresses
+    with failures of their own in the window, so an outsider who exhausts a crew member's count does
+    not lock that crew member out of a panel that has not failed. Each table holds at most
+    ``max_keys`` keys (expired first, then least recently used); a refused attempt stores nothing.
+    """
 
     max_failures: int = 5
     max_failures_ip: int = 20
     window_s: float = 60.0
-    _fails: dict[str, deque[float]] = field(default_factory=dict)
+    max_keys: int = 4096
+    clock: Any = time.monotonic
+    _ips: _Window = field(init=False)
+    _users: _Window = field(init=False)
 
-    def _recent(self, key: str, now: float) -> deque[float]:
-        q = self._fails.setdefault(key, deque())
-        while q and now - q[0] > self.window_s:
-            q.popleft()
-        return q
+    def __post_init__(self) -> None:
+        self._ips = _Window(self.window_s, self.max_keys)
+        self._users = _Window(self.window_s, self.max_keys)
 
-    def blocked(self, *keys: str) -> float:
-        """Seconds until a log-in from these keys is accepted again (0: now)."""
-        now = time.monotonic()
+    def entries(self) -> int:
+        """Keys held (both tables): bounded by ``2 * max_keys``."""
+        return len(self._ips) + len(self._users)
+
+    def blocked(self, address: str, user: str) -> float:
+        """Seconds until an attempt for ``user`` from ``address`` is accepted again (0: now)."""
+        now = self.clock()
         waits = []
-        for k in keys:
-            q = self._recent(k, now)
-            if len(q) >= (self.max_failures_ip if k.startswith("ip:") else self.max_failures):
-                waits.append(self.window_s - (now - q[0]))
+        n_ip = self._ips.count(address, now)
+        if n_ip >= self.max_failures_ip:
+            waits.append(self.window_s - (now - self._ips.oldest(address, now)))
+        if n_ip > 0 and self._users.count(user, now) >= self.max_failures:
+            waits.append(self.window_s - (now - self._users.oldest(user, now)))
         return max(waits, default=0.0)
 
-    def failed(self, *keys: str) -> None:
-        now = time.monotonic()
-        for k in keys:
-            self._recent(k, now).append(now)
+    def reserve(self, address: str, user: str) -> Attempt | float:
+        """Count an attempt as failed before its password is checked: the :class:`Attempt`, or the
+        seconds to wait (> 0) when it is refused (then nothing is stored)."""
+        wait = self.blocked(address, user)
+        if wait > 0:
+            return max(wait, 1e-3)
+        now = self.clock()
+        self._ips.add(address, now)
+        self._users.add(user, now)
+        return Attempt(address, user, now)
+
+    def settle(self, attempt: Attempt, ok: bool) -> None:
+        """The password was checked: a right one is uncounted, a wrong one stays counted."""
+        if ok:
+            self._ips.remove(attempt.address, attempt.t)
+            self._users.remove(attempt.user, attempt.t)
 
 
 class Authenticator:

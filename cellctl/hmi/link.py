@@ -55,6 +55,8 @@ class CellLink:
         self.live_points: list[np.ndarray] = []
         self.live_count = 0
         self.live_chunks = 0
+        #: the sequence number of the last chunk kept in ``live_points`` (-1: none)
+        self.live_seq = -1
         self.ended: set[str] = set()
         self.on_job_end: Callable[[str], None] | None = None
         self._subs: list[Any] = []
@@ -107,10 +109,12 @@ class CellLink:
         except ValidationError:
             return
         if chunk.job_id != self.live_job:
-            self.live_job, self.live_points, self.live_count = chunk.job_id, [], 0
-        if chunk.xyz_mm and self.live_count < LIVE_KEEP_POINTS:
-            self.live_points.append(np.asarray(chunk.xyz_mm, np.float32))
-            self.live_count += len(chunk.xyz_mm)
+            self.live_job, self.live_points, self.live_count, self.live_seq = chunk.job_id, [], 0, -1
+        if self.live_count < LIVE_KEEP_POINTS:
+            if chunk.xyz_mm:
+                self.live_points.append(np.asarray(chunk.xyz_mm, np.float32))
+                self.live_count += len(chunk.xyz_mm)
+            self.live_seq = chunk.seq
         self.live_chunks += 1
         self.on_event({"type": "live", "job_id": chunk.job_id, "seq": chunk.seq, "profiles": chunk.profiles,
                        "xyz_mm": chunk.xyz_mm})  # fmt: skip
@@ -124,10 +128,12 @@ class CellLink:
         self.on_event({"type": "report", "job_id": env.job_id, "plate_id": env.plate_id, "ok": env.ok,
                        "verdict": verdict, "error": env.error})  # fmt: skip
 
-    def live_cloud(self, job_id: str) -> list[list[float]]:
+    def live_cloud(self, job_id: str) -> tuple[list[list[float]], int]:
+        """The job's live cloud so far and the sequence number of its last chunk (-1: none); a
+        page adds the chunks after that one that reach it meanwhile."""
         if job_id != self.live_job or not self.live_points:
-            return []
-        return np.concatenate(self.live_points).tolist()
+            return [], self.live_seq if job_id == self.live_job else -1
+        return np.concatenate(self.live_points).tolist(), self.live_seq
 
     # ------------------------------------------------------------------ outbound
     async def trigger(self, body: str) -> TriggerAccepted:

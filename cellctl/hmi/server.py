@@ -4,34 +4,53 @@ Every request that acts on the cell goes through :class:`~cellctl.hmi.link.CellL
 is checked against the session's role first (:func:`cellctl.hmi.auth.allowed`); the page hiding a
 button is a convenience, never the check. Cookies: ``HttpOnly``, ``SameSite=Strict``; every POST
 but the log-in carries the session's CSRF token in ``X-CSRF-Token``. Log-ins are rate-limited per
-client address and per user name.
+client address and per user name (:class:`~cellctl.hmi.auth.LoginLimiter`), each attempt counted
+before its password is checked. Bodies are UTF-8 JSON objects or refused (400); ids outside the
+API's grammar are refused (404) before any path is built from them; a websocket needs the HMI's
+own ``Origin`` and is closed when its session ends. Nothing a client sends (cookies, passwords,
+bodies) reaches the log: aiohttp's own errors are logged without their values or locals.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import ipaddress
 import json
+import logging
 import re
 import time
+import traceback
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import numpy as np
 import structlog
 from aiohttp import WSMsgType, web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from cellctl.api import DESIGN_SUFFIXES, MAX_TRIGGER_BYTES, ApiCallError
 from cellctl.config import CellConfig
 from cellctl.daemon.history import History
-from cellctl.hmi.auth import ACTION_ROLE, ZENOH_ROLE, Authenticator, Session, allowed, role_cap
+from cellctl.hmi.auth import (
+    ACTION_ROLE,
+    ZENOH_ROLE,
+    Attempt,
+    Authenticator,
+    Session,
+    allowed,
+    role_cap,
+    valid_name,
+)
 from cellctl.hmi.link import CellLink
 
 log = structlog.get_logger(__name__)
 
 STATIC = Path(__file__).with_name("static")
 COOKIE = "hmi_session"
-_JOB_ID = re.compile(r"^[A-Za-z0-9_.-]{1,80}$")
+#: the API's grammar of job and plate ids (cellctl.api's ``Ident``): never ``.`` or ``..``
+_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 #: files of a job a browser may download: (name, where in the job directory, content type)
 DOWNLOADS = {
     "report.html": ("results/report.html", "text/html"),
@@ -41,6 +60,10 @@ DOWNLOADS = {
     "cloud.ply": ("results/cloud.ply", "application/octet-stream"),
 }
 MAX_BODY_BYTES = MAX_TRIGGER_BYTES  # a trigger is the largest body the HMI takes
+#: a log-in body: {"user": <= 64 characters, "password": ...}
+LOGIN_MAX_BYTES = 4096
+#: password checks running at once (each a thread)
+MAX_CONCURRENT_CHECKS = 2
 MAP_MAX_POINTS = 30_000
 _SECURITY_HEADERS = {
     "Content-Security-Policy": (
@@ -56,6 +79,79 @@ _SECURITY_HEADERS = {
 
 def _err(status: int, code: str, message: str, field: str = "") -> web.Response:
     return web.json_response({"code": code, "field": field, "message": message}, status=status)
+
+
+def client_key(remote: str | None) -> str:
+    """The limiter's key of a client address: an IPv6 address by its /64 (one host's addresses
+    are a whole /64, so single addresses would give an attacker as many fresh keys as it likes)."""
+    try:
+        ip = ipaddress.ip_address(remote or "")
+    except ValueError:
+        return remote or "?"
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.ipv4_mapped is not None:
+            return str(ip.ipv4_mapped)
+        return str(ipaddress.ip_network(f"{ip}/64", strict=False))
+    return str(ip)
+
+
+class _BodyError(Exception):
+    def __init__(self, response: web.Response) -> None:
+        self.response = response
+
+
+async def _read_body(request: web.Request, limit: int) -> bytes:
+    """The request's body, at most ``limit`` bytes (else 413), however it is sent (chunked too)."""
+    if request.content_length is not None and request.content_length > limit:
+        raise _BodyError(_err(413, "too_large", f"a body of at most {limit} bytes"))
+    buf = bytearray()
+    while len(buf) <= limit:
+        chunk = await request.content.read(limit + 1 - len(buf))
+        if not chunk:
+            break
+        buf += chunk
+    if len(buf) > limit:
+        raise _BodyError(_err(413, "too_large", f"a body of at most {limit} bytes"))
+    return bytes(buf)
+
+
+def _json_object(raw: bytes, *, empty: str | None = None) -> tuple[str, dict[str, Any]]:
+    """``raw`` as text and as the JSON object it must be (UTF-8), else :class:`_BodyError` (400).
+    ``empty``: the text an empty body stands for (None: an empty body is refused)."""
+    if not raw.strip() and empty is not None:
+        return empty, json.loads(empty)
+    try:
+        text = raw.decode("utf-8")
+        value = json.loads(text)
+    except (ValueError, RecursionError):  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        raise _BodyError(_err(400, "malformed", "the body must be a JSON object in UTF-8")) from None
+    if not isinstance(value, dict):
+        raise _BodyError(_err(400, "malformed", "the body must be a JSON object in UTF-8"))
+    return text, value
+
+
+class _NoClientDataInLogs(logging.Filter):
+    """aiohttp's own error lines without what the client sent: a malformed request (a 20 kB cookie,
+    a broken header) is logged as its status only, and any other exception as its type and
+    traceback text (never its value, whose text or frame locals may hold a cookie or a password)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not record.exc_info or record.exc_info[1] is None:
+            return True
+        exc = record.exc_info[1]
+        if isinstance(exc, HttpProcessingError):  # the client's fault, not the server's
+            record.msg, record.args = "hmi_bad_http_request status=%s", (exc.code,)
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+        else:
+            tb = "".join(traceback.format_tb(exc.__traceback__))
+            record.msg, record.args = "hmi_request_error %s\n%s", (type(exc).__name__, tb)
+        record.exc_info, record.exc_text = None, None
+        return True
+
+
+_LOG_FILTER = _NoClientDataInLogs()
+for _name in ("aiohttp.server", "aiohttp.web", "aiohttp.access", "aiohttp.websocket"):
+    logging.getLogger(_name).addFilter(_LOG_FILTER)
 
 
 class HmiServer:
@@ -78,7 +174,11 @@ class HmiServer:
         self.data_dir = Path(cfg.cell.data_dir)
         self.designs_dir = Path(cfg.cell.designs_dir)
         self.history: History | None = None
-        self.sockets: set[web.WebSocketResponse] = set()
+        # scrypt costs ~50 ms and 16 MB a check: a flood of log-ins from many addresses queues here
+        # instead of taking every worker thread from the history and the downloads
+        self._checks = asyncio.Semaphore(MAX_CONCURRENT_CHECKS)
+        #: open websockets and the session token each was opened with
+        self.sockets: dict[web.WebSocketResponse, str] = {}
         self.link = CellLink(cfg, self._broadcast)
         self.link.on_job_end = self._job_ended
         self.app = self._build_app()
@@ -117,7 +217,7 @@ class HmiServer:
     async def _on_cleanup(self, app: web.Application) -> None:
         for ws in list(self.sockets):
             with contextlib.suppress(Exception):
-                await ws.close()
+                await ws.close(code=1001, message=b"server shutdown")
         await self.link.close()
         if self.history is not None:
             self.history.close()
@@ -149,27 +249,33 @@ class HmiServer:
         return web.FileResponse(STATIC / "index.html")
 
     async def login(self, request: web.Request) -> web.Response:
+        # nothing is stored for a request refused here: a body too large or malformed, a user name
+        # the users file could not hold, an attempt over the limits (docs/hmi.md, "Log-in limits")
         try:
-            body = await request.json()
-            name, password = str(body["user"]), str(body["password"])
-        except (ValueError, KeyError, TypeError):
+            _, body = _json_object(await _read_body(request, LOGIN_MAX_BYTES))
+        except _BodyError as exc:
+            return exc.response
+        name, password = body.get("user"), body.get("password")
+        if not isinstance(name, str) or not isinstance(password, str):
             return _err(400, "malformed", 'expected {"user": ..., "password": ...}')
-        peer = f"ip:{request.remote}"
-        wait = self.auth.limiter.blocked(peer, f"user:{name}")
-        if wait > 0:
+        if not valid_name(name):
+            return _err(400, "invalid", "a user name is 1 to 64 letters, digits, _ . -", "user")
+        attempt = self.auth.limiter.reserve(client_key(request.remote), name)
+        if not isinstance(attempt, Attempt):
             return web.json_response(
                 {
                     "code": "rate_limited",
                     "field": "",
-                    "message": f"too many failed log-ins; try again in {wait:.0f} s",
+                    "message": f"too many failed log-ins; try again in {attempt:.0f} s",
                 },
                 status=429,
-                headers={"Retry-After": str(int(wait) + 1)},
+                headers={"Retry-After": str(int(attempt) + 1)},
             )
-        s = await asyncio.to_thread(self.auth.login, name, password)
+        async with self._checks:
+            s = await asyncio.to_thread(self.auth.login, name, password)
+        self.auth.limiter.settle(attempt, ok=s is not None)
         if s is None:
-            self.auth.limiter.failed(peer, f"user:{name}")
-            log.info("hmi_login_refused", user=name[:64], peer=request.remote)
+            log.info("hmi_login_refused", user=name, peer=request.remote)
             return _err(401, "bad_login", "wrong user name or password")
         log.info("hmi_login", user=s.user, role=s.role)
         resp = web.json_response(self._me(s))
@@ -180,7 +286,11 @@ class HmiServer:
         return resp
 
     async def logout(self, request: web.Request) -> web.Response:
-        self.auth.logout(request.cookies.get(COOKIE))
+        token = request.cookies.get(COOKIE)
+        self.auth.logout(token)
+        for ws, ws_token in list(self.sockets.items()):
+            if ws_token == token:
+                await self._close_ended(ws)
         resp = web.json_response({"ok": True})
         resp.del_cookie(COOKIE, path="/")
         return resp
@@ -219,7 +329,10 @@ class HmiServer:
     async def trigger(self, request: web.Request) -> web.Response:
         if (refused := self._check(request, "trigger")) is not None:
             return refused
-        body = await request.text()
+        try:
+            body, _ = _json_object(await _read_body(request, MAX_BODY_BYTES))
+        except _BodyError as exc:
+            return exc.response
         try:
             acc = await self.link.trigger(body)
         except ApiCallError as exc:
@@ -233,9 +346,12 @@ class HmiServer:
             return _err(404, "invalid", f"no action {action!r}", "action")
         if (refused := self._check(request, action)) is not None:
             return refused
-        body = await request.text()
         try:
-            reply = await self.link.control(action, body or "{}")
+            body, _ = _json_object(await _read_body(request, MAX_BODY_BYTES), empty="{}")
+        except _BodyError as exc:
+            return exc.response
+        try:
+            reply = await self.link.control(action, body)
         except ApiCallError as exc:
             return _api_error(exc)
         log.info("hmi_control", user=request["session"].user, action=action)
@@ -287,7 +403,7 @@ class HmiServer:
 
     # ---------------------------------------------------------------- jobs and history
     def _job_dir(self, job_id: str) -> Path | None:
-        if not _JOB_ID.match(job_id):
+        if not _ID.match(job_id):
             return None
         d = self.data_dir / "jobs" / job_id
         return d if d.is_dir() else None
@@ -321,9 +437,10 @@ class HmiServer:
         return web.json_response({"jobs": rows})
 
     async def rounds(self, request: web.Request) -> web.Response:
-        return web.json_response(
-            {"rounds": await asyncio.to_thread(self.history.rounds, request.match_info["plate_id"])}
-        )
+        plate_id = request.match_info["plate_id"]
+        if not _ID.match(plate_id):
+            return _err(404, "no_plate", "not a plate id", "plate_id")
+        return web.json_response({"rounds": await asyncio.to_thread(self.history.rounds, plate_id)})
 
     async def job(self, request: web.Request) -> web.Response:
         job_id = request.match_info["job_id"]
@@ -373,7 +490,11 @@ class HmiServer:
         return web.json_response(await asyncio.to_thread(read))
 
     async def job_live(self, request: web.Request) -> web.Response:
-        return web.json_response({"xyz_mm": self.link.live_cloud(request.match_info["job_id"])})
+        job_id = request.match_info["job_id"]
+        if not _ID.match(job_id):
+            return _err(404, "no_job", "not a job id")
+        xyz, seq = self.link.live_cloud(job_id)
+        return web.json_response({"xyz_mm": xyz, "seq": seq})
 
     async def job_file(self, request: web.Request) -> web.StreamResponse:
         d = self._job_dir(request.match_info["job_id"])
@@ -395,35 +516,48 @@ class HmiServer:
         )
 
     # ---------------------------------------------------------------- live updates
-    async def websocket(self, request: web.Request) -> web.WebSocketResponse:
-        ws = web.WebSocketResponse(heartbeat=20.0)
+    async def websocket(self, request: web.Request) -> web.StreamResponse:
+        origin = request.headers.get("Origin")
+        # a browser always sends its page's origin: a page of another site riding the crew's cookie
+        # is refused (a client without a browser holds the cookie itself and gains nothing)
+        if origin is not None and urlsplit(origin).netloc.lower() != request.host.lower():
+            log.info("hmi_ws_refused", reason="origin", origin=origin[:200])
+            return _err(403, "origin", "a websocket from another site's page")
+        token = request.cookies.get(COOKIE, "")
+        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=4096)
         await ws.prepare(request)
-        self.sockets.add(ws)
+        self.sockets[ws] = token
         try:
             if self.link.status is not None:
                 await ws.send_str(
                     json.dumps({"type": "status", "status": self.link.status.model_dump(mode="json")})
                 )
-            async for msg in ws:
-                if msg.type == WSMsgType.ERROR:
-                    break
-                # a session that ended (log-out, expiry) stops receiving
-                if self.auth.session(request.cookies.get(COOKIE)) is None:
+            async for msg in ws:  # the page sends nothing; whatever arrives is dropped
+                if msg.type == WSMsgType.ERROR or self.auth.session(token) is None:
                     break
         finally:
-            self.sockets.discard(ws)
+            self.sockets.pop(ws, None)
         return ws
+
+    async def _close_ended(self, ws: web.WebSocketResponse) -> None:
+        """Close a websocket whose session ended (log-out, expiry): 4401, the page shows the log-in."""
+        self.sockets.pop(ws, None)
+        with contextlib.suppress(Exception):
+            await ws.close(code=4401, message=b"session ended")
 
     def _broadcast(self, event: dict[str, Any]) -> None:
         if not self.sockets:
             return
         event["t_server_ms"] = time.time() * 1000.0
         text = json.dumps(event)
-        for ws in list(self.sockets):
+        loop = asyncio.get_running_loop()
+        for ws, token in list(self.sockets.items()):
             if ws.closed:
-                self.sockets.discard(ws)
+                self.sockets.pop(ws, None)
                 continue
-            task = asyncio.get_running_loop().create_task(_send(ws, text))
+            # an expired session's socket is closed at the next event (the status, every second)
+            coro = _send(ws, text) if self.auth.session(token) is not None else self._close_ended(ws)
+            task = loop.create_task(coro)
             _TASKS.add(task)
             task.add_done_callback(_TASKS.discard)
 

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import gc
 import os
+import tracemalloc
 from pathlib import Path
 
 import pytest
 
 from cellctl.hmi.auth import (
+    Attempt,
     Authenticator,
     AuthError,
     LoginLimiter,
@@ -16,6 +19,7 @@ from cellctl.hmi.auth import (
     hash_password,
     load_users,
     role_cap,
+    valid_name,
     verify_password,
 )
 
@@ -85,18 +89,99 @@ def test_sessions_and_wrong_passwords(tmp_path: Path) -> None:
     assert auth.session(s.token) is None and auth.session(None) is None
 
 
-def test_the_limiter_blocks_after_five_failures_per_key_for_the_window() -> None:
-    lim = LoginLimiter(max_failures=5, window_s=60.0)
-    for _ in range(4):
-        lim.failed("ip:1", "user:olga")
-    assert lim.blocked("ip:1", "user:olga") == 0.0
-    lim.failed("ip:1", "user:olga")
-    assert 59.0 < lim.blocked("ip:2", "user:olga") <= 60.0  # the user name is blocked from any address
-    assert lim.blocked("ip:2", "user:vic") == 0.0
-    assert lim.blocked("ip:1", "user:vic") == 0.0  # an address shared by several users allows more
-    for _ in range(15):
-        lim.failed("ip:1")
-    assert lim.blocked("ip:1", "user:vic") > 0
+class Clock:
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_the_limiter_counts_an_attempt_before_its_check_and_uncounts_a_right_one() -> None:
+    lim = LoginLimiter(max_failures=5, max_failures_ip=20, window_s=60.0, clock=Clock())
+    # five attempts in flight at once (none checked yet) use up the user's five
+    held = [lim.reserve("10.0.0.1", "olga") for _ in range(5)]
+    assert all(isinstance(a, Attempt) for a in held)
+    assert not isinstance(lim.reserve("10.0.0.1", "olga"), Attempt)
+    lim.settle(held[0], ok=True)  # a right password gives its slot back
+    again = lim.reserve("10.0.0.1", "olga")
+    assert isinstance(again, Attempt)
+    lim.settle(again, ok=False)
+    assert 59.0 < lim.blocked("10.0.0.1", "olga") <= 60.0
+
+
+def test_a_refused_attempt_stores_nothing() -> None:
+    lim = LoginLimiter(max_failures_ip=2, clock=Clock())
+    for name in ("a", "b"):
+        assert isinstance(lim.reserve("10.0.0.9", name), Attempt)
+    before = lim.entries()
+    for k in range(100):
+        assert not isinstance(lim.reserve("10.0.0.9", f"new-{k}"), Attempt)
+    assert lim.entries() == before == 3  # one address, two names
+
+
+def test_a_user_name_locked_from_elsewhere_still_logs_in_from_an_address_without_failures() -> None:
+    lim = LoginLimiter(max_failures=5, max_failures_ip=20, window_s=60.0, clock=Clock())
+    for _ in range(5):
+        a = lim.reserve("10.6.6.6", "olga")
+        assert isinstance(a, Attempt)
+        lim.settle(a, ok=False)
+    assert lim.blocked("10.6.6.6", "olga") > 0  # the attacker's address: locked for olga
+    assert lim.blocked("10.6.6.6", "vic") == 0  # ... not for another name (up to 20 in all)
+    crew = lim.reserve("10.0.0.1", "olga")  # the panel, no failures of its own: olga's password is checked
+    assert isinstance(crew, Attempt)
+    # a wrong one from the panel too: now the panel waits as the attacker does
+    lim.settle(crew, ok=False)
+    assert lim.blocked("10.0.0.1", "olga") > 0
+    # the address limit holds whatever the names
+    for k in range(19):
+        lim.settle(lim.reserve("10.7.7.7", f"u{k}"), ok=False)  # type: ignore[arg-type]
+    last = lim.reserve("10.7.7.7", "u19")
+    assert isinstance(last, Attempt)
+    lim.settle(last, ok=False)
+    assert lim.blocked("10.7.7.7", "anyone") > 0
+
+
+def test_the_limiters_entries_expire_after_the_window_and_never_exceed_max_keys() -> None:
+    clock = Clock()
+    lim = LoginLimiter(max_failures_ip=3, window_s=60.0, max_keys=100, clock=clock)
+    for k in range(10_000):  # 10 000 junk attempts from 10 000 addresses, each a new name
+        a = lim.reserve(f"10.{k // 256 % 256}.{k % 256}.{k // 65536}", f"junk{k}")
+        assert isinstance(a, Attempt)
+        lim.settle(a, ok=False)
+        assert lim.entries() <= 200
+    clock.t += 61.0
+    a = lim.reserve("10.0.0.1", "olga")
+    assert isinstance(a, Attempt)
+    assert lim.entries() == 2  # the expired ones went when a new key came
+
+
+def test_the_limiters_memory_stays_flat_under_junk() -> None:
+    lim = LoginLimiter(max_keys=1000, clock=Clock())
+
+    def junk(n: int, tag: str) -> None:
+        for k in range(n):
+            a = lim.reserve(f"{tag}-{k}", f"{tag}{k}" + "x" * 50)
+            if isinstance(a, Attempt):
+                lim.settle(a, ok=False)
+
+    tracemalloc.start()
+    try:
+        junk(2_000, "a")  # fills the tables
+        gc.collect()
+        full = tracemalloc.get_traced_memory()[0]
+        junk(10_000, "b")
+        gc.collect()
+        after = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    assert lim.entries() <= 2000
+    assert after - full < 64 * 1024, (full, after)  # entries replaced, not added
+
+
+def test_user_names_the_users_file_could_not_hold_are_invalid() -> None:
+    assert valid_name("olga") and valid_name("a" * 64) and valid_name("j.doe-2_x")
+    assert not valid_name("") and not valid_name("a" * 65) and not valid_name("olga ") and not valid_name("ö")
 
 
 def test_the_hmis_zenoh_identity_caps_what_its_users_may_do() -> None:
@@ -106,3 +191,12 @@ def test_the_hmis_zenoh_identity_caps_what_its_users_may_do() -> None:
     assert role_cap(False, "qa-screen", roles) == "engineer" and role_cap(True, "x", {}) == "engineer"
     assert not allowed("engineer", "reset", cap="viewer") and not allowed("operator", "trigger", cap="viewer")
     assert allowed("engineer", "reset", cap="engineer")
+
+
+def test_an_ipv6_client_is_limited_by_its_64_prefix() -> None:
+    from cellctl.hmi.server import client_key
+
+    assert client_key("2001:db8:1:2:aaaa::1") == client_key("2001:db8:1:2:bbbb::9") == "2001:db8:1:2::/64"
+    assert client_key("2001:db8:1:3::1") != client_key("2001:db8:1:2::1")
+    assert client_key("::ffff:10.0.0.7") == "10.0.0.7" == client_key("10.0.0.7")
+    assert client_key(None) == "?" and client_key("unix-socket") == "unix-socket"
