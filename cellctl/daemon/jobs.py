@@ -339,6 +339,31 @@ class JobStore:
         return rec
 
 
+def reanalysis_problem(record: JobRecord, designs_dir: str | Path) -> str:
+    """Why ``record`` cannot be re-analysed from its design ("" when it can): its design must be a
+    file in ``designs_dir``, as a trigger's is (a quarantined record whose design could not be read
+    names none: the worker was handed the directory "." before)."""
+    why = (
+        f" (record quarantined: {record.info['quarantine_reason']})" if record.info.get("quarantined") else ""
+    )
+    if not record.design_path:
+        return (
+            f"its record names no design{why}: re-analyse it offline (cellctl reassemble {record.job_id}, "
+            "then cellctl inspect with the design)"
+        )
+    try:
+        path = Path(record.design_path).resolve()
+        inside = path.is_relative_to(Path(designs_dir).resolve())
+        ok = inside and path.is_file()
+    except (OSError, RuntimeError):
+        inside = ok = False
+    if not inside:
+        return f"its design {record.design_path!r} is not in designs_dir{why}"
+    if not ok:
+        return f"its design file {record.design!r} is gone from designs_dir{why}"
+    return ""
+
+
 class RecordRetry:
     """Job records the disk refused (full, read-only), written again every ``period_s`` until it
     takes them; the newest state of a record wins (the record object is the live one)."""

@@ -64,7 +64,15 @@ from cellctl.api.session import (
 )
 from cellctl.config import CellConfig, ConfigError
 from cellctl.daemon.handover import Handover
-from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore, JobStoreError, RecordRetry, lock_data_dir
+from cellctl.daemon.jobs import (
+    ActiveJob,
+    JobRecord,
+    JobStore,
+    JobStoreError,
+    RecordRetry,
+    lock_data_dir,
+    reanalysis_problem,
+)
 from cellctl.daemon.preflight import PreflightError, probe_writable
 from cellctl.daemon.scan import ScanRunner
 from cellctl.daemon.states import CellStateMachine, Transition
@@ -557,6 +565,8 @@ class CellDaemon:
             raise ControlError("not_allowed", "job_id", f"job is {record.state}")
         if not (self.store.raw_dir(job_id) / "profiles.craw").exists():
             raise ControlError("not_allowed", "job_id", "job has no raw profiles")
+        if problem := reanalysis_problem(record, self.designs_dir):
+            raise ControlError("not_allowed", "job_id", f"job {job_id}: {problem}")
         job = ActiveJob(record)
         self._current = job
         self._track_analysis(job, asyncio.create_task(self._analyse(job), name=f"reanalyse-{job_id}"))

@@ -5,6 +5,7 @@ with a stand-in executor)."""
 from __future__ import annotations
 
 import asyncio
+import json
 
 import pytest
 
@@ -60,3 +61,31 @@ def test_resume_or_pause_after_abort_is_refused_with_its_reason(tmp_path, action
     assert job.executor.requests == ["abort"]
     again = asyncio.run(d._control("abort", ControlRequest()))  # a second abort is harmless
     assert again.job_id == job.record.job_id
+
+
+def _daemon_with_raw_job(tmp_path, job_json: str) -> tuple[CellDaemon, str]:
+    (tmp_path / "designs").mkdir()
+    d = CellDaemon(CellConfig(cell=CellSection(data_dir=tmp_path / "data", designs_dir=tmp_path / "designs")))
+    job_id = "20260101T000000-aaaa0009"
+    raw = d.store.raw_dir(job_id)
+    raw.mkdir(parents=True)
+    (raw / "profiles.craw").write_bytes(b"")
+    (d.store.job_dir(job_id) / "job.json").write_text(job_json)
+    return d, job_id
+
+
+def test_reanalysis_of_a_quarantined_record_without_a_design_is_refused_with_the_reason(tmp_path):
+    d, job_id = _daemon_with_raw_job(tmp_path, "{broken")
+    with pytest.raises(ControlError) as err:  # accepted before; the worker then failed on "design ."
+        asyncio.run(d._control("reanalyse", ControlRequest(job_id=job_id)))
+    assert err.value.code == "not_allowed"
+    assert "names no design" in err.value.message and "quarantined" in err.value.message
+    assert "cellctl reassemble" in err.value.message
+    assert (d.store.job_dir(job_id) / "job.json.quarantined").read_text() == "{broken"
+
+
+def test_reanalysis_of_a_record_whose_design_is_outside_designs_dir_is_refused(tmp_path):
+    rec = JobRecord("20260101T000000-aaaa0009", "p", "x.ply", "/etc/passwd", None, state="interrupted")
+    d, job_id = _daemon_with_raw_job(tmp_path, json.dumps(rec.__dict__))
+    with pytest.raises(ControlError, match="not in designs_dir"):
+        asyncio.run(d._control("reanalyse", ControlRequest(job_id=job_id)))
