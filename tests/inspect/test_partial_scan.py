@@ -111,3 +111,7 @@ def test_a_partial_scans_report_renders_what_was_not_scanned(sail, tmp_path):
     html = files["report.html"].read_text()
     assert f"{ins.report['verdict'].upper()} — plate" in html
     assert "lines not scanned (not judged)" in html and "T1 (" in html
+    from cellctl.commands.tables import line_table
+
+    text = line_table(ins.report)  # what `cellctl scan --wait` and `cellctl inspect` print
+    assert f"verdict: {ins.report['verdict'].upper()}" in text and "partial scan, not judged: T1 (" in text
