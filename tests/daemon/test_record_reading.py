@@ -163,3 +163,20 @@ def test_the_history_skips_bad_records_with_a_log_line_instead_of_dying(tmp_path
     # the report's previous round reads the same way
     assert previous_round_for(tmp_path / "jobs" / "j2").job_id == "j1"
     assert previous_round_for(tmp_path / "jobs" / "deep") is None
+
+
+def test_cellctl_history_prints_the_good_jobs_and_logs_the_bad_record(tmp_path, monkeypatch, capsys):
+    import argparse
+
+    from cellctl.commands.hmi_cmd import history
+
+    data = tmp_path / "data"
+    _history_job(data, "j1", _good("j1", "2026-11-01T10:00:00Z"), REPORT)
+    _history_job(data, "deep", "[" * 1000 + "]" * 1000)  # RecursionError: the command died before
+    monkeypatch.setenv("CELL_CELL__DATA_DIR", str(data))
+    repo = Path(__file__).resolve().parents[2]
+    with capture_logs() as logs:
+        assert history(argparse.Namespace(config=str(repo / "cell.toml"), plate=None)) == 0
+    out = capsys.readouterr().out
+    assert "j1" in out and "deep" not in out
+    assert [Path(e["path"]).parent.name for e in logs if e["event"] == "history_record_skipped"] == ["deep"]
