@@ -89,6 +89,7 @@ def test_a_partial_scan_is_reported_for_what_was_scanned(sail, whole, before_pas
     assert min(np.abs(np.roll(corners, k, axis=0) - true_corners).max() for k in range(4)) < 3.0
 
 
+@pytest.mark.slow
 def test_a_whole_scans_report_keeps_its_shape(whole):
     assert whole["verdict"] in ("pass", "fail")
     assert set(whole["coverage"]) == {"fraction", "holes_mm2"}  # what every daemon version reads
