@@ -23,6 +23,7 @@ __all__ = [
     "AnalysisJob",
     "CompareLine",
     "LineFitReport",
+    "LineNotScanned",
     "LineReport",
     "PlacementFinding",
     "RegistrationReport",
@@ -180,11 +181,26 @@ class LineReport(_Strict):
     line_fit: LineFitReport | None = None
 
 
+class LineNotScanned(_Strict):
+    """A detection line a partial scan did not cover (``scanned_fraction`` of its length seen):
+    reported, not judged."""
+
+    name: str
+    family: Literal["transverse", "longitudinal", "diagonal"]
+    index: Annotated[int, Field(ge=1)]
+    scanned_fraction: Annotated[float, Field(ge=0, le=1)]
+
+
 class ScanCoverage(_Strict):
-    """Share of the design's footprint the scan saw, and the area it missed."""
+    """Share of the design's footprint the scan saw, and the area it missed. ``partial``: the scan
+    saw only part of the plate (cut short): the plate was registered on the placement the scan was
+    planned from, and ``lines_not_scanned`` lists the lines it did not cover (absent from a whole
+    scan's report)."""
 
     fraction: float
     holes_mm2: float
+    partial: bool = False
+    lines_not_scanned: list[LineNotScanned] = []
 
 
 class SurfaceReport(_Strict):
@@ -230,7 +246,8 @@ class Report(_Strict):
     job_id: str = ""
     cell_id: str = ""
     created_utc: str = ""
-    verdict: Literal["pass", "fail"]
+    #: ``incomplete``: a partial scan (``coverage.partial``) whose judged lines all pass
+    verdict: Literal["pass", "fail", "incomplete"]
     standard: str = ""
     template_fit: TemplateFit = "rigid"
     template_fit_compare: TemplateFitCompare | None = None

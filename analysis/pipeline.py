@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from analysis.boundary import BoundaryResult, find_corners
+from analysis.boundary import BoundaryError, BoundaryResult, find_corners
 from analysis.cad import CadDesign, read_design
 from analysis.cloud_io import ORGANISATION, ScanCloud, write_cloud_ply
 from analysis.job import AnalysisJob, Report
@@ -63,6 +63,7 @@ from analysis.register import (
     height_field_from_mesh,
     invert_transform,
     register,
+    register_from_placement,
 )
 from analysis.report import write_csv
 from analysis.rest_surface import RestSurface, rest_surface
@@ -115,7 +116,7 @@ class Inspection:
     cuts: list[TemplateCut]
     coverage_holes_xy_mm: np.ndarray
     segment: SegmentResult
-    boundary: BoundaryResult
+    boundary: BoundaryResult | None  # None: a partial scan in which no edge was found whole
     registration: RegistrationResult
     verdict: Verdict
     timings_s: dict[str, float] = field(default_factory=dict)
@@ -138,6 +139,57 @@ def _check_size(design_c: np.ndarray, measured_c: np.ndarray, tol: float) -> Non
             f"the design does not match the plate: the plate measures {ml:.0f} x {mw:.0f} mm, "
             f"the design is {dl:.0f} x {dw:.0f} mm (more than {tol:.0%} apart)"
         )
+
+
+#: a detection line of a partial scan is judged when the scan covers this share of its length (a
+#: complete scan's lines miss a few millimetres at the plate's edges); shorter ones are reported as
+#: not scanned, never judged on the part that was seen
+PARTIAL_LINE_COVERAGE = 0.9
+#: how far the seen part of a partial scan may reach beyond the design placed where the scan was
+#: planned (the placement's uncertainty): farther, the cloud is not a part of this plate
+PARTIAL_FOOTPRINT_MARGIN_MM = 50.0
+PARTIAL_HINT = (
+    "; a scan cut short covers only part of the plate: analyse it with the placement the scan was "
+    "planned from (`cellctl inspect --placement`, a job's own re-analysis does) to report what it covered"
+)
+
+
+def _partial_scan(design_c: np.ndarray, measured: np.ndarray, nominal: np.ndarray, tol: float) -> bool:
+    """The measured plate is a part of the design's plate, as a scan cut short leaves it: ``measured``,
+    its four corners (then no side may be longer than the design's, beyond ``tol``) or its points
+    (when no corner was found), lies inside the design's outline placed by ``nominal`` (4x4 design
+    -> measured), grown by the placement's uncertainty (a thousandth of the points may lie out)."""
+    if len(measured) == 4:
+        dl, dw = _side_lengths(design_c)
+        ml, mw = _side_lengths(measured)
+        if ml > (1 + tol) * dl or mw > (1 + tol) * dw:
+            return False
+    measured_c = measured
+    inv = invert_transform(nominal)
+    m_design = measured_c @ inv[:3, :3].T + inv[:3, 3]
+    outline = design_c[:, :2]
+
+    def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:  # z of the 2-D cross product
+        return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+    orient = np.sign(cross(outline[1] - outline[0], outline[2] - outline[1]))
+    for a, b in zip(outline, np.roll(outline, -1, axis=0), strict=True):
+        edge = b - a
+        # signed distance of each corner from the edge, positive inside (counter-clockwise outline)
+        dist = orient * cross(edge, m_design[:, :2] - a) / max(float(np.linalg.norm(edge)), 1e-9)
+        if float(np.quantile(dist, 0.001)) < -PARTIAL_FOOTPRINT_MARGIN_MM:
+            return False
+    return True
+
+
+def _line_coverage(cut: TemplateCut) -> float:
+    """Share of the line's length (plate edge to plate edge) where the scan has the plate."""
+    length = float(np.linalg.norm((cut.line.end_mm - cut.line.start_mm)[:2]))
+    if length <= 0 or len(cut.s_mm) < 2:
+        return 0.0
+    step = float(np.median(np.diff(cut.s_mm)))
+    seen = np.isfinite(cut.measured_h_mm) & np.isfinite(cut.design_h_mm)
+    return min(1.0, float(np.count_nonzero(seen)) * step / length)
 
 
 def plate_frame(design_corners: np.ndarray) -> np.ndarray:
@@ -368,19 +420,36 @@ def inspect_cloud(
         lap("design")
         seg = segment_plate(cloud, passes=passes)
         lap("segment")
-        bnd = find_corners(seg.points_mm)
+        try:
+            bnd: BoundaryResult | None = find_corners(seg.points_mm)
+        except BoundaryError:
+            if nominal_placement is None:
+                raise
+            bnd = None  # a few passes of a scan cut short: no edge of the plate seen whole
         lap("boundary")
         surface: HeightField = prepared.height_field()
     design, cad, T_design_file = prepared.mesh, prepared.cad, prepared.T_design_file
     design_c = prepared.corners_mm
-    _check_size(design_c, bnd.corners_mm, settings.size_tolerance)
+    nominal = placement_transform(nominal_placement) if nominal_placement is not None else None
+    partial = False
+    try:
+        if bnd is None:
+            raise InspectionError("the plate's edges were not found in the scan")
+        _check_size(design_c, bnd.corners_mm, settings.size_tolerance)
+    except InspectionError as exc:
+        # a scan cut short (interrupted, re-analysed from its raw files) saw part of the plate: with
+        # the placement it was planned from, report what it saw; else the plain refusal
+        seen = seg.points_mm[:: max(1, len(seg.points_mm) // 100_000)] if bnd is None else bnd.corners_mm
+        if nominal is None or not _partial_scan(design_c, seen, nominal, settings.size_tolerance):
+            raise InspectionError(f"{exc}{PARTIAL_HINT if nominal is None else ''}") from None
+        partial = True
+        log.warning("partial_scan", reason=str(exc), design_mm=[round(v) for v in _side_lengths(design_c)])
     cell_mm = surface_cell_mm(
         seg.points_mm, seg.plate_area_mm2, settings.grid_mm, settings.min_points_per_cell
     )
     measured_mesh = height_grid_mesh(seg.points_mm, cell_mm)
     lap("surface")
     # The fits run on the reconstructed surface (cell means): every cell of the plate, denoised.
-    nominal = placement_transform(nominal_placement) if nominal_placement is not None else None
     rests: list[RestSurface] = []
 
     def rest_on(T_icp: np.ndarray) -> np.ndarray:
@@ -389,25 +458,43 @@ def inspect_cloud(
                                   max_cell_mm=settings.rest_max_cell_mm))  # fmt: skip
         return rests[-1].points_mm
 
-    reg = register(
-        surface,
-        measured_mesh.vertices_mm,
-        design_c,
-        bnd.corners_mm,
-        nominal_transform=nominal,
-        rest_points=rest_on,
-    )
+    if partial:  # the corners were not all seen: the placement's, the surface's height and tilt
+        assert nominal is not None
+        reg = register_from_placement(
+            surface, measured_mesh.vertices_mm, design_c, nominal, rest_points=rest_on
+        )
+    else:
+        reg = register(
+            surface,
+            measured_mesh.vertices_mm,
+            design_c,
+            bnd.corners_mm,
+            nominal_transform=nominal,
+            rest_points=rest_on,
+        )
     rest = rests[-1]
     lap("register")
 
     T = reg.transform  # design -> measured
-    measured_c = np.roll(bnd.corners_mm, -reg.coarse.shift, axis=0)
+    if partial:  # the lines of the whole plate, where the registered design's corners lie
+        measured_c = design_c @ T[:3, :3].T + T[:3, 3]
+    else:
+        measured_c = np.roll(bnd.corners_mm, -reg.coarse.shift, axis=0)
     lines = detection_lines(measured_c, settings.layout)
     if cad is not None:
         cuts = cut_templates_exact(cad, T, measured_mesh, lines, step_mm=settings.sample_step_mm)
     else:
         cuts = cut_templates(design.transformed(T), measured_mesh, lines, step_mm=settings.sample_step_mm)
-    if not cuts:
+    not_scanned: list[dict[str, Any]] = []
+    if partial:  # a line the scan did not cover is reported as such, not judged on the part seen
+        seen = {(c.line.family, c.line.index): _line_coverage(c) for c in cuts}
+        not_scanned = [
+            {"name": line_name(ln), "family": ln.family, "index": ln.index,
+             "scanned_fraction": round(seen.get((ln.family, ln.index), 0.0), 3)}
+            for ln in lines if seen.get((ln.family, ln.index), 0.0) < PARTIAL_LINE_COVERAGE
+        ]  # fmt: skip
+        cuts = [c for c in cuts if seen[(c.line.family, c.line.index)] >= PARTIAL_LINE_COVERAGE]
+    elif not cuts:
         raise InspectionError("no detection line crosses both the design and the scanned plate")
     lap("templates")
 
@@ -426,10 +513,17 @@ def inspect_cloud(
             else _per_line_cuts(cuts, seg.points_mm, np.where(valid, gaps, np.nan), rest.noise_mm)
         )
         metrics, kept, kept_fits = _line_figures(fit_cuts, fits, section_noise)
-        if not metrics:
+        if not metrics and not partial:
             raise InspectionError("no detection line has enough scanned samples to be evaluated")
         judged[fit_mode] = (judge(metrics, settings.tolerances), kept, kept_fits)
     verdict, kept, kept_fits = judged[mode]
+    if partial:  # lines skipped for too few samples were not scanned either
+        judged_keys = {(c.line.family, c.line.index) for c in kept}
+        named = {(x["family"], x["index"]) for x in not_scanned}
+        not_scanned += [
+            {"name": line_name(c.line), "family": c.line.family, "index": c.line.index, "scanned_fraction": 0.0}
+            for c in cuts if (c.line.family, c.line.index) not in judged_keys | named
+        ]  # fmt: skip
     lap("metrics")
 
     deviation = np.where(valid, gaps, np.nan)
@@ -462,12 +556,16 @@ def inspect_cloud(
         line_records.append(rec)
 
     plate_l, plate_w = _side_lengths(design_c)
+    # a partial scan never passes: it fails on a line that fails, else it is incomplete
+    verdict_text = verdict.verdict
+    if partial:  # even with every line seen for 90 % of its length: the rest was not
+        verdict_text = "fail" if verdict.failed else "incomplete"
     report = {
         "plate_id": plate_id,
         "job_id": job_id,
         "cell_id": cell_id,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "verdict": verdict.verdict,
+        "verdict": verdict_text,
         "standard": settings.tolerances.standard,
         "template_fit": mode,
         "registration": {
@@ -491,6 +589,7 @@ def inspect_cloud(
         "coverage": {
             "fraction": coverage,
             "holes_mm2": float(len(holes_design) * HOLE_CELL_MM**2),
+            **({"partial": True, "lines_not_scanned": not_scanned} if partial else {}),
         },
         "surface": {
             "points": len(seg.points_mm),
@@ -520,6 +619,9 @@ def inspect_cloud(
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
     # the schema of report.json, checked where the report is made
     report = Report.model_validate(report).model_dump(mode="json")
+    if not partial:  # a whole scan's report keeps the shape every daemon version reads
+        for key in ("partial", "lines_not_scanned"):
+            report["coverage"].pop(key, None)
     log.info("inspected", verdict=verdict.verdict, lines=len(line_records), worst_zmax_mm=round(verdict.worst_zmax_mm, 3),
              total_s=timings["total"])  # fmt: skip
     return Inspection(

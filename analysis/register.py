@@ -1284,3 +1284,60 @@ def register(
         nonpenetrating=npf,
         candidates={k: v[0] for k, v in trials.items()},
     )
+
+
+def register_from_placement(
+    design: TriMesh | HeightField,
+    measured_points_mm: np.ndarray,
+    design_corners_mm: np.ndarray,
+    nominal_transform: np.ndarray,
+    *,
+    up: np.ndarray = np.array([0.0, 0.0, 1.0]),
+    grid_step_mm: float = 1.0,
+    icp_points: int = 100_000,
+    boundary_weight: float = BOUNDARY_WEIGHT,
+    rest_points: Callable[[np.ndarray], np.ndarray] | None = None,
+    seed: int = 0,
+) -> RegistrationResult:
+    """The registration of a scan that saw only part of the plate (a scan cut short): the plate's
+    corners were not seen, so they are taken from the placement the scan was planned from.
+
+    ``nominal_transform`` (4x4 design -> measured) is first lowered or raised onto the measured
+    surface (the median vertical gap: a placement's height is the bed's, not the plate's top), which
+    gives the corners the fits are anchored to; then ICP and the non-penetrating fit run as in
+    :func:`register`. The in-plane pose is as good as the placement (the located one: about a
+    millimetre); the height and tilt are the measured surface's. ``coarse`` is that corrected
+    nominal pose (shift 0, corner RMS 0: the corners are the placement's).
+    """
+    P = _check_points("measured_points_mm", measured_points_mm, 6)
+    surface = design if isinstance(design, HeightField) else height_field_from_mesh(design, grid_step_mm)
+    T0 = _check_transform("nominal_transform", nominal_transform).copy()
+    D = np.asarray(design_corners_mm, dtype=np.float64)
+    sample = _subsample(P, 20_000, seed)
+    gap, _, _, valid = deflection_gaps(surface, sample, T0, up=up, geometry=False)
+    if not valid.any():
+        raise RegistrationError(
+            "the scanned part of the plate lies outside the design placed where the scan was planned"
+        )
+    T0[:3, 3] -= float(np.median(gap[valid])) * np.asarray(up, dtype=np.float64)
+    M = D @ T0[:3, :3].T + T0[:3, 3]
+    anchor = dict(design_corners_mm=D, measured_corners_mm=M, boundary_weight=boundary_weight)
+    icp = icp_point_to_plane(surface, P, T0, max_points=icp_points, seed=seed, **anchor)
+    coarse_rms = coarse_fit_rms(surface, sample, T0)
+    P_np = _check_points("rest_points", rest_points(icp.transform), 6) if rest_points is not None else P
+    npf = nonpenetrating_fit(surface, P_np, icp.transform, up=up, **anchor)
+    log.info(
+        "registered_from_placement",
+        coarse_rms_mm=round(coarse_rms, 3),
+        icp_rms_mm=round(icp.rms_mm, 4),
+        penetrating_before=npf.penetrating_before,
+        penetrating_after=npf.penetrating_after,
+    )
+    return RegistrationResult(
+        transform=npf.transform,
+        coarse=CoarseResult(T0, 0, 0.0, 0.0),
+        coarse_rms_mm=coarse_rms,
+        icp=icp,
+        nonpenetrating=npf,
+        candidates={0: icp.rms_mm},
+    )

@@ -195,14 +195,30 @@ def _num(value: Any, where: str) -> float:
     return float(value)
 
 
+def _not_scanned_items(cov: Any) -> list[tuple[str, str]]:
+    """The coverage table's rows of a partial scan: what it did not cover (none for a whole scan)."""
+    if not isinstance(cov, dict) or not cov.get("partial"):
+        return []
+    missing = [x for x in cov.get("lines_not_scanned") or [] if isinstance(x, dict)]
+    names = ", ".join(
+        f"{x.get('name', '?')} ({100 * float(x.get('scanned_fraction') or 0):.0f} % seen)" for x in missing
+    )
+    return [
+        ("partial scan", "the scan covers only part of the plate: registered on the planned placement"),
+        ("lines not scanned (not judged)", _e(names) or "none"),
+    ]
+
+
 def _check_report(report: Any) -> dict:
     if not isinstance(report, dict):
         raise ReportError(f"report.json: expected an object at the top level, got {type(report).__name__}")
     for key in ("plate_id", "verdict", "lines"):
         if key not in report:
             raise ReportError(f"report.json: {key}: required key is missing")
-    if report["verdict"] not in ("pass", "fail"):
-        raise ReportError(f"report.json: verdict: expected 'pass' or 'fail', got {report['verdict']!r:.60}")
+    if report["verdict"] not in ("pass", "fail", "incomplete"):
+        raise ReportError(
+            f"report.json: verdict: expected 'pass', 'fail' or 'incomplete', got {report['verdict']!r:.60}"
+        )
     if not isinstance(report["lines"], list):
         raise ReportError("report.json: lines: expected a list")
     for i, line in enumerate(report["lines"]):
@@ -562,7 +578,7 @@ def _svg(fig: Figure) -> str:
 _CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,Arial,sans-serif;margin:0;color:#222;background:#fafafa}
 header{padding:16px 24px;color:#fff}
-header.pass{background:#1a7f37} header.fail{background:#c62828}
+header.pass{background:#1a7f37} header.fail{background:#c62828} header.incomplete{background:#b26a00}
 header h1{margin:0;font-size:28px} header p{margin:4px 0 0;font-size:15px}
 main{padding:8px 24px 40px;max-width:1400px}
 section{background:#fff;border:1px solid #ddd;border-radius:6px;margin:16px 0;padding:12px 16px}
@@ -777,7 +793,7 @@ def render_html(
     worst = max(lines, key=lambda ln: ln["zmax_mm"], default=None)
     verdict = rep["verdict"]
     head = (
-        f'<header class="{verdict}"><h1>{"PASS" if verdict == "pass" else "FAIL"} — plate {_e(rep["plate_id"])}</h1>'
+        f'<header class="{verdict}"><h1>{_e(verdict.upper())} — plate {_e(rep["plate_id"])}</h1>'
         f"<p>cell {_e(rep.get('cell_id', '—'))} · job {_e(rep.get('job_id', '—'))} · "
         f"{_e(rep.get('created_utc', '—'))} · judged against {_e(standard or '—')} "
         f"(standard ±{std:g} mm, limit ±{lim:g} mm)</p></header>"
@@ -841,6 +857,7 @@ reference corner (x along the length, y along the width).</p>{_rework_html(regio
                     else "—",
                 ),
                 ("unseen area (mm²)", _f(cov.get("holes_mm2"), 0)),
+                *_not_scanned_items(cov),
             ]
         )
     }
@@ -982,7 +999,7 @@ def render_pdf(
                     {
                         "size": 20,
                         "fontweight": "bold",
-                        "color": _COLOURS["pass" if verdict == "pass" else "fail"],
+                        "color": _COLOURS.get(verdict, _COLOURS["warn"]),
                     },
                 ),
                 (
@@ -1004,7 +1021,8 @@ def render_pdf(
                         if isinstance(rep.get("coverage", {}).get("fraction"), int | float)
                         else "—"
                     )
-                    + f", unseen area {_f(rep.get('coverage', {}).get('holes_mm2'), 0)} mm²",
+                    + f", unseen area {_f(rep.get('coverage', {}).get('holes_mm2'), 0)} mm²"
+                    + "".join(f"; {k}: {v}" for k, v in _not_scanned_items(rep.get("coverage", {}))),
                     {},
                 ),
                 (

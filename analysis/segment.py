@@ -444,7 +444,9 @@ def _segment_grid(
     t3 = time.perf_counter()
     cand_idx, cand_r, interior_r, area = [], [], [], 0.0
     for pc, off in zip(passes, offsets, strict=True):
-        if pc is None:
+        if pc is None or pc.n_labels == 0:
+            # a pass with cells but no smooth region (a scan cut a few profiles into its last pass:
+            # no cell has its four neighbours) holds no plate cell; its offset may be the label count
             continue
         plate = (pc.labels >= 0) & (group[np.maximum(pc.labels, 0) + off] == plate_group)
         if not plate.any():

@@ -69,6 +69,31 @@ TRACK_ACCEL_BOUND_MM_S2 = 10_000.0
 TRACK_JERK_BOUND_MM_S3 = 1_000_000.0
 #: profiles per second: the HD8's top rate (the simulator's max_rate_hz)
 LASER_RATE_BOUND_HZ = 1_000.0
+#: TCP speed, mm/s, below which no scan ends in a working day (1 mm/s: a 1.2 m pass in 20 min)
+TCP_SPEED_MIN_MM_S = 1.0
+#: CPUs an affinity list may name: the kernel's CPU set (CPU_SETSIZE), each CPU once
+CPU_LIST_BOUND = 1024
+#: Zenoh endpoints one process may listen on or connect to
+ZENOH_ENDPOINTS_BOUND = 64
+#: EGMActJoint \MaxSpeedDeviation, deg/s: about three times the IRB 4600's fastest joint (360 deg/s)
+EGM_SPEED_DEVIATION_BOUND_DEG_S = 1_000.0
+#: EGMActJoint \MaxPosDeviation, deg: more than any joint's whole range (+-400 deg: 800); with a
+#: track it also bounds the track, in mm, and may then reach the longest track's travel
+EGM_POS_DEVIATION_BOUND_DEG = 1_000.0
+#: the sensor's offset from the flange (hand-eye), mm: beyond the IRB 4600's 2.55 m reach and more
+HAND_EYE_BOUND_MM = 3_000.0
+#: profiles the sensor client buffers (about 80 min at 200 Hz; 500 points a profile: 6 GB)
+BUFFER_PROFILES_BOUND = 1_000_000
+#: points published to the analysis: fewer than the minimum leave a plate too sparse to judge, more
+#: than the maximum (10x the 6 m plate's 33 M) no worker analyses in its measured memory
+PUBLISH_POINTS_MIN = 100_000
+PUBLISH_POINTS_BOUND = 400_000_000
+#: directories never taken as a data or design directory: the system's own. ``SYSTEM_TREES`` and
+#: everything under them; ``SYSTEM_ROOTS`` themselves (a directory inside them, such as
+#: /var/lib/cellctl or /home/cell/data, is fine). Symlinks are resolved first (/lib -> /usr/lib).
+SYSTEM_TREES = ("/bin", "/boot", "/dev", "/etc", "/lib", "/lib32", "/lib64", "/libx32", "/proc", "/sbin",
+                "/sys", "/usr")  # fmt: skip
+SYSTEM_ROOTS = ("/", "/home", "/media", "/mnt", "/opt", "/root", "/run", "/srv", "/tmp", "/var", "/var/lib")
 
 
 def _seconds(hi: float, default_gt: float = 0.0) -> Any:
@@ -76,6 +101,31 @@ def _seconds(hi: float, default_gt: float = 0.0) -> Any:
 
 
 EnvName = Annotated[str, Field(min_length=1, max_length=128)]
+
+
+def system_directory(path: Path) -> str:
+    """The system directory ``path`` is or lies in ("" when none): see :data:`SYSTEM_TREES`."""
+    try:
+        p = Path(os.path.abspath(path)).resolve()
+    except (OSError, RuntimeError):
+        p = Path(os.path.abspath(path))
+    for tree in SYSTEM_TREES:
+        for root in {Path(tree), Path(tree).resolve()}:
+            if p == root or p.is_relative_to(root):
+                return str(root)
+    return str(p) if str(p) in SYSTEM_ROOTS else ""
+
+
+def _not_a_system_directory(v: Path) -> Path:
+    if where := system_directory(v):
+        raise ValueError(
+            f"{str(v)[:120]!r} is a system directory or lies in one ({where}): give the cell its own "
+            "directory (e.g. /var/lib/cellctl/data)"
+        )
+    return v
+
+
+Endpoints = Annotated[list[str], Field(max_length=ZENOH_ENDPOINTS_BOUND)]
 
 
 class Section(BaseModel):
@@ -122,6 +172,11 @@ class CellSection(Section):
     id: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")] = "cell1"
     data_dir: Path = Path("data")
     designs_dir: Path = Path("designs")
+
+    @field_validator("data_dir", "designs_dir")
+    @classmethod
+    def _own_directory(cls, v: Path) -> Path:
+        return _not_a_system_directory(v)
 
 
 class TrackSection(Section):
@@ -185,7 +240,9 @@ class RobotSection(Section):
     # the daemon's motion process always answers from its own real-time thread
     egm_reply_thread: bool = True
     egm_reply_priority: Annotated[int, Field(ge=0, le=99)] = 20
-    egm_reply_cpus: list[Annotated[int, Field(ge=0, le=1023)]] = []
+    egm_reply_cpus: Annotated[
+        list[Annotated[int, Field(ge=0, le=CPU_LIST_BOUND - 1)]], Field(max_length=CPU_LIST_BOUND)
+    ] = []
     egm_switch_interval_s: Annotated[float, Field(gt=0, le=0.005, allow_inf_nan=False)] = 2e-4
     egm_reply_spin_us: Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)] = 150.0
     # the motion process (docs/operations.md "The motion process"): its cycle thread runs under
@@ -230,6 +287,26 @@ class RobotSection(Section):
     sensor_in_flange: Pose = Pose(pos_mm=[0.0, 0.0, 150.0])
     # The linear track (seventh axis), or None for a fixed base.
     track: TrackSection | None = None
+
+    @field_validator("tcp_speed_max_mm_s")
+    @classmethod
+    def _tcp_speed_usable(cls, v: float) -> float:
+        if v < TCP_SPEED_MIN_MM_S:
+            raise ValueError(
+                f"{v:g} mm/s is below {TCP_SPEED_MIN_MM_S:g} mm/s: no scan would end (a 1.2 m pass takes 20 min "
+                "at 1 mm/s)"
+            )
+        return v
+
+    @field_validator("egm_max_speed_deviation_deg_s")
+    @classmethod
+    def _speed_deviation_meaningful(cls, v: float) -> float:
+        if v > EGM_SPEED_DEVIATION_BOUND_DEG_S:
+            raise ValueError(
+                f"{v:g} deg/s is beyond {EGM_SPEED_DEVIATION_BOUND_DEG_S:g} deg/s, about three times the "
+                "IRB 4600's fastest joint (360 deg/s): a deviation that large never binds"
+            )
+        return v
 
     @field_validator("rws_url")
     @classmethod
@@ -282,6 +359,25 @@ class RobotSection(Section):
                 raise ValueError(
                     f"workspace {axis}: workspace_min_mm ({lo}) must be below workspace_max_mm ({hi})"
                 )
+        if len(set(self.egm_reply_cpus)) != len(self.egm_reply_cpus):
+            raise ValueError("egm_reply_cpus: a CPU is named twice")
+        pos_dev = self.egm_max_pos_deviation_deg
+        if self.track is None and pos_dev > EGM_POS_DEVIATION_BOUND_DEG:
+            raise ValueError(
+                f"egm_max_pos_deviation_deg ({pos_dev:g}) is beyond {EGM_POS_DEVIATION_BOUND_DEG:g} deg, more "
+                "than any joint's whole range (800 deg); only a track (in mm for it) needs more"
+            )
+        if pos_dev > TRACK_TRAVEL_BOUND_MM:
+            raise ValueError(
+                f"egm_max_pos_deviation_deg ({pos_dev:g}) is beyond {TRACK_TRAVEL_BOUND_MM:g}, the longest "
+                "track's travel in mm (with a track it bounds the track in mm)"
+            )
+        offset = sum(v * v for v in self.sensor_in_flange.pos_mm) ** 0.5
+        if offset > HAND_EYE_BOUND_MM:
+            raise ValueError(
+                f"sensor_in_flange.pos_mm is {offset:.4g} mm from the flange, beyond {HAND_EYE_BOUND_MM:g} mm "
+                "(the IRB 4600 reaches 2.55 m): a hand-eye calibration in metres, or a typo?"
+            )
         if self.track is not None:
             travel = self.track.travel_max_mm - self.track.travel_min_mm
             if self.egm_max_pos_deviation_deg < travel:
@@ -312,6 +408,16 @@ class LaserSection(Section):
     sensor_clock: Literal["us", "ms"] = "us"
     watchdog_s: _seconds(60.0) = 0.5
     buffer_profiles: Annotated[int, Field(ge=100)] = 20_000
+
+    @field_validator("buffer_profiles")
+    @classmethod
+    def _buffer_fits_in_memory(cls, v: int) -> int:
+        if v > BUFFER_PROFILES_BOUND:
+            raise ValueError(
+                f"{v} profiles is beyond {BUFFER_PROFILES_BOUND}: about 80 min of profiles at 200 Hz, 6 GB at "
+                "500 points a profile"
+            )
+        return v
 
     @model_validator(mode="after")
     def _range_ordered(self) -> LaserSection:
@@ -351,10 +457,25 @@ class ScanSection(Section):
     # their own, usually finer, pitch.
     publish_pitch_mm: NonNegativeFloat = 0.5
     edge_publish_pitch_mm: NonNegativeFloat = 0.5
-    # At most this many points published (0: no bound): a larger scan is thinned further by a whole
-    # factor (cellctl.acquisition.publish.budget_steps) so the worker's memory and time stay as
-    # measured for that many points (docs/operations.md: a 6 m plate). The raw files keep every point.
-    publish_max_points: Annotated[int, Field(ge=0)] = 40_000_000
+    # At most this many points published: a larger scan is thinned further by a whole factor
+    # (cellctl.acquisition.publish.budget_steps) so the worker's memory and time stay as measured for
+    # that many points (docs/operations.md: a 6 m plate). The raw files keep every point.
+    publish_max_points: int = 40_000_000
+
+    @field_validator("publish_max_points")
+    @classmethod
+    def _publication_bounded(cls, v: int) -> int:
+        if v < PUBLISH_POINTS_MIN:
+            raise ValueError(
+                f"{v} points is below {PUBLISH_POINTS_MIN}, too few to judge a plate (0 no longer turns the bound "
+                "off: an unbounded publication can exhaust a worker's memory)"
+            )
+        if v > PUBLISH_POINTS_BOUND:
+            raise ValueError(
+                f"{v} points is beyond {PUBLISH_POINTS_BOUND}, ten times the 6 m plate's 33 M: no worker analyses "
+                "that in its measured memory"
+            )
+        return v
 
 
 ZenohRole = Literal["operator", "worker", "viewer", "daemon"]
@@ -406,8 +527,8 @@ class ZenohAccess(Section):
 
 class ZenohSection(Section):
     mode: Literal["peer", "client", "router"] = "peer"
-    listen: list[str] = ["tcp/127.0.0.1:7447"]
-    connect: list[str] = []
+    listen: Endpoints = ["tcp/127.0.0.1:7447"]
+    connect: Endpoints = []
     multicast_scouting: bool = False
     key_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-{}]+(/[A-Za-z0-9_\-{}]+)*$")] = "cell/{cell_id}"
     trigger_timeout_s: _seconds(600.0) = 10.0
@@ -603,6 +724,12 @@ class WorkerSection(Section):
     # the worker's own directory (design cache, a job's results until they are sent); relative to
     # the worker's working directory. Nothing in it is read by the daemon: results go over Zenoh.
     data_dir: Path = Path("worker-data")
+
+    @field_validator("data_dir")
+    @classmethod
+    def _own_directory(cls, v: Path) -> Path:
+        return _not_a_system_directory(v)
+
     # the cells this worker takes jobs from: key prefixes ("cell/a", "cell/b") or one key expression
     # of them ("cell/*"); empty: the cell this file configures ([zenoh] key_prefix)
     cells: list[Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-*]+(/[A-Za-z0-9_\-*]+)*$")]] = []
@@ -616,7 +743,7 @@ class RouterSection(Section):
     """`cellctl router`: Zenoh's router for a fleet of cells (docs/operations.md, "Fleet")."""
 
     # where the router listens (cells connect as peers, workers and operator tools as clients)
-    listen: list[str] = ["tcp/0.0.0.0:7447"]
+    listen: Endpoints = ["tcp/0.0.0.0:7447"]
     # the cells whose keys the access rules (when [zenoh.access] is on) cover: their key prefixes;
     # empty: this file's cell only
     cells: list[Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")]] = []
@@ -714,6 +841,20 @@ class CellConfig(BaseSettings):
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         # The file's values arrive as init kwargs; the environment overrides them.
         return (env_settings, init_settings)
+
+    @model_validator(mode="after")
+    def _speeds_within_the_tcp_cap(self) -> CellConfig:
+        cap = self.robot.tcp_speed_max_mm_s
+        for name, v in (
+            ("scan.speed_mm_s", self.scan.speed_mm_s),
+            ("scan.transit_speed_mm_s", self.scan.transit_speed_mm_s),
+            ("locate.speed_mm_s", self.locate.speed_mm_s),
+        ):
+            if isinstance(v, int | float) and v > cap:
+                raise ValueError(
+                    f"{name} ({v:g} mm/s) is beyond the robot's TCP speed cap, robot.tcp_speed_max_mm_s ({cap:g} mm/s)"
+                )
+        return self
 
     @model_validator(mode="after")
     def _sim_track_start_on_the_track(self) -> CellConfig:
@@ -854,6 +995,30 @@ def check_secret_file_mode(file: str | Path, *, what: str) -> None:
             str(file),
             [f"{what}: secrets file has mode {mode & 0o777:03o}, readable beyond its owner; chmod 600 it"],
         )
+
+
+def secret_files(cfg: CellConfig) -> list[tuple[str, Path]]:
+    """The secrets files ``cfg`` names: ``(what, path)``."""
+    access = cfg.zenoh.access
+    named = [
+        ("robot.rws_password_file", cfg.robot.rws_password_file),
+        ("zenoh.access.password_file", access.password_file),
+        ("zenoh.access.dictionary_file", access.dictionary_file),
+        ("zenoh.access.tls_key_file", access.tls_key_file),
+    ]
+    return [(what, Path(path)) for what, path in named if path is not None]
+
+
+def secret_file_problems(cfg: CellConfig) -> list[str]:
+    """What :func:`check_secret_file_mode` would refuse when the cell runs, found now: one line per
+    secrets file its group or others may read or write (``cellctl config check``)."""
+    problems = []
+    for what, path in secret_files(cfg):
+        try:
+            check_secret_file_mode(path, what=what)
+        except ConfigError as err:
+            problems += [f"{err.source}: {p}" for p in err.problems]
+    return problems
 
 
 def resolve_secret(env_name: str, file: Path | None, *, what: str) -> SecretStr:

@@ -46,6 +46,7 @@ __all__ = [
     "CONTROL_LOG",
     "DESIGN_SUFFIXES",
     "FINAL_JOB_STATES",
+    "ID_PATTERN",
     "JSON",
     "MAX_TRIGGER_BYTES",
     "TRIGGER_LOG",
@@ -98,7 +99,10 @@ MAX_TRIGGER_BYTES = 48 * 1024
 DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".igs", ".iges", ".stp", ".step", ".npz", ".json")
 JSON = "application/json"
 
-_ID = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
+#: the grammar of every id in the API (job, plate, worker, cell): also a job directory's name, so it
+#: can name no path (no "/", never "." or "..")
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
+_ID = ID_PATTERN
 Ident = Annotated[str, Field(pattern=_ID)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
+from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config, secret_file_problems
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -18,10 +18,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run_check(args: argparse.Namespace) -> int:
     try:
-        load_config(args.file)
+        cfg = load_config(args.file)
     except ConfigError as err:
         for problem in err.problems:
             print(f"{err.source}: {problem}", file=sys.stderr)
+        return 2
+    # what the cell would refuse when it runs, said now: a secrets file others may read
+    problems = secret_file_problems(cfg)
+    for problem in problems:
+        print(f"{args.file}: {problem}", file=sys.stderr)
+    if problems:
         return 2
     print("ok")
     return 0

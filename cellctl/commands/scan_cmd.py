@@ -127,15 +127,22 @@ class StatusFollower:
     def __init__(self, session: Any, keys: Any) -> None:
         from cellctl.api.session import subscribe
 
-        self.latest: Any = None
-        self.jobs: dict[str, Any] = {}
-        self.queue: dict[str, int] = {}
-        self.reports: dict[str, Any] = {}
-        self.changed = asyncio.Event()
+        self._init_state()
         self._subs = [
             subscribe(session, keys.state, self._on_state),
             subscribe(session, keys.report("*"), self._on_report),
         ]
+
+    def _init_state(self) -> None:
+        self.latest: Any = None
+        self.jobs: dict[str, Any] = {}
+        #: per job, how many times it was seen going from an end (or from unseen) to a live state: a
+        #: new run (a re-analysis) of a job that had ended. The publication is followed sample by
+        #: sample here, so a run is counted even when its end follows before a reader looks.
+        self.runs: dict[str, int] = {}
+        self.queue: dict[str, int] = {}
+        self.reports: dict[str, Any] = {}
+        self.changed = asyncio.Event()
 
     def _on_state(self, sample: Any) -> None:
         from pydantic import ValidationError
@@ -146,8 +153,15 @@ class StatusFollower:
             st = CellStatus.model_validate_json(sample.payload.to_bytes())
         except ValidationError:
             return
+        self.feed(st)
+
+    def feed(self, st: Any) -> None:
+        """Take one state publication (a :class:`~cellctl.api.CellStatus`)."""
         self.latest = st
         for jp in st.jobs():
+            before = self.jobs.get(jp.job_id)
+            if jp.state.value not in _FINAL and (before is None or before.state.value in _FINAL):
+                self.runs[jp.job_id] = self.runs.get(jp.job_id, 0) + 1
             self.jobs[jp.job_id] = jp
         self.queue = {q.job_id: q.position for q in st.queue}
         self.changed.set()
@@ -187,13 +201,19 @@ async def wait_for_job(
 
     While the job waits in the daemon's queue, says its position when it changes; then draws a
     one-line progress bar on ``out`` when it is a terminal (a line per stage otherwise).
+
+    The end reported is one after this call: when the job had ended at the call (it was interrupted
+    and is now re-analysed), that end, and the same end published again, are not reported; the job
+    must first be seen running again (``follower.runs``), and its next end is reported even when it
+    is the same as the old one (a re-analysis that fails as the last one did).
     """
     deadline = time.monotonic() + timeout_s
     tty = hasattr(out, "isatty") and out.isatty()
     last_line = ""
     last_position = 0
-    # an end seen before this call (e.g. the job was interrupted, now re-analysed) is not this end
-    stale = follower.jobs.get(job_id)
+    at_call = follower.jobs.get(job_id)
+    ended_at_call = at_call is not None and at_call.state.value in _FINAL
+    runs_at_call = follower.runs.get(job_id, 0)
     while time.monotonic() < deadline:
         await follower.next(1.0)
         position = follower.queue.get(job_id, 0)
@@ -202,7 +222,7 @@ async def wait_for_job(
             out.flush()
         last_position = position
         job = follower.jobs.get(job_id)
-        if job is None or (stale is not None and stale.state.value in _FINAL and job == stale):
+        if job is None or (ended_at_call and follower.runs.get(job_id, 0) == runs_at_call):
             continue
         line = f"{job.state.value:<18} {_bar(job.fraction)} {job.fraction:6.1%} {job.stage[:40]:<40} profiles {job.profiles}"
         if tty:

@@ -42,4 +42,11 @@ def line_table(report: dict[str, Any]) -> str:
         f"({tol.get('standard', 'tolerances')}: standard {tol.get('deviation_standard_mm')} mm, "
         f"limit {tol.get('deviation_limit_mm')} mm)"
     )
+    cov = report.get("coverage") or {}
+    if cov.get("partial"):  # a scan cut short: what it did not cover is said, not judged
+        missing = ", ".join(
+            f"{x.get('name')} ({100 * float(x.get('scanned_fraction') or 0):.0f} % seen)"
+            for x in cov.get("lines_not_scanned") or []
+        )
+        lines.append(f"partial scan, not judged: {missing or 'none'}")
     return "\n".join(lines)

@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
+from cellctl.daemon.records import RecordError, check_job_id, read_json_file
+
 if TYPE_CHECKING:
     from analysis.report import PreviousRound
 
@@ -57,31 +59,81 @@ def _line_summary(report: dict[str, Any]) -> list[dict[str, Any]]:
     ]
 
 
+def _record_fields(rec: Any, dir_name: str) -> dict[str, Any]:
+    """The fields of a job.json the history shows, checked (RecordError naming the first wrong one)."""
+    if not isinstance(rec, dict):
+        raise RecordError(f"expected a JSON object, got {type(rec).__name__}")
+    check_job_id(rec.get("job_id"), dir_name)
+    for key in ("plate_id", "state"):
+        if not isinstance(rec.get(key), str):
+            raise RecordError(f"{key}: expected a string")
+    for key in ("created_utc", "design"):
+        if not isinstance(rec.get(key, ""), str):
+            raise RecordError(f"{key}: expected a string")
+    hist = rec.get("history") or []
+    if not isinstance(hist, list) or not all(
+        isinstance(h, dict) and isinstance(h.get("t_utc", ""), str) and isinstance(h.get("message", ""), str)
+        for h in hist
+    ):
+        raise RecordError("history: expected a list of {state, t_utc, message}")
+    return rec
+
+
+def _report_fields(report: Any) -> tuple[str | None, list[dict[str, Any]]]:
+    """A report's verdict and line summary (RecordError when it is not a report's shape)."""
+    if not isinstance(report, dict):
+        raise RecordError(f"expected a JSON object, got {type(report).__name__}")
+    verdict = report.get("verdict")
+    if verdict is not None and not isinstance(verdict, str):
+        raise RecordError("verdict: expected a string")
+    if not isinstance(report.get("lines", []), list):
+        raise RecordError("lines: expected a list")
+    try:
+        lines = _line_summary(report)
+    except (KeyError, TypeError, IndexError, AttributeError) as exc:
+        raise RecordError(f"lines: not a report's lines ({type(exc).__name__}: {str(exc)[:80]})") from None
+    for ln in lines:
+        if not isinstance(ln["name"], str) or not all(
+            isinstance(ln[k], int | float) and not isinstance(ln[k], bool) for k in ("zmax_mm", "sz_avg_mm")
+        ):
+            raise RecordError("lines: expected a name and numbers (zmax_mm, sz_avg_mm) per line")
+    return verdict, lines
+
+
 def read_job_dir(job_dir: Path, plate_id: str | None = None) -> dict[str, Any] | None:
     """One row from a job directory; None when it holds no readable job.json (or, with
-    ``plate_id``, a job of another plate: its report is not read then)."""
+    ``plate_id``, a job of another plate: its report is not read then).
+
+    A record that cannot be read, or is not a record (too large, nested too deep, a ``job_id`` that is
+    not its directory's, a field of the wrong type), is skipped with a log line
+    (``history_record_skipped``); an unreadable report.json leaves the job without a verdict
+    (``history_report_unreadable``). Neither ever stops the reader (the HMI, ``cellctl history``).
+    """
+    path = job_dir / "job.json"
     try:
-        rec = json.loads((job_dir / "job.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        rec = _record_fields(read_json_file(path), job_dir.name)
+    except FileNotFoundError:
+        return None
+    except (OSError, RecordError) as exc:
+        log.warning("history_record_skipped", path=str(path), reason=str(exc)[:300])
         return None
     if plate_id is not None and rec.get("plate_id") != plate_id:
         return None
-    report = None
+    verdict, lines = None, []
     rp = job_dir / "report.json"
     if rp.exists():
         try:
-            report = json.loads(rp.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            log.warning("history_report_unreadable", path=str(rp))
+            verdict, lines = _report_fields(read_json_file(rp))
+        except (OSError, RecordError) as exc:
+            log.warning("history_report_unreadable", path=str(rp), reason=str(exc)[:300])
     hist = rec.get("history") or []
-    lines = _line_summary(report) if report else []
     return {
         "job_id": rec["job_id"],
         "plate_id": rec["plate_id"],
         "state": rec["state"],
-        "verdict": (report or {}).get("verdict"),
+        "verdict": verdict,
         "created_utc": rec.get("created_utc", ""),
-        "ended_utc": hist[-1]["t_utc"] if hist else None,
+        "ended_utc": hist[-1].get("t_utc") if hist else None,
         "design": rec.get("design", ""),
         "message": hist[-1].get("message", "") if hist else "",
         "max_abs_zmax_mm": max((abs(ln["zmax_mm"]) for ln in lines), default=None),

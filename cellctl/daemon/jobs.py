@@ -29,10 +29,12 @@ from typing import Any
 import structlog
 from pydantic import ValidationError
 
+from analysis.job import PlacementFinding
 from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.session import AcquisitionSession
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
 from cellctl.api.models import AnalysisOptions, MotionCounters
+from cellctl.daemon.records import check_job_id, is_job_id, read_json_file
 from cellctl.motion.link import RemoteExecution
 
 log = structlog.get_logger(__name__)
@@ -168,6 +170,10 @@ class JobStore:
         make_private_dir(self.root)
 
     def job_dir(self, job_id: str) -> Path:
+        """``<root>/<job_id>``; JobStoreError for a name that is not a job id (a path, ``..``): no
+        record, wherever it came from, is read or written outside its own directory."""
+        if not isinstance(job_id, str) or not is_job_id(job_id):
+            raise JobStoreError(f"{str(job_id)[:80]!r}: not a job id", "not a job id")
         return self.root / job_id
 
     def raw_dir(self, job_id: str) -> Path:
@@ -215,9 +221,10 @@ class JobStore:
         (an unknown state, a field of the wrong type)."""
         path = self.job_dir(job_id) / "job.json"
         try:
-            data = json.loads(path.read_text(encoding="utf-8"))
+            data = read_json_file(path)
             if not isinstance(data, dict):
                 raise ValueError(f"expected a JSON object, got {type(data).__name__}")
+            check_job_id(data.get("job_id"), job_id)
             return _checked(JobRecord(**data))
         except (OSError, ValueError, TypeError) as exc:
             raise JobStoreError(f"{path}: unreadable job record: {exc}", str(exc)[:300]) from None
@@ -225,13 +232,24 @@ class JobStore:
     def list(self) -> list[JobRecord]:
         """Every readable record, oldest first (job ids sort by time); unreadable ones are logged."""
         out = []
-        for d in sorted(p for p in self.root.iterdir() if p.is_dir()):
-            if not (d / "job.json").exists():
-                continue
+        for d in self._job_dirs():
             try:
                 out.append(self.load(d.name))
             except JobStoreError as exc:
                 log.warning("job_record_unreadable", error=str(exc))
+        return out
+
+    def _job_dirs(self) -> list[Path]:
+        """The job directories holding a record, by name; a directory whose name is not a job id is
+        logged and left alone (no record is read or written there)."""
+        out = []
+        for d in sorted(p for p in self.root.iterdir() if p.is_dir()):
+            if not (d / "job.json").exists() and not (d / "job.json").is_symlink():
+                continue
+            if not is_job_id(d.name):
+                log.warning("job_dir_not_a_job_id", path=str(d))
+                continue
+            out.append(d)
         return out
 
     def quarantine(self, job_id: str, why: str) -> JobRecord:
@@ -243,9 +261,13 @@ class JobStore:
         path = d / "job.json"
         old: dict[str, Any] = {}
         with contextlib.suppress(OSError, ValueError):
-            data = json.loads(path.read_text(encoding="utf-8"))
+            data = read_json_file(path)
             old = data if isinstance(data, dict) else {}
         aside = d / "job.json.quarantined"
+        for n in range(1, 100):  # an earlier quarantine's copy is kept too
+            if not aside.exists() and not aside.is_symlink():
+                break
+            aside = d / f"job.json.quarantined.{n}"
         with contextlib.suppress(OSError):
             os.replace(path, aside)
 
@@ -281,9 +303,7 @@ class JobStore:
         quarantine records that cannot be read (:meth:`quarantine`). Returns those jobs; never raises
         for one bad record (a record that cannot be written is logged and left as it is)."""
         found = []
-        for d in sorted(p for p in self.root.iterdir() if p.is_dir()):
-            if not (d / "job.json").exists():
-                continue
+        for d in self._job_dirs():
             try:
                 try:
                     rec = self.load(d.name)
@@ -318,6 +338,31 @@ class JobStore:
             raw_files=raw_files,
         )
         return rec
+
+
+def reanalysis_problem(record: JobRecord, designs_dir: str | Path) -> str:
+    """Why ``record`` cannot be re-analysed from its design ("" when it can): its design must be a
+    file in ``designs_dir``, as a trigger's is (a quarantined record whose design could not be read
+    names none: the worker was handed the directory "." before)."""
+    why = (
+        f" (record quarantined: {record.info['quarantine_reason']})" if record.info.get("quarantined") else ""
+    )
+    if not record.design_path:
+        return (
+            f"its record names no design{why}: re-analyse it offline (cellctl reassemble {record.job_id}, "
+            "then cellctl inspect with the design)"
+        )
+    try:
+        path = Path(record.design_path).resolve()
+        inside = path.is_relative_to(Path(designs_dir).resolve())
+        ok = inside and path.is_file()
+    except (OSError, RuntimeError):
+        inside = ok = False
+    if not inside:
+        return f"its design {record.design_path!r} is not in designs_dir{why}"
+    if not ok:
+        return f"its design file {record.design!r} is gone from designs_dir{why}"
+    return ""
 
 
 class RecordRetry:
@@ -391,6 +436,7 @@ def _checked(rec: JobRecord) -> JobRecord:
         raise ValueError("history: expected a list of {state, t_utc, message}")
     if not isinstance(rec.info, dict):
         raise ValueError(f"info: expected an object, got {type(rec.info).__name__}")
+    _check_info(rec.info)
     try:  # the options a re-analysis will judge the plate by: a record of another shape is quarantined
         AnalysisOptions.model_validate(rec.analysis)
     except ValidationError as exc:
@@ -398,6 +444,38 @@ def _checked(rec: JobRecord) -> JobRecord:
     if rec.placement is not None and not _is_placement(rec.placement):
         raise ValueError("placement: expected {pos_mm: [x, y, z], rpy_deg: [r, p, y]} or null")
     return rec
+
+
+def _is_count(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+def _check_info(info: dict[str, Any]) -> None:
+    """The ``info`` fields a re-analysis reads back (the plan's pass counts, how the placement was
+    found, the raw files) have their types (ValueError naming the field): a record of another shape
+    is quarantined at start-up instead of failing its re-analysis with an AttributeError."""
+    plan = info.get("plan")
+    if plan is not None:
+        if not isinstance(plan, dict):
+            raise ValueError(f"info.plan: expected an object, got {type(plan).__name__}")
+        for key in ("passes", "edge_passes"):
+            if key in plan and plan[key] is not None and not _is_count(plan[key]):
+                raise ValueError(f"info.plan.{key}: expected a count, got {plan[key]!r:.40}")
+    found = info.get("placement_found")
+    if found is not None:
+        try:
+            PlacementFinding.model_validate(found)
+        except ValidationError as exc:
+            raise ValueError(
+                f"info.placement_found: {exc.errors()[0]['msg']} at {exc.errors()[0]['loc']}"
+            ) from None
+    raw = info.get("raw_files")
+    if raw is not None and not (isinstance(raw, list) and all(isinstance(x, str) for x in raw)):
+        raise ValueError("info.raw_files: expected a list of file names")
+    for key in ("last_profile_utc_s", "published_utc_s", "report_utc_s"):
+        v = info.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int | float)):
+            raise ValueError(f"info.{key}: expected a number, got {type(v).__name__}")
 
 
 def _json_default(obj: Any) -> Any:

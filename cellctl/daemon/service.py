@@ -64,7 +64,15 @@ from cellctl.api.session import (
 )
 from cellctl.config import CellConfig, ConfigError
 from cellctl.daemon.handover import Handover
-from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore, JobStoreError, RecordRetry, lock_data_dir
+from cellctl.daemon.jobs import (
+    ActiveJob,
+    JobRecord,
+    JobStore,
+    JobStoreError,
+    RecordRetry,
+    lock_data_dir,
+    reanalysis_problem,
+)
 from cellctl.daemon.preflight import PreflightError, probe_writable
 from cellctl.daemon.scan import ScanRunner
 from cellctl.daemon.states import CellStateMachine, Transition
@@ -493,10 +501,21 @@ class CellDaemon:
             raise ControlError("no_job", "job_id", f"job {req.job_id} is not {where}")
         if job is None or (job.executor is None and action != "abort"):
             raise ControlError("no_job", "", f"no scan in progress to {action}")
+        if action != "abort" and job.stop_reason is not None:
+            # the executor would take the request and ignore it: a stopping job never moves again
+            why = "aborted" if job.stop_reason == "abort" else f"stopping ({job.stop_reason})"
+            raise ControlError(
+                "not_allowed", "payload", f"job {job.record.job_id} is being {why}: it cannot be {action}d"
+            )
+        # the reply says where the job goes, not where the request found it: the executor pauses
+        # along its path and reports paused when it holds (the publication follows then)
+        state, job_state = self.sm.state.value, job.record.state
         if action == "pause":
             job.executor.pause()
+            state, job_state = CellState.PAUSED.value, JobState.PAUSED.value
         elif action == "resume":
             job.executor.resume()
+            state, job_state = CellState.SCANNING.value, JobState.SCANNING.value
         else:
             # before the executor exists (planning, program start) the flag stops the job before motion
             job.stop_reason = "abort"
@@ -505,8 +524,8 @@ class CellDaemon:
         return ControlReply(
             action=action,  # type: ignore[arg-type]
             job_id=job.record.job_id,
-            state=self.sm.state.value,
-            job_state=job.record.state,
+            state=state,
+            job_state=job_state,
         )
 
     async def _motion_up(self) -> None:
@@ -572,6 +591,8 @@ class CellDaemon:
             raise ControlError("not_allowed", "job_id", f"job is {record.state}")
         if not (self.store.raw_dir(job_id) / "profiles.craw").exists():
             raise ControlError("not_allowed", "job_id", "job has no raw profiles")
+        if problem := reanalysis_problem(record, self.designs_dir):
+            raise ControlError("not_allowed", "job_id", f"job {job_id}: {problem}")
         job = ActiveJob(record)
         self._current = job
         self._track_analysis(job, asyncio.create_task(self._analyse(job), name=f"reanalyse-{job_id}"))

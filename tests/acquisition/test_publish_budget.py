@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from cellctl.acquisition.publish import PublishSettings, budget_steps, column_steps
 from cellctl.config import CellConfig
@@ -44,11 +46,8 @@ def test_the_budget_holds(n: int, step: int, per: int, budget: int) -> None:
     assert np.all(got % steps == 0) and np.all(got >= steps)
 
 
-def test_config_default_and_off() -> None:
+def test_config_default_and_no_way_off() -> None:
     assert CellConfig.model_validate({"cell": {"id": "c"}}).scan.publish_max_points == 40_000_000
-    assert (
-        CellConfig.model_validate(
-            {"cell": {"id": "c"}, "scan": {"publish_max_points": 0}}
-        ).scan.publish_max_points
-        == 0
-    )
+    # 0 turned the bound off; an unbounded publication can exhaust a worker's memory (issue 43)
+    with pytest.raises(ValidationError, match="0 no longer turns the bound off"):
+        CellConfig.model_validate({"cell": {"id": "c"}, "scan": {"publish_max_points": 0}})

@@ -287,3 +287,77 @@ def test_an_empty_file_names_the_missing_section(tmp_path: Path):
     with pytest.raises(ConfigError) as info:
         load_config(empty)
     assert any("[cell]" in p and "empty" in p for p in info.value.problems), info.value.problems
+
+
+# ---- issue 43: every number and list bounded to what the hardware and the machine can hold
+
+
+@pytest.mark.parametrize(
+    ("section", "values", "expected"),
+    [
+        ("robot", {"egm_reply_cpus": list(range(1000)) * 1000}, "at most 1024 items"),
+        ("robot", {"egm_reply_cpus": [2, 2]}, "a CPU is named twice"),
+        ("zenoh", {"listen": ["tcp/127.0.0.1:7447"] * 1_000_000}, "at most 64 items"),
+        ("zenoh", {"connect": ["tcp/127.0.0.1:7447"] * 65}, "at most 64 items"),
+        ("router", {"listen": ["tcp/0.0.0.0:7447"] * 65}, "at most 64 items"),
+        ("robot", {"egm_max_speed_deviation_deg_s": 1e30}, "fastest joint (360 deg/s)"),
+        ("robot", {"egm_max_pos_deviation_deg": 1e30}, "more than any joint's whole range"),
+        ("scan", {"speed_mm_s": 1e9}, "scan.speed_mm_s (1e+09 mm/s) is beyond the robot's TCP speed cap"),
+        ("scan", {"transit_speed_mm_s": 1e9}, "scan.transit_speed_mm_s (1e+09 mm/s) is beyond"),
+        ("locate", {"speed_mm_s": 1e9}, "locate.speed_mm_s (1e+09 mm/s) is beyond"),
+        ("robot", {"tcp_speed_max_mm_s": 1e-300}, "below 1 mm/s: no scan would end"),
+        (
+            "robot.sensor_in_flange",
+            {"pos_mm": [1e9, 0.0, 0.0]},
+            "beyond 3000 mm (the IRB 4600 reaches 2.55 m)",
+        ),
+        ("scan", {"publish_max_points": 0}, "0 no longer turns the bound off"),
+        ("scan", {"publish_max_points": 10**12}, "beyond 400000000"),
+        ("laser", {"buffer_profiles": 10**12}, "beyond 1000000"),
+        ("cell", {"data_dir": "/etc"}, "cell.data_dir: '/etc' is a system directory"),
+        ("cell", {"data_dir": "/usr/local/cell"}, "(/usr)"),
+        ("cell", {"designs_dir": "/"}, "cell.designs_dir: '/' is a system directory"),
+        ("cell", {"designs_dir": "/proc/self"}, "(/proc)"),
+        ("worker", {"data_dir": "/var/lib"}, "worker.data_dir: '/var/lib' is a system directory"),
+    ],
+)
+def test_values_beyond_what_the_hardware_or_the_machine_can_hold_are_refused_with_a_reason(
+    shipped: dict, section: str, values: dict, expected: str
+):
+    problems = _problems(_with(shipped, section, **values))
+    assert any(expected in p for p in problems), problems
+    assert all("\n" not in p and len(p) < 400 for p in problems)  # one readable line each
+
+
+def test_a_track_may_take_a_position_deviation_up_to_its_travel_in_mm(shipped: dict):
+    track = {"travel_min_mm": 0.0, "travel_max_mm": 8000.0}
+    data = _with(_with(shipped, "sim", egm_track_start_mm=100.0), "robot", track=track)
+    cfg = parse_config(_with(data, "robot", egm_max_pos_deviation_deg=8000.0))
+    assert cfg.robot.egm_max_pos_deviation_deg == 8000.0
+    problems = _problems(_with(data, "robot", egm_max_pos_deviation_deg=1e30))
+    assert any("the longest track's travel in mm" in p for p in problems), problems
+
+
+def test_a_directory_of_the_cells_own_is_accepted(shipped: dict, tmp_path: Path):
+    for d in ("/var/lib/cellctl/data", "/home/cell/data", "data", str(tmp_path)):
+        assert parse_config(_with(shipped, "cell", data_dir=d, designs_dir=d)).cell.data_dir == Path(d)
+
+
+def test_config_check_refuses_a_secrets_file_others_may_read(shipped: dict, tmp_path: Path, capsys):
+    import argparse
+
+    from cellctl.commands.config_cmd import run_check
+
+    secret = tmp_path / "rws.secret"
+    secret.write_text("robotics\n")
+    secret.chmod(0o644)
+    lines = (Path(__file__).resolve().parents[2] / "cell.toml").read_text()
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text(lines.replace("[robot]\n", f'[robot]\nrws_password_file = "{secret}"\n', 1))
+    assert run_check(argparse.Namespace(file=str(cfg))) == 2  # "ok" before: only the daemon refused it
+    err = capsys.readouterr().err
+    assert "robot.rws_password_file: secrets file has mode 644" in err and "chmod 600" in err
+    assert "robotics" not in err
+    secret.chmod(0o600)
+    assert run_check(argparse.Namespace(file=str(cfg))) == 0
+    assert capsys.readouterr().out.strip() == "ok"

@@ -7,7 +7,7 @@ import asyncio
 import io
 
 from cellctl.api import CellState, CellStatus, JobProgress, JobState, QueuedJob
-from cellctl.commands.scan_cmd import wait_for_job
+from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
 from cellctl.daemon.jobs import JobRecord, JobStore
 
 
@@ -49,25 +49,18 @@ def test_status_jobs_lists_recent_ends_before_live_entries_so_live_ones_win():
     assert seen == {"a": "analysing", "x": "cancelled", "b": "scanning"}
 
 
-class _ScriptedFollower:
-    """The StatusFollower interface fed from a list of publications, one per ``next()``."""
+class _ScriptedFollower(StatusFollower):
+    """The StatusFollower fed from a list of publications, one per ``next()`` (no session)."""
 
     def __init__(self, statuses: list[CellStatus]) -> None:
+        self._init_state()
         self.statuses = list(statuses)
-        self.latest = None
-        self.jobs: dict[str, JobProgress] = {}
-        self.queue: dict[str, int] = {}
-        self.reports: dict = {}
 
     async def next(self, timeout_s: float) -> None:
         if not self.statuses:
             await asyncio.sleep(0.01)
             return
-        st = self.statuses.pop(0)
-        self.latest = st
-        for jp in st.jobs():
-            self.jobs[jp.job_id] = jp
-        self.queue = {q.job_id: q.position for q in st.queue}
+        self.feed(self.statuses.pop(0))
 
 
 def _status(job=None, queue=(), recent=()) -> CellStatus:
@@ -102,6 +95,20 @@ def test_wait_for_job_ignores_an_end_it_saw_before_it_was_called():
     follower.jobs["mine"] = _progress("mine", "interrupted")  # what it ended as before the re-analysis
     state, message, _ = asyncio.run(wait_for_job(follower, "mine", 5.0, out=io.StringIO()))
     assert (state, message) == ("done", "report.json")
+
+
+def test_wait_for_job_reports_a_new_end_equal_to_the_one_it_saw_before_it_was_called():
+    failed = _progress("mine", "failed", message="analysis failed: no worker")
+    follower = _ScriptedFollower([
+        _status(None, recent=[failed]),  # the old end, published again: not this end
+        _status(_progress("mine", "waiting_for_worker")),  # the re-analysis runs ...
+        _status(None, recent=[failed, failed]),  # ... and fails as the last one did
+    ])  # fmt: skip
+    follower.feed(_status(None, recent=[failed]))  # what the follower knew at the call
+    follower.changed.clear()
+    state, message, _ = asyncio.run(wait_for_job(follower, "mine", 3.0, out=io.StringIO()))
+    assert (state, message) == ("failed", "analysis failed: no worker")  # timed out before
+    assert follower.statuses == []
 
 
 def test_a_record_whose_analysis_options_do_not_validate_is_quarantined_not_fed_to_a_reanalysis(tmp_path):

@@ -10,8 +10,9 @@ Expected outcome:
   never a crash, and it costs no record that was complete;
 * after the restart the job is reported ``interrupted`` (it died in ``scanning``), the daemon says
   so in its state message, and ``control/reanalyse`` rebuilds the cloud from the raw files and the
-  worker's report completes the job. (The kill comes at 60 % of the scan: a cloud of a third of the
-  plate is re-analysed too, and fails plainly with "the design does not match the plate", observed.)
+  worker's report completes the job. (The kill comes at 60 % of the scan: a cloud of part of the
+  plate is re-analysed too; it failed plainly with "the design does not match the plate", observed,
+  and is now reported for what was scanned, verdict ``incomplete`` or ``fail``: issue 43.)
 """
 
 from __future__ import annotations

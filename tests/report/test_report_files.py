@@ -155,7 +155,7 @@ def _corrupt(src: Path, dst: Path, edit) -> Path:
     ("edit", "message"),
     [
         (lambda r: r.pop("verdict"), "verdict: required key is missing"),
-        (lambda r: r.update(verdict="maybe"), "verdict: expected 'pass' or 'fail'"),
+        (lambda r: r.update(verdict="maybe"), "verdict: expected 'pass', 'fail' or 'incomplete'"),
         (lambda r: r["lines"][1].pop("zmax_mm"), r"lines\[1\]\.zmax_mm: required key is missing"),
         (lambda r: r["lines"][0].update(ci="12"), r"lines\[0\]\.ci: expected a number"),
         (lambda r: r["lines"][0].update(family="radial"), r"lines\[0\]\.family: unknown family"),
