@@ -119,7 +119,7 @@ class MotionSettings:
     log_format: str = "json"
     log_level: str = "info"
     cell_id: str = ""
-    ready_timeout_s: float = 60.0
+    ready_timeout_s: float = 90.0
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ Run as ``python -m cellctl.motion.process FD`` with FD the channel's descriptor 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import gc
 import os
 import socket
@@ -83,6 +84,8 @@ _IDLE_S = 0.002
 _STATS_PERIOD_NS = 500_000_000
 #: a daemon gone during an execution: the smooth stop gets this long before the process exits anyway
 _ORPHAN_STOP_S = 60.0
+#: how long a new motion process waits for the EGM port an orphaned one still holds
+_BIND_WAIT_S = 70.0
 
 
 def envelope_limits(spec: EnvelopeSpec) -> EnvelopeLimits:
@@ -419,6 +422,23 @@ def _write_record(path: Path, result: ExecutionResult) -> None:
     os.replace(tmp, path)
 
 
+def _bind(endpoint: EgmEndpoint) -> tuple[str, int]:
+    """Bind the EGM port; while another process holds it (the motion process of a daemon that died,
+    still stopping its arm: it exits once the arm stands) wait for it, up to ``_BIND_WAIT_S``."""
+    deadline = time.monotonic() + _BIND_WAIT_S
+    logged = False
+    while True:
+        try:
+            return endpoint.bind_blocking(idle_timeout_s=_IDLE_S)
+        except OSError as exc:
+            if exc.errno != errno.EADDRINUSE or time.monotonic() > deadline:
+                raise
+            if not logged:
+                log.warning("egm_port_busy_waiting", port=endpoint.config.port, wait_s=_BIND_WAIT_S)
+                logged = True
+            time.sleep(0.1)
+
+
 def main(argv: list[str] | None = None) -> int:
     """The motion process's entry: ``python -m cellctl.motion.process FD``."""
     args = sys.argv[1:] if argv is None else argv
@@ -444,7 +464,11 @@ def main(argv: list[str] | None = None) -> int:
     ring = SharedFeedbackHistory.create(hello.shm_name, ep_cfg.history_len, ep_cfg.n_external + ep_cfg.n_axes)
     try:
         endpoint = EgmEndpoint(ep_cfg, history=ring)
-        host, port = endpoint.bind_blocking(idle_timeout_s=_IDLE_S)
+        try:
+            host, port = _bind(endpoint)
+        except OSError as exc:
+            log.error("egm_bind_failed", host=ep_cfg.host, port=ep_cfg.port, error=str(exc))
+            return 2
         if ep_cfg.switch_interval_s is not None:
             sys.setswitchinterval(ep_cfg.switch_interval_s)
         rt = realtime_setup(hello.realtime)

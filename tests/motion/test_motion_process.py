@@ -254,6 +254,7 @@ def test_a_daemon_that_goes_away_makes_the_motion_process_stop_the_arm_and_exit(
 
 
 @pytest.mark.long
+@pytest.mark.timeout(1200)
 def test_ten_long_pauses_over_a_scan_on_a_busy_pc_track_as_well_as_no_pause(small_plan, tmp_path):
     """Issue 41's re-probe: a 32-35 s pause faulted 2 of 5 resumed demo scans with a 23.8 mm tracking
     error on the in-process executor. Here: the PC kept busy (two busy loops), one run without a
