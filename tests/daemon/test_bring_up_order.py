@@ -57,7 +57,12 @@ class _Program:
         self.rec.mark("program.end")
 
 
-class _Endpoint:
+class _Motion:
+    """The motion process's link as the scan sees it: alive, and feedback once the program runs."""
+
+    alive = True
+    death = None
+
     def __init__(self, rec: _Recorder) -> None:
         self.rec = rec
 
@@ -77,7 +82,7 @@ def _run(tmp_path, monkeypatch, *, plan_refused: bool) -> tuple[_Recorder, _Host
     rec = _Recorder()
     host = _Host()
     cfg = CellConfig(locate=LocateSection(check_given=False))
-    drivers = SimpleNamespace(program=_Program(rec), endpoint=_Endpoint(rec))
+    drivers = SimpleNamespace(program=_Program(rec), motion=_Motion(rec))
     runner = ScanRunner(cfg, JobStore(tmp_path / "data"), drivers=drivers, host=host)
     design = design_mesh(plate_spec("sail", length_mm=200.0, width_mm=150.0), pitch_mm=5.0)
     monkeypatch.setattr(scan_module, "design_mesh_from_file", lambda path: design)
