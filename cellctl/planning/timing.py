@@ -66,9 +66,23 @@ _TURN_GRID_STEP_MM = 0.5
 #: segments' ends): the sail's bound moves by 0.06 % (180.76 s against 180.65 s on every point),
 #: its cost (most of a cold plan's timing) halves
 _TOPPRA_GRID_STRIDE = 2
-#: ... and on a sweep (a straight pass at the scan speed, the rate its TCP cap sets) every this-many-th:
-#: toppra's bound moves by 0.016 % on the 6 m plate (0.24 % on the sail), the timing's cost halves
+#: ... and on a sweep (a straight pass at the scan speed, the rate its TCP cap sets) every this-many-th,
+#: but within _TOPPRA_END_MM of its ends, where it speeds up and slows down (the timing's cost halves
+#: on the 6 m plate; its executed time law keeps every point)
 _TOPPRA_SWEEP_STRIDE = 5
+_TOPPRA_END_MM = 50.0  # twice RAMP_ALLOWANCE_MM
+
+
+def _toppra_grid(seg: Segment, grid: np.ndarray) -> np.ndarray:
+    """The points of ``seg``'s timing grid toppra checks: every other one (:data:`_TOPPRA_GRID_STRIDE`);
+    on a sweep every :data:`_TOPPRA_SWEEP_STRIDE`-th away from its ends."""
+    if not seg.is_sweep:
+        return grid[::_TOPPRA_GRID_STRIDE]
+    near_end = (grid - grid[0] <= _TOPPRA_END_MM) | (grid[-1] - grid <= _TOPPRA_END_MM)
+    k = np.arange(grid.size)
+    return grid[(near_end & (k % _TOPPRA_GRID_STRIDE == 0)) | (k % _TOPPRA_SWEEP_STRIDE == 0)]
+
+
 #: a turnaround is flown at this share of the largest rate its limits allow (the rest: its joins)
 _FLYING_SHARE = 0.95
 #: the sweep's ends where the speed may ramp (the passes reach this far beyond what they must cover)
@@ -341,8 +355,7 @@ def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float
     constraints = _toppra_constraints(
         settings, TcpSpeedConstraint(v_tcp, settings.T_flange_sensor, settings.track)
     )
-    stride = _TOPPRA_SWEEP_STRIDE if seg.is_sweep else _TOPPRA_GRID_STRIDE
-    grid_toppra = np.concatenate([grid[:-1:stride], grid[-1:]])
+    grid_toppra = np.unique(np.concatenate([_toppra_grid(seg, grid[:-1]), grid[-1:]]))
     optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid_toppra, parametrizer="ParametrizeConstAccel")
     optimal = optimal.compute_trajectory(0.0, 0.0)
     if optimal is None:
@@ -436,13 +449,7 @@ def _time_chain(segs: list[Segment], speeds: list[float], settings: PlannerSetti
         ),
     )
     grid_toppra = np.unique(
-        np.concatenate(
-            [
-                g[:: _TOPPRA_SWEEP_STRIDE if seg.is_sweep else _TOPPRA_GRID_STRIDE]
-                for seg, g in zip(segs, grids, strict=True)
-            ]
-            + [bounds]
-        )
+        np.concatenate([_toppra_grid(seg, g) for seg, g in zip(segs, grids, strict=True)] + [bounds])
     )
     optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid_toppra, parametrizer="ParametrizeConstAccel")
     optimal = optimal.compute_trajectory(0.0, 0.0)
