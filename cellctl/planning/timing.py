@@ -69,7 +69,7 @@ _TOPPRA_GRID_STRIDE = 2
 #: ... and on a sweep (a straight pass at the scan speed, the rate its TCP cap sets) every this-many-th,
 #: but within _TOPPRA_END_MM of its ends, where it speeds up and slows down (the timing's cost halves
 #: on the 6 m plate; its executed time law keeps every point)
-_TOPPRA_SWEEP_STRIDE = 5
+_TOPPRA_SWEEP_STRIDE = 10
 _TOPPRA_END_MM = 50.0  # twice RAMP_ALLOWANCE_MM
 
 
