@@ -224,7 +224,6 @@ def main(argv: list[str] | None = None) -> int:
         "max_rms_mm": max((r["rms_mm"] for r in ok), default=None),
         "locate_s_max": max(r["locate_s"] for r in rows),
         "locate_cpu_s_max": max(r["locate_cpu_s"] for r in rows),
-        "load_avg": round(os.getloadavg()[0], 2),
         "locate_s_mean": round(float(np.mean([r["locate_s"] for r in rows])), 2),
         "fit_s_max": max(r["fit_s"] for r in rows),
         "fit_cpu_s_max": max(r["fit_cpu_s"] for r in rows),
