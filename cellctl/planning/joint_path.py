@@ -322,7 +322,8 @@ def _same_branch_run(
     if first is None:
         return np.zeros((0, 6))
     unwrapped0 = cand[0] + 360.0 * np.round((q_prev - cand[0]) / 360.0)
-    b = int(np.argmin(np.sum((unwrapped0 - first) ** 2, axis=1)))
+    d0 = np.sum((unwrapped0 - first) ** 2, axis=1)
+    b = int(np.argmin(np.where(np.isnan(d0), np.inf, d0)))  # a branch without a solution is NaN
     cb = cand[:, b]
     if np.isnan(cb).any():
         m = int(np.argmax(np.isnan(cb).any(axis=1)))

@@ -84,6 +84,11 @@ def test_a_run_stops_where_the_walk_would_change_branch():
     branches = kin.ik_branches(T, frame="sensor")
     run = joint_path._same_branch_run(branches, q, kin, SMALL_SETTINGS)
     np.testing.assert_allclose(run, path, atol=1e-6)
+    # branches without a solution (NaN: the shoulder turned away, out of reach) do not end a run
+    b = int(np.nanargmin(np.sum((branches[0] - q) ** 2, axis=1)))
+    unreachable = branches.copy()
+    unreachable[:, [i for i in range(8) if i != b][:4]] = np.nan
+    assert joint_path._same_branch_run(unreachable, q, kin, SMALL_SETTINGS).shape[0] == len(path)
     # a waypoint whose nearest branch is another one ends the run just before it
     swapped = branches.copy()
     swapped[5] = swapped[5][::-1]
