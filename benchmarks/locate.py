@@ -22,7 +22,9 @@ plate is compared with the convention's yaw, as the daemon decides it), ``max_z_
 ``locate_s_max`` / ``locate_s_mean``: the locate run's time = the planned motion of the runs (each
 with the sensor settle of ``[daemon] settle_s``) + the fits' time + the time to plan the passes
 across (those along are planned once, for every lay); ``fit_s_max`` (wall) / ``fit_cpu_s_max``;
-``across_runs``: placements that needed passes across; ``across_plan_s_max``; per lay (stderr)
+``locate_cpu_s_max``: the same with the fits' and plans' CPU time instead of their wall time (the
+figure to compare on a loaded machine); ``across_runs``: placements that needed passes across;
+``across_plan_s_max``; per lay (stderr)
 ``runs`` and ``across_heights_mm`` (the sensor's z on each pass across). One JSON object on stdout.
 """
 
@@ -158,13 +160,14 @@ def main(argv: list[str] | None = None) -> int:
         st = locate_settings(cfg, design, None)
         clouds: list[ScanCloud] = []
         run: list[LocatePlan] = []
-        motion_s = fit_s = fit_cpu_s = across_plan_s = 0.0
+        motion_s = fit_s = fit_cpu_s = across_plan_s = across_plan_cpu_s = 0.0
         found, error = None, ""
         while True:
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             plans = first if not run else next_locate_plans(cfg, design, run, found)
             if run:
                 across_plan_s += time.perf_counter() - t
+                across_plan_cpu_s += time.process_time() - c
             if not plans:
                 break
             for lp in plans:
@@ -184,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         row = {"truth": [round(x, 2), round(y, 2), round(yaw, 3)], "runs": [lp.name for lp in run],
                "motion_s": round(motion_s, 2), "locate_s": round(motion_s + fit_s + across_plan_s, 2),
                "fit_s": round(fit_s, 3), "fit_cpu_s": round(fit_cpu_s, 3),
-               "across_plan_s": round(across_plan_s, 3),
+               "across_plan_s": round(across_plan_s, 3), "across_plan_cpu_s": round(across_plan_cpu_s, 3),
+               "locate_cpu_s": round(motion_s + fit_cpu_s + across_plan_cpu_s, 2),
                "across_heights_mm": [round(float(lp.plan.passes[0].pos_mm[0, 2]), 1)
                                      for lp in run if lp.across]}  # fmt: skip
         if found is not None:
@@ -219,6 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         "max_z_err_mm": max((r["z_err_mm"] for r in ok), default=None),
         "max_rms_mm": max((r["rms_mm"] for r in ok), default=None),
         "locate_s_max": max(r["locate_s"] for r in rows),
+        "locate_cpu_s_max": max(r["locate_cpu_s"] for r in rows),
         "locate_s_mean": round(float(np.mean([r["locate_s"] for r in rows])), 2),
         "fit_s_max": max(r["fit_s"] for r in rows),
         "fit_cpu_s_max": max(r["fit_cpu_s"] for r in rows),

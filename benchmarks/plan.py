@@ -18,7 +18,11 @@ plate's long side along the rail, docs/robot-setup.md "The long-plate cell") at 
 ``[sim.placement]``: the outcome (planned or refused, with the reason), ``scan_time_s``,
 ``sweep_time_s``, ``sweep_ratio`` (target <= 1.2), ``passes``, the planner's ``choices`` (track hold
 or follow, edge tilts lowered, edge order), the stages' times and ``decide_s`` (how long planning
-took, coverage included).
+took, coverage included; ``decide_cpu_s`` its CPU time, ``time.process_time``, open3d's ray-casting
+threads included), ``daemon_plan_s`` / ``daemon_plan_cpu_s`` (the plan the daemon makes: without
+the coverage prediction), ``cache`` (the plan cache's entry of that plan: ``write_s``, ``read_s``
+(the entry parsed), ``hit_s`` (a hit: read and the envelope check), ``bytes``) and ``load_avg``
+(the 1-minute load average before and after the large plan: the figures are under it).
 
 ``choices``: the planner's (for the sail: the axis its passes run along, ``pass_axis``, with each
 axis' lower bound, estimate and time, or why it was not solved).
@@ -48,6 +52,40 @@ import structlog
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+
+
+def _daemon_and_cache(design, placement, settings) -> dict:
+    """The daemon's plan of ``design`` (no coverage prediction) and its plan cache entry's costs."""
+    import tempfile
+
+    from cellctl.planning import plan_scan
+    from cellctl.planning.cache import PlanCache, _read_entry, plan_from_arrays, plan_key
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    plan = plan_scan(design, placement, settings, with_coverage=False)
+    out = {
+        "daemon_plan_s": round(time.perf_counter() - t0, 3),
+        "daemon_plan_cpu_s": round(time.process_time() - c0, 3),
+    }
+    with tempfile.TemporaryDirectory() as tmp:
+        cache = PlanCache(tmp)
+        key = plan_key(design, placement, settings, with_coverage=False, cycle_s=0.004032)
+        t0 = time.perf_counter()
+        cache.store(key, plan)
+        write_s = time.perf_counter() - t0
+        data = cache.path(key).read_bytes()
+        t0 = time.perf_counter()
+        header, arrays = _read_entry(data)
+        plan_from_arrays(header["plan"], arrays)
+        read_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        hit = cache.load(key, placement, settings)
+        hit_s = time.perf_counter() - t0
+    out["cache"] = {
+        "write_s": round(write_s, 3), "read_s": round(read_s, 3), "hit_s": round(hit_s, 3),
+        "bytes": len(data), "hit": hit is not None,
+    }  # fmt: skip
+    return out
 
 
 def main() -> int:
@@ -108,9 +146,11 @@ def main() -> int:
     )
     # the long side (the design's x) along the rail, as the cell lays it
     large_placement = large_cfg.sim.placement.to_placement()
-    t0 = time.perf_counter()
+    load_before = os.getloadavg()[0]
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         big = plan_scan(large, large_placement, large_settings)
+        decide_s, decide_cpu_s = time.perf_counter() - t0, time.process_time() - c0
         large_out = {
             "outcome": "planned",
             "scan_time_s": round(big.scan_time_s, 2),
@@ -123,9 +163,13 @@ def main() -> int:
             "track_range_mm": round(float(np.ptp(big.trajectory.q_deg[:, 0])), 1),
             "stages_s": {k: round(v, 3) for k, v in big.timings_s.items()},
         }
+        large_out.update(_daemon_and_cache(large, large_placement, large_settings))
     except PlanRefused as exc:
+        decide_s, decide_cpu_s = time.perf_counter() - t0, time.process_time() - c0
         large_out = {"outcome": "refused", **{k: v for k, v in exc.to_dict().items() if k != "message"}}
-    large_out["decide_s"] = round(time.perf_counter() - t0, 3)
+    large_out["decide_s"] = round(decide_s, 3)
+    large_out["decide_cpu_s"] = round(decide_cpu_s, 3)
+    large_out["load_avg"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
     large_out["plate"] = "sail 6000 x 2000"
     large_out["config"] = os.path.relpath(Path(args.large_config).resolve(), REPO)
     large_out["placement"] = large_placement.model_dump()

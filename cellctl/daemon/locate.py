@@ -50,6 +50,7 @@ from cellctl.planning import (
 __all__ = [
     "LocatePlan",
     "across_plans",
+    "design_min_width_mm",
     "face_down_refusal",
     "given_placement_refusal",
     "locate_height_mm",
@@ -153,12 +154,56 @@ def locate_plans(cfg: CellConfig, design: TriMesh) -> list[LocatePlan]:
     return [_along_plan(cfg, design), _across_square_plan(cfg, design)]
 
 
+#: the passes along cross every plate lying on the bed at least this many times
+LOCATE_MIN_CROSSINGS = 2
+#: ... each crossing this far inside the plate's narrowest extent (mm): the laser line's width
+_CROSSING_MARGIN_MM = 50.0
+
+
+def design_min_width_mm(design: TriMesh) -> float:
+    """The design's narrowest extent in plan (mm): the least width of its outline over directions
+    (1 deg apart, less 0.1 % for the directions between)."""
+    xy = design.vertices_mm[_outline_vertices(design), :2]
+    a = np.deg2rad(np.arange(180.0))
+    widths = np.ptp(xy @ np.stack([np.cos(a), np.sin(a)]), axis=0)
+    return float(widths.min()) * 0.999
+
+
+def _fewest_passes(bed_width_mm: float, spacing_mm: float, plate_width_mm: float) -> tuple[int, float]:
+    """How many passes along the bed, and the planner's line width (their step) for them: the
+    fewest that cross every lay of a plate ``plate_width_mm`` across (its narrowest extent, less the
+    crossing margin; wholly on the bed) at least :data:`LOCATE_MIN_CROSSINGS` times, where that is
+    fewer than ``[locate] pass_spacing_mm`` gives; else those (``spacing_mm``).
+
+    The planner puts n passes of line width w at ``linspace(w / 2, B - w / 2, n)`` across the bed
+    (B wide, n = ceil((B - w) / w) + 1); a plate's extent across is an interval at least its width
+    long inside [0, B], and the passes it certainly covers are counted over every such interval."""
+    n_cfg = 1 if bed_width_mm <= spacing_mm else int(np.ceil((bed_width_mm - spacing_mm) / spacing_mm)) + 1
+    w_plate = plate_width_mm - 2 * _CROSSING_MARGIN_MM
+    if w_plate <= 0 or w_plate > bed_width_mm:
+        return n_cfg, spacing_mm
+    starts = np.linspace(0.0, bed_width_mm - w_plate, 2001)
+    for n in range(LOCATE_MIN_CROSSINGS, n_cfg):
+        w = bed_width_mm / n * (1 + 1e-9)
+        centres = np.linspace(w / 2, bed_width_mm - w / 2, n)
+        inside = (centres[None] >= starts[:, None]) & (centres[None] <= starts[:, None] + w_plate)
+        if inside.sum(axis=1).min() >= LOCATE_MIN_CROSSINGS:
+            return n, w
+    return n_cfg, spacing_mm
+
+
 def _bed_family(
     cfg: CellConfig, design: TriMesh, name: str, square: bool, start_axes: np.ndarray | None = None
 ) -> LocatePlan:
     settings = _planner_settings(cfg)
     lo, hi, long_axis = _bed(cfg)
     centre, size = (lo + hi) / 2, hi - lo
+    if not square:
+        # the fewest passes along that still cross the plate twice, wherever it lies (a 6 m plate on
+        # a 2.1 m wide bed: 2 passes where 350 mm spacing made 6)
+        n, w = _fewest_passes(float(size.min()), cfg.locate.pass_spacing_mm, design_min_width_mm(design))
+        settings = settings.with_(line_width_mm=w)
+        log.debug("locate_along_passes", passes=n, step_mm=round(w, 1))
     # the "bed plate"'s top lies the planner's standoff below the locate height
     z = _bed_plate_z_mm(locate_height_mm(cfg, design), settings)
     yaw_long = 0.0 if long_axis == 0 else 90.0

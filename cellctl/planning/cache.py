@@ -2,7 +2,12 @@
 
 A scan of the same plate at the same placement with the same cell settings plans the same passes;
 planning them again costs seconds before anything moves (issue 22, item 2). :class:`PlanCache`
-keeps plans on disk (the daemon's ``<data_dir>/plan-cache/``), one JSON file per key.
+keeps plans on disk (the daemon's ``<data_dir>/plan-cache/``), one ``<key>.npz`` per key: the
+plan's arrays as they are (float64, bit for bit: the segments' waypoints, orientations and joints
+concatenated, the timed trajectory) and a small JSON header (version, key, placement, the figures
+and each segment's kind, label, times and length), an uncompressed numpy archive whose members
+carry a CRC-32 that is checked when read. The 6 m plate's plan (87 k trajectory samples) is
+written in about 0.05 s and read in 0.02 s, where its JSON took 2-3 s (issue 42).
 
 The key (:func:`plan_key`) is a SHA-256 over everything the plan depends on: the design's content
 (its vertices and triangles, not its file name), the placement, every planner setting (the track's
@@ -14,15 +19,19 @@ trajectory passes the same safety-envelope check at the EGM cycle as a fresh pla
 (:func:`~cellctl.planning.planner.check_plan_envelope`) against the *current* settings before it is
 returned. An entry that is unreadable, of another version, for another key or outside the envelope
 is ignored with a log line (``plan_cache_ignored`` and the reason), removed, and the plate planned
-again. The cache holds at most ``max_entries`` plans; the least recently used go first.
+again. The cache holds at most ``max_entries`` plans; the least recently used go first. Entries of
+the JSON format (``<key>.json``, versions up to 7) are not read: they are removed when the cache
+prunes.
 """
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import io
 import json
 import os
+import zipfile
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -32,7 +41,8 @@ import structlog
 
 from analysis.mesh import TriMesh
 from analysis.placement import Placement
-from cellctl.planning.plan import PlanInputError, PlanRefused, ScanPlan
+from cellctl.motion.trajectory import TimedTrajectory
+from cellctl.planning.plan import CoverageReport, PlanInputError, PlanRefused, ScanPlan, Segment
 from cellctl.planning.planner import check_plan_envelope, plan_scan
 from cellctl.planning.settings import PlannerSettings
 
@@ -45,9 +55,14 @@ PLAN_CACHE_VERSION = (
     # 2: the carriage holds when it can; 3: flying turnarounds; 4: the passes along either axis;
     # 5: timed with 80 % of the jerk limits (was 60 %); 6: the U-turn, links that turn the sensor
     # at rest as lines in joint space timed along the line, the start corner; 7: the closed-form
-    # IK (joints within 3e-5 deg of the damped solver's), toppra's bound on every other grid point
-    "cellctl.plan_cache/7+cellctl.scan_plan/1"
+    # IK (joints within 3e-5 deg of the damped solver's), toppra's bound on every other grid point;
+    # 8: a binary entry (npz arrays and a JSON header; the JSON entries of 7 are not read), toppra's
+    # bound every 5th grid point on the sweeps
+    "cellctl.plan_cache/8+npz"
 )
+#: the file name's suffix of an entry; older formats' entries (JSON) are removed when the cache prunes
+_SUFFIX = ".npz"
+_OLD_SUFFIXES = (".json",)
 
 
 def _plain(value: Any) -> Any:
@@ -101,7 +116,7 @@ class PlanCache:
 
     def path(self, key: str) -> Path:
         """The file of ``key``."""
-        return self.root / f"{key}.json"
+        return self.root / f"{key}{_SUFFIX}"
 
     def load(
         self, key: str, placement: Placement, settings: PlannerSettings, *, cycle_s: float = 0.004032
@@ -110,21 +125,23 @@ class PlanCache:
         (no entry, or one ignored and removed with a log line naming the reason)."""
         path = self.path(key)
         try:
-            text = path.read_text()
+            data = path.read_bytes()
         except FileNotFoundError:
             return None
         except OSError as exc:
             return self._ignore(key, f"unreadable: {exc}")
         try:
-            doc = json.loads(text)
-            if not isinstance(doc, dict) or doc.get("version") != PLAN_CACHE_VERSION:
-                version = doc.get("version") if isinstance(doc, dict) else None
-                return self._ignore(key, f"stale: version {version!r}, expected {PLAN_CACHE_VERSION!r}")
-            if doc.get("key") != key:
+            header, arrays = _read_entry(data)
+            if header.get("version") != PLAN_CACHE_VERSION:
+                return self._ignore(
+                    key, f"stale: version {header.get('version')!r}, expected {PLAN_CACHE_VERSION!r}"
+                )
+            if header.get("key") != key:
                 return self._ignore(key, "the entry is for another key")
-            plan = ScanPlan.from_json(json.dumps(doc["plan"]))
-        except (ValueError, KeyError, TypeError) as exc:  # PlanInputError and JSON errors are ValueErrors
-            return self._ignore(key, f"corrupt: {exc}")
+            plan = plan_from_arrays(header["plan"], arrays)
+        except (ValueError, KeyError, TypeError, OSError, zipfile.BadZipFile) as exc:
+            # PlanInputError and JSON errors are ValueErrors; a bad CRC or a cut archive BadZipFile
+            return self._ignore(key, f"corrupt: {type(exc).__name__}: {exc}")
         if plan.placement.model_dump() != placement.model_dump():
             return self._ignore(key, "the entry's placement differs from the requested one")
         try:
@@ -141,8 +158,8 @@ class PlanCache:
         path = self.path(key)
         tmp = path.with_suffix(".tmp")
         try:
-            doc = {"version": PLAN_CACHE_VERSION, "key": key, "plan": plan.to_dict()}
-            tmp.write_text(json.dumps(doc, separators=(",", ":")))
+            meta, arrays = plan_to_arrays(plan)
+            tmp.write_bytes(_entry_bytes({"version": PLAN_CACHE_VERSION, "key": key, "plan": meta}, arrays))
             os.replace(tmp, path)
         except OSError as exc:
             log.warning("plan_cache_write_failed", key=key[:12], error=str(exc))
@@ -183,11 +200,161 @@ class PlanCache:
         return None
 
     def _prune(self) -> None:
+        for suffix in _OLD_SUFFIXES:  # an older format's entries: never read
+            for p in self.root.glob(f"*{suffix}"):
+                with contextlib.suppress(OSError):
+                    p.unlink()
         entries = []
-        for p in self.root.glob("*.json"):
+        for p in self.root.glob(f"*{_SUFFIX}"):
             with contextlib.suppress(OSError):
                 entries.append((p.stat().st_mtime, p))
         entries.sort()
         for _, p in entries[: max(0, len(entries) - self.max_entries)]:
             with contextlib.suppress(OSError):
                 p.unlink()
+
+
+#: the arrays of an entry: the segments' (concatenated, in order) and the timed trajectory's
+_ARRAYS = ("seg_pos_mm", "seg_R", "seg_q_deg", "t_s", "q_deg", "qd_deg_s", "qdd_deg_s2", "segment")
+
+
+def plan_to_arrays(plan: ScanPlan) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """``plan`` as a JSON-ready header and its arrays (:data:`_ARRAYS`), float64 as they are."""
+    segs = plan.segments
+    axes = plan.trajectory.q_deg.shape[1]
+    q = [s.q_deg if s.q_deg is not None else np.full((s.pos_mm.shape[0], axes), np.nan) for s in segs]
+    meta = {
+        "placement": plan.placement.model_dump(mode="json"),
+        "footprint_mm": [float(v) for v in plan.footprint_mm],
+        "coverage": plan.coverage.to_dict(),
+        "figures": {
+            k: float(getattr(plan, k))
+            for k in (
+                "scan_speed_mm_s",
+                "sweep_length_mm",
+                "sweep_time_s",
+                "scan_time_s",
+                "sweep_ratio",
+                "margin_mm",
+                "scan_speed_deviation",
+                "toppra_time_s",
+            )
+        },
+        "timings_s": dict(plan.timings_s),
+        "choices": plan.choices,
+        "segments": [
+            {
+                "kind": s.kind,
+                "label": s.label,
+                "n": int(s.pos_mm.shape[0]),
+                "solved": s.q_deg is not None,
+                "t_start_s": s.t_start_s,
+                "duration_s": s.duration_s,
+                "length_mm": s.length_mm,
+                "flying": s.flying,
+                "joint_line": s.joint_line,
+            }
+            for s in segs
+        ],
+    }
+    tr = plan.trajectory
+    arrays = {
+        "seg_pos_mm": np.concatenate([s.pos_mm for s in segs]),
+        "seg_R": np.concatenate([s.R_base_sensor for s in segs]),
+        "seg_q_deg": np.concatenate(q),
+        "t_s": tr.t_s,
+        "q_deg": tr.q_deg,
+        "qd_deg_s": tr.qd_deg_s,
+        "qdd_deg_s2": tr.qdd_deg_s2,
+        "segment": tr.segment,
+    }
+    return meta, {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+
+
+def plan_from_arrays(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> ScanPlan:
+    """Inverse of :func:`plan_to_arrays`.
+
+    Raises:
+        PlanInputError: missing arrays, or shapes that do not fit the header or each other.
+    """
+    missing = [k for k in _ARRAYS if k not in arrays]
+    if missing:
+        raise PlanInputError(f"plan cache entry: arrays {missing} missing")
+    pos, R, q = arrays["seg_pos_mm"], arrays["seg_R"], arrays["seg_q_deg"]
+    t, qt = arrays["t_s"], arrays["q_deg"]
+    n = sum(int(s["n"]) for s in meta["segments"])
+    m = t.shape[0]
+    axes = qt.shape[1] if qt.ndim == 2 else -1
+    shapes_ok = (
+        pos.shape == (n, 3)
+        and R.shape == (n, 3, 3)
+        and q.shape == (n, axes)
+        and axes in (6, 7)
+        and t.ndim == 1
+        and qt.shape == (m, axes)
+        and arrays["qd_deg_s"].shape == (m, axes)
+        and arrays["qdd_deg_s2"].shape == (m, axes)
+        and arrays["segment"].shape == (m,)
+        and all(a.dtype == np.float64 for a in (pos, R, q, t, qt, arrays["qd_deg_s"], arrays["qdd_deg_s2"]))
+        and arrays["segment"].dtype == np.int64
+    )
+    if not shapes_ok:
+        raise PlanInputError("plan cache entry: the arrays' shapes or types do not fit the header")
+    segments = []
+    start = 0
+    for s in meta["segments"]:
+        k = slice(start, start + int(s["n"]))
+        start = k.stop
+        segments.append(
+            Segment(
+                kind=s["kind"],
+                label=s["label"],
+                pos_mm=pos[k],
+                R_base_sensor=R[k],
+                q_deg=q[k] if s["solved"] else None,
+                t_start_s=float(s["t_start_s"]),
+                duration_s=float(s["duration_s"]),
+                length_mm=float(s["length_mm"]),
+                flying=bool(s["flying"]),
+                joint_line=bool(s["joint_line"]),
+            )
+        )
+    fig = meta["figures"]
+    return ScanPlan(
+        placement=Placement.model_validate(meta["placement"]),
+        footprint_mm=tuple(float(v) for v in meta["footprint_mm"]),  # type: ignore[arg-type]
+        segments=segments,
+        trajectory=TimedTrajectory(
+            t_s=t,
+            q_deg=qt,
+            qd_deg_s=arrays["qd_deg_s"],
+            qdd_deg_s2=arrays["qdd_deg_s2"],
+            segment=arrays["segment"],
+        ),
+        coverage=CoverageReport(**meta["coverage"]),
+        timings_s=dict(meta["timings_s"]),
+        choices=dict(meta["choices"]),
+        **{k: float(v) for k, v in fig.items()},
+    )
+
+
+def _entry_bytes(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> bytes:
+    """An entry: an uncompressed npz of ``arrays`` and the JSON ``header`` as uint8 bytes."""
+    buf = io.BytesIO()
+    head = np.frombuffer(json.dumps(header, separators=(",", ":")).encode(), dtype=np.uint8)
+    np.savez(buf, header=head, **arrays)
+    return buf.getvalue()
+
+
+def _read_entry(data: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The header and arrays of an entry (no pickles; every member read whole, so its CRC-32 is
+    checked). Raises ValueError, zipfile.BadZipFile or OSError on a damaged entry."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    head = arrays.pop("header", None)
+    if head is None or head.dtype != np.uint8 or head.ndim != 1:
+        raise ValueError("no header")
+    header = json.loads(head.tobytes().decode())
+    if not isinstance(header, dict) or not isinstance(header.get("plan"), dict):
+        raise ValueError("the header is not an entry's")
+    return header, arrays

@@ -21,7 +21,7 @@ a valid return.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -621,6 +621,66 @@ def _turnaround(
     )
 
 
+#: the sensor's x and y columns negated: its frame looking the other way round along a pass
+_FLIP_XY = np.array([-1.0, -1.0, 1.0])
+
+
+def _line_symmetric(settings: PlannerSettings) -> bool:
+    """The depth check's points along the line are symmetric about its middle (then a pass and the
+    same pass the other way round check the same points)."""
+    u = np.linspace(-settings.line_width_mm / 2, settings.line_width_mm / 2, _DEPTH_SAMPLES)
+    return bool(np.array_equal(u, -u[::-1]))
+
+
+def _start_segments(sweeps: list[tuple], settings: PlannerSettings) -> list[Segment]:
+    """The approach along the first pass's view axis and the first pass (plate frame)."""
+    kind, label, pos, R = sweeps[0]
+    p0, R0 = pos[0], R[0]
+    up0 = -R0[:, 2]
+    s = np.linspace(
+        settings.approach_mm, 0.0, max(3, int(np.ceil(settings.approach_mm / settings.waypoint_step_mm)) + 1)
+    )
+    approach = Segment(
+        "approach", "approach", p0[None] + s[:, None] * up0[None], np.broadcast_to(R0, (s.size, 3, 3)).copy()
+    )
+    return [approach, Segment(kind, label, pos, R)]
+
+
+def _join_sweeps(
+    surface: DesignSurface,
+    settings: PlannerSettings,
+    segments: list[Segment],
+    sweeps: list[tuple],
+    n_link: int,
+) -> int:
+    """Append ``sweeps`` (kind, label, pos, R; plate frame) to ``segments``, each after a link from
+    the segment before it (a flown turnaround where one fits, else a hump); links are numbered on
+    from ``n_link``. Returns the last link's number."""
+    for kind, label, pos, R in sweeps:
+        n_link += 1
+        prev = segments[-1]
+        turn = None
+        if (
+            prev.is_sweep
+            and settings.flying_turns
+            and _FLY.get((prev.kind, kind), False)
+            and rotation_angle_deg(prev.R_base_sensor[-1], R[0]) < JOINT_LINK_MIN_TURN_DEG
+        ):
+            turn = _turnaround(
+                surface, f"link {n_link}", prev.pos_mm[-1], prev.R_base_sensor[-1],
+                _unit(prev.pos_mm[-1] - prev.pos_mm[-2]), pos[0], R[0], _unit(pos[1] - pos[0]),
+                settings,
+            )  # fmt: skip
+        if turn is None:
+            turn = _link(
+                surface, f"link {n_link}", "link", prev.pos_mm[-1], prev.R_base_sensor[-1], pos[0], R[0],
+                settings, settings.link_clearance_mm,
+            )  # fmt: skip
+        segments.append(turn)
+        segments.append(Segment(kind, label, pos, R))
+    return n_link
+
+
 def build_segments(
     surface: DesignSurface,
     placement: Placement,
@@ -675,6 +735,11 @@ def build_segments(
 
     # (kind, label, pos, R) plate frame; the raster passes from the caller's cache when it has them
     sweeps: list[tuple[str, str, np.ndarray, np.ndarray]] = list((raster_cache or {}).get(sign, ()))
+    mirrored = (raster_cache or {}).get(-sign)
+    if not sweeps and mirrored is not None and _line_symmetric(settings):
+        # the other way round: the same positions and view axes, the sensor's x and y reversed
+        # (``sign`` enters only there), so the same depth check passed: the same numbers, negated
+        sweeps = [(k, lab, pos, R * _FLIP_XY) for k, lab, pos, R in mirrored]
     # how far any plate point can move at a corner of the uncertainty box (shift in x and y at once)
     drift = _outline_drift_mm(surface, settings)
     for i, c in enumerate(() if sweeps else centres):
@@ -740,55 +805,20 @@ def build_segments(
             prev_x = R[-1, :, 0]
             sweeps.append(("edge", f"edge {k + 1}", pos, R))
 
-    segments: list[Segment] = []
-    p0, R0 = sweeps[0][2][0], sweeps[0][3][0]
-    up0 = -R0[:, 2]
-    s = np.linspace(
-        settings.approach_mm, 0.0, max(3, int(np.ceil(settings.approach_mm / settings.waypoint_step_mm)) + 1)
-    )
-    segments.append(
-        Segment(
-            "approach",
-            "approach",
-            p0[None] + s[:, None] * up0[None],
-            np.broadcast_to(R0, (s.size, 3, 3)).copy(),
-        )
-    )
-    n_link = 0
-    for j, (kind, label, pos, R) in enumerate(sweeps):
-        if j > 0:
-            n_link += 1
-            prev = segments[-1]
-            turn = None
-            if (
-                prev.is_sweep
-                and settings.flying_turns
-                and _FLY.get((prev.kind, kind), False)
-                and rotation_angle_deg(prev.R_base_sensor[-1], R[0]) < JOINT_LINK_MIN_TURN_DEG
-            ):
-                turn = _turnaround(
-                    surface, f"link {n_link}", prev.pos_mm[-1], prev.R_base_sensor[-1],
-                    _unit(prev.pos_mm[-1] - prev.pos_mm[-2]), pos[0], R[0], _unit(pos[1] - pos[0]),
-                    settings,
-                )  # fmt: skip
-            if turn is not None:
-                segments.append(turn)
-                segments.append(Segment(kind, label, pos, R))
-                continue
-            segments.append(
-                _link(
-                    surface,
-                    f"link {n_link}",
-                    "link",
-                    prev.pos_mm[-1],
-                    prev.R_base_sensor[-1],
-                    pos[0],
-                    R[0],
-                    settings,
-                    settings.link_clearance_mm,
-                )
-            )
-        segments.append(Segment(kind, label, pos, R))
+    # the approach, the raster passes and the links between them depend on the raster passes alone:
+    # kept in the caller's cache (fresh Segment objects each call: the caller moves and solves them)
+    n_raster = len(sweeps) - sum(1 for k, *_ in sweeps if k == "edge")
+    head = (raster_cache or {}).get(("head", sign))
+    if head is not None:
+        segments = [replace(seg) for seg in head]
+        n_link = sum(1 for seg in head if seg.kind == "link")
+        _join_sweeps(surface, settings, segments, sweeps[n_raster:], n_link)
+    else:
+        segments = _start_segments(sweeps, settings)
+        n_link = _join_sweeps(surface, settings, segments, sweeps[1:n_raster], 0)
+        if raster_cache is not None:
+            raster_cache[("head", sign)] = tuple(replace(seg) for seg in segments)
+        _join_sweeps(surface, settings, segments, sweeps[n_raster:], n_link)
     pe, Re = segments[-1].pos_mm[-1], segments[-1].R_base_sensor[-1]
     upe = -Re[:, 2]
     s = np.linspace(
@@ -824,22 +854,37 @@ def _resample_sweep(seg: Segment, step_mm: float) -> tuple[np.ndarray, np.ndarra
     return pos, x, z
 
 
+def _sensor_poses(
+    segments: list[Segment], settings: PlannerSettings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The simulated profiles' sensor poses (base frame) along every sweep, one every
+    ``coverage_profile_step_mm``: ``(origins (m, 3), line directions (m, 3), view axes (m, 3))``."""
+    sweeps = [s for s in segments if s.is_sweep]
+    if not sweeps:
+        raise PlanInputError("segments: no sweep to predict coverage from")
+    parts = [_resample_sweep(s, settings.coverage_profile_step_mm) for s in sweeps]
+    return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[return-value]
+
+
+def _fan_rays(
+    pos: np.ndarray, x: np.ndarray, z: np.ndarray, settings: PlannerSettings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The laser fans of the sensor poses ``pos``, ``x``, ``z`` (m, 3): ``(origins (r, 3), unit
+    directions (r, 3), the view axis per ray (r, 3))``, ``coverage_rays`` rays per pose as wide as
+    the line at the standoff."""
+    u = np.linspace(-settings.line_width_mm / 2, settings.line_width_mm / 2, settings.coverage_rays)
+    dirs = _unit(settings.standoff_mm * z[:, None, :] + u[None, :, None] * x[:, None, :]).reshape(-1, 3)
+    return np.repeat(pos, u.size, axis=0), dirs, np.repeat(z, u.size, axis=0)
+
+
 def _laser_fans(
     segments: list[Segment], settings: PlannerSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """The simulated profiles' rays (base frame): ``(origins (r, 3), unit directions (r, 3), the
     sensor's view axis per ray (r, 3), profiles)``; one fan of ``coverage_rays`` rays as wide as the
     line at the standoff every ``coverage_profile_step_mm`` along each sweep."""
-    sweeps = [s for s in segments if s.is_sweep]
-    if not sweeps:
-        raise PlanInputError("segments: no sweep to predict coverage from")
-    parts = [_resample_sweep(s, settings.coverage_profile_step_mm) for s in sweeps]
-    pos = np.concatenate([p[0] for p in parts])
-    x = np.concatenate([p[1] for p in parts])
-    z = np.concatenate([p[2] for p in parts])
-    u = np.linspace(-settings.line_width_mm / 2, settings.line_width_mm / 2, settings.coverage_rays)
-    dirs = _unit(settings.standoff_mm * z[:, None, :] + u[None, :, None] * x[:, None, :]).reshape(-1, 3)
-    return np.repeat(pos, u.size, axis=0), dirs, np.repeat(z, u.size, axis=0), int(pos.shape[0])
+    pos, x, z = _sensor_poses(segments, settings)
+    return (*_fan_rays(pos, x, z, settings), int(pos.shape[0]))
 
 
 def _ray_tensor(origins: np.ndarray, dirs: np.ndarray) -> o3d.core.Tensor:
@@ -867,6 +912,11 @@ def _uncertainty_corners(placement: Placement, settings: PlannerSettings) -> lis
     ]
 
 
+#: a ray's stretch between the depth limits is widened this much (mm) before the cells it spans are
+#: looked up: the ray is cast in float32 and its line direction is interpolated
+_CULL_PAD_MM = 0.5
+
+
 def predict_coverage(
     segments: list[Segment],
     design: TriMesh,
@@ -883,9 +933,40 @@ def predict_coverage(
     hole) is seen when it holds at least one return: the fraction is of the plate, not of its
     bounds. The same rays are cast against the plate moved to four corners of the placement
     uncertainty (shift and rotation) for ``worst_fraction``.
+
+    A ray's counted return lies on the stretch of the ray between the depth limits, so a ray whose
+    stretch spans only cells already seen (or off the plate) cannot change the figures: per
+    placement every other ray of each fan is cast first, then only the others that could still add
+    a cell (on the 6 m plate and the sail: none). The figures are those of casting every ray
+    (``exhaustive=True``, tests/motion/test_planning_scale.py).
     """
-    origins, dirs, zrep, n_profiles = _laser_fans(segments, settings)
-    rays = _ray_tensor(origins, dirs)
+    return _predict_coverage(segments, design, surface, placement, settings)
+
+
+def _plate_xy(p: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plate-frame x and y of base-frame points ``p`` (..., 3) for the placement ``T`` (4, 4)
+    (``(p - t) @ R`` written out by columns: a matmul of (n, 3) by (3, 3) costs many times more)."""
+    d0, d1, d2 = p[..., 0] - T[0, 3], p[..., 1] - T[1, 3], p[..., 2] - T[2, 3]
+    return d0 * T[0, 0] + d1 * T[1, 0] + d2 * T[2, 0], d0 * T[0, 1] + d1 * T[1, 1] + d2 * T[2, 1]
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products of (n, 3) arrays."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def _predict_coverage(
+    segments: list[Segment],
+    design: TriMesh,
+    surface: DesignSurface,
+    placement: Placement,
+    settings: PlannerSettings,
+    *,
+    exhaustive: bool = False,
+) -> CoverageReport:
+    """:func:`predict_coverage`; ``exhaustive``: cast every ray (the reference its culling keeps to)."""
+    pos, x, z = _sensor_poses(segments, settings)
+    m = int(pos.shape[0])
     cos_max = np.cos(np.deg2rad(settings.max_incidence_deg))
 
     cell = settings.coverage_cell_mm
@@ -898,33 +979,70 @@ def predict_coverage(
     if total == 0:
         raise PlanInputError("design: no footprint cell lies over the surface")
 
-    # the depth along the view axis per unit of ray length, the same for every placement
-    depth_per_t = np.sum(dirs * zrep, axis=1)
+    u = np.linspace(-settings.line_width_mm / 2, settings.line_width_mm / 2, settings.coverage_rays)
+    k_all = np.arange(u.size)
+    k_first = k_all if exhaustive else k_all[::2]
+    k_rest = k_all[:0] if exhaustive else k_all[1::2]
+
+    def fan(ks: np.ndarray) -> np.ndarray:
+        """(len(ks), m, 3) the unit directions of rays ``ks`` of every profile's fan."""
+        v = settings.standoff_mm * z[None] + u[ks][:, None, None] * x[None]
+        return v / np.sqrt(v[..., 0] ** 2 + v[..., 1] ** 2 + v[..., 2] ** 2)[..., None]
+
+    def batch(origins: np.ndarray, dirs: np.ndarray, zs: np.ndarray) -> tuple:
+        """Rays to cast: origins, unit directions (r, 3), the depth per unit of ray length (r,), the
+        float32 tensor open3d casts."""
+        return origins, dirs, _dot(dirs, zs), _ray_tensor(origins, dirs)
+
+    # the first round's rays are the same for every placement: built once
+    first = batch(np.tile(pos, (k_first.size, 1)), fan(k_first).reshape(-1, 3), np.tile(z, (k_first.size, 1)))
+    dirs_rest = fan(k_rest)
+    # a counted return of ray k of a profile lies at pos + depth (z + u_k / standoff x), the depth
+    # in its range (to rounding: the stretch is widened by _CULL_PAD_MM)
+    ends = [
+        pos[None] + d * (z[None] + (u[k_rest] / settings.standoff_mm)[:, None, None] * x[None])
+        for d in (settings.depth_min_mm, settings.depth_max_mm)
+    ]
+
+    def cell_index(lx: np.ndarray, ly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ix = np.floor((lx - surface.x_min_mm) / (surface.x_max_mm - surface.x_min_mm) * nx)
+        iy = np.floor((ly - surface.y_min_mm) / (surface.y_max_mm - surface.y_min_mm) * ny)
+        return ix.astype(np.int64), iy.astype(np.int64)
+
+    def cast(scene, T: np.ndarray, seen: np.ndarray, rays: tuple) -> None:
+        """Cast ``rays`` (:func:`batch`); mark the cells their counted returns land in."""
+        origins, dirs, depth_per_t, tensor = rays
+        if origins.shape[0] == 0:
+            return
+        hit = scene.cast_rays(tensor)
+        t = hit["t_hit"].numpy().astype(np.float64)  # inf where the ray misses: never in range
+        nrm = hit["primitive_normals"].numpy().astype(np.float64)
+        depth = t * depth_per_t
+        ok = (depth >= settings.depth_min_mm) & (depth <= settings.depth_max_mm)
+        ok &= np.abs(_dot(nrm, dirs)) >= cos_max
+        ix, iy = cell_index(*_plate_xy(origins[ok] + t[ok, None] * dirs[ok], T))
+        keep = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        seen[ix[keep], iy[keep]] = True
 
     def fraction(pl: Placement) -> tuple[float, int]:
         T = placement_transform(pl)
         scene = _raycasting_scene(design.transformed(T))
-        hit = scene.cast_rays(rays)
-        t_hit = hit["t_hit"].numpy()
-        # only the rays that hit are looked at (a 6 m plate casts millions of rays per placement)
-        idx = np.flatnonzero(np.isfinite(t_hit))
-        t = t_hit[idx].astype(np.float64)
-        nrm = hit["primitive_normals"].numpy()[idx].astype(np.float64)
-        d = dirs[idx]
-        depth = t * depth_per_t[idx]
-        cos_inc = np.abs(np.sum(nrm * d, axis=1))
-        ok = (depth >= settings.depth_min_mm) & (depth <= settings.depth_max_mm) & (cos_inc >= cos_max)
-        p = origins[idx[ok]] + t[ok, None] * d[ok]
-        local = (p - T[:3, 3]) @ T[:3, :3]  # base -> plate frame
-        ix = np.floor((local[:, 0] - surface.x_min_mm) / (surface.x_max_mm - surface.x_min_mm) * nx).astype(
-            np.int64
-        )
-        iy = np.floor((local[:, 1] - surface.y_min_mm) / (surface.y_max_mm - surface.y_min_mm) * ny).astype(
-            np.int64
-        )
-        keep = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
         seen = np.zeros((nx, ny), dtype=bool)
-        seen[ix[keep], iy[keep]] = True
+        cast(scene, T, seen, first)
+        need = surface_cells & ~seen
+        if need.any() and k_rest.size:
+            # the cells each remaining ray's stretch spans: cast those that span a cell still unseen
+            (ax, ay), (bx, by) = (_plate_xy(e, T) for e in ends)
+            ix0, iy0 = cell_index(np.minimum(ax, bx) - _CULL_PAD_MM, np.minimum(ay, by) - _CULL_PAD_MM)
+            ix1, iy1 = cell_index(np.maximum(ax, bx) + _CULL_PAD_MM, np.maximum(ay, by) + _CULL_PAD_MM)
+            on_grid = (ix1 >= 0) & (ix0 < nx) & (iy1 >= 0) & (iy0 < ny)
+            ix0, ix1 = np.clip(ix0, 0, nx - 1), np.clip(ix1, 0, nx - 1)
+            iy0, iy1 = np.clip(iy0, 0, ny - 1), np.clip(iy1, 0, ny - 1)
+            S = np.zeros((nx + 1, ny + 1), dtype=np.int64)
+            S[1:, 1:] = need.cumsum(axis=0).cumsum(axis=1)
+            unseen = S[ix1 + 1, iy1 + 1] - S[ix0, iy1 + 1] - S[ix1 + 1, iy0] + S[ix0, iy0]
+            kk, ii = np.nonzero(on_grid & (unseen > 0))
+            cast(scene, T, seen, batch(pos[ii], dirs_rest[kk, ii], z[ii]))
         n_seen = int((seen & surface_cells).sum())
         return n_seen / total, n_seen
 
@@ -932,15 +1050,16 @@ def predict_coverage(
     worst = frac
     for moved in _uncertainty_corners(placement, settings):
         worst = min(worst, fraction(moved)[0])
-    log.debug("coverage_predicted", fraction=frac, worst=worst, rays=int(origins.shape[0]))
+    n_rays = m * u.size
+    log.debug("coverage_predicted", fraction=frac, worst=worst, rays=n_rays)
     return CoverageReport(
         fraction=frac,
         worst_fraction=worst,
         cells_total=total,
         cells_seen=n_seen,
         cell_mm=cell,
-        profiles=n_profiles,
-        rays=int(origins.shape[0]),
+        profiles=m,
+        rays=n_rays,
     )
 
 

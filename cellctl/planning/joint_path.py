@@ -299,6 +299,59 @@ def split_waypoints(seg: Segment, factor: int) -> Segment:
     )
 
 
+#: waypoints checked at once by :func:`_same_branch_run` (a run stops at the first that needs a look)
+_RUN_CHUNK = 512
+
+
+def _same_branch_run(
+    branches: np.ndarray, q_prev: np.ndarray, kin: RobotKinematics, settings: PlannerSettings
+) -> np.ndarray:
+    """The leading waypoints of ``branches`` ((m, 8, 6), :func:`ik_branches`) that the one-at-a-time
+    walk (:func:`nearest_branch` from each predecessor, starting at ``q_prev``) would solve on the
+    branch it picks for the first, inside the joint margins and the wrist margin, each within
+    ``max_waypoint_joint_step_deg`` of its predecessor: their configurations (k, 6), k >= 0.
+
+    The same numbers as the walk: each joint is turned by whole turns to lie nearest its
+    predecessor's (the walk's rounding, accumulated), and every waypoint's choice is checked against
+    all eight branches as :func:`nearest_branch` makes it; the run stops before the first waypoint
+    where it would differ (the caller solves that one alone)."""
+    cand = branches[:_RUN_CHUNK]
+    m = cand.shape[0]
+    lo_k, hi_k = kin.q_min_deg, kin.q_max_deg
+    first = nearest_branch(cand[0], q_prev, lo_k, hi_k)
+    if first is None:
+        return np.zeros((0, 6))
+    unwrapped0 = cand[0] + 360.0 * np.round((q_prev - cand[0]) / 360.0)
+    d0 = np.sum((unwrapped0 - first) ** 2, axis=1)
+    b = int(np.argmin(np.where(np.isnan(d0), np.inf, d0)))  # a branch without a solution is NaN
+    cb = cand[:, b]
+    if np.isnan(cb).any():
+        m = int(np.argmax(np.isnan(cb).any(axis=1)))
+        cb = cb[:m]
+    if m == 0:
+        return np.zeros((0, 6))
+    # the walk's whole turns, accumulated along the branch
+    turns = np.empty((m, 6))
+    turns[0] = np.round((q_prev - cb[0]) / 360.0)
+    if m > 1:
+        turns[1:] = turns[0] + np.cumsum(np.round((cb[:-1] - cb[1:]) / 360.0), axis=0)
+    q = cb + 360.0 * turns
+    prev = np.vstack([q_prev[None], q[:-1]])
+    # the walk's choice at every waypoint from the predecessor found here
+    allq = cand[:m] + 360.0 * np.round((prev[:, None, :] - cand[:m]) / 360.0)
+    inside = np.all((allq >= lo_k - 1e-9) & (allq <= hi_k + 1e-9), axis=2)
+    dist = np.where(inside, np.sum((allq - prev[:, None, :]) ** 2, axis=2), np.inf)
+    same = (np.argmin(dist, axis=1) == b) & inside[:, b] & np.all(allq[:, b] == q, axis=1)
+    good = (
+        same
+        & (np.abs(q - prev).max(axis=1) <= settings.max_waypoint_joint_step_deg)
+        & np.all((q >= settings.q_min_deg) & (q <= settings.q_max_deg), axis=1)
+        & (np.abs(q[:, 4]) >= settings.wrist_margin_deg)
+    )
+    k = m if good.all() else int(np.argmin(good))
+    return q[:k]
+
+
 def solve_joint_path(
     segments: list[Segment],
     settings: PlannerSettings,
@@ -412,7 +465,26 @@ def _solve_once(
                 pos_mm=seg.pos_mm[i],
             )
         branches = kin.ik_branches(Ts, frame="sensor")  # every closed-form solution, all at once
-        for i, T in enumerate(Ts):
+        i = 0
+        while i < len(Ts):
+            if q_prev is not None:
+                # the waypoints from i on that stay on one branch within every limit, all at once
+                run = _same_branch_run(branches[i:], q_prev, kin, settings)
+                if run.shape[0]:
+                    steps = np.abs(np.diff(np.vstack([q_prev[None], run]), axis=0)).max(axis=1)
+                    out[i : i + run.shape[0]] = run
+                    max_step = max(max_step, float(steps.max()))
+                    min_wrist = min(min_wrist, float(np.abs(run[:, 4]).min()))
+                    room = np.minimum(
+                        run - np.asarray(settings.joint_lower_deg), np.asarray(settings.joint_upper_deg) - run
+                    )
+                    min_room = min(min_room, float(room.min()))
+                    count += run.shape[0]
+                    q_prev = run[-1]
+                    i += run.shape[0]
+                    continue
+            # one waypoint at a time where the branch changes, a limit is hit or the step is large
+            T = Ts[i]
             if q_prev is None:
                 q0 = q_start_deg if q_start_deg is not None else first_configuration(kin, T, settings)
                 if q0 is None:
@@ -490,5 +562,6 @@ def _solve_once(
             )
             min_room = min(min_room, room)
             count += 1
+            i += 1
         world_segments[k].q_deg = out if track_mm is None else np.column_stack([track_mm[k], out])
     return JointPathResult(float(min_wrist), float(min_room), float(max_step), count)

@@ -53,9 +53,40 @@ from cellctl.planning.settings import PlannerSettings
 from cellctl.planning.timing import TimingResult, rest_to_rest_s, time_segments
 from drivers.abb_egm.kinematics import fk_batch
 
-__all__ = ["check_plan_envelope", "estimate_s", "lower_bound_s", "plan_scan", "start_corner_near"]
+__all__ = [
+    "check_plan_envelope",
+    "estimate_s",
+    "lower_bound_s",
+    "plan_scan",
+    "positions_at",
+    "start_corner_near",
+]
 
 log = structlog.get_logger(__name__)
+
+
+def positions_at(trajectory: TimedTrajectory, t_s: np.ndarray) -> np.ndarray:
+    """The positions (m, n_axes) of :meth:`TimedTrajectory.sample_many` at times ``t_s`` (m,) s, the
+    same numbers (its quintic Hermite's position term, written as it is), without the speeds and
+    accelerations the envelope check does not read (they were 2/3 of the sampling's cost)."""
+    ts = trajectory.t_s
+    t = np.clip(np.asarray(t_s, dtype=np.float64), ts[0], ts[-1])
+    i = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 2)
+    h = ts[i + 1] - ts[i]
+    hs = np.where(h > 0, h, 1.0)
+    u = np.where(h > 0, (t - ts[i]) / hs, 0.0)[:, None]
+    hs = hs[:, None]
+    v0, v1 = trajectory.qd_deg_s[i] * hs, trajectory.qd_deg_s[i + 1] * hs
+    a0, a1 = trajectory.qdd_deg_s2[i] * (hs * hs), trajectory.qdd_deg_s2[i + 1] * (hs * hs)
+    u2, u3, u4, u5 = u * u, u**3, u**4, u**5
+    return (
+        (1 - 10 * u3 + 15 * u4 - 6 * u5) * trajectory.q_deg[i]
+        + (u - 6 * u3 + 8 * u4 - 3 * u5) * v0
+        + (0.5 * u2 - 1.5 * u3 + 1.5 * u4 - 0.5 * u5) * a0
+        + (0.5 * u3 - u4 + 0.5 * u5) * a1
+        + (-4 * u3 + 7 * u4 - 3 * u5) * v1
+        + (10 * u3 - 15 * u4 + 6 * u5) * trajectory.q_deg[i + 1]
+    )
 
 
 def check_plan_envelope(
@@ -69,7 +100,7 @@ def check_plan_envelope(
     envelope = SafetyEnvelope(EnvelopeLimits.from_settings(settings, cycle_s=cycle_s))
     t = np.arange(0.0, trajectory.duration_s, cycle_s)
     t = np.append(t, trajectory.duration_s) if t[-1] < trajectory.duration_s else t
-    q = trajectory.sample_many(t)[0]
+    q = positions_at(trajectory, t)
     try:
         envelope.check_trajectory(t, q)
     except EnvelopeViolation as exc:

@@ -66,6 +66,23 @@ _TURN_GRID_STEP_MM = 0.5
 #: segments' ends): the sail's bound moves by 0.06 % (180.76 s against 180.65 s on every point),
 #: its cost (most of a cold plan's timing) halves
 _TOPPRA_GRID_STRIDE = 2
+#: ... and on a sweep (a straight pass at the scan speed, the rate its TCP cap sets) every this-many-th,
+#: but within _TOPPRA_END_MM of its ends, where it speeds up and slows down (the timing's cost halves
+#: on the 6 m plate; its executed time law keeps every point)
+_TOPPRA_SWEEP_STRIDE = 10
+_TOPPRA_END_MM = 50.0  # twice RAMP_ALLOWANCE_MM
+
+
+def _toppra_grid(seg: Segment, grid: np.ndarray) -> np.ndarray:
+    """The points of ``seg``'s timing grid toppra checks: every other one (:data:`_TOPPRA_GRID_STRIDE`);
+    on a sweep every :data:`_TOPPRA_SWEEP_STRIDE`-th away from its ends."""
+    if not seg.is_sweep:
+        return grid[::_TOPPRA_GRID_STRIDE]
+    near_end = (grid - grid[0] <= _TOPPRA_END_MM) | (grid[-1] - grid <= _TOPPRA_END_MM)
+    k = np.arange(grid.size)
+    return grid[(near_end & (k % _TOPPRA_GRID_STRIDE == 0)) | (k % _TOPPRA_SWEEP_STRIDE == 0)]
+
+
 #: a turnaround is flown at this share of the largest rate its limits allow (the rest: its joins)
 _FLYING_SHARE = 0.95
 #: the sweep's ends where the speed may ramp (the passes reach this far beyond what they must cover)
@@ -182,13 +199,27 @@ def _path_peaks(path, settings: PlannerSettings, grid: np.ndarray):
     return m1, m2, m3, float(dpds.max())
 
 
+def _law_states(law: Trajectory, t: np.ndarray) -> np.ndarray:
+    """(n, 3) position, velocity and acceleration of a 1-axis ruckig law at times ``t`` (n,) in
+    ``[0, duration]``: its seven constant-jerk phases integrated as ruckig's ``at_time`` does, for
+    all times at once (``at_time`` one by one where the law has a brake or acceleration pre-phase)."""
+    prof = law.profiles[0][0]
+    if prof.brake.duration > 0 or prof.accel.duration > 0:
+        return np.array([np.ravel(law.at_time(float(x))) for x in t]).reshape(len(t), 3)
+    t_sum = np.cumsum(prof.t)
+    k = np.minimum(np.searchsorted(t_sum, t, side="right"), len(t_sum) - 1)
+    dt = t - np.concatenate([[0.0], t_sum])[k]
+    p, v, a, j = (np.asarray(x, dtype=np.float64)[k] for x in (prof.p, prof.v, prof.a, prof.j))
+    return np.column_stack([p + dt * (v + dt * (a / 2 + dt * j / 6)), v + dt * (a + dt * j / 2), a + dt * j])
+
+
 def _law_samples(law: Trajectory, path, s0: float, s1: float, dt_s: float):
     """A 1-axis law of the path parameter from ``s0`` sampled every ``dt_s`` or a little less:
     ``(t, q, qd, qdd)``, the parameter clipped to ``[s0, s1]``."""
     T = float(law.duration)
     n = max(2, int(np.ceil(T / dt_s)) + 1)
     t = np.linspace(0.0, T, n)
-    sv = np.array([np.ravel(law.at_time(float(x))) for x in t]).reshape(n, 3)  # s, sdot, sddot
+    sv = _law_states(law, t)  # s, sdot, sddot
     ss = np.clip(s0 + sv[:, 0], s0, s1)
     d1 = path(ss, 1)
     q = path(ss)
@@ -324,7 +355,7 @@ def _time_one(seg: Segment, v_tcp: float, settings: PlannerSettings, dt_s: float
     constraints = _toppra_constraints(
         settings, TcpSpeedConstraint(v_tcp, settings.T_flange_sensor, settings.track)
     )
-    grid_toppra = np.concatenate([grid[:-1:_TOPPRA_GRID_STRIDE], grid[-1:]])
+    grid_toppra = np.unique(np.concatenate([_toppra_grid(seg, grid[:-1]), grid[-1:]]))
     optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid_toppra, parametrizer="ParametrizeConstAccel")
     optimal = optimal.compute_trajectory(0.0, 0.0)
     if optimal is None:
@@ -417,7 +448,9 @@ def _time_chain(segs: list[Segment], speeds: list[float], settings: PlannerSetti
             ],
         ),
     )
-    grid_toppra = np.unique(np.concatenate([g[::_TOPPRA_GRID_STRIDE] for g in grids] + [bounds]))
+    grid_toppra = np.unique(
+        np.concatenate([_toppra_grid(seg, g) for seg, g in zip(segs, grids, strict=True)] + [bounds])
+    )
     optimal = ta_algo.TOPPRA(constraints, path, gridpoints=grid_toppra, parametrizer="ParametrizeConstAccel")
     optimal = optimal.compute_trajectory(0.0, 0.0)
     if optimal is None:

@@ -57,7 +57,7 @@ def test_the_second_scan_of_the_same_plate_and_placement_reuses_the_stored_plan(
                 )
                 # the fresh plan is not written between the plan and the motion: the runner writes
                 # it with the call it returns once the arm is at rest (a hit returns none)
-                cached = list((tmp_path / "data" / "plan-cache").glob("*.json"))
+                cached = list((tmp_path / "data" / "plan-cache").glob("*.npz"))
                 out.append((got, len(cached)))
                 if got is not None and got[2] is not None:
                     await asyncio.to_thread(got[2])
@@ -73,5 +73,5 @@ def test_the_second_scan_of_the_same_plate_and_placement_reuses_the_stored_plan(
     planned = [info for state, msg, info in host.states if msg == "planned"]
     assert [i["plan_cache"] for i in planned] == ["miss", "hit"]
     assert planned[0]["plan"] == planned[1]["plan"]
-    assert len(list((tmp_path / "data" / "plan-cache").glob("*.json"))) == 1
+    assert len(list((tmp_path / "data" / "plan-cache").glob("*.npz"))) == 1
     assert planned[1]["plan"]["transitions_s"] > 0

@@ -3,8 +3,6 @@ accelerations the arm cannot follow is refused before anything moves."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 from structlog.testing import capture_logs
@@ -12,7 +10,7 @@ from structlog.testing import capture_logs
 from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, SafetyEnvelope
 from cellctl.motion.envelope import EnvelopeViolation
-from cellctl.planning.cache import PlanCache
+from cellctl.planning.cache import PlanCache, _entry_bytes, _read_entry
 from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
 
 CYCLE_S = 0.004032
@@ -69,17 +67,15 @@ def test_a_cached_plan_edited_to_extreme_accelerations_is_refused_and_replanned(
     cache = PlanCache(tmp_path / "plan-cache")
     first = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
     path = cache.path(first.key)
-    doc = json.loads(path.read_text())
-    tr = doc["plan"]["trajectory"]
-    qdd = np.asarray(tr["qdd_deg_s2"])
-    # valid JSON, the same key, every position, speed and step inside its limits: only the stored
+    header, arrays = _read_entry(path.read_bytes())
+    qdd = arrays["qdd_deg_s2"]
+    # a valid entry, the same key, every position, speed and step inside its limits: only the stored
     # acceleration of joint 2 at one sample in the middle of a pass is five times its limit (the
     # executor interpolates the samples with their accelerations)
     sweep = [i for i, s in enumerate(first.plan.segments) if s.kind == "scan"][1]
-    rows = np.flatnonzero(np.asarray(tr["segment"]) == sweep)
+    rows = np.flatnonzero(arrays["segment"] == sweep)
     qdd[rows[rows.size // 2], 1] = 5.0 * SMALL_SETTINGS.joint_accel_max_deg_s2[1]
-    tr["qdd_deg_s2"] = qdd.tolist()
-    path.write_text(json.dumps(doc))
+    path.write_bytes(_entry_bytes(header, arrays))
     with capture_logs() as logs:
         again = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
     assert not again.hit

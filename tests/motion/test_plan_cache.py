@@ -3,15 +3,13 @@ check a cached plan passes against the current settings before it is returned.""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 from structlog.testing import capture_logs
 
 from analysis.placement import Placement
 from analysis.plates import design_mesh, plate_spec
-from cellctl.planning.cache import PLAN_CACHE_VERSION, PlanCache, plan_key
+from cellctl.planning.cache import PLAN_CACHE_VERSION, PlanCache, _entry_bytes, _read_entry, plan_key
 from drivers.abb_egm.kinematics import LinearTrack
 from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
 
@@ -28,6 +26,13 @@ def cache(tmp_path):
 
 def _ignored(logs) -> list[str]:
     return [e["reason"] for e in logs if e["event"] == "plan_cache_ignored"]
+
+
+def _rewrite(path, edit) -> None:
+    """Read an entry, let ``edit(header, arrays)`` change it, write it back as a valid entry."""
+    header, arrays = _read_entry(path.read_bytes())
+    edit(header, arrays)
+    path.write_bytes(_entry_bytes(header, arrays))
 
 
 def test_the_second_plan_of_the_same_inputs_is_a_hit_and_equal(cache, design):
@@ -79,13 +84,13 @@ def test_a_changed_placement_is_a_miss(cache, design):
     again = cache.plan(design, moved, SMALL_SETTINGS, with_coverage=False)
     assert not again.hit
     assert again.plan.placement == moved
-    assert len(list(cache.root.glob("*.json"))) == 2
+    assert len(list(cache.root.glob("*.npz"))) == 2
 
 
 def test_a_corrupt_entry_is_a_miss_with_a_log_line_and_is_replanned(cache, design):
     first = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
     path = cache.path(first.key)
-    path.write_text(path.read_text()[: path.stat().st_size // 2])  # cut short, as by a crash
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])  # cut short, as by a crash
     with capture_logs() as logs:
         again = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
     assert not again.hit
@@ -96,13 +101,16 @@ def test_a_corrupt_entry_is_a_miss_with_a_log_line_and_is_replanned(cache, desig
 def test_a_stale_version_or_another_keys_entry_is_ignored(cache, design):
     first = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
     path = cache.path(first.key)
-    doc = json.loads(path.read_text())
-    path.write_text(json.dumps({**doc, "version": "cellctl.plan_cache/0"}))
+    good = path.read_bytes()
+    stale = "cellctl.plan_cache/7+cellctl.scan_plan/1"
+    assert stale != PLAN_CACHE_VERSION
+    _rewrite(path, lambda h, a: h.update(version=stale))
     with capture_logs() as logs:
         assert cache.load(first.key, SMALL_PLACEMENT, SMALL_SETTINGS) is None
     assert any(r.startswith("stale") for r in _ignored(logs))
     assert not path.exists()
-    path.write_text(json.dumps({**doc, "version": PLAN_CACHE_VERSION, "key": "0" * 64}))
+    path.write_bytes(good)
+    _rewrite(path, lambda h, a: h.update(key="0" * 64))
     with capture_logs() as logs:
         assert cache.load(first.key, SMALL_PLACEMENT, SMALL_SETTINGS) is None
     assert any("another key" in r for r in _ignored(logs))
@@ -122,11 +130,11 @@ def test_a_cached_plan_is_refused_by_the_envelope_of_a_tighter_config(cache, des
 def test_an_entry_edited_outside_the_joint_limits_is_refused_on_a_hit(cache, design):
     first = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
     path = cache.path(first.key)
-    doc = json.loads(path.read_text())
-    q = np.asarray(doc["plan"]["trajectory"]["q_deg"])
-    q[len(q) // 2 :, 0] += 400.0  # valid JSON, same key: joint 1 far beyond its limit
-    doc["plan"]["trajectory"]["q_deg"] = q.tolist()
-    path.write_text(json.dumps(doc))
+
+    def beyond(header, arrays):  # a valid entry, same key: joint 1 far beyond its limit
+        arrays["q_deg"][len(arrays["q_deg"]) // 2 :, 0] += 400.0
+
+    _rewrite(path, beyond)
     with capture_logs() as logs:
         again = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
     assert not again.hit
@@ -155,3 +163,57 @@ def test_the_cache_keeps_at_most_max_entries(tmp_path, design):
         design, Placement.on_bed(1600.0, 110.0, 3.0, z_mm=300.0), SMALL_SETTINGS, with_coverage=False
     )
     assert not cache.path(a.key).exists() and cache.path(b.key).exists()
+
+
+_ARRAY_FIELDS = ("t_s", "q_deg", "qd_deg_s", "qdd_deg_s2", "segment")
+
+
+def test_a_track_plan_round_trips_bit_for_bit_in_the_binary_entry(cache):
+    track = LinearTrack(
+        origin_mm=[0.0, 0.0, 0.0], direction=[0.0, 1.0, 0.0], travel_min_mm=0.0, travel_max_mm=4000.0,
+        speed_max_mm_s=500.0, accel_max_mm_s2=1000.0, jerk_max_mm_s3=10000.0,
+    )  # fmt: skip
+    settings = SMALL_SETTINGS.with_(track=track)
+    placement = Placement.on_bed(1500.0, 2000.0, 90.0, z_mm=300.0)
+    mesh = design_mesh(plate_spec("sail", length_mm=300.0, width_mm=150.0), pitch_mm=5.0)
+    fresh = cache.plan(mesh, placement, settings, with_coverage=True)
+    hit = cache.plan(mesh, placement, settings, with_coverage=True)
+    assert not fresh.hit and hit.hit and cache.path(hit.key).suffix == ".npz"
+    a, b = fresh.plan, hit.plan
+    assert b.trajectory.q_deg.shape[1] == 7
+    for name in _ARRAY_FIELDS:  # not within a tolerance: the same numbers
+        x, y = getattr(a.trajectory, name), getattr(b.trajectory, name)
+        assert x.dtype == y.dtype and np.array_equal(x, y), name
+    assert len(a.segments) == len(b.segments)
+    for s, t in zip(a.segments, b.segments, strict=True):
+        assert (s.kind, s.label, s.flying, s.joint_line) == (t.kind, t.label, t.flying, t.joint_line)
+        assert (s.t_start_s, s.duration_s, s.length_mm) == (t.t_start_s, t.duration_s, t.length_mm)
+        assert np.array_equal(s.pos_mm, t.pos_mm) and np.array_equal(s.R_base_sensor, t.R_base_sensor)
+        assert np.array_equal(s.q_deg, t.q_deg)
+    assert b.summary() == a.summary() and b.coverage == a.coverage and b.placement == a.placement
+    assert (b.scan_time_s, b.toppra_time_s, b.footprint_mm) == (
+        a.scan_time_s,
+        a.toppra_time_s,
+        a.footprint_mm,
+    )
+
+
+def test_a_flipped_byte_in_an_array_is_refused_as_corrupt(cache, design):
+    first = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
+    path = cache.path(first.key)
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0x01  # one bit, inside an array's data: the archive still opens
+    path.write_bytes(bytes(data))
+    with capture_logs() as logs:
+        again = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
+    assert not again.hit
+    assert any(r.startswith("corrupt") for r in _ignored(logs)), _ignored(logs)
+
+
+def test_an_entry_of_the_json_format_is_not_read_and_is_removed(cache, design):
+    first = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False, store=False)
+    old = cache.root / f"{first.key}.json"  # where version 7 kept it
+    old.write_text(first.plan.to_json())
+    assert cache.load(first.key, SMALL_PLACEMENT, SMALL_SETTINGS) is None  # not read: a miss
+    cache.store(first.key, first.plan)
+    assert not old.exists() and cache.path(first.key).exists()
