@@ -136,6 +136,8 @@ class ResultChunk(_Msg):
     index: Annotated[int, Field(ge=0)]
     chunks: Annotated[int, Field(ge=1)]
     sha256: Annotated[str, Field(pattern=_SHA256)]
+    #: cellctl.api.proof.chunk_mac under the offer's key ("": unsigned, refused by the dispatcher)
+    mac: Annotated[str, Field(pattern=r"^([0-9a-f]{64})?$")] = ""
 
 
 def _sha256(data: bytes | bytearray | memoryview) -> str:

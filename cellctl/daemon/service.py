@@ -127,6 +127,8 @@ class CellDaemon:
         self._queue: collections.deque[ActiveJob] = collections.deque()  # triggers waiting for the robot
         self._recent: collections.deque[JobProgress] = collections.deque(maxlen=RECENT_JOBS)
         self._workers: list[str] = []
+        self._incompatible: list[str] = []
+        self._analysis_tasks: dict[str, asyncio.Task] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._unsaved = RecordRetry(self.store)  # records the disk refused, written again later
 
@@ -290,6 +292,8 @@ class CellDaemon:
 
     def _on_workers(self, workers: list[str]) -> None:
         self._workers = list(workers)
+        if self.dispatcher is not None:
+            self._incompatible = [f"{w}: {why}" for w, why in self.dispatcher.incompatible.items()]
         self._publish()
 
     @staticmethod
@@ -325,6 +329,7 @@ class CellDaemon:
             analyses=[self._progress(j) for j in self._analysing.values()],
             recent=list(self._recent),
             workers=self._workers,
+            workers_refused=self._incompatible,
             message=self.sm.message[:500],
         )
 
