@@ -183,11 +183,17 @@ class Handover:
             finally:
                 await asyncio.shield(written)
         except asyncio.CancelledError:
-            self._job_state(
-                job, JobState.INTERRUPTED, "the daemon stopped during the analysis; raw data kept"
-            )
+            if job.stop_reason == "abort":  # control/abort with its job id (service._abort_analysis)
+                self._job_state(job, JobState.ABORTED, "analysis aborted by the operator; raw data kept")
+            else:
+                self._job_state(
+                    job, JobState.INTERRUPTED, "the daemon stopped during the analysis; raw data kept"
+                )
             raise
         except JobFailed as exc:
+            if job.stop_reason == "abort":
+                self._job_state(job, JobState.ABORTED, "analysis aborted by the operator; raw data kept")
+                return
             self._job_state(job, JobState.FAILED, f"analysis failed: {exc.reason}")
             return
         except TransferError as exc:

@@ -500,9 +500,13 @@ class CellDaemon:
                 return ControlReply(
                     action="abort", job_id=req.job_id, state=self.sm.state.value, job_state="cancelled"
                 )
+            analysing = self._analysing.get(req.job_id)
+            scanning = self._scan_job is not None and self._scan_job.record.job_id == req.job_id
+            if analysing is not None and not scanning:
+                return self._abort_analysis(analysing)
         job = self._scan_job
         if req.job_id is not None and (job is None or job.record.job_id != req.job_id):
-            where = "scanning or queued" if action == "abort" else "scanning"
+            where = "scanning, queued or analysing" if action == "abort" else "scanning"
             raise ControlError("no_job", "job_id", f"job {req.job_id} is not {where}")
         if job is None or (job.executor is None and action != "abort"):
             raise ControlError("no_job", "", f"no scan in progress to {action}")
@@ -592,7 +596,7 @@ class CellDaemon:
                 record = self.store.quarantine(job_id, exc.reason)
             except JobStoreError as exc2:
                 raise ControlError("internal", "job_id", f"job {job_id}: {exc2}") from None
-        if record.state not in (JobState.INTERRUPTED.value, JobState.FAILED.value):
+        if record.state not in (JobState.INTERRUPTED.value, JobState.FAILED.value, JobState.ABORTED.value):
             raise ControlError("not_allowed", "job_id", f"job is {record.state}")
         if not (self.store.raw_dir(job_id) / "profiles.craw").exists():
             raise ControlError("not_allowed", "job_id", "job has no raw profiles")
@@ -605,13 +609,30 @@ class CellDaemon:
             action="reanalyse", job_id=job_id, state=self.sm.state.value, job_state="waiting_for_worker"
         )
 
+    def _abort_analysis(self, job: ActiveJob) -> ControlReply:
+        """Abort a job's analysis (a re-analysis, or the analysis of a scan that ended): the worker
+        holding it is told to stop, the job ends ``aborted`` with its raw data (it can be
+        re-analysed again). The robot is not concerned."""
+        job_id = job.record.job_id
+        job.stop_reason = "abort"
+        if self.dispatcher is not None and job_id in self.dispatcher.pending:
+            self.dispatcher.abandon(job_id, "aborted by the operator")
+        task = self._analysis_tasks.get(job_id)
+        if task is not None:
+            task.cancel()
+        log.info("analysis_aborted", job_id=job_id)
+        return ControlReply(action="abort", job_id=job_id, state=self.sm.state.value, job_state="aborted")
+
     def _track_analysis(self, job: ActiveJob, task: asyncio.Task) -> None:
         self._analyses.add(task)
         self._analysing[job.record.job_id] = job
+        self._analysis_tasks[job.record.job_id] = task
 
         def done(t: asyncio.Task) -> None:
             self._analyses.discard(t)
             self._analysing.pop(job.record.job_id, None)
+            if self._analysis_tasks.get(job.record.job_id) is t:
+                del self._analysis_tasks[job.record.job_id]
             self._publish()
 
         task.add_done_callback(done)
