@@ -81,6 +81,7 @@ __all__ = [
     "TriggerAccepted",
     "TriggerError",
     "TriggerRequest",
+    "UserName",
     "WorkerAnnouncement",
     "default_worker_id",
     "handle_trigger",
@@ -110,6 +111,8 @@ JSON = "application/json"
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 _ID = ID_PATTERN
 Ident = Annotated[str, Field(pattern=_ID)]
+#: a person's name as the HMI authenticated them (its users file's names, a Zenoh user's)
+UserName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.@\-]{1,64}$")]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 
@@ -202,6 +205,9 @@ class TriggerRequest(Model):
     template_table: TemplateRows = ()
     design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
     thickness_mm: Annotated[Finite, Field(ge=0.0, lt=1000.0)] = 0.0
+    #: the person who asked, as the HMI authenticated them (the HMI sets it, whatever its page sent);
+    #: recorded in the job's history and the audit log. None: not said (a CLI or MES trigger)
+    requested_by: UserName | None = None
 
     @model_validator(mode="after")
     def _options_hold(self) -> TriggerRequest:
@@ -331,10 +337,13 @@ class ControlRequest(Model):
     """Payload of a control queryable: empty, or the job it is meant for.
 
     pause / resume / abort: ``job_id`` must be the scanning job, or a queued one (abort only: the
-    queued job is cancelled); omitted, the scanning job is meant. reanalyse: required. reset: none.
+    queued job is cancelled; a job being analysed, a re-analysis among them: its analysis is
+    aborted); omitted, the scanning job is meant. reanalyse: required. reset: none.
+    ``requested_by``: the person who asked, as in TriggerRequest.
     """
 
     job_id: Ident | None = None
+    requested_by: UserName | None = None
 
 
 class ControlError(TriggerError):

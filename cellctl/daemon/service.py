@@ -63,6 +63,7 @@ from cellctl.api.session import (
     open_session,
 )
 from cellctl.config import CellConfig, ConfigError
+from cellctl.daemon.audit import AuditLog
 from cellctl.daemon.handover import Handover
 from cellctl.daemon.jobs import (
     ActiveJob,
@@ -111,6 +112,7 @@ class CellDaemon:
         self.settings = cfg.daemon  # the [daemon] section: one source of truth
         self.keys = Keys(cfg.key_prefix)
         self.store = JobStore(cfg.cell.data_dir)
+        self.audit = AuditLog(cfg.cell.data_dir)  # who asked for what (docs/api.md, "Who asked")
         self.designs_dir = Path(cfg.cell.designs_dir)
         self.sm = CellStateMachine(self._on_transition)
         self.session: zenoh.Session | None = None
@@ -387,6 +389,17 @@ class CellDaemon:
             )  # fmt: skip
 
     async def _accept(self, req: TriggerRequest, design_path: Path) -> TriggerAccepted:
+        """A valid trigger taken (started or queued) or refused (TriggerError); either is audited."""
+        try:
+            accepted = await self._accept_inner(req, design_path)
+        except TriggerError as err:
+            self.audit.write("trigger", user=req.requested_by, job_id=None, outcome=f"refused: {err.code}",
+                             message=err.message)  # fmt: skip
+            raise
+        self.audit.write("trigger", user=req.requested_by, job_id=accepted.job_id, outcome=accepted.state)
+        return accepted
+
+    async def _accept_inner(self, req: TriggerRequest, design_path: Path) -> TriggerAccepted:
         self._check_cell_accepts()  # before the slower checks: a refusal costs nothing
         if req.placement is not None and any(abs(v) > 1e-9 for v in req.placement.rpy_deg[:2]):
             raise TriggerError(
@@ -405,6 +418,9 @@ class CellDaemon:
             note=req.note,
             analysis=req.analysis_options().record(),
         )
+        if req.requested_by is not None:  # who asked: the first line of the job's history
+            record.history.append({"state": record.state, "t_utc": record.created_utc,
+                                   "message": f"triggered by {req.requested_by}", "by": req.requested_by})  # fmt: skip
         # Decide again after the awaits above (another trigger may have been taken meanwhile); from
         # here to the reply nothing awaits, so two triggers can never both start.
         self._check_cell_accepts()
@@ -475,17 +491,42 @@ class CellDaemon:
         """A control queryable: parse, act, reply (ControlReply, or an ApiError naming the field)."""
 
         async def handler(query: zenoh.Query) -> None:
+            req: ControlRequest | None = None
             try:
                 req = parse_control(read_payload(query, ControlError))
                 reply = await self._control(action, req)
             except ControlError as err:
                 CONTROL_LOG.refused_one(err)
+                if req is not None:  # a request that said who and what, refused: audited
+                    self.audit.write(action, user=req.requested_by, job_id=req.job_id,
+                                     outcome=f"refused: {err.code}", message=err.message)  # fmt: skip
                 query.reply_err(err.to_api_error().to_json(), encoding=JSON)
                 return
-            log.info("control", action=action, job_id=reply.job_id, job_state=reply.job_state)
+            log.info("control", action=action, job_id=reply.job_id, job_state=reply.job_state,
+                     requested_by=req.requested_by)  # fmt: skip
+            self.audit.write(
+                action, user=req.requested_by, job_id=reply.job_id, outcome=reply.job_state or "ok"
+            )
+            if req.requested_by is not None and reply.job_id is not None:
+                self._note_by(reply.job_id, f"{action} by {req.requested_by}", req.requested_by)
             query.reply(query.key_expr, reply.to_json(), encoding=JSON)
 
         return handler
+
+    def _note_by(self, job_id: str, message: str, user: str) -> None:
+        """A line in a job's history naming who asked for what (the live record when the job is
+        held here, else the one on disk)."""
+        live = (self._scan_job, self._current, *self._analysing.values(), *self._queue)
+        rec = next((j.record for j in live if j is not None and j.record.job_id == job_id), None)
+        try:
+            if rec is None:
+                rec = self.store.load(job_id)
+            rec.history.append({"state": rec.state, "t_utc": now_utc(), "message": message, "by": user})
+            self.store.save(rec)
+        except JobStoreError as exc:
+            log.error("job_record_write_failed", job_id=job_id, error=str(exc))
+            if rec is not None:
+                self._unsaved.add(rec)
 
     async def _control(self, action: str, req: ControlRequest) -> ControlReply:
         if action == "reset":
