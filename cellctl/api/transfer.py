@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import re
@@ -366,10 +367,15 @@ def store_results(files: dict[str, bytes], results_dir: Path) -> list[Path]:
     for name in sorted(files, key=lambda n: n == "report.json"):
         path = results_dir / _plain_name(name)
         tmp = results_dir / f".{name}.tmp"
-        with tmp.open("wb") as f:
-            f.write(files[name])
-            f.flush()
-            os.fsync(f.fileno())
-        tmp.replace(path)
+        try:
+            with tmp.open("wb") as f:
+                f.write(files[name])
+                f.flush()
+                os.fsync(f.fileno())
+            tmp.replace(path)
+        except OSError:  # a full disk: no half-written temp file left (the caller keeps the bytes)
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            raise
         written.append(path)
     return written

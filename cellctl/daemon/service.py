@@ -258,6 +258,8 @@ class CellDaemon:
         for task in list(self._analyses):
             with contextlib.suppress(Exception, asyncio.CancelledError):
                 await task
+        if self.handover is not None:
+            self.handover.try_now()  # results the disk refused: one last attempt
         self._unsaved.try_now()  # a record the disk still refuses is logged; start-up recovers it
         self._publish()
 
