@@ -717,9 +717,13 @@ class CellDaemon:
         except Exception as exc:
             log.exception("job_scan_failed", job_id=rec.job_id)
             why = f"{type(exc).__name__}: {exc}"
+            info: dict[str, Any] = {}
             if job.stop_reason == "disk":
                 why = f"raw data could not be written ({exc}); the scan was stopped, what was written is kept"
-            self._job_state(job, JobState.FAILED, why)
+                # the profiles on disk, and those counted before the failure that never got there
+                lost = getattr(exc, "profiles_lost", None)
+                info = {"profiles": job.profiles, **({"profiles_lost": lost} if lost is not None else {})}
+            self._job_state(job, JobState.FAILED, why, **info)
             self._scan_job = None
             if self.sm.state != CellState.STOPPING:
                 # an e-stop before the executor ran shows up here (motors on refused, EGM never came)
