@@ -56,6 +56,7 @@ from cellctl.api import (
     now_utc,
 )
 from cellctl.api.models import StreamChunk, StreamEnd
+from cellctl.api.proof import chunk_mac, sign
 from cellctl.api.session import (
     ZenohSetupError,
     async_get,
@@ -667,7 +668,10 @@ class Worker:
             t_utc=now_utc(),
             offer_id=spec.offer_id,
         )
-        self.session.put(keys.job_event(spec.job_id), ev.to_json(), encoding="application/json")
+        payload = ev.to_json()
+        self.session.put(
+            keys.job_event(spec.job_id), payload, encoding="application/json", attachment=_mac(spec, payload)
+        )
 
     async def serve(self, stop: asyncio.Event) -> None:
         """Start the analysis child, declare the worker's entities, serve until ``stop``; undeclare all."""
@@ -988,6 +992,7 @@ class Worker:
                 keys.report(spec.job_id),
                 payload,
                 encoding="application/json",
+                attachment=_mac(spec, payload),
                 congestion_control=zenoh.CongestionControl.BLOCK,
             )
             self.jobs_done += 1
@@ -1067,7 +1072,9 @@ class Worker:
             for i, data in enumerate(chunks):
                 head = ResultChunk(
                     job_id=spec.job_id, worker_id=self.worker_id, attempt=spec.attempt, index=i,
-                    chunks=len(chunks), sha256=hashlib.sha256(data).hexdigest(),
+                    chunks=len(chunks), sha256=(sha := hashlib.sha256(data).hexdigest()),
+                    mac=chunk_mac(spec.offer_key, spec.job_id, spec.attempt, i, len(chunks), sha)
+                    if spec.offer_key else "",
                 )  # fmt: skip
                 self.session.put(
                     keys.result_chunk(spec.job_id, spec.attempt, i), data, attachment=head.to_json(),
@@ -1091,6 +1098,12 @@ class Worker:
             await self.runner.start()
         except AnalysisLoadError as exc:
             log.error("analysis_restart_failed", error=str(exc))
+
+
+def _mac(spec: JobSpec, payload: bytes) -> str | None:
+    """The attachment that proves a message comes from the worker holding this offer
+    (:mod:`cellctl.api.proof`); None for an offer without a key."""
+    return sign(spec.offer_key, payload) if spec.offer_key else None
 
 
 async def run_worker_async(
@@ -1141,5 +1154,13 @@ async def run_worker_async(
 
 
 def run_worker(config: Any, settings: WorkerSettings) -> int:
-    """Blocking entry point used by `cellctl worker`: one worker for ``config`` (a CellConfig)."""
+    """Blocking entry point used by `cellctl worker`: one worker for ``config`` (a CellConfig).
+
+    Under access control with roles, the worker's id is its Zenoh identity (the ACL lets the
+    identity ``w1`` receive only ``workers/w1/**`` and declare only ``alive/workers/w1``): without
+    ``--worker-id`` it is ``[zenoh.access] user`` (under ``auth = "tls"`` give the certificate's
+    common name as ``--worker-id``)."""
+    access = config.zenoh.access
+    if not settings.worker_id and access.enabled and access.roles and access.auth != "tls":
+        settings = replace(settings, worker_id=access.user)
     return asyncio.run(run_worker_async(config.zenoh, config.key_prefix, settings, cells=config.worker.cells))

@@ -303,7 +303,7 @@ class Acquisition:
     def feed_profiles(self, batch: ProfileBatch) -> list[AssembledBatch]:
         """One profile batch as the source delivered it. Returns the batches now assembled."""
         if self.writer is not None:
-            self.writer.append("profiles", KIND_PROFILES, _batch_arrays(batch))
+            self.writer.append("profiles", KIND_PROFILES, _batch_arrays(batch), items=len(batch))
         self.stats.batches_in += 1
         self.stats.profiles_in += len(batch)
         self._width = batch.width

@@ -150,6 +150,7 @@ class _StreamBuffer:
     n_bytes: int = 0
     crc: int = 0
     max_seq: int = -1
+    n_items: int = 0  # what the records hold (profiles of a profile batch), buffered
 
 
 #: modes of a job's raw directory and files (group-readable for QA and backup, nobody else)
@@ -197,6 +198,10 @@ class RawWriter:
         self._seq = 0
         self._oldest_s: float | None = None
         self.chunks_written = 0
+        # items (profiles of the "profiles" stream) taken in and on disk (written and fsync'ed), per
+        # stream: after a failed write the difference is what never reached the disk
+        self.items_in: dict[str, int] = dict.fromkeys(STREAMS, 0)
+        self.items_written: dict[str, int] = dict.fromkeys(STREAMS, 0)
         self.bytes_written = 0
         tmp = self.job_dir / (JOB_META + ".tmp")
         tmp.write_text(json.dumps(meta, indent=2, sort_keys=True))
@@ -241,8 +246,9 @@ class RawWriter:
         """Sequence number the next record gets."""
         return self._seq
 
-    def append(self, stream: str, kind: int, arrays: dict[str, np.ndarray]) -> int:
-        """Buffer one record; flushes when due. Returns the record's sequence number."""
+    def append(self, stream: str, kind: int, arrays: dict[str, np.ndarray], items: int = 1) -> int:
+        """Buffer one record (holding ``items`` items: the profiles of a batch); flushes when due.
+        Returns the record's sequence number."""
         if self._closed:
             raise RawFormatError(f"{self.job_dir}: writer is closed")
         buf = self._streams.get(stream)
@@ -257,6 +263,8 @@ class RawWriter:
         buf.parts.append(record)
         buf.n_records += 1
         buf.n_bytes += len(record)
+        buf.n_items += items
+        self.items_in[stream] += items
         buf.max_seq = seq
         now = self._clock_s()
         if self._oldest_s is None:
@@ -277,12 +285,14 @@ class RawWriter:
         """
         self._raise_thread_error()
         jobs = []
-        for buf in self._streams.values():
+        for name, buf in self._streams.items():
             if not buf.n_records:
                 continue
             header = CHUNK.pack(CHUNK_MAGIC, buf.n_bytes, buf.crc, buf.n_records)
-            jobs.append((buf.fd, [header, *buf.parts], len(header) + buf.n_bytes, buf.max_seq))
-            buf.parts, buf.n_records, buf.n_bytes, buf.crc = [], 0, 0, 0
+            jobs.append(
+                (buf.fd, [header, *buf.parts], len(header) + buf.n_bytes, buf.max_seq, name, buf.n_items)
+            )
+            buf.parts, buf.n_records, buf.n_bytes, buf.crc, buf.n_items = [], 0, 0, 0, 0
         self._oldest_s = None
         if jobs:
             self._queue.put(jobs)
@@ -294,7 +304,7 @@ class RawWriter:
             if jobs is None:
                 return
             try:
-                for fd, iov, total, max_seq in jobs:
+                for fd, iov, total, max_seq, name, n_items in jobs:
                     written = os.writev(fd, iov) if len(iov) <= 1024 else 0
                     if written < total:  # short write (large chunk, signal): finish plainly
                         rest = memoryview(b"".join(iov))[written:]
@@ -304,6 +314,7 @@ class RawWriter:
                         os.fsync(fd)
                     self.chunks_written += 1
                     self.bytes_written += total
+                    self.items_written[name] += n_items
                     self.durable_seq = max(self.durable_seq, max_seq)
             except OSError as exc:
                 self._thread_error = exc
@@ -312,9 +323,13 @@ class RawWriter:
 
     def _raise_thread_error(self) -> None:
         if self._thread_error is not None:
-            raise OSError(
-                f"{self.job_dir}: writing raw data failed: {self._thread_error}"
-            ) from self._thread_error
+            written, taken = self.items_written["profiles"], self.items_in["profiles"]
+            err = OSError(
+                f"{self.job_dir}: writing raw data failed: {self._thread_error}; {written} profiles are "
+                f"on disk, {taken - written} taken in after them were lost"
+            )
+            err.profiles_written, err.profiles_lost = written, taken - written  # type: ignore[attr-defined]
+            raise err from self._thread_error
 
     def close(self) -> None:
         """Flush, wait until everything is on disk, and close every file."""

@@ -35,12 +35,15 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
+import structlog
 
 from cellctl.acquisition.pipeline import Acquisition
 from drivers.abb_egm.endpoint import FeedbackArrays
 from drivers.laser.source import ProfileSource
 
 __all__ = ["AcquisitionSession", "FeedbackSource", "SessionSettings", "pass_windows_s"]
+
+log = structlog.get_logger(__name__)
 
 
 class FeedbackSource(Protocol):
@@ -100,7 +103,9 @@ class AcquisitionSession:
         self.feedback = feedback
         self.windows_s = np.asarray(windows_s, dtype=np.float64).reshape(-1, 2)
         self.settings = settings
+        #: profiles taken in; after a failed raw write, those on disk (``profiles_lost`` the rest)
         self.profiles = 0
+        self.profiles_lost = 0
         self.write_error: OSError | None = None
         self._on_write_error = on_write_error
         self._on_assembled = on_assembled
@@ -145,8 +150,21 @@ class AcquisitionSession:
         except OSError as exc:
             if self.write_error is None:
                 self.write_error = exc
+                self._count_lost()
                 self._on_write_error(exc)
             raise
+
+    def _count_lost(self) -> None:
+        """After a failed raw write, the count says what is on disk: ``profiles`` the profiles the
+        writer has written (and fsync'ed), ``profiles_lost`` those counted before that never got there
+        (the chunk that failed and what was buffered or queued behind it)."""
+        writer = self.acq.writer
+        if writer is None:
+            return
+        on_disk = int(writer.items_written.get("profiles", 0))
+        if on_disk < self.profiles:
+            self.profiles_lost, self.profiles = self.profiles - on_disk, on_disk
+            log.warning("profiles_lost", on_disk=on_disk, lost=self.profiles_lost)
 
     # ---- life cycle ------------------------------------------------------------------------------
 

@@ -14,8 +14,15 @@ Protocol (keys in :class:`cellctl.api.Keys`, payloads in docs/api.md):
    when the worker reports that its analysis process died. A worker that is busy ``rejected``
    the job: re-queued without counting an attempt. After ``max_attempts`` the job fails.
 5. A report resolves its job only when it comes from the worker the job is assigned to, for its
-   current attempt; any other report (another worker's id, an attempt taken back, a job the
-   sender does not hold) is refused, logged and counted (``refused_reports``).
+   current offer; any other report (another worker's id, an attempt taken back, a job the
+   sender does not hold) is refused, logged and counted (``refused_reports``). "Comes from" is
+   proven, not claimed: every offer has a secret key (JobSpec ``offer_key``, sent only to the
+   assigned worker) and the worker's events, report and result chunks carry its HMAC
+   (:mod:`cellctl.api.proof`); one that does not verify is refused (``refused_events``,
+   ``refused_reports``, ``refused_chunks``) and the attempt goes on. A verified report is then
+   checked by what it says: its plate, job, design and placement must be the job's, and a job
+   that asked for its results back needs the report's result bundle; a verified report that
+   fails this is refused and the attempt retried (the worker is broken, not an impostor).
 
 6. A job submitted with a :class:`~cellctl.api.transfer.TransferSpec` shares nothing but the link:
    the design is served by hash (``Keys.design``), and the report's ResultManifest must match the
@@ -31,6 +38,11 @@ Protocol (keys in :class:`cellctl.api.Keys`, payloads in docs/api.md):
    gone, a heartbeat missed) replays them to the next worker from ``seq`` 0. ``Keys.job_cloud``
    serves the whole cloud (the chunks concatenated) to a worker that missed a chunk.
 
+8. Versions: when a worker's token appears its announcement (``Keys.worker_info``) is read; it gets
+   jobs only when it speaks this daemon's API_VERSION and STREAM_FORMAT. A worker of another
+   version stays out (``incompatible``, with the reason, in the status), so a fleet half
+   upgraded keeps every job on the workers that can do it.
+
 No worker at all: jobs wait in the queue and go out when a worker appears. The dispatcher persists
 nothing; :class:`DispatchHooks` lets the daemon record every transition.
 """
@@ -40,11 +52,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import hmac
+import json
 import secrets
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import PurePath
 from typing import Any
 
 import structlog
@@ -55,8 +70,17 @@ from analysis.job import AnalysisJob
 from cellctl.api.cloud_codec import ENCODING as CLOUD_ENCODING
 from cellctl.api.cloud_codec import concat_encoded
 from cellctl.api.keys import Keys
-from cellctl.api.models import JobEvent, JobSpec, ReportEnvelope, StreamChunk, StreamEnd
-from cellctl.api.session import declare_async_queryable, subscribe
+from cellctl.api.models import (
+    API_VERSION,
+    STREAM_FORMAT,
+    JobEvent,
+    JobSpec,
+    ReportEnvelope,
+    StreamChunk,
+    StreamEnd,
+)
+from cellctl.api.proof import chunk_mac, new_offer_key, verify
+from cellctl.api.session import async_get, declare_async_queryable, subscribe
 from cellctl.api.transfer import (
     MAX_RESULT_BYTES,
     DesignServer,
@@ -97,6 +121,10 @@ class DispatchSettings:
     # subscriber may become known here after its liveliness token, and a put before that is lost
     worker_settle_s: float = 0.5
     max_result_bytes: int = MAX_RESULT_BYTES
+    # a worker's announcement (its versions) is asked for this long; no answer: asked again after
+    # announce_retry_s, doubling up to 10 s, while its token lives (it gets no job meanwhile)
+    announce_timeout_s: float = 5.0
+    announce_retry_s: float = 0.5
 
     @classmethod
     def from_config(cls, config: Any) -> DispatchSettings:
@@ -129,6 +157,9 @@ class _Worker:
     job_id: str | None = None
     available_at: float = 0.0
     last_assigned: float = 0.0
+    #: None: its announcement not read yet; True: it speaks our versions; False: it does not
+    compatible: bool | None = None
+    why: str = ""
 
 
 @dataclass
@@ -165,6 +196,7 @@ class _Job:
     transfer: TransferSpec | None = None
     stream: _Stream | None = None
     offer_id: str = ""
+    offer_key: str = ""
 
     def answers(self, worker_id: str, attempt: int, offer_id: str) -> bool:
         """Whether a worker's event or report is about this job's current offer (a restarted daemon
@@ -196,6 +228,9 @@ class Dispatcher:
         self.malformed = 0
         self.refused_reports = 0
         self.refused_results = 0
+        self.refused_events = 0
+        self.refused_chunks = 0
+        self._announcing: set[asyncio.Task[None]] = set()
         self.designs = DesignServer()
         self.collector = ResultCollector(max_bytes=self.settings.max_result_bytes)
         self._results: dict[str, dict[str, bytes]] = {}
@@ -204,8 +239,14 @@ class Dispatcher:
 
     @property
     def workers(self) -> list[str]:
-        """Live workers, sorted."""
-        return sorted(self._workers)
+        """Live workers that speak this daemon's versions (they get jobs), sorted."""
+        return sorted(w.worker_id for w in self._workers.values() if w.compatible)
+
+    @property
+    def incompatible(self) -> dict[str, str]:
+        """Live workers that get no job, and why (another version, or no announcement read)."""
+        return {w.worker_id: w.why for w in sorted(self._workers.values(), key=lambda w: w.worker_id)
+                if w.compatible is False}  # fmt: skip
 
     @property
     def pending(self) -> list[str]:
@@ -338,6 +379,10 @@ class Dispatcher:
         for task in list(self._sends):
             with contextlib.suppress(Exception):
                 await task
+        for task in list(self._announcing):
+            task.cancel()
+            with contextlib.suppress(BaseException):
+                await task
         for ent in self._entities:
             with contextlib.suppress(Exception):
                 ent.undeclare()
@@ -357,7 +402,9 @@ class Dispatcher:
             log.exception("dispatch_hook_failed", hook=getattr(hook, "__name__", str(hook)))
 
     def _pick_worker(self, job: _Job, now: float) -> _Worker | None:
-        idle = [w for w in self._workers.values() if w.job_id is None and w.available_at <= now]
+        idle = [
+            w for w in self._workers.values() if w.compatible and w.job_id is None and w.available_at <= now
+        ]
         if not idle:
             return None
         fresh = [w for w in idle if w.worker_id not in job.tried] or idle
@@ -383,9 +430,10 @@ class Dispatcher:
         worker.job_id = job.job_id
         worker.last_assigned = now
         job.offer_id = secrets.token_hex(8)
+        job.offer_key = new_offer_key()
         spec = JobSpec(
             attempt=job.attempt, job=job.params, transfer=job.transfer, stream=job.stream is not None,
-            offer_id=job.offer_id,
+            offer_id=job.offer_id, offer_key=job.offer_key,
         )  # fmt: skip
         log.info("job_assigned", job_id=job.job_id, worker_id=worker.worker_id, attempt=job.attempt)
         self._call(self.hooks.on_assigned, job.job_id, worker.worker_id, job.attempt)
@@ -472,11 +520,13 @@ class Dispatcher:
         worker_id = Keys.last_chunk(str(sample.key_expr))
         if sample.kind == zenoh.SampleKind.PUT:
             if worker_id not in self._workers:
-                self._workers[worker_id] = _Worker(
+                worker = self._workers[worker_id] = _Worker(
                     worker_id, available_at=time.monotonic() + self.settings.worker_settle_s
                 )
                 log.info("worker_appeared", worker_id=worker_id, workers=len(self._workers))
-                self._call(self.hooks.on_workers, self.workers)
+                task = asyncio.get_running_loop().create_task(self._read_announcement(worker))
+                self._announcing.add(task)
+                task.add_done_callback(self._announcing.discard)
             self._pump()
             return
         worker = self._workers.pop(worker_id, None)
@@ -488,15 +538,70 @@ class Dispatcher:
         if job is not None and job.worker_id == worker_id:
             self._requeue(job, f"worker {worker_id} disappeared")
 
+    async def _read_announcement(self, worker: _Worker) -> None:
+        """Ask a new worker what it speaks (its WorkerAnnouncement); only a worker of this daemon's
+        API_VERSION and STREAM_FORMAT gets jobs. Read leniently: an older or newer announcement may
+        not fit this version's model, its version fields are what count. Asked again (backing off)
+        for as long as its token lives and no announcement came."""
+        s = self.settings
+        tries = 0
+        while self._workers.get(worker.worker_id) is worker:
+            tries += 1
+            why = "no announcement"
+            try:
+                replies = await async_get(
+                    self.session, self.keys.worker_info(worker.worker_id), timeout_s=s.announce_timeout_s
+                )
+            except Exception as exc:
+                replies, why = [], f"announcement unreadable: {exc}"
+            verdicts = [_version_verdict(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+            verdict = next((v for v in verdicts if v is not None), None)
+            if self._workers.get(worker.worker_id) is not worker:
+                return  # gone meanwhile
+            if verdict is not None:
+                worker.compatible, worker.why = verdict
+                if worker.compatible:
+                    log.info("worker_compatible", worker_id=worker.worker_id, versions=worker.why)
+                else:
+                    log.warning("worker_incompatible", worker_id=worker.worker_id, reason=worker.why)
+                self._call(self.hooks.on_workers, self.workers)
+                self._pump()
+                return
+            if worker.compatible is None or tries % 10 == 0:
+                log.warning("worker_unannounced", worker_id=worker.worker_id, reason=why, tries=tries)
+            if worker.compatible is None:
+                worker.compatible, worker.why = False, f"{why} yet"
+                self._call(self.hooks.on_workers, self.workers)
+            await asyncio.sleep(min(s.announce_retry_s * 2 ** min(tries - 1, 6), 10.0))
+
+    def _proven(self, job: _Job, ok: bool, what: str, key: str) -> bool:
+        """``ok``: a message of the job's current offer carries that offer's MAC; refused, counted
+        and logged (rate limited) otherwise."""
+        if ok:
+            return True
+        counter = f"refused_{what}s"
+        setattr(self, counter, getattr(self, counter) + 1)
+        n = getattr(self, counter)
+        if n <= 10 or n % 100 == 0:
+            log.warning(
+                f"{what}_refused", job_id=job.job_id, key=key, reason="not signed with the offer's key",
+                assigned_to=job.worker_id, attempt=job.attempt, count=n,
+            )  # fmt: skip
+        return False
+
     def _on_event(self, sample: zenoh.Sample) -> None:
         try:
-            ev = JobEvent.model_validate_json(sample.payload.to_bytes())
+            payload = sample.payload.to_bytes()
+            ev = JobEvent.model_validate_json(payload)
         except ValidationError as exc:
             self._malformed("job_event_malformed", str(sample.key_expr), exc)
             return
         job = self._jobs.get(ev.job_id)
         if job is None or not job.answers(ev.worker_id, ev.attempt, ev.offer_id):
             return  # an event of an attempt that was already taken back or resolved, or another offer
+        mac = sample.attachment.to_bytes() if sample.attachment is not None else None
+        if not self._proven(job, verify(job.offer_key, payload, mac), "event", str(sample.key_expr)):
+            return
         job.last_seen = time.monotonic()
         if ev.event in ("accepted", "heartbeat"):
             job.accepted = True
@@ -517,7 +622,8 @@ class Dispatcher:
 
     def _on_report(self, sample: zenoh.Sample) -> None:
         try:
-            env = ReportEnvelope.model_validate_json(sample.payload.to_bytes())
+            payload = sample.payload.to_bytes()
+            env = ReportEnvelope.model_validate_json(payload)
         except ValidationError as exc:
             self._malformed("report_malformed", str(sample.key_expr), exc)
             return
@@ -535,6 +641,17 @@ class Dispatcher:
                 "report_refused", job_id=env.job_id, worker_id=env.worker_id, attempt=env.attempt,
                 assigned_to=job.worker_id, current_attempt=job.attempt, key=str(sample.key_expr),
             )  # fmt: skip
+            return
+        mac = sample.attachment.to_bytes() if sample.attachment is not None else None
+        if not self._proven(job, verify(job.offer_key, payload, mac), "report", str(sample.key_expr)):
+            return  # copied ids, no key: not the worker's; its own report is still to come
+        problem = _content_problem(job, env)
+        if problem is not None:
+            # signed by the worker holding the offer: the worker is broken, the attempt is lost
+            self.refused_reports += 1
+            log.warning("report_refused", job_id=env.job_id, worker_id=env.worker_id, reason=problem)
+            self._cancel_on(env.worker_id, job.job_id, job.attempt)
+            self._requeue(job, f"report refused: {problem}", backoff_s=self.settings.busy_backoff_s)
             return
         if env.results is not None and job.transfer is not None:
             self._resolve_with_results(job, env, waited=0.0)
@@ -602,6 +719,9 @@ class Dispatcher:
         job = self._jobs.get(head.job_id)
         if job is None or job.worker_id != head.worker_id or job.attempt != head.attempt:
             return  # not the current attempt's holder: never kept
+        mac = chunk_mac(job.offer_key, head.job_id, head.attempt, head.index, head.chunks, head.sha256)
+        if not self._proven(job, bool(head.mac) and hmac.compare_digest(mac, head.mac), "chunk", key):
+            return
         job.last_seen = time.monotonic()  # a large bundle is progress, like a heartbeat
         self.collector.add(head, sample.payload.to_bytes())
 
@@ -703,3 +823,46 @@ class Dispatcher:
                     # The worker is suspect: give it time to recover before it gets work again.
                     self._requeue(job, reason, backoff_s=max(s.ack_timeout_s, s.heartbeat_timeout_s))
             self._pump()
+
+
+def _version_verdict(raw: bytes) -> tuple[bool, str] | None:
+    """(whether a worker announcing ``raw`` gets jobs here, the versions or why not); None when
+    ``raw`` is no announcement. An announcement without ``stream_format`` predates it (0)."""
+    try:
+        ann = json.loads(raw)
+        api = int(ann["api_version"])
+        stream = int(ann.get("stream_format", 0))
+    except (ValueError, TypeError, KeyError):
+        return None
+    if api != API_VERSION:
+        return False, f"api_version {api}, this daemon speaks {API_VERSION}"
+    if stream != STREAM_FORMAT:
+        return False, f"stream_format {stream}, this daemon sends {STREAM_FORMAT}"
+    return True, f"api_version {api}, stream_format {stream}"
+
+
+def _content_problem(job: _Job, env: ReportEnvelope) -> str | None:
+    """What in a report is not the job's (its plate, job, design, placement), or a result bundle
+    missing that the job asked for; None when it is the job's report."""
+    p = job.params
+    if env.plate_id != p.plate_id:
+        return f"plate {env.plate_id!r}, the job's is {p.plate_id!r}"
+    if env.ok and env.report is None:
+        return "ok without a report"
+    rep = env.report
+    if rep is not None:
+        if rep.job_id != p.job_id or rep.plate_id != p.plate_id:
+            return f"report of job {rep.job_id!r} plate {rep.plate_id!r}, not the job's"
+        ref = job.transfer.design if job.transfer is not None else None
+        design = PurePath(rep.inputs.design)
+        if (
+            (design.parts[-2:] != (ref.sha256, ref.name))
+            if ref is not None
+            else rep.inputs.design != p.design
+        ):
+            return f"design {rep.inputs.design!r} is not the job's"
+        if rep.inputs.placement != p.placement:
+            return "placement is not the job's"
+    if env.ok and env.results is None and job.transfer is not None and job.transfer.return_results:
+        return "no result bundle"
+    return None

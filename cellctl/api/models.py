@@ -49,6 +49,7 @@ __all__ = [
     "ID_PATTERN",
     "JSON",
     "MAX_TRIGGER_BYTES",
+    "STREAM_FORMAT",
     "TRIGGER_LOG",
     "AnalysisJob",
     "AnalysisOptions",
@@ -80,6 +81,7 @@ __all__ = [
     "TriggerAccepted",
     "TriggerError",
     "TriggerRequest",
+    "UserName",
     "WorkerAnnouncement",
     "default_worker_id",
     "handle_trigger",
@@ -91,7 +93,12 @@ __all__ = [
     "read_payload",
 ]
 
-API_VERSION = 1
+#: the job protocol's version: a worker is given jobs only when it announces this one (2: the
+#: worker's events, reports and result chunks are signed with the offer's key, cellctl.api.proof)
+API_VERSION = 2
+#: the stream chunk format (StreamChunk / StreamEnd and the chunk payloads, cellctl.api.cloud_codec)
+#: a streamed job's worker must speak
+STREAM_FORMAT = 1
 # The largest valid trigger as any JSON encoder writes it (json.dumps escapes non-ASCII as \uXXXX):
 # 200 template rows of at most ~150 bytes, a note and a design path of escaped characters, the
 # placement. tests/security/test_trigger_limits.py builds that trigger and checks it fits.
@@ -104,6 +111,8 @@ JSON = "application/json"
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 _ID = ID_PATTERN
 Ident = Annotated[str, Field(pattern=_ID)]
+#: a person's name as the HMI authenticated them (its users file's names, a Zenoh user's)
+UserName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.@\-]{1,64}$")]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 
@@ -196,6 +205,9 @@ class TriggerRequest(Model):
     template_table: TemplateRows = ()
     design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
     thickness_mm: Annotated[Finite, Field(ge=0.0, lt=1000.0)] = 0.0
+    #: the person who asked, as the HMI authenticated them (the HMI sets it, whatever its page sent);
+    #: recorded in the job's history and the audit log. None: not said (a CLI or MES trigger)
+    requested_by: UserName | None = None
 
     @model_validator(mode="after")
     def _options_hold(self) -> TriggerRequest:
@@ -325,10 +337,13 @@ class ControlRequest(Model):
     """Payload of a control queryable: empty, or the job it is meant for.
 
     pause / resume / abort: ``job_id`` must be the scanning job, or a queued one (abort only: the
-    queued job is cancelled); omitted, the scanning job is meant. reanalyse: required. reset: none.
+    queued job is cancelled; a job being analysed, a re-analysis among them: its analysis is
+    aborted); omitted, the scanning job is meant. reanalyse: required. reset: none.
+    ``requested_by``: the person who asked, as in TriggerRequest.
     """
 
     job_id: Ident | None = None
+    requested_by: UserName | None = None
 
 
 class ControlError(TriggerError):
@@ -442,7 +457,7 @@ class CellStatus(Model):
     ``job``: the job holding the robot, else the last one shown. ``queued`` / ``queue``: triggers
     waiting for the robot, in start order. ``analyses``: scanned jobs whose report is pending.
     ``recent``: the last jobs that ended (newest last), so a follower never misses an end that was
-    published between two of its reads.
+    published between two of its reads. ``workers``: the workers jobs go to.
     """
 
     cell_id: str
@@ -454,6 +469,9 @@ class CellStatus(Model):
     analyses: list[JobProgress] = []
     recent: list[JobProgress] = []
     workers: list[str] = []
+    #: live workers that get no job, each "<worker>: <why>" (another API_VERSION or STREAM_FORMAT,
+    #: or no announcement read): during a rolling upgrade, the workers not yet upgraded
+    workers_refused: list[str] = []
     message: str = ""
 
     def jobs(self) -> list[JobProgress]:
@@ -523,6 +541,8 @@ class WorkerAnnouncement(Model):
     host: str
     pid: int
     api_version: int = API_VERSION
+    #: the stream chunk format it reads (STREAM_FORMAT; an announcement without it: none)
+    stream_format: int = STREAM_FORMAT
     analysis: str
     started_utc: str
     busy_job: str | None = None
@@ -552,6 +572,10 @@ class JobSpec(Model):
     #: attempt number again, and its offer is another one; the worker echoes it in its JobEvents and
     #: ReportEnvelope so that neither side takes the other offer's messages for its own ("": unnamed)
     offer_id: Annotated[str, Field(pattern=r"^[0-9a-f]{0,32}$")] = ""
+    #: the offer's secret, sent only to the assigned worker: it signs its JobEvents, its
+    #: ReportEnvelope (the HMAC as the sample's attachment) and its ResultChunks with it
+    #: (:mod:`cellctl.api.proof`); never logged, never published elsewhere
+    offer_key: Annotated[str, Field(pattern=r"^([0-9a-f]{64})?$", repr=False)] = ""
 
     @property
     def job_id(self) -> str:

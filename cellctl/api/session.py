@@ -91,7 +91,6 @@ def _rule(rule_id: str, flow: str, messages: list[str], prefix: str, keys: list[
 # user's session sends in, "egress" what is forwarded to it. Keys are relative to the cell's prefix
 # (cellctl.api.Keys). Declarations flowing out reveal key names only, so every role receives them.
 _READ_KEYS = ["state", "reports/*", "jobs/*/event", "jobs/*/live"]
-_WORKER_IN_KEYS = ["workers/*/jobs/*", "workers/*/cancel/*", "workers/*/stream/**"]
 _DECLARATIONS = [
     "declare_subscriber",
     "declare_queryable",
@@ -122,9 +121,9 @@ def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
         _rule("operate_query", "ingress", ["query"], prefix, control_keys),
         _rule("operate_replies", "egress", ["reply"], prefix, control_keys),
     ]
+    # what names one worker (its jobs, cancels, stream, token, announcement) is bound to the
+    # identity of that name: _own_worker_rules, one subject per worker
     work = [
-        _rule("work_declare", "ingress", ["declare_subscriber"], prefix, _WORKER_IN_KEYS),
-        _rule("work_receive", "egress", ["put"], prefix, _WORKER_IN_KEYS),
         _rule("work_publish", "ingress", ["put"], prefix, ["jobs/*/event", "reports/*", "results/**"]),
         _rule("work_designs", "ingress", ["query"], prefix, ["designs/*"]),
         _rule("work_designs_replies", "egress", ["reply"], prefix, ["designs/*"]),
@@ -133,9 +132,6 @@ def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
         _rule("work_cloud_replies", "egress", ["reply"], prefix, ["jobs/*/cloud"]),
         # the daemon's token: a stream from a daemon that is gone is given up (cellctl.worker)
         _rule("work_daemon_alive", "ingress", ["declare_liveliness_subscriber"], prefix, ["alive/daemon"]),
-        _rule("work_alive", "ingress", ["liveliness_token"], prefix, ["alive/workers/*"]),
-        _rule("work_info", "ingress", ["declare_queryable", "reply"], prefix, ["workers/*/info"]),
-        _rule("work_info_queries", "egress", ["query"], prefix, ["workers/*/info"]),
     ]
     everything = [
         _rule(f"whole_cell_{d}", d, _ALL_MESSAGES, prefix, ["", "**"]) for d in ("ingress", "egress")
@@ -146,6 +142,22 @@ def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
         "worker": common + work,
         "daemon": everything,
     }
+
+
+def _own_worker_rules(prefix: str, name: str) -> list[dict[str, Any]]:
+    """The rules of the worker whose id is ``name``, for the identity ``name`` only: it receives
+    only its own jobs, cancels and stream, declares only its own token and announcement. So no
+    other worker-role identity can take its offers, read its offer keys or pose as it."""
+    own = [f"workers/{name}/jobs/*", f"workers/{name}/cancel/*", f"workers/{name}/stream/**"]
+    info = [f"workers/{name}/info"]
+    return [
+        _rule(f"worker_{name}_declare", "ingress", ["declare_subscriber"], prefix, own),
+        _rule(f"worker_{name}_receive", "egress", ["put"], prefix, own),
+        _rule(f"worker_{name}_alive", "ingress", ["liveliness_token"], prefix, [f"alive/workers/{name}"]),
+        _rule(f"worker_{name}_info", "ingress", ["declare_queryable", "reply"], prefix, info),
+        # a viewer's list_workers asks workers/*/info: a query names no worker, receiving it is harmless
+        _rule(f"worker_{name}_info_queries", "egress", ["query"], prefix, ["workers/*/info"]),
+    ]
 
 
 def access_control_dict(
@@ -182,6 +194,19 @@ def access_control_dict(
             role_rule_ids.append(rule["id"])
         subjects.append({"id": f"role_{role}", subject_key: list(names)})
         policies.append({"id": f"policy_{role}", "rules": role_rule_ids, "subjects": [f"role_{role}"]})
+        if role != "worker":
+            continue
+        for name in names:  # each worker identity bound to the worker id of its name
+            own = _own_worker_rules(key_prefix, name)
+            rules.update({r["id"]: r for r in own})
+            subjects.append({"id": f"worker_{name}", subject_key: [name]})
+            policies.append(
+                {
+                    "id": f"policy_worker_{name}",
+                    "rules": [r["id"] for r in own],
+                    "subjects": [f"worker_{name}"],
+                }
+            )
     return {
         "enabled": True,
         "default_permission": "deny",

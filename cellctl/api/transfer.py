@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import re
@@ -136,6 +137,8 @@ class ResultChunk(_Msg):
     index: Annotated[int, Field(ge=0)]
     chunks: Annotated[int, Field(ge=1)]
     sha256: Annotated[str, Field(pattern=_SHA256)]
+    #: cellctl.api.proof.chunk_mac under the offer's key ("": unsigned, refused by the dispatcher)
+    mac: Annotated[str, Field(pattern=r"^([0-9a-f]{64})?$")] = ""
 
 
 def _sha256(data: bytes | bytearray | memoryview) -> str:
@@ -364,10 +367,15 @@ def store_results(files: dict[str, bytes], results_dir: Path) -> list[Path]:
     for name in sorted(files, key=lambda n: n == "report.json"):
         path = results_dir / _plain_name(name)
         tmp = results_dir / f".{name}.tmp"
-        with tmp.open("wb") as f:
-            f.write(files[name])
-            f.flush()
-            os.fsync(f.fileno())
-        tmp.replace(path)
+        try:
+            with tmp.open("wb") as f:
+                f.write(files[name])
+                f.flush()
+                os.fsync(f.fileno())
+            tmp.replace(path)
+        except OSError:  # a full disk: no half-written temp file left (the caller keeps the bytes)
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            raise
         written.append(path)
     return written

@@ -15,6 +15,7 @@ profile only the last chunk is left to send. ``cloud.bin`` is then the chunks' c
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from pathlib import Path
 from typing import Any, Protocol
@@ -23,7 +24,7 @@ import structlog
 
 from cellctl.acquisition.publish import PublishSettings, budget_steps, column_steps, encode_scan
 from cellctl.acquisition.reassemble import reassemble
-from cellctl.api import JobState
+from cellctl.api import JobState, now_utc
 from cellctl.api.analysis_job import analysis_job
 from cellctl.api.cloud_codec import write_concatenated
 from cellctl.api.dispatch import Dispatcher, JobFailed
@@ -61,6 +62,70 @@ class Handover:
         self.dispatcher = dispatcher
         self._job_state = set_state
         self._streams: dict[str, ScanStream] = {}
+        # results the disk refused: job id -> (job, envelope, files, report path), written later
+        self._unstored: dict[str, tuple[ActiveJob, ReportEnvelope, dict[str, bytes], Path]] = {}
+        self._unstored_task: asyncio.Task[None] | None = None
+        self.results_retry_s = 2.0
+
+    @property
+    def unstored(self) -> list[str]:
+        """Jobs whose results wait for disk space."""
+        return list(self._unstored)
+
+    def _keep_results(self, job: ActiveJob, env: ReportEnvelope, files: dict[str, bytes], path: Path) -> None:
+        self._unstored[job.record.job_id] = (job, env, files, path)
+        if self._unstored_task is None or self._unstored_task.done():
+            self._unstored_task = asyncio.get_running_loop().create_task(
+                self._store_later(), name="results-retry"
+            )
+
+    def try_now(self) -> None:
+        """One last attempt for results the disk refused (shutdown); what still fails is logged
+        (the job's raw data is kept: a re-analysis makes them again)."""
+        for job_id, (job, env, files, report_path) in list(self._unstored.items()):
+            try:
+                _store_outputs(files, self.store.results_dir(job_id), report_path, env)
+            except OSError as exc:
+                log.error("results_not_stored", job_id=job_id, error=str(exc))
+                continue
+            del self._unstored[job_id]
+            job.record.info.update(report=str(report_path), results_pending=False)
+            with contextlib.suppress(JobStoreError):  # else the daemon's record retry writes it
+                self.store.save(job.record)
+        if self._unstored_task is not None:
+            self._unstored_task.cancel()
+
+    async def _store_later(self) -> None:
+        """Write the kept results every ``results_retry_s`` until the disk takes them; the job's
+        record then names its report (``results_pending`` false)."""
+        while self._unstored:
+            await asyncio.sleep(self.results_retry_s)
+            for job_id, (job, env, files, report_path) in list(self._unstored.items()):
+                try:
+                    await asyncio.to_thread(
+                        _store_outputs, files, self.store.results_dir(job_id), report_path, env
+                    )
+                except OSError as exc:
+                    log.warning("results_write_retry_failed", job_id=job_id, error=str(exc))
+                    continue
+                del self._unstored[job_id]
+                rec = job.record
+                rec.info.update(
+                    report=str(report_path), results_pending=False, results_stored_utc_s=time.time()
+                )
+                rec.history.append({"state": rec.state, "t_utc": now_utc(),
+                                    "message": f"results stored once the disk had room: {report_path}"})  # fmt: skip
+                try:
+                    self.store.save(rec)
+                except JobStoreError as exc:  # the results are on disk; the record's retry is the daemon's
+                    log.warning("job_record_write_failed", job_id=job_id, error=str(exc))
+                log.info("results_stored_late", job_id=job_id, bytes=sum(map(len, files.values())))
+                if (
+                    self.cfg.daemon.write_html_report
+                    and (self.store.results_dir(job_id) / "report.json").exists()
+                ):
+                    with contextlib.suppress(Exception):
+                        await render_html(self.store, job)
 
     def _params(self, job: ActiveJob) -> Any:
         rec = job.record
@@ -183,11 +248,17 @@ class Handover:
             finally:
                 await asyncio.shield(written)
         except asyncio.CancelledError:
-            self._job_state(
-                job, JobState.INTERRUPTED, "the daemon stopped during the analysis; raw data kept"
-            )
+            if job.stop_reason == "abort":  # control/abort with its job id (service._abort_analysis)
+                self._job_state(job, JobState.ABORTED, "analysis aborted by the operator; raw data kept")
+            else:
+                self._job_state(
+                    job, JobState.INTERRUPTED, "the daemon stopped during the analysis; raw data kept"
+                )
             raise
         except JobFailed as exc:
+            if job.stop_reason == "abort":
+                self._job_state(job, JobState.ABORTED, "analysis aborted by the operator; raw data kept")
+                return
             self._job_state(job, JobState.FAILED, f"analysis failed: {exc.reason}")
             return
         except TransferError as exc:
@@ -203,20 +274,30 @@ class Handover:
             self._job_state(job, JobState.FAILED, f"analysis error: {env.error}", worker_id=env.worker_id)
             return
         files = self.dispatcher.take_results(rec.job_id)
-        if files:  # the worker's results directory, verified: stored before the job is done
-            results_dir = self.store.results_dir(rec.job_id)
-            await asyncio.to_thread(store_results, files, results_dir)
-            log.info(
-                "results_stored", job_id=rec.job_id, files=sorted(files), bytes=sum(map(len, files.values()))
-            )
         report_path = (jd / "report.json").resolve()
-        report_path.write_text(env.report.model_dump_json(indent=2), encoding="utf-8")
         job.fraction = 1.0
+        nbytes = sum(map(len, files.values()))
+        try:  # the worker's results directory, verified, and report.json: on disk before the job is done
+            await asyncio.to_thread(
+                _store_outputs, files, self.store.results_dir(rec.job_id), report_path, env
+            )
+        except OSError as exc:
+            # A full (or read-only) disk: the worker's verdict and results are kept here and written
+            # once the disk takes them (as a job record is, RecordRetry); the job is done meanwhile.
+            log.error("results_write_failed", job_id=rec.job_id, bytes=nbytes, error=str(exc))
+            self._job_state(
+                job, JobState.DONE, f"verdict {env.report.verdict}; results ({nbytes} bytes) wait for disk "
+                f"space: {exc.strerror or exc}", verdict=env.report.verdict, report=None, results_pending=True,
+                worker_id=env.worker_id, analysis_timings_s=env.timings_s, report_utc_s=time.time(),
+                results_bytes=nbytes,
+            )  # fmt: skip
+            self._keep_results(job, env, files, report_path)
+            return
         # The JSON report (per-line verdicts) completes the job; the HTML / PDF render follows.
         self._job_state(
             job, JobState.DONE, str(report_path), verdict=env.report.verdict,
             report=str(report_path), worker_id=env.worker_id, analysis_timings_s=env.timings_s,
-            report_utc_s=time.time(), results_bytes=sum(map(len, files.values())),
+            report_utc_s=time.time(), results_bytes=nbytes,
         )  # fmt: skip
         if (
             self.cfg.daemon.write_html_report
@@ -233,6 +314,26 @@ def _streamed_worker(dispatcher: Dispatcher, job_id: str, fut: asyncio.Future[Re
     if fut.done() and not fut.cancelled() and fut.exception() is None:
         return fut.result().worker_id
     return None
+
+
+def _store_outputs(
+    files: dict[str, bytes], results_dir: Path, report_path: Path, env: ReportEnvelope
+) -> None:
+    """The verified result bundle into the results directory, then ``report.json`` beside it
+    (written atomically: a failure leaves no partial file); OSError when the disk refuses."""
+    if files:
+        store_results(files, results_dir)
+        log.info("results_stored", results=str(results_dir), files=sorted(files),
+                 bytes=sum(map(len, files.values())))  # fmt: skip
+    assert env.report is not None
+    tmp = report_path.with_name(f".{report_path.name}.tmp")
+    try:
+        tmp.write_text(env.report.model_dump_json(indent=2), encoding="utf-8")
+        tmp.replace(report_path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
 
 
 def _write_cloud(

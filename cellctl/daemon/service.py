@@ -63,6 +63,7 @@ from cellctl.api.session import (
     open_session,
 )
 from cellctl.config import CellConfig, ConfigError
+from cellctl.daemon.audit import AuditLog
 from cellctl.daemon.handover import Handover
 from cellctl.daemon.jobs import (
     ActiveJob,
@@ -111,6 +112,7 @@ class CellDaemon:
         self.settings = cfg.daemon  # the [daemon] section: one source of truth
         self.keys = Keys(cfg.key_prefix)
         self.store = JobStore(cfg.cell.data_dir)
+        self.audit = AuditLog(cfg.cell.data_dir)  # who asked for what (docs/api.md, "Who asked")
         self.designs_dir = Path(cfg.cell.designs_dir)
         self.sm = CellStateMachine(self._on_transition)
         self.session: zenoh.Session | None = None
@@ -127,6 +129,8 @@ class CellDaemon:
         self._queue: collections.deque[ActiveJob] = collections.deque()  # triggers waiting for the robot
         self._recent: collections.deque[JobProgress] = collections.deque(maxlen=RECENT_JOBS)
         self._workers: list[str] = []
+        self._incompatible: list[str] = []
+        self._analysis_tasks: dict[str, asyncio.Task] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._unsaved = RecordRetry(self.store)  # records the disk refused, written again later
 
@@ -254,6 +258,8 @@ class CellDaemon:
         for task in list(self._analyses):
             with contextlib.suppress(Exception, asyncio.CancelledError):
                 await task
+        if self.handover is not None:
+            self.handover.try_now()  # results the disk refused: one last attempt
         self._unsaved.try_now()  # a record the disk still refuses is logged; start-up recovers it
         self._publish()
 
@@ -290,6 +296,8 @@ class CellDaemon:
 
     def _on_workers(self, workers: list[str]) -> None:
         self._workers = list(workers)
+        if self.dispatcher is not None:
+            self._incompatible = [f"{w}: {why}" for w, why in self.dispatcher.incompatible.items()]
         self._publish()
 
     @staticmethod
@@ -325,6 +333,7 @@ class CellDaemon:
             analyses=[self._progress(j) for j in self._analysing.values()],
             recent=list(self._recent),
             workers=self._workers,
+            workers_refused=self._incompatible,
             message=self.sm.message[:500],
         )
 
@@ -382,6 +391,17 @@ class CellDaemon:
             )  # fmt: skip
 
     async def _accept(self, req: TriggerRequest, design_path: Path) -> TriggerAccepted:
+        """A valid trigger taken (started or queued) or refused (TriggerError); either is audited."""
+        try:
+            accepted = await self._accept_inner(req, design_path)
+        except TriggerError as err:
+            self.audit.write("trigger", user=req.requested_by, job_id=None, outcome=f"refused: {err.code}",
+                             message=err.message)  # fmt: skip
+            raise
+        self.audit.write("trigger", user=req.requested_by, job_id=accepted.job_id, outcome=accepted.state)
+        return accepted
+
+    async def _accept_inner(self, req: TriggerRequest, design_path: Path) -> TriggerAccepted:
         self._check_cell_accepts()  # before the slower checks: a refusal costs nothing
         if req.placement is not None and any(abs(v) > 1e-9 for v in req.placement.rpy_deg[:2]):
             raise TriggerError(
@@ -400,6 +420,9 @@ class CellDaemon:
             note=req.note,
             analysis=req.analysis_options().record(),
         )
+        if req.requested_by is not None:  # who asked: the first line of the job's history
+            record.history.append({"state": record.state, "t_utc": record.created_utc,
+                                   "message": f"triggered by {req.requested_by}", "by": req.requested_by})  # fmt: skip
         # Decide again after the awaits above (another trigger may have been taken meanwhile); from
         # here to the reply nothing awaits, so two triggers can never both start.
         self._check_cell_accepts()
@@ -470,17 +493,42 @@ class CellDaemon:
         """A control queryable: parse, act, reply (ControlReply, or an ApiError naming the field)."""
 
         async def handler(query: zenoh.Query) -> None:
+            req: ControlRequest | None = None
             try:
                 req = parse_control(read_payload(query, ControlError))
                 reply = await self._control(action, req)
             except ControlError as err:
                 CONTROL_LOG.refused_one(err)
+                if req is not None:  # a request that said who and what, refused: audited
+                    self.audit.write(action, user=req.requested_by, job_id=req.job_id,
+                                     outcome=f"refused: {err.code}", message=err.message)  # fmt: skip
                 query.reply_err(err.to_api_error().to_json(), encoding=JSON)
                 return
-            log.info("control", action=action, job_id=reply.job_id, job_state=reply.job_state)
+            log.info("control", action=action, job_id=reply.job_id, job_state=reply.job_state,
+                     requested_by=req.requested_by)  # fmt: skip
+            self.audit.write(
+                action, user=req.requested_by, job_id=reply.job_id, outcome=reply.job_state or "ok"
+            )
+            if req.requested_by is not None and reply.job_id is not None:
+                self._note_by(reply.job_id, f"{action} by {req.requested_by}", req.requested_by)
             query.reply(query.key_expr, reply.to_json(), encoding=JSON)
 
         return handler
+
+    def _note_by(self, job_id: str, message: str, user: str) -> None:
+        """A line in a job's history naming who asked for what (the live record when the job is
+        held here, else the one on disk)."""
+        live = (self._scan_job, self._current, *self._analysing.values(), *self._queue)
+        rec = next((j.record for j in live if j is not None and j.record.job_id == job_id), None)
+        try:
+            if rec is None:
+                rec = self.store.load(job_id)
+            rec.history.append({"state": rec.state, "t_utc": now_utc(), "message": message, "by": user})
+            self.store.save(rec)
+        except JobStoreError as exc:
+            log.error("job_record_write_failed", job_id=job_id, error=str(exc))
+            if rec is not None:
+                self._unsaved.add(rec)
 
     async def _control(self, action: str, req: ControlRequest) -> ControlReply:
         if action == "reset":
@@ -495,9 +543,13 @@ class CellDaemon:
                 return ControlReply(
                     action="abort", job_id=req.job_id, state=self.sm.state.value, job_state="cancelled"
                 )
+            analysing = self._analysing.get(req.job_id)
+            scanning = self._scan_job is not None and self._scan_job.record.job_id == req.job_id
+            if analysing is not None and not scanning:
+                return self._abort_analysis(analysing)
         job = self._scan_job
         if req.job_id is not None and (job is None or job.record.job_id != req.job_id):
-            where = "scanning or queued" if action == "abort" else "scanning"
+            where = "scanning, queued or analysing" if action == "abort" else "scanning"
             raise ControlError("no_job", "job_id", f"job {req.job_id} is not {where}")
         if job is None or (job.executor is None and action != "abort"):
             raise ControlError("no_job", "", f"no scan in progress to {action}")
@@ -587,7 +639,7 @@ class CellDaemon:
                 record = self.store.quarantine(job_id, exc.reason)
             except JobStoreError as exc2:
                 raise ControlError("internal", "job_id", f"job {job_id}: {exc2}") from None
-        if record.state not in (JobState.INTERRUPTED.value, JobState.FAILED.value):
+        if record.state not in (JobState.INTERRUPTED.value, JobState.FAILED.value, JobState.ABORTED.value):
             raise ControlError("not_allowed", "job_id", f"job is {record.state}")
         if not (self.store.raw_dir(job_id) / "profiles.craw").exists():
             raise ControlError("not_allowed", "job_id", "job has no raw profiles")
@@ -600,13 +652,30 @@ class CellDaemon:
             action="reanalyse", job_id=job_id, state=self.sm.state.value, job_state="waiting_for_worker"
         )
 
+    def _abort_analysis(self, job: ActiveJob) -> ControlReply:
+        """Abort a job's analysis (a re-analysis, or the analysis of a scan that ended): the worker
+        holding it is told to stop, the job ends ``aborted`` with its raw data (it can be
+        re-analysed again). The robot is not concerned."""
+        job_id = job.record.job_id
+        job.stop_reason = "abort"
+        if self.dispatcher is not None and job_id in self.dispatcher.pending:
+            self.dispatcher.abandon(job_id, "aborted by the operator")
+        task = self._analysis_tasks.get(job_id)
+        if task is not None:
+            task.cancel()
+        log.info("analysis_aborted", job_id=job_id)
+        return ControlReply(action="abort", job_id=job_id, state=self.sm.state.value, job_state="aborted")
+
     def _track_analysis(self, job: ActiveJob, task: asyncio.Task) -> None:
         self._analyses.add(task)
         self._analysing[job.record.job_id] = job
+        self._analysis_tasks[job.record.job_id] = task
 
         def done(t: asyncio.Task) -> None:
             self._analyses.discard(t)
             self._analysing.pop(job.record.job_id, None)
+            if self._analysis_tasks.get(job.record.job_id) is t:
+                del self._analysis_tasks[job.record.job_id]
             self._publish()
 
         task.add_done_callback(done)
@@ -648,9 +717,13 @@ class CellDaemon:
         except Exception as exc:
             log.exception("job_scan_failed", job_id=rec.job_id)
             why = f"{type(exc).__name__}: {exc}"
+            info: dict[str, Any] = {}
             if job.stop_reason == "disk":
                 why = f"raw data could not be written ({exc}); the scan was stopped, what was written is kept"
-            self._job_state(job, JobState.FAILED, why)
+                # the profiles on disk, and those counted before the failure that never got there
+                lost = getattr(exc, "profiles_lost", None)
+                info = {"profiles": job.profiles, **({"profiles_lost": lost} if lost is not None else {})}
+            self._job_state(job, JobState.FAILED, why, **info)
             self._scan_job = None
             if self.sm.state != CellState.STOPPING:
                 # an e-stop before the executor ran shows up here (motors on refused, EGM never came)

@@ -130,6 +130,12 @@ def _json_object(raw: bytes, *, empty: str | None = None) -> tuple[str, dict[str
     return text, value
 
 
+def _as_user(obj: dict[str, Any], user: str) -> str:
+    """The request as the daemon gets it: ``requested_by`` is the logged-in user, whatever the page
+    sent (the daemon records it in the job's history and its audit log)."""
+    return json.dumps({**obj, "requested_by": user})
+
+
 class _NoClientDataInLogs(logging.Filter):
     """aiohttp's own error lines without what the client sent: a malformed request (a 20 kB cookie,
     a broken header) is logged as its status only, and any other exception as its type and
@@ -330,11 +336,11 @@ class HmiServer:
         if (refused := self._check(request, "trigger")) is not None:
             return refused
         try:
-            body, _ = _json_object(await _read_body(request, MAX_BODY_BYTES))
+            _, obj = _json_object(await _read_body(request, MAX_BODY_BYTES))
         except _BodyError as exc:
             return exc.response
         try:
-            acc = await self.link.trigger(body)
+            acc = await self.link.trigger(_as_user(obj, request["session"].user))
         except ApiCallError as exc:
             return _api_error(exc)
         log.info("hmi_trigger", user=request["session"].user, job_id=acc.job_id)
@@ -347,11 +353,11 @@ class HmiServer:
         if (refused := self._check(request, action)) is not None:
             return refused
         try:
-            body, _ = _json_object(await _read_body(request, MAX_BODY_BYTES), empty="{}")
+            _, obj = _json_object(await _read_body(request, MAX_BODY_BYTES), empty="{}")
         except _BodyError as exc:
             return exc.response
         try:
-            reply = await self.link.control(action, body)
+            reply = await self.link.control(action, _as_user(obj, request["session"].user))
         except ApiCallError as exc:
             return _api_error(exc)
         log.info("hmi_control", user=request["session"].user, action=action)

@@ -225,7 +225,9 @@ def test_access_control_names_only_the_configured_users_and_denies_by_default(tm
     ]
     assert acl["default_permission"] == "deny"
     subjects = {s["id"]: s["usernames"] for s in acl["subjects"]}
-    assert subjects == {"role_operator": ["alice"], "role_viewer": ["bob"], "role_worker": ["w1"]}
+    assert subjects == {
+        "role_operator": ["alice"], "role_viewer": ["bob"], "role_worker": ["w1"], "worker_w1": ["w1"]
+    }  # fmt: skip
     rules = {r["id"]: r for r in acl["rules"]}
     policy = {p["subjects"][0]: set(p["rules"]) for p in acl["policies"]}
     assert "operate_query" in policy["role_operator"]

@@ -143,6 +143,7 @@ def test_tls_config_uses_tls_endpoints_mtls_and_acl_by_certificate_common_name(t
     assert {s["id"]: s["cert_common_names"] for s in serve["access_control"]["subjects"]} == {
         "role_operator": ["alice"],
         "role_worker": ["w1"],
+        "worker_w1": ["w1"],  # the worker id w1 bound to the certificate w1
     }
     client = config_dict(_section(7447, pki, "alice"), role="connect", key_prefix=PREFIX)
     assert {"connect_certificate", "connect_private_key"} <= set(client["transport"]["link"]["tls"])

@@ -10,10 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 
 from analysis.job import AnalysisJob
-from cellctl.api import JobEvent, JobSpec, Keys, ReportEnvelope
+from cellctl.api import JobSpec, Keys
 from cellctl.api.dispatch import Dispatcher
 from cellctl.api.session import build_zenoh_config, close_session, open_session
 from cellctl.api.transfer import (
@@ -28,6 +27,7 @@ from cellctl.api.transfer import (
     pack_results,
     store_results,
 )
+from tests.zenoh.fake_worker import FakeWorker
 from tests.zenoh.test_dispatch_workers import GENEROUS, _cloud_bytes, _run, _wait_for
 from tests.zenoh.zworker_fns import minimal_report
 
@@ -163,31 +163,16 @@ def test_a_result_that_arrives_incomplete_costs_a_retry_and_the_next_complete_on
         s = open_session(
             build_zenoh_config(hub.section, role="connect", key_prefix=hub.prefix), what="fake worker"
         )
-        loop = asyncio.get_running_loop()
 
         def answer(spec: JobSpec) -> None:
             attempts.append(spec.attempt)
-            ev = JobEvent(job_id=spec.job_id, worker_id="fw", attempt=spec.attempt, event="accepted",
-                          offer_id=spec.offer_id)  # fmt: skip
-            s.put(keys.job_event(spec.job_id), ev.to_json())
-            for i, (head, data) in enumerate(
-                zip(_heads(manifest, chunks, "jobR", "fw", spec.attempt), chunks, strict=True)
-            ):
-                if spec.attempt == 1 and i == 1:
-                    continue  # lost on the way
-                s.put(keys.result_chunk("jobR", spec.attempt, i), data, attachment=head.to_json(),
-                      congestion_control=zenoh.CongestionControl.BLOCK)  # fmt: skip
-            env = ReportEnvelope(job_id="jobR", plate_id="P1", worker_id="fw", attempt=spec.attempt, ok=True,
-                                 report=minimal_report(spec.job, 1), results=manifest,
-                                 offer_id=spec.offer_id)  # fmt: skip
-            s.put(keys.report("jobR"), env.to_json())
+            fw.event(spec, "accepted")
+            fw.chunks(
+                spec, chunks, skip=(1,) if spec.attempt == 1 else ()
+            )  # attempt 1: chunk 1 lost on the way
+            fw.report(spec, report=minimal_report(spec.job, 1), results=manifest)
 
-        def on_job(sample: zenoh.Sample) -> None:
-            spec = JobSpec.model_validate_json(sample.attachment.to_bytes())
-            loop.call_soon_threadsafe(answer, spec)
-
-        sub = s.declare_subscriber(keys.worker_job("fw"), on_job)
-        token = s.liveliness().declare_token(keys.worker_alive("fw"))
+        fw = FakeWorker(s, keys, "fw", answer)
         try:
             await _wait_for(lambda: disp.workers == ["fw"], 30, "the fake worker")
             job = AnalysisJob(job_id="jobR", plate_id="P1", design="p.stl")
@@ -196,8 +181,7 @@ def test_a_result_that_arrives_incomplete_costs_a_retry_and_the_next_complete_on
             )
             return env, disp.take_results("jobR"), disp.refused_results
         finally:
-            token.undeclare()
-            sub.undeclare()
+            fw.close()
             close_session(s)
 
     env, files, refused = _run(hub, scenario, settings=GENEROUS)

@@ -61,6 +61,9 @@ def centroid_after_sleep(cloud: ScanCloud, job: AnalysisJob) -> Report:
         with Path(record).open("a") as f:
             f.write(f"start {job.job_id} {os.getpid()}\n")
     time.sleep(float(todo.get("sleep_s", 0.0)))
+    gate = todo.get("gate_path")  # held until the test opens the gate (writes the file)
+    while gate and not Path(gate).exists():
+        time.sleep(0.02)
     xyz = cloud.xyz_mm
     passes = np.unique(cloud.pass_id).tolist() if cloud.organised else []
     observe(job, job_id=job.job_id, n_points=xyz.shape[0], centroid_mm=xyz.mean(axis=0).tolist(),

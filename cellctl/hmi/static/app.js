@@ -127,7 +127,8 @@ function renderCell(st) {
   $("cell-job-bar").style.width = active ? (100 * j.fraction).toFixed(1) + "%" : "0";
   $("cell-queue").innerHTML = st.queue.map((q) => `<div>${q.position}. <b>${esc(q.plate_id)}</b> <small>${esc(q.job_id)}</small></div>`).join("") || "<div class=\"none\">empty</div>";
   $("cell-analyses").innerHTML = st.analyses.map((a) => `<li>${esc(a.plate_id)}: ${esc(a.state)} ${esc(a.worker_id || "")}</li>`).join("") || "<li>none</li>";
-  $("cell-workers").innerHTML = st.workers.map((w) => `<li>${esc(w)}</li>`).join("") || "<li>no worker: reports wait</li>";
+  $("cell-workers").innerHTML = (st.workers.map((w) => `<li>${esc(w)}</li>`).join("") || "<li>no worker: reports wait</li>")
+    + (st.workers_refused || []).map((w) => `<li class="bad">not given jobs: ${esc(w)}</li>`).join("");
   $("cell-recent").innerHTML = "<tr><th>plate</th><th>job</th><th>state</th><th>verdict</th><th>message</th><th></th></tr>" +
     st.recent.slice().reverse().map((r) => { const rv = verdictOf(r.job_id); return `<tr class="clickable ${rv === "fail" ? "fail" : ""}" data-job="${esc(r.job_id)}"><td>${esc(r.plate_id)}</td><td>${esc(r.job_id)}</td><td>${esc(r.state)}</td><td>${rv ? esc(rv.toUpperCase()) : "-"}</td><td>${esc(noPaths(r.message))}</td><td>${
       ["interrupted", "failed"].includes(r.state) && S.me && S.me.may.includes("reanalyse") ? `<button class="reanalyse" data-job="${esc(r.job_id)}">Re-analyse</button>` : ""}</td></tr>`; }).join("") + (st.recent.length ? "" : `<tr><td colspan="6" class="none">none yet</td></tr>`);
