@@ -68,6 +68,9 @@ class GigeSourceConfig(BaseModel):
     buffer_profiles: int = Field(20_000, gt=0)
     #: profiles per GVSP block (the range image's Height): fewer means lower latency, more packets
     rows_per_buffer: int = Field(100, gt=0)
+    #: the region across the line set at connect (Width, OffsetX); None keeps the device's
+    width: int | None = Field(None, gt=0)
+    x_offset: int | None = Field(None, ge=0)
     #: buffers queued to Aravis's stream thread
     n_buffers: int = Field(32, ge=2)
     #: GVSP packet size in bytes; None negotiates the largest the path takes (loopback: 8 kB and more)
@@ -159,7 +162,11 @@ class GigeProfileSource(ProfileSource):
         self.config = config or GigeSourceConfig()
         self.stats: GigeStats = GigeStats()
         self.info: genicam.DeviceInfo | None = None
-        self._settings = genicam.ProfilerSettings(rows_per_buffer=self.config.rows_per_buffer)
+        self._settings = genicam.ProfilerSettings(
+            rows_per_buffer=self.config.rows_per_buffer,
+            width=self.config.width,
+            x_offset=self.config.x_offset,
+        )
         self._link: _Link | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._queue: asyncio.Queue[Any] = asyncio.Queue()
