@@ -403,8 +403,9 @@ class LaserSection(Section):
     data_port: Port = 3196
     # GigE Vision: the device's IP address or Aravis id ("Vendor-Model-Serial"); None: host
     gige_device: str | None = None
-    # GigE Vision: profiles per GVSP block (the range image's Height), first sensor column (OffsetX)
-    gige_rows_per_buffer: Annotated[int, Field(ge=1, le=65_535)] = 100
+    # GigE Vision: profiles per GVSP block (the range image's Height; its duration at rate_hz is the
+    # latency it adds: 10 at 200 Hz is 50 ms), first sensor column (OffsetX)
+    gige_rows_per_buffer: Annotated[int, Field(ge=1, le=65_535)] = 10
     gige_x_offset_px: Annotated[int, Field(ge=0)] = 0
     # GigE Vision: GVSP packet size in bytes; None negotiates the largest the network takes
     gige_packet_size: Annotated[int, Field(ge=576, le=65_000)] | None = None

@@ -58,7 +58,7 @@ async def _collect(src: GigeProfileSource, n: int, timeout_s: float = 10.0) -> l
 
 
 def _raw_codes(z_mm: np.ndarray) -> np.ndarray:
-    return np.rint((z_mm - C_OFFSET) / C_SCALE).astype(np.int64)
+    return np.rint(np.nan_to_num((z_mm - C_OFFSET) / C_SCALE, nan=-1.0)).astype(np.int64)  # -1: no return
 
 
 def test_discovery_finds_the_fake_device_on_loopback(tmp_path):
@@ -234,3 +234,25 @@ def test_a_device_that_vanishes_and_returns_delivers_no_duplicate_or_reordered_p
     assert stats.missing_frames >= 5000
     # the device clock ran on through the outage (the fake device stamps with the host's real time)
     assert int(after[0].sensor_time_us[0]) > int(before[-1].sensor_time_us[-1])
+
+
+def test_a_stopped_source_starts_again_and_numbers_on(tmp_path):
+    async def go():
+        src = GigeProfileSource(ADDRESS, config=_config(rows_per_buffer=50))
+        await src.connect()
+        await src.stop()  # as the daemon does before configuring: nothing runs yet
+        await src.configure(rate_hz=5000.0, exposure_ns=RAMP_EXPOSURE_NS, width=200)
+        await src.start()
+        first = await _collect(src, 500)
+        await src.stop()
+        await asyncio.sleep(0.3)
+        await src.start()
+        second = await _collect(src, 500)
+        await src.close()
+        return first, second
+
+    with fake_device("WT49AGAIN", profiler_xml(tmp_path)):
+        first, second = run(go())
+    fi = np.concatenate([b.frame_index for b in first + second]).astype(np.int64)
+    assert (np.diff(fi) > 0).all()
+    assert int(second[-1].frame_index[-1]) > int(first[-1].frame_index[-1])

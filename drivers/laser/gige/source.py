@@ -67,7 +67,7 @@ class GigeSourceConfig(BaseModel):
     #: profiles held for the consumer; a batch that would exceed it is dropped and counted (overflow)
     buffer_profiles: int = Field(20_000, gt=0)
     #: profiles per GVSP block (the range image's Height): fewer means lower latency, more packets
-    rows_per_buffer: int = Field(100, gt=0)
+    rows_per_buffer: int = Field(10, gt=0)
     #: the region across the line set at connect (Width, OffsetX); None keeps the device's
     width: int | None = Field(None, gt=0)
     x_offset: int | None = Field(None, ge=0)
@@ -81,9 +81,9 @@ class GigeSourceConfig(BaseModel):
     packet_timeout_ms: int = Field(20, gt=0)
     #: how long Aravis keeps an incomplete buffer before giving it up, ms (frame-retention)
     frame_retention_ms: int = Field(100, gt=0)
-    #: no profile for this long while running -> STALLED (RESUMED when they return)
+    #: no profile for this long beyond one block's duration while running -> STALLED (RESUMED after)
     watchdog_timeout_s: float = Field(0.5, gt=0)
-    #: silence (or the heartbeat's control-lost) beyond this -> the device is reopened
+    #: silence beyond this plus one block's duration (or the heartbeat's control-lost) -> reopened
     lost_after_s: float = Field(2.0, gt=0)
     reconnect_initial_s: float = Field(0.05, gt=0)
     reconnect_max_s: float = Field(2.0, gt=0)
@@ -230,6 +230,7 @@ class GigeProfileSource(ProfileSource):
         for _ in range(cfg.n_buffers):
             stream.push_buffer(A.Buffer.new_allocate(payload))
         link.stream = stream
+        link.stop_flag.clear()  # a stop() before this start() set it
         cam.set_acquisition_mode(A.AcquisitionMode.CONTINUOUS)
         cam.start_acquisition()
         link.thread = threading.Thread(target=self._reader, args=(link,), name="gige-reader", daemon=True)
@@ -512,13 +513,15 @@ class GigeProfileSource(ProfileSource):
 
     async def _supervise(self) -> None:
         cfg = self.config
-        watchdog_ns = int(cfg.watchdog_timeout_s * 1e9)
-        lost_ns = int(cfg.lost_after_s * 1e9)
         while True:
             await asyncio.sleep(min(cfg.watchdog_timeout_s / 4, 0.1))
             link = self._link
             if link is None or not self._want_running:
                 continue
+            # profiles come a block at a time: silence within one block's duration is the normal pace
+            block_ns = int(self._settings_rows(link) / link.layout.line_rate_hz * 1e9)
+            watchdog_ns = int(cfg.watchdog_timeout_s * 1e9) + block_ns
+            lost_ns = int(cfg.lost_after_s * 1e9) + block_ns
             self._read_stream_stats(link)
             silent_ns = time.monotonic_ns() - self._last_frame_ns
             if not self._stalled and silent_ns > watchdog_ns:
@@ -530,6 +533,9 @@ class GigeProfileSource(ProfileSource):
                 log.warning("gige_frames_stalled", silent_s=round(silent_ns / 1e9, 3))
             if link.lost.is_set() or silent_ns > lost_ns:
                 await self._reopen(link)
+
+    def _settings_rows(self, link: _Link) -> int:
+        return self._settings.rows_per_buffer or self.config.rows_per_buffer
 
     def _read_stream_stats(self, link: _Link) -> None:
         stream = link.stream
