@@ -69,11 +69,16 @@ def test_profiles_are_stamped_with_the_simulated_sensor_clock_one_line_period_ap
     batches, src, (lo_us, hi_us) = run(_read_gige(400), timeout_s=40)
     t = np.concatenate([b.sensor_time_us for b in batches]).astype(np.int64)
     fi = np.concatenate([b.frame_index for b in batches]).astype(np.int64)
-    assert (np.diff(fi) == 1).all() and src.stats.torn_buffers == 0
+    # a frame period the fake device's thread let pass is a whole block missing, as a profiler's lost
+    # lines would be (a loaded machine): never a repeat, never out of order
+    assert (np.diff(fi) > 0).all() and src.stats.torn_buffers == 0
+    assert src.stats.missing_frames % 20 == 0
     assert lo_us <= t[0] and t[-1] <= hi_us  # the sensor's clock (5 s offset, 80 ppm), not the host's
     within = np.diff(batches[0].sensor_time_us.astype(np.int64))
     assert np.all(np.abs(within - 1000) <= 1)  # 1 kHz rows
     assert (np.diff(t) > 0).all()  # in order across buffers too
+    # the stamps follow the frame index: one line period per index, gaps included
+    np.testing.assert_allclose(np.diff(t) / np.diff(fi), 1000.0, atol=1.5)
 
 
 def test_packet_loss_on_the_simulated_device_tears_buffers_that_are_never_delivered():

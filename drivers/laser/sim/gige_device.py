@@ -61,6 +61,8 @@ def _libaravis() -> ctypes.CDLL:
     lib.arv_buffer_get_image_height.restype = ctypes.c_int
     lib.arv_buffer_set_timestamp.argtypes = [ctypes.c_void_p, ctypes.c_uint64]
     lib.arv_buffer_set_timestamp.restype = None
+    lib.arv_buffer_set_frame_id.argtypes = [ctypes.c_void_p, ctypes.c_uint64]
+    lib.arv_buffer_set_frame_id.restype = None
     return lib
 
 
@@ -112,9 +114,9 @@ class GigeSimDevice:
         self.lost_packet_ratio = lost_packet_ratio
         self.buffers_filled = 0
         self.fill_errors = 0
-        #: times the line clock was set back to now because the fake device's pace let it drift
-        self.line_clock_restarts = 0
-        self._next_row_s: float | None = None
+        #: frame periods the fake device's thread let pass without a frame (their rows are lost)
+        self.skipped_blocks = 0
+        self._last_block: int | None = None
         self._gv: Any = None
         self._fake: Any = None
         self._lib: ctypes.CDLL | None = None
@@ -181,31 +183,37 @@ class GigeSimDevice:
                 self._ratelog.warning("gige_sim_fill_refused", pixel_format=hex(pixel_format), width=w)
                 return
             ok, period_us = fake.read_register(_REG_FRAME_PERIOD_US)
-            line_s = (period_us if ok and period_us else 1e6 / self.layout.line_rate_hz * h) * 1e-6 / h
-            t_mid = self._row_times(h, line_s, exposure_us)
+            if not (ok and period_us):
+                period_us = round(h * 1e6 / self.layout.line_rate_hz)
+            t_mid, block = self._row_times(h, int(period_us), exposure_us)
             z, valid, sensor_us = self.sim.render_profiles(t_mid)
             rows = profiles_to_rows(z, valid, self.layout)
             ctypes.memmove(data, rows.ctypes.data, rows.nbytes)
             lib.arv_buffer_set_timestamp(buf, round(float(sensor_us[0]) * 1000.0))
+            lib.arv_buffer_set_frame_id(buf, block)
             self.buffers_filled += 1
         except Exception:  # never let an exception unwind into C
             self.fill_errors += 1
             log.exception("gige_sim_fill_failed")
 
-    def _row_times(self, h: int, line_s: float, exposure_us: int) -> np.ndarray:
-        """True mid-exposure times of the next ``h`` rows: the line clock runs on from the last buffer
-        (a profiler's rows never overlap or leave holes), and restarts from now when the fake device's
-        own pacing has let it fall more than two buffers behind (or run one ahead)."""
+    def _row_times(self, h: int, period_us: int, exposure_us: int) -> tuple[np.ndarray, int]:
+        """True mid-exposure times of this buffer's rows, and its GVSP block id.
+
+        The fake device makes a frame due on each multiple of the frame period on the host's real-time
+        clock (``g_get_real_time``) and skips a boundary its thread was too busy to meet. Buffer ``n``
+        therefore holds the rows exposed in the period that ends at boundary ``n``; its block id is
+        ``n`` (16 bits, 1..65535), so a skipped boundary is a gap of one block at the client, as lost
+        lines of a real profiler would be, and the rows keep the line rate exactly."""
+        real_us = time.time_ns() // 1000
         now = self.sim.clock()
-        due = now - (h - 1) * line_s - exposure_us * 0.5e-6  # the newest row ends as the frame falls due
-        first = self._next_row_s
-        if first is None or due - first > 2 * h * line_s or first - due > h * line_s:
-            if first is not None:
-                self.line_clock_restarts += 1
-            first = due
-        t_mid = first + np.arange(h) * line_s
-        self._next_row_s = float(t_mid[-1] + line_s)
-        return t_mid
+        n = real_us // period_us
+        boundary = now - (real_us - n * period_us) * 1e-6  # the boundary, on the simulator's clock
+        line_s = period_us * 1e-6 / h
+        t_mid = boundary - period_us * 1e-6 + (np.arange(h) + 1) * line_s - exposure_us * 0.5e-6
+        if self._last_block is not None and n != self._last_block + 1:
+            self.skipped_blocks += max(0, n - self._last_block - 1)
+        self._last_block = n
+        return t_mid, int(n % 65535) + 1
 
     def __enter__(self) -> GigeSimDevice:
         self.start()
