@@ -200,7 +200,7 @@ async def sim_realtime(raycaster: SceneRaycaster, seconds: float) -> dict[str, f
 
 async def gige_ingest(line_rate_hz: float, rows: int, seconds: float, packet_size: int) -> dict[str, object]:
     """Read the fake GigE Vision profiler for ``seconds``; count profiles, wall and CPU time."""
-    from drivers.laser.gige import GigeProfileSource, GigeSourceConfig
+    from drivers.laser.gige import GigeProfileSource, GigeSourceConfig, GigeStats
 
     src = GigeProfileSource(
         "127.0.0.1",
@@ -223,7 +223,8 @@ async def gige_ingest(line_rate_hz: float, rows: int, seconds: float, packet_siz
             break
     wall = time.perf_counter() - t0
     cpu = time.process_time() - cpu0
-    st = src.stats
+    src._read_stream_stats(src._link)  # Aravis's counters now, not after close's teardown
+    st = GigeStats(**{k: v for k, v in vars(src.stats).items() if not k.startswith("_")})
     await src.close()
     return {
         "profiles_per_s": round(got / wall, 1),
