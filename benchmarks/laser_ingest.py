@@ -223,8 +223,8 @@ async def gige_ingest(line_rate_hz: float, rows: int, seconds: float, packet_siz
             break
     wall = time.perf_counter() - t0
     cpu = time.process_time() - cpu0
-    src._read_stream_stats(src._link)  # Aravis's counters now, not after close's teardown
-    st = GigeStats(**{k: v for k, v in vars(src.stats).items() if not k.startswith("_")})
+    # Aravis's counters now, not after close's teardown
+    st = GigeStats(**{k: v for k, v in vars(src.refresh_stats()).items() if not k.startswith("_")})
     await src.close()
     return {
         "profiles_per_s": round(got / wall, 1),

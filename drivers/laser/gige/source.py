@@ -534,6 +534,12 @@ class GigeProfileSource(ProfileSource):
             if link.lost.is_set() or silent_ns > lost_ns:
                 await self._reopen(link)
 
+    def refresh_stats(self) -> GigeStats:
+        """Read Aravis's packet counters into :attr:`stats` now (the supervisor does it every 0.1 s)."""
+        if self._link is not None:
+            self._read_stream_stats(self._link)
+        return self.stats
+
     def _settings_rows(self, link: _Link) -> int:
         return self._settings.rows_per_buffer or self.config.rows_per_buffer
 
