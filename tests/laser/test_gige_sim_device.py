@@ -83,8 +83,9 @@ def test_profiles_are_stamped_with_the_simulated_sensor_clock_one_line_period_ap
     within = np.diff(batches[0].sensor_time_us.astype(np.int64))
     assert np.all(np.abs(within - 1000) <= 1)  # 1 kHz rows
     assert (np.diff(t) > 0).all()  # in order across buffers too
-    # the stamps follow the frame index: one line period per index, gaps included
-    np.testing.assert_allclose(np.diff(t) / np.diff(fi), 1000.0, atol=1.5)
+    # the stamps follow the frame index: one line period per index, gaps included (the device stamps
+    # each block; its rows at the nominal period, so 80 ppm of drift shows as ~2 us at a block's end)
+    np.testing.assert_allclose(np.diff(t) / np.diff(fi), 1000.0, atol=2.5)
 
 
 def test_packet_loss_on_the_simulated_device_tears_buffers_that_are_never_delivered():

@@ -390,9 +390,8 @@ class GigeProfileSource(ProfileSource):
         st = self.stats
         fi = batch.frame_index.astype(np.int64)
         last = st.last_frame_index
-        steps = np.diff(fi) - 1
-        if last >= 0:
-            steps = np.concatenate([[fi[0] - last - 1], steps])
+        # index 0 is the first block seen, complete or torn: a torn first block is a loss too
+        steps = np.concatenate([[fi[0] - last - 1], np.diff(fi) - 1])
         missing = int(steps.sum())
         if missing:
             st.gaps += int((steps > 0).sum())

@@ -117,6 +117,7 @@ class GigeSimDevice:
         #: frame periods the fake device's thread let pass without a frame (their rows are lost)
         self.skipped_blocks = 0
         self._last_block: int | None = None
+        self._real_minus_clock_us = 0.0
         self._gv: Any = None
         self._fake: Any = None
         self._lib: ctypes.CDLL | None = None
@@ -143,6 +144,7 @@ class GigeSimDevice:
                 invalid_value=0,
             )
         )
+        self._real_minus_clock_us = time.time_ns() / 1000 - self.sim.clock() * 1e6
         gv = Aravis.GvFakeCamera.new_full(self.address, self.serial, str(xml))
         if gv is None or not gv.is_running():
             raise OSError(f"the GigE Vision device cannot listen on {self.address} (UDP 3956 taken?)")
@@ -204,10 +206,10 @@ class GigeSimDevice:
         therefore holds the rows exposed in the period that ends at boundary ``n``; its block id is
         ``n`` (16 bits, 1..65535), so a skipped boundary is a gap of one block at the client, as lost
         lines of a real profiler would be, and the rows keep the line rate exactly."""
-        real_us = time.time_ns() // 1000
-        now = self.sim.clock()
-        n = real_us // period_us
-        boundary = now - (real_us - n * period_us) * 1e-6  # the boundary, on the simulator's clock
+        n = (time.time_ns() // 1000) // period_us
+        # the boundary on the simulator's clock through one fixed mapping (read at start): reading both
+        # clocks at each frame would put microseconds of jitter between the blocks' rows
+        boundary = (n * period_us - self._real_minus_clock_us) * 1e-6
         line_s = period_us * 1e-6 / h
         t_mid = boundary - period_us * 1e-6 + (np.arange(h) + 1) * line_s - exposure_us * 0.5e-6
         if self._last_block is not None and n != self._last_block + 1:
