@@ -16,6 +16,14 @@ Simulator side: ``sim_profiles_per_s`` is ray casting + resampling + noise + qua
 500-point profiles on one thread (CPU time, groups of 5 as the simulator renders at 1 kHz), i.e. how
 many profiles per second the simulator can produce; ``encode_profiles_per_s`` is the wire encoding.
 
+``--protocol gige``: the GigE Vision source (drivers/laser/gige) against Aravis's own fake GigE Vision
+device (``arv-fake-gv-camera-0.8``, a separate process, on 127.0.0.1) described as a profiler
+(drivers/laser/sim/gige_xml.py): Mono16 range rows of 500 points, ``--rows`` per GVSP block, asked
+for ``--line-rate`` profiles per second, for ``--seconds``. ``profiles_per_s`` is what arrived per wall
+second (the fake device's own pace bounds it); ``profiles_per_cpu_s`` divides by the CPU time of this
+process (Aravis's receive thread, the reader thread's conversion, the event loop), as the HD8 figure
+does; torn buffers, gaps and Aravis's packet counters show whether anything was lost.
+
 Prints exactly one JSON object.
 """
 
@@ -190,15 +198,114 @@ async def sim_realtime(raycaster: SceneRaycaster, seconds: float) -> dict[str, f
     }
 
 
+async def gige_ingest(line_rate_hz: float, rows: int, seconds: float, packet_size: int) -> dict[str, object]:
+    """Read the fake GigE Vision profiler for ``seconds``; count profiles, wall and CPU time."""
+    from drivers.laser.gige import GigeProfileSource, GigeSourceConfig, GigeStats
+
+    src = GigeProfileSource(
+        "127.0.0.1",
+        config=GigeSourceConfig(
+            rows_per_buffer=rows, width=500, packet_size=packet_size, buffer_profiles=10 * rows + 100_000
+        ),
+    )
+    await src.connect()
+    await src.configure(rate_hz=line_rate_hz, exposure_ns=10_000_000)
+    await src.start()
+    got = points = 0
+    async for _first in src:  # the first buffer: the stream is up
+        break
+    t0 = time.perf_counter()
+    cpu0 = time.process_time()
+    async for batch in src:
+        got += len(batch)
+        points += batch.n_points
+        if time.perf_counter() - t0 >= seconds:
+            break
+    wall = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
+    # Aravis's counters now, not after close's teardown
+    st = GigeStats(**{k: v for k, v in vars(src.refresh_stats()).items() if not k.startswith("_")})
+    await src.close()
+    return {
+        "profiles_per_s": round(got / wall, 1),
+        "points_per_s": round(points / wall, 1),
+        "profiles_per_cpu_s": round(got / cpu, 1),
+        "cpu_s_per_s": round(cpu / wall, 3),
+        "wall_s": round(wall, 3),
+        "profiles": got,
+        "asked_line_rate_hz": line_rate_hz,
+        "rows_per_buffer": rows,
+        "packet_size": packet_size,
+        "gaps": st.gaps,
+        "missing_frames": st.missing_frames,
+        "torn_buffers": st.torn_buffers,
+        "underruns": st.underruns,
+        "missing_packets": st.missing_packets,
+        "resent_packets": st.resent_packets,
+    }
+
+
+def gige_main(args: argparse.Namespace) -> None:
+    """The GigE Vision figure: the source against Aravis's fake device in its own process."""
+    import shutil
+    import subprocess
+    import tempfile
+
+    from drivers.laser.sim.gige_xml import profiler_genicam_xml
+
+    binary = shutil.which("arv-fake-gv-camera-0.8")
+    if binary is None:
+        raise SystemExit("arv-fake-gv-camera-0.8 is missing: run scripts/setup.sh (Debian aravis-tools)")
+    with tempfile.TemporaryDirectory() as tmp:
+        xml = Path(tmp) / "profiler.xml"
+        xml.write_text(
+            profiler_genicam_xml(a_scale_mm=0.1, a_offset_mm=-24.95, c_scale_mm=0.002, c_offset_mm=70.0)
+        )
+        proc = subprocess.Popen(
+            [binary, "-i", "127.0.0.1", "-s", "BENCH", "-g", str(xml)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        try:
+            time.sleep(1.0)
+            runs = [
+                asyncio.run(gige_ingest(args.line_rate, args.rows, args.seconds, args.packet_size)),
+                asyncio.run(
+                    gige_ingest(args.line_rate / 10, args.rows // 10, args.seconds, args.packet_size)
+                ),
+            ]
+        finally:
+            proc.kill()
+            proc.wait()
+    out = {
+        "benchmark": "laser_ingest",
+        "protocol": "gige",
+        "device": "arv-fake-gv-camera-0.8 (Aravis 0.8.26) on 127.0.0.1, profiler description",
+        **runs[0],
+        "points_per_profile": 500,
+        "low_latency_blocks": runs[1],
+        "target_profiles_per_s": 50_000,
+    }
+    print(json.dumps(out))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--protocol", choices=["hd8", "gige"], default="hd8")
     ap.add_argument("--frames", type=int, default=20_000)
     ap.add_argument("--group", type=int, default=10)
+    ap.add_argument("--line-rate", type=float, default=400_000.0, help="gige: profiles/s asked of the device")
+    ap.add_argument("--rows", type=int, default=2000, help="gige: profiles per GVSP block")
+    ap.add_argument("--seconds", type=float, default=5.0, help="gige: how long to read")
+    ap.add_argument("--packet-size", type=int, default=16_000, help="gige: GVSP packet bytes")
     args = ap.parse_args()
     structlog.configure(
         wrapper_class=structlog.make_filtering_bound_logger(logging.ERROR),
         logger_factory=structlog.PrintLoggerFactory(sys.stderr),
     )
+    if args.protocol == "gige":
+        gige_main(args)
+        return
     v, t = curved_plate()
     rc = SceneRaycaster(cell_scene(v, t, thickness_mm=12.0))
     sim_n = 2000

@@ -394,9 +394,21 @@ class RobotSection(Section):
 
 
 class LaserSection(Section):
+    # Which profile source reads the sensor (drivers/laser/registry.py, docs/sensors.md): "hd8" (the
+    # HD8 protocol over TCP: host, control_port, data_port) or "gige" (a GigE Vision / GenICam 3D
+    # profiler through Aravis: gige_device, or host when that is unset).
+    protocol: Literal["hd8", "gige"] = "hd8"
     host: str = "127.0.0.1"
     control_port: Port = 3190
     data_port: Port = 3196
+    # GigE Vision: the device's IP address or Aravis id ("Vendor-Model-Serial"); None: host
+    gige_device: str | None = None
+    # GigE Vision: profiles per GVSP block (the range image's Height; its duration at rate_hz is the
+    # latency it adds: 10 at 200 Hz is 50 ms), first sensor column (OffsetX)
+    gige_rows_per_buffer: Annotated[int, Field(ge=1, le=65_535)] = 10
+    gige_x_offset_px: Annotated[int, Field(ge=0)] = 0
+    # GigE Vision: GVSP packet size in bytes; None negotiates the largest the network takes
+    gige_packet_size: Annotated[int, Field(ge=576, le=65_000)] | None = None
     line_width_mm: PositiveFloat = 50.0
     points_per_profile: Annotated[int, Field(ge=2, le=4096)] = 500
     rate_hz: Annotated[float, Field(gt=0, le=LASER_RATE_BOUND_HZ, allow_inf_nan=False)] = 200.0

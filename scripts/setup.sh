@@ -7,6 +7,11 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 VENV=${VENV:-.venv}
 SYSTEM_PACKAGES=(libgl1 libgomp1 libusb-1.0-0 libegl1 libx11-6 chromium poppler-utils openssl iproute2)
+# GigE Vision sensors (drivers/laser/gige): Aravis's library and typelib, its command-line tools
+# (arv-tool-0.8) and its fake GigE Vision device (arv-fake-gv-camera-0.8, in aravis-tools) that the
+# tests and the benchmark run against; PyGObject (pyproject.toml) builds against the -dev packages.
+SYSTEM_PACKAGES+=(gir1.2-aravis-0.8 aravis-tools-cli aravis-tools
+    libgirepository1.0-dev libcairo2-dev pkg-config gcc python3-dev)
 
 missing=()
 for pkg in "${SYSTEM_PACKAGES[@]}"; do
@@ -41,6 +46,6 @@ if [[ ! -x "$VENV/bin/python" ]]; then
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip
 "$VENV/bin/python" -m pip install -q -c constraints.txt -e ".[dev]"
-"$VENV/bin/python" -c 'import open3d, pinocchio, zenoh, ruckig, toppra' \
+"$VENV/bin/python" -c 'import open3d, pinocchio, zenoh, ruckig, toppra, gi; gi.require_version("Aravis", "0.8")' \
     || { echo "setup: the installed packages do not import (see above)" >&2; exit 1; }
 echo "setup: ok ($("$VENV/bin/cellctl" --version))"

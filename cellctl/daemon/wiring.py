@@ -19,15 +19,20 @@ from cellctl.planning import PlannerSettings
 from drivers.abb_egm.endpoint import EgmEndpointConfig
 from drivers.abb_egm.rws_client import CellEgmProgram, EgmProgramSettings, RwsClient, RwsClientConfig
 from drivers.laser.client import HD8Client, HD8ClientConfig
+from drivers.laser.gige.source import GigeSourceConfig
+from drivers.laser.registry import open_source
+from drivers.laser.source import ProfileSource
 
 __all__ = [
     "CellDrivers",
     "build_drivers",
     "egm_endpoint_config",
     "egm_program_settings",
+    "gige_source_config",
     "hd8_client",
     "hd8_client_config",
     "laser_exposure_ns",
+    "laser_source",
     "motion_settings",
     "rws_client_config",
     "rws_password",
@@ -121,6 +126,28 @@ def hd8_client_config(laser: LaserSection) -> HD8ClientConfig:
 def hd8_client(laser: LaserSection) -> HD8Client:
     """A (not yet connected) client of the ``[laser]`` sensor."""
     return HD8Client(laser.host, laser.control_port, laser.data_port, config=hd8_client_config(laser))
+
+
+def gige_source_config(laser: LaserSection) -> GigeSourceConfig:
+    """``[laser]`` -> the GigE Vision source's tuning: region, block height, packets, watchdog, buffer."""
+    return GigeSourceConfig(
+        width=laser.points_per_profile,
+        x_offset=laser.gige_x_offset_px,
+        rows_per_buffer=laser.gige_rows_per_buffer,
+        packet_size=laser.gige_packet_size,
+        watchdog_timeout_s=laser.watchdog_s,
+        buffer_profiles=laser.buffer_profiles,
+    )
+
+
+def laser_source(laser: LaserSection) -> ProfileSource:
+    """A (not yet connected) source of the ``[laser]`` sensor, of the kind ``[laser] protocol`` names
+    (drivers/laser/registry.py); configure it with ``rate_hz`` and ``exposure_ns`` as the HD8."""
+    if laser.protocol == "gige":
+        return open_source("gige", laser.gige_device or laser.host, config=gige_source_config(laser))
+    return open_source(
+        "hd8", laser.host, laser.control_port, laser.data_port, config=hd8_client_config(laser)
+    )
 
 
 def laser_exposure_ns(laser: LaserSection) -> int:

@@ -381,6 +381,28 @@ class LaserSimulator:
             self._run_t0_s + (k - self._run_k0) / self.settings.rate_hz + self.settings.exposure_ns * 0.5e-9
         )
 
+    def render_profiles(self, t_mid_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Ray cast profiles at true mid-exposure times, in the calling thread (another transport's
+        device, e.g. :mod:`drivers.laser.sim.gige_device`, when this simulator's own servers are not
+        running: both would share one renderer).
+
+        Returns:
+            z_mm (n, width) float32 (NaN where no return), valid (n, width) bool, and sensor_time_us
+            (n,) float64: the sensor clock at each exposure (offset, drift and jumps as the HD8's).
+        """
+        t_mid_s = np.asarray(t_mid_s, dtype=np.float64)
+        poses = np.asarray(self.pose_at(t_mid_s), dtype=np.float64)
+        if poses.shape != (len(t_mid_s), 4, 4):
+            raise ValueError(f"pose_at returned shape {poses.shape}, expected ({len(t_mid_s)}, 4, 4)")
+        raycaster, optics, rng = self._local["raycaster"], self._local["optics"], self._local["rng"]
+        assert isinstance(raycaster, SceneRaycaster) and isinstance(optics, LaserOptics)
+        assert isinstance(rng, np.random.Generator)
+        t0 = time.perf_counter()
+        r = render_uniform(raycaster, poses, optics, rng)
+        self.stats.render_s += time.perf_counter() - t0
+        self.stats.frames_acquired += len(t_mid_s)
+        return r.z_mm.astype(np.float32), r.valid, self.sensor_time_us(t_mid_s)
+
     # ------------------------------------------------------------------------------ faults
 
     @property
@@ -985,15 +1007,24 @@ async def _run(args: argparse.Namespace) -> None:
         data_port=args.data_port,
         fault_port=args.fault_port,
     )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if args.protocol == "gige":
+        from drivers.laser.sim.gige_device import GigeSimDevice
+
+        device = GigeSimDevice(sim, address=args.host, serial=args.serial)
+        await asyncio.to_thread(device.start)
+        print(json.dumps({"protocol": "gige", "host": args.host, "serial": args.serial}), flush=True)
+        await stop.wait()
+        await asyncio.to_thread(device.stop)
+        return
     ctl, dat = await sim.start()
     ready = {"control_port": ctl, "data_port": dat, "host": args.host}
     if sim.fault_address is not None:
         ready["fault_port"] = sim.fault_address[1]
     print(json.dumps(ready), flush=True)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
     await stop.wait()
     await sim.stop()
 
@@ -1012,6 +1043,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--standoff", type=float, default=100.0, help="sensor height above the floor, mm")
     ap.add_argument("--rate", type=float, default=200.0, help="profile rate, Hz")
     ap.add_argument("--format", choices=("uniform", "points"), default="uniform")
+    ap.add_argument(
+        "--protocol",
+        choices=("hd8", "gige"),
+        default="hd8",
+        help="hd8: the HD8 protocol on TCP; gige: a GigE Vision profiler on --host, UDP 3956 (Aravis)",
+    )
+    ap.add_argument("--serial", default="SIMGIGE", help="--protocol gige: the device's serial number")
     args = ap.parse_args(argv)
     if not structlog.is_configured():
         # stdout carries the one JSON line with the ports; logs go to stderr.
