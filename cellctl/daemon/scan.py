@@ -52,7 +52,7 @@ from cellctl.daemon.locate import (
 )
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.stream import ScanStream
-from cellctl.daemon.wiring import CellDrivers, hd8_client, laser_exposure_ns
+from cellctl.daemon.wiring import CellDrivers, laser_exposure_ns, laser_source
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, ProgressEvent
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, start_corner_near
 from cellctl.planning.cache import PlanCache
@@ -371,7 +371,7 @@ class ScanRunner:
     async def _sensor_ready(self) -> HD8Client:
         """A connected sensor client, the sensor stopped and configured."""
         las = self.cfg.laser
-        client = hd8_client(las)
+        client = laser_source(las)
         await client.connect()
         try:
             # whatever a previous run left streaming (a killed daemon): SET_RATE needs it stopped

@@ -86,6 +86,9 @@ class SimulatedCell:
         self.truth = sim_plate_truth(cfg)
         self.controller: Any = None
         self.sensor: Any = None
+        self.gige: Any = (
+            None  # the GigE Vision device serving the sensor's profiles ([laser] protocol = "gige")
+        )
 
     async def start(self) -> dict[str, Any]:
         """Build the scene, start both simulators; returns their addresses."""
@@ -175,7 +178,14 @@ class SimulatedCell:
             self.sensor.jump_timestamp(
                 now * 1e6 + sim.clocks.sensor_offset_ms * 1e3 - float(self.sensor.sensor_time_us(now))
             )
-            ctl, dat = await self.sensor.start()
+            if las.protocol == "gige":
+                from drivers.laser.sim.gige_device import GigeSimDevice
+
+                self.gige = GigeSimDevice(self.sensor, address=las.gige_device or las.host)
+                await asyncio.to_thread(self.gige.start)
+                ctl, dat = 0, 0
+            else:
+                ctl, dat = await self.sensor.start()
         except OSError as exc:
             await self.stop()
             raise SimCellError(f"cannot start the simulated cell: {exc}") from None
@@ -193,6 +203,9 @@ class SimulatedCell:
 
     async def stop(self) -> None:
         """Stop the sensor first (it reads the controller's trajectory), then the controller."""
+        if self.gige is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.to_thread(self.gige.stop)
         if self.sensor is not None:
             with contextlib.suppress(Exception):
                 await self.sensor.stop()
