@@ -189,6 +189,10 @@ def main() -> int:
         "--timeout-s", type=float, default=None, help="give up after this (default 3600; long 7200)"
     )
     p.add_argument("--load", type=int, default=0, help="N busy processes beside the cell")
+    p.add_argument(
+        "--protocol", choices=["hd8", "gige"], default=None,
+        help="the sensor's protocol ([laser] protocol; gige: the simulator serves a GigE Vision device)",
+    )  # fmt: skip
     p.add_argument("--worker-busy", action="store_true", help="a large analysis running beside the scan")
     args = p.parse_args()
     plate = args.plate or ("demo" if args.small else "sail")
@@ -201,6 +205,8 @@ def main() -> int:
     if long_plate:
         sp_d = cfg_dict["sim"]["plate"]
         sp_d.update(length_mm=args.length_mm or 6000.0, width_mm=args.width_mm or 2000.0)
+    if args.protocol is not None:
+        cfg_dict["laser"]["protocol"] = args.protocol
     cfg_path = work / "cell.toml"
     cfg_path.write_text(to_toml(cfg_dict))
     cfg = load_config(cfg_path)
@@ -307,6 +313,7 @@ def main() -> int:
         "track": cfg.robot.track is not None,
         "plan_choices": info["plan"].get("choices"),
         "load": args.load,
+        "protocol": cfg.laser.protocol,
         "worker_busy": args.worker_busy,
     }
     motion = info.get("motion") or {}
