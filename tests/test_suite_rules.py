@@ -47,9 +47,9 @@ CASES = textwrap.dedent(
 )
 
 
-def _check(log: Path, allow: Path, max_fallbacks: int) -> subprocess.CompletedProcess:
+def _check(log: Path, allow: Path, max_fallbacks: int, per_module: int = 2) -> subprocess.CompletedProcess:
     cmd = [sys.executable, str(REPO_ROOT / ".ci/check_skips.py"), str(log), "--allowlist", str(allow),
-           "--max-fallbacks", str(max_fallbacks)]  # fmt: skip
+           "--max-fallbacks", str(max_fallbacks), "--max-fallbacks-per-module", str(per_module)]  # fmt: skip
     return subprocess.run(cmd, capture_output=True, text=True, timeout=60)
 
 
@@ -91,3 +91,7 @@ def test_unmarked_spawns_are_refused_and_skips_are_checked_against_the_allowlist
     assert _check(log, allow, max_fallbacks=2).returncode == 0
     too_many = _check(log, allow, max_fallbacks=1)
     assert too_many.returncode == 1 and "2 fallbacks, more than 1" in too_many.stderr
+    # both fell back in one module: bounded per module as well as in total
+    crowded = _check(log, allow, max_fallbacks=2, per_module=1)
+    assert crowded.returncode == 1, crowded.stdout
+    assert "test_cases.py: 2 fallbacks, more than 1 in a module" in crowded.stderr, crowded.stderr
