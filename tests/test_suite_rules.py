@@ -95,3 +95,22 @@ def test_unmarked_spawns_are_refused_and_skips_are_checked_against_the_allowlist
     crowded = _check(log, allow, max_fallbacks=2, per_module=1)
     assert crowded.returncode == 1, crowded.stdout
     assert "test_cases.py: 2 fallbacks, more than 1 in a module" in crowded.stderr, crowded.stderr
+
+
+def test_a_test_that_starts_a_real_time_simulator_is_marked_realtime_from_its_imports(tmp_path):
+    """make test runs `realtime` tests one at a time: tests/conftest.py marks them from the code."""
+    (tmp_path / "test_rt.py").write_text(
+        "def test_in_function():\n    from drivers.laser.sim.sensor import LaserSimulator  # noqa: F401\n\n"
+        "from tests.support import e2e_cell  # noqa: E402,F401\n\ndef test_harness():\n    pass\n"
+    )
+    (tmp_path / "test_plain.py").write_text(
+        "from drivers.laser.source import ProfileBatch  # noqa: F401\n\ndef test_client_side():\n    pass\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
+    r = subprocess.run(
+        [sys.executable, "-m", "pytest", "-p", "tests.conftest", "-q", "--collect-only", "-m", "realtime",
+         "-p", "no:cacheprovider", "test_rt.py", "test_plain.py"],
+        capture_output=True, text=True, timeout=240, cwd=tmp_path, env=env,
+    )  # fmt: skip
+    collected = [line for line in r.stdout.splitlines() if "::" in line]
+    assert collected == ["test_rt.py::test_in_function", "test_rt.py::test_harness"], r.stdout
