@@ -284,10 +284,11 @@ def test_the_figures_and_the_verdict_agree_with_the_truth_alone(measured: Measur
     assert not check.figure_failures, check.summary()
 
 
-# The located saddle's registration lay 0.08, 0.20 and 0.22 deg (0.34, 0.6, 1.2 mm at the corners) off
-# the truth's in yaw in three runs on a loaded machine (its measured corners 0.6-1.8 mm off the true
-# ones); the other plates' within 0.02 deg. A finding for the registration (issue 46's note), kept
-# visible: expected to fail there until fixed, its figures checked by the case above all the same.
+# The located saddle's registration lay 0.08-0.22 deg (0.34-1.21 mm at the corners) off the truth's
+# in yaw in six runs on a loaded machine, three of them beyond 0.1 deg (its measured corners 0.6-1.8
+# mm off the true ones); the sail and the cylinder within 0.09 deg. A finding for the registration
+# (docs/testing.md, "Found by the stronger checks"), kept visible: expected to fail there until
+# fixed (not strict: it passes on some runs), its figures checked by the case above all the same.
 POSE_FINDING = {"saddle-located": "the located saddle's registration turns 0.08-0.22 deg off the truth"}
 
 
