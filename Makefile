@@ -14,10 +14,12 @@ $(STAMP): pyproject.toml constraints.txt scripts/setup.sh
 	touch $(STAMP)
 
 # The unit tests (no marker) and the tests that only compute (`compute`, set by tests/conftest.py)
-# on both cores, then every cell test alone, one at a time: real-time simulators must not share the
-# cores with numerical tests. Both always run; the exit status is the first failure's.
-UNIT   := not long and (compute or not (slow or e2e or process))
-CELLS  := not long and not compute and (slow or e2e or process)
+# on both cores, then every cell test and every test that starts a real-time simulator (`realtime`,
+# set by tests/conftest.py from the code, in process or as a process) alone, one at a time:
+# real-time simulators must not share the cores with numerical tests. Both always run; the exit
+# status is the first failure's.
+UNIT   := not long and not realtime and (compute or not (slow or e2e or process))
+CELLS  := not long and (realtime or (not compute and (slow or e2e or process)))
 
 test: setup
 	@$(BIN)/python -m pytest -m "$(UNIT)" -n 2 --dist loadfile; unit=$$?; \

@@ -1,7 +1,8 @@
 """Check a run's skips (the JSON-lines file tests/support/skiplog.py writes) against tests/skip_allowlist.txt.
 
 Prints every skip with the entry that allows it, the count of fallbacks, and exits 1 when a skip is
-not allowed or when more than ``--max-fallbacks`` fallbacks happened. An entry of kind "retry" is a
+not allowed, when more than ``--max-fallbacks`` fallbacks happened in all, or more than
+``--max-fallbacks-per-module`` in one test module (one module's retries must not use up the run's). An entry of kind "retry" is a
 fallback a case took without skipping (it ran a scan again after a starved simulator lost one): it
 is allowed and counted like a skip."""
 
@@ -33,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("skip_log", type=Path)
     ap.add_argument("--allowlist", type=Path, default=Path("tests/skip_allowlist.txt"))
     ap.add_argument("--max-fallbacks", type=int, required=True)
+    ap.add_argument("--max-fallbacks-per-module", type=int, default=1)
     args = ap.parse_args(argv)
     allow = load_allowlist(args.allowlist)
     skips = []
@@ -60,7 +62,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ci: {len(refused)} skips are not on {args.allowlist}", file=sys.stderr)
     if len(fallbacks) > args.max_fallbacks:
         print(f"ci: {len(fallbacks)} fallbacks, more than {args.max_fallbacks}", file=sys.stderr)
-    return 1 if refused or len(fallbacks) > args.max_fallbacks else 0
+    per_module: dict[str, int] = {}
+    for s in fallbacks:
+        module = s["nodeid"].split("::", 1)[0]
+        per_module[module] = per_module.get(module, 0) + 1
+    crowded = {m: n for m, n in per_module.items() if n > args.max_fallbacks_per_module}
+    for m, n in sorted(crowded.items()):
+        print(
+            f"ci: {m}: {n} fallbacks, more than {args.max_fallbacks_per_module} in a module", file=sys.stderr
+        )
+    return 1 if refused or len(fallbacks) > args.max_fallbacks or crowded else 0
 
 
 if __name__ == "__main__":

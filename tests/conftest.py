@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ast
+import inspect
 import multiprocessing.process
 import os
 import re
@@ -81,18 +83,105 @@ REAL_TIME = re.compile(
     r"drivers\.abb_egm\.sim|drivers\.laser\.sim|cellctl\.simcell|controller_process"
     r"|tests\.support\.(?:simcell|e2e_cell|faultcell|fleet_cells)"
 )
+# Every test that starts a real-time simulator, anywhere in the suite, is marked `realtime` and runs
+# in the second part (the Makefile's rule), found from the code: its module imports a simulator (the
+# EGM / RWS controller simulator, the HD8 simulator, the simulated cell) or a harness that starts one
+# (e2e, fault and fleet cells, the in-process simcell), or a fixture it uses names one in its own
+# code (a conftest's controller process). A helper module that imports a simulator for a constant
+# does not make its importers real-time; a test that imports the simulator itself is taken to run it.
+REAL_TIME_MODULES = (
+    "drivers.abb_egm.sim",
+    "drivers.laser.sim",
+    "cellctl.simcell",
+    "tests.support.simcell",
+    "tests.support.e2e_cell",
+    "tests.support.faultcell",
+    "tests.support.cellfaults",
+    "tests.support.fleet_cells",
+    "tests.laser.laser_helpers",
+)
+_starts_simulator: dict[Path, bool] = {}
+_fixture_starts: dict[object, bool] = {}
+
+
+def _imported_modules(path: Path) -> set[str]:
+    """Every module ``path`` imports (module level, in functions, relative imports resolved), and for
+    ``from package import name`` also ``package.name`` (it may be a module)."""
+    try:
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+    except (OSError, SyntaxError, UnicodeDecodeError):
+        return set()
+    try:
+        package = ".".join(path.relative_to(REPO_ROOT).with_suffix("").parts[:-1])
+    except ValueError:  # a test file outside the repository (the suite rules' own throw-away one)
+        package = ""
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
+            out.add(base)
+            out.update(f"{base}.{a.name}" for a in node.names)
+    return out
+
+
+def starts_simulator(path: Path) -> bool:
+    """True when the module at ``path`` imports a real-time simulator or a harness that starts one."""
+    path = path.resolve()
+    if path not in _starts_simulator:
+        _starts_simulator[path] = any(
+            name == m or name.startswith(m + ".")
+            for name in _imported_modules(path)
+            for m in REAL_TIME_MODULES
+        )
+    return _starts_simulator[path]
+
+
+def _fixture_names_a_simulator(func: object) -> bool:
+    if func not in _fixture_starts:
+        try:
+            source = inspect.getsource(func)  # type: ignore[arg-type]
+        except (OSError, TypeError):
+            source = ""
+        _fixture_starts[func] = REAL_TIME.search(source) is not None or any(
+            m in source for m in REAL_TIME_MODULES
+        )
+    return _fixture_starts[func]
+
+
+def _uses_simulator(item: pytest.Item) -> bool:
+    if starts_simulator(Path(str(item.path))):
+        return True
+    info = getattr(item, "_fixtureinfo", None)
+    for defs in info.name2fixturedefs.values() if info is not None else ():
+        for fd in defs:
+            module = sys.modules.get(getattr(fd.func, "__module__", ""))
+            file = getattr(module, "__file__", None)
+            if (
+                file
+                and Path(file).resolve().is_relative_to(REPO_ROOT / "tests")
+                and _fixture_names_a_simulator(fd.func)
+            ):
+                return True
+    return False
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     tests_dir = REPO_ROOT / "tests"
     real_time: dict[Path, bool] = {}
     for item in items:
+        if _uses_simulator(item):
+            item.add_marker(pytest.mark.realtime)
         path = Path(str(item.path)).resolve()
         try:
             top = path.relative_to(tests_dir).parts[0]
         except ValueError:
             continue
-        if top not in PARALLEL_DIRS:
+        if top not in PARALLEL_DIRS or item.get_closest_marker("realtime"):
             continue
         if path not in real_time:
             real_time[path] = REAL_TIME.search(path.read_text(encoding="utf-8")) is not None

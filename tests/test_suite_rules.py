@@ -47,9 +47,9 @@ CASES = textwrap.dedent(
 )
 
 
-def _check(log: Path, allow: Path, max_fallbacks: int) -> subprocess.CompletedProcess:
+def _check(log: Path, allow: Path, max_fallbacks: int, per_module: int = 2) -> subprocess.CompletedProcess:
     cmd = [sys.executable, str(REPO_ROOT / ".ci/check_skips.py"), str(log), "--allowlist", str(allow),
-           "--max-fallbacks", str(max_fallbacks)]  # fmt: skip
+           "--max-fallbacks", str(max_fallbacks), "--max-fallbacks-per-module", str(per_module)]  # fmt: skip
     return subprocess.run(cmd, capture_output=True, text=True, timeout=60)
 
 
@@ -91,3 +91,26 @@ def test_unmarked_spawns_are_refused_and_skips_are_checked_against_the_allowlist
     assert _check(log, allow, max_fallbacks=2).returncode == 0
     too_many = _check(log, allow, max_fallbacks=1)
     assert too_many.returncode == 1 and "2 fallbacks, more than 1" in too_many.stderr
+    # both fell back in one module: bounded per module as well as in total
+    crowded = _check(log, allow, max_fallbacks=2, per_module=1)
+    assert crowded.returncode == 1, crowded.stdout
+    assert "test_cases.py: 2 fallbacks, more than 1 in a module" in crowded.stderr, crowded.stderr
+
+
+def test_a_test_that_starts_a_real_time_simulator_is_marked_realtime_from_its_imports(tmp_path):
+    """make test runs `realtime` tests one at a time: tests/conftest.py marks them from the code."""
+    (tmp_path / "test_rt.py").write_text(
+        "def test_in_function():\n    from drivers.laser.sim.sensor import LaserSimulator  # noqa: F401\n\n"
+        "from tests.support import e2e_cell  # noqa: E402,F401\n\ndef test_harness():\n    pass\n"
+    )
+    (tmp_path / "test_plain.py").write_text(
+        "from drivers.laser.source import ProfileBatch  # noqa: F401\n\ndef test_client_side():\n    pass\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
+    r = subprocess.run(
+        [sys.executable, "-m", "pytest", "-p", "tests.conftest", "-q", "--collect-only", "-m", "realtime",
+         "-p", "no:cacheprovider", "test_rt.py", "test_plain.py"],
+        capture_output=True, text=True, timeout=240, cwd=tmp_path, env=env,
+    )  # fmt: skip
+    collected = [line for line in r.stdout.splitlines() if "::" in line]
+    assert collected == ["test_rt.py::test_in_function", "test_rt.py::test_harness"], r.stdout

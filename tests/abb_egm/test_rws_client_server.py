@@ -25,6 +25,7 @@ from drivers.abb_egm.rws_client import (
 )
 from drivers.abb_egm.sim.model import EVENT_EGM_COMM_TIMEOUT, ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
+from tests.support.waits import wait_until
 
 T = "T_ROB1"
 
@@ -421,12 +422,14 @@ def test_slow_controller_gives_a_bounded_timeout_error() -> None:
     async def body() -> None:
         async with cell("rws1", timeout_s=0.3) as (_, server, client):
             await client.get_ctrl_state()
-            server.set_delay(2.0, "/rw/panel/opmode")
+            # the server would answer after 10 s: the client gave up on its own 0.3 s timeout, long
+            # before (bounded by the server's delay, not by a figure load can trip)
+            server.set_delay(10.0, "/rw/panel/opmode")
             loop = asyncio.get_running_loop()
             t0 = loop.time()
             with pytest.raises(RwsTimeoutError):
                 await client.get_opmode()
-            assert loop.time() - t0 < 1.5
+            assert loop.time() - t0 < 5.0
             server.set_delay(0, "/rw/panel/opmode")
             assert await client.get_opmode() == "AUTO"
 
@@ -491,15 +494,13 @@ def test_rws1_subscription_uses_a_websocket_and_reports_signals_and_elog() -> No
             task = asyncio.create_task(
                 _collect(client, 2, ctrl_state=False, execution=False, signals=["DO_EGM_END"], elog=True)
             )
-            await asyncio.sleep(0.3)
-            assert len(server._subs) == 1
+            await wait_until(lambda: len(server._subs) == 1, 0.3)  # subscribed before the changes
             model.set_io("DO_EGM_END", 1)
             model.log_event(80001, "Cell note", "from the test", "warning")
             changes = await asyncio.wait_for(task, 5)
             assert StateChange("signal", "DO_EGM_END", "1") in changes
             assert any(c.kind == "elog" and c.value == "80001" for c in changes)
-            await asyncio.sleep(0.1)
-            assert len(server._subs) == 0  # leaving the iterator deletes the subscription
+            await wait_until(lambda: len(server._subs) == 0, 0.1)  # leaving the iterator deletes it
             assert server.stats["sessions_created"] == 1
 
     run(body)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from analysis.template_table import TemplateTableError, parse_template_table, read_template_table
@@ -104,11 +104,11 @@ def test_square_templates_follow_the_plate_at_any_placement(
     across = 1200.0 if edge in ("0-3", "1-2") else 800.0
     other = 800.0 if across == 1200.0 else 1200.0
     dist = 0.1 * across + d * 0.8 * across
-    if (
-        abs(other / np.tan(np.radians(angle))) + dist > across
-        or dist - abs(other / np.tan(np.radians(angle))) < 0
-    ):
-        return
+    # a slanted template must end on the opposite edge, not beyond the plate's corners
+    assume(
+        abs(other / np.tan(np.radians(angle))) + dist <= across
+        and dist - abs(other / np.tan(np.radians(angle))) >= 0
+    )
     (line,) = detection_lines(
         corners, DetectionLayout(**NO_LAYOUT, templates=(TableTemplate("X", edge, dist, angle),))
     )

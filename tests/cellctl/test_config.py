@@ -262,7 +262,14 @@ def test_values_no_irb_4600_or_sensor_can_have_are_refused(
 
 
 def test_the_shipped_limits_stay_inside_the_robot_model(shipped: dict):
-    parse_config(shipped, "cell.toml")  # the defaults and the shipped file pass the new bounds
+    """cell.toml and the defaults pass the bounds, and what they set lies inside the IRB 4600 model:
+    each joint's range within the model's, its speed within the model's top speed."""
+    from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S
+
+    for robot in (parse_config(shipped, "cell.toml").robot, CellConfig().robot):
+        for i in range(6):
+            assert Q_MIN_DEG[i] <= robot.joint_lower_deg[i] < robot.joint_upper_deg[i] <= Q_MAX_DEG[i], i
+            assert 0 < robot.joint_speed_max_deg_s[i] <= QD_MAX_DEG_S[i], i
 
 
 @pytest.mark.parametrize(

@@ -127,7 +127,12 @@ def test_scan_is_analysed_by_the_worker_and_a_trigger_while_busy_is_refused(cell
     job_dir = cell.jobs_dir / acc.job_id
     assert (job_dir / "raw" / "profiles.craw").stat().st_size > 0
     stored = json.loads((job_dir / "report.json").read_text())
-    assert stored["job_id"] == acc.job_id and stored["verdict"] in ("pass", "fail")
+    # the plate is its design (no forming error): it passes, every line within the measurement's scale
+    # (sensor noise 0.02 mm, the resting bias a tenth of a millimetre: tests/support/truth_check.py)
+    assert stored["job_id"] == acc.job_id and stored["verdict"] == "pass", stored["verdict"]
+    assert max(line["zmax_mm"] for line in stored["lines"]) < 0.3, [
+        line["zmax_mm"] for line in stored["lines"]
+    ]
     assert report is not None and report["verdict"] == stored["verdict"]
     assert [line["family"] for line in stored["lines"]].count("transverse") == 2
     assert rec["info"]["profiles"] > 1000 and Path(message).exists()

@@ -2,8 +2,8 @@
 its fault-control channel (Zenoh on loopback, never in-process).
 
 Expected: the daemon goes ``emergency_stopped``; the scanning job ends ``interrupted`` with its raw
-data intact (every profile received is on disk, none twice) and is re-analysed (a report, or the
-analysis' own verdict that half a plate does not match its design); the
+data intact (every profile received is on disk, none twice) and is re-analysed (a report: the
+truth's verdict when the half scan covered the plate, else ``incomplete`` for what it covered); the
 queued job is cancelled; triggers and ``control/reset`` are refused with a reason while the
 controller is still e-stopped; once the controller is released and reset, ``control/reset`` brings
 the cell back to ``idle`` without moving anything, and a fresh trigger scans again.
@@ -20,18 +20,22 @@ from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import ApiCallError, ControlReply, TriggerAccepted, call
 from cellctl.commands.scan_cmd import wait_for_job
 from tests.support.faultcell import FaultCell, check_job_data
+from tests.support.skiplog import record_fallback
 
 pytestmark = pytest.mark.slow
 
 
-async def _scan_to(c, fraction: float, attempts: int = 3) -> str:
+async def _scan_to(cell: FaultCell, c, fraction: float, attempts: int = 2) -> str:
     """Trigger a scan and wait until it has done ``fraction``; returns its job id.
 
-    On this shared 2-core machine a descheduled simulator can fault a scan by itself (controller
-    silent past the limit); that is not what is under test here, so such a scan is reset and
-    triggered again (at most ``attempts`` times).
+    On this shared 2-core machine a starved simulated controller can fault a scan by itself (late on
+    more than 1 % of its cycles, silent past the executor's limit); that is not what is under test
+    here, so such a scan is reset and triggered again, once (``attempts``), recorded as a fallback
+    with the overrun counts that prove it (.ci/run counts it). A scan that ended early with the
+    controller keeping time fails the case.
     """
     for attempt in range(attempts):
+        before = (await cell.fault()).stats["egm"]
         job_id = await c.trigger(plate_id=f"estop-a{attempt}")
 
         def there(s, job_id=job_id):
@@ -42,11 +46,24 @@ async def _scan_to(c, fraction: float, attempts: int = 3) -> str:
             )
 
         await c.wait(there, timeout_s=240.0)
-        if c.follower.jobs[job_id].state.value == "scanning":
+        job = c.follower.jobs[job_id]
+        if job.state.value == "scanning":
             return job_id
+        after = (await cell.fault()).stats["egm"]
+        overruns, cycles = after["overruns"] - before["overruns"], after["cycles"] - before["cycles"]
+        assert overruns > 0.01 * max(cycles, 1), (
+            f"the scan ended {job.state.value} before the e-stop with the controller keeping time "
+            f"({overruns} of {cycles} cycles late): {job.message}"
+        )
+        if attempt == attempts - 1:
+            break
+        record_fallback(
+            f"fallback: simulators starved (controller overruns {overruns} of {cycles} cycles): scan "
+            f"{job.state.value} before the e-stop ({job.message}), triggered again"
+        )
         await c.control("reset")
         await c.wait(lambda s: s.state.value == "idle", timeout_s=30.0)
-    pytest.fail(f"no scan reached {fraction:.0%} in {attempts} attempts (machine too loaded?)")
+    pytest.fail(f"no scan reached {fraction:.0%} in {attempts} attempts, the controller starved each time")
 
 
 def test_emergency_stop_mid_scan_holds_the_cell_until_reset_and_keeps_the_raw_data(tmp_path):
@@ -58,7 +75,7 @@ def test_emergency_stop_mid_scan_holds_the_cell_until_reset_and_keeps_the_raw_da
             out = {}
             async with cell.client() as c:
                 await c.wait_idle()
-                a = await _scan_to(c, 0.5)  # enough of the plate to analyse
+                a = await _scan_to(cell, c, 0.5)  # enough of the plate to analyse
                 b = await call(c.session, c.keys.trigger, json.dumps(cell.trigger_request(plate_id="estop-b")),
                                TriggerAccepted)  # fmt: skip
                 out["b"] = b
@@ -123,16 +140,19 @@ def test_emergency_stop_mid_scan_holds_the_cell_until_reset_and_keeps_the_raw_da
         assert (out["reset"].action, out["reset"].state) == ("reset", "idle")
         assert out["idle"].job is None or out["idle"].job.job_id == a
         assert out["nothing_new"]
-        # re-analysed: the raw files rebuilt into a cloud that a worker analysed. A scan stopped half
-        # way may not cover the plate; then the analysis says so (a stated end, not a lost job).
+        # re-analysed: the raw files rebuilt into a cloud that a worker analysed, always a report. A
+        # scan stopped half way may have covered the plate (the passes over it done, observed: coverage
+        # 1.0): then the verdict is the truth's (the default forming error passes); or part of it:
+        # analysed with the placement it was planned from, reported for what it covered, never a pass
         assert out["reanalyse"].job_state == "waiting_for_worker"
         state, message, report = out["a_report"]
         rec = cell.job_record(a)
         assert rec["info"]["points"] > 10_000 and (cell.jobs_dir / a / "cloud.bin").stat().st_size > 0
-        if state == "done":
-            assert report is not None and report["job_id"] == a
-        else:
-            assert state == "failed" and message.startswith("analysis error: "), message
+        assert state == "done", message
+        assert report is not None and report["job_id"] == a
+        stored = json.loads((cell.jobs_dir / a / "report.json").read_text())
+        expected = ("incomplete", "fail") if stored["coverage"].get("partial") else ("pass",)
+        assert stored["verdict"] in expected, (stored["verdict"], stored["coverage"])
         assert rec["state"] == state
         # scanning again after the reset
         assert out["d_abort"].job_state in ("scanning", "paused")

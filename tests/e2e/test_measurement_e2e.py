@@ -1,21 +1,26 @@
-"""The measurement end to end: a full-process job (sim, daemon, worker through Zenoh on loopback) on
-the simulated plate with its known forming error, its figures compared with ``sim-truth.json``; the
-worker that did it shares none of the daemon's files; and the job leaks no secret.
+"""The measurement end to end: full-process jobs (sim, daemon, worker through Zenoh on loopback) on
+simulated plates with known forming errors, judged against the simulator's truth alone
+(tests/support/truth_check.py: the truth's own resting pose of the design on the exact formed
+surface, its own figures and verdict); the worker that did the first shares none of the daemon's
+files; and that job leaks no secret.
 
-Its own cell: the shared one of test_cell_e2e.py runs a plate without forming error (its half-turn
-case needs one that a half turn maps onto itself), against which a measurement proves nothing. One
-scan (about a minute of CI) serves every case here:
+Three plates, one cell each (the shared cell of test_cell_e2e.py runs a plate without forming error,
+against which a measurement proves nothing): the 300 x 200 sail with the trigger's placement 20 mm
+and 1 degree off the truth, a saddle turned -25 degrees found by the locate run (no placement), and
+a 340 x 220 cylinder turned 12 degrees, the placement 18 mm and 0.6 degree off, under tolerances
+that fail its dent. Each cell scans once (about a minute and a half of CI each) and is stopped
+before its cases read the results, so no case depends on another's order. The sail's job serves
+every case here:
 
 * its only worker runs in a mount namespace of its own with the daemon's directory hidden (the
   design comes by hash over Zenoh, the results go back over Zenoh), and the daemon renders HTML and
   PDF from its own copy; the cases on the figures read the results the daemon stored, which is what
   any worker's results become;
 * the cell runs with known, unique secret values (the RWS password from the environment, the Zenoh
-  password from a secrets file and the dictionary, access control on); afterwards every log line,
-  every file under the data directories (the daemon's and the worker's: job.json, report.json,
-  results, raw files, the renders), every error reply and every state, event and report
-  publication is searched for them. That case runs last: it stops the cell, so that every log is
-  complete.
+  password from a secrets file and the dictionary, access control on); after the job the cell is
+  stopped and every log line, every file under the data directories (the daemon's and the
+  worker's: job.json, report.json, results, raw files, the renders), every error reply and every
+  state, event and report publication is searched for them.
 """
 
 from __future__ import annotations
@@ -24,20 +29,23 @@ import asyncio
 import json
 import subprocess
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import pytest
 
+from analysis.placement import Placement
 from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
+from cellctl.api.analysis_job import inspection_settings
 from cellctl.api.session import close_session, subscribe
 from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_html_report
 from cellctl.commands.scan_cmd import StatusFollower
 from cellctl.config import load_config
 from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, trigger_demo_plate, wait_status
 from tests.support.isolated import hidden_mounts_command, start_hidden
-from tests.support.truth_check import TruthDeviation
+from tests.support.truth_check import CheckLimits, MeasurementCheck, check_measurement, load_truth
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
@@ -99,13 +107,14 @@ def cell(tmp_path_factory, worker_dir: Path, secrets_env: dict[str, str]):
         c.procs.procs.append(("far", far))  # stopped first, like a cell's own worker
         yield c
     finally:
-        codes = c.stop()  # nothing left to stop when the secrets case ran (it stops the cell)
+        codes = c.stop()  # nothing left to stop once the module's job ran (`scanned` stops the cell)
         assert all(code == 0 for code in codes.values()), (codes, (out / "logs").as_posix())
 
 
 class Scanned(NamedTuple):
     """The module's one job: id, final state and message, the HTML report the daemon rendered after
-    it, and what its client saw: every publication and every reply."""
+    it, what its client saw (every publication and every reply) and each process's exit code when
+    the cell was stopped after it."""
 
     job_id: str
     state: str
@@ -113,13 +122,16 @@ class Scanned(NamedTuple):
     html: str | None
     published: list[bytes]
     replies: list[str]
+    stop_codes: dict
 
 
 @pytest.fixture(scope="module")
 def scanned(cell: Cell) -> Scanned:
     """A trigger the daemon refuses (a design path reaching for the secrets file), then one job on
-    the plate, followed to its end and on to its HTML report (None if none within 300 s; waited for
-    here, so that the cell never stops in the middle of the render)."""
+    the plate (the trigger's placement 20 mm and 1 degree off the truth), followed to its end and on
+    to its HTML report (None if none within 300 s; waited for here, so that the cell never stops in
+    the middle of the render). Then the cell is stopped (every process must end by itself on
+    SIGTERM), so that every log is complete for the secrets case whatever order the cases run in."""
     published: list[bytes] = []
     replies: list[str] = []
 
@@ -139,96 +151,184 @@ def scanned(cell: Cell) -> Scanned:
             with pytest.raises(ApiCallError) as refused:
                 await call(session, keys.trigger, json.dumps(bad), TriggerAccepted)
             replies.append(str(refused.value))
-            acc, (state, message, _report) = await trigger_demo_plate(cell.cfg, "measured")
+            acc, (state, message, _report) = await trigger_demo_plate(
+                cell.cfg, "measured", placement=_off(cell.cfg, PLATES[0])
+            )
             replies.extend([acc.model_dump_json(), message])
             html = None
             if state == "done":
                 html = await asyncio.to_thread(
                     wait_html_report, Path(cell.cfg.cell.data_dir), acc.job_id, 300.0
                 )
-            return Scanned(acc.job_id, state, message, html, published, replies)
+            return Scanned(acc.job_id, state, message, html, published, replies, {})
         finally:
             for s in subs:
                 s.undeclare()
             follower.close()
             await asyncio.to_thread(close_session, session)
 
-    return asyncio.run(go())
+    done = asyncio.run(go())
+    return done._replace(stop_codes=cell.stop())
 
 
-def _truth(cell: Cell, job_dir: Path, report: dict) -> TruthDeviation:
-    return TruthDeviation(
-        Path(cell.cfg.cell.data_dir) / "sim-truth.json", report, cell.out / "designs" / DEMO_DESIGN
+# The plates measured (one cell each; the first is the cell above): kinds, sizes, forming errors and
+# poses, and how the trigger gives the placement. "off" places the trigger off the truth by a
+# realistic error (the operator's placement; the scan is planned from it and the registration starts
+# from nothing of it); None gives no placement: the cell locates the plate first.
+@dataclass(frozen=True)
+class Plate:
+    name: str
+    kind: str
+    length_mm: float
+    width_mm: float
+    radii_mm: tuple[float, float]
+    pos_xy_mm: tuple[float, float] | None  # None: cell.toml's [sim.placement]
+    yaw_deg: float | None
+    placement_off: tuple[float, float, float] | None  # (dx mm, dy mm, dyaw deg) from the truth; None: none
+    tolerances: dict[str, float]
+
+
+PLATES = (
+    # the secrets cell's plate: 300 x 200 sail, the default forming error (a 2.5 mm dent, a 1.5 mm
+    # bump, 1 mm spring-back), the trigger 20 mm and 1 degree off
+    Plate("sail-off-20mm-1deg", "sail", 300.0, 200.0, (4000.0, 3000.0), None, None, (14.14, -14.14, 1.0), {}),
+    # a saddle turned -25 degrees, no placement: the locate run finds it
+    Plate("saddle-located", "saddle", 300.0, 200.0, (3000.0, 2500.0), (1470.0, 40.0), -25.0, None, {}),
+    # a 340 x 220 cylinder (its forming error scaled to it) turned 12 degrees, the trigger 18 mm and
+    # 0.6 degree off, judged against tolerances that fail the dent's lines
+    Plate("cylinder-off-fails", "cylinder", 340.0, 220.0, (2000.0, 3000.0), (1530.0, -30.0), 12.0,
+          (-10.0, 15.0, -0.6), {"deviation_standard_mm": 1.0, "deviation_limit_mm": 2.0}),
+)  # fmt: skip
+LOCATE = {"check_given": True, "bed_min_xy_mm": [1250.0, -250.0], "bed_max_xy_mm": [1750.0, 250.0],
+          "pass_spacing_mm": 120.0, "across_within_deg": 45.0}  # fmt: skip
+
+
+def _off(cfg, plate: Plate) -> Placement | None:
+    """The trigger's placement: the simulated plate's, moved by the plate's placement error."""
+    if plate.placement_off is None:
+        return None
+    pl = cfg.sim.placement
+    dx, dy, dyaw = plate.placement_off
+    return Placement(
+        pos_mm=(pl.pos_mm[0] + dx, pl.pos_mm[1] + dy, pl.pos_mm[2]), rpy_deg=(0.0, 0.0, pl.angle_deg + dyaw)
     )
 
 
-# Tolerances of the measurement against the simulator's truth. The sensor's noise is 0.02 mm (1
-# sigma) and the analysis reconstructs the surface in cells of a few points; the simulator renders
-# the formed plate from a 4 mm mesh (chord error under 0.02 mm on the dent).
-ZMAX_TOL_MM = 0.15  # per line: reported Zmax vs the forming error's Zmax on the same line
-PROFILE_MEDIAN_TOL_MM = 0.05  # per line: median |measured - true| deviation along it
-FIELD_MEDIAN_TOL_MM = 0.05  # the deviation field over the plate: median |measured - true|
-FIELD_P99_TOL_MM = 0.3  # ... and its 99th percentile (edges, where cells hold few points)
-REGISTRATION_INPLANE_TOL_MM = 1.5  # the registered design vs the true plate at its corners, in plane
-REGISTRATION_HEIGHT_TOL_MM = 3.0  # ... and in height (the dent is 2.5 mm deep)
+class Measured(NamedTuple):
+    """One plate's job: its record, report and results, and the check against the truth alone."""
+
+    plate: Plate
+    state: str
+    message: str
+    record: dict
+    report: dict | None
+    check: MeasurementCheck | None
+    truth_yaw_deg: float
 
 
-def test_the_reported_deviations_are_the_forming_error_the_simulator_put_in(cell: Cell, scanned):
-    """The measurement end to end: per-line Zmax, the deviation along each line and the deviation
-    field of the job's results equal what the simulated plate's known forming error gives
-    (``sim-truth.json``) on the same lines, for the registration the analysis reported."""
-    job_id, state, message = scanned.job_id, scanned.state, scanned.message
-    assert state == "done", message
-    job_dir = cell.jobs_dir / job_id
+def _measure(plate: Plate, cfg, data_dir: Path, job_id: str, state: str, message: str) -> Measured:
+    job_dir = data_dir / "jobs" / job_id
+    record = json.loads((job_dir / "job.json").read_text())
+    yaw = cfg.sim.placement.angle_deg
+    if state != "done":
+        return Measured(plate, state, message, record, None, None, yaw)
     report = json.loads((job_dir / "report.json").read_text())
-    results = np.load(job_dir / "results" / "results.npz")
-    truth = _truth(cell, job_dir, report)
-    assert not truth.error.is_zero, "the simulated plate carries a forming error"
+    results = dict(np.load(job_dir / "results" / "results.npz"))
+    truth = load_truth(data_dir / "sim-truth.json")
+    check = check_measurement(truth, report, results, inspection_settings(cfg.analysis).layout)
+    return Measured(plate, state, message, record, report, check, yaw)
 
-    lines = report["lines"]
-    assert len(lines) == len(
-        [k for k in results.files if k.endswith("_deviation_mm") and k.startswith("line")]
-    )
-    figures = []
-    for k, line in enumerate(lines):
-        s = results[f"line{k}_s_mm"]
-        measured = results[f"line{k}_deviation_mm"]
-        ok = np.isfinite(measured)
-        expected = truth.line_deviation_mm(line, s[ok])
-        zmax_true = float(np.max(np.abs(expected)))
-        figures.append(
-            (line["name"], line["zmax_mm"], zmax_true, float(np.median(np.abs(measured[ok] - expected))))
+
+@pytest.fixture(scope="module", params=[p.name for p in PLATES])
+def measured(request, tmp_path_factory) -> Measured:
+    """Each plate's job, checked against the truth alone. The first plate's is the module's secrets
+    cell's job; the others each start their own cell, scan once and stop it here (so that no case
+    depends on another's order)."""
+    plate = next(p for p in PLATES if p.name == request.param)
+    if plate is PLATES[0]:
+        cell, scanned = request.getfixturevalue("cell"), request.getfixturevalue("scanned")
+        return _measure(plate, cell.cfg, Path(cell.cfg.cell.data_dir), scanned.job_id, scanned.state,
+                        scanned.message)  # fmt: skip
+    out = tmp_path_factory.mktemp(plate.name)
+    path = tiny_cell_config(
+        out, kind=plate.kind, length_mm=plate.length_mm, width_mm=plate.width_mm, radius_x_mm=plate.radii_mm[0],
+        radius_y_mm=plate.radii_mm[1], angle_deg=plate.yaw_deg, pos_xy_mm=plate.pos_xy_mm,
+        tolerances=plate.tolerances,
+    )  # fmt: skip
+    if plate.placement_off is None:
+        raw = load_config(path).model_dump(mode="json")
+        raw["locate"].update(LOCATE)
+        path.write_text(to_toml(raw), encoding="utf-8")
+    c = Cell(out, path)
+    c.start()
+    try:
+        acc, (state, message, _) = asyncio.run(
+            trigger_demo_plate(c.cfg, plate.name, placement=_off(c.cfg, plate))
         )
-    assert all(abs(z - zt) <= ZMAX_TOL_MM for _, z, zt, _ in figures), figures
-    assert all(m <= PROFILE_MEDIAN_TOL_MM for *_, m in figures), figures
-    assert max(zt for _, _, zt, _ in figures) > 0.5, figures  # the lines cross the dent or the bump
-
-    xy_plate = results["plate_xy_mm"].astype(np.float64)
-    T_design_plate = np.linalg.inv(truth.T_plate_design)
-    xy = xy_plate @ T_design_plate[:2, :2].T + T_design_plate[:2, 3]
-    diff = np.abs(results["plate_deviation_mm"] - truth.deviation_mm(xy[:, 0], xy[:, 1]))
-    assert diff.size > 1000
-    assert np.median(diff) <= FIELD_MEDIAN_TOL_MM and np.percentile(diff, 99) <= FIELD_P99_TOL_MM, (
-        np.median(diff),
-        np.percentile(diff, 99),
-        diff.max(),
-    )
+    finally:
+        codes = c.stop()
+    assert all(code == 0 for code in codes.values()), (codes, (out / "logs").as_posix())
+    return _measure(plate, c.cfg, Path(c.cfg.cell.data_dir), acc.job_id, state, message)
 
 
-def test_the_registered_design_lies_where_the_true_plate_lies(cell: Cell, scanned):
-    """The registration against the truth: the design, registered onto the cloud, sits where the
-    simulator put the plate (``T_base_plate`` in sim-truth.json)."""
-    job_id, state, message = scanned.job_id, scanned.state, scanned.message
-    assert state == "done", message
-    job_dir = cell.jobs_dir / job_id
-    report = json.loads((job_dir / "report.json").read_text())
-    truth = _truth(cell, job_dir, report)
-    # In its plane within a millimetre or so at the corners (the boundary anchors it); in height
-    # where the non-penetrating rest on the formed plate puts it (at most the forming error's depth).
-    corners = np.array([[x, y, 0.0, 1.0] for x in (-150.0, 150.0) for y in (-100.0, 100.0)])
-    moved = (truth.M @ corners.T)[:3] - corners.T[:3]
-    assert np.hypot(moved[0], moved[1]).max() < REGISTRATION_INPLANE_TOL_MM, moved
-    assert np.abs(moved[2]).max() < REGISTRATION_HEIGHT_TOL_MM, moved
+@pytest.mark.timeout(900)
+def test_the_figures_and_the_verdict_agree_with_the_truth_alone(measured: Measured):
+    """The figures of the job against the truth's own resting pose of the design on the exact formed
+    plate (tests/support/truth_check.py): Zmax per line within 0.1 mm, the deviation over the field
+    (median within 0.05 mm) and along each line (median within 0.1 mm) once the common resting offset
+    (-0.15 .. +0.05 mm) is taken out, each line valid over 90 % of its length, every line's grade and
+    the verdict the truth's."""
+    assert measured.state == "done", measured.message
+    check = measured.check
+    assert check is not None
+    assert not check.figure_failures, check.summary()
+
+
+# The located saddle's registration lay 0.08-0.22 deg (0.34-1.21 mm at the corners) off the truth's
+# in yaw in six runs on a loaded machine, three of them beyond 0.1 deg (its measured corners 0.6-1.8
+# mm off the true ones); the sail and the cylinder within 0.09 deg. A finding for the registration
+# (docs/testing.md, "Found by the stronger checks"), kept visible: expected to fail there until
+# fixed (not strict: it passes on some runs), its figures checked by the case above all the same.
+POSE_FINDING = {"saddle-located": "the located saddle's registration turns 0.08-0.22 deg off the truth"}
+
+
+@pytest.mark.timeout(900)
+def test_the_registered_design_lies_where_the_truth_rests_it_in_plane(measured: Measured, request):
+    """The registered design's corners within 1 mm of the truth's resting pose in plane, its turn about
+    the vertical within 0.1 deg."""
+    if measured.plate.name in POSE_FINDING:
+        request.applymarker(pytest.mark.xfail(reason=POSE_FINDING[measured.plate.name], strict=False))
+    assert measured.state == "done", measured.message
+    check = measured.check
+    assert check is not None
+    assert not check.pose_failures, check.summary()
+
+
+@pytest.mark.timeout(900)
+def test_each_plate_was_triggered_as_its_case_says_and_carries_a_forming_error_to_find(measured: Measured):
+    """The premises: the trigger's placement was off by the plate's error (or none was given and the
+    locate run found the plate), the lines cross the forming error, and every line's true Zmax lies
+    clear of the tolerances' thresholds (so that equal verdicts are not a coin toss)."""
+    assert measured.state == "done", measured.message
+    plate, rec, check = measured.plate, measured.record, measured.check
+    assert check is not None
+    found = rec["info"].get("placement_found")
+    if plate.placement_off is None:
+        assert found is not None and found["source"] == "located" and found["given"] is None, found
+    else:
+        # the scan was planned from the given placement, off the truth by the plate's error
+        given = Placement.model_validate(rec["placement"])
+        assert found is None or found["source"] == "given", found
+        assert abs(given.yaw_deg - measured.truth_yaw_deg - plate.placement_off[2]) < 1e-6, given
+        assert np.hypot(*plate.placement_off[:2]) >= 17.0 and abs(plate.placement_off[2]) >= 0.5
+    true_z = [c.zmax_true_mm for c in check.lines]
+    assert max(true_z) > 1.0, true_z
+    tol = measured.report["tolerances"]
+    thresholds = (tol["deviation_standard_mm"], tol["deviation_limit_mm"])
+    margin = min(abs(z - t) for z in true_z for t in thresholds)
+    assert margin > 2 * CheckLimits().zmax_mm, (true_z, thresholds)
+    if plate.tolerances:  # the tight tolerances fail the plate, as the truth does
+        assert check.verdict_true == "fail"
 
 
 def test_a_worker_that_sees_none_of_the_daemons_files_completes_a_job_rendered_at_the_daemon(
@@ -269,8 +369,8 @@ def _files_under(root: Path) -> list[Path]:
 def test_the_job_leaks_neither_password_to_logs_files_replies_or_publications(
     cell: Cell, worker_dir: Path, scanned: Scanned
 ):
-    """Runs last: stops the cell (every process must end by itself on SIGTERM), then searches."""
-    codes = cell.stop()
+    """The cell was stopped after its job (`scanned`): every log is complete; searches them all."""
+    codes = scanned.stop_codes
     assert codes and all(code == 0 for code in codes.values()), codes
     assert scanned.state == "done", scanned.message
     job_dir = cell.jobs_dir / scanned.job_id

@@ -31,7 +31,6 @@ from cellctl.api.session import async_get
 from cellctl.commands.scan_cmd import wait_for_job
 from tests.support.cellfaults import (
     FINAL,
-    PARTIAL_CLOUD_REFUSED,
     FaultCell,
     fault_cell_config,
     job_history,
@@ -79,7 +78,7 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
                 session, keys, follower = c.session, c.keys, c.follower
                 await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 120.0)
                 seen["scans_lost_to_load"] = []
-                for _ in range(3):
+                for _ in range(2):  # one scan again at most: .ci/run allows one fallback per module
                     before = (await cell.fault()).stats["egm"]
                     acc = await call(
                         session, keys.trigger, json.dumps(cell.trigger_request()), TriggerAccepted
@@ -191,13 +190,17 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
         assert seen2["recovered"] == ("interrupted", "scanning"), seen2
         assert "1 interrupted job" in seen2["message"], seen2["message"]
         state, message, report = seen2["final"]
-        # the one outcome besides a report: the plain refusal of the partial cloud (docstring)
-        assert state == "done" or (state == "failed" and message.startswith(PARTIAL_CLOUD_REFUSED)), message
+        # the scan cut short by the kill is analysed from its raw files with the placement it was planned
+        # from (as tests/e2e/test_shutdown_recovery.py's): a report of what it covered, never a pass
+        assert state == "done", message
         hist = job_history(cell, job_id)
         assert hist.count("interrupted") == 1 and hist[-1] == state, hist
-        if state == "done":
-            assert report is not None and report["job_id"] == job_id
-            assert json.loads((cell.jobs_dir / job_id / "report.json").read_text())["job_id"] == job_id
+        assert report is not None and report["job_id"] == job_id
+        stored = json.loads((cell.jobs_dir / job_id / "report.json").read_text())
+        assert stored["job_id"] == job_id
+        # what it covered, never a pass; the truth's verdict (the default forming error passes) if whole
+        expected = ("incomplete", "fail") if stored["coverage"].get("partial") else ("pass",)
+        assert stored["verdict"] in expected, (stored["verdict"], stored["coverage"])
         assert os.path.getsize(raw_dir / "profiles.craw") > 0
         assert seen2["published"] == "interrupted", seen2
         next_id, idle_message = seen2["idle_message"]

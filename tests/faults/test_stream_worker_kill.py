@@ -70,7 +70,7 @@ def test_worker_killed_mid_stream_the_restarted_worker_gets_every_pass_and_compl
                 state, message, _ = await wait_for_job(follower, job_id, 300.0)
                 seen["final"] = (state, message)
                 seen["chunks"] = len(chunks_out())
-            seen["overrun_frames"] = await sensor_overruns(cell)
+            seen["sensor"] = await sensor_overruns(cell)
 
         asyncio.run(go())
         job_id = seen["job_id"]
@@ -100,4 +100,4 @@ def test_worker_killed_mid_stream_the_restarted_worker_gets_every_pass_and_compl
         cell.procs.procs = [(n, p) for n, p in cell.procs.procs if p.poll() is None]
         codes = stop_cell(cell)
     assert all(c == 0 for c in codes.values()), codes
-    expect_analysed(*seen["final"], seen["overrun_frames"])
+    expect_analysed(*seen["final"], seen["sensor"])

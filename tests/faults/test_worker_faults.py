@@ -75,7 +75,7 @@ def test_worker_killed_mid_analysis_the_restarted_worker_completes_the_job_once(
                 cell.procs.start("worker2", "worker")
                 state, message, _ = await wait_for_job(follower, job_id, 240.0)
                 seen["final"] = (state, message)
-            seen["overrun_frames"] = await sensor_overruns(cell)
+            seen["sensor"] = await sensor_overruns(cell)
             return seen
 
         seen = asyncio.run(go())
@@ -104,4 +104,4 @@ def test_worker_killed_mid_analysis_the_restarted_worker_completes_the_job_once(
         cell.procs.procs = [(n, p) for n, p in cell.procs.procs if p.poll() is None]
         codes = stop_cell(cell)
     assert all(c == 0 for c in codes.values()), codes
-    expect_analysed(*seen["final"], seen["overrun_frames"])
+    expect_analysed(*seen["final"], seen["sensor"])

@@ -115,7 +115,7 @@ def test_link_cut_during_scan_and_analysis_the_job_is_analysed_once_after_the_li
                 rec = cell.job_record(job_id)
                 seen["final"] = (rec["state"], rec["history"][-1]["message"])
                 seen["worker_alive_at_end"] = worker.poll() is None
-            seen["overrun_frames"] = await sensor_overruns(cell)
+            seen["sensor"] = await sensor_overruns(cell)
             return seen
 
         seen = asyncio.run(go())
@@ -152,4 +152,4 @@ def test_link_cut_during_scan_and_analysis_the_job_is_analysed_once_after_the_li
         fwd.close()
         codes = stop_cell(cell)
     assert all(c == 0 for c in codes.values()), codes
-    expect_analysed(*seen["final"], seen["overrun_frames"])
+    expect_analysed(*seen["final"], seen["sensor"])

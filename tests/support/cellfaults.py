@@ -12,6 +12,7 @@ import contextlib
 import os
 import signal
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,14 @@ from cellctl.acquisition.rawstore import RawReader
 from cellctl.commands.demo_cmd import to_toml
 from cellctl.config import load_config
 from tests.support.e2e_cell import Cell, wait_status
-from tests.support.faultcell import FINAL_JOB_STATES, FaultCell, fault_cell_config
+from tests.support.faultcell import (
+    FINAL_JOB_STATES,
+    PARTIAL_CLOUD_REFUSED,
+    SENSOR_STARVED_SHARE,
+    FaultCell,
+    fault_cell_config,
+    sensor_starved,
+)
 
 __all__ = [
     "FINAL",
@@ -29,6 +37,7 @@ __all__ = [
     "Cell",
     "FaultCell",
     "RawCheck",
+    "SensorCounters",
     "children_of",
     "expect_analysed",
     "fault_cell_config",
@@ -44,30 +53,43 @@ __all__ = [
 FINAL = FINAL_JOB_STATES
 
 
-# The analysis' plain refusal of a cloud that covers only part of the plate (what a scan cut short
-# leaves): the worker reports the pipeline's InspectionError.
-PARTIAL_CLOUD_REFUSED = "analysis error: InspectionError: the design does not match the plate"
+@dataclass(frozen=True)
+class SensorCounters:
+    """The simulated HD8's frames since it started (these cases' cells run one job): how many it
+    acquired and how many it could not render in time."""
+
+    overrun_frames: int
+    frames_acquired: int
+
+    @property
+    def starved(self) -> bool:
+        """More than SENSOR_STARVED_SHARE of the frames overran: the machine starved the simulator."""
+        return sensor_starved(self.overrun_frames, self.frames_acquired)
+
+    def __str__(self) -> str:
+        return f"sensor overruns {self.overrun_frames} of {self.frames_acquired} frames"
 
 
-async def sensor_overruns(cell: FaultCell) -> int:
-    """Frames the simulated HD8 could not render in time since it started (the cells of these
-    cases run one job): more than zero means the machine starved it and the cloud may be sparse."""
-    return int((await cell.fault()).stats["laser"]["overrun_frames"])
+async def sensor_overruns(cell: FaultCell) -> SensorCounters:
+    """The simulated HD8's frame counters (:class:`SensorCounters`)."""
+    laser = (await cell.fault()).stats["laser"]
+    return SensorCounters(int(laser["overrun_frames"]), int(laser["frames_acquired"]))
 
 
-def expect_analysed(state: str, message: str, overrun_frames: int) -> None:
+def expect_analysed(state: str, message: str, sensor: SensorCounters) -> None:
     """The worker's report of a whole scan reached the daemon and the job is ``done``. The one
-    fallback: when the machine starved the simulated sensor (``overrun_frames`` > 0), the analysis
-    may refuse the sparse cloud with its own error; the report still came back once, which is what
-    the Zenoh and worker cases are about, and the case is skipped as a fallback (counted by .ci/run).
-    Call it last, after the case's other checks."""
+    fallback: when the machine starved the simulated sensor (more than SENSOR_STARVED_SHARE of its
+    frames overran), the analysis may refuse the holed cloud as covering only part of the plate
+    (:data:`PARTIAL_CLOUD_REFUSED`, that refusal only); the report still came back once, which is
+    what the Zenoh and worker cases are about, and the case is skipped as a fallback (counted by
+    .ci/run). Call it last, after the case's other checks."""
     if state == "done":
         return
-    if overrun_frames > 0 and state == "failed" and message.startswith("analysis error"):
-        pytest.skip(
-            f"fallback: simulators starved (sensor overruns {overrun_frames} frames): job failed: {message}"
-        )
-    raise AssertionError(f"job {state}: {message} (sensor overruns {overrun_frames} frames)")
+    if sensor.starved and state == "failed" and message.startswith(PARTIAL_CLOUD_REFUSED):
+        pytest.skip(f"fallback: simulators starved ({sensor}): job failed: {message}")
+    raise AssertionError(
+        f"job {state}: {message} ({sensor}; starved above {SENSOR_STARVED_SHARE:.0%}: {sensor.starved})"
+    )
 
 
 def stop_cell(cell: Cell, grace_s: float = 180.0) -> dict[str, Any]:

@@ -27,7 +27,9 @@ def tiny_cell_config(
     out: Path,
     *,
     forming_error: str = "default",
+    kind: str = "sail",
     angle_deg: float | None = None,
+    pos_xy_mm: tuple[float, float] | None = None,
     tolerances: dict[str, float] | None = None,
     parked: bool = True,
     **plate: float,
@@ -35,7 +37,8 @@ def tiny_cell_config(
     """A cell.toml for a 300 x 200 mm sail plate scanned at 1.5 mm profile spacing (a scan of ~30 s).
 
     ``forming_error="none"``: the simulated plate is its design, which a half turn maps onto itself.
-    ``angle_deg``: the simulated plate's yaw on the bed (default: cell.toml's).
+    ``kind``: the plate's shape (``[sim.plate] kind``; ``radius_x_mm``, ``radius_y_mm`` as keywords).
+    ``angle_deg``, ``pos_xy_mm``: the simulated plate's yaw and place on the bed (default: cell.toml's).
     ``tolerances``: ``[analysis.tolerances]`` keys to override (tighter ones make a line fail).
     ``parked``: the simulated arm starts parked above the bed (see below); False: at cell.toml's home.
     """
@@ -43,8 +46,12 @@ def tiny_cell_config(
     cfg = demo_config(base, out)
     cfg["sim"]["plate"].update(length_mm=plate.get("length_mm", 300.0), width_mm=plate.get("width_mm", 200.0))
     cfg["sim"]["plate"]["forming_error"] = forming_error
+    cfg["sim"]["plate"]["kind"] = kind
+    cfg["sim"]["plate"].update({k: plate[k] for k in ("radius_x_mm", "radius_y_mm") if k in plate})
     if angle_deg is not None:
         cfg["sim"]["placement"]["angle_deg"] = angle_deg
+    if pos_xy_mm is not None:
+        cfg["sim"]["placement"]["pos_mm"][:2] = [float(v) for v in pos_xy_mm]
     cfg["scan"].update(profile_spacing_mm=plate.get("profile_spacing_mm", 1.5))
     # Passes along the plate's length, as on every cell before issue 20's "fastest": on this plate the
     # planner would also solve the passes across (estimated 26.0 s against 27.0 s, then refused on a
@@ -147,10 +154,12 @@ async def wait_status(follower, pred, timeout_s: float = 90.0):
 
 
 async def trigger_demo_plate(
-    cfg, plate_id: str, timeout_s: float = 300.0
+    cfg, plate_id: str, timeout_s: float = 300.0, *, placement: Any = "sim"
 ) -> tuple[Any, tuple[str, str, Any]]:
-    """Wait until the cell is idle with a worker, trigger the demo design at the simulated plate's
-    placement (a typed TriggerRequest) and follow the job: ``(TriggerAccepted, (state, message, report))``."""
+    """Wait until the cell is idle with a worker, trigger the demo design (a typed TriggerRequest) and
+    follow the job: ``(TriggerAccepted, (state, message, report))``. ``placement``: ``"sim"`` the
+    simulated plate's exact placement, a :class:`~analysis.placement.Placement` that one, None none
+    (the cell locates the plate first)."""
     from analysis.placement import Placement
     from cellctl.api import Keys, TriggerAccepted, TriggerRequest, call
     from cellctl.api.session import close_session
@@ -161,12 +170,10 @@ async def trigger_demo_plate(
     follower = StatusFollower(session, keys)
     try:
         await wait_status(follower, lambda s: s.state.value == "idle" and s.workers, 120.0)
-        pl = cfg.sim.placement
-        req = TriggerRequest(
-            plate_id=plate_id,
-            design=DEMO_DESIGN,
-            placement=Placement(pos_mm=tuple(pl.pos_mm), rpy_deg=(0.0, 0.0, pl.angle_deg)),
-        )
+        if placement == "sim":
+            pl = cfg.sim.placement
+            placement = Placement(pos_mm=tuple(pl.pos_mm), rpy_deg=(0.0, 0.0, pl.angle_deg))
+        req = TriggerRequest(plate_id=plate_id, design=DEMO_DESIGN, placement=placement)
         acc = await call(session, keys.trigger, req.model_dump_json(exclude_none=True), TriggerAccepted)
         return acc, await wait_for_job(follower, acc.job_id, timeout_s)
     finally:
