@@ -364,7 +364,9 @@ def test_a_failing_watchdog_callback_does_not_stop_the_endpoint():
             ctl.send(robot(1))
             assert (await ctl.recv()).seqno == 1  # the endpoint still replies
             await asyncio.wait_for(called["resumed"].wait(), 5.0)  # and still calls the callback
-            assert calls == ["quiet", "resumed"] and ep.stats.watchdog_events == 1
+            # the controller is silent again after robot(1): on a loaded machine the next "quiet" (20 ms
+            # later) can come before this line runs; every one of them was counted
+            assert calls[:2] == ["quiet", "resumed"] and ep.stats.watchdog_events == calls.count("quiet")
         finally:
             ctl.close()
             await ep.close()
