@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from cellctl.api.session import ApiCallError
 from tests.support.faultcell import FaultCell
 
 pytestmark = pytest.mark.e2e
@@ -72,15 +73,19 @@ def test_bad_records_are_quarantined_and_a_second_daemon_exits_at_once_changing_
         }
         assert json.loads((good / "job.json").read_text())["state"] == "interrupted"
 
-        # a record that goes bad while the daemon runs: re-analysis still finds the job by its raw data
+        # a record that goes bad while the daemon runs: re-analysis finds the job by its raw data,
+        # quarantines the record, and refuses with the reason and the offline route (a quarantined
+        # record names no design; issue 43 item 3: it failed with "design .: Is a directory")
         (good / "job.json").write_text('{"state": ')
 
         async def reanalyse():
             async with cell.client() as c:
                 return await c.control("reanalyse", good.name)
 
-        reply = asyncio.run(reanalyse())
-        assert (reply.job_id, reply.job_state) == (good.name, "waiting_for_worker"), reply
+        with pytest.raises(ApiCallError) as refused:
+            asyncio.run(reanalyse())
+        assert "not_allowed" in str(refused.value) and "names no design" in str(refused.value)
+        assert "cellctl reassemble" in str(refused.value)
         assert (good / "job.json.quarantined").read_text() == '{"state": '
 
         # a live scan's record, as a running daemon holds it: a second daemon must not touch it
