@@ -206,7 +206,9 @@ def test_abort_asks_once_and_sends_one_abort_for_the_job_on_screen(page, hmi) ->
         "document.getElementById('scan-notice').textContent.includes('aborted')"
     )  # the reply
     assert page.is_hidden("#confirm")
-    assert [(a, json.loads(b)) for a, b in hmi.link.sent] == [("abort", {"job_id": j["job_id"]})]
+    assert [(a, json.loads(b)) for a, b in hmi.link.sent] == [
+        ("abort", {"job_id": j["job_id"], "requested_by": "olga"})
+    ]
     assert page.text_content("#scan-error") == ""
     # pause asks nothing
     hmi.link.replies.append(
