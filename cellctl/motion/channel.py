@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
-from cellctl.api.models import MotionCounters
+from cellctl.api.models import EgmStats, MotionCounters
 
 __all__ = [
     "MAX_MESSAGE_BYTES",
@@ -192,7 +192,7 @@ class StatsEvent(_Msg):
     """The EGM endpoint's counters (``EgmStatistics.snapshot()``) and the channel's own drops."""
 
     kind: Literal["stats"] = "stats"
-    egm: dict
+    egm: EgmStats
     dropped_messages: int = 0
 
 

@@ -313,7 +313,7 @@ class MotionLink:
                 if self._ready is not None and not self._ready.done():
                     self._ready.set_result(ev)
             elif isinstance(ev, StatsEvent):
-                self.stats.update(ev.egm)
+                self.stats.update(ev.egm.model_dump())
             elif isinstance(ev, ProgressMsg | EndedEvent):
                 ex = self._executions.get(ev.execution_id)
                 if ex is not None:

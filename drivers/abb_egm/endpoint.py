@@ -70,6 +70,7 @@ __all__ = [
     "FeedbackHistory",
     "HistoryRangeError",
     "axes_of",
+    "interpolate_q_deg",
     "latency_percentile_us",
     "ok_to_command",
 ]
@@ -326,16 +327,21 @@ class FeedbackHistory:
             HistoryRangeError: a time before the oldest or after the newest kept sample, or a
                 controller time base when the controller sent no clock.
         """
-        a = self.arrays()
-        if time_base == "host":
-            ts = a.t_host_ns
-        elif time_base == "controller":
-            ts = a.t_ctrl_us
-            if len(a) and np.any(ts < 0):
-                raise HistoryRangeError("the controller sent no feedback time; use time_base='host'")
-        else:
-            raise ValueError(f"time_base must be 'host' or 'controller', got {time_base!r}")
-        return _interp_rows(np.asarray(t, dtype=np.int64), ts, a.q_deg)
+        return interpolate_q_deg(self.arrays(), t, time_base)
+
+
+def interpolate_q_deg(a: FeedbackArrays, t: np.ndarray, time_base: str = "host") -> np.ndarray:
+    """Joint angles of the samples ``a`` linearly interpolated at ``t`` (see
+    :meth:`FeedbackHistory.q_deg_at`): one implementation for every history kept in any memory."""
+    if time_base == "host":
+        ts = a.t_host_ns
+    elif time_base == "controller":
+        ts = a.t_ctrl_us
+        if len(a) and np.any(ts < 0):
+            raise HistoryRangeError("the controller sent no feedback time; use time_base='host'")
+    else:
+        raise ValueError(f"time_base must be 'host' or 'controller', got {time_base!r}")
+    return _interp_rows(np.asarray(t, dtype=np.int64), ts, a.q_deg)
 
 
 def _interp_rows(t: np.ndarray, ts: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -26,12 +26,7 @@ from multiprocessing import resource_tracker, shared_memory
 import numpy as np
 
 from drivers.abb_egm.codec import MciState, MotorState, RapidState
-from drivers.abb_egm.endpoint import (
-    FeedbackArrays,
-    HistoryRangeError,
-    _interp_rows,
-    ok_to_command,
-)
+from drivers.abb_egm.endpoint import FeedbackArrays, interpolate_q_deg, ok_to_command
 
 __all__ = ["SharedFeedbackHistory"]
 
@@ -234,16 +229,7 @@ class SharedFeedbackHistory:
 
     def q_deg_at(self, t: np.ndarray, *, time_base: str = "host") -> np.ndarray:
         """Joint angles interpolated at ``t`` (as :meth:`FeedbackHistory.q_deg_at`)."""
-        a = self.arrays()
-        if time_base == "host":
-            ts = a.t_host_ns
-        elif time_base == "controller":
-            ts = a.t_ctrl_us
-            if len(a) and np.any(ts < 0):
-                raise HistoryRangeError("the controller sent no feedback time; use time_base='host'")
-        else:
-            raise ValueError(f"time_base must be 'host' or 'controller', got {time_base!r}")
-        return _interp_rows(np.asarray(t, dtype=np.int64), ts, a.q_deg)
+        return interpolate_q_deg(self.arrays(), t, time_base)
 
     def latest(self) -> tuple[int, np.ndarray, bool] | None:
         """The newest sample as (t_host_ns, axes (n_axes,), ok to command), or None before the first."""

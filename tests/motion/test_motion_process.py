@@ -43,9 +43,16 @@ from tests.support.ports import free_port
 pytestmark = pytest.mark.slow
 
 #: stale replies allowed on a shared VM: its vCPUs can be taken away by the host for several ms
-#: (steal time) whatever this process's priority; the designs these tests tell apart differ by
-#: hundreds (a 2 s block of the old design's loop is 500 cycles)
-STALE_ALLOWANCE = 4
+#: (steal time) whatever this process's priority, a few replies each time (6 of 3817 seen at load 1);
+#: the designs these tests tell apart differ by hundreds (a 2 s block of the old design's loop is 500
+#: cycles of a ~3800-cycle plan)
+STALE_SHARE = 0.005
+
+
+def stale_allowance(cycles: int) -> float:
+    return max(4.0, STALE_SHARE * cycles)
+
+
 #: the controller's event for an EGM session ended by its communication timeout (RAPID EGM docs)
 EVENT_EGM_COMM_TIMEOUT = 41822
 
@@ -110,7 +117,7 @@ def test_a_plan_runs_in_the_motion_process_with_every_reply_for_its_own_cycle(sm
     assert result.state == ExecState.FINISHED, result.fault
     c = ex.counters
     assert c.cycles == result.cycles > 0.9 * small_plan.trajectory.duration_s / 0.004032
-    assert c.egm_stale_cycles <= STALE_ALLOWANCE, c
+    assert c.egm_stale_cycles <= stale_allowance(c.cycles), c
     assert c.egm_reply_p50_us is not None and c.egm_reply_p50_us < 1000.0, c
     assert 0.0 < c.max_tracking_error_mm < 1.0, c
     rec = ex.record()
@@ -166,7 +173,7 @@ def test_a_daemon_blocked_for_two_seconds_costs_no_stale_cycle(small_plan, tmp_p
     assert result.state == ExecState.FINISHED, result.fault
     # the plan went on while the daemon stood: ~2 s of playback
     assert advanced >= 1.9
-    assert ex.counters.egm_stale_cycles <= STALE_ALLOWANCE, ex.counters
+    assert ex.counters.egm_stale_cycles <= stale_allowance(ex.counters.cycles), ex.counters
     _assert_tracks_plan(ex.record(), small_plan)
 
 
