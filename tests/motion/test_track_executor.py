@@ -137,7 +137,9 @@ def test_pause_resume_and_abort_ramp_all_seven_axes(track_plan):
         await wait_for_segment(executor, "scan 1", 0.4)
         executor.pause()
         await wait_for_state(executor, "paused")
-        seen["reference"] = executor.endpoint.reference_q_deg
+        # the endpoint answers each cycle with the reference prepared in the one before: the
+        # reference the executor settled on is on the wire one cycle after the state says paused
+        at_pause = executor.endpoint.reference_q_deg
         # the controller's law settles the last few tenths of a mm: wait until it has (<= 3 s)
         last, deadline = sim.axes_mm_deg, asyncio.get_running_loop().time() + 3.0
         while asyncio.get_running_loop().time() < deadline:
@@ -147,6 +149,8 @@ def test_pause_resume_and_abort_ramp_all_seven_axes(track_plan):
                 break
             last = now
         seen["paused"] = sim.axes_mm_deg
+        seen["reference"] = executor.endpoint.reference_q_deg
+        seen["reference_at_pause"] = at_pause
         await asyncio.sleep(0.5)
         seen["after_wait"] = sim.axes_mm_deg
         seen["reference_after_wait"] = executor.endpoint.reference_q_deg
@@ -160,6 +164,7 @@ def test_pause_resume_and_abort_ramp_all_seven_axes(track_plan):
     assert result.q_ref_deg.shape[1] == 7
     # paused mid-pass with the carriage moving: every axis, the track included, held still
     np.testing.assert_array_equal(seen["reference_after_wait"], seen["reference"])
+    np.testing.assert_allclose(seen["reference"], seen["reference_at_pause"], atol=1e-3)
     np.testing.assert_allclose(seen["after_wait"], seen["paused"], atol=0.05)
     assert np.ptp(result.q_ref_deg[:, 0]) > 50.0  # the track was moving in the pass it paused in
     # the stops and the restart are jerk-limited on all seven axes (the track's in mm/s^3)
