@@ -29,6 +29,11 @@ and again) the whole time, so each reply carries a reference computed for its cy
 ``stale_cycles`` (the motion process's own count) and ``motion_realtime``. ``--load N`` runs N busy
 processes (a tight Python loop each, normal priority) for the whole measurement.
 
+The machine's own floor is measured beside: one probe per CPU (benchmarks/platform_latency.py,
+SCHED_FIFO 90, pinned) records every moment it woke more than one cycle late. ``platform`` holds
+its figures and ``missed_in_platform_stalls`` how many of ``missed_cycles`` fell inside such a
+stall, when no thread on this machine could have answered in time (``--no-platform-probe``: none).
+
 Prints exactly one JSON object on stdout; logs go to stderr.
 
     python benchmarks/egm_latency.py [--seconds 60] [--realtime] [--cpu-latency-us 0] \\
@@ -65,6 +70,7 @@ import structlog
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchmarks.platform_latency import in_stalls, start_probes, stop_probes  # noqa: E402
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig  # noqa: E402
 from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig  # noqa: E402
 from drivers.runtime import precise_event_loop  # noqa: E402
@@ -177,13 +183,20 @@ async def _measure(port: int, args: argparse.Namespace, q_start_deg: tuple[float
         await asyncio.sleep(0.05)
         user_us, user_missed = sim.reply_latency()
         kernel_us, kernel_missed = sim.reply_latency(kernel=True)
+        sent_ns = sim.reply_sent_ns()
         late_us = sim.tick_lateness_us()[-min(sim._late_n - late_n0, 4096) :]
     finally:
         await sim.stop()
     if not sim.kernel_rx_stamps:
         print("egm_latency: no kernel receive stamps; headline figures are user space", file=sys.stderr)
         kernel_us, kernel_missed = user_us, user_missed
+    # each missed cycle's window, from the EgmRobot's send to its reply's arrival (or one cycle on)
+    missed = kernel_missed & np.isfinite(kernel_us)
+    windows = np.stack(
+        [sent_ns[missed], sent_ns[missed] + (kernel_us[missed] * 1000.0).astype(np.int64)], axis=1
+    )
     return {
+        "_missed_windows_ns": windows,
         **_figures(kernel_us, kernel_missed, cycles),
         "cycles": int(cycles),
         "unanswered": max(0, cycles - int(np.isfinite(kernel_us).sum())),
@@ -246,8 +259,19 @@ async def _motion_process(args: argparse.Namespace) -> dict:
         out = await measure
     finally:
         await link.close()
-    out.update(stale_cycles=stale, executions=runs, motion_realtime=link.realtime)
+    out.update(stale_cycles=stale, executions=runs, motion_realtime=link.realtime.model_dump())
     return out
+
+
+def _attribute(result: dict, platform: dict | None) -> None:
+    """Set each missed cycle against the platform probes' stalls (benchmarks/platform_latency.py):
+    ``missed_in_platform_stalls`` of ``missed_cycles`` fell where a SCHED_FIFO thread of the highest
+    priority was itself held back more than one cycle, so no process could have answered in time."""
+    windows = result.pop("_missed_windows_ns")
+    if platform is None:
+        return
+    result["missed_in_platform_stalls"] = int(in_stalls(windows, platform.pop("stalls")).sum())
+    result["platform"] = platform
 
 
 def _pin(cpus: list[int], what: str) -> None:
@@ -299,6 +323,12 @@ def main() -> int:
     p.add_argument("--endpoint-child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--motion-process", action="store_true", help="the cell's motion process, executing plans")
     p.add_argument("--load", type=int, default=0, help="N busy processes for the whole measurement")
+    p.add_argument(
+        "--no-platform-probe",
+        dest="platform_probe",
+        action="store_false",
+        help="without the probes of the machine's own wake-up latency (benchmarks/platform_latency.py)",
+    )
     args = p.parse_args()
     _quiet_logging()
     busy = [
@@ -329,8 +359,13 @@ def _main(args: argparse.Namespace) -> int:
 
         held = hold_cpu_wakeup_latency(args.cpu_latency_us)
     if args.motion_process:
-        with asyncio.Runner(loop_factory=precise_event_loop) as runner:
-            result = runner.run(_motion_process(args))
+        probes = start_probes(cycle_ms=args.cycle_ms) if args.platform_probe else []
+        try:
+            with asyncio.Runner(loop_factory=precise_event_loop) as runner:
+                result = runner.run(_motion_process(args))
+        finally:
+            platform = stop_probes(probes) if probes else None
+        _attribute(result, platform)
         result.update(realtime=realtime, cpu_latency_held=held, load=args.load, load_1min=os.getloadavg()[0])
         print(json.dumps(result))
         return 0
@@ -341,11 +376,17 @@ def _main(args: argparse.Namespace) -> int:
         text=True,
     )
     endpoint: dict = {}
+    probes: list = []
+    platform = None
     try:
         port = int(child.stdout.readline())
         _pin(args.sim_cpus, "simulator")
-        with asyncio.Runner(loop_factory=precise_event_loop) as runner:
-            result = runner.run(_measure(port, args))
+        probes = start_probes(cycle_ms=args.cycle_ms) if args.platform_probe else []
+        try:
+            with asyncio.Runner(loop_factory=precise_event_loop) as runner:
+                result = runner.run(_measure(port, args))
+        finally:
+            platform = stop_probes(probes) if probes else None
     finally:
         child.send_signal(signal.SIGTERM)
         try:
@@ -358,6 +399,7 @@ def _main(args: argparse.Namespace) -> int:
         # CPU share of the whole endpoint process while it served (warm-up included): one core = 1.0
         result["endpoint_cpu_fraction"] = round(endpoint["cpu_fraction"], 3)
         result["endpoint_latency_max_us"] = round(endpoint["stats"]["latency_max_us"], 1)
+    _attribute(result, platform)
     result["realtime"] = realtime
     result["reply_thread"] = args.reply_thread
     result["loop_busy_ms"] = args.loop_busy_ms

@@ -26,7 +26,10 @@ in a temporary directory), triggers one scan over Zenoh and waits for the report
   ``egm_reply_p50_us`` / ``egm_reply_p99_us`` / ``egm_reply_max_us`` (packet arrival to reply, 10 us
   bins), ``max_tracking_error_mm``, and ``motion_realtime`` (what the OS granted the motion process);
   ``accuracy_rms_mm``: the cloud's RMS distance to the simulator's true plate surface (points at
-  least 10 mm inside its edges), the figure a late reference would spoil.
+  least 10 mm inside its edges), the figure a late reference would spoil; ``platform_over_cycle``
+  and ``platform``: the machine's own floor over the same run, how often a pinned SCHED_FIFO probe
+  of the highest priority woke more than one EGM cycle late (benchmarks/platform_latency.py): on a
+  shared VM the hypervisor's stalls, when no process could have answered in time.
 
 ``--load N`` runs N busy processes (a tight Python loop each, normal priority) beside the cell from
 before the trigger to the report; ``--worker-busy`` runs, beside the cell's own worker, an analysis
@@ -152,6 +155,7 @@ def _utc_s(stamp: str) -> float:
 def main() -> int:
     from analysis.mesh import save_mesh
     from analysis.plates import design_mesh, plate_spec
+    from benchmarks.platform_latency import start_probes, stop_probes
     from cellctl.commands.demo_cmd import (
         DEMO_DESIGN,
         Processes,
@@ -220,12 +224,15 @@ def main() -> int:
     procs = Processes(work / "logs", cfg_path, env)
     peaks: dict[str, float] = {}
     busy: list[subprocess.Popen] = []
+    probes: list[subprocess.Popen] = []
+    platform = None
     try:
         sim = procs.start("sim", "sim")
         wait_ready_line(work / "logs" / "sim.out", sim, 180.0)
         daemon = procs.start("run", "run")
         worker = procs.start("worker", "worker")
         busy = _busy_processes(args.load, args.worker_busy, work, env)
+        probes = start_probes()
         t0 = time.time()
 
         async def drive():
@@ -256,6 +263,9 @@ def main() -> int:
         wait_html_report(cfg.cell.data_dir, job_id, 180.0)
         peaks["daemon"] = max(peaks["daemon"], _peak_mb(daemon.pid))
     finally:
+        if probes:
+            platform = stop_probes(probes)
+            platform.pop("stalls")
         for b in busy:
             b.kill()
             b.wait()
@@ -326,6 +336,10 @@ def main() -> int:
         egm_cycles=motion.get("cycles"),
         max_tracking_error_mm=info.get("max_tracking_error_mm"),
         motion_realtime=_motion_realtime(work / "logs" / "run.log"),
+        # the machine's own floor over the same time: how often a SCHED_FIFO thread of the highest
+        # priority woke more than one EGM cycle late (benchmarks/platform_latency.py)
+        platform_over_cycle=None if platform is None else platform["over_cycle"],
+        platform=platform,
         accuracy_rms_mm=_accuracy_rms_mm(Path(cfg.cell.data_dir), job_id),
     )
     found = info.get("placement_found")

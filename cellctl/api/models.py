@@ -520,6 +520,18 @@ class HeapSummary(Model):
     top: list[HeapLine] = []
 
 
+class MotionRealtime(Model):
+    """What the OS granted the motion process's cycle thread (issue 41): its SCHED_FIFO priority
+    (0: normal scheduling), the CPUs it may run on, whether its memory is locked, and one line per
+    setting the OS refused (``refused``, empty when everything was granted)."""
+
+    priority: Annotated[int, Field(ge=0, le=99)] = 0
+    sched_fifo: bool = False
+    cpus: list[int] = []
+    memory_locked: bool = False
+    refused: str = ""
+
+
 class DaemonStats(Model):
     """Reply of ``Keys.stats``: the daemon's counters since it started, for monitoring and the soak."""
 
@@ -528,9 +540,8 @@ class DaemonStats(Model):
     rss_mb: float
     dispatch_malformed: Annotated[int, Field(ge=0)] = 0
     egm: EgmStats | None = None
-    #: what the OS granted the motion process (priority, sched_fifo, cpus, memory_locked) and what it
-    #: refused (``refused``, empty when nothing)
-    motion_realtime: dict[str, str | bool | int | list[int]] | None = None
+    #: what the OS granted the motion process and what it refused
+    motion_realtime: MotionRealtime | None = None
     python_heap: HeapSummary | None = None
 
 

@@ -274,7 +274,7 @@ class CellDaemon:
         body = DaemonStats(
             cell_id=self.cfg.cell.id, t_utc=now_utc(), rss_mb=rss_mb(),
             egm=(self.drivers.motion.stats.snapshot() or None) if self.drivers is not None else None,
-            motion_realtime=None if self.drivers is None else (self.drivers.motion.realtime or None),
+            motion_realtime=None if self.drivers is None else (self.drivers.motion.realtime),
             dispatch_malformed=0 if self.dispatcher is None else self.dispatcher.malformed, python_heap=heap,
         )  # fmt: skip
         query.reply(query.key_expr, body.to_json(), encoding=JSON)

@@ -19,7 +19,9 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
-from cellctl.api.models import EgmStats, MotionCounters
+from cellctl.api.models import EgmStats, MotionCounters, MotionRealtime
+from cellctl.motion.executor import ExecutorConfig
+from drivers.abb_egm.endpoint import EgmEndpointConfig
 
 __all__ = [
     "MAX_MESSAGE_BYTES",
@@ -100,7 +102,7 @@ class HelloCommand(_Msg):
     """The first message: everything the motion process needs before it binds the EGM port."""
 
     kind: Literal["hello"] = "hello"
-    endpoint: dict  # EgmEndpointConfig's fields (validated there, against the dataclass)
+    endpoint: EgmEndpointConfig
     envelope: EnvelopeSpec
     realtime: RealtimeSpec
     shm_name: str = Field(min_length=1, max_length=200)
@@ -120,7 +122,7 @@ class ExecuteCommand(_Msg):
     plan_file: str
     segment_labels: list[str]
     segment_kinds: list[str]
-    executor: dict
+    executor: ExecutorConfig
     start_not_before_s: float = 0.0
     record_file: str | None = None
 
@@ -152,7 +154,7 @@ class ReadyEvent(_Msg):
     pid: int
     host: str
     port: int
-    realtime: dict[str, str | bool | int | list[int]]
+    realtime: MotionRealtime
 
 
 class ProgressMsg(_Msg):

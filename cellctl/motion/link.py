@@ -32,7 +32,7 @@ import numpy as np
 import structlog
 from pydantic import ValidationError
 
-from cellctl.api.models import MotionCounters
+from cellctl.api.models import MotionCounters, MotionRealtime
 from cellctl.motion.channel import (
     MAX_MESSAGE_BYTES,
     ControlCommand,
@@ -158,7 +158,7 @@ class MotionLink:
         self.settings = settings
         self.on_death = on_death
         self.stats = _StatsView()
-        self.realtime: dict = {}
+        self.realtime: MotionRealtime | None = None
         self._proc: asyncio.subprocess.Process | None = None
         self._sock: socket.socket | None = None
         self._ring: SharedFeedbackHistory | None = None
@@ -196,11 +196,8 @@ class MotionLink:
         mine.setblocking(False)
         self._sock = mine
         self._ready = loop.create_future()
-        endpoint = {
-            k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(s.endpoint).items()
-        }
         hello = HelloCommand(
-            endpoint=endpoint, envelope=s.envelope, realtime=s.realtime, shm_name=shm_name,
+            endpoint=s.endpoint, envelope=s.envelope, realtime=s.realtime, shm_name=shm_name,
             log_format=s.log_format, log_level=s.log_level, cell_id=s.cell_id,
         )  # fmt: skip
         await loop.sock_sendall(mine, encode(hello))
@@ -216,16 +213,19 @@ class MotionLink:
         except MotionLinkError:
             await self._kill()
             raise
-        self.realtime = dict(ready.realtime)
-        if s.realtime.required and ready.realtime.get("refused"):
+        self.realtime = ready.realtime
+        if s.realtime.required and ready.realtime.refused:
             await self.close()
             raise MotionLinkError(
-                f"the motion process's real-time settings were refused ({ready.realtime['refused']}) "
+                f"the motion process's real-time settings were refused ({ready.realtime.refused}) "
                 "and [robot] motion_realtime_required is set"
             )
         self._ring = SharedFeedbackHistory.attach(shm_name)
         self._address = (ready.host, ready.port)
-        log.info("motion_process_started", pid=ready.pid, host=ready.host, port=ready.port, **self.realtime)
+        log.info(
+            "motion_process_started", pid=ready.pid, host=ready.host, port=ready.port,
+            **self.realtime.model_dump(),
+        )  # fmt: skip
         return self._address
 
     async def close(self, timeout_s: float = 30.0) -> None:
@@ -541,14 +541,10 @@ class RemoteExecution:
         try:
             await asyncio.to_thread(write_plan)
             self.link._executions[self.execution_id] = self
-            executor = {
-                k: (list(v) if isinstance(v, tuple) else v)
-                for k, v in dataclasses.asdict(self.config).items()
-            }
             await self.link._send(
                 ExecuteCommand(
                     execution_id=self.execution_id, plan_file=str(plan_file),
-                    segment_labels=self.segment_labels, segment_kinds=self.segment_kinds, executor=executor,
+                    segment_labels=self.segment_labels, segment_kinds=self.segment_kinds, executor=self.config,
                     start_not_before_s=self.start_not_before_s, record_file=str(record_file),
                 )
             )  # fmt: skip

@@ -36,9 +36,9 @@ from pathlib import Path
 
 import numpy as np
 import structlog
-from pydantic import TypeAdapter, ValidationError
+from pydantic import ValidationError
 
-from cellctl.api.models import MotionCounters
+from cellctl.api.models import MotionCounters, MotionRealtime
 from cellctl.logging import bind_context, configure_logging
 from cellctl.motion.channel import (
     MAX_MESSAGE_BYTES,
@@ -67,7 +67,6 @@ from cellctl.motion.trajectory import TimedTrajectory
 from drivers.abb_egm.endpoint import (
     LATENCY_BIN_EDGES_US,
     EgmEndpoint,
-    EgmEndpointConfig,
     latency_percentile_us,
 )
 from drivers.abb_egm.kinematics import LinearTrack
@@ -114,7 +113,7 @@ def envelope_limits(spec: EnvelopeSpec) -> EnvelopeLimits:
     )
 
 
-def realtime_setup(spec: RealtimeSpec) -> dict[str, str | bool | int | list[int]]:
+def realtime_setup(spec: RealtimeSpec) -> MotionRealtime:
     """Apply ``spec`` to the calling thread (and, for memory, the process): what was granted and,
     one line each, what the OS refused (``refused``: empty when everything was granted)."""
     refused = set_thread_realtime(spec.priority, tuple(spec.cpus))
@@ -126,13 +125,13 @@ def realtime_setup(spec: RealtimeSpec) -> dict[str, str | bool | int | list[int]
         else:
             refused.append(why)
     granted_fifo = spec.priority > 0 and not any(r.startswith("SCHED_FIFO") for r in refused)
-    return {
-        "priority": spec.priority if granted_fifo else 0,
-        "sched_fifo": granted_fifo,
-        "cpus": sorted(os.sched_getaffinity(0)),
-        "memory_locked": locked,
-        "refused": "; ".join(refused),
-    }
+    return MotionRealtime(
+        priority=spec.priority if granted_fifo else 0,
+        sched_fifo=granted_fifo,
+        cpus=sorted(os.sched_getaffinity(0)),
+        memory_locked=locked,
+        refused="; ".join(refused),
+    )
 
 
 class MotionServer:
@@ -329,7 +328,7 @@ class MotionServer:
                     t_s=z["t_s"], q_deg=z["q_deg"], qd_deg_s=z["qd_deg_s"], qdd_deg_s2=z["qdd_deg_s2"],
                     segment=z["segment"],
                 )  # fmt: skip
-            cfg = TypeAdapter(ExecutorConfig).validate_python(cmd.executor)
+            cfg = cmd.executor
             ex = MotionExecutor(
                 self.endpoint, traj, SafetyEnvelope(self.limits), cfg,
                 segment_labels=cmd.segment_labels, segment_kinds=cmd.segment_kinds,
@@ -456,10 +455,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     configure_logging("json" if hello.log_format == "json" else "console", hello.log_level)
     bind_context(cell_id=hello.cell_id, process="motion")
-    ep_fields = {f.name for f in dataclasses.fields(EgmEndpointConfig)}
-    ep_cfg = TypeAdapter(EgmEndpointConfig).validate_python(
-        {k: v for k, v in hello.endpoint.items() if k in ep_fields} | {"reply_thread": False}
-    )
+    ep_cfg = dataclasses.replace(hello.endpoint, reply_thread=False)
     limits = envelope_limits(hello.envelope)
     ring = SharedFeedbackHistory.create(hello.shm_name, ep_cfg.history_len, ep_cfg.n_external + ep_cfg.n_axes)
     try:
@@ -473,10 +469,10 @@ def main(argv: list[str] | None = None) -> int:
             sys.setswitchinterval(ep_cfg.switch_interval_s)
         rt = realtime_setup(hello.realtime)
         hold_cpu_wakeup_latency(0)  # the cores answer a packet without waking from a deep idle state
-        if rt["refused"]:
-            log.warning("motion_realtime_refused", reason=rt["refused"], required=hello.realtime.required)
+        if rt.refused:
+            log.warning("motion_realtime_refused", reason=rt.refused, required=hello.realtime.required)
         else:
-            log.info("motion_realtime", **{k: v for k, v in rt.items() if k != "refused"})
+            log.info("motion_realtime", **rt.model_dump(exclude={"refused"}))
         server = MotionServer(endpoint, limits, channel, hello.realtime, ring)
         # everything made so far (modules, the model, the envelope's kinematics) out of the collector's
         # reach, and no automatic collection: it would run inside a cycle

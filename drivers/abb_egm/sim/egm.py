@@ -433,6 +433,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         self._latency_missed = np.zeros(cfg.latency_capacity, dtype=bool)
         self._latency_kernel_us = np.full(cfg.latency_capacity, np.nan)
         self._latency_kernel_missed = np.zeros(cfg.latency_capacity, dtype=bool)
+        self._latency_sent_ns = np.zeros(cfg.latency_capacity, dtype=np.int64)
         self._latency_n = 0
         self._kernel_stamps = False
         self._late_us = np.zeros(4096)
@@ -562,6 +563,11 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         if kernel:
             return self._latency_kernel_us[:n].copy(), self._latency_kernel_missed[:n].copy()
         return self._latency_us[:n].copy(), self._latency_missed[:n].copy()
+
+    def reply_sent_ns(self) -> np.ndarray:
+        """When each of :meth:`reply_latency`'s samples was sent (the EgmRobot's send, monotonic ns)."""
+        n = min(self._latency_n, self._latency_us.shape[0])
+        return self._latency_sent_ns[:n].copy()
 
     @property
     def kernel_rx_stamps(self) -> bool:
@@ -1034,6 +1040,7 @@ class EgmControllerSim(asyncio.DatagramProtocol):
         latency_us = (t_rx_ns - self._send_t_ns[slot]) / 1000.0
         i = self._latency_n % self._latency_us.shape[0]
         self._latency_us[i] = latency_us
+        self._latency_sent_ns[i] = self._send_t_ns[slot]
         # missed: the next EgmRobot had already gone out when the reply came
         nxt = (seqno + 1) % self._send_t_ns.shape[0]
         next_sent = bool(self._send_seq[nxt] == (seqno + 1) % _U32)
