@@ -37,7 +37,8 @@ from cellctl.acquisition.clock_sync import (
 from cellctl.acquisition.poses import T_from_pos_rpy
 from cellctl.acquisition.rawstore import RawWriter
 from cellctl.config import CellConfig
-from drivers.abb_egm.kinematics import LinearTrack, fk_batch
+from drivers.abb_egm.kinematics import fk_batch
+from drivers.abb_egm.limits import LinearTrack
 from drivers.laser.source import ProfileBatch
 
 __all__ = [

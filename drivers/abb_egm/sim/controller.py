@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import structlog
 
+from drivers.abb_egm.limits import EGM_CYCLE_S
 from drivers.abb_egm.sim.egm import EgmControllerSim, EgmFaults, EgmSimConfig, FaultError
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
@@ -174,7 +175,9 @@ def _parser() -> argparse.ArgumentParser:
         default="CELL_RWS_PASSWORD",
         help="environment variable holding the RWS password (ABB's factory default if unset)",
     )
-    p.add_argument("--cycle-ms", type=float, default=4.032, help="EGM cycle (4.032 ms on a real robot)")
+    p.add_argument(
+        "--cycle-ms", type=float, default=EGM_CYCLE_S * 1e3, help="EGM cycle (4.032 ms on a real robot)"
+    )
     p.add_argument(
         "--comm-timeout-s", type=float, default=1.0, help="used outside the RAPID program's values"
     )
