@@ -33,6 +33,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 
 from analysis.placement import Placement
 from drivers.abb_egm.limits import EGM_CYCLE_S, Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S, LinearTrack, RobotLimits
+from drivers.abb_egm.rws_protocol import AUTO, OpMode
 
 ENV_PREFIX = "CELL_"
 ENV_DELIMITER = "__"
@@ -688,7 +689,7 @@ class SimSection(Section):
     rws_users: dict[str, str] = {"Default User": "CELL_RWS_PASSWORD"}
     rws_max_sessions: Annotated[int, Field(ge=1, le=1000)] = 70
     rws_session_idle_s: PositiveFloat = 300.0
-    opmode: Literal["AUTO", "MANR", "MANF"] = "AUTO"
+    opmode: OpMode = AUTO
     # The run-time fault-control queryable of `cellctl sim` (docs/simulator.md); it lives only in
     # the simulator process, on its own Zenoh endpoint, never in the daemon of a real cell.
     fault_control: bool = True
