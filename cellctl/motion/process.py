@@ -69,7 +69,7 @@ from drivers.abb_egm.endpoint import (
     EgmEndpoint,
     latency_percentile_us,
 )
-from drivers.abb_egm.kinematics import LinearTrack
+from drivers.abb_egm.limits import LinearTrack
 from drivers.abb_egm.shared_history import SharedFeedbackHistory
 from drivers.runtime import hold_cpu_wakeup_latency, lock_memory, set_thread_realtime
 
