@@ -56,6 +56,7 @@ from drivers.abb_egm.codec import (
     parse_robot_pb,
     robot_from_pb,
 )
+from drivers.abb_egm.limits import EGM_CYCLE_S
 from drivers.abb_egm.ring import ring_indices, ring_search, ring_start
 from drivers.runtime import set_thread_realtime
 
@@ -161,7 +162,7 @@ class EgmEndpointConfig:
     plausible_tol_deg: float = 0.05
     plausible_speed_deg_s: float = 600.0
     plausible_late_s: float = 0.25
-    cycle_s: float = 0.004032
+    cycle_s: float = EGM_CYCLE_S
 
 
 def ok_to_command(
