@@ -43,7 +43,7 @@ from typing import Any, Literal
 
 import structlog
 import zenoh
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
 from analysis.job import AnalysisJob, Report
 from cellctl.api import (
@@ -236,19 +236,46 @@ def blas_threads_for_children(n: int) -> Iterator[None]:
 def _outcome_text(result: Any, timings_s: dict[str, float]) -> str:
     if not isinstance(result, Report):
         result = Report.model_validate_json(json.dumps(result, default=_json_default, allow_nan=False))
-    return json.dumps({"ok": True, "report": result.model_dump(mode="json"), "timings_s": timings_s},
-                      allow_nan=False)  # fmt: skip
+    answer = ChildAnswer(ok=True, report=result, timings_s=timings_s)
+    # NaN in a figure is an error here (JSON has none), as it is where the report is written
+    return json.dumps(answer.model_dump(mode="json", exclude={"error", "traceback"}), allow_nan=False)
 
 
 def _error_text(exc: BaseException, t0: float) -> str:
-    return json.dumps(
-        {
-            "ok": False,
-            "error": f"{type(exc).__name__}: {exc}",
-            "traceback": traceback.format_exc(limit=8),
-            "timings_s": {"total": time.perf_counter() - t0},
-        }
-    )
+    return ChildAnswer(
+        ok=False,
+        error=f"{type(exc).__name__}: {exc}",
+        traceback=traceback.format_exc(limit=8),
+        timings_s={"total": time.perf_counter() - t0},
+    ).model_dump_json(exclude_none=True)
+
+
+class ChildHello(BaseModel):
+    """The analysis child's first message: it loaded the analysis callable (``ready``), or why not."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    ready: bool
+    error: str | None = None
+
+
+class ChildAnswer(BaseModel):
+    """The analysis child's answer to a ``job`` or ``finish`` request: the report (``ok``), or the
+    error with its traceback; the timings of the child's stages (s) either way."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    ok: bool
+    report: Report | None = None
+    error: str | None = None
+    traceback: str | None = None
+    timings_s: dict[str, float]
+
+    @model_validator(mode="after")
+    def _report_or_error(self) -> ChildAnswer:
+        if self.ok != (self.report is not None) or self.ok == (self.error is not None):
+            raise ValueError("an answer carries a report when ok, else an error")
+        return self
 
 
 class ChildRequest(BaseModel):
@@ -373,11 +400,11 @@ def _child_main(
     try:
         fn = resolve_callable(analysis)
     except AnalysisLoadError as exc:
-        conn.send_bytes(json.dumps({"ready": False, "error": str(exc)}).encode())
+        conn.send_bytes(ChildHello(ready=False, error=str(exc)).model_dump_json().encode())
         return
     from cellctl.api.cloud_codec import decode_cloud
 
-    conn.send_bytes(json.dumps({"ready": True}).encode())
+    conn.send_bytes(ChildHello(ready=True).model_dump_json(exclude_none=True).encode())
     stream: _ChildStream | None = None
     reserve: HeapReserve | None = None
     while True:
@@ -503,13 +530,13 @@ class AnalysisProcess:
                 f"analysis {self.analysis!r}: child not ready after {self.start_timeout_s} s"
             )
         try:
-            hello = json.loads(parent.recv_bytes())
+            hello = ChildHello.model_validate_json(parent.recv_bytes())
         except (EOFError, OSError):
             self.kill()
             raise AnalysisLoadError(f"analysis {self.analysis!r}: child exited while starting") from None
-        if not hello.get("ready"):
+        if not hello.ready:
             self.kill()
-            raise AnalysisLoadError(hello.get("error", "analysis child refused to start"))
+            raise AnalysisLoadError(hello.error or "analysis child refused to start")
         log.info("analysis_process_ready", pid=proc.pid, analysis=self.analysis)
 
     def _wait_result(self) -> bytes:
@@ -568,16 +595,10 @@ class AnalysisProcess:
 
     async def _outcome(self) -> AnalysisOutcome:
         raw = await asyncio.to_thread(self._wait_result)
-        out = json.loads(raw)
-        if not out["ok"]:
-            log.warning("analysis_failed", error=out["error"], traceback=out.get("traceback"))
-        report = out.get("report")
-        return AnalysisOutcome(
-            ok=bool(out["ok"]),
-            report=None if report is None else Report.model_validate(report),
-            error=out.get("error"),
-            timings_s=out["timings_s"],
-        )
+        out = ChildAnswer.model_validate_json(raw)
+        if not out.ok:
+            log.warning("analysis_failed", error=out.error, traceback=out.traceback)
+        return AnalysisOutcome(ok=out.ok, report=out.report, error=out.error, timings_s=out.timings_s)
 
     def kill(self) -> None:
         """Stop the child now (cancellation, shutdown)."""

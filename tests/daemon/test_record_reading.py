@@ -14,6 +14,7 @@ from cellctl.api import JobState
 from cellctl.daemon.history import History, format_history, previous_round_for
 from cellctl.daemon.jobs import JobRecord, JobStore, JobStoreError
 from cellctl.daemon.records import MAX_RECORD_BYTES, RecordError, read_json_file
+from tests.support.reports import report_json
 
 DONE_ID = "20260101T000000-aaaa0001"
 OTHER_ID = "20260101T000001-aaaa0002"
@@ -133,8 +134,8 @@ def _good(job_id: str, created: str) -> str:
                        "history": [{"state": "done", "t_utc": created, "message": "m"}]})  # fmt: skip
 
 
-REPORT = json.dumps({"verdict": "pass", "lines": [{"family": "transverse", "index": 1, "name": "T1",
-                                                   "zmax_mm": 1.0, "sz_avg_mm": 0.5, "pass": True}]})  # fmt: skip
+REPORT = report_json([{"family": "transverse", "index": 1, "name": "T1", "zmax_mm": 1.0, "sz_avg_mm": 0.5,
+                       "pass": True}], "pass")  # fmt: skip
 
 
 def test_the_history_skips_bad_records_with_a_log_line_instead_of_dying(tmp_path):
@@ -148,15 +149,19 @@ def test_the_history_skips_bad_records_with_a_log_line_instead_of_dying(tmp_path
     _history_job(tmp_path, "badreport", _good("badreport", "2026-11-04T10:00:00Z"), "[" * 1000)
     _history_job(tmp_path, "oddreport", _good("oddreport", "2026-11-05T10:00:00Z"),
                  json.dumps({"verdict": "pass", "lines": [{"family": 3}]}))  # fmt: skip
+    # a field the report's schema does not know: not a report this cell wrote
+    _history_job(tmp_path, "extrareport", _good("extrareport", "2026-11-06T10:00:00Z"),
+                 json.dumps({**json.loads(REPORT), "verdikt": "pass"}))  # fmt: skip
     h = History(tmp_path, db_path=":memory:")
     try:
         with capture_logs() as logs:
-            assert h.rebuild() == 4
+            assert h.rebuild() == 5
         skipped = {Path(e["path"]).parent.name for e in logs if e["event"] == "history_record_skipped"}
         assert skipped == {"deep", "list", "wrongid", "esc", "nokeys"}
         bad_reports = {Path(e["path"]).parent.name for e in logs if e["event"] == "history_report_unreadable"}
-        assert bad_reports == {"badreport", "oddreport"}
-        assert [r["job_id"] for r in h.jobs()] == ["oddreport", "badreport", "j2", "j1"]
+        assert bad_reports == {"badreport", "oddreport", "extrareport"}
+        assert [r["job_id"] for r in h.jobs()] == ["extrareport", "oddreport", "badreport", "j2", "j1"]
+        assert h.jobs(plate_id="P1")[0]["verdict"] is None  # an unreadable report leaves no verdict
         assert "2 round(s)" in format_history(h, "P1") and "j1" in format_history(h, None)
     finally:
         h.close()
