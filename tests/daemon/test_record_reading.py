@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from structlog.testing import capture_logs
 
+from analysis.placement import Placement
 from cellctl.api import JobState
 from cellctl.daemon.history import History, format_history, previous_round_for
 from cellctl.daemon.jobs import JobRecord, JobStore, JobStoreError
@@ -70,7 +71,7 @@ def test_a_record_naming_a_path_never_makes_recovery_write_outside_its_directory
     data = tmp_path / "a" / "b" / "data"
     store = JobStore(data)
     rec = _record(OTHER_ID, JobState.SCANNING)
-    text = json.dumps({**rec.__dict__, "job_id": "../../../escape"})
+    text = json.dumps({**rec.as_json(), "job_id": "../../../escape"})
     d = _plant(store, OTHER_ID, text)
     outside = tmp_path / "a" / "escape"  # where the record points: data_dir/jobs/../../../escape
     outside.mkdir()
@@ -89,7 +90,7 @@ def test_a_record_naming_another_jobs_id_never_overwrites_that_jobs_record(tmp_p
     done = store.create(_record(DONE_ID, JobState.DONE))
     store.set_state(done, JobState.DONE, "report.json", verdict="pass")
     kept = (store.job_dir(DONE_ID) / "job.json").read_bytes()
-    _plant(store, OTHER_ID, json.dumps({**_record(DONE_ID, JobState.SCANNING).__dict__}))
+    _plant(store, OTHER_ID, json.dumps({**_record(DONE_ID, JobState.SCANNING).as_json()}))
     for _ in range(2):  # on every restart
         found = JobStore(tmp_path).recover()
         assert DONE_ID not in [r.job_id for r in found]
@@ -101,7 +102,7 @@ def test_a_record_naming_another_jobs_id_never_overwrites_that_jobs_record(tmp_p
 
 def test_a_directory_whose_name_is_not_a_job_id_is_left_alone(tmp_path):
     store = JobStore(tmp_path)
-    d = _plant(store, "not a job", json.dumps(_record(OTHER_ID, JobState.SCANNING).__dict__))
+    d = _plant(store, "not a job", json.dumps(_record(OTHER_ID, JobState.SCANNING).as_json()))
     with capture_logs() as logs:
         assert JobStore(tmp_path).recover() == []
     assert sorted(p.name for p in d.iterdir()) == ["job.json"]
@@ -119,6 +120,25 @@ def test_a_record_whose_plan_info_has_the_wrong_type_is_quarantined(tmp_path):
     assert [r.job_id for r in found] == [OTHER_ID]
     back = store.load(OTHER_ID)
     assert "info.plan" in back.info["quarantine_reason"] and "plan" not in back.info
+
+
+def test_a_records_placement_is_a_placement_and_one_of_another_shape_is_quarantined(tmp_path):
+    store = JobStore(tmp_path)
+    rec = store.create(_record(DONE_ID, JobState.DONE))  # done: recovery leaves it alone
+    back = store.load(DONE_ID)
+    assert isinstance(back.placement, Placement) and back.placement == rec.placement
+    assert back.placement == Placement(pos_mm=[1.0, 2.0, 3.0], rpy_deg=[0.0, 0.0, 3.0])
+    assert json.loads((store.job_dir(DONE_ID) / "job.json").read_text())["placement"] == {
+        "pos_mm": [1.0, 2.0, 3.0], "rpy_deg": [0.0, 0.0, 3.0]
+    }  # fmt: skip
+    # a field the placement does not know (a record of another version): quarantined, placement dropped
+    planted = {**_record(OTHER_ID, JobState.SCANNING).as_json(), "placement": {"pos_mm": [1, 2, 3], "yaw": 3}}
+    _plant(store, OTHER_ID, json.dumps(planted))
+    with pytest.raises(JobStoreError, match="placement"):
+        store.load(OTHER_ID)
+    assert [r.job_id for r in JobStore(tmp_path).recover()] == [OTHER_ID]
+    again = store.load(OTHER_ID)
+    assert again.placement is None and "placement" in again.info["quarantine_reason"]
 
 
 def _history_job(data: Path, dir_name: str, text: str, report: str | None = None) -> None:
