@@ -155,16 +155,6 @@ class _StreamInbox:
     wake: asyncio.Event = field(default_factory=asyncio.Event)
 
 
-@dataclass(frozen=True)
-class AnalysisOutcome:
-    """What the child returned for one job."""
-
-    ok: bool
-    report: Report | None
-    error: str | None
-    timings_s: dict[str, float]
-
-
 def resolve_callable(path: str) -> Callable[..., Any]:
     """``"pkg.module:function"`` -> the function; AnalysisLoadError says what failed."""
     module_name, sep, attr = path.partition(":")
@@ -566,7 +556,7 @@ class AnalysisProcess:
         except (BrokenPipeError, OSError) as exc:
             raise AnalysisCrashed(f"analysis process unreachable: {exc}") from None
 
-    async def run(self, job: AnalysisJob, cloud: bytes) -> AnalysisOutcome:
+    async def run(self, job: AnalysisJob, cloud: bytes) -> ChildAnswer:
         """Analyse one cloud in the child. AnalysisCrashed if the child dies meanwhile."""
         await self._send(ChildRequest(op="job", spec=job.model_dump_json()), cloud)
         return await self._outcome()
@@ -584,7 +574,7 @@ class AnalysisProcess:
         once it is done; its report stands if they add nothing to the cloud)."""
         await self._send(ChildRequest(op="ahead"))
 
-    async def finish_stream(self) -> AnalysisOutcome:
+    async def finish_stream(self) -> ChildAnswer:
         """The open stream is complete: the analysis finishes and reports."""
         await self._send(ChildRequest(op="finish"))
         return await self._outcome()
@@ -593,12 +583,12 @@ class AnalysisProcess:
         """Forget the open stream (the whole cloud follows by :meth:`run`)."""
         await self._send(ChildRequest(op="drop"))
 
-    async def _outcome(self) -> AnalysisOutcome:
+    async def _outcome(self) -> ChildAnswer:
         raw = await asyncio.to_thread(self._wait_result)
         out = ChildAnswer.model_validate_json(raw)
         if not out.ok:
             log.warning("analysis_failed", error=out.error, traceback=out.traceback)
-        return AnalysisOutcome(ok=out.ok, report=out.report, error=out.error, timings_s=out.timings_s)
+        return out
 
     def kill(self) -> None:
         """Stop the child now (cancellation, shutdown)."""
@@ -874,7 +864,7 @@ class Worker:
             return
         inbox.wake.set()
 
-    async def _run_stream(self, keys: Keys, spec: JobSpec, job: AnalysisJob) -> AnalysisOutcome:
+    async def _run_stream(self, keys: Keys, spec: JobSpec, job: AnalysisJob) -> ChildAnswer:
         """A streamed job: the chunks go to the analysis child in ``seq`` order as they arrive; after
         StreamEnd with every chunk the analysis finishes. A chunk still missing ``stream_grace_s``
         after the end (or totals that disagree): the whole cloud from the daemon, analysed whole."""
@@ -915,7 +905,7 @@ class Worker:
 
     async def _stream_fallback(
         self, keys: Keys, spec: JobSpec, job: AnalysisJob, inbox: _StreamInbox, why: str
-    ) -> AnalysisOutcome:
+    ) -> ChildAnswer:
         """The stream is incomplete: the whole cloud from the daemon (``Keys.job_cloud``), analysed whole."""
         log.warning("stream_incomplete", job_id=spec.job_id, reason=why, corrupt=inbox.corrupt)
         await self.runner.drop_stream()
@@ -929,10 +919,10 @@ class Worker:
         return self._stream_outcome(out, inbox, fallback=True)
 
     @staticmethod
-    def _stream_outcome(out: AnalysisOutcome, inbox: _StreamInbox, *, fallback: bool) -> AnalysisOutcome:
+    def _stream_outcome(out: ChildAnswer, inbox: _StreamInbox, *, fallback: bool) -> ChildAnswer:
         extra = {"stream_chunks": float(inbox.next_seq), "stream_duplicates": float(inbox.duplicates),
                  "stream_fallback": float(fallback)}  # fmt: skip
-        return replace(out, timings_s={**out.timings_s, **extra})
+        return out.model_copy(update={"timings_s": {**out.timings_s, **extra}})
 
     def _on_cancel(self, sample: zenoh.Sample) -> None:
         job_id = Keys.last_chunk(str(sample.key_expr))
