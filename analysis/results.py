@@ -6,15 +6,17 @@ holds the arrays the plots are drawn from; :class:`ResultsArrays` is its layout,
 :func:`analysis.pipeline.write_results` (:meth:`ResultsArrays.save`) and read by the report renderer
 and the HMI's map (:func:`read_results_arrays`).
 
-Which ``report.json`` files load: every one the pipeline has written. The report's shape has only
-grown, each new field with a default: the reports of before the schema (made before 2026-12-01,
-commit 51d72ca: no ``inputs.placement``, ``design``, ``template_fit``, ``registration.rest_surface``,
-``lines[].line_fit``), of the schema's first version, of the CAD and moulded-side reports (``design``),
-of the template fits (``template_fit``, ``template_fit_compare``, ``rest_surface``, ``line_fit``), of the
-locate run (``inputs.placement_found``) and of partial scans (``coverage.partial``,
-``coverage.lines_not_scanned``). A report whose lines carry no ``name`` (the earliest) gets the name
-its family and index give (``T3``). A field the schema does not know is refused, as is a missing one
-the schema requires: the error names the file and the field (``report.json: lines[1].zmax_mm: ...``).
+Which ``report.json`` files load: every one the pipeline has written since its first version
+(2026-11-22; every key any version wrote is a field of the schema). The report's shape has only
+grown, each new field with a default: the reports of before the schema (before 2026-12-01, commit
+51d72ca: no ``inputs.placement``, ``design``, ``template_fit``, ``registration.rest_surface``,
+``lines[].line_fit``), of the schema's first version, of the CAD and moulded-side reports
+(``design``), of the template fits (``template_fit``, ``template_fit_compare``, ``rest_surface``,
+``line_fit``), of the locate run (``inputs.placement_found``) and of partial scans
+(``coverage.partial``, ``coverage.lines_not_scanned``). A line without a ``name`` (a report written
+by hand: the pipeline always names its lines) gets the one its family and index give (``T3``), as
+the renderer's hand check did. A field the schema does not know is refused, as is a missing one the
+schema requires: the error names the file and the field (``report.json: lines[1].zmax_mm: ...``).
 
 This module imports no plotting library: the HMI and the daemon read through it without matplotlib.
 """
