@@ -210,7 +210,7 @@ def _as_before_the_schema(r: dict) -> None:
 
 
 def _without_line_names(r: dict) -> None:
-    """The earliest reports' lines: no name (the family and index give it)."""
+    """Lines without a name (a report written by hand): the family and index give it, T1, L2."""
     _as_before_the_schema(r)
     for line in r["lines"]:
         line.pop("name")
