@@ -11,9 +11,16 @@ the report it makes. The analysis package owns them because it never imports ``c
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    model_serializer,
+    model_validator,
+)
 
 from analysis.metrics import Tolerances
 from analysis.placement import Placement
@@ -180,6 +187,14 @@ class LineReport(_Strict):
     noise_mm: float | None = None
     line_fit: LineFitReport | None = None
 
+    @model_validator(mode="before")
+    @classmethod
+    def _named(cls, data: Any) -> Any:
+        # the earliest reports' lines carry no name: the one their family and index give (T3, L1, D2)
+        if isinstance(data, dict) and not data.get("name") and isinstance(data.get("family"), str):
+            data = {**data, "name": f"{data['family'][:1].upper()}{data.get('index', '')}"}
+        return data
+
 
 class LineNotScanned(_Strict):
     """A detection line a partial scan did not cover (``scanned_fraction`` of its length seen):
@@ -201,6 +216,15 @@ class ScanCoverage(_Strict):
     holes_mm2: float
     partial: bool = False
     lines_not_scanned: list[LineNotScanned] = []
+
+    @model_serializer(mode="wrap")
+    def _whole_scan_shape(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        # a whole scan's report keeps the shape every daemon version reads: no partial-scan fields
+        data = handler(self)
+        if not self.partial:
+            data.pop("partial", None)
+            data.pop("lines_not_scanned", None)
+        return data
 
 
 class SurfaceReport(_Strict):

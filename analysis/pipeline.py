@@ -34,7 +34,6 @@ per line (``analysis.template_fit``, the paper's 2D case); docs/metrology.md has
 
 from __future__ import annotations
 
-import json
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -48,7 +47,21 @@ import structlog
 from analysis.boundary import BoundaryError, BoundaryResult, find_corners
 from analysis.cad import CadDesign, read_design
 from analysis.cloud_io import ORGANISATION, ScanCloud, write_cloud_ply
-from analysis.job import AnalysisJob, Report
+from analysis.job import (
+    AnalysisJob,
+    CompareLine,
+    DesignReport,
+    LineFitReport,
+    LineNotScanned,
+    LineReport,
+    RegistrationReport,
+    Report,
+    ReportInputs,
+    RestSurfaceReport,
+    ScanCoverage,
+    SurfaceReport,
+    TemplateFitCompare,
+)
 from analysis.mesh import MeshError, TriMesh
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
 from analysis.moulded import design_as_laid
@@ -67,6 +80,7 @@ from analysis.register import (
 )
 from analysis.report import write_csv
 from analysis.rest_surface import RestSurface, rest_surface
+from analysis.results import LineSeries, ResultsArrays, write_report_json
 from analysis.segment import PassCells, SegmentResult, pass_cells, segment_plate
 from analysis.settings import TEMPLATE_FITS, InspectionSettings
 from analysis.template_fit import (
@@ -98,14 +112,14 @@ class InspectionError(ValueError):
 class Inspection:
     """One plate inspected: the report and the arrays behind it.
 
-    report: the report.json dict (architecture.md schema plus positions on the plate).
+    report: the report (``report.json``, :class:`~analysis.job.Report`).
     plate_points_mm: (n, 3) top-surface points in the measured frame; deviation_mm: (n,) their
     signed deviation d = z_design - z_measured (>= 0: the plate lies below the template).
     surface_points_mm, surface_deviation_mm: the same for the reconstructed surface (cell means).
     cuts: one TemplateCut per judged line (measured frame), in report order.
     """
 
-    report: dict[str, Any]
+    report: Report
     plate_points_mm: np.ndarray
     deviation_mm: np.ndarray
     surface_points_mm: np.ndarray
@@ -386,7 +400,7 @@ def inspect_cloud(
     plate_id: str = "",
     job_id: str = "",
     cell_id: str = "",
-    inputs: dict[str, Any] | None = None,
+    inputs: ReportInputs | None = None,
     nominal_placement: Placement | None = None,
     passes: dict[int, PassCells] | None = None,
 ) -> Inspection:
@@ -397,6 +411,8 @@ def inspect_cloud(
     nominal_placement: the design frame's placement on the bed as the operator laid the plate;
     optional, it decides which corner is the reference when the design is symmetric under a half
     turn (else the bed convention decides, see register()). The report records it under ``inputs``.
+    inputs: what the caller records of the inputs (the design's name, how the placement was found);
+    the cloud's size and ``nominal_placement`` are filled in here.
     design: a mesh, or a CAD design (:mod:`analysis.cad`): then registration runs on its
     tessellation, the corners come from the face's own boundary and the templates are cut from
     the exact surface. ``settings.design_side`` ``moulded_down``: the plate lies turned over, the
@@ -485,12 +501,12 @@ def inspect_cloud(
         cuts = cut_templates_exact(cad, T, measured_mesh, lines, step_mm=settings.sample_step_mm)
     else:
         cuts = cut_templates(design.transformed(T), measured_mesh, lines, step_mm=settings.sample_step_mm)
-    not_scanned: list[dict[str, Any]] = []
+    not_scanned: list[LineNotScanned] = []
     if partial:  # a line the scan did not cover is reported as such, not judged on the part seen
         seen = {(c.line.family, c.line.index): _line_coverage(c) for c in cuts}
         not_scanned = [
-            {"name": line_name(ln), "family": ln.family, "index": ln.index,
-             "scanned_fraction": round(seen.get((ln.family, ln.index), 0.0), 3)}
+            LineNotScanned(name=line_name(ln), family=ln.family, index=ln.index,
+                           scanned_fraction=round(seen.get((ln.family, ln.index), 0.0), 3))
             for ln in lines if seen.get((ln.family, ln.index), 0.0) < PARTIAL_LINE_COVERAGE
         ]  # fmt: skip
         cuts = [c for c in cuts if seen[(c.line.family, c.line.index)] >= PARTIAL_LINE_COVERAGE]
@@ -519,9 +535,9 @@ def inspect_cloud(
     verdict, kept, kept_fits = judged[mode]
     if partial:  # lines skipped for too few samples were not scanned either
         judged_keys = {(c.line.family, c.line.index) for c in kept}
-        named = {(x["family"], x["index"]) for x in not_scanned}
+        named = {(x.family, x.index) for x in not_scanned}
         not_scanned += [
-            {"name": line_name(c.line), "family": c.line.family, "index": c.line.index, "scanned_fraction": 0.0}
+            LineNotScanned(name=line_name(c.line), family=c.line.family, index=c.line.index, scanned_fraction=0.0)
             for c in cuts if (c.line.family, c.line.index) not in judged_keys | named
         ]  # fmt: skip
     lap("metrics")
@@ -540,88 +556,89 @@ def inspect_cloud(
     lap("deviation_map")
 
     T_plate_measured = T_plate_design @ T_design_measured
-    line_records = []
+    line_records: list[LineReport] = []
     for m, cut, line_fit in zip(verdict.lines, kept, kept_fits, strict=True):
         ends = np.vstack([cut.line.start_mm, cut.line.end_mm])
         ends_plate = ends @ T_plate_measured[:3, :3].T + T_plate_measured[:3, 3]
-        rec = m.as_dict()
-        rec.update(
-            name=line_name(cut.line),
-            start_plate_mm=[round(float(v), 2) for v in ends_plate[0, :2]],
-            end_plate_mm=[round(float(v), 2) for v in ends_plate[1, :2]],
-            noise_mm=m.noise_mm,
+        line_records.append(
+            LineReport.model_validate(
+                {
+                    **m.as_dict(),
+                    "name": line_name(cut.line),
+                    "start_plate_mm": [round(float(v), 2) for v in ends_plate[0, :2]],
+                    "end_plate_mm": [round(float(v), 2) for v in ends_plate[1, :2]],
+                    "noise_mm": m.noise_mm,
+                    "line_fit": None if line_fit is None else LineFitReport(**line_fit.as_dict()),
+                }
+            )
         )
-        if line_fit is not None:
-            rec["line_fit"] = line_fit.as_dict()
-        line_records.append(rec)
 
     plate_l, plate_w = _side_lengths(design_c)
     # a partial scan never passes: it fails on a line that fails, else it is incomplete
     verdict_text = verdict.verdict
     if partial:  # even with every line seen for 90 % of its length: the rest was not
         verdict_text = "fail" if verdict.failed else "incomplete"
-    report = {
-        "plate_id": plate_id,
-        "job_id": job_id,
-        "cell_id": cell_id,
-        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "verdict": verdict_text,
-        "standard": settings.tolerances.standard,
-        "template_fit": mode,
-        "registration": {
-            "coarse_rms_mm": reg.coarse_rms_mm,
-            "icp_rms_mm": reg.icp.rms_mm,
-            "nonpen_rms_mm": reg.nonpenetrating.rms_mm,
-            "penetration_points": reg.penetration_points,
-            "penetration_points_before": reg.nonpenetrating.penetrating_before,
-            "surface_points": len(measured_mesh.vertices_mm),
-            "surface_cell_mm": cell_mm,
-            "raw_points_below_4sigma": raw_below,
-            "rest_surface": rest.as_dict(),
-            "transform": T.tolist(),
-            "corner_shift": reg.coarse.shift,
-            "candidates_icp_rms_mm": {str(k): v for k, v in reg.candidates.items()},
-        },
-        "corners_mm": measured_c.tolist(),
-        "plate_size_mm": [plate_l, plate_w],
-        "lines": line_records,
-        "tolerances": settings.tolerances.as_dict(),
-        "coverage": {
-            "fraction": coverage,
-            "holes_mm2": float(len(holes_design) * HOLE_CELL_MM**2),
-            **({"partial": True, "lines_not_scanned": not_scanned} if partial else {}),
-        },
-        "surface": {
-            "points": len(seg.points_mm),
-            "noise_sigma_mm": seg.noise_sigma_mm,
-            "max_deviation_mm": float(np.nanmax(deviation)) if np.isfinite(deviation).any() else None,
-        },
-        "inputs": {"points": len(cloud), **(inputs or {}), "placement": nominal_placement},
-        "design": {
-            **_design_record(cad, T_design_file),
-            "side": settings.design_side,
-            "thickness_mm": settings.thickness_mm if settings.design_side == "moulded_down" else None,
-        },
-        "timings_s": timings,
-    }
+    compare = None
     for other in modes[1:]:
         v, other_cuts, _ = judged[other]
-        report["template_fit_compare"] = {
-            "template_fit": other,
-            "verdict": v.verdict,
-            "lines": [  # named as the main table names them (a template table's names, else T3, L1, ...)
-                {"name": line_name(cut.line), "family": m.family, "index": m.index,
-                 "sz_avg_mm": m.sz_avg_mm, "zmax_mm": m.zmax_mm, "cmax_per_mm": m.cmax_per_mm,
-                 "grade": m.grade, "pass": m.passed}
+        compare = TemplateFitCompare(
+            template_fit=other,
+            verdict=v.verdict,
+            lines=[  # named as the main table names them (a template table's names, else T3, L1, ...)
+                CompareLine(name=line_name(cut.line), family=m.family, index=m.index, sz_avg_mm=m.sz_avg_mm,
+                            zmax_mm=m.zmax_mm, cmax_per_mm=m.cmax_per_mm, grade=m.grade, passed=m.passed)
                 for m, cut in zip(v.lines, other_cuts, strict=True)
             ],
-        }  # fmt: skip
+        )  # fmt: skip
     timings["total"] = round(sum(v for k, v in timings.items() if k != "total"), 4)
-    # the schema of report.json, checked where the report is made
-    report = Report.model_validate(report).model_dump(mode="json")
-    if not partial:  # a whole scan's report keeps the shape every daemon version reads
-        for key in ("partial", "lines_not_scanned"):
-            report["coverage"].pop(key, None)
+    given = inputs or ReportInputs(points=0)
+    report = Report(
+        plate_id=plate_id,
+        job_id=job_id,
+        cell_id=cell_id,
+        created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+        verdict=verdict_text,
+        standard=settings.tolerances.standard,
+        template_fit=mode,
+        template_fit_compare=compare,
+        registration=RegistrationReport(
+            coarse_rms_mm=reg.coarse_rms_mm,
+            icp_rms_mm=reg.icp.rms_mm,
+            nonpen_rms_mm=reg.nonpenetrating.rms_mm,
+            penetration_points=reg.penetration_points,
+            penetration_points_before=reg.nonpenetrating.penetrating_before,
+            surface_points=len(measured_mesh.vertices_mm),
+            surface_cell_mm=cell_mm,
+            raw_points_below_4sigma=raw_below,
+            rest_surface=RestSurfaceReport(**rest.as_dict()),
+            transform=T.tolist(),
+            corner_shift=reg.coarse.shift,
+            candidates_icp_rms_mm={str(k): v for k, v in reg.candidates.items()},
+        ),
+        corners_mm=measured_c.tolist(),
+        plate_size_mm=[plate_l, plate_w],
+        lines=line_records,
+        tolerances=settings.tolerances,
+        coverage=ScanCoverage(
+            fraction=coverage,
+            holes_mm2=float(len(holes_design) * HOLE_CELL_MM**2),
+            partial=partial,
+            lines_not_scanned=not_scanned,
+        ),
+        surface=SurfaceReport(
+            points=len(seg.points_mm),
+            noise_sigma_mm=seg.noise_sigma_mm,
+            max_deviation_mm=float(np.nanmax(deviation)) if np.isfinite(deviation).any() else None,
+        ),
+        inputs=given.model_copy(update={"points": len(cloud), "placement": nominal_placement}),
+        design=_design_record(cad, T_design_file).model_copy(
+            update={
+                "side": settings.design_side,
+                "thickness_mm": settings.thickness_mm if settings.design_side == "moulded_down" else None,
+            }
+        ),
+        timings_s=timings,
+    )
     log.info("inspected", verdict=verdict.verdict, lines=len(line_records), worst_zmax_mm=round(verdict.worst_zmax_mm, 3),
              total_s=timings["total"])  # fmt: skip
     return Inspection(
@@ -643,21 +660,21 @@ def inspect_cloud(
     )
 
 
-def _design_record(cad: CadDesign | None, T_design_file: np.ndarray | None = None) -> dict[str, Any]:
+def _design_record(cad: CadDesign | None, T_design_file: np.ndarray | None = None) -> DesignReport:
     """What the report says about the design: a mesh (and how it was moved into its own frame, if
     it was given in another pose), or the CAD file's format, units and faces."""
     if cad is None:
         moved = T_design_file is not None and not np.array_equal(T_design_file, np.eye(4))
-        return {"kind": "mesh", "T_design_file": T_design_file.tolist() if moved else None}
-    return {
-        "kind": "cad",
-        "format": cad.facts.fmt,
-        "file_units": cad.facts.units,
-        "faces": len(cad.faces),
-        "chord_error_mm": round(cad.chord_error_mm, 5),
-        "templates": "exact surface",
-        "T_design_file": cad.T_design_file.tolist(),
-    }
+        return DesignReport(kind="mesh", T_design_file=T_design_file.tolist() if moved else None)
+    return DesignReport(
+        kind="cad",
+        format=cad.facts.fmt,
+        file_units=cad.facts.units,
+        faces=len(cad.faces),
+        chord_error_mm=round(cad.chord_error_mm, 5),
+        templates="exact surface",
+        T_design_file=cad.T_design_file.tolist(),
+    )
 
 
 # ------------------------------------------------------------------------------------ results dir
@@ -684,35 +701,22 @@ def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
     surf_plate = ins.surface_points_mm @ T_pm[:3, :3].T + T_pm[:3, 3]
     idx = _subsample_index(len(surf_plate), MAX_MAP_POINTS)
     ok = np.isfinite(ins.surface_deviation_mm[idx])
-    arrays: dict[str, np.ndarray] = {
-        "plate_xy_mm": surf_plate[idx][ok, :2].astype(np.float32),
-        "plate_deviation_mm": ins.surface_deviation_mm[idx][ok].astype(np.float32),
-        "plate_size_mm": np.asarray(ins.plate_size_mm, dtype=np.float64),
-        "coverage_holes_xy_mm": ins.coverage_holes_xy_mm.astype(np.float32).reshape(-1, 2),
-    }
-    for k, cut in enumerate(ins.cuts):
-        arrays[f"line{k}_s_mm"] = cut.s_mm
-        arrays[f"line{k}_design_z_mm"] = cut.design_h_mm
-        arrays[f"line{k}_measured_z_mm"] = cut.measured_h_mm
-        arrays[f"line{k}_deviation_mm"] = cut.design_h_mm - cut.measured_h_mm
-    # uncompressed: zlib took 0.2 s of the time to the report for 2 MB saved beside cloud.ply's 37
-    np.savez(out / "results.npz", **arrays)
-    files["results.npz"] = out / "results.npz"
+    arrays = ResultsArrays(
+        plate_xy_mm=surf_plate[idx][ok, :2],
+        plate_deviation_mm=ins.surface_deviation_mm[idx][ok],
+        plate_size_mm=np.asarray(ins.plate_size_mm, dtype=np.float64),
+        lines=[
+            LineSeries(cut.s_mm, cut.design_h_mm, cut.measured_h_mm, cut.design_h_mm - cut.measured_h_mm)
+            for cut in ins.cuts
+        ],
+        holes_xy_mm=ins.coverage_holes_xy_mm,
+    )
+    files["results.npz"] = arrays.save(out / "results.npz")
     files["report.csv"] = write_csv(ins.report, out / "report.csv")
     # report.json last: its presence marks a complete results directory.
-    tmp = out / "report.json.tmp"
-    tmp.write_text(json.dumps(ins.report, indent=2, allow_nan=False, default=_json_default))
-    tmp.replace(out / "report.json")
+    write_report_json(ins.report, out / "report.json")
     files["report.json"] = out / "report.json"
     return files
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 # ------------------------------------------------------------------------------------- worker API
@@ -726,22 +730,22 @@ def _read_job_design(job: AnalysisJob) -> TriMesh | CadDesign:
 
 
 def _inspect_job(cloud: ScanCloud, design: TriMesh | CadDesign | PreparedDesign, job: AnalysisJob,
-                 passes: dict[int, PassCells] | None = None) -> dict[str, Any]:  # fmt: skip
+                 passes: dict[int, PassCells] | None = None) -> Report:  # fmt: skip
     ins = inspect_cloud(
         cloud, design, job.settings, nominal_placement=job.placement,
         plate_id=job.plate_id, job_id=job.job_id, cell_id=job.cell_id,
-        inputs={"design": job.design, "placement_found": job.placement_found}, passes=passes,
+        inputs=ReportInputs(points=0, design=job.design, placement_found=job.placement_found), passes=passes,
     )  # fmt: skip
     if job.out_dir:
         write_results(ins, job.out_dir)
     return ins.report
 
 
-def analyse_job(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
+def analyse_job(cloud: ScanCloud, job: AnalysisJob) -> Report:
     """Worker entry point: ``cloud`` the scan (organised or not), ``job`` the job's parameters
     (design, nominal placement, settings, ``out_dir``).
 
-    Returns the report (the :class:`~analysis.job.Report` schema, as a dict); with ``out_dir`` also
+    Returns the :class:`~analysis.job.Report`; with ``out_dir`` also
     writes the results directory there. ``analyse_job.stream`` is the same analysis for a cloud
     that arrives in chunks (:class:`CloudStream`).
     """
@@ -843,7 +847,7 @@ class CloudStream:
         self._seen: set[int] = set()
         self._points = 0
         # the report made by ahead() and the cloud it was made of: (points, fields kept), report
-        self._ahead: tuple[tuple[int, frozenset[str]], dict[str, Any]] | None = None
+        self._ahead: tuple[tuple[int, frozenset[str]], Report] | None = None
         self.timings_s: dict[str, float] = {"pass_cells": 0.0}
 
     def add(self, chunk: ScanCloud) -> None:
@@ -876,7 +880,7 @@ class CloudStream:
     def _state(self) -> tuple[int, frozenset[str]]:
         return self._points, self._cloud.fields
 
-    def _analyse(self) -> dict[str, Any]:
+    def _analyse(self) -> Report:
         t0 = time.perf_counter()
         cloud = self._cloud.cloud()
         self.prepared.height_field()  # raises the rasterisation's error, if any
@@ -898,7 +902,7 @@ class CloudStream:
         self._ahead = (state, report)
         self.timings_s["ahead"] = round(time.perf_counter() - t0, 4)
 
-    def finish(self) -> dict[str, Any]:
+    def finish(self) -> Report:
         """The report of the whole cloud (and the results directory with ``job.out_dir``): the one
         made by :meth:`ahead` when the cloud has not changed since, else made now."""
         try:

@@ -1,8 +1,8 @@
 """The inspection report's files, made from a results directory.
 
-A results directory (one per job or per ``cellctl inspect --out DIR``) holds ``report.json`` (the
-schema in docs/architecture.md), ``results.npz`` (arrays for plots) and ``cloud.ply``. This module
-turns them into what people read:
+A results directory (one per job or per ``cellctl inspect --out DIR``) holds ``report.json`` (a
+:class:`~analysis.job.Report`), ``results.npz`` (arrays for plots) and ``cloud.ply``, both read
+through :mod:`analysis.results`. This module turns them into what people read:
 
 * ``report.html``: one self-contained page (inline CSS, inline SVG plots with their raster parts
   as data: URLs, no script, no web font, nothing fetched), so it opens from a USB stick;
@@ -22,7 +22,6 @@ from __future__ import annotations
 import csv
 import html
 import io
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -38,6 +37,8 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
+from analysis.job import LineReport, Report, ScanCoverage
+from analysis.results import LineSeries, ReportError, read_report, read_results_arrays
 from analysis.rework import GriddedField, ReworkRegion, find_rework_regions, grid_deviation
 
 log = structlog.get_logger(__name__)
@@ -57,7 +58,7 @@ __all__ = [
     "write_report",
 ]
 
-# The paper's Tables 3-5 columns, in order, with the report.json key of each.
+# The paper's Tables 3-5 columns, in order, with the :class:`~analysis.job.LineReport` field of each.
 CSV_COLUMNS: tuple[tuple[str, str], ...] = (
     ("family", "family"),
     ("line", "index"),
@@ -69,7 +70,7 @@ CSV_COLUMNS: tuple[tuple[str, str], ...] = (
     ("SC-average (mm-1)", "sc_avg_per_mm"),
     ("Cmax (mm-1)", "cmax_per_mm"),
     ("length (mm)", "length_mm"),
-    ("pass", "pass"),
+    ("pass", "passed"),
 )
 
 FAMILIES: tuple[tuple[str, str], ...] = (
@@ -77,7 +78,6 @@ FAMILIES: tuple[tuple[str, str], ...] = (
     ("longitudinal", "Table 4. Longitudinal detection lines"),
     ("diagonal", "Table 5. Diagonal detection lines"),
 )
-_NUMERIC_LINE_KEYS = ("sz_mm2", "sz_avg_mm", "zmax_mm", "ci", "sc_avg_per_mm", "cmax_per_mm", "length_mm")
 _LINES_PER_PDF_PAGE = 3
 _TABLE_ROWS_PER_PDF_PAGE = 34
 _A4_PORTRAIT_IN = (8.27, 11.69)
@@ -93,26 +93,19 @@ _COLOURS = {
 _CMAP = "RdBu"
 
 
-class ReportError(ValueError):
-    """A results directory that cannot be reported: a missing file, key or array, or a bad value.
-
-    The message names the file and the field (``report.json: lines[3].zmax_mm: ...``).
-    """
-
-
 # ----------------------------------------------------------------------------------------- csv
 
 
-def write_csv(report: dict, path: str | Path) -> Path:
+def write_csv(report: Report, path: str | Path) -> Path:
     """``report.csv``: one row per detection line, the paper's Table 3-5 columns."""
     path = Path(path)
     with path.open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
         w.writerow([title for title, _ in CSV_COLUMNS])
-        for line in report["lines"]:
+        for line in report.lines:
             row = []
-            for _, key in CSV_COLUMNS:
-                v = line[key]
+            for _, field in CSV_COLUMNS:
+                v = getattr(line, field)
                 row.append(
                     f"{v:.4f}"
                     if isinstance(v, float)
@@ -126,31 +119,17 @@ def write_csv(report: dict, path: str | Path) -> Path:
 
 
 @dataclass(frozen=True)
-class LineSeries:
-    """One detection line's sampled sections (all (m,) float64, mm; NaN where a surface has no data).
-
-    s_mm: position along the line from its start; design_z_mm, measured_z_mm: section heights;
-    deviation_mm: d = design - measured.
-    """
-
-    s_mm: np.ndarray
-    design_z_mm: np.ndarray
-    measured_z_mm: np.ndarray
-    deviation_mm: np.ndarray
-
-
-@dataclass(frozen=True)
 class ResultsData:
-    """A results directory, loaded and checked.
+    """A results directory, loaded and checked (:func:`load_results`).
 
-    report: the report.json dict (lines carry a ``name``, derived from family and index if absent).
+    report: report.json (lines carry a ``name``, derived from family and index if absent).
     plate_xy_mm: (n, 2) float64 positions from the reference corner; plate_deviation_mm: (n,) float64.
     plate_size_mm: (2,) length, width. lines: one :class:`LineSeries` per report line, or None where
     the results hold no section for it. holes_xy_mm: (h, 2) centres of unseen design cells.
     """
 
     results_dir: Path
-    report: dict
+    report: Report
     plate_xy_mm: np.ndarray
     plate_deviation_mm: np.ndarray
     plate_size_mm: np.ndarray
@@ -183,143 +162,46 @@ class PreviousRound:
     lines: tuple[PreviousLine, ...]
 
 
-def previous_by_line(report: dict, previous: PreviousRound) -> list[tuple[dict, PreviousLine | None]]:
+def previous_by_line(report: Report, previous: PreviousRound) -> list[tuple[LineReport, PreviousLine | None]]:
     """This report's lines, each with the previous round's line of the same name (None: no match)."""
     by_name = {ln.name: ln for ln in previous.lines}
-    return [(ln, by_name.get(ln["name"])) for ln in report["lines"]]
+    return [(ln, by_name.get(ln.name)) for ln in report.lines]
 
 
-def _num(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ReportError(f"{where}: expected a number, got {value!r:.60}")
-    return float(value)
-
-
-def _not_scanned_items(cov: Any) -> list[tuple[str, str]]:
+def _not_scanned_items(cov: ScanCoverage) -> list[tuple[str, str]]:
     """The coverage table's rows of a partial scan: what it did not cover (none for a whole scan)."""
-    if not isinstance(cov, dict) or not cov.get("partial"):
+    if not cov.partial:
         return []
-    missing = [x for x in cov.get("lines_not_scanned") or [] if isinstance(x, dict)]
-    names = ", ".join(
-        f"{x.get('name', '?')} ({100 * float(x.get('scanned_fraction') or 0):.0f} % seen)" for x in missing
-    )
+    names = ", ".join(f"{x.name} ({100 * x.scanned_fraction:.0f} % seen)" for x in cov.lines_not_scanned)
     return [
         ("partial scan", "the scan covers only part of the plate: registered on the planned placement"),
         ("lines not scanned (not judged)", _e(names) or "none"),
     ]
 
 
-def _check_report(report: Any) -> dict:
-    if not isinstance(report, dict):
-        raise ReportError(f"report.json: expected an object at the top level, got {type(report).__name__}")
-    for key in ("plate_id", "verdict", "lines"):
-        if key not in report:
-            raise ReportError(f"report.json: {key}: required key is missing")
-    if report["verdict"] not in ("pass", "fail", "incomplete"):
-        raise ReportError(
-            f"report.json: verdict: expected 'pass', 'fail' or 'incomplete', got {report['verdict']!r:.60}"
-        )
-    if not isinstance(report["lines"], list):
-        raise ReportError("report.json: lines: expected a list")
-    for i, line in enumerate(report["lines"]):
-        where = f"report.json: lines[{i}]"
-        if not isinstance(line, dict):
-            raise ReportError(f"{where}: expected an object")
-        for key in ("family", "index", "pass", *_NUMERIC_LINE_KEYS):
-            if key not in line:
-                raise ReportError(f"{where}.{key}: required key is missing")
-        for key in _NUMERIC_LINE_KEYS:
-            _num(line[key], f"{where}.{key}")
-        if line["family"] not in {f for f, _ in FAMILIES}:
-            raise ReportError(f"{where}.family: unknown family {line['family']!r:.40}")
-        if not isinstance(line["pass"], bool):
-            raise ReportError(f"{where}.pass: expected true or false, got {line['pass']!r:.40}")
-        line.setdefault("name", f"{line['family'][0].upper()}{line['index']}")
-        for key in ("start_plate_mm", "end_plate_mm"):
-            if key in line:
-                v = line[key]
-                if not (isinstance(v, list) and len(v) == 2):
-                    raise ReportError(f"{where}.{key}: expected [x, y] in mm, got {v!r:.60}")
-                for j, c in enumerate(v):
-                    _num(c, f"{where}.{key}[{j}]")
-    tol = report.get("tolerances", {})
-    for key in ("deviation_standard_mm", "deviation_limit_mm"):
-        if key in tol and _num(tol[key], f"report.json: tolerances.{key}") <= 0:
-            raise ReportError(f"report.json: tolerances.{key}: must be positive")
-    return report
-
-
-def _array(z: Any, key: str, ndim: int, cols: int | None = None) -> np.ndarray:
-    if key not in z.files:
-        raise ReportError(f"results.npz: {key}: array is missing")
-    a = np.asarray(z[key], dtype=np.float64)
-    if a.ndim != ndim or (cols is not None and a.shape[1] != cols):
-        want = f"(n, {cols})" if cols else "(n,)"
-        raise ReportError(f"results.npz: {key}: expected shape {want}, got {a.shape}")
-    return a
-
-
 def load_results(results_dir: str | Path) -> ResultsData:
-    """Read and check ``report.json`` and ``results.npz`` of a results directory.
+    """Read and check ``report.json`` and ``results.npz`` of a results directory
+    (:func:`analysis.results.read_report`, :func:`analysis.results.read_results_arrays`).
 
-    Raises :class:`ReportError` naming the file and the key or array at fault.
+    Raises :class:`ReportError` naming the file and the field or array at fault.
     """
     d = Path(results_dir)
     if not d.is_dir():
         raise ReportError(f"{d}: not a results directory (no such directory)")
-    try:
-        report = json.loads((d / "report.json").read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ReportError(f"{d / 'report.json'}: missing (is this a results directory?)") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ReportError(f"{d / 'report.json'}: not valid JSON: {exc}") from None
-    report = _check_report(report)
-    try:
-        z = np.load(d / "results.npz", allow_pickle=False)
-    except FileNotFoundError:
-        raise ReportError(f"{d / 'results.npz'}: missing") from None
-    except (OSError, ValueError) as exc:
-        raise ReportError(f"{d / 'results.npz'}: not a readable npz file: {exc}") from None
-    with z:
-        xy = _array(z, "plate_xy_mm", 2, 2)
-        dev = _array(z, "plate_deviation_mm", 1)
-        if len(dev) != len(xy):
-            raise ReportError(
-                f"results.npz: plate_deviation_mm: {len(dev)} values for {len(xy)} plate_xy_mm positions"
-            )
-        size = _array(z, "plate_size_mm", 1)
-        if size.shape != (2,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
-            raise ReportError(
-                f"results.npz: plate_size_mm: expected (length, width) > 0, got {size.tolist()}"
-            )
-        series: list[LineSeries | None] = []
-        for k in range(len(report["lines"])):
-            if f"line{k}_s_mm" not in z.files:
-                series.append(None)
-                continue
-            arrs = [
-                _array(z, f"line{k}_{name}", 1)
-                for name in ("s_mm", "design_z_mm", "measured_z_mm", "deviation_mm")
-            ]
-            if len({len(a) for a in arrs}) != 1:
-                raise ReportError(
-                    f"results.npz: line{k}_*: arrays of different lengths {[len(a) for a in arrs]}"
-                )
-            series.append(LineSeries(*arrs))
-        holes = (
-            _array(z, "coverage_holes_xy_mm", 2, 2) if "coverage_holes_xy_mm" in z.files else np.zeros((0, 2))
-        )
-    return ResultsData(d, report, xy, dev, size, series, holes)
+    report = read_report(d / "report.json")
+    arrays = read_results_arrays(d / "results.npz", n_lines=len(report.lines))
+    return ResultsData(
+        d, report, arrays.plate_xy_mm, arrays.plate_deviation_mm, arrays.plate_size_mm, arrays.lines,
+        arrays.holes_xy_mm,
+    )  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------- figures
 
 
-def _tolerances(report: dict) -> tuple[float, float, str]:
-    tol = report.get("tolerances", {})
-    std = float(tol.get("deviation_standard_mm", 2.0))
-    lim = float(tol.get("deviation_limit_mm", 3.0))
-    return std, lim, str(tol.get("standard", report.get("standard", "")))
+def _tolerances(report: Report) -> tuple[float, float, str]:
+    tol = report.tolerances
+    return float(tol.deviation_standard_mm), float(tol.deviation_limit_mm), tol.standard
 
 
 def _display_cell_mm(data: ResultsData) -> float:
@@ -364,14 +246,14 @@ def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: lis
         )
     ax.add_patch(Rectangle((0, 0), L, W, facecolor="none", edgecolor="k", linewidth=1.0, zorder=3))
     pad = 0.045 * max(L, W)
-    for line in data.report["lines"]:
-        if "start_plate_mm" not in line or "end_plate_mm" not in line:
+    for line in data.report.lines:
+        if line.start_plate_mm is None or line.end_plate_mm is None:
             continue
-        a = np.asarray(line["start_plate_mm"], dtype=float)
-        b = np.asarray(line["end_plate_mm"], dtype=float)
-        colour = _COLOURS["pass"] if line["pass"] else _COLOURS["fail"]
+        a = np.asarray(line.start_plate_mm, dtype=float)
+        b = np.asarray(line.end_plate_mm, dtype=float)
+        colour = _COLOURS["pass"] if line.passed else _COLOURS["fail"]
         ax.plot([a[0], b[0]], [a[1], b[1]], color="k", linewidth=0.7, zorder=4)
-        if line["family"] == "diagonal":
+        if line.family == "diagonal":
             at = a + 0.22 * (b - a)
         else:
             # just outside the plate before the line's start, so labels never cover the map
@@ -379,7 +261,7 @@ def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: lis
         ax.text(
             at[0],
             at[1],
-            line["name"],
+            line.name,
             ha="center",
             va="center",
             fontsize=6.5,
@@ -389,8 +271,8 @@ def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: lis
             bbox={"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": colour, "linewidth": 0.5},
         )
         chord = float(np.linalg.norm(b - a))
-        if "zmax_at_mm" in line and chord > 0:
-            p = a + (b - a) * min(max(float(line["zmax_at_mm"]) / chord, 0.0), 1.0)
+        if chord > 0:
+            p = a + (b - a) * min(max(float(line.zmax_at_mm) / chord, 0.0), 1.0)
             ax.plot(p[0], p[1], marker="x", color=colour, markersize=4, mew=1.0, zorder=5)
     for r in regions:
         x0, y0, x1, y1 = r.bbox_mm
@@ -439,25 +321,25 @@ def _colorbar(fig: Figure, im: Any, **kw: Any) -> None:
 
 def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
     """Design and measured sections (top), deviation with the tolerance band and Zmax (bottom)."""
-    line = data.report["lines"][k]
+    line = data.report.lines[k]
     series = data.lines[k]
     std, lim, _ = _tolerances(data.report)
-    verdict = "PASS" if line["pass"] else "FAIL"
+    verdict = "PASS" if line.passed else "FAIL"
     where = ""
-    if "start_plate_mm" in line and "end_plate_mm" in line:
-        a, b = line["start_plate_mm"], line["end_plate_mm"]
+    if line.start_plate_mm is not None and line.end_plate_mm is not None:
+        a, b = line.start_plate_mm, line.end_plate_mm
         where = f"  ({a[0]:.0f}, {a[1]:.0f}) → ({b[0]:.0f}, {b[1]:.0f}) mm"
     # a text, not set_title: the title's automatic placement measures every tick label again
     ax_z.text(
         0.0,
         1.04,
-        f"{line['name']}  {line['family']} {line['index']}  {verdict}{where}",
+        f"{line.name}  {line.family} {line.index}  {verdict}{where}",
         transform=ax_z.transAxes,
         fontsize=8,
-        color=_COLOURS["pass"] if line["pass"] else _COLOURS["fail"],
+        color=_COLOURS["pass"] if line.passed else _COLOURS["fail"],
         fontweight="bold",
     )
-    zmax = float(line["zmax_mm"])
+    zmax = float(line.zmax_mm)
     ymax = max(1.15 * lim, 1.2 * zmax)
     if series is None or not len(series.s_mm):
         ax_z.text(
@@ -496,7 +378,7 @@ def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
     ax_d.axhline(0, color="0.6", linewidth=0.5)
     if len(s):
         ax_d.plot(s, series.deviation_mm, color="k", linewidth=0.9)
-        at = float(line.get("zmax_at_mm", s[np.nanargmax(np.abs(series.deviation_mm))]))
+        at = float(line.zmax_at_mm)
         sign = np.sign(np.interp(at, s, np.nan_to_num(series.deviation_mm))) or 1.0
         ax_d.plot(at, sign * zmax, marker="v" if sign > 0 else "^", color=_COLOURS["fail"], markersize=6)
         left = at > 0.5 * (float(s[0]) + float(s[-1]))  # keep the label inside the axes
@@ -553,12 +435,8 @@ def _draw_coverage(ax: Any, data: ResultsData) -> None:
     ax.set_xlabel("x from the reference corner (mm)", fontsize=8)
     ax.set_ylabel("y (mm)", fontsize=8)
     ax.tick_params(labelsize=7)
-    cov = data.report.get("coverage", {})
-    frac = cov.get("fraction")
     ax.set_title(
-        f"seen: {100 * frac:.1f} % of the design's top surface"
-        if isinstance(frac, int | float)
-        else "coverage",
+        f"seen: {100 * data.report.coverage.fraction:.1f} % of the design's top surface",
         fontsize=8,
         loc="left",
     )
@@ -613,24 +491,24 @@ def _sign_text(sign: str) -> str:
     return "plate below template (gap)" if sign == "below" else "plate above template"
 
 
-def _lines_table_html(report: dict, family: str) -> str:
+def _lines_table_html(report: Report, family: str) -> str:
     std, lim, _ = _tolerances(report)
     rows = []
-    for line in report["lines"]:
-        if line["family"] != family:
+    for line in report.lines:
+        if line.family != family:
             continue
-        cls = "pass" if line["pass"] else "fail"
+        cls = "pass" if line.passed else "fail"
         pos = ""
-        if "start_plate_mm" in line and "end_plate_mm" in line:
-            a, b = line["start_plate_mm"], line["end_plate_mm"]
+        if line.start_plate_mm is not None and line.end_plate_mm is not None:
+            a, b = line.start_plate_mm, line.end_plate_mm
             pos = f"({a[0]:.0f}, {a[1]:.0f}) → ({b[0]:.0f}, {b[1]:.0f})"
         rows.append(
-            f'<tr class="{cls}" data-line="{_e(line["name"])}"><td class="t">{_e(line["name"])}</td>'
-            f"<td>{_e(line['index'])}</td><td>{_f(line['sz_mm2'], 4)}</td><td>{_f(line['sz_avg_mm'], 4)}</td>"
-            f'<td class="{_zmax_class(float(line["zmax_mm"]), std, lim)}">{_f(line["zmax_mm"], 4)}</td>'
-            f"<td>{_f(line['ci'], 4)}</td><td>{_f(line['sc_avg_per_mm'], 4)}</td>"
-            f"<td>{_f(line['cmax_per_mm'], 4)}</td><td>{_f(line['length_mm'], 1)}</td>"
-            f'<td class="t">{pos}</td><td class="v">{"pass" if line["pass"] else "FAIL"}</td></tr>'
+            f'<tr class="{cls}" data-line="{_e(line.name)}"><td class="t">{_e(line.name)}</td>'
+            f"<td>{_e(line.index)}</td><td>{_f(line.sz_mm2, 4)}</td><td>{_f(line.sz_avg_mm, 4)}</td>"
+            f'<td class="{_zmax_class(float(line.zmax_mm), std, lim)}">{_f(line.zmax_mm, 4)}</td>'
+            f"<td>{_f(line.ci, 4)}</td><td>{_f(line.sc_avg_per_mm, 4)}</td>"
+            f"<td>{_f(line.cmax_per_mm, 4)}</td><td>{_f(line.length_mm, 1)}</td>"
+            f'<td class="t">{pos}</td><td class="v">{"pass" if line.passed else "FAIL"}</td></tr>'
         )
     if not rows:
         return ""
@@ -651,25 +529,29 @@ TEMPLATE_FIT_TEXT = {
 }
 
 
-def _compare_html(report: dict) -> str:
+def _compare_html(report: Report) -> str:
     """The other template fit's figures beside the judged ones, when the report carries them."""
-    other = report.get("template_fit_compare")
-    if not isinstance(other, dict) or not isinstance(other.get("lines"), list):
+    other = report.template_fit_compare
+    if other is None:
         return ""
-    mine = {ln.get("name"): ln for ln in report["lines"]}
+    mine = {ln.name: ln for ln in report.lines}
+
+    def judged_figure(name: str, field: str) -> float | None:
+        return getattr(mine[name], field) if name in mine else None
+
     rows = "".join(
-        f'<tr data-line="{_e(ln.get("name"))}"><td class="t">{_e(ln.get("name"))}</td>'
-        f"<td>{_f(mine.get(ln.get('name'), {}).get('zmax_mm'), 4)}</td><td>{_f(ln.get('zmax_mm'), 4)}</td>"
-        f"<td>{_f(mine.get(ln.get('name'), {}).get('sz_avg_mm'), 4)}</td><td>{_f(ln.get('sz_avg_mm'), 4)}</td>"
-        f"<td>{_f(mine.get(ln.get('name'), {}).get('cmax_per_mm'), 4)}</td><td>{_f(ln.get('cmax_per_mm'), 4)}</td>"
-        f'<td class="v">{"pass" if ln.get("pass") else "FAIL"}</td></tr>'
-        for ln in other["lines"]
+        f'<tr data-line="{_e(ln.name)}"><td class="t">{_e(ln.name)}</td>'
+        f"<td>{_f(judged_figure(ln.name, 'zmax_mm'), 4)}</td><td>{_f(ln.zmax_mm, 4)}</td>"
+        f"<td>{_f(judged_figure(ln.name, 'sz_avg_mm'), 4)}</td><td>{_f(ln.sz_avg_mm, 4)}</td>"
+        f"<td>{_f(judged_figure(ln.name, 'cmax_per_mm'), 4)}</td><td>{_f(ln.cmax_per_mm, 4)}</td>"
+        f'<td class="v">{"pass" if ln.passed else "FAIL"}</td></tr>'
+        for ln in other.lines
     )
-    judged, alt = report.get("template_fit", "rigid"), other.get("template_fit", "")
+    judged, alt = report.template_fit, other.template_fit
     return (
         f'<section id="template-fits"><h2>Both template fits</h2><p class="muted">Judged: '
         f"{_e(TEMPLATE_FIT_TEXT.get(judged, judged))}. Shown beside it, not judged: "
-        f"{_e(TEMPLATE_FIT_TEXT.get(alt, alt))} (verdict {_e(other.get('verdict', '—'))}).</p>"
+        f"{_e(TEMPLATE_FIT_TEXT.get(alt, alt))} (verdict {_e(other.verdict)}).</p>"
         f'<table class="lines" data-compare="{_e(alt)}"><thead><tr><th>line</th>'
         f"<th>Zmax {_e(judged)} (mm)</th><th>Zmax {_e(alt)} (mm)</th><th>SZ-average {_e(judged)} (mm)</th>"
         f"<th>SZ-average {_e(alt)} (mm)</th><th>Cmax {_e(judged)} (mm⁻¹)</th><th>Cmax {_e(alt)} (mm⁻¹)</th>"
@@ -677,13 +559,13 @@ def _compare_html(report: dict) -> str:
     )
 
 
-def _previous_html(report: dict, previous: PreviousRound | None) -> str:
+def _previous_html(report: Report, previous: PreviousRound | None) -> str:
     """The "Previous round" section: this round's and the previous round's figures per line."""
     if previous is None:
         return ""
     rows = []
     for ln, prev in previous_by_line(report, previous):
-        now_v = "pass" if ln["pass"] else "FAIL"
+        now_v = "pass" if ln.passed else "FAIL"
         if prev is None:
             cells = '<td>—</td><td>—</td><td class="t">—</td>'
         else:
@@ -692,14 +574,14 @@ def _previous_html(report: dict, previous: PreviousRound | None) -> str:
                 f'<td class="t">{"pass" if prev.passed else "FAIL"}</td>'
             )
         rows.append(
-            f'<tr data-line="{_e(ln["name"])}"><td class="t">{_e(ln["name"])}</td>'
-            f'<td>{_f(ln["zmax_mm"], 2)}</td><td>{_f(ln["sz_avg_mm"], 2)}</td><td class="t">{now_v}</td>'
+            f'<tr data-line="{_e(ln.name)}"><td class="t">{_e(ln.name)}</td>'
+            f'<td>{_f(ln.zmax_mm, 2)}</td><td>{_f(ln.sz_avg_mm, 2)}</td><td class="t">{now_v}</td>'
             f"{cells}</tr>"
         )
     n = previous.round
     return (
         f'<section id="previous-round" data-round="{n + 1}"><h2>Previous round</h2>'
-        f"<p>This is round {n + 1} of plate {_e(report['plate_id'])}; round {n}: job {_e(previous.job_id)}, "
+        f"<p>This is round {n + 1} of plate {_e(report.plate_id)}; round {n}: job {_e(previous.job_id)}, "
         f"{_e(previous.created_utc)}, verdict {_e(previous.verdict)}.</p>"
         f'<table class="previous"><thead><tr><th>line</th><th>Zmax (mm), round {n + 1}</th>'
         f"<th>SZ-average (mm), round {n + 1}</th><th>verdict, round {n + 1}</th>"
@@ -748,33 +630,25 @@ def _kv_table(items: list[tuple[str, str]]) -> str:
     )
 
 
-def _registration_items(report: dict) -> list[tuple[str, str]]:
-    reg = report.get("registration", {})
+def _registration_items(report: Report) -> list[tuple[str, str]]:
+    reg = report.registration
     items = [
-        ("coarse fit RMS (mm)", _f(reg.get("coarse_rms_mm"), 3)),
-        ("ICP RMS (mm)", _f(reg.get("icp_rms_mm"), 3)),
-        ("non-penetrating fit RMS (mm)", _f(reg.get("nonpen_rms_mm"), 3)),
-        ("penetrating points before the fit", _e(reg.get("penetration_points_before", "—"))),
-        ("penetrating points after the fit", _e(reg.get("penetration_points", "—"))),
+        ("coarse fit RMS (mm)", _f(reg.coarse_rms_mm, 3)),
+        ("ICP RMS (mm)", _f(reg.icp_rms_mm, 3)),
+        ("non-penetrating fit RMS (mm)", _f(reg.nonpen_rms_mm, 3)),
+        ("penetrating points before the fit", _e(reg.penetration_points_before)),
+        ("penetrating points after the fit", _e(reg.penetration_points)),
     ]
-    rest = reg.get("rest_surface")
-    if isinstance(rest, dict):
+    rest = reg.rest_surface
+    if rest is not None:
         items.append(
-            (
-                "resting surface: patch (mm), points at least",
-                f"{_f(rest.get('cell_mm'), 1)}, {_e(rest.get('min_points'))}",
-            )
+            ("resting surface: patch (mm), points at least", f"{_f(rest.cell_mm, 1)}, {_e(rest.min_points)}")
         )
-        items.append(("resting surface: noise sigma, bias bound (mm)", f"{_f(rest.get('noise_mm'), 4)}, {_f(rest.get('bound_mm'), 4)} ({_e(rest.get('confidence'))})"))  # fmt: skip
-    T = reg.get("transform")
-    try:
-        T = np.asarray(T, dtype=float)
-        if T.shape == (4, 4):
-            angle = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(T[:3, :3]) - 1) / 2))))
-            items.append(("design → measured: rotation (deg)", f"{angle:.3f}"))
-            items.append(("design → measured: translation (mm)", _e(", ".join(f"{v:.2f}" for v in T[:3, 3]))))
-    except (TypeError, ValueError):
-        pass
+        items.append(("resting surface: noise sigma, bias bound (mm)", f"{_f(rest.noise_mm, 4)}, {_f(rest.bound_mm, 4)} ({_e(rest.confidence)})"))  # fmt: skip
+    T = np.asarray(reg.transform, dtype=float)  # 4 x 4: the schema says so
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(T[:3, :3]) - 1) / 2))))
+    items.append(("design → measured: rotation (deg)", f"{angle:.3f}"))
+    items.append(("design → measured: translation (mm)", _e(", ".join(f"{v:.2f}" for v in T[:3, 3]))))
     return items
 
 
@@ -788,47 +662,43 @@ def render_html(
     ``previous``: the plate's previous round (a "Previous round" section); None for a first round."""
     rep = data.report
     std, lim, standard = _tolerances(rep)
-    lines = rep["lines"]
-    n_pass = sum(1 for ln in lines if ln["pass"])
-    worst = max(lines, key=lambda ln: ln["zmax_mm"], default=None)
-    verdict = rep["verdict"]
+    lines = rep.lines
+    n_pass = sum(1 for ln in lines if ln.passed)
+    worst = max(lines, key=lambda ln: ln.zmax_mm, default=None)
+    verdict = rep.verdict
     head = (
-        f'<header class="{verdict}"><h1>{_e(verdict.upper())} — plate {_e(rep["plate_id"])}</h1>'
-        f"<p>cell {_e(rep.get('cell_id', '—'))} · job {_e(rep.get('job_id', '—'))} · "
-        f"{_e(rep.get('created_utc', '—'))} · judged against {_e(standard or '—')} "
+        f'<header class="{verdict}"><h1>{_e(verdict.upper())} — plate {_e(rep.plate_id)}</h1>'
+        f"<p>cell {_e(rep.cell_id)} · job {_e(rep.job_id)} · "
+        f"{_e(rep.created_utc)} · judged against {_e(standard or '—')} "
         f"(standard ±{std:g} mm, limit ±{lim:g} mm)</p></header>"
     )
     summary = _kv_table(
         [
             ("lines within tolerance", f"{n_pass} of {len(lines)}"),
-            ("worst line", f"{_e(worst['name'])}: Zmax {worst['zmax_mm']:.2f} mm" if worst else "—"),
+            ("worst line", f"{_e(worst.name)}: Zmax {worst.zmax_mm:.2f} mm" if worst else "—"),
             ("regions to rework", str(len(regions))),
             (
                 "template fit",
-                _e(TEMPLATE_FIT_TEXT.get(rep.get("template_fit", "rigid"), rep.get("template_fit"))),
+                _e(TEMPLATE_FIT_TEXT.get(rep.template_fit, rep.template_fit)),
             ),
-            ("failed lines", _e(", ".join(ln["name"] for ln in lines if not ln["pass"]) or "none")),
+            ("failed lines", _e(", ".join(ln.name for ln in lines if not ln.passed) or "none")),
         ]
     )
     line_figs = "".join(
-        f'<figure class="plot" data-plot="line" data-line="{_e(ln["name"])}">{svgs[f"line{k}"]}'
-        f"<figcaption>{_e(ln['name'])}: design and measured section, deviation with the tolerance band "
+        f'<figure class="plot" data-plot="line" data-line="{_e(ln.name)}">{svgs[f"line{k}"]}'
+        f"<figcaption>{_e(ln.name)}: design and measured section, deviation with the tolerance band "
         f"(green: within ±{std:g} mm, amber: up to ±{lim:g} mm, red: beyond).</figcaption></figure>"
         for k, ln in enumerate(lines)
     )
-    cov = rep.get("coverage", {})
-    timings = rep.get("timings_s", {})
-    inputs = rep.get("inputs", {})
-    corners = rep.get("corners_mm")
-    corner_rows = ""
-    if isinstance(corners, list):
-        corner_rows = _kv_table(
-            [
-                (f"corner {i}{' (reference)' if i == 0 else ''}", _e(", ".join(_f(v, 1) for v in c)))
-                for i, c in enumerate(corners)
-                if isinstance(c, list)
-            ]
-        )
+    cov = rep.coverage
+    timings = rep.timings_s
+    inputs = rep.inputs.model_dump(mode="json")
+    corner_rows = _kv_table(
+        [
+            (f"corner {i}{' (reference)' if i == 0 else ''}", _e(", ".join(_f(v, 1) for v in c)))
+            for i, c in enumerate(rep.corners_mm)
+        ]
+    )
     body = f"""
 <section id="summary"><h2>Summary</h2>{summary}</section>
 <section id="top-view"><h2>Deviation map, top view</h2>
@@ -845,18 +715,13 @@ reference corner (x along the length, y along the width).</p>{_rework_html(regio
 {_compare_html(rep)}
 <section id="lines"><h2>Detection lines, one plot each</h2><div class="plots">{line_figs}</div></section>
 <section id="registration"><h2>Registration</h2>{_kv_table(_registration_items(rep))}
-<h3>Measured corners (mm, measuring frame)</h3>{corner_rows or "<p>—</p>"}</section>
+<h3>Measured corners (mm, measuring frame)</h3>{corner_rows}</section>
 <section id="coverage"><h2>Scan coverage</h2>
 {
         _kv_table(
             [
-                (
-                    "seen fraction of the design's top surface",
-                    _f(100 * cov["fraction"], 1) + " %"
-                    if isinstance(cov.get("fraction"), int | float)
-                    else "—",
-                ),
-                ("unseen area (mm²)", _f(cov.get("holes_mm2"), 0)),
+                ("seen fraction of the design's top surface", _f(100 * cov.fraction, 1) + " %"),
+                ("unseen area (mm²)", _f(cov.holes_mm2, 0)),
                 *_not_scanned_items(cov),
             ]
         )
@@ -872,7 +737,7 @@ when the page opens): {_export_links(data.results_dir)}.</p></section>
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         '<meta name="viewport" content="width=device-width, initial-scale=1"><link rel="icon" href="data:,">'
-        f"<title>Inspection {_e(rep['plate_id'])}: {verdict.upper()}</title><style>{_CSS}</style></head>"
+        f"<title>Inspection {_e(rep.plate_id)}: {verdict.upper()}</title><style>{_CSS}</style></head>"
         f"<body>{head}<main>{body}</main></body></html>\n"
     )
 
@@ -907,7 +772,7 @@ def _pdf_table(
     t.scale(1.0, 1.25)
 
 
-def _pdf_previous_pages(pdf: PdfPages, report: dict, previous: PreviousRound) -> int:
+def _pdf_previous_pages(pdf: PdfPages, report: Report, previous: PreviousRound) -> int:
     """The previous round's table in the PDF (the HTML's "Previous round" section); returns the pages."""
     n = previous.round
     header = [
@@ -923,10 +788,10 @@ def _pdf_previous_pages(pdf: PdfPages, report: dict, previous: PreviousRound) ->
     for ln, prev in previous_by_line(report, previous):
         body.append(
             [
-                ln["name"],
-                _f(ln["zmax_mm"], 2),
-                _f(ln["sz_avg_mm"], 2),
-                "pass" if ln["pass"] else "FAIL",
+                ln.name,
+                _f(ln.zmax_mm, 2),
+                _f(ln.sz_avg_mm, 2),
+                "pass" if ln.passed else "FAIL",
                 *(
                     ["—", "—", "—"]
                     if prev is None
@@ -935,7 +800,7 @@ def _pdf_previous_pages(pdf: PdfPages, report: dict, previous: PreviousRound) ->
             ]
         )
         row_c = ["white"] * len(header)
-        row_c[3] = "#d7f0dc" if ln["pass"] else "#fbd5d5"
+        row_c[3] = "#d7f0dc" if ln.passed else "#fbd5d5"
         if prev is not None:
             row_c[6] = "#d7f0dc" if prev.passed else "#fbd5d5"
         colours.append(row_c)
@@ -948,7 +813,7 @@ def _pdf_previous_pages(pdf: PdfPages, report: dict, previous: PreviousRound) ->
             [
                 ("Previous round", {"size": 14, "fontweight": "bold"}),
                 (
-                    f"Round {n + 1} of plate {report['plate_id']}; round {n}: job {previous.job_id},"
+                    f"Round {n + 1} of plate {report.plate_id}; round {n}: job {previous.job_id},"
                     f" {previous.created_utc}, verdict {previous.verdict}",
                     {},
                 ),
@@ -980,7 +845,7 @@ def render_pdf(
     """
     rep = data.report
     std, lim, standard = _tolerances(rep)
-    lines = rep["lines"]
+    lines = rep.lines
     pages = 0
     with (
         matplotlib.rc_context({"pdf.fonttype": 3}),
@@ -988,12 +853,12 @@ def render_pdf(
     ):
         # 1: summary and the deviation map
         fig = Figure(figsize=_A4_PORTRAIT_IN)
-        verdict = rep["verdict"]
+        verdict = rep.verdict
         y = _pdf_text_page(
             fig,
             0.96,
             [
-                (f"Inspection report — plate {rep['plate_id']}", {"size": 16, "fontweight": "bold"}),
+                (f"Inspection report — plate {rep.plate_id}", {"size": 16, "fontweight": "bold"}),
                 (
                     f"Verdict: {verdict.upper()}",
                     {
@@ -1003,30 +868,25 @@ def render_pdf(
                     },
                 ),
                 (
-                    f"cell {rep.get('cell_id', '—')}   job {rep.get('job_id', '—')}   {rep.get('created_utc', '—')}",
+                    f"cell {rep.cell_id}   job {rep.job_id}   {rep.created_utc}",
                     {},
                 ),
                 (f"Standard: {standard or '—'} (standard ±{std:g} mm, limit ±{lim:g} mm)", {}),
                 (
-                    f"Lines within tolerance: {sum(1 for ln in lines if ln['pass'])} of {len(lines)};"
-                    f" failed: {', '.join(ln['name'] for ln in lines if not ln['pass']) or 'none'};"
+                    f"Lines within tolerance: {sum(1 for ln in lines if ln.passed)} of {len(lines)};"
+                    f" failed: {', '.join(ln.name for ln in lines if not ln.passed) or 'none'};"
                     f" regions to rework: {len(regions)}",
                     {},
                 ),
                 *[(f"Registration, {k}: {v}", {"size": 7}) for k, v in _registration_items(rep)],
                 (
-                    "Coverage: seen "
-                    + (
-                        f"{100 * rep['coverage']['fraction']:.1f} %"
-                        if isinstance(rep.get("coverage", {}).get("fraction"), int | float)
-                        else "—"
-                    )
-                    + f", unseen area {_f(rep.get('coverage', {}).get('holes_mm2'), 0)} mm²"
-                    + "".join(f"; {k}: {v}" for k, v in _not_scanned_items(rep.get("coverage", {}))),
+                    f"Coverage: seen {100 * rep.coverage.fraction:.1f} %"
+                    + f", unseen area {_f(rep.coverage.holes_mm2, 0)} mm²"
+                    + "".join(f"; {k}: {v}" for k, v in _not_scanned_items(rep.coverage)),
                     {},
                 ),
                 (
-                    "Timings: " + ", ".join(f"{k} {_f(v, 2)} s" for k, v in rep.get("timings_s", {}).items()),
+                    "Timings: " + ", ".join(f"{k} {_f(v, 2)} s" for k, v in rep.timings_s.items()),
                     {"size": 7},
                 ),
             ],
@@ -1094,7 +954,7 @@ def render_pdf(
         header = ["line", *[t for t, _ in CSV_COLUMNS[3:10]], "verdict"]
         body, colours = [], []
         for fam, title in FAMILIES:
-            fam_lines = [ln for ln in lines if ln["family"] == fam]
+            fam_lines = [ln for ln in lines if ln.family == fam]
             if not fam_lines:
                 continue
             body.append([title.split(" detection")[0], *[""] * (len(header) - 1)])
@@ -1102,16 +962,16 @@ def render_pdf(
             for ln in fam_lines:
                 body.append(
                     [
-                        ln["name"],
-                        *[_f(ln[key], 4) for _, key in CSV_COLUMNS[3:9]],
-                        _f(ln["length_mm"], 1),
-                        "pass" if ln["pass"] else "FAIL",
+                        ln.name,
+                        *[_f(getattr(ln, key), 4) for _, key in CSV_COLUMNS[3:9]],
+                        _f(ln.length_mm, 1),
+                        "pass" if ln.passed else "FAIL",
                     ]
                 )
-                z = _zmax_class(float(ln["zmax_mm"]), std, lim)
+                z = _zmax_class(float(ln.zmax_mm), std, lim)
                 row_c = ["white"] * len(header)
                 row_c[3] = {"ok": "#eaf6ec", "warn": "#fff1cc", "bad": "#fbd5d5"}[z]
-                row_c[-1] = "#d7f0dc" if ln["pass"] else "#fbd5d5"
+                row_c[-1] = "#d7f0dc" if ln.passed else "#fbd5d5"
                 colours.append(row_c)
         for start in range(0, max(len(body), 1), _TABLE_ROWS_PER_PDF_PAGE):
             fig = Figure(figsize=_A4_PORTRAIT_IN)
@@ -1187,7 +1047,7 @@ def write_report(results_dir: str | Path, previous: PreviousRound | None = None)
     fig = Figure(figsize=(7.0, 4.4))
     _draw_coverage(fig.add_axes((0.1, 0.12, 0.86, 0.8)), data)
     svgs["coverage"] = _svg(fig)
-    for k in range(len(data.report["lines"])):
+    for k in range(len(data.report.lines)):
         fig = Figure(figsize=(6.4, 3.4))
         ax_z = fig.add_axes((0.1, 0.57, 0.87, 0.34))
         ax_d = fig.add_axes((0.1, 0.13, 0.87, 0.42), sharex=ax_z)
@@ -1209,7 +1069,7 @@ def write_report(results_dir: str | Path, previous: PreviousRound | None = None)
     log.info(
         "report_written",
         dir=str(d),
-        lines=len(data.report["lines"]),
+        lines=len(data.report.lines),
         regions=len(regions),
         pdf_pages=pages,
         seconds=round(time.perf_counter() - t0, 3),

@@ -89,17 +89,17 @@ def main(argv: list[str] | None = None) -> int:
             truth = [
                 true_line_zmax(spec, error, T, c.line.start_mm, c.line.direction, c.s_mm) for c in ins.cuts
             ]
-            errs += [abs(ln["zmax_mm"] - z) for ln, z in zip(ins.report["lines"], truth, strict=True)]
-            by_name = {ln["name"]: ln for ln in ins.report["template_fit_compare"]["lines"]}
+            errs += [abs(ln.zmax_mm - z) for ln, z in zip(ins.report.lines, truth, strict=True)]
+            by_name = {ln.name: ln for ln in ins.report.template_fit_compare.lines}
             errs_pl += [
-                abs(by_name[ln["name"]]["zmax_mm"] - z)
-                for ln, z in zip(ins.report["lines"], truth, strict=True)
-                if ln["name"] in by_name
+                abs(by_name[ln.name].zmax_mm - z)
+                for ln, z in zip(ins.report.lines, truth, strict=True)
+                if ln.name in by_name
             ]
-            reg = ins.report["registration"]
-            pen += reg["penetration_points"]
-            cells.append(reg["rest_surface"]["cell_mm"])
-            sigmas.append(reg["rest_surface"]["noise_mm"])
+            reg = ins.report.registration
+            pen += reg.penetration_points
+            cells.append(reg.rest_surface.cell_mm)
+            sigmas.append(reg.rest_surface.noise_mm)
         worst_mean = max(lifts, key=lambda x: abs(x.mean_mm)).mean_mm
         worst_abs = max(x.max_abs_mm for x in lifts)
         levels.append(

@@ -96,11 +96,11 @@ def main() -> int:
     report, total_s, cpu_s = _run(spec, cloud, DetectionLayout())
     out = {
         "points": len(cloud),
-        "stages_s": {k: v for k, v in report["timings_s"].items() if k != "total"},
+        "stages_s": {k: v for k, v in report.timings_s.items() if k != "total"},
         "total_s": round(total_s, 3),
         "cpu_s": round(cpu_s, 3),
-        "verdict": report["verdict"],
-        "zmax_mm": {line["name"]: round(line["zmax_mm"], 3) for line in report["lines"]},
+        "verdict": report.verdict,
+        "zmax_mm": {line.name: round(line.zmax_mm, 3) for line in report.lines},
     }
     del cloud
     if not args.no_scaling:

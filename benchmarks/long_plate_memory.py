@@ -242,10 +242,10 @@ def worker_part(args: argparse.Namespace) -> dict:
         "worker_peak_mb": _hwm_mb(),
         "analysis_s": round(time.perf_counter() - t0, 1),
         "analysis_cpu_s": round(time.process_time() - c0, 1),
-        "analysis_stages_s": report["timings_s"],
+        "analysis_stages_s": report.timings_s,
         "analysed_points": len(cloud.xyz_mm),
-        "lines": len(report["lines"]),
-        "verdict": report["verdict"],
+        "lines": len(report.lines),
+        "verdict": report.verdict,
     }
 
 

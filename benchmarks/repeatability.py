@@ -120,15 +120,15 @@ def main(argv: list[str] | None = None) -> int:
         # the operator's nominal placement: where the plate was meant to lie, not where it lies
         nominal = Placement.on_bed(base_x_mm, base_y_mm, base_yaw_deg)
         rep = inspect_cloud(scan.cloud, design, settings, nominal_placement=nominal).report
-        lines = rep["lines"]
-        these = [ln["name"] for ln in lines]
+        lines = rep.lines
+        these = [ln.name for ln in lines]
         if names is None:
             names = these
         if these != names:
             raise SystemExit(f"scan {i}: lines {these} differ from the first scan's {names}")
         for key in judged:
-            judged[key].append([ln[key] for ln in lines])
-            other[key].append([ln[key] for ln in rep["template_fit_compare"]["lines"]])
+            judged[key].append([getattr(ln, key) for ln in lines])
+            other[key].append([getattr(ln, key) for ln in rep.template_fit_compare.lines])
     assert names is not None
     s_judged, s_other = _spreads(judged, names), _spreads(other, names)
     out = {

@@ -48,7 +48,7 @@ def main() -> None:
         json.dumps(
             {
                 "benchmark": "report",
-                "lines": len(truth.report["lines"]),
+                "lines": len(truth.report.lines),
                 "points": args.points,
                 "render_wall_s": round(best_wall, 3),
                 "render_cpu_s": round(best_cpu, 3),

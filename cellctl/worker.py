@@ -43,7 +43,7 @@ from typing import Any, Literal
 
 import structlog
 import zenoh
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
 from analysis.job import AnalysisJob, Report
 from cellctl.api import (
@@ -155,16 +155,6 @@ class _StreamInbox:
     wake: asyncio.Event = field(default_factory=asyncio.Event)
 
 
-@dataclass(frozen=True)
-class AnalysisOutcome:
-    """What the child returned for one job."""
-
-    ok: bool
-    report: Report | None
-    error: str | None
-    timings_s: dict[str, float]
-
-
 def resolve_callable(path: str) -> Callable[..., Any]:
     """``"pkg.module:function"`` -> the function; AnalysisLoadError says what failed."""
     module_name, sep, attr = path.partition(":")
@@ -236,19 +226,46 @@ def blas_threads_for_children(n: int) -> Iterator[None]:
 def _outcome_text(result: Any, timings_s: dict[str, float]) -> str:
     if not isinstance(result, Report):
         result = Report.model_validate_json(json.dumps(result, default=_json_default, allow_nan=False))
-    return json.dumps({"ok": True, "report": result.model_dump(mode="json"), "timings_s": timings_s},
-                      allow_nan=False)  # fmt: skip
+    answer = ChildAnswer(ok=True, report=result, timings_s=timings_s)
+    # NaN in a figure is an error here (JSON has none), as it is where the report is written
+    return json.dumps(answer.model_dump(mode="json", exclude={"error", "traceback"}), allow_nan=False)
 
 
 def _error_text(exc: BaseException, t0: float) -> str:
-    return json.dumps(
-        {
-            "ok": False,
-            "error": f"{type(exc).__name__}: {exc}",
-            "traceback": traceback.format_exc(limit=8),
-            "timings_s": {"total": time.perf_counter() - t0},
-        }
-    )
+    return ChildAnswer(
+        ok=False,
+        error=f"{type(exc).__name__}: {exc}",
+        traceback=traceback.format_exc(limit=8),
+        timings_s={"total": time.perf_counter() - t0},
+    ).model_dump_json(exclude_none=True)
+
+
+class ChildHello(BaseModel):
+    """The analysis child's first message: it loaded the analysis callable (``ready``), or why not."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    ready: bool
+    error: str | None = None
+
+
+class ChildAnswer(BaseModel):
+    """The analysis child's answer to a ``job`` or ``finish`` request: the report (``ok``), or the
+    error with its traceback; the timings of the child's stages (s) either way."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    ok: bool
+    report: Report | None = None
+    error: str | None = None
+    traceback: str | None = None
+    timings_s: dict[str, float]
+
+    @model_validator(mode="after")
+    def _report_or_error(self) -> ChildAnswer:
+        if self.ok != (self.report is not None) or self.ok == (self.error is not None):
+            raise ValueError("an answer carries a report when ok, else an error")
+        return self
 
 
 class ChildRequest(BaseModel):
@@ -373,11 +390,11 @@ def _child_main(
     try:
         fn = resolve_callable(analysis)
     except AnalysisLoadError as exc:
-        conn.send_bytes(json.dumps({"ready": False, "error": str(exc)}).encode())
+        conn.send_bytes(ChildHello(ready=False, error=str(exc)).model_dump_json().encode())
         return
     from cellctl.api.cloud_codec import decode_cloud
 
-    conn.send_bytes(json.dumps({"ready": True}).encode())
+    conn.send_bytes(ChildHello(ready=True).model_dump_json(exclude_none=True).encode())
     stream: _ChildStream | None = None
     reserve: HeapReserve | None = None
     while True:
@@ -503,13 +520,13 @@ class AnalysisProcess:
                 f"analysis {self.analysis!r}: child not ready after {self.start_timeout_s} s"
             )
         try:
-            hello = json.loads(parent.recv_bytes())
+            hello = ChildHello.model_validate_json(parent.recv_bytes())
         except (EOFError, OSError):
             self.kill()
             raise AnalysisLoadError(f"analysis {self.analysis!r}: child exited while starting") from None
-        if not hello.get("ready"):
+        if not hello.ready:
             self.kill()
-            raise AnalysisLoadError(hello.get("error", "analysis child refused to start"))
+            raise AnalysisLoadError(hello.error or "analysis child refused to start")
         log.info("analysis_process_ready", pid=proc.pid, analysis=self.analysis)
 
     def _wait_result(self) -> bytes:
@@ -539,7 +556,7 @@ class AnalysisProcess:
         except (BrokenPipeError, OSError) as exc:
             raise AnalysisCrashed(f"analysis process unreachable: {exc}") from None
 
-    async def run(self, job: AnalysisJob, cloud: bytes) -> AnalysisOutcome:
+    async def run(self, job: AnalysisJob, cloud: bytes) -> ChildAnswer:
         """Analyse one cloud in the child. AnalysisCrashed if the child dies meanwhile."""
         await self._send(ChildRequest(op="job", spec=job.model_dump_json()), cloud)
         return await self._outcome()
@@ -557,7 +574,7 @@ class AnalysisProcess:
         once it is done; its report stands if they add nothing to the cloud)."""
         await self._send(ChildRequest(op="ahead"))
 
-    async def finish_stream(self) -> AnalysisOutcome:
+    async def finish_stream(self) -> ChildAnswer:
         """The open stream is complete: the analysis finishes and reports."""
         await self._send(ChildRequest(op="finish"))
         return await self._outcome()
@@ -566,18 +583,12 @@ class AnalysisProcess:
         """Forget the open stream (the whole cloud follows by :meth:`run`)."""
         await self._send(ChildRequest(op="drop"))
 
-    async def _outcome(self) -> AnalysisOutcome:
+    async def _outcome(self) -> ChildAnswer:
         raw = await asyncio.to_thread(self._wait_result)
-        out = json.loads(raw)
-        if not out["ok"]:
-            log.warning("analysis_failed", error=out["error"], traceback=out.get("traceback"))
-        report = out.get("report")
-        return AnalysisOutcome(
-            ok=bool(out["ok"]),
-            report=None if report is None else Report.model_validate(report),
-            error=out.get("error"),
-            timings_s=out["timings_s"],
-        )
+        out = ChildAnswer.model_validate_json(raw)
+        if not out.ok:
+            log.warning("analysis_failed", error=out.error, traceback=out.traceback)
+        return out
 
     def kill(self) -> None:
         """Stop the child now (cancellation, shutdown)."""
@@ -853,7 +864,7 @@ class Worker:
             return
         inbox.wake.set()
 
-    async def _run_stream(self, keys: Keys, spec: JobSpec, job: AnalysisJob) -> AnalysisOutcome:
+    async def _run_stream(self, keys: Keys, spec: JobSpec, job: AnalysisJob) -> ChildAnswer:
         """A streamed job: the chunks go to the analysis child in ``seq`` order as they arrive; after
         StreamEnd with every chunk the analysis finishes. A chunk still missing ``stream_grace_s``
         after the end (or totals that disagree): the whole cloud from the daemon, analysed whole."""
@@ -894,7 +905,7 @@ class Worker:
 
     async def _stream_fallback(
         self, keys: Keys, spec: JobSpec, job: AnalysisJob, inbox: _StreamInbox, why: str
-    ) -> AnalysisOutcome:
+    ) -> ChildAnswer:
         """The stream is incomplete: the whole cloud from the daemon (``Keys.job_cloud``), analysed whole."""
         log.warning("stream_incomplete", job_id=spec.job_id, reason=why, corrupt=inbox.corrupt)
         await self.runner.drop_stream()
@@ -908,10 +919,10 @@ class Worker:
         return self._stream_outcome(out, inbox, fallback=True)
 
     @staticmethod
-    def _stream_outcome(out: AnalysisOutcome, inbox: _StreamInbox, *, fallback: bool) -> AnalysisOutcome:
+    def _stream_outcome(out: ChildAnswer, inbox: _StreamInbox, *, fallback: bool) -> ChildAnswer:
         extra = {"stream_chunks": float(inbox.next_seq), "stream_duplicates": float(inbox.duplicates),
                  "stream_fallback": float(fallback)}  # fmt: skip
-        return replace(out, timings_s={**out.timings_s, **extra})
+        return out.model_copy(update={"timings_s": {**out.timings_s, **extra}})
 
     def _on_cancel(self, sample: zenoh.Sample) -> None:
         job_id = Keys.last_chunk(str(sample.key_expr))

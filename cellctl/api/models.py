@@ -31,6 +31,7 @@ from pydantic import (
     model_validator,
 )
 
+from analysis.cad import DESIGN_SUFFIXES  # the formats analysis.cad.read_design reads: one list
 from analysis.job import AnalysisJob, Report
 from analysis.placement import Placement
 from analysis.template_table import MAX_ROWS as MAX_TEMPLATE_ROWS
@@ -103,7 +104,6 @@ STREAM_FORMAT = 1
 # 200 template rows of at most ~150 bytes, a note and a design path of escaped characters, the
 # placement. tests/security/test_trigger_limits.py builds that trigger and checks it fits.
 MAX_TRIGGER_BYTES = 48 * 1024
-DESIGN_SUFFIXES = (".stl", ".ply", ".obj", ".igs", ".iges", ".stp", ".step", ".npz", ".json")
 JSON = "application/json"
 
 #: the grammar of every id in the API (job, plate, worker, cell): also a job directory's name, so it

@@ -30,9 +30,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
+
+if TYPE_CHECKING:
+    from analysis.job import Report
 
 EXIT_OK, EXIT_ERROR = 0, 2
 DEMO_DESIGN = "demo-plate.ply"
@@ -243,12 +246,13 @@ def wait_html_report(data_dir: Path, job_id: str, timeout_s: float = 120.0) -> s
 
 async def drive_scan(
     cfg_dict: dict[str, Any], cfg: Any, procs: Processes, timeout_s: float, *, placement: bool = True
-) -> tuple[str, dict | None, str]:
+) -> tuple[str, Report | None, str]:
     """Wait for the daemon and a worker, trigger the scan of the simulated plate, wait for its report.
 
     placement: send the simulated plate's true placement (False: none, the cell locates the plate).
     Returns ``(job_id, report or None, the report's path)``; raises DemoError on any failure.
     """
+    from analysis.results import read_report
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
     from cellctl.api.session import ZenohSetupError, build_zenoh_config, close_session, open_session
     from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
@@ -293,7 +297,7 @@ async def drive_scan(
             raise DemoError(f"job {acc.job_id} ended {state}: {message}")
         if report is None:  # the publication was missed: read the stored one
             rp = Path(cfg.cell.data_dir) / "jobs" / acc.job_id / "report.json"
-            report = json.loads(rp.read_text()) if rp.exists() else None
+            report = read_report(rp) if rp.exists() else None
         return acc.job_id, report, message
     finally:
         follower.close()

@@ -60,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     # Heavy imports here, so `cellctl --help` stays fast.
     from analysis.cad import read_design
     from analysis.cloud_io import read_cloud
+    from analysis.job import ReportInputs
     from analysis.pipeline import inspect_cloud, write_results
     from analysis.report import write_report
     from analysis.template_table import read_template_table
@@ -85,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
             cloud, design, replace(inspection_settings(section, table), design_side=args.design_side,
                                    thickness_mm=args.thickness),
             plate_id=args.plate_id or Path(args.cloud).stem,
-            inputs={"cloud": str(args.cloud), "design": str(args.design)},
+            inputs=ReportInputs(points=0, cloud=str(args.cloud), design=str(args.design)),
             nominal_placement=placement,
         )  # fmt: skip
     except ValueError as exc:  # every analysis error type is a ValueError with a readable message
@@ -100,4 +101,4 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(line_table(ins.report))
         print(f"report: {files.get('report.html', files['report.json'])}")
-    return 0 if ins.report["verdict"] == "pass" else 1
+    return 0 if ins.report.verdict == "pass" else 1

@@ -26,6 +26,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("target", metavar="JOB_OR_DIR", help="results directory or job id")
     p.add_argument("--open", action="store_true", help="open report.html in the desktop's browser")
     p.add_argument(
+        "--json",
+        action="store_true",
+        help="print the written files as one JSON object (csv, html, pdf) instead of one path a line",
+    )
+    p.add_argument(
         "--config", default=str(DEFAULT_CONFIG_PATH), help="cell.toml for job ids (default: ./cell.toml)"
     )
     p.set_defaults(func=run)
@@ -94,9 +99,15 @@ def run(args: argparse.Namespace) -> int:
     except ReportError as exc:
         print(f"cellctl report: {exc}", file=sys.stderr)
         return 2
-    for path in written:
-        print(path)
-    html_path = next(p for p in written if p.suffix == ".html")
+    by_kind = {p.suffix.lstrip("."): p for p in written}
+    if args.json:  # the daemon's render child: its answer to the daemon (cellctl.daemon.render)
+        from cellctl.daemon.render import RenderAnswer
+
+        print(RenderAnswer(**{kind: str(p) for kind, p in by_kind.items()}).model_dump_json())
+    else:
+        for path in written:
+            print(path)
+    html_path = by_kind["html"]
     if args.open and not _open(html_path):
         print(f"no desktop browser available; open {html_path.resolve()}")
     return 0

@@ -16,9 +16,12 @@ import contextlib
 import json
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
+
+if TYPE_CHECKING:
+    from analysis.job import Report
 
 EXIT_OK, EXIT_FAIL, EXIT_ERROR, EXIT_NO_DAEMON = 0, 1, 2, 3
 _FINAL = ("done", "failed", "aborted", "interrupted", "cancelled")
@@ -196,7 +199,7 @@ def _bar(fraction: float, width: int = 30) -> str:
 
 async def wait_for_job(
     follower: StatusFollower, job_id: str, timeout_s: float, out=sys.stderr
-) -> tuple[str, str, dict | None]:
+) -> tuple[str, str, Report | None]:
     """Follow the state publication until job ``job_id`` ends: ``(state, message, report or None)``.
 
     While the job waits in the daemon's queue, says its position when it changes; then draws a
@@ -242,8 +245,7 @@ async def wait_for_job(
                     break
                 await asyncio.sleep(0.1)
                 env = follower.reports.get(job_id)
-            report = None if env is None or env.report is None else env.report.model_dump(mode="json")
-            return job.state.value, job.message, report
+            return job.state.value, job.message, None if env is None else env.report
     return "timeout", f"no end of job {job_id} within {timeout_s} s", None
 
 
@@ -316,7 +318,7 @@ async def _scan(args: argparse.Namespace, cfg) -> int:
         if report is not None:
             print(line_table(report))
         print(f"report: {message}")
-        return EXIT_OK if (report or {}).get("verdict") == "pass" else EXIT_FAIL
+        return EXIT_OK if report is not None and report.verdict == "pass" else EXIT_FAIL
     finally:
         if follower is not None:
             follower.close()

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from analysis.job import Report
 
 _COLUMNS = (
     ("line", "name", "{}"),
@@ -13,18 +16,18 @@ _COLUMNS = (
     ("SC-avg 1/mm", "sc_avg_per_mm", "{:.5f}"),
     ("Cmax 1/mm", "cmax_per_mm", "{:.5f}"),
     ("length mm", "length_mm", "{:.1f}"),
-    ("result", "pass", "{}"),
+    ("result", "passed", "{}"),
 )
 
 
-def line_table(report: dict[str, Any]) -> str:
+def line_table(report: Report) -> str:
     """The report's lines as an aligned text table, one family after another, verdict last."""
     rows = [[title for title, _, _ in _COLUMNS]]
-    for line in report.get("lines", []):
+    for line in report.lines:
         row = []
-        for _, key, fmt in _COLUMNS:
-            v = line.get(key)
-            if key == "pass":
+        for _, attr, fmt in _COLUMNS:
+            v = getattr(line, attr)
+            if attr == "passed":
                 row.append("pass" if v else "FAIL")
             elif v is None:
                 row.append("-")
@@ -35,18 +38,16 @@ def line_table(report: dict[str, Any]) -> str:
     lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))
              for r in rows]  # fmt: skip
     lines.insert(1, "  ".join("-" * w for w in widths))
-    tol = report.get("tolerances", {})
+    tol = report.tolerances
     lines.append("")
     lines.append(
-        f"verdict: {str(report.get('verdict', '?')).upper()}  "
-        f"({tol.get('standard', 'tolerances')}: standard {tol.get('deviation_standard_mm')} mm, "
-        f"limit {tol.get('deviation_limit_mm')} mm)"
+        f"verdict: {report.verdict.upper()}  "
+        f"({tol.standard}: standard {tol.deviation_standard_mm} mm, limit {tol.deviation_limit_mm} mm)"
     )
-    cov = report.get("coverage") or {}
-    if cov.get("partial"):  # a scan cut short: what it did not cover is said, not judged
+    cov = report.coverage
+    if cov.partial:  # a scan cut short: what it did not cover is said, not judged
         missing = ", ".join(
-            f"{x.get('name')} ({100 * float(x.get('scanned_fraction') or 0):.0f} % seen)"
-            for x in cov.get("lines_not_scanned") or []
+            f"{x.name} ({100 * x.scanned_fraction:.0f} % seen)" for x in cov.lines_not_scanned
         )
         lines.append(f"partial scan, not judged: {missing or 'none'}")
     return "\n".join(lines)

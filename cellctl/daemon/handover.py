@@ -137,7 +137,9 @@ class Handover:
         )  # fmt: skip
 
     def _meta(self, job: ActiveJob) -> dict[str, Any]:
-        return {"frame": "robot base", "cell_id": self.cfg.cell.id, "placement": job.record.placement}
+        placement = job.record.placement
+        return {"frame": "robot base", "cell_id": self.cfg.cell.id,
+                "placement": None if placement is None else placement.model_dump(mode="json")}  # fmt: skip
 
     @staticmethod
     def _first_edge(job: ActiveJob) -> int | None:

@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
+from analysis.job import Report
+from analysis.results import ReportError, read_report
 from cellctl.daemon.records import RecordError, check_job_id, read_json_file
 
 if TYPE_CHECKING:
@@ -45,17 +47,18 @@ CREATE INDEX IF NOT EXISTS jobs_plate ON jobs (plate_id, created_utc);
 DB_NAME = "history.sqlite"
 
 
-def _line_summary(report: dict[str, Any]) -> list[dict[str, Any]]:
+def _line_summary(report: Report) -> list[dict[str, Any]]:
+    """The figures per line the history keeps (its ``lines_json`` column: the HMI's rounds table)."""
     return [
         {
-            "name": ln.get("name") or f"{ln['family'][0].upper()}{ln['index']}",
-            "family": ln["family"],
-            "index": ln["index"],
-            "zmax_mm": ln["zmax_mm"],
-            "sz_avg_mm": ln["sz_avg_mm"],
-            "pass": ln["pass"],
+            "name": ln.name,
+            "family": ln.family,
+            "index": ln.index,
+            "zmax_mm": ln.zmax_mm,
+            "sz_avg_mm": ln.sz_avg_mm,
+            "pass": ln.passed,
         }
-        for ln in report.get("lines", [])
+        for ln in report.lines
     ]
 
 
@@ -77,27 +80,6 @@ def _record_fields(rec: Any, dir_name: str) -> dict[str, Any]:
     ):
         raise RecordError("history: expected a list of {state, t_utc, message}")
     return rec
-
-
-def _report_fields(report: Any) -> tuple[str | None, list[dict[str, Any]]]:
-    """A report's verdict and line summary (RecordError when it is not a report's shape)."""
-    if not isinstance(report, dict):
-        raise RecordError(f"expected a JSON object, got {type(report).__name__}")
-    verdict = report.get("verdict")
-    if verdict is not None and not isinstance(verdict, str):
-        raise RecordError("verdict: expected a string")
-    if not isinstance(report.get("lines", []), list):
-        raise RecordError("lines: expected a list")
-    try:
-        lines = _line_summary(report)
-    except (KeyError, TypeError, IndexError, AttributeError) as exc:
-        raise RecordError(f"lines: not a report's lines ({type(exc).__name__}: {str(exc)[:80]})") from None
-    for ln in lines:
-        if not isinstance(ln["name"], str) or not all(
-            isinstance(ln[k], int | float) and not isinstance(ln[k], bool) for k in ("zmax_mm", "sz_avg_mm")
-        ):
-            raise RecordError("lines: expected a name and numbers (zmax_mm, sz_avg_mm) per line")
-    return verdict, lines
 
 
 def read_job_dir(job_dir: Path, plate_id: str | None = None) -> dict[str, Any] | None:
@@ -123,8 +105,9 @@ def read_job_dir(job_dir: Path, plate_id: str | None = None) -> dict[str, Any] |
     rp = job_dir / "report.json"
     if rp.exists():
         try:
-            verdict, lines = _report_fields(read_json_file(rp))
-        except (OSError, RecordError) as exc:
+            report = read_report(rp, load=read_json_file)
+            verdict, lines = report.verdict, _line_summary(report)
+        except (OSError, RecordError, ReportError) as exc:
             log.warning("history_report_unreadable", path=str(rp), reason=str(exc)[:300])
     hist = rec.get("history") or []
     return {

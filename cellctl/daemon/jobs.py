@@ -27,9 +27,10 @@ from pathlib import Path
 from typing import Any
 
 import structlog
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from analysis.job import PlacementFinding
+from analysis.placement import Placement
 from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.session import AcquisitionSession
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
@@ -113,9 +114,11 @@ class JobRecord:
 
     Attributes:
         job_id, plate_id: identity. design: the trigger's design path (relative to designs_dir);
-        design_path: resolved absolute path. placement: ``{"pos_mm": [...], "rpy_deg": [...]}``, the
-        placement the scan is planned from: the trigger's, or (after the locate run) the one found;
-        None until then when the trigger gave none (``info["locate"]`` says which and how well).
+        design_path: resolved absolute path. placement: the :class:`~analysis.placement.Placement`
+        the scan is planned from (``{"pos_mm": [...], "rpy_deg": [...]}`` in job.json; a dict given
+        here is validated into one, ValueError naming ``placement`` when it is not one): the
+        trigger's, or (after the locate run) the one found; None until then when the trigger gave
+        none (``info["locate"]`` says which and how well).
         state: a :class:`cellctl.api.JobState` value. history: ``[{"state", "t_utc", "message"}]``.
         info: counters and results (profiles, points, scan_s, verdict, report path, ...).
         analysis: the trigger's per-plate analysis options (``template_table`` rows, ``design_side``,
@@ -126,7 +129,7 @@ class JobRecord:
     plate_id: str
     design: str
     design_path: str
-    placement: dict[str, Any] | None
+    placement: Placement | None
     note: str = ""
     state: str = JobState.QUEUED.value
     created_utc: str = field(default_factory=now_utc)
@@ -134,9 +137,21 @@ class JobRecord:
     info: dict[str, Any] = field(default_factory=dict)
     analysis: dict[str, Any] = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        if self.placement is not None and not isinstance(self.placement, Placement):
+            try:  # job.json's object, or a caller's dict: the one placement type from here on
+                self.placement = Placement.model_validate(self.placement)
+            except ValidationError as exc:
+                err = exc.errors(include_url=False)[0]
+                raise ValueError(f"placement: {err['msg']} at {tuple(err['loc'])}") from None
+
     @property
     def terminal(self) -> bool:
         return JobState(self.state) in TERMINAL
+
+    def as_json(self) -> dict[str, Any]:
+        """The record as job.json's object (the placement as ``{"pos_mm", "rpy_deg"}``)."""
+        return json.loads(json.dumps(asdict(self), default=_json_default))
 
 
 class ActiveJob:
@@ -196,7 +211,7 @@ class JobStore:
         """Write ``job.json`` atomically (temp file, fsync, rename): a crash leaves the old or the new."""
         path = self.job_dir(record.job_id) / "job.json"
         tmp = path.with_suffix(".json.tmp")
-        data = json.dumps(asdict(record), indent=2, default=_json_default)
+        data = json.dumps(record.as_json(), indent=2)
         try:
             with open(tmp, "w", encoding="utf-8") as f:
                 f.write(data)
@@ -275,13 +290,16 @@ class JobStore:
             v = old.get(key)
             return v if isinstance(v, str) else ""
 
-        placement = old.get("placement")
+        try:
+            placement = Placement.model_validate(old.get("placement"))
+        except ValidationError:
+            placement = None
         rec = JobRecord(
             job_id=job_id,
             plate_id=text("plate_id") or "unknown",
             design=text("design"),
             design_path=text("design_path"),
-            placement=placement if _is_placement(placement) else None,
+            placement=placement,
             state=JobState.INTERRUPTED.value,
             analysis=_options_or_none(old.get("analysis")),
         )
@@ -411,18 +429,6 @@ class RecordRetry:
             self._task.cancel()
 
 
-def _is_placement(v: Any) -> bool:
-    return (
-        isinstance(v, dict)
-        and all(isinstance(v.get(k), list) and len(v[k]) == 3 for k in ("pos_mm", "rpy_deg"))
-        and all(
-            isinstance(x, int | float) and not isinstance(x, bool)
-            for k in ("pos_mm", "rpy_deg")
-            for x in v[k]
-        )
-    )
-
-
 def _checked(rec: JobRecord) -> JobRecord:
     """``rec`` when every field has the type and the state a value this version knows (ValueError)."""
     JobState(rec.state)  # ValueError for a state of another version (e.g. "reanalysing")
@@ -441,8 +447,8 @@ def _checked(rec: JobRecord) -> JobRecord:
         AnalysisOptions.model_validate(rec.analysis)
     except ValidationError as exc:
         raise ValueError(f"analysis: {exc.errors()[0]['msg']} at {exc.errors()[0]['loc']}") from None
-    if rec.placement is not None and not _is_placement(rec.placement):
-        raise ValueError("placement: expected {pos_mm: [x, y, z], rpy_deg: [r, p, y]} or null")
+    if rec.placement is not None and not isinstance(rec.placement, Placement):
+        raise ValueError(f"placement: expected a Placement or null, got {type(rec.placement).__name__}")
     return rec
 
 
@@ -479,6 +485,8 @@ def _check_info(info: dict[str, Any]) -> None:
 
 
 def _json_default(obj: Any) -> Any:
+    if isinstance(obj, BaseModel):  # the placement, a placement finding in info
+        return obj.model_dump(mode="json")
     if hasattr(obj, "tolist"):
         return obj.tolist()
     if isinstance(obj, Path):

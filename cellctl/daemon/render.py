@@ -17,12 +17,23 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import structlog
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from drivers.runtime import normal_priority
 
-__all__ = ["RenderResult", "render_report"]
+__all__ = ["RenderAnswer", "RenderResult", "render_report"]
 
 log = structlog.get_logger(__name__)
+
+
+class RenderAnswer(BaseModel):
+    """What ``cellctl report --json`` prints as its one line of output: the files it wrote."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    csv: str
+    html: str
+    pdf: str
 
 
 @dataclass(frozen=True)
@@ -44,7 +55,7 @@ async def render_report(results: Path, *, kill_after_s: float = 5.0) -> RenderRe
     t0 = time.perf_counter()
     try:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "cellctl", "report", str(results),
+            sys.executable, "-m", "cellctl", "report", "--json", str(results),
             stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.PIPE, preexec_fn=normal_priority,
         )  # fmt: skip
@@ -70,11 +81,13 @@ async def render_report(results: Path, *, kill_after_s: float = 5.0) -> RenderRe
     html: Path | None = None
     try:
         out, err = render.result()
-        lines = [line for line in out.decode(errors="replace").splitlines() if line.endswith(".html")]
-        if proc.returncode == 0 and lines:
-            html = results / Path(lines[0]).name
+        if proc.returncode == 0:  # the answer is the last line (the logs go to stderr)
+            answer = RenderAnswer.model_validate_json((out.strip().splitlines() or [b""])[-1])
+            html = results / Path(answer.html).name
         else:
             log.warning("html_report_failed", code=proc.returncode, error=err.decode(errors="replace")[-500:])
+    except ValidationError as exc:  # a child of another version: its answer is not this one's
+        log.warning("html_report_failed", error=f"the render's answer: {exc.errors()[0]['msg']}")
     except Exception as exc:  # the JSON report stands on its own
         log.warning("html_report_failed", error=str(exc))
     return RenderResult(html, time.perf_counter() - t0, stopped)

@@ -225,7 +225,7 @@ class ScanRunner:
         True with ``job.record.placement`` the placement found; False when the job ended (the plate
         was not found, a given placement is refused, the run was stopped or failed)."""
         host, rec, cfg = self.host, job.record, self.cfg
-        given = None if rec.placement is None else Placement.model_validate(rec.placement)
+        given = rec.placement
         t0 = time.perf_counter()
         lst = locate_settings(cfg, design, None if given is None else given.yaw_deg)
         run: list[LocatePlan] = []
@@ -297,7 +297,7 @@ class ScanRunner:
         if refusal is not None:
             host.job_state(job, JobState.FAILED, f"placement refused: {refusal}", **info)
             return False
-        rec.placement = found.placement.model_dump()
+        rec.placement = found.placement
         f = found.placement
         host.job_state(
             job, JobState.PLANNING,
@@ -314,7 +314,9 @@ class ScanRunner:
         cache (None on a cache hit); None when the plan was refused (the job failed)."""
         rec = job.record
         try:
-            placement = Placement.model_validate(rec.placement)
+            placement = rec.placement
+            if placement is None:  # the locate run sets it, or the job ended before the plan
+                raise PlanInputError("no placement to plan the scan from")
             settings = PlannerSettings.from_config(self.cfg)
             t0 = time.perf_counter()
             corner = await self._start_corner(design, placement, settings)

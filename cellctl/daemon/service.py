@@ -417,7 +417,7 @@ class CellDaemon:
             plate_id=req.plate_id,
             design=req.design,
             design_path=str(design_path),
-            placement=None if req.placement is None else req.placement.model_dump(),
+            placement=req.placement,
             note=req.note,
             analysis=req.analysis_options().record(),
         )

@@ -30,6 +30,7 @@ import structlog
 from aiohttp import WSMsgType, web
 from aiohttp.http_exceptions import HttpProcessingError
 
+from analysis.results import read_report, read_results_arrays
 from cellctl.api import DESIGN_SUFFIXES, MAX_TRIGGER_BYTES, ApiCallError
 from cellctl.config import CellConfig
 from cellctl.daemon.history import History
@@ -459,7 +460,7 @@ class HmiServer:
             rp = d / "results" / "report.json"
             if not rp.exists():
                 rp = d / "report.json"
-            report = json.loads(rp.read_text(encoding="utf-8")) if rp.exists() else None
+            report = read_report(rp).model_dump(mode="json") if rp.exists() else None
             files = [n for n, (rel, _) in DOWNLOADS.items() if (d / rel).is_file()]
             if (d / "cloud.bin").is_file():
                 files.append("cloud.bin")
@@ -475,23 +476,22 @@ class HmiServer:
             return _err(404, "no_job", "no results for this job")
 
         def read() -> dict[str, Any]:
-            with np.load(path) as z:
-                xy, dev = z["plate_xy_mm"].astype(float), z["plate_deviation_mm"].astype(float)
-                idx = np.linspace(0, len(xy) - 1, min(len(xy), MAP_MAX_POINTS)).astype(int) if len(xy) else []
-                lines = []
-                k = 0
-                while f"line{k}_s_mm" in z.files:
-                    s, dv = z[f"line{k}_s_mm"].astype(float), z[f"line{k}_deviation_mm"].astype(float)
-                    step = max(1, len(s) // 400)
-                    lines.append({"s_mm": np.round(s[::step], 1).tolist(),
-                                  "deviation_mm": np.round(np.nan_to_num(dv[::step]), 3).tolist()})  # fmt: skip
-                    k += 1
-                return {
-                    "xy_mm": np.round(xy[idx], 1).tolist(),
-                    "deviation_mm": np.round(dev[idx], 3).tolist(),
-                    "plate_size_mm": z["plate_size_mm"].tolist(),
-                    "lines": lines,
-                }
+            res = read_results_arrays(path)
+            xy, dev = res.plate_xy_mm, res.plate_deviation_mm
+            idx = np.linspace(0, len(xy) - 1, min(len(xy), MAP_MAX_POINTS)).astype(int) if len(xy) else []
+            lines = []
+            for series in res.lines:  # read_results_arrays without a count: the lines stored, none missing
+                assert series is not None
+                s, dv = series.s_mm, series.deviation_mm
+                step = max(1, len(s) // 400)
+                lines.append({"s_mm": np.round(s[::step], 1).tolist(),
+                              "deviation_mm": np.round(np.nan_to_num(dv[::step]), 3).tolist()})  # fmt: skip
+            return {
+                "xy_mm": np.round(xy[idx], 1).tolist(),
+                "deviation_mm": np.round(dev[idx], 3).tolist(),
+                "plate_size_mm": res.plate_size_mm.tolist(),
+                "lines": lines,
+            }
 
         return web.json_response(await asyncio.to_thread(read))
 

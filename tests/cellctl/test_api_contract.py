@@ -11,7 +11,7 @@ import pytest
 from pydantic import ValidationError
 
 from analysis.job import AnalysisJob, Report
-from analysis.mesh import save_mesh
+from analysis.mesh import MeshError, save_mesh
 from analysis.pipeline import analyse_job, design_corners_from_mesh
 from analysis.placement import Placement, placement_transform
 from analysis.plates import FormingError, design_mesh, plate_spec
@@ -151,15 +151,15 @@ def test_the_job_placement_reaches_the_analysis_and_picks_the_reference_corner(t
     lay = scan.placement
     turned = Placement.on_bed(lay.x_mm, lay.y_mm, lay.yaw_deg + 180.0)
     report = _analyse(tmp_path / "turned", turned)
-    corner0 = np.asarray(report["corners_mm"][0])
+    corner0 = np.asarray(report.corners_mm[0])
     assert np.linalg.norm((corner0 - _where(turned, c0))[:2]) < 10.0
-    assert Report.model_validate(report).inputs.placement == turned
+    assert isinstance(report, Report) and report.inputs.placement == turned
     stored = json.loads((tmp_path / "turned" / "results" / "report.json").read_text())
     assert Placement.model_validate(stored["inputs"]["placement"]) == turned
     # without a placement the bed convention decides: the opposite corner, here where the lay puts it
     unplaced = _analyse(tmp_path / "none", None)
-    assert np.linalg.norm((np.asarray(unplaced["corners_mm"][0]) - _where(lay, c0))[:2]) < 10.0
-    assert unplaced["inputs"]["placement"] is None
+    assert np.linalg.norm((np.asarray(unplaced.corners_mm[0]) - _where(lay, c0))[:2]) < 10.0
+    assert unplaced.inputs.placement is None
 
 
 def test_the_field_tables_of_docs_api_md_are_those_of_the_models():
@@ -184,3 +184,21 @@ def test_the_daemon_stats_model_takes_the_egm_endpoint_statistics_as_they_are():
 
     stats = DaemonStats(cell_id="c", t_utc="t", rss_mb=1.0, egm=EgmStatistics().snapshot())
     assert DaemonStats.model_validate_json(stats.to_json()) == stats
+
+
+@pytest.mark.parametrize("design", ["plate.npz", "plate.json", "plate.txt"])
+def test_a_trigger_naming_a_design_the_analysis_cannot_read_is_refused_at_the_api(design):
+    """One list of design formats: the trigger accepts what analysis.cad.read_design reads, no more."""
+    from pydantic import ValidationError
+
+    from analysis.cad import DESIGN_SUFFIXES, read_design
+    from cellctl.api import DESIGN_SUFFIXES as API_SUFFIXES
+    from cellctl.api import TriggerRequest
+
+    assert API_SUFFIXES is DESIGN_SUFFIXES
+    with pytest.raises(ValidationError, match="design"):
+        TriggerRequest.model_validate({"plate_id": "P", "design": design})
+    with pytest.raises(MeshError, match="unsupported design format"):
+        read_design(design)
+    for ok in DESIGN_SUFFIXES:
+        assert TriggerRequest.model_validate({"plate_id": "P", "design": f"plate{ok}"}).design == f"plate{ok}"

@@ -47,7 +47,7 @@ def test_a_running_reanalysis_is_aborted_by_its_job_id_and_can_be_reanalysed_aga
     rec = JobRecord(job_id, "P1", "d.ply", str(designs / "d.ply"), None, state="interrupted")
     d.store.raw_dir(job_id).mkdir(parents=True)
     (d.store.raw_dir(job_id) / "profiles.craw").write_bytes(b"")
-    (d.store.job_dir(job_id) / "job.json").write_text(json.dumps(rec.__dict__))
+    (d.store.job_dir(job_id) / "job.json").write_text(json.dumps(rec.as_json()))
 
     async def main():
         disp = _Dispatcher()

@@ -86,6 +86,6 @@ def test_reanalysis_of_a_quarantined_record_without_a_design_is_refused_with_the
 
 def test_reanalysis_of_a_record_whose_design_is_outside_designs_dir_is_refused(tmp_path):
     rec = JobRecord("20260101T000000-aaaa0009", "p", "x.ply", "/etc/passwd", None, state="interrupted")
-    d, job_id = _daemon_with_raw_job(tmp_path, json.dumps(rec.__dict__))
+    d, job_id = _daemon_with_raw_job(tmp_path, json.dumps(rec.as_json()))
     with pytest.raises(ControlError, match="not in designs_dir"):
         asyncio.run(d._control("reanalyse", ControlRequest(job_id=job_id)))

@@ -11,6 +11,7 @@ import pytest
 from analysis.templates import DetectionLayout
 from cellctl.commands import report_cmd
 from cellctl.daemon.history import History, previous_round_for
+from tests.support.reports import report_json
 from tests.support.results_fixture import write_synthetic_results
 
 
@@ -35,9 +36,7 @@ def _job(
             }
             for k, (n, z) in enumerate(lines)
         ]
-        (d / "report.json").write_text(
-            json.dumps({"verdict": "pass" if all(z <= 3 for _, z in lines) else "fail", "lines": rep})
-        )
+        (d / "report.json").write_text(report_json(rep, "pass" if all(z <= 3 for _, z in lines) else "fail"))
     return d
 
 
@@ -84,7 +83,7 @@ def test_cellctl_report_of_a_job_shows_its_previous_round(data: Path) -> None:
         transverse_offsets_mm=(300.0, 900.0), longitudinal_offsets_mm=(), diagonals=False
     )
     write_synthetic_results(results, n_points=2000, layout=layout, plate_id="P1")
-    args = argparse.Namespace(target=str(results), open=False, config="/nonexistent/cell.toml")
+    args = argparse.Namespace(target=str(results), open=False, json=False, config="/nonexistent/cell.toml")
     assert report_cmd.run(args) == 0
     html = (results / "report.html").read_text(encoding="utf-8")
     section = html.split('<section id="previous-round"', 1)[1].split("</section>", 1)[0]

@@ -10,10 +10,12 @@ from pathlib import Path
 import pytest
 from structlog.testing import capture_logs
 
+from analysis.placement import Placement
 from cellctl.api import JobState
 from cellctl.daemon.history import History, format_history, previous_round_for
 from cellctl.daemon.jobs import JobRecord, JobStore, JobStoreError
 from cellctl.daemon.records import MAX_RECORD_BYTES, RecordError, read_json_file
+from tests.support.reports import report_json
 
 DONE_ID = "20260101T000000-aaaa0001"
 OTHER_ID = "20260101T000001-aaaa0002"
@@ -69,7 +71,7 @@ def test_a_record_naming_a_path_never_makes_recovery_write_outside_its_directory
     data = tmp_path / "a" / "b" / "data"
     store = JobStore(data)
     rec = _record(OTHER_ID, JobState.SCANNING)
-    text = json.dumps({**rec.__dict__, "job_id": "../../../escape"})
+    text = json.dumps({**rec.as_json(), "job_id": "../../../escape"})
     d = _plant(store, OTHER_ID, text)
     outside = tmp_path / "a" / "escape"  # where the record points: data_dir/jobs/../../../escape
     outside.mkdir()
@@ -88,7 +90,7 @@ def test_a_record_naming_another_jobs_id_never_overwrites_that_jobs_record(tmp_p
     done = store.create(_record(DONE_ID, JobState.DONE))
     store.set_state(done, JobState.DONE, "report.json", verdict="pass")
     kept = (store.job_dir(DONE_ID) / "job.json").read_bytes()
-    _plant(store, OTHER_ID, json.dumps({**_record(DONE_ID, JobState.SCANNING).__dict__}))
+    _plant(store, OTHER_ID, json.dumps({**_record(DONE_ID, JobState.SCANNING).as_json()}))
     for _ in range(2):  # on every restart
         found = JobStore(tmp_path).recover()
         assert DONE_ID not in [r.job_id for r in found]
@@ -100,7 +102,7 @@ def test_a_record_naming_another_jobs_id_never_overwrites_that_jobs_record(tmp_p
 
 def test_a_directory_whose_name_is_not_a_job_id_is_left_alone(tmp_path):
     store = JobStore(tmp_path)
-    d = _plant(store, "not a job", json.dumps(_record(OTHER_ID, JobState.SCANNING).__dict__))
+    d = _plant(store, "not a job", json.dumps(_record(OTHER_ID, JobState.SCANNING).as_json()))
     with capture_logs() as logs:
         assert JobStore(tmp_path).recover() == []
     assert sorted(p.name for p in d.iterdir()) == ["job.json"]
@@ -120,6 +122,25 @@ def test_a_record_whose_plan_info_has_the_wrong_type_is_quarantined(tmp_path):
     assert "info.plan" in back.info["quarantine_reason"] and "plan" not in back.info
 
 
+def test_a_records_placement_is_a_placement_and_one_of_another_shape_is_quarantined(tmp_path):
+    store = JobStore(tmp_path)
+    rec = store.create(_record(DONE_ID, JobState.DONE))  # done: recovery leaves it alone
+    back = store.load(DONE_ID)
+    assert isinstance(back.placement, Placement) and back.placement == rec.placement
+    assert back.placement == Placement(pos_mm=[1.0, 2.0, 3.0], rpy_deg=[0.0, 0.0, 3.0])
+    assert json.loads((store.job_dir(DONE_ID) / "job.json").read_text())["placement"] == {
+        "pos_mm": [1.0, 2.0, 3.0], "rpy_deg": [0.0, 0.0, 3.0]
+    }  # fmt: skip
+    # a field the placement does not know (a record of another version): quarantined, placement dropped
+    planted = {**_record(OTHER_ID, JobState.SCANNING).as_json(), "placement": {"pos_mm": [1, 2, 3], "yaw": 3}}
+    _plant(store, OTHER_ID, json.dumps(planted))
+    with pytest.raises(JobStoreError, match="placement"):
+        store.load(OTHER_ID)
+    assert [r.job_id for r in JobStore(tmp_path).recover()] == [OTHER_ID]
+    again = store.load(OTHER_ID)
+    assert again.placement is None and "placement" in again.info["quarantine_reason"]
+
+
 def _history_job(data: Path, dir_name: str, text: str, report: str | None = None) -> None:
     d = data / "jobs" / dir_name
     d.mkdir(parents=True)
@@ -133,8 +154,8 @@ def _good(job_id: str, created: str) -> str:
                        "history": [{"state": "done", "t_utc": created, "message": "m"}]})  # fmt: skip
 
 
-REPORT = json.dumps({"verdict": "pass", "lines": [{"family": "transverse", "index": 1, "name": "T1",
-                                                   "zmax_mm": 1.0, "sz_avg_mm": 0.5, "pass": True}]})  # fmt: skip
+REPORT = report_json([{"family": "transverse", "index": 1, "name": "T1", "zmax_mm": 1.0, "sz_avg_mm": 0.5,
+                       "pass": True}], "pass")  # fmt: skip
 
 
 def test_the_history_skips_bad_records_with_a_log_line_instead_of_dying(tmp_path):
@@ -148,15 +169,19 @@ def test_the_history_skips_bad_records_with_a_log_line_instead_of_dying(tmp_path
     _history_job(tmp_path, "badreport", _good("badreport", "2026-11-04T10:00:00Z"), "[" * 1000)
     _history_job(tmp_path, "oddreport", _good("oddreport", "2026-11-05T10:00:00Z"),
                  json.dumps({"verdict": "pass", "lines": [{"family": 3}]}))  # fmt: skip
+    # a field the report's schema does not know: not a report this cell wrote
+    _history_job(tmp_path, "extrareport", _good("extrareport", "2026-11-06T10:00:00Z"),
+                 json.dumps({**json.loads(REPORT), "verdikt": "pass"}))  # fmt: skip
     h = History(tmp_path, db_path=":memory:")
     try:
         with capture_logs() as logs:
-            assert h.rebuild() == 4
+            assert h.rebuild() == 5
         skipped = {Path(e["path"]).parent.name for e in logs if e["event"] == "history_record_skipped"}
         assert skipped == {"deep", "list", "wrongid", "esc", "nokeys"}
         bad_reports = {Path(e["path"]).parent.name for e in logs if e["event"] == "history_report_unreadable"}
-        assert bad_reports == {"badreport", "oddreport"}
-        assert [r["job_id"] for r in h.jobs()] == ["oddreport", "badreport", "j2", "j1"]
+        assert bad_reports == {"badreport", "oddreport", "extrareport"}
+        assert [r["job_id"] for r in h.jobs()] == ["extrareport", "oddreport", "badreport", "j2", "j1"]
+        assert h.jobs(plate_id="P1")[0]["verdict"] is None  # an unreadable report leaves no verdict
         assert "2 round(s)" in format_history(h, "P1") and "j1" in format_history(h, None)
     finally:
         h.close()

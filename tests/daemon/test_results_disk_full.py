@@ -89,7 +89,7 @@ def test_a_disk_full_while_results_are_stored_keeps_the_verdict_and_writes_them_
     files = {"results.npz": bytes(range(256)) * 800, "report.json": b"{}"}  # 200 kB: more than is left
     with tmpfs(jd, "1m"):
         rec = JobRecord(JOB, "P1", "d.ply", str(designs / "d.ply"), None, state="interrupted")
-        (jd / "job.json").write_text(json.dumps(rec.__dict__))
+        (jd / "job.json").write_text(json.dumps(rec.as_json()))
         d.store.raw_dir(JOB).mkdir()
         (d.store.raw_dir(JOB) / "profiles.craw").write_bytes(b"")
 

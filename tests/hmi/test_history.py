@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from cellctl.daemon.history import History, format_history
+from tests.support.reports import report_json
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -37,7 +38,7 @@ def _job(
             for k, z in enumerate(zmax)
         ]
         verdict = "pass" if all(abs(z) <= 3 for z in zmax) else "fail"
-        (d / "report.json").write_text(json.dumps({"verdict": verdict, "lines": lines}))
+        (d / "report.json").write_text(report_json(lines, verdict, plate_id=plate))
 
 
 def test_rebuild_rounds_previous_round_and_index_job(tmp_path: Path) -> None:

@@ -21,8 +21,10 @@ import numpy as np
 import pytest
 from playwright import sync_api as playwright_sync
 
+from analysis.results import LineSeries, ResultsArrays
 from cellctl.api import ControlReply, TriggerAccepted
 from tests.support.hmi_server import USERS, LocalHmi
+from tests.support.reports import report_json
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(180)]  # Chromium is a process of its own
 
@@ -59,9 +61,14 @@ def _job_dir(
               "sz_avg_mm": 0.5, "pass": verdict == "pass" and not (failing_line and k == 0),
               "start_plate_mm": [100.0 + 30 * k, 0.0], "end_plate_mm": [100.0 + 30 * k, 300.0]}
              for k in range(n_lines)]  # fmt: skip
-    tolerances = {"deviation_standard_mm": 1.0, "deviation_limit_mm": 2.0}
-    report = {"verdict": verdict, "lines": lines, "tolerances": tolerances, "plate_size_mm": [400, 300, 5]}
-    (d / "report.json").write_text(json.dumps(report))
+    tolerances = {
+        "standard": "test",
+        "deviation_standard_mm": 1.0,
+        "deviation_limit_mm": 2.0,
+        "judge_at": "limit",
+    }
+    report = report_json(lines, verdict, plate_id=plate, tolerances=tolerances, plate_size_mm=[400.0, 300.0])
+    (d / "report.json").write_text(report)
 
 
 def status(state: str = "idle", job: dict | None = None, queue: list | None = None, recent: list | None = None,
@@ -88,8 +95,9 @@ def hmi(tmp_path_factory) -> Iterator[LocalHmi]:
     res.mkdir()
     s_mm = np.linspace(0.0, 300.0, 120)
     xy = np.stack(np.meshgrid(np.linspace(0, 400, 40), np.linspace(0, 300, 30)), -1).reshape(-1, 2)
-    np.savez(res / "results.npz", plate_xy_mm=xy, plate_deviation_mm=np.sin(xy[:, 0] / 80.0),
-             plate_size_mm=np.array([400.0, 300.0, 5.0]), line0_s_mm=s_mm, line0_deviation_mm=2.6 * np.sin(s_mm / 60.0))  # fmt: skip
+    dev_mm = 2.6 * np.sin(s_mm / 60.0)
+    ResultsArrays(xy, np.sin(xy[:, 0] / 80.0), np.array([400.0, 300.0]),
+                  [LineSeries(s_mm, np.zeros_like(s_mm), -dev_mm, dev_mm)], np.zeros((0, 2))).save(res / "results.npz")  # fmt: skip
     (res / "report.csv").write_text("line,zmax\nT1,1.0\n")
     (root / "designs").mkdir()
     (root / "designs" / "p.ply").write_text("not a mesh")  # listed; its preview says it cannot be read

@@ -42,20 +42,21 @@ def dented(tmp_path_factory: pytest.TempPathFactory):
 def test_iges_and_step_designs_give_the_mesh_figures_and_find_the_dent(dented) -> None:
     spec, scan, files = dented
     ref = inspect_cloud(scan.cloud, design_mesh(spec, pitch_mm=2.0), SETTINGS).report
-    ref_lines = {line["name"]: line for line in ref["lines"]}
-    assert ref["design"]["kind"] == "mesh" and ref["design"]["templates"] == "mesh"
+    ref_lines = {line.name: line for line in ref.lines}
+    assert ref.design.kind == "mesh" and ref.design.templates == "mesh"
     for name, path in files.items():
         report = inspect_cloud(scan.cloud, read_cad(path), SETTINGS).report
-        assert report["design"]["kind"] == "cad" and report["design"]["templates"] == "exact surface"
-        assert report["registration"]["penetration_points"] == 0
-        lines = {line["name"]: line for line in report["lines"]}
+        assert report.design.kind == "cad" and report.design.templates == "exact surface"
+        assert report.registration.penetration_points == 0
+        lines = {line.name: line for line in report.lines}
         assert lines.keys() == ref_lines.keys(), name
         for k, line in lines.items():
             for fig in ("zmax_mm", "sz_avg_mm"):
-                assert abs(line[fig] - ref_lines[k][fig]) < 0.01, (name, k, fig, line[fig], ref_lines[k][fig])
-            np.testing.assert_allclose(line["start_plate_mm"], ref_lines[k]["start_plate_mm"], atol=0.5)
+                got, want = getattr(line, fig), getattr(ref_lines[k], fig)
+                assert abs(got - want) < 0.01, (name, k, fig, got, want)
+            np.testing.assert_allclose(line.start_plate_mm, ref_lines[k].start_plate_mm, atol=0.5)
         for k in ("T3", "L2"):
-            assert abs(lines[k]["zmax_mm"] - DENT_MM) < 0.1, (name, k, lines[k]["zmax_mm"])
+            assert abs(lines[k].zmax_mm - DENT_MM) < 0.1, (name, k, lines[k].zmax_mm)
 
 
 @pytest.mark.slow

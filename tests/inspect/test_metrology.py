@@ -35,33 +35,33 @@ def test_at_0_05_mm_noise_the_template_lifts_under_0_3_sigma_and_every_zmax_is_w
     spec, scan, design, ins = _inspect(noise, seed=3, template_fit_compare=True)
     lift = template_lift(height_field_from_mesh(design, 1.0), spec, scan.T_bed_design, ins.T_measured_design)
     assert lift.max_abs_mm < 0.3 * noise, lift
-    reg = ins.report["registration"]
-    assert reg["penetration_points"] == 0
-    assert reg["rest_surface"]["noise_mm"] == pytest.approx(noise, rel=0.1)
-    for cut, line in zip(ins.cuts, ins.report["lines"], strict=True):
+    reg = ins.report.registration
+    assert reg.penetration_points == 0
+    assert reg.rest_surface.noise_mm == pytest.approx(noise, rel=0.1)
+    for cut, line in zip(ins.cuts, ins.report.lines, strict=True):
         truth = true_line_zmax(
             spec, DENTS, scan.T_bed_design, cut.line.start_mm, cut.line.direction, cut.s_mm
         )
-        assert abs(line["zmax_mm"] - truth) < 0.1, (line["name"], line["zmax_mm"], truth)
+        assert abs(line.zmax_mm - truth) < 0.1, (line.name, line.zmax_mm, truth)
     # the report says which fit judged, and carries the other when asked
-    assert ins.report["template_fit"] == "rigid"
-    other = ins.report["template_fit_compare"]
-    assert other["template_fit"] == "per_line" and len(other["lines"]) == len(ins.report["lines"])
+    assert ins.report.template_fit == "rigid"
+    other = ins.report.template_fit_compare
+    assert other.template_fit == "per_line" and len(other.lines) == len(ins.report.lines)
     html = _compare_html(ins.report)
     assert (
         'data-compare="per_line"' in html
         and "Zmax rigid" in html
-        and html.count("<tr data-line=") == len(other["lines"])
+        and html.count("<tr data-line=") == len(other.lines)
     )
 
 
 def test_per_line_mode_judges_each_line_on_its_own_template_without_penetration():
     _, _, _, ins = _inspect(0.05, seed=4, template_fit="per_line")
-    assert ins.report["template_fit"] == "per_line" and ins.report["template_fit_compare"] is None
-    by_name = {line["name"]: line for line in ins.report["lines"]}
-    assert all(line["line_fit"]["penetration_points"] == 0 for line in ins.report["lines"])
+    assert ins.report.template_fit == "per_line" and ins.report.template_fit_compare is None
+    by_name = {line.name: line for line in ins.report.lines}
+    assert all(line.line_fit.penetration_points == 0 for line in ins.report.lines)
     for name in ("T3", "L2"):  # through the 1.5 mm dent
-        assert abs(by_name[name]["zmax_mm"] - 1.5) < 0.1, by_name[name]
+        assert abs(by_name[name].zmax_mm - 1.5) < 0.1, by_name[name]
     assert _compare_html(ins.report) == ""
 
 

@@ -15,6 +15,7 @@ from functools import cache
 import numpy as np
 import pytest
 
+from analysis.job import Report
 from analysis.mesh import TriMesh
 from analysis.moulded import MouldedError, design_as_laid
 from analysis.pipeline import InspectionError, inspect_cloud
@@ -43,8 +44,8 @@ def _plate():
     return scan, visible, design
 
 
-def _figures(report: dict) -> dict[str, tuple[float, float]]:
-    return {ln["name"]: (ln["zmax_mm"], ln["sz_avg_mm"]) for ln in report["lines"]}
+def _figures(report: Report) -> dict[str, tuple[float, float]]:
+    return {ln.name: (ln.zmax_mm, ln.sz_avg_mm) for ln in report.lines}
 
 
 @pytest.mark.slow
@@ -53,7 +54,7 @@ def test_a_moulded_side_down_plate_is_judged_with_the_thickness_offset() -> None
     truth = _figures(inspect_cloud(scan.cloud, visible, SETTINGS).report)
     down = dataclasses.replace(SETTINGS, design_side="moulded_down", thickness_mm=THICKNESS_MM)
     report = inspect_cloud(scan.cloud, design, down).report
-    assert report["design"]["side"] == "moulded_down" and report["design"]["thickness_mm"] == THICKNESS_MM
+    assert report.design.side == "moulded_down" and report.design.thickness_mm == THICKNESS_MM
     got = _figures(report)
     assert got.keys() == truth.keys()
     # within 0.03 mm: the turned design's tessellation and corner order differ from face A's, and
@@ -134,7 +135,7 @@ def test_a_cad_design_is_cut_on_its_exact_offset_surface(tmp_path) -> None:
 
     down = dataclasses.replace(SETTINGS, design_side="moulded_down", thickness_mm=THICKNESS_MM)
     report = inspect_cloud(scan.cloud, design, down).report
-    assert report["design"]["kind"] == "cad" and report["design"]["side"] == "moulded_down"
+    assert report.design.kind == "cad" and report.design.side == "moulded_down"
     truth = _figures(inspect_cloud(scan.cloud, visible, SETTINGS).report)
     got = _figures(report)
     for name, (zmax, sz_avg) in truth.items():

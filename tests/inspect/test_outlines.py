@@ -72,15 +72,15 @@ def _inspected(outline: str, dented: bool):
 def test_a_perfect_plate_of_any_outline_reads_below_0_05_mm_against_its_ship_design(outline: str) -> None:
     _, scan, ins = _inspected(outline, False)
     report = ins.report
-    zmax = {line["name"]: line["zmax_mm"] for line in report["lines"]}
+    zmax = {line.name: line.zmax_mm for line in report.lines}
     assert len(zmax) == 10 and max(zmax.values()) < 0.05, zmax
-    assert report["registration"]["penetration_points"] == 0
-    assert report["verdict"] == "pass"
+    assert report.registration.penetration_points == 0
+    assert report.verdict == "pass"
     # the mesh design was moved out of ship coordinates into its own frame, and the report says how
-    T = np.asarray(report["design"]["T_design_file"])
-    assert report["design"]["kind"] == "mesh" and np.linalg.norm(T[:3, 3]) > 10000.0
+    T = np.asarray(report.design.T_design_file)
+    assert report.design.kind == "mesh" and np.linalg.norm(T[:3, 3]) > 10000.0
     # corners within the rectangle's boundary tolerance (the half turn of a parallelogram allowed)
-    measured = np.asarray(report["corners_mm"])
+    measured = np.asarray(report.corners_mm)
     truth = scan.corners_bed_mm()
     d = min((np.roll(measured, k, axis=0) - truth for k in (0, 2)), key=lambda e: np.abs(e).max())
     assert np.abs(d[:, :2]).max() < 1.5 and np.abs(d[:, 2]).max() < 0.5, d
@@ -90,10 +90,10 @@ def test_a_perfect_plate_of_any_outline_reads_below_0_05_mm_against_its_ship_des
 @pytest.mark.parametrize("outline", sorted(OUTLINES))
 def test_a_known_dent_is_found_on_the_lines_through_it_whatever_the_outline(outline: str) -> None:
     _, _, ins = _inspected(outline, True)
-    lines = {line["name"]: line for line in ins.report["lines"]}
+    lines = {line.name: line for line in ins.report.lines}
     for name in ("T3", "L2"):
-        assert abs(lines[name]["zmax_mm"] - DENT_MM) < 0.1, (name, lines[name]["zmax_mm"])
-    assert ins.report["registration"]["penetration_points"] == 0
+        assert abs(lines[name].zmax_mm - DENT_MM) < 0.1, (name, lines[name].zmax_mm)
+    assert ins.report.registration.penetration_points == 0
 
 
 @pytest.mark.slow
@@ -103,24 +103,24 @@ def test_detection_lines_follow_the_plates_own_edges_in_its_frame(outline: str) 
     c = design_corners(spec)
     expected = detection_lines(c, LAYOUT)  # laid out from the design's own corners
     T = plate_frame(c)
-    by_name = {line["name"]: line for line in ins.report["lines"]}
+    by_name = {line.name: line for line in ins.report.lines}
     for ln in expected:
         name = f"{ln.family[0].upper()}{ln.index}"
         ends = np.vstack([ln.start_mm, ln.end_mm]) @ T[:3, :3].T + T[:3, 3]
-        got = np.array([by_name[name]["start_plate_mm"], by_name[name]["end_plate_mm"]])
+        got = np.array([by_name[name].start_plate_mm, by_name[name].end_plate_mm])
         np.testing.assert_allclose(got, ends[:, :2], atol=1.5, err_msg=name)
     plate_c = c @ T[:3, :3].T + T[:3, 3]
     # transverse lines run from the length edge 0-1 to the opposite edge 3-2, parallel to the width
     # edges where those are parallel (a parallelogram), longitudinal ones parallel to the length edges
     for name in ("T1", "T3", "T5"):
-        s, e = np.array(by_name[name]["start_plate_mm"]), np.array(by_name[name]["end_plate_mm"])
+        s, e = np.array(by_name[name].start_plate_mm), np.array(by_name[name].end_plate_mm)
         assert abs(s[1]) < 1.5 and abs(e[1] - plate_c[3, 1]) < 1.5, (name, s, e)
         if outline.startswith("parallelogram"):
             side = plate_c[3, :2] - plate_c[0, :2]
             cross = (e - s)[0] * side[1] - (e - s)[1] * side[0]
             assert abs(np.degrees(np.arcsin(cross / np.linalg.norm(e - s) / np.linalg.norm(side)))) < 0.3
     for name in ("L1", "L2", "L3"):
-        s, e = np.array(by_name[name]["start_plate_mm"]), np.array(by_name[name]["end_plate_mm"])
+        s, e = np.array(by_name[name].start_plate_mm), np.array(by_name[name].end_plate_mm)
         assert abs(np.degrees(np.arctan2(e[1] - s[1], e[0] - s[0]))) < 0.5, (name, s, e)
 
 
@@ -137,11 +137,11 @@ def test_cli_inspects_a_parallelogram_against_a_step_design_in_ship_coordinates(
     cloud, _, _ = write_synth(scan, tmp_path / "scan.ply")
     step = write_design(spec, tmp_path / "ship.step", units="m", T_file_design=ship_pose())
     # in process first: the exact STEP surface gives the ship mesh's figures within 0.01 mm
-    cad_lines = {ln["name"]: ln for ln in inspect_cloud(scan.cloud, read_cad(step), SETTINGS).report["lines"]}
+    cad_lines = {ln.name: ln for ln in inspect_cloud(scan.cloud, read_cad(step), SETTINGS).report.lines}
     mesh_ins = inspect_cloud(scan.cloud, design_mesh(spec, pitch_mm=2.0).transformed(ship_pose()), SETTINGS)
-    for line in mesh_ins.report["lines"]:
+    for line in mesh_ins.report.lines:
         for fig in ("zmax_mm", "sz_avg_mm"):
-            assert abs(cad_lines[line["name"]][fig] - line[fig]) < 0.01, (line["name"], fig)
+            assert abs(getattr(cad_lines[line.name], fig) - getattr(line, fig)) < 0.01, (line.name, fig)
     (tmp_path / "cell.toml").write_text(
         "[analysis]\ntransverse_count = 5\ntransverse_spacing_mm = 100.0\n"
         "longitudinal_count = 3\nlongitudinal_spacing_mm = 100.0\n"

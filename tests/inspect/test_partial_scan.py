@@ -62,15 +62,15 @@ def test_a_partial_scan_is_reported_for_what_was_scanned(sail, whole, before_pas
     cloud = _cell_cloud(sail, _cut(sail, before_pass, profiles))
     ins = inspect_cloud(cloud, sail.design_mesh(), nominal_placement=sail.placement)
     rep = ins.report
-    Report.model_validate(rep)
-    cov = rep["coverage"]
-    assert cov["partial"] is True and cov["fraction"] < 0.6
-    assert rep["verdict"] in ("incomplete", "fail")  # a part of a plate never passes
-    assert rep["verdict"] == ("fail" if any(not ln["pass"] for ln in rep["lines"]) else "incomplete")
-    judged = {ln["name"]: ln for ln in rep["lines"]}
-    missing = {x["name"]: x["scanned_fraction"] for x in cov["lines_not_scanned"]}
+    assert Report.model_validate_json(rep.model_dump_json()) == rep  # its file reads back as itself
+    cov = rep.coverage
+    assert cov.partial is True and cov.fraction < 0.6
+    assert rep.verdict in ("incomplete", "fail")  # a part of a plate never passes
+    assert rep.verdict == ("fail" if any(not ln.passed for ln in rep.lines) else "incomplete")
+    judged = {ln.name: ln for ln in rep.lines}
+    missing = {x.name: x.scanned_fraction for x in cov.lines_not_scanned}
     # every line of the plate is either judged or listed as not scanned, never both
-    assert set(judged) | set(missing) == {ln["name"] for ln in whole["lines"]}
+    assert set(judged) | set(missing) == {ln.name for ln in whole.lines}
     assert not set(judged) & set(missing) and missing
     assert all(f < PARTIAL_LINE_COVERAGE for f in missing.values())
     # the transverse lines cross the whole width: a scan cut short covers none of them whole
@@ -78,21 +78,21 @@ def test_a_partial_scan_is_reported_for_what_was_scanned(sail, whole, before_pas
     # the judged lines are the whole scan's lines, seen whole; their figures are the whole scan's
     # but for the registration (the design rests on the part seen, not on the whole plate: observed
     # up to 0.6 mm of Zmax on this forming error)
-    full = {ln["name"]: ln for ln in whole["lines"]}
+    full = {ln.name: ln for ln in whole.lines}
     for name, ln in judged.items():
-        assert abs(ln["zmax_mm"] - full[name]["zmax_mm"]) < 1.0, (name, ln["zmax_mm"], full[name]["zmax_mm"])
-        assert ln["length_mm"] > 0.95 * full[name]["length_mm"]
+        assert abs(ln.zmax_mm - full[name].zmax_mm) < 1.0, (name, ln.zmax_mm, full[name].zmax_mm)
+        assert ln.length_mm > 0.95 * full[name].length_mm
     # registered where the plate lies: in plane from the planned placement (the scan saw no whole
     # edge); the height of corners far from the part seen is an extrapolation, and no line there is judged
-    corners = np.asarray(rep["corners_mm"])[:, :2]
+    corners = np.asarray(rep.corners_mm)[:, :2]
     true_corners = sail.corners_bed_mm()[:, :2]
     assert min(np.abs(np.roll(corners, k, axis=0) - true_corners).max() for k in range(4)) < 3.0
 
 
 @pytest.mark.slow
 def test_a_whole_scans_report_keeps_its_shape(whole):
-    assert whole["verdict"] in ("pass", "fail")
-    assert set(whole["coverage"]) == {"fraction", "holes_mm2"}  # what every daemon version reads
+    assert whole.verdict in ("pass", "fail")
+    assert set(whole.coverage.model_dump()) == {"fraction", "holes_mm2"}  # what every daemon version reads
 
 
 @pytest.mark.slow
@@ -110,9 +110,9 @@ def test_a_partial_scans_report_renders_what_was_not_scanned(sail, tmp_path):
     write_results(ins, tmp_path)
     files = {p.name: p for p in write_report(tmp_path)}
     html = files["report.html"].read_text()
-    assert f"{ins.report['verdict'].upper()} — plate" in html
+    assert f"{ins.report.verdict.upper()} — plate" in html
     assert "lines not scanned (not judged)" in html and "T1 (" in html
     from cellctl.commands.tables import line_table
 
     text = line_table(ins.report)  # what `cellctl scan --wait` and `cellctl inspect` print
-    assert f"verdict: {ins.report['verdict'].upper()}" in text and "partial scan, not judged: T1 (" in text
+    assert f"verdict: {ins.report.verdict.upper()}" in text and "partial scan, not judged: T1 (" in text

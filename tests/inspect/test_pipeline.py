@@ -59,11 +59,11 @@ def test_height_grid_mesh_averages_points_per_cell() -> None:
 def test_rigidly_moved_design_without_forming_error_reads_below_0_05_mm() -> None:
     spec, scan = _scan(NO_FORMING_ERROR, seed=4)
     ins = inspect_cloud(scan.cloud, design_mesh(spec, pitch_mm=2.0), SETTINGS)
-    zmax = [line["zmax_mm"] for line in ins.report["lines"]]
+    zmax = [line.zmax_mm for line in ins.report.lines]
     assert len(zmax) == 10
     assert max(zmax) < 0.05, zmax
-    assert ins.report["registration"]["penetration_points"] == 0
-    assert ins.report["verdict"] == "pass"
+    assert ins.report.registration.penetration_points == 0
+    assert ins.report.verdict == "pass"
 
 
 @pytest.mark.slow
@@ -73,10 +73,10 @@ def test_known_dent_depth_is_found_on_the_lines_through_it() -> None:
     error = FormingError(bumps=(GaussianBump(x_mm=0.0, y_mm=0.0, amplitude_mm=-h, sigma_mm=40.0),))
     spec, scan = _scan(error, seed=5)
     ins = inspect_cloud(scan.cloud, design_mesh(spec, pitch_mm=2.0), SETTINGS)
-    by_name = {line["name"]: line for line in ins.report["lines"]}
+    by_name = {line.name: line for line in ins.report.lines}
     for name in ("T3", "L2"):
-        assert abs(by_name[name]["zmax_mm"] - h) < 0.1, (name, by_name[name]["zmax_mm"])
-    assert ins.report["registration"]["penetration_points"] == 0
+        assert abs(by_name[name].zmax_mm - h) < 0.1, (name, by_name[name].zmax_mm)
+    assert ins.report.registration.penetration_points == 0
 
 
 @pytest.mark.slow
@@ -93,7 +93,7 @@ def test_the_same_plate_scanned_five_times_repeats_zmax_within_0_05_mm() -> None
         T = scan.T_bed_design  # the operator's nominal placement: which end is the reference corner
         nominal = Placement.on_bed(T[0, 3], T[1, 3], float(np.degrees(np.arctan2(T[1, 0], T[0, 0]))))
         report = inspect_cloud(scan.cloud, design, SETTINGS, nominal_placement=nominal).report
-        zmax.append([line["zmax_mm"] for line in report["lines"]])
+        zmax.append([line.zmax_mm for line in report.lines])
     spread = np.ptp(np.array(zmax), axis=0)
     assert spread.max() < 0.05, dict(
         zip([f"line{i}" for i in range(len(spread))], spread.round(3), strict=True)

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.cloud_io import ScanCloud
-from analysis.job import AnalysisJob
+from analysis.job import AnalysisJob, Report
 from analysis.mesh import save_mesh
 from analysis.pipeline import CloudStream, GrowingCloud, InspectionError, analyse_job, concat_clouds
 from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
@@ -55,16 +55,16 @@ def test_the_streamed_analysis_gives_every_line_the_whole_cloud_figures(plate) -
     assert made == sorted({int(c.pass_id[0]) for c in chunks} - {0}), made  # every pass but 0, before the end
     streamed = stream.finish()
     whole = analyse_job(concat_clouds(chunks), job)
-    assert streamed["verdict"] == whole["verdict"]
-    assert [ln["name"] for ln in streamed["lines"]] == [ln["name"] for ln in whole["lines"]]
-    assert len(whole["lines"]) >= 8
-    for a, b in zip(streamed["lines"], whole["lines"], strict=True):
+    assert streamed.verdict == whole.verdict
+    assert [ln.name for ln in streamed.lines] == [ln.name for ln in whole.lines]
+    assert len(whole.lines) >= 8
+    for a, b in zip(streamed.lines, whole.lines, strict=True):
         for f in FIGURES:
-            assert abs(a[f] - b[f]) <= 0.005, (a["name"], f, a[f], b[f])
-    np.testing.assert_allclose(streamed["corners_mm"], whole["corners_mm"], atol=0.005)
-    assert streamed["inputs"]["points"] == whole["inputs"]["points"] == len(cloud)
+            assert abs(getattr(a, f) - getattr(b, f)) <= 0.005, (a.name, f, getattr(a, f), getattr(b, f))
+    np.testing.assert_allclose(streamed.corners_mm, whole.corners_mm, atol=0.005)
+    assert streamed.inputs.points == whole.inputs.points == len(cloud)
     # the design's part ran at the stream's start: the final stage did not rasterise it again
-    assert streamed["timings_s"]["design"] < 0.05
+    assert streamed.timings_s["design"] < 0.05
 
 
 def _empty_like(chunk: ScanCloud) -> ScanCloud:
@@ -73,8 +73,8 @@ def _empty_like(chunk: ScanCloud) -> ScanCloud:
     return ScanCloud(np.zeros((0, 3)), none, none, none, t_s=None if chunk.t_s is None else np.zeros(0))
 
 
-def _figures(report: dict) -> list[tuple]:
-    return [(ln["name"], *(ln[f] for f in FIGURES)) for ln in report["lines"]]
+def _figures(report: Report) -> list[tuple]:
+    return [(ln.name, *(getattr(ln, f) for f in FIGURES)) for ln in report.lines]
 
 
 @pytest.mark.slow
@@ -94,7 +94,7 @@ def test_the_analysis_made_ahead_stands_when_the_tail_adds_no_point_and_is_made_
     kept = stream.finish()
     assert kept is made and stream.timings_s["ahead_kept"] == 1.0
     assert _figures(kept) == _figures(whole)
-    assert kept["inputs"]["points"] == whole["inputs"]["points"]
+    assert kept.inputs.points == whole.inputs.points
     # made ahead of the last pass: the pass's points change the cloud, the analysis runs again
     stream = CloudStream(job)
     for c in chunks[:-1]:
@@ -105,7 +105,7 @@ def test_the_analysis_made_ahead_stands_when_the_tail_adds_no_point_and_is_made_
     again = stream.finish()
     assert again is not early and stream.timings_s["ahead_dropped"] == 1.0
     assert _figures(again) == _figures(whole)
-    assert early["inputs"]["points"] < again["inputs"]["points"] == whole["inputs"]["points"]
+    assert early.inputs.points < again.inputs.points == whole.inputs.points
     # a tail without times drops them from the whole cloud: that too is another cloud
     stream = CloudStream(job)
     for c in chunks:

@@ -118,8 +118,8 @@ def test_the_compared_fit_names_the_lines_as_the_table_does() -> None:
     layout = DetectionLayout(2, 200.0, 0, 100.0, False, templates=parse_template_table(TABLE))
     settings = InspectionSettings(layout=layout, template_fit_compare=True)
     report = inspect_cloud(scan.cloud, scan.design_mesh(2.0), settings).report
-    main = [ln["name"] for ln in report["lines"]]
-    other = [ln["name"] for ln in report["template_fit_compare"]["lines"]]
+    main = [ln.name for ln in report.lines]
+    other = [ln.name for ln in report.template_fit_compare.lines]
     assert main == ["T1", "T2", *NAMES]
     assert set(other) <= set(main) and set(NAMES) & set(other), other  # not T*/L* for the table's lines
     assert not {"T3", "T4", "L1"} & set(other), other

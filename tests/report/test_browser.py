@@ -100,10 +100,10 @@ def test_report_page_renders_every_plot_without_errors_or_network_requests(repor
     assert dom["scripts"] == 0
 
     # header: verdict and the plate id as text (escaped, not markup)
-    assert dom["verdictClass"] == truth.report["verdict"]
+    assert dom["verdictClass"] == truth.report.verdict
     assert PLATE_ID in dom["h1"] and dom["boldInHeader"] == 0
 
-    names = [ln["name"] for ln in truth.report["lines"]]
+    names = [ln.name for ln in truth.report.lines]
     kinds = [p["plot"] for p in dom["plots"]]
     assert kinds.count("top-view") == 1 and kinds.count("coverage") == 1
     assert [p["line"] for p in dom["plots"] if p["plot"] == "line"] == names
@@ -131,9 +131,7 @@ def test_report_page_renders_every_plot_without_errors_or_network_requests(repor
     assert 0 < red.sum() < 4 * (x1 - x0 + 10) * (y1 - y0 + 10) * (cov["w"] / 1200.0) ** 2, red.sum()
 
     # the tables: one row per line, pass/fail class as judged
-    assert dom["tableRows"] == [
-        [ln["name"], "pass" if ln["pass"] else "fail"] for ln in truth.report["lines"]
-    ]
+    assert dom["tableRows"] == [[ln.name, "pass" if ln.passed else "fail"] for ln in truth.report.lines]
     assert dom["reworkRows"] >= 2  # the dent and the bump
     shot = tmp_path / "report_screenshot.png"
     assert shot.stat().st_size > 50_000

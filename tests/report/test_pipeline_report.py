@@ -43,16 +43,16 @@ def inspected(tmp_path_factory: pytest.TempPathFactory):
 def test_pipeline_results_make_a_complete_report(inspected) -> None:
     _, ins, out, written = inspected
     assert [p.name for p in written] == ["report.csv", "report.html", "report.pdf"]
-    lines = ins.report["lines"]
+    lines = ins.report.lines
     html = (out / "report.html").read_text(encoding="utf-8")
     for line in lines:
-        assert f'data-plot="line" data-line="{line["name"]}"' in html
+        assert f'data-plot="line" data-line="{line.name}"' in html
     text = subprocess.run(
         ["pdftotext", "-layout", str(out / "report.pdf"), "-"], check=True, capture_output=True, text=True
     ).stdout
     pages = text.split("\f")[:-1]
     assert len(pages) == 2 + 1 + math.ceil(len(lines) / 3)
-    assert "P-pipe" in pages[0] and ins.report["verdict"].upper() in pages[0]
+    assert "P-pipe" in pages[0] and ins.report.verdict.upper() in pages[0]
 
 
 @pytest.mark.slow
@@ -74,14 +74,14 @@ def test_pipeline_ply_deviation_read_back_matches_the_stored_results_and_line_fi
     assert good.mean() > 0.9
     assert np.abs(raw_median[good] - res["plate_deviation_mm"][pick][good]).max() < 0.1
     # every large Zmax is found again in the cloud's own deviations near where the line has it
-    for line in ins.report["lines"]:
-        if line["zmax_mm"] < 1.0:
+    for line in ins.report.lines:
+        if line.zmax_mm < 1.0:
             continue
-        a, b = np.asarray(line["start_plate_mm"]), np.asarray(line["end_plate_mm"])
-        at = a + (b - a) * line["zmax_at_mm"] / np.linalg.norm(b - a)
+        a, b = np.asarray(line.start_plate_mm), np.asarray(line.end_plate_mm)
+        at = a + (b - a) * line.zmax_at_mm / np.linalg.norm(b - a)
         near = ok & (np.hypot(*(plate_xy - at).T) < 3.0)
-        assert near.sum() >= 5, line["name"]
-        assert float(np.median(np.abs(dev[near]))) == pytest.approx(line["zmax_mm"], abs=0.2), line["name"]
+        assert near.sum() >= 5, line.name
+        assert float(np.median(np.abs(dev[near]))) == pytest.approx(line.zmax_mm, abs=0.2), line.name
 
 
 @pytest.mark.slow

@@ -13,6 +13,7 @@ import pytest
 
 from analysis.templates import DetectionLayout
 from cellctl.commands import report_cmd
+from tests.support.reports import report_dict
 from tests.support.results_fixture import write_synthetic_results
 
 TINY = DetectionLayout(transverse_offsets_mm=(900.0,), longitudinal_offsets_mm=(), diagonals=False)
@@ -70,10 +71,32 @@ def test_report_refuses_an_unknown_job_and_a_broken_results_dir(cellctl_exe, tmp
 
     bad = tmp_path / "bad"
     bad.mkdir()
-    (bad / "report.json").write_text(
-        json.dumps({"plate_id": "P", "verdict": "pass", "lines": [{"family": "x"}]})
+    broken = report_dict(
+        [{"family": "transverse", "index": 1, "zmax_mm": 1.0, "sz_avg_mm": 0.5, "pass": True}]
     )
+    broken["lines"][0] = {"family": "x"}
+    (bad / "report.json").write_text(json.dumps(broken))
     res = _run([*cellctl_exe, "report", str(bad)], tmp_path)
     assert res.returncode == 2
-    assert "lines[0].index: required key is missing" in res.stderr
+    assert "report.json: lines[0].family: Input should be 'transverse'" in res.stderr
     assert not (bad / "report.html").exists()
+
+
+@pytest.mark.slow
+def test_report_json_answers_with_the_written_files_as_one_typed_object(tmp_path: Path, capsys) -> None:
+    """``cellctl report --json``: the daemon's render child tells its files in one RenderAnswer line."""
+    import argparse
+
+    from cellctl.daemon.render import RenderAnswer
+
+    layout = DetectionLayout(transverse_offsets_mm=(300.0,), longitudinal_offsets_mm=(), diagonals=False)
+    write_synthetic_results(tmp_path, n_points=2000, layout=layout)
+    args = argparse.Namespace(target=str(tmp_path), open=False, json=True, config="/nonexistent/cell.toml")
+    assert report_cmd.run(args) == 0
+    out = capsys.readouterr().out.splitlines()  # in this process structlog may print here too
+    answer = RenderAnswer.model_validate_json(out[-1])
+    assert not any(line.endswith((".csv", ".html", ".pdf")) for line in out)  # no path a line
+    assert [Path(answer.csv).name, Path(answer.html).name, Path(answer.pdf).name] == [
+        "report.csv", "report.html", "report.pdf"
+    ]  # fmt: skip
+    assert all(Path(p).is_file() for p in (answer.csv, answer.html, answer.pdf))

@@ -41,11 +41,11 @@ def test_csv_has_one_row_per_line_with_the_reported_figures(reported) -> None:
     truth, _ = reported
     with (truth.results_dir / "report.csv").open(encoding="utf-8") as f:
         rows = list(csv.DictReader(f))
-    assert [r["name"] for r in rows] == [ln["name"] for ln in truth.report["lines"]]
-    for row, line in zip(rows, truth.report["lines"], strict=True):
-        assert float(row["Zmax (mm)"]) == pytest.approx(line["zmax_mm"], abs=1e-4)
-        assert float(row["SZ (mm2)"]) == pytest.approx(line["sz_mm2"], abs=1e-4)
-        assert row["pass"] == ("yes" if line["pass"] else "no")
+    assert [r["name"] for r in rows] == [ln.name for ln in truth.report.lines]
+    for row, line in zip(rows, truth.report.lines, strict=True):
+        assert float(row["Zmax (mm)"]) == pytest.approx(line.zmax_mm, abs=1e-4)
+        assert float(row["SZ (mm2)"]) == pytest.approx(line.sz_mm2, abs=1e-4)
+        assert row["pass"] == ("yes" if line.passed else "no")
 
 
 def test_html_fetches_nothing_and_runs_no_script(reported) -> None:
@@ -93,20 +93,20 @@ def test_rework_regions_find_the_dent_below_and_the_bump_above_the_template(repo
 def test_pdf_has_summary_rework_tables_and_line_pages(reported) -> None:
     truth, _ = reported
     pages = _pdf_pages(truth.results_dir / "report.pdf")
-    lines = truth.report["lines"]
+    lines = truth.report.lines
     assert len(pages) == 2 + 1 + math.ceil(len(lines) / 3)
     assert PLATE_ID in pages[0]
-    assert re.search(rf"Verdict:\s+{truth.report['verdict'].upper()}\b", pages[0])
+    assert re.search(rf"Verdict:\s+{truth.report.verdict.upper()}\b", pages[0])
     assert "CSQS 2016" in pages[0]
     assert "Where to rework" in pages[1] and "R1" in pages[1] and "plate below template" in pages[1]
     assert "Scan coverage" in pages[1]
     assert "Tables 3" in pages[2]
     for line in lines:
-        row = next(r for r in pages[2].splitlines() if re.match(rf"\s*{line['name']}\s", r))
-        assert f"{line['zmax_mm']:.4f}" in row
-        assert ("pass" if line["pass"] else "FAIL") in row
+        row = next(r for r in pages[2].splitlines() if re.match(rf"\s*{line.name}\s", r))
+        assert f"{line.zmax_mm:.4f}" in row
+        assert ("pass" if line.passed else "FAIL") in row
     plot_text = "\n".join(pages[3:])
-    order = [plot_text.index(f"{ln['name']} {ln['family']} {ln['index']}") for ln in lines]
+    order = [plot_text.index(f"{ln.name} {ln.family} {ln.index}") for ln in lines]
     assert order == sorted(order)
     assert plot_text.count("Zmax") >= len(lines)
 
@@ -120,20 +120,18 @@ def test_ply_deviation_read_back_independently_matches_the_results(reported) -> 
     # the cloud carries the same per-point deviations as the stored results
     np.testing.assert_array_equal(np.sort(v["deviation"]), np.sort(z["plate_deviation_mm"]))
     # and its worst point agrees with the worst line's Zmax (the dent's centre lies on T4 and L2)
-    worst = max(ln["zmax_mm"] for ln in truth.report["lines"])
+    worst = max(ln.zmax_mm for ln in truth.report.lines)
     assert float(np.abs(v["deviation"]).max()) == pytest.approx(worst, abs=0.1)
     # near every large Zmax, the cloud's own deviation reads the same figure
-    ref = np.asarray(truth.report["corners_mm"][0][:2])
+    ref = np.asarray(truth.report.corners_mm[0][:2])
     xy = np.column_stack([v["x"], v["y"]]) - ref
-    for line in truth.report["lines"]:
-        if line["zmax_mm"] < 1.0:
+    for line in truth.report.lines:
+        if line.zmax_mm < 1.0:
             continue
-        a, b = np.asarray(line["start_plate_mm"]), np.asarray(line["end_plate_mm"])
-        at = a + (b - a) * line["zmax_at_mm"] / np.linalg.norm(b - a)
+        a, b = np.asarray(line.start_plate_mm), np.asarray(line.end_plate_mm)
+        at = a + (b - a) * line.zmax_at_mm / np.linalg.norm(b - a)
         near = np.argsort(np.hypot(*(xy - at).T))[:5]
-        assert float(np.abs(v["deviation"][near]).max()) == pytest.approx(line["zmax_mm"], abs=0.1), line[
-            "name"
-        ]
+        assert float(np.abs(v["deviation"][near]).max()) == pytest.approx(line.zmax_mm, abs=0.1), line.name
 
 
 @pytest.fixture(scope="module")
@@ -154,13 +152,40 @@ def _corrupt(src: Path, dst: Path, edit) -> Path:
 @pytest.mark.parametrize(
     ("edit", "message"),
     [
-        (lambda r: r.pop("verdict"), "verdict: required key is missing"),
-        (lambda r: r.update(verdict="maybe"), "verdict: expected 'pass', 'fail' or 'incomplete'"),
-        (lambda r: r["lines"][1].pop("zmax_mm"), r"lines\[1\]\.zmax_mm: required key is missing"),
-        (lambda r: r["lines"][0].update(ci="12"), r"lines\[0\]\.ci: expected a number"),
-        (lambda r: r["lines"][0].update(family="radial"), r"lines\[0\]\.family: unknown family"),
-        (lambda r: r["lines"][2].update(start_plate_mm=[1.0]), r"lines\[2\]\.start_plate_mm"),
-        (lambda r: r["tolerances"].update(deviation_limit_mm=-3), "tolerances.deviation_limit_mm"),
+        (lambda r: r.pop("verdict"), "report.json: verdict: Field required"),
+        (
+            lambda r: r.update(verdict="maybe"),
+            "report.json: verdict: Input should be 'pass', 'fail' or 'incomplete'",
+        ),
+        (lambda r: r["lines"][1].pop("zmax_mm"), r"report\.json: lines\[1\]\.zmax_mm: Field required"),
+        (
+            lambda r: r["lines"][0].update(ci="12"),
+            r"report\.json: lines\[0\]\.ci: Input should be a valid number",
+        ),
+        (
+            lambda r: r["lines"][0].update(sz_mm2=True),
+            r"report\.json: lines\[0\]\.sz_mm2: Input should be a valid number",
+        ),
+        (
+            lambda r: r["lines"][0].update(family="radial"),
+            r"report\.json: lines\[0\]\.family: Input should be 'transverse'",
+        ),
+        (lambda r: r["lines"][2].update(start_plate_mm=[1.0]), r"report\.json: lines\[2\]\.start_plate_mm: "),
+        (
+            lambda r: r["tolerances"].update(deviation_limit_mm=-3),
+            r"report\.json: tolerances: .*deviation_limit_mm",
+        ),
+        # a field the schema does not know is refused, at the top and inside
+        (lambda r: r.update(verdikt="pass"), r"report\.json: verdikt: Extra inputs are not permitted"),
+        (
+            lambda r: r["lines"][1].update(zmax="1.0"),
+            r"report\.json: lines\[1\]\.zmax: Extra inputs are not permitted",
+        ),
+        (
+            lambda r: r["coverage"].update(seen=0.9),
+            r"report\.json: coverage\.seen: Extra inputs are not permitted",
+        ),
+        (lambda r: r.update(lines={}), r"report\.json: lines: Input should be a valid (list|array)"),
     ],
 )
 def test_a_malformed_report_json_is_refused_naming_the_field(small_results, tmp_path, edit, message) -> None:
@@ -168,6 +193,38 @@ def test_a_malformed_report_json_is_refused_naming_the_field(small_results, tmp_
     with pytest.raises(ReportError, match=message):
         write_report(d)
     assert not (d / "report.html").exists() and not (d / "report.pdf").exists()
+
+
+def _as_before_the_schema(r: dict) -> None:
+    """The shape of the reports written before the Report schema (before 2026-12-01, 51d72ca): no
+    nominal placement in the inputs, no design record, template fit, resting surface or line fit."""
+    for key in ("design", "template_fit", "template_fit_compare"):
+        r.pop(key, None)
+    r["registration"].pop("rest_surface", None)
+    r["registration"].pop("candidates_icp_rms_mm", None)
+    for key in ("placement", "placement_found"):
+        r["inputs"].pop(key, None)
+    for line in r["lines"]:
+        for key in ("line_fit", "noise_mm", "grade", "position_mm"):
+            line.pop(key, None)
+
+
+def _without_line_names(r: dict) -> None:
+    """Lines without a name (a report written by hand): the family and index give it, T1, L2."""
+    _as_before_the_schema(r)
+    for line in r["lines"]:
+        line.pop("name")
+
+
+@pytest.mark.parametrize("edit", [_as_before_the_schema, _without_line_names])
+def test_a_report_json_of_an_earlier_version_still_loads_and_renders(small_results, tmp_path, edit) -> None:
+    d = _corrupt(small_results, tmp_path / "r", edit)
+    now = load_results(small_results).report
+    then = load_results(d).report
+    assert [ln.name for ln in then.lines] == [ln.name for ln in now.lines]
+    assert [ln.zmax_mm for ln in then.lines] == [ln.zmax_mm for ln in now.lines]
+    assert then.verdict == now.verdict and then.design.kind == "mesh" and then.template_fit == "rigid"
+    assert [p.name for p in write_report(d)] == ["report.csv", "report.html", "report.pdf"]
 
 
 @pytest.mark.parametrize(
@@ -206,7 +263,7 @@ def test_a_directory_without_results_is_refused_clearly(tmp_path) -> None:
 def test_a_plate_without_detection_lines_still_gets_a_report_that_says_so(tmp_path) -> None:
     none = DetectionLayout(transverse_count=0, longitudinal_count=0, diagonals=False)
     truth = write_synthetic_results(tmp_path, n_points=2000, layout=none)
-    assert truth.report["verdict"] == "fail"  # no line judged is no pass
+    assert truth.report.verdict == "fail"  # no line judged is no pass
     write_report(tmp_path)
     html = (tmp_path / "report.html").read_text(encoding="utf-8")
     assert "0 of 0" in html and 'data-plot="top-view"' in html and 'data-plot="line"' not in html

@@ -29,7 +29,7 @@ def _previous(names: list[str]) -> PreviousRound:
 def _html(tmp_path: Path, previous: PreviousRound | None) -> tuple[str, list[str]]:
     write_synthetic_results(tmp_path, n_points=2000, layout=SMALL, plate_id="P-9")
     data = load_results(tmp_path)
-    names = [ln["name"] for ln in data.report["lines"]]
+    names = [ln.name for ln in data.report.lines]
     svgs = {"top": "<svg></svg>", "coverage": "<svg></svg>"} | {
         f"line{k}": "<svg></svg>" for k in range(len(names))
     }
@@ -66,7 +66,7 @@ def test_the_previous_round_is_shown_per_line_matched_by_name(tmp_path: Path) ->
 @pytest.mark.process  # pdftotext
 def test_the_pdf_carries_the_previous_round_page(tmp_path: Path) -> None:
     truth = write_synthetic_results(tmp_path, n_points=2000, layout=SMALL, plate_id="P-9")
-    names = [ln["name"] for ln in truth.report["lines"]]
+    names = [ln.name for ln in truth.report.lines]
     write_report(tmp_path, _previous(names[:1]))
     text = subprocess.run(
         ["pdftotext", "-layout", str(tmp_path / "report.pdf"), "-"],

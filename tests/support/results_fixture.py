@@ -9,12 +9,12 @@ Used by the report tests and by ``benchmarks/report.py``.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from analysis.job import Report
 from analysis.metrics import Tolerances, judge, line_metrics
 from analysis.plates import (
     EdgeSpringback,
@@ -27,6 +27,7 @@ from analysis.plates import (
     plate_spec,
 )
 from analysis.report import write_csv
+from analysis.results import write_report_json
 from analysis.templates import DetectionLayout, detection_lines
 
 HOLE_CELL_MM = 5.0
@@ -43,7 +44,7 @@ class SyntheticResults:
     results_dir: Path
     spec: PlateSpec
     error: FormingError
-    report: dict
+    report: Report
     dent_xy_mm: tuple[float, float]
     dent_depth_mm: float
     bump_xy_mm: tuple[float, float]
@@ -152,7 +153,7 @@ def write_synthetic_results(
     pts = np.column_stack([xd, yd, z_formed])
     _ply(pts, deviation, out_dir / "cloud.ply")
     rms = float(np.sqrt(np.mean(deviation**2)))
-    report = {
+    report = Report.model_validate({
         "plate_id": plate_id,
         "job_id": "job-fixture",
         "cell_id": "sim1",
@@ -165,9 +166,14 @@ def write_synthetic_results(
             "nonpen_rms_mm": rms,
             "penetration_points": int(np.count_nonzero(deviation < 0)),
             "penetration_points_before": int(np.count_nonzero(deviation < 0)),
+            "surface_points": len(xy),
+            "surface_cell_mm": 2.0,
+            "raw_points_below_4sigma": 0,
             "transform": np.eye(4).tolist(),
+            "corner_shift": 0,
         },
         "corners_mm": corners.tolist(),
+        "plate_size_mm": [L, W],
         "lines": report_lines,
         "tolerances": tolerances.as_dict(),
         "timings_s": {"fixture": 0.0},
@@ -175,9 +181,10 @@ def write_synthetic_results(
             "fraction": float(seen.mean()),
             "holes_mm2": float((~seen).sum() * HOLE_CELL_MM**2),
         },
+        "surface": {"points": len(xy), "noise_sigma_mm": 0.0, "max_deviation_mm": float(deviation.max())},
         "inputs": {"cloud": "synthetic", "design": f"{spec.kind} {L:g} x {W:g}", "points": len(xy)},
-    }
-    (out_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
+    })  # fmt: skip
+    write_report_json(report, out_dir / "report.json")
     write_csv(report, out_dir / "report.csv")
     dent, bump = error.bumps[0], error.bumps[1]
     return SyntheticResults(

@@ -91,3 +91,41 @@ def test_a_request_the_child_cannot_use_ends_it_and_the_worker_sees_a_crash_not_
 
     asyncio.run(go(b'{"op": "nope"}'))
     asyncio.run(go(b'{"op": "job"}'))
+
+
+def test_the_child_answers_with_a_typed_report_or_a_typed_error_and_nothing_in_between():
+    """The child's answer is a ChildAnswer: the report when ok, else the error and its traceback;
+    an answer with both, neither, or a field the protocol does not know is refused."""
+    import time
+
+    from pydantic import ValidationError
+
+    from cellctl.worker import ChildAnswer, ChildHello, _error_text, _outcome_text
+    from tests.zenoh.zworker_fns import minimal_report
+
+    job = AnalysisJob(job_id="j1", plate_id="p1", design="none.stl")
+    report = minimal_report(job, 4)
+    ok = ChildAnswer.model_validate_json(_outcome_text(report, {"analysis": 0.5}))
+    assert ok.ok and ok.report == report and ok.error is None and ok.timings_s == {"analysis": 0.5}
+    # an analysis callable may return the report's JSON object: it is validated into the model
+    as_dict = ChildAnswer.model_validate_json(_outcome_text(report.model_dump(mode="json"), {}))
+    assert as_dict.report == report
+    try:
+        raise ValueError("no plate surface")
+    except ValueError as exc:
+        failed = ChildAnswer.model_validate_json(_error_text(exc, time.perf_counter()))
+    assert not failed.ok and failed.report is None and failed.error == "ValueError: no plate surface"
+    assert "no plate surface" in failed.traceback and "total" in failed.timings_s
+    for bad in (
+        {"ok": True, "timings_s": {}},  # ok without a report
+        {"ok": False, "timings_s": {}},  # failed without an error
+        {"ok": True, "report": report.model_dump(mode="json"), "error": "x", "timings_s": {}},
+        {"ok": False, "error": "x", "timings_s": {}, "detail": "?"},  # a field of no protocol
+    ):
+        with pytest.raises(ValidationError):
+            ChildAnswer.model_validate_json(json.dumps(bad))
+    assert (
+        ChildHello.model_validate_json(b'{"ready": false, "error": "cannot import"}').error == "cannot import"
+    )
+    with pytest.raises(ValidationError):
+        ChildHello.model_validate_json(b'{"ready": true, "pid": 3}')
