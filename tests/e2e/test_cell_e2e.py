@@ -133,7 +133,7 @@ def test_scan_is_analysed_by_the_worker_and_a_trigger_while_busy_is_refused(cell
     assert max(line["zmax_mm"] for line in stored["lines"]) < 0.3, [
         line["zmax_mm"] for line in stored["lines"]
     ]
-    assert report is not None and report["verdict"] == stored["verdict"]
+    assert report is not None and report.verdict == stored["verdict"]
     assert [line["family"] for line in stored["lines"]].count("transverse") == 2
     assert rec["info"]["profiles"] > 1000 and Path(message).exists()
     # only one job was created: the refused trigger left nothing behind

@@ -149,7 +149,7 @@ def test_emergency_stop_mid_scan_holds_the_cell_until_reset_and_keeps_the_raw_da
         rec = cell.job_record(a)
         assert rec["info"]["points"] > 10_000 and (cell.jobs_dir / a / "cloud.bin").stat().st_size > 0
         assert state == "done", message
-        assert report is not None and report["job_id"] == a
+        assert report is not None and report.job_id == a
         stored = json.loads((cell.jobs_dir / a / "report.json").read_text())
         expected = ("incomplete", "fail") if stored["coverage"].get("partial") else ("pass",)
         assert stored["verdict"] in expected, (stored["verdict"], stored["coverage"])

@@ -92,7 +92,7 @@ def test_pause_resume_then_sigterm_mid_scan_interrupts_the_job_and_a_restart_rea
 
         state, message, report = asyncio.run(reanalyse())
         assert state == "done", message
-        assert report is not None and report["job_id"] == job_id
+        assert report is not None and report.job_id == job_id
         rec = cell.job_record(job_id)
         assert [h["state"] for h in rec["history"]].count("interrupted") == 1
         assert json.loads((cell.jobs_dir / job_id / "report.json").read_text())["job_id"] == job_id

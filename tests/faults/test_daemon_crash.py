@@ -195,7 +195,7 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
         assert state == "done", message
         hist = job_history(cell, job_id)
         assert hist.count("interrupted") == 1 and hist[-1] == state, hist
-        assert report is not None and report["job_id"] == job_id
+        assert report is not None and report.job_id == job_id
         stored = json.loads((cell.jobs_dir / job_id / "report.json").read_text())
         assert stored["job_id"] == job_id
         # what it covered, never a pass; the truth's verdict (the default forming error passes) if whole
