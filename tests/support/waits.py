@@ -58,3 +58,16 @@ async def wait_count(read: Callable[[], int], n: int, timeout_s: float, what: st
     start = read()
     await wait_until(lambda: read() - start >= n, timeout_s, f"{what} (+{n} from {start})")
     return read()
+
+
+async def wait_subscribed(session, key_expr: str, timeout_s: float, what: str) -> None:
+    """Wait until a Zenoh subscriber on ``key_expr`` is known to ``session`` (a put before that is
+    lost: through a router a subscriber can become known after the liveliness token declared after
+    it). The event the product's ``DispatchSettings.worker_settle_s`` waits for by the clock."""
+    pub = session.declare_publisher(key_expr)
+    try:
+        await wait_until(
+            lambda: pub.matching_status.matching, timeout_s, f"{what}: a subscriber on {key_expr}"
+        )
+    finally:
+        pub.undeclare()
