@@ -32,6 +32,7 @@ from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD
 from drivers.fault_channel import send_fault_request
 from drivers.runtime import precise_event_loop
+from tests.support.waits import wait_count
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -197,7 +198,11 @@ async def execute(
                     side.cancel()
                     with contextlib.suppress(asyncio.CancelledError):
                         await side
-                await asyncio.sleep(0.3)  # let the arm settle on the last reference
+                # let the arm settle on the last reference: 0.3 s on the controller's clock (its
+                # feedback messages), which a starved simulator's slower cadence stretches
+                await wait_count(
+                    lambda: endpoint.stats.received, 75, 0.3, "EGM feedback while the arm settles"
+                )
             fb = endpoint.history.arrays()
     finally:
         await endpoint.close()
