@@ -32,7 +32,7 @@ from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD
 from drivers.fault_channel import send_fault_request
 from drivers.runtime import precise_event_loop
-from tests.support.waits import wait_count
+from tests.support.waits import wait_until as wait_for_event
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -198,10 +198,14 @@ async def execute(
                     side.cancel()
                     with contextlib.suppress(asyncio.CancelledError):
                         await side
-                # let the arm settle on the last reference: 0.3 s on the controller's clock (its
-                # feedback messages), which a starved simulator's slower cadence stretches
-                await wait_count(
-                    lambda: endpoint.stats.received, 75, 0.3, "EGM feedback while the arm settles"
+                # let the arm settle on the last reference: 0.3 s on the controller's clock (75 of
+                # its feedback messages, which a starved simulator's slower cadence stretches); a
+                # controller gone quiet (a stall under test) has nothing more to report
+                n0 = endpoint.stats.received
+                await wait_for_event(
+                    lambda: endpoint.stats.received - n0 >= 75 or endpoint.quiet,
+                    0.3,
+                    "75 EGM feedback messages while the arm settles, or the controller quiet",
                 )
             fb = endpoint.history.arrays()
     finally:
