@@ -29,7 +29,9 @@ in a temporary directory), triggers one scan over Zenoh and waits for the report
   least 10 mm inside its edges), the figure a late reference would spoil; ``platform_over_cycle``
   and ``platform``: the machine's own floor over the same run, how often a pinned SCHED_FIFO probe
   of the highest priority woke more than one EGM cycle late (benchmarks/platform_latency.py): on a
-  shared VM the hypervisor's stalls, when no process could have answered in time.
+  shared VM the hypervisor's stalls, when no process could have answered in time;
+  ``egm_stale_in_platform_stalls``: how many of ``egm_stale_cycles`` fell inside such a stall (the
+  scan's record, raw/motion-record.npz ``stale_ns``, against the probes' stalls).
 
 ``--load N`` runs N busy processes (a tight Python loop each, normal priority) beside the cell from
 before the trigger to the report; ``--worker-busy`` runs, beside the cell's own worker, an analysis
@@ -118,6 +120,25 @@ def _motion_realtime(log_path: Path) -> dict | None:
     except (OSError, ValueError):
         pass
     return None
+
+
+def _stale_in_stalls(data_dir: Path, job_id: str, platform: dict | None) -> int | None:
+    """How many of the scan's stale cycles (raw/motion-record.npz ``stale_ns``) fell inside a stall
+    of the platform probes: when a SCHED_FIFO thread of the highest priority was itself held back
+    more than one cycle, so no process on this machine could have answered in time."""
+    import numpy as np
+
+    from benchmarks.platform_latency import in_stalls
+
+    record = data_dir / "jobs" / job_id / "raw" / "motion-record.npz"
+    if platform is None or not record.is_file():
+        return None
+    with np.load(record) as z:
+        if "stale_ns" not in z.files:
+            return None
+        stale = z["stale_ns"]
+    windows = np.stack([stale[:, 0] - stale[:, 1], stale[:, 0]], axis=1)
+    return int(in_stalls(windows, platform["stalls"]).sum())
 
 
 def _accuracy_rms_mm(data_dir: Path, job_id: str) -> float | None:
@@ -265,7 +286,6 @@ def main() -> int:
     finally:
         if probes:
             platform = stop_probes(probes)
-            platform.pop("stalls")
         for b in busy:
             b.kill()
             b.wait()
@@ -339,6 +359,7 @@ def main() -> int:
         # the machine's own floor over the same time: how often a SCHED_FIFO thread of the highest
         # priority woke more than one EGM cycle late (benchmarks/platform_latency.py)
         platform_over_cycle=None if platform is None else platform["over_cycle"],
+        egm_stale_in_platform_stalls=_stale_in_stalls(Path(cfg.cell.data_dir), job_id, platform),
         platform=platform,
         accuracy_rms_mm=_accuracy_rms_mm(Path(cfg.cell.data_dir), job_id),
     )
@@ -364,6 +385,8 @@ def main() -> int:
             out["scan_ratio"] is not None and out["scan_ratio"] <= 1.2 and out["verdict"] is not None
             and found is not None and found.get("source") == "located"
         )  # fmt: skip
+    if platform is not None:
+        platform.pop("stalls")
     print(json.dumps(out))
     return 0
 

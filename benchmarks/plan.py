@@ -111,7 +111,7 @@ def main() -> int:
     cfg = load_config(args.config)
     settings = PlannerSettings.from_config(cfg)
     if args.track:
-        from drivers.abb_egm.kinematics import LinearTrack
+        from drivers.abb_egm.limits import LinearTrack
 
         settings = settings.with_(
             track=LinearTrack(

@@ -32,7 +32,8 @@ from pydantic import (
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from analysis.placement import Placement
-from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S, LinearTrack
+from drivers.abb_egm.limits import EGM_CYCLE_S, Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S, LinearTrack, RobotLimits
+from drivers.abb_egm.rws_protocol import AUTO, OpMode
 
 ENV_PREFIX = "CELL_"
 ENV_DELIMITER = "__"
@@ -52,8 +53,11 @@ _SECRET_WORDS = ("password", "passwd", "secret", "token")
 #: an environment variable's name (what every ``*_env`` key holds: never the secret itself)
 _ENV_NAME = re.compile(r"[A-Z_][A-Z0-9_]{0,127}")
 
+#: ``[robot]``'s joint limits when cell.toml names none
+_DEFAULT_LIMITS = RobotLimits()
+
 # Physical and sane bounds. The joint ranges and speeds are the IRB 4600-40/2.55's
-# (drivers/abb_egm/kinematics.py, from its product specification); the others are sanity bounds
+# (drivers/abb_egm/limits.py, from its product specification); the others are sanity bounds
 # well beyond what the cell does, so that a typo (1e12) is refused while any real setting passes.
 #: TCP speed, mm/s: beyond any industrial arm's tool speed
 TCP_SPEED_BOUND_MM_S = 10_000.0
@@ -271,12 +275,13 @@ class RobotSection(Section):
     egm_lp_filter_hz: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] = 20.0
     egm_sample_rate_ms: Annotated[int, Field(ge=4, le=1000, multiple_of=4)] = 4
     # Limits every commanded set-point is checked against (IRB 4600-40/2.55 defaults, with margins).
-    joint_lower_deg: Joint6 = [-180.0, -90.0, -180.0, -400.0, -125.0, -400.0]
-    joint_upper_deg: Joint6 = [180.0, 150.0, 75.0, 400.0, 120.0, 400.0]
-    joint_margin_deg: NonNegativeFloat = 2.0
-    joint_speed_max_deg_s: PositiveJoint6 = [175.0, 175.0, 175.0, 250.0, 250.0, 360.0]
-    joint_accel_max_deg_s2: PositiveJoint6 = [300.0, 300.0, 300.0, 600.0, 600.0, 800.0]
-    joint_jerk_max_deg_s3: PositiveJoint6 = [3000.0, 3000.0, 3000.0, 6000.0, 6000.0, 8000.0]
+    # (the defaults: drivers/abb_egm/limits.py's RobotLimits, the one home of the robot's limits)
+    joint_lower_deg: Joint6 = list(_DEFAULT_LIMITS.joint_lower_deg)
+    joint_upper_deg: Joint6 = list(_DEFAULT_LIMITS.joint_upper_deg)
+    joint_margin_deg: NonNegativeFloat = _DEFAULT_LIMITS.joint_margin_deg
+    joint_speed_max_deg_s: PositiveJoint6 = list(_DEFAULT_LIMITS.joint_speed_max_deg_s)
+    joint_accel_max_deg_s2: PositiveJoint6 = list(_DEFAULT_LIMITS.joint_accel_max_deg_s2)
+    joint_jerk_max_deg_s3: PositiveJoint6 = list(_DEFAULT_LIMITS.joint_jerk_max_deg_s3)
     tcp_speed_max_mm_s: Annotated[float, Field(gt=0, le=TCP_SPEED_BOUND_MM_S, allow_inf_nan=False)] = 250.0
     workspace_min_mm: Vec3 = [-500.0, -2000.0, 100.0]
     workspace_max_mm: Vec3 = [2600.0, 2000.0, 2400.0]
@@ -391,6 +396,17 @@ class RobotSection(Section):
                 "rws_profile 'rws2' (RobotWare 7) speaks HTTPS: rws_url must start with https://"
             )
         return self
+
+    def limits(self) -> RobotLimits:
+        """The joint limits of this ``[robot]`` as the one value planning and motion read."""
+        return RobotLimits(
+            joint_lower_deg=tuple(self.joint_lower_deg),
+            joint_upper_deg=tuple(self.joint_upper_deg),
+            joint_margin_deg=self.joint_margin_deg,
+            joint_speed_max_deg_s=tuple(self.joint_speed_max_deg_s),
+            joint_accel_max_deg_s2=tuple(self.joint_accel_max_deg_s2),
+            joint_jerk_max_deg_s3=tuple(self.joint_jerk_max_deg_s3),
+        )
 
 
 class LaserSection(Section):
@@ -665,7 +681,7 @@ class SimFaults(Section):
 
 
 class SimSection(Section):
-    egm_cycle_ms: Annotated[float, Field(ge=1, le=100, allow_inf_nan=False)] = 4.032
+    egm_cycle_ms: Annotated[float, Field(ge=1, le=100, allow_inf_nan=False)] = EGM_CYCLE_S * 1e3
     egm_q_start_deg: Joint6 = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]
     egm_track_start_mm: Finite = 0.0  # the simulated track's position at start (with [robot.track])
     egm_stream_when_idle: bool = True
@@ -673,7 +689,7 @@ class SimSection(Section):
     rws_users: dict[str, str] = {"Default User": "CELL_RWS_PASSWORD"}
     rws_max_sessions: Annotated[int, Field(ge=1, le=1000)] = 70
     rws_session_idle_s: PositiveFloat = 300.0
-    opmode: Literal["AUTO", "MANR", "MANF"] = "AUTO"
+    opmode: OpMode = AUTO
     # The run-time fault-control queryable of `cellctl sim` (docs/simulator.md); it lives only in
     # the simulator process, on its own Zenoh endpoint, never in the daemon of a real cell.
     fault_control: bool = True

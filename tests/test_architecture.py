@@ -5,12 +5,13 @@ and under ``if TYPE_CHECKING:`` included (as are ``importlib.import_module("..."
 ``__import__("...")`` with a literal name), and held to three rules:
 
 1. ``drivers`` and ``analysis`` import neither ``cellctl`` nor each other;
-2. production code imports no simulator: only the simulators' wings (``drivers/*/sim/`` and the
-   simulated cell ``cellctl/simcell/``) import a wing, besides the one door ``cellctl sim``
+2. production code imports no simulator: only the simulators' wings (``drivers/*/sim/``, what they
+   share in ``drivers/sim/`` and the simulated cell ``cellctl/simcell/``) import a wing, besides the one door ``cellctl sim``
    (:mod:`cellctl.commands.sim_cmd`); tests and benchmarks may import anything;
 3. packages do not import each other in a circle. The nodes are the packages and loose modules one
    level under each root (``cellctl.planning``, ``cellctl.motion``, ``cellctl.api``, ``cellctl.config``,
-   ``drivers.abb_egm``, ...), a ``sim`` wing being a node of its own (``drivers.abb_egm.sim``).
+   ``drivers.abb_egm``, ...), a ``sim`` wing being a node of its own (``drivers.abb_egm.sim``,
+   ``drivers.sim``).
 
 Each failure names the importing file and line.
 """
@@ -97,9 +98,10 @@ def imports_of(path: str, source: str, known: set[str]) -> list[Import]:
 
 
 def is_sim(module: str) -> bool:
-    """A module of a simulator's wing: ``drivers.<driver>.sim[...]`` or ``cellctl.simcell[...]``."""
+    """A module of a simulator's wing: ``drivers.<driver>.sim[...]``, the simulators' shared
+    ``drivers.sim[...]`` or ``cellctl.simcell[...]``."""
     parts = module.split(".")
-    return (parts[0] == "drivers" and parts[2:3] == ["sim"]) or parts[:2] == ["cellctl", "simcell"]
+    return (parts[0] == "drivers" and "sim" in parts[1:3]) or parts[:2] == ["cellctl", "simcell"]
 
 
 def node_of(module: str) -> str:
@@ -131,7 +133,8 @@ def sim_violations(imports: list[Import], pending: Mapping[tuple[str, str], str]
         if door is not None and (imp.target == door or imp.target.startswith(door + ".")):
             continue
         out.append(
-            f"{imp.where()}: production code never imports a simulator (drivers/*/sim/, cellctl/simcell/); "
+            f"{imp.where()}: production code never imports a simulator (drivers/*/sim/, drivers/sim/, "
+            "cellctl/simcell/); "
             "what client and simulator share lives beside the codec"
         )
     return out
@@ -256,6 +259,15 @@ def test_the_checker_reads_the_whole_tree(repository) -> None:
     assert ("cellctl.planning", "cellctl.motion") in pairs
     assert ("cellctl.commands", "cellctl.simcell") in pairs
     assert ("drivers.abb_egm.sim", "drivers.abb_egm") in pairs
+    assert ("drivers.laser.sim", "drivers.sim") in pairs  # the simulators' shared fault channel
+
+
+def test_the_simulators_shared_fault_channel_is_in_their_wing(repository) -> None:
+    files, imports = repository
+    assert "drivers/sim/fault_channel.py" in files and "drivers/fault_channel.py" not in files
+    assert is_sim("drivers.sim.fault_channel") and node_of("drivers.sim.fault_channel") == "drivers.sim"
+    importers = {i.importer for i in imports if i.target == "drivers.sim.fault_channel"}
+    assert importers == {"drivers.abb_egm.sim.controller", "drivers.laser.sim.sensor"}, importers
 
 
 def test_drivers_and_analysis_import_neither_cellctl_nor_each_other(repository) -> None:
@@ -329,6 +341,24 @@ def test_checker_finds_production_code_importing_a_simulator() -> None:
         ["drivers/abb_egm/rws_client.py:1", "drivers.abb_egm.rws_client imports drivers.abb_egm.sim.model"],
         ["cellctl/daemon/service.py:2", "cellctl.daemon.service imports cellctl.simcell.service"],
     ]
+
+
+def test_checker_finds_production_code_importing_the_simulators_shared_wing() -> None:
+    found = check_sources(
+        {
+            "drivers/sim/__init__.py": "",
+            "drivers/sim/fault_channel.py": "import json\n",
+            "drivers/laser/sim/sensor.py": "from drivers.sim.fault_channel import start_fault_server\n",
+            "drivers/abb_egm/sim/controller.py": "from drivers.sim import fault_channel\n",
+            "drivers/runtime.py": "def f():\n    from drivers.sim.fault_channel import send_fault_request\n",
+            "cellctl/daemon/service.py": "import drivers.sim.fault_channel\n",
+        }
+    )
+    assert [s.split(": ")[0:2] for s in found["simulators"]] == [
+        ["drivers/runtime.py:2", "drivers.runtime imports drivers.sim.fault_channel"],
+        ["cellctl/daemon/service.py:1", "cellctl.daemon.service imports drivers.sim.fault_channel"],
+    ]
+    assert found["layers"] == [] and found["cycles"] == []
 
 
 def test_checker_finds_a_cycle_between_packages_and_names_each_import() -> None:

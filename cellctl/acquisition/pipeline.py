@@ -37,7 +37,8 @@ from cellctl.acquisition.clock_sync import (
 from cellctl.acquisition.poses import T_from_pos_rpy
 from cellctl.acquisition.rawstore import RawWriter
 from cellctl.config import CellConfig
-from drivers.abb_egm.kinematics import LinearTrack, fk_batch
+from drivers.abb_egm.kinematics import fk_batch
+from drivers.abb_egm.limits import LinearTrack
 from drivers.laser.source import ProfileBatch
 
 __all__ = [
@@ -102,7 +103,7 @@ class AcquisitionSettings:
             beside them (``poses.interpolate_joints``): on the synthetic scan motion within 7 um
             over 100 ms where the chord is 0.17 mm off. 100 ms covers the 50 ms loss bursts of
             issue 10's fault list with one more burst right behind it.
-        track: the linear track's fields (:class:`~drivers.abb_egm.kinematics.LinearTrack`, JSON-able)
+        track: the linear track's fields (:class:`~drivers.abb_egm.limits.LinearTrack`, JSON-able)
             when the robot rides on one (cell.toml ``[robot.track]``), else None. The feedback rows
             are then ``axes_mm_deg`` (track mm, then joints) and the poses are in the world frame.
     """

@@ -14,13 +14,16 @@ segmentation's scan-grid route sees a dense grid, as it would from a sensor with
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import structlog
 
 from cellctl.acquisition.assembly import AssembledScan, AssemblyError
 from cellctl.api.cloud_codec import Cloud, encode_cloud
+
+if TYPE_CHECKING:
+    from cellctl.config import CellConfig
 
 __all__ = [
     "PublishSettings",
@@ -59,7 +62,7 @@ class PublishSettings:
                 raise ValueError(f"{name}: must be finite and >= 0, got {v!r}")
 
     @classmethod
-    def from_config(cls, cfg: Any) -> PublishSettings:
+    def from_config(cls, cfg: CellConfig) -> PublishSettings:
         """From a CellConfig: ``[laser] line_width_mm, points_per_profile`` and ``[scan]
         publish_pitch_mm, edge_publish_pitch_mm``."""
         return cls(

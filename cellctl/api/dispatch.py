@@ -60,7 +60,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import PurePath
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
 import zenoh
@@ -89,6 +89,9 @@ from cellctl.api.transfer import (
     ResultRefused,
     TransferSpec,
 )
+
+if TYPE_CHECKING:
+    from cellctl.config import CellConfig
 
 log = structlog.get_logger(__name__)
 
@@ -127,7 +130,7 @@ class DispatchSettings:
     announce_retry_s: float = 0.5
 
     @classmethod
-    def from_config(cls, config: Any) -> DispatchSettings:
+    def from_config(cls, config: CellConfig) -> DispatchSettings:
         """From ``[analysis]`` and ``[zenoh] shm_pool_mb`` of a CellConfig."""
         a = config.analysis
         return cls(

@@ -56,6 +56,7 @@ from cellctl.daemon.wiring import CellDrivers, laser_exposure_ns, laser_source
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, ProgressEvent
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, start_corner_near
 from cellctl.planning.cache import PlanCache
+from drivers.abb_egm import rws_protocol as rw
 from drivers.abb_egm.rws_client import RwsError
 from drivers.laser.client import HD8Client
 
@@ -556,7 +557,7 @@ class ScanRunner:
             host.job_state(job, JobState.ABORTED, "aborted by request; raw data kept", **info)
             return
         ctrl = "" if host.cell_state == CellState.STOPPING else await host.ctrl_state()
-        if ctrl == "emergencystop":
+        if ctrl == rw.EMERGENCYSTOP:
             # Not a failure of the job: the raw data up to the stop is intact and can be
             # re-analysed (control/reanalyse), or the plate scanned again after the reset.
             host.job_state(

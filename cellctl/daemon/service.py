@@ -82,6 +82,7 @@ from cellctl.daemon.wiring import CellDrivers, build_drivers, rws_password
 from cellctl.logging import bind_context
 from cellctl.motion import ProgressEvent
 from cellctl.motion.link import MotionLinkError
+from drivers.abb_egm import rws_protocol as rw
 from drivers.runtime import (
     heap_summary,
     hold_cpu_wakeup_latency,
@@ -99,7 +100,7 @@ class DaemonError(Exception):
 
 
 #: controller states (RWS ctrl-state) in which an emergency stop counts as released and reset
-CONTROLLER_RESET_STATES = ("motoroff", "motoron", "emergencystopreset")
+CONTROLLER_RESET_STATES = (rw.MOTOROFF, rw.MOTORON, rw.EMERGENCYSTOPRESET)
 #: ended jobs kept in the state publication's ``recent`` list
 RECENT_JOBS = 8
 
@@ -727,7 +728,7 @@ class CellDaemon:
             self._scan_job = None
             if self.sm.state != CellState.STOPPING:
                 # an e-stop before the executor ran shows up here (motors on refused, EGM never came)
-                if await self._ctrl_state() == "emergencystop":
+                if await self._ctrl_state() == rw.EMERGENCYSTOP:
                     self.sm.to(CellState.EMERGENCY_STOPPED, f"emergency stop during job {rec.job_id}")
                 elif self.sm.state not in (CellState.STOPPING, CellState.EMERGENCY_STOPPED):
                     self.sm.to(CellState.FAULTED, f"job {rec.job_id}: {exc}")

@@ -16,8 +16,9 @@ from cellctl.motion import EnvelopeLimits
 from cellctl.motion.channel import RealtimeSpec
 from cellctl.motion.link import MotionLink, MotionSettings, envelope_spec
 from cellctl.planning import PlannerSettings
+from drivers.abb_egm.cell_egm import CellEgmProgram, EgmProgramSettings
 from drivers.abb_egm.endpoint import EgmEndpointConfig
-from drivers.abb_egm.rws_client import CellEgmProgram, EgmProgramSettings, RwsClient, RwsClientConfig
+from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.laser.client import HD8Client, HD8ClientConfig
 from drivers.laser.gige.source import GigeSourceConfig
 from drivers.laser.registry import open_source

@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.abb_egm.kinematics import JOINT_NAMES, N_ARM_JOINTS, LinearTrack, RobotKinematics, fk_batch
+from drivers.abb_egm.kinematics import RobotKinematics, fk_batch
+from drivers.abb_egm.limits import EGM_CYCLE_S, JOINT_NAMES, N_ARM_JOINTS, LinearTrack
 
 __all__ = ["EnvelopeLimits", "EnvelopeViolation", "SafetyEnvelope"]
 
@@ -117,7 +118,7 @@ class EnvelopeLimits:
         object.__setattr__(self, "T_flange_tcp", np.asarray(self.T_flange_tcp, dtype=np.float64))
 
     @classmethod
-    def from_settings(cls, settings, cycle_s: float = 0.004032) -> EnvelopeLimits:
+    def from_settings(cls, settings, cycle_s: float = EGM_CYCLE_S) -> EnvelopeLimits:
         """From :class:`cellctl.planning.PlannerSettings` (which mirrors ``cell.toml [robot]``)."""
         return cls(
             q_min_deg=settings.q_min_deg,

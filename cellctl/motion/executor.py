@@ -33,6 +33,7 @@ import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import structlog
@@ -43,6 +44,10 @@ from cellctl.motion.trajectory import PLAN_JERK_SHARE, TimedTrajectory
 from drivers.abb_egm.codec import RobotMessage
 from drivers.abb_egm.endpoint import EgmEndpoint, axes_of, ok_to_command
 from drivers.abb_egm.kinematics import fk_batch
+from drivers.abb_egm.limits import EGM_CYCLE_S, RobotLimits
+
+if TYPE_CHECKING:
+    from cellctl.config import CellConfig
 
 __all__ = [
     "STATE_CODES",
@@ -94,6 +99,8 @@ _RAMP_JERK_SHARE_JERK = 0.4 * (1.0 - PLAN_JERK_SHARE)
 #: the move to the plan's start is checked against the envelope's positional rules before it starts,
 #: sampled at least this finely in the joint that moves most (deg)
 _START_PATH_STEP_DEG = 0.05
+#: the joint limits when none are given (``cell.toml [robot]``'s defaults)
+_DEFAULT_LIMITS = RobotLimits()
 
 
 def start_path(q_from: np.ndarray, q_to: np.ndarray) -> np.ndarray:
@@ -127,7 +134,7 @@ class ExecutorConfig:
     progress_interval_s: time between progress events while moving.
     """
 
-    cycle_s: float = 0.004032
+    cycle_s: float = EGM_CYCLE_S
     feedback_timeout_s: float = 0.1
     start_timeout_s: float = 5.0
     stall_give_up_s: float = 1.0
@@ -138,22 +145,23 @@ class ExecutorConfig:
     move_to_start_speed_fraction: float = 0.5
     feedforward: bool = True
     feedforward_lead_s: float = 0.008
-    joint_speed_max_deg_s: tuple[float, ...] = (175.0, 175.0, 175.0, 250.0, 250.0, 360.0)
-    joint_accel_max_deg_s2: tuple[float, ...] = (300.0, 300.0, 300.0, 600.0, 600.0, 800.0)
-    joint_jerk_max_deg_s3: tuple[float, ...] = (3000.0, 3000.0, 3000.0, 6000.0, 6000.0, 8000.0)
+    joint_speed_max_deg_s: tuple[float, ...] = _DEFAULT_LIMITS.joint_speed_max_deg_s
+    joint_accel_max_deg_s2: tuple[float, ...] = _DEFAULT_LIMITS.joint_accel_max_deg_s2
+    joint_jerk_max_deg_s3: tuple[float, ...] = _DEFAULT_LIMITS.joint_jerk_max_deg_s3
     rate_accel_per_s2: float | None = None
     rate_jerk_per_s3: float | None = None
     progress_interval_s: float = 0.25
 
     @classmethod
-    def from_config(cls, cfg, **changes) -> ExecutorConfig:
+    def from_config(cls, cfg: CellConfig, **changes) -> ExecutorConfig:
         """From a :class:`cellctl.config.CellConfig`: ``[robot]`` joint limits (with ``[robot.track]``
         the track's first), ``tracking_error_max_mm`` and ``egm_watchdog_s`` (a controller silent
         this long has stalled)."""
         r = cfg.robot
         track = None if r.track is None else r.track.linear_track()
+        limits = r.limits()
         v, a, j = _axis_limits(
-            track, r.joint_speed_max_deg_s, r.joint_accel_max_deg_s2, r.joint_jerk_max_deg_s3
+            track, limits.joint_speed_max_deg_s, limits.joint_accel_max_deg_s2, limits.joint_jerk_max_deg_s3
         )
         values = {
             "joint_speed_max_deg_s": v,
@@ -169,11 +177,12 @@ class ExecutorConfig:
     def from_settings(cls, settings, **changes) -> ExecutorConfig:
         """Limits from :class:`cellctl.planning.PlannerSettings` (``cell.toml [robot]``; with a track
         its speed, acceleration and jerk first)."""
+        limits: RobotLimits = settings.limits
         v, a, j = _axis_limits(
             getattr(settings, "track", None),
-            settings.joint_speed_max_deg_s,
-            settings.joint_accel_max_deg_s2,
-            settings.joint_jerk_max_deg_s3,
+            limits.joint_speed_max_deg_s,
+            limits.joint_accel_max_deg_s2,
+            limits.joint_jerk_max_deg_s3,
         )
         return cls(joint_speed_max_deg_s=v, joint_accel_max_deg_s2=a, joint_jerk_max_deg_s3=j, **changes)
 

@@ -69,7 +69,7 @@ from drivers.abb_egm.endpoint import (
     EgmEndpoint,
     latency_percentile_us,
 )
-from drivers.abb_egm.kinematics import LinearTrack
+from drivers.abb_egm.limits import LinearTrack
 from drivers.abb_egm.shared_history import SharedFeedbackHistory
 from drivers.runtime import hold_cpu_wakeup_latency, lock_memory, set_thread_realtime
 
@@ -389,7 +389,7 @@ class MotionServer:
         written = None
         if record_file:
             try:
-                _write_record(Path(record_file), result)
+                _write_record(Path(record_file), result, self.endpoint.stats.stale_events.copy())
                 written = record_file
             except OSError as exc:
                 log.warning("motion_record_not_written", path=record_file, error=str(exc))
@@ -411,12 +411,18 @@ class MotionServer:
         )
 
 
-def _write_record(path: Path, result: ExecutionResult) -> None:
+def _write_record(path: Path, result: ExecutionResult, stale_events=()) -> None:
+    """The record of what was commanded (:class:`ExecutionResult`'s arrays) and ``stale_ns`` (k, 2):
+    each stale reply of the execution (the latest 4096) as host monotonic ns when it left and its
+    latency in ns, so a stale cycle can be set against what else the machine did at that moment."""
+    stale = np.asarray(list(stale_events), dtype=np.int64).reshape(-1, 2)
+    if result.t_host_s.size:
+        stale = stale[stale[:, 0] >= int(result.t_host_s[0] * 1e9)]
     tmp = path.with_name(path.name + ".tmp")
     with tmp.open("wb") as fh:
         np.savez(
             fh, t_host_s=result.t_host_s, q_ref_deg=result.q_ref_deg, qd_ref_deg_s=result.qd_ref_deg_s,
-            t_traj_s=result.t_traj_s, cycle=result.cycle,
+            t_traj_s=result.t_traj_s, cycle=result.cycle, stale_ns=stale,
         )  # fmt: skip
     os.replace(tmp, path)
 

@@ -45,6 +45,7 @@ from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.plan import CoverageReport, PlanInputError, PlanRefused, ScanPlan, Segment
 from cellctl.planning.planner import check_plan_envelope, plan_scan
 from cellctl.planning.settings import PlannerSettings
+from drivers.abb_egm.limits import EGM_CYCLE_S
 
 __all__ = ["PLAN_CACHE_VERSION", "CachedPlan", "PlanCache", "plan_key"]
 
@@ -119,7 +120,7 @@ class PlanCache:
         return self.root / f"{key}{_SUFFIX}"
 
     def load(
-        self, key: str, placement: Placement, settings: PlannerSettings, *, cycle_s: float = 0.004032
+        self, key: str, placement: Placement, settings: PlannerSettings, *, cycle_s: float = EGM_CYCLE_S
     ) -> ScanPlan | None:
         """The cached plan of ``key`` after the envelope check against ``settings``; None on a miss
         (no entry, or one ignored and removed with a log line naming the reason)."""
@@ -175,7 +176,7 @@ class PlanCache:
         settings: PlannerSettings,
         *,
         with_coverage: bool = True,
-        cycle_s: float = 0.004032,
+        cycle_s: float = EGM_CYCLE_S,
         store: bool = True,
     ) -> CachedPlan:
         """The cached plan for these inputs, or :func:`plan_scan`'s (then stored, unless ``store`` is

@@ -27,7 +27,8 @@ import numpy as np
 
 from cellctl.planning.plan import PlanRefused, Segment, pose_matrix, slerp_frames
 from cellctl.planning.settings import PlannerSettings
-from drivers.abb_egm.kinematics import JOINT_NAMES, RobotKinematics, nearest_branch
+from drivers.abb_egm.kinematics import RobotKinematics, nearest_branch
+from drivers.abb_egm.limits import JOINT_NAMES
 
 __all__ = [
     "REACH_MM",

@@ -52,6 +52,7 @@ from cellctl.planning.plan import (
 from cellctl.planning.settings import PlannerSettings
 from cellctl.planning.timing import TimingResult, rest_to_rest_s, time_segments
 from drivers.abb_egm.kinematics import fk_batch
+from drivers.abb_egm.limits import EGM_CYCLE_S
 
 __all__ = [
     "check_plan_envelope",
@@ -90,7 +91,7 @@ def positions_at(trajectory: TimedTrajectory, t_s: np.ndarray) -> np.ndarray:
 
 
 def check_plan_envelope(
-    trajectory: TimedTrajectory, segments: list, settings: PlannerSettings, cycle_s: float = 0.004032
+    trajectory: TimedTrajectory, segments: list, settings: PlannerSettings, cycle_s: float = EGM_CYCLE_S
 ) -> None:
     """Sample ``trajectory`` at the EGM cycle and check every sample against the safety envelope.
 
@@ -485,7 +486,7 @@ def plan_scan(
     settings: PlannerSettings | None = None,
     *,
     with_coverage: bool = True,
-    cycle_s: float = 0.004032,
+    cycle_s: float = EGM_CYCLE_S,
 ) -> ScanPlan:
     """Plan a coverage scan of ``design`` lying at ``placement``.
 

@@ -6,15 +6,23 @@ without a configuration file; :meth:`PlannerSettings.from_config` builds one fro
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
+from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from analysis.placement import T_from_pos_rpy
 from cellctl.planning.plan import PASS_AXES, PlanInputError
-from drivers.abb_egm.kinematics import LinearTrack
+from drivers.abb_egm.limits import LinearTrack, RobotLimits
+
+if TYPE_CHECKING:
+    from cellctl.config import CellConfig
 
 __all__ = ["PlannerSettings"]
+
+#: the joint limits when none are given (``cell.toml [robot]``'s defaults)
+_DEFAULT_LIMITS = RobotLimits()
 
 
 def _default_T_flange_sensor() -> np.ndarray:
@@ -44,7 +52,8 @@ class PlannerSettings:
     start from, overriding ``passes_reversed``; None: the first pass at the footprint's low side),
     ``link_clearance_mm`` lift on links, ``approach_mm``
     along the normal before the first and after the last pass, ``waypoint_step_mm`` spacing.
-    Robot: joint limits and margin, speed / acceleration limits, TCP speed cap, workspace box for the
+    Robot: joint limits and margin, speed / acceleration / jerk limits (:attr:`limits`, one
+    :class:`~drivers.abb_egm.limits.RobotLimits`), TCP speed cap, workspace box for the
     sensor origin, ``T_flange_sensor`` (4, 4) mm, ``wrist_margin_deg`` (min |q5|),
     ``max_waypoint_joint_step_deg`` (a larger jump between neighbouring waypoints is a flip).
     Track: ``track`` (usable travel, speed and acceleration limits, frame in the world) or None
@@ -76,12 +85,12 @@ class PlannerSettings:
     link_clearance_mm: float = 30.0
     approach_mm: float = 100.0
     waypoint_step_mm: float = 20.0
-    joint_lower_deg: tuple[float, ...] = (-180.0, -90.0, -180.0, -400.0, -125.0, -400.0)
-    joint_upper_deg: tuple[float, ...] = (180.0, 150.0, 75.0, 400.0, 120.0, 400.0)
-    joint_margin_deg: float = 2.0
-    joint_speed_max_deg_s: tuple[float, ...] = (175.0, 175.0, 175.0, 250.0, 250.0, 360.0)
-    joint_accel_max_deg_s2: tuple[float, ...] = (300.0, 300.0, 300.0, 600.0, 600.0, 800.0)
-    joint_jerk_max_deg_s3: tuple[float, ...] = (3000.0, 3000.0, 3000.0, 6000.0, 6000.0, 8000.0)
+    joint_lower_deg: tuple[float, ...] = _DEFAULT_LIMITS.joint_lower_deg
+    joint_upper_deg: tuple[float, ...] = _DEFAULT_LIMITS.joint_upper_deg
+    joint_margin_deg: float = _DEFAULT_LIMITS.joint_margin_deg
+    joint_speed_max_deg_s: tuple[float, ...] = _DEFAULT_LIMITS.joint_speed_max_deg_s
+    joint_accel_max_deg_s2: tuple[float, ...] = _DEFAULT_LIMITS.joint_accel_max_deg_s2
+    joint_jerk_max_deg_s3: tuple[float, ...] = _DEFAULT_LIMITS.joint_jerk_max_deg_s3
     tcp_speed_max_mm_s: float = 250.0
     workspace_min_mm: tuple[float, ...] = (-500.0, -2000.0, 100.0)
     workspace_max_mm: tuple[float, ...] = (2600.0, 2000.0, 2400.0)
@@ -201,19 +210,25 @@ class PlannerSettings:
     @property
     def q_min_deg(self) -> np.ndarray:
         """(6,) lower joint limits shrunk by the margin, deg."""
-        return np.asarray(self.joint_lower_deg) + self.joint_margin_deg
+        return self.limits.q_min_deg
 
     @property
     def q_max_deg(self) -> np.ndarray:
         """(6,) upper joint limits shrunk by the margin, deg."""
-        return np.asarray(self.joint_upper_deg) - self.joint_margin_deg
+        return self.limits.q_max_deg
+
+    @cached_property
+    def limits(self) -> RobotLimits:
+        """The joint limits as the one value motion and the configuration also speak (the fields of
+        :class:`~drivers.abb_egm.limits.RobotLimits`, which these settings carry flat)."""
+        return RobotLimits(**{f.name: getattr(self, f.name) for f in fields(RobotLimits)})
 
     def with_(self, **changes) -> PlannerSettings:
         """A copy with some fields changed."""
         return replace(self, **changes)
 
     @classmethod
-    def from_config(cls, cfg) -> PlannerSettings:
+    def from_config(cls, cfg: CellConfig) -> PlannerSettings:
         """Settings from a :class:`cellctl.config.CellConfig` (``[robot]``, ``[laser]``, ``[scan]``)."""
         r, laser, s = cfg.robot, cfg.laser, cfg.scan
         return cls(
@@ -230,12 +245,7 @@ class PlannerSettings:
             pass_axis=s.pass_axis,
             placement_uncertainty_mm=s.placement_uncertainty_mm,
             placement_uncertainty_deg=s.placement_uncertainty_deg,
-            joint_lower_deg=tuple(r.joint_lower_deg),
-            joint_upper_deg=tuple(r.joint_upper_deg),
-            joint_margin_deg=r.joint_margin_deg,
-            joint_speed_max_deg_s=tuple(r.joint_speed_max_deg_s),
-            joint_accel_max_deg_s2=tuple(r.joint_accel_max_deg_s2),
-            joint_jerk_max_deg_s3=tuple(r.joint_jerk_max_deg_s3),
+            **asdict(r.limits()),
             tcp_speed_max_mm_s=r.tcp_speed_max_mm_s,
             workspace_min_mm=tuple(r.workspace_min_mm),
             workspace_max_mm=tuple(r.workspace_max_mm),

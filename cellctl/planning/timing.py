@@ -42,7 +42,8 @@ from ruckig import InputParameter, Result, Ruckig, Trajectory
 from cellctl.motion.trajectory import PLAN_JERK_SHARE, TimedTrajectory
 from cellctl.planning.plan import PlanRefused, Segment
 from cellctl.planning.settings import PlannerSettings
-from drivers.abb_egm.kinematics import LinearTrack, fk_batch
+from drivers.abb_egm.kinematics import fk_batch
+from drivers.abb_egm.limits import LinearTrack
 
 __all__ = [
     "RAMP_ALLOWANCE_MM",

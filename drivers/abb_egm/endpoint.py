@@ -56,6 +56,7 @@ from drivers.abb_egm.codec import (
     parse_robot_pb,
     robot_from_pb,
 )
+from drivers.abb_egm.limits import EGM_CYCLE_S
 from drivers.abb_egm.ring import ring_indices, ring_search, ring_start
 from drivers.runtime import set_thread_realtime
 
@@ -161,7 +162,7 @@ class EgmEndpointConfig:
     plausible_tol_deg: float = 0.05
     plausible_speed_deg_s: float = 600.0
     plausible_late_s: float = 0.25
-    cycle_s: float = 0.004032
+    cycle_s: float = EGM_CYCLE_S
 
 
 def ok_to_command(
@@ -382,6 +383,9 @@ class EgmStatistics:
         default_factory=lambda: np.zeros(LATENCY_BIN_EDGES_US.shape[0], dtype=np.int64)
     )
     latency_max_us: float = 0.0
+    #: the latest stale replies (at most 4096): (host monotonic ns when the reply left, latency ns
+    #: from the packet's arrival), to set against what else the machine was doing then
+    stale_events: deque = field(default_factory=lambda: deque(maxlen=4096))
     _intervals_us: deque = field(default_factory=lambda: deque(maxlen=2_500))
 
     def receive_interval_us(self) -> np.ndarray:
@@ -1222,6 +1226,7 @@ class EgmEndpoint(asyncio.DatagramProtocol):
             latency_us = (self._clock_ns() - t_rx_ns) / 1000.0
         if not fresh or latency_us > self.config.cycle_s * 1e6:
             self.stats.stale += 1
+            self.stats.stale_events.append((time.monotonic_ns(), int(latency_us * 1000.0)))
         self.stats.replies_sent += 1
         b = int(np.searchsorted(LATENCY_BIN_EDGES_US, latency_us, side="right")) - 1
         self.stats.latency_counts[max(b, 0)] += 1

@@ -1,7 +1,8 @@
 """Kinematics of the ABB IRB 4600-40/2.55: forward kinematics, Jacobian, damped least-squares IK.
 
-The model is built in code with pinocchio from the joint origins, axes, limits and speeds of the
-public ros-industrial description (docs/reference/abb-egm-rws.md section 4); no URDF file.
+The model is built in code with pinocchio from the joint origins and axes of the public
+ros-industrial description (docs/reference/abb-egm-rws.md section 4), no URDF file, and the joint
+ranges and rated speeds of :mod:`drivers.abb_egm.limits` (which also holds :class:`LinearTrack`).
 
 Units: the public API speaks the controller's units, degrees and millimetres; pinocchio speaks
 radians and metres. The conversion happens only in :func:`_q_rad`, :func:`_T_mm` and :func:`_T_m`.
@@ -24,15 +25,19 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from drivers.abb_egm.limits import (
+    JOINT_NAMES,
+    N_ARM_JOINTS,
+    Q_MAX_DEG,
+    Q_MIN_DEG,
+    QD_MAX_DEG_S,
+    KinematicsError,
+    LinearTrack,
+)
+
 __all__ = [
-    "JOINT_NAMES",
-    "N_ARM_JOINTS",
-    "QD_MAX_DEG_S",
-    "Q_MAX_DEG",
-    "Q_MIN_DEG",
     "IkResult",
     "KinematicsError",
-    "LinearTrack",
     "Pose",
     "RobotKinematics",
     "fk_batch",
@@ -42,7 +47,6 @@ __all__ = [
     "quat_wxyz_from_matrix",
 ]
 
-JOINT_NAMES = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6")
 #: joint origin in the parent link frame (m); all origin rotations are identity
 _JOINT_XYZ_M = np.array(
     [
@@ -55,74 +59,8 @@ _JOINT_XYZ_M = np.array(
     ]
 )
 _JOINT_AXES = "zyyxyx"
-N_ARM_JOINTS = 6
-Q_MIN_DEG = np.array([-180.0, -90.0, -180.0, -400.0, -125.0, -400.0])
-Q_MAX_DEG = np.array([180.0, 150.0, 75.0, 400.0, 120.0, 400.0])
-QD_MAX_DEG_S = np.array([175.0, 175.0, 175.0, 250.0, 250.0, 360.0])
 #: link_6 -> tool0 (the ABB flange): rpy (0, pi/2, 0), no offset
 _R_LINK6_FLANGE = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
-
-
-class KinematicsError(ValueError):
-    """Bad input to a kinematics function (wrong shape, unknown frame, non-finite values)."""
-
-
-@dataclass(frozen=True, slots=True)
-class LinearTrack:
-    """A linear track carrying the robot base: the first, prismatic joint of a seven-axis chain.
-
-    ``origin_mm`` (3,): the robot base origin in the world frame at track position 0.
-    ``direction`` (3,): the world direction of + travel (normalised here).
-    ``travel_min_mm`` / ``travel_max_mm``: the track's travel; ``speed_max_mm_s`` /
-    ``accel_max_mm_s2`` / ``jerk_max_mm_s3`` its speed, acceleration and jerk limits.
-    The base keeps the world's orientation: ``T_world_base(s) = [I | origin_mm + s * direction]``.
-    """
-
-    origin_mm: np.ndarray
-    direction: np.ndarray
-    travel_min_mm: float
-    travel_max_mm: float
-    speed_max_mm_s: float
-    accel_max_mm_s2: float = 2000.0
-    jerk_max_mm_s3: float = 20000.0
-
-    def __post_init__(self) -> None:
-        origin = np.asarray(self.origin_mm, dtype=np.float64)
-        d = np.asarray(self.direction, dtype=np.float64)
-        if (
-            origin.shape != (3,)
-            or d.shape != (3,)
-            or not (np.all(np.isfinite(origin)) and np.all(np.isfinite(d)))
-        ):
-            raise KinematicsError("LinearTrack: origin_mm and direction must be 3 finite values each")
-        norm = float(np.linalg.norm(d))
-        if norm < 1e-9:
-            raise KinematicsError("LinearTrack: direction must not be the zero vector")
-        if not (np.isfinite(self.travel_min_mm) and np.isfinite(self.travel_max_mm)):
-            raise KinematicsError("LinearTrack: travel limits must be finite")
-        if not self.travel_min_mm < self.travel_max_mm:
-            raise KinematicsError(
-                f"LinearTrack: travel_min_mm ({self.travel_min_mm}) must be below travel_max_mm ({self.travel_max_mm})"
-            )
-        if not (self.speed_max_mm_s > 0 and self.accel_max_mm_s2 > 0 and self.jerk_max_mm_s3 > 0):
-            raise KinematicsError("LinearTrack: speed, acceleration and jerk limits must be positive")
-        origin.flags.writeable = False
-        d = d / norm
-        d.flags.writeable = False
-        object.__setattr__(self, "origin_mm", origin)
-        object.__setattr__(self, "direction", d)
-
-    def base_pos_mm(self, track_mm) -> np.ndarray:
-        """World position of the robot base origin at track position(s) ``track_mm`` (scalar or (n,)):
-        (3,) or (n, 3) mm."""
-        s = np.asarray(track_mm, dtype=np.float64)
-        return self.origin_mm + s[..., None] * self.direction
-
-    def T_world_base(self, track_mm: float) -> np.ndarray:
-        """(4, 4) robot base in the world frame at track position ``track_mm``, mm."""
-        T = np.eye(4)
-        T[:3, 3] = self.base_pos_mm(float(track_mm))
-        return T
 
 
 @dataclass(frozen=True, slots=True)

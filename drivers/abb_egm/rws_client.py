@@ -48,6 +48,7 @@ import numpy as np
 import structlog
 
 from drivers.abb_egm import rapid_values as _prog
+from drivers.abb_egm import rws_protocol as rw
 from drivers.abb_egm.digest import digest_response, parse_auth_params
 from drivers.abb_egm.rapid_values import (
     ElogEntry,
@@ -61,12 +62,9 @@ from drivers.abb_egm.rapid_values import (
     parse_num,
     parse_string,
 )
+from drivers.abb_egm.rws_protocol import Profile
 
 log = structlog.get_logger(__name__)
-
-Profile = Literal["rws1", "rws2"]
-_V2_JSON = "application/hal+json;v=2.0"
-_V2_FORM = "application/x-www-form-urlencoded;v=2.0"
 
 
 class RwsError(Exception):
@@ -474,7 +472,7 @@ class RwsClient:
             return
         if self._logged_in:
             try:
-                await self._request("GET", "/logout", relogin=False)
+                await self._request("GET", rw.LOGOUT, relogin=False)
             except RwsError as err:
                 log.warning("rws_logout_failed", error=str(err))
         self._logged_in = False
@@ -485,11 +483,11 @@ class RwsClient:
 
     def _headers(self, method: str, has_body: bool) -> dict[str, str]:
         if self.config.profile == "rws2":
-            h = {"Accept": _V2_JSON}
+            h = {"Accept": rw.HAL_JSON_V2}
             if has_body:
-                h["Content-Type"] = _V2_FORM
+                h["Content-Type"] = rw.FORM_V2
             return h
-        return {"Content-Type": "application/x-www-form-urlencoded"} if has_body else {}
+        return {"Content-Type": rw.FORM} if has_body else {}
 
     def _auth_header(self, method: str, path_qs: str) -> str | None:
         if self.config.profile == "rws2":
@@ -667,13 +665,12 @@ class RwsClient:
     @_parses_answer
     async def get_ctrl_state(self) -> str:
         """Controller state: ``motoron``, ``motoroff``, ``guardstop``, ``emergencystop``, ..."""
-        path = "/rw/panel/ctrlstate" if self.config.profile == "rws1" else "/rw/panel/ctrl-state"
-        return str((await self._get_state(path))["ctrlstate"])
+        return str((await self._get_state(rw.ctrl_state_path(self.config.profile)))["ctrlstate"])
 
     async def set_motors(self, on: bool) -> None:
         """Motors on / off (the controller must be in AUTO)."""
-        form = {"ctrl-state": "motoron" if on else "motoroff"}
-        await self._action("/rw/panel/ctrlstate", "setctrlstate", "/rw/panel/ctrl-state", form)
+        form = {"ctrl-state": rw.MOTORON if on else rw.MOTOROFF}
+        await self._action(rw.PANEL_CTRLSTATE, "setctrlstate", rw.PANEL_CTRL_STATE_V2, form)
 
     async def motors_on(self) -> None:
         """Switch the motors on."""
@@ -686,14 +683,14 @@ class RwsClient:
     @_parses_answer
     async def get_opmode(self) -> str:
         """Operating mode: ``AUTO``, ``MANR``, ``MANF``, ..."""
-        return str((await self._get_state("/rw/panel/opmode"))["opmode"])
+        return str((await self._get_state(rw.PANEL_OPMODE))["opmode"])
 
     # ---- RAPID execution ----------------------------------------------------------------------
 
     @_parses_answer
     async def get_execution_state(self) -> ExecutionState:
         """RAPID execution state."""
-        item = await self._get_state("/rw/rapid/execution")
+        item = await self._get_state(rw.RAPID_EXECUTION)
         return ExecutionState(str(item["ctrlexecstate"]), str(item.get("cycle", "")))
 
     async def start_rapid(self, cycle: Literal["once", "forever", "asis"] = "once") -> None:
@@ -706,24 +703,20 @@ class RwsClient:
             "stopatbp": "disabled",
             "alltaskbytsp": "false",
         }
-        await self._action("/rw/rapid/execution", "start", "/rw/rapid/execution/start", form)
+        await self._action(rw.RAPID_EXECUTION, "start", rw.execution_action_path("start"), form)
 
     async def stop_rapid(self) -> None:
         """Stop RAPID execution."""
-        await self._action("/rw/rapid/execution", "stop", "/rw/rapid/execution/stop", {"stopmode": "stop"})
+        await self._action(rw.RAPID_EXECUTION, "stop", rw.execution_action_path("stop"), {"stopmode": "stop"})
 
     async def reset_pp(self) -> None:
         """Program pointer to main (program must be stopped)."""
-        await self._action("/rw/rapid/execution", "resetpp", "/rw/rapid/execution/resetpp")
+        await self._action(rw.RAPID_EXECUTION, "resetpp", rw.execution_action_path("resetpp"))
 
     # ---- RAPID variables ----------------------------------------------------------------------
 
     def _symbol_path(self, task: str, name: str, module: str | None) -> str:
-        parts = [task, module, name] if module else [task, name]
-        sym = "/".join(quote(p, safe="") for p in parts)
-        if self.config.profile == "rws1":
-            return f"/rw/rapid/symbol/data/RAPID/{sym}"
-        return f"/rw/rapid/symbol/RAPID/{sym}/data"
+        return rw.symbol_path(self.config.profile, task, name, module)
 
     @_parses_answer
     async def get_rapid_var(self, task: str, name: str, module: str | None = None) -> str:
@@ -778,22 +771,17 @@ class RwsClient:
 
     # ---- IO -----------------------------------------------------------------------------------
 
-    @staticmethod
-    def _signal_path(signal: str, network: str | None, device: str | None) -> str:
-        parts = [p for p in (network, device, signal) if p]
-        return "/rw/iosystem/signals/" + "/".join(quote(p, safe="") for p in parts)
-
     @_parses_answer
     async def get_io(self, signal: str, network: str | None = None, device: str | None = None) -> float:
         """Read an IO signal's value (0/1 for digital signals)."""
-        item = await self._get_state(self._signal_path(signal, network, device))
+        item = await self._get_state(rw.signal_path(signal, network, device))
         return float(item["lvalue"])
 
     async def set_io(
         self, signal: str, value: float, network: str | None = None, device: str | None = None
     ) -> None:
         """Write an IO signal (fails with the controller's code if the access level forbids it)."""
-        path = self._signal_path(signal, network, device)
+        path = rw.signal_path(signal, network, device)
         form = {"lvalue": format_num(value)}
         if self.config.profile == "rws1":
             await self._request("POST", path, query={"action": "set"}, form=form)
@@ -822,18 +810,18 @@ class RwsClient:
     @_parses_answer
     async def read_event_log(self, domain: int = 0) -> list[ElogEntry]:
         """Event-log messages of ``domain``, newest first (every page, following ``_links.next``)."""
-        items = await self._get_all(f"/rw/elog/{domain}", {"lang": "en"})
+        items = await self._get_all(rw.elog_path(domain), {"lang": "en"})
         return [self._elog_entry(it) for it in items]
 
     @_parses_answer
     async def read_event(self, domain: int, seqnum: int) -> ElogEntry:
         """One event-log message with its English texts."""
-        return self._elog_entry(await self._get_state(f"/rw/elog/{domain}/{seqnum}", {"lang": "en"}))
+        return self._elog_entry(await self._get_state(rw.elog_path(domain, seqnum), {"lang": "en"}))
 
     @_parses_answer
     async def read_event_log_domains(self) -> dict[int, int]:
         """Event-log domain number -> number of messages in it."""
-        items = await self._get_all("/rw/elog")
+        items = await self._get_all(rw.ELOG)
         return {
             int(it["_title"]): int(it.get("numevts", 0))
             for it in items
@@ -856,27 +844,27 @@ class RwsClient:
     @_parses_answer
     async def get_tasks(self) -> list[TaskState]:
         """The RAPID tasks of the system (RobotWare 7's ``spy`` entry left out)."""
-        items = await self._get_all("/rw/rapid/tasks")
+        items = await self._get_all(rw.RAPID_TASKS)
         return [self._task_state(it) for it in items if it.get("_type") == "rap-task-li"]
 
     @_parses_answer
     async def get_task(self, task: str) -> TaskState:
         """One RAPID task."""
-        return self._task_state(await self._get_state(f"/rw/rapid/tasks/{quote(task, safe='')}"))
+        return self._task_state(await self._get_state(rw.task_path(task)))
 
     @_parses_answer
     async def get_modules(self, task: str) -> list[tuple[str, str]]:
         """``(name, type)`` of the modules loaded in ``task`` (``SysMod`` / ``ProgMod``)."""
         if self.config.profile == "rws1":
-            items = await self._get_all("/rw/rapid/modules", {"task": task})
+            items = await self._get_all(rw.RAPID_MODULES, {"task": task})
         else:
-            items = await self._get_all(f"/rw/rapid/tasks/{quote(task, safe='')}/modules")
+            items = await self._get_all(rw.task_path(task) + "/modules")
         return [(str(it["name"]), str(it.get("type", ""))) for it in items if "name" in it]
 
     @_parses_answer
     async def list_signals(self) -> list[SignalState]:
         """Every IO signal (all pages)."""
-        items = await self._get_all("/rw/iosystem/signals")
+        items = await self._get_all(rw.IOSYSTEM_SIGNALS)
         return [
             SignalState(
                 str(it["name"]), str(it.get("_title", "")), str(it.get("type", "")), float(it["lvalue"])
@@ -893,7 +881,7 @@ class RwsClient:
     @_parses_answer
     async def get_mechunit_joints(self) -> MechunitJoints:
         """The jointtarget: the arm's joints (deg) and the external axes (a track in mm)."""
-        item = await self._get_state(f"/rw/motionsystem/mechunits/{self.config.mechunit}/jointtarget")
+        item = await self._get_state(rw.mechunit_path(self.config.mechunit, "jointtarget"))
         q = np.array([float(item[f"rax_{i}"]) for i in range(1, 7)])
         return MechunitJoints(q, _external_axes(item))
 
@@ -901,7 +889,7 @@ class RwsClient:
     async def get_cartesian(self) -> CartesianPose:
         """Flange pose (tool0) in the base frame."""
         item = await self._get_state(
-            f"/rw/motionsystem/mechunits/{self.config.mechunit}/robtarget",
+            rw.mechunit_path(self.config.mechunit, "robtarget"),
             {"tool": "tool0", "wobj": "wobj0", "coordinate": "Base"},
         )
         pos = np.array([float(item[k]) for k in ("x", "y", "z")])
@@ -948,15 +936,15 @@ class RwsClient:
     ) -> AsyncIterator[StateChange]:
         resources = []
         if ctrl_state:
-            resources.append("/rw/panel/ctrlstate")
+            resources.append(rw.PANEL_CTRLSTATE)
         if opmode:
-            resources.append("/rw/panel/opmode")
+            resources.append(rw.PANEL_OPMODE)
         if execution:
-            resources.append("/rw/rapid/execution;ctrlexecstate")
-        resources += [f"/rw/rapid/symbol/data/RAPID/{t}/{n};value" for t, n in rapid_vars]
-        resources += [f"/rw/iosystem/signals/{s};state" for s in signals]
+            resources.append(rw.EXECUTION_SUBSCRIPTION)
+        resources += [rw.symbol_subscription(t, n) for t, n in rapid_vars]
+        resources += [rw.signal_subscription(s) for s in signals]
         if elog:
-            resources.append("/rw/elog/0")
+            resources.append(rw.elog_path(0))
         if not resources:
             raise ValueError("changes(): nothing to subscribe to")
         form: list[tuple[str, str]] = []
@@ -965,13 +953,13 @@ class RwsClient:
             form += [("resources", str(i)), (str(i), res), (f"{i}-p", prio)]
         failures = 0
         while True:
-            answer = await self._request("POST", "/subscription", form=form)
+            answer = await self._request("POST", rw.SUBSCRIPTION, form=form)
             ws_path = urlsplit(subscription_ws_url(answer.headers, answer.text)).path
             ws_url = self._base.replace("http", "ws", 1) + ws_path
             try:
                 async with self._session().ws_connect(
                     ws_url,
-                    protocols=("robapi2_subscription",),
+                    protocols=(rw.WS_PROTOCOL["rws1"],),
                     # Pings find a dead controller (cable pulled) that would never close the socket.
                     heartbeat=10.0,
                     timeout=aiohttp.ClientWSTimeout(ws_close=2.0),
@@ -992,7 +980,9 @@ class RwsClient:
             finally:
                 with contextlib.suppress(RwsError, TimeoutError):
                     await asyncio.wait_for(
-                        self._request("DELETE", f"/subscription/{ws_path.rsplit('/', 1)[-1]}", relogin=False),
+                        self._request(
+                            "DELETE", f"{rw.SUBSCRIPTION}/{ws_path.rsplit('/', 1)[-1]}", relogin=False
+                        ),
                         self.config.timeout_s,
                     )
             # The controller closed the socket (restart, session drop): subscribe again, with backoff.
@@ -1039,117 +1029,3 @@ class RwsClient:
                 last_seq = max([e.seqnum for e in entries], default=last_seq or 0)
             first = False
             await asyncio.sleep(self.config.poll_interval_s)
-
-
-# --------------------------------------------------------------------------------------------------
-# The CellEgm RAPID program (drivers/abb_egm/rapid/CellEgm.mod) driven through RWS
-# --------------------------------------------------------------------------------------------------
-
-
-class EgmProgramError(RwsError):
-    """The CellEgm program did not start or ended with an error; ``egm_status`` is its status value."""
-
-    def __init__(self, message: str, *, egm_status: float | None = None) -> None:
-        super().__init__(message)
-        self.egm_status = egm_status
-
-
-@dataclass(frozen=True)
-class EgmProgramSettings:
-    """The EGM arguments the daemon writes into CellEgm.mod before each start (units in the names)."""
-
-    comm_timeout_s: float = 1.0
-    pos_corr_gain: float = 1.0
-    max_speed_deviation_deg_s: float = 1000.0
-    max_pos_deviation_deg: float = 1000.0
-    cond_time_s: float = 1_000_000.0
-    ramp_in_time_s: float = 0.05
-    lp_filter_hz: float = 20.0
-    sample_rate_ms: float = 4.0
-    task: str = _prog.RAPID_TASK
-    module: str = _prog.RAPID_MODULE
-    start_timeout_s: float = 5.0
-
-    def __post_init__(self) -> None:
-        if self.comm_timeout_s <= 0:
-            raise ValueError(f"comm_timeout_s must be > 0, got {self.comm_timeout_s}")
-        if not 0.0 <= self.pos_corr_gain <= 1.0:
-            raise ValueError(f"pos_corr_gain must be within [0, 1], got {self.pos_corr_gain}")
-        if self.sample_rate_ms <= 0 or self.sample_rate_ms % 4:
-            raise ValueError(f"sample_rate_ms must be a positive multiple of 4, got {self.sample_rate_ms}")
-
-    def as_rapid(self) -> dict[str, float]:
-        """RAPID variable name -> value."""
-        return {
-            _prog.VAR_COMM_TIMEOUT: self.comm_timeout_s,
-            _prog.VAR_POS_CORR_GAIN: self.pos_corr_gain,
-            _prog.VAR_MAX_SPEED_DEV: self.max_speed_deviation_deg_s,
-            _prog.VAR_MAX_POS_DEV: self.max_pos_deviation_deg,
-            _prog.VAR_COND_TIME: self.cond_time_s,
-            _prog.VAR_RAMP_IN: self.ramp_in_time_s,
-            _prog.VAR_LP_FILTER: self.lp_filter_hz,
-            _prog.VAR_SAMPLE_RATE: self.sample_rate_ms,
-        }
-
-
-class CellEgmProgram:
-    """Start and end EGM sessions of the CellEgm RAPID program through RWS.
-
-    ``start()``: AUTO check, motors on, stop + PP to main, write the settings and ``egm_end := FALSE``,
-    start RAPID (cycle once), wait for ``egm_status = 1``. ``end()``: ``egm_end := TRUE``, wait for
-    RAPID to stop, return ``egm_status`` (2 on a clean end). The caller streams EGM in between.
-    """
-
-    def __init__(self, rws: RwsClient, settings: EgmProgramSettings | None = None) -> None:
-        self.rws = rws
-        self.settings = settings or EgmProgramSettings()
-
-    async def status(self) -> float:
-        """``egm_status``: 0 idle, 1 running, 2 ended on request, -41822 comm timeout, -1 other error."""
-        s = self.settings
-        return await self.rws.get_rapid_num(s.task, _prog.VAR_STATUS, s.module)
-
-    async def start(self) -> None:
-        """Bring the program into EGMRunJoint; raises ``EgmProgramError`` / ``RwsError`` on refusal."""
-        s = self.settings
-        opmode = await self.rws.get_opmode()
-        if opmode != "AUTO":
-            raise EgmProgramError(f"the controller is in {opmode}; EGM from the daemon needs AUTO")
-        if await self.rws.get_ctrl_state() != "motoron":
-            await self.rws.motors_on()
-        if (await self.rws.get_execution_state()).ctrlexecstate == "running":
-            await self.rws.stop_rapid()
-        await self.rws.reset_pp()
-        for name, value in s.as_rapid().items():
-            await self.rws.set_rapid_num(s.task, name, value, s.module)
-        await self.rws.set_rapid_bool(s.task, _prog.VAR_END, False, s.module)
-        await self.rws.start_rapid(cycle="once")
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + s.start_timeout_s
-        while True:
-            status = await self.status()
-            if status == _prog.STATUS_RUNNING:
-                log.info("egm_program_started", task=s.task)
-                return
-            if status < 0:
-                raise EgmProgramError(f"CellEgm ended at start with egm_status {status:g}", egm_status=status)
-            if loop.time() > deadline:
-                raise EgmProgramError(
-                    f"CellEgm did not reach EGMRunJoint within {s.start_timeout_s} s (egm_status {status:g})",
-                    egm_status=status,
-                )
-            await asyncio.sleep(0.02)
-
-    async def end(self, timeout_s: float = 5.0) -> float:
-        """End the session (hold position) and wait for the program to stop; returns ``egm_status``."""
-        s = self.settings
-        await self.rws.set_rapid_bool(s.task, _prog.VAR_END, True, s.module)
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout_s
-        while (await self.rws.get_execution_state()).ctrlexecstate == "running":
-            if loop.time() > deadline:
-                raise EgmProgramError(f"CellEgm still running {timeout_s} s after egm_end := TRUE")
-            await asyncio.sleep(0.02)
-        status = await self.status()
-        log.info("egm_program_ended", egm_status=status)
-        return status

@@ -28,7 +28,8 @@ from drivers.abb_egm.codec import (
     encode_sensor,
 )
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.kinematics import LinearTrack, RobotKinematics
+from drivers.abb_egm.kinematics import RobotKinematics
+from drivers.abb_egm.limits import LinearTrack
 from drivers.abb_egm.sim.egm import EVENT_EGM_JOINT_LIMIT, EgmControllerSim, EgmSimConfig
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.runtime import precise_event_loop

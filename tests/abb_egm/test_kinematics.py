@@ -9,10 +9,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from drivers.abb_egm.kinematics import (
-    Q_MAX_DEG,
-    Q_MIN_DEG,
     KinematicsError,
-    LinearTrack,
     RobotKinematics,
     fk_batch,
     ik_branches,
@@ -20,6 +17,7 @@ from drivers.abb_egm.kinematics import (
     nearest_branch,
     quat_wxyz_from_matrix,
 )
+from drivers.abb_egm.limits import Q_MAX_DEG, Q_MIN_DEG, LinearTrack
 
 KIN = RobotKinematics()
 # a sensor 150 mm out along the flange z axis, tilted 10 deg about the flange y axis

@@ -6,14 +6,8 @@ import asyncio
 
 import pytest
 
-from drivers.abb_egm.rws_client import (
-    CellEgmProgram,
-    EgmProgramError,
-    EgmProgramSettings,
-    RwsClient,
-    RwsClientConfig,
-    RwsError,
-)
+from drivers.abb_egm.cell_egm import CellEgmProgram, EgmProgramError, EgmProgramSettings
+from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig, RwsError
 from drivers.abb_egm.sim.model import EVENT_EGM_COMM_TIMEOUT, ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
 

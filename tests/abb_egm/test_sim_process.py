@@ -15,7 +15,7 @@ import pytest
 
 from drivers.abb_egm.codec import MciState, MotorState
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.kinematics import LinearTrack
+from drivers.abb_egm.limits import LinearTrack
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD, ControllerSim, ControllerSimConfig
 from drivers.abb_egm.sim.controller import main as sim_main

@@ -7,14 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.abb_egm.kinematics import (
-    Q_MAX_DEG,
-    Q_MIN_DEG,
-    KinematicsError,
-    LinearTrack,
-    RobotKinematics,
-    fk_batch,
-)
+from drivers.abb_egm.kinematics import KinematicsError, RobotKinematics, fk_batch
+from drivers.abb_egm.limits import Q_MAX_DEG, Q_MIN_DEG, LinearTrack
 
 TRACK = LinearTrack(
     origin_mm=[250.0, -3000.0, 100.0], direction=[0.0, 2.0, 0.0], travel_min_mm=0.0, travel_max_mm=6000.0,

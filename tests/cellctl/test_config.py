@@ -264,7 +264,7 @@ def test_values_no_irb_4600_or_sensor_can_have_are_refused(
 def test_the_shipped_limits_stay_inside_the_robot_model(shipped: dict):
     """cell.toml and the defaults pass the bounds, and what they set lies inside the IRB 4600 model:
     each joint's range within the model's, its speed within the model's top speed."""
-    from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S
+    from drivers.abb_egm.limits import Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S
 
     for robot in (parse_config(shipped, "cell.toml").robot, CellConfig().robot):
         for i in range(6):

@@ -10,10 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from drivers.fault_channel import send_fault_request
 from drivers.laser.client import HD8Client, HD8ClientConfig
 from drivers.laser.sim.scene import Scene, plane_scene
 from drivers.laser.sim.sensor import LaserSimulator, SimConfig, fixed_pose
+from drivers.sim.fault_channel import send_fault_request
 
 
 def looking_down(standoff_mm: float, x_mm: float = 0.0, y_mm: float = 0.0) -> np.ndarray:

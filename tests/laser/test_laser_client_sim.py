@@ -20,12 +20,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from laser_helpers import collect, looking_down, run, sensor_faults, sensor_stats, sim_and_client
 
-from drivers.fault_channel import send_fault_request
 from drivers.laser import protocol as P
 from drivers.laser.client import HD8Client, HD8ClientConfig
 from drivers.laser.sim.scene import plane_scene
 from drivers.laser.sim.sensor import LaserSimulator, SimConfig, fixed_pose
 from drivers.laser.source import ProfileBatch, SourceEventKind
+from drivers.sim.fault_channel import send_fault_request
 from tests.support.waits import wait_until
 
 # A long backlog: on a loaded CI machine the simulator may fall behind real time for a moment; it must

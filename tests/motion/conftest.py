@@ -30,8 +30,8 @@ from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD
-from drivers.fault_channel import send_fault_request
 from drivers.runtime import precise_event_loop
+from drivers.sim.fault_channel import send_fault_request
 from tests.support.waits import wait_until as wait_for_event
 
 REPO = Path(__file__).resolve().parents[2]

@@ -14,7 +14,8 @@ from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, ExecState, ExecutorConfig, MotionExecutor, SafetyEnvelope
 from cellctl.motion.executor import start_path
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
-from drivers.abb_egm.kinematics import Q_MAX_DEG, Q_MIN_DEG, fk_batch
+from drivers.abb_egm.kinematics import fk_batch
+from drivers.abb_egm.limits import Q_MAX_DEG, Q_MIN_DEG
 from tests.motion.conftest import (
     SAIL_PLACEMENT,
     SMALL_SETTINGS,

@@ -195,6 +195,14 @@ def test_a_starved_motion_process_counts_its_stale_cycles(small_plan, tmp_path):
     assert result.state == ExecState.FINISHED, result.fault
     # each stop left ~10 controller packets waiting more than a cycle: their replies were stale
     assert ex.counters.egm_stale_cycles - stale0 >= 3 * 5, ex.counters
+    # and the record says when each left and how late, so a stale cycle can be set against what
+    # else the machine did then: every one of the execution's, each later than a cycle or not its own
+    with np.load(tmp_path / "motion-record.npz") as z:
+        stale_ns, t_host_s = z["stale_ns"], z["t_host_s"]
+    assert stale_ns.shape == (ex.counters.egm_stale_cycles, 2)
+    assert np.all(stale_ns[:, 0] >= t_host_s[0] * 1e9) and np.all(np.diff(stale_ns[:, 0]) >= 0)
+    # the three stops' replies among them, each sent more than a cycle after its packet arrived
+    assert np.count_nonzero(stale_ns[:, 1] > 4_032_000) >= 3 * 5
 
 
 def test_a_killed_motion_process_fails_the_execution_and_a_new_one_serves(small_plan, tmp_path):

@@ -18,7 +18,7 @@ from analysis.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.coverage import _predict_coverage, build_segments, design_surface, predict_coverage
 from cellctl.planning.planner import positions_at
-from drivers.abb_egm.kinematics import LinearTrack
+from drivers.abb_egm.limits import LinearTrack
 from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
 
 

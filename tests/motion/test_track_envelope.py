@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from cellctl.config import parse_config
 from cellctl.motion import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.planning import PlannerSettings
-from drivers.abb_egm.kinematics import LinearTrack
+from drivers.abb_egm.limits import LinearTrack
 
 CYCLE_S = 0.004032
 TRACK = LinearTrack(

@@ -16,7 +16,8 @@ from cellctl.motion import ExecState, ExecutorConfig, MotionExecutor
 from cellctl.planning import PlannerSettings, PlanRefused, plan_scan
 from cellctl.planning.joint_path import track_positions
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
-from drivers.abb_egm.kinematics import LinearTrack, fk_batch
+from drivers.abb_egm.kinematics import fk_batch
+from drivers.abb_egm.limits import LinearTrack
 from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
 from tests.motion.conftest import realtime_priority, run_async, wait_for_segment, wait_for_state
 

@@ -10,7 +10,7 @@ from analysis.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.joint_path import hold_position_mm, track_positions
 from cellctl.planning.plan import Segment
-from drivers.abb_egm.kinematics import LinearTrack
+from drivers.abb_egm.limits import LinearTrack
 
 EGM_CYCLE_S = 0.004032
 #: a 6 m track along +y with the base at mid-travel where the rail-less cell's base is

@@ -12,7 +12,7 @@ Run it on its own::
 It prints one JSON line with its addresses on stdout and runs until SIGINT or SIGTERM.
 
 With ``--fault-port`` (0: any free port) it serves its **fault channel** on TCP
-(:mod:`drivers.fault_channel`): one JSON object a line, ``{"egm": {"stop_sending": true, "loss_fraction": 0.2, ...}}`` (the knobs of
+(:mod:`drivers.sim.fault_channel`): one JSON object a line, ``{"egm": {"stop_sending": true, "loss_fraction": 0.2, ...}}`` (the knobs of
 :class:`~drivers.abb_egm.sim.egm.EgmFaults`; a knob left out stays as it is, ``{}`` only reads),
 answered by one line ``{"ok": true, "egm": {...the knobs in force...}, "stats": {...counters...}}``
 or ``{"ok": false, "error": "..."}``. The panel (motors, RAPID) is RWS's, as on a real controller.
@@ -32,11 +32,12 @@ from dataclasses import dataclass
 
 import structlog
 
+from drivers.abb_egm.limits import EGM_CYCLE_S
 from drivers.abb_egm.sim.egm import EgmControllerSim, EgmFaults, EgmSimConfig, FaultError
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer
-from drivers.fault_channel import start_fault_server
 from drivers.runtime import precise_event_loop
+from drivers.sim.fault_channel import start_fault_server
 
 __all__ = ["ControllerSim", "ControllerSimConfig", "main"]
 
@@ -174,7 +175,9 @@ def _parser() -> argparse.ArgumentParser:
         default="CELL_RWS_PASSWORD",
         help="environment variable holding the RWS password (ABB's factory default if unset)",
     )
-    p.add_argument("--cycle-ms", type=float, default=4.032, help="EGM cycle (4.032 ms on a real robot)")
+    p.add_argument(
+        "--cycle-ms", type=float, default=EGM_CYCLE_S * 1e3, help="EGM cycle (4.032 ms on a real robot)"
+    )
     p.add_argument(
         "--comm-timeout-s", type=float, default=1.0, help="used outside the RAPID program's values"
     )

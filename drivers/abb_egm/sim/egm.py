@@ -55,7 +55,8 @@ from drivers.abb_egm.codec import (
     decode_sensor,
     encode_robot,
 )
-from drivers.abb_egm.kinematics import LinearTrack, RobotKinematics, fk_batch
+from drivers.abb_egm.kinematics import RobotKinematics, fk_batch
+from drivers.abb_egm.limits import EGM_CYCLE_S, LinearTrack
 from drivers.abb_egm.rapid_values import EXTAX_UNUSED
 from drivers.abb_egm.ring import ring_indices, ring_search, ring_start
 
@@ -117,7 +118,7 @@ class EgmSimConfig:
     sensor_port: int = 6511
     local_host: str = "127.0.0.1"
     local_port: int = 0
-    cycle_s: float = 0.004032
+    cycle_s: float = EGM_CYCLE_S
     q_start_deg: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 30.0, 0.0)
     guidance_mode: str = "joint"  # "joint" (EGMRunJoint) or "pose" (EGMRunPose, flange in base frame)
     comm_timeout_s: float = 1.0

@@ -44,6 +44,7 @@ from typing import Literal
 import numpy as np
 import structlog
 
+from drivers.abb_egm import rws_protocol as rw
 from drivers.abb_egm.rapid_values import (
     EXTAX_UNUSED,
     RAPID_MODULE,
@@ -81,14 +82,10 @@ from drivers.abb_egm.rapid_values import (
     parse_string,
     validate_literal,
 )
+from drivers.abb_egm.rws_protocol import OPMODES, CtrlState, OpMode, RapidState
 
 log = structlog.get_logger(__name__)
 
-CtrlState = Literal[
-    "init", "motoron", "motoroff", "guardstop", "emergencystop", "emergencystopreset", "sysfail"
-]
-OpMode = Literal["AUTO", "MANR", "MANF"]
-RapidState = Literal["running", "stopped"]
 Listener = Callable[[str, dict], None]
 PositionSource = Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]
 ExternalAxesSource = Callable[[], np.ndarray]
@@ -198,8 +195,8 @@ class ControllerModel:
     def __init__(
         self,
         *,
-        opmode: OpMode = "AUTO",
-        ctrl_state: CtrlState = "motoroff",
+        opmode: OpMode = rw.AUTO,
+        ctrl_state: CtrlState = rw.MOTOROFF,
         end_var: str = VAR_END,
         task: str = RAPID_TASK,
         module: str = RAPID_MODULE,
@@ -207,7 +204,7 @@ class ControllerModel:
     ) -> None:
         self._ctrl_state: CtrlState = ctrl_state
         self._opmode: OpMode = opmode
-        self._rapid_state: RapidState = "stopped"
+        self._rapid_state: RapidState = rw.STOPPED
         self.speed_ratio_pct = 100
         self.task = task
         self.module = module
@@ -314,117 +311,117 @@ class ControllerModel:
 
     def set_opmode(self, mode: OpMode) -> None:
         """Turn the mode key (cabinet, not RWS). Stops RAPID and the motors, as the real controller does."""
-        if mode not in ("AUTO", "MANR", "MANF"):
+        if mode not in OPMODES:
             raise RapidValueError(f"unknown opmode {mode!r}", code=RC_BAD_VALUE)
         if mode == self._opmode:
             return
         self._halt_program("opmode change")
-        if self._ctrl_state == "motoron":
-            self._set_ctrl_state("motoroff")
+        if self._ctrl_state == rw.MOTORON:
+            self._set_ctrl_state(rw.MOTOROFF)
         self._opmode = mode
         self._notify("opmode", {"opmode": mode})
 
     def motors_on(self) -> None:
         """Switch the motors on (RWS ``ctrl-state=motoron``); only from motors off / e-stop reset, in AUTO."""
-        if self._ctrl_state == "motoron":
+        if self._ctrl_state == rw.MOTORON:
             return
-        if self._ctrl_state in ("emergencystop", "guardstop", "sysfail", "init"):
+        if self._ctrl_state in (rw.EMERGENCYSTOP, rw.GUARDSTOP, rw.SYSFAIL, rw.INIT):
             raise StateRefused(
                 f"motors on refused: controller is in {self._ctrl_state}", code=RC_STATE_REFUSED
             )
-        if self._opmode != "AUTO":
+        if self._opmode != rw.AUTO:
             # In manual mode the enabling device on the pendant switches the motors on, not RWS.
             raise StateRefused(f"motors on refused: operating mode is {self._opmode}", code=RC_STATE_REFUSED)
-        self._set_ctrl_state("motoron")
+        self._set_ctrl_state(rw.MOTORON)
         self.log_event(EVENT_MOTORS_ON, "Motors ON state", "Motors on requested through RWS.", "info")
 
     def motors_off(self) -> None:
         """Switch the motors off; a running program stops (as the real controller does in AUTO)."""
-        if self._ctrl_state in ("emergencystop", "guardstop", "sysfail"):
+        if self._ctrl_state in (rw.EMERGENCYSTOP, rw.GUARDSTOP, rw.SYSFAIL):
             raise StateRefused(
                 f"motors off refused: controller is in {self._ctrl_state}", code=RC_STATE_REFUSED
             )
-        if self._ctrl_state == "motoroff":
+        if self._ctrl_state == rw.MOTOROFF:
             return
         self._halt_program("motors off")
-        self._set_ctrl_state("motoroff")
+        self._set_ctrl_state(rw.MOTOROFF)
         self.log_event(EVENT_MOTORS_OFF, "Motors OFF state", "Motors switched off.", "info")
 
     def emergency_stop(self) -> None:
         """Press the emergency stop: motors off, RAPID stopped, EGM ends."""
-        if self._ctrl_state == "emergencystop":
+        if self._ctrl_state == rw.EMERGENCYSTOP:
             return
         self._halt_program("emergency stop")
-        self._set_ctrl_state("emergencystop")
+        self._set_ctrl_state(rw.EMERGENCYSTOP)
         self.log_event(
             EVENT_EMERGENCY_STOP, "Emergency stop state", "The emergency stop circuit opened.", "error"
         )
 
     def reset_emergency_stop(self) -> None:
         """Release and reset the emergency stop: the controller goes to ``emergencystopreset``."""
-        if self._ctrl_state != "emergencystop":
+        if self._ctrl_state != rw.EMERGENCYSTOP:
             raise StateRefused(
                 f"no emergency stop to reset: controller is in {self._ctrl_state}", code=RC_STATE_REFUSED
             )
-        self._set_ctrl_state("emergencystopreset")
+        self._set_ctrl_state(rw.EMERGENCYSTOPRESET)
 
     def guard_stop(self) -> None:
         """Open the safety guard (auto stop): motors off, RAPID stopped."""
-        if self._ctrl_state in ("emergencystop", "guardstop"):
+        if self._ctrl_state in (rw.EMERGENCYSTOP, rw.GUARDSTOP):
             return
         self._halt_program("guard stop")
-        self._set_ctrl_state("guardstop")
+        self._set_ctrl_state(rw.GUARDSTOP)
         self.log_event(
             EVENT_GUARD_STOP, "Safety guard stop state", "The safety guard circuit opened.", "warning"
         )
 
     def reset_guard_stop(self) -> None:
         """Close the safety guard again: the controller goes to ``motoroff``."""
-        if self._ctrl_state != "guardstop":
+        if self._ctrl_state != rw.GUARDSTOP:
             raise StateRefused(
                 f"no guard stop to reset: controller is in {self._ctrl_state}", code=RC_STATE_REFUSED
             )
-        self._set_ctrl_state("motoroff")
+        self._set_ctrl_state(rw.MOTOROFF)
 
     # ---- RAPID execution ----------------------------------------------------------------------
 
     def start_rapid(self) -> None:
         """Start (or continue) the program. From PP at main this enters the EGM phase of CellEgm.mod."""
-        if self._rapid_state == "running":
+        if self._rapid_state == rw.RUNNING:
             return
-        if self._ctrl_state != "motoron":
+        if self._ctrl_state != rw.MOTORON:
             raise StateRefused(
                 f"start refused: motors are not on (controller is {self._ctrl_state})", code=RC_STATE_REFUSED
             )
-        if self._opmode != "AUTO":
+        if self._opmode != rw.AUTO:
             raise StateRefused(
                 f"start refused: operating mode {self._opmode} needs the pendant (RMMP)",
                 code=RC_STATE_REFUSED,
             )
         if not self.tasks_active.get(self.task, False):
             raise StateRefused(f"start refused: task {self.task} is not active", code=RC_STATE_REFUSED)
-        self._rapid_state = "running"
+        self._rapid_state = rw.RUNNING
         if self._phase == "main":
             self._enter_egm_phase()
-        self._notify("execution", {"ctrlexecstate": "running"})
+        self._notify("execution", {"ctrlexecstate": rw.RUNNING})
         # A session that was told to end while the program was stopped ends as soon as it runs.
         if self._phase == "egm" and self._var_bool(self.end_var):
             self._finish_program(STATUS_ENDED, "end variable set")
 
     def stop_rapid(self) -> None:
         """Stop the program. Inside EGMRunJoint the EGM state goes back to CONNECTED; a start resumes it."""
-        if self._rapid_state == "stopped":
+        if self._rapid_state == rw.STOPPED:
             return
-        self._rapid_state = "stopped"
-        self._notify("execution", {"ctrlexecstate": "stopped"})
+        self._rapid_state = rw.STOPPED
+        self._notify("execution", {"ctrlexecstate": rw.STOPPED})
 
     def reset_pp(self) -> None:
         """Set the program pointer to main (only with the program stopped); the EGM identity is released."""
-        if self._rapid_state == "running":
+        if self._rapid_state == rw.RUNNING:
             raise StateRefused("reset PP refused: the program is running", code=RC_STATE_REFUSED)
         self._phase = "main"
         self._egm_params = None
-        self._notify("execution", {"ctrlexecstate": "stopped", "pp": "main"})
+        self._notify("execution", {"ctrlexecstate": rw.STOPPED, "pp": "main"})
 
     def _enter_egm_phase(self) -> None:
         # main(): egm_end := FALSE; read the settings; EGMGetId; EGMSetupUC; EGMActJoint; EGMRunJoint.
@@ -453,14 +450,14 @@ class ControllerModel:
         if end_sig is not None and end_sig.lvalue != 0:
             end_sig.lvalue = 0.0
             self._notify("signal", {"name": SIGNAL_END, "lvalue": 0.0})
-        was_running = self._rapid_state == "running"
-        self._rapid_state = "stopped"
+        was_running = self._rapid_state == rw.RUNNING
+        self._rapid_state = rw.STOPPED
         log.info("rapid_program_finished", status=status, reason=reason)
         if was_running:
-            self._notify("execution", {"ctrlexecstate": "stopped", "pp": "main"})
+            self._notify("execution", {"ctrlexecstate": rw.STOPPED, "pp": "main"})
 
     def _halt_program(self, reason: str) -> None:
-        if self._rapid_state == "running":
+        if self._rapid_state == rw.RUNNING:
             log.info("rapid_halted", reason=reason)
             self.stop_rapid()
 
@@ -468,7 +465,7 @@ class ControllerModel:
         """Activate / deactivate a task (RWS ``activate`` / ``deactivate``); only with RAPID stopped."""
         if task not in self.tasks_active:
             raise SymbolNotFound(f"task not found: {task}", code=RC_NOT_FOUND)
-        if self._rapid_state == "running":
+        if self._rapid_state == rw.RUNNING:
             raise StateRefused("task (de)activation refused: the program is running", code=RC_STATE_REFUSED)
         self.tasks_active[task] = active
 
@@ -485,8 +482,8 @@ class ControllerModel:
     def egm_wanted(self) -> bool:
         """True while the program sits in EGMRunJoint: motors on, running, EGM phase, end variable false."""
         return (
-            self._ctrl_state == "motoron"
-            and self._rapid_state == "running"
+            self._ctrl_state == rw.MOTORON
+            and self._rapid_state == rw.RUNNING
             and self._phase == "egm"
             and not self._var_bool(self.end_var)
         )
@@ -544,7 +541,7 @@ class ControllerModel:
 
     def _on_end_var_written(self) -> None:
         # The module's IPers trap: egm_end TRUE -> EGMStop. Only takes effect while the program runs.
-        if self._phase == "egm" and self._rapid_state == "running" and self._var_bool(self.end_var):
+        if self._phase == "egm" and self._rapid_state == rw.RUNNING and self._var_bool(self.end_var):
             self._finish_program(STATUS_ENDED, "end variable set")
 
     def _write_var_internal(self, name: str, literal: str) -> None:
@@ -617,7 +614,12 @@ class ControllerModel:
         sig.lvalue = float(value)
         self._notify("signal", {"name": name, "lvalue": sig.lvalue})
         # CellEgm.mod also ends the session on a rising DO_EGM_END (a signal for cells that prefer IO).
-        if name == SIGNAL_END and sig.lvalue == 1 and self._phase == "egm" and self._rapid_state == "running":
+        if (
+            name == SIGNAL_END
+            and sig.lvalue == 1
+            and self._phase == "egm"
+            and self._rapid_state == rw.RUNNING
+        ):
             self._finish_program(STATUS_ENDED, "end signal set")
 
     @property

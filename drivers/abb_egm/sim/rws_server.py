@@ -42,12 +42,13 @@ import tempfile
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 from urllib.parse import quote, unquote
 
 import structlog
 from aiohttp import WSMsgType, web
 
+from drivers.abb_egm import rws_protocol as rw
 from drivers.abb_egm.digest import digest_response, parse_auth_params
 from drivers.abb_egm.rapid_values import (
     RC_IO_ACCESS_DENIED,
@@ -56,6 +57,7 @@ from drivers.abb_egm.rapid_values import (
     format_extax,
     format_num,
 )
+from drivers.abb_egm.rws_protocol import Profile
 from drivers.abb_egm.sim.model import (
     AccessDenied,
     ControllerModel,
@@ -66,18 +68,15 @@ from drivers.abb_egm.sim.model import (
 
 log = structlog.get_logger(__name__)
 
-Profile = Literal["rws1", "rws2"]
 REALM = "validusers@robapi.abb"
 DIGEST_OPAQUE = "799d5"
 SESSION_COOKIE = "-http-session-"
 ABBCX_COOKIE = "ABBCX"
-WS_PROTOCOL = {"rws1": "robapi2_subscription", "rws2": "rws_subscription"}
-MEDIA_V2 = "v=2.0"
 CONTENT_TYPE = {
-    ("rws1", True): "application/json",
-    ("rws1", False): "application/xhtml+xml",
-    ("rws2", True): "application/hal+json;v=2.0",
-    ("rws2", False): "application/xhtml+xml;v=2.0",
+    ("rws1", True): rw.JSON,
+    ("rws1", False): rw.XHTML,
+    ("rws2", True): rw.HAL_JSON_V2,
+    ("rws2", False): rw.XHTML_V2,
 }
 
 # Controller return codes as the captured answers carry them (../shared/testdata/rws, SOURCES.md).
@@ -596,7 +595,7 @@ class RwsServer:
                 return self._error(req, fault.status, fault.message, fault.code)
         if self.profile == "rws2":
             accept = req.headers.get("Accept", "")
-            if MEDIA_V2 not in accept.replace(" ", "") and not req.headers.get("Upgrade"):
+            if rw.V2 not in accept.replace(" ", "") and not req.headers.get("Upgrade"):
                 raise RwsRequestError(
                     406, f"Accept must name a ;v=2.0 media type, got {accept!r}", RC_NOT_ACCEPTABLE
                 )
@@ -642,10 +641,8 @@ class RwsServer:
         ctype = req.headers.get("Content-Type", "")
         raw = await req.read()
         if raw and "x-www-form-urlencoded" not in ctype:
-            raise RwsRequestError(
-                415, f"Content-Type must be application/x-www-form-urlencoded, got {ctype!r}"
-            )
-        if self.profile == "rws2" and raw and MEDIA_V2 not in ctype.replace(" ", ""):
+            raise RwsRequestError(415, f"Content-Type must be {rw.FORM}, got {ctype!r}")
+        if self.profile == "rws2" and raw and rw.V2 not in ctype.replace(" ", ""):
             raise RwsRequestError(415, f"Content-Type must carry ;v=2.0, got {ctype!r}", RC_NOT_ACCEPTABLE)
         try:
             text = raw.decode("utf-8")
@@ -702,11 +699,11 @@ class RwsServer:
         (``/rw/rapid/`` + ``tasks``), or the resource itself (``/rw/panel/ctrlstate/`` + ``""``) for
         panel, motion-system, system and the event-log root."""
         parts = path.strip("/").split("/")
-        if len(parts) < 2 or parts[0] != "rw":
+        if len(parts) < 2 or f"/{parts[0]}" != rw.SERVICES:
             return "/", path.lstrip("/")
-        if parts[1] in ("panel", "motionsystem", "system") or path == "/rw/elog":
+        if parts[1] in ("panel", "motionsystem", "system") or path == rw.ELOG:
             return path + "/", ""
-        return f"/rw/{parts[1]}/", "/".join(parts[2:])
+        return f"{rw.SERVICES}/{parts[1]}/", "/".join(parts[2:])
 
     def _xhtml(
         self, items: list[dict[str, Any]], title: str, base: str, self_href: str, next_href: str | None
@@ -765,38 +762,40 @@ class RwsServer:
     def _build_routes(self) -> list[tuple[str, re.Pattern[str], Handler, bool]]:
         """(method, path regex, handler, mutating). RWS 1.0 chooses operations with ``?action=``."""
         v2 = self.profile == "rws2"
-        task = r"/rw/rapid/tasks/(?P<task>[^/;]+)"
-        sig = r"/rw/iosystem/signals/(?P<path>[^;]+?)"
-        mu = r"/rw/motionsystem/mechunits/(?P<mu>[^/]+)"
+        # the vocabulary's paths hold no regular-expression metacharacters: used as they are
+        task = rw.RAPID_TASKS + r"/(?P<task>[^/;]+)"
+        sig = rw.IOSYSTEM_SIGNALS + r"/(?P<path>[^;]+?)"
+        mu = rw.MECHUNITS + r"/(?P<mu>[^/]+)"
         routes: list[tuple[str, str, Handler, bool]] = [
-            ("GET", r"/rw/panel/opmode", self._get_opmode, False),
-            ("GET", r"/rw/panel/speedratio", self._get_speedratio, False),
-            ("GET", r"/rw/rapid/execution", self._get_execution, False),
-            ("GET", r"/rw/rapid/tasks", self._get_tasks, False),
+            ("GET", rw.PANEL_OPMODE, self._get_opmode, False),
+            ("GET", rw.PANEL_SPEEDRATIO, self._get_speedratio, False),
+            ("GET", rw.RAPID_EXECUTION, self._get_execution, False),
+            ("GET", rw.RAPID_TASKS, self._get_tasks, False),
             ("GET", task, self._get_task, False),
-            ("GET", r"/rw/iosystem/signals", self._get_signals, False),
-            ("GET", r"/rw/elog", self._get_elog_domains, False),
-            ("GET", r"/rw/elog/(?P<domain>\d+)", self._get_elog, False),
-            ("GET", r"/rw/elog/(?P<domain>\d+)/(?P<seq>\d+)", self._get_elog_message, False),
+            ("GET", rw.IOSYSTEM_SIGNALS, self._get_signals, False),
+            ("GET", rw.ELOG, self._get_elog_domains, False),
+            ("GET", rw.ELOG + r"/(?P<domain>\d+)", self._get_elog, False),
+            ("GET", rw.ELOG + r"/(?P<domain>\d+)/(?P<seq>\d+)", self._get_elog_message, False),
             ("GET", mu + r"/jointtarget", self._get_jointtarget, False),
             ("GET", mu + r"/robtarget", self._get_robtarget, False),
-            ("GET", r"/rw/system", self._get_system, False),
-            ("GET", r"/logout", self._logout, False),
-            ("POST", r"/subscription", self._subscribe, False),
-            ("PUT", r"/subscription/(?P<sub>\d+)", self._subscription_add, False),
-            ("DELETE", r"/subscription/(?P<sub>\d+)", self._unsubscribe_route, False),
-            ("GET", r"/poll/(?P<sub>\d+)", self._poll_ws, False),
+            ("GET", rw.SYSTEM, self._get_system, False),
+            ("GET", rw.LOGOUT, self._logout, False),
+            ("POST", rw.SUBSCRIPTION, self._subscribe, False),
+            ("PUT", rw.SUBSCRIPTION + r"/(?P<sub>\d+)", self._subscription_add, False),
+            ("DELETE", rw.SUBSCRIPTION + r"/(?P<sub>\d+)", self._unsubscribe_route, False),
+            ("GET", rw.POLL + r"/(?P<sub>\d+)", self._poll_ws, False),
         ]
-        sym_v2 = r"/rw/rapid/symbol/RAPID/(?P<task>[^/]+)(?:/(?P<module>[^/]+))?/(?P<name>[^/;]+)/data"
-        sym_v1 = r"/rw/rapid/symbol/data/RAPID/(?P<task>[^/]+)(?:/(?P<module>[^/]+))?/(?P<name>[^/;]+)"
+        symbol = r"/(?P<task>[^/]+)(?:/(?P<module>[^/]+))?/(?P<name>[^/;]+)"
+        sym_v2 = rw.RAPID_SYMBOL_V2 + symbol + "/data"
+        sym_v1 = rw.RAPID_SYMBOL_DATA + symbol
         if v2:
             routes += [
-                ("GET", r"/rw/panel/ctrl-state", self._get_ctrlstate, False),
-                ("POST", r"/rw/panel/ctrl-state", self._set_ctrlstate, True),
-                ("POST", r"/rw/panel/speedratio", self._set_speedratio, True),
-                ("POST", r"/rw/rapid/execution/start", self._start, True),
-                ("POST", r"/rw/rapid/execution/stop", self._stop, True),
-                ("POST", r"/rw/rapid/execution/resetpp", self._resetpp, True),
+                ("GET", rw.PANEL_CTRL_STATE_V2, self._get_ctrlstate, False),
+                ("POST", rw.PANEL_CTRL_STATE_V2, self._set_ctrlstate, True),
+                ("POST", rw.PANEL_SPEEDRATIO, self._set_speedratio, True),
+                ("POST", rw.execution_action_path("start"), self._start, True),
+                ("POST", rw.execution_action_path("stop"), self._stop, True),
+                ("POST", rw.execution_action_path("resetpp"), self._resetpp, True),
                 ("POST", task + r"/activate", self._activate, True),
                 ("POST", task + r"/deactivate", self._deactivate, True),
                 ("GET", task + r"/modules", self._get_modules, False),
@@ -805,28 +804,38 @@ class RwsServer:
                 ("POST", sym_v2, self._set_var, True),
                 ("POST", sig + r"/set-value", self._set_signal, True),
                 ("GET", sig, self._get_signal, False),
-                ("POST", r"/rw/mastership/request", self._mastership_request, False),
-                ("POST", r"/rw/mastership/release", self._mastership_release, False),
-                ("POST", r"/rw/mastership/(?P<domain>edit|motion)/request", self._mastership_request, False),
-                ("POST", r"/rw/mastership/(?P<domain>edit|motion)/release", self._mastership_release, False),
-                ("GET", r"/rw/mastership/(?P<domain>edit|motion)", self._get_mastership, False),
+                ("POST", rw.MASTERSHIP + "/request", self._mastership_request, False),
+                ("POST", rw.MASTERSHIP + "/release", self._mastership_release, False),
+                (
+                    "POST",
+                    rw.MASTERSHIP + r"/(?P<domain>edit|motion)/request",
+                    self._mastership_request,
+                    False,
+                ),
+                (
+                    "POST",
+                    rw.MASTERSHIP + r"/(?P<domain>edit|motion)/release",
+                    self._mastership_release,
+                    False,
+                ),
+                ("GET", rw.MASTERSHIP + r"/(?P<domain>edit|motion)", self._get_mastership, False),
             ]
         else:
             routes += [
-                ("GET", r"/rw/panel/ctrlstate", self._get_ctrlstate, False),
-                ("POST", r"/rw/panel/ctrlstate", self._rws1_action, True),
-                ("POST", r"/rw/panel/speedratio", self._rws1_action, True),
-                ("POST", r"/rw/rapid/execution", self._rws1_action, True),
+                ("GET", rw.PANEL_CTRLSTATE, self._get_ctrlstate, False),
+                ("POST", rw.PANEL_CTRLSTATE, self._rws1_action, True),
+                ("POST", rw.PANEL_SPEEDRATIO, self._rws1_action, True),
+                ("POST", rw.RAPID_EXECUTION, self._rws1_action, True),
                 ("POST", task, self._rws1_action, True),
-                ("GET", r"/rw/rapid/modules", self._get_modules, False),
-                ("GET", r"/rw/rapid/modules/(?P<module>[^/]+)", self._get_module, False),
+                ("GET", rw.RAPID_MODULES, self._get_modules, False),
+                ("GET", rw.RAPID_MODULES + r"/(?P<module>[^/]+)", self._get_module, False),
                 ("GET", sym_v1, self._get_var, False),
                 ("POST", sym_v1, self._rws1_action, True),
                 ("GET", sig, self._get_signal, False),
                 ("POST", sig, self._rws1_action, True),
-                ("POST", r"/rw/mastership", self._rws1_action, False),
-                ("POST", r"/rw/mastership/(?P<domain>rapid|motion|cfg)", self._rws1_action, False),
-                ("GET", r"/rw/mastership/(?P<domain>rapid|motion|cfg)", self._get_mastership, False),
+                ("POST", rw.MASTERSHIP, self._rws1_action, False),
+                ("POST", rw.MASTERSHIP + r"/(?P<domain>rapid|motion|cfg)", self._rws1_action, False),
+                ("GET", rw.MASTERSHIP + r"/(?P<domain>rapid|motion|cfg)", self._get_mastership, False),
             ]
         return [(m, re.compile(p), h, mut) for m, p, h, mut in routes]
 
@@ -835,23 +844,23 @@ class RwsServer:
         action = r.req.query.get("action", "")
         path = r.path
         table: dict[tuple[str, str], Handler] = {
-            ("/rw/panel/ctrlstate", "setctrlstate"): self._set_ctrlstate,
-            ("/rw/panel/speedratio", "setspeedratio"): self._set_speedratio,
-            ("/rw/rapid/execution", "start"): self._start,
-            ("/rw/rapid/execution", "stop"): self._stop,
-            ("/rw/rapid/execution", "resetpp"): self._resetpp,
-            ("/rw/mastership", "request"): self._mastership_request,
-            ("/rw/mastership", "release"): self._mastership_release,
+            (rw.PANEL_CTRLSTATE, "setctrlstate"): self._set_ctrlstate,
+            (rw.PANEL_SPEEDRATIO, "setspeedratio"): self._set_speedratio,
+            (rw.RAPID_EXECUTION, "start"): self._start,
+            (rw.RAPID_EXECUTION, "stop"): self._stop,
+            (rw.RAPID_EXECUTION, "resetpp"): self._resetpp,
+            (rw.MASTERSHIP, "request"): self._mastership_request,
+            (rw.MASTERSHIP, "release"): self._mastership_release,
         }
         handler = table.get((path, action))
         if handler is None:
-            if path.startswith("/rw/rapid/symbol/data/") and action == "set":
+            if path.startswith(rw.RAPID_SYMBOL_DATA + "/") and action == "set":
                 handler = self._set_var
-            elif path.startswith("/rw/iosystem/signals/") and action == "set":
+            elif path.startswith(rw.IOSYSTEM_SIGNALS + "/") and action == "set":
                 handler = self._set_signal
-            elif path.startswith("/rw/rapid/tasks/") and action in ("activate", "deactivate"):
+            elif path.startswith(rw.RAPID_TASKS + "/") and action in ("activate", "deactivate"):
                 handler = self._activate if action == "activate" else self._deactivate
-            elif path.startswith("/rw/mastership/") and action in ("request", "release"):
+            elif path.startswith(rw.MASTERSHIP + "/") and action in ("request", "release"):
                 handler = self._mastership_request if action == "request" else self._mastership_release
         if handler is None:
             raise RwsRequestError(400, f"Invalid action parameter value: {action!r} for {path}")
@@ -887,12 +896,12 @@ class RwsServer:
 
     async def _set_ctrlstate(self, r: _Request) -> web.Response:
         state = self._field(r, "ctrl-state")
-        if state == "motoron":
+        if state == rw.MOTORON:
             self.model.motors_on()
-        elif state == "motoroff":
+        elif state == rw.MOTOROFF:
             self.model.motors_off()
         else:
-            raise RwsRequestError(400, f"ctrl-state must be motoron or motoroff, got {state!r}")
+            raise RwsRequestError(400, f"ctrl-state must be {rw.MOTORON} or {rw.MOTOROFF}, got {state!r}")
         return self._no_content()
 
     async def _get_opmode(self, r: _Request) -> web.Response:
@@ -956,7 +965,7 @@ class RwsServer:
         return self._no_content()
 
     def _task_item(self, name: str, listing: bool) -> dict[str, Any]:
-        running = self.model.rapid_state == "running" and name == self.model.task
+        running = self.model.rapid_state == rw.RUNNING and name == self.model.task
         item: dict[str, Any] = {
             "_type": "rap-task-li" if listing else "rap-task",
             "_title": name,
@@ -1110,7 +1119,7 @@ class RwsServer:
     def _elog_item(self, domain: int, ev: Any, lang: str | None, listing: bool) -> dict[str, Any]:
         item: dict[str, Any] = {
             "_type": "elog-message-li" if listing else "elog-message",
-            "_title": f"/rw/elog/{domain}/{ev.seqnum}",
+            "_title": rw.elog_path(domain, ev.seqnum),
             "msgtype": str(ev.msgtype),
             "code": str(ev.code),
             "tstamp": ev.tstamp,
@@ -1269,9 +1278,19 @@ class RwsServer:
     # ---- subscriptions ------------------------------------------------------------------------
 
     _RESOURCE_RE = re.compile(
-        r"^(/rw/panel/ctrlstate|/rw/panel/opmode|/rw/rapid/execution;ctrlexecstate|/rw/elog/0"
-        r"|/rw/rapid/symbol/data/RAPID/[^/;]+(/[^/;]+)?/[^/;]+;value"
-        r"|/rw/rapid/symbol/RAPID/[^/;]+(/[^/;]+)?/[^/;]+/data;value|/rw/iosystem/signals/[^;]+;state)$"
+        "^("
+        + "|".join(
+            re.escape(p)
+            for p in (rw.PANEL_CTRLSTATE, rw.PANEL_OPMODE, rw.EXECUTION_SUBSCRIPTION, rw.elog_path(0))
+        )
+        + f"|{re.escape(rw.RAPID_SYMBOL_DATA)}/[^/;]+(/[^/;]+)?/[^/;]+;value"
+        + f"|{re.escape(rw.RAPID_SYMBOL_V2)}/[^/;]+(/[^/;]+)?/[^/;]+/data;value"
+        + f"|{re.escape(rw.IOSYSTEM_SIGNALS)}/[^;]+;state)$"
+    )
+    #: a RAPID value's subscription resource in either spelling: task, module (or None), name
+    _SYMBOL_RESOURCE_RE = re.compile(
+        f"^(?:{re.escape(rw.RAPID_SYMBOL_DATA)}|{re.escape(rw.RAPID_SYMBOL_V2)})"
+        r"/([^/;]+)(?:/([^/;]+))?/([^/;]+?)(?:/data)?;value$"
     )
 
     def _parse_resources(self, r: _Request) -> dict[str, tuple[str, int]]:
@@ -1298,17 +1317,16 @@ class RwsServer:
     @staticmethod
     def _resource_key(res: str) -> str:
         # Signals may be named with or without network/device; key them by signal name.
-        if res.startswith("/rw/iosystem/signals/"):
-            return "signal:" + res[len("/rw/iosystem/signals/") :].split(";")[0].split("/")[-1]
-        m = re.match(
-            r"^/rw/rapid/symbol/(?:data/)?RAPID/([^/;]+)(?:/([^/;]+))?/([^/;]+?)(?:/data)?;value$", res
-        )
+        signals = rw.IOSYSTEM_SIGNALS + "/"
+        if res.startswith(signals):
+            return "signal:" + res[len(signals) :].split(";")[0].split("/")[-1]
+        m = RwsServer._SYMBOL_RESOURCE_RE.match(res)
         if m:
             return f"rapid:{m.group(1)}:{m.group(3)}"
         return res
 
     def _ws_url(self, sub_id: str) -> str:
-        return f"{'wss' if self.profile == 'rws2' else 'ws'}://{self.host}:{self.port}/poll/{sub_id}"
+        return f"{'wss' if self.profile == 'rws2' else 'ws'}://{self.host}:{self.port}{rw.POLL}/{sub_id}"
 
     def _event_frame(self, sub_id: str, lis: list[str]) -> str:
         """An event page as the controller sends it, in the 201 answer and on the websocket."""
@@ -1325,11 +1343,11 @@ class RwsServer:
     def _initial_event(self, key: str, res: str) -> str | None:
         """The current value of a subscribed resource, as an event item (sent in the 201 answer)."""
         m = self.model
-        if key == "/rw/panel/ctrlstate":
+        if key == rw.PANEL_CTRLSTATE:
             return self._event_li("ctrlstate", {"ctrlstate": m.ctrl_state})
-        if key == "/rw/panel/opmode":
+        if key == rw.PANEL_OPMODE:
             return self._event_li("opmode", {"opmode": m.opmode})
-        if key == "/rw/rapid/execution;ctrlexecstate":
+        if key == rw.EXECUTION_SUBSCRIPTION:
             return self._event_li("execution", {"ctrlexecstate": m.rapid_state})
         if key.startswith("signal:"):
             try:
@@ -1384,7 +1402,7 @@ class RwsServer:
 
     async def _poll_ws(self, r: _Request) -> web.StreamResponse:
         sub = self._own_subscription(r)
-        proto = WS_PROTOCOL[self.profile]
+        proto = rw.WS_PROTOCOL[self.profile]
         ws = web.WebSocketResponse(protocols=(proto,), heartbeat=None)
         if not ws.can_prepare(r.req).ok:
             raise RwsRequestError(400, "GET /poll/{id} needs a websocket upgrade")
@@ -1438,10 +1456,10 @@ class RwsServer:
     def _event_for(self, kind: str, data: dict) -> tuple[str, str] | None:
         """(resource key, event item) of a model change, or None if nobody can subscribe to it."""
         keys = {
-            "ctrlstate": "/rw/panel/ctrlstate",
-            "opmode": "/rw/panel/opmode",
-            "execution": "/rw/rapid/execution;ctrlexecstate",
-            "elog": "/rw/elog/0",
+            "ctrlstate": rw.PANEL_CTRLSTATE,
+            "opmode": rw.PANEL_OPMODE,
+            "execution": rw.EXECUTION_SUBSCRIPTION,
+            "elog": rw.elog_path(0),
         }
         if kind == "rapid-data":
             key = f"rapid:{data['task']}:{data['name']}"
@@ -1458,38 +1476,39 @@ class RwsServer:
         """The ``<li>`` of one event, shaped as the ABB manual prints it (Subscription Event pages)."""
         if kind == "ctrlstate":
             return (
-                '<li class="pnl-ctrlstate-ev" title="ctrlstate"><a href="/rw/panel/ctrlstate" rel="self"/>'
+                f'<li class="pnl-ctrlstate-ev" title="ctrlstate"><a href="{rw.PANEL_CTRLSTATE}" rel="self"/>'
                 f'<span class="ctrlstate">{_x(data["ctrlstate"])}</span></li>'
             )
         if kind == "opmode":
             return (
-                '<li class="pnl-opmode-ev" title="opmode"><a href="/rw/panel/opmode" rel="self"/>'
+                f'<li class="pnl-opmode-ev" title="opmode"><a href="{rw.PANEL_OPMODE}" rel="self"/>'
                 f'<span class="opmode">{_x(data["opmode"])}</span></li>'
             )
         if kind == "execution":
             return (
                 '<li class="rap-ctrlexecstate-ev" title="ctrlexecstate">'
-                '<a href="/rw/rapid/execution;ctrlexecstate" rel="self"/>'
+                f'<a href="{rw.EXECUTION_SUBSCRIPTION}" rel="self"/>'
                 f'<span class="ctrlexecstate">{_x(data["ctrlexecstate"])}</span></li>'
             )
         if kind == "rapid-data":
             sym = f"RAPID/{data['task']}/{data['module']}/{data['name']}"
+            href = rw.symbol_subscription(f"{data['task']}/{data['module']}", data["name"])
             return (
-                f'<li class="rap-value-ev" title="value"><a href="/rw/rapid/symbol/data/{_x(sym)};value" rel="self"/>'
+                f'<li class="rap-value-ev" title="value"><a href="{_x(href)}" rel="self"/>'
                 f'</li><li class="rap-data" title="{_x(sym)}"><span class="value">{_x(data["value"])}</span></li>'
             )
         if kind == "signal":
             sig = self.model.signal(data["name"])
             path = f"{sig.network}/{sig.device}/{sig.name}"
             return (
-                f'<li class="ios-signalstate-ev" title="{_x(path)}"><a href="/rw/iosystem/signals/{_x(path)};state"'
+                f'<li class="ios-signalstate-ev" title="{_x(path)}"><a href="{_x(rw.signal_subscription(path))}"'
                 f' rel="self"/><span class="lvalue">{format_num(data["lvalue"])}</span>'
                 '<span class="lstate">not simulated</span></li>'
             )
         if kind == "elog":
             seq = int(data["seqnum"])
             return (
-                f'<li class="elog-message-ev" title="message"><a href="/rw/elog/0/{seq}" rel="self"/>'
+                f'<li class="elog-message-ev" title="message"><a href="{rw.elog_path(0, seq)}" rel="self"/>'
                 f'<span class="seqnum">{seq}</span></li>'
             )
         return None

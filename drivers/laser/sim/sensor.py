@@ -40,11 +40,11 @@ import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from drivers.fault_channel import start_fault_server
 from drivers.laser import protocol as P
 from drivers.laser._ratelimit import RateLimitedLog
 from drivers.laser.sim.optics import LaserOptics, render_points, render_uniform
 from drivers.laser.sim.scene import Scene, SceneRaycaster, plane_scene, step_scene
+from drivers.sim.fault_channel import start_fault_server
 
 __all__ = ["LaserSimulator", "PoseFn", "SimConfig", "SimFaults", "SimStats", "fixed_pose", "main"]
 
@@ -241,7 +241,7 @@ class LaserSimulator:
         config: sensor model; see :class:`SimConfig`.
         clock: the true time base, seconds (must advance at real-time rate; asyncio sleeps on it).
         host, control_port, data_port: where to listen (port 0 = any free port).
-        fault_port: serve the fault channel (:class:`LaserFaultRequest`, :mod:`drivers.fault_channel`)
+        fault_port: serve the fault channel (:class:`LaserFaultRequest`, :mod:`drivers.sim.fault_channel`)
             on this port (0: any free port; None: off); its address is :attr:`fault_address`.
     """
 

@@ -6,7 +6,8 @@ socket, never by a Python call. What a request holds is the simulator's (its ``a
 here is only the wire: a line that is not JSON is answered ``{"ok": false, "error": ...}`` and the
 connection goes on serving; a line past the stream limit or a client gone ends that connection only.
 (The simulated cell, ``cellctl sim``, has its own channel over Zenoh: cellctl/simcell/faults.py.)
-Not a simulator itself, and imported by none of the production code.
+Simulator code shared by the simulators, so it lives in their wing (``drivers/sim/``): production
+code never imports it (tests/test_architecture.py).
 """
 
 from __future__ import annotations
