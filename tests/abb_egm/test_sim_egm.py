@@ -342,7 +342,7 @@ def test_statistics_match_injected_loss_duplicates_and_reordering():
         sim, ep = await start_pair()
         await wait_count(lambda: sim.stats.sent, 10, 0.05, "clean packets before the faults")
         sim.set_faults(loss_fraction=0.05, duplicate_fraction=0.05, reorder_fraction=0.05)
-        await wait_count(lambda: sim.stats.cycles, 250, 1.0, "controller cycles under the faults")
+        await wait_count(lambda: sim.stats.sent, 250, 1.0, "packets sent under the faults")
         await _settle_counts(sim, ep)
         assert sim.stats.dropped > 0 and sim.stats.duplicated > 0 and sim.stats.reordered > 0
         assert ep.stats.duplicated == sim.stats.duplicated
@@ -360,7 +360,9 @@ def test_burst_loss_drops_consecutive_packets_and_the_endpoint_counts_them():
         sim, ep = await start_pair()
         sent0, dropped0 = sim.stats.sent, sim.stats.dropped
         sim.set_faults(loss_fraction=0.2, burst_ms=20.0)
-        await wait_count(lambda: sim.stats.cycles, 250, 1.0, "controller cycles under burst loss")
+        await wait_count(
+            lambda: sim.stats.sent + sim.stats.dropped, 250, 1.0, "packets sent or lost in bursts"
+        )
         await _settle_counts(sim, ep)
         assert sim.stats.dropped >= 5  # each loss lasts about five cycles
         assert ep.stats.lost == sim.stats.dropped
@@ -397,7 +399,7 @@ def test_injected_jitter_spreads_transit_times_and_reorders_packets():
     async def main():
         sim, ep = await start_pair()
         sim.set_faults(jitter_ms=20.0)
-        await wait_count(lambda: sim.stats.cycles, 150, 0.6, "controller cycles with jitter")
+        await wait_count(lambda: sim.stats.sent, 150, 0.6, "packets sent with jitter")
         a = ep.history.arrays()
         recent = a.t_ctrl_us > a.t_ctrl_us[-1] - 400_000
         # host receive time minus controller send time: a constant offset plus the transit time
@@ -415,7 +417,7 @@ def test_corrupted_packets_are_survived_and_the_session_keeps_running():
     async def main():
         sim, ep = await start_pair()
         sim.set_faults(corrupt_fraction=0.3)
-        await wait_count(lambda: sim.stats.cycles, 125, 0.5, "controller cycles with corruption")
+        await wait_count(lambda: sim.stats.sent, 125, 0.5, "packets sent with corruption")
         sim.set_faults(corrupt_fraction=0.0)
         replies_before = ep.stats.replies_sent
         await wait_until(lambda: ep.stats.replies_sent > replies_before, 0.1, "a reply after the corruption")
