@@ -34,6 +34,7 @@ from drivers.abb_egm.endpoint import (
     HistoryRangeError,
     ok_to_command,
 )
+from tests.support.waits import wait_until
 
 Q0 = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
 
@@ -105,11 +106,11 @@ class FakeController:
 
     async def settled(self, wait_s: float = 5.0) -> None:
         """Until the endpoint has handled every datagram this controller sent."""
-        for _ in range(int(wait_s / 0.001)):
-            if self.endpoint is None or self.endpoint.stats.handled >= self.sent:
-                return
-            await asyncio.sleep(0.001)
-        raise TimeoutError(f"endpoint handled {self.endpoint.stats.handled} of {self.sent} datagrams")
+        await wait_until(
+            lambda: self.endpoint is None or self.endpoint.stats.handled >= self.sent,
+            wait_s / 10,
+            f"the endpoint handling the {self.sent} datagrams sent",
+        )
 
     async def nothing(self, wait: float = 0.05) -> bool:
         try:

@@ -25,6 +25,7 @@ from drivers.abb_egm.codec import (
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
 from drivers.runtime import precise_event_loop
+from tests.support.waits import wait_until
 
 Q0 = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
 
@@ -60,11 +61,7 @@ async def exchange(ctl: socket.socket, addr, payload: bytes):
 
 async def handled(ep: EgmEndpoint, n: int, wait_s: float = 5.0) -> None:
     """Until the reply thread has finished ``n`` datagrams (it answers first, records after)."""
-    for _ in range(int(wait_s / 0.001)):
-        if ep.stats.handled >= n:
-            return
-        await asyncio.sleep(0.001)
-    raise TimeoutError(f"handled {ep.stats.handled} of {n}")
+    await wait_until(lambda: ep.stats.handled >= n, wait_s / 10, f"the reply thread finishing {n} datagrams")
 
 
 def reply_threads() -> list[threading.Thread]:
@@ -111,11 +108,7 @@ def test_close_ends_the_reply_thread_while_the_controller_keeps_sending():
         sender.start()
         try:
             # the flood is under way (bounded generously: a loaded machine only delays it)
-            for _ in range(600):
-                if ep.stats.received > 10:
-                    break
-                await asyncio.sleep(0.05)
-            assert ep.stats.received > 10
+            await wait_until(lambda: ep.stats.received > 10, 3.0, "the flood under way")
             await asyncio.wait_for(ep.close(), 30.0)
             assert reply_threads() == []
         finally:
@@ -138,7 +131,12 @@ def test_reply_thread_takes_the_configured_realtime_priority_and_cpus_or_says_wh
                 policy = os.sched_getscheduler(tid)
                 cpus = os.sched_getaffinity(tid)
                 assert os.sched_getscheduler(0) != os.SCHED_FIFO  # only the reply thread
-                await asyncio.sleep(0.05)  # let the thread's log lines reach the loop
+                # the thread's log lines reach the loop in order: the affinity's, then the priority's
+                await wait_until(
+                    lambda: any(e["event"].startswith("egm_reply_thread_realtime") for e in logs),
+                    0.05,
+                    "the reply thread's priority logged",
+                )
             finally:
                 ctl.close()
                 await ep.close()
@@ -186,7 +184,7 @@ def test_wait_for_feedback_returns_a_sample_received_after_the_call():
             await exchange(ctl, addr, robot(0))
             assert (await first).seqno == 0  # handed over to the loop
             waiter = asyncio.ensure_future(ep.wait_for_feedback(5.0))
-            await asyncio.sleep(0.02)
+            await asyncio.sleep(0.02)  # stays: time passing in which nothing must happen
             assert not waiter.done()  # the sample already handed over is not "the next"
             ctl.sendto(robot(1), addr)
             state = await waiter
@@ -219,7 +217,9 @@ def test_an_error_while_handling_one_datagram_does_not_end_the_reply_thread():
                 for k in range(4):
                     assert (await exchange(ctl, addr, robot(k))).seqno == k
                 await handled(ep, 4)
-                await asyncio.sleep(0.05)  # the error's log line is handed to the loop
+                await wait_until(  # the error's log line is handed to the loop
+                    lambda: any(e["log_level"] == "error" for e in logs), 0.05, "the error logged"
+                )
             assert [e["event"] for e in logs if e["log_level"] == "error"] == ["egm_reply_thread_error"]
             assert len(ep.history) == 3
         finally:

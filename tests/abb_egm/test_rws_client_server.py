@@ -456,8 +456,10 @@ def test_server_survives_malformed_form_bodies_and_counts_them() -> None:
 # ---- state changes ----------------------------------------------------------------------------
 
 
-async def _collect(client: RwsClient, n: int, **kw: object) -> list[StateChange]:
-    out: list[StateChange] = []
+async def _collect(
+    client: RwsClient, n: int, into: list[StateChange] | None = None, **kw: object
+) -> list[StateChange]:
+    out: list[StateChange] = [] if into is None else into
     async with aclosing(client.changes(**kw)) as it:  # type: ignore[arg-type]
         async for ch in it:
             out.append(ch)
@@ -469,15 +471,35 @@ async def _collect(client: RwsClient, n: int, **kw: object) -> list[StateChange]
 @pytest.mark.parametrize("profile", PROFILES)
 def test_state_changes_arrive_for_motors_execution_and_end_variable(profile: str) -> None:
     async def body() -> None:
-        async with cell(profile) as (model, _server, client):
+        async with cell(profile) as (model, server, client):
+            seen: list[StateChange] = []
+            requests0 = server.stats["requests"]
             task = asyncio.create_task(
-                _collect(client, 4, ctrl_state=True, execution=True, rapid_vars=[(T, "egm_status")])
+                _collect(client, 4, seen, ctrl_state=True, execution=True, rapid_vars=[(T, "egm_status")])
             )
-            await asyncio.sleep(0.3)  # let the subscription / first poll settle
+
+            def seen_kinds() -> list[tuple[str, str]]:
+                return [(c.kind, c.value) for c in seen]
+
+            # in place before the changes: the websocket subscribed (rws1), or the first poll's three
+            # reads answered (rws2: a request of the second poll has come, the login's 401 aside)
+            await wait_until(
+                lambda: (
+                    (len(server._subs) == 1 and bool(server._websockets))
+                    if profile == "rws1"
+                    else server.stats["requests"] - requests0 >= 5
+                ),
+                0.3,
+                "the subscription or first poll",
+            )
             model.motors_on()
-            await asyncio.sleep(0.1)
+            await wait_until(lambda: ("ctrlstate", "motoron") in seen_kinds(), 0.1, "motors on reported")
             model.start_rapid()
-            await asyncio.sleep(0.1)
+            await wait_until(
+                lambda: ("execution", "running") in seen_kinds() or ("rapid-data", "1") in seen_kinds(),
+                0.1,
+                "the program's start reported",
+            )
             model.set_bool(T, None, "egm_end", True)
             changes = await asyncio.wait_for(task, 5)
             kinds = [(c.kind, c.value) for c in changes]
@@ -510,12 +532,15 @@ def test_rws1_subscription_is_renewed_when_the_controller_closes_the_websocket()
     async def body() -> None:
         async with cell("rws1") as (model, server, client):
             task = asyncio.create_task(_collect(client, 1, ctrl_state=True, execution=False))
-            await asyncio.sleep(0.3)
+            await wait_until(
+                lambda: len(server._subs) == 1 and server._websockets, 0.3, "the first subscription"
+            )
             await server.close_subscriptions()
-            for _ in range(100):  # wait for the client to subscribe again
-                if server.stats["subscriptions_created"] == 2 and server._websockets:
-                    break
-                await asyncio.sleep(0.02)
+            await wait_until(
+                lambda: server.stats["subscriptions_created"] >= 2 and server._websockets,
+                2.0,
+                "a new subscription",
+            )
             assert server.stats["subscriptions_created"] == 2
             model.motors_on()
             changes = await asyncio.wait_for(task, 5)
@@ -575,7 +600,7 @@ def test_expired_digest_nonce_is_answered_with_stale_and_a_fresh_nonce() -> None
             url = server.base_url + "/rw/panel/ctrlstate?json=1"
             async with http.get(url) as resp:
                 state = _DigestState(parse_auth_params(resp.headers["WWW-Authenticate"][7:]))
-            await asyncio.sleep(0.1)
+            await asyncio.sleep(0.1)  # stays: the nonce's 0.05 s lifetime running out is the case
             header = state.header("GET", "/rw/panel/ctrlstate?json=1", "Default User", "robotics")
             async with http.get(url, headers={"Authorization": header}) as resp:
                 assert resp.status == 401
@@ -607,7 +632,7 @@ def test_idle_session_expires_and_the_client_logs_in_again() -> None:
         async with cell("rws1") as (_, server, client):
             server.session_idle_s = 0.1
             await client.get_ctrl_state()
-            await asyncio.sleep(0.2)
+            await asyncio.sleep(0.2)  # stays: the session's 0.1 s idle time running out is the case
             await client.get_ctrl_state()
             assert client.logins == 2 and len(server.sessions) == 1
 

@@ -33,7 +33,7 @@ from drivers.abb_egm.sim.egm import (
 )
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.runtime import precise_event_loop
-from tests.support.waits import wait_until
+from tests.support.waits import wait_count, wait_until
 
 CYCLE_S = 0.004032
 Q_START = np.array([0.0, 10.0, -10.0, 0.0, 30.0, 0.0])
@@ -125,9 +125,12 @@ def test_pure_velocity_control_keeps_moving_at_the_last_speed_ref_while_the_sens
         sim, ep = await start_pair(cfg_kwargs={"pos_corr_gain": 0.0, "comm_timeout_s": 0.5})
         speed = np.array([10.0, 0.0, 0.0, 0.0, 0.0, 0.0])
         ep.command_joints(Q_START, speed_deg_s=speed)
-        await asyncio.sleep(0.15)
+        await wait_until(
+            lambda: sim.q_deg[0] - Q_START[0] > 1.0, 0.15, "the arm moving at the speed reference"
+        )
         sim.set_faults(rx_loss_fraction=1.0)
-        await asyncio.sleep(0.2)
+        # 0.2 s of silence on the controller's own clock (50 cycles), shorter than the comm timeout
+        await wait_count(lambda: sim.stats.cycles, 50, 0.2, "controller cycles with the sensor silent")
         # still moving at 10 deg/s although no reference arrives (abb_libegm #64)
         t, q = sim.trajectory.arrays()
         silent = t > t[-1] - 0.15
@@ -160,8 +163,8 @@ def test_communication_timeout_ends_the_session_with_event_41822_in_the_model():
         assert model.get_num(model.task, model.module, "egm_status") == -41822
         await wait_until(lambda: ep.latest.mci_state is MciState.STOPPED, 0.5)
         assert not ep.ok_to_command
-        # no new session starts by itself
-        await asyncio.sleep(0.05)
+        # no new session starts by itself: 12 controller cycles in which nothing must happen
+        await wait_count(lambda: sim.stats.cycles, 12, 0.05, "controller cycles after the timeout")
         assert not sim.session_running and sim.stats.sessions == 1
         await stop_pair(sim, ep)
 
@@ -179,7 +182,9 @@ def test_a_stall_of_the_simulator_itself_is_not_taken_for_a_silent_sensor():
         overruns = sim.stats.overruns
         # the simulator's loop (and the endpoint's) held
         asyncio.get_running_loop().call_soon(time.sleep, 0.6)
-        await asyncio.sleep(0.2)
+        await wait_until(
+            lambda: sim.stats.overruns > overruns, 0.6, "the simulator's first cycle after the stall"
+        )
         assert sim.stats.overruns - overruns > 100  # it did stall
         assert sim.session_running and not sim.ended_sessions
         await wait_until(lambda: ep.ok_to_command, 0.5)
@@ -285,7 +290,8 @@ def test_joint_speed_is_clamped_to_the_axis_rating():
     async def main():
         sim, ep = await start_pair(cfg_kwargs={"max_speed_deviation_deg_s": 5000.0})
         ep.command_joints(Q_START + np.array([150.0, 0, 0, 0, 0, 0]))  # k e = 750 deg/s asked
-        await asyncio.sleep(0.3)
+        # 20 deg on the way: long past the 20 Hz low-pass's rise, at whatever speed the clamp leaves
+        await wait_until(lambda: sim.q_deg[0] - Q_START[0] > 20.0, 0.3, "axis 1 moved 20 deg")
         t, q = sim.trajectory.arrays()
         speed = np.abs(np.diff(q[:, 0]) / np.diff(t))
         assert speed.max() <= 175.0 * 1.0001
@@ -304,11 +310,12 @@ def test_motors_off_stops_the_arm_and_is_reported_in_the_motor_state():
         model.start_rapid()
         sim, ep = await start_pair(sim_kwargs={"model": model})
         ep.command_joints(Q_START + np.array([30.0, 0, 0, 0, 0, 0]))
-        await asyncio.sleep(0.2)
+        await wait_until(lambda: sim.q_deg[0] - Q_START[0] > 2.0, 0.2, "the arm moving toward the target")
         model.emergency_stop()
         await wait_until(lambda: ep.latest.motor_state is MotorState.OFF, 0.5)
         q_stop = sim.q_deg
-        await asyncio.sleep(0.1)
+        # 25 controller cycles in which the arm must not move (time passing so that nothing happens)
+        await wait_count(lambda: sim.stats.cycles, 25, 0.1, "controller cycles after the stop")
         np.testing.assert_array_equal(sim.q_deg, q_stop)  # a hard stop: not one more step
         assert not ep.ok_to_command and not sim.session_running
         await stop_pair(sim, ep)
@@ -318,11 +325,14 @@ def test_motors_off_stops_the_arm_and_is_reported_in_the_motor_state():
 
 def _settle_counts(sim, ep):
     async def inner():
-        # stop the faults, let every gap close, then freeze the traffic so both counters stand still
+        # stop the faults, let every gap close (a running burst ends, the held-back packet goes out
+        # with the next), then freeze the traffic and let the endpoint read what is in flight
         sim.set_faults(loss_fraction=0.0, burst_ms=0.0, duplicate_fraction=0.0, reorder_fraction=0.0)
-        await asyncio.sleep(0.05)
+        await wait_count(lambda: sim.stats.sent, 5, 0.05, "clean packets sent after the faults stopped")
         sim.set_faults(stop_sending=True)
-        await asyncio.sleep(0.02)
+        await wait_until(
+            lambda: ep.stats.received == sim.stats.sent, 0.02, "the endpoint reading every packet sent"
+        )
 
     return inner()
 
@@ -330,9 +340,9 @@ def _settle_counts(sim, ep):
 def test_statistics_match_injected_loss_duplicates_and_reordering():
     async def main():
         sim, ep = await start_pair()
-        await asyncio.sleep(0.05)
+        await wait_count(lambda: sim.stats.sent, 10, 0.05, "clean packets before the faults")
         sim.set_faults(loss_fraction=0.05, duplicate_fraction=0.05, reorder_fraction=0.05)
-        await asyncio.sleep(1.0)
+        await wait_count(lambda: sim.stats.sent, 250, 1.0, "packets sent under the faults")
         await _settle_counts(sim, ep)
         assert sim.stats.dropped > 0 and sim.stats.duplicated > 0 and sim.stats.reordered > 0
         assert ep.stats.duplicated == sim.stats.duplicated
@@ -350,7 +360,9 @@ def test_burst_loss_drops_consecutive_packets_and_the_endpoint_counts_them():
         sim, ep = await start_pair()
         sent0, dropped0 = sim.stats.sent, sim.stats.dropped
         sim.set_faults(loss_fraction=0.2, burst_ms=20.0)
-        await asyncio.sleep(1.0)
+        await wait_count(
+            lambda: sim.stats.sent + sim.stats.dropped, 250, 1.0, "packets sent or lost in bursts"
+        )
         await _settle_counts(sim, ep)
         assert sim.stats.dropped >= 5  # each loss lasts about five cycles
         assert ep.stats.lost == sim.stats.dropped
@@ -368,7 +380,8 @@ def test_injected_delay_shows_in_every_reply_latency():
     async def main():
         sim, ep = await start_pair()
         sim.set_faults(delay_ms=5.0)
-        await asyncio.sleep(0.1)
+        # the replies to packets sent before the delay have come back
+        await wait_count(lambda: sim.stats.sent, 25, 0.1, "packets sent with the delay")
         sim.reset_reply_latency()
         await wait_until(lambda: sim.reply_latency()[0].size > 50, 0.4)
         latency_us, _ = sim.reply_latency()
@@ -386,7 +399,7 @@ def test_injected_jitter_spreads_transit_times_and_reorders_packets():
     async def main():
         sim, ep = await start_pair()
         sim.set_faults(jitter_ms=20.0)
-        await asyncio.sleep(0.6)
+        await wait_count(lambda: sim.stats.sent, 150, 0.6, "packets sent with jitter")
         a = ep.history.arrays()
         recent = a.t_ctrl_us > a.t_ctrl_us[-1] - 400_000
         # host receive time minus controller send time: a constant offset plus the transit time
@@ -404,10 +417,10 @@ def test_corrupted_packets_are_survived_and_the_session_keeps_running():
     async def main():
         sim, ep = await start_pair()
         sim.set_faults(corrupt_fraction=0.3)
-        await asyncio.sleep(0.5)
+        await wait_count(lambda: sim.stats.sent, 125, 0.5, "packets sent with corruption")
         sim.set_faults(corrupt_fraction=0.0)
         replies_before = ep.stats.replies_sent
-        await asyncio.sleep(0.1)
+        await wait_until(lambda: ep.stats.replies_sent > replies_before, 0.1, "a reply after the corruption")
         assert sim.stats.corrupted > 20
         assert ep.stats.malformed > 0  # some flips still decode: a double with other bits is valid
         assert ep.stats.replies_sent > replies_before  # the endpoint still answers
@@ -417,7 +430,7 @@ def test_corrupted_packets_are_survived_and_the_session_keeps_running():
         for junk in (b"\x00", b"\xff" * 50, b"\x0a\x02\x18\x02"):
             s.sendto(junk, sim.local_address)
         s.close()
-        await asyncio.sleep(0.05)
+        await wait_until(lambda: sim.stats.sensor_malformed >= 3, 0.05, "the three junk datagrams read")
         assert sim.stats.sensor_malformed == 3
         assert sim.session_running
         await stop_pair(sim, ep)
@@ -479,7 +492,7 @@ def test_trajectory_is_stamped_on_the_injected_true_clock_one_sample_per_cycle()
             return _time.monotonic() + offset
 
         sim, ep = await start_pair(sim_kwargs={"clock": clock})
-        await asyncio.sleep(0.2)
+        await wait_until(lambda: len(sim.trajectory) > 50, 0.2, "50 trajectory samples")
         t, _q = sim.trajectory.arrays()
         now = clock()
         assert now - 0.05 < t[-1] <= now + CYCLE_S  # the end of the running cycle is known

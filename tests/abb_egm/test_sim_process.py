@@ -177,7 +177,7 @@ def test_sim_process_fault_channel_sets_egm_faults_over_tcp_and_refuses_bad_requ
             stopped = await ask(json.dumps({"egm": {"stop_sending": True}}).encode())
             assert stopped["ok"] and stopped["egm"]["stop_sending"] is True
             assert stopped["egm"]["loss_fraction"] == 0.0  # the refused request changed nothing
-            await asyncio.sleep(0.1)  # what was in flight
+            await asyncio.sleep(0.1)  # stays: what was in flight lands before nothing more may come
             with pytest.raises(TimeoutError):
                 await ep.wait_for_feedback(0.5)
             assert (await ask(json.dumps({"egm": {"stop_sending": False}}).encode()))["ok"]

@@ -129,7 +129,7 @@ for kind, payload in run.events:
     if durable > flushed:  # these profiles are fsync'ed: they must survive the kill
         flushed = durable
         print(f"flushed {flushed}", flush=True)
-    time.sleep(0.002)
+    time.sleep(0.002)  # stays: pacing the writer the test kills mid-stream
 print("done", flush=True)
 """
 

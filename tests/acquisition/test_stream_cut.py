@@ -11,6 +11,7 @@ from cellctl.acquisition.assembly import AssembledBatch, AssembledScan
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, pass_end_cut
 from cellctl.api.cloud_codec import concat_encoded, decode_cloud
 from cellctl.daemon.stream import ScanStream, _split
+from tests.support.waits import wait_until
 
 W = 40  # points per profile
 
@@ -67,8 +68,10 @@ class _Acq:
 
     def __init__(self) -> None:
         self.batches: list[AssembledBatch] = []
+        self.asked: list[int] = []  # the positions a reader asked from: what it has taken
 
     def batches_since(self, k: int) -> list[AssembledBatch]:
+        self.asked.append(k)
         return self.batches[k:]
 
 
@@ -113,8 +116,8 @@ def test_the_chunks_concatenated_are_the_whole_cloud_byte_for_byte(seed: int) ->
         stream.follow(acq, None)
         for b in batches:  # the scan goes on: batches arrive, the stream cuts behind them
             acq.batches.append(b)
-            await asyncio.sleep(0.005)
-        await asyncio.sleep(0.05)
+            await asyncio.sleep(0.005)  # stays: pacing, batches arrive as a scan's do
+        await wait_until(lambda: len(disp.chunks) >= 4, 0.05, "the four passes cut behind the scan")
         await stream.finish()
         assert stream.finished and stream.points == sum(c[2] for c in disp.chunks)
         # the chunks for cloud.bin stay with the stream: the job may be reported and forgotten
@@ -146,7 +149,7 @@ def test_a_stream_abandoned_before_the_end_gives_the_job_up() -> None:
                             first_edge_pass=None, meta={}, poll_s=0.01)  # fmt: skip
         stream.follow(acq, None)
         acq.batches.extend(_scan_batches()[:3])
-        await asyncio.sleep(0.05)
+        await wait_until(lambda: 3 in acq.asked, 0.05, "the stream taking the three batches")
         await stream.abandon("aborted")
         await stream.abandon("again")  # once only
         return disp

@@ -27,7 +27,7 @@ def test_a_window_is_in_a_stall_exactly_when_they_overlap(windows, stalls):
 def test_the_probes_wake_every_period_and_report_each_cpu():
     procs = start_probes([0], period_us=1000)
     try:
-        time.sleep(1.0)
+        time.sleep(1.0)  # stays: the probes measure for a second (a measurement's duration)
     finally:
         result = stop_probes(procs)
     (cpu,) = result["per_cpu"]

@@ -65,7 +65,7 @@ def test_context_is_bound_per_asyncio_task() -> None:
 
     async def job(job_id: str) -> None:
         bind_context(job_id=job_id)
-        await asyncio.sleep(0.01)
+        await asyncio.sleep(0.01)  # stays: the two jobs interleave across an await (the point)
         get_logger("t").info("job.step")
 
     async def main() -> None:

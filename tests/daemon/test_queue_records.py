@@ -58,7 +58,7 @@ class _ScriptedFollower(StatusFollower):
 
     async def next(self, timeout_s: float) -> None:
         if not self.statuses:
-            await asyncio.sleep(0.01)
+            await asyncio.sleep(0.01)  # stays: the fake follower's wait for a status that never comes
             return
         self.feed(self.statuses.pop(0))
 

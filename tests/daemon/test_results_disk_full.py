@@ -14,7 +14,6 @@ import contextlib
 import json
 import os
 import subprocess
-import time
 
 import pytest
 
@@ -23,6 +22,7 @@ from cellctl.config import CellConfig, CellSection, DaemonSection
 from cellctl.daemon.handover import Handover
 from cellctl.daemon.jobs import JobRecord
 from cellctl.daemon.service import CellDaemon
+from tests.support.waits import wait_until
 from tests.zenoh.zworker_fns import minimal_report
 
 JOB = "20260101T000000-aaaa0043"
@@ -51,13 +51,6 @@ def fill(path) -> None:
         pass
     finally:
         os.close(fd)
-
-
-async def until(pred, timeout_s: float) -> None:
-    t_end = time.monotonic() + timeout_s
-    while not pred():
-        assert time.monotonic() < t_end, f"not within {timeout_s} s"
-        await asyncio.sleep(0.05)
 
 
 class _Dispatcher:
@@ -117,7 +110,9 @@ def test_a_disk_full_while_results_are_stored_keeps_the_verdict_and_writes_them_
             during = (sorted(p.name for p in (jd / "results").glob("*")) if (jd / "results").exists() else [],
                       d.handover.unstored, d._current.record.state, dict(d._current.record.info))  # fmt: skip
             filler.unlink()  # room again
-            await until(lambda: not d.handover.unstored and not len(d._unsaved), 20)
+            await wait_until(
+                lambda: not d.handover.unstored and not len(d._unsaved), 2.0, "every result stored"
+            )
             return during
 
         during = asyncio.run(main())

@@ -43,7 +43,7 @@ def test_pause_resume_then_sigterm_mid_scan_interrupts_the_job_and_a_restart_rea
                 assert paused.job_id == acc.job_id
                 st = await wait_status(follower, lambda s: s.state.value == "paused", timeout_s=20.0)
                 held = st.job.fraction
-                await asyncio.sleep(1.0)
+                await asyncio.sleep(1.0)  # stays: time passing in which a paused job must not move
                 assert follower.latest.state.value == "paused"
                 assert abs(follower.latest.job.fraction - held) < 0.01
                 await call(session, keys.control("resume"), b"", ControlReply)

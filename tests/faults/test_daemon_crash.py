@@ -126,7 +126,7 @@ def test_daemon_kill9_mid_scan_robot_holds_raw_data_intact_and_restart_reanalyse
                 seen["comm_timeout_after_s"] = time.monotonic() - t_kill
                 seen["elog_codes"] = [e.code for e in log[:10]]
                 q0 = await rws.get_joint_position()
-                await asyncio.sleep(2.0)
+                await asyncio.sleep(2.0)  # stays: time passing in which the arm must hold
                 q1 = await rws.get_joint_position()
                 seen["hold_deg"] = float(np.max(np.abs(q1 - q0)))
                 seen["exec_state"] = str(await rws.get_execution_state())

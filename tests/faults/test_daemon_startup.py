@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import time
 from pathlib import Path
 
 import pytest
 
 from cellctl.api.session import ApiCallError
 from tests.support.faultcell import FaultCell
+from tests.support.waits import wait_until_sync
 
 pytestmark = pytest.mark.e2e
 
@@ -38,14 +38,6 @@ def _plant(jobs: Path, job_id: str, record: dict | str, raw: bool = True) -> Pat
     return d
 
 
-def _wait(pred, timeout_s: float, what: str) -> None:
-    t_end = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > t_end:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.2)
-
-
 @pytest.mark.timeout(300)
 def test_bad_records_are_quarantined_and_a_second_daemon_exits_at_once_changing_nothing(tmp_path):
     cell = FaultCell.create(tmp_path, start=False)
@@ -57,7 +49,7 @@ def test_bad_records_are_quarantined_and_a_second_daemon_exits_at_once_changing_
     good = _plant(jobs, "20260101T000004-good", _record("20260101T000004-good"))
     try:
         cell.start(sim=False, run=True, worker=False)
-        _wait(lambda: cell.log_events("run", "daemon_ready"), 120, "the daemon ready")
+        wait_until_sync(lambda: cell.log_events("run", "daemon_ready"), 12.0, "the daemon ready", poll_s=0.2)
         assert cell.proc("run").poll() is None, "the daemon must not die on a bad record"
         for d, why in ((newer, "reanalysing"), (nohist, "history"), (garbage, "")):
             rec = json.loads((d / "job.json").read_text())

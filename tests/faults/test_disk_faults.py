@@ -175,7 +175,7 @@ def test_data_dir_too_small_or_read_only_faults_before_motion_and_full_mid_scan_
                         st = await wait_status(follower, lambda s: s.state.value != "scanning", 30.0)
                         seen["full_state"] = (st.state.value, st.message)
                         q1 = await rws.get_joint_position()
-                        await asyncio.sleep(1.5)
+                        await asyncio.sleep(1.5)  # stays: time passing in which the arm must hold
                         seen["hold_after_full_deg"] = float(
                             np.max(np.abs(await rws.get_joint_position() - q1))
                         )

@@ -68,7 +68,7 @@ def test_worker_killed_mid_analysis_the_restarted_worker_completes_the_job_once(
                 seen["killed"] = kill9_tree(first.pid)
                 seen["analysis_children"] = [p for p in seen["killed"] if p != first.pid]
                 st = await wait_status(follower, lambda s: not s.workers, 30.0)
-                await asyncio.sleep(1.0)
+                await asyncio.sleep(1.0)  # stays: time passing with no worker, in which nothing may start
                 st = follower.latest
                 seen["while_no_worker"] = (st.state.value, st.job.state.value if st.job else None)
                 # restart the worker: it takes the queued job

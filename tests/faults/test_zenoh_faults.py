@@ -87,7 +87,7 @@ def test_link_cut_during_scan_and_analysis_the_job_is_analysed_once_after_the_li
                     follower, lambda s: s.job is not None and s.job.state.value in ("waiting_for_worker", "analysing")
                     and s.state.value == "idle", 120.0,
                 )  # fmt: skip
-                await asyncio.sleep(2.0)
+                await asyncio.sleep(2.0)  # stays: time passing in which no job may go out
                 st = follower.latest
                 seen["while_cut"] = (st.state.value, st.job.state.value, list(st.workers))
                 assert assigned() == n_assigned, "no worker is reachable"
@@ -100,10 +100,10 @@ def test_link_cut_during_scan_and_analysis_the_job_is_analysed_once_after_the_li
                 await wait_until(lambda: assigned() > n_assigned, 30.0, what="job assigned")
 
                 # --- cut 2, just after the cloud went to the worker: that attempt is lost
-                await asyncio.sleep(0.3)
+                await asyncio.sleep(0.3)  # stays: the cloud in flight to the worker (no event marks it)
                 fwd.cut()
                 await wait_status(follower, lambda s: not s.workers, 30.0)
-                await asyncio.sleep(3.0)
+                await asyncio.sleep(3.0)  # stays: the fault, the link cut for 3 s
                 fwd.restore()
 
                 # the job's end from its record: the attempt after the first cut may have finished

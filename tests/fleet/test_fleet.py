@@ -133,7 +133,7 @@ def test_the_router_killed_mid_analysis_and_restarted_the_job_completes(fleet):
     job = fleet_cells.trigger(fleet, 1, "PR")
     fleet_cells.wait_jobs(fleet, {job: 1}, lambda r: _analysing(r, job), 300, poll_s=0.05)
     fleet.kill("router")
-    time.sleep(3.0)
+    time.sleep(3.0)  # stays: the fault, the router down for 3 s
     fleet.restart("router")
     fleet.wait_ready("router", 60)
     recs = fleet_cells.wait_jobs(fleet, {job: 1}, lambda r: r[job]["state"] in fleet_cells.FINAL, 300)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from analysis.results import LineSeries, ResultsArrays
 from cellctl.api import ControlReply, TriggerAccepted
 from tests.support.hmi_server import USERS, LocalHmi
 from tests.support.reports import report_json
+from tests.support.waits import wait_until_sync
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(180)]  # Chromium is a process of its own
 
@@ -141,13 +141,6 @@ def page(browser, hmi):
     assert not [e for e in errors if not any(c in e for c in expected)], errors
 
 
-def _until(pred, timeout_s: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        assert time.monotonic() < deadline, "condition not met"
-        time.sleep(0.02)
-
-
 def login(page, hmi: LocalHmi, user: str, hash_: str = "#cell") -> None:
     page.goto(hmi.url + "/" + hash_)
     page.fill("#login-user", user)
@@ -223,7 +216,7 @@ def test_abort_asks_once_and_sends_one_abort_for_the_job_on_screen(page, hmi) ->
         ControlReply(action="pause", job_id=j["job_id"], state="paused", job_state="paused")
     )
     page.click("#btn-pause")
-    _until(lambda: not hmi.link.replies)  # the pause reached the cell and was answered
+    wait_until_sync(lambda: not hmi.link.replies, 2.0, "the pause answered")  # it reached the cell
     assert [a for a, _ in hmi.link.sent] == ["abort", "pause"]
     assert page.is_hidden("#confirm")
 

@@ -17,6 +17,7 @@ import pytest
 from cellctl.hmi import auth as auth_mod
 from cellctl.hmi.auth import LoginLimiter
 from tests.support.hmi_server import USERS, LocalHmi
+from tests.support.waits import wait_until
 
 ATTACKER, PANEL, OTHER = "127.0.0.1", "127.0.0.2", "127.0.0.3"
 
@@ -75,9 +76,11 @@ def test_the_crew_logs_in_from_its_panel_while_an_attacker_guesses_its_password(
     wrong = {"user": "olga", "password": "guess"}
     right = {"user": "olga", "password": USERS["olga"][1]}
 
+    checked = _count_checks(hmi)
+
     async def attack_and_log_in() -> tuple[list[int], list[int]]:
         attack = asyncio.ensure_future(_logins(hmi.url, [wrong] * 40, source=ATTACKER))
-        await asyncio.sleep(0.05)
+        await wait_until(lambda: checked, 0.05, "the attack under way (a password checked)")
         crew = await _logins(hmi.url, [right], source=PANEL)
         return await attack, crew
 

@@ -26,6 +26,7 @@ from drivers.laser.sim.scene import plane_scene
 from drivers.laser.sim.sensor import LaserSimulator, SimConfig, fixed_pose
 from drivers.laser.source import ProfileBatch, SourceEventKind
 from drivers.sim.fault_channel import send_fault_request
+from tests.support.waits import wait_until
 
 # A long backlog: on a loaded CI machine the simulator may fall behind real time for a moment; it must
 # then deliver late rather than skip frames (skipping is tested separately, with a short backlog).
@@ -182,7 +183,15 @@ def test_buffer_overflow_is_counted_and_reported_not_silent() -> None:
         cfg = HD8ClientConfig(buffer_profiles=30)
         async with sim_and_client(config=FAST, client_config=cfg) as (_sim, client):
             await client.start()
-            await asyncio.sleep(0.3)  # nobody reads
+            # nobody reads: the sensor streams on until the buffer has overflowed
+            await wait_until(
+                lambda: (
+                    client.stats.overflow_frames > 0
+                    and client.stats.frames + client.stats.overflow_frames > 100
+                ),
+                0.3,
+                "100 frames streamed and the buffer overflowed",
+            )
             st = client.stats
             assert st.overflow_batches > 0 and st.overflow_frames > 0
             assert st.frames + st.overflow_frames > 100
@@ -436,14 +445,15 @@ def test_close_ends_a_running_iteration() -> None:
         async with sim_and_client(config=FAST) as (_sim, client):
             await client.start()
 
+            got: list[int] = []
+
             async def consume() -> int:
-                n = 0
                 async for b in client:
-                    n += len(b)
-                return n
+                    got.append(len(b))
+                return sum(got)
 
             task = asyncio.create_task(consume())
-            await asyncio.sleep(0.1)
+            await wait_until(lambda: got, 0.1, "the iteration under way")
             await client.close()
             assert await asyncio.wait_for(task, 2.0) > 0
 
@@ -509,7 +519,7 @@ def test_client_delivers_strictly_increasing_frames_whatever_the_sensor_repeats_
         await client.close()
         for s in (ctl, dat):
             s.close()
-        await asyncio.sleep(0.01)
+        await asyncio.sleep(0.01)  # stays: cleanup, the closed servers' handlers end before the loop
 
     run(scenario())
 
@@ -613,7 +623,7 @@ def test_external_trigger_mode_gives_one_frame_per_edge_exposed_at_the_edge() ->
                 await client.configure(trigger_mode=P.TriggerMode.ENCODER)
             await client.configure(trigger_mode=P.TriggerMode.EXTERNAL)
             await client.start()
-            await asyncio.sleep(0.05)
+            await asyncio.sleep(0.05)  # stays: time passing in which nothing must happen
             assert client.stats.frames == 0  # no edge, no frame
             edges = []
             for _ in range(12):
@@ -621,7 +631,7 @@ def test_external_trigger_mode_gives_one_frame_per_edge_exposed_at_the_edge() ->
                 assert sim.trigger(t)
                 assert not sim.trigger(t + 1e-4)  # too soon after the last edge: ignored
                 edges.append(t)
-                await asyncio.sleep(0.004)
+                await asyncio.sleep(0.004)  # stays: pacing, edges apart as a trigger's are
             b = ProfileBatch.concat(await collect(client, 12))
             assert len(b) == 12 and (await sensor_stats(sim))["triggers_ignored"] == 12
             truth = sim.sensor_time_us(np.asarray(edges) + FAST.exposure_ns * 0.5e-9)

@@ -32,6 +32,7 @@ from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD
 from drivers.runtime import precise_event_loop
 from drivers.sim.fault_channel import send_fault_request
+from tests.support.waits import wait_until as wait_for_event
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -197,7 +198,15 @@ async def execute(
                     side.cancel()
                     with contextlib.suppress(asyncio.CancelledError):
                         await side
-                await asyncio.sleep(0.3)  # let the arm settle on the last reference
+                # let the arm settle on the last reference: 0.3 s on the controller's clock (75 of
+                # its feedback messages, which a starved simulator's slower cadence stretches); a
+                # controller gone quiet (a stall under test) has nothing more to report
+                n0 = endpoint.stats.received
+                await wait_for_event(
+                    lambda: endpoint.stats.received - n0 >= 75 or endpoint.quiet,
+                    0.3,
+                    "75 EGM feedback messages while the arm settles, or the controller quiet",
+                )
             fb = endpoint.history.arrays()
     finally:
         await endpoint.close()

@@ -26,6 +26,7 @@ from tests.motion.conftest import (
     wait_for_segment,
     wait_for_state,
 )
+from tests.support.waits import wait_until
 
 pytestmark = pytest.mark.process  # the controller simulator is a process of its own
 
@@ -111,7 +112,7 @@ def test_pause_then_resume_continues_the_pass_it_paused_in_with_jerk_limited_sto
         await wait_for_state(executor, "paused")
         seen["paused"] = executor.progress()
         seen["q_paused"] = controller.q_deg
-        await asyncio.sleep(0.5)
+        await asyncio.sleep(0.5)  # stays: time passing in which the arm must hold still
         seen["q_after_wait"] = controller.q_deg
         executor.resume()
         await wait_for_state(executor, "running")
@@ -145,11 +146,12 @@ def test_pause_during_the_move_to_the_start_holds_in_joint_space_and_resume_cont
 
     async def control(executor: MotionExecutor, controller: Controller) -> None:
         await wait_for_state(executor, "moving_to_start")
-        await asyncio.sleep(0.3)  # under way
+        q_from = controller.q_deg
+        await wait_until(lambda: np.abs(controller.q_deg - q_from).max() > 1.0, 0.3, "the approach under way")
         executor.pause()
         await wait_for_state(executor, "paused")
         seen["q_paused"] = controller.q_deg
-        await asyncio.sleep(0.5)
+        await asyncio.sleep(0.5)  # stays: time passing in which the arm must hold still
         seen["q_after_wait"] = controller.q_deg
         seen["t_traj_paused"] = executor.progress().t_traj_s
         executor.resume()

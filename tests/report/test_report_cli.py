@@ -6,7 +6,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -15,6 +14,7 @@ from analysis.templates import DetectionLayout
 from cellctl.commands import report_cmd
 from tests.support.reports import report_dict
 from tests.support.results_fixture import write_synthetic_results
+from tests.support.waits import wait_until_sync
 
 TINY = DetectionLayout(transverse_offsets_mm=(900.0,), longitudinal_offsets_mm=(), diagonals=False)
 
@@ -49,9 +49,9 @@ def test_report_regenerates_a_job_found_under_the_configured_data_dir_and_opens_
     assert res.stdout.splitlines() == [str(job_dir / n) for n in ("report.csv", "report.html", "report.pdf")]
     html = (job_dir / "report.html").read_text(encoding="utf-8")
     assert "T1" in html and "FAIL" in html  # the line through the 3.6 mm dent fails the 3 mm limit
-    deadline = time.monotonic() + 10.0  # the opener runs detached
-    while not opened.exists() and time.monotonic() < deadline:
-        time.sleep(0.05)
+    wait_until_sync(
+        lambda: opened.exists() and opened.read_text(), 1.0, "the detached opener writing its file"
+    )
     assert opened.read_text() == str(job_dir / "report.html")
 
 

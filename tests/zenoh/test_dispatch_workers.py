@@ -19,6 +19,7 @@ from cellctl.api.cloud_codec import Cloud, encode_cloud
 from cellctl.api.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
 from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe
 from cellctl.config import load_config
+from tests.support.waits import wait_until_sync
 
 pytestmark = pytest.mark.e2e
 # For the cases not about the dispatcher's timeouts: bounds no loaded machine reaches (a worker
@@ -138,10 +139,7 @@ def test_worker_killed_mid_analysis_the_other_completes_the_job(hub, start_worke
     np.testing.assert_allclose(_observed(hub, env.job_id)["centroid_mm"], centroid, atol=1e-3)
     assert retries and retries[0][1] == victim and "disappeared" in retries[0][2]
     # the killed worker's analysis process does not outlive it
-    t_end = time.monotonic() + 5
-    while _pid_alive(child_pid) and time.monotonic() < t_end:
-        time.sleep(0.1)
-    assert not _pid_alive(child_pid)
+    wait_until_sync(lambda: not _pid_alive(child_pid), 0.5, "the killed worker's analysis process gone")
 
 
 def _pid_alive(pid: int) -> bool:
@@ -161,7 +159,7 @@ def test_job_waits_without_workers_and_is_analysed_when_one_starts(hub, start_wo
     async def scenario(disp: Dispatcher):
         payload, centroid = _cloud_bytes("jobW")
         fut = disp.submit(_job(hub, "jobW", "P1"), payload)
-        await asyncio.sleep(1.0)
+        await asyncio.sleep(1.0)  # stays: time passing with no worker, in which nothing must happen
         assert not fut.done() and disp.workers == [] and disp.pending == ["jobW"]
         start_worker("late")
         env = await asyncio.wait_for(fut, 30)
@@ -325,10 +323,11 @@ def test_jobs_flow_with_password_auth_and_access_control_on(hub, start_worker, m
 
 def test_worker_started_before_the_daemon_connects_once_it_listens(hub, start_worker):
     w = start_worker("early")
-    t_end = time.monotonic() + 30
-    while "worker_connect_failed" not in w.log():  # it is up and retrying its connection
-        assert time.monotonic() < t_end and w.proc.poll() is None, w.log()
-        time.sleep(0.1)
+    # it is up and retrying its connection
+    wait_until_sync(
+        lambda: "worker_connect_failed" in w.log() or w.proc.poll() is not None, 3.0, "the worker's retry"
+    )
+    assert w.proc.poll() is None, w.log()
 
     async def scenario(disp: Dispatcher):
         payload, centroid = _cloud_bytes("jobE1")

@@ -23,6 +23,7 @@ from cellctl.api.session import (
     open_session,
     subscribe,
 )
+from tests.support.waits import wait_subscribed, wait_until
 from tests.zenoh.test_dispatch_workers import _job, _observed, _run, _wait_for
 
 pytestmark = pytest.mark.e2e
@@ -54,7 +55,7 @@ def test_a_streamed_job_is_analysed_from_chunks_sent_before_and_after_the_worker
         await _wait_for(lambda: disp._jobs["jobS"].accepted, 30, "accepted")
         for k in (1, 2):
             disp.stream_chunk("jobS", k, chunks[k], 500)
-        await asyncio.sleep(0.3)
+        await asyncio.sleep(0.3)  # stays: pacing, the later chunks come apart from these as a scan's do
         with pytest.raises(ValueError, match="not a pending streamed job"):
             disp.stream_chunk("nojob", 0, chunks[0], 500)
         disp.stream_chunk("jobS", -1, chunks[3], 500)
@@ -89,8 +90,9 @@ def test_the_last_pass_starts_the_analysis_before_the_end_and_a_tail_with_points
         await _wait_for(lambda: disp._jobs[job_id].accepted, 30, "accepted")
         for k in range(4):
             disp.stream_chunk(job_id, k, chunks[k], 500, last_pass=k == 3)
-        # the retract's rows come while the analysis made ahead still runs
-        await asyncio.sleep(0.3)
+        # the retract's rows come while the analysis made ahead still runs (ahead_sleep_s 1 s)
+        started = hub.tmp / job_id / "out" / "ahead_started"
+        await wait_until(started.exists, 0.3, "the worker making the result ahead")
         disp.stream_chunk(job_id, -1, tail, tail_points)
         disp.end_stream(job_id)
         return await asyncio.wait_for(fut, 60)
@@ -171,7 +173,7 @@ async def _fake_daemon(hub, job_id: str, deliver, whole: bytes | None):
             )
         )
         await _wait_for(lambda: alive, 30, "worker token")
-        await asyncio.sleep(0.5)
+        await wait_subscribed(session, keys.worker_job("w1", job_id), 0.5, "the worker's job subscriber")
         spec = JobSpec(attempt=1, job=_job(hub, job_id), stream=True)
         session.put(keys.worker_job("w1", job_id), b"", encoding=ENCODING, attachment=spec.to_json())
         await _wait_for(lambda: any(e.event == "accepted" for e in events), 30, "accepted")
@@ -201,7 +203,7 @@ def test_duplicate_and_out_of_order_chunks_are_put_in_order_and_counted_once(hub
     async def deliver(put_chunk, put_end):
         for seq in (2, 0, 0, 3, 1, 2):
             put_chunk(seq, chunks[seq], 500)
-            await asyncio.sleep(0.05)
+            await asyncio.sleep(0.05)  # stays: pacing, each chunk a put of its own as a scan's passes
         put_end(4, 2000)
 
     env, served, _ = asyncio.run(_fake_daemon(hub, "jobO", deliver, None))
@@ -279,7 +281,7 @@ def test_a_daemon_gone_mid_stream_frees_the_worker_for_its_restart_to_reanalyse_
                 ),
             ]
             await _wait_for(lambda: alive, 30, "worker token")
-            await asyncio.sleep(0.5)
+            await wait_subscribed(session, keys.worker_job("w1", "jobK"), 0.5, "the worker's job subscriber")
             # the killed daemon's offer, named as every daemon names its offers
             spec = JobSpec(attempt=1, job=_job(hub, "jobK"), stream=True, offer_id=secrets.token_hex(8))
             session.put(keys.worker_job("w1", "jobK"), b"", encoding=ENCODING, attachment=spec.to_json())
@@ -287,7 +289,7 @@ def test_a_daemon_gone_mid_stream_frees_the_worker_for_its_restart_to_reanalyse_
             head = StreamChunk(job_id="jobK", attempt=1, seq=0, pass_index=0, points=500,
                                sha256=hashlib.sha256(chunks[0]).hexdigest())  # fmt: skip
             session.put(keys.worker_stream("w1", "jobK", 1, 0), bytes(chunks[0]), attachment=head.to_json())
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.5)  # stays: the chunk reaches the worker (nothing acknowledges a chunk)
             del token, subs  # the session ends below with no cancel and no end: as a kill -9 leaves it
         finally:
             close_session(session)

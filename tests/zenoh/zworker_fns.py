@@ -60,10 +60,10 @@ def centroid_after_sleep(cloud: ScanCloud, job: AnalysisJob) -> Report:
     if record:
         with Path(record).open("a") as f:
             f.write(f"start {job.job_id} {os.getpid()}\n")
-    time.sleep(float(todo.get("sleep_s", 0.0)))
+    time.sleep(float(todo.get("sleep_s", 0.0)))  # stays: the analysis's duration is what a test sets
     gate = todo.get("gate_path")  # held until the test opens the gate (writes the file)
     while gate and not Path(gate).exists():
-        time.sleep(0.02)
+        time.sleep(0.02)  # stays: the poll of a wait on the gate file (an event), in the worker's child
     xyz = cloud.xyz_mm
     passes = np.unique(cloud.pass_id).tolist() if cloud.organised else []
     observe(job, job_id=job.job_id, n_points=xyz.shape[0], centroid_mm=xyz.mean(axis=0).tolist(),
@@ -139,7 +139,12 @@ class _CentroidStream:
 
     def ahead(self) -> None:
         self.ahead_points = self.points
-        time.sleep(float(behaviour(self.job).get("ahead_sleep_s", 0.0)))
+        if self.job.out_dir:  # the test waits on this file: the early result is being made
+            Path(self.job.out_dir).mkdir(parents=True, exist_ok=True)
+            (Path(self.job.out_dir) / "ahead_started").write_text(str(self.ahead_points))
+        time.sleep(
+            float(behaviour(self.job).get("ahead_sleep_s", 0.0))
+        )  # stays: a slow early result, set by the test
         self.kept = self._result(made="ahead")
 
     def finish(self) -> Report:
@@ -167,7 +172,7 @@ class _HeldCloudStream(CloudStream):
         return None
 
     def finish(self) -> dict[str, Any]:
-        time.sleep(HOLD_S)
+        time.sleep(HOLD_S)  # stays: the hold is the point (a worker mid-analysis when it is killed)
         return super().finish()
 
 
@@ -175,7 +180,7 @@ def product_analysis_held(cloud: ScanCloud, job: AnalysisJob) -> dict[str, Any]:
     """The product's analysis (:func:`analysis.pipeline.analyse_job`) after :data:`HOLD_S`: a worker
     that is surely mid-analysis when a test kills it (the real analysis of the fault cell's small
     plate takes well under a second, from the last pass)."""
-    time.sleep(HOLD_S)
+    time.sleep(HOLD_S)  # stays: the hold is the point
     return analyse_job(cloud, job)
 
 
