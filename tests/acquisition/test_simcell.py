@@ -24,7 +24,7 @@ from cellctl.acquisition.reassemble import reassemble
 from cellctl.calibration.time_offset import calibrate_time_offset
 from cellctl.simcell.truth import plate_truth
 from drivers.runtime import precise_event_loop
-from tests.support.simcell import SimCell, SimCellConfig, joint_path, raster_poses
+from tests.support.simcell import SimCell, SimCellConfig, SimulatorStarved, joint_path, raster_poses
 
 pytestmark = pytest.mark.slow
 
@@ -52,7 +52,10 @@ def scan(tmp_path_factory):
 
 
 def _errors(truth, cell, cloud):
-    ok = cell.truth_reliable(cloud.frame_index)
+    try:
+        ok = cell.truth_reliable(cloud.frame_index)
+    except SimulatorStarved as e:  # counted by .ci/run, bounded per module
+        pytest.skip(f"fallback: simulators starved ({e})")
     keep = cloud.valid & ok[:, None]
     d, inside = truth.distance_mm(cloud.xyz_mm[keep].astype(np.float64))
     pass_id = np.broadcast_to(cloud.pass_id[:, None], cloud.valid.shape)[keep]
