@@ -46,6 +46,11 @@ def test_the_budget_holds(n: int, step: int, per: int, budget: int) -> None:
     assert np.all(got % steps == 0) and np.all(got >= steps)
 
 
+def test_a_publication_that_fits_exactly_is_not_thinned_by_rounding() -> None:
+    # hypothesis found it: 10 profiles of 13 points at step 10 keep 13 points, summed as 13.000000000000002
+    assert np.array_equal(budget_steps(np.full(10, 10), np.full(10, 13), 13), np.full(10, 10))
+
+
 def test_config_default_and_no_way_off() -> None:
     assert CellConfig.model_validate({"cell": {"id": "c"}}).scan.publish_max_points == 40_000_000
     # 0 turned the bound off; an unbounded publication can exhaust a worker's memory (issue 43)
