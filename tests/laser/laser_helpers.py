@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Coroutine
+from collections.abc import AsyncIterable, AsyncIterator, Coroutine
 from typing import Any
 
 import numpy as np
@@ -59,15 +59,17 @@ async def sim_and_client(
         await sim.stop()
 
 
-async def collect(client: HD8Client, n_frames: int) -> list[Any]:
-    """Read batches until at least ``n_frames`` profiles arrived."""
+async def collect(client: AsyncIterable[Any], n_frames: int, timeout_s: float | None = None) -> list[Any]:
+    """Read batches (of any ProfileSource) until at least ``n_frames`` profiles arrived, failing past
+    ``timeout_s`` (None: no bound of its own)."""
     out = []
     got = 0
-    async for b in client:
-        out.append(b)
-        got += len(b)
-        if got >= n_frames:
-            break
+    async with asyncio.timeout(timeout_s):
+        async for b in client:
+            out.append(b)
+            got += len(b)
+            if got >= n_frames:
+                break
     return out
 
 

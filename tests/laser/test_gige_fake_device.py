@@ -33,7 +33,7 @@ from tests.laser.gige_helpers import (
     fake_device,
     profiler_xml,
 )
-from tests.laser.laser_helpers import run
+from tests.laser.laser_helpers import collect, run
 
 pytestmark = [pytest.mark.process, pytest.mark.slow]
 
@@ -44,17 +44,6 @@ RAMP_EXPOSURE_NS = 10_000_000
 def _config(**kw) -> GigeSourceConfig:
     base = dict(rows_per_buffer=100, packet_size=8192, watchdog_timeout_s=0.3, lost_after_s=1.0)
     return GigeSourceConfig(**{**base, **kw})
-
-
-async def _collect(src: GigeProfileSource, n: int, timeout_s: float = 10.0) -> list:
-    out, got = [], 0
-    async with asyncio.timeout(timeout_s):
-        async for b in src:
-            out.append(b)
-            got += len(b)
-            if got >= n:
-                break
-    return out
 
 
 def _raw_codes(z_mm: np.ndarray) -> np.ndarray:
@@ -117,7 +106,7 @@ def test_streamed_range_rows_become_profiles_in_order_with_the_scan3d_scale_and_
         await src.connect()
         await src.configure(rate_hz=10_000.0, exposure_ns=RAMP_EXPOSURE_NS, width=500)
         await src.start()
-        batches = await _collect(src, 2000)
+        batches = await collect(src, 2000, timeout_s=10)
         await src.close()
         return batches, src.stats
 
@@ -180,7 +169,7 @@ def test_lost_packets_tear_buffers_that_are_counted_never_delivered_and_show_as_
         await src.connect()
         await src.configure(rate_hz=4000.0, exposure_ns=RAMP_EXPOSURE_NS, width=500)
         await src.start()
-        batches = await _collect(src, 3000, timeout_s=20)
+        batches = await collect(src, 3000, timeout_s=20)
         await src.close()
         return batches, src.stats
 
@@ -208,7 +197,7 @@ def test_a_device_that_vanishes_and_returns_delivers_no_duplicate_or_reordered_p
         await src.connect()
         await src.configure(rate_hz=5000.0, exposure_ns=RAMP_EXPOSURE_NS, width=200)
         await src.start()
-        before = await _collect(src, 1000)
+        before = await collect(src, 1000, timeout_s=10)
         await asyncio.to_thread(dev.kill)
         await asyncio.sleep(1.5)  # stays: the fault, a 1.5 s outage (its length is asserted in lines)
         await asyncio.to_thread(dev.start)
@@ -243,11 +232,11 @@ def test_a_stopped_source_starts_again_and_numbers_on(tmp_path):
         await src.stop()  # as the daemon does before configuring: nothing runs yet
         await src.configure(rate_hz=5000.0, exposure_ns=RAMP_EXPOSURE_NS, width=200)
         await src.start()
-        first = await _collect(src, 500)
+        first = await collect(src, 500, timeout_s=10)
         await src.stop()
         await asyncio.sleep(0.3)  # stays: the source stopped a while, as between two jobs
         await src.start()
-        second = await _collect(src, 500)
+        second = await collect(src, 500, timeout_s=10)
         await src.close()
         return first, second
 
