@@ -1,5 +1,5 @@
 """A successful GVSP packet resend: Aravis's client (the GigE source) and Aravis's fake device, with a
-relay in between that drops payload packets and answers PACKETRESEND (tests/support/gvsp_relay.py).
+relay in between that drops payload packets and answers PACKETRESEND (tests/laser/gvsp_relay.py).
 
 Aravis's fake device answers no PACKETRESEND (0.8.26), so against it alone a lost packet always
 tears its buffer (test_gige_fake_device.py). The relay stands on 127.0.0.2 for a device that serves
@@ -21,8 +21,8 @@ import pytest
 
 from drivers.laser.gige import GigeProfileSource, GigeSourceConfig
 from tests.laser.gige_helpers import C_OFFSET, C_SCALE, fake_device, profiler_xml
+from tests.laser.gvsp_relay import GvspRelay, parse_gvsp_header, parse_packet_resend
 from tests.laser.laser_helpers import collect, run
-from tests.support.gvsp_relay import GvspRelay, parse_gvsp_header, parse_packet_resend
 
 RAMP_EXPOSURE_NS = 10_000_000  # the fake device's ramp is exact at 10 ms
 ROWS = 100  # rows per buffer: 100 x 500 Mono16 = 13 payload packets of 8 kB, a leader and a trailer

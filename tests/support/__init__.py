@@ -5,8 +5,6 @@
 * ``simcell``: the acquisition against the controller and HD8 simulators in one process;
 * ``e2e_cell``: a simulated cell in real processes (``cellctl sim``, ``run``, ``worker``);
 * ``faultcell``, ``cellfaults``, ``tcp_forwarder``: fault injection on that cell;
-* ``gvsp_relay``: a GigE Vision relay on 127.0.0.2 that drops GVSP packets and answers PACKETRESEND,
-  in front of Aravis's fake device (which answers none);
 * ``results_fixture``: a synthetic results directory for the report.
 * ``skiplog``: the run's log of skips and fallbacks (``record_fallback`` for a retry that goes on).
 
