@@ -3,7 +3,7 @@
 A job (one remote trigger): validate -> plan (in a thread) -> motors on and the EGM program started
 through RWS -> execute the plan over EGM while the HD8 client streams profiles into the acquisition
 (raw files first) -> EGM program ended -> the whole-scan cloud rebuilt from the raw files ->
-published to the analysis workers through the :class:`~cellctl.api.dispatch.Dispatcher` -> the report
+published to the analysis workers through the :class:`~cellctl.daemon.dispatch.Dispatcher` -> the report
 stored with the job. One scan at a time: a trigger while a scan holds the robot waits in a bounded
 queue (``[daemon] queue_max``; full -> ``queue_full``; 0 -> refused with ``busy``) and starts when
 the robot is free; the analysis of a finished scan runs while the next one scans. A fault or an
@@ -54,7 +54,6 @@ from cellctl.api import (
     parse_control,
     read_payload,
 )
-from cellctl.api.dispatch import Dispatcher, DispatchHooks, DispatchSettings
 from cellctl.api.session import (
     ZenohSetupError,
     build_zenoh_config,
@@ -64,6 +63,7 @@ from cellctl.api.session import (
 )
 from cellctl.config import CellConfig, ConfigError
 from cellctl.daemon.audit import AuditLog
+from cellctl.daemon.dispatch import Dispatcher, DispatchHooks, DispatchSettings
 from cellctl.daemon.handover import Handover
 from cellctl.daemon.jobs import (
     ActiveJob,

@@ -29,8 +29,8 @@ from cellctl.acquisition.assembly import AssembledBatch, AssembledScan
 from cellctl.acquisition.pipeline import Acquisition
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, pass_end_cut
 from cellctl.acquisition.rawstore import RawWriter
-from cellctl.api.dispatch import Dispatcher
 from cellctl.api.models import ReportEnvelope
+from cellctl.daemon.dispatch import Dispatcher
 
 __all__ = ["ScanStream"]
 

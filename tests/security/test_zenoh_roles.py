@@ -270,7 +270,7 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
     from analysis.job import AnalysisJob
     from cellctl.api import list_workers
     from cellctl.api.cloud_codec import Cloud, encode_cloud
-    from cellctl.api.dispatch import Dispatcher, DispatchSettings
+    from cellctl.daemon.dispatch import Dispatcher, DispatchSettings
 
     port = free_port()
     dictionary = write_dictionary(tmp_path / "users.txt")
