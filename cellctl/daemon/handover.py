@@ -30,10 +30,11 @@ from cellctl.api.cloud_codec import write_concatenated
 from cellctl.api.models import AnalysisOptions, ReportEnvelope
 from cellctl.api.transfer import TransferError, TransferSpec, store_results
 from cellctl.config import CellConfig
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.dispatch import Dispatcher, JobFailed
-from cellctl.daemon.jobs import ActiveJob, JobStore, JobStoreError
 from cellctl.daemon.render import render_report
 from cellctl.daemon.stream import ScanStream
+from cellctl.jobstore.jobs import JobStore, JobStoreError
 from cellctl.logging import bind_context
 
 __all__ = ["Handover", "SetJobState", "render_html"]

@@ -62,11 +62,16 @@ from cellctl.api.session import (
     open_session,
 )
 from cellctl.config import CellConfig, ConfigError
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.audit import AuditLog
 from cellctl.daemon.dispatch import Dispatcher, DispatchHooks, DispatchSettings
 from cellctl.daemon.handover import Handover
-from cellctl.daemon.jobs import (
-    ActiveJob,
+from cellctl.daemon.preflight import PreflightError, probe_writable
+from cellctl.daemon.scan import ScanRunner
+from cellctl.daemon.states import CellStateMachine, Transition
+from cellctl.daemon.stream import ScanStream
+from cellctl.daemon.wiring import CellDrivers, build_drivers, rws_password
+from cellctl.jobstore.jobs import (
     JobRecord,
     JobStore,
     JobStoreError,
@@ -74,11 +79,6 @@ from cellctl.daemon.jobs import (
     lock_data_dir,
     reanalysis_problem,
 )
-from cellctl.daemon.preflight import PreflightError, probe_writable
-from cellctl.daemon.scan import ScanRunner
-from cellctl.daemon.states import CellStateMachine, Transition
-from cellctl.daemon.stream import ScanStream
-from cellctl.daemon.wiring import CellDrivers, build_drivers, rws_password
 from cellctl.logging import bind_context
 from cellctl.motion import ProgressEvent
 from cellctl.motion.link import MotionLinkError
@@ -686,7 +686,7 @@ class CellDaemon:
     def _job_state(self, job: ActiveJob, state: JobState, message: str = "", **info: Any) -> None:
         """Record a job's state: in memory, on disk, in the publication. Never raises: a record the
         disk does not take (full, read-only) keeps its new state in memory and in the publication,
-        and its write is retried until it succeeds (:class:`~cellctl.daemon.jobs.RecordRetry`)."""
+        and its write is retried until it succeeds (:class:`~cellctl.jobstore.jobs.RecordRetry`)."""
         job.stage = state.value
         try:
             self.store.set_state(job.record, state, message, **info)

@@ -29,7 +29,7 @@ from cellctl.api.session import (
     subscribe,
 )
 from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.daemon.jobs import JobRecord, JobStore
+from cellctl.jobstore.jobs import JobRecord, JobStore
 from tests.support.ports import free_port
 
 PREFIX = "cell/sec1"
