@@ -30,7 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
-from cellctl.acquisition.rawstore import RawWriter
+from cellctl.jobstore.rawstore import RawWriter
 from drivers.laser import protocol as P
 
 

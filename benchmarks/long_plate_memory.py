@@ -65,7 +65,7 @@ def daemon_part(args: argparse.Namespace) -> dict:
 
     from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
     from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan
-    from cellctl.acquisition.rawstore import RawWriter
+    from cellctl.jobstore.rawstore import RawWriter
     from drivers.laser import protocol as P
 
     rate_hz, width, batch = 200.0, args.width, args.batch

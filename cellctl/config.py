@@ -762,7 +762,7 @@ class WorkerSection(Section):
     # of them ("cell/*"); empty: the cell this file configures ([zenoh] key_prefix)
     cells: list[Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-*]+(/[A-Za-z0-9_\-*]+)*$")]] = []
     # MB of touched heap the analysis process keeps ready while a streamed scan arrives (400 B a
-    # point received, at most this; cellctl.heap): page faults were half the sail's analysis. 0: off
+    # point received, at most this; cellctl.worker.heap): page faults were half the sail's analysis. 0: off
     # (below 2 GiB: glibc's trim threshold, which keeps it, is an int)
     heap_reserve_mb: int = Field(1536, ge=0, le=2047)
 

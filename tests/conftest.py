@@ -78,7 +78,7 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
 # slow and process tests, which compute (planning, analysis, reports, CLI runs of them). A module
 # that names a simulator or a simulated cell runs one in real time (the executor's tests against
 # the controller simulator): it stays in the second part, one test at a time.
-PARALLEL_DIRS = ("analysis", "inspect", "motion", "report")
+PARALLEL_DIRS = ("analysis", "inspect", "motion", "planning", "report")
 REAL_TIME = re.compile(
     r"drivers\.abb_egm\.sim|drivers\.laser\.sim|cellctl\.simcell|controller_process"
     r"|tests\.support\.(?:simcell|e2e_cell|faultcell|fleet_cells)"

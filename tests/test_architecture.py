@@ -11,7 +11,10 @@ and under ``if TYPE_CHECKING:`` included (as are ``importlib.import_module("..."
 3. packages do not import each other in a circle. The nodes are the packages and loose modules one
    level under each root (``cellctl.planning``, ``cellctl.motion``, ``cellctl.api``, ``cellctl.config``,
    ``drivers.abb_egm``, ...), a ``sim`` wing being a node of its own (``drivers.abb_egm.sim``,
-   ``drivers.sim``).
+   ``drivers.sim``);
+4. the packages that others build on import only what :data:`FLOORS` lets them of ``cellctl``: the
+   contract (``cellctl.api``), the worker (``cellctl.worker``) and the job store (``cellctl.jobstore``)
+   know nothing of the daemon, the HMI or each other beyond the contract.
 
 Each failure names the importing file and line.
 """
@@ -32,6 +35,16 @@ ROOTS = ("cellctl", "drivers", "analysis")
 
 #: production modules that may import the simulated cell: the ``cellctl sim`` command starts it
 SIM_DOORS = {"cellctl.commands.sim_cmd": "cellctl.simcell"}
+
+#: package -> the only nodes of ``cellctl`` it may import (rule 4): the Zenoh contract rests on the
+#: configuration alone; the worker speaks the contract and nothing of the daemon; the job store (job
+#: records, the plate history, the raw files) is read and written by the daemon, the HMI, the report
+#: and the acquisition, and knows none of them
+FLOORS: dict[str, frozenset[str]] = {
+    "cellctl.api": frozenset({"cellctl.config"}),
+    "cellctl.worker": frozenset({"cellctl.api", "cellctl.config"}),
+    "cellctl.jobstore": frozenset({"cellctl.api", "cellctl.config"}),
+}
 
 #: (importer, imported module) -> why it is still there. Each entry must still be needed (a test
 #: below fails on a stale one, so the list only shrinks).
@@ -105,7 +118,7 @@ def is_sim(module: str) -> bool:
 
 
 def node_of(module: str) -> str:
-    """The package-level node of a module: ``cellctl.daemon.jobs`` -> ``cellctl.daemon``,
+    """The package-level node of a module: ``cellctl.daemon.scan`` -> ``cellctl.daemon``,
     ``drivers.abb_egm.sim.egm`` -> ``drivers.abb_egm.sim``, ``cellctl.config`` -> itself."""
     parts = module.split(".")
     return ".".join(parts[:3] if parts[2:3] == ["sim"] else parts[:2])
@@ -137,6 +150,19 @@ def sim_violations(imports: list[Import], pending: Mapping[tuple[str, str], str]
             "cellctl/simcell/); "
             "what client and simulator share lives beside the codec"
         )
+    return out
+
+
+def floor_violations(imports: list[Import], floors: Mapping[str, frozenset[str]] = FLOORS) -> list[str]:
+    """Rule 4: a package of :data:`FLOORS` imports of ``cellctl`` only the nodes it lists."""
+    out = []
+    for imp in imports:
+        a, b = node_of(imp.importer), node_of(imp.target)
+        allowed = floors.get(a)
+        if allowed is None or a == b or not b.startswith("cellctl") or b in allowed:
+            continue
+        may = ", ".join(sorted(allowed)) or "nothing"
+        out.append(f"{imp.where()}: {a} imports of cellctl only {may} (docs/architecture.md)")
     return out
 
 
@@ -224,13 +250,14 @@ def _a_cycle(start: str, comp: set[str], graph: Mapping[str, set[str]]) -> list[
 
 
 def check_sources(files: Mapping[str, str]) -> dict[str, list[str]]:
-    """All three rules over ``files`` (repository path -> source); the rule name -> its violations."""
+    """All four rules over ``files`` (repository path -> source); the rule name -> its violations."""
     known = {module_name(p)[0] for p in files}
     imports = [imp for p, src in files.items() for imp in imports_of(p, src, known)]
     return {
         "layers": layer_violations(imports),
         "simulators": sim_violations(imports),
         "cycles": cycle_violations(imports),
+        "floors": floor_violations(imports),
     }
 
 
@@ -283,6 +310,27 @@ def test_production_code_imports_no_simulator(repository) -> None:
 def test_packages_do_not_import_each_other_in_a_circle(repository) -> None:
     violations = cycle_violations(repository[1])
     assert not violations, "\n".join(violations)
+
+
+def test_the_contract_the_worker_and_the_job_store_import_only_their_floors(repository) -> None:
+    violations = floor_violations(repository[1])
+    assert not violations, "\n".join(violations)
+
+
+def test_the_packages_hold_what_they_say(repository) -> None:
+    """Issue 45: the worker, the job dispatch and the job store have packages of their own; api/
+    keeps the contract (keys, models, codec, session) and no side of the job protocol."""
+    files, _ = repository
+    for module in ("settings", "child", "process", "service", "heap"):
+        assert f"cellctl/worker/{module}.py" in files
+    for module in ("jobs", "records", "history", "rawstore"):
+        assert f"cellctl/jobstore/{module}.py" in files
+    assert "cellctl/daemon/dispatch.py" in files
+    gone = ("cellctl/worker.py", "cellctl/heap.py", "cellctl/api/dispatch.py", "cellctl/daemon/jobs.py",
+            "cellctl/daemon/history.py", "cellctl/daemon/records.py", "cellctl/acquisition/rawstore.py")  # fmt: skip
+    assert not [p for p in gone if p in files]
+    for module in ("keys", "models", "cloud_codec", "session"):
+        assert f"cellctl/api/{module}.py" in files
 
 
 def test_every_pending_exception_is_still_needed(repository) -> None:
@@ -392,4 +440,24 @@ def test_checker_passes_a_tree_that_keeps_the_rules() -> None:
             "cellctl/planning/planner.py": "from cellctl.motion import executor\nimport analysis.register\n",
         }
     )
-    assert found == {"layers": [], "simulators": [], "cycles": []}
+    assert found == {"layers": [], "simulators": [], "cycles": [], "floors": []}
+
+
+def test_checker_finds_a_floor_package_importing_above_its_floor() -> None:
+    found = check_sources(
+        {
+            "cellctl/api/session.py": "def f():\n    from cellctl.daemon.dispatch import Dispatcher\n",
+            "cellctl/daemon/dispatch.py": "from cellctl.api.session import subscribe\n",
+            "cellctl/worker/service.py": "from cellctl.api.keys import Keys\nimport cellctl.jobstore.jobs\n",
+            "cellctl/jobstore/jobs.py": "from cellctl.api.models import JobState\n",
+            "cellctl/api/keys.py": "import cellctl.config\n",
+            "cellctl/api/models.py": "",
+            "cellctl/config.py": "",
+        }
+    )
+    assert found["floors"] == [
+        "cellctl/api/session.py:2: cellctl.api.session imports cellctl.daemon.dispatch: "
+        "cellctl.api imports of cellctl only cellctl.config (docs/architecture.md)",
+        "cellctl/worker/service.py:2: cellctl.worker.service imports cellctl.jobstore.jobs: "
+        "cellctl.worker imports of cellctl only cellctl.api, cellctl.config (docs/architecture.md)",
+    ]

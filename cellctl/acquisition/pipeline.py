@@ -35,8 +35,8 @@ from cellctl.acquisition.clock_sync import (
     FrameTimeline,
 )
 from cellctl.acquisition.poses import T_from_pos_rpy
-from cellctl.acquisition.rawstore import RawWriter
 from cellctl.config import CellConfig
+from cellctl.jobstore.rawstore import RawWriter
 from drivers.abb_egm.kinematics import fk_batch
 from drivers.abb_egm.limits import LinearTrack
 from drivers.laser.source import ProfileBatch

@@ -33,7 +33,7 @@ from cellctl.acquisition.pipeline import (
     batch_from_arrays,
     fit_from_arrays,
 )
-from cellctl.acquisition.rawstore import RawFormatError, RawReader, ReadReport
+from cellctl.jobstore.rawstore import RawFormatError, RawReader, ReadReport
 
 __all__ = ["ReassemblyResult", "final_fits", "reassemble"]
 

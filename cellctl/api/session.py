@@ -130,7 +130,7 @@ def _role_rules(prefix: str) -> dict[str, list[dict[str, Any]]]:
         # a streamed job's whole cloud, when a chunk is missing after its end
         _rule("work_cloud", "ingress", ["query"], prefix, ["jobs/*/cloud"]),
         _rule("work_cloud_replies", "egress", ["reply"], prefix, ["jobs/*/cloud"]),
-        # the daemon's token: a stream from a daemon that is gone is given up (cellctl.worker)
+        # the daemon's token: a stream from a daemon that is gone is given up (cellctl.worker.service)
         _rule("work_daemon_alive", "ingress", ["declare_liveliness_subscriber"], prefix, ["alive/daemon"]),
     ]
     everything = [

@@ -35,8 +35,8 @@ from cellctl.acquisition.pipeline import (
     batch_from_arrays,
 )
 from cellctl.acquisition.poses import T_from_pos_rpy, interpolate_joints, pos_rpy_from_T
-from cellctl.acquisition.rawstore import RawReader
 from cellctl.acquisition.reassemble import final_fits
+from cellctl.jobstore.rawstore import RawReader
 from drivers.abb_egm.kinematics import fk_batch
 
 __all__ = [

@@ -64,8 +64,8 @@ def _fail(msg: str) -> int:
 
 def run_reassemble(args: argparse.Namespace) -> int:
     from cellctl.acquisition.cloud_files import write_las, write_ply
-    from cellctl.acquisition.rawstore import RawFormatError
     from cellctl.acquisition.reassemble import reassemble
+    from cellctl.jobstore.rawstore import RawFormatError
 
     overrides = {} if args.latency_ms is None else {"latency_ms": args.latency_ms}
     try:
@@ -102,9 +102,9 @@ def _config_path(args: argparse.Namespace) -> Path | None:
 
 
 def run_time_offset(args: argparse.Namespace) -> int:
-    from cellctl.acquisition.rawstore import RawFormatError
     from cellctl.calibration.record import CalibrationWriteError, set_toml_values, write_calibration_record
     from cellctl.calibration.time_offset import TimeOffsetError, calibrate_time_offset
+    from cellctl.jobstore.rawstore import RawFormatError
 
     cfg_path = _config_path(args)
     try:
@@ -124,9 +124,9 @@ def run_time_offset(args: argparse.Namespace) -> int:
 
 
 def run_hand_eye(args: argparse.Namespace) -> int:
-    from cellctl.acquisition.rawstore import RawFormatError
     from cellctl.calibration.hand_eye import HandEyeError, calibrate_hand_eye
     from cellctl.calibration.record import CalibrationWriteError, set_toml_values, write_calibration_record
+    from cellctl.jobstore.rawstore import RawFormatError
 
     cfg_path = _config_path(args)
     try:

@@ -70,7 +70,7 @@ def adduser(args: argparse.Namespace) -> int:
 
 
 def history(args: argparse.Namespace) -> int:
-    from cellctl.daemon.history import History, format_history
+    from cellctl.jobstore.history import History, format_history
 
     cfg = _config(args.config)
     if cfg is None:

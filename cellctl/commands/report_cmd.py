@@ -82,7 +82,7 @@ def _open(path: Path) -> bool:
 def run(args: argparse.Namespace) -> int:
     # Imported here: `cellctl --help` must not pay for matplotlib.
     from analysis.report import ReportError, write_report
-    from cellctl.daemon.history import previous_round_for
+    from cellctl.jobstore.history import previous_round_for
 
     try:
         results_dir = resolve_results_dir(args.target, args.config)

@@ -38,7 +38,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here: `cellctl --help` must not pay for Zenoh.
-    from cellctl.worker import WorkerSettings, run_worker
+    from cellctl.worker.service import run_worker
+    from cellctl.worker.settings import WorkerSettings
 
     try:
         config = load_config(args.config)

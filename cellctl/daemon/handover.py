@@ -2,7 +2,7 @@
 
 :class:`Handover` takes a scanned (or re-analysed) job: the live cloud of the scan, or the cloud
 rebuilt from the raw files, is thinned and encoded off the loop, submitted to the
-:class:`~cellctl.api.dispatch.Dispatcher` with the job parameters, kept with the job as ``cloud.bin``,
+:class:`~cellctl.daemon.dispatch.Dispatcher` with the job parameters, kept with the job as ``cloud.bin``,
 and the worker's report stored as ``report.json``. The job's states are told to the daemon through
 ``set_state``; any failure fails the job, it never leaves it hanging. The HTML / PDF render of the
 stored report is :mod:`cellctl.daemon.render`.
@@ -27,13 +27,14 @@ from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import JobState, now_utc
 from cellctl.api.analysis_job import analysis_job
 from cellctl.api.cloud_codec import write_concatenated
-from cellctl.api.dispatch import Dispatcher, JobFailed
 from cellctl.api.models import AnalysisOptions, ReportEnvelope
 from cellctl.api.transfer import TransferError, TransferSpec, store_results
 from cellctl.config import CellConfig
-from cellctl.daemon.jobs import ActiveJob, JobStore, JobStoreError
+from cellctl.daemon.active import ActiveJob
+from cellctl.daemon.dispatch import Dispatcher, JobFailed
 from cellctl.daemon.render import render_report
 from cellctl.daemon.stream import ScanStream
+from cellctl.jobstore.jobs import JobStore, JobStoreError
 from cellctl.logging import bind_context
 
 __all__ = ["Handover", "SetJobState", "render_html"]

@@ -38,11 +38,10 @@ from analysis.placement import Placement
 from analysis.plates import PlateError
 from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
-from cellctl.acquisition.rawstore import RawWriter
 from cellctl.acquisition.session import AcquisitionSession, SessionSettings, pass_windows_s
 from cellctl.api import CellState, JobState
 from cellctl.config import CellConfig
-from cellctl.daemon.jobs import ActiveJob, JobStore
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.locate import (
     LocatePlan,
     face_down_refusal,
@@ -53,6 +52,8 @@ from cellctl.daemon.locate import (
 from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
 from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, laser_exposure_ns, laser_source
+from cellctl.jobstore.jobs import JobStore
+from cellctl.jobstore.rawstore import RawWriter
 from cellctl.motion import ExecState, ExecutionResult, ExecutorConfig, ProgressEvent
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, start_corner_near
 from cellctl.planning.cache import PlanCache

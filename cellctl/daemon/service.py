@@ -3,7 +3,7 @@
 A job (one remote trigger): validate -> plan (in a thread) -> motors on and the EGM program started
 through RWS -> execute the plan over EGM while the HD8 client streams profiles into the acquisition
 (raw files first) -> EGM program ended -> the whole-scan cloud rebuilt from the raw files ->
-published to the analysis workers through the :class:`~cellctl.api.dispatch.Dispatcher` -> the report
+published to the analysis workers through the :class:`~cellctl.daemon.dispatch.Dispatcher` -> the report
 stored with the job. One scan at a time: a trigger while a scan holds the robot waits in a bounded
 queue (``[daemon] queue_max``; full -> ``queue_full``; 0 -> refused with ``busy``) and starts when
 the robot is free; the analysis of a finished scan runs while the next one scans. A fault or an
@@ -54,7 +54,6 @@ from cellctl.api import (
     parse_control,
     read_payload,
 )
-from cellctl.api.dispatch import Dispatcher, DispatchHooks, DispatchSettings
 from cellctl.api.session import (
     ZenohSetupError,
     build_zenoh_config,
@@ -63,10 +62,16 @@ from cellctl.api.session import (
     open_session,
 )
 from cellctl.config import CellConfig, ConfigError
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.audit import AuditLog
+from cellctl.daemon.dispatch import Dispatcher, DispatchHooks, DispatchSettings
 from cellctl.daemon.handover import Handover
-from cellctl.daemon.jobs import (
-    ActiveJob,
+from cellctl.daemon.preflight import PreflightError, probe_writable
+from cellctl.daemon.scan import ScanRunner
+from cellctl.daemon.states import CellStateMachine, Transition
+from cellctl.daemon.stream import ScanStream
+from cellctl.daemon.wiring import CellDrivers, build_drivers, rws_password
+from cellctl.jobstore.jobs import (
     JobRecord,
     JobStore,
     JobStoreError,
@@ -74,11 +79,6 @@ from cellctl.daemon.jobs import (
     lock_data_dir,
     reanalysis_problem,
 )
-from cellctl.daemon.preflight import PreflightError, probe_writable
-from cellctl.daemon.scan import ScanRunner
-from cellctl.daemon.states import CellStateMachine, Transition
-from cellctl.daemon.stream import ScanStream
-from cellctl.daemon.wiring import CellDrivers, build_drivers, rws_password
 from cellctl.logging import bind_context
 from cellctl.motion import ProgressEvent
 from cellctl.motion.link import MotionLinkError
@@ -686,7 +686,7 @@ class CellDaemon:
     def _job_state(self, job: ActiveJob, state: JobState, message: str = "", **info: Any) -> None:
         """Record a job's state: in memory, on disk, in the publication. Never raises: a record the
         disk does not take (full, read-only) keeps its new state in memory and in the publication,
-        and its write is retried until it succeeds (:class:`~cellctl.daemon.jobs.RecordRetry`)."""
+        and its write is retried until it succeeds (:class:`~cellctl.jobstore.jobs.RecordRetry`)."""
         job.stage = state.value
         try:
             self.store.set_state(job.record, state, message, **info)

@@ -28,9 +28,9 @@ import structlog
 from cellctl.acquisition.assembly import AssembledBatch, AssembledScan
 from cellctl.acquisition.pipeline import Acquisition
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, pass_end_cut
-from cellctl.acquisition.rawstore import RawWriter
-from cellctl.api.dispatch import Dispatcher
 from cellctl.api.models import ReportEnvelope
+from cellctl.daemon.dispatch import Dispatcher
+from cellctl.jobstore.rawstore import RawWriter
 
 __all__ = ["ScanStream"]
 

@@ -33,7 +33,6 @@ from aiohttp.http_exceptions import HttpProcessingError
 from analysis.results import read_report, read_results_arrays
 from cellctl.api import DESIGN_SUFFIXES, MAX_TRIGGER_BYTES, ApiCallError
 from cellctl.config import CellConfig
-from cellctl.daemon.history import History
 from cellctl.hmi.auth import (
     ACTION_ROLE,
     ZENOH_ROLE,
@@ -45,6 +44,7 @@ from cellctl.hmi.auth import (
     valid_name,
 )
 from cellctl.hmi.link import CellLink
+from cellctl.jobstore.history import History
 
 log = structlog.get_logger(__name__)
 

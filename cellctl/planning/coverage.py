@@ -938,7 +938,7 @@ def predict_coverage(
     stretch spans only cells already seen (or off the plate) cannot change the figures: per
     placement every other ray of each fan is cast first, then only the others that could still add
     a cell (on the 6 m plate and the sail: none). The figures are those of casting every ray
-    (``exhaustive=True``, tests/motion/test_planning_scale.py).
+    (``exhaustive=True``, tests/planning/test_planning_scale.py).
     """
     return _predict_coverage(segments, design, surface, placement, settings)
 

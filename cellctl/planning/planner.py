@@ -118,7 +118,8 @@ def check_plan_envelope(
 EDGE_REACH_MARGIN_MM = 40.0
 #: its tilt is lowered in these steps, down to the least that still lights the thickness face
 #: (predict_edge_face_coverage on the sail: every face piece seen from 20 deg, none at 17.5 deg,
-#: where the rays reaching the face meet it beyond the 80 deg incidence limit; tests/motion/test_long_plate.py)
+#: where the rays reaching the face meet it beyond the 80 deg incidence limit;
+#: tests/planning/test_long_plate.py)
 EDGE_TILT_STEP_DEG = 5.0
 EDGE_TILT_MIN_DEG = 20.0
 

@@ -18,7 +18,10 @@ SPEAKERS = [
     "drivers/abb_egm/sim/rws_server.py",
     "drivers/abb_egm/sim/model.py",
     "cellctl/config.py",
-    *sorted(str(p.relative_to(REPO)) for p in (REPO / "cellctl" / "daemon").glob("*.py")),
+    # the daemon, and the job store split out of it (issue 45)
+    *sorted(
+        str(p.relative_to(REPO)) for d in ("daemon", "jobstore") for p in (REPO / "cellctl" / d).glob("*.py")
+    ),
 ]
 STATE_WORDS = set(rw.CTRL_STATES) | set(rw.OPMODES)
 

@@ -11,11 +11,11 @@ import structlog
 
 from cellctl.acquisition.clock_sync import ClockSyncConfig
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
-from cellctl.acquisition.rawstore import RawWriter
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.calibration.record import CalibrationWriteError, set_toml_values
 from cellctl.cli import main
 from cellctl.config import load_config
+from cellctl.jobstore.rawstore import RawWriter
 from tests.acquisition.synthetic import feed, make_run
 
 

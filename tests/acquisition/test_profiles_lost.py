@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.acquisition.rawstore import RawReader
+from cellctl.jobstore.rawstore import RawReader
 from tests.acquisition.test_session import REPO, _cell, _playback, _session
 
 

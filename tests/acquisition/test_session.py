@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from cellctl.acquisition.pipeline import KIND_PASS_BEGIN, KIND_PASS_END, Acquisition, AcquisitionSettings
-from cellctl.acquisition.rawstore import RawReader, RawWriter
 from cellctl.acquisition.session import AcquisitionSession, SessionSettings, pass_windows_s
 from cellctl.config import CellConfig
 from cellctl.daemon.wiring import hd8_client, laser_exposure_ns
+from cellctl.jobstore.rawstore import RawReader, RawWriter
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.sim.egm import EgmControllerSim, EgmSimConfig
 from drivers.laser.sim.scene import plane_scene

@@ -145,6 +145,6 @@ def test_live_cloud_is_rebuilt_bit_for_bit_from_the_raw_files(scan):
 
 
 def _profile_records(job):
-    from cellctl.acquisition.rawstore import RawReader
+    from cellctl.jobstore.rawstore import RawReader
 
     return [r for r in RawReader(job).records() if r.stream == "profiles"]

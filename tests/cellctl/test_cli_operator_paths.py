@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from analysis.templates import DetectionLayout
-from cellctl.acquisition.rawstore import RawWriter
+from cellctl.jobstore.rawstore import RawWriter
 from tests.support.results_fixture import write_synthetic_results
 
 pytestmark = pytest.mark.process  # each test runs `cellctl`

@@ -14,7 +14,7 @@ from cellctl.api.analysis_job import analysis_job
 from cellctl.api.models import AnalysisOptions, TriggerError, parse_trigger
 from cellctl.commands.scan_cmd import template_table_rows
 from cellctl.config import CellConfig
-from cellctl.daemon.jobs import JobRecord, JobStore
+from cellctl.jobstore.jobs import JobRecord, JobStore
 
 PLACEMENT = {"pos_mm": [1600.0, 100.0, 0.0], "rpy_deg": [0.0, 0.0, 3.0]}
 

@@ -9,11 +9,11 @@ import asyncio
 import json
 
 from cellctl.api import ControlRequest, JobState
-from cellctl.api.dispatch import JobFailed
 from cellctl.config import CellConfig, CellSection
+from cellctl.daemon.dispatch import JobFailed
 from cellctl.daemon.handover import Handover
-from cellctl.daemon.jobs import JobRecord
 from cellctl.daemon.service import CellDaemon
+from cellctl.jobstore.jobs import JobRecord
 
 
 class _Dispatcher:

@@ -10,8 +10,9 @@ import json
 
 from cellctl.api import CellState, JobState, TriggerRequest
 from cellctl.config import CellConfig, CellSection
-from cellctl.daemon.jobs import ActiveJob, JobRecord
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.service import CellDaemon
+from cellctl.jobstore.jobs import JobRecord
 
 
 class _Payload:

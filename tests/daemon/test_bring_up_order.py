@@ -17,8 +17,9 @@ from analysis.plates import design_mesh, plate_spec
 from cellctl.api import JobState
 from cellctl.config import CellConfig, LocateSection
 from cellctl.daemon import scan as scan_module
-from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.scan import ScanRunner
+from cellctl.jobstore.jobs import JobRecord, JobStore
 
 
 class _Recorder:

@@ -11,8 +11,9 @@ import pytest
 
 from cellctl.api import CellState, ControlError, ControlRequest, JobState
 from cellctl.config import CellConfig, CellSection
-from cellctl.daemon.jobs import ActiveJob, JobRecord
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.service import CellDaemon
+from cellctl.jobstore.jobs import JobRecord
 
 
 class _Executor:

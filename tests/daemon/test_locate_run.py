@@ -14,7 +14,6 @@ from analysis.placement import Placement
 from analysis.plates import design_height_mm, design_mesh, plate_spec
 from cellctl.api.models import TriggerRequest
 from cellctl.config import CellConfig, LocateSection, load_config
-from cellctl.daemon.jobs import JobRecord, _checked
 from cellctl.daemon.locate import (
     across_plans,
     face_down_refusal,
@@ -25,6 +24,7 @@ from cellctl.daemon.locate import (
     needs_across,
     next_locate_plans,
 )
+from cellctl.jobstore.jobs import JobRecord, _checked
 from drivers.abb_egm.kinematics import fk_batch
 
 REPO = Path(__file__).resolve().parents[2]

@@ -14,8 +14,9 @@ from analysis.placement import Placement
 from analysis.plates import design_mesh, plate_spec
 from cellctl.api import JobState
 from cellctl.config import CellConfig
-from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.scan import ScanRunner
+from cellctl.jobstore.jobs import JobRecord, JobStore
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.model import ControllerModel
 from drivers.abb_egm.sim.rws_server import RwsServer

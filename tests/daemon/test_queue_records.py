@@ -8,7 +8,7 @@ import io
 
 from cellctl.api import CellState, CellStatus, JobProgress, JobState, QueuedJob
 from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
-from cellctl.daemon.jobs import JobRecord, JobStore
+from cellctl.jobstore.jobs import JobRecord, JobStore
 
 
 def _record(job_id: str, state: JobState = JobState.QUEUED) -> JobRecord:

@@ -20,8 +20,8 @@ import pytest
 from cellctl.api import ControlRequest, ReportEnvelope
 from cellctl.config import CellConfig, CellSection, DaemonSection
 from cellctl.daemon.handover import Handover
-from cellctl.daemon.jobs import JobRecord
 from cellctl.daemon.service import CellDaemon
+from cellctl.jobstore.jobs import JobRecord
 from tests.support.waits import wait_until
 from tests.zenoh.zworker_fns import minimal_report
 

@@ -15,8 +15,9 @@ from analysis.placement import Placement, placement_transform
 from analysis.plates import design_mesh, plate_spec
 from cellctl.api import JobState
 from cellctl.config import CellConfig
-from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.scan import ScanRunner
+from cellctl.jobstore.jobs import JobRecord, JobStore
 from cellctl.planning import PlannerSettings
 from drivers.abb_egm.kinematics import fk_batch
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig

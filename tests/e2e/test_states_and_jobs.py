@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cellctl.api import CellState, JobState
-from cellctl.daemon.jobs import JobRecord, JobStore, JobStoreError
 from cellctl.daemon.states import ALLOWED, CellStateMachine, StateError
+from cellctl.jobstore.jobs import JobRecord, JobStore, JobStoreError
 
 
 def test_state_machine_publishes_each_transition_once_and_in_order():

@@ -17,9 +17,9 @@ import pytest
 from analysis.mesh import load_mesh
 from analysis.placement import Placement
 from cellctl.acquisition.pipeline import KIND_ROBOT
-from cellctl.acquisition.rawstore import RawReader
 from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml
 from cellctl.config import load_config
+from cellctl.jobstore.rawstore import RawReader
 from cellctl.planning import PlannerSettings, PlanRefused
 from cellctl.planning.coverage import build_segments, design_surface
 from cellctl.planning.joint_path import check_reach

@@ -25,10 +25,10 @@ import time
 import numpy as np
 import pytest
 
-from cellctl.acquisition.rawstore import CHUNK, RawReader
 from cellctl.api import TriggerAccepted, call
 from cellctl.api.session import async_get
 from cellctl.commands.scan_cmd import wait_for_job
+from cellctl.jobstore.rawstore import CHUNK, RawReader
 from tests.support.cellfaults import (
     FINAL,
     FaultCell,

@@ -30,7 +30,7 @@ from cellctl.api import (
 )
 from cellctl.api.session import build_zenoh_config, close_session, declare_async_queryable, open_session
 from cellctl.config import ZenohSection
-from cellctl.daemon.jobs import JobRecord, JobStore
+from cellctl.jobstore.jobs import JobRecord, JobStore
 from tests.support.ports import free_port
 
 CODES = {"too_large", "malformed", "invalid", "design_not_found"}

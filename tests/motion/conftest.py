@@ -1,4 +1,5 @@
-"""Shared plans and the loopback harness (EGM endpoint + controller simulator) for the motion tests.
+"""The loopback harness (EGM endpoint + controller simulator) for the motion tests, and the shared
+plans (tests/support/plans.py) as session fixtures.
 
 The controller simulator runs as its own process (``python -m drivers.abb_egm.sim``) and is reached
 only over its sockets: EGM through the endpoint (its feedback is the arm's true position, as the
@@ -21,40 +22,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pytest
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import ExecutionResult, ExecutorConfig, MotionExecutor
-from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
+from cellctl.planning import PlannerSettings, ScanPlan
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD
 from drivers.runtime import precise_event_loop
 from drivers.sim.fault_channel import send_fault_request
+from tests.support.plans import sail_plan, small_plan  # noqa: F401 (the session fixtures)
 from tests.support.waits import wait_until as wait_for_event
 
 REPO = Path(__file__).resolve().parents[2]
-
-SAIL_PLACEMENT = Placement.on_bed(1500.0, 0.0, 3.0, z_mm=300.0)
-#: a small plate and fast sweeps keep the executions short; the geometry is the real planner's
-SMALL_SETTINGS = PlannerSettings(
-    speed_mm_s=200.0, placement_uncertainty_mm=5.0, placement_uncertainty_deg=0.5
-)
-SMALL_PLACEMENT = Placement.on_bed(1600.0, 100.0, 3.0, z_mm=300.0)
-
-
-@pytest.fixture(scope="session")
-def sail_plan() -> ScanPlan:
-    """The 1200 x 800 sail plate at the default placement with the cell.toml defaults."""
-    return plan_scan(design_mesh(plate_spec("sail"), pitch_mm=10.0), SAIL_PLACEMENT, PlannerSettings())
-
-
-@pytest.fixture(scope="session")
-def small_plan() -> ScanPlan:
-    """A 200 x 150 sail-shaped plate: a full plan (approach, raster, edges, retract) of a few seconds."""
-    mesh = design_mesh(plate_spec("sail", length_mm=200.0, width_mm=150.0), pitch_mm=5.0)
-    return plan_scan(mesh, SMALL_PLACEMENT, SMALL_SETTINGS)
 
 
 @dataclass

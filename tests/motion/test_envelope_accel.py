@@ -11,7 +11,7 @@ from analysis.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, SafetyEnvelope
 from cellctl.motion.envelope import EnvelopeViolation
 from cellctl.planning.cache import PlanCache, _entry_bytes, _read_entry
-from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
+from tests.support.plans import SMALL_PLACEMENT, SMALL_SETTINGS
 
 CYCLE_S = 0.004032
 LIMITS = EnvelopeLimits.from_settings(SMALL_SETTINGS, CYCLE_S)

@@ -17,8 +17,6 @@ from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from drivers.abb_egm.kinematics import fk_batch
 from drivers.abb_egm.limits import Q_MAX_DEG, Q_MIN_DEG
 from tests.motion.conftest import (
-    SAIL_PLACEMENT,
-    SMALL_SETTINGS,
     Controller,
     controller_process,
     execute,
@@ -26,6 +24,7 @@ from tests.motion.conftest import (
     wait_for_segment,
     wait_for_state,
 )
+from tests.support.plans import SAIL_PLACEMENT, SMALL_SETTINGS
 from tests.support.waits import wait_until
 
 pytestmark = pytest.mark.process  # the controller simulator is a process of its own

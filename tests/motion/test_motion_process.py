@@ -31,13 +31,13 @@ from drivers.abb_egm.endpoint import EgmEndpointConfig
 from drivers.abb_egm.rws_client import RwsClient, RwsClientConfig
 from drivers.abb_egm.sim.controller import ABB_DEFAULT_PASSWORD
 from tests.motion.conftest import (
-    SMALL_SETTINGS,
     controller_process,
     run_async,
     wait_for_segment,
     wait_for_state,
     wait_until,
 )
+from tests.support.plans import SMALL_SETTINGS
 from tests.support.ports import free_port
 
 pytestmark = pytest.mark.slow

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from structlog.testing import capture_logs
 
-from cellctl.daemon.jobs import DIR_MODE, JobRecord, JobStore, JobStoreError
+from cellctl.jobstore.jobs import DIR_MODE, JobRecord, JobStore, JobStoreError
 
 
 def _mode(p: Path) -> int:
@@ -60,7 +60,7 @@ def test_a_data_directory_that_cannot_be_created_is_a_job_store_error_naming_it(
 
 def test_raw_directory_and_files_are_group_readable_only_whatever_the_umask(tmp_path, open_umask):
     """Issue 24: ``raw/`` was 0o755 with 0o644 files, so anybody on the machine read the raw scans."""
-    from cellctl.acquisition.rawstore import STREAMS, RawWriter
+    from cellctl.jobstore.rawstore import STREAMS, RawWriter
 
     raw = tmp_path / "jobs" / "J" / "raw"
     w = RawWriter(raw, {"job_id": "J"}, fsync=False)

@@ -24,9 +24,9 @@ from sec_util import PASSWORDS, env_name, section, write_dictionary
 from analysis.job import AnalysisJob
 from cellctl.api import JobEvent, Keys, ReportEnvelope
 from cellctl.api.cloud_codec import Cloud, encode_cloud
-from cellctl.api.dispatch import Dispatcher, DispatchSettings
 from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe
 from cellctl.api.transfer import ResultChunk, TransferSpec
+from cellctl.daemon.dispatch import Dispatcher, DispatchSettings
 from tests.support.ports import free_port
 from tests.zenoh.zworker_fns import minimal_report
 

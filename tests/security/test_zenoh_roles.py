@@ -29,7 +29,7 @@ from cellctl.api.session import (
     subscribe,
 )
 from cellctl.config import ZenohAccess, ZenohSection
-from cellctl.daemon.jobs import JobRecord, JobStore
+from cellctl.jobstore.jobs import JobRecord, JobStore
 from tests.support.ports import free_port
 
 PREFIX = "cell/sec1"
@@ -270,7 +270,7 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
     from analysis.job import AnalysisJob
     from cellctl.api import list_workers
     from cellctl.api.cloud_codec import Cloud, encode_cloud
-    from cellctl.api.dispatch import Dispatcher, DispatchSettings
+    from cellctl.daemon.dispatch import Dispatcher, DispatchSettings
 
     port = free_port()
     dictionary = write_dictionary(tmp_path / "users.txt")

@@ -18,9 +18,9 @@ from typing import Any
 
 import pytest
 
-from cellctl.acquisition.rawstore import RawReader
 from cellctl.commands.demo_cmd import to_toml
 from cellctl.config import load_config
+from cellctl.jobstore.rawstore import RawReader
 from tests.support.e2e_cell import Cell, wait_status
 from tests.support.faultcell import (
     FINAL_JOB_STATES,

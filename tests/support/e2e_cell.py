@@ -56,7 +56,7 @@ def tiny_cell_config(
     # Passes along the plate's length, as on every cell before issue 20's "fastest": on this plate the
     # planner would also solve the passes across (estimated 26.0 s against 27.0 s, then refused on a
     # wrist flip), 1.3-2.6 s more for every scan of every e2e and fault test. Choosing the axis has
-    # its own tests (tests/motion/test_pass_axis.py).
+    # its own tests (tests/planning/test_pass_axis.py).
     cfg["scan"]["pass_axis"] = "longer"
     # The simulated arm starts parked above the bed, its sensor looking down 200-300 mm above where
     # the tiny plate's plans begin (TCP at x 1411, y 0, z 716 mm), not at cell.toml's home (z 1622 mm):

@@ -312,7 +312,7 @@ def check_job_data(cell: Cell, job_id: str) -> JobDataCheck:
     with queued, planning and holds no state after a final one.
     """
     from cellctl.acquisition.pipeline import KIND_PROFILES
-    from cellctl.acquisition.rawstore import RawReader
+    from cellctl.jobstore.rawstore import RawReader
 
     rec = cell.job_record(job_id)
     states = [h["state"] for h in rec["history"]]

@@ -35,7 +35,7 @@ import structlog
 
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.acquisition.poses import T_from_pos_rpy
-from cellctl.acquisition.rawstore import RawWriter
+from cellctl.jobstore.rawstore import RawWriter
 from cellctl.simcell.truth import PlateTruth
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig
 from drivers.abb_egm.kinematics import RobotKinematics, fk_batch

@@ -1,4 +1,5 @@
-"""Fixtures for the Zenoh tests: a loopback-only hub session, worker processes, free ports."""
+"""Fixtures for the Zenoh tests: worker processes for a hub, and the loopback-only hub itself
+(tests/support/hub.py, shared with tests/api)."""
 
 from __future__ import annotations
 
@@ -6,51 +7,16 @@ import os
 import signal
 import subprocess
 import sys
-import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-import structlog
 
-from cellctl.config import ZenohSection
-from tests.support.ports import free_port
+from tests.support.hub import Hub, _plain_structlog, hub  # noqa: F401 (the fixtures)
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
-
-
-@pytest.fixture(autouse=True)
-def _plain_structlog() -> Iterator[None]:
-    """Tests that run `cellctl.cli.main` in-process bind structlog to a captured stream that pytest
-    closes afterwards; in-process dispatchers and queryables here must not log into it."""
-    structlog.reset_defaults()
-    yield
-    structlog.reset_defaults()
-
-
-@dataclass
-class Hub:
-    """One test cell: its [zenoh] section (the daemon's), key prefix and a cell.toml for workers."""
-
-    section: ZenohSection
-    prefix: str
-    toml: Path
-    tmp: Path
-
-
-@pytest.fixture
-def hub(tmp_path: Path) -> Hub:
-    port = free_port()
-    cell_id = "t" + uuid.uuid4().hex[:8]
-    toml = tmp_path / "cell.toml"
-    toml.write_text(
-        f'[cell]\nid = "{cell_id}"\n\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n'
-        "multicast_scouting = false\n"
-    )
-    section = ZenohSection(listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
-    return Hub(section=section, prefix=f"cell/{cell_id}", toml=toml, tmp=tmp_path)
 
 
 @dataclass
@@ -64,7 +30,7 @@ class WorkerProc:
 
 
 @pytest.fixture
-def start_worker(hub: Hub) -> Iterator[Callable[..., WorkerProc]]:
+def start_worker(hub: Hub) -> Iterator[Callable[..., WorkerProc]]:  # noqa: F811 (the fixture hub)
     """Start `cellctl worker` processes for the hub; all are stopped (SIGTERM, then SIGKILL) after the test."""
     procs: list[WorkerProc] = []
 

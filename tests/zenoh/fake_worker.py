@@ -1,4 +1,4 @@
-"""A worker spoken by the test itself over Zenoh (the protocol of cellctl.worker, by hand): its
+"""A worker spoken by the test itself over Zenoh (the protocol of cellctl.worker.service, by hand): its
 announcement, its token, its job subscriber, and its signed events, reports and result chunks.
 For cases a real `cellctl worker` cannot play: a lost chunk, a report it should not send, an
 announcement of another version."""

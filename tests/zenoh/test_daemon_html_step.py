@@ -10,8 +10,9 @@ import pytest
 
 from analysis.templates import DetectionLayout
 from cellctl.config import CellConfig
+from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.handover import render_html
-from cellctl.daemon.jobs import ActiveJob, JobRecord, JobStore
+from cellctl.jobstore.jobs import JobRecord, JobStore
 from tests.support.results_fixture import write_synthetic_results
 
 pytestmark = pytest.mark.process  # the render runs in a child process

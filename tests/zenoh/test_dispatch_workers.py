@@ -16,9 +16,9 @@ import pytest
 from analysis.job import AnalysisJob
 from cellctl.api import Keys, list_workers
 from cellctl.api.cloud_codec import Cloud, encode_cloud
-from cellctl.api.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
 from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe
 from cellctl.config import load_config
+from cellctl.daemon.dispatch import Dispatcher, DispatchHooks, DispatchSettings, JobFailed
 from tests.support.waits import wait_until_sync
 
 pytestmark = pytest.mark.e2e

@@ -16,11 +16,11 @@ import pytest
 
 from analysis.job import AnalysisJob
 from cellctl.api import Keys
-from cellctl.api.dispatch import Dispatcher
 from cellctl.api.session import build_zenoh_config, close_session, open_session
 from cellctl.api.transfer import TransferSpec
 from cellctl.commands.demo_cmd import wait_ready_line
 from cellctl.config import ZenohSection
+from cellctl.daemon.dispatch import Dispatcher
 from tests.support.ports import free_port
 from tests.zenoh.test_dispatch_workers import GENEROUS, _cloud_bytes, _records, _wait_for
 

@@ -13,9 +13,9 @@ import structlog
 from analysis.job import AnalysisJob
 from analysis.placement import Placement
 from cellctl.api import API_VERSION, STREAM_FORMAT, JobEvent, ReportEnvelope
-from cellctl.api.dispatch import Dispatcher, DispatchSettings, _version_verdict
 from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe
 from cellctl.api.transfer import TransferSpec, pack_results
+from cellctl.daemon.dispatch import Dispatcher, DispatchSettings, _version_verdict
 from tests.zenoh.fake_worker import FakeWorker
 from tests.zenoh.test_dispatch_workers import _cloud_bytes, _job, _run, _wait_for
 from tests.zenoh.zworker_fns import minimal_report

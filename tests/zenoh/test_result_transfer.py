@@ -13,7 +13,6 @@ import pytest
 
 from analysis.job import AnalysisJob
 from cellctl.api import JobSpec, Keys
-from cellctl.api.dispatch import Dispatcher
 from cellctl.api.session import build_zenoh_config, close_session, open_session
 from cellctl.api.transfer import (
     ResultChunk,
@@ -27,6 +26,7 @@ from cellctl.api.transfer import (
     pack_results,
     store_results,
 )
+from cellctl.daemon.dispatch import Dispatcher
 from tests.zenoh.fake_worker import FakeWorker
 from tests.zenoh.test_dispatch_workers import GENEROUS, _cloud_bytes, _run, _wait_for
 from tests.zenoh.zworker_fns import minimal_report

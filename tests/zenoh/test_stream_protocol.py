@@ -15,7 +15,6 @@ import pytest
 
 from cellctl.api import JobEvent, JobSpec, Keys, ReportEnvelope, StreamChunk, StreamEnd, list_workers
 from cellctl.api.cloud_codec import ENCODING, Cloud, concat_encoded, decode_cloud, encode_cloud
-from cellctl.api.dispatch import Dispatcher, DispatchSettings, JobFailed
 from cellctl.api.session import (
     build_zenoh_config,
     close_session,
@@ -23,6 +22,7 @@ from cellctl.api.session import (
     open_session,
     subscribe,
 )
+from cellctl.daemon.dispatch import Dispatcher, DispatchSettings, JobFailed
 from tests.support.waits import wait_subscribed, wait_until
 from tests.zenoh.test_dispatch_workers import _job, _observed, _run, _wait_for
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.daemon.history import History, format_history
+from cellctl.jobstore.history import History, format_history
 from tests.support.reports import report_json
 
 REPO = Path(__file__).resolve().parents[2]

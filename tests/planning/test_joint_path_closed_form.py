@@ -9,7 +9,7 @@ import pytest
 
 from cellctl.planning.joint_path import sensor_kinematics, solve_joint_path
 from cellctl.planning.plan import PlanRefused, Segment, pose_matrix
-from tests.motion.conftest import SMALL_SETTINGS
+from tests.support.plans import SMALL_SETTINGS
 
 
 @pytest.mark.parametrize("plan_name", ["small_plan", "sail_plan"])

@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
-from cellctl.acquisition.rawstore import RawFormatError, RawReader, RawWriter
 from cellctl.acquisition.reassemble import reassemble
+from cellctl.jobstore.rawstore import RawFormatError, RawReader, RawWriter
 from tests.acquisition.synthetic import feed, make_run
 
 _dtypes = st.sampled_from([np.float32, np.float64, np.int64, np.uint32, np.uint8, np.int16, np.bool_])
@@ -108,7 +108,7 @@ _CHILD = r"""
 import sys, time
 from pathlib import Path
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
-from cellctl.acquisition.rawstore import RawWriter
+from cellctl.jobstore.rawstore import RawWriter
 from tests.acquisition.synthetic import make_run
 run = make_run(4.0)
 s = AcquisitionSettings(epoch_ns=run.epoch_ns, latency_ms=0.8)

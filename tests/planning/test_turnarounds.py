@@ -13,7 +13,7 @@ from analysis.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from cellctl.planning.timing import tcp_speed_mm_s
 from drivers.abb_egm.kinematics import fk_batch
-from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
+from tests.support.plans import SMALL_PLACEMENT, SMALL_SETTINGS
 
 CYCLE_S = 0.004032
 

@@ -30,7 +30,7 @@ from cellctl.planning.coverage import (
     outline_in_plan,
     predict_edge_face_coverage,
 )
-from tests.motion.conftest import SAIL_PLACEMENT
+from tests.support.plans import SAIL_PLACEMENT
 
 # a gentler sail than the default: the default sail continued over a parallelogram's longer reach
 # in x is too steep for the depth range under the placement uncertainty (refused either way)

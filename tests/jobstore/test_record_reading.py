@@ -12,9 +12,9 @@ from structlog.testing import capture_logs
 
 from analysis.placement import Placement
 from cellctl.api import JobState
-from cellctl.daemon.history import History, format_history, previous_round_for
-from cellctl.daemon.jobs import JobRecord, JobStore, JobStoreError
-from cellctl.daemon.records import MAX_RECORD_BYTES, RecordError, read_json_file
+from cellctl.jobstore.history import History, format_history, previous_round_for
+from cellctl.jobstore.jobs import JobRecord, JobStore, JobStoreError
+from cellctl.jobstore.records import MAX_RECORD_BYTES, RecordError, read_json_file
 from tests.support.reports import report_json
 
 DONE_ID = "20260101T000000-aaaa0001"

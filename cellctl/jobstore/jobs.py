@@ -3,7 +3,7 @@
 Layout of a job directory::
 
     job.json        this record: trigger, state, state history, results (rewritten atomically)
-    raw/            the acquisition's raw files (cellctl.acquisition.rawstore: job.json + *.craw)
+    raw/            the acquisition's raw files (cellctl.jobstore.rawstore: job.json + *.craw)
     cloud.bin       the published cloud, exactly the bytes sent (cellctl.api.cloud_codec layout, base frame, mm)
     results/        the worker's results directory (report.json, report.csv, results.npz, cloud.ply)
     report.json     the report as the daemon received it
@@ -31,12 +31,9 @@ from pydantic import BaseModel, ValidationError
 
 from analysis.job import PlacementFinding
 from analysis.placement import Placement
-from cellctl.acquisition.assembly import AssembledScan
-from cellctl.acquisition.session import AcquisitionSession
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
-from cellctl.api.models import AnalysisOptions, MotionCounters
-from cellctl.daemon.records import check_job_id, is_job_id, read_json_file
-from cellctl.motion.link import RemoteExecution
+from cellctl.api.models import AnalysisOptions
+from cellctl.jobstore.records import check_job_id, is_job_id, read_json_file
 
 log = structlog.get_logger(__name__)
 
@@ -152,24 +149,6 @@ class JobRecord:
     def as_json(self) -> dict[str, Any]:
         """The record as job.json's object (the placement as ``{"pos_mm", "rpy_deg"}``)."""
         return json.loads(json.dumps(asdict(self), default=_json_default))
-
-
-class ActiveJob:
-    """A job the daemon is running (queued, scanning or analysing): its live objects beside its record."""
-
-    def __init__(self, record: JobRecord) -> None:
-        self.record = record
-        self.executor: RemoteExecution | None = None
-        self.motion: MotionCounters | None = None  # the motion process's counters of this job
-        self.profiles = 0
-        self.points = 0
-        self.fraction = 0.0
-        self.stage = "queued"
-        self.worker_id: str | None = None
-        self.stop_reason: str | None = None  # "shutdown", "abort" or "disk"
-        self.cloud: AssembledScan | None = None  # the live cloud of a finished scan, until published
-        self.task: asyncio.Task[None] | None = None
-        self.session: AcquisitionSession | None = None  # while the scan acquires
 
 
 class JobStore:

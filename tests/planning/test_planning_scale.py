@@ -19,7 +19,7 @@ from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.coverage import _predict_coverage, build_segments, design_surface, predict_coverage
 from cellctl.planning.planner import positions_at
 from drivers.abb_egm.limits import LinearTrack
-from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
+from tests.support.plans import SMALL_PLACEMENT, SMALL_SETTINGS
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from cellctl.planning.planner import (
 )
 from cellctl.planning.timing import rest_to_rest_s
 from drivers.abb_egm.kinematics import fk_batch
-from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
+from tests.support.plans import SMALL_PLACEMENT, SMALL_SETTINGS
 
 
 @pytest.fixture(scope="module")

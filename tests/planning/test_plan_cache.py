@@ -11,7 +11,7 @@ from analysis.placement import Placement
 from analysis.plates import design_mesh, plate_spec
 from cellctl.planning.cache import PLAN_CACHE_VERSION, PlanCache, _entry_bytes, _read_entry, plan_key
 from drivers.abb_egm.limits import LinearTrack
-from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
+from tests.support.plans import SMALL_PLACEMENT, SMALL_SETTINGS
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ import structlog
 
 from analysis.job import Report
 from analysis.results import ReportError, read_report
-from cellctl.daemon.records import RecordError, check_job_id, read_json_file
+from cellctl.jobstore.records import RecordError, check_job_id, read_json_file
 
 if TYPE_CHECKING:
     from analysis.report import PreviousRound

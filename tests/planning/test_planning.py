@@ -21,7 +21,7 @@ from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanP
 from cellctl.planning.coverage import design_surface
 from cellctl.planning.timing import RAMP_ALLOWANCE_MM, tcp_speed_mm_s
 from drivers.abb_egm.kinematics import fk_batch
-from tests.motion.conftest import SAIL_PLACEMENT
+from tests.support.plans import SAIL_PLACEMENT
 
 CYCLE_S = 0.004032
 

@@ -15,8 +15,8 @@ from cellctl.config import load_config
 from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.joint_path import sensor_kinematics, solve_joint_path, split_waypoints
 from cellctl.planning.plan import PlanRefused, Segment, rotation_angle_deg, slerp_frames
-from tests.motion.conftest import SMALL_PLACEMENT, SMALL_SETTINGS
 from tests.support.e2e_cell import tiny_cell_config
+from tests.support.plans import SMALL_PLACEMENT, SMALL_SETTINGS
 
 #: where the locate e2e (seed 17939) found its plate: the corner link from the third edge to the
 #: fourth passes joint 5 at 7.7 deg, and its Cartesian waypoints stepped joint 6 by 15.2 deg

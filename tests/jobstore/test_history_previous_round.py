@@ -1,4 +1,4 @@
-"""The report's previous round found from job directories (cellctl.daemon.history.previous_round_for)."""
+"""The report's previous round found from job directories (cellctl.jobstore.history.previous_round_for)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from analysis.templates import DetectionLayout
 from cellctl.commands import report_cmd
-from cellctl.daemon.history import History, previous_round_for
+from cellctl.jobstore.history import History, previous_round_for
 from tests.support.reports import report_json
 from tests.support.results_fixture import write_synthetic_results
 

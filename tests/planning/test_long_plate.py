@@ -4,6 +4,7 @@ on a 7 m track, the plate 800 mm below its base (issue 20, item 5)."""
 from __future__ import annotations
 
 import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,8 +16,7 @@ from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.coverage import build_segments, design_surface, predict_edge_face_coverage
 from cellctl.planning.planner import EDGE_TILT_MIN_DEG
 
-from .conftest import REPO
-
+REPO = Path(__file__).resolve().parents[2]
 TRACK_CELL = REPO / "docs" / "examples" / "cell-track.toml"
 LONG_SPEC = plate_spec("sail", length_mm=6000.0, width_mm=2000.0, radius_x_mm=20000.0, radius_y_mm=10000.0)
 

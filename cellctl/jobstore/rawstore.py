@@ -184,7 +184,7 @@ class RawWriter:
     ) -> None:
         self.job_dir = Path(job_dir)
         # a shipyard's raw scans are confidential: owner read/write, group read, nobody else (as the
-        # job store's directories, cellctl/daemon/jobs.py DIR_MODE), whatever the umask
+        # job store's directories, cellctl/jobstore/jobs.py DIR_MODE), whatever the umask
         self.job_dir.mkdir(mode=RAW_DIR_MODE, parents=True, exist_ok=True)
         os.chmod(self.job_dir, RAW_DIR_MODE)
         if any((self.job_dir / f"{s}.craw").exists() for s in STREAMS):

@@ -12,7 +12,7 @@ import pytest
 
 from analysis.job import AnalysisJob
 from cellctl.api.cloud_codec import Cloud, encode_cloud
-from cellctl.worker import AnalysisProcess
+from cellctl.worker.process import AnalysisProcess
 
 pytestmark = pytest.mark.process  # the spawned analysis process
 
@@ -73,7 +73,7 @@ def test_an_explicit_blas_setting_in_the_environment_wins(monkeypatch, tmp_path)
 def test_a_request_the_child_cannot_use_ends_it_and_the_worker_sees_a_crash_not_a_wrong_answer(tmp_path):
     """Only the worker writes the pipe: an unknown op (or a job without its spec) is a broken pipe
     protocol; the child exits rather than answer it (an answer could pair with the wrong request)."""
-    from cellctl.worker import AnalysisCrashed
+    from cellctl.worker.process import AnalysisCrashed
 
     payload = encode_cloud(Cloud(xyz_mm=np.zeros((4, 3), np.float32), job_id="j1", plate_id="p1"))
 
@@ -100,7 +100,7 @@ def test_the_child_answers_with_a_typed_report_or_a_typed_error_and_nothing_in_b
 
     from pydantic import ValidationError
 
-    from cellctl.worker import ChildAnswer, ChildHello, _error_text, _outcome_text
+    from cellctl.worker.child import ChildAnswer, ChildHello, _error_text, _outcome_text
     from tests.zenoh.zworker_fns import minimal_report
 
     job = AnalysisJob(job_id="j1", plate_id="p1", design="none.stl")

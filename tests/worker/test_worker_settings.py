@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from cellctl.api.dispatch import DispatchSettings
 from cellctl.config import ConfigError, load_config, parse_config
-from cellctl.worker import AnalysisLoadError, WorkerSettings, resolve_callable
+from cellctl.daemon.dispatch import DispatchSettings
+from cellctl.worker.child import AnalysisLoadError, resolve_callable
+from cellctl.worker.settings import WorkerSettings
 
 
 def test_shipped_cell_toml_gives_the_documented_defaults(repo_root):

@@ -1,4 +1,4 @@
-"""The analysis child's heap policy (cellctl.heap), in a process of its own (it lasts for a process's life)."""
+"""The analysis child's heap policy (cellctl.worker.heap), in a process of its own (it lasts for a process's life)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.heap import RESERVE_BYTES_PER_POINT, HeapReserve
+from cellctl.worker.heap import RESERVE_BYTES_PER_POINT, HeapReserve
 
 REPO = Path(__file__).resolve().parents[2]
 
 _PROBE = """
 import json, numpy as np
-from cellctl.heap import HeapReserve, free_heap_bytes, single_arena
+from cellctl.worker.heap import HeapReserve, free_heap_bytes, single_arena
 
 def rss():
     return int(open("/proc/self/statm").read().split()[1]) * 4096
