@@ -3,7 +3,8 @@
 What lives here: the precise event loop (microsecond timers), real-time scheduling (SCHED_FIFO for
 a loop or a thread, normal priority for helper threads and child processes), the CPU wake-up
 latency hold, handing freed C-heap pages back (``malloc_trim``), resident memory and the traced
-Python heap, and the stop signals of a service (SIGTERM / SIGINT, SIGXFSZ ignored).
+Python heap, the stop signals of a service (SIGTERM / SIGINT, SIGXFSZ ignored), and rate-limited
+warnings for per-message problems (a flood of bad packets or messages must not flood the log).
 
 Why in ``drivers`` and not in ``cellctl``: the users are on both sides of the one-way door. The EGM
 endpoint (``drivers.abb_egm.endpoint``) puts its reply thread under SCHED_FIFO, the controller and
@@ -25,6 +26,7 @@ import os
 import selectors
 import signal
 import struct
+import time
 import tracemalloc
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -34,6 +36,7 @@ from typing import Any
 import structlog
 
 __all__ = [
+    "RateLimitedLog",
     "heap_summary",
     "hold_cpu_wakeup_latency",
     "lock_memory",
@@ -212,3 +215,36 @@ def stop_on_signals(stop: asyncio.Event) -> Callable[[], None]:
                 loop.remove_signal_handler(sig)
 
     return release
+
+
+# ---------------------------------------------------------------------------------- logging
+
+
+class RateLimitedLog:
+    """Emit at most one warning per ``interval_s`` per event; each says how many of that event were
+    suppressed since the last one and how many there were in all (``total``, also
+    :meth:`count`). The sensor clients, the simulators and the worker use it for malformed packets
+    and messages."""
+
+    def __init__(self, logger: Any, interval_s: float = 1.0) -> None:
+        self._log = logger
+        self._interval_ns = int(interval_s * 1e9)
+        self._last_ns: dict[str, int] = {}
+        self._suppressed: dict[str, int] = {}
+        self._total: dict[str, int] = {}
+
+    def count(self, event: str | None = None) -> int:
+        """How many times ``event`` (None: any event) was warned of, suppressed ones included."""
+        return sum(self._total.values()) if event is None else self._total.get(event, 0)
+
+    def warning(self, event: str, **kw: Any) -> None:
+        """Log ``event`` as a warning unless the same event was logged within the interval."""
+        now = time.monotonic_ns()
+        self._total[event] = total = self._total.get(event, 0) + 1
+        last = self._last_ns.get(event)
+        if last is not None and now - last < self._interval_ns:
+            self._suppressed[event] = self._suppressed.get(event, 0) + 1
+            return
+        self._last_ns[event] = now
+        suppressed = self._suppressed.pop(event, 0)
+        self._log.warning(event, suppressed=suppressed, total=total, **kw)

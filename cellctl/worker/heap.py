@@ -27,11 +27,12 @@ import math
 
 import numpy as np
 
+from drivers.runtime import release_freed_memory
+
 __all__ = [
     "RESERVE_BYTES_PER_POINT",
     "HeapReserve",
     "free_heap_bytes",
-    "release_free_memory",
     "single_arena",
 ]
 
@@ -62,7 +63,6 @@ def _libc() -> ctypes.CDLL | None:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
         libc.mallinfo2.restype = _Mallinfo2
-        libc.malloc_trim.argtypes = [ctypes.c_size_t]
     except (OSError, AttributeError):  # not glibc, or older than 2.33 (mallinfo2)
         return None
     return libc
@@ -84,12 +84,6 @@ def single_arena() -> bool:
 def free_heap_bytes() -> int | None:
     """Bytes the heap holds free (every one of them touched while it is kept), None without glibc."""
     return None if _LIBC is None else int(_LIBC.mallinfo2().fordblks)
-
-
-def release_free_memory() -> None:
-    """Give the heap's free pages back to the system (``malloc_trim``)."""
-    if _LIBC is not None:
-        _LIBC.malloc_trim(0)
 
 
 class HeapReserve:
@@ -151,4 +145,4 @@ class HeapReserve:
                 (_M_TRIM_THRESHOLD, 2 * _MMAP_CEILING),
             )
             self.active = False
-        release_free_memory()
+        release_freed_memory()

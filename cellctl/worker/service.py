@@ -49,7 +49,7 @@ from cellctl.api.transfer import (
 from cellctl.worker.child import AnalysisLoadError, ChildAnswer
 from cellctl.worker.process import AnalysisCrashed, AnalysisProcess
 from cellctl.worker.settings import WorkerSettings
-from drivers.runtime import stop_on_signals
+from drivers.runtime import RateLimitedLog, stop_on_signals
 
 log = structlog.get_logger(__name__)
 
@@ -69,25 +69,6 @@ class _StreamInbox:
     # set when the daemon that streams this job is gone (its liveliness token ended) before the end
     daemon_gone: bool = False
     wake: asyncio.Event = field(default_factory=asyncio.Event)
-
-
-class _RateLimitedLog:
-    """At most one warning per ``every_s`` for a noisy event, with the count of those suppressed."""
-
-    def __init__(self, every_s: float = 5.0) -> None:
-        self.every_s = every_s
-        self.count = 0
-        self._last = -1e9
-        self._suppressed = 0
-
-    def warn(self, event: str, **kw: Any) -> None:
-        self.count += 1
-        now = time.monotonic()
-        if now - self._last >= self.every_s:
-            log.warning(event, suppressed=self._suppressed, total=self.count, **kw)
-            self._last, self._suppressed = now, 0
-        else:
-            self._suppressed += 1
 
 
 class Worker:
@@ -113,7 +94,7 @@ class Worker:
         self.worker_id = settings.worker_id or default_worker_id()
         self.runner = runner or AnalysisProcess.from_settings(settings)
         self.jobs_done = 0
-        self.malformed = _RateLimitedLog()
+        self.malformed = RateLimitedLog(log, interval_s=5.0)
         self._current: JobSpec | None = None
         self._current_cell: str | None = None
         self._stream: _StreamInbox | None = None
@@ -254,7 +235,7 @@ class Worker:
             if spec.job_id != Keys.last_chunk(key):
                 raise ValueError(f"attachment job_id {spec.job_id!r} does not match the key")
         except ValueError as exc:
-            self.malformed.warn("job_message_malformed", key=key, error=str(exc)[:300])
+            self.malformed.warning("job_message_malformed", key=key, error=str(exc)[:300])
             return
         cur, task = self._current, self._task
         if cur is not None and (cur.job_id, cur.attempt, cur.offer_id) == (
@@ -329,7 +310,7 @@ class Worker:
                     return
                 inbox.chunks[head.seq] = (head, data)
         except ValueError as exc:
-            self.malformed.warn("stream_message_malformed", key=key, error=str(exc)[:300])
+            self.malformed.warning("stream_message_malformed", key=key, error=str(exc)[:300])
             return
         inbox.wake.set()
 

@@ -22,8 +22,8 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.laser import protocol as P
-from drivers.laser._ratelimit import RateLimitedLog
 from drivers.laser.source import ProfileBatch, ProfileSource, SourceEventKind
+from drivers.runtime import RateLimitedLog
 
 __all__ = ["HD8Client", "HD8ClientConfig"]
 

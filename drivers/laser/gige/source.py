@@ -38,7 +38,6 @@ import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
-from drivers.laser._ratelimit import RateLimitedLog
 from drivers.laser.gige import genicam
 from drivers.laser.gige._aravis import aravis
 from drivers.laser.gige.errors import DeviceNotFoundError, GigeError, PixelFormatError
@@ -50,6 +49,7 @@ from drivers.laser.gige.scan3d import (
     rows_to_profiles,
 )
 from drivers.laser.source import ProfileBatch, ProfileSource, SourceEventKind, SourceStats
+from drivers.runtime import RateLimitedLog
 
 __all__ = ["GigeProfileSource", "GigeSourceConfig", "GigeStats", "discover"]
 

@@ -30,10 +30,10 @@ from typing import Any
 import numpy as np
 import structlog
 
-from drivers.laser._ratelimit import RateLimitedLog
 from drivers.laser.gige.scan3d import RangeLayout, profiles_to_rows
 from drivers.laser.sim.gige_xml import profiler_genicam_xml
 from drivers.laser.sim.sensor import LaserSimulator
+from drivers.runtime import RateLimitedLog
 
 __all__ = ["GigeSimDevice"]
 

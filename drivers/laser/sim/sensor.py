@@ -41,9 +41,9 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from drivers.laser import protocol as P
-from drivers.laser._ratelimit import RateLimitedLog
 from drivers.laser.sim.optics import LaserOptics, render_points, render_uniform
 from drivers.laser.sim.scene import Scene, SceneRaycaster, plane_scene, step_scene
+from drivers.runtime import RateLimitedLog
 from drivers.sim.fault_channel import start_fault_server
 
 __all__ = ["LaserSimulator", "PoseFn", "SimConfig", "SimFaults", "SimStats", "fixed_pose", "main"]
