@@ -22,12 +22,13 @@ import contextlib
 import fcntl
 import json
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, field
 from pathlib import Path
 from typing import Any
 
 import structlog
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic.dataclasses import dataclass
 
 from analysis.job import PlacementFinding
 from analysis.placement import Placement
@@ -105,9 +106,11 @@ def lock_data_dir(data_dir: str | Path) -> int:
     return fd
 
 
-@dataclass
+@dataclass(config=ConfigDict(extra="forbid"))
 class JobRecord:
-    """What ``job.json`` holds.
+    """What ``job.json`` holds: a pydantic dataclass, so a record is validated whenever it is made or
+    read (a field of the wrong type, a field this version does not know: ValueError, and a record
+    read so is quarantined); :func:`_checked` adds the state, history, info and options checks.
 
     Attributes:
         job_id, plate_id: identity. design: the trigger's design path (relative to designs_dir);
@@ -133,14 +136,6 @@ class JobRecord:
     history: list[dict[str, str]] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
     analysis: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        if self.placement is not None and not isinstance(self.placement, Placement):
-            try:  # job.json's object, or a caller's dict: the one placement type from here on
-                self.placement = Placement.model_validate(self.placement)
-            except ValidationError as exc:
-                err = exc.errors(include_url=False)[0]
-                raise ValueError(f"placement: {err['msg']} at {tuple(err['loc'])}") from None
 
     @property
     def terminal(self) -> bool:
