@@ -1,8 +1,8 @@
 """The inspection report's files, made from a results directory.
 
 A results directory (one per job or per ``cellctl inspect --out DIR``) holds ``report.json`` (a
-:class:`~analysis.job.Report`), ``results.npz`` (arrays for plots) and ``cloud.ply``, both read
-through :mod:`analysis.results`. This module turns them into what people read:
+:class:`~analysis.contracts.job.Report`), ``results.npz`` (arrays for plots) and ``cloud.ply``, both read
+through :mod:`analysis.contracts.results`. This module turns them into what people read:
 
 * ``report.html``: one self-contained page (inline CSS, inline SVG plots with their raster parts
   as data: URLs, no script, no web font, nothing fetched), so it opens from a USB stick;
@@ -37,8 +37,8 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from analysis.job import LineReport, Report, ScanCoverage
-from analysis.results import LineSeries, ReportError, read_report, read_results_arrays
+from analysis.contracts.job import LineReport, Report, ScanCoverage
+from analysis.contracts.results import LineSeries, ReportError, read_report, read_results_arrays
 from analysis.rework import GriddedField, ReworkRegion, find_rework_regions, grid_deviation
 
 log = structlog.get_logger(__name__)
@@ -58,7 +58,7 @@ __all__ = [
     "write_report",
 ]
 
-# The paper's Tables 3-5 columns, in order, with the :class:`~analysis.job.LineReport` field of each.
+# The paper's Tables 3-5 columns, in order, with the :class:`~analysis.contracts.job.LineReport` field of each.
 CSV_COLUMNS: tuple[tuple[str, str], ...] = (
     ("family", "family"),
     ("line", "index"),
@@ -181,7 +181,7 @@ def _not_scanned_items(cov: ScanCoverage) -> list[tuple[str, str]]:
 
 def load_results(results_dir: str | Path) -> ResultsData:
     """Read and check ``report.json`` and ``results.npz`` of a results directory
-    (:func:`analysis.results.read_report`, :func:`analysis.results.read_results_arrays`).
+    (:func:`analysis.contracts.results.read_report`, :func:`analysis.contracts.results.read_results_arrays`).
 
     Raises :class:`ReportError` naming the file and the field or array at fault.
     """

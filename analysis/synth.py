@@ -40,11 +40,11 @@ from pathlib import Path
 import numpy as np
 import structlog
 
-from analysis.cad_write import write_design
 from analysis.cloud_io import CloudError, ScanCloud, write_cloud_ply
-from analysis.mesh import TriMesh, save_mesh
-from analysis.placement import Placement, placement_transform
-from analysis.plates import (
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.design.cad_write import write_design
+from analysis.design.mesh import TriMesh, save_mesh
+from analysis.design.plates import (
     PLATE_KINDS,
     EdgeSpringback,
     FormingError,
@@ -223,7 +223,7 @@ class SynthScan:
             "n_points": len(self.xyz_mm),
             "n_raster_passes": self.n_raster_passes,
             "n_outliers": int(self.is_outlier.sum()),
-            "frames": "points in the bed frame; design frame per analysis.plates; T maps design -> bed",
+            "frames": "points in the bed frame; design frame per analysis.design.plates; T maps design -> bed",
         }
 
 

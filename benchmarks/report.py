@@ -1,7 +1,7 @@
 """Benchmark: render a full inspection report (23 detection lines, 300,000 plate points).
 
 Builds a results directory for the paper's 1200 x 800 mm sail plate with a known dent and bump
-(tests/support/results_fixture.py: heights from analysis.plates, figures from analysis.metrics),
+(tests/support/results_fixture.py: heights from analysis.design.plates, figures from analysis.metrics),
 then times ``analysis.report.write_report`` (CSV + self-contained HTML + PDF) on it.
 Prints one JSON object on stdout.
 """

@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
-from analysis.job import Report
-from analysis.results import ReportError, read_report
+from analysis.contracts.job import Report
+from analysis.contracts.results import ReportError, read_report
 from cellctl.daemon.records import RecordError, check_job_id, read_json_file
 
 if TYPE_CHECKING:

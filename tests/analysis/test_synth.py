@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from analysis.cloud_io import read_cloud
-from analysis.mesh import load_mesh
-from analysis.placement import Placement
-from analysis.plates import (
+from analysis.contracts.placement import Placement
+from analysis.design.mesh import load_mesh
+from analysis.design.plates import (
     FormingError,
     GaussianBump,
     PlateError,

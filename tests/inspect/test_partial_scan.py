@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from analysis.cloud_io import ScanCloud
-from analysis.job import Report
+from analysis.contracts.job import Report
+from analysis.design.plates import plate_spec
 from analysis.pipeline import PARTIAL_LINE_COVERAGE, InspectionError, inspect_cloud
-from analysis.plates import plate_spec
 from analysis.segment import segment_plate
 from analysis.synth import ScanSettings, synthesize_scan
 

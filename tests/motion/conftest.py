@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.motion import ExecutionResult, ExecutorConfig, MotionExecutor
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from drivers.abb_egm.endpoint import EgmEndpoint, EgmEndpointConfig

@@ -11,7 +11,8 @@ import pytest
 from plyfile import PlyData
 from scipy.spatial import cKDTree
 
-from analysis import pipeline, plates, synth
+from analysis import pipeline, synth
+from analysis.design import plates
 from analysis.report import load_results, write_report
 from analysis.rework import find_rework_regions, grid_deviation
 from analysis.templates import DetectionLayout

@@ -1,6 +1,6 @@
 """A results directory's two data files, read and written in one place.
 
-``report.json`` is a :class:`~analysis.job.Report`; :func:`read_report` is its one reader (the report
+``report.json`` is a :class:`~analysis.contracts.job.Report`; :func:`read_report` is its one reader (the report
 renderer, the plate history, the HMI, the demo and ``cellctl`` read it through here). ``results.npz``
 holds the arrays the plots are drawn from; :class:`ResultsArrays` is its layout, written by
 :func:`analysis.pipeline.write_results` (:meth:`ResultsArrays.save`) and read by the report renderer
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from analysis.job import Report
+from analysis.contracts.job import Report
 
 __all__ = [
     "LineSeries",
