@@ -19,13 +19,8 @@ from analysis.design.plates import (
     formed_height_mm,
     plate_spec,
 )
-from analysis.synth import (
-    ScanSettings,
-    SynthError,
-    parse_deform,
-    synth_main,
-    synthesize_scan,
-)
+from analysis.synth import ScanSettings, SynthError, synthesize_scan
+from cellctl.commands.synth_cmd import parse_deform, synth_main
 
 
 @cache
