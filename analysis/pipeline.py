@@ -74,7 +74,7 @@ from analysis.register.height_field import HeightField, height_field_from_mesh
 from analysis.register.onesided import deflection_gaps
 from analysis.register.rest_surface import RestSurface, rest_surface
 from analysis.register.transforms import RegistrationError, apply_transform, invert_transform
-from analysis.report import write_csv
+from analysis.report.csv_table import write_csv
 from analysis.segment import PassCells, SegmentResult, pass_cells, segment_plate
 from analysis.template_fit import (
     LineFitResult,

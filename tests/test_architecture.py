@@ -12,8 +12,9 @@ and under ``if TYPE_CHECKING:`` included (as are ``importlib.import_module("..."
    level under each root (``cellctl.planning``, ``cellctl.motion``, ``cellctl.api``, ``cellctl.config``,
    ``drivers.abb_egm``, ...), a ``sim`` wing being a node of its own (``drivers.abb_egm.sim``,
    ``drivers.sim``).
-4. inside ``analysis``, design input (``analysis.design``), the registration (``analysis.register``)
-   and the contracts (``analysis.contracts``) import only the groups below them (``ANALYSIS_GROUPS``).
+4. inside ``analysis``, design input (``analysis.design``), the registration (``analysis.register``),
+   the contracts (``analysis.contracts``) and the report (``analysis.report``) import only the groups
+   below them (``ANALYSIS_GROUPS``).
 
 Each failure names the importing file and line.
 """
@@ -164,12 +165,13 @@ def cycle_violations(imports: list[Import]) -> list[str]:
 
 #: what each of analysis' groups may import of the rest of analysis (docs/architecture.md, rule 4):
 #: design input is read without the stages, the registration works on the design and the contracts,
-#: the contracts are built from the stages' types; none of them reaches up to the pipeline, the
-#: report or the synthetic scans.
+#: the contracts are built from the stages' types, the report is made from the stored results alone;
+#: none of them reaches up to the pipeline or the synthetic scans.
 ANALYSIS_GROUPS: dict[str, set[str]] = {
     "analysis.design": {"analysis.cloud_io"},
     "analysis.register": {"analysis.cloud_io", "analysis.contracts", "analysis.design"},
     "analysis.contracts": {"analysis.design", "analysis.metrics", "analysis.templates"},
+    "analysis.report": {"analysis.contracts", "analysis.rework"},
 }
 
 
@@ -316,6 +318,7 @@ def test_analysis_is_grouped_by_stage_design_input_and_contracts(repository) -> 
         "register": ("transforms", "height_field", "coarse", "icp", "onesided", "fit", "locate"),
         "design": ("mesh", "cad", "cad_write", "outline", "moulded", "template_table", "plates"),
         "contracts": ("job", "settings", "placement", "results"),
+        "report": ("load", "plots", "text", "html_page", "pdf", "csv_table", "write"),
     }.items():
         for m in modules:
             assert f"analysis/{group}/{m}.py" in files and f"analysis/{m}.py" not in files, (group, m)

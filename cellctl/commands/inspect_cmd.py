@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from analysis.design.cad import read_design
     from analysis.design.template_table import read_template_table
     from analysis.pipeline import inspect_cloud, write_results
-    from analysis.report import write_report
+    from analysis.report.write import write_report
     from cellctl.api.analysis_job import inspection_settings
     from cellctl.commands.plan_cmd import parse_placement
     from cellctl.commands.tables import line_table

@@ -10,7 +10,7 @@ from analysis.contracts.placement import Placement
 from analysis.design.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.pipeline import InspectionSettings, inspect_cloud
 from analysis.register.height_field import height_field_from_mesh
-from analysis.report import _compare_html
+from analysis.report.html_page import _compare_html
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 

@@ -104,7 +104,7 @@ def test_a_partial_scan_without_its_placement_is_refused_with_the_way_to_analyse
 @pytest.mark.slow
 def test_a_partial_scans_report_renders_what_was_not_scanned(sail, tmp_path):
     from analysis.pipeline import write_results
-    from analysis.report import write_report
+    from analysis.report.write import write_report
 
     ins = inspect_cloud(_cut(sail, 5, None), sail.design_mesh(), nominal_placement=sail.placement)
     write_results(ins, tmp_path)

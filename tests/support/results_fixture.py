@@ -27,7 +27,7 @@ from analysis.design.plates import (
     plate_spec,
 )
 from analysis.metrics import Tolerances, judge, line_metrics
-from analysis.report import write_csv
+from analysis.report.csv_table import write_csv
 from analysis.templates import DetectionLayout, detection_lines
 
 HOLE_CELL_MM = 5.0
