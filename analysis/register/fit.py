@@ -19,23 +19,9 @@ import structlog
 from analysis.design.mesh import TriMesh
 from analysis.register.coarse import CoarseResult, _check_corners, _snap_to_cloud, coarse_register
 from analysis.register.height_field import HeightField, height_field_from_mesh
-from analysis.register.icp import (
-    BOUNDARY_WEIGHT,
-    IcpResult,
-    _subsample,
-    icp_point_to_plane,
-)
-from analysis.register.onesided import (
-    NonPenetratingResult,
-    deflection_gaps,
-    grid_average,
-    nonpenetrating_fit,
-)
-from analysis.register.transforms import (
-    RegistrationError,
-    _check_points,
-    _check_transform,
-)
+from analysis.register.icp import BOUNDARY_WEIGHT, IcpResult, _subsample, icp_point_to_plane
+from analysis.register.onesided import NonPenetratingResult, deflection_gaps, grid_average, nonpenetrating_fit
+from analysis.register.transforms import RegistrationError, _check_points, _check_transform
 
 log = structlog.get_logger(__name__)
 

@@ -14,9 +14,7 @@ from functools import cached_property
 import numpy as np
 
 from analysis.design.mesh import TriMesh
-from analysis.register.transforms import (
-    RegistrationError,
-)
+from analysis.register.transforms import RegistrationError
 
 # --------------------------------------------------------------------------------------------------
 # the design surface as a height field

@@ -9,7 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import structlog
 
 from analysis.register.coarse import _check_corners
 from analysis.register.height_field import HeightField
@@ -22,9 +21,6 @@ from analysis.register.transforms import (
     make_transform,
     rotation_from_vector,
 )
-
-log = structlog.get_logger(__name__)
-
 
 # --------------------------------------------------------------------------------------------------
 # 2. point-to-plane ICP (2.2.2)

@@ -19,12 +19,7 @@ import numpy as np
 import structlog
 
 from analysis.register.height_field import HeightField
-from analysis.register.icp import (
-    BOUNDARY_WEIGHT,
-    CORNER_SIGMA_MM,
-    _corner_terms,
-    _matched_corners,
-)
+from analysis.register.icp import BOUNDARY_WEIGHT, CORNER_SIGMA_MM, _corner_terms, _matched_corners
 from analysis.register.transforms import (
     RegistrationError,
     _check_points,

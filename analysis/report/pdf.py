@@ -12,13 +12,7 @@ from matplotlib.figure import Figure
 from analysis.contracts.job import Report
 from analysis.report.csv_table import CSV_COLUMNS
 from analysis.report.load import PreviousRound, ResultsData, previous_by_line
-from analysis.report.plots import (
-    _COLOURS,
-    _colorbar,
-    _draw_coverage,
-    _draw_line,
-    _draw_top_view,
-)
+from analysis.report.plots import _COLOURS, _colorbar, _draw_coverage, _draw_line, _draw_top_view
 from analysis.report.text import (
     FAMILIES,
     _f,

@@ -17,9 +17,7 @@ from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
 from analysis.report.load import ResultsData
-from analysis.report.text import (
-    _tolerances,
-)
+from analysis.report.text import _tolerances
 from analysis.rework import GriddedField, ReworkRegion
 
 _HOLE_CELL_MM = 5.0  # the pipeline's coverage cell

@@ -20,9 +20,7 @@ from analysis.report.plots import (
     _draw_top_view,
     _svg,
 )
-from analysis.report.text import (
-    _tolerances,
-)
+from analysis.report.text import _tolerances
 from analysis.rework import find_rework_regions, grid_deviation
 
 log = structlog.get_logger(__name__)
