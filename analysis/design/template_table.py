@@ -35,7 +35,7 @@ TemplateEdge = Literal["0-3", "1-2", "0-1", "3-2"]
 
 @dataclass(frozen=True)
 class TableTemplate:
-    """One row of a yard's template table (this module, docs/designs.md).
+    """One row of a yard's template table (docs/designs.md).
 
     name: the yard's template name (the report's line name). edge: the plate edge it is measured
     from, named by its corners (``"0-3"``: the width edge through the reference corner, so the
