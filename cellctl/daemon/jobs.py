@@ -114,7 +114,7 @@ class JobRecord:
 
     Attributes:
         job_id, plate_id: identity. design: the trigger's design path (relative to designs_dir);
-        design_path: resolved absolute path. placement: the :class:`~analysis.contracts.placement.Placement`
+        design_path: resolved absolute path. placement: the :class:`~analysis.placement.Placement`
         the scan is planned from (``{"pos_mm": [...], "rpy_deg": [...]}`` in job.json; a dict given
         here is validated into one, ValueError naming ``placement`` when it is not one): the
         trigger's, or (after the locate run) the one found; None until then when the trigger gave

@@ -188,7 +188,7 @@ def test_the_daemon_stats_model_takes_the_egm_endpoint_statistics_as_they_are():
 
 @pytest.mark.parametrize("design", ["plate.npz", "plate.json", "plate.txt"])
 def test_a_trigger_naming_a_design_the_analysis_cannot_read_is_refused_at_the_api(design):
-    """One list of design formats: the trigger accepts what analysis.design.cad.read_design reads, no more."""
+    """One list of design formats: the trigger accepts what analysis.cad.read_design reads, no more."""
     from pydantic import ValidationError
 
     from analysis.design.cad import DESIGN_SUFFIXES, read_design

@@ -151,7 +151,7 @@ def test_the_passes_across_a_deep_plate_fly_at_the_height_of_the_edges_they_cros
     )
     one_height = locate_settings(cfg, design, None).range_z_mm
     lo, hi = cfg.locate.bed_min_xy_mm, cfg.locate.bed_max_xy_mm
-    margin = 3.0  # analysis.register.locate's range_margin_mm
+    margin = 3.0  # analysis.locate's range_margin_mm
     ys = []
     for lp in plans:
         (seg,) = lp.plan.passes
