@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.plates import (
+from analysis.design.plates import (
     FormingError,
     PlateSpec,
     design_height_mm,
@@ -27,7 +27,9 @@ from analysis.plates import (
     forming_dz_mm,
     is_rectangle,
 )
-from analysis.register import HeightField, apply_transform, deflection_gaps, invert_transform
+from analysis.register.height_field import HeightField
+from analysis.register.onesided import deflection_gaps
+from analysis.register.transforms import apply_transform, invert_transform
 
 
 class AccuracyError(ValueError):

@@ -7,7 +7,7 @@ Steps, on the top-surface points from ``segment``:
    plate lies square to the bed, nor that it is a rectangle.
 2. **Boundary feature points.** The XY projection is rasterised (``pixel_mm``) in the (u, v)
    frame. The outline of the occupied area is split into four edges at its four largest turns
-   (:func:`analysis.outline.outline_corners` on its convex hull: any corner angle, bowed edges);
+   (:func:`analysis.design.outline.outline_corners` on its convex hull: any corner angle, bowed edges);
    each outline point belongs to the edge whose chord it lies nearest. For each ``bin_mm`` strip
    along a chord, the outermost point is that edge's feature point (where the scan leaves the
    plate); its height is extrapolated to it from the points just inside (``z_window_mm``), as the
@@ -41,8 +41,8 @@ from scipy import ndimage
 from scipy.interpolate import make_lsq_spline
 from scipy.spatial import ConvexHull, QhullError
 
-from analysis.outline import OutlineError, outline_corners
-from analysis.plates import canonical_corner_order
+from analysis.design.outline import OutlineError, outline_corners
+from analysis.design.plates import canonical_corner_order
 
 __all__ = ["BoundaryError", "BoundaryResult", "BoundarySettings", "EdgeFit", "find_corners"]
 

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from analysis.cad import CadDesign, read_design
-from analysis.mesh import TriMesh
+from analysis.design.cad import CadDesign, read_design
+from analysis.design.mesh import TriMesh
 from analysis.pipeline import design_corners_from_mesh, plate_frame
 from analysis.templates import DetectionLayout, DetectionLine, detection_lines, line_name
 

@@ -22,7 +22,7 @@ scan points (about 1.6 mm at HD8 density), which divides the sensor noise by 4, 
 the cost linear in the number of points where a Delaunay triangulation of millions would not be.
 
 ICP runs on that reconstructed surface. The non-penetrating fit rests the design on patch
-estimates of the plate whose noise bias is bounded (``analysis.rest_surface``: the noise measured
+estimates of the plate whose noise bias is bounded (``analysis.register.rest_surface``: the noise measured
 from the data, patch means of the gaps to the design sized so the highest patch error stays below
 0.25 sigma with 99 % confidence): rested on raw points or 16-point cell means, the design floated on
 the highest noise excursion (1.75 sigma) and every Zmax read that much too high. The sections are
@@ -45,9 +45,8 @@ import numpy as np
 import structlog
 
 from analysis.boundary import BoundaryError, BoundaryResult, find_corners
-from analysis.cad import CadDesign, read_design
 from analysis.cloud_io import ORGANISATION, ScanCloud, write_cloud_ply
-from analysis.job import (
+from analysis.contracts.job import (
     AnalysisJob,
     CompareLine,
     DesignReport,
@@ -62,27 +61,21 @@ from analysis.job import (
     SurfaceReport,
     TemplateFitCompare,
 )
-from analysis.mesh import MeshError, TriMesh
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.contracts.results import LineSeries, ResultsArrays, write_report_json
+from analysis.contracts.settings import TEMPLATE_FITS, InspectionSettings
+from analysis.design.cad import CadDesign, read_design
+from analysis.design.mesh import MeshError, TriMesh
+from analysis.design.moulded import design_as_laid
+from analysis.design.outline import design_corners_from_mesh, frame_design_mesh
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
-from analysis.moulded import design_as_laid
-from analysis.outline import design_corners_from_mesh, frame_design_mesh
-from analysis.placement import Placement, placement_transform
-from analysis.register import (
-    HeightField,
-    RegistrationError,
-    RegistrationResult,
-    apply_transform,
-    deflection_gaps,
-    height_field_from_mesh,
-    invert_transform,
-    register,
-    register_from_placement,
-)
-from analysis.report import write_csv
-from analysis.rest_surface import RestSurface, rest_surface
-from analysis.results import LineSeries, ResultsArrays, write_report_json
+from analysis.register.fit import RegistrationResult, register, register_from_placement
+from analysis.register.height_field import HeightField, height_field_from_mesh
+from analysis.register.onesided import deflection_gaps
+from analysis.register.rest_surface import RestSurface, rest_surface
+from analysis.register.transforms import RegistrationError, apply_transform, invert_transform
+from analysis.report.csv_table import write_csv
 from analysis.segment import PassCells, SegmentResult, pass_cells, segment_plate
-from analysis.settings import TEMPLATE_FITS, InspectionSettings
 from analysis.template_fit import (
     LineFitResult,
     TemplateFitError,
@@ -112,7 +105,7 @@ class InspectionError(ValueError):
 class Inspection:
     """One plate inspected: the report and the arrays behind it.
 
-    report: the report (``report.json``, :class:`~analysis.job.Report`).
+    report: the report (``report.json``, :class:`~analysis.contracts.job.Report`).
     plate_points_mm: (n, 3) top-surface points in the measured frame; deviation_mm: (n,) their
     signed deviation d = z_design - z_measured (>= 0: the plate lies below the template).
     surface_points_mm, surface_deviation_mm: the same for the reconstructed surface (cell means).
@@ -413,10 +406,10 @@ def inspect_cloud(
     turn (else the bed convention decides, see register()). The report records it under ``inputs``.
     inputs: what the caller records of the inputs (the design's name, how the placement was found);
     the cloud's size and ``nominal_placement`` are filled in here.
-    design: a mesh, or a CAD design (:mod:`analysis.cad`): then registration runs on its
+    design: a mesh, or a CAD design (:mod:`analysis.design.cad`): then registration runs on its
     tessellation, the corners come from the face's own boundary and the templates are cut from
     the exact surface. ``settings.design_side`` ``moulded_down``: the plate lies turned over, the
-    design is offset by ``settings.thickness_mm`` first (:func:`analysis.moulded.design_as_laid`).
+    design is offset by ``settings.thickness_mm`` first (:func:`analysis.design.moulded.design_as_laid`).
     Or a :class:`PreparedDesign` made beforehand for these settings (a streamed cloud: the design's
     part was done during the scan). passes: the cells of the passes already segmented
     (:func:`analysis.segment.pass_cells`, by pass id; :class:`CloudStream`).
@@ -745,7 +738,7 @@ def analyse_job(cloud: ScanCloud, job: AnalysisJob) -> Report:
     """Worker entry point: ``cloud`` the scan (organised or not), ``job`` the job's parameters
     (design, nominal placement, settings, ``out_dir``).
 
-    Returns the :class:`~analysis.job.Report`; with ``out_dir`` also
+    Returns the :class:`~analysis.contracts.job.Report`; with ``out_dir`` also
     writes the results directory there. ``analyse_job.stream`` is the same analysis for a cloud
     that arrives in chunks (:class:`CloudStream`).
     """

@@ -9,7 +9,7 @@ does not. Here, for one line:
 * :func:`line_rest_samples` -- what the template rests on: the plate's points within
   ``band_mm / 2`` of the section plane, binned along the line; each bin stands for its points by
   their mean position and the mean of their gaps to the rigidly fitted design (the noise-aware
-  estimate of ``analysis.rest_surface`` in one dimension: bins sized so the highest bin error stays
+  estimate of ``analysis.register.rest_surface`` in one dimension: bins sized so the highest bin error stays
   below ``target_sigmas`` sigma with the stated confidence).
 * :func:`fit_line_template` -- the motion in the section plane (a rotation ``angle_rad`` about the
   samples' centroid, a shift ``shift_s_mm`` along the line and ``shift_h_mm`` along up) that
@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.register import DAMPING, solve_onesided_qp
-from analysis.rest_surface import max_normal_quantile
-from analysis.settings import TEMPLATE_FITS
+from analysis.contracts.settings import TEMPLATE_FITS
+from analysis.register.onesided import DAMPING, solve_onesided_qp
+from analysis.register.rest_surface import max_normal_quantile
 from analysis.templates import DetectionLine
 
 
@@ -134,7 +134,7 @@ def line_rest_samples(
     return LineRest(s_mean, h, counts, bin_mm, bound, confidence)
 
 
-# trimmed like the 3D patches (analysis.rest_surface.TRIM_SIGMAS): the thickness face's points
+# trimmed like the 3D patches (analysis.register.rest_surface.TRIM_SIGMAS): the thickness face's points
 END_TRIM_SIGMAS = 3.0
 
 

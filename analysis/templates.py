@@ -14,12 +14,13 @@ is a length edge (the design plate frame's x), edge 0->3 a width edge.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Protocol
 
 import numpy as np
 import structlog
 
-from analysis.mesh import TriMesh
+from analysis.design.mesh import TriMesh
+from analysis.design.template_table import TableTemplate
 
 log = structlog.get_logger(__name__)
 
@@ -28,8 +29,6 @@ class TemplateError(ValueError):
     """Detection lines or section cuts that cannot be made: bad corners, bad layout, no intersection."""
 
 
-TemplateEdge = Literal["0-3", "1-2", "0-1", "3-2"]
-
 # edge a table template is measured from -> (family, measuring edge p0->p1, opposite edge q0->q1)
 _TABLE_EDGES: dict[str, tuple[str, tuple[int, int], tuple[int, int]]] = {
     "0-3": ("transverse", (0, 1), (3, 2)),
@@ -37,24 +36,6 @@ _TABLE_EDGES: dict[str, tuple[str, tuple[int, int], tuple[int, int]]] = {
     "0-1": ("longitudinal", (0, 3), (1, 2)),
     "3-2": ("longitudinal", (3, 0), (2, 1)),
 }
-
-
-@dataclass(frozen=True)
-class TableTemplate:
-    """One row of a yard's template table (:mod:`analysis.template_table`, docs/designs.md).
-
-    name: the yard's template name (the report's line name). edge: the plate edge it is measured
-    from, named by its corners (``"0-3"``: the width edge through the reference corner, so the
-    distance runs along the length; ``"1-2"`` the opposite width edge; ``"0-1"`` the length edge
-    through the reference corner; ``"3-2"`` the opposite length edge). distance_mm: from that edge,
-    along the adjacent edge from the corner named first, in the base plane. angle_deg: in plan,
-    between the template and the edge the distance runs along (90: square to it).
-    """
-
-    name: str
-    edge: TemplateEdge
-    distance_mm: float
-    angle_deg: float = 90.0
 
 
 @dataclass(frozen=True)
@@ -421,7 +402,7 @@ def _joined_cut(line: DetectionLine, sd: SampledSection, sm: SampledSection) -> 
 
 
 class ExactSurface(Protocol):
-    """A design surface that can be cut exactly (:class:`analysis.cad.CadDesign`)."""
+    """A design surface that can be cut exactly (:class:`analysis.design.cad.CadDesign`)."""
 
     mesh: TriMesh
 

@@ -30,10 +30,10 @@ import structlog
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from analysis.accuracy import template_lift, true_line_zmax
+from analysis.contracts.placement import Placement
+from analysis.design.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.pipeline import InspectionSettings, inspect_cloud
-from analysis.placement import Placement
-from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
-from analysis.register import height_field_from_mesh
+from analysis.register.height_field import height_field_from_mesh
 from analysis.synth import ScanSettings, synthesize_scan
 
 

@@ -29,8 +29,8 @@ import structlog
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from analysis.cloud_io import ScanCloud, read_cloud, write_cloud_npz
+from analysis.design.plates import default_forming_error, design_mesh, plate_spec
 from analysis.pipeline import InspectionSettings, inspect_cloud
-from analysis.plates import default_forming_error, design_mesh, plate_spec
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 

@@ -6,7 +6,7 @@ included), segmented (``analysis.segment``), and registered coarsely to its desi
 
 * ours: the plate's corners (``analysis.boundary.find_corners``), the paper's three-step boundary
   fit for each cyclic corner correspondence, the candidate with the best quick ICP kept
-  (``analysis.register.coarse_candidates`` + ``icp_point_to_plane`` on 20,000 points, as
+  (``analysis.register.fit.coarse_candidates`` + ``icp_point_to_plane`` on 20,000 points, as
   ``register`` does it); the time covers corners, fits and candidate choice;
 * RANSAC: open3d 0.20 legacy pipeline, voxel down-sampling, normals, FPFH features, RANSAC on
   feature matches (mutual filter off, edge-length and distance checkers), design samples as
@@ -34,9 +34,18 @@ import numpy as np
 import structlog
 from scipy.spatial import cKDTree
 
-from analysis import plates
-from analysis import register as rg
 from analysis.boundary import find_corners
+from analysis.design import plates
+from analysis.register.fit import coarse_candidates
+from analysis.register.height_field import HeightField, height_field_from_mesh
+from analysis.register.icp import icp_point_to_plane
+from analysis.register.transforms import (
+    RegistrationError,
+    apply_transform,
+    invert_transform,
+    make_transform,
+    pose_error,
+)
 from analysis.segment import segment_plate
 from analysis.synth import ScanSettings, synthesize_scan
 
@@ -48,32 +57,30 @@ def _quiet() -> None:
     )
 
 
-HALF_TURN = rg.make_transform(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))
+HALF_TURN = make_transform(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))
 
 
-def ours(surface: rg.HeightField, P: np.ndarray, design_c: np.ndarray, seed: int) -> tuple[np.ndarray, dict]:
+def ours(surface: HeightField, P: np.ndarray, design_c: np.ndarray, seed: int) -> tuple[np.ndarray, dict]:
     """Corners + the paper's coarse fit per corner shift + best quick ICP; returns (pose, timings)."""
     t0 = time.perf_counter()
     corners = find_corners(P).corners_mm
     t1 = time.perf_counter()
-    cands = rg.coarse_candidates(
-        design_c, corners, design_points_mm=surface.points_mm(4), measured_points_mm=P
-    )
+    cands = coarse_candidates(design_c, corners, design_points_mm=surface.points_mm(4), measured_points_mm=P)
     best, best_rms = None, np.inf
     for c in cands:
         matched = np.roll(corners, -c.shift, axis=0)
         try:
-            icp = rg.icp_point_to_plane(
+            icp = icp_point_to_plane(
                 surface, P, c.transform, max_points=20_000, max_iterations=30, seed=seed,
                 design_corners_mm=design_c, measured_corners_mm=matched,
             )  # fmt: skip
-        except rg.RegistrationError:
+        except RegistrationError:
             continue
         if icp.rms_mm < best_rms:
             best, best_rms = c, icp.rms_mm
     t2 = time.perf_counter()
     if best is None:
-        raise rg.RegistrationError("no candidate")
+        raise RegistrationError("no candidate")
     return best.transform, {"corners_s": t1 - t0, "fit_s": t2 - t1}
 
 
@@ -110,7 +117,7 @@ def judge(
 ) -> tuple[bool, float, float]:
     """(success, displacement mm, angle deg) against the truth (or its half-turn twin)."""
     options = [T_true, T_true @ HALF_TURN] if symmetric else [T_true]
-    errs = [rg.pose_error(T, Tt, corners) for Tt in options]
+    errs = [pose_error(T, Tt, corners) for Tt in options]
     d, a = min(errs, key=lambda e: e[0])
     return bool(d <= 5.0 and a <= 1.0), d, a
 
@@ -129,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
 
     spec = plates.plate_spec("sail")
     design = plates.design_mesh(spec, pitch_mm=5.0)
-    surface = rg.height_field_from_mesh(design, step_mm=1.0)
+    surface = height_field_from_mesh(design, step_mm=1.0)
     design_c = plates.design_corners(spec)
     x = np.linspace(-spec.length_mm / 2, spec.length_mm / 2, 101)
     X, Y = np.meshgrid(x, x * spec.width_mm / spec.length_mm)
@@ -152,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def mean_nn(P: np.ndarray, T: np.ndarray, seed: int) -> float:
         sub = P[np.random.default_rng(seed).choice(len(P), size=min(50_000, len(P)), replace=False)]
-        return float(tree.query(rg.apply_transform(rg.invert_transform(T), sub), workers=-1)[0].mean())
+        return float(tree.query(apply_transform(invert_transform(T), sub), workers=-1)[0].mean())
 
     # choose RANSAC's voxel on the first placements
     tuning = {}

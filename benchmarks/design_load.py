@@ -1,10 +1,10 @@
 """Read, tessellate and cut the 23 templates of the 1200 x 800 sail design from IGES and from STEP.
 
-The design is written by OpenCASCADE (``analysis.cad_write``: the exact biquadratic NURBS, mm),
+The design is written by OpenCASCADE (``analysis.design.cad_write``: the exact biquadratic NURBS, mm),
 once as IGES (entity 128) and once as STEP (B_SPLINE_SURFACE_WITH_KNOTS), then per format, best of
 ``--repeat`` runs:
 
-* ``read``: :func:`analysis.cad.read_cad` as the pipeline calls it (in a forked child, which
+* ``read``: :func:`analysis.design.cad.read_cad` as the pipeline calls it (in a forked child, which
   pickles the design back): parse, sew, NURBS patches, tessellation, boundary, corners, measured
   chord error. The stages inside the child are also given (``*_stages_s``).
 * ``cut``: the 23 detection lines of the paper's layout cut from the exact surface
@@ -32,9 +32,9 @@ import structlog
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from analysis.cad import read_cad
-from analysis.cad_write import write_design
-from analysis.plates import design_corners, plate_spec
+from analysis.design.cad import read_cad
+from analysis.design.cad_write import write_design
+from analysis.design.plates import design_corners, plate_spec
 from analysis.templates import DetectionLayout, detection_lines, exact_section
 
 

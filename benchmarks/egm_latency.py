@@ -216,8 +216,8 @@ async def _measure(port: int, args: argparse.Namespace, q_start_deg: tuple[float
 
 async def _motion_process(args: argparse.Namespace) -> dict:
     """The measurement against the cell's motion process executing plans (``--motion-process``)."""
-    from analysis.placement import Placement
-    from analysis.plates import design_mesh, plate_spec
+    from analysis.contracts.placement import Placement
+    from analysis.design.plates import design_mesh, plate_spec
     from cellctl.config import load_config
     from cellctl.daemon.wiring import motion_settings
     from cellctl.motion import ExecutorConfig

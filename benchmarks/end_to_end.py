@@ -146,7 +146,7 @@ def _accuracy_rms_mm(data_dir: Path, job_id: str) -> float | None:
     over the points at least 10 mm inside the plate's edges."""
     import numpy as np
 
-    from analysis.plates import FormingError, PlateSpec
+    from analysis.design.plates import FormingError, PlateSpec
     from cellctl.api.cloud_codec import decode_cloud
     from cellctl.simcell.truth import PlateTruth
 
@@ -174,8 +174,8 @@ def _utc_s(stamp: str) -> float:
 
 
 def main() -> int:
-    from analysis.mesh import save_mesh
-    from analysis.plates import design_mesh, plate_spec
+    from analysis.design.mesh import save_mesh
+    from analysis.design.plates import design_mesh, plate_spec
     from benchmarks.platform_latency import start_probes, stop_probes
     from cellctl.commands.demo_cmd import (
         DEMO_DESIGN,
@@ -367,8 +367,8 @@ def main() -> int:
     if found is not None:
         out["placement_found"] = found
         if found.get("source") != "given" and rec.get("placement"):
-            from analysis.locate import placement_offset
-            from analysis.placement import Placement
+            from analysis.contracts.placement import Placement
+            from analysis.register.locate import placement_offset
 
             d_mm, d_deg = placement_offset(
                 Placement.model_validate(rec["placement"]), cfg.sim.placement.to_placement()

@@ -42,9 +42,9 @@ import numpy as np
 import structlog
 
 from analysis.cloud_io import ScanCloud
-from analysis.locate import LocateError, locate_plate, placement_offset
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
+from analysis.register.locate import LocateError, locate_plate, placement_offset
 from cellctl.config import load_config
 from cellctl.daemon.locate import LocatePlan, locate_settings, next_locate_plans
 from cellctl.simcell.truth import plate_truth

@@ -161,7 +161,7 @@ def daemon_part(args: argparse.Namespace) -> dict:
 
 
 def _long_spec():
-    from analysis.plates import plate_spec
+    from analysis.design.plates import plate_spec
 
     # the sail's curvature over a plate five times as long and 2.5 times as wide: Rx, Ry scaled so
     # the depth stays a formed shell plate's (about 225 mm along, 70 mm across), not a bowl
@@ -171,8 +171,8 @@ def _long_spec():
 def synth_part(args: argparse.Namespace) -> dict:
     import numpy as np
 
-    from analysis.mesh import save_mesh
-    from analysis.plates import default_forming_error, design_mesh
+    from analysis.design.mesh import save_mesh
+    from analysis.design.plates import default_forming_error, design_mesh
     from analysis.synth import BedScene, ScanSettings, SupportBox, synthesize_scan
     from cellctl.api.cloud_codec import Cloud, encode_cloud
 
@@ -183,7 +183,7 @@ def synth_part(args: argparse.Namespace) -> dict:
     pitch = args.publish_pitch_mm
     st = ScanSettings(point_pitch_mm=pitch, points_per_profile=round(49.9 / pitch) + 1, profile_step_mm=1.0,
                       pass_overlap_mm=5.0)  # fmt: skip
-    from analysis.placement import Placement
+    from analysis.contracts.placement import Placement
 
     scan = synthesize_scan(spec, default_forming_error(spec), settings=st, scene=scene,
                            placement=Placement.on_bed(10.0, -5.0, 0.4), seed=args.seed)  # fmt: skip
@@ -221,9 +221,9 @@ def _trace_peaks(period_s: float = 0.5) -> None:
 
 
 def worker_part(args: argparse.Namespace) -> dict:
-    from analysis.job import AnalysisJob
+    from analysis.contracts.job import AnalysisJob
+    from analysis.contracts.settings import InspectionSettings
     from analysis.pipeline import analyse_job
-    from analysis.settings import InspectionSettings
     from analysis.templates import DetectionLayout
     from cellctl.api.cloud_codec import decode_cloud
 

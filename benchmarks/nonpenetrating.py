@@ -6,7 +6,7 @@ start from that ICP pose and minimise the same objective -- the sum of squared g
 design and every measured point along the deflection direction -- subject to no point
 penetrating the design:
 
-* ours: ``analysis.register.nonpenetrating_fit`` (linearised rotation, exact Jacobians, exact
+* ours: ``analysis.register.onesided.nonpenetrating_fit`` (linearised rotation, exact Jacobians, exact
   active-set QP per correspondence update, a final exact lift);
 * baseline: the paper's formulation, Euler angles + translation as the six unknowns, SciPy SLSQP,
   one nonlinear inequality constraint per point, gradients by finite differences (as a generic
@@ -18,7 +18,7 @@ so its objective is also given after lifting it by its worst penetration (``*_li
 subsample (``--baseline-points``) and its pose is then checked on all points. Prints one JSON
 object; logs go to stderr.
 
-``rest_1e6_*``: the pipeline's way since issue 21 -- ``analysis.rest_surface`` (noise from the data,
+``rest_1e6_*``: the pipeline's way since issue 21 -- ``analysis.register.rest_surface`` (noise from the data,
 patch means of the gaps, plus, on patches at the plate's edge, a local quadratic of the gaps read at
 the patch's outer extent so a raised edge is not averaged away -- docs/metrology.md) and the fit on
 those points, timed together; ``*_lift_mm``: the median
@@ -39,9 +39,12 @@ import structlog
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from analysis import plates
-from analysis import register as rg
-from analysis.rest_surface import rest_surface
+from analysis.design import plates
+from analysis.register.height_field import HeightField, height_field_from_mesh
+from analysis.register.icp import icp_point_to_plane
+from analysis.register.onesided import deflection_gaps, nonpenetrating_fit
+from analysis.register.rest_surface import rest_surface
+from analysis.register.transforms import apply_transform, invert_transform, make_transform
 
 
 def _quiet() -> None:
@@ -63,12 +66,12 @@ def make_scan(n_points: int, noise_mm: float, seed: int) -> tuple[np.ndarray, np
     rng = np.random.default_rng(seed)
     z = plates.formed_height_mm(spec, err, x, y) + rng.normal(0.0, noise_mm, len(x))
     R = Rotation.from_euler("xyz", [0.4, -0.3, 57.0], degrees=True).as_matrix()
-    T = rg.make_transform(R, np.array([2400.0, 350.0, 720.0]))
-    return rg.apply_transform(T, np.column_stack([x, y, z])), T
+    T = make_transform(R, np.array([2400.0, 350.0, 720.0]))
+    return apply_transform(T, np.column_stack([x, y, z])), T
 
 
 def baseline_slsqp(
-    surface: rg.HeightField, P: np.ndarray, T0: np.ndarray, max_iter: int = 200
+    surface: HeightField, P: np.ndarray, T0: np.ndarray, max_iter: int = 200
 ) -> tuple[np.ndarray, int, float, str]:
     """The paper's formulation: x = (alpha, beta, gamma, T1, T2, T3), SLSQP, one constraint per point."""
     c = P.mean(axis=0)
@@ -76,10 +79,10 @@ def baseline_slsqp(
     def pose(x: np.ndarray) -> np.ndarray:
         R = Rotation.from_euler("xyz", x[:3]).as_matrix()
         # rotate the design about the measured centroid, then translate
-        return rg.make_transform(R, c - R @ c + x[3:]) @ T0
+        return make_transform(R, c - R @ c + x[3:]) @ T0
 
     def gaps(x: np.ndarray) -> np.ndarray:
-        return rg.deflection_gaps(surface, P, pose(x))[0]
+        return deflection_gaps(surface, P, pose(x))[0]
 
     t = time.perf_counter()
     res = minimize(
@@ -92,15 +95,15 @@ def baseline_slsqp(
     return pose(res.x), int(res.nit), time.perf_counter() - t, str(res.message)
 
 
-def evaluate(surface: rg.HeightField, P: np.ndarray, T: np.ndarray) -> tuple[float, int]:
-    s, _, _, valid = rg.deflection_gaps(surface, P, T)
+def evaluate(surface: HeightField, P: np.ndarray, T: np.ndarray) -> tuple[float, int]:
+    s, _, _, valid = deflection_gaps(surface, P, T)
     s = s[valid]
     return float((s**2).sum()), int((s < 0).sum())
 
 
-def lifted_objective(surface: rg.HeightField, P: np.ndarray, T: np.ndarray) -> float:
+def lifted_objective(surface: HeightField, P: np.ndarray, T: np.ndarray) -> float:
     """Objective after lifting the pose by its worst penetration: the nearest feasible pose."""
-    s, _, _, valid = rg.deflection_gaps(surface, P, T)
+    s, _, _, valid = deflection_gaps(surface, P, T)
     s = s[valid]
     s = s + max(0.0, -float(s.min()))
     return float((s**2).sum())
@@ -125,23 +128,23 @@ def main(argv: list[str] | None = None) -> int:
 
     spec = plates.plate_spec("sail")
     t = time.perf_counter()
-    surface = rg.height_field_from_mesh(plates.design_mesh(spec, pitch_mm=5.0), step_mm=1.0)
+    surface = height_field_from_mesh(plates.design_mesh(spec, pitch_mm=5.0), step_mm=1.0)
     design_prep_s = time.perf_counter() - t
     P, T_true = make_scan(args.points, args.noise_mm, args.seed)
-    # ICP needs the boundary to hold a nearly spherical plate in its own plane (see register.py);
+    # ICP needs the boundary to hold a nearly spherical plate in its own plane (see analysis/register/icp.py);
     # the corners are the true ones with a boundary finder's millimetre of noise
     C_design = plates.design_corners(spec)
     rng = np.random.default_rng(args.seed + 1)
-    C_meas = rg.apply_transform(T_true, C_design) + rng.normal(0.0, 1.0, (4, 3))
+    C_meas = apply_transform(T_true, C_design) + rng.normal(0.0, 1.0, (4, 3))
     anchor = {"design_corners_mm": C_design, "measured_corners_mm": C_meas}
-    T_icp = rg.icp_point_to_plane(surface, P, T_true, max_points=100_000, **anchor).transform
+    T_icp = icp_point_to_plane(surface, P, T_true, max_points=100_000, **anchor).transform
     small = P[np.sort(rng.choice(len(P), size=args.small, replace=False))]
 
     # --- the paper's case: 158 points
     best = np.inf
     for _ in range(args.repeat):
         t = time.perf_counter()
-        ours_small = rg.nonpenetrating_fit(surface, small, T_icp, rel_tolerance=args.rel_tolerance_158)
+        ours_small = nonpenetrating_fit(surface, small, T_icp, rel_tolerance=args.rel_tolerance_158)
         best = min(best, time.perf_counter() - t)
     ours_158_s = best
     T_base, base_iters, baseline_158_s, base_msg = baseline_slsqp(surface, small, T_icp)
@@ -152,28 +155,28 @@ def main(argv: list[str] | None = None) -> int:
     best, best_cpu = np.inf, np.inf
     for _ in range(args.repeat):
         t, c = time.perf_counter(), time.process_time()
-        ours_full = rg.nonpenetrating_fit(surface, P, T_icp, **anchor)
+        ours_full = nonpenetrating_fit(surface, P, T_icp, **anchor)
         best = min(best, time.perf_counter() - t)
         best_cpu = min(best_cpu, time.process_time() - c)
     ours_1e6_s = best
     # the pipeline's way (issue 21): the design rests on patch means of the gaps, noise from the data
-    q = rg.apply_transform(rg.invert_transform(T_true), P)
+    q = apply_transform(invert_transform(T_true), P)
     z_true = plates.formed_height_mm(spec, plates.default_forming_error(spec), q[:, 0], q[:, 1])
-    true_pts = rg.apply_transform(T_true, np.column_stack([q[:, :2], z_true]))
-    T_clean = rg.nonpenetrating_fit(surface, true_pts, T_icp, **anchor).transform
+    true_pts = apply_transform(T_true, np.column_stack([q[:, :2], z_true]))
+    T_clean = nonpenetrating_fit(surface, true_pts, T_icp, **anchor).transform
     best_rest, best_rest_cpu = np.inf, np.inf
     for _ in range(args.repeat):
         t, c = time.perf_counter(), time.process_time()
         rest = rest_surface(surface, P, T_icp)
-        ours_rest = rg.nonpenetrating_fit(surface, rest.points_mm, T_icp, **anchor)
+        ours_rest = nonpenetrating_fit(surface, rest.points_mm, T_icp, **anchor)
         best_rest = min(best_rest, time.perf_counter() - t)
         best_rest_cpu = min(best_rest_cpu, time.process_time() - c)
     _, rest_pen = evaluate(surface, rest.points_mm, ours_rest.transform)
 
     def lift_mm(T: np.ndarray) -> float:
         # median height of the rested design above the design resting on the noise-free plate
-        g = rg.deflection_gaps(surface, true_pts, T, geometry=False)[0]
-        g0 = rg.deflection_gaps(surface, true_pts, T_clean, geometry=False)[0]
+        g = deflection_gaps(surface, true_pts, T, geometry=False)[0]
+        g0 = deflection_gaps(surface, true_pts, T_clean, geometry=False)[0]
         return float(np.median(g - g0))
 
     sub = P[np.sort(rng.choice(len(P), size=min(args.baseline_points, len(P)), replace=False))]

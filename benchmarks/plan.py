@@ -104,7 +104,7 @@ def main() -> int:
         logger_factory=structlog.PrintLoggerFactory(sys.stderr),
     )
 
-    from analysis.plates import design_mesh, plate_spec
+    from analysis.design.plates import design_mesh, plate_spec
     from cellctl.config import load_config
     from cellctl.planning import PlannerSettings, PlanRefused, plan_scan, start_corner_near
 

@@ -1,7 +1,7 @@
 """Gauge repeatability: the same simulated plate scanned N times, the spread of every line's figures.
 
 The plate is the 1200 x 800 mm sail with the project's default forming error (dents, a bump,
-springback, a slight bend: ``analysis.plates.default_forming_error``), scanned through the synthetic
+springback, a slight bend: ``analysis.design.plates.default_forming_error``), scanned through the synthetic
 scan path (``analysis.synth``: raster and edge passes, bed, supports, outliers, dropouts) at
 ``--noise-mm``. Every scan draws new noise, outliers and dropouts, a new sensor clock offset
 (uniform within +-``--clock-offset-ms``, at 100 mm/s: each raster profile placed off along its
@@ -31,9 +31,9 @@ import structlog
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from analysis.contracts.placement import Placement
+from analysis.design.plates import default_forming_error, design_mesh, plate_spec
 from analysis.pipeline import InspectionSettings, inspect_cloud
-from analysis.placement import Placement
-from analysis.plates import default_forming_error, design_mesh, plate_spec
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 

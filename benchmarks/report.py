@@ -1,8 +1,8 @@
 """Benchmark: render a full inspection report (23 detection lines, 300,000 plate points).
 
 Builds a results directory for the paper's 1200 x 800 mm sail plate with a known dent and bump
-(tests/support/results_fixture.py: heights from analysis.plates, figures from analysis.metrics),
-then times ``analysis.report.write_report`` (CSV + self-contained HTML + PDF) on it.
+(tests/support/results_fixture.py: heights from analysis.design.plates, figures from analysis.metrics),
+then times ``analysis.report.write.write_report`` (CSV + self-contained HTML + PDF) on it.
 Prints one JSON object on stdout.
 """
 
@@ -21,7 +21,7 @@ sys.path.insert(0, str(REPO))
 
 import structlog  # noqa: E402
 
-from analysis.report import write_report  # noqa: E402
+from analysis.report.write import write_report  # noqa: E402
 from tests.support.results_fixture import write_synthetic_results  # noqa: E402
 
 

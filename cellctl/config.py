@@ -31,7 +31,7 @@ from pydantic import (
 )
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
-from analysis.placement import Placement
+from analysis.contracts.placement import Placement
 from drivers.abb_egm.limits import EGM_CYCLE_S, Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S, LinearTrack, RobotLimits
 from drivers.abb_egm.rws_protocol import AUTO, OpMode
 

@@ -2,7 +2,7 @@
 
 Every module under ``cellctl/``, ``drivers/`` and ``analysis/`` is parsed, imports inside functions
 and under ``if TYPE_CHECKING:`` included (as are ``importlib.import_module("...")`` and
-``__import__("...")`` with a literal name), and held to three rules:
+``__import__("...")`` with a literal name), and held to four rules:
 
 1. ``drivers`` and ``analysis`` import neither ``cellctl`` nor each other;
 2. production code imports no simulator: only the simulators' wings (``drivers/*/sim/``, what they
@@ -14,7 +14,10 @@ and under ``if TYPE_CHECKING:`` included (as are ``importlib.import_module("..."
    ``drivers.sim``);
 4. the packages that others build on import only what :data:`FLOORS` lets them of ``cellctl``: the
    contract (``cellctl.api``), the worker (``cellctl.worker``) and the job store (``cellctl.jobstore``)
-   know nothing of the daemon, the HMI or each other beyond the contract.
+   know nothing of the daemon, the HMI or each other beyond the contract;
+5. inside ``analysis``, design input (``analysis.design``), the registration (``analysis.register``),
+   the contracts (``analysis.contracts``) and the report (``analysis.report``) import only the groups
+   below them (``ANALYSIS_GROUPS``).
 
 Each failure names the importing file and line.
 """
@@ -186,6 +189,30 @@ def cycle_violations(imports: list[Import]) -> list[str]:
     return out
 
 
+#: what each of analysis' groups may import of the rest of analysis (docs/architecture.md, rule 5):
+#: design input is read without the stages, the registration works on the design and the contracts,
+#: the contracts are built from the stages' types, the report is made from the stored results alone;
+#: none of them reaches up to the pipeline or the synthetic scans.
+ANALYSIS_GROUPS: dict[str, set[str]] = {
+    "analysis.design": {"analysis.cloud_io"},
+    "analysis.register": {"analysis.cloud_io", "analysis.contracts", "analysis.design"},
+    "analysis.contracts": {"analysis.design", "analysis.metrics", "analysis.templates"},
+    "analysis.report": {"analysis.contracts", "analysis.rework"},
+}
+
+
+def analysis_group_violations(imports: list[Import]) -> list[str]:
+    """Rule 5: analysis' groups (design input, registration, contracts) import only the nodes below them."""
+    out = []
+    for imp in imports:
+        a, b = node_of(imp.importer), node_of(imp.target)
+        allowed = ANALYSIS_GROUPS.get(a)
+        if allowed is None or a == b or not b.startswith("analysis.") or b in allowed:
+            continue
+        out.append(f"{imp.where()}: {a} imports of analysis only {', '.join(sorted(allowed))}")
+    return out
+
+
 def _strongly_connected(graph: Mapping[str, set[str]]) -> list[set[str]]:
     """Tarjan's algorithm, iterative."""
     index: dict[str, int] = {}
@@ -331,6 +358,34 @@ def test_the_packages_hold_what_they_say(repository) -> None:
     assert not [p for p in gone if p in files]
     for module in ("keys", "models", "cloud_codec", "session"):
         assert f"cellctl/api/{module}.py" in files
+
+
+def test_analysis_is_grouped_by_stage_design_input_and_contracts(repository) -> None:
+    files, imports = repository
+    for group, modules in {
+        "register": ("transforms", "height_field", "coarse", "icp", "onesided", "fit", "locate"),
+        "design": ("mesh", "cad", "cad_write", "outline", "moulded", "template_table", "plates"),
+        "contracts": ("job", "settings", "placement", "results"),
+        "report": ("load", "plots", "text", "html_page", "pdf", "csv_table", "write"),
+    }.items():
+        for m in modules:
+            assert f"analysis/{group}/{m}.py" in files and f"analysis/{m}.py" not in files, (group, m)
+    assert "analysis/register.py" not in files
+    violations = analysis_group_violations(imports)
+    assert not violations, "\n".join(violations)
+
+
+def test_checker_finds_analysis_design_input_importing_a_stage() -> None:
+    files = {
+        "analysis/design/outline.py": "from analysis.templates import DetectionLine\n",
+        "analysis/templates.py": "from analysis.design.mesh import TriMesh\n",
+        "analysis/design/mesh.py": "",
+        "analysis/register/fit.py": "from analysis.design.mesh import TriMesh\nimport analysis.pipeline\n",
+        "analysis/pipeline.py": "",
+    }
+    known = {module_name(p)[0] for p in files}
+    found = analysis_group_violations([i for p, src in files.items() for i in imports_of(p, src, known)])
+    assert [f.split(": ")[0] for f in found] == ["analysis/design/outline.py:1", "analysis/register/fit.py:2"]
 
 
 def test_every_pending_exception_is_still_needed(repository) -> None:

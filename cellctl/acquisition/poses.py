@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from analysis.placement import T_from_pos_rpy
+from analysis.contracts.placement import T_from_pos_rpy
 from drivers.abb_egm.kinematics import fk_batch
 
 __all__ = [

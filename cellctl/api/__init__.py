@@ -1,7 +1,7 @@
 """The cell's one typed contract: Zenoh keys, payload models both ways, the cloud codec, sessions.
 
 ``keys`` (the key space), ``models`` (every JSON payload, pydantic, unknown fields refused; the job
-parameters and the report are :mod:`analysis.job`'s models, the placement :mod:`analysis.placement`'s),
+parameters and the report are :mod:`analysis.contracts.job`'s models, the placement :mod:`analysis.contracts.placement`'s),
 ``analysis_job`` (a job's parameters from the configuration), ``cloud_codec`` (the binary cloud),
 ``session`` (Zenoh sessions, the asyncio bridge, client calls) and ``dispatch`` (the daemon's side
 of the job protocol). The package exports the keys, the models and the client calls.

@@ -1,6 +1,6 @@
 """A job's analysis parameters from the cell's configuration: the one typed path from ``cell.toml``
-to the worker (``[analysis]`` -> :class:`~analysis.settings.InspectionSettings` inside an
-:class:`~analysis.job.AnalysisJob`, which the JobSpec carries as JSON and the worker validates back).
+to the worker (``[analysis]`` -> :class:`~analysis.contracts.settings.InspectionSettings` inside an
+:class:`~analysis.contracts.job.AnalysisJob`, which the JobSpec carries as JSON and the worker validates back).
 
 `analysis` never imports `cellctl`; this is the one place the configuration is translated.
 """
@@ -12,11 +12,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from analysis.job import AnalysisJob, PlacementFinding
+from analysis.contracts.job import AnalysisJob, PlacementFinding
+from analysis.contracts.placement import Placement
+from analysis.contracts.settings import InspectionSettings
+from analysis.design.template_table import TableTemplate
 from analysis.metrics import Tolerances
-from analysis.placement import Placement
-from analysis.settings import InspectionSettings
-from analysis.templates import DetectionLayout, TableTemplate
+from analysis.templates import DetectionLayout
 from cellctl.api.models import AnalysisOptions
 from cellctl.config import AnalysisSection, CellConfig
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from analysis.job import (
+from analysis.contracts.job import (
     DesignReport,
     LineReport,
     RegistrationReport,
@@ -25,9 +25,9 @@ from analysis.job import (
     ScanCoverage,
     SurfaceReport,
 )
+from analysis.contracts.placement import Placement
+from analysis.contracts.settings import InspectionSettings
 from analysis.metrics import Tolerances
-from analysis.placement import Placement
-from analysis.settings import InspectionSettings
 from analysis.templates import DetectionLayout
 from cellctl.api.models import (
     AnalysisJob,

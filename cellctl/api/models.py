@@ -2,8 +2,8 @@
 
 Payloads are UTF-8 JSON validated by the pydantic models below (unknown fields refused) on both
 sides, except the cloud, which uses the binary layout of :mod:`cellctl.api.cloud_codec`. The job a
-worker is given (:class:`JobSpec` with its :class:`~analysis.job.AnalysisJob`) and the report it
-returns (:class:`ReportEnvelope` with its :class:`~analysis.job.Report`) carry the analysis
+worker is given (:class:`JobSpec` with its :class:`~analysis.contracts.job.AnalysisJob`) and the report it
+returns (:class:`ReportEnvelope` with its :class:`~analysis.contracts.job.Report`) carry the analysis
 package's own models, so the daemon, the worker and the analysis check one schema. Inbound
 requests are parsed with :func:`parse_trigger`, which raises :class:`TriggerError` naming the
 offending field. The key expressions are in :mod:`cellctl.api.keys`.
@@ -31,12 +31,11 @@ from pydantic import (
     model_validator,
 )
 
-from analysis.cad import DESIGN_SUFFIXES  # the formats analysis.cad.read_design reads: one list
-from analysis.job import AnalysisJob, Report
-from analysis.placement import Placement
-from analysis.template_table import MAX_ROWS as MAX_TEMPLATE_ROWS
-from analysis.template_table import row_problem
-from analysis.templates import TableTemplate
+from analysis.contracts.job import AnalysisJob, Report
+from analysis.contracts.placement import Placement
+from analysis.design.cad import DESIGN_SUFFIXES  # the formats analysis.design.cad.read_design reads: one list
+from analysis.design.template_table import MAX_ROWS as MAX_TEMPLATE_ROWS
+from analysis.design.template_table import TableTemplate, row_problem
 from cellctl.api.keys import ControlAction
 from cellctl.api.transfer import ResultManifest, TransferSpec
 
@@ -144,7 +143,7 @@ def new_job_id() -> str:
 
 
 def _usable_rows(rows: tuple[TableTemplate, ...]) -> tuple[TableTemplate, ...]:
-    """The template rows as a CSV's are checked (analysis.template_table.row_problem), names unique."""
+    """The template rows as a CSV's are checked (analysis.design.template_table.row_problem), names unique."""
     seen: set[str] = set()
     for k, row in enumerate(rows):
         if (problem := row_problem(row)) is not None:
@@ -170,7 +169,7 @@ class AnalysisOptions(Model):
     ``cellctl scan --template-table``, not a path): one named detection line per row, added to the
     ``[analysis]`` layout (docs/designs.md). ``design_side``: which face of the plate the design is
     and whether it faces up; ``moulded_down`` (the plate turned over) needs ``thickness_mm``, the
-    design is then offset by it (:mod:`analysis.moulded`).
+    design is then offset by it (:mod:`analysis.design.moulded`).
     """
 
     template_table: TemplateRows = ()

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
 
 if TYPE_CHECKING:
-    from analysis.job import Report
+    from analysis.contracts.job import Report
 
 EXIT_OK, EXIT_ERROR = 0, 2
 DEMO_DESIGN = "demo-plate.ply"
@@ -252,7 +252,7 @@ async def drive_scan(
     placement: send the simulated plate's true placement (False: none, the cell locates the plate).
     Returns ``(job_id, report or None, the report's path)``; raises DemoError on any failure.
     """
-    from analysis.results import read_report
+    from analysis.contracts.results import read_report
     from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
     from cellctl.api.session import ZenohSetupError, build_zenoh_config, close_session, open_session
     from cellctl.commands.scan_cmd import StatusFollower, wait_for_job
@@ -325,8 +325,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from analysis.mesh import save_mesh
-    from analysis.plates import design_mesh, plate_spec
+    from analysis.design.mesh import save_mesh
+    from analysis.design.plates import design_mesh, plate_spec
     from cellctl.commands.tables import line_table
 
     t0 = time.monotonic()

@@ -44,8 +44,8 @@ def _fail(msg: str) -> int:
 
 
 def run_check(args: argparse.Namespace) -> int:
+    from analysis.design.template_table import read_template_table
     from analysis.design_check import check_design, preview_png
-    from analysis.template_table import read_template_table
     from cellctl.api.analysis_job import inspection_settings
     from cellctl.config import AnalysisSection
 

@@ -58,12 +58,12 @@ def _fail(msg: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     # Heavy imports here, so `cellctl --help` stays fast.
-    from analysis.cad import read_design
     from analysis.cloud_io import read_cloud
-    from analysis.job import ReportInputs
+    from analysis.contracts.job import ReportInputs
+    from analysis.design.cad import read_design
+    from analysis.design.template_table import read_template_table
     from analysis.pipeline import inspect_cloud, write_results
-    from analysis.report import write_report
-    from analysis.template_table import read_template_table
+    from analysis.report.write import write_report
     from cellctl.api.analysis_job import inspection_settings
     from cellctl.commands.plan_cmd import parse_placement
     from cellctl.commands.tables import line_table

@@ -51,10 +51,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def parse_placement(text: str, default_z_mm: float):
-    """``"X,Y,ANGLE_DEG"`` or ``"X,Y,Z,ANGLE_DEG"`` -> :class:`~analysis.placement.Placement`."""
+    """``"X,Y,ANGLE_DEG"`` or ``"X,Y,Z,ANGLE_DEG"`` -> :class:`~analysis.contracts.placement.Placement`."""
     from pydantic import ValidationError
 
-    from analysis.placement import Placement
+    from analysis.contracts.placement import Placement
 
     parts = [p.strip() for p in text.split(",")]
     if len(parts) not in (3, 4):
@@ -78,8 +78,8 @@ def parse_placement(text: str, default_z_mm: float):
 
 
 def _design(arg: str, cfg):
-    from analysis.cad import design_mesh_from_file
-    from analysis.plates import design_mesh, plate_spec
+    from analysis.design.cad import design_mesh_from_file
+    from analysis.design.plates import design_mesh, plate_spec
 
     if arg == "sim":
         sp = cfg.sim.plate
@@ -104,8 +104,8 @@ def _error(msg: str, as_json: bool) -> int:
 
 
 def run_plan(args: argparse.Namespace) -> int:
-    from analysis.mesh import MeshError
-    from analysis.plates import PlateError
+    from analysis.design.mesh import MeshError
+    from analysis.design.plates import PlateError
     from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, plan_scan
 
     try:

@@ -81,7 +81,8 @@ def _open(path: Path) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here: `cellctl --help` must not pay for matplotlib.
-    from analysis.report import ReportError, write_report
+    from analysis.contracts.results import ReportError
+    from analysis.report.write import write_report
     from cellctl.jobstore.history import previous_round_for
 
     try:

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
 
 if TYPE_CHECKING:
-    from analysis.job import Report
+    from analysis.contracts.job import Report
 
 EXIT_OK, EXIT_FAIL, EXIT_ERROR, EXIT_NO_DAEMON = 0, 1, 2, 3
 _FINAL = ("done", "failed", "aborted", "interrupted", "cancelled")
@@ -113,7 +113,7 @@ def template_table_rows(path: str | None) -> list[dict[str, Any]]:
         return []
     import dataclasses
 
-    from analysis.template_table import read_template_table
+    from analysis.design.template_table import read_template_table
 
     return [dataclasses.asdict(t) for t in read_template_table(path)]
 

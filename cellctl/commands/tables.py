@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from analysis.job import Report
+    from analysis.contracts.job import Report
 
 _COLUMNS = (
     ("line", "name", "{}"),

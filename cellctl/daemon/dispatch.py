@@ -66,7 +66,7 @@ import structlog
 import zenoh
 from pydantic import ValidationError
 
-from analysis.job import AnalysisJob
+from analysis.contracts.job import AnalysisJob
 from cellctl.api.cloud_codec import ENCODING as CLOUD_ENCODING
 from cellctl.api.cloud_codec import concat_encoded
 from cellctl.api.keys import Keys

@@ -20,7 +20,7 @@ that sees 60 mm) one height for the whole bed cannot see them all. ``[locate] ac
 passes at 20 .. 80 % of the plate's extent along the bed, each across the whole bed, each its own
 plan. :func:`next_locate_plans` is the order of the run.
 
-The cloud is read by :mod:`analysis.locate`; this module only turns ``[locate]`` into its settings
+The cloud is read by :mod:`analysis.register.locate`; this module only turns ``[locate]`` into its settings
 and decides on a given placement.
 """
 
@@ -32,11 +32,11 @@ from dataclasses import dataclass
 import numpy as np
 import structlog
 
-from analysis.locate import LocateResult, LocateSettings, placement_offset
-from analysis.mesh import TriMesh
-from analysis.outline import mesh_free_edges
-from analysis.placement import Placement, placement_transform
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.design.mesh import TriMesh
+from analysis.design.outline import mesh_free_edges
+from analysis.design.plates import design_mesh, plate_spec
+from analysis.register.locate import LocateResult, LocateSettings, placement_offset
 from cellctl.config import CellConfig
 from cellctl.planning import (
     PlanInputError,
@@ -113,7 +113,7 @@ def locate_height_mm(cfg: CellConfig, design: TriMesh) -> float:
 
 def design_outline_z_mm(design: TriMesh) -> np.ndarray:
     """Heights (design frame, mm) of the vertices on the design's outline: every free edge's
-    (:func:`analysis.outline.mesh_free_edges`, holes' edges included); every vertex's for a closed
+    (:func:`analysis.design.outline.mesh_free_edges`, holes' edges included); every vertex's for a closed
     mesh (no free edge)."""
     return design.vertices_mm[_outline_vertices(design), 2]
 
@@ -365,7 +365,7 @@ def next_locate_plans(
 
 
 def locate_settings(cfg: CellConfig, design: TriMesh, yaw_hint_deg: float | None) -> LocateSettings:
-    """:class:`analysis.locate.LocateSettings` of ``[locate]``, the sensor range at the locate height."""
+    """:class:`analysis.register.locate.LocateSettings` of ``[locate]``, the sensor range at the locate height."""
     loc, las = cfg.locate, cfg.laser
     h = locate_height_mm(cfg, design)
     z = design.vertices_mm[:, 2]

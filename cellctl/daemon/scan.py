@@ -3,7 +3,7 @@
 Without a placement in the trigger (or with ``[locate] check_given``) the scan starts with the
 locate run (docs/locate.md): its passes (:mod:`cellctl.daemon.locate`) go through the same
 acquisition as the scan, each run's cloud is written to the job's ``locate/`` folder, the design's
-outline is fitted to it (:mod:`analysis.locate`), and the scan is planned from the placement found
+outline is fitted to it (:mod:`analysis.register.locate`), and the scan is planned from the placement found
 (a given placement off by more than the bound fails the job with the reason).
 
 :class:`ScanRunner` holds what a scan needs of the cell (configuration, job store, the named
@@ -30,12 +30,12 @@ from typing import Any, Protocol
 import numpy as np
 import structlog
 
-from analysis.cad import design_mesh_from_file
 from analysis.cloud_io import ScanCloud, write_cloud_npz
-from analysis.locate import LocateError, LocateResult, locate_plate, placement_offset
-from analysis.mesh import MeshError, TriMesh
-from analysis.placement import Placement
-from analysis.plates import PlateError
+from analysis.contracts.placement import Placement
+from analysis.design.cad import design_mesh_from_file
+from analysis.design.mesh import MeshError, TriMesh
+from analysis.design.plates import PlateError
+from analysis.register.locate import LocateError, LocateResult, locate_plate, placement_offset
 from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.acquisition.session import AcquisitionSession, SessionSettings, pass_windows_s

@@ -30,7 +30,7 @@ import structlog
 from aiohttp import WSMsgType, web
 from aiohttp.http_exceptions import HttpProcessingError
 
-from analysis.results import read_report, read_results_arrays
+from analysis.contracts.results import read_report, read_results_arrays
 from cellctl.api import DESIGN_SUFFIXES, MAX_TRIGGER_BYTES, ApiCallError
 from cellctl.config import CellConfig
 from cellctl.hmi.auth import (
@@ -392,7 +392,7 @@ class HmiServer:
             return _err(404, "design_not_found", f"{rel}: no such design")
 
         def load() -> dict[str, Any]:
-            from analysis.cad import design_mesh_from_file
+            from analysis.design.cad import design_mesh_from_file
 
             design = design_mesh_from_file(p)
             v = np.asarray(design.vertices_mm, float)

@@ -20,12 +20,12 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
-from analysis.job import Report
-from analysis.results import ReportError, read_report
+from analysis.contracts.job import Report
+from analysis.contracts.results import ReportError, read_report
 from cellctl.jobstore.records import RecordError, check_job_id, read_json_file
 
 if TYPE_CHECKING:
-    from analysis.report import PreviousRound
+    from analysis.report.load import PreviousRound
 
 log = structlog.get_logger(__name__)
 
@@ -213,7 +213,7 @@ def previous_round_for(results_dir: str | Path) -> PreviousRound | None:
     as :meth:`History.previous_round` finds it, numbered as in :meth:`History.rounds`. None for a
     first round, or for a results directory outside a job directory (``cellctl inspect --out``).
     """
-    from analysis.report import PreviousLine, PreviousRound  # matplotlib: only when a report is made
+    from analysis.report.load import PreviousLine, PreviousRound  # matplotlib: only when a report is made
 
     d = Path(results_dir).resolve()
     job_dir = d.parent if d.name == "results" and (d.parent / "job.json").is_file() else d

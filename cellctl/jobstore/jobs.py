@@ -30,8 +30,8 @@ import structlog
 from pydantic import BaseModel, ConfigDict, ValidationError
 from pydantic.dataclasses import dataclass
 
-from analysis.job import PlacementFinding
-from analysis.placement import Placement
+from analysis.contracts.job import PlacementFinding
+from analysis.contracts.placement import Placement
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
 from cellctl.api.models import AnalysisOptions
 from cellctl.jobstore.records import check_job_id, is_job_id, read_json_file
@@ -114,7 +114,7 @@ class JobRecord:
 
     Attributes:
         job_id, plate_id: identity. design: the trigger's design path (relative to designs_dir);
-        design_path: resolved absolute path. placement: the :class:`~analysis.placement.Placement`
+        design_path: resolved absolute path. placement: the :class:`~analysis.contracts.placement.Placement`
         the scan is planned from (``{"pos_mm": [...], "rpy_deg": [...]}`` in job.json; a dict given
         here is validated into one, ValueError naming ``placement`` when it is not one): the
         trigger's, or (after the locate run) the one found; None until then when the trigger gave

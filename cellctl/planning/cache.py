@@ -39,8 +39,8 @@ from typing import Any
 import numpy as np
 import structlog
 
-from analysis.mesh import TriMesh
-from analysis.placement import Placement
+from analysis.contracts.placement import Placement
+from analysis.design.mesh import TriMesh
 from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.plan import CoverageReport, PlanInputError, PlanRefused, ScanPlan, Segment
 from cellctl.planning.planner import check_plan_envelope, plan_scan

@@ -1,14 +1,14 @@
 """Coverage planning: raster and edge passes over a design surface, and the predicted coverage.
 
 The plan is built in the plate's design frame (x along the length, y across, z up; see
-``analysis.plates``) and moved into the robot base frame with the nominal placement. Raster passes run
+``analysis.design.plates``) and moved into the robot base frame with the nominal placement. Raster passes run
 along the plate's longer footprint axis, the laser line across them; the sensor looks along the
 surface normal from the standoff, so the curved surface stays inside the depth range, which is
 checked for every waypoint (including the height change the placement uncertainty can bring). The
 passes cover the outline grown by the placement-uncertainty margin: each pass runs only as far as the
 plate (and the margin) reaches inside its strip, so a sheared or tapered plate is not swept over its
 bounding box's empty corners. Edge passes follow the design's own outline (the mesh's boundary loop
-and its four corners, :mod:`analysis.outline`): along each edge between two corners, following a
+and its four corners, :mod:`analysis.design.outline`): along each edge between two corners, following a
 bowed edge's curve, with the sensor tilted outward along the outline's outward normal in the plate
 plane, so the edge and the thickness face are lit whatever the corner angles. Links lift over the
 surface between passes; the approach and retract move along the normal.
@@ -30,10 +30,10 @@ import structlog
 from scipy.interpolate import RectBivariateSpline
 from scipy.ndimage import binary_erosion, distance_transform_edt
 
-from analysis.mesh import TriMesh
-from analysis.outline import OutlineError, mesh_boundary_loops, outline_corners
-from analysis.placement import Placement, placement_transform
-from analysis.plates import canonical_corner_order
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.design.mesh import TriMesh
+from analysis.design.outline import OutlineError, mesh_boundary_loops, outline_corners
+from analysis.design.plates import canonical_corner_order
 from cellctl.planning.plan import (
     PASS_AXES,
     CoverageReport,
@@ -144,7 +144,7 @@ def outline_in_plan(design: TriMesh) -> tuple[np.ndarray, np.ndarray] | None:
     """The design's outline in plan: ``(outline_xy (k, 2), corner_index (4,))`` or None.
 
     outline_xy: the mesh's outer boundary loop (plate frame), counter-clockwise seen from +z,
-    starting at the reference corner (corner 0 of :func:`analysis.plates.canonical_corner_order`);
+    starting at the reference corner (corner 0 of :func:`analysis.design.plates.canonical_corner_order`);
     corner_index: the four corners' indices into it, ascending (the first is 0). None when the mesh
     has no open boundary with four corners (the planner then follows the footprint's bounds).
     """

@@ -2,7 +2,7 @@
 
 A :class:`ScanPlan` is plain data (numpy arrays and numbers) and round-trips through JSON
 (:meth:`ScanPlan.to_json` / :meth:`ScanPlan.from_json`). Frames: ``base`` is the robot base frame
-(mm, z up), ``plate`` the design frame of the plate (see ``analysis.plates``), ``sensor`` the line
+(mm, z up), ``plate`` the design frame of the plate (see ``analysis.design.plates``), ``sensor`` the line
 laser's frame (rays along +z, the laser line along x, the pass along +/-y).
 """
 
@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from analysis.placement import Placement
+from analysis.contracts.placement import Placement
 from cellctl.motion.trajectory import TimedTrajectory
 
 __all__ = [

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import structlog
 
-from analysis.mesh import TriMesh
-from analysis.placement import placement_transform
+from analysis.contracts.placement import placement_transform
+from analysis.design.mesh import TriMesh
 from cellctl.motion.envelope import EnvelopeLimits, EnvelopeViolation, SafetyEnvelope
 from cellctl.motion.trajectory import TimedTrajectory
 from cellctl.planning.coverage import (

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from analysis.placement import T_from_pos_rpy
+from analysis.contracts.placement import T_from_pos_rpy
 from cellctl.planning.plan import PASS_AXES, PlanInputError
 from drivers.abb_egm.limits import LinearTrack, RobotLimits
 

@@ -1,6 +1,6 @@
 """The simulated cell's ground truth: a formed plate laid on the bed with a known pose.
 
-The plate is a design surface plus a known forming error (:mod:`analysis.plates`), placed by
+The plate is a design surface plus a known forming error (:mod:`analysis.design.plates`), placed by
 ``T_base_plate``; its scene (plate solid, bed, supports) is what the HD8 simulator ray-casts, and its
 surface is what the acquired cloud is judged against (``cellctl sim`` writes it to
 ``sim-truth.json``; the acquisition tests and benchmarks measure accuracy with it).
@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.placement import Placement, placement_transform
-from analysis.plates import (
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.design.plates import (
     FormingError,
     PlateSpec,
     default_forming_error,

@@ -14,8 +14,8 @@ The analysis callable is resolved from a dotted path ``"package.module:function"
 ``fn(cloud: ScanCloud, job: AnalysisJob) -> Report | dict``: ``cloud`` is the decoded cloud as
 :class:`analysis.cloud_io.ScanCloud` (``xyz_mm`` (n, 3) mm, and when sent the organisation
 ``pass_id``, ``profile_index``, ``point_index`` and the times ``t_s``), ``job`` is the JobSpec's
-:class:`~analysis.job.AnalysisJob` (validated again in the child: ids, design, the trigger's
-placement, settings, ``out_dir``). What it returns is validated as a :class:`~analysis.job.Report`
+:class:`~analysis.contracts.job.AnalysisJob` (validated again in the child: ids, design, the trigger's
+placement, settings, ``out_dir``). What it returns is validated as a :class:`~analysis.contracts.job.Report`
 before it leaves the child (numpy scalars and arrays are converted); a report that does not fit
 the schema is an analysis error.
 

@@ -18,7 +18,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, model_validator
 
-from analysis.job import AnalysisJob, Report
+from analysis.contracts.job import AnalysisJob, Report
 from cellctl.worker.heap import HeapReserve, single_arena
 from cellctl.worker.settings import limit_blas_threads
 

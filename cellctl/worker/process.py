@@ -11,7 +11,7 @@ from typing import Any
 
 import structlog
 
-from analysis.job import AnalysisJob
+from analysis.contracts.job import AnalysisJob
 from cellctl.worker.child import AnalysisLoadError, ChildAnswer, ChildHello, ChildRequest, _child_main
 from cellctl.worker.settings import WorkerSettings, blas_threads_for_children
 

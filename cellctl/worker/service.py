@@ -17,7 +17,7 @@ from typing import Any
 import structlog
 import zenoh
 
-from analysis.job import AnalysisJob
+from analysis.contracts.job import AnalysisJob
 from cellctl.api import (
     JobEvent,
     JobSpec,

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.boundary import BoundaryError, find_corners
-from analysis.placement import Placement
-from analysis.plates import (
+from analysis.contracts.placement import Placement
+from analysis.design.plates import (
     FormingError,
     GaussianBump,
     canonical_corner_order,

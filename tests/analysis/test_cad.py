@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.cad import DesignError, read_cad, read_design
-from analysis.cad_write import plate_faces, write_design, write_faces
-from analysis.mesh import TriMesh
-from analysis.plates import design_corners, design_height_mm, design_mesh, plate_spec
+from analysis.design.cad import DesignError, read_cad, read_design
+from analysis.design.cad_write import plate_faces, write_design, write_faces
+from analysis.design.mesh import TriMesh
+from analysis.design.plates import design_corners, design_height_mm, design_mesh, plate_spec
 from analysis.templates import DetectionLayout, detection_lines, exact_section
 
 # Every CAD read runs in a forked child (OpenCASCADE can crash on a bad file): a process test.
@@ -245,7 +245,7 @@ def test_a_file_without_surfaces_and_one_with_two_plates_are_refused(tmp_path: P
 
 
 def test_read_design_dispatches_by_suffix_and_keeps_meshes(tmp_path: Path) -> None:
-    from analysis.mesh import save_mesh
+    from analysis.design.mesh import save_mesh
 
     ply = save_mesh(
         design_mesh(plate_spec("sail", length_mm=300, width_mm=200), pitch_mm=20), tmp_path / "d.ply"
@@ -311,7 +311,7 @@ def test_a_plate_sized_region_of_the_kcs_hull_is_usable_as_a_design(tmp_path: Pa
     from OCP.GeomAPI import GeomAPI_ProjectPointOnSurf
     from OCP.gp import gp_Pnt, gp_Vec
 
-    from analysis.cad import _faces, _read_shape, iges_facts
+    from analysis.design.cad import _faces, _read_shape, iges_facts
 
     src = HULLS / "KCS_half_hull_SVA.igs"
     faces = _faces(_read_shape(src, iges_facts(src, src.read_bytes())))

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import analysis.register as reg
-from analysis.plates import design_mesh, plate_spec
-from analysis.register import deflection_gaps, height_field_from_mesh
+import analysis.register.onesided as reg
+from analysis.design.plates import design_mesh, plate_spec
+from analysis.register.height_field import height_field_from_mesh
+from analysis.register.onesided import deflection_gaps
 
 
 @pytest.mark.parametrize("geometry", [False, True])

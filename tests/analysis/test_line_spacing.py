@@ -7,13 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from analysis.templates import (
-    DetectionLayout,
-    TableTemplate,
-    TemplateError,
-    detection_lines,
-    paper_line_count,
-)
+from analysis.design.template_table import TableTemplate
+from analysis.templates import DetectionLayout, TemplateError, detection_lines, paper_line_count
 from cellctl.api.analysis_job import inspection_settings
 from cellctl.config import CellConfig
 

@@ -1,4 +1,4 @@
-"""The outline fit of the locate run (analysis/locate.py) on synthesised sparse locate clouds."""
+"""The outline fit of the locate run (analysis/register/locate.py) on synthesised sparse locate clouds."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.cloud_io import ScanCloud
-from analysis.locate import (
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_height_mm, design_mesh, plate_spec
+from analysis.register.locate import (
     LocateError,
     LocateSettings,
     design_outline,
@@ -17,8 +19,6 @@ from analysis.locate import (
     placement_offset,
     plate_boundary,
 )
-from analysis.placement import Placement
-from analysis.plates import design_height_mm, design_mesh, plate_spec
 
 PLATE = plate_spec("sail", length_mm=1200.0, width_mm=800.0)
 MESH = design_mesh(PLATE, pitch_mm=20.0)
@@ -137,7 +137,7 @@ def test_an_asymmetric_outline_decides_the_half_turn_itself():
     v = mesh.vertices_mm
     cut = (v[:, 0] - v[:, 1]) > 300.0  # the corner at (+x, -y)
     keep = ~cut[mesh.triangles].any(axis=1)
-    from analysis.mesh import TriMesh
+    from analysis.design.mesh import TriMesh
 
     mesh = TriMesh(v, mesh.triangles[keep])
     truth = Placement.on_bed(1450.0, -30.0, 150.0, z_mm=300.0)

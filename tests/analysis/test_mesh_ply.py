@@ -1,4 +1,4 @@
-"""Design meshes read from PLY (analysis.mesh.load_mesh): the triangles-only fast path and the
+"""Design meshes read from PLY (analysis.design.mesh.load_mesh): the triangles-only fast path and the
 polygon path give the same mesh, polygons are fanned, and damaged files get one clear error."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import plyfile
 import pytest
 
-from analysis.mesh import MeshError, load_mesh
+from analysis.design.mesh import MeshError, load_mesh
 
 
 def _write_ply(path, vertices, faces, *, text=False, name="vertex_indices"):

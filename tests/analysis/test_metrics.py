@@ -9,9 +9,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis import metrics as mt
-from analysis import register as rg
 from analysis import templates as tp
-from analysis.mesh import TriMesh
+from analysis.design.mesh import TriMesh
+from analysis.register.fit import register
+from analysis.register.height_field import height_field_from_mesh
+from analysis.register.transforms import apply_transform, make_transform, rotation_from_vector
 from tests.support.surfaces import corners, grid_mesh, sail
 
 # -------------------------------------------------------------------------------- analytic curves
@@ -125,18 +127,18 @@ def test_bad_inputs_raise_metrics_errors():
 def _inspect(formed, yaw_deg: float, noise_mm: float, seed: int, shift: int = 2):
     """Scan `formed` on a 4 mm grid (as profiles would), place it, register, cut, measure."""
     design = grid_mesh(sail, step_mm=10.0)
-    surface = rg.height_field_from_mesh(design, step_mm=2.0)
+    surface = height_field_from_mesh(design, step_mm=2.0)
     rng = np.random.default_rng(seed)
     scan = grid_mesh(formed, step_mm=4.0)
     V = scan.vertices_mm.copy()
     V[:, 2] += rng.normal(0.0, noise_mm, len(V))
-    R = rg.rotation_from_vector(np.radians([0.8, -0.6, 0.0])) @ rg.rotation_from_vector(
+    R = rotation_from_vector(np.radians([0.8, -0.6, 0.0])) @ rotation_from_vector(
         np.radians([0.0, 0.0, yaw_deg])
     )
-    T_true = rg.make_transform(R, np.array([2600.0, 300.0, 700.0]))
-    measured = TriMesh(rg.apply_transform(T_true, V), scan.triangles)
-    Cm = np.roll(rg.apply_transform(T_true, corners()), shift, axis=0) + rng.normal(0.0, 0.5, (4, 3))
-    reg = rg.register(surface, measured.vertices_mm, corners(), Cm, icp_points=40_000)
+    T_true = make_transform(R, np.array([2600.0, 300.0, 700.0]))
+    measured = TriMesh(apply_transform(T_true, V), scan.triangles)
+    Cm = np.roll(apply_transform(T_true, corners()), shift, axis=0) + rng.normal(0.0, 0.5, (4, 3))
+    reg = register(surface, measured.vertices_mm, corners(), Cm, icp_points=40_000)
     lines = tp.detection_lines(np.roll(Cm, -reg.coarse.shift, axis=0))
     cuts = tp.cut_templates(design.transformed(reg.transform), measured, lines)
     ms = [

@@ -1,7 +1,7 @@
 """Plates that are not rectangles: parallelograms, trapezoids, bowed edges, corner angles 60-120 deg.
 
-The design's corners and own frame from a mesh in any pose (analysis.outline), the synthetic
-plate's outline (analysis.plates), and the measured boundary's corners (analysis.boundary).
+The design's corners and own frame from a mesh in any pose (analysis.design.outline), the synthetic
+plate's outline (analysis.design.plates), and the measured boundary's corners (analysis.boundary).
 """
 
 from __future__ import annotations
@@ -14,15 +14,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.boundary import find_corners
-from analysis.mesh import TriMesh
-from analysis.outline import (
+from analysis.contracts.placement import Placement
+from analysis.design.mesh import TriMesh
+from analysis.design.outline import (
     design_corners_from_mesh,
     frame_design_mesh,
     mesh_boundary_loops,
     mesh_free_edges,
 )
-from analysis.placement import Placement
-from analysis.plates import (
+from analysis.design.plates import (
     FormingError,
     GaussianBump,
     PlateError,
@@ -206,7 +206,7 @@ def test_a_long_strip_keeps_both_corners_of_its_short_edges() -> None:
 
 def test_the_plane_of_a_mesh_of_one_or_two_triangles_is_their_normal_not_an_index_error():
     """Found by tests/fuzz/test_fuzz_files.py: two triangles gave a 2 x 3 SVD and `vt[2]` raised."""
-    from analysis.outline import _surface_up
+    from analysis.design.outline import _surface_up
 
     v = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [100.0, 100.0, 5.0]])
     z2, _ = _surface_up(v, np.array([[0, 1, 2], [1, 3, 2]]))

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from analysis.mesh import MeshError, save_mesh
-from analysis.plates import (
+from analysis.design.mesh import MeshError, save_mesh
+from analysis.design.plates import (
     PLATE_KINDS,
     EdgeSpringback,
     FormingError,

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis import register as rg
-from analysis.mesh import TriMesh
-from analysis.rest_surface import max_normal_quantile, noise_from_gaps, rest_surface
+from analysis.design.mesh import TriMesh
+from analysis.register.height_field import HeightField, height_field_from_mesh
+from analysis.register.onesided import deflection_gaps, nonpenetrating_fit
+from analysis.register.rest_surface import max_normal_quantile, noise_from_gaps, rest_surface
+from analysis.register.transforms import apply_transform, make_transform, rotation_from_vector
 
 L_MM, W_MM = 300.0, 200.0
 FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
@@ -18,7 +20,7 @@ def sail(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def field() -> rg.HeightField:
+def field() -> HeightField:
     xs = np.linspace(-L_MM / 2, L_MM / 2, 61)
     ys = np.linspace(-W_MM / 2, W_MM / 2, 41)
     X, Y = np.meshgrid(xs, ys)
@@ -27,15 +29,13 @@ def field() -> rg.HeightField:
     i, j = np.meshgrid(np.arange(nx - 1), np.arange(len(ys) - 1))
     k = (j * nx + i).ravel()
     T = np.vstack([np.column_stack([k, k + 1, k + nx + 1]), np.column_stack([k, k + nx + 1, k + nx])])
-    return rg.height_field_from_mesh(TriMesh(V, T), step_mm=1.0)
+    return height_field_from_mesh(TriMesh(V, T), step_mm=1.0)
 
 
 def _pose() -> np.ndarray:
     a = np.radians(30.0)
     R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
-    return rg.make_transform(
-        R @ rg.rotation_from_vector(np.array([0.003, -0.002, 0.0])), [800.0, 200.0, 60.0]
-    )
+    return make_transform(R @ rotation_from_vector(np.array([0.003, -0.002, 0.0])), [800.0, 200.0, 60.0])
 
 
 def _plate(noise_mm: float, density_per_mm2: float, seed: int, dz=None) -> tuple[np.ndarray, np.ndarray]:
@@ -48,21 +48,21 @@ def _plate(noise_mm: float, density_per_mm2: float, seed: int, dz=None) -> tuple
     dev = dz(xy[:, 0], xy[:, 1]) if dz is not None else 0.0
     noisy = np.column_stack([xy, z + dev + rng.normal(0.0, noise_mm, n)])
     T = _pose()
-    return rg.apply_transform(T, noisy), rg.apply_transform(T, true)
+    return apply_transform(T, noisy), apply_transform(T, true)
 
 
 def _rest_fit(field, P, T_true, **kw):
     # start from a pose off by a few tenths of a millimetre, as after ICP
-    T0 = rg.make_transform(np.eye(3), [0.2, -0.1, 0.15]) @ T_true
+    T0 = make_transform(np.eye(3), [0.2, -0.1, 0.15]) @ T_true
     rest = rest_surface(field, P, T0, **kw)
-    fit = rg.nonpenetrating_fit(field, rest.points_mm, T0)
+    fit = nonpenetrating_fit(field, rest.points_mm, T0)
     return rest, fit
 
 
 def test_noise_is_estimated_from_the_data_within_five_percent(field):
     for sigma in (0.02, 0.1):
         P, _ = _plate(sigma, 5.0, seed=1)
-        gap = rg.deflection_gaps(field, P, _pose(), geometry=False)[0]
+        gap = deflection_gaps(field, P, _pose(), geometry=False)[0]
         assert noise_from_gaps(P[:, :2], gap) == pytest.approx(sigma, rel=0.05)
 
 
@@ -82,11 +82,11 @@ def test_design_rests_within_0_3_sigma_of_the_true_surface_without_penetrating_t
     assert rest.noise_mm == pytest.approx(noise_mm, rel=0.05)
     assert rest.target_met and rest.bound_mm <= 0.25 * rest.noise_mm * 1.0001
     assert fit.penetrating_after == 0 and fit.min_gap_mm >= 0.0
-    lift = rg.deflection_gaps(field, true, fit.transform, geometry=False)[0]
+    lift = deflection_gaps(field, true, fit.transform, geometry=False)[0]
     assert np.abs(lift).max() < 0.3 * noise_mm, (lift.mean(), lift.min(), lift.max())
     # raw points rest the design several sigma up: the estimate is what makes the difference
-    raw = rg.nonpenetrating_fit(field, P[::10], rg.make_transform(np.eye(3), [0.2, -0.1, 0.15]) @ T_true)
-    assert np.median(rg.deflection_gaps(field, true, raw.transform, geometry=False)[0]) > 2.0 * noise_mm
+    raw = nonpenetrating_fit(field, P[::10], make_transform(np.eye(3), [0.2, -0.1, 0.15]) @ T_true)
+    assert np.median(deflection_gaps(field, true, raw.transform, geometry=False)[0]) > 2.0 * noise_mm
 
 
 def test_a_0_3_mm_bump_of_30_mm_width_still_carries_the_template(field):
@@ -102,8 +102,8 @@ def test_a_0_3_mm_bump_of_30_mm_width_still_carries_the_template(field):
     rest, fit = _rest_fit(field, P, T_true)
     assert fit.penetrating_after == 0
     assert rest.cell_mm < 10.0
-    top = rg.apply_transform(T_true, np.array([[bx, by, sail(np.array(bx), np.array(by)) + height]]))
-    gap_top = rg.deflection_gaps(field, top, fit.transform, geometry=False)[0][0]
+    top = apply_transform(T_true, np.array([[bx, by, sail(np.array(bx), np.array(by)) + height]]))
+    gap_top = deflection_gaps(field, top, fit.transform, geometry=False)[0][0]
     # the design stands on the bump's top: within the patch bias (a h^2 / 12 w^2) plus 0.3 sigma of it,
     # and not penetrated by it by more than that
     bias = height * rest.cell_mm**2 / (12 * w**2)
@@ -127,16 +127,16 @@ def test_the_template_rests_on_raised_edges_not_below_them(field):
     T_true = _pose()
     # the noise-free plate where the noisy one has points (1 mm inside the outline), 1 mm apart
     xy = np.stack(np.meshgrid(np.arange(-149.0, 149.5, 1.0), np.arange(-99.0, 99.5, 1.0)), -1).reshape(-1, 2)
-    truth = rg.apply_transform(
+    truth = apply_transform(
         T_true, np.column_stack([xy, sail(xy[:, 0], xy[:, 1]) + springback(xy[:, 0], xy[:, 1])])
     )
-    clean = rg.nonpenetrating_fit(field, truth, T_true)  # the template on the noise-free plate
-    g0 = rg.deflection_gaps(field, truth, clean.transform, geometry=False)[0]
+    clean = nonpenetrating_fit(field, truth, T_true)  # the template on the noise-free plate
+    g0 = deflection_gaps(field, truth, clean.transform, geometry=False)[0]
 
     def offset(**kw) -> np.ndarray:  # the design's height above its noise-free resting pose, mm
         rest, fit = _rest_fit(field, P, T_true, **kw)
         assert fit.penetrating_after == 0 and rest.target_met
-        return rg.deflection_gaps(field, truth, fit.transform, geometry=False)[0] - g0
+        return deflection_gaps(field, truth, fit.transform, geometry=False)[0] - g0
 
     edge_aware, centroids = offset(), offset(edge_aware=False)
     assert np.median(centroids) < -0.1  # the old estimate sinks (the regression this test guards)
@@ -152,12 +152,12 @@ def test_edge_planes_keep_the_bound_and_do_not_lift_a_flat_edge(field):
     rest, fit = _rest_fit(field, P, _pose())
     assert rest.edge_patches > 50
     assert rest.counts.min() >= rest.min_count and rest.target_met
-    lift = rg.deflection_gaps(field, true, fit.transform, geometry=False)[0]
+    lift = deflection_gaps(field, true, fit.transform, geometry=False)[0]
     assert np.abs(lift).max() < 0.3 * noise, (lift.min(), lift.max())
 
 
 def test_noise_from_gaps_given_the_callers_cells_is_the_same_figure():
-    from analysis.rest_surface import _cells
+    from analysis.register.rest_surface import _cells
 
     rng = np.random.default_rng(3)
     xy = rng.uniform(0.0, 200.0, (20_000, 2))

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.cloud_io import ScanCloud
-from analysis.placement import Placement
-from analysis.plates import FormingError, GaussianBump, formed_height_mm, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import FormingError, GaussianBump, formed_height_mm, plate_spec
 from analysis.segment import (
     NoPlateError,
     SegmentError,

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from analysis.cloud_io import read_cloud
-from analysis.mesh import load_mesh
-from analysis.placement import Placement
-from analysis.plates import (
+from analysis.contracts.placement import Placement
+from analysis.design.mesh import load_mesh
+from analysis.design.plates import (
     FormingError,
     GaussianBump,
     PlateError,
@@ -19,13 +19,8 @@ from analysis.plates import (
     formed_height_mm,
     plate_spec,
 )
-from analysis.synth import (
-    ScanSettings,
-    SynthError,
-    parse_deform,
-    synth_main,
-    synthesize_scan,
-)
+from analysis.synth import ScanSettings, SynthError, synthesize_scan
+from cellctl.commands.synth_cmd import parse_deform, synth_main
 
 
 @cache

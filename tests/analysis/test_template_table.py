@@ -7,8 +7,13 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from analysis.template_table import TemplateTableError, parse_template_table, read_template_table
-from analysis.templates import DetectionLayout, TableTemplate, TemplateError, detection_lines, line_name
+from analysis.design.template_table import (
+    TableTemplate,
+    TemplateTableError,
+    parse_template_table,
+    read_template_table,
+)
+from analysis.templates import DetectionLayout, TemplateError, detection_lines, line_name
 
 RECT = np.array([[0.0, 0.0, 0.0], [1200.0, 0.0, 0.0], [1200.0, 800.0, 0.0], [0.0, 800.0, 0.0]])
 NO_LAYOUT = {"transverse_count": 0, "longitudinal_count": 0, "diagonals": False}

@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from analysis import register as rg
 from analysis import templates as tp
-from analysis.mesh import TriMesh
+from analysis.design.mesh import TriMesh
+from analysis.register.transforms import apply_transform, make_transform, rotation_from_vector
 from tests.support.surfaces import corners, grid_mesh, sail
 
 
@@ -38,14 +38,14 @@ def test_default_layout_gives_the_papers_23_lines_on_the_sail_plate():
     tz=st.floats(0.0, 1000.0),
 )
 def test_lines_follow_the_plate_not_the_bed(yaw, tx, ty, tz):
-    T = rg.make_transform(rg.rotation_from_vector(np.radians([0.0, 0.0, yaw])), np.array([tx, ty, tz]))
+    T = make_transform(rotation_from_vector(np.radians([0.0, 0.0, yaw])), np.array([tx, ty, tz]))
     ref = tp.detection_lines(corners())
-    moved = tp.detection_lines(rg.apply_transform(T, corners()))
+    moved = tp.detection_lines(apply_transform(T, corners()))
     for a, b in zip(ref, moved, strict=True):
         assert (a.family, a.index) == (b.family, b.index)
         assert abs(a.position_mm - b.position_mm) < 1e-6
         assert abs(a.chord_mm - b.chord_mm) < 1e-6
-        assert np.allclose(rg.apply_transform(T, a.start_mm[None])[0], b.start_mm, atol=1e-6)
+        assert np.allclose(apply_transform(T, a.start_mm[None])[0], b.start_mm, atol=1e-6)
         assert np.allclose(T[:3, :3] @ a.direction, b.direction, atol=1e-9)
 
 
@@ -103,8 +103,6 @@ def test_bad_inputs_raise_template_errors_naming_the_problem():
         tp.detection_lines(np.zeros((3, 3)))
     with pytest.raises(tp.TemplateError, match="transverse offsets"):
         tp.detection_lines(corners(), tp.DetectionLayout(transverse_offsets_mm=(50.0, 1300.0)))
-    far = tp.detection_lines(
-        rg.apply_transform(rg.make_transform(np.eye(3), np.array([5000.0, 0, 0])), corners())
-    )
+    far = tp.detection_lines(apply_transform(make_transform(np.eye(3), np.array([5000.0, 0, 0])), corners()))
     with pytest.raises(tp.TemplateError, match="does not cut the mesh"):
         tp.cut_mesh(grid_mesh(sail, 20.0), far[0])

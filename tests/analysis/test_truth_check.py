@@ -17,17 +17,17 @@ import numpy as np
 import pytest
 
 import analysis.pipeline as pipeline
-from analysis.metrics import Tolerances
-from analysis.placement import Placement
-from analysis.plates import (
+from analysis.contracts.placement import Placement
+from analysis.contracts.settings import InspectionSettings
+from analysis.design.plates import (
     default_forming_error,
     design_height_mm,
     footprint_grid,
     formed_height_mm,
     plate_spec,
 )
-from analysis.register import make_transform, rotation_from_vector
-from analysis.settings import InspectionSettings
+from analysis.metrics import Tolerances
+from analysis.register.transforms import make_transform, rotation_from_vector
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 from tests.support.truth_check import (

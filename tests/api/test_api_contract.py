@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from analysis.job import AnalysisJob, Report
-from analysis.mesh import MeshError, save_mesh
+from analysis.contracts.job import AnalysisJob, Report
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.contracts.settings import InspectionSettings
+from analysis.design.mesh import MeshError, save_mesh
+from analysis.design.plates import FormingError, design_mesh, plate_spec
 from analysis.pipeline import analyse_job, design_corners_from_mesh
-from analysis.placement import Placement, placement_transform
-from analysis.plates import FormingError, design_mesh, plate_spec
-from analysis.settings import InspectionSettings
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 from cellctl.api import JobSpec, ReportEnvelope
@@ -188,10 +188,10 @@ def test_the_daemon_stats_model_takes_the_egm_endpoint_statistics_as_they_are():
 
 @pytest.mark.parametrize("design", ["plate.npz", "plate.json", "plate.txt"])
 def test_a_trigger_naming_a_design_the_analysis_cannot_read_is_refused_at_the_api(design):
-    """One list of design formats: the trigger accepts what analysis.cad.read_design reads, no more."""
+    """One list of design formats: the trigger accepts what analysis.design.cad.read_design reads, no more."""
     from pydantic import ValidationError
 
-    from analysis.cad import DESIGN_SUFFIXES, read_design
+    from analysis.design.cad import DESIGN_SUFFIXES, read_design
     from cellctl.api import DESIGN_SUFFIXES as API_SUFFIXES
     from cellctl.api import TriggerRequest
 

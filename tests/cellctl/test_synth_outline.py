@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.cad import read_design
-from analysis.mesh import load_mesh
-from analysis.outline import design_corners_from_mesh
+from analysis.design.cad import read_design
+from analysis.design.mesh import load_mesh
+from analysis.design.outline import design_corners_from_mesh
 from cellctl.cli import main
 
 # a small, coarse scan: the test is about the outline, not the scan

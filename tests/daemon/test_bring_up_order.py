@@ -12,8 +12,8 @@ import asyncio
 from types import SimpleNamespace
 from typing import Any
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.api import JobState
 from cellctl.config import CellConfig, LocateSection
 from cellctl.daemon import scan as scan_module

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.placement import Placement, placement_transform
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.config import load_config
 from cellctl.daemon.locate import LOCATE_MIN_CROSSINGS, _fewest_passes, _outline_vertices, next_locate_plans
 

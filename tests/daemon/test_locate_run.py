@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from analysis.locate import LocateResult
-from analysis.placement import Placement
-from analysis.plates import design_height_mm, design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_height_mm, design_mesh, plate_spec
+from analysis.register.locate import LocateResult
 from cellctl.api.models import TriggerRequest
 from cellctl.config import CellConfig, LocateSection, load_config
 from cellctl.daemon.locate import (
@@ -105,7 +105,7 @@ def test_a_bed_without_extent_is_refused():
 
 
 def test_how_the_placement_was_found_travels_to_the_report_inputs():
-    from analysis.job import AnalysisJob, ReportInputs
+    from analysis.contracts.job import AnalysisJob, ReportInputs
     from cellctl.api.analysis_job import analysis_job
 
     finding = {
@@ -151,7 +151,7 @@ def test_the_passes_across_a_deep_plate_fly_at_the_height_of_the_edges_they_cros
     )
     one_height = locate_settings(cfg, design, None).range_z_mm
     lo, hi = cfg.locate.bed_min_xy_mm, cfg.locate.bed_max_xy_mm
-    margin = 3.0  # analysis.locate's range_margin_mm
+    margin = 3.0  # analysis.register.locate's range_margin_mm
     ys = []
     for lp in plans:
         (seg,) = lp.plan.passes

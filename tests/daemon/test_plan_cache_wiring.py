@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.api import JobState
 from cellctl.config import CellConfig
 from cellctl.daemon.active import ActiveJob

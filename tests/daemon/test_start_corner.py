@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from structlog.testing import capture_logs
 
-from analysis.placement import Placement, placement_transform
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.api import JobState
 from cellctl.config import CellConfig
 from cellctl.daemon.active import ActiveJob

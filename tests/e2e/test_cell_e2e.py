@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.job import Report
-from analysis.mesh import load_mesh
+from analysis.contracts.job import Report
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.design.mesh import load_mesh
 from analysis.pipeline import design_corners_from_mesh
-from analysis.placement import Placement, placement_transform
 from cellctl.api import MAX_TRIGGER_BYTES, ApiCallError, Keys, TriggerAccepted, call
 from cellctl.api.session import close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN

@@ -17,8 +17,8 @@ import time
 import numpy as np
 import pytest
 
-from analysis.locate import placement_offset
-from analysis.placement import Placement
+from analysis.contracts.placement import Placement
+from analysis.register.locate import placement_offset
 from cellctl.api import ControlReply, Keys, TriggerAccepted, call
 from cellctl.api.session import close_session
 from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from analysis.placement import Placement
+from analysis.contracts.placement import Placement
 from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
 from cellctl.api.analysis_job import inspection_settings
 from cellctl.api.session import close_session, subscribe

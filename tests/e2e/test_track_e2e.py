@@ -14,8 +14,8 @@ import json
 import numpy as np
 import pytest
 
-from analysis.mesh import load_mesh
-from analysis.placement import Placement
+from analysis.contracts.placement import Placement
+from analysis.design.mesh import load_mesh
 from cellctl.acquisition.pipeline import KIND_ROBOT
 from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml
 from cellctl.config import load_config

@@ -1,4 +1,4 @@
-"""Fuzz the file boundaries: clouds (analysis.cloud_io), meshes (analysis.mesh), `cellctl inspect`, and
+"""Fuzz the file boundaries: clouds (analysis.cloud_io), meshes (analysis.design.mesh), `cellctl inspect`, and
 the binary cloud decoder (cellctl/cloud_codec.py).
 
 Valid files of every supported format are mutated byte-wise (and their headers made to lie about
@@ -18,7 +18,7 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from analysis.cloud_io import CloudError, ScanCloud, read_cloud, write_cloud_npz, write_cloud_ply
-from analysis.mesh import MeshError, TriMesh, load_mesh, save_mesh
+from analysis.design.mesh import MeshError, TriMesh, load_mesh, save_mesh
 from cellctl.api.cloud_codec import Cloud, CloudFormatError, decode_cloud, encode_cloud
 from cellctl.cli import main as cli_main
 

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from playwright import sync_api as playwright_sync
 
-from analysis.results import LineSeries, ResultsArrays
+from analysis.contracts.results import LineSeries, ResultsArrays
 from cellctl.api import ControlReply, TriggerAccepted
 from tests.support.hmi_server import USERS, LocalHmi
 from tests.support.reports import report_json

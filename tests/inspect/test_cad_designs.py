@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.cad import read_cad
-from analysis.cad_write import write_design
+from analysis.contracts.settings import InspectionSettings
+from analysis.design.cad import read_cad
+from analysis.design.cad_write import write_design
+from analysis.design.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.pipeline import inspect_cloud
-from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
-from analysis.settings import InspectionSettings
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 from tests.support.surfaces import ship_pose

@@ -107,8 +107,8 @@ def test_cloud_with_no_plate(cellctl_exe: list[str], tmp_path: Path, small_scan:
 
 @pytest.mark.slow
 def test_design_of_another_size_is_refused(cellctl_exe: list[str], tmp_path: Path, small_scan: Path) -> None:
-    from analysis.mesh import save_mesh
-    from analysis.plates import design_mesh, plate_spec
+    from analysis.design.mesh import save_mesh
+    from analysis.design.plates import design_mesh, plate_spec
 
     big = save_mesh(
         design_mesh(plate_spec("sail", length_mm=1200, width_mm=800), pitch_mm=10), tmp_path / "big.ply"

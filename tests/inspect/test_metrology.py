@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from analysis.accuracy import template_lift, true_line_zmax
+from analysis.contracts.placement import Placement
+from analysis.design.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.pipeline import InspectionSettings, inspect_cloud
-from analysis.placement import Placement
-from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
-from analysis.register import height_field_from_mesh
-from analysis.report import _compare_html
+from analysis.register.height_field import height_field_from_mesh
+from analysis.report.html_page import _compare_html
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 

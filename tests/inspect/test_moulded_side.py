@@ -15,12 +15,12 @@ from functools import cache
 import numpy as np
 import pytest
 
-from analysis.job import Report
-from analysis.mesh import TriMesh
-from analysis.moulded import MouldedError, design_as_laid
+from analysis.contracts.job import Report
+from analysis.contracts.settings import InspectionSettings
+from analysis.design.mesh import TriMesh
+from analysis.design.moulded import MouldedError, design_as_laid
+from analysis.design.plates import FormingError, GaussianBump, design_mesh, plate_spec, surface_gradient
 from analysis.pipeline import InspectionError, inspect_cloud
-from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec, surface_gradient
-from analysis.settings import InspectionSettings
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 
@@ -95,7 +95,7 @@ def _moulded_iges(path) -> None:
     from OCP.GeomConvert import GeomConvert_ApproxSurface
     from OCP.gp import gp_Ax1, gp_Dir, gp_Pnt, gp_Trsf
 
-    from analysis.cad_write import plate_surface, write_faces
+    from analysis.design.cad_write import plate_surface, write_faces
 
     spec = _plate()[0].spec
     surf = plate_surface(spec)
@@ -114,7 +114,7 @@ def _moulded_iges(path) -> None:
 
 @pytest.mark.slow
 def test_a_cad_design_is_cut_on_its_exact_offset_surface(tmp_path) -> None:
-    from analysis.cad import read_design
+    from analysis.design.cad import read_design
 
     scan, visible, _ = _plate()
     _moulded_iges(tmp_path / "moulded.igs")

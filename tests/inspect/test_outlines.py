@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.pipeline import inspect_cloud, plate_frame
-from analysis.plates import (
+from analysis.contracts.settings import InspectionSettings
+from analysis.design.plates import (
     NO_FORMING_ERROR,
     FormingError,
     GaussianBump,
@@ -27,7 +27,7 @@ from analysis.plates import (
     design_mesh,
     plate_spec,
 )
-from analysis.settings import InspectionSettings
+from analysis.pipeline import inspect_cloud, plate_frame
 from analysis.synth import ScanSettings, synthesize_scan, write_synth
 from analysis.templates import DetectionLayout, detection_lines
 from tests.support.surfaces import ship_pose
@@ -129,8 +129,8 @@ def test_detection_lines_follow_the_plates_own_edges_in_its_frame(outline: str) 
 def test_cli_inspects_a_parallelogram_against_a_step_design_in_ship_coordinates(
     tmp_path: Path, cellctl_exe: list[str]
 ) -> None:
-    from analysis.cad import read_cad
-    from analysis.cad_write import write_design
+    from analysis.design.cad import read_cad
+    from analysis.design.cad_write import write_design
 
     spec = _spec("parallelogram_70")
     scan = synthesize_scan(spec, _dent_on_t3_and_l2(spec), settings=ScanSettings.coarse(), seed=5)

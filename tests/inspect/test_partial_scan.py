@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from analysis.cloud_io import ScanCloud
-from analysis.job import Report
+from analysis.contracts.job import Report
+from analysis.design.plates import plate_spec
 from analysis.pipeline import PARTIAL_LINE_COVERAGE, InspectionError, inspect_cloud
-from analysis.plates import plate_spec
 from analysis.segment import segment_plate
 from analysis.synth import ScanSettings, synthesize_scan
 
@@ -104,7 +104,7 @@ def test_a_partial_scan_without_its_placement_is_refused_with_the_way_to_analyse
 @pytest.mark.slow
 def test_a_partial_scans_report_renders_what_was_not_scanned(sail, tmp_path):
     from analysis.pipeline import write_results
-    from analysis.report import write_report
+    from analysis.report.write import write_report
 
     ins = inspect_cloud(_cut(sail, 5, None), sail.design_mesh(), nominal_placement=sail.placement)
     write_results(ins, tmp_path)

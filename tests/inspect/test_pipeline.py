@@ -5,21 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.pipeline import (
-    InspectionSettings,
-    design_corners_from_mesh,
-    height_grid_mesh,
-    inspect_cloud,
-    plate_frame,
-)
-from analysis.placement import Placement
-from analysis.plates import (
+from analysis.contracts.placement import Placement
+from analysis.design.plates import (
     NO_FORMING_ERROR,
     FormingError,
     GaussianBump,
     design_corners,
     design_mesh,
     plate_spec,
+)
+from analysis.pipeline import (
+    InspectionSettings,
+    design_corners_from_mesh,
+    height_grid_mesh,
+    inspect_cloud,
+    plate_frame,
 )
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
@@ -81,7 +81,7 @@ def test_known_dent_depth_is_found_on_the_lines_through_it() -> None:
 
 @pytest.mark.slow
 def test_the_same_plate_scanned_five_times_repeats_zmax_within_0_05_mm() -> None:
-    from analysis.plates import default_forming_error
+    from analysis.design.plates import default_forming_error
 
     spec = plate_spec("sail", length_mm=600, width_mm=400)
     error = default_forming_error(spec)

@@ -8,12 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.cloud_io import ScanCloud
-from analysis.job import AnalysisJob, Report
-from analysis.mesh import save_mesh
+from analysis.contracts.job import AnalysisJob, Report
+from analysis.contracts.settings import InspectionSettings
+from analysis.design.mesh import save_mesh
+from analysis.design.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.pipeline import CloudStream, GrowingCloud, InspectionError, analyse_job, concat_clouds
-from analysis.plates import FormingError, GaussianBump, design_mesh, plate_spec
 from analysis.segment import pass_cells, segment_plate
-from analysis.settings import InspectionSettings
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
 

@@ -106,11 +106,11 @@ def test_inspect_refuses_moulded_side_down_without_a_thickness(
 
 @pytest.mark.slow
 def test_the_compared_fit_names_the_lines_as_the_table_does() -> None:
+    from analysis.contracts.settings import InspectionSettings
+    from analysis.design.plates import plate_spec
+    from analysis.design.template_table import parse_template_table
     from analysis.pipeline import inspect_cloud
-    from analysis.plates import plate_spec
-    from analysis.settings import InspectionSettings
     from analysis.synth import ScanSettings, synthesize_scan
-    from analysis.template_table import parse_template_table
     from analysis.templates import DetectionLayout
 
     spec = plate_spec("sail", length_mm=600, width_mm=400)

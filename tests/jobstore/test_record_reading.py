@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from structlog.testing import capture_logs
 
-from analysis.placement import Placement
+from analysis.contracts.placement import Placement
 from cellctl.api import JobState
 from cellctl.jobstore.history import History, format_history, previous_round_for
 from cellctl.jobstore.jobs import JobRecord, JobStore, JobStoreError

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from structlog.testing import capture_logs
 
-from analysis.plates import design_mesh, plate_spec
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, SafetyEnvelope
 from cellctl.motion.envelope import EnvelopeViolation
 from cellctl.planning.cache import PlanCache, _entry_bytes, _read_entry

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from analysis.plates import design_mesh, plate_spec
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, ExecState, ExecutorConfig, MotionExecutor, SafetyEnvelope
 from cellctl.motion.executor import start_path
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan

@@ -10,8 +10,8 @@ import contextlib
 import numpy as np
 import pytest
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.motion import ExecState, ExecutorConfig, MotionExecutor
 from cellctl.planning import PlannerSettings, PlanRefused, plan_scan
 from cellctl.planning.joint_path import track_positions

@@ -13,9 +13,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from analysis.mesh import TriMesh
-from analysis.placement import placement_transform
-from analysis.plates import (
+from analysis.contracts.placement import placement_transform
+from analysis.design.mesh import TriMesh
+from analysis.design.plates import (
     design_corners,
     design_height_mm,
     design_mesh,

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.placement import placement_transform
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import placement_transform
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning import plan_scan
 from cellctl.planning.coverage import design_surface
 from cellctl.planning.planner import (

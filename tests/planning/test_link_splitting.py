@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import cellctl.planning.joint_path as joint_path
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.config import load_config
 from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.joint_path import sensor_kinematics, solve_joint_path, split_waypoints

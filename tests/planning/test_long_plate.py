@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.config import load_config
 from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.coverage import build_segments, design_surface, predict_edge_face_coverage

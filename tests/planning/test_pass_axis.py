@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning import PlanInputError, PlannerSettings, plan_scan
 from cellctl.planning.planner import estimate_s, lower_bound_s
 
@@ -86,7 +86,7 @@ def test_the_serpentine_starts_at_the_corner_asked_for_and_covers_the_same_passe
     """``start_corner`` (the daemon picks the one nearest the arm): the first raster pass starts on
     that corner's sides of the footprint and the passes go across from there; the passes are the
     same lines as from the default corner, only their order and directions differ."""
-    from analysis.placement import placement_transform
+    from analysis.contracts.placement import placement_transform
     from cellctl.planning.coverage import build_segments, design_surface
 
     surface = design_surface(MESH)

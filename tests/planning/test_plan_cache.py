@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from structlog.testing import capture_logs
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning.cache import PLAN_CACHE_VERSION, PlanCache, _entry_bytes, _read_entry, plan_key
 from drivers.abb_egm.limits import LinearTrack
 from tests.support.plans import SMALL_PLACEMENT, SMALL_SETTINGS

@@ -13,9 +13,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from analysis.mesh import TriMesh, save_mesh
-from analysis.placement import Placement, placement_transform
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement, placement_transform
+from analysis.design.mesh import TriMesh, save_mesh
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, SafetyEnvelope
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, ScanPlan, plan_scan
 from cellctl.planning.coverage import design_surface

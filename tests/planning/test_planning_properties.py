@@ -7,8 +7,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.motion import EnvelopeLimits, SafetyEnvelope
 from cellctl.planning import PlanInputError, PlannerSettings, PlanRefused, plan_scan
 

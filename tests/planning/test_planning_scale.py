@@ -14,7 +14,7 @@ from ruckig import InputParameter, Ruckig, Trajectory
 
 import cellctl.planning.joint_path as joint_path
 import cellctl.planning.timing as timing
-from analysis.plates import design_mesh, plate_spec
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.coverage import _predict_coverage, build_segments, design_surface, predict_coverage
 from cellctl.planning.planner import positions_at

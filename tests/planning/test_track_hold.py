@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.joint_path import hold_position_mm, track_positions
 from cellctl.planning.plan import Segment

@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import settings as hyp_settings
 from hypothesis import strategies as st
 
-from analysis.plates import design_mesh, plate_spec
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 from cellctl.planning.timing import tcp_speed_mm_s
 from drivers.abb_egm.kinematics import fk_batch

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from analysis.report import write_report
+from analysis.report.write import write_report
 from analysis.templates import DetectionLayout
 from tests.support.results_fixture import SyntheticResults, write_synthetic_results
 

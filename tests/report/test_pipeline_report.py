@@ -11,8 +11,10 @@ import pytest
 from plyfile import PlyData
 from scipy.spatial import cKDTree
 
-from analysis import pipeline, plates, synth
-from analysis.report import load_results, write_report
+from analysis import pipeline, synth
+from analysis.design import plates
+from analysis.report.load import load_results
+from analysis.report.write import write_report
 from analysis.rework import find_rework_regions, grid_deviation
 from analysis.templates import DetectionLayout
 

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from analysis.report import ReportError, load_results, write_report
+from analysis.contracts.results import ReportError
+from analysis.report.load import load_results
+from analysis.report.write import write_report
 from analysis.rework import find_rework_regions, grid_deviation
 from analysis.templates import DetectionLayout
 from tests.report.conftest import PLATE_ID

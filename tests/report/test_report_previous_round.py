@@ -7,7 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from analysis.report import PreviousLine, PreviousRound, load_results, render_html, write_report
+from analysis.report.html_page import render_html
+from analysis.report.load import PreviousLine, PreviousRound, load_results
+from analysis.report.write import write_report
 from analysis.templates import DetectionLayout
 from tests.support.results_fixture import write_synthetic_results
 

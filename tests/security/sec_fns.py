@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from analysis.cloud_io import ScanCloud
-from analysis.job import AnalysisJob, Report
+from analysis.contracts.job import AnalysisJob, Report
 from tests.zenoh.zworker_fns import minimal_report
 
 

@@ -21,7 +21,7 @@ import pytest
 import structlog
 from sec_util import PASSWORDS, env_name, section, write_dictionary
 
-from analysis.job import AnalysisJob
+from analysis.contracts.job import AnalysisJob
 from cellctl.api import JobEvent, Keys, ReportEnvelope
 from cellctl.api.cloud_codec import Cloud, encode_cloud
 from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe

@@ -267,7 +267,7 @@ def test_a_worker_user_takes_jobs_through_the_acl_and_a_viewer_lists_it(tmp_path
 
     import numpy as np
 
-    from analysis.job import AnalysisJob
+    from analysis.contracts.job import AnalysisJob
     from cellctl.api import list_workers
     from cellctl.api.cloud_codec import Cloud, encode_cloud
     from cellctl.daemon.dispatch import Dispatcher, DispatchSettings

@@ -13,8 +13,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from analysis.mesh import save_mesh
-from analysis.plates import design_mesh, plate_spec
+from analysis.design.mesh import save_mesh
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.commands.demo_cmd import DEMO_DESIGN, Processes, demo_config, to_toml, wait_ready_line
 from cellctl.config import load_config
 
@@ -158,9 +158,9 @@ async def trigger_demo_plate(
 ) -> tuple[Any, tuple[str, str, Any]]:
     """Wait until the cell is idle with a worker, trigger the demo design (a typed TriggerRequest) and
     follow the job: ``(TriggerAccepted, (state, message, report))``. ``placement``: ``"sim"`` the
-    simulated plate's exact placement, a :class:`~analysis.placement.Placement` that one, None none
+    simulated plate's exact placement, a :class:`~analysis.contracts.placement.Placement` that one, None none
     (the cell locates the plate first)."""
-    from analysis.placement import Placement
+    from analysis.contracts.placement import Placement
     from cellctl.api import Keys, TriggerAccepted, TriggerRequest, call
     from cellctl.api.session import close_session
     from cellctl.commands.scan_cmd import StatusFollower, wait_for_job

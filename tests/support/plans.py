@@ -9,8 +9,8 @@ import functools
 
 import pytest
 
-from analysis.placement import Placement
-from analysis.plates import design_mesh, plate_spec
+from analysis.contracts.placement import Placement
+from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, ScanPlan, plan_scan
 
 SAIL_PLACEMENT = Placement.on_bed(1500.0, 0.0, 3.0, z_mm=300.0)

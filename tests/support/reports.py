@@ -1,7 +1,7 @@
 """A complete ``report.json`` made from the few figures a test cares about.
 
 The readers of a job directory (the plate history, the HMI, the report renderer) load ``report.json``
-as an :class:`analysis.job.Report`, which refuses a document missing a field the schema requires. A
+as an :class:`analysis.contracts.job.Report`, which refuses a document missing a field the schema requires. A
 test that only cares about a plate's verdict and its lines' Zmax gives those; :func:`report_dict`
 fills in the rest with plain, valid values (a 400 x 300 mm plate registered in place).
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from analysis.job import Report
+from analysis.contracts.job import Report
 
 _LINE_DEFAULTS: dict[str, Any] = {
     "sz_mm2": 0.0,

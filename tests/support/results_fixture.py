@@ -1,6 +1,6 @@
 """A results directory computed from a design and a formed plate whose deviation is known exactly.
 
-No figure here is typed in: the design and formed heights come from :mod:`analysis.plates`, the
+No figure here is typed in: the design and formed heights come from :mod:`analysis.design.plates`, the
 detection lines from :mod:`analysis.templates`, the six figures and the verdict from
 :mod:`analysis.metrics`. The plate is laid in its own design frame (registration is the identity),
 so the deviation at every point is ``design - formed = -dz`` of the forming error, exactly.
@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.job import Report
-from analysis.metrics import Tolerances, judge, line_metrics
-from analysis.plates import (
+from analysis.contracts.job import Report
+from analysis.contracts.results import write_report_json
+from analysis.design.plates import (
     EdgeSpringback,
     FormingError,
     GaussianBump,
@@ -26,8 +26,8 @@ from analysis.plates import (
     formed_height_mm,
     plate_spec,
 )
-from analysis.report import write_csv
-from analysis.results import write_report_json
+from analysis.metrics import Tolerances, judge, line_metrics
+from analysis.report.csv_table import write_csv
 from analysis.templates import DetectionLayout, detection_lines
 
 HOLE_CELL_MM = 5.0

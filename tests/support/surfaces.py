@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from analysis.mesh import TriMesh
+from analysis.design.mesh import TriMesh
 
 __all__ = ["L_MM", "W_MM", "corners", "grid_mesh", "lopsided", "sail", "ship_pose"]
 

@@ -1,7 +1,7 @@
 """The measurement judged against the simulator's truth alone.
 
 ``cellctl sim`` writes its ground truth to ``<data_dir>/sim-truth.json`` (cellctl/simcell/truth.py):
-the design plate (``analysis.plates.PlateSpec``), the forming error that made the formed plate
+the design plate (``analysis.design.plates.PlateSpec``), the forming error that made the formed plate
 from it, and the formed plate's pose ``T_base_plate`` (plate frame = design frame -> robot base).
 Nothing here reads the product's registration to build the truth; the product's results are only
 what is judged.
@@ -51,8 +51,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
-from analysis.metrics import LineMetrics, Tolerances, Verdict, judge, line_metrics
-from analysis.plates import (
+from analysis.design.plates import (
     FormingError,
     PlateSpec,
     design_corners,
@@ -61,6 +60,7 @@ from analysis.plates import (
     formed_corners,
     formed_height_mm,
 )
+from analysis.metrics import LineMetrics, Tolerances, Verdict, judge, line_metrics
 from analysis.templates import DetectionLayout, DetectionLine, detection_lines, line_name
 
 __all__ = [
@@ -229,7 +229,7 @@ class CheckLimits:
 
     One allowance is not at that scale: the height at which the design rests (``offset_mm``, the
     median of measured - true deviation over the field: a common lift or drop of the design). The
-    product rests the design on patch means of the plate (analysis/rest_surface.py), about 12 mm
+    product rests the design on patch means of the plate (analysis/register/rest_surface.py), about 12 mm
     across on these scans; a patch cuts the top of a bump (the 1.5 mm bump of the default forming
     error, 20 mm wide) by ``a h^2 / (12 w^2)`` and more where the patch is not centred on it, so the
     design sinks into the bump and every deviation reads low. Measured against the truth's exact

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.job import AnalysisJob
+from analysis.contracts.job import AnalysisJob
 from cellctl.api.cloud_codec import Cloud, encode_cloud
 from cellctl.worker.process import AnalysisProcess
 

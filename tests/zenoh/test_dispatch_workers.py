@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.job import AnalysisJob
+from analysis.contracts.job import AnalysisJob
 from cellctl.api import Keys, list_workers
 from cellctl.api.cloud_codec import Cloud, encode_cloud
 from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from analysis.job import AnalysisJob
+from analysis.contracts.job import AnalysisJob
 from cellctl.api import Keys
 from cellctl.api.session import build_zenoh_config, close_session, open_session
 from cellctl.api.transfer import TransferSpec

@@ -10,8 +10,8 @@ import json
 import pytest
 import structlog
 
-from analysis.job import AnalysisJob
-from analysis.placement import Placement
+from analysis.contracts.job import AnalysisJob
+from analysis.contracts.placement import Placement
 from cellctl.api import API_VERSION, STREAM_FORMAT, JobEvent, ReportEnvelope
 from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe
 from cellctl.api.transfer import TransferSpec, pack_results

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.job import AnalysisJob
+from analysis.contracts.job import AnalysisJob
 from cellctl.api import JobSpec, Keys
 from cellctl.api.session import build_zenoh_config, close_session, open_session
 from cellctl.api.transfer import (

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from analysis.cloud_io import ScanCloud
-from analysis.job import AnalysisJob, Report
+from analysis.contracts.job import AnalysisJob, Report
 from analysis.pipeline import CloudStream, analyse_job
 
 

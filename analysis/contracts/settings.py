@@ -3,7 +3,7 @@
 A frozen dataclass of frozen dataclasses (:class:`~analysis.templates.DetectionLayout`,
 :class:`~analysis.metrics.Tolerances`): plain to build in a notebook, and validated field by field
 (unknown fields refused) where it crosses a process boundary inside
-:class:`analysis.job.AnalysisJob`. The cell fills it from ``cell.toml`` (``cellctl.api.analysis_job``).
+:class:`analysis.contracts.job.AnalysisJob`. The cell fills it from ``cell.toml`` (``cellctl.api.analysis_job``).
 """
 
 from __future__ import annotations
@@ -33,14 +33,14 @@ class InspectionSettings:
     min_points_per_cell: int = 16
     size_tolerance: float = 0.05  # relative: a design more than 5 % off the plate's size is refused
     design_grid_mm: float = 1.0
-    # which face of the plate the design surface is and whether it faces up (analysis.moulded);
+    # which face of the plate the design surface is and whether it faces up (analysis.design.moulded);
     # moulded_down: the design is offset by thickness_mm and turned over
     design_side: Literal["moulded_up", "moulded_down"] = "moulded_up"
     thickness_mm: float = 0.0
     # which template judges the plate; compare: the report also carries the other's figures
     template_fit: TemplateFit = "rigid"
     template_fit_compare: bool = False
-    # the resting surface's stated bound on its noise bias (analysis.rest_surface), its largest patch
+    # the resting surface's stated bound on its noise bias (analysis.register.rest_surface), its largest patch
     rest_target_sigmas: float = 0.25
     rest_max_cell_mm: float = 20.0
 

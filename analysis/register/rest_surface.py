@@ -48,13 +48,9 @@ import numpy as np
 import structlog
 from scipy.stats import norm
 
-from analysis.register import (
-    HeightField,
-    RegistrationError,
-    apply_transform,
-    deflection_gaps,
-    invert_transform,
-)
+from analysis.register.height_field import HeightField
+from analysis.register.onesided import deflection_gaps
+from analysis.register.transforms import RegistrationError, apply_transform, invert_transform
 
 log = structlog.get_logger(__name__)
 

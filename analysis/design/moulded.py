@@ -2,7 +2,7 @@
 
 A yard's design surface is the plate's *moulded* surface, one of its two faces. In the design
 frame that surface faces +z (its normals point up, away from the plate's material, which lies
-below it: :mod:`analysis.cad` turns the frame to the faces' normals, a mesh is given z up).
+below it: :mod:`analysis.design.cad` turns the frame to the faces' normals, a mesh is given z up).
 
 * ``moulded_up``: the plate lies on the bed with the moulded side up. The sensor sees the design
   surface itself.
@@ -23,8 +23,8 @@ from typing import Literal
 
 import numpy as np
 
-from analysis.cad import CadDesign, canonical_corner_order_in_plane
-from analysis.mesh import TriMesh
+from analysis.design.cad import CadDesign, canonical_corner_order_in_plane
+from analysis.design.mesh import TriMesh
 
 __all__ = ["DESIGN_SIDES", "DesignSide", "MouldedError", "design_as_laid", "vertex_normals"]
 

@@ -1,6 +1,6 @@
 """Writing designs as a hull design system would: the analytic plates as exact NURBS in IGES or STEP.
 
-The project's plate shapes (:mod:`analysis.plates`) are exactly NURBS: the sail, saddle and flat
+The project's plate shapes (:mod:`analysis.design.plates`) are exactly NURBS: the sail, saddle and flat
 plates are polynomials of degree 2 in x and y (a biquadratic Bezier patch), the twisted plate
 ``z = k x y`` is bilinear, the cylinder is a circular arc in x (a rational quadratic) swept along y.
 :func:`plate_surface` builds that surface through OpenCASCADE; :func:`write_design` writes it, whole,
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.plates import PlateSpec, design_height_mm, footprint_bounds, is_rectangle, outline_edges
+from analysis.design.plates import PlateSpec, design_height_mm, footprint_bounds, is_rectangle, outline_edges
 
 UNIT_MM = {"mm": 1.0, "m": 1000.0}
 
@@ -102,7 +102,7 @@ def _uv_of_xy(spec: PlateSpec, margin_mm: float, x: float, y: float) -> tuple[fl
 def plate_faces(spec: PlateSpec, *, trimmed: bool = False, split: tuple[int, int] = (1, 1)) -> list:
     """TopoDS faces of the plate's top surface: one face, or ``split`` (nx, ny) faces sharing edges,
     or (``trimmed``) a larger surface trimmed to the footprint by a boundary in its parameters. A
-    plate whose outline is not a rectangle (:mod:`analysis.plates`) is always one trimmed face."""
+    plate whose outline is not a rectangle (:mod:`analysis.design.plates`) is always one trimmed face."""
     from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeEdge, BRepBuilderAPI_MakeFace, BRepBuilderAPI_MakeWire
     from OCP.BRepLib import BRepLib
     from OCP.Geom2d import Geom2d_BezierCurve, Geom2d_Line
@@ -175,7 +175,7 @@ def write_faces(
     from OCP.STEPControl import STEPControl_AsIs, STEPControl_Controller, STEPControl_Writer
     from OCP.TopoDS import TopoDS_Compound
 
-    from analysis.cad import _quiet_occ
+    from analysis.design.cad import _quiet_occ
 
     _quiet_occ()
     path = Path(path)

@@ -30,15 +30,15 @@ from pathlib import Path
 import numpy as np
 import structlog
 
-from analysis.mesh import MeshError, TriMesh, load_mesh
-from analysis.outline import (  # noqa: F401 - canonical_corner_order_in_plane: analysis.moulded's
+from analysis.design.mesh import MeshError, TriMesh, load_mesh
+from analysis.design.outline import (  # noqa: F401 - canonical_corner_order_in_plane: analysis.design.moulded's
     OutlineError,
     canonical_corner_order_in_plane,
     frame_design_mesh,
     outline_corners,
     plate_frame_from_surface,
 )
-from analysis.plates import canonical_corner_order
+from analysis.design.plates import canonical_corner_order
 
 log = structlog.get_logger(__name__)
 
@@ -288,13 +288,13 @@ class CadDesign:
     mesh: the tessellation (for registration, height fields, the planner); triangle_face: (m,)
     face index of every triangle; triangle_uv: (m, 3, 2) the surface parameters of its corners.
     faces: one :class:`NurbsPatch` per face. corners_mm: (4, 3) from the free boundary's vertices,
-    in the project's order (:func:`analysis.plates.canonical_corner_order`). boundary_mm: (k, 3)
+    in the project's order (:func:`analysis.design.plates.canonical_corner_order`). boundary_mm: (k, 3)
     the outline sampled from the boundary curves, in order. T_design_file: 4x4 file (ship)
     coordinates in mm -> design frame. chord_error_mm: the largest distance between the
     tessellation and the exact surface, measured at the triangles' centroids and edge midpoints.
     offset_mm: the surface the templates are cut from is the faces' offset by this much along
     :meth:`normals` (0: the faces themselves; the other side of a turned-over plate, see
-    :mod:`analysis.moulded`); ``mesh`` and ``corners_mm`` are then those of the offset surface.
+    :mod:`analysis.design.moulded`); ``mesh`` and ``corners_mm`` are then those of the offset surface.
     """
 
     path: Path

@@ -45,9 +45,9 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from analysis.cloud_io import ScanCloud
-from analysis.mesh import TriMesh
-from analysis.outline import mesh_free_edges
-from analysis.placement import Placement
+from analysis.contracts.placement import Placement
+from analysis.design.mesh import TriMesh
+from analysis.design.outline import mesh_free_edges
 
 __all__ = [
     "DesignOutline",
@@ -332,7 +332,7 @@ def _on_wall(
 
 
 def design_outline(mesh: TriMesh, step_mm: float = 2.0) -> DesignOutline:
-    """The free edges of ``mesh`` (:func:`analysis.outline.mesh_free_edges`) on its x-y plane,
+    """The free edges of ``mesh`` (:func:`analysis.design.outline.mesh_free_edges`) on its x-y plane,
     sampled every ``step_mm``, with normals pointing away from the triangle each edge belongs to.
 
     Every free edge counts, not only the outer loop: a hole's edge or a separate piece's outline is

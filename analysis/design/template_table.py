@@ -3,7 +3,7 @@
 Modelled on the bending-template output of hull design systems (AVEVA Hull's cross templates):
 one row per template with its name, the plate edge it is measured from, the distance from that
 edge and the template's angle. :func:`read_template_table` turns the file into
-:class:`~analysis.templates.TableTemplate` rows for :class:`~analysis.templates.DetectionLayout`;
+:class:`TableTemplate` rows for :class:`~analysis.templates.DetectionLayout`;
 whether a distance lies on the plate is checked when the lines are laid on the corners
 (:func:`analysis.templates.detection_lines`).
 """
@@ -13,20 +13,43 @@ from __future__ import annotations
 import csv
 import io
 import math
+from dataclasses import dataclass
 from pathlib import Path
-
-from analysis.templates import TableTemplate
+from typing import Literal
 
 __all__ = [
     "EDGE_ALIASES",
     "MAX_NAME_CHARS",
     "MAX_ROWS",
+    "TableTemplate",
+    "TemplateEdge",
     "TemplateTableError",
     "name_problem",
     "parse_template_table",
     "read_template_table",
     "row_problem",
 ]
+
+TemplateEdge = Literal["0-3", "1-2", "0-1", "3-2"]
+
+
+@dataclass(frozen=True)
+class TableTemplate:
+    """One row of a yard's template table (docs/designs.md).
+
+    name: the yard's template name (the report's line name). edge: the plate edge it is measured
+    from, named by its corners (``"0-3"``: the width edge through the reference corner, so the
+    distance runs along the length; ``"1-2"`` the opposite width edge; ``"0-1"`` the length edge
+    through the reference corner; ``"3-2"`` the opposite length edge). distance_mm: from that edge,
+    along the adjacent edge from the corner named first, in the base plane. angle_deg: in plan,
+    between the template and the edge the distance runs along (90: square to it).
+    """
+
+    name: str
+    edge: TemplateEdge
+    distance_mm: float
+    angle_deg: float = 90.0
+
 
 MAX_ROWS = 200
 MAX_NAME_CHARS = 40

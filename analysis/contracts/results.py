@@ -1,6 +1,6 @@
 """A results directory's two data files, read and written in one place.
 
-``report.json`` is a :class:`~analysis.job.Report`; :func:`read_report` is its one reader (the report
+``report.json`` is a :class:`~analysis.contracts.job.Report`; :func:`read_report` is its one reader (the report
 renderer, the plate history, the HMI, the demo and ``cellctl`` read it through here). ``results.npz``
 holds the arrays the plots are drawn from; :class:`ResultsArrays` is its layout, written by
 :func:`analysis.pipeline.write_results` (:meth:`ResultsArrays.save`) and read by the report renderer
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from analysis.job import Report
+from analysis.contracts.job import Report
 
 __all__ = [
     "LineSeries",
@@ -84,7 +84,7 @@ def read_report(path: str | Path, load: Callable[[Path], Any] = _read_json_text)
     """Read ``report.json`` at ``path`` (a file, or a results directory holding one) as a :class:`Report`.
 
     ``load``: how the file is parsed (default: the whole file as JSON); the daemon passes its guarded
-    reader (:func:`cellctl.daemon.records.read_json_file`: size, depth and file-type limits), whose
+    reader (:func:`cellctl.jobstore.records.read_json_file`: size, depth and file-type limits), whose
     errors it handles itself. Raises :class:`ReportError` for a missing file, text that is not
     JSON, or a document that is not a report (naming the field).
     """

@@ -33,7 +33,7 @@ from typing import Literal
 
 import numpy as np
 
-from analysis.mesh import TriMesh, load_mesh
+from analysis.design.mesh import TriMesh, load_mesh
 
 __all__ = [
     "EdgeSpringback",
@@ -512,5 +512,5 @@ def canonical_corner_order(corners_mm: np.ndarray) -> np.ndarray:
 
 
 def load_design(path) -> TriMesh:
-    """Load a design top-surface mesh (PLY, STL or OBJ, mm); see :func:`analysis.mesh.load_mesh`."""
+    """Load a design top-surface mesh (PLY, STL or OBJ, mm); see :func:`analysis.design.mesh.load_mesh`."""
     return load_mesh(path)

@@ -3,7 +3,7 @@
 A yard's surface arrives in ship coordinates: a side-shell plate stands near vertical, metres
 above the keel, and its outline is rarely a rectangle (parallelograms, trapezoids, edges bowed in
 plan). The same three steps serve a triangle mesh (PLY, STL, OBJ) and a CAD design
-(:mod:`analysis.cad`, which samples its outline from the faces' free boundary):
+(:mod:`analysis.design.cad`, which samples its outline from the faces' free boundary):
 
 1. **Outline.** The closed boundary curve of the surface: for a mesh, its edges used by one
    triangle (:func:`mesh_free_edges`, the one place that finds them) chained into loops
@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import structlog
 
-from analysis.mesh import MeshError, TriMesh
-from analysis.plates import canonical_corner_order
+from analysis.design.mesh import MeshError, TriMesh
+from analysis.design.plates import canonical_corner_order
 
 __all__ = [
     "FramedMesh",
@@ -281,7 +281,7 @@ class FramedMesh:
 def frame_design_mesh(mesh: TriMesh) -> FramedMesh:
     """The plate's base plane, frame and corners from a design mesh in any pose (ship coordinates).
 
-    The same frame :mod:`analysis.cad` finds for a CAD design (:func:`plate_frame_from_surface`).
+    The same frame :mod:`analysis.design.cad` finds for a CAD design (:func:`plate_frame_from_surface`).
     Raises :class:`OutlineError` for a mesh without a four-cornered open boundary.
     """
     z, _ = _surface_up(mesh.vertices_mm, mesh.triangles)

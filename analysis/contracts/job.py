@@ -1,7 +1,7 @@
 """The analysis' contract with whoever runs it: the job it is given and the report it returns.
 
 :class:`AnalysisJob` is what an analysis needs besides the cloud (the design, the operator's
-nominal :class:`~analysis.placement.Placement`, the settings, where to write the results);
+nominal :class:`~analysis.contracts.placement.Placement`, the settings, where to write the results);
 :class:`Report` is the schema of ``report.json``. Both are pydantic models that refuse unknown
 fields: the daemon builds the job and validates the report it gets back, the worker validates the
 job it receives and the report it returns, and :func:`analysis.pipeline.inspect_cloud` validates
@@ -22,9 +22,9 @@ from pydantic import (
     model_validator,
 )
 
+from analysis.contracts.placement import Placement
+from analysis.contracts.settings import InspectionSettings, TemplateFit
 from analysis.metrics import Tolerances
-from analysis.placement import Placement
-from analysis.settings import InspectionSettings, TemplateFit
 
 __all__ = [
     "AnalysisJob",
@@ -95,7 +95,7 @@ Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
 class RestSurfaceReport(_Strict):
-    """The surface the design rests on (``analysis.rest_surface``): patches, noise, the bias bound (mm)."""
+    """The surface the design rests on (``analysis.register.rest_surface``): patches, noise, the bias bound (mm)."""
 
     estimator: str
     patches: int
@@ -246,11 +246,11 @@ class ReportInputs(_Strict):
 
 
 class DesignReport(_Strict):
-    """The design the plate was judged against: a mesh, or a CAD file (:mod:`analysis.cad`) with its
+    """The design the plate was judged against: a mesh, or a CAD file (:mod:`analysis.design.cad`) with its
     format, file units, faces, the tessellation's measured chord error (registration runs on it),
     where the templates were cut, and ``T_design_file`` (file coordinates in mm -> design frame).
     ``side``: which face of the plate faced the sensor (``moulded_down``: the design was offset
-    by ``thickness_mm`` and turned over, :mod:`analysis.moulded`)."""
+    by ``thickness_mm`` and turned over, :mod:`analysis.design.moulded`)."""
 
     kind: Literal["mesh", "cad"] = "mesh"
     format: str = ""

@@ -1,0 +1,8 @@
+"""Design input: what a yard hands over, read into the types the analysis works on.
+
+Triangle meshes (:mod:`~analysis.design.mesh`), IGES and STEP surfaces (:mod:`~analysis.design.cad`;
+written by :mod:`~analysis.design.cad_write`), the design's outline, corners and own frame
+(:mod:`~analysis.design.outline`), the moulded side and thickness (:mod:`~analysis.design.moulded`),
+a yard's template table (:mod:`~analysis.design.template_table`) and the project's analytic plate
+shapes with their forming errors (:mod:`~analysis.design.plates`).
+"""
