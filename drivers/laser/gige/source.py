@@ -495,6 +495,7 @@ class GigeProfileSource(ProfileSource):
         self._tasks = []
         link, self._link = self._link, None
         if link is not None and link.stream is not None:
+            self._read_stream_stats(link)  # the counters as they stand at the end, not 0.1 s before
             await asyncio.to_thread(self._stop_stream, link, device_alive=not link.lost.is_set())
         self._queue.put_nowait(_CLOSED)
 
