@@ -13,7 +13,7 @@ import socket
 import numpy as np
 import pytest
 from fuzzlib import fuzz_settings, mutated
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from drivers.abb_egm.codec import (
@@ -90,19 +90,28 @@ async def _exchange(junk: list[bytes], reply_thread: bool) -> tuple[list[int], d
                 decode_sensor(data)
                 n += 1
             replies_per_step.append(n)
-        return replies_per_step, ep.stats.snapshot(), sent
+        return replies_per_step, {**ep.stats.snapshot(), "implausible": ep.stats.implausible}, sent
     finally:
         sock.close()
         await ep.close()
 
 
+#: a mutated robot message that decodes and whose joints jump (hypothesis found it in CI): counted
+#: received, malformed and implausible
+IMPLAUSIBLE = b'\n\x06\x08\x05\x10\x14\x18\x02\x12\x89\x01\n6\t\x00\x00\x00\x00\x00\x00\x00?\t\x00\x00\x00\x00\x00\x00\xf0@\t\x00\x00\x00\x00\x00\x00\x08@\t\x00\x00\x00\x00\x00\x00\x10@\t\x00\x00\x00\x00\x00\x00>@\t\x00\x00\x00\x00\x00\x00\x18@\x12C\n\x1b\t\x00\x00\x00\x00\x00p\x97@\x11\x00\x00\x00\x00\x00\x00$@\x19\x00\x00\x00\x00\x00\x90\x9a@\x12$\t\x00\x00\x00\x00\x00\x00\xf0?\x11\x00\x00\x00\x00\x00\x00\x00\x00\x19\x00\x00\x00\x00\x00\x00\x00\x00!\x00\x00\x00\x00\x00\x00\x00\x00"\n\x08\x80\xe2\xcf\xaa\x06\x10\xc0\x9d\x01\x1a8\n6\t\x00\x00\x00\x00\x00\x00\xf0?\t\x00\x00\x00\x00\x00\x00\x00@\t\x00\x00\x00\x00\x00\x00\x08@\t\x00\x00\x00\x00\x00\x00\x10@\t\x00\x00\x00\x00\x00\x00>@\t\x00\x00\x00\x00\x00\x00\x18@"\x02\x08\x01*\x02\x08\x03B\x02\x08\x02Q\x00\x00\x00\x00\x00\x00$@'
+
+
 @pytest.mark.parametrize("reply_thread", [False, True], ids=["loop", "reply_thread"])
 @fuzz_settings(30)
 @given(junk=st.lists(_junk(), min_size=1, max_size=6))
+@example(junk=[IMPLAUSIBLE])
 def test_egm_endpoint_survives_mutated_packets_counts_them_and_answers_every_valid_one(junk, reply_thread):
     replies, stats, sent = asyncio.run(asyncio.wait_for(_exchange(junk, reply_thread), 60))
     assert all(n >= 1 for n in replies), replies  # the valid packet of each step got its answer
-    assert stats["received"] + stats["malformed"] == sent
+    # every datagram counted once: decoded (received) or not (malformed); a decoded one whose joints
+    # jump implausibly is also counted malformed (and implausible), so it is taken out once here
+    # (hypothesis found a mutated packet that decodes and jumps: received 2 + malformed 1 of 2 sent)
+    assert stats["received"] + stats["malformed"] - stats["implausible"] == sent
 
 
 @fuzz_settings(40)
@@ -110,4 +119,4 @@ def test_egm_endpoint_survives_mutated_packets_counts_them_and_answers_every_val
 def test_egm_endpoint_counts_random_datagrams_and_still_answers(data):
     replies, stats, sent = asyncio.run(asyncio.wait_for(_exchange([data], False), 60))
     assert replies[0] >= 1
-    assert stats["received"] + stats["malformed"] == sent
+    assert stats["received"] + stats["malformed"] - stats["implausible"] == sent
