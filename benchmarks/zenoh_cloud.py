@@ -29,7 +29,7 @@ import zenoh
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from cellctl.api.cloud_codec import ENCODING, Cloud, decode_cloud, encode_cloud  # noqa: E402
+from cellctl.api.cloud_codec import ENCODING, Cloud, CloudMeta, decode_cloud, encode_cloud  # noqa: E402
 from cellctl.api.session import build_zenoh_config, close_session, open_session  # noqa: E402
 from cellctl.config import ZenohSection  # noqa: E402
 from tests.support.ports import free_port  # noqa: E402
@@ -47,7 +47,7 @@ def make_cloud(n: int, job_id: str) -> Cloud:
         t_s=prof.astype(np.float64) / 200.0,
         job_id=job_id,
         plate_id="bench",
-        meta={"frame": "base"},
+        meta=CloudMeta(cell_id="bench"),
     )
 
 

@@ -14,13 +14,13 @@ segmentation's scan-grid route sees a dense grid, as it would from a sensor with
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import structlog
 
 from cellctl.acquisition.assembly import AssembledScan, AssemblyError
-from cellctl.api.cloud_codec import Cloud, encode_cloud
+from cellctl.api.cloud_codec import Cloud, CloudMeta, encode_cloud
 
 if TYPE_CHECKING:
     from cellctl.config import CellConfig
@@ -113,7 +113,7 @@ def publication_cloud(
     job_id: str,
     plate_id: str,
     column_step: int | np.ndarray = 1,
-    meta: dict[str, Any] | None = None,
+    meta: CloudMeta | None = None,
     t0_ns: int | None = None,
 ) -> Cloud:
     """The valid points of ``scan`` as a :class:`~cellctl.api.cloud_codec.Cloud`, thinned by ``column_step``
@@ -133,7 +133,7 @@ def publication_cloud(
         profile_index=pts["profile_index"].astype(np.uint32, copy=False),
         point_index=pts["point_index"].astype(np.uint16, copy=False),
         t_s=pts["t_s"],
-        meta=dict(meta or {}),
+        meta=meta or CloudMeta(),
     )
 
 
@@ -143,7 +143,7 @@ def encode_scan(
     job_id: str,
     plate_id: str,
     column_step: int | np.ndarray = 1,
-    meta: dict[str, Any] | None = None,
+    meta: CloudMeta | None = None,
     t0_ns: int | None = None,
 ) -> tuple[bytearray, int]:
     """:func:`publication_cloud` encoded by :func:`~cellctl.api.cloud_codec.encode_cloud`: ``(payload,

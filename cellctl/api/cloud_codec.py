@@ -24,7 +24,9 @@ metadata block, then each array as raw little-endian bytes, 8-byte aligned, so d
     18      6     -        reserved, 0
     24      8     u64      offset of the array from the start of the message (multiple of 8)
 
-    then meta_len bytes of JSON: {"job_id": str, "plate_id": str, ...}
+    then meta_len bytes of JSON, the object of :class:`CloudMetaBlock`:
+    {"job_id": str, "plate_id": str, "frame": "robot base", "cell_id": str | null,
+     "placement": {"pos_mm": [x, y, z], "rpy_deg": [r, p, y]} | null}
 
 Fields (fixed dtype each; ``xyz_mm`` required, the others optional):
 ``xyz_mm`` f32 x3 (mm, robot base frame), ``pass_id`` u16, ``profile_index`` u32 (profile within
@@ -33,6 +35,13 @@ profile and point together are the point's place on the scan grid: the names, th
 convention and the meaning of ``t_s`` are those of ``analysis.cloud_io.ScanCloud``, which the
 worker hands to the analysis (:meth:`Cloud.scan_cloud`). Arrays follow in table order, without overlap.
 The payload itself is not checksummed: Zenoh runs over TCP, which already is.
+
+The metadata is a pydantic model (:class:`CloudMeta`, with the ids :class:`CloudMetaBlock`): a key
+it does not name is refused (CloudFormatError, field ``meta``). Every daemon since the first
+(2026-11-22) has written all five keys, so every kept ``cloud.bin`` decodes; ``frame``, ``cell_id``
+and ``placement`` are optional, so a message of only the two ids (a tool's, a test's) decodes too.
+Nothing in the cell reads them back (the worker takes the placement from its job, not the cloud):
+they make a downloaded ``cloud.bin`` say where it was measured.
 """
 
 from __future__ import annotations
@@ -43,11 +52,13 @@ import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from analysis.cloud_io import ScanCloud
+from analysis.contracts.placement import Placement
 
 MAGIC = b"CCLD"
 VERSION = 1
@@ -93,6 +104,29 @@ class CloudFormatError(ValueError):
         super().__init__(f"{message} ({', '.join(where)})" if where else message)
 
 
+class CloudMeta(BaseModel):
+    """What a cloud says of itself beyond its job: the frame of ``xyz_mm`` (always the robot base),
+    the cell that measured it, and the placement the job was scanned with (None: found by a locate
+    run after the record was made, or not given)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    frame: Literal["robot base"] = "robot base"
+    cell_id: str | None = None
+    placement: Placement | None = None
+
+
+class CloudMetaBlock(CloudMeta):
+    """The metadata block on the wire: :class:`CloudMeta` with the job's ids."""
+
+    job_id: str
+    plate_id: str
+
+    @property
+    def meta(self) -> CloudMeta:
+        return CloudMeta.model_validate(self.model_dump(exclude={"job_id", "plate_id"}))
+
+
 @dataclass(frozen=True)
 class Cloud:
     """One assembled scan on the wire: the arrays of :class:`analysis.cloud_io.ScanCloud` (the same
@@ -101,7 +135,7 @@ class Cloud:
     xyz_mm: (n, 3) float32, mm, robot base frame. Optional per-point arrays, each (n,):
     pass_id uint16 (transit under pass 0), profile_index uint32 (running within the scan),
     point_index uint16 (along the line), t_s float64 (exposure time, s from the first profile).
-    ``meta`` holds further JSON-able metadata.
+    ``meta`` says the frame, the cell and the placement (:class:`CloudMeta`).
     """
 
     xyz_mm: np.ndarray
@@ -111,7 +145,7 @@ class Cloud:
     profile_index: np.ndarray | None = None
     point_index: np.ndarray | None = None
     t_s: np.ndarray | None = None
-    meta: dict[str, Any] = field(default_factory=dict)
+    meta: CloudMeta = field(default_factory=CloudMeta)
 
     @property
     def n_points(self) -> int:
@@ -182,16 +216,15 @@ def encode_cloud(cloud: Cloud) -> bytearray:
 
 
 def _encoded_prefix(
-    job_id: str, plate_id: str, meta: dict[str, Any], n: int, arrays: dict[str, tuple[np.dtype, int]]
+    job_id: str, plate_id: str, meta: CloudMeta, n: int, arrays: dict[str, tuple[np.dtype, int]]
 ) -> tuple[bytes, dict[str, int], int]:
     """The header, field table and metadata of a message of ``n`` points holding ``arrays`` (name ->
     (dtype, bytes), in their order), padded up to the first array: ``(prefix, offsets of the arrays,
     total size)``."""
-    meta = {**meta, "job_id": str(job_id), "plate_id": str(plate_id)}
-    try:
-        meta_bytes = json.dumps(meta, separators=(",", ":"), allow_nan=False).encode("utf-8")
-    except (TypeError, ValueError) as exc:
-        raise CloudFormatError(f"metadata is not JSON-serialisable: {exc}", field="meta") from None
+    if not isinstance(meta, CloudMeta):
+        raise CloudFormatError(f"metadata is a {type(meta).__name__}, not a CloudMeta", field="meta")
+    block = {"job_id": str(job_id), "plate_id": str(plate_id), **meta.model_dump(mode="json")}
+    meta_bytes = json.dumps(block, separators=(",", ":"), allow_nan=False).encode("utf-8")
     if len(meta_bytes) > MAX_META_BYTES:
         raise CloudFormatError(f"metadata is {len(meta_bytes)} bytes, limit {MAX_META_BYTES}", field="meta")
 
@@ -262,16 +295,7 @@ def decode_cloud(buf: bytes | bytearray | memoryview, *, check_finite: bool = Tr
         )
     if zlib.crc32(bytes(mv[:40]) + bytes(mv[HEADER_SIZE:meta_end])) != crc:
         raise CloudFormatError("header checksum mismatch", field="header_crc", offset=40)
-    try:
-        meta = json.loads(bytes(mv[table_end:meta_end]).decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CloudFormatError(f"metadata is not UTF-8 JSON: {exc}", field="meta", offset=table_end) from None
-    if (
-        not isinstance(meta, dict)
-        or not isinstance(meta.get("job_id"), str)
-        or not isinstance(meta.get("plate_id"), str)
-    ):
-        raise CloudFormatError("metadata must be an object with string job_id and plate_id", field="meta")
+    block = _meta_block(mv[table_end:meta_end], table_end)
 
     arrays: dict[str, np.ndarray] = {}
     cursor = data_offset
@@ -302,12 +326,22 @@ def decode_cloud(buf: bytes | bytearray | memoryview, *, check_finite: bool = Tr
         raise CloudFormatError("required field is missing", field="xyz_mm")
     if check_finite and not np.isfinite(arrays["xyz_mm"]).all():
         raise CloudFormatError("non-finite coordinates", field="xyz_mm")
-    extra = {k: v for k, v in meta.items() if k not in ("job_id", "plate_id")}
-    return Cloud(job_id=meta["job_id"], plate_id=meta["plate_id"], meta=extra, **arrays)
+    return Cloud(job_id=block.job_id, plate_id=block.plate_id, meta=block.meta, **arrays)
 
 
-def peek_meta(buf: bytes | bytearray | memoryview) -> dict[str, Any]:
-    """Only the metadata (job_id, plate_id, ...) and n_points, without touching the arrays."""
+def _meta_block(raw: memoryview, offset: int) -> CloudMetaBlock:
+    """The metadata JSON at ``offset`` as its model; CloudFormatError (field ``meta``) when it is not
+    UTF-8 JSON, not an object, lacks a string id, or has a key the model does not name."""
+    try:
+        return CloudMetaBlock.model_validate_json(bytes(raw))
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "metadata"
+        raise CloudFormatError(f"metadata {where}: {first['msg']}", field="meta", offset=offset) from None
+
+
+def peek_meta(buf: bytes | bytearray | memoryview) -> tuple[CloudMetaBlock, int]:
+    """Only the metadata and n_points, without touching the arrays: ``(block, n_points)``."""
     mv = memoryview(buf).cast("B")
     if mv.nbytes < HEADER_SIZE or bytes(mv[:4]) != MAGIC:
         raise CloudFormatError("not a cloud message", field="magic", offset=0)
@@ -315,13 +349,7 @@ def peek_meta(buf: bytes | bytearray | memoryview) -> dict[str, Any]:
     start = HEADER_SIZE + FIELD_ENTRY.size * n_fields
     if n_fields > MAX_FIELDS or meta_len > MAX_META_BYTES or start + meta_len > mv.nbytes:
         raise CloudFormatError("header inconsistent with message size", field="meta_len", offset=20)
-    try:
-        meta = json.loads(bytes(mv[start : start + meta_len]).decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CloudFormatError(f"metadata is not UTF-8 JSON: {exc}", field="meta", offset=start) from None
-    if not isinstance(meta, dict):
-        raise CloudFormatError("metadata must be a JSON object", field="meta", offset=start)
-    return {**meta, "n_points": int(n)}
+    return _meta_block(mv[start : start + meta_len], start), int(n)
 
 
 def concat_encoded(payloads: list[bytes | bytearray]) -> bytearray:

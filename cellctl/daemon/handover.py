@@ -26,7 +26,7 @@ from cellctl.acquisition.publish import PublishSettings, budget_steps, column_st
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.api import JobState, now_utc
 from cellctl.api.analysis_job import analysis_job
-from cellctl.api.cloud_codec import write_concatenated
+from cellctl.api.cloud_codec import CloudMeta, write_concatenated
 from cellctl.api.models import AnalysisOptions, ReportEnvelope
 from cellctl.api.transfer import TransferError, TransferSpec, store_results
 from cellctl.config import CellConfig
@@ -137,10 +137,8 @@ class Handover:
             placement_found=rec.info.get("placement_found"),
         )  # fmt: skip
 
-    def _meta(self, job: ActiveJob) -> dict[str, Any]:
-        placement = job.record.placement
-        return {"frame": "robot base", "cell_id": self.cfg.cell.id,
-                "placement": None if placement is None else placement.model_dump(mode="json")}  # fmt: skip
+    def _meta(self, job: ActiveJob) -> CloudMeta:
+        return CloudMeta(cell_id=self.cfg.cell.id, placement=job.record.placement)
 
     @staticmethod
     def _first_edge(job: ActiveJob) -> int | None:

@@ -20,7 +20,6 @@ import asyncio
 import contextlib
 import time
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 import structlog
@@ -28,6 +27,7 @@ import structlog
 from cellctl.acquisition.assembly import AssembledBatch, AssembledScan
 from cellctl.acquisition.pipeline import Acquisition
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, pass_end_cut
+from cellctl.api.cloud_codec import CloudMeta
 from cellctl.api.models import ReportEnvelope
 from cellctl.daemon.dispatch import Dispatcher
 from cellctl.jobstore.rawstore import RawWriter
@@ -54,7 +54,7 @@ class ScanStream:
         plate_id: str,
         settings: PublishSettings,
         first_edge_pass: int | None,
-        meta: dict[str, Any],
+        meta: CloudMeta,
         last_pass: int | None = None,
         poll_s: float = 0.05,
         durable_timeout_s: float = 5.0,
@@ -68,7 +68,7 @@ class ScanStream:
         self.settings = settings
         self.first_edge_pass = first_edge_pass
         self.last_pass = last_pass
-        self.meta = dict(meta)
+        self.meta = meta
         self.poll_s = poll_s
         self.durable_timeout_s = durable_timeout_s
         self._on_abandon = on_abandon

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from cellctl.acquisition.assembly import AssembledScan, AssemblyError
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, publication_cloud
-from cellctl.api.cloud_codec import decode_cloud
+from cellctl.api.cloud_codec import CloudMeta, decode_cloud
 from cellctl.config import CellConfig
 
 
@@ -91,11 +91,11 @@ def test_publish_settings_follow_the_sensor_and_the_scan_section():
 
 def test_encoded_scan_decodes_to_the_thinned_points_with_transit_in_pass_zero():
     sc = _scan(n=16, w=30, seed=3)
-    payload, n = encode_scan(sc, job_id="j1", plate_id="p1", column_step=3, meta={"cell_id": "c"})
+    payload, n = encode_scan(sc, job_id="j1", plate_id="p1", column_step=3, meta=CloudMeta(cell_id="c"))
     cloud = decode_cloud(payload)
     pts = sc.points(3)
     assert n == cloud.n_points == len(pts["xyz_mm"])
-    assert (cloud.job_id, cloud.plate_id, cloud.meta["cell_id"]) == ("j1", "p1", "c")
+    assert (cloud.job_id, cloud.plate_id, cloud.meta.cell_id) == ("j1", "p1", "c")
     np.testing.assert_array_equal(cloud.xyz_mm, pts["xyz_mm"])
     np.testing.assert_array_equal(cloud.point_index, pts["point_index"])
     np.testing.assert_array_equal(cloud.pass_id, np.maximum(pts["pass_id"], 0))

@@ -9,7 +9,7 @@ import pytest
 
 from cellctl.acquisition.assembly import AssembledBatch, AssembledScan
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, pass_end_cut
-from cellctl.api.cloud_codec import concat_encoded, decode_cloud
+from cellctl.api.cloud_codec import CloudMeta, concat_encoded, decode_cloud
 from cellctl.daemon.stream import ScanStream, _split
 from tests.support.waits import wait_until
 
@@ -106,7 +106,7 @@ class _Dispatcher:
 def test_the_chunks_concatenated_are_the_whole_cloud_byte_for_byte(seed: int) -> None:
     settings = PublishSettings(native_pitch_mm=0.1, pitch_mm=0.2, edge_pitch_mm=0.4)
     batches = _scan_batches(seed)
-    meta = {"frame": "robot base"}
+    meta = CloudMeta(cell_id="cell-1")
 
     async def go() -> _Dispatcher:
         disp, acq = _Dispatcher(), _Acq()
@@ -146,7 +146,7 @@ def test_a_stream_abandoned_before_the_end_gives_the_job_up() -> None:
         disp, acq = _Dispatcher(), _Acq()
         fut = asyncio.get_running_loop().create_future()
         stream = ScanStream(disp, fut, job_id="J", plate_id="P", settings=PublishSettings(),
-                            first_edge_pass=None, meta={}, poll_s=0.01)  # fmt: skip
+                            first_edge_pass=None, meta=CloudMeta(), poll_s=0.01)  # fmt: skip
         stream.follow(acq, None)
         acq.batches.extend(_scan_batches()[:3])
         await wait_until(lambda: 3 in acq.asked, 0.05, "the stream taking the three batches")

@@ -3,6 +3,7 @@ job's chunks concatenated in memory and straight to a file, byte for byte the sa
 
 from __future__ import annotations
 
+import json
 import struct
 import zlib
 
@@ -11,17 +12,22 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from analysis.contracts.placement import Placement
 from cellctl.api.cloud_codec import (
     FIELD_ENTRY,
     HEADER_SIZE,
     Cloud,
     CloudFormatError,
+    CloudMeta,
+    CloudMetaBlock,
     concat_encoded,
     decode_cloud,
     encode_cloud,
     peek_meta,
     write_concatenated,
 )
+
+_META = CloudMeta(cell_id="cell-A", placement=Placement.on_bed(1200.0, -40.0, 90.0))
 
 
 def _cloud(
@@ -38,7 +44,7 @@ def _cloud(
     if "t_s" in optional:
         kw["t_s"] = np.sort(rng.uniform(0, 300, n))
     xyz = rng.normal(0, 500, (n, 3)).astype(np.float32)
-    return Cloud(xyz_mm=xyz, job_id="job-1", plate_id="P-7", meta={"frame": "base"}, **kw)
+    return Cloud(xyz_mm=xyz, job_id="job-1", plate_id="P-7", meta=_META, **kw)
 
 
 def _recrc(buf: bytearray) -> bytearray:
@@ -59,7 +65,7 @@ def _recrc(buf: bytearray) -> bytearray:
 def test_cloud_round_trip_preserves_every_array_and_metadata(n, seed, optional):
     cloud = _cloud(n, seed, tuple(optional))
     back = decode_cloud(bytes(encode_cloud(cloud)))
-    assert back.job_id == "job-1" and back.plate_id == "P-7" and back.meta == {"frame": "base"}
+    assert back.job_id == "job-1" and back.plate_id == "P-7" and back.meta == _META
     assert back.n_points == n
     assert set(back.arrays()) == set(cloud.arrays())
     for name, arr in cloud.arrays().items():
@@ -83,8 +89,72 @@ def test_arrays_are_aligned_views_without_copy():
 
 
 def test_peek_meta_reads_job_and_point_count_only():
-    meta = peek_meta(encode_cloud(_cloud(17)))
-    assert meta["job_id"] == "job-1" and meta["n_points"] == 17
+    block, n_points = peek_meta(encode_cloud(_cloud(17)))
+    assert (block.job_id, block.plate_id, block.meta, n_points) == ("job-1", "P-7", _META, 17)
+
+
+def _with_meta_json(meta_json: bytes, n: int = 5) -> bytearray:
+    """An encoded cloud of ``n`` points whose metadata block is ``meta_json`` (header, offsets and
+    checksum made consistent), as an older or a foreign writer would have sent it."""
+    buf = encode_cloud(Cloud(xyz_mm=np.ones((n, 3), np.float32), job_id="j", plate_id="p"))
+    table_end = HEADER_SIZE + FIELD_ENTRY.size
+    data_offset = (table_end + len(meta_json) + 7) // 8 * 8
+    xyz = bytes(buf[struct.unpack_from("<Q", buf, 24)[0] :][: n * 12])
+    out = bytearray(buf[:table_end]) + meta_json
+    out += bytes(data_offset - len(out)) + xyz
+    out += bytes((len(out) + 7) // 8 * 8 - len(out))
+    struct.pack_into("<I", out, 20, len(meta_json))
+    struct.pack_into("<Q", out, 24, data_offset)
+    struct.pack_into("<Q", out, 32, len(out))
+    struct.pack_into("<Q", out, HEADER_SIZE + 24, data_offset)
+    return _recrc(out)
+
+
+def test_metadata_as_every_daemon_so_far_wrote_it_decodes_to_its_model():
+    """The daemon's block since its first version (2026-11-22): five keys, placement maybe null."""
+    written = {"frame": "robot base", "cell_id": "sim-cell",
+               "placement": {"pos_mm": [1500.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 90.0]},
+               "job_id": "J-old", "plate_id": "P-old"}  # fmt: skip
+    cloud = decode_cloud(_with_meta_json(json.dumps(written).encode()))
+    assert (cloud.job_id, cloud.plate_id, cloud.meta.cell_id) == ("J-old", "P-old", "sim-cell")
+    assert cloud.meta.placement == Placement(pos_mm=[1500.0, 0.0, 0.0], rpy_deg=[0.0, 0.0, 90.0])
+    unplaced = decode_cloud(_with_meta_json(json.dumps({**written, "placement": None}).encode()))
+    assert unplaced.meta.placement is None and unplaced.meta.frame == "robot base"
+
+
+def test_metadata_of_only_the_ids_decodes_with_the_optional_fields_unset():
+    cloud = decode_cloud(_with_meta_json(b'{"job_id":"j2","plate_id":"p2"}'))
+    assert (cloud.job_id, cloud.plate_id) == ("j2", "p2")
+    assert cloud.meta == CloudMeta() and cloud.meta.cell_id is None and cloud.meta.placement is None
+
+
+@pytest.mark.parametrize(
+    ("meta_json", "problem"),
+    [
+        (b'{"job_id":"j","plate_id":"p","note":"x"}', "note"),
+        (b'{"job_id":"j","plate_id":"p","frame":"flange"}', "frame"),
+        (b'{"job_id":"j","plate_id":"p","placement":{"pos_mm":[0,0]}}', "placement"),
+        (b'{"job_id":"j","plate_id":"p","placement":{"pos_mm":[0,0,0],"scale":2}}', "placement"),
+        (b'{"job_id":7,"plate_id":"p"}', "job_id"),
+        (b'{"plate_id":"p"}', "job_id"),
+        (b'["j","p"]', "metadata"),
+        (b'{"job_id":"j",', "metadata"),
+        (b"\xff\xfe", "metadata"),
+    ],
+)
+def test_metadata_with_an_unknown_key_or_a_wrong_value_is_refused(meta_json, problem):
+    buf = _with_meta_json(meta_json)
+    for read in (decode_cloud, peek_meta):
+        with pytest.raises(CloudFormatError) as err:
+            read(buf)
+        assert err.value.field == "meta" and problem in str(err.value)
+
+
+def test_encode_refuses_metadata_that_is_not_the_model():
+    with pytest.raises(CloudFormatError, match="CloudMeta") as err:
+        encode_cloud(Cloud(xyz_mm=np.zeros((1, 3)), job_id="j", plate_id="p", meta={"frame": "base"}))
+    assert err.value.field == "meta"
+    assert CloudMetaBlock.model_fields.keys() == {"frame", "cell_id", "placement", "job_id", "plate_id"}
 
 
 @pytest.mark.parametrize(

@@ -18,8 +18,9 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from analysis.cloud_io import CloudError, ScanCloud, read_cloud, write_cloud_npz, write_cloud_ply
+from analysis.contracts.placement import Placement
 from analysis.design.mesh import MeshError, TriMesh, load_mesh, save_mesh
-from cellctl.api.cloud_codec import Cloud, CloudFormatError, decode_cloud, encode_cloud
+from cellctl.api.cloud_codec import Cloud, CloudFormatError, CloudMeta, decode_cloud, encode_cloud
 from cellctl.cli import main as cli_main
 
 _RNG = np.random.default_rng(11)
@@ -156,7 +157,7 @@ _CODEC_SEED = bytes(
             profile_index=np.arange(12, dtype=np.uint32),
             point_index=np.arange(12, dtype=np.uint16),
             t_s=np.linspace(0, 1, 12),
-            meta={"note": "seed"},
+            meta=CloudMeta(cell_id="seed", placement=Placement.on_bed(100.0, 50.0, 90.0)),
         )
     )
 )
