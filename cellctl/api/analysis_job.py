@@ -59,12 +59,12 @@ def analysis_job(
     placement: Placement | dict[str, Any] | None,
     out_dir: Path,
     analysis: AnalysisOptions | None = None,
-    placement_found: dict[str, Any] | None = None,
+    placement_found: PlacementFinding | None = None,
 ) -> AnalysisJob:
     """The parameters the daemon sends with a job's cloud: the trigger's design and placement (as
     the job record stores it), the cell's analysis settings with the trigger's per-plate analysis
     options (``analysis``: ``template_table`` rows, ``design_side``, ``thickness_mm``), and the job's results directory.
-    ``placement_found``: the job record's ``info["placement_found"]`` (how the placement was found)."""
+    ``placement_found``: the job record's ``info.placement_found`` (how the placement was found)."""
     analysis = analysis or AnalysisOptions()
     return AnalysisJob(
         job_id=job_id,
@@ -72,7 +72,7 @@ def analysis_job(
         cell_id=cfg.cell.id,
         design=design,
         placement=None if placement is None else Placement.model_validate(placement),
-        placement_found=None if placement_found is None else PlacementFinding.model_validate(placement_found),
+        placement_found=placement_found,
         settings=dataclasses.replace(
             inspection_settings(cfg.analysis, analysis.template_table),
             design_side=analysis.design_side,

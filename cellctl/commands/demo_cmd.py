@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
+from cellctl.jobstore.jobs import JobStoreError, read_job_record
 
 if TYPE_CHECKING:
     from analysis.contracts.job import Report
@@ -233,13 +234,13 @@ def wait_ready_line(path: Path, proc: subprocess.Popen, timeout_s: float) -> dic
 def wait_html_report(data_dir: Path, job_id: str, timeout_s: float = 120.0) -> str | None:
     """Wait until the daemon has recorded the HTML render that follows a done job (it renders after
     storing report.json); returns report.html's path, or None if there is none within ``timeout_s``."""
-    job_json = Path(data_dir) / "jobs" / job_id / "job.json"
+    job_dir = Path(data_dir) / "jobs" / job_id
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        with contextlib.suppress(OSError, ValueError):
-            info = json.loads(job_json.read_text(encoding="utf-8"))["info"]
-            if "html_s" in info:
-                return info.get("report_html")
+        with contextlib.suppress(JobStoreError):
+            info = read_job_record(job_dir).info
+            if info.html_s is not None:
+                return info.report_html
         time.sleep(0.2)
     return None
 

@@ -90,7 +90,7 @@ class Handover:
                 log.error("results_not_stored", job_id=job_id, error=str(exc))
                 continue
             del self._unstored[job_id]
-            job.record.info.update(report=str(report_path), results_pending=False)
+            job.record.info = job.record.info.updated(report=str(report_path), results_pending=False)
             with contextlib.suppress(JobStoreError):  # else the daemon's record retry writes it
                 self.store.save(job.record)
         if self._unstored_task is not None:
@@ -111,7 +111,7 @@ class Handover:
                     continue
                 del self._unstored[job_id]
                 rec = job.record
-                rec.info.update(
+                rec.info = rec.info.updated(
                     report=str(report_path), results_pending=False, results_stored_utc_s=time.time()
                 )
                 rec.history.append({"state": rec.state, "t_utc": now_utc(),
@@ -134,7 +134,7 @@ class Handover:
             self.cfg, job_id=rec.job_id, plate_id=rec.plate_id, design=rec.design_path,
             placement=rec.placement, out_dir=self.store.results_dir(rec.job_id).resolve(),
             analysis=AnalysisOptions.model_validate(rec.analysis),
-            placement_found=rec.info.get("placement_found"),
+            placement_found=rec.info.placement_found,
         )  # fmt: skip
 
     def _meta(self, job: ActiveJob) -> CloudMeta:
@@ -144,15 +144,16 @@ class Handover:
     def _first_edge(job: ActiveJob) -> int | None:
         # The plan puts the raster passes first and the edge passes after them (pass ids index
         # plan.passes), so the plan's raster count is the first edge pass.
-        return (job.record.info.get("plan") or {}).get("passes")
+        plan = job.record.info.plan
+        return None if plan is None else plan.passes
 
     @staticmethod
     def _last_pass(job: ActiveJob) -> int | None:
         # the edge passes follow the raster passes: the last pass id is their count less one
-        plan = job.record.info.get("plan") or {}
-        if "passes" not in plan:
+        plan = job.record.info.plan
+        if plan is None or plan.passes is None:
             return None
-        return int(plan["passes"]) + int(plan.get("edge_passes") or 0) - 1
+        return plan.passes + (plan.edge_passes or 0) - 1
 
     async def open_stream(self, job: ActiveJob) -> ScanStream:
         """A streamed analysis for the scan about to start (planned: the plan is in the record): the
@@ -357,10 +358,10 @@ async def render_html(store: JobStore, job: ActiveJob) -> None:
     info: dict[str, Any] = {"html_s": round(out.elapsed_s, 3)}
     if out.html is not None:
         info["report_html"] = str(results / Path(out.html).name)
-        last = rec.info.get("last_profile_utc_s")
+        last = rec.info.last_profile_utc_s
         if last is not None:
-            info["html_after_last_profile_s"] = round(time.time() - float(last), 3)
-    rec.info.update(info)
+            info["html_after_last_profile_s"] = round(time.time() - last, 3)
+    rec.info = rec.info.updated(**info)
     try:
         store.save(rec)
     except JobStoreError as exc:  # the job is done with its report.json; only the render's note is lost

@@ -45,6 +45,7 @@ from cellctl.hmi.auth import (
 )
 from cellctl.hmi.link import CellLink
 from cellctl.jobstore.history import History
+from cellctl.jobstore.jobs import JobStoreError, read_job_record
 
 log = structlog.get_logger(__name__)
 
@@ -456,7 +457,7 @@ class HmiServer:
             return _err(404, "no_job", f"no job {job_id}")
 
         def read() -> dict[str, Any]:
-            rec = json.loads((d / "job.json").read_text(encoding="utf-8"))
+            rec = read_job_record(d).as_json()
             rp = d / "results" / "report.json"
             if not rp.exists():
                 rp = d / "report.json"
@@ -467,7 +468,12 @@ class HmiServer:
             prev = self.history.previous_round(job_id) if self.history else None
             return {"job": rec, "report": report, "files": files, "previous": prev}
 
-        return web.json_response(await asyncio.to_thread(read))
+        try:
+            return web.json_response(await asyncio.to_thread(read))
+        except JobStoreError as exc:  # a record of another version, or damaged: said, not a 500
+            return _err(
+                409, "unreadable_job", f"job {job_id}: its record cannot be read ({exc.reason[:200]})"
+            )
 
     async def job_map(self, request: web.Request) -> web.Response:
         d = self._job_dir(request.match_info["job_id"])

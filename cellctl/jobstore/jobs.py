@@ -30,10 +30,10 @@ import structlog
 from pydantic import BaseModel, ConfigDict, ValidationError
 from pydantic.dataclasses import dataclass
 
-from analysis.contracts.job import PlacementFinding
 from analysis.contracts.placement import Placement
 from cellctl.api import FINAL_JOB_STATES, JobState, now_utc
 from cellctl.api.models import AnalysisOptions
+from cellctl.jobstore.info import JobInfo
 from cellctl.jobstore.records import check_job_id, is_job_id, read_json_file
 
 log = structlog.get_logger(__name__)
@@ -110,7 +110,7 @@ def lock_data_dir(data_dir: str | Path) -> int:
 class JobRecord:
     """What ``job.json`` holds: a pydantic dataclass, so a record is validated whenever it is made or
     read (a field of the wrong type, a field this version does not know: ValueError, and a record
-    read so is quarantined); :func:`_checked` adds the state, history, info and options checks.
+    read so is quarantined); :func:`_checked` adds the state, history and options checks.
 
     Attributes:
         job_id, plate_id: identity. design: the trigger's design path (relative to designs_dir);
@@ -118,9 +118,10 @@ class JobRecord:
         the scan is planned from (``{"pos_mm": [...], "rpy_deg": [...]}`` in job.json; a dict given
         here is validated into one, ValueError naming ``placement`` when it is not one): the
         trigger's, or (after the locate run) the one found; None until then when the trigger gave
-        none (``info["locate"]`` says which and how well).
+        none (``info.placement_found`` says which and how well).
         state: a :class:`cellctl.api.JobState` value. history: ``[{"state", "t_utc", "message"}]``.
-        info: counters and results (profiles, points, scan_s, verdict, report path, ...).
+        info: counters and results, a :class:`~cellctl.jobstore.info.JobInfo` (plan counts, the
+        placement's finding, verdict, report path, motion counters, ...; its keys and versions there).
         analysis: the trigger's per-plate analysis options (``template_table`` rows, ``design_side``,
         ``thickness_mm``), kept so a re-analysis judges the plate the same way.
     """
@@ -134,7 +135,7 @@ class JobRecord:
     state: str = JobState.QUEUED.value
     created_utc: str = field(default_factory=now_utc)
     history: list[dict[str, str]] = field(default_factory=list)
-    info: dict[str, Any] = field(default_factory=dict)
+    info: JobInfo = field(default_factory=JobInfo)
     analysis: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -142,8 +143,21 @@ class JobRecord:
         return JobState(self.state) in TERMINAL
 
     def as_json(self) -> dict[str, Any]:
-        """The record as job.json's object (the placement as ``{"pos_mm", "rpy_deg"}``)."""
-        return json.loads(json.dumps(asdict(self), default=_json_default))
+        """The record as job.json's object (the placement as ``{"pos_mm", "rpy_deg"}``, ``info`` as
+        :meth:`JobInfo.record`)."""
+        data = {**asdict(self), "info": self.info.record()}
+        return json.loads(json.dumps(data, default=_json_default))
+
+    @classmethod
+    def read(cls, data: Any, dir_name: str) -> JobRecord:
+        """A record from job.json's object, found in the job directory ``dir_name``: ValueError (or
+        TypeError) naming the field when it is not a record this version reads."""
+        if not isinstance(data, dict):
+            raise ValueError(f"expected a JSON object, got {type(data).__name__}")
+        check_job_id(data.get("job_id"), dir_name)
+        if "info" in data:
+            data = {**data, "info": JobInfo.read(data["info"])}
+        return _checked(cls(**data))
 
 
 class JobStore:
@@ -201,22 +215,14 @@ class JobStore:
         """Record a state change (appended to the history) and any info, then save."""
         record.state = JobState(state).value
         record.history.append({"state": record.state, "t_utc": now_utc(), "message": message})
-        record.info.update(info)
+        record.info = record.info.updated(**info)
         self.save(record)
         log.info("job_state", job_id=record.job_id, state=record.state, message=message)
 
     def load(self, job_id: str) -> JobRecord:
         """Read one record; JobStoreError when it cannot be read or is not a record this version knows
         (an unknown state, a field of the wrong type)."""
-        path = self.job_dir(job_id) / "job.json"
-        try:
-            data = read_json_file(path)
-            if not isinstance(data, dict):
-                raise ValueError(f"expected a JSON object, got {type(data).__name__}")
-            check_job_id(data.get("job_id"), job_id)
-            return _checked(JobRecord(**data))
-        except (OSError, ValueError, TypeError) as exc:
-            raise JobStoreError(f"{path}: unreadable job record: {exc}", str(exc)[:300]) from None
+        return read_job_record(self.job_dir(job_id))
 
     def list(self) -> list[JobRecord]:
         """Every readable record, oldest first (job ids sort by time); unreadable ones are logged."""
@@ -282,7 +288,7 @@ class JobStore:
             {"state": rec.state, "t_utc": now_utc(),
              "message": f"job record quarantined at start-up ({why}); raw data kept, re-analysable"}
         )  # fmt: skip
-        rec.info.update(
+        rec.info = rec.info.updated(
             quarantined=str(aside), quarantine_reason=why,
             raw_files=sorted(p.name for p in raw.glob("*.craw")) if raw.is_dir() else [],
         )  # fmt: skip
@@ -332,13 +338,22 @@ class JobStore:
         return rec
 
 
+def read_job_record(job_dir: Path) -> JobRecord:
+    """The record in ``job_dir/job.json`` (the job store's, the HMI's, ``cellctl demo``'s one way to
+    read one); JobStoreError naming the path when it cannot be read or is not a record this version
+    knows (an unknown state, a field of the wrong type)."""
+    path = job_dir / "job.json"
+    try:
+        return JobRecord.read(read_json_file(path), job_dir.name)
+    except (OSError, ValueError, TypeError) as exc:
+        raise JobStoreError(f"{path}: unreadable job record: {exc}", str(exc)[:300]) from None
+
+
 def reanalysis_problem(record: JobRecord, designs_dir: str | Path) -> str:
     """Why ``record`` cannot be re-analysed from its design ("" when it can): its design must be a
     file in ``designs_dir``, as a trigger's is (a quarantined record whose design could not be read
     names none: the worker was handed the directory "." before)."""
-    why = (
-        f" (record quarantined: {record.info['quarantine_reason']})" if record.info.get("quarantined") else ""
-    )
+    why = f" (record quarantined: {record.info.quarantine_reason})" if record.info.quarantined else ""
     if not record.design_path:
         return (
             f"its record names no design{why}: re-analyse it offline (cellctl reassemble {record.job_id}, "
@@ -414,9 +429,8 @@ def _checked(rec: JobRecord) -> JobRecord:
         for h in rec.history
     ):
         raise ValueError("history: expected a list of {state, t_utc, message}")
-    if not isinstance(rec.info, dict):
+    if not isinstance(rec.info, JobInfo):
         raise ValueError(f"info: expected an object, got {type(rec.info).__name__}")
-    _check_info(rec.info)
     try:  # the options a re-analysis will judge the plate by: a record of another shape is quarantined
         AnalysisOptions.model_validate(rec.analysis)
     except ValidationError as exc:
@@ -426,40 +440,8 @@ def _checked(rec: JobRecord) -> JobRecord:
     return rec
 
 
-def _is_count(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
-
-
-def _check_info(info: dict[str, Any]) -> None:
-    """The ``info`` fields a re-analysis reads back (the plan's pass counts, how the placement was
-    found, the raw files) have their types (ValueError naming the field): a record of another shape
-    is quarantined at start-up instead of failing its re-analysis with an AttributeError."""
-    plan = info.get("plan")
-    if plan is not None:
-        if not isinstance(plan, dict):
-            raise ValueError(f"info.plan: expected an object, got {type(plan).__name__}")
-        for key in ("passes", "edge_passes"):
-            if key in plan and plan[key] is not None and not _is_count(plan[key]):
-                raise ValueError(f"info.plan.{key}: expected a count, got {plan[key]!r:.40}")
-    found = info.get("placement_found")
-    if found is not None:
-        try:
-            PlacementFinding.model_validate(found)
-        except ValidationError as exc:
-            raise ValueError(
-                f"info.placement_found: {exc.errors()[0]['msg']} at {exc.errors()[0]['loc']}"
-            ) from None
-    raw = info.get("raw_files")
-    if raw is not None and not (isinstance(raw, list) and all(isinstance(x, str) for x in raw)):
-        raise ValueError("info.raw_files: expected a list of file names")
-    for key in ("last_profile_utc_s", "published_utc_s", "report_utc_s"):
-        v = info.get(key)
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int | float)):
-            raise ValueError(f"info.{key}: expected a number, got {type(v).__name__}")
-
-
 def _json_default(obj: Any) -> Any:
-    if isinstance(obj, BaseModel):  # the placement, a placement finding in info
+    if isinstance(obj, BaseModel):  # the placement
         return obj.model_dump(mode="json")
     if hasattr(obj, "tolist"):
         return obj.tolist()

@@ -26,7 +26,7 @@ def test_restart_cancels_queued_jobs_and_interrupts_started_ones(tmp_path):
     back_q = store.load(queued.job_id)
     assert back_q.state == "cancelled" and back_q.terminal
     assert "trigger it again" in back_q.history[-1]["message"]
-    assert back_q.info["cancelled_in"] == "queued"
+    assert back_q.info.cancelled_in == "queued"
     assert store.load(running.job_id).state == "interrupted"
     assert not store.raw_dir(queued.job_id).exists()  # a queued job never acquired anything
     assert JobStore(tmp_path).recover() == []  # cancelled is final: a second restart changes nothing
@@ -124,5 +124,5 @@ def test_a_record_whose_analysis_options_do_not_validate_is_quarantined_not_fed_
     assert [r.job_id for r in found] == [rec.job_id]
     back = store.load(rec.job_id)
     assert back.state == "interrupted" and back.analysis == {}  # raw data stays re-analysable
-    assert "analysis" in back.info["quarantine_reason"]
+    assert "analysis" in back.info.quarantine_reason
     assert (store.root / rec.job_id / "job.json.quarantined").exists()

@@ -108,7 +108,7 @@ def test_a_disk_full_while_results_are_stored_keeps_the_verdict_and_writes_them_
             )
             await asyncio.gather(*d._analyses, return_exceptions=True)
             during = (sorted(p.name for p in (jd / "results").glob("*")) if (jd / "results").exists() else [],
-                      d.handover.unstored, d._current.record.state, dict(d._current.record.info))  # fmt: skip
+                      d.handover.unstored, d._current.record.state, d._current.record.info)  # fmt: skip
             filler.unlink()  # room again
             await wait_until(
                 lambda: not d.handover.unstored and not len(d._unsaved), 2.0, "every result stored"
@@ -118,10 +118,10 @@ def test_a_disk_full_while_results_are_stored_keeps_the_verdict_and_writes_them_
         during = asyncio.run(main())
         names, unstored, state, info = during
         assert names == [] and unstored == [JOB]  # nothing half-written (no .results.npz.tmp)
-        assert state == "done" and info["verdict"] == "pass" and info["results_pending"] is True
+        assert state == "done" and info.verdict == "pass" and info.results_pending is True
         record = d.store.load(JOB)
-        assert record.state == "done" and record.info["verdict"] == "pass"
-        assert record.info["results_pending"] is False and record.info["report"] == str(
+        assert record.state == "done" and record.info.verdict == "pass"
+        assert record.info.results_pending is False and record.info.report == str(
             (jd / "report.json").resolve()
         )
         assert (jd / "results" / "results.npz").read_bytes() == files["results.npz"]

@@ -88,7 +88,7 @@ def test_job_store_keeps_the_state_history_on_disk(tmp_path):
     store.set_state(rec, JobState.SCANNING, "", profiles=12)
     back = store.load(rec.job_id)
     assert [h["state"] for h in back.history] == ["queued", "planning", "scanning"]
-    assert back.info["profiles"] == 12
+    assert back.info.profiles == 12
     assert not list((tmp_path / "jobs" / rec.job_id).glob("*.tmp"))
 
 
@@ -104,8 +104,8 @@ def test_recover_marks_unfinished_jobs_interrupted_and_leaves_raw_files_alone(tm
     found = JobStore(tmp_path).recover()
     assert [r.job_id for r in found] == [running.job_id]
     back = store.load(running.job_id)
-    assert back.state == "interrupted" and back.info["interrupted_in"] == "scanning"
-    assert back.info["raw_files"] == ["profiles.craw"]
+    assert back.state == "interrupted" and back.info.interrupted_in == "scanning"
+    assert back.info.raw_files == ["profiles.craw"]
     assert (raw / "profiles.craw").read_bytes() == b"\x01" * 100
     assert store.load(done.job_id).state == "done"
     assert JobStore(tmp_path).recover() == []  # idempotent

@@ -38,7 +38,7 @@ def hmi(tmp_path_factory) -> Iterator[LocalHmi]:
     root = tmp_path_factory.mktemp("hmi-fuzz")
     d = root / "data" / "jobs" / JOB
     (d / "results").mkdir(parents=True)
-    rec = {"job_id": JOB, "plate_id": "P1", "design": "p.ply", "state": "done", "created_utc": "2026-12-01T10:00:00Z",
+    rec = {"job_id": JOB, "plate_id": "P1", "design": "p.ply", "design_path": "/srv/p.ply", "placement": None, "state": "done", "created_utc": "2026-12-01T10:00:00Z",
            "history": [{"state": "done", "t_utc": "2026-12-01T10:01:00Z", "message": "done"}], "info": {}}  # fmt: skip
     (d / "job.json").write_text(json.dumps(rec))
     (d / "results" / "report.csv").write_text("line,zmax\nT1,1.0\n")

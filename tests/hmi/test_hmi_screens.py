@@ -50,7 +50,7 @@ def _job_dir(
     d = data / "jobs" / job_id
     d.mkdir(parents=True)
     rec = {"job_id": job_id, "plate_id": plate, "design": "p.ply", "design_path": "/srv/cell/designs/p.ply",
-           "placement": {}, "state": state, "created_utc": f"2026-12-01T{t}:00:00Z",
+           "placement": None, "state": state, "created_utc": f"2026-12-01T{t}:00:00Z",
            "history": [{"state": state, "t_utc": "2026-12-01T10:00:00Z", "message": f"{state} by olga"}], "info": {}}  # fmt: skip
     (d / "job.json").write_text(json.dumps(rec))
     if verdict is None:

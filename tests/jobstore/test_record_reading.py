@@ -43,7 +43,7 @@ def test_a_record_of_a_thousand_brackets_is_quarantined_not_a_crash(tmp_path):
     found = JobStore(tmp_path).recover()  # RecursionError before: the daemon exited 1 on every start
     assert [r.job_id for r in found] == [OTHER_ID]
     back = store.load(OTHER_ID)
-    assert back.state == "interrupted" and "nested deeper" in back.info["quarantine_reason"]
+    assert back.state == "interrupted" and "nested deeper" in back.info.quarantine_reason
     assert (d / "job.json.quarantined").read_text().startswith("[[[")
     assert JobStore(tmp_path).recover() == []  # the fresh record is readable: no loop
 
@@ -64,7 +64,7 @@ def test_a_record_larger_than_the_cap_is_not_read(tmp_path):
         store.load(OTHER_ID)
     found = store.recover()
     assert [r.job_id for r in found] == [OTHER_ID]
-    assert "bytes" in store.load(OTHER_ID).info["quarantine_reason"]
+    assert "bytes" in store.load(OTHER_ID).info.quarantine_reason
 
 
 def test_a_record_naming_a_path_never_makes_recovery_write_outside_its_directory(tmp_path):
@@ -81,7 +81,7 @@ def test_a_record_naming_a_path_never_makes_recovery_write_outside_its_directory
     new = _files(tmp_path) - before
     assert new and all(p.parent == d for p in new), new  # only the fresh record beside the quarantined one
     assert list(outside.iterdir()) == []
-    assert "not a job id" in store.load(OTHER_ID).info["quarantine_reason"]
+    assert "not a job id" in store.load(OTHER_ID).info.quarantine_reason
     assert json.loads((d / "job.json.quarantined").read_text())["job_id"] == "../../../escape"
 
 
@@ -95,9 +95,9 @@ def test_a_record_naming_another_jobs_id_never_overwrites_that_jobs_record(tmp_p
         found = JobStore(tmp_path).recover()
         assert DONE_ID not in [r.job_id for r in found]
     assert (store.job_dir(DONE_ID) / "job.json").read_bytes() == kept
-    assert store.load(DONE_ID).info["verdict"] == "pass"
+    assert store.load(DONE_ID).info.verdict == "pass"
     other = store.load(OTHER_ID)
-    assert other.job_id == OTHER_ID and "not its directory" in other.info["quarantine_reason"]
+    assert other.job_id == OTHER_ID and "not its directory" in other.info.quarantine_reason
 
 
 def test_a_directory_whose_name_is_not_a_job_id_is_left_alone(tmp_path):
@@ -114,12 +114,13 @@ def test_a_directory_whose_name_is_not_a_job_id_is_left_alone(tmp_path):
 def test_a_record_whose_plan_info_has_the_wrong_type_is_quarantined(tmp_path):
     store = JobStore(tmp_path)
     rec = _record(OTHER_ID, JobState.SCANNING)
-    rec.info["plan"] = "15 passes"  # read back by a re-analysis: AttributeError there before
     store.create(rec)
+    path = store.job_dir(OTHER_ID) / "job.json"  # read back by a re-analysis: AttributeError there before
+    path.write_text(json.dumps({**rec.as_json(), "info": {"plan": "15 passes"}}))
     found = JobStore(tmp_path).recover()
     assert [r.job_id for r in found] == [OTHER_ID]
     back = store.load(OTHER_ID)
-    assert "info.plan" in back.info["quarantine_reason"] and "plan" not in back.info
+    assert "info.plan" in back.info.quarantine_reason and back.info.plan is None
 
 
 def test_a_records_placement_is_a_placement_and_one_of_another_shape_is_quarantined(tmp_path):
@@ -138,7 +139,7 @@ def test_a_records_placement_is_a_placement_and_one_of_another_shape_is_quaranti
         store.load(OTHER_ID)
     assert [r.job_id for r in JobStore(tmp_path).recover()] == [OTHER_ID]
     again = store.load(OTHER_ID)
-    assert again.placement is None and "placement" in again.info["quarantine_reason"]
+    assert again.placement is None and "placement" in again.info.quarantine_reason
 
 
 def _history_job(data: Path, dir_name: str, text: str, report: str | None = None) -> None:

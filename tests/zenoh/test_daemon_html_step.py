@@ -24,7 +24,7 @@ def _store_and_job(tmp_path) -> tuple[JobStore, ActiveJob]:
     rec = JobRecord(job_id="20260101T000000-html", plate_id="P1", design="d.ply", design_path="/d.ply",
                     placement={"pos_mm": [0, 0, 0], "rpy_deg": [0, 0, 0]})  # fmt: skip
     store.create(rec)
-    rec.info["last_profile_utc_s"] = time.time()
+    rec.info = rec.info.updated(last_profile_utc_s=time.time())
     return store, ActiveJob(rec)
 
 
@@ -35,9 +35,9 @@ def test_html_render_is_recorded_with_the_job_after_the_last_profile(tmp_path):
     write_synthetic_results(results, n_points=5_000, layout=DetectionLayout(2, 100.0, 1, 100.0, False))
     asyncio.run(render_html(store, job))
     stored = store.load(job.record.job_id).info
-    assert stored["report_html"] == str((results / "report.html").resolve())
+    assert stored.report_html == str((results / "report.html").resolve())
     assert (results / "report.html").stat().st_size > 10_000 and (results / "report.pdf").exists()
-    assert 0 < stored["html_s"] <= stored["html_after_last_profile_s"]
+    assert 0 < stored.html_s <= stored.html_after_last_profile_s
 
 
 def test_a_failed_render_leaves_the_job_without_html_and_raises_nothing(tmp_path):
@@ -47,5 +47,5 @@ def test_a_failed_render_leaves_the_job_without_html_and_raises_nothing(tmp_path
     (results / "report.json").write_text("{ not json")
     asyncio.run(render_html(store, job))
     stored = store.load(job.record.job_id).info
-    assert "report_html" not in stored and "html_after_last_profile_s" not in stored and stored["html_s"] > 0
+    assert stored.report_html is None and stored.html_after_last_profile_s is None and stored.html_s > 0
     assert not (results / "report.html").exists()
