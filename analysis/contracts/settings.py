@@ -3,7 +3,7 @@
 A frozen dataclass of frozen dataclasses (:class:`~analysis.templates.DetectionLayout`,
 :class:`~analysis.metrics.Tolerances`): plain to build in a notebook, and validated field by field
 (unknown fields refused) where it crosses a process boundary inside
-:class:`analysis.contracts.job.AnalysisJob`. The cell fills it from ``cell.toml`` (``cellctl.api.analysis_job``).
+:class:`analysis.contracts.job.AnalysisJob`. The cell fills it from ``cell.toml`` (``cellctl.analysis_job``).
 """
 
 from __future__ import annotations

@@ -46,7 +46,7 @@ def _fail(msg: str) -> int:
 def run_check(args: argparse.Namespace) -> int:
     from analysis.design.template_table import read_template_table
     from analysis.design_check import check_design, preview_png
-    from cellctl.api.analysis_job import inspection_settings
+    from cellctl.analysis_job import inspection_settings
     from cellctl.config import AnalysisSection
 
     cfg_path = args.config or ("cell.toml" if Path("cell.toml").is_file() else None)

@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     from analysis.design.template_table import read_template_table
     from analysis.pipeline import inspect_cloud, write_results
     from analysis.report.write import write_report
-    from cellctl.api.analysis_job import inspection_settings
+    from cellctl.analysis_job import inspection_settings
     from cellctl.commands.plan_cmd import parse_placement
     from cellctl.commands.tables import line_table
     from cellctl.config import AnalysisSection

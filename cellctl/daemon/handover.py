@@ -24,8 +24,8 @@ import structlog
 
 from cellctl.acquisition.publish import PublishSettings, budget_steps, column_steps, encode_scan
 from cellctl.acquisition.reassemble import reassemble
+from cellctl.analysis_job import analysis_job
 from cellctl.api import JobState, now_utc
-from cellctl.api.analysis_job import analysis_job
 from cellctl.api.cloud_codec import CloudMeta, write_concatenated
 from cellctl.api.models import AnalysisOptions, ReportEnvelope
 from cellctl.api.transfer import TransferError, TransferSpec, store_results

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from analysis.design.template_table import TableTemplate
 from analysis.templates import DetectionLayout, TemplateError, detection_lines, paper_line_count
-from cellctl.api.analysis_job import inspection_settings
+from cellctl.analysis_job import inspection_settings
 from cellctl.config import CellConfig
 
 AUTO = DetectionLayout(transverse_count=None, longitudinal_count=None)

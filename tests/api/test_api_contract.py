@@ -18,8 +18,8 @@ from analysis.design.plates import FormingError, design_mesh, plate_spec
 from analysis.pipeline import analyse_job, design_corners_from_mesh
 from analysis.synth import ScanSettings, synthesize_scan
 from analysis.templates import DetectionLayout
+from cellctl.analysis_job import analysis_job
 from cellctl.api import JobSpec, ReportEnvelope
-from cellctl.api.analysis_job import analysis_job
 from cellctl.config import CellConfig
 
 TURNED = Placement.on_bed(40.0, -30.0, 93.0, z_mm=60.0)
@@ -163,9 +163,9 @@ def test_the_job_placement_reaches_the_analysis_and_picks_the_reference_corner(t
 
 
 def test_the_field_tables_of_docs_api_md_are_those_of_the_models():
-    from cellctl.api.doc import main
+    from tests.api.api_doc import main
 
-    assert main(["--check"]) == 0, "run: python -m cellctl.api.doc"
+    assert main(["--check"]) == 0, "run: python -m tests.api.api_doc"
 
 
 def test_the_scan_command_sends_the_placement_it_was_given_as_the_one_placement_type():

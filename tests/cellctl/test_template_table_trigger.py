@@ -10,7 +10,7 @@ import pytest
 
 from analysis.contracts.job import AnalysisJob
 from analysis.design.template_table import TableTemplate
-from cellctl.api.analysis_job import analysis_job
+from cellctl.analysis_job import analysis_job
 from cellctl.api.models import AnalysisOptions, TriggerError, parse_trigger
 from cellctl.commands.scan_cmd import template_table_rows
 from cellctl.config import CellConfig

@@ -106,7 +106,7 @@ def test_a_bed_without_extent_is_refused():
 
 def test_how_the_placement_was_found_travels_to_the_report_inputs():
     from analysis.contracts.job import AnalysisJob, ReportInputs
-    from cellctl.api.analysis_job import analysis_job
+    from cellctl.analysis_job import analysis_job
 
     finding = {
         "source": "located",

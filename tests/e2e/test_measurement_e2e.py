@@ -37,8 +37,8 @@ import numpy as np
 import pytest
 
 from analysis.contracts.placement import Placement
+from cellctl.analysis_job import inspection_settings
 from cellctl.api import ApiCallError, Keys, TriggerAccepted, call
-from cellctl.api.analysis_job import inspection_settings
 from cellctl.api.session import close_session, subscribe
 from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_html_report
 from cellctl.commands.scan_cmd import StatusFollower

@@ -1,6 +1,6 @@
 """Field tables of the payload models for docs/api.md, generated from the models themselves.
 
-``python -m cellctl.api.doc`` rewrites every block of docs/api.md between ``<!-- fields: Name -->``
+``python -m tests.api.api_doc`` rewrites every block of docs/api.md between ``<!-- fields: Name -->``
 and ``<!-- /fields -->`` with the table of model ``Name``; ``--check`` only says whether the file is
 current (a test runs it, so the documentation cannot drift from the code).
 """
@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     new = render(text)
     if "--check" in args:
         if new != text:
-            print(f"{DOC}: field tables are out of date; run python -m cellctl.api.doc", file=sys.stderr)
+            print(f"{DOC}: field tables are out of date; run python -m tests.api.api_doc", file=sys.stderr)
             return 1
         return 0
     DOC.write_text(new, encoding="utf-8")
