@@ -227,25 +227,29 @@ class CheckLimits:
     noise is 0.02 mm (1 sigma), the surface cells average about 16 points, the simulator renders the
     formed plate from a 4 mm mesh (chord error under 0.02 mm on the dent).
 
-    One allowance is not at that scale: the height at which the design rests (``offset_mm``, the
-    median of measured - true deviation over the field: a common lift or drop of the design). The
-    product rests the design on patch means of the plate (analysis/register/rest_surface.py), about 12 mm
-    across on these scans; a patch cuts the top of a bump (the 1.5 mm bump of the default forming
-    error, 20 mm wide) by ``a h^2 / (12 w^2)`` and more where the patch is not centred on it, so the
-    design sinks into the bump and every deviation reads low. Measured against the truth's exact
-    rest: 0.10 mm (0.14 mm into the bump's top) in the e2e cell, 0.06 mm on a synthetic scan. The
-    allowance admits that drop and no lift; every other figure is judged after taking the common
-    offset out (the truth's deviation plus the offset), at the tolerances below.
+    One allowance is the height at which the design rests (``offset_mm``, the median of measured -
+    true deviation over the field: a common lift or drop of the design). The product rests the design
+    on patch estimates of the plate (analysis/register/rest_surface.py, about 12 mm across on these
+    scans). Patch means alone cut the top of a bump (the 1.5 mm bump of the default forming error,
+    20 mm wide) by ``a h^2 / (12 w^2)`` and missed it off-centre, so the design sank into the bump:
+    -0.049 .. -0.098 mm in the e2e cell, -0.06 mm on a synthetic scan, against the truth's exact rest.
+    Each patch is now read at its contact point with the block's curvature taken out of its mean:
+    -0.032 / -0.049 / -0.036 mm in the e2e cell (saddle, cylinder, sail; 2026-12-07, load 10),
+    -0.019 .. -0.029 mm on synthetic scans of the sail with radii 4000/3000 to 1000/750 mm. The
+    allowance is symmetric, 0.08 mm: the largest measured drop and 0.03 mm of margin (the block still
+    reads a bump's top with a little too little curvature: docs/metrology.md). Every other figure is
+    judged after taking the common offset out (the truth's deviation plus the offset), at the
+    tolerances below.
     """
 
     zmax_mm: float = 0.1  # per line: reported Zmax vs the truth's (at the measured offset) on that line
     # per line: median |measured - true - offset| deviation along it. The resting bias is not one
-    # offset: the design sinks most at the bump it rests on, and the diagonal through the bump keeps
-    # 0.047-0.052 mm of it after the common offset is out (the field's median: 0.02-0.03 mm)
+    # offset: the design sinks most at the bump it rests on; on patch means the diagonal through the
+    # bump kept 0.047-0.052 mm of it after the common offset was out, now 0.015-0.027 mm on any line
     profile_median_mm: float = 0.1
     field_median_mm: float = 0.05  # the deviation field: median |measured - true - offset|
     field_p99_mm: float = 0.3  # ... and its 99th percentile (edges, where cells hold few points)
-    offset_mm: tuple[float, float] = (-0.15, 0.05)  # the design's common drop / lift against the truth
+    offset_mm: tuple[float, float] = (-0.08, 0.08)  # the design's common drop / lift against the truth
     inplane_mm: float = 1.0  # the registered design's corners vs the truth's resting pose, in plane
     yaw_deg: float = 0.1  # ... and its turn about the vertical
     min_valid_share: float = 0.9  # per line: its length with valid measured samples
