@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from analysis.design.cad import CadDesign, read_design
+from analysis.design.cad import read_design
+from analysis.design.cad_surface import CadDesign
 from analysis.design.mesh import TriMesh
 from analysis.pipeline import design_corners_from_mesh, plate_frame
 from analysis.templates import DetectionLayout, DetectionLine, detection_lines, line_name

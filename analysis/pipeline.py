@@ -64,7 +64,8 @@ from analysis.contracts.job import (
 from analysis.contracts.placement import Placement, placement_transform
 from analysis.contracts.results import LineSeries, ResultsArrays, write_report_json
 from analysis.contracts.settings import TEMPLATE_FITS, InspectionSettings
-from analysis.design.cad import CadDesign, read_design
+from analysis.design.cad import read_design
+from analysis.design.cad_surface import CadDesign
 from analysis.design.mesh import MeshError, TriMesh
 from analysis.design.moulded import design_as_laid
 from analysis.design.outline import design_corners_from_mesh, frame_design_mesh

@@ -402,7 +402,7 @@ def _joined_cut(line: DetectionLine, sd: SampledSection, sm: SampledSection) -> 
 
 
 class ExactSurface(Protocol):
-    """A design surface that can be cut exactly (:class:`analysis.design.cad.CadDesign`)."""
+    """A design surface that can be cut exactly (:class:`analysis.design.cad_surface.CadDesign`)."""
 
     mesh: TriMesh
 

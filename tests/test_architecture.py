@@ -358,13 +358,19 @@ def test_the_contract_the_worker_and_the_job_store_import_only_their_floors(repo
 
 def test_the_packages_hold_what_they_say(repository) -> None:
     """Issue 45: the worker, the job dispatch and the job store have packages of their own; api/
-    keeps the contract (keys, models, codec, session) and no side of the job protocol."""
+    keeps the contract (keys, models, codec, session) and no side of the job protocol: of the
+    transfer, what one side alone does (serving designs, collecting and storing results, the design
+    cache) lives on that side."""
     files, _ = repository
-    for module in ("settings", "child", "process", "service", "heap"):
+    for module in ("settings", "child", "process", "service", "heap", "design_cache"):
         assert f"cellctl/worker/{module}.py" in files
     for module in ("jobs", "records", "history", "rawstore"):
         assert f"cellctl/jobstore/{module}.py" in files
-    assert "cellctl/daemon/dispatch.py" in files
+    for module in ("dispatch", "design_server", "result_collector"):
+        assert f"cellctl/daemon/{module}.py" in files
+    one_side = {"DesignServer", "ResultCollector", "store_results", "cache_design", "cached_design"}
+    defined = {n.name for n in ast.parse(files["cellctl/api/transfer.py"]).body if hasattr(n, "name")}
+    assert not defined & one_side, f"cellctl/api/transfer.py defines {sorted(defined & one_side)}"
     gone = ("cellctl/worker.py", "cellctl/heap.py", "cellctl/api/dispatch.py", "cellctl/daemon/jobs.py",
             "cellctl/daemon/history.py", "cellctl/daemon/records.py", "cellctl/acquisition/rawstore.py")  # fmt: skip
     assert not [p for p in gone if p in files]

@@ -175,9 +175,9 @@ def write_faces(
     from OCP.STEPControl import STEPControl_AsIs, STEPControl_Controller, STEPControl_Writer
     from OCP.TopoDS import TopoDS_Compound
 
-    from analysis.design.cad import _quiet_occ
+    from analysis.design.occ_read import quiet_occ
 
-    _quiet_occ()
+    quiet_occ()
     path = Path(path)
     if units not in UNIT_MM:
         raise ValueError(f"units must be one of {sorted(UNIT_MM)}, got {units!r}")

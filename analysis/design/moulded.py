@@ -23,8 +23,9 @@ from typing import Literal
 
 import numpy as np
 
-from analysis.design.cad import CadDesign, canonical_corner_order_in_plane
+from analysis.design.cad_surface import CadDesign
 from analysis.design.mesh import TriMesh
+from analysis.design.outline import canonical_corner_order_in_plane
 
 __all__ = ["DESIGN_SIDES", "DesignSide", "MouldedError", "design_as_laid", "vertex_normals"]
 

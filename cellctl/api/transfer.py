@@ -2,29 +2,31 @@
 
 * **The design**, by content: the JobSpec names it by SHA-256 (:class:`DesignRef`); the worker asks
   the daemon's queryable ``Keys.design(sha256)`` for the bytes once, verifies the hash and keeps
-  them in its cache (``<worker data dir>/designs/<sha256>/<name>``). The daemon serves only the
-  designs of jobs it has submitted (:class:`DesignServer`), never a path.
+  them in its cache (``<worker data dir>/designs/<sha256>/<name>``,
+  :mod:`cellctl.worker.design_cache`). The daemon serves only the designs of jobs it has submitted
+  (:class:`cellctl.daemon.design_server.DesignServer`), never a path.
 * **The results**, by value: the worker's results directory (report.json, report.csv, results.npz,
   cloud.ply, ...) is packed into one bundle, bounded (``max_bytes``) and cut into chunks put on
   ``Keys.result_chunk(job, attempt, index)`` with ``CongestionControl.BLOCK``, each with a
   :class:`ResultChunk` attachment (its SHA-256); the ReportEnvelope that follows carries the
   :class:`ResultManifest` (every file's name, size and SHA-256). The daemon's
-  :class:`ResultCollector` checks the bundle against it; a missing, surplus or corrupt chunk or a
-  file whose hash differs refuses the result (the dispatcher retries the job).
+  :class:`cellctl.daemon.result_collector.ResultCollector` gathers the chunks and checks the bundle
+  against it (:func:`unpack_results`); a missing, surplus or corrupt chunk or a file whose hash
+  differs refuses the result (the dispatcher retries the job).
+
+This module holds what both sides must compute alike: the messages, the design's ref and its check
+(:func:`design_ref`, :func:`design_matches`), the bundle's packing and its check
+(:func:`pack_results`, :func:`unpack_results`). What one side alone does lives on that side.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import os
 import re
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
 
-import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 __all__ = [
@@ -32,22 +34,18 @@ __all__ = [
     "MAX_DESIGN_BYTES",
     "MAX_RESULT_BYTES",
     "DesignRef",
-    "DesignServer",
     "ResultChunk",
-    "ResultCollector",
     "ResultFile",
     "ResultManifest",
     "ResultRefused",
     "TransferError",
     "TransferSpec",
-    "cache_design",
-    "cached_design",
+    "design_matches",
     "design_ref",
     "pack_results",
-    "store_results",
+    "plain_name",
+    "unpack_results",
 ]
-
-log = structlog.get_logger(__name__)
 
 #: one chunk of a result bundle (Zenoh fragments it further; a chunk is what one put carries)
 CHUNK_BYTES = 1 << 20
@@ -73,7 +71,8 @@ class ResultRefused(TransferError):
         super().__init__(f"job {job_id}: result refused: {reason}")
 
 
-def _plain_name(v: str) -> str:
+def plain_name(v: str) -> str:
+    """``v`` when it is a plain file name a design or a result file may have (ValueError otherwise)."""
     if not _NAME.match(v) or v in (".", ".."):
         raise ValueError("must be a plain file name (letters, digits, '.', '_', '-'; no directory)")
     return v
@@ -93,7 +92,7 @@ class DesignRef(_Msg):
     name: str
     size_bytes: Annotated[int, Field(ge=1, le=MAX_DESIGN_BYTES)]
 
-    _name = field_validator("name")(_plain_name)
+    _name = field_validator("name")(plain_name)
 
 
 class TransferSpec(_Msg):
@@ -115,7 +114,7 @@ class ResultFile(_Msg):
     size_bytes: Annotated[int, Field(ge=0)]
     sha256: Annotated[str, Field(pattern=_SHA256)]
 
-    _name = field_validator("name")(_plain_name)
+    _name = field_validator("name")(plain_name)
 
 
 class ResultManifest(_Msg):
@@ -163,54 +162,10 @@ def design_ref(path: Path) -> DesignRef:
     return DesignRef(sha256=h.hexdigest(), name=path.name, size_bytes=size)
 
 
-class DesignServer:
-    """The daemon's designs by hash: only what :meth:`register` was given is served."""
-
-    def __init__(self) -> None:
-        self._paths: dict[str, Path] = {}
-
-    def register(self, path: Path) -> DesignRef:
-        ref = design_ref(path)
-        self._paths[ref.sha256] = path
-        return ref
-
-    def read(self, sha256: str) -> bytes | None:
-        """The bytes of a registered design whose content still has this hash (None otherwise)."""
-        path = self._paths.get(sha256)
-        if path is None:
-            return None
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            log.warning("design_unreadable", sha256=sha256, path=str(path), error=str(exc))
-            return None
-        if _sha256(data) != sha256:  # changed on disk since the job was submitted
-            log.warning("design_changed", sha256=sha256, path=str(path))
-            return None
-        return data
-
-
-def cached_design(cache_dir: Path, ref: DesignRef) -> Path | None:
-    """The cached copy of a design when it is there and its bytes still have the hash."""
-    path = cache_dir / ref.sha256 / ref.name
-    try:
-        if path.stat().st_size == ref.size_bytes and _sha256(path.read_bytes()) == ref.sha256:
-            return path
-    except OSError:
-        return None
-    return None
-
-
-def cache_design(cache_dir: Path, ref: DesignRef, data: bytes) -> Path:
-    """Verify fetched design bytes against their ref and store them (atomically) in the cache."""
-    if len(data) != ref.size_bytes or _sha256(data) != ref.sha256:
-        raise TransferError(f"design {ref.name}: the received bytes do not have hash {ref.sha256[:12]}")
-    d = cache_dir / ref.sha256
-    d.mkdir(parents=True, exist_ok=True)
-    tmp = d / f".{ref.name}.{os.getpid()}.tmp"
-    tmp.write_bytes(data)
-    tmp.replace(d / ref.name)
-    return d / ref.name
+def design_matches(ref: DesignRef, data: bytes) -> bool:
+    """Whether ``data`` are the design ``ref`` names (its size and SHA-256): the daemon checks what it
+    serves, the worker what it received and what its cache holds."""
+    return len(data) == ref.size_bytes and _sha256(data) == ref.sha256
 
 
 # ------------------------------------------------------------------------------------- results
@@ -259,123 +214,27 @@ def pack_results(
     return manifest, chunks
 
 
-@dataclass
-class _Bundle:
-    worker_id: str
-    chunks: int
-    parts: dict[int, bytes] = field(default_factory=dict)
-    size: int = 0
-
-
-class ResultCollector:
-    """The daemon's half of the result transfer: chunks gathered per (job, attempt), checked against
-    the manifest when the report comes. Bounded: a bundle beyond ``max_bytes`` is dropped (the
-    report then finds it incomplete), and at most ``max_bundles`` are held at once (oldest dropped)."""
-
-    def __init__(self, *, max_bytes: int = MAX_RESULT_BYTES, max_bundles: int = 8) -> None:
-        self.max_bytes = max_bytes
-        self.max_bundles = max_bundles
-        self._bundles: dict[tuple[str, int], _Bundle] = {}
-        self._overflowed: set[tuple[str, int]] = set()
-        self.bad_chunks = 0
-
-    @property
-    def held_bytes(self) -> int:
-        return sum(b.size for b in self._bundles.values())
-
-    def add(self, head: ResultChunk, data: bytes) -> bool:
-        """Keep one chunk; False (and counted) when it is corrupt, inconsistent or over the bound."""
-        key = (head.job_id, head.attempt)
-        if _sha256(data) != head.sha256 or head.index >= head.chunks or key in self._overflowed:
-            self.bad_chunks += 1
-            return False
-        bundle = self._bundles.get(key)
-        if bundle is None:
-            while len(self._bundles) >= self.max_bundles:
-                dropped = next(iter(self._bundles))
-                log.warning("result_bundle_dropped", job_id=dropped[0], attempt=dropped[1], reason="too many")
-                del self._bundles[dropped]
-            bundle = self._bundles[key] = _Bundle(head.worker_id, head.chunks)
-        if bundle.worker_id != head.worker_id or bundle.chunks != head.chunks:
-            self.bad_chunks += 1
-            return False
-        if head.index not in bundle.parts:
-            bundle.parts[head.index] = data
-            bundle.size += len(data)
-        if bundle.size > self.max_bytes:
-            log.warning("result_bundle_dropped", job_id=head.job_id, attempt=head.attempt, reason="too large")
-            del self._bundles[key]
-            self._overflowed.add(key)
-            return False
-        return True
-
-    def missing(self, job_id: str, attempt: int, manifest: ResultManifest) -> int:
-        """How many chunks of the manifest have not arrived (yet)."""
-        bundle = self._bundles.get((job_id, attempt))
-        have = 0 if bundle is None else len(bundle.parts)
-        return max(manifest.chunks - have, 0)
-
-    def take(self, job_id: str, attempt: int, worker_id: str, manifest: ResultManifest) -> dict[str, bytes]:
-        """The verified files of one bundle (name -> bytes), forgotten here. ResultRefused says why
-        a bundle is not kept (then it is forgotten too)."""
-        bundle = self._bundles.pop((job_id, attempt), None)
-        self._overflowed.discard((job_id, attempt))
-        if manifest.total_bytes > self.max_bytes:
-            raise ResultRefused(job_id, f"{manifest.total_bytes} bytes, more than {self.max_bytes}")
-        if manifest.chunks == 0:
-            bundle = _Bundle(worker_id, 0)
-        if bundle is None:
-            raise ResultRefused(job_id, f"none of its {manifest.chunks} chunks arrived")
-        if bundle.worker_id != worker_id:
-            raise ResultRefused(job_id, f"chunks from {bundle.worker_id}, report from {worker_id}")
-        if sorted(bundle.parts) != list(range(manifest.chunks)):
-            raise ResultRefused(job_id, f"{len(bundle.parts)} of {manifest.chunks} chunks arrived")
-        blob = b"".join(bundle.parts[i] for i in range(manifest.chunks))
-        if len(blob) != manifest.total_bytes:
-            raise ResultRefused(job_id, "the bundle does not have the manifest's size and hash")
-        # the bundle's hash beside the files' (as pack_results makes them); the bundle's is judged first
-        with ThreadPoolExecutor(1, thread_name_prefix="bundle-hash") as pool:
-            whole = pool.submit(_sha256, blob)
-            view = memoryview(blob)
-            files: dict[str, bytes] = {}
-            bad: str | None = None
-            for f in manifest.files:
-                data = view[f.offset_bytes : f.offset_bytes + f.size_bytes]
-                if len(data) != f.size_bytes or _sha256(data) != f.sha256 or f.name in files:
-                    bad = bad or f.name
-                    continue
-                files[f.name] = data.tobytes()
-            whole_ok = whole.result() == manifest.sha256
-        if not whole_ok:
-            raise ResultRefused(job_id, "the bundle does not have the manifest's size and hash")
-        if bad is not None:
-            raise ResultRefused(job_id, f"file {bad} does not match the manifest")
-        return files
-
-    def forget(self, job_id: str) -> None:
-        """Drop every bundle of a job (resolved or failed)."""
-        for key in [k for k in self._bundles if k[0] == job_id]:
-            del self._bundles[key]
-        self._overflowed = {k for k in self._overflowed if k[0] != job_id}
-
-
-def store_results(files: dict[str, bytes], results_dir: Path) -> list[Path]:
-    """Write a verified bundle into the job's results directory (each file atomically, report.json
-    last: its presence marks a complete results directory). Returns the written paths."""
-    results_dir.mkdir(parents=True, exist_ok=True)
-    written = []
-    for name in sorted(files, key=lambda n: n == "report.json"):
-        path = results_dir / _plain_name(name)
-        tmp = results_dir / f".{name}.tmp"
-        try:
-            with tmp.open("wb") as f:
-                f.write(files[name])
-                f.flush()
-                os.fsync(f.fileno())
-            tmp.replace(path)
-        except OSError:  # a full disk: no half-written temp file left (the caller keeps the bytes)
-            with contextlib.suppress(OSError):
-                tmp.unlink()
-            raise
-        written.append(path)
-    return written
+def unpack_results(job_id: str, manifest: ResultManifest, bundle: bytes) -> dict[str, bytes]:
+    """The files of a result bundle (name -> bytes), checked against its manifest as
+    :func:`pack_results` made them: the bundle's size and SHA-256 first, then every file's.
+    ResultRefused says what does not match."""
+    if len(bundle) != manifest.total_bytes:
+        raise ResultRefused(job_id, "the bundle does not have the manifest's size and hash")
+    # the bundle's hash beside the files' (as pack_results makes them); the bundle's is judged first
+    with ThreadPoolExecutor(1, thread_name_prefix="bundle-hash") as pool:
+        whole = pool.submit(_sha256, bundle)
+        view = memoryview(bundle)
+        files: dict[str, bytes] = {}
+        bad: str | None = None
+        for f in manifest.files:
+            data = view[f.offset_bytes : f.offset_bytes + f.size_bytes]
+            if len(data) != f.size_bytes or _sha256(data) != f.sha256 or f.name in files:
+                bad = bad or f.name
+                continue
+            files[f.name] = data.tobytes()
+        whole_ok = whole.result() == manifest.sha256
+    if not whole_ok:
+        raise ResultRefused(job_id, "the bundle does not have the manifest's size and hash")
+    if bad is not None:
+        raise ResultRefused(job_id, f"file {bad} does not match the manifest")
+    return files

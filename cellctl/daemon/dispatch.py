@@ -81,14 +81,9 @@ from cellctl.api.models import (
 )
 from cellctl.api.proof import chunk_mac, new_offer_key, verify
 from cellctl.api.session import async_get, declare_async_queryable, subscribe
-from cellctl.api.transfer import (
-    MAX_RESULT_BYTES,
-    DesignServer,
-    ResultChunk,
-    ResultCollector,
-    ResultRefused,
-    TransferSpec,
-)
+from cellctl.api.transfer import MAX_RESULT_BYTES, ResultChunk, ResultRefused, TransferSpec
+from cellctl.daemon.design_server import DesignServer
+from cellctl.daemon.result_collector import ResultCollector
 
 if TYPE_CHECKING:
     from cellctl.config import CellConfig

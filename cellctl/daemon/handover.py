@@ -28,11 +28,12 @@ from cellctl.analysis_job import analysis_job
 from cellctl.api import JobState, now_utc
 from cellctl.api.cloud_codec import CloudMeta, write_concatenated
 from cellctl.api.models import AnalysisOptions, ReportEnvelope
-from cellctl.api.transfer import TransferError, TransferSpec, store_results
+from cellctl.api.transfer import TransferError, TransferSpec
 from cellctl.config import CellConfig
 from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.dispatch import Dispatcher, JobFailed
 from cellctl.daemon.render import render_report
+from cellctl.daemon.result_collector import store_results
 from cellctl.daemon.stream import ScanStream
 from cellctl.jobstore.jobs import JobStore, JobStoreError
 from cellctl.logging import bind_context

@@ -22,7 +22,8 @@ import structlog
 
 from analysis.contracts.job import Report
 from analysis.contracts.results import ReportError, read_report
-from cellctl.jobstore.records import RecordError, check_job_id, read_json_file
+from cellctl.jobstore.jobs import JobStoreError, read_job_record
+from cellctl.jobstore.records import RecordError, read_json_file
 
 if TYPE_CHECKING:
     from analysis.report.load import PreviousRound
@@ -62,44 +63,25 @@ def _line_summary(report: Report) -> list[dict[str, Any]]:
     ]
 
 
-def _record_fields(rec: Any, dir_name: str) -> dict[str, Any]:
-    """The fields of a job.json the history shows, checked (RecordError naming the first wrong one)."""
-    if not isinstance(rec, dict):
-        raise RecordError(f"expected a JSON object, got {type(rec).__name__}")
-    check_job_id(rec.get("job_id"), dir_name)
-    for key in ("plate_id", "state"):
-        if not isinstance(rec.get(key), str):
-            raise RecordError(f"{key}: expected a string")
-    for key in ("created_utc", "design"):
-        if not isinstance(rec.get(key, ""), str):
-            raise RecordError(f"{key}: expected a string")
-    hist = rec.get("history") or []
-    if not isinstance(hist, list) or not all(
-        isinstance(h, dict) and isinstance(h.get("t_utc", ""), str) and isinstance(h.get("message", ""), str)
-        for h in hist
-    ):
-        raise RecordError("history: expected a list of {state, t_utc, message}")
-    return rec
-
-
 def read_job_dir(job_dir: Path, plate_id: str | None = None) -> dict[str, Any] | None:
-    """One row from a job directory; None when it holds no readable job.json (or, with
-    ``plate_id``, a job of another plate: its report is not read then).
+    """One row from a job directory; None when it holds no job.json, or no readable record (or,
+    with ``plate_id``, a job of another plate: its report is not read then).
 
-    A record that cannot be read, or is not a record (too large, nested too deep, a ``job_id`` that is
-    not its directory's, a field of the wrong type), is skipped with a log line
+    The record is read as the job store reads it (:func:`~cellctl.jobstore.jobs.read_job_record`):
+    one that cannot be read, or is not a record (too large, nested too deep, a ``job_id`` that is
+    not its directory's, a field missing or of the wrong type), is skipped with a log line
     (``history_record_skipped``); an unreadable report.json leaves the job without a verdict
     (``history_report_unreadable``). Neither ever stops the reader (the HMI, ``cellctl history``).
     """
     path = job_dir / "job.json"
+    if not path.exists() and not path.is_symlink():  # a symlink is refused by the reader, with its line
+        return None
     try:
-        rec = _record_fields(read_json_file(path), job_dir.name)
-    except FileNotFoundError:
+        rec = read_job_record(job_dir)
+    except JobStoreError as exc:
+        log.warning("history_record_skipped", path=str(path), reason=exc.reason)
         return None
-    except (OSError, RecordError) as exc:
-        log.warning("history_record_skipped", path=str(path), reason=str(exc)[:300])
-        return None
-    if plate_id is not None and rec.get("plate_id") != plate_id:
+    if plate_id is not None and rec.plate_id != plate_id:
         return None
     verdict, lines = None, []
     rp = job_dir / "report.json"
@@ -109,16 +91,16 @@ def read_job_dir(job_dir: Path, plate_id: str | None = None) -> dict[str, Any] |
             verdict, lines = report.verdict, _line_summary(report)
         except (OSError, RecordError, ReportError) as exc:
             log.warning("history_report_unreadable", path=str(rp), reason=str(exc)[:300])
-    hist = rec.get("history") or []
+    last = rec.history[-1] if rec.history else None
     return {
-        "job_id": rec["job_id"],
-        "plate_id": rec["plate_id"],
-        "state": rec["state"],
+        "job_id": rec.job_id,
+        "plate_id": rec.plate_id,
+        "state": rec.state,
         "verdict": verdict,
-        "created_utc": rec.get("created_utc", ""),
-        "ended_utc": hist[-1].get("t_utc") if hist else None,
-        "design": rec.get("design", ""),
-        "message": hist[-1].get("message", "") if hist else "",
+        "created_utc": rec.created_utc,
+        "ended_utc": last.get("t_utc") if last else None,
+        "design": rec.design,
+        "message": last.get("message", "") if last else "",
         "max_abs_zmax_mm": max((abs(ln["zmax_mm"]) for ln in lines), default=None),
         "lines_json": json.dumps(lines),
     }

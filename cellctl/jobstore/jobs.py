@@ -339,9 +339,9 @@ class JobStore:
 
 
 def read_job_record(job_dir: Path) -> JobRecord:
-    """The record in ``job_dir/job.json`` (the job store's, the HMI's, ``cellctl demo``'s one way to
-    read one); JobStoreError naming the path when it cannot be read or is not a record this version
-    knows (an unknown state, a field of the wrong type)."""
+    """The record in ``job_dir/job.json`` (the job store's, the plate history's, the HMI's and
+    ``cellctl demo``'s one way to read one); JobStoreError naming the path when it cannot be read or
+    is not a record this version knows (an unknown state, a field missing or of the wrong type)."""
     path = job_dir / "job.json"
     try:
         return JobRecord.read(read_json_file(path), job_dir.name)

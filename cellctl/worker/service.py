@@ -38,15 +38,9 @@ from cellctl.api.session import (
     open_session,
     subscribe,
 )
-from cellctl.api.transfer import (
-    ResultChunk,
-    ResultManifest,
-    TransferError,
-    cache_design,
-    cached_design,
-    pack_results,
-)
+from cellctl.api.transfer import ResultChunk, ResultManifest, TransferError, pack_results
 from cellctl.worker.child import AnalysisLoadError, ChildAnswer
+from cellctl.worker.design_cache import cache_design, cached_design
 from cellctl.worker.process import AnalysisCrashed, AnalysisProcess
 from cellctl.worker.settings import WorkerSettings
 from drivers.runtime import RateLimitedLog, stop_on_signals

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.design.cad import DesignError, read_cad, read_design
+from analysis.design.cad import read_cad, read_design
+from analysis.design.cad_facts import DesignError
 from analysis.design.cad_write import plate_faces, write_design, write_faces
 from analysis.design.mesh import TriMesh
 from analysis.design.plates import design_corners, design_height_mm, design_mesh, plate_spec
@@ -311,10 +312,11 @@ def test_a_plate_sized_region_of_the_kcs_hull_is_usable_as_a_design(tmp_path: Pa
     from OCP.GeomAPI import GeomAPI_ProjectPointOnSurf
     from OCP.gp import gp_Pnt, gp_Vec
 
-    from analysis.design.cad import _faces, _read_shape, iges_facts
+    from analysis.design.cad_facts import iges_facts
+    from analysis.design.occ_read import read_shape, shape_faces
 
     src = HULLS / "KCS_half_hull_SVA.igs"
-    faces = _faces(_read_shape(src, iges_facts(src, src.read_bytes())))
+    faces = shape_faces(read_shape(src, iges_facts(src, src.read_bytes())))
     from OCP.BRep import BRep_Tool
 
     # the patch whose middle is highest on the side (a side-shell patch near midship)

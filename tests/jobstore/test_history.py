@@ -21,7 +21,8 @@ def _job(
 ) -> None:
     d = data / "jobs" / job_id
     d.mkdir(parents=True)
-    rec = {"job_id": job_id, "plate_id": plate, "design": "p.ply", "design_path": "/x/p.ply", "placement": {},
+    rec = {"job_id": job_id, "plate_id": plate, "design": "p.ply", "design_path": "/x/p.ply",
+           "placement": {"pos_mm": [1500.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]},
            "state": state, "created_utc": created, "history": [{"state": state, "t_utc": created, "message": "m"}],
            "info": {}}  # fmt: skip
     (d / "job.json").write_text(json.dumps(rec))

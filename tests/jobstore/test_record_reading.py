@@ -152,6 +152,7 @@ def _history_job(data: Path, dir_name: str, text: str, report: str | None = None
 
 def _good(job_id: str, created: str) -> str:
     return json.dumps({"job_id": job_id, "plate_id": "P1", "state": "done", "created_utc": created, "design": "d",
+                       "design_path": "/x/d", "placement": None,
                        "history": [{"state": "done", "t_utc": created, "message": "m"}]})  # fmt: skip
 
 

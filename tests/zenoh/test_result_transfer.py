@@ -16,17 +16,15 @@ from cellctl.api import JobSpec, Keys
 from cellctl.api.session import build_zenoh_config, close_session, open_session
 from cellctl.api.transfer import (
     ResultChunk,
-    ResultCollector,
     ResultRefused,
     TransferError,
     TransferSpec,
-    cache_design,
-    cached_design,
     design_ref,
     pack_results,
-    store_results,
 )
 from cellctl.daemon.dispatch import Dispatcher
+from cellctl.daemon.result_collector import ResultCollector, store_results
+from cellctl.worker.design_cache import cache_design, cached_design
 from tests.zenoh.fake_worker import FakeWorker
 from tests.zenoh.test_dispatch_workers import GENEROUS, _cloud_bytes, _run, _wait_for
 from tests.zenoh.zworker_fns import minimal_report
