@@ -26,6 +26,7 @@ import os
 import selectors
 import signal
 import struct
+import threading
 import time
 import tracemalloc
 from collections.abc import Callable
@@ -101,6 +102,32 @@ def set_thread_realtime(priority: int, cpus: tuple[int, ...] = ()) -> list[str]:
     return refused
 
 
+def realtime_other_threads(priority: int) -> tuple[int, list[str]]:
+    """Put every other thread of this process that exists now under SCHED_FIFO at ``priority``.
+
+    For a process whose loop thread is real-time and whose few helper threads (a process pool's
+    result thread, a library's callback threads) take the GIL: a helper at normal priority holding
+    the GIL while the OS runs busy processes instead holds the real-time thread back with it
+    (priority inversion through the GIL). Returns (threads raised, refusals one line each)."""
+    me = threading.get_native_id()
+    raised, refused = 0, []
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError as exc:
+        return 0, [f"threads: {exc.strerror or exc}"]
+    for tid in tids:
+        if tid == me:
+            continue
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            raised += 1
+        except ProcessLookupError:
+            continue  # the thread ended meanwhile
+        except (AttributeError, OSError) as exc:
+            refused.append(f"thread {tid} SCHED_FIFO {priority}: {getattr(exc, 'strerror', None) or exc}")
+    return raised, refused
+
+
 def lock_memory() -> str | None:
     """Lock every page of this process in RAM, now and later (``mlockall(MCL_CURRENT | MCL_FUTURE)``),
     so a cycle never waits for a page to come back from swap or a lazily mapped one to be faulted in.
@@ -122,6 +149,9 @@ def use_realtime_loop(priority: int = 10) -> bool:
     assembly) never starves the machine. Returns whether the priority was granted."""
     loop = asyncio.get_running_loop()
     loop.set_default_executor(ThreadPoolExecutor(max_workers=4, initializer=normal_priority))
+    if priority <= 0:
+        log.info("realtime_priority_off", reason="configured priority 0: normal scheduling")
+        return False
     refused = set_thread_realtime(priority)
     if refused:
         log.info("realtime_priority_unavailable", reason=refused[0])

@@ -232,9 +232,13 @@ async def _serve_sim(cfg: CellConfig, stop: asyncio.Event) -> int:
         log.error("sim_start_failed", error=str(exc))
         return 2
     # After start: the renderer processes already exist and keep normal priority.
-    from drivers.runtime import use_realtime_loop
+    from drivers.runtime import realtime_other_threads, use_realtime_loop
 
-    use_realtime_loop()
+    if use_realtime_loop(cfg.sim.loop_priority):
+        # the renderer pool's result thread and Zenoh's take the GIL: at normal priority one of them
+        # preempted while holding it would hold the controller's loop back with it
+        raised, refused = realtime_other_threads(cfg.sim.loop_priority)
+        log.info("sim_threads_realtime", raised=raised, refused=refused[:3])
     fault_session = None
     if cfg.sim.fault_control:
         from cellctl.simcell.faults import serve_fault_control
