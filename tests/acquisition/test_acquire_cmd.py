@@ -16,7 +16,7 @@ from cellctl.calibration.record import CalibrationWriteError, set_toml_values
 from cellctl.cli import main
 from cellctl.config import load_config
 from cellctl.jobstore.rawstore import RawWriter
-from tests.acquisition.synthetic import feed, make_run
+from tests.support.synthetic_scan import feed, make_run
 
 
 @pytest.fixture(autouse=True)

@@ -18,7 +18,7 @@ import pytest
 from cellctl.acquisition.assembly import MAX_ABS_MM, assemble_batch
 from cellctl.acquisition.poses import CUBIC_GAP_NS, transform_profiles, transform_profiles_within
 from drivers.abb_egm.kinematics import fk_batch
-from tests.acquisition.synthetic import T_FLANGE_SENSOR, q_true_deg
+from tests.support.synthetic_scan import T_FLANGE_SENSOR, q_true_deg
 
 EPOCH = 1_000_000_000_000
 MAX_GAP_NS = 30_000_000

@@ -21,7 +21,7 @@ from cellctl.calibration.hand_eye import (
 from cellctl.calibration.time_offset import TimeOffsetError, estimate_time_offset
 from drivers.abb_egm.kinematics import RobotKinematics, fk_batch
 from drivers.runtime import precise_event_loop
-from tests.acquisition.synthetic import feed, make_run
+from tests.support.synthetic_scan import feed, make_run
 from tests.support.simcell import (
     Q_SEED_DEG,
     SimCell,

@@ -7,7 +7,7 @@ import pytest
 
 from cellctl.acquisition.clock_sync import ClockSyncConfig
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
-from tests.acquisition.synthetic import feed, make_run, plane_errors_mm
+from tests.support.synthetic_scan import feed, make_run, plane_errors_mm
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from cellctl.acquisition.poses import (
     transform_profiles,
 )
 from drivers.abb_egm.kinematics import RobotKinematics, fk_batch
-from tests.acquisition.synthetic import T_FLANGE_SENSOR, q_true_deg
+from tests.support.synthetic_scan import T_FLANGE_SENSOR, q_true_deg
 
 EPOCH = 1_000_000_000_000
 

@@ -113,7 +113,7 @@ def test_cloud_arrays_refuse_a_dtype_too_small() -> None:
 def test_acquisition_cloud_is_the_same_whatever_the_reserve(expected: int) -> None:
     """Reserved short (grows), long (pages never touched) or not at all: bit for bit the same scan."""
     from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
-    from tests.acquisition.synthetic import feed, make_run
+    from tests.support.synthetic_scan import feed, make_run
 
     run = make_run(2.0)
     ref = Acquisition(AcquisitionSettings(epoch_ns=run.epoch_ns))

@@ -23,7 +23,7 @@ from cellctl.daemon.handover import Handover
 from cellctl.daemon.service import CellDaemon
 from cellctl.jobstore.jobs import JobRecord
 from tests.support.waits import wait_until
-from tests.zenoh.zworker_fns import minimal_report
+from tests.support.zworker_fns import minimal_report
 
 JOB = "20260101T000000-aaaa0043"
 

@@ -41,7 +41,7 @@ def test_worker_killed_mid_analysis_the_restarted_worker_completes_the_job_once(
         # the first worker holds its analysis (the product's, a minute late): the real one now ends
         # well under a second after the last pass, before a test could see the job "analysing"
         cell.start(worker=False)
-        cell.procs.start("worker", "worker", "--analysis", "tests.zenoh.zworker_fns:product_analysis_held")
+        cell.procs.start("worker", "worker", "--analysis", "tests.support.zworker_fns:product_analysis_held")
         first = cell.proc("worker")
 
         async def go() -> dict:

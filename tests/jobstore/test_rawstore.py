@@ -17,7 +17,7 @@ from hypothesis.extra import numpy as hnp
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.acquisition.reassemble import reassemble
 from cellctl.jobstore.rawstore import RawFormatError, RawReader, RawWriter
-from tests.acquisition.synthetic import feed, make_run
+from tests.support.synthetic_scan import feed, make_run
 
 _dtypes = st.sampled_from([np.float32, np.float64, np.int64, np.uint32, np.uint8, np.int16, np.bool_])
 
@@ -109,7 +109,7 @@ import sys, time
 from pathlib import Path
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.jobstore.rawstore import RawWriter
-from tests.acquisition.synthetic import make_run
+from tests.support.synthetic_scan import make_run
 run = make_run(4.0)
 s = AcquisitionSettings(epoch_ns=run.epoch_ns, latency_ms=0.8)
 w = RawWriter(Path(sys.argv[1]), {"acquisition": s.to_json()}, flush_interval_s=0.05)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from analysis.cloud_io import ScanCloud
 from analysis.contracts.job import AnalysisJob, Report
-from tests.zenoh.zworker_fns import minimal_report
+from tests.support.zworker_fns import minimal_report
 
 
 def point_count(cloud: ScanCloud, job: AnalysisJob) -> Report:

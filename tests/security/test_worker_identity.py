@@ -28,7 +28,7 @@ from cellctl.api.session import build_zenoh_config, close_session, open_session,
 from cellctl.api.transfer import ResultChunk, TransferSpec
 from cellctl.daemon.dispatch import Dispatcher, DispatchSettings
 from tests.support.ports import free_port
-from tests.zenoh.zworker_fns import minimal_report
+from tests.support.zworker_fns import minimal_report
 
 PREFIX = "cell/sec2"
 KEYS = Keys(PREFIX)
@@ -121,7 +121,7 @@ def test_another_worker_identity_copying_the_ids_is_refused_and_logged_and_canno
     with log_path.open("wb") as out:
         proc = subprocess.Popen(
             [sys.executable, "-m", "cellctl", "--log-format", "json", "worker", "--config", str(toml),
-             "--worker-id", "w1", "--analysis", "tests.zenoh.zworker_fns:centroid_after_sleep"],
+             "--worker-id", "w1", "--analysis", "tests.support.zworker_fns:centroid_after_sleep"],
             stdout=out, stderr=subprocess.STDOUT, env=env, cwd=tmp_path,
         )  # fmt: skip
     try:

@@ -16,7 +16,7 @@ from cellctl.worker.process import AnalysisProcess
 
 pytestmark = pytest.mark.process  # the spawned analysis process
 
-FN = "tests.zenoh.zworker_fns:blas_environment"
+FN = "tests.support.zworker_fns:blas_environment"
 
 
 def _run_once(proc: AnalysisProcess, out_dir: Path) -> dict:
@@ -101,7 +101,7 @@ def test_the_child_answers_with_a_typed_report_or_a_typed_error_and_nothing_in_b
     from pydantic import ValidationError
 
     from cellctl.worker.child import ChildAnswer, ChildHello, _error_text, _outcome_text
-    from tests.zenoh.zworker_fns import minimal_report
+    from tests.support.zworker_fns import minimal_report
 
     job = AnalysisJob(job_id="j1", plate_id="p1", design="none.stl")
     report = minimal_report(job, 4)

@@ -171,7 +171,7 @@ def test_job_waits_without_workers_and_is_analysed_when_one_starts(hub, start_wo
 
 
 def test_analysis_exception_is_reported_once_and_not_retried(hub, start_worker):
-    start_worker("w1", analysis="zworker_fns:always_raises")
+    start_worker("w1", analysis="tests.support.zworker_fns:always_raises")
     retries: list = []
 
     async def scenario(disp: Dispatcher):
@@ -185,7 +185,7 @@ def test_analysis_exception_is_reported_once_and_not_retried(hub, start_worker):
 
 
 def test_a_result_that_is_no_report_is_an_analysis_error_named_by_the_worker(hub, start_worker):
-    start_worker("w1", analysis="zworker_fns:not_a_report")
+    start_worker("w1", analysis="tests.support.zworker_fns:not_a_report")
 
     async def scenario(disp: Dispatcher):
         await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
@@ -230,7 +230,7 @@ def test_worker_exits_zero_on_sigterm_and_its_token_goes_away(hub, start_worker)
 
 
 def test_worker_with_unknown_analysis_callable_exits_2_naming_it(hub, start_worker):
-    w = start_worker("w1", analysis="zworker_fns:no_such_function")
+    w = start_worker("w1", analysis="tests.support.zworker_fns:no_such_function")
     assert w.proc.wait(60) == 2
     assert "has no attribute 'no_such_function'" in w.log()
 

@@ -68,7 +68,7 @@ def test_one_worker_serves_two_cells_through_the_router_each_job_once_and_in_tur
     try:
         wait_ready_line(tmp_path / "router.out", procs[0], 60)
         procs.append(_start(wdir, "worker", ["worker", "--config", "cell.toml", "--worker-id", "shared",
-                                             "--analysis", "zworker_fns:centroid_after_sleep", "--heartbeat-s", "0.3"]))  # fmt: skip
+                                             "--analysis", "tests.support.zworker_fns:centroid_after_sleep", "--heartbeat-s", "0.3"]))  # fmt: skip
 
         async def main():
             section = ZenohSection(mode="peer", listen=[], connect=[router_ep], multicast_scouting=False)

@@ -18,7 +18,7 @@ from cellctl.api.transfer import TransferSpec, pack_results
 from cellctl.daemon.dispatch import Dispatcher, DispatchSettings, _version_verdict
 from tests.zenoh.fake_worker import FakeWorker
 from tests.zenoh.test_dispatch_workers import _cloud_bytes, _job, _run, _wait_for
-from tests.zenoh.zworker_fns import minimal_report
+from tests.support.zworker_fns import minimal_report
 
 pytestmark = pytest.mark.e2e
 

@@ -79,7 +79,7 @@ def test_the_last_pass_starts_the_analysis_before_the_end_and_a_tail_with_points
     """The chunk the daemon marks ``last_pass`` reaches the worker marked (through Zenoh) and the
     analysis runs at once; the report made then is the job's when the retract's rows add no point,
     and is made again from every chunk when they do."""
-    start_worker("w1", analysis="zworker_fns:centroid_streamed")
+    start_worker("w1", analysis="tests.support.zworker_fns:centroid_streamed")
     job_id = f"jobR{tail_points}"
 
     async def scenario(disp: Dispatcher):
