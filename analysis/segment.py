@@ -300,13 +300,14 @@ class PassCells:
     streamed scan computes them as each pass arrives, the whole scan in :func:`segment_plate`.
 
     index: (k,) the pass's points' indices in the whole cloud; centre: the pass's own origin of its
-    float32 coordinates ``p32`` (k, 3); idx: (Pp, Wp) grid -> position in the pass (-1: empty);
+    float32 coordinates (:func:`_pass_float32`, made again from the cloud where they are needed: a
+    scan's passes are kept to the end, their coordinates would be a second copy of the cloud);
+    idx: (Pp, Wp) grid -> position in the pass (-1: empty);
     labels: (Pc, Wc) region label within the pass, -1 outside (offset per pass when joined).
     """
 
     index: np.ndarray
     centre: np.ndarray
-    p32: np.ndarray
     idx: np.ndarray
     by: int
     bx: int
@@ -316,6 +317,13 @@ class PassCells:
     labels: np.ndarray
     n_labels: int
     pitch_mm: float
+
+
+def _pass_float32(xyz_mm: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(k, 3) float32 a pass's points about its centre: the cell statistics' coordinates (half the
+    memory traffic, and at +-2 m the rounding, 0.1 um, is far below the sensor noise). No float64
+    temporary: both operands are rounded to float32 first (a float32 cloud's values exactly)."""
+    return np.subtract(xyz_mm, centre, dtype=np.float32)
 
 
 def pass_cells(
@@ -340,8 +348,7 @@ def pass_cells(
     # Cell statistics in float32 about the pass's centre: half the memory traffic, and at +-2 m
     # the rounding (0.1 um) is far below the sensor noise. The selection is exact per point.
     centre = xyz_mm[:: max(1, n // 1000)].mean(axis=0, dtype=np.float64)
-    # no float64 temporary: both operands rounded to float32 first, a float32 cloud's values exactly
-    p32 = np.subtract(xyz_mm, centre, dtype=np.float32)
+    p32 = _pass_float32(xyz_mm, centre)
     # (profile, point) -> position in the pass; duplicated places (a malformed file) keep the last
     itype = np.int32 if n < 2**31 - 1 else np.int64
     grid = np.full(P * width, -1, dtype=itype)
@@ -376,7 +383,9 @@ def pass_cells(
     normal = _normals(mean, ok)
     smooth = _smooth(normal, float(np.cos(np.deg2rad(st.max_normal_angle_deg))))
     lab, nlab = ndimage.label(smooth)
-    return PassCells(np.asarray(index), centre, p32, idxp, by, bx, mean, normal, cnt,
+    index = np.asarray(index)
+    index = index.astype(np.int32, copy=False) if len(index) and int(index.max()) < 2**31 - 1 else index
+    return PassCells(index, centre, idxp, by, bx, mean, normal, cnt,
                      np.where(lab > 0, lab - 1, -1), int(nlab), max(pitch_pt, pitch_pr))  # fmt: skip
 
 
@@ -468,7 +477,7 @@ def _segment_grid(
         by, bx = pc.by, pc.bx
         dn = pc.normal[di, dj]
         dn[~band] = np.nan
-        X5 = pc.p32[np.maximum(pc.idx, 0)].reshape(Pc, by, Wc, bx, 3)
+        X5 = _pass_float32(pts[pc.index], pc.centre)[np.maximum(pc.idx, 0)].reshape(Pc, by, Wc, bx, 3)
         with np.errstate(invalid="ignore"):
             r5 = _plane_residual(X5, pc.mean[di, dj], dn)
         sel5 = (pc.idx.reshape(Pc, by, Wc, bx) >= 0) & np.isfinite(r5)

@@ -14,12 +14,16 @@ from analysis.cloud_io import ScanCloud
 from analysis.design.plates import design_mesh, plate_spec
 from analysis.register import height_field as hf_module
 from analysis.register.height_field import height_field_from_mesh
-from analysis.segment import segment_plate
+from analysis.segment import pass_cells, segment_plate
 from analysis.synth import ScanSettings, synthesize_scan
 
 #: the segmentation's peak on a float32 cloud, bytes a point of the cloud: 162 before the cuts (int64
-#: pass order and grid, every pass's cells kept to the end, the selection's parts held twice), 110 after
-SEGMENT_PEAK_B_PER_POINT = 135.0
+#: pass order and grid, every pass's cells and coordinates kept to the end, the selection's parts held
+#: twice), 98 after
+SEGMENT_PEAK_B_PER_POINT = 125.0
+#: what a pass's cells hold per point of the pass (its positions in the cloud and its grid), kept to the
+#: end of a streamed scan: 28 with a float32 copy of its coordinates and int64 indices, 8-9 now
+PASS_CELLS_B_PER_POINT = 12.0
 #: the design rasterisation's peak, bytes a grid node: 400 in one pass over every (triangle, node)
 #: pair, about 100 in blocks on the sail's 1 mm grid (the block is a fixed 75 MB)
 RASTER_PEAK_B_PER_NODE = 160.0
@@ -77,6 +81,18 @@ def test_segmentation_peak_stays_within_its_bytes_per_point():
     per_point = peak / len(c32)
     assert res.mask.sum() > 0.5 * len(c32)
     assert per_point <= SEGMENT_PEAK_B_PER_POINT, f"segment peak {per_point:.0f} B/point"
+
+
+def test_a_pass_s_cells_hold_no_copy_of_its_coordinates():
+    c32, _ = _float32_scan()
+    sel = np.flatnonzero(c32.pass_id == np.bincount(c32.pass_id).argmax())
+    pc = pass_cells(c32.xyz_mm[sel], c32.profile_index[sel], c32.point_index[sel], sel.astype(np.int64))
+    # the arrays that grow with the pass's points (per point or per grid place; not the cells' own)
+    arrays = [v for v in vars(pc).values() if isinstance(v, np.ndarray)]
+    per_point = sum(v.nbytes for v in arrays if v.shape[:1] == sel.shape or v.shape == pc.idx.shape) / len(
+        sel
+    )
+    assert per_point <= PASS_CELLS_B_PER_POINT, f"a pass's cells hold {per_point:.1f} B/point"
 
 
 def test_design_rasterisation_in_blocks_is_the_one_pass_field_within_a_bounded_peak(monkeypatch):
