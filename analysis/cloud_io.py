@@ -13,7 +13,7 @@ analysis):
   24 bytes a point and hold no more information), the indices int32, ``t_s`` float64; stored and
   sent, ``xyz`` float32 (half a micrometre at 10 m), the indices as the format holds them. Code that
   does arithmetic on ``xyz_mm`` (sums, means, transforms, differences of large coordinates) does it
-  in float64 or about a local origin (docs/performance.md "float32");
+  in float64 or about a local origin (docs/operations.md "float32: where and where not");
 * transit: the moves between passes are no pass of the scan grid; their profiles are filed under
   pass 0 (pass ids are >= 0 in every cloud). Files written before this convention marked transit
   with pass -1: reading maps it to 0.

@@ -459,7 +459,7 @@ def _segment_grid(
     cand_idx, cand_r, interior_r, area = [], [], [], 0.0
     for k, (pc, off) in enumerate(zip(passes, offsets, strict=True)):
         if pc is not None and k not in (done or {}):
-            passes[k] = None  # a pass made here is dropped once its points are tested (12+ bytes a point)
+            passes[k] = None  # made here: dropped once its points are tested (its grid, its positions)
         if pc is None or pc.n_labels == 0:
             # a pass with cells but no smooth region (a scan cut a few profiles into its last pass:
             # no cell has its four neighbours) holds no plate cell; its offset may be the label count
@@ -526,8 +526,8 @@ def _segment_grid(
 
 def _take_float64(pts: np.ndarray, mask: np.ndarray, block: int = 1 << 20) -> np.ndarray:
     """(k, 3) float64 the rows of ``pts`` (n, 3) where ``mask``: the plate's points, which every later
-    stage does arithmetic on (sums over millions, transforms: float64, docs/performance.md), taken
-    from a float32 cloud block by block without a float32 copy of the selection first."""
+    stage does arithmetic on (sums over millions, transforms: float64; docs/operations.md "float32:
+    where and where not"), taken from a float32 cloud block by block without a float32 copy first."""
     if pts.dtype == np.float64:
         return np.take(pts, np.flatnonzero(mask), axis=0)  # (a boolean index of (n, 3) takes 3x as long)
     out = np.empty((int(np.count_nonzero(mask)), 3), np.float64)

@@ -1,4 +1,4 @@
-"""Bytes per point of the analysis' stages (issue 42 item 2, docs/performance.md): a float32 cloud is
+"""Bytes per point of the analysis' stages (issue 42 item 2, docs/operations.md): a float32 cloud is
 held as it came, the segmentation's peak and the design's rasterisation stay within their bounds, with
 the same results as before the cuts."""
 
