@@ -8,8 +8,12 @@ analysis):
   organisation, ``pass_id`` (raster or edge pass), ``profile_index`` (profile, running within the
   scan), ``point_index`` (index along the laser line), and optionally ``t_s`` (exposure time, s
   from the scan's first profile);
-* dtypes: in memory ``xyz_mm`` float64, the indices int32, ``t_s`` float64; stored and sent,
-  ``xyz`` float32 (a micrometre at 10 m), the indices as the format holds them;
+* dtypes: in memory ``xyz_mm`` float64, or float32 kept as given (a cloud decoded from the wire or
+  taken from the acquisition: its float32 values are the measurement, and a float64 copy would add
+  24 bytes a point and hold no more information), the indices int32, ``t_s`` float64; stored and
+  sent, ``xyz`` float32 (half a micrometre at 10 m), the indices as the format holds them. Code that
+  does arithmetic on ``xyz_mm`` (sums, means, transforms, differences of large coordinates) does it
+  in float64 or about a local origin (docs/operations.md "float32: where and where not");
 * transit: the moves between passes are no pass of the scan grid; their profiles are filed under
   pass 0 (pass ids are >= 0 in every cloud). Files written before this convention marked transit
   with pass -1: reading maps it to 0.
@@ -65,7 +69,7 @@ class CloudError(ValueError):
 class ScanCloud:
     """A scanned point cloud, optionally with its scan organisation (see the module docstring).
 
-    xyz_mm: (n, 3) float64, millimetres (robot base / bed frame).
+    xyz_mm: (n, 3) float64, or float32 kept as given (no copy), millimetres (robot base / bed frame).
     pass_id, profile_index, point_index: (n,) int32 each (>= 0), or all None for an unorganised cloud.
     t_s: (n,) float64 exposure times (s from the scan's first profile), or None.
     """
@@ -77,7 +81,8 @@ class ScanCloud:
     t_s: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        p = np.asarray(self.xyz_mm, dtype=np.float64)
+        p = np.asarray(self.xyz_mm)
+        p = p if p.dtype == np.float32 else np.asarray(p, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3:
             raise CloudError(f"xyz_mm must be (n, 3), got {p.shape}")
         object.__setattr__(self, "xyz_mm", p)
@@ -93,7 +98,7 @@ class ScanCloud:
                     raise CloudError(f"{name} must hold integers")
                 if a.size and a.min() < 0:
                     raise CloudError(f"{name} has negative indices")
-                object.__setattr__(self, name, a.astype(np.int32))
+                object.__setattr__(self, name, a.astype(np.int32, copy=False))
         if self.t_s is not None:
             t = np.asarray(self.t_s, dtype=np.float64)
             if t.shape != (len(p),):
@@ -374,7 +379,7 @@ def write_ply_vertices(path: str | Path, columns: dict[str, np.ndarray], comment
     head += f"element vertex {len(rec)}\n{props}end_header\n"
     with path.open("wb") as f:
         f.write(head.encode("ascii"))
-        f.write(rec.tobytes())
+        f.write(memoryview(rec).cast("B"))  # the records' own bytes: no second copy of the cloud
     return path
 
 
@@ -388,7 +393,7 @@ def write_cloud_ply(
     """Write ``cloud`` as binary PLY, the one organised-PLY layout of the product: x, y, z float32,
     pass, profile, point int32 if organised, t_s float64 if known, then ``extra`` columns (each (n,),
     its own dtype) in order."""
-    p = cloud.xyz_mm.astype(np.float32)
+    p = np.asarray(cloud.xyz_mm, dtype=np.float32)  # a float32 cloud as it is
     cols = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]}
     if cloud.organised:
         cols |= {"pass": cloud.pass_id.astype(np.int32), "profile": cloud.profile_index.astype(np.int32),

@@ -86,7 +86,7 @@ class SegmentResult:
     """The plate's top surface found in a scan.
 
     mask: (n,) bool over the input points, True for the plate's top surface.
-    points_mm: (k, 3) float64 the selected points (bed frame, mm).
+    points_mm: (k, 3) float64 the selected points (bed frame, mm), whatever the input's dtype.
     source: the input cloud.
     cloud: the selected points as a ScanCloud (organisation kept when the input had it), made on
         first use.
@@ -282,13 +282,15 @@ def _grid_pitch(points: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
     rows = np.linspace(0, P - 1, min(P, 64)).astype(int)
     a = idx[rows]
     ok = (a[:, 1:] >= 0) & (a[:, :-1] >= 0)
-    d_pt = (
-        np.linalg.norm(points[a[:, 1:][ok]] - points[a[:, :-1][ok]], axis=1) if ok.any() else np.array([1.0])
-    )
+
+    def gap(i: np.ndarray, j: np.ndarray) -> np.ndarray:  # float64 whatever the cloud's dtype (a sample)
+        return np.linalg.norm(points[i].astype(np.float64) - points[j], axis=1)
+
+    d_pt = gap(a[:, 1:][ok], a[:, :-1][ok]) if ok.any() else np.array([1.0])
     cols = np.linspace(0, W - 1, min(W, 64)).astype(int)
     b = idx[:, cols]
     okb = (b[1:] >= 0) & (b[:-1] >= 0)
-    d_pr = np.linalg.norm(points[b[1:][okb]] - points[b[:-1][okb]], axis=1) if okb.any() else np.array([1.0])
+    d_pr = gap(b[1:][okb], b[:-1][okb]) if okb.any() else np.array([1.0])
     return float(np.median(d_pt)), float(np.median(d_pr))
 
 
@@ -298,13 +300,14 @@ class PassCells:
     streamed scan computes them as each pass arrives, the whole scan in :func:`segment_plate`.
 
     index: (k,) the pass's points' indices in the whole cloud; centre: the pass's own origin of its
-    float32 coordinates ``p32`` (k, 3); idx: (Pp, Wp) grid -> position in the pass (-1: empty);
+    float32 coordinates (:func:`_pass_float32`, made again from the cloud where they are needed: a
+    scan's passes are kept to the end, their coordinates would be a second copy of the cloud);
+    idx: (Pp, Wp) grid -> position in the pass (-1: empty);
     labels: (Pc, Wc) region label within the pass, -1 outside (offset per pass when joined).
     """
 
     index: np.ndarray
     centre: np.ndarray
-    p32: np.ndarray
     idx: np.ndarray
     by: int
     bx: int
@@ -314,6 +317,13 @@ class PassCells:
     labels: np.ndarray
     n_labels: int
     pitch_mm: float
+
+
+def _pass_float32(xyz_mm: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(k, 3) float32 a pass's points about its centre: the cell statistics' coordinates (half the
+    memory traffic, and at +-2 m the rounding, 0.1 um, is far below the sensor noise). No float64
+    temporary: both operands are rounded to float32 first (a float32 cloud's values exactly)."""
+    return np.subtract(xyz_mm, centre, dtype=np.float32)
 
 
 def pass_cells(
@@ -337,8 +347,8 @@ def pass_cells(
         return None
     # Cell statistics in float32 about the pass's centre: half the memory traffic, and at +-2 m
     # the rounding (0.1 um) is far below the sensor noise. The selection is exact per point.
-    centre = xyz_mm[:: max(1, n // 1000)].mean(axis=0)
-    p32 = np.subtract(xyz_mm, centre, dtype=np.float32)  # no float64 temporary
+    centre = xyz_mm[:: max(1, n // 1000)].mean(axis=0, dtype=np.float64)
+    p32 = _pass_float32(xyz_mm, centre)
     # (profile, point) -> position in the pass; duplicated places (a malformed file) keep the last
     itype = np.int32 if n < 2**31 - 1 else np.int64
     grid = np.full(P * width, -1, dtype=itype)
@@ -348,7 +358,7 @@ def pass_cells(
     bx = max(1, round(st.cell_mm / max(pitch_pt, 1e-6)))
     by = max(1, round(st.cell_mm / max(pitch_pr, 1e-6)))
     Pp, Wp = -(-P // by) * by, -(-width // bx) * bx
-    idxp = np.full((Pp, Wp), -1, np.int64)
+    idxp = np.full((Pp, Wp), -1, itype)
     idxp[:P, :width] = idx
     V = idxp >= 0
     Pc, Wc = Pp // by, Wp // bx
@@ -373,7 +383,9 @@ def pass_cells(
     normal = _normals(mean, ok)
     smooth = _smooth(normal, float(np.cos(np.deg2rad(st.max_normal_angle_deg))))
     lab, nlab = ndimage.label(smooth)
-    return PassCells(np.asarray(index), centre, p32, idxp, by, bx, mean, normal, cnt,
+    index = np.asarray(index)
+    index = index.astype(np.int32, copy=False) if len(index) and int(index.max()) < 2**31 - 1 else index
+    return PassCells(index, centre, idxp, by, bx, mean, normal, cnt,
                      np.where(lab > 0, lab - 1, -1), int(nlab), max(pitch_pt, pitch_pr))  # fmt: skip
 
 
@@ -384,9 +396,10 @@ def _segment_grid(
     timings: dict[str, float] = {}
     pts = cloud.xyz_mm
     n = len(pts)
-    pass_id = cloud.pass_id.astype(np.int64)
+    pass_id = cloud.pass_id  # int32: no per-point copy
     n_pass = int(pass_id.max()) + 1
-    order = np.argsort(pass_id, kind="stable")  # each pass's points in the cloud's order
+    # each pass's points in the cloud's order; int32 positions (4 bytes a point, not 8) where they fit
+    order = np.argsort(pass_id, kind="stable").astype(np.int32 if n < 2**31 - 1 else np.int64, copy=False)
     bounds = np.concatenate([[0], np.cumsum(np.bincount(pass_id, minlength=n_pass))])
     timings["grid"] = time.perf_counter() - t0
 
@@ -442,8 +455,11 @@ def _segment_grid(
 
     # Select points: plate cells and the band around them, against the nearest plate cell's plane.
     t3 = time.perf_counter()
+    mean_fill = float(np.mean([pc.count[pc.count > 0].mean() for pc in passes if pc is not None]))
     cand_idx, cand_r, interior_r, area = [], [], [], 0.0
-    for pc, off in zip(passes, offsets, strict=True):
+    for k, (pc, off) in enumerate(zip(passes, offsets, strict=True)):
+        if pc is not None and k not in (done or {}):
+            passes[k] = None  # made here: dropped once its points are tested (its grid, its positions)
         if pc is None or pc.n_labels == 0:
             # a pass with cells but no smooth region (a scan cut a few profiles into its last pass:
             # no cell has its four neighbours) holds no plate cell; its offset may be the label count
@@ -461,7 +477,7 @@ def _segment_grid(
         by, bx = pc.by, pc.bx
         dn = pc.normal[di, dj]
         dn[~band] = np.nan
-        X5 = pc.p32[np.maximum(pc.idx, 0)].reshape(Pc, by, Wc, bx, 3)
+        X5 = _pass_float32(pts[pc.index], pc.centre)[np.maximum(pc.idx, 0)].reshape(Pc, by, Wc, bx, 3)
         with np.errstate(invalid="ignore"):
             r5 = _plane_residual(X5, pc.mean[di, dj], dn)
         sel5 = (pc.idx.reshape(Pc, by, Wc, bx) >= 0) & np.isfinite(r5)
@@ -469,13 +485,14 @@ def _segment_grid(
         cand_r.append(r5[sel5])
         inner5 = sel5 & plate[:, None, :, None]
         interior_r.append(r5[inner5][::4])
+        del pc, X5, r5, sel5, inner5, dn
     if not cand_idx:
         raise NoPlateError("no plate region in the cloud")
     idx_all = np.concatenate(cand_idx)
     r_all = np.concatenate(cand_r)
+    del cand_idx, cand_r  # the per-pass parts: not held twice
     r_in = np.concatenate(interior_r)
     r_in = r_in[np.abs(r_in) < st.gross_outlier_mm]
-    mean_fill = float(np.mean([pc.count[pc.count > 0].mean() for pc in passes if pc is not None]))
     # Residuals about a cell mean that includes the point itself shrink by sqrt((c - 1) / c).
     shrink = np.sqrt(mean_fill / max(mean_fill - 1.0, 1.0)) if mean_fill > 1.5 else 1.0
     sigma = float(1.4826 * np.median(np.abs(r_in - np.median(r_in))) * shrink) if len(r_in) else 0.0
@@ -494,7 +511,7 @@ def _segment_grid(
     )  # fmt: skip
     return SegmentResult(
         mask=mask,
-        points_mm=np.take(pts, np.flatnonzero(mask), axis=0),  # (a boolean index of (n, 3) takes 3x as long)
+        points_mm=_take_float64(pts, mask),
         source=cloud,
         noise_sigma_mm=sigma,
         inlier_tol_mm=tol,
@@ -505,6 +522,22 @@ def _segment_grid(
         point_spacing_mm=float(np.median(pitches)),
         timings_s=timings,
     )
+
+
+def _take_float64(pts: np.ndarray, mask: np.ndarray, block: int = 1 << 20) -> np.ndarray:
+    """(k, 3) float64 the rows of ``pts`` (n, 3) where ``mask``: the plate's points, which every later
+    stage does arithmetic on (sums over millions, transforms: float64; docs/operations.md "float32:
+    where and where not"), taken from a float32 cloud block by block without a float32 copy first."""
+    if pts.dtype == np.float64:
+        return np.take(pts, np.flatnonzero(mask), axis=0)  # (a boolean index of (n, 3) takes 3x as long)
+    out = np.empty((int(np.count_nonzero(mask)), 3), np.float64)
+    at = 0
+    for lo in range(0, len(pts), block):
+        idx = np.flatnonzero(mask[lo : lo + block])
+        idx += lo
+        out[at : at + len(idx)] = np.take(pts, idx, axis=0)
+        at += len(idx)
+    return out
 
 
 def _cell_area(mean: np.ndarray, sel: np.ndarray) -> float:
@@ -546,7 +579,8 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
 
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    pts = cloud.xyz_mm
+    # the route of unorganised files (read in float64): its moments and planes want float64 throughout
+    pts = np.asarray(cloud.xyz_mm, dtype=np.float64)
     n = len(pts)
     # Cells big enough for a dozen points over at least two scan lines each, so every cell has its
     # own plane (PCA normal).
@@ -672,7 +706,7 @@ def _segment_delaunay(cloud: ScanCloud, st: SegmentSettings) -> SegmentResult:
     )  # fmt: skip
     return SegmentResult(
         mask=mask,
-        points_mm=np.take(pts, np.flatnonzero(mask), axis=0),  # (a boolean index of (n, 3) takes 3x as long)
+        points_mm=_take_float64(pts, mask),
         source=cloud,
         noise_sigma_mm=sigma,
         inlier_tol_mm=tol,

@@ -15,6 +15,12 @@ path and the analysis worker's pipeline, each in its own process, peak RSS (VmHW
   detection lines (the paper's spacing over the whole plate) and the results directory written.
   Its VmHWM and the analysis time are the worker's figures.
 
+``--length-mm`` / ``--width-mm`` size the worker side's plate (default 6000 x 2000; the beams every
+metre, the radii scaled with the size). ``--stages`` adds ``stages``, the analysis stage by stage
+(:class:`StageProfile`: time, peak and after RSS, the numpy heap live at the stage's end and at its
+peak, the arrays its result holds, in bytes per point of the input cloud) and ``worker_peak_b_per_pt``;
+docs/operations.md "The analysis' memory, stage by stage" has the table.
+
 Prints one JSON object: ``daemon_peak_mb``, ``daemon_stages_mb`` (acquire / cloud / publish),
 ``daemon_s``, ``profiles``, ``raw_points``, ``published_points``, ``cloud_bytes``,
 ``worker_peak_mb``, ``analysis_s``, ``analysis_stages_s``, ``analysed_points``, ``lines``,
@@ -160,12 +166,14 @@ def daemon_part(args: argparse.Namespace) -> dict:
 # ---- worker side -------------------------------------------------------------------------------
 
 
-def _long_spec():
+def _long_spec(length_mm: float, width_mm: float):
     from analysis.design.plates import plate_spec
 
-    # the sail's curvature over a plate five times as long and 2.5 times as wide: Rx, Ry scaled so
-    # the depth stays a formed shell plate's (about 225 mm along, 70 mm across), not a bowl
-    return plate_spec("sail", length_mm=6000.0, width_mm=2000.0, radius_x_mm=20000.0, radius_y_mm=7500.0)
+    # the sail's curvature over a plate five times as long and 2.5 times as wide (the 6 m plate): Rx,
+    # Ry scaled with the size so the depth stays a formed shell plate's (about 225 mm along, 70 mm
+    # across at 6000 x 2000), not a bowl
+    return plate_spec("sail", length_mm=length_mm, width_mm=width_mm, radius_x_mm=20000.0 * length_mm / 6000.0,
+                      radius_y_mm=7500.0 * width_mm / 2000.0)  # fmt: skip
 
 
 def synth_part(args: argparse.Namespace) -> dict:
@@ -176,10 +184,13 @@ def synth_part(args: argparse.Namespace) -> dict:
     from analysis.synth import BedScene, ScanSettings, SupportBox, synthesize_scan
     from cellctl.api.cloud_codec import Cloud, encode_cloud
 
-    spec = _long_spec()
-    # beams every metre under a 6 m plate, across its full width
-    scene = BedScene(supports=tuple(SupportBox(x - 40.0, x + 40.0, -1300.0, 1300.0, 60.0)
-                                    for x in (-2500.0, -1500.0, -500.0, 500.0, 1500.0, 2500.0)))  # fmt: skip
+    spec = _long_spec(args.length_mm, args.width_mm)
+    # beams every metre under the plate (six under a 6 m plate), across its full width
+    n_beams = max(2, round(args.length_mm / 1000.0))
+    half_y = args.width_mm / 2 + 300.0
+    beams_x = (np.arange(n_beams) - (n_beams - 1) / 2) * 1000.0
+    scene = BedScene(supports=tuple(SupportBox(x - 40.0, x + 40.0, -half_y, half_y, 60.0)
+                                    for x in beams_x.tolist()))  # fmt: skip
     pitch = args.publish_pitch_mm
     st = ScanSettings(point_pitch_mm=pitch, points_per_profile=round(49.9 / pitch) + 1, profile_step_mm=1.0,
                       pass_overlap_mm=5.0)  # fmt: skip
@@ -220,7 +231,92 @@ def _trace_peaks(period_s: float = 0.5) -> None:
     threading.Thread(target=run, daemon=True).start()
 
 
+#: the analysis' stages as :func:`analysis.pipeline.inspect_cloud` and :func:`analysis.pipeline._inspect_job`
+#: call them (names looked up in ``analysis.pipeline`` at call time): each is wrapped to measure it
+STAGES = ("prepare_design", "segment_plate", "find_corners", "surface_cell_mm", "height_grid_mesh", "register",
+          "register_from_placement", "cut_templates", "cut_templates_exact", "deflection_gaps", "_per_line_cuts",
+          "_coverage_holes", "write_results")  # fmt: skip
+
+
+def _held_arrays(obj, seen: set[int], prefix: str, out: dict[str, int], depth: int = 0) -> None:
+    """The numpy arrays ``obj`` holds (dataclass fields, tuples, lists, dicts; each buffer counted once)
+    by name -> bytes, into ``out``."""
+    import dataclasses
+
+    import numpy as np
+
+    if depth > 3 or obj is None:
+        return
+    if isinstance(obj, np.ndarray):
+        base = obj
+        while isinstance(base.base, np.ndarray):
+            base = base.base
+        if id(base) not in seen and obj.nbytes >= 1 << 20:
+            seen.add(id(base))
+            out[prefix] = out.get(prefix, 0) + base.nbytes
+        return
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        items = [(f.name, getattr(obj, f.name, None)) for f in dataclasses.fields(obj)]
+    elif isinstance(obj, tuple | list):
+        items = [(str(k), v) for k, v in enumerate(obj[:8])]
+    elif isinstance(obj, dict):
+        items = [(str(k), v) for k, v in list(obj.items())[:16]]
+    else:
+        return
+    for name, v in items:
+        _held_arrays(v, seen, f"{prefix}.{name}" if prefix else name, out, depth + 1)
+
+
+class StageProfile:
+    """Per stage of the analysis: wall time, the process' peak RSS during it (VmHWM, reset at its
+    start), the RSS after it, the numpy heap (tracemalloc: numpy reports its buffers to it) live at
+    its end and its peak during it, and the arrays its result holds. Bytes per point are per point of
+    the input cloud."""
+
+    def __init__(self, n_points: int) -> None:
+        self.n = max(n_points, 1)
+        self.rows: list[dict] = []
+        self.calls: dict[str, int] = {}
+
+    def wrap(self, module, name: str) -> None:
+        """Replace ``module.name`` by the same function measured as a stage (a second call: ``name#2``)."""
+        import tracemalloc
+
+        fn = getattr(module, name)
+
+        def stage(*a, **kw):
+            k = self.calls[name] = self.calls.get(name, 0) + 1
+            _reset_hwm()
+            tracemalloc.reset_peak()
+            t0 = time.perf_counter()
+            out = fn(*a, **kw)
+            self.mark(name if k == 1 else f"{name}#{k}", t0, out)
+            return out
+
+        setattr(module, name, stage)
+
+    def mark(self, name: str, t0: float, held_obj=None) -> None:
+        """The row of a stage that started at ``t0`` (VmHWM and the heap's peak reset then) and whose
+        result is ``held_obj``."""
+        import tracemalloc
+
+        dt = time.perf_counter() - t0
+        cur, peak = tracemalloc.get_traced_memory()
+        held: dict[str, int] = {}
+        _held_arrays(held_obj, set(), "", held)
+        top = sorted(held.items(), key=lambda kv: -kv[1])[:4]
+        self.rows.append({
+            "stage": name, "s": round(dt, 2), "peak_rss_mb": _hwm_mb(), "rss_after_mb": _rss_mb(),
+            "heap_live_b_per_pt": round(cur / self.n, 1), "heap_peak_b_per_pt": round(peak / self.n, 1),
+            "result_b_per_pt": round(sum(held.values()) / self.n, 1),
+            "result_arrays_b_per_pt": {k: round(v / self.n, 1) for k, v in top},
+        })  # fmt: skip
+
+
 def worker_part(args: argparse.Namespace) -> dict:
+    import tracemalloc
+
+    import analysis.pipeline as pipeline
     from analysis.contracts.job import AnalysisJob
     from analysis.contracts.settings import InspectionSettings
     from analysis.pipeline import analyse_job
@@ -231,15 +327,25 @@ def worker_part(args: argparse.Namespace) -> dict:
         _trace_peaks()
     work = Path(args.work)
     raw = (work / "cloud.bin").read_bytes()
+    profile = None
+    if args.stages:
+        tracemalloc.start(1)
+        _reset_hwm()
     t0 = time.perf_counter()
     c0 = time.process_time()
     cloud = decode_cloud(raw)
+    scan = cloud.scan_cloud()
+    if args.stages:
+        profile = StageProfile(len(scan))
+        profile.mark("decode", t0, scan)
+        for name in STAGES:
+            profile.wrap(pipeline, name)
     settings = InspectionSettings(layout=DetectionLayout(transverse_count=None, longitudinal_count=None))
     job = AnalysisJob(design=str(work / "design.ply"), settings=settings, out_dir=str(work / "results"),
                       job_id="long", plate_id="long")  # fmt: skip
-    report = analyse_job(cloud.scan_cloud(), job)
-    return {
-        "worker_peak_mb": _hwm_mb(),
+    report = analyse_job(scan, job)
+    out = {
+        "worker_peak_mb": _hwm_mb() if profile is None else max(r["peak_rss_mb"] for r in profile.rows),
         "analysis_s": round(time.perf_counter() - t0, 1),
         "analysis_cpu_s": round(time.process_time() - c0, 1),
         "analysis_stages_s": report.timings_s,
@@ -247,6 +353,10 @@ def worker_part(args: argparse.Namespace) -> dict:
         "lines": len(report.lines),
         "verdict": report.verdict,
     }
+    if profile is not None:
+        out["worker_peak_b_per_pt"] = round(out["worker_peak_mb"] * 2**20 / profile.n, 1)
+        out["stages"] = profile.rows
+    return out
 
 
 def _child(part: str, args: argparse.Namespace, extra: list[str]) -> dict:
@@ -268,7 +378,12 @@ def main() -> int:
     p.add_argument("--publish-pitch-mm", type=float, default=0.5)
     p.add_argument("--presize", action="store_true", help="tell the acquisition the expected profile count")
     p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--length-mm", type=float, default=6000.0, help="worker side: the plate's length")
+    p.add_argument("--width-mm", type=float, default=2000.0, help="worker side: the plate's width")
     p.add_argument("--trace", action="store_true", help="worker side: print the stacks at each new RSS peak")
+    p.add_argument("--stages", action="store_true",
+                   help="worker side: a table of the analysis' stages (time, peak RSS, live numpy heap and the "
+                        "arrays each result holds, in bytes per point; tracemalloc slows it a little)")  # fmt: skip
     p.add_argument("--dir", default=None, help="where the daemon side's raw files go")
     p.add_argument("--work", default=None, help="the worker side's work directory")
     args = p.parse_args()
@@ -287,8 +402,9 @@ def main() -> int:
     if args.part == "analysis":
         print(json.dumps(worker_part(args)))
         return 0
-    out: dict = {"plate_mm": [6000.0, 2000.0], "publish_pitch_mm": args.publish_pitch_mm}
-    common = ["--publish-pitch-mm", str(args.publish_pitch_mm)]
+    out: dict = {"plate_mm": [args.length_mm, args.width_mm], "publish_pitch_mm": args.publish_pitch_mm}
+    common = ["--publish-pitch-mm", str(args.publish_pitch_mm), "--length-mm", str(args.length_mm),
+              "--width-mm", str(args.width_mm)]  # fmt: skip
     if args.part in ("all", "daemon"):
         extra = [*common, "--profiles", str(args.profiles), "--passes", str(args.passes),
                  "--width", str(args.width), "--batch", str(args.batch)]  # fmt: skip
@@ -301,7 +417,8 @@ def main() -> int:
         with tempfile.TemporaryDirectory(prefix="long-plate-") as tmp:
             work = args.work or tmp
             Path(work).mkdir(parents=True, exist_ok=True)
-            extra = [*common, "--work", work, "--seed", str(args.seed), *(["--trace"] if args.trace else [])]
+            extra = [*common, "--work", work, "--seed", str(args.seed), *(["--trace"] if args.trace else []),
+                     *(["--stages"] if args.stages else [])]  # fmt: skip
             if not (Path(work) / "cloud.bin").exists():
                 out.update(_child("synth", args, extra))
             out.update(_child("analysis", args, extra))

@@ -241,7 +241,7 @@ def plate_boundary(
     for cloud, range_z in zip(clouds, ranges_z_mm, strict=True):
         if cloud.pass_id is None:
             raise LocateError("the locate cloud has no scan organisation (pass, profile, point)")
-        xyz = cloud.xyz_mm
+        xyz = np.asarray(cloud.xyz_mm, dtype=np.float64)  # a locate run's few passes: its fits in float64
         keep = np.isfinite(xyz).all(axis=1) & (cloud.pass_id > 0)
         if st.bed_z_mm is not None:
             keep &= xyz[:, 2] > st.bed_z_mm + st.min_height_mm
