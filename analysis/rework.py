@@ -19,7 +19,14 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["GriddedField", "ReworkError", "ReworkRegion", "find_rework_regions", "grid_deviation"]
+__all__ = [
+    "GriddedField",
+    "ReworkError",
+    "ReworkRegion",
+    "bounded_cell_mm",
+    "find_rework_regions",
+    "grid_deviation",
+]
 
 BELOW = "below"  # plate below the template: d > 0
 ABOVE = "above"  # plate above the template: d < 0
@@ -79,6 +86,19 @@ class ReworkRegion:
         for key in ("peak_xy_mm", "centre_xy_mm", "bbox_mm"):
             d[key] = list(d[key])
         return d
+
+
+def bounded_cell_mm(plate_size_mm: np.ndarray | tuple[float, float], max_cells: int, cell_mm: float) -> float:
+    """``cell_mm``, or the smallest larger cell whose grid over the plate has at most ``max_cells``
+    cells: a view of the field (the report's top view, the HMI's map) stays within its budget
+    whatever the plate's size. plate_size_mm: (length, width), mm."""
+    L, W = (float(v) for v in np.asarray(plate_size_mm, dtype=np.float64).reshape(-1))
+    if max_cells < 1:
+        raise ReworkError(f"max_cells must be at least 1, got {max_cells}")
+    c = max(float(cell_mm), float(np.sqrt(L * W / max_cells)))
+    while np.ceil(L / c) * np.ceil(W / c) > max_cells:  # the partial last row and column
+        c *= 1.01
+    return c
 
 
 def grid_deviation(

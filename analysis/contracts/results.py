@@ -123,6 +123,32 @@ class LineSeries:
     measured_z_mm: np.ndarray
     deviation_mm: np.ndarray
 
+    def decimated(self, max_samples: int) -> LineSeries:
+        """The series cut to at most ``max_samples`` samples for a plot, keeping what the eye reads.
+
+        The samples are split into equal bins; each bin keeps its lowest and its highest deviation
+        (so the envelope of the curve, and the line's Zmax, survive any decimation) and, when it
+        holds a sample without data, its first such sample (so a gap in the scan stays a gap). The
+        first and last samples are always kept: the plot's range is the line's. The heights are
+        taken at the same samples. A series within the budget is returned as it is.
+        """
+        n = len(self.s_mm)
+        if max_samples < 5:
+            raise ValueError(f"max_samples must be at least 5, got {max_samples}")
+        if n <= max_samples:
+            return self
+        bins = (max_samples - 2) // 3
+        dev = np.asarray(self.deviation_mm, dtype=np.float64)
+        seg = np.arange(n) * bins // n  # the bin of each sample: equal bins, in order
+        starts = np.searchsorted(seg, np.arange(bins))
+        nan = np.isnan(dev)
+        lo = np.lexsort((np.where(nan, np.inf, dev), seg))[starts]
+        hi = np.lexsort((np.where(nan, np.inf, -dev), seg))[starts]
+        gaps = np.flatnonzero(nan)
+        first_gap = gaps[np.unique(seg[gaps], return_index=True)[1]]
+        idx = np.unique(np.concatenate([[0, n - 1], lo, hi, first_gap]))
+        return LineSeries(*(getattr(self, name)[idx] for name in _SERIES))
+
 
 _SERIES = ("s_mm", "design_z_mm", "measured_z_mm", "deviation_mm")
 

@@ -1,5 +1,9 @@
 """``report.html``: one self-contained page (inline CSS, inline SVG plots with their raster parts as
 data: URLs, no script, no web font, nothing fetched), so it opens from a USB stick.
+
+A large plate's page has many line plots (95 on a 6000 x 2000 mm plate): the browser lays out and
+paints only those near the screen (``content-visibility: auto``), so the page opens in the time of
+its first screen, not of all its plots (issue 42; docs/operations.md "Result pages of a large plate").
 """
 
 from __future__ import annotations
@@ -8,6 +12,7 @@ from pathlib import Path
 
 from analysis.contracts.job import Report
 from analysis.report.load import PreviousRound, ResultsData, previous_by_line
+from analysis.report.plots import TOP_VIEW_MAX_REGIONS
 from analysis.report.text import (
     FAMILIES,
     _e,
@@ -37,6 +42,7 @@ td.ok{background:#eaf6ec} td.warn{background:#fff1cc} td.bad{background:#fbd5d5;
 .plots{display:grid;grid-template-columns:repeat(auto-fill,minmax(560px,1fr));gap:10px}
 figure.plot{margin:0;background:#fff}
 figure.plot svg{width:100%;height:auto;display:block}
+.plots figure.plot{content-visibility:auto;contain-intrinsic-size:auto 360px}
 figcaption{font-size:12px;color:#555;margin:2px 0 6px}
 .big{font-size:16px} .muted{color:#666}
 """
@@ -181,6 +187,12 @@ def _kv_table(items: list[tuple[str, str]]) -> str:
     )
 
 
+def _boxed_text(n_regions: int) -> str:
+    if n_regions <= TOP_VIEW_MAX_REGIONS:
+        return ""
+    return f" (the {TOP_VIEW_MAX_REGIONS} worst of {n_regions}; the table below lists them all)"
+
+
 def render_html(
     data: ResultsData,
     regions: list[ReworkRegion],
@@ -234,7 +246,7 @@ def render_html(
 <figure class="plot" data-plot="top-view">{svgs["top"]}<figcaption>Deviation of the measured plate from the
 registered design, seen from above, from the reference corner (REF). Dashed contours: ±{std:g} mm (standard
 range); solid: ±{lim:g} mm (limit). Lines are labelled green (pass) or red (fail); × marks each line's Zmax;
-purple boxes are the regions to rework.</figcaption></figure></section>
+purple boxes are the regions to rework{_boxed_text(len(regions))}.</figcaption></figure></section>
 <section id="rework"><h2>Where to rework</h2>
 <p class="muted">Regions where the plate is more than {std:g} mm off the template, positions in mm from the
 reference corner (x along the length, y along the width).</p>{_rework_html(regions, std)}</section>

@@ -1,12 +1,20 @@
 """The report's figures, drawn with matplotlib's object API (no pyplot, no global figure state, so
 safe from a worker thread): the top view of the deviation with the rework regions, one plot per
 detection line, the scan's coverage; :func:`_svg` inlines a figure in the HTML page.
+
+Every figure has a budget that holds whatever the plate's size (issue 42; docs/operations.md
+"Result pages of a large plate"): the top view's deviation raster has at most
+:data:`TOP_VIEW_MAX_CELLS` cells and is embedded, with its tolerance contours, as one image at the
+figure's resolution, with the worst :data:`TOP_VIEW_MAX_REGIONS` rework regions boxed; each line's curves have at most :data:`LINE_PLOT_MAX_SAMPLES` samples (the
+envelope of the deviation, :meth:`~analysis.contracts.results.LineSeries.decimated`); the coverage's
+unseen cells are one image. The full data stays in results.npz and cloud.ply.
 """
 
 from __future__ import annotations
 
 import io
 import math
+import re
 from typing import Any
 
 import matplotlib
@@ -18,7 +26,7 @@ from matplotlib.ticker import MaxNLocator
 
 from analysis.report.load import ResultsData
 from analysis.report.text import _tolerances
-from analysis.rework import GriddedField, ReworkRegion
+from analysis.rework import GriddedField, ReworkRegion, bounded_cell_mm
 
 _HOLE_CELL_MM = 5.0  # the pipeline's coverage cell
 _COLOURS = {
@@ -32,10 +40,20 @@ _COLOURS = {
 _CMAP = "RdBu"
 
 
+#: the top view's deviation raster: at most this many cells (a 7-inch axes at 100 dpi is ~700 px wide)
+TOP_VIEW_MAX_CELLS = 120_000
+#: the top view boxes at most this many rework regions, the worst (the report's table lists them all)
+TOP_VIEW_MAX_REGIONS = 40
+#: each detection line's plot: at most this many samples per curve (its axes are ~560 px wide: the
+#: lowest and highest deviation of ~330 bins, about one bin per 1.7 px)
+LINE_PLOT_MAX_SAMPLES = 1000
+
+
 def _display_cell_mm(data: ResultsData) -> float:
     # about nine points per cell, so a random subsample leaves (almost) no cell empty: e^-9
     n = max(len(data.plate_xy_mm), 1)
-    return float(np.clip(3.0 * math.sqrt(data.plate_size_mm.prod() / n), 2.0, 25.0))
+    cell = float(np.clip(3.0 * math.sqrt(data.plate_size_mm.prod() / n), 2.0, 25.0))
+    return bounded_cell_mm(data.plate_size_mm, TOP_VIEW_MAX_CELLS, cell)
 
 
 def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: list[ReworkRegion]) -> Any:
@@ -59,6 +77,9 @@ def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: lis
         zorder=1,
     )
     im.set_clip_path(footprint)  # the last row and column of cells may reach past the plate's edge
+    # the footprint, the raster and the contours (zorder < 2.5) become one image at the figure's
+    # resolution: a noisy field's contours would otherwise be paths of as many vertices as cells
+    ax.set_rasterization_zorder(2.5)
     if finite.size and (np.nanmax(np.abs(mean)) > std):
         xc = (np.arange(nx) + 0.5) * c
         yc = (np.arange(ny) + 0.5) * c
@@ -102,7 +123,7 @@ def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: lis
         if chord > 0:
             p = a + (b - a) * min(max(float(line.zmax_at_mm) / chord, 0.0), 1.0)
             ax.plot(p[0], p[1], marker="x", color=colour, markersize=4, mew=1.0, zorder=5)
-    for r in regions:
+    for r in regions[:TOP_VIEW_MAX_REGIONS]:  # worst first: a rough plate's hundreds stay in the table
         x0, y0, x1, y1 = r.bbox_mm
         ax.add_patch(
             Rectangle(
@@ -150,7 +171,8 @@ def _colorbar(fig: Figure, im: Any, **kw: Any) -> None:
 def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
     """Design and measured sections (top), deviation with the tolerance band and Zmax (bottom)."""
     line = data.report.lines[k]
-    series = data.lines[k]
+    full = data.lines[k]
+    series = full.decimated(LINE_PLOT_MAX_SAMPLES) if full is not None else None
     std, lim, _ = _tolerances(data.report)
     verdict = "PASS" if line.passed else "FAIL"
     where = ""
@@ -183,7 +205,8 @@ def _draw_line(ax_z: Any, ax_d: Any, data: ResultsData, k: int) -> None:
     else:
         s = series.s_mm
         ax_z.plot(s, series.design_z_mm, color=_COLOURS["design"], linewidth=1.0, label="design (template)")
-        seen = float(np.mean(np.isfinite(series.measured_z_mm)))
+        assert full is not None  # the decimated series is the full one's
+        seen = float(np.mean(np.isfinite(full.measured_z_mm)))  # of every sample, not of the plotted
         # say how much of the line the scan covered: a curve with gaps is not a curve with data
         ax_z.plot(
             s,
@@ -270,10 +293,14 @@ def _draw_coverage(ax: Any, data: ResultsData) -> None:
     )
 
 
+_NO_METADATA = {"Date": None, "Creator": None, "Format": None, "Type": None}
+
+
 def _svg(fig: Figure) -> str:
     buf = io.StringIO()
     with matplotlib.rc_context({"svg.fonttype": "none"}):
-        fig.savefig(buf, format="svg", metadata={"Date": None})
+        fig.savefig(buf, format="svg", metadata=_NO_METADATA)
     text = buf.getvalue()
-    # inline: drop the XML declaration and DOCTYPE, keep the <svg> element
-    return text[text.index("<svg") :]
+    # inline: drop the XML declaration and DOCTYPE, keep the <svg> element; the indentation between
+    # elements is a tenth of a line plot's bytes and nothing a browser shows
+    return re.sub(r">\s+<", "><", text[text.index("<svg") :])

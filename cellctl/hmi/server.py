@@ -31,6 +31,7 @@ from aiohttp import WSMsgType, web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from analysis.contracts.results import read_report, read_results_arrays
+from analysis.rework import bounded_cell_mm, grid_deviation
 from cellctl.api import DESIGN_SUFFIXES, MAX_TRIGGER_BYTES, ApiCallError
 from cellctl.config import CellConfig
 from cellctl.hmi.auth import (
@@ -66,7 +67,14 @@ MAX_BODY_BYTES = MAX_TRIGGER_BYTES  # a trigger is the largest body the HMI take
 LOGIN_MAX_BYTES = 4096
 #: password checks running at once (each a thread)
 MAX_CONCURRENT_CHECKS = 2
-MAP_MAX_POINTS = 30_000
+#: the result page's deviation map (top view and 3D view): a raster of at most this many cells, each
+#: the mean deviation of the stored map points in it, whatever the plate's size (issue 42)
+MAP_MAX_CELLS = 20_000
+#: the smallest cell of the map (mm): a small plate's raster is no finer than its stored points hold
+MAP_MIN_CELL_MM = 5.0
+#: each line's plot on the result page: at most this many samples (its plot is ~300 px wide: the
+#: lowest and highest deviation of ~130 bins)
+MAP_LINE_SAMPLES = 400
 _SECURITY_HEADERS = {
     "Content-Security-Policy": (
         "default-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data:; object-src 'none'; "
@@ -77,6 +85,12 @@ _SECURITY_HEADERS = {
     "Referrer-Policy": "no-referrer",
     "Cache-Control": "no-store",
 }
+
+
+def _json_floats(values: np.ndarray, decimals: int) -> list[float | None]:
+    """``values`` rounded for a JSON body, None (null) where there is no value (NaN)."""
+    rounded = np.round(np.asarray(values, dtype=np.float64), decimals)
+    return [None if v != v else v for v in rounded.tolist()]
 
 
 def _err(status: int, code: str, message: str, field: str = "") -> web.Response:
@@ -483,23 +497,28 @@ class HmiServer:
 
         def read() -> dict[str, Any]:
             res = read_results_arrays(path)
-            xy, dev = res.plate_xy_mm, res.plate_deviation_mm
-            idx = np.linspace(0, len(xy) - 1, min(len(xy), MAP_MAX_POINTS)).astype(int) if len(xy) else []
+            cell = bounded_cell_mm(res.plate_size_mm, MAP_MAX_CELLS, MAP_MIN_CELL_MM)
+            field = grid_deviation(res.plate_xy_mm, res.plate_deviation_mm, res.plate_size_mm, cell)
+            nx, ny = field.mean_mm.shape
             lines = []
-            for series in res.lines:  # read_results_arrays without a count: the lines stored, none missing
-                assert series is not None
-                s, dv = series.s_mm, series.deviation_mm
-                step = max(1, len(s) // 400)
-                lines.append({"s_mm": np.round(s[::step], 1).tolist(),
-                              "deviation_mm": np.round(np.nan_to_num(dv[::step]), 3).tolist()})  # fmt: skip
+            for full in res.lines:  # read_results_arrays without a count: the lines stored, none missing
+                assert full is not None
+                series = full.decimated(MAP_LINE_SAMPLES)
+                lines.append({"s_mm": _json_floats(series.s_mm, 1),
+                              "deviation_mm": _json_floats(series.deviation_mm, 3)})  # fmt: skip
             return {
-                "xy_mm": np.round(xy[idx], 1).tolist(),
-                "deviation_mm": np.round(dev[idx], 3).tolist(),
                 "plate_size_mm": res.plate_size_mm.tolist(),
+                # cell (i, j) covers x in [i, i + 1) * cell_mm, y in [j, j + 1) * cell_mm; i-major
+                "cell_mm": round(cell, 3),
+                "nx": nx,
+                "ny": ny,
+                "deviation_mm": _json_floats(field.mean_mm.ravel(), 2),
                 "lines": lines,
             }
 
-        return web.json_response(await asyncio.to_thread(read))
+        resp = web.json_response(await asyncio.to_thread(read))
+        resp.enable_compression()  # numbers in JSON: a third of the bytes on the plant network
+        return resp
 
     async def job_live(self, request: web.Request) -> web.Response:
         job_id = request.match_info["job_id"]

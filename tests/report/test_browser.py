@@ -58,6 +58,13 @@ async def _inspect(html: Path, work: Path) -> dict:
         )
         await page.send("Page.navigate", {"url": html.as_uri()})
         await page.wait_for("Page.loadEventFired")
+        # line plots off the screen are laid out only when scrolled to (content-visibility: auto): this
+        # test crops every plot from one capture of the whole page, so it has them all laid out now
+        # (tests/hmi/test_result_pages_large.py checks they are drawn when scrolled to)
+        await page.evaluate(
+            "document.head.insertAdjacentHTML('beforeend',"
+            " '<style>.plots figure.plot{content-visibility:visible}</style>')"
+        )
         dom = await page.evaluate(_PLOTS_JS)
         crops = []
         for p in dom["plots"]:

@@ -13,6 +13,7 @@ import asyncio
 import io
 import json
 import logging
+import shutil
 import threading
 from collections.abc import Coroutine
 from pathlib import Path
@@ -25,6 +26,7 @@ from cellctl.api import ApiCallError, CellStatus, ControlReply, TriggerAccepted
 from cellctl.config import CellConfig, parse_config
 from cellctl.hmi.auth import Authenticator, LoginLimiter, add_user, load_users
 from cellctl.hmi.server import HmiServer
+from cellctl.jobstore.jobs import JobRecord, JobStore
 from cellctl.logging import configure_logging
 from tests.support.ports import free_port
 
@@ -99,6 +101,17 @@ class LocalHmi:
         self._thread = threading.Thread(target=self.loop.run_forever, name="local-hmi", daemon=True)
         self.server: HmiServer | None = None
         self._runner: web.AppRunner | None = None
+
+    def add_done_job(self, job_id: str, results_dir: Path, plate_id: str) -> Path:
+        """A done job in the data directory (its record through the job store) with a copy of
+        ``results_dir`` as its results; call before :meth:`start` (the history is built then).
+        Returns the job's directory."""
+        store = JobStore(self.data_dir)
+        rec = JobRecord(job_id, plate_id, "plate.igs", "/srv/cell/designs/plate.igs", None, state="done",
+                        history=[{"state": "done", "t_utc": "2026-12-07T12:30:00Z", "message": "done"}])  # fmt: skip
+        store.create(rec)
+        shutil.copytree(results_dir, store.results_dir(job_id), ignore=shutil.ignore_patterns("cloud.ply"))
+        return store.job_dir(job_id)
 
     @property
     def link(self) -> FakeLink:

@@ -64,6 +64,26 @@ def default_error(spec: PlateSpec, dent_mm: float = 3.6, bump_mm: float = 2.6) -
     )
 
 
+#: the cell's detection layout (cell.toml [analysis]): the paper's spacing, the counts scaled to the
+#: plate (23 lines on the 1200 x 800 mm sail, 95 on a 6000 x 2000 mm plate)
+CELL_LAYOUT = DetectionLayout(transverse_count=None, longitudinal_count=None)
+
+
+def write_plate_results(
+    out_dir: Path,
+    length_mm: float,
+    width_mm: float,
+    *,
+    n_points: int = 300_000,
+    layout: DetectionLayout = CELL_LAYOUT,
+    plate_id: str = "P-LONG",
+) -> SyntheticResults:
+    """:func:`write_synthetic_results` for a sail-shaped plate of any size, with as many map points
+    as the pipeline stores (``analysis.pipeline.MAX_MAP_POINTS``) and the cell's layout by default."""
+    spec = plate_spec("sail", length_mm=length_mm, width_mm=width_mm)
+    return write_synthetic_results(out_dir, n_points=n_points, spec=spec, layout=layout, plate_id=plate_id)
+
+
 def _ply(points_mm: np.ndarray, deviation_mm: np.ndarray, path: Path) -> None:
     rec = np.empty(len(points_mm), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("deviation", "<f4")])
     rec["x"], rec["y"], rec["z"] = points_mm.T

@@ -380,13 +380,18 @@ async function loadResult(jobId) {
   const mres = await api("GET", "/api/jobs/" + encodeURIComponent(job.job_id) + "/map");
   const map = mres.ok ? mres.data : null;
   if (map) {
-    const m = map.xy_mm.length, top = new Float32Array(3 * m), d3 = new Float32Array(3 * m), col = new Uint8Array(3 * m);
-    let amax = 1e-3;
-    for (let i = 0; i < m; i++) amax = Math.max(amax, Math.abs(map.deviation_mm[i]));
-    for (let i = 0; i < m; i++) {
-      top[3 * i] = map.xy_mm[i][0]; top[3 * i + 1] = map.xy_mm[i][1]; top[3 * i + 2] = 0;
-      d3[3 * i] = map.xy_mm[i][0]; d3[3 * i + 1] = map.xy_mm[i][1]; d3[3 * i + 2] = map.deviation_mm[i];
-      col.set(bandColour(map.deviation_mm[i], stdMm, limMm), 3 * i);
+    // the map is a raster of cell means (the server bounds its cells whatever the plate's size):
+    // the 3D view shows one point per cell that holds data, at the cell's centre
+    const { nx, ny, cell_mm: cm } = map, dm = map.deviation_mm;
+    const m = dm.reduce((n, v) => n + (v === null ? 0 : 1), 0);
+    const d3 = new Float32Array(3 * m), col = new Uint8Array(3 * m);
+    let amax = 1e-3, p = 0;
+    for (let k = 0; k < nx * ny; k++) {
+      const v = dm[k];
+      if (v === null) continue;
+      amax = Math.max(amax, Math.abs(v));
+      d3[3 * p] = (Math.floor(k / ny) + 0.5) * cm; d3[3 * p + 1] = ((k % ny) + 0.5) * cm; d3[3 * p + 2] = v;
+      col.set(bandColour(v, stdMm, limMm), 3 * p); p++;
     }
     if (!S.res3d) S.res3d = PointView($("result-3d"));
     S.res3d.setZScale(0.15 * Math.max(...report.plate_size_mm) / amax);
@@ -438,8 +443,19 @@ function drawPlateMap(c, map, report, regions, stdMm, limMm, lname) {
   const X = (x) => L + x * k, Y = (y) => H - B - y * k;
   g.fillStyle = "#06090b"; g.fillRect(0, 0, W, H);
   g.strokeStyle = "#3a4a5a"; g.lineWidth = 1; g.strokeRect(X(0), Y(ly), lx * k, ly * k);
-  const cell = Math.max(2, Math.ceil(k * Math.sqrt((lx * ly) / Math.max(map.xy_mm.length, 1))));
-  map.xy_mm.forEach(([x, y], i) => { g.fillStyle = `rgb(${bandColour(map.deviation_mm[i], stdMm, limMm).join(",")})`; g.fillRect(X(x) - cell / 2, Y(y) - cell / 2, cell, cell); });
+  // the raster: one pixel per cell on a canvas of its own, scaled onto the plate's rectangle
+  const { nx, ny, cell_mm: cm } = map, img = new ImageData(nx, ny);
+  let cells = 0;
+  map.deviation_mm.forEach((v, q) => {
+    if (v === null) return;
+    const o = 4 * ((ny - 1 - (q % ny)) * nx + Math.floor(q / ny)); // row 0 at the top: y up on screen
+    img.data.set(bandColour(v, stdMm, limMm), o); img.data[o + 3] = 255; cells++;
+  });
+  const raster = document.createElement("canvas"); raster.width = nx; raster.height = ny;
+  raster.getContext("2d").putImageData(img, 0, 0);
+  g.save(); g.beginPath(); g.rect(X(0), Y(ly), lx * k, ly * k); g.clip(); // the last cells may pass the edge
+  g.imageSmoothingEnabled = false; g.drawImage(raster, X(0), Y(ny * cm), nx * cm * k, ny * cm * k); g.restore();
+  c.dataset.cells = String(cells);
   // axes in mm
   g.font = "13px system-ui"; g.fillStyle = "#9fb0bf";
   const xs = niceStep(lx, Math.max(2, Math.floor((lx * k) / 80))), ys = niceStep(ly, Math.max(2, Math.floor((ly * k) / 50)));
@@ -518,12 +534,14 @@ function plotAxes(c, title, xs, ys, yBands, opts = {}) {
 const SERIES = ["#4ea1ff", "#ffb000", "#3ddc84", "#ff5c5c", "#c77dff", "#00d1d1", "#fff06b", "#ff8ad8", "#b0b0b0", "#9bd45b", "#ff9152", "#8fb3ff"];
 const seriesStyle = (k) => ({ colour: SERIES[k % SERIES.length], dash: k < SERIES.length ? [] : [7, 4] });
 function plotLine(c, name, s, dv, stdMm, limMm, pass) {
-  const { g, X, Y } = plotAxes(c, `${name}: deviation mm along s mm`, s, dv, [limMm]);
+  const { g, X, Y } = plotAxes(c, `${name}: deviation mm along s mm`, s, dv.filter((v) => v !== null), [limMm]);
   g.fillStyle = "rgba(40,170,70,0.18)"; g.fillRect(X(s[0]), Y(stdMm), X(s[s.length - 1]) - X(s[0]), Y(-stdMm) - Y(stdMm));
   g.strokeStyle = "rgba(230,170,30,0.8)"; g.setLineDash([4, 4]);
   for (const b of [limMm, -limMm]) { g.beginPath(); g.moveTo(X(s[0]), Y(b)); g.lineTo(X(s[s.length - 1]), Y(b)); g.stroke(); }
   g.setLineDash([]); g.strokeStyle = pass ? "#6cf" : "#f66"; g.lineWidth = 2; g.beginPath();
-  s.forEach((sv, i) => (i ? g.lineTo(X(sv), Y(dv[i])) : g.moveTo(X(sv), Y(dv[i])))); g.stroke();
+  // null: no data there (a gap in the scan), the curve breaks
+  s.forEach((sv, i) => { if (dv[i] !== null) (i && dv[i - 1] !== null ? g.lineTo(X(sv), Y(dv[i])) : g.moveTo(X(sv), Y(dv[i]))); });
+  g.stroke(); c.dataset.samples = String(s.length);
 }
 
 // ------------------------------------------------------------------ History page
