@@ -21,7 +21,6 @@ from cellctl.calibration.hand_eye import (
 from cellctl.calibration.time_offset import TimeOffsetError, estimate_time_offset
 from drivers.abb_egm.kinematics import RobotKinematics, fk_batch
 from drivers.runtime import precise_event_loop
-from tests.support.synthetic_scan import feed, make_run
 from tests.support.simcell import (
     Q_SEED_DEG,
     SimCell,
@@ -29,6 +28,7 @@ from tests.support.simcell import (
     sphere_scene,
     stop_and_shoot_path,
 )
+from tests.support.synthetic_scan import feed, make_run
 
 SPHERE_C = np.array([1500.0, 100.0, 350.0])
 SPHERE_R = 20.0

@@ -41,7 +41,9 @@ CHILD = textwrap.dedent(
 
 
 def test_other_threads_are_raised_and_priority_zero_stays_normal():
-    out = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=60, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=60, check=True
+    )
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["off"] is False and r["policy_off"] == r["other"]
     assert r["me"] == r["other"]  # the caller's own thread is left as it was

@@ -34,7 +34,11 @@ def start_worker(hub: Hub) -> Iterator[Callable[..., WorkerProc]]:  # noqa: F811
     """Start `cellctl worker` processes for the hub; all are stopped (SIGTERM, then SIGKILL) after the test."""
     procs: list[WorkerProc] = []
 
-    def start(worker_id: str, analysis: str = "tests.support.zworker_fns:centroid_after_sleep", heartbeat_s: float = 0.3):
+    def start(
+        worker_id: str,
+        analysis: str = "tests.support.zworker_fns:centroid_after_sleep",
+        heartbeat_s: float = 0.3,
+    ):
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO), str(HERE), env.get("PYTHONPATH", "")])
         log_path = hub.tmp / f"{worker_id}.log"

@@ -16,9 +16,9 @@ from cellctl.api import API_VERSION, STREAM_FORMAT, JobEvent, ReportEnvelope
 from cellctl.api.session import build_zenoh_config, close_session, open_session, subscribe
 from cellctl.api.transfer import TransferSpec, pack_results
 from cellctl.daemon.dispatch import Dispatcher, DispatchSettings, _version_verdict
+from tests.support.zworker_fns import minimal_report
 from tests.zenoh.fake_worker import FakeWorker
 from tests.zenoh.test_dispatch_workers import _cloud_bytes, _job, _run, _wait_for
-from tests.support.zworker_fns import minimal_report
 
 pytestmark = pytest.mark.e2e
 

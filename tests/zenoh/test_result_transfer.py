@@ -25,9 +25,9 @@ from cellctl.api.transfer import (
 from cellctl.daemon.dispatch import Dispatcher
 from cellctl.daemon.result_collector import ResultCollector, store_results
 from cellctl.worker.design_cache import cache_design, cached_design
+from tests.support.zworker_fns import minimal_report
 from tests.zenoh.fake_worker import FakeWorker
 from tests.zenoh.test_dispatch_workers import GENEROUS, _cloud_bytes, _run, _wait_for
-from tests.support.zworker_fns import minimal_report
 
 
 def _results_dir(tmp_path: Path) -> Path:
