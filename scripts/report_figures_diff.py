@@ -8,6 +8,8 @@ heights), as are the other figures (Sz in mm^2, CI, curvatures), by their larges
 object: ``max_diff_mm`` (the largest difference of a millimetre figure, with its line and figure),
 ``max_diff_other``, ``lines``, ``same_verdict``, ``same_grades``, ``ok``; exit 1 when not ok.
 
+The comparison is :func:`analysis.report.figures_diff.compare`.
+
 Run: ``.venv/bin/python scripts/report_figures_diff.py BEFORE_DIR AFTER_DIR [--tol-mm 0.005]``.
 """
 
@@ -18,48 +20,12 @@ import json
 import sys
 from pathlib import Path
 
-#: figures that are places along a line, not heights: reported, not held to the tolerance
-PLACES = frozenset({"zmax_at_mm"})
+from analysis.report.figures_diff import compare
 
 
 def _report(path: str) -> dict:
     p = Path(path)
     return json.loads((p / "report.json" if p.is_dir() else p).read_text())
-
-
-def _numbers(line: dict) -> dict[str, float]:
-    return {k: float(v) for k, v in line.items() if isinstance(v, int | float) and not isinstance(v, bool)}
-
-
-def compare(before: dict, after: dict, tol_mm: float) -> dict:
-    a = {ln["name"]: ln for ln in before["lines"]}
-    b = {ln["name"]: ln for ln in after["lines"]}
-    worst_mm = (0.0, "", "")
-    worst_other: dict[str, float] = {}
-    for name in sorted(a.keys() & b.keys()):
-        na, nb = _numbers(a[name]), _numbers(b[name])
-        for key in na.keys() & nb.keys():
-            d = abs(na[key] - nb[key])
-            if key.endswith("_mm") and key not in PLACES:
-                if d > worst_mm[0]:
-                    worst_mm = (d, name, key)
-            else:
-                worst_other[key] = max(worst_other.get(key, 0.0), d)
-    same_names = a.keys() == b.keys()
-    same_grades = all(
-        a[k]["grade"] == b[k]["grade"] and a[k]["pass"] == b[k]["pass"] for k in a.keys() & b.keys()
-    )
-    same_verdict = before["verdict"] == after["verdict"]
-    return {
-        "lines": len(a),
-        "same_lines": same_names,
-        "same_verdict": same_verdict,
-        "same_grades": same_grades,
-        "max_diff_mm": {"diff": worst_mm[0], "line": worst_mm[1], "figure": worst_mm[2]},
-        "max_diff_other": worst_other,
-        "tol_mm": tol_mm,
-        "ok": same_names and same_verdict and same_grades and worst_mm[0] <= tol_mm,
-    }
 
 
 def main() -> int:
