@@ -50,7 +50,11 @@ slope -- is not divided by ``sqrt(n)``) and a gap field smooth at the block's sc
 Costs one gap evaluation, two binning passes over the points (linear, about 0.1 s per 10^6 points)
 and a 6 x 6 solve per patch (batched), and the
 plate's detail below ``h`` in the resting pose only: the figures are still computed on the full
-reconstructed surface.
+reconstructed surface. Memory: no copy of the points (the caller's float64 array is read a chunk of
+:data:`_CHUNK` points at a time, the design frame's coordinates made per chunk; every sum stays float64),
+13 bytes held per point (gap float64, patch int32, weight bool) and the edge fits' points (those within
+reach of the edge) copied; 37 B a point at the peak past the gap evaluation on a 3 x 1 m plate, 260
+with the three float64 copies and the sorted columns before (docs/operations.md).
 """
 
 from __future__ import annotations
@@ -119,46 +123,81 @@ class RestSurface:
 TRIM_SIGMAS = 3.0
 
 
+# the points are worked through in chunks of this many: the per-point temporaries of the sums (a dozen
+# float64 columns) stay a few tens of MB whatever the plate (a whole plate's: 100+ B a point)
+_CHUNK = 1 << 18
+
+
+class _Points:
+    """The plate points over the design without a copy: the caller's (n_all, 3) float64 array and the
+    positions of the kept points (None: all), read a chunk at a time (float64, as given)."""
+
+    def __init__(self, P: np.ndarray, sel: np.ndarray | None) -> None:
+        self.P, self.sel = P, sel
+        self.n = len(P) if sel is None else len(sel)
+
+    def chunks(self):
+        """(a, b) the bounds of each chunk of the kept points."""
+        for a in range(0, self.n, _CHUNK):
+            yield a, min(a + _CHUNK, self.n)
+
+    def get(self, a: int, b: int) -> np.ndarray:
+        return self.P[a:b] if self.sel is None else self.P[self.sel[a:b]]
+
+    def take(self, idx: np.ndarray) -> np.ndarray:
+        """(k, 3) the kept points at the positions ``idx``."""
+        return self.P[idx] if self.sel is None else self.P[self.sel[idx]]
+
+
 def _patch_planes(
     inv: np.ndarray,
     m: int,
-    x: np.ndarray,
-    y: np.ndarray,
-    z: np.ndarray,
+    pts: _Points,
     gap: np.ndarray,
     w: np.ndarray | None,
 ) -> tuple[np.ndarray, ...]:
-    """Weighted plane of the gaps per patch: (centroid (m, 3), mean gap, slope x, slope y, dx (n,),
-    dy (n,) the points' offsets from their centroid, weight sum). x, y, z: the points' coordinates
-    (contiguous columns: every sum below is one pass over them); w: their weights (None: all 1)."""
-
-    def wsum(v: np.ndarray) -> np.ndarray:
-        return np.bincount(inv, weights=v if w is None else w * v, minlength=m)
-
-    n_w = (
-        np.bincount(inv, minlength=m).astype(np.float64)
-        if w is None
-        else np.bincount(inv, weights=w, minlength=m)
-    )
+    """Weighted plane of the gaps per patch: (centroid (m, 3), mean gap, slope x, slope y, weight sum,
+    second moments (m, 3)). pts: the points (measured frame, float64, read in chunks; the offsets from
+    the centroids are float64 chunk temporaries); w: their weights, bool (None: all 1)."""
+    n_w = np.zeros(m)
+    acc = np.zeros((4, m))
+    for a, b in pts.chunks():
+        i_c, p = inv[a:b], pts.get(a, b)
+        w_c = None if w is None else w[a:b].astype(np.float64)
+        n_w += np.bincount(i_c, weights=w_c, minlength=m)
+        for k, v in enumerate((p[:, 0], p[:, 1], p[:, 2], gap[a:b])):
+            acc[k] += np.bincount(i_c, weights=v if w_c is None else w_c * v, minlength=m)
     safe_n = np.maximum(n_w, 1.0)
-    mean = np.column_stack([wsum(v) / safe_n for v in (x, y, z)])
-    mean_gap = wsum(gap) / safe_n
-    dx = x - np.take(mean[:, 0], inv)
-    dy = y - np.take(mean[:, 1], inv)
-    dg = gap - np.take(mean_gap, inv)
-    wdx = dx if w is None else w * dx
-    wdy = dy if w is None else w * dy
-    sxx, sxy, syy, sxg, syg = (
-        np.bincount(inv, weights=a * b, minlength=m)
-        for a, b in ((wdx, dx), (wdx, dy), (wdy, dy), (wdx, dg), (wdy, dg))
-    )
+    mean = np.column_stack([acc[k] / safe_n for k in range(3)])
+    mean_gap = acc[3] / safe_n
+    sums = np.zeros((5, m))
+    for a, b in pts.chunks():
+        i_c, p = inv[a:b], pts.get(a, b)
+        dx, dy, dg = _offsets(i_c, p, gap[a:b], mean, mean_gap)
+        w_c = None if w is None else w[a:b].astype(np.float64)
+        wdx = dx if w_c is None else w_c * dx
+        wdy = dy if w_c is None else w_c * dy
+        for k, (u, v) in enumerate(((wdx, dx), (wdx, dy), (wdy, dy), (wdx, dg), (wdy, dg))):
+            sums[k] += np.bincount(i_c, weights=u * v, minlength=m)
+    sxx, sxy, syy, sxg, syg = sums
     det = sxx * syy - sxy**2
     ok = det > 1e-12 * np.maximum(sxx * syy, 1e-300)
     safe = np.where(ok, det, 1.0)
     b_x = np.where(ok, (syy * sxg - sxy * syg) / safe, 0.0)
     b_y = np.where(ok, (sxx * syg - sxy * sxg) / safe, 0.0)
     moments = np.column_stack([sxx, sxy, syy]) / safe_n[:, None]
-    return mean, mean_gap, b_x, b_y, dx, dy, n_w, moments
+    return mean, mean_gap, b_x, b_y, n_w, moments
+
+
+def _offsets(
+    i_c: np.ndarray, p: np.ndarray, gap_c: np.ndarray, mean: np.ndarray, mean_gap: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A chunk's offsets from its patches' centroids (dx, dy) and mean gap (dg), float64."""
+    return (
+        p[:, 0] - np.take(mean[:, 0], i_c),
+        p[:, 1] - np.take(mean[:, 1], i_c),
+        gap_c - np.take(mean_gap, i_c),
+    )
 
 
 # the contact point is looked for within this many patch sides of a patch's centroid (a patch's
@@ -268,11 +307,12 @@ EDGE_INSET = 0.2
 
 
 def _edge_fits(
-    grid: _Grid, Q: np.ndarray, gap: np.ndarray, w: np.ndarray, n_min: int, inset_mm: float
+    grid: _Grid, inv: np.ndarray, Q: np.ndarray, gap: np.ndarray, w: np.ndarray, n_min: int, inset_mm: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Edge patches held at their outer extent by a local fit of the gaps across the edge.
 
-    Q: (n, 3) the points in the design frame; gap, w: their gaps and weights. An axis on which the
+    inv, Q, gap, w: the points of the patches a fit may use (:func:`_edge_points`: every point of
+    each such patch), their patch, (k, 3) design frame, gaps and weights (bool). An axis on which the
     patch's neighbour is missing on one side is an edge axis; the patch is evaluated at its kept
     points' extreme on that side (on both axes at a corner; at the centroid's coordinate along an
     axis without an edge). The fit: least squares of the kept points' gaps (and heights, for the
@@ -291,19 +331,31 @@ def _edge_fits(
     """
     # the points sorted by patch (stable: each patch's in the cloud's order), so a block of patches
     # is a few contiguous runs
-    order = np.argsort(grid.inv, kind="stable")
-    start = np.concatenate([[0], np.cumsum(grid.count)])
-    use_s = w[order] > 0
+    m = len(grid.count)
+    if len(inv) == 0:
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+    order = np.argsort(inv, kind="stable")
+    cnt = np.bincount(inv, minlength=m)
+    start = np.concatenate([[0], np.cumsum(cnt)])
+    has = cnt > 0  # the patches given (the others hold no point here: left at 0 and +-inf)
+    first = start[:-1][has]
+    use_s = w[order]
     q_s = [np.take(Q[:, k], order) for k in range(3)]
     gap_s = np.take(gap, order)
-    w_s = np.take(w, order)
-    n_c = np.add.reduceat(w_s, start[:-1])
+    w_s = use_s.astype(np.float64)
+
+    def per_patch(ufunc, v: np.ndarray, empty: float) -> np.ndarray:
+        out = np.full(m, empty)
+        out[has] = ufunc.reduceat(v, first)
+        return out
+
+    n_c = per_patch(np.add, w_s, 0.0)
     safe = np.maximum(n_c, 1e-300)
-    cen = np.column_stack([np.add.reduceat(w_s * q_s[k], start[:-1]) / safe for k in (0, 1)])
+    cen = np.column_stack([per_patch(np.add, w_s * q_s[k], 0.0) / safe for k in (0, 1)])
     # the kept points' extent per patch (+inf, -inf for a patch of none kept)
     lo_hi = [
-        (np.minimum.reduceat(np.where(use_s, q_s[k], np.inf), start[:-1]),
-         np.maximum.reduceat(np.where(use_s, q_s[k], -np.inf), start[:-1]))
+        (per_patch(np.minimum, np.where(use_s, q_s[k], np.inf), np.inf),
+         per_patch(np.maximum, np.where(use_s, q_s[k], -np.inf), -np.inf))
         for k in (0, 1)
     ]  # fmt: skip
     miss = grid.missing
@@ -352,6 +404,20 @@ def _edge_fits(
     return np.asarray(out_q), np.asarray(out_g), np.asarray(out_n)
 
 
+def _edge_points(grid: _Grid, inv: np.ndarray) -> np.ndarray:
+    """(k,) the positions of the points :func:`_edge_fits` may use: every point of each patch within
+    the reach of :data:`EDGE_BLOCKS` of a patch on the plate's edge (a quarter of a 3 x 1 m plate's)."""
+    reach = max(max(deep - 1, along) for deep, along in EDGE_BLOCKS)
+    edge = np.flatnonzero(grid.missing.any(axis=1))
+    near = np.zeros(len(grid.count), dtype=bool)
+    for di in range(-reach, reach + 1):
+        for dj in range(-reach, reach + 1):
+            j = grid.lookup(di, dj, edge)
+            near[j[j >= 0]] = True
+    parts = [np.flatnonzero(near[inv[a : a + _CHUNK]]) + a for a in range(0, len(inv), _CHUNK)]
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
 def max_normal_quantile(count: int, confidence: float) -> float:
     """q with P(max of ``count`` independent standard normals < q) = ``confidence``."""
     if count < 1 or not 0.0 < confidence < 1.0:
@@ -361,8 +427,8 @@ def max_normal_quantile(count: int, confidence: float) -> float:
 
 
 def _cells(xy: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """(inverse index (n,), counts (m,)) of the occupied ``cell_mm`` squares."""
-    g = _grid(*(np.floor(xy[:, k] / cell_mm).astype(np.int64) for k in (0, 1)))
+    """(inverse index (n,) int32, counts (m,)) of the occupied ``cell_mm`` squares."""
+    g = _grid(*(np.floor(xy[:, k] / cell_mm).astype(np.int32) for k in (0, 1)))
     return g.inv, g.count
 
 
@@ -379,6 +445,31 @@ def _plate_cells(
         n = max(round(span / cell_mm), 1)
         out.append(np.minimum(np.floor((v - lo) / (span / n)).astype(np.int64), n - 1))
     return out[0], out[1]
+
+
+def _design_cells(
+    pts: _Points, T_design_meas: np.ndarray, cell_mm: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_plate_cells` of the points moved into the design frame a chunk at a time (no (n, 3)
+    copy): (i (n,) int32, j (n,) int32, the points' lowest corner (3,) design frame)."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for a, b in pts.chunks():
+        q = apply_transform(T_design_meas, pts.get(a, b))
+        lo = np.minimum(lo, q.min(axis=0))
+        hi = np.maximum(hi, q.max(axis=0))
+    steps, counts = [], []
+    for k in (0, 1):
+        span = max(float(hi[k]) - float(lo[k]), 1e-9)
+        n = max(round(span / cell_mm), 1)
+        steps.append(span / n)
+        counts.append(n)
+    ij = [np.empty(pts.n, np.int32) for _ in (0, 1)]
+    for a, b in pts.chunks():
+        q = apply_transform(T_design_meas, pts.get(a, b))
+        for k in (0, 1):
+            ij[k][a:b] = np.minimum(np.floor((q[:, k] - float(lo[k])) / steps[k]), counts[k] - 1)
+    return ij[0], ij[1], lo
 
 
 @dataclass(frozen=True)
@@ -406,27 +497,50 @@ _DENSE_GRID_MAX_CELLS = 40_000_000
 
 
 def _grid(i: np.ndarray, j: np.ndarray) -> _Grid:
-    """The occupied cells of the (n,) integer indices ``i``, ``j``."""
+    """The occupied cells of the (n,) integer indices ``i``, ``j`` (int32 keeps them 4 bytes a point;
+    the keys are formed a chunk at a time, the point's cell is int32)."""
     i_lo, j_lo = int(i.min()) - 1, int(j.min()) - 1  # a free row and column on every side
     width = int(j.max()) - j_lo + 2
-    key = (i - i_lo) * width + (j - j_lo)
     span = (int(i.max()) - i_lo + 2) * width
     steps = (width, -width, 1, -1)
-    if span > min(_DENSE_GRID_MAX_CELLS, 8 * len(key)):  # a sparse grid: sort
-        keys, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+    n = len(i)
+
+    def key(a: int, b: int) -> np.ndarray:
+        return (i[a:b].astype(np.int64) - i_lo) * width + (j[a:b] - j_lo)
+
+    if span > min(_DENSE_GRID_MAX_CELLS, 8 * n):  # a sparse grid: sort
+        keys, inv, count = np.unique(key(0, n), return_inverse=True, return_counts=True)
         missing = np.column_stack([~np.isin(keys + step, keys, assume_unique=True) for step in steps])
-        return _Grid(inv, count, keys, width, missing)
-    # every cell of the box counted at once (np.unique's sort of millions of keys took seconds)
-    dense = np.bincount(key, minlength=span)
+        return _Grid(inv.astype(np.int32), count, keys, width, missing)
+    # every cell of the box counted at once (np.unique's sort of millions of keys took seconds), in
+    # chunks of at least a quarter of the box (each chunk's count is the box's size)
+    step = max(_CHUNK, span // 4)
+    dense = np.zeros(span, np.int64)
+    for a in range(0, n, step):
+        dense += np.bincount(key(a, min(a + step, n)), minlength=span)
     keys = np.flatnonzero(dense)
-    rank = np.cumsum(dense > 0, dtype=np.int64) - 1
     occupied = dense > 0
+    rank = np.cumsum(occupied, dtype=np.int32) - 1
     missing = np.column_stack([~occupied[keys + step] for step in steps])
-    return _Grid(rank[key], dense[keys], keys, width, missing)
+    inv = np.empty(n, np.int32)
+    for a in range(0, n, _CHUNK):
+        inv[a : a + _CHUNK] = rank[key(a, min(a + _CHUNK, n))]
+    return _Grid(inv, dense[keys], keys, width, missing)
+
+
+def _point_cells(pts: _Points, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_cells` of the points' x and y, read a chunk at a time."""
+    ij = [np.empty(pts.n, np.int32) for _ in (0, 1)]
+    for a, b in pts.chunks():
+        p = pts.get(a, b)
+        for k in (0, 1):
+            ij[k][a:b] = np.floor(p[:, k] / cell_mm)
+    g = _grid(*ij)
+    return g.inv, g.count
 
 
 def noise_from_gaps(
-    xy_mm: np.ndarray,
+    xy_mm: np.ndarray | None,
     gap_mm: np.ndarray,
     cell_mm: float = 2.0,
     cells: tuple[np.ndarray, np.ndarray] | None = None,
@@ -435,16 +549,28 @@ def noise_from_gaps(
 
     xy_mm: (n, 2) positions; gap_mm: (n,) gaps to a design (the plate's shape taken out). Each
     residual is scaled by sqrt(k / (k - 1)) for its cell of k points; cells of one point do not count.
-    cells: ``_cells(xy_mm, cell_mm)`` when the caller has it already.
+    cells: ``_cells(xy_mm, cell_mm)`` when the caller has it already (then ``xy_mm`` may be None).
     """
     inv, count = _cells(xy_mm, cell_mm) if cells is None else cells
-    mean = np.bincount(inv, weights=gap_mm) / count
-    k = count[inv]
-    use = k > 1
-    if use.sum() < 10:
+    m, n = len(count), len(inv)
+    mean = np.zeros(m)
+    for a in range(0, n, _CHUNK):
+        mean += np.bincount(inv[a : a + _CHUNK], weights=gap_mm[a : a + _CHUNK], minlength=m)
+    mean /= count
+    n_use = int(count[count > 1].sum())
+    if n_use < 10:
         raise RegistrationError("too few points share a cell to estimate the noise")
-    r = (gap_mm[use] - mean[inv[use]]) * np.sqrt(k[use] / (k[use] - 1.0))
-    return float(1.4826 * np.median(np.abs(r)))
+    # the residuals in the points' order, a chunk at a time, into one array the median may reorder
+    r = np.empty(n_use)
+    at = 0
+    for a in range(0, n, _CHUNK):
+        i_c = inv[a : a + _CHUNK]
+        k = count[i_c]
+        use = k > 1
+        k, i_c = k[use], i_c[use]
+        r[at : at + len(k)] = np.abs((gap_mm[a : a + _CHUNK][use] - mean[i_c]) * np.sqrt(k / (k - 1.0)))
+        at += len(k)
+    return float(1.4826 * np.median(r, overwrite_input=True))
 
 
 def rest_surface(
@@ -471,25 +597,35 @@ def rest_surface(
     below them by the rise over half a patch (0.1-0.3 mm for 1 mm of springback). Raises
     RegistrationError when fewer than 6 patches remain.
     """
-    P = np.asarray(points_mm, dtype=np.float64)
+    P = np.asarray(points_mm, dtype=np.float64)  # the caller's (n, 3) float64: no copy is made of it
     if P.ndim != 2 or P.shape[1] != 3 or len(P) < 6:
         raise RegistrationError(f"points_mm must be (n >= 6, 3) mm, got shape {P.shape}")
     if target_sigmas <= 0.0:
         raise RegistrationError(f"target_sigmas must be positive, got {target_sigmas}")
     gap, _, _, valid = deflection_gaps(surface, P, T_meas_design, up, geometry=False)
-    P, gap = P[valid], gap[valid]
-    if len(P) < 6:
+    # the points over the design: the caller's array and their positions in it (no copy of the points;
+    # every per-point array below is a gap (float64), a patch index (int32) or a weight (bool))
+    sel = None
+    if not valid.all():
+        sel = np.flatnonzero(valid)
+        sel = sel.astype(np.int32) if len(P) < 2**31 else sel
+        gap = gap[sel]
+    del valid
+    pts = _Points(P, sel)
+    if pts.n < 6:
         raise RegistrationError("rest surface: fewer than 6 points lie over the design")
-    xy = P[:, :2]
     # the occupied area at 2 mm, so holes and an oblique footprint do not dilute the density
-    cells_2mm = _cells(xy, 2.0)
+    cells_2mm = _point_cells(pts, 2.0)
     occ = cells_2mm[1]
     if noise_mm is not None:
         sigma = float(noise_mm)
     else:
-        sigma = noise_from_gaps(xy, gap, noise_cell_mm, cells_2mm if noise_cell_mm == 2.0 else None)
+        sigma = noise_from_gaps(
+            None, gap, noise_cell_mm, cells_2mm if noise_cell_mm == 2.0 else _point_cells(pts, noise_cell_mm)
+        )
+    del cells_2mm
     area = max(len(occ) * 4.0, 1.0)
-    density = len(P) / area
+    density = pts.n / area
     # n from the bound, h from n, M from h: a fixed point reached in a few rounds
     patches = max(area / 25.0, 1.0)
     for _ in range(4):
@@ -498,13 +634,17 @@ def rest_surface(
         cell = float(np.clip(math.sqrt(1.5 * n_min / density), min_cell_mm, max_cell_mm))
         patches = max(2.0 * area / cell**2, 1.0)  # twice: the part-filled patches along the edges
     n_min = min(n_min, max(int(0.66 * density * cell**2), 1))  # the cap: what a patch can hold
-    # patches anchored at the points' lower-left corner (any anchor is as good)
-    # (the design frame's coordinates as contiguous columns: every per-patch sum is one pass)
-    Q = apply_transform(invert_transform(np.asarray(T_meas_design, dtype=np.float64)), P)
-    grid = _grid(*_plate_cells(Q[:, 0], Q[:, 1], cell))
+    # patches anchored at the points' lower-left corner (any anchor is as good), laid out in the
+    # design frame (the points moved into it a chunk at a time)
+    T_design_meas = invert_transform(np.asarray(T_meas_design, dtype=np.float64))
+    i_cell, j_cell, origin = _design_cells(pts, T_design_meas, cell)
+    grid = _grid(i_cell, j_cell)
+    del i_cell, j_cell
     inv, count = grid.inv, grid.count
+    m = len(count)
     keep = count >= n_min
     if keep.sum() < 6:
+        xy = pts.take(np.arange(pts.n))[:, :2]
         raise RegistrationError(
             f"rest surface: only {int(keep.sum())} patches of {cell:.1f} mm hold {n_min} points "
             f"(span {np.ptp(xy, axis=0)} mm)"
@@ -512,18 +652,21 @@ def rest_surface(
     # per patch, the plane of the gaps about the centroid, fitted twice: the second time without the
     # points more than TRIM_SIGMAS off the first plane (the edge band's points of the thickness face,
     # outliers the segmentation's 6-sigma test let through)
-    x, y, z = (np.ascontiguousarray(P[:, k]) for k in range(3))
     # (the residuals about the patch's plane and the block's curvature: about a plane alone, a bump of
     # sigma 10 mm leaves 0.3 mm of curvature in a 14 mm patch, and the trim took it for outliers)
     w = None
     for _ in range(2):
-        mean, mean_gap, b_x, b_y, dx, dy, n_w, moments = _patch_planes(inv, len(count), x, y, z, gap, w)
+        mean, mean_gap, b_x, b_y, n_w, moments = _patch_planes(inv, m, pts, gap, w)
         quad = _block_quadratics(grid, mean[:, :2], mean_gap, n_w, moments, cell)
-        hxx, hxy, hyy = (np.take(v, inv) for v in quad.hessian.T)
-        sxx, sxy, syy = (np.take(v, inv) for v in moments.T)
-        resid = gap - np.take(mean_gap, inv) - np.take(b_x, inv) * dx - np.take(b_y, inv) * dy
-        resid -= 0.5 * (hxx * (dx * dx - sxx) + hyy * (dy * dy - syy)) + hxy * (dx * dy - sxy)
-        w = (np.abs(resid) <= TRIM_SIGMAS * sigma).astype(np.float64)
+        w = np.empty(pts.n, dtype=bool)
+        for a, b in pts.chunks():
+            i_c, g_c = inv[a:b], gap[a:b]
+            dx, dy, _ = _offsets(i_c, pts.get(a, b), g_c, mean, mean_gap)
+            hxx, hxy, hyy = (np.take(v, i_c) for v in quad.hessian.T)
+            sxx, sxy, syy = (np.take(v, i_c) for v in moments.T)
+            resid = g_c - np.take(mean_gap, i_c) - np.take(b_x, i_c) * dx - np.take(b_y, i_c) * dy
+            resid -= 0.5 * (hxx * (dx * dx - sxx) + hyy * (dy * dy - syy)) + hxy * (dx * dy - sxy)
+            w[a:b] = np.abs(resid) <= TRIM_SIGMAS * sigma
     count = n_w.astype(np.int64)
     keep &= count >= n_min
     # each patch at its contact point (the centroid, or the bump's top within reach), its gap there
@@ -538,8 +681,13 @@ def rest_surface(
     if edge_aware:
         # a template resting on a raised edge touches the edge itself: the edge patches are also
         # held at their outer extent, by a plane fitted on a block big enough to keep the bound
-        origin = np.array([Q[:, k].min() for k in range(3)])
-        e_q, e_g, e_n = _edge_fits(grid, Q - origin, gap, w, n_min, EDGE_INSET * cell)
+        # (only the points of the patches near the edge, moved into the design frame)
+        sub = _edge_points(grid, inv)
+        e_q, e_g, e_n = _edge_fits(
+            grid, inv[sub], apply_transform(T_design_meas, pts.take(sub)) - origin, gap[sub], w[sub],
+            n_min, EDGE_INSET * cell,
+        )  # fmt: skip
+        del sub
         n_edge = len(e_g)
         reps.append(apply_transform(np.asarray(T_meas_design, dtype=np.float64), e_q + origin))
         rep_gap.append(e_g)

@@ -1,6 +1,6 @@
 """Bytes per point of the analysis' stages (issue 42 item 2, docs/operations.md): a float32 cloud is
-held as it came, the segmentation's peak and the design's rasterisation stay within their bounds, with
-the same results as before the cuts."""
+held as it came, the segmentation's peak, the design's rasterisation and the resting surface stay within
+their bounds, with the same results as before the cuts."""
 
 from __future__ import annotations
 
@@ -27,6 +27,11 @@ PASS_CELLS_B_PER_POINT = 12.0
 #: the design rasterisation's peak, bytes a grid node: 400 in one pass over every (triangle, node)
 #: pair, about 100 in blocks on the sail's 1 mm grid (the block is a fixed 75 MB)
 RASTER_PEAK_B_PER_NODE = 160.0
+#: the resting surface's peak past the gap evaluation (whose blocks are bounded apart), bytes a plate
+#: point: 260 with three float64 copies of the points, int64 and float64 columns per point and
+#: ``_edge_fits``' sorted copies of them all (203 held); about 40 now (the caller's points read a
+#: chunk at a time, gap float64 + patch int32 + weight bool held, the edge fits on the edge's points)
+REST_SURFACE_PEAK_B_PER_POINT = 90.0
 
 
 @cache
@@ -119,3 +124,41 @@ def test_the_registered_cloud_file_stores_the_float64_transform_rounded_once(tmp
     np.testing.assert_array_equal(
         _moved_float32(T, pts, block=777), apply_transform(T, pts).astype(np.float32)
     )
+
+
+def test_the_resting_surface_s_peak_stays_within_its_bytes_per_point(monkeypatch):
+    import analysis.register.rest_surface as rs
+    from analysis.register.transforms import apply_transform, make_transform
+
+    # a 600 x 400 mm sail-like plate at 4 points per mm^2 (960 k points), tilted and turned on the bed
+    xs, ys = np.linspace(-310.0, 310.0, 125), np.linspace(-210.0, 210.0, 85)
+    X, Y = np.meshgrid(xs, ys)
+    field = hf_module.HeightField(float(xs[0]), float(ys[0]), 5.0, X**2 / 12000.0 + Y**2 / 8000.0)
+    rng = np.random.default_rng(5)
+    xy = rng.uniform([-300.0, -200.0], [300.0, 200.0], (960_000, 2))
+    z = xy[:, 0] ** 2 / 12000.0 + xy[:, 1] ** 2 / 8000.0 + rng.normal(0.0, 0.02, len(xy))
+    a = np.radians(20.0)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    T = make_transform(R, np.array([2500.0, 1200.0, 80.0]))
+    P = np.ascontiguousarray(apply_transform(T, np.column_stack([xy, z])))
+    # the peak from the end of the first gap evaluation on (its blocks in flight are a fixed amount)
+    peaks: list[int] = []
+    gaps = rs.deflection_gaps
+
+    def timed_gaps(*args, **kwargs):
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        out = gaps(*args, **kwargs)
+        tracemalloc.reset_peak()
+        return out
+
+    monkeypatch.setattr(rs, "deflection_gaps", timed_gaps)
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        rest = rs.rest_surface(field, P, T)
+        peaks.append(tracemalloc.get_traced_memory()[1])
+    finally:
+        tracemalloc.stop()
+    per_point = (max(peaks[1:]) - base) / len(P)
+    assert rest.edge_patches > 0 and len(rest.counts) > 500
+    assert per_point <= REST_SURFACE_PEAK_B_PER_POINT, f"rest_surface peak {per_point:.0f} B/point"
