@@ -34,11 +34,17 @@ def test_wait_html_report_returns_the_recorded_html_path_and_none_when_no_render
     import json
 
     from cellctl.commands.demo_cmd import wait_html_report
+    from cellctl.jobstore.jobs import JobRecord
 
-    job = tmp_path / "jobs" / "j1"
+    job_id = "20261207T162328-663ece59"
+    job = tmp_path / "jobs" / job_id
     job.mkdir(parents=True)
-    (job / "job.json").write_text(json.dumps({"info": {"report_utc_s": 1.0}}))
-    assert wait_html_report(tmp_path, "j1", timeout_s=0.3) is None
-    (job / "job.json").write_text(json.dumps({"info": {"html_s": 2.0, "report_html": "/r/report.html"}}))
-    assert wait_html_report(tmp_path, "j1", timeout_s=5.0) == "/r/report.html"
-    assert wait_html_report(tmp_path, "missing", timeout_s=0.3) is None
+
+    def record(**info) -> str:  # a whole job.json, as the daemon writes it (one reader reads it)
+        return json.dumps(JobRecord(job_id, "P", "d.ply", "/d.ply", None, state="done", info=info).as_json())
+
+    (job / "job.json").write_text(record(report_utc_s=1.0))
+    assert wait_html_report(tmp_path, job_id, timeout_s=0.3) is None
+    (job / "job.json").write_text(record(html_s=2.0, report_html="/r/report.html"))
+    assert wait_html_report(tmp_path, job_id, timeout_s=5.0) == "/r/report.html"
+    assert wait_html_report(tmp_path, "20261207T162328-00000000", timeout_s=0.3) is None
