@@ -149,5 +149,8 @@ class JobInfo(RunInfo):
         return {k: v for k, v in (self.model_extra or {}).items() if isinstance(v, RunInfo)}
 
     def record(self) -> dict[str, Any]:
-        """``info`` as job.json holds it: the keys set, kept ones included, None left out."""
-        return self.model_dump(mode="json", exclude_none=True)
+        """``info`` as job.json holds it: the keys set, kept ones included, a key whose value is None
+        left out; inside a value, the fields as they were set, None included (``placement_found``'s
+        ``"given": null`` says no placement was given: readers of job.json rely on it)."""
+        dumped = self.model_dump(mode="json", exclude_unset=True)
+        return {k: v for k, v in dumped.items() if v is not None}
