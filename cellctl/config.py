@@ -685,11 +685,12 @@ class SimSection(Section):
     egm_q_start_deg: Joint6 = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]
     egm_track_start_mm: Finite = 0.0  # the simulated track's position at start (with [robot.track])
     egm_stream_when_idle: bool = True
-    # The simulated controller stands for a machine of its own: its event loop (the EGM cycle, the
-    # sensor's frames, RWS) runs under SCHED_FIFO at this priority when permitted, above the motion
-    # process's egm_reply_priority, so that on one PC the controller keeps its clock whatever the cell
-    # does, as the real controller does (0: normal priority). docs/simulator.md.
-    loop_priority: Annotated[int, Field(ge=0, le=99)] = 30
+    # The simulated controller's event loop (the EGM cycle, the sensor's frames, RWS) and its helper
+    # threads run under SCHED_FIFO at this priority when permitted (0: normal priority). 10 (level with
+    # the daemon's loop) by default; 30 (above the motion process's 20) lets one simulated cell keep
+    # its controller's clock as a real controller does, but two cells on two cores then starve both
+    # motion processes. docs/simulator.md.
+    loop_priority: Annotated[int, Field(ge=0, le=99)] = 10
     rws_port: Port = 8080
     rws_users: dict[str, str] = {"Default User": "CELL_RWS_PASSWORD"}
     rws_max_sessions: Annotated[int, Field(ge=1, le=1000)] = 70
