@@ -235,8 +235,10 @@ async def _serve_sim(cfg: CellConfig, stop: asyncio.Event) -> int:
     from drivers.runtime import realtime_other_threads, use_realtime_loop
 
     if use_realtime_loop(cfg.sim.loop_priority):
-        # the renderer pool's result thread and Zenoh's take the GIL: at normal priority one of them
-        # preempted while holding it would hold the controller's loop back with it
+        # the renderer pool's result and feeder threads take the GIL: at normal priority one of them
+        # preempted while holding it would hold the controller's loop back with it (the fault
+        # channel's Zenoh session, opened after this from a normal-priority executor thread, stays
+        # at normal priority: it answers a person, not a cycle)
         raised, refused = realtime_other_threads(cfg.sim.loop_priority)
         log.info("sim_threads_realtime", raised=raised, refused=refused[:3])
     fault_session = None
