@@ -355,6 +355,7 @@ def main() -> int:
         egm_reply_max_us=motion.get("egm_reply_max_us"),
         egm_cycles=motion.get("cycles"),
         max_tracking_error_mm=info.get("max_tracking_error_mm"),
+        max_tracking_t_traj_s=motion.get("max_tracking_t_traj_s"),
         motion_realtime=_motion_realtime(work / "logs" / "run.log"),
         # the machine's own floor over the same time: how often a SCHED_FIFO thread of the highest
         # priority woke more than one EGM cycle late (benchmarks/platform_latency.py)

@@ -412,8 +412,9 @@ class MotionCounters(Model):
     controller had sent its next packet by then). ``egm_lost_cycles``: controller cycles for which
     no packet reached the motion process (the controller's clock or sequence number jumped).
     ``egm_reply_*_us``: reply latency, packet arrival (kernel) to reply sent, from a histogram of
-    10 us bins up to 2 ms. ``max_tracking_error_mm``: the worst monitored TCP tracking error.
-    ``cycles``: references sent.
+    10 us bins up to 2 ms. ``max_tracking_error_mm``: the worst monitored TCP tracking error, and
+    ``max_tracking_t_traj_s`` where on the plan it was seen (playback time, s: the segment and pass
+    follow from the plan). ``cycles``: references sent.
     """
 
     cycles: Annotated[int, Field(ge=0)] = 0
@@ -423,6 +424,7 @@ class MotionCounters(Model):
     egm_reply_p99_us: float | None = None
     egm_reply_max_us: float | None = None
     max_tracking_error_mm: float = 0.0
+    max_tracking_t_traj_s: float | None = None
 
 
 class JobProgress(Model):

@@ -227,7 +227,10 @@ class ExecutionResult:
     max_tracking_error_mm: worst monitored tracking error. t_host_s (n,), q_ref_deg (n, n_axes),
     qd_ref_deg_s (n, n_axes) (with a track ``axes_mm_deg``, its mm first), t_traj_s (n,), cycle (n,) int: one row per reference (host monotonic time of
     the packet it answered, the reference, the trajectory time it came from, the controller cycle
-    it is meant for, counted from the first feedback). move_to_start_s: controller time of the move
+    it is meant for, counted from the first feedback). max_tracking_t_traj_s: the playback time at
+    which the worst tracking error was seen; track_mm (n,) float32: the raw tracking error of the
+    monitor check made since the previous reference (every fourth feedback; NaN where none was).
+    move_to_start_s: controller time of the move
     to the plan's start (0: the arm was there), of which start_settle_s waited, after the move's
     references had reached the start, for the arm to come within ``start_tolerance_deg``.
     """
@@ -245,6 +248,8 @@ class ExecutionResult:
     events: list[ProgressEvent] = field(default_factory=list)
     move_to_start_s: float = 0.0
     start_settle_s: float = 0.0
+    max_tracking_t_traj_s: float = 0.0
+    track_mm: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.float32))
 
 
 class _TimeScaler:
@@ -368,7 +373,11 @@ class MotionExecutor:
         self._lost = 0
         self._tcp_hist = deque(maxlen=max(2, int(cfg.tracking_window_s / cfg.cycle_s)))
         self._max_track = 0.0
+        #: the playback time (s) at which the worst tracking error was seen: where on the plan to look
+        self._max_track_tau = 0.0
         self._last_track = 0.0
+        #: the raw error of the monitor check since the last reference (NaN: no check), recorded with it
+        self._track_now = float("nan")
         self._not_ok = 0
         # the record of what was commanded: arrays sized for the plan (and grown by doubling past it),
         # so a cycle writes into memory it already has
@@ -723,6 +732,11 @@ class MotionExecutor:
         """The worst monitored TCP tracking error so far, mm."""
         return self._max_track
 
+    @property
+    def max_tracking_t_traj_s(self) -> float:
+        """The playback time (s on the plan) at which :attr:`max_tracking_error_mm` was seen."""
+        return self._max_track_tau
+
     def fail(self, reason: str) -> None:
         """End before any motion (nothing was sent): FAULTED with ``reason``."""
         with self._lock:
@@ -918,10 +932,17 @@ class MotionExecutor:
         q, qd, qdd, _ = traj.sample(tau)
         self._ref_q = q
         self._ref_qd = qd * rate
-        lead = self.config.feedforward_lead_s * rate
-        # the controller low-pass filters its speed command: the speed reference leads by the
-        # filter's time constant, so the arm does not overshoot where the plan slows down
-        self._ff_qd = traj.sample(min(tau + lead, T))[1] * rate if lead > 0 else self._ref_qd
+        lead_s = self.config.feedforward_lead_s
+        # the controller low-pass filters its speed command: the speed reference is the plan's
+        # speed one filter time constant ahead, so the arm does not overshoot where the plan slows
+        # down; ahead in the playback rate too (its ramp is known: rate + lead * rate_dot), or at
+        # the end of a pause's ramp the arm runs 0.4-0.5 mm past the point where the reference stood
+        # (measured on the sail: every pause's worst tracking 5-13 cycles before the hold)
+        if lead_s > 0:
+            rate_ahead = max(0.0, rate + lead_s * rate_dot)
+            self._ff_qd = traj.sample(min(tau + lead_s * rate, T))[1] * rate_ahead
+        else:
+            self._ff_qd = self._ref_qd
         # keep the stop generator's state on the reference, so a fault stop starts from here
         inp.current_position = q.tolist()
         inp.current_velocity = self._ref_qd.tolist()
@@ -1007,7 +1028,8 @@ class MotionExecutor:
         self._ff_qd = None
         self._last_sent_qd = np.array(qd, dtype=np.float64)
         self._tcp_hist.append(self.envelope.world_mm(q, p))
-        self._rec.add(t_host_ns / 1e9, q, qd, self._scaler.tau, self._cycle)
+        self._rec.add(t_host_ns / 1e9, q, qd, self._scaler.tau, self._cycle, self._track_now)
+        self._track_now = float("nan")
 
     def _monitor_tracking(self, q_fb: np.ndarray) -> None:
         if len(self._tcp_hist) < 2 or self.state in _TERMINAL:
@@ -1024,7 +1046,9 @@ class MotionExecutor:
         # changes little in 16 ms, one corrupted feedback datagram that still decoded is gone by then.
         err = min(raw, self._last_track)
         self._last_track = raw
-        self._max_track = max(self._max_track, err)
+        self._track_now = raw
+        if err > self._max_track:
+            self._max_track, self._max_track_tau = err, self._scaler.tau
         if err > self.config.tracking_error_max_mm and self.state != ExecState.FAULT_STOPPING:
             self._begin_fault_stop(
                 f"tracking error {err:.2f} mm above {self.config.tracking_error_max_mm} mm"
@@ -1102,6 +1126,8 @@ class MotionExecutor:
             events=list(self._events),
             move_to_start_s=self._start_cycles * self.config.cycle_s,
             start_settle_s=self._settle_cycles * self.config.cycle_s,
+            max_tracking_t_traj_s=self._max_track_tau,
+            track_mm=rec.track[:n].copy(),
         )
 
 
@@ -1116,18 +1142,20 @@ class _Record:
         self.qd = np.zeros((capacity, n_axes))
         self.tau = np.zeros(capacity)
         self.cycle = np.zeros(capacity, dtype=np.int64)
+        self.track = np.full(capacity, np.nan, dtype=np.float32)
 
-    def add(self, t: float, q: np.ndarray, qd: np.ndarray, tau: float, cycle: int) -> None:
+    def add(self, t: float, q: np.ndarray, qd: np.ndarray, tau: float, cycle: int, track_mm: float) -> None:
         i = self.n
         if i == self.t.shape[0]:
-            for name in ("t", "q", "qd", "tau", "cycle"):
+            for name in ("t", "q", "qd", "tau", "cycle", "track"):
                 a = getattr(self, name)
-                setattr(self, name, np.concatenate([a, np.zeros_like(a)]))
+                setattr(self, name, np.concatenate([a, np.full_like(a, np.nan if name == "track" else 0)]))
         self.t[i] = t
         self.q[i] = q
         self.qd[i] = qd
         self.tau[i] = tau
         self.cycle[i] = cycle
+        self.track[i] = track_mm
         self.n = i + 1
 
 

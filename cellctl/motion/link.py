@@ -592,6 +592,8 @@ class RemoteExecution:
                     max_tracking_error_mm=end.max_tracking_error_mm, t_host_s=z["t_host_s"],
                     q_ref_deg=z["q_ref_deg"], qd_ref_deg_s=z["qd_ref_deg_s"], t_traj_s=z["t_traj_s"],
                     cycle=z["cycle"], lost_cycles=end.lost_cycles,
+                    max_tracking_t_traj_s=end.counters.max_tracking_t_traj_s or 0.0,
+                    track_mm=z["track_mm"] if "track_mm" in z.files else np.zeros(0, dtype=np.float32),
                 ),
                 events=list(self.events), move_to_start_s=end.move_to_start_s, start_settle_s=end.start_settle_s,
             )  # fmt: skip

@@ -240,6 +240,7 @@ class MotionServer:
             if top.size == 0
             else float(LATENCY_BIN_EDGES_US[min(top[-1] + 1, LATENCY_BIN_EDGES_US.shape[0] - 1)]),
             max_tracking_error_mm=round(float(ex.max_tracking_error_mm), 4),
+            max_tracking_t_traj_s=round(float(ex.max_tracking_t_traj_s), 3),
         )
 
     def _progress(self, ev: ProgressEvent | None) -> None:
@@ -422,7 +423,7 @@ def _write_record(path: Path, result: ExecutionResult, stale_events=()) -> None:
     with tmp.open("wb") as fh:
         np.savez(
             fh, t_host_s=result.t_host_s, q_ref_deg=result.q_ref_deg, qd_ref_deg_s=result.qd_ref_deg_s,
-            t_traj_s=result.t_traj_s, cycle=result.cycle, stale_ns=stale,
+            t_traj_s=result.t_traj_s, cycle=result.cycle, track_mm=result.track_mm, stale_ns=stale,
         )  # fmt: skip
     os.replace(tmp, path)
 

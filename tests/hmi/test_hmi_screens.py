@@ -34,7 +34,8 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networki
 DONE_JOB, FAILED_JOB = "20261201T100000-aaaa0001", "20261201T110000-aaaa0002"
 ABORTED_JOB = "20261201T120000-aaaa0003"
 MOTION = {"cycles": 48211, "egm_stale_cycles": 3, "egm_lost_cycles": 1, "egm_reply_p50_us": 180.0,
-          "egm_reply_p99_us": 412.0, "egm_reply_max_us": 905.0, "max_tracking_error_mm": 0.437}  # fmt: skip
+          "egm_reply_p99_us": 412.0, "egm_reply_max_us": 905.0, "max_tracking_error_mm": 0.437,
+          "max_tracking_t_traj_s": 36.054}  # fmt: skip
 
 
 def _job_dir(
@@ -173,7 +174,7 @@ def test_the_scan_page_shows_the_motion_counters_when_the_cell_publishes_them(pa
     page.wait_for_selector("#scan-motion:not(.hidden)")
     text = page.text_content("#scan-motion")
     assert "3 stale cycles" in text and "1 lost cycle ·" in text, text
-    assert "reply p99 412 µs" in text and "max tracking error 0.44 mm" in text, text
+    assert "reply p99 412 µs" in text and "max tracking error 0.44 mm at 36.1 s" in text, text
     box = page.locator("#scan-motion").bounding_box()
     assert box and box["y"] + box["height"] <= 800  # on screen with the progress
     page.screenshot(path=str(shots / "hmi-scan-motion.png"))

@@ -268,6 +268,29 @@ def test_a_daemon_that_goes_away_makes_the_motion_process_stop_the_arm_and_exit(
     assert np.max(np.ptp(tail, axis=0)) < 0.01
 
 
+def _tracking_where_the_controller_kept_time(rec, after_cycles: int = 75):
+    """The record's tracking checks (mm, NaN where none) with the checks in the ``after_cycles`` (the
+    0.3 s tracking window) after each jump of the controller's clock left out."""
+    track = np.asarray(rec.track_mm, dtype=np.float64).copy()
+    for g in np.nonzero(np.diff(rec.cycle) > 1)[0]:
+        track[g + 1 : g + 1 + after_cycles] = np.nan
+    return track
+
+
+def _pause_windows(rec, before_s: float = 2.0, after_s: float = 3.0, cycle_s: float = 0.004032):
+    """Row ranges around each hold of the playback longer than 1 s (a pause): from ``before_s`` before
+    the hold to ``after_s`` after the playback moved again."""
+    still = np.diff(rec.t_traj_s) == 0.0
+    edges = np.diff(np.concatenate([[0], still.astype(np.int8), [0]]))
+    starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    n_before, n_after = int(before_s / cycle_s), int(after_s / cycle_s)
+    return [
+        (max(0, a - n_before), min(len(rec.t_traj_s), b + n_after))
+        for a, b in zip(starts, ends, strict=True)
+        if (b - a) * cycle_s > 1.0 and rec.t_traj_s[a] > 0.0
+    ]
+
+
 @pytest.mark.long
 @pytest.mark.timeout(2400)
 def test_ten_long_pauses_over_a_scan_on_a_busy_pc_track_as_well_as_no_pause(sail_plan, tmp_path):
@@ -308,8 +331,27 @@ def test_ten_long_pauses_over_a_scan_on_a_busy_pc_track_as_well_as_no_pause(sail
     assert plain.state == ExecState.FINISHED, plain.fault
     assert paused.state == ExecState.FINISHED, paused.fault
     assert [e.state for e in ex1.events].count("paused") >= len(pauses_s)
-    base = ex0.counters.max_tracking_error_mm
-    assert ex1.counters.max_tracking_error_mm <= max(1.5 * base, base + 0.3), (ex0.counters, ex1.counters)
+    # The tracking error is compared where the simulated controller kept its clock. When its own
+    # process is held (a VM stall: its clock jumps 4-8 cycles), its arm integrates the gap on the last
+    # reference, and every peak of the first two runs (0.64 mm at t_traj 0.57 s, before any pause;
+    # 4.67 mm in the run before) followed such a jump by 9-29 cycles. A real controller's clock does
+    # not stop; the figures with those windows are in the message.
+    rec0, rec1 = ex0.record(), ex1.record()
+    track0, track1 = (
+        _tracking_where_the_controller_kept_time(rec0),
+        _tracking_where_the_controller_kept_time(rec1),
+    )
+    base = float(np.nanmax(track0))
+    bound = max(1.5 * base, base + 0.3)
+    held = _pause_windows(rec1)
+    assert len(held) >= len(pauses_s), held
+    near = np.concatenate([track1[a:b] for a, b in held])
+    figures = dict(base_mm=base, paused_mm=float(np.nanmax(track1)), around_pauses_mm=float(np.nanmax(near)),
+                   with_stalls_mm=(ex0.counters.max_tracking_error_mm, ex1.counters.max_tracking_error_mm))  # fmt: skip
+    assert float(np.nanmax(near)) <= bound, figures
+    assert float(np.nanmax(track1)) <= bound, figures
+    # and with the controller's stalls in: far from a fault
+    assert ex1.counters.max_tracking_error_mm < 0.5 * ExecutorConfig().tracking_error_max_mm, figures
     # over ~13 minutes on a PC kept busy, a shared VM's host takes its CPUs away now and then (the
     # first run, beside four other engineers' test runs: 712 stale of 170 610, 0.42 %); the old
     # design lost 5-13 % of the cycles on an idle one

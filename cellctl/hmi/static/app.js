@@ -326,7 +326,7 @@ function renderMotion(j) {
   const m = j && j.motion, el = $("scan-motion");
   el.classList.toggle("hidden", !m);
   if (!m) return;
-  el.innerHTML = `<span class="label">Motion</span> <span data-k="stale">${m.egm_stale_cycles} stale cycle${m.egm_stale_cycles === 1 ? "" : "s"}</span> · <span data-k="lost">${m.egm_lost_cycles} lost cycle${m.egm_lost_cycles === 1 ? "" : "s"}</span> · <span data-k="p99">reply p99 ${m.egm_reply_p99_us == null ? "-" : fmt(m.egm_reply_p99_us, 0) + " µs"}</span> · <span data-k="track">max tracking error ${fmt(m.max_tracking_error_mm, 2)} mm</span>`;
+  el.innerHTML = `<span class="label">Motion</span> <span data-k="stale">${m.egm_stale_cycles} stale cycle${m.egm_stale_cycles === 1 ? "" : "s"}</span> · <span data-k="lost">${m.egm_lost_cycles} lost cycle${m.egm_lost_cycles === 1 ? "" : "s"}</span> · <span data-k="p99">reply p99 ${m.egm_reply_p99_us == null ? "-" : fmt(m.egm_reply_p99_us, 0) + " µs"}</span> · <span data-k="track">max tracking error ${fmt(m.max_tracking_error_mm, 2)} mm${m.max_tracking_t_traj_s == null ? "" : " at " + fmt(m.max_tracking_t_traj_s, 1) + " s"}</span>`;
   el.classList.toggle("warn", m.egm_stale_cycles > 0 || m.egm_lost_cycles > 0);
 }
 for (const action of ["pause", "resume", "abort"]) {
