@@ -81,6 +81,8 @@ _PLY_TYPES = {"<f4": "float", "<f8": "double", "<i4": "int"}
 #: points of a block the writers move and write at a time (about 25 MB of temporaries)
 BLOCK_POINTS = 1 << 18
 _VLR_USER = "cellctl"
+#: the generating software of the LAS files cellctl wrote by hand (pass + 1 in point_source_id)
+_OLD_LAS_SOFTWARE = "cellctl acquisition"
 
 
 @dataclass(frozen=True)
@@ -259,6 +261,9 @@ def read_las(path: str | Path, require: Iterable[str] = ()) -> dict[str, np.ndar
             out[_LAS_FIELD[name]] = np.asarray(las[name])
     if "gps_time" in las.point_format.dimension_names:
         out["t_s"] = np.asarray(las.gps_time, dtype=np.float64)
+    if "pass_id" not in out and las.header.generating_software.startswith(_OLD_LAS_SOFTWARE):
+        # cellctl's own writer before laspy: the pass + 1 in point_source_id (0: transit then)
+        out["pass_id"] = np.maximum(np.asarray(las.point_source_id, dtype=np.int32) - 1, 0)
     frame = next((v.record_data.decode(errors="replace") for v in las.vlrs if v.user_id == _VLR_USER), "")
     out["frame"] = np.asarray(frame)
     _require(path, out, require)

@@ -283,3 +283,20 @@ def test_cloudcompare_reads_the_ply_exports_scalar_fields(results: Path, tmp_pat
         if src.stem == "cloud-ship":  # CloudCompare holds points in float32: ~4 um at 42 m
             xyz, _ = read_results_cloud(results / "cloud.ply")
             np.testing.assert_allclose(got[:, :3], xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3], atol=0.02)
+
+
+def test_a_las_file_of_the_earlier_hand_written_writer_still_reads_its_pass(tmp_path: Path) -> None:
+    """Before laspy, `cellctl reassemble` wrote the pass + 1 in point_source_id (0 for transit) and
+    only profile and point as extra bytes; such a file reads with its passes."""
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.generating_software = "cellctl acquisition"
+    header.add_extra_dims(
+        [laspy.ExtraBytesParams("profile", np.uint32), laspy.ExtraBytesParams("point", np.uint16)]
+    )
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]]).T
+    las.point_source_id = np.array([0, 1, 3], dtype=np.uint16)
+    las.profile = np.array([0, 1, 2], dtype=np.uint32)
+    las.write(tmp_path / "old.las")
+    back = read_las(tmp_path / "old.las", require=["pass_id", "profile_index"])
+    assert back["pass_id"].tolist() == [0, 0, 2] and back["profile_index"].tolist() == [0, 1, 2]
