@@ -48,6 +48,11 @@ EXPORT_FRAMES = ("design", "ship")
 DEVIATION_NAMES = ("scalar_deviation", "deviation")
 
 
+def _rigid(T: np.ndarray) -> bool:
+    R = T[:3, :3]
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0)
+
+
 def T_file_design(report: Report) -> np.ndarray:
     """4x4: design frame -> the design file's frame (mm), the inverse of ``T_design_file`` (the
     identity when the report has none: a mesh given in its own frame)."""
@@ -162,7 +167,10 @@ def export_results(
                 written[path.name] = write_las(
                     path, design_blocks if frame_name == "design" else ship_blocks, frame
                 )
-            else:
-                pose = None if frame_name == "design" else T
-                written[path.name] = write_e57(path, design_blocks, frame, pose=pose, name=report.plate_id)
+            elif frame_name == "design":
+                written[path.name] = write_e57(path, design_blocks, frame, name=report.plate_id)
+            elif _rigid(T):  # the design-frame points and their pose to the file's frame
+                written[path.name] = write_e57(path, design_blocks, frame, pose=T, name=report.plate_id)
+            else:  # a pose is a rotation and a translation: otherwise the points moved, pose the identity
+                written[path.name] = write_e57(path, ship_blocks, frame, name=report.plate_id)
     return written

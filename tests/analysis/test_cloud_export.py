@@ -300,3 +300,20 @@ def test_a_las_file_of_the_earlier_hand_written_writer_still_reads_its_pass(tmp_
     las.write(tmp_path / "old.las")
     back = read_las(tmp_path / "old.las", require=["pass_id", "profile_index"])
     assert back["pass_id"].tolist() == [0, 0, 2] and back["profile_index"].tolist() == [0, 1, 2]
+
+
+def test_a_design_file_frame_that_is_mirrored_gets_its_e57_points_moved_instead_of_a_pose(
+    results: Path,
+) -> None:
+    doc = json.loads((results / "report.json").read_text())
+    mirrored = np.diag([1.0, -1.0, 1.0, 1.0])  # a file with a left-handed frame: no E57 pose reaches it
+    mirrored[:3, 3] = [-42_000.0, 0.0, 0.0]
+    doc["design"]["T_design_file"] = mirrored.tolist()
+    (results / "report.json").write_text(json.dumps(doc))
+    written = export_results(results, formats=("e57",), frames=("ship",))
+    xyz, dev = read_results_cloud(results / "cloud.ply")
+    T = np.linalg.inv(mirrored)
+    back = read_e57(written["cloud-ship.e57"], require=["deviation_mm"])
+    np.testing.assert_array_equal(back["pose"], np.eye(4))
+    np.testing.assert_allclose(back["xyz_mm"], xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3], atol=5e-3)
+    np.testing.assert_array_equal(back["deviation_mm"], dev)
