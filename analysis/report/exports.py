@@ -68,8 +68,8 @@ def ship_frame(report: Report) -> CloudFrame:
         if report.design.T_design_file is None
         else "inverse of report.json design.T_design_file applied to the design frame"
     )
-    units = f", file units {report.design.file_units}" if report.design.kind == "cad" else ""
-    return CloudFrame("design file frame (ship)", f"coordinates of {design}{units} in mm; {how}")
+    units = f" (file units {report.design.file_units})" if report.design.kind == "cad" else ""
+    return CloudFrame("design file frame (ship)", f"coordinates of {design}{units}, in mm; {how}")
 
 
 def write_lines_ship(path: str | Path, report: Report, ends_design_mm: np.ndarray) -> Path:

@@ -161,7 +161,7 @@ def test_export_writes_each_format_in_the_design_and_the_ship_frame(results: Pat
     np.testing.assert_allclose(np.column_stack([v["x"], v["y"], v["z"]]), ship, atol=1e-6)
     np.testing.assert_array_equal(v["scalar_deviation"], dev)
     assert any(
-        "design file frame (ship)" in c and "hull-P7.stp, file units m in mm" in c for c in ply.comments
+        "design file frame (ship)" in c and "hull-P7.stp (file units m), in mm" in c for c in ply.comments
     )
     las = read_las(written["cloud-ship.las"], require=["deviation_mm"])
     np.testing.assert_allclose(las["xyz_mm"], ship, atol=0.0006)
