@@ -76,6 +76,7 @@ from analysis.register.onesided import deflection_gaps
 from analysis.register.rest_surface import RestSurface, rest_surface
 from analysis.register.transforms import RegistrationError, apply_transform, invert_transform
 from analysis.report.csv_table import write_csv
+from analysis.report.exports import DESIGN_FRAME, write_lines_ship
 from analysis.segment import PassCells, SegmentResult, pass_cells, segment_plate
 from analysis.template_fit import (
     LineFitResult,
@@ -688,7 +689,8 @@ def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
     """Store an inspection as a results directory; returns the written files by name.
 
     cloud.ply holds the plate's points in the design frame (registered), with their deviation
-    (float32 mm, NaN where off the design).
+    (``scalar_deviation``, float32 mm, NaN where off the design); lines-ship.csv the judged lines'
+    ends in the design file's frame (:mod:`analysis.report.exports`).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -696,9 +698,15 @@ def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
     T_dm = invert_transform(ins.T_measured_design)
     pts_design = _moved_float32(T_dm, ins.plate_points_mm)
     files["cloud.ply"] = write_cloud_ply(
-        ScanCloud(pts_design), out / "cloud.ply", extra={"deviation": ins.deviation_mm.astype(np.float32)},
-        comment="cellctl registered cloud, design frame, mm; deviation mm, NaN off the design",
+        ScanCloud(pts_design), out / "cloud.ply", extra={"scalar_deviation": ins.deviation_mm.astype(np.float32)},
+        comment=f"cellctl registered cloud; frame: {DESIGN_FRAME.text()}; scalar_deviation mm "
+        "(z_design - z_measured), NaN off the design",
     )  # fmt: skip
+    # the judged lines' ends in the design file's frame (the ship's coordinates), for the yard's CAD
+    ends = np.array([[c.line.start_mm, c.line.end_mm] for c in ins.cuts], dtype=np.float64).reshape(-1, 3)
+    files["lines-ship.csv"] = write_lines_ship(
+        out / "lines-ship.csv", ins.report, apply_transform(T_dm, ends)
+    )
 
     # The map shows the reconstructed surface (denoised cell means), not single noisy points.
     T_pm = ins.T_plate_design @ T_dm

@@ -12,6 +12,9 @@ SYSTEM_PACKAGES=(libgl1 libgomp1 libusb-1.0-0 libegl1 libx11-6 chromium poppler-
 # tests and the benchmark run against; PyGObject (pyproject.toml) builds against the -dev packages.
 SYSTEM_PACKAGES+=(gir1.2-aravis-0.8 aravis-tools-cli aravis-tools
     libgirepository1.0-dev libcairo2-dev pkg-config gcc python3-dev)
+# CloudCompare's command line opens the exported clouds in a test (tests/analysis/test_cloud_export.py),
+# headless under Qt's offscreen platform
+SYSTEM_PACKAGES+=(cloudcompare)
 
 missing=()
 for pkg in "${SYSTEM_PACKAGES[@]}"; do

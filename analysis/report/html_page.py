@@ -168,11 +168,14 @@ def _rework_html(regions: list[ReworkRegion], std: float) -> str:
     )
 
 
-EXPORTS = ("report.json", "report.csv", "report.pdf", "cloud.ply")
+EXPORTS = ("report.json", "report.csv", "report.pdf", "cloud.ply", "lines-ship.csv")
 
 
 def _export_links(results_dir: Path) -> str:
-    notes = {"cloud.ply": " (registered cloud, per-point deviation as a scalar field)"}
+    notes = {
+        "cloud.ply": " (registered cloud, per-point deviation as a scalar field)",
+        "lines-ship.csv": " (line ends in the design file's frame; `cellctl export` for the cloud in it)",
+    }
     # report.pdf is written after the page, so list it whatever exists now
     return ", ".join(
         f'<a href="{name}">{name}</a>{notes.get(name, "")}'

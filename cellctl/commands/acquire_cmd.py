@@ -1,7 +1,7 @@
 """`cellctl reassemble JOB_DIR` and `cellctl calibrate time-offset|hand-eye JOB_DIR`.
 
 ``reassemble`` rebuilds a scan's cloud from its raw files (bit for bit what the cell published) and
-writes ``cloud.ply`` and ``cloud.las``; ``calibrate`` computes a calibration from a calibration job's
+writes ``cloud.ply``, ``cloud.las`` and ``cloud.e57``; ``calibrate`` computes a calibration from a calibration job's
 raw files, prints its residual report and, with ``--write``, stores the result in cell.toml
 (``[laser] latency_ms`` or ``[robot.sensor_in_flange]``) and a record beside the raw files.
 """
@@ -23,7 +23,9 @@ log = structlog.get_logger(__name__)
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("reassemble", help="rebuild a scan's cloud from its raw files (PLY + LAS)")
     p.add_argument("job_dir", help="the job directory holding job.json and the *.craw raw files")
-    p.add_argument("--out", default=None, help="where cloud.ply / cloud.las go (default: the job directory)")
+    p.add_argument(
+        "--out", default=None, help="where cloud.ply / cloud.las / cloud.e57 go (default: the job directory)"
+    )
     p.add_argument(
         "--live",
         action="store_true",
@@ -63,7 +65,7 @@ def _fail(msg: str) -> int:
 
 
 def run_reassemble(args: argparse.Namespace) -> int:
-    from cellctl.acquisition.cloud_files import write_las, write_ply
+    from cellctl.acquisition.cloud_files import write_e57, write_las, write_ply
     from cellctl.acquisition.reassemble import reassemble
     from cellctl.jobstore.rawstore import RawFormatError
 
@@ -76,6 +78,7 @@ def run_reassemble(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     ply = write_ply(res.cloud, out / "cloud.ply")
     las = write_las(res.cloud, out / "cloud.las")
+    e57 = write_e57(res.cloud, out / "cloud.e57")
     summary = {
         "profiles": len(res.cloud),
         "points": res.cloud.n_valid,
@@ -83,6 +86,7 @@ def run_reassemble(args: argparse.Namespace) -> int:
         "final": res.final,
         "ply": str(ply),
         "las": str(las),
+        "e57": str(e57),
         "read": {"chunks": res.read.chunks, "torn_bytes": res.read.torn_bytes, "problems": res.read.problems},
         "sensor_clock": res.quality.get("sensor_clock"),
         "robot_clock": res.quality.get("robot_clock"),

@@ -1,4 +1,8 @@
-"""`cellctl report JOB_OR_DIR [--open]`: regenerate a job's report (HTML, PDF, CSV) from its stored results."""
+"""`cellctl report JOB_OR_DIR [--open]`: regenerate a job's report (HTML, PDF, CSV) from its stored results.
+
+`cellctl export JOB_OR_DIR [--formats ply,las,e57] [--frames design,ship] [--out DIR]`: the registered
+cloud with its deviation as LAS / E57 / PLY for the metrology tools, in the design frame and in the
+design file's own frame (the ship's coordinates) (:func:`analysis.report.exports.export_results`)."""
 
 from __future__ import annotations
 
@@ -34,6 +38,49 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--config", default=str(DEFAULT_CONFIG_PATH), help="cell.toml for job ids (default: ./cell.toml)"
     )
     p.set_defaults(func=run)
+
+    e = sub.add_parser(
+        "export",
+        help="the registered cloud as LAS / E57 / PLY, in the design frame and the design file's (ship) frame",
+        description=(
+            "Write a job's registered cloud and its deviation for metrology tools and the yard's CAD: "
+            "cloud.las, cloud.e57 (design frame) and cloud-ship.ply, cloud-ship.las, cloud-ship.e57 (the "
+            "design file's frame, from report.json's design.T_design_file). The job's results already "
+            "hold cloud.ply (design frame) and lines-ship.csv (docs/operations.md, 'Cloud files for "
+            "metrology tools')."
+        ),
+    )
+    e.add_argument("target", metavar="JOB_OR_DIR", help="results directory or job id")
+    e.add_argument("--formats", default="ply,las,e57", help="comma-separated: ply, las, e57 (default: all)")
+    e.add_argument("--frames", default="design,ship", help="comma-separated: design, ship (default: both)")
+    e.add_argument("--out", default=None, help="where the files go (default: the results directory)")
+    e.add_argument(
+        "--config", default=str(DEFAULT_CONFIG_PATH), help="cell.toml for job ids (default: ./cell.toml)"
+    )
+    e.set_defaults(func=run_export)
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from analysis.cloud_io import CloudError
+    from analysis.contracts.results import ReportError
+    from analysis.report.exports import export_results
+
+    split = lambda text: tuple(v.strip() for v in text.split(",") if v.strip())  # noqa: E731
+    try:
+        results_dir = resolve_results_dir(args.target, args.config)
+        written = export_results(
+            results_dir, args.out, formats=split(args.formats), frames=split(args.frames)
+        )
+    except ConfigError as err:
+        for problem in err.problems:
+            print(f"{err.source}: {problem}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, ReportError, CloudError) as exc:
+        print(f"cellctl export: {exc}", file=sys.stderr)
+        return 2
+    for path in written.values():
+        print(path)
+    return 0
 
 
 def resolve_results_dir(target: str, config_path: str) -> Path:

@@ -61,6 +61,12 @@ DOWNLOADS = {
     "report.csv": ("results/report.csv", "text/csv"),
     "report.json": ("results/report.json", "application/json"),
     "cloud.ply": ("results/cloud.ply", "application/octet-stream"),
+    # the design file's (ship) frame; and `cellctl export`'s files, once written (analysis.report.exports)
+    "lines-ship.csv": ("results/lines-ship.csv", "text/csv"),
+    **{
+        n: (f"results/{n}", "application/octet-stream")
+        for n in ("cloud.las", "cloud.e57", "cloud-ship.ply", "cloud-ship.las", "cloud-ship.e57")
+    },
 }
 MAX_BODY_BYTES = MAX_TRIGGER_BYTES  # a trigger is the largest body the HMI takes
 #: a log-in body: {"user": <= 64 characters, "password": ...}

@@ -9,6 +9,7 @@ import plyfile
 import pytest
 import structlog
 
+from analysis.cloud_export import read_e57, read_las
 from cellctl.acquisition.clock_sync import ClockSyncConfig
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
 from cellctl.acquisition.reassemble import reassemble
@@ -43,14 +44,17 @@ def job(tmp_path_factory):
     return d
 
 
-def test_reassemble_command_writes_ply_and_las_of_the_final_cloud(job, tmp_path, capsys):
+def test_reassemble_command_writes_ply_las_and_e57_of_the_final_cloud(job, tmp_path, capsys):
     assert main(["reassemble", str(job), "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     ref = reassemble(job)
     assert ref.cloud.digest() in out
     v = plyfile.PlyData.read(str(tmp_path / "cloud.ply"))["vertex"].data
     assert len(v) == ref.cloud.n_valid
-    assert (tmp_path / "cloud.las").stat().st_size == 375 + 54 + 384 + 36 * ref.cloud.n_valid
+    las = read_las(tmp_path / "cloud.las", require=["pass_id", "profile_index", "point_index", "t_s"])
+    e57 = read_e57(tmp_path / "cloud.e57", require=["profile_index", "point_index", "t_s"])
+    assert len(las["xyz_mm"]) == len(e57["xyz_mm"]) == ref.cloud.n_valid
+    assert "robot base frame" in str(las["frame"]) and "robot base frame" in str(e57["frame"])
 
 
 def test_reassemble_command_names_a_directory_without_raw_files(tmp_path, capsys):

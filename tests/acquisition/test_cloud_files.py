@@ -1,16 +1,15 @@
-"""PLY and LAS 1.4 writers: fields, types and values survive a read back."""
+"""PLY, LAS 1.4 (laspy) and E57 (pye57) writers of an assembled scan: fields, types and values survive a read back."""
 
 from __future__ import annotations
-
-import struct
 
 import numpy as np
 import plyfile
 import pytest
 
-from analysis.cloud_io import read_cloud
+from analysis.cloud_export import LAS_SCALE_MM, read_e57, read_las
+from analysis.cloud_io import CloudError, read_cloud
 from cellctl.acquisition.assembly import AssembledScan
-from cellctl.acquisition.cloud_files import LAS_SCALE_MM, CloudFileError, read_las, write_las, write_ply
+from cellctl.acquisition.cloud_files import write_e57, write_las, write_ply
 
 
 @pytest.fixture
@@ -73,35 +72,45 @@ def test_an_acquisition_ply_of_the_earlier_layout_still_loads(tmp_path):
     np.testing.assert_allclose(back.t_s, [0.0, 0.1, 0.2])
 
 
-def test_las_is_version_1_4_format_6_with_extra_bytes_and_micrometre_coordinates(cloud, tmp_path):
+def test_las_through_laspy_holds_every_field_and_names_the_robot_base_frame(cloud, tmp_path):
+    import laspy
+
     path = write_las(cloud, tmp_path / "c.las")
-    data = path.read_bytes()
-    assert data[:4] == b"LASF" and data[24:26] == b"\x01\x04"
-    header_size, offset, n_vlr, fmt, reclen = struct.unpack_from("<HIIBH", data, 94)
-    assert (header_size, n_vlr, fmt, reclen) == (375, 1, 6, 36)
-    assert data[375 + 2 : 375 + 11] == b"LASF_Spec" and struct.unpack_from("<H", data, 375 + 18)[0] == 4
-    (n,) = struct.unpack_from("<Q", data, 247)
-    assert n == cloud.n_valid and len(data) == offset + 36 * n
-    back = read_las(path)
+    las = laspy.read(path)  # laspy itself: version, format, the extra dimensions by name
+    assert (las.header.version.major, las.header.version.minor, las.header.point_format.id) == (1, 4, 6)
+    assert list(las.point_format.extra_dimension_names) == ["pass", "profile", "point"]
+    assert "robot base frame" in las.header.system_identifier
+    back = read_las(path, require=["pass_id", "profile_index", "point_index", "t_s"])
     pts = cloud.points()
     assert np.max(np.abs(back["xyz_mm"] - pts["xyz_mm"].astype(np.float64))) <= LAS_SCALE_MM / 2 + 1e-4
     np.testing.assert_array_equal(back["pass_id"], np.maximum(pts["pass_id"], 0))
     np.testing.assert_array_equal(back["profile_index"], pts["profile_index"])
     np.testing.assert_array_equal(back["point_index"], pts["point_index"])
     np.testing.assert_allclose(back["t_s"], (pts["t_ns"] - cloud.t_ns.min()) * 1e-9)
+    assert "cellctl robot base frame, mm" in str(back["frame"])
+    xyz = pts["xyz_mm"]  # the header's bounds enclose the points
+    assert np.all(las.header.mins <= xyz.min(axis=0) + 1e-3) and np.all(
+        las.header.maxs >= xyz.max(axis=0) - 1e-3
+    )
 
 
-def test_las_bounds_in_the_header_enclose_the_points(cloud, tmp_path):
-    data = write_las(cloud, tmp_path / "c.las").read_bytes()
-    mx, mn_x, my, mn_y, mz, mn_z = struct.unpack_from("<6d", data, 179)
-    xyz = cloud.points()["xyz_mm"]
-    assert mn_x <= xyz[:, 0].min() and mx >= xyz[:, 0].max()
-    assert mn_y <= xyz[:, 1].min() and my >= xyz[:, 1].max()
-    assert mn_z <= xyz[:, 2].min() and mz >= xyz[:, 2].max()
+def test_e57_through_pye57_holds_the_points_profile_point_and_time(cloud, tmp_path):
+    import pye57
+
+    path = write_e57(cloud, tmp_path / "c.e57")
+    raw = pye57.E57(str(path)).read_scan(0, ignore_missing_fields=True, row_column=True)
+    pts = cloud.points()
+    got = np.column_stack([raw["cartesianX"], raw["cartesianY"], raw["cartesianZ"]])
+    np.testing.assert_allclose(got, pts["xyz_mm"], atol=1e-3)
+    np.testing.assert_array_equal(raw["rowIndex"], pts["profile_index"])
+    np.testing.assert_array_equal(raw["columnIndex"], pts["point_index"])
+    back = read_e57(path, require=["t_s"])
+    np.testing.assert_allclose(back["t_s"], (pts["t_ns"] - cloud.t_ns.min()) * 1e-9)
+    np.testing.assert_array_equal(back["pose"], np.eye(4))
 
 
 def test_reading_a_file_that_is_not_las_names_the_file(tmp_path):
     p = tmp_path / "x.las"
     p.write_bytes(b"PLY\n" + bytes(400))
-    with pytest.raises(CloudFileError, match=r"x\.las"):
+    with pytest.raises(CloudError, match=r"x\.las"):
         read_las(p)

@@ -38,10 +38,10 @@ def test_plyfile_reads_every_column_of_a_scan_cloud_with_its_values(tmp_path):
 def test_plyfile_reads_the_registered_clouds_deviation_field_nan_included(tmp_path):
     pts = np.array([[0.0, 0.0, 1.0], [10.0, 0.0, 1.5], [0.0, 10.0, 2.0]])
     deviation = np.array([0.25, np.nan, -0.125], dtype=np.float32)
-    path = write_cloud_ply(ScanCloud(pts), tmp_path / "cloud.ply", extra={"deviation": deviation})
+    path = write_cloud_ply(ScanCloud(pts), tmp_path / "cloud.ply", extra={"scalar_deviation": deviation})
     vertex = plyfile.PlyData.read(str(path))["vertex"]
-    assert [p.name for p in vertex.properties] == ["x", "y", "z", "deviation"]
-    np.testing.assert_array_equal(vertex["deviation"], deviation)
+    assert [p.name for p in vertex.properties] == ["x", "y", "z", "scalar_deviation"]
+    np.testing.assert_array_equal(vertex["scalar_deviation"], deviation)
     # and our own reader agrees with it on the points
     np.testing.assert_allclose(read_cloud(path).xyz_mm, pts.astype(np.float32))
 
@@ -51,7 +51,7 @@ def test_open3d_tensor_reader_takes_the_deviation_as_a_point_attribute(tmp_path)
 
     pts = np.array([[0.0, 0.0, 1.0], [10.0, 0.0, 1.5]])
     deviation = np.array([0.25, -0.5], dtype=np.float32)
-    path = write_cloud_ply(ScanCloud(pts), tmp_path / "cloud.ply", extra={"deviation": deviation})
+    path = write_cloud_ply(ScanCloud(pts), tmp_path / "cloud.ply", extra={"scalar_deviation": deviation})
     pc = o3d.t.io.read_point_cloud(str(path))
-    np.testing.assert_array_equal(pc.point["deviation"].numpy().ravel(), deviation)
+    np.testing.assert_array_equal(pc.point["scalar_deviation"].numpy().ravel(), deviation)
     np.testing.assert_allclose(pc.point["positions"].numpy(), pts)

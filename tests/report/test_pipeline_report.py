@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import math
 import re
 import subprocess
@@ -61,7 +62,7 @@ def test_pipeline_results_make_a_complete_report(inspected) -> None:
 def test_pipeline_ply_deviation_read_back_matches_the_stored_results_and_line_figures(inspected) -> None:
     _, ins, out, _ = inspected
     v = PlyData.read(str(out / "cloud.ply"))["vertex"]
-    dev = np.asarray(v["deviation"])
+    dev = np.asarray(v["scalar_deviation"])
     assert dev.dtype == np.float32 and len(dev) == len(ins.deviation_mm)
     res = np.load(out / "results.npz")
     # the map holds the reconstructed surface (cell means): it agrees with the raw cloud around it
@@ -107,3 +108,21 @@ def test_pipeline_rework_region_sits_on_the_true_dent(inspected) -> None:
     row = html[html.index('<tr data-region="R1">') :].split("</tr>")[0]
     peak = [float(v) for v in re.findall(r"<td>\((-?\d+), (-?\d+)\)</td>", row)[-1]]
     assert np.hypot(*(np.asarray(peak) - expected_xy)) < 15.0
+
+
+@pytest.mark.slow
+def test_pipeline_lines_ship_csv_holds_the_judged_lines_ends_in_the_design_files_frame(inspected) -> None:
+    """A mesh given in its own frame: the file's frame is the design frame, so the ends in
+    lines-ship.csv, moved into the plate frame, are the report's start_plate_mm / end_plate_mm."""
+    _, ins, out, _ = inspected
+    text = (out / "lines-ship.csv").read_text().splitlines()
+    assert (
+        text[0].startswith("# frame: design file frame (ship), mm") and "design frame = file frame" in text[0]
+    )
+    rows = list(csv.DictReader(text[1:]))
+    assert [r["line"] for r in rows] == [ln.name for ln in ins.report.lines]
+    T = ins.T_plate_design
+    for r, line in zip(rows, ins.report.lines, strict=True):
+        for end, want in (("start", line.start_plate_mm), ("end", line.end_plate_mm)):
+            p = np.array([float(r[f"{end}_{a}_mm"]) for a in "xyz"])
+            np.testing.assert_allclose((T[:3, :3] @ p + T[:3, 3])[:2], want, atol=0.02)

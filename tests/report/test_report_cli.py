@@ -100,3 +100,29 @@ def test_report_json_answers_with_the_written_files_as_one_typed_object(tmp_path
         "report.csv", "report.html", "report.pdf"
     ]  # fmt: skip
     assert all(Path(p).is_file() for p in (answer.csv, answer.html, answer.pdf))
+
+
+def test_export_writes_the_chosen_files_and_refuses_a_results_dir_without_the_deviation(
+    tmp_path: Path, capsys
+) -> None:
+    """``cellctl export DIR --formats las,e57 --frames ship``: the two files, one path a line; a cloud.ply
+    without the deviation (not a results cloud) is exit 2 with the file named."""
+    import argparse
+
+    from analysis.cloud_export import read_e57, read_las
+
+    write_synthetic_results(tmp_path / "r", n_points=1500)
+    args = argparse.Namespace(target=str(tmp_path / "r"), formats="las,e57", frames="ship", out=str(tmp_path / "x"),
+                              config="/nonexistent/cell.toml")  # fmt: skip
+    assert report_cmd.run_export(args) == 0
+    out = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith(str(tmp_path))]
+    assert [Path(p).name for p in out] == ["cloud-ship.las", "cloud-ship.e57"]
+    assert len(read_las(out[0], require=["deviation_mm"])["xyz_mm"]) == 1500
+    assert len(read_e57(out[1], require=["deviation_mm"])["xyz_mm"]) == 1500
+    ply = tmp_path / "r" / "cloud.ply"
+    ply.write_bytes(ply.read_bytes().replace(b"scalar_deviation", b"scalar_somethin1"))
+    assert report_cmd.run_export(args) == 2
+    assert "cloud.ply: not a results cloud" in capsys.readouterr().err
+    bad = argparse.Namespace(**{**vars(args), "formats": "las,xyz"})
+    assert report_cmd.run_export(bad) == 2
+    assert "unknown export format" in capsys.readouterr().err

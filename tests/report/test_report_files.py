@@ -117,13 +117,13 @@ def test_ply_deviation_read_back_independently_matches_the_results(reported) -> 
     truth, _ = reported
     ply = PlyData.read(str(truth.results_dir / "cloud.ply"))
     v = ply["vertex"]
-    assert v["deviation"].dtype == np.float32
+    assert v["scalar_deviation"].dtype == np.float32
     z = np.load(truth.results_dir / "results.npz")
     # the cloud carries the same per-point deviations as the stored results
-    np.testing.assert_array_equal(np.sort(v["deviation"]), np.sort(z["plate_deviation_mm"]))
+    np.testing.assert_array_equal(np.sort(v["scalar_deviation"]), np.sort(z["plate_deviation_mm"]))
     # and its worst point agrees with the worst line's Zmax (the dent's centre lies on T4 and L2)
     worst = max(ln.zmax_mm for ln in truth.report.lines)
-    assert float(np.abs(v["deviation"]).max()) == pytest.approx(worst, abs=0.1)
+    assert float(np.abs(v["scalar_deviation"]).max()) == pytest.approx(worst, abs=0.1)
     # near every large Zmax, the cloud's own deviation reads the same figure
     ref = np.asarray(truth.report.corners_mm[0][:2])
     xy = np.column_stack([v["x"], v["y"]]) - ref
@@ -133,7 +133,7 @@ def test_ply_deviation_read_back_independently_matches_the_results(reported) -> 
         a, b = np.asarray(line.start_plate_mm), np.asarray(line.end_plate_mm)
         at = a + (b - a) * line.zmax_at_mm / np.linalg.norm(b - a)
         near = np.argsort(np.hypot(*(xy - at).T))[:5]
-        assert float(np.abs(v["deviation"][near]).max()) == pytest.approx(line.zmax_mm, abs=0.1), line.name
+        assert float(np.abs(v["scalar_deviation"][near]).max()) == pytest.approx(line.zmax_mm, abs=0.1), line.name
 
 
 @pytest.fixture(scope="module")

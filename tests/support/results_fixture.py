@@ -85,12 +85,14 @@ def write_plate_results(
 
 
 def _ply(points_mm: np.ndarray, deviation_mm: np.ndarray, path: Path) -> None:
-    rec = np.empty(len(points_mm), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("deviation", "<f4")])
+    rec = np.empty(
+        len(points_mm), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("scalar_deviation", "<f4")]
+    )
     rec["x"], rec["y"], rec["z"] = points_mm.T
-    rec["deviation"] = deviation_mm
+    rec["scalar_deviation"] = deviation_mm
     header = (
         f"ply\nformat binary_little_endian 1.0\nelement vertex {len(rec)}\n"
-        "property float x\nproperty float y\nproperty float z\nproperty float deviation\nend_header\n"
+        "property float x\nproperty float y\nproperty float z\nproperty float scalar_deviation\nend_header\n"
     )
     with path.open("wb") as f:
         f.write(header.encode("ascii"))
