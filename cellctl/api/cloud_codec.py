@@ -204,15 +204,35 @@ def encode_cloud(cloud: Cloud) -> bytearray:
             arrays[name] = _check_array(name, arr, n)
     if "t_s" in arrays and not np.isfinite(arrays["t_s"]).all():
         raise CloudFormatError("non-finite times", field="t_s")
-    prefix, offsets, total = _encoded_prefix(
-        cloud.job_id, cloud.plate_id, cloud.meta, n, {name: (a.dtype, a.nbytes) for name, a in arrays.items()}
+    out, views = allocate_cloud(
+        cloud.job_id, cloud.plate_id, cloud.meta, n, {name: a.dtype for name, a in arrays.items()}
     )
+    for name, arr in arrays.items():
+        views[name][:] = arr
+    return out
+
+
+def allocate_cloud(
+    job_id: str, plate_id: str, meta: CloudMeta, n: int, fields: dict[str, np.dtype]
+) -> tuple[bytearray, dict[str, np.ndarray]]:
+    """A message of ``n`` points with ``fields`` (name -> dtype, in order; ``xyz_mm`` first), its
+    header, field table and metadata written, and each field's array as a view into it to be filled
+    (``(n, 3)`` for ``xyz_mm``): an encoder that writes the points where they go, without a whole
+    cloud first and its copy (:func:`cellctl.acquisition.publish.encode_scan`). The views are not
+    checked: :func:`encode_cloud` checks its arrays before it fills them."""
+    for name, dtype in fields.items():
+        if name not in FIELDS or np.dtype(dtype) != FIELDS[name][0]:
+            raise CloudFormatError(f"dtype {np.dtype(dtype)} is not the field's", field=name)
+    sizes = {name: (FIELDS[name][0], n * FIELDS[name][1] * FIELDS[name][0].itemsize) for name in fields}
+    prefix, offsets, total = _encoded_prefix(job_id, plate_id, meta, n, sizes)
     out = bytearray(total)
     out[: len(prefix)] = prefix
-    for name, arr in arrays.items():
-        dst = np.frombuffer(out, dtype=arr.dtype, count=arr.size, offset=offsets[name])
-        dst[:] = arr.reshape(-1)
-    return out
+    views = {}
+    for name in fields:
+        dtype, comps = FIELDS[name]
+        v = np.frombuffer(out, dtype=dtype, count=n * comps, offset=offsets[name])
+        views[name] = v.reshape(n, comps) if comps > 1 else v
+    return out, views
 
 
 def _encoded_prefix(

@@ -182,7 +182,7 @@ class Handover:
         if scan_cloud is None:  # re-analysis: whole-scan clock fits from the raw files
             scan_cloud = (await asyncio.to_thread(reassemble, self.store.raw_dir(rec.job_id))).cloud
         steps = column_steps(scan_cloud.pass_id, self._first_edge(job), PublishSettings.from_config(self.cfg))
-        steps = budget_steps(steps, scan_cloud.valid.sum(axis=1), self.cfg.scan.publish_max_points)
+        steps = budget_steps(steps, scan_cloud.valid_per_profile(), self.cfg.scan.publish_max_points)
         # thinned and encoded in one pass off the loop: the only copy of the points is the payload
         payload, job.points = await asyncio.to_thread(
             encode_scan, scan_cloud, job_id=rec.job_id, plate_id=rec.plate_id, column_step=steps,

@@ -27,6 +27,7 @@ import structlog
 from cellctl.acquisition.assembly import AssembledBatch, AssembledScan
 from cellctl.acquisition.pipeline import Acquisition
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, pass_end_cut
+from cellctl.acquisition.spill import release
 from cellctl.api.cloud_codec import CloudMeta
 from cellctl.api.models import ReportEnvelope
 from cellctl.daemon.dispatch import Dispatcher
@@ -125,6 +126,8 @@ class ScanStream:
                 await self._durable()
             head, self._pending = _split(self._pending, n)  # a cut inside a batch splits it
             await self._publish(AssembledScan.concat(head), pass_index)
+            # a spilled scan's rows read for the chunk go out of memory again (cellctl.acquisition.spill)
+            release(*(a for b in head for a in (b.xyz_mm, b.valid)))
 
     async def _durable(self) -> None:
         """Wait until every raw record written so far is fsync'ed (acquired data reaches disk first)."""
