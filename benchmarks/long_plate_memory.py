@@ -72,11 +72,11 @@ def _reset_hwm() -> None:
 
 
 def feed_stream(acq, *, n_profiles: int, n_passes: int, width: int, batch: int, epoch_ns: int,
-                seed: int = 0) -> None:  # fmt: skip
+                seed: int = 0, between=None) -> None:  # fmt: skip
     """A long plate's profile stream into ``acq`` (not finished): ``n_profiles`` profiles of ``width``
     points at 200 Hz in ``batch``-profile frame groups through the HD8 protocol's encoder and decoder,
     ``n_passes`` passes, 250 Hz of joint feedback (tests/acquisition/test_daemon_memory.py feeds a
-    scaled-down one)."""
+    scaled-down one). ``between``: called after each group (the event loop's turn)."""
     import numpy as np
 
     from drivers.laser import protocol as P
@@ -120,6 +120,68 @@ def feed_stream(acq, *, n_profiles: int, n_passes: int, width: int, batch: int, 
         if pass_open and (int((k0 + batch) // per_pass) != p):
             acq.end_pass(epoch_ns + int(t_s[-1] * 1e9) + 1000)
             pass_open = False
+        if between is not None:
+            between()
+
+
+class _HeldChunks:
+    """What :class:`cellctl.daemon.dispatch.Dispatcher` does with a streamed job's chunks, without
+    Zenoh: each kept with its sha256 until the stream ends (``--stream``)."""
+
+    def __init__(self) -> None:
+        self.chunks: list[tuple] = []
+
+    def stream_chunk(self, job_id, pass_index, payload, points, *, last_pass=False) -> int:
+        self.chunks.append((pass_index, points, hashlib.sha256(payload).hexdigest(), payload, last_pass))
+        return len(self.chunks) - 1
+
+    def stream_payloads(self, job_id) -> list:
+        return [c[3] for c in self.chunks]
+
+    def end_stream(self, job_id) -> None:
+        pass
+
+
+def _streamed(
+    args, acq, writer, n_profiles: int, n_passes: int, epoch_ns: int, tmp: str, stages: dict
+) -> dict:
+    """``--stream``: the scan's cloud cut pass by pass while it is acquired (:class:`ScanStream` in
+    the same event loop as the acquisition, as in the daemon), the chunks held as the dispatcher holds
+    them (``spill``: in a file beside the raw ones; ``memory``: in memory, as before issue 42), then
+    ``cloud.bin`` written from them as the hand-over does."""
+    import asyncio
+
+    from cellctl.acquisition.publish import PublishSettings
+    from cellctl.acquisition.spill import release
+    from cellctl.api.cloud_codec import CloudMeta, write_concatenated
+    from cellctl.daemon.stream import ScanStream
+
+    loop = asyncio.new_event_loop()
+    held = _HeldChunks()
+    stream = ScanStream(held, loop.create_future(), job_id="long", plate_id="long",
+                        settings=PublishSettings(pitch_mm=args.publish_pitch_mm, edge_pitch_mm=args.publish_pitch_mm),
+                        first_edge_pass=n_passes - 4, meta=CloudMeta())  # fmt: skip
+
+    async def follow() -> None:
+        stream.follow(acq, writer if args.stream == "spill" else None)
+
+    loop.run_until_complete(follow())
+    feed_stream(acq, n_profiles=n_profiles, n_passes=n_passes, width=args.width, batch=args.batch,
+                epoch_ns=epoch_ns, between=lambda: loop.run_until_complete(asyncio.sleep(0)))  # fmt: skip
+    acq.finish()
+    writer.close()
+    loop.run_until_complete(stream.finish())
+    stages["acquire"] = _hwm_mb()
+    _reset_hwm()
+    payloads = stream.payloads
+    size = write_concatenated(Path(tmp) / "cloud.bin", payloads, read=release)
+    stages["publish"] = _hwm_mb()
+    scan = acq.cloud()
+    raw_points = int(scan.valid_per_profile().sum())
+    digest = hashlib.sha256(Path(tmp, "cloud.bin").read_bytes()).hexdigest()
+    loop.close()
+    return {"profiles": len(scan), "raw_points": raw_points, "published_points": stream.points,
+            "cloud_bytes": size, "cloud_sha256": digest, "stream_chunks": stream.chunks}  # fmt: skip
 
 
 def daemon_part(args: argparse.Namespace) -> dict:
@@ -138,6 +200,15 @@ def daemon_part(args: argparse.Namespace) -> dict:
         acq = Acquisition(
             settings, writer, keep_batches=True, **({"expected_profiles": expected} if expected else {})
         )
+        if args.stream:
+            out = _streamed(args, acq, writer, n_profiles, n_passes, epoch_ns, tmp, stages)
+            mib_per_pt = 2**20 / max(out["raw_points"], 1)
+            return {
+                "daemon_stages_mb": stages, "daemon_peak_mb": max(stages.values()),
+                "daemon_stages_b_per_pt": {k: round(v * mib_per_pt, 2) for k, v in stages.items()},
+                "daemon_peak_b_per_pt": round(max(stages.values()) * mib_per_pt, 2),
+                "daemon_acquire_s": round(time.perf_counter() - t0, 1), "stream": args.stream, **out,
+            }  # fmt: skip
         feed_stream(acq, n_profiles=n_profiles, n_passes=n_passes, width=args.width, batch=args.batch,
                     epoch_ns=epoch_ns)  # fmt: skip
         acq.finish()
@@ -412,6 +483,9 @@ def main() -> int:
     p.add_argument("--batch", type=int, default=20, help="profiles per frame group")
     p.add_argument("--publish-pitch-mm", type=float, default=0.5)
     p.add_argument("--presize", action="store_true", help="tell the acquisition the expected profile count")
+    p.add_argument("--stream", choices=["spill", "memory"], default=None,
+                   help="daemon side: the cloud streamed pass by pass while acquired, its chunks held in a "
+                        "spill file or in memory, then cloud.bin written from them")  # fmt: skip
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--length-mm", type=float, default=6000.0, help="the plate's length (both sides)")
     p.add_argument("--width-mm", type=float, default=2000.0, help="the plate's width (both sides)")
@@ -446,6 +520,8 @@ def main() -> int:
                  "--width", str(args.width), "--batch", str(args.batch)]  # fmt: skip
         if args.presize:
             extra.append("--presize")
+        if args.stream:
+            extra += ["--stream", args.stream]
         if args.dir:
             extra += ["--dir", args.dir]
         out.update(_child("daemon", args, extra))

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SpillArray", "release"]
+__all__ = ["ByteSpill", "SpillArray", "release"]
 
 _PAGE = mmap.PAGESIZE
 
@@ -67,6 +67,29 @@ class SpillArray:
         self.capacity = rows
 
 
+class ByteSpill:
+    """Byte strings (a streamed scan's encoded chunks) kept in an unlinked file in ``directory``:
+    :meth:`keep` writes one and hands back a read-only memory-mapped view of it, which reads as the
+    bytes did and costs memory only while read (:func:`release` after the read)."""
+
+    def __init__(self, directory: str | Path) -> None:
+        self._file = tempfile.TemporaryFile(dir=directory, prefix=".spill-")  # noqa: SIM115 (as SpillArray's)
+        self._end = 0
+
+    def keep(self, data: bytes | bytearray | memoryview) -> memoryview:
+        """``data`` written to the file (OSError when the disk refuses it) and mapped back."""
+        mv = memoryview(data).cast("B")
+        n = mv.nbytes
+        if not n:
+            return memoryview(b"")
+        at, fd = self._end, self._file.fileno()
+        done = 0
+        while done < n:
+            done += os.pwrite(fd, mv[done:], at + done)
+        self._end = at + -(-n // _PAGE) * _PAGE  # the next one page-aligned: a mapping starts on a page
+        return memoryview(mmap.mmap(fd, n, access=mmap.ACCESS_READ, offset=at))
+
+
 def _mapping(view: np.ndarray) -> tuple[mmap.mmap, int] | None:
     """The memory map under ``view`` and the address of its first byte, or None (an array in memory)."""
     root = view
@@ -81,12 +104,15 @@ def _mapping(view: np.ndarray) -> tuple[mmap.mmap, int] | None:
     return base, np.frombuffer(base, np.uint8, count=1).__array_interface__["data"][0]
 
 
-def release(*views: np.ndarray) -> None:
+def release(*views: np.ndarray | memoryview) -> None:
     """Take the pages under each view out of the process' memory when it is a view of a
-    :class:`SpillArray` (no-op for arrays in memory). The data is kept: the next read maps it back."""
+    :class:`SpillArray` or a :class:`ByteSpill`'s bytes (no-op for anything in memory). The data is
+    kept: the next read maps it back."""
     for view in views:
-        if view is None or not view.size:
-            continue
+        if isinstance(view, memoryview):
+            view = np.frombuffer(view, np.uint8) if view.nbytes else None
+        if not isinstance(view, np.ndarray) or not view.size:
+            continue  # bytes, a bytearray, an empty view: in memory or nothing
         found = _mapping(view)
         if found is None:
             continue

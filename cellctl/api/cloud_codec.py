@@ -49,7 +49,7 @@ from __future__ import annotations
 import json
 import struct
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -389,13 +389,25 @@ def concat_encoded(payloads: list[bytes | bytearray]) -> bytearray:
     return encode_cloud(Cloud(job_id=first.job_id, plate_id=first.plate_id, meta=first.meta, **arrays))
 
 
-def write_concatenated(path: str | Path, payloads: Sequence[bytes | bytearray]) -> int:
+def write_concatenated(
+    path: str | Path,
+    payloads: Sequence[bytes | bytearray | memoryview],
+    *,
+    read: Callable[[np.ndarray], None] | None = None,
+) -> int:
     """Write :func:`concat_encoded` of ``payloads`` to ``path``, the same bytes, without building it in
     memory: each array goes to the file straight from the chunks it is in (a streamed scan's cloud,
-    70 MB on the sail plate, written while its analysis runs). Returns the bytes written."""
+    70 MB on the sail plate, written while its analysis runs). Returns the bytes written.
+
+    read: called with each chunk's array once it has been read (checked or written): the daemon's
+    chunks are memory-mapped from a spill file, whose pages it then takes out of memory again."""
     if not payloads:
         raise CloudFormatError("no cloud to concatenate")
-    clouds = [decode_cloud(p) for p in payloads]
+    clouds = []
+    for p in payloads:
+        clouds.append(decode_cloud(p))
+        if read is not None:
+            read(clouds[-1].xyz_mm)  # read by the finiteness check
     first = clouds[0]
     names = [
         name for name in ("xyz_mm", *OPTIONAL_FIELDS) if all(getattr(c, name) is not None for c in clouds)
@@ -413,6 +425,8 @@ def write_concatenated(path: str | Path, payloads: Sequence[bytes | bytearray]) 
                 arr = getattr(c, name)
                 if arr.size:
                     f.write(memoryview(np.ascontiguousarray(arr).reshape(-1)).cast("B"))
+                    if read is not None:
+                        read(arr)
             f.write(bytes(_pad(f.tell()) - f.tell()))
         assert f.tell() == total
     return total
