@@ -177,7 +177,7 @@ def _streamed(
     size = write_concatenated(Path(tmp) / "cloud.bin", payloads, read=release)
     stages["publish"] = _hwm_mb()
     scan = acq.cloud()
-    raw_points = int(scan.valid_per_profile().sum())
+    raw_points = scan.n_valid
     digest = hashlib.sha256(Path(tmp, "cloud.bin").read_bytes()).hexdigest()
     loop.close()
     return {"profiles": len(scan), "raw_points": raw_points, "published_points": stream.points,
@@ -218,7 +218,7 @@ def daemon_part(args: argparse.Namespace) -> dict:
         _reset_hwm()
         # as cellctl/daemon/scan.py: the whole scan taken while the acquisition is still alive
         scan = acq.take_cloud() if hasattr(acq, "take_cloud") else acq.cloud()
-        raw_points = int(scan.valid_per_profile().sum())  # block by block (scan.n_valid maps it all)
+        raw_points = scan.n_valid
         profiles = len(scan)
         del acq
         stages["cloud"] = _hwm_mb()

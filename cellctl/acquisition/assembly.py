@@ -217,8 +217,8 @@ class AssembledScan:
 
     @property
     def n_valid(self) -> int:
-        """Number of valid points."""
-        return int(self.valid.sum())
+        """Number of valid points (counted block by block: a spilled scan's pages released)."""
+        return int(self.valid_per_profile().sum())
 
     def points(self, column_step: int | np.ndarray = 1) -> dict[str, np.ndarray]:
         """Valid points flattened: ``xyz_mm`` (k, 3) float32, ``pass_id``, ``profile_index``,

@@ -72,7 +72,7 @@ def test_the_daemon_heap_per_point_stays_under_its_bounds(tmp_path, monkeypatch)
         acq = _stream(tmp_path, spill=True)
         acquire_peak = tracemalloc.get_traced_memory()[1]
         scan = acq.cloud()
-        raw_points = int(scan.valid_per_profile().sum())
+        raw_points = scan.n_valid
         tracemalloc.reset_peak()
         base = tracemalloc.get_traced_memory()[0]
         payload, _ = encode_scan(scan, job_id="J", plate_id="P", column_step=_steps(scan))
