@@ -22,7 +22,9 @@ passes scaled: the passes with the width, their profiles with the length; ``--pr
 files (``--dir``: a disk, not a tmpfs). ``--stages`` adds ``stages``, the analysis stage by stage
 (:class:`StageProfile`: time, peak and after RSS, the numpy heap live at the stage's end and at its
 peak, the arrays its result holds, in bytes per point of the input cloud) and ``worker_peak_b_per_pt``;
-docs/operations.md "The analysis' memory, stage by stage" has the table.
+docs/operations.md "The analysis' memory, stage by stage" has the table. On the daemon side ``--stages``
+adds ``daemon_heap_peak_b_per_pt``, the numpy heap's peak per stage (docs/operations.md "The daemon's
+memory, stage by stage").
 
 Prints one JSON object: ``daemon_peak_mb``, ``daemon_stages_mb`` (acquire / cloud / publish) and
 the same in bytes per raw point (``daemon_stages_b_per_pt``, ``daemon_peak_b_per_pt``),
@@ -66,6 +68,18 @@ def _reset_hwm() -> None:
     """Reset VmHWM to the current RSS (Linux: ``5`` into clear_refs)."""
     with contextlib.suppress(OSError):
         Path("/proc/self/clear_refs").write_text("5")
+
+
+def _stage_end(stages: dict[str, float], heap: dict[str, int], name: str) -> None:
+    """The stage's peak RSS (and with tracemalloc on, ``--stages``, the numpy heap's peak), then both
+    reset for the next stage."""
+    import tracemalloc
+
+    stages[name] = _hwm_mb()
+    if tracemalloc.is_tracing():
+        heap[name] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.reset_peak()
+    _reset_hwm()
 
 
 # ---- daemon side -------------------------------------------------------------------------------
@@ -143,7 +157,7 @@ class _HeldChunks:
 
 
 def _streamed(
-    args, acq, writer, n_profiles: int, n_passes: int, epoch_ns: int, tmp: str, stages: dict
+    args, acq, writer, n_profiles: int, n_passes: int, epoch_ns: int, tmp: str, stages: dict, heap: dict
 ) -> dict:
     """``--stream``: the scan's cloud cut pass by pass while it is acquired (:class:`ScanStream` in
     the same event loop as the acquisition, as in the daemon), the chunks held as the dispatcher holds
@@ -171,17 +185,32 @@ def _streamed(
     acq.finish()
     writer.close()
     loop.run_until_complete(stream.finish())
-    stages["acquire"] = _hwm_mb()
-    _reset_hwm()
+    _stage_end(stages, heap, "acquire")
     payloads = stream.payloads
     size = write_concatenated(Path(tmp) / "cloud.bin", payloads, read=release)
-    stages["publish"] = _hwm_mb()
+    _stage_end(stages, heap, "publish")
     scan = acq.cloud()
     raw_points = scan.n_valid
     digest = hashlib.sha256(Path(tmp, "cloud.bin").read_bytes()).hexdigest()
     loop.close()
     return {"profiles": len(scan), "raw_points": raw_points, "published_points": stream.points,
             "cloud_bytes": size, "cloud_sha256": digest, "stream_chunks": stream.chunks}  # fmt: skip
+
+
+def _daemon_figures(stages: dict[str, float], heap: dict[str, int], **more) -> dict:
+    """The daemon side's JSON: peak RSS per stage in MB and in bytes per raw point (and the numpy
+    heap's peak per stage in bytes per raw point with ``--stages``), then ``more`` (``raw_points`` in it)."""
+    raw_points = more["raw_points"]
+    mib_per_pt = 2**20 / max(raw_points, 1)
+    out = {
+        "daemon_stages_mb": stages,
+        "daemon_stages_b_per_pt": {k: round(v * mib_per_pt, 2) for k, v in stages.items()},
+        "daemon_peak_mb": max(stages.values()),
+        "daemon_peak_b_per_pt": round(max(stages.values()) * mib_per_pt, 2),
+    }
+    if heap:
+        out["daemon_heap_peak_b_per_pt"] = {k: round(v / max(raw_points, 1), 2) for k, v in heap.items()}
+    return {**out, **more}
 
 
 def daemon_part(args: argparse.Namespace) -> dict:
@@ -193,6 +222,11 @@ def daemon_part(args: argparse.Namespace) -> dict:
     epoch_ns = 10**12
     settings = AcquisitionSettings(epoch_ns=epoch_ns)
     stages: dict[str, float] = {}
+    heap: dict[str, int] = {}
+    if args.stages:
+        import tracemalloc
+
+        tracemalloc.start(1)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         writer = RawWriter(Path(tmp) / "job", {"acquisition": settings.to_json()})
@@ -201,28 +235,21 @@ def daemon_part(args: argparse.Namespace) -> dict:
             settings, writer, keep_batches=True, **({"expected_profiles": expected} if expected else {})
         )
         if args.stream:
-            out = _streamed(args, acq, writer, n_profiles, n_passes, epoch_ns, tmp, stages)
-            mib_per_pt = 2**20 / max(out["raw_points"], 1)
-            return {
-                "daemon_stages_mb": stages, "daemon_peak_mb": max(stages.values()),
-                "daemon_stages_b_per_pt": {k: round(v * mib_per_pt, 2) for k, v in stages.items()},
-                "daemon_peak_b_per_pt": round(max(stages.values()) * mib_per_pt, 2),
-                "daemon_acquire_s": round(time.perf_counter() - t0, 1), "stream": args.stream, **out,
-            }  # fmt: skip
+            out = _streamed(args, acq, writer, n_profiles, n_passes, epoch_ns, tmp, stages, heap)
+            return _daemon_figures(stages, heap, stream=args.stream,
+                                   daemon_acquire_s=round(time.perf_counter() - t0, 1), **out)  # fmt: skip
         feed_stream(acq, n_profiles=n_profiles, n_passes=n_passes, width=args.width, batch=args.batch,
                     epoch_ns=epoch_ns)  # fmt: skip
         acq.finish()
         writer.close()
-        stages["acquire"] = _hwm_mb()
+        _stage_end(stages, heap, "acquire")
         acquire_s = time.perf_counter() - t0
-        _reset_hwm()
         # as cellctl/daemon/scan.py: the whole scan taken while the acquisition is still alive
         scan = acq.take_cloud() if hasattr(acq, "take_cloud") else acq.cloud()
         raw_points = scan.n_valid
         profiles = len(scan)
         del acq
-        stages["cloud"] = _hwm_mb()
-        _reset_hwm()
+        _stage_end(stages, heap, "cloud")
         t1 = time.perf_counter()
         steps = column_steps(
             scan.pass_id,
@@ -233,24 +260,20 @@ def daemon_part(args: argparse.Namespace) -> dict:
         del scan, steps
         (Path(tmp) / "cloud.bin").write_bytes(payload)
         publish_s = time.perf_counter() - t1
-        stages["publish"] = _hwm_mb()
+        _stage_end(stages, heap, "publish")
         raw_bytes = writer.bytes_written
-    mib_per_pt = 2**20 / max(raw_points, 1)
-    return {
-        "daemon_stages_mb": stages,
-        "daemon_stages_b_per_pt": {k: round(v * mib_per_pt, 2) for k, v in stages.items()},
-        "daemon_peak_mb": max(stages.values()),
-        "daemon_peak_b_per_pt": round(max(stages.values()) * mib_per_pt, 2),
-        "daemon_acquire_s": round(acquire_s, 1),
-        "daemon_publish_s": round(publish_s, 1),
-        "profiles": profiles,
-        "raw_points": raw_points,
-        "raw_mb": round(raw_bytes / 1e6, 1),
-        "published_points": n_points,
-        "cloud_bytes": len(payload),
-        "cloud_sha256": hashlib.sha256(payload).hexdigest(),
-        "daemon_presized": bool(args.presize),
-    }
+    return _daemon_figures(
+        stages, heap,
+        daemon_acquire_s=round(acquire_s, 1),
+        daemon_publish_s=round(publish_s, 1),
+        profiles=profiles,
+        raw_points=raw_points,
+        raw_mb=round(raw_bytes / 1e6, 1),
+        published_points=n_points,
+        cloud_bytes=len(payload),
+        cloud_sha256=hashlib.sha256(payload).hexdigest(),
+        daemon_presized=bool(args.presize),
+    )  # fmt: skip
 
 
 def _daemon_size(args: argparse.Namespace) -> tuple[int, int]:
@@ -492,7 +515,8 @@ def main() -> int:
     p.add_argument("--trace", action="store_true", help="worker side: print the stacks at each new RSS peak")
     p.add_argument("--stages", action="store_true",
                    help="worker side: a table of the analysis' stages (time, peak RSS, live numpy heap and the "
-                        "arrays each result holds, in bytes per point; tracemalloc slows it a little)")  # fmt: skip
+                        "arrays each result holds, in bytes per point; tracemalloc slows it a little); daemon "
+                        "side: the numpy heap's peak per stage, bytes per raw point")  # fmt: skip
     p.add_argument("--dir", default=None, help="where the daemon side's raw files go")
     p.add_argument("--work", default=None, help="the worker side's work directory")
     args = p.parse_args()
@@ -517,7 +541,7 @@ def main() -> int:
     if args.part in ("all", "daemon"):
         profiles, passes = _daemon_size(args)
         extra = [*common, "--profiles", str(profiles), "--passes", str(passes),
-                 "--width", str(args.width), "--batch", str(args.batch)]  # fmt: skip
+                 "--width", str(args.width), "--batch", str(args.batch), *(["--stages"] if args.stages else [])]  # fmt: skip
         if args.presize:
             extra.append("--presize")
         if args.stream:
