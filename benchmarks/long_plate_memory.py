@@ -15,14 +15,20 @@ path and the analysis worker's pipeline, each in its own process, peak RSS (VmHW
   detection lines (the paper's spacing over the whole plate) and the results directory written.
   Its VmHWM and the analysis time are the worker's figures.
 
-``--length-mm`` / ``--width-mm`` size the worker side's plate (default 6000 x 2000; the beams every
-metre, the radii scaled with the size). ``--stages`` adds ``stages``, the analysis stage by stage
+``--length-mm`` / ``--width-mm`` size the plate (default 6000 x 2000): the worker side's (the beams
+every metre, the radii scaled with the size) and the daemon side's stream (340 000 profiles in 57
+passes scaled: the passes with the width, their profiles with the length; ``--profiles`` /
+``--passes`` set them instead). The daemon's whole-scan arrays go to a spill file beside its raw
+files (``--dir``: a disk, not a tmpfs). ``--stages`` adds ``stages``, the analysis stage by stage
 (:class:`StageProfile`: time, peak and after RSS, the numpy heap live at the stage's end and at its
 peak, the arrays its result holds, in bytes per point of the input cloud) and ``worker_peak_b_per_pt``;
-docs/operations.md "The analysis' memory, stage by stage" has the table.
+docs/operations.md "The analysis' memory, stage by stage" has the table. On the daemon side ``--stages``
+adds ``daemon_heap_peak_b_per_pt``, the numpy heap's peak per stage (docs/operations.md "The daemon's
+memory, stage by stage").
 
-Prints one JSON object: ``daemon_peak_mb``, ``daemon_stages_mb`` (acquire / cloud / publish),
-``daemon_s``, ``profiles``, ``raw_points``, ``published_points``, ``cloud_bytes``,
+Prints one JSON object: ``daemon_peak_mb``, ``daemon_stages_mb`` (acquire / cloud / publish) and
+the same in bytes per raw point (``daemon_stages_b_per_pt``, ``daemon_peak_b_per_pt``),
+``daemon_s``, ``profiles``, ``raw_points``, ``published_points``, ``cloud_bytes``, ``cloud_sha256``,
 ``worker_peak_mb``, ``analysis_s``, ``analysis_stages_s``, ``analysed_points``, ``lines``,
 ``verdict``, ``load_avg_1min``. ``--part daemon|worker`` runs one side only.
 """
@@ -31,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import json
 import os
 import subprocess
@@ -63,26 +70,163 @@ def _reset_hwm() -> None:
         Path("/proc/self/clear_refs").write_text("5")
 
 
+def _stage_end(stages: dict[str, float], heap: dict[str, int], name: str) -> None:
+    """The stage's peak RSS (and with tracemalloc on, ``--stages``, the numpy heap's peak), then both
+    reset for the next stage."""
+    import tracemalloc
+
+    stages[name] = _hwm_mb()
+    if tracemalloc.is_tracing():
+        heap[name] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.reset_peak()
+    _reset_hwm()
+
+
 # ---- daemon side -------------------------------------------------------------------------------
 
 
-def daemon_part(args: argparse.Namespace) -> dict:
+def feed_stream(acq, *, n_profiles: int, n_passes: int, width: int, batch: int, epoch_ns: int,
+                seed: int = 0, between=None) -> None:  # fmt: skip
+    """A long plate's profile stream into ``acq`` (not finished): ``n_profiles`` profiles of ``width``
+    points at 200 Hz in ``batch``-profile frame groups through the HD8 protocol's encoder and decoder,
+    ``n_passes`` passes, 250 Hz of joint feedback (tests/acquisition/test_daemon_memory.py feeds a
+    scaled-down one). ``between``: called after each group (the event loop's turn)."""
     import numpy as np
 
+    from drivers.laser import protocol as P
+
+    rate_hz = 200.0
+    per_pass = n_profiles // n_passes
+    scale = P.ProfileScale(x_scale_nm=100_000, z_scale_nm=2000, x_offset_um=-25_000, z_offset_um=100_000)
+    rng = np.random.default_rng(seed)
+    t_r_step = 0.004032
+    next_r = 0.0
+    pass_open = False
+    for k0 in range(0, n_profiles, batch):
+        k = np.arange(k0, min(n_profiles, k0 + batch))
+        t_s = k / rate_hz
+        # the robot samples received up to this group's arrival (250 Hz of joints)
+        t_r = np.arange(next_r, t_s[-1] + 0.01, t_r_step)
+        if len(t_r):
+            next_r = t_r[-1] + t_r_step
+            q = np.column_stack(
+                [5 * np.sin(t_r / 70), 15 + 2 * np.sin(t_r / 50), 29 + np.cos(t_r / 30),
+                 0 * t_r, 45 + 0 * t_r, 180 + 0 * t_r]
+            )  # fmt: skip
+            host = epoch_ns + np.rint((t_r + 0.0002) * 1e9).astype(np.int64)
+            ctrl = np.rint(t_r * 1e6).astype(np.int64) + 555_000_000
+            acq.feed_robot(host, ctrl, q)
+        p = int(k0 // per_pass)
+        if not pass_open and p < n_passes:
+            acq.begin_pass(p, epoch_ns + int(t_s[0] * 1e9) - 1000)
+            pass_open = True
+        t_us = np.rint(t_s * 1e6).astype(np.uint64) + 1_000_000
+        z = 100.0 + rng.normal(0, 5, (len(k), width))
+        valid = rng.random((len(k), width)) > 0.02
+        raw = P.encode_frame_group(
+            frame_index=k.astype(np.uint64), sensor_time_us=t_us,
+            hd8_ms=(t_us // 1000).astype(np.uint32), encoder=np.zeros(len(k), np.int64),
+            status=np.zeros(len(k), np.uint32), exposure_ns=np.full(len(k), 500_000, np.uint32),
+            scale=scale, z_raw=P.quantize_mm(z, valid, scale.z_scale_nm, scale.z_offset_um),
+        )  # fmt: skip
+        msgs = P.MessageFramer().feed(raw)
+        acq.feed_profiles(P.decode_group(msgs, epoch_ns + int(t_us[-1] - 1_000_000) * 1000 + 1_000_000))
+        if pass_open and (int((k0 + batch) // per_pass) != p):
+            acq.end_pass(epoch_ns + int(t_s[-1] * 1e9) + 1000)
+            pass_open = False
+        if between is not None:
+            between()
+
+
+class _HeldChunks:
+    """What :class:`cellctl.daemon.dispatch.Dispatcher` does with a streamed job's chunks, without
+    Zenoh: each kept with its sha256 until the stream ends (``--stream``)."""
+
+    def __init__(self) -> None:
+        self.chunks: list[tuple] = []
+
+    def stream_chunk(self, job_id, pass_index, payload, points, *, last_pass=False) -> int:
+        self.chunks.append((pass_index, points, hashlib.sha256(payload).hexdigest(), payload, last_pass))
+        return len(self.chunks) - 1
+
+    def stream_payloads(self, job_id) -> list:
+        return [c[3] for c in self.chunks]
+
+    def end_stream(self, job_id) -> None:
+        pass
+
+
+def _streamed(
+    args, acq, writer, n_profiles: int, n_passes: int, epoch_ns: int, tmp: str, stages: dict, heap: dict
+) -> dict:
+    """``--stream``: the scan's cloud cut pass by pass while it is acquired (:class:`ScanStream` in
+    the same event loop as the acquisition, as in the daemon), the chunks held as the dispatcher holds
+    them (``spill``: in a file beside the raw ones; ``memory``: in memory, as before issue 42), then
+    ``cloud.bin`` written from them as the hand-over does."""
+    import asyncio
+
+    from cellctl.acquisition.publish import PublishSettings
+    from cellctl.acquisition.spill import release
+    from cellctl.api.cloud_codec import CloudMeta, write_concatenated
+    from cellctl.daemon.stream import ScanStream
+
+    loop = asyncio.new_event_loop()
+    held = _HeldChunks()
+    stream = ScanStream(held, loop.create_future(), job_id="long", plate_id="long",
+                        settings=PublishSettings(pitch_mm=args.publish_pitch_mm, edge_pitch_mm=args.publish_pitch_mm),
+                        first_edge_pass=n_passes - 4, meta=CloudMeta())  # fmt: skip
+
+    async def follow() -> None:
+        stream.follow(acq, writer if args.stream == "spill" else None)
+
+    loop.run_until_complete(follow())
+    feed_stream(acq, n_profiles=n_profiles, n_passes=n_passes, width=args.width, batch=args.batch,
+                epoch_ns=epoch_ns, between=lambda: loop.run_until_complete(asyncio.sleep(0)))  # fmt: skip
+    acq.finish()
+    writer.close()
+    loop.run_until_complete(stream.finish())
+    _stage_end(stages, heap, "acquire")
+    payloads = stream.payloads
+    size = write_concatenated(Path(tmp) / "cloud.bin", payloads, read=release)
+    _stage_end(stages, heap, "publish")
+    scan = acq.cloud()
+    raw_points = scan.n_valid
+    digest = hashlib.sha256(Path(tmp, "cloud.bin").read_bytes()).hexdigest()
+    loop.close()
+    return {"profiles": len(scan), "raw_points": raw_points, "published_points": stream.points,
+            "cloud_bytes": size, "cloud_sha256": digest, "stream_chunks": stream.chunks}  # fmt: skip
+
+
+def _daemon_figures(stages: dict[str, float], heap: dict[str, int], **more) -> dict:
+    """The daemon side's JSON: peak RSS per stage in MB and in bytes per raw point (and the numpy
+    heap's peak per stage in bytes per raw point with ``--stages``), then ``more`` (``raw_points`` in it)."""
+    raw_points = more["raw_points"]
+    mib_per_pt = 2**20 / max(raw_points, 1)
+    out = {
+        "daemon_stages_mb": stages,
+        "daemon_stages_b_per_pt": {k: round(v * mib_per_pt, 2) for k, v in stages.items()},
+        "daemon_peak_mb": max(stages.values()),
+        "daemon_peak_b_per_pt": round(max(stages.values()) * mib_per_pt, 2),
+    }
+    if heap:
+        out["daemon_heap_peak_b_per_pt"] = {k: round(v / max(raw_points, 1), 2) for k, v in heap.items()}
+    return {**out, **more}
+
+
+def daemon_part(args: argparse.Namespace) -> dict:
     from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
     from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan
     from cellctl.jobstore.rawstore import RawWriter
-    from drivers.laser import protocol as P
 
-    rate_hz, width, batch = 200.0, args.width, args.batch
-    n_profiles = args.profiles
-    n_passes = args.passes
-    per_pass = n_profiles // n_passes
-    scale = P.ProfileScale(x_scale_nm=100_000, z_scale_nm=2000, x_offset_um=-25_000, z_offset_um=100_000)
-    rng = np.random.default_rng(0)
+    n_profiles, n_passes = _daemon_size(args)
     epoch_ns = 10**12
     settings = AcquisitionSettings(epoch_ns=epoch_ns)
     stages: dict[str, float] = {}
+    heap: dict[str, int] = {}
+    if args.stages:
+        import tracemalloc
+
+        tracemalloc.start(1)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         writer = RawWriter(Path(tmp) / "job", {"acquisition": settings.to_json()})
@@ -90,53 +234,22 @@ def daemon_part(args: argparse.Namespace) -> dict:
         acq = Acquisition(
             settings, writer, keep_batches=True, **({"expected_profiles": expected} if expected else {})
         )
-        t_r_step = 0.004032
-        next_r = 0.0
-        pass_open = False
-        for k0 in range(0, n_profiles, batch):
-            k = np.arange(k0, min(n_profiles, k0 + batch))
-            t_s = k / rate_hz
-            # the robot samples received up to this group's arrival (250 Hz of joints)
-            t_r = np.arange(next_r, t_s[-1] + 0.01, t_r_step)
-            if len(t_r):
-                next_r = t_r[-1] + t_r_step
-                q = np.column_stack(
-                    [5 * np.sin(t_r / 70), 15 + 2 * np.sin(t_r / 50), 29 + np.cos(t_r / 30),
-                     0 * t_r, 45 + 0 * t_r, 180 + 0 * t_r]
-                )  # fmt: skip
-                host = epoch_ns + np.rint((t_r + 0.0002) * 1e9).astype(np.int64)
-                ctrl = np.rint(t_r * 1e6).astype(np.int64) + 555_000_000
-                acq.feed_robot(host, ctrl, q)
-            p = int(k0 // per_pass)
-            if not pass_open and p < n_passes:
-                acq.begin_pass(p, epoch_ns + int(t_s[0] * 1e9) - 1000)
-                pass_open = True
-            t_us = np.rint(t_s * 1e6).astype(np.uint64) + 1_000_000
-            z = 100.0 + rng.normal(0, 5, (len(k), width))
-            valid = rng.random((len(k), width)) > 0.02
-            raw = P.encode_frame_group(
-                frame_index=k.astype(np.uint64), sensor_time_us=t_us,
-                hd8_ms=(t_us // 1000).astype(np.uint32), encoder=np.zeros(len(k), np.int64),
-                status=np.zeros(len(k), np.uint32), exposure_ns=np.full(len(k), 500_000, np.uint32),
-                scale=scale, z_raw=P.quantize_mm(z, valid, scale.z_scale_nm, scale.z_offset_um),
-            )  # fmt: skip
-            msgs = P.MessageFramer().feed(raw)
-            acq.feed_profiles(P.decode_group(msgs, epoch_ns + int(t_us[-1] - 1_000_000) * 1000 + 1_000_000))
-            if pass_open and (int((k0 + batch) // per_pass) != p):
-                acq.end_pass(epoch_ns + int(t_s[-1] * 1e9) + 1000)
-                pass_open = False
+        if args.stream:
+            out = _streamed(args, acq, writer, n_profiles, n_passes, epoch_ns, tmp, stages, heap)
+            return _daemon_figures(stages, heap, stream=args.stream,
+                                   daemon_acquire_s=round(time.perf_counter() - t0, 1), **out)  # fmt: skip
+        feed_stream(acq, n_profiles=n_profiles, n_passes=n_passes, width=args.width, batch=args.batch,
+                    epoch_ns=epoch_ns)  # fmt: skip
         acq.finish()
         writer.close()
-        stages["acquire"] = _hwm_mb()
+        _stage_end(stages, heap, "acquire")
         acquire_s = time.perf_counter() - t0
-        _reset_hwm()
         # as cellctl/daemon/scan.py: the whole scan taken while the acquisition is still alive
         scan = acq.take_cloud() if hasattr(acq, "take_cloud") else acq.cloud()
         raw_points = scan.n_valid
         profiles = len(scan)
         del acq
-        stages["cloud"] = _hwm_mb()
-        _reset_hwm()
+        _stage_end(stages, heap, "cloud")
         t1 = time.perf_counter()
         steps = column_steps(
             scan.pass_id,
@@ -147,20 +260,30 @@ def daemon_part(args: argparse.Namespace) -> dict:
         del scan, steps
         (Path(tmp) / "cloud.bin").write_bytes(payload)
         publish_s = time.perf_counter() - t1
-        stages["publish"] = _hwm_mb()
+        _stage_end(stages, heap, "publish")
         raw_bytes = writer.bytes_written
-    return {
-        "daemon_stages_mb": stages,
-        "daemon_peak_mb": max(stages.values()),
-        "daemon_acquire_s": round(acquire_s, 1),
-        "daemon_publish_s": round(publish_s, 1),
-        "profiles": profiles,
-        "raw_points": raw_points,
-        "raw_mb": round(raw_bytes / 1e6, 1),
-        "published_points": n_points,
-        "cloud_bytes": len(payload),
-        "daemon_presized": bool(args.presize),
-    }
+    return _daemon_figures(
+        stages, heap,
+        daemon_acquire_s=round(acquire_s, 1),
+        daemon_publish_s=round(publish_s, 1),
+        profiles=profiles,
+        raw_points=raw_points,
+        raw_mb=round(raw_bytes / 1e6, 1),
+        published_points=n_points,
+        cloud_bytes=len(payload),
+        cloud_sha256=hashlib.sha256(payload).hexdigest(),
+        daemon_presized=bool(args.presize),
+    )  # fmt: skip
+
+
+def _daemon_size(args: argparse.Namespace) -> tuple[int, int]:
+    """Profiles and passes of the daemon side: ``--profiles`` / ``--passes``, or scaled from the 6 m
+    plate's 340 000 profiles in 57 passes by the plate's size (passes along the length, so their count
+    grows with the width and their profiles with the length: the profiles with the area)."""
+    area = args.length_mm * args.width_mm / (6000.0 * 2000.0)
+    profiles = args.profiles if args.profiles is not None else round(340_000 * area)
+    passes = args.passes if args.passes is not None else max(5, round(57 * args.width_mm / 2000.0))
+    return profiles, passes
 
 
 # ---- worker side -------------------------------------------------------------------------------
@@ -371,19 +494,29 @@ def _child(part: str, args: argparse.Namespace, extra: list[str]) -> dict:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--part", choices=["all", "daemon", "worker", "synth", "analysis"], default="all")
-    p.add_argument("--profiles", type=int, default=340_000)
-    p.add_argument("--passes", type=int, default=57)
+    p.add_argument(
+        "--profiles",
+        type=int,
+        default=None,
+        help="daemon side: profiles (default 340 000 scaled by the plate's area)",
+    )
+    p.add_argument("--passes", type=int, default=None,
+                   help="daemon side: passes (default 57 scaled by the plate's width)")  # fmt: skip
     p.add_argument("--width", type=int, default=500)
     p.add_argument("--batch", type=int, default=20, help="profiles per frame group")
     p.add_argument("--publish-pitch-mm", type=float, default=0.5)
     p.add_argument("--presize", action="store_true", help="tell the acquisition the expected profile count")
+    p.add_argument("--stream", choices=["spill", "memory"], default=None,
+                   help="daemon side: the cloud streamed pass by pass while acquired, its chunks held in a "
+                        "spill file or in memory, then cloud.bin written from them")  # fmt: skip
     p.add_argument("--seed", type=int, default=3)
-    p.add_argument("--length-mm", type=float, default=6000.0, help="worker side: the plate's length")
-    p.add_argument("--width-mm", type=float, default=2000.0, help="worker side: the plate's width")
+    p.add_argument("--length-mm", type=float, default=6000.0, help="the plate's length (both sides)")
+    p.add_argument("--width-mm", type=float, default=2000.0, help="the plate's width (both sides)")
     p.add_argument("--trace", action="store_true", help="worker side: print the stacks at each new RSS peak")
     p.add_argument("--stages", action="store_true",
                    help="worker side: a table of the analysis' stages (time, peak RSS, live numpy heap and the "
-                        "arrays each result holds, in bytes per point; tracemalloc slows it a little)")  # fmt: skip
+                        "arrays each result holds, in bytes per point; tracemalloc slows it a little); daemon "
+                        "side: the numpy heap's peak per stage, bytes per raw point")  # fmt: skip
     p.add_argument("--dir", default=None, help="where the daemon side's raw files go")
     p.add_argument("--work", default=None, help="the worker side's work directory")
     args = p.parse_args()
@@ -406,10 +539,13 @@ def main() -> int:
     common = ["--publish-pitch-mm", str(args.publish_pitch_mm), "--length-mm", str(args.length_mm),
               "--width-mm", str(args.width_mm)]  # fmt: skip
     if args.part in ("all", "daemon"):
-        extra = [*common, "--profiles", str(args.profiles), "--passes", str(args.passes),
-                 "--width", str(args.width), "--batch", str(args.batch)]  # fmt: skip
+        profiles, passes = _daemon_size(args)
+        extra = [*common, "--profiles", str(profiles), "--passes", str(passes),
+                 "--width", str(args.width), "--batch", str(args.batch), *(["--stages"] if args.stages else [])]  # fmt: skip
         if args.presize:
             extra.append("--presize")
+        if args.stream:
+            extra += ["--stream", args.stream]
         if args.dir:
             extra += ["--dir", args.dir]
         out.update(_child("daemon", args, extra))

@@ -9,14 +9,16 @@ as NaN with ``valid`` False. All work is per batch on whole arrays.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import structlog
 
 from analysis.cloud_io import ScanCloud
 from cellctl.acquisition.poses import interpolate_poses, transform_profiles_within
+from cellctl.acquisition.spill import SpillArray, release
 
 log = structlog.get_logger(__name__)
 
@@ -33,6 +35,8 @@ CLOUD_DTYPES: dict[str, type] = {
 }
 #: rows per block when the cloud's arrays are filled (x 500 points: 8 M points' temporaries at most)
 _BLOCK_ROWS = 16384
+#: a spilled scan's rows are taken out of memory each time this many bytes of ``xyz_mm`` were written
+_RELEASE_BYTES = 32 << 20
 
 __all__ = [
     "CLOUD_DTYPES",
@@ -213,8 +217,8 @@ class AssembledScan:
 
     @property
     def n_valid(self) -> int:
-        """Number of valid points."""
-        return int(self.valid.sum())
+        """Number of valid points (counted block by block: a spilled scan's pages released)."""
+        return int(self.valid_per_profile().sum())
 
     def points(self, column_step: int | np.ndarray = 1) -> dict[str, np.ndarray]:
         """Valid points flattened: ``xyz_mm`` (k, 3) float32, ``pass_id``, ``profile_index``,
@@ -298,13 +302,28 @@ class AssembledScan:
             if kind.kind in "iu" and top > np.iinfo(kind).max:
                 raise AssemblyError(f"{name} {top} does not fit the cloud's {kind}")
 
+    def _release_rows(self, lo: int) -> None:
+        """Rows ``lo`` .. ``lo + _BLOCK_ROWS`` of a spilled scan out of memory (read: see
+        :class:`ScanBuilder`); nothing for a scan in memory."""
+        release(self.xyz_mm[lo : lo + _BLOCK_ROWS], self.valid[lo : lo + _BLOCK_ROWS])
+
+    def valid_per_profile(self) -> np.ndarray:
+        """(n,) int64 valid points of each profile, block of rows by block of rows."""
+        out = np.empty(len(self), np.int64)
+        for lo in range(0, len(self), _BLOCK_ROWS):
+            out[lo : lo + _BLOCK_ROWS] = np.count_nonzero(self.valid[lo : lo + _BLOCK_ROWS], axis=1)
+            self._release_rows(lo)
+        return out
+
     def cloud_blocks(self, column_step: int | np.ndarray = 1) -> Iterator[dict[str, np.ndarray]]:
         """:meth:`cloud_arrays` block of rows by block of rows (times from the scan's first profile):
         what a file writer streams, a block's points in memory at a time."""
         step = self._column_step(column_step)
         t0 = int(self.t_ns.min()) if len(self) else 0
         for lo in range(0, len(self), _BLOCK_ROWS):
-            yield self._block(lo, step, t0)
+            block = self._block(lo, step, t0)
+            self._release_rows(lo)
+            yield block
 
     def cloud_arrays(
         self,
@@ -313,6 +332,7 @@ class AssembledScan:
         dtypes: dict[str, np.dtype | type] | None = None,
         *,
         transit_apart: bool = False,
+        out: Callable[[int], dict[str, np.ndarray]] | None = None,
     ) -> dict[str, np.ndarray]:
         """The valid points (thinned as in :meth:`points`) in the cloud vocabulary of
         :mod:`analysis.cloud_io`: ``xyz_mm`` float32, ``pass_id`` with transit filed under pass 0,
@@ -327,25 +347,36 @@ class AssembledScan:
 
         transit_apart: the plan's passes numbered from 1 and the transit alone under pass 0 (the
         locate run's clouds, read pass by pass), instead of the scan's first pass sharing pass 0
-        with the transit."""
+        with the transit.
+
+        out: given the number of points, the arrays to fill (for example views into an encoded
+        message, :func:`cellctl.api.cloud_codec.allocate_cloud`: the points are then written once,
+        where they go); None: new arrays at ``dtypes``."""
         dt = {**CLOUD_DTYPES, **(dtypes or {})}
         step = self._column_step(column_step)
         self._check_fits(dt)
         t0 = t0_ns if t0_ns is not None else int(self.t_ns.min()) if len(self) else 0
         blocks = range(0, len(self), _BLOCK_ROWS)
-        counts = [int(np.count_nonzero(self._kept(lo, step))) for lo in blocks]
+        counts = []
+        for lo in blocks:
+            counts.append(int(np.count_nonzero(self._kept(lo, step))))
+            self._release_rows(lo)
         total = sum(counts)
-        out = {
-            "xyz_mm": np.empty((total, 3), dt["xyz_mm"]),
-            **{f: np.empty(total, dt[f]) for f in ("pass_id", "profile_index", "point_index", "t_s")},
-        }
+        if out is None:
+            arrays = {
+                "xyz_mm": np.empty((total, 3), dt["xyz_mm"]),
+                **{f: np.empty(total, dt[f]) for f in ("pass_id", "profile_index", "point_index", "t_s")},
+            }
+        else:
+            arrays = out(total)
         at = 0
         for lo, c in zip(blocks, counts, strict=True):
             if c:
                 for f, a in self._block(lo, step, t0, transit_apart).items():
-                    out[f][at : at + c] = a
+                    arrays[f][at : at + c] = a
+                self._release_rows(lo)
                 at += c
-        return out
+        return arrays
 
     def scan_cloud(self, column_step: int | np.ndarray = 1, *, transit_apart: bool = False) -> ScanCloud:
         """:meth:`cloud_arrays` as the analysis' :class:`~analysis.cloud_io.ScanCloud`."""
@@ -364,29 +395,59 @@ class AssembledScan:
 
 class ScanBuilder:
     """The whole scan's rows, appended batch by batch into one set of arrays (no list of batches to
-    concatenate at the end: :meth:`scan` is a view, the scan's points exist once in memory).
+    concatenate at the end: :meth:`scan` is a view, the scan's points exist once).
 
-    A 6000 x 2000 mm plate is about 340 000 profiles of 500 points: 2.2 GB of ``xyz_mm`` + ``valid``.
-    Kept as batches and concatenated, the scan needed twice that at its end; here the arrays are
-    sized from ``expected_profiles`` (the plan's profile count) and grown by half again when a scan
-    runs longer (numpy's untouched pages cost no memory, so an estimate on the high side is free).
+    A 6000 x 2000 mm plate is about 340 000 profiles of 500 points: 2.2 GB of ``xyz_mm`` + ``valid``
+    (13 bytes a point). With ``spill_dir`` those two are :class:`~cellctl.acquisition.spill.SpillArray`
+    s (an unlinked file beside the raw files, memory-mapped): rows written are taken out of the
+    process' memory every :data:`_RELEASE_BYTES`, readers take them back a block at a time (and
+    release them, :func:`~cellctl.acquisition.spill.release`), growing costs no copy, and what the
+    scan holds in memory is its per-profile arrays (44 bytes a profile, 0.09 bytes a point). Without
+    it (replays of small scans, tests) the arrays are in memory, sized from ``expected_profiles`` and
+    grown by half again when a scan runs longer.
 
     Args:
         expected_profiles: rows to reserve (0: start small and grow).
+        spill_dir: where the per-point arrays' file goes (a disk: the job's raw directory), or None.
     """
 
     _FIELDS = AssembledScan.__slots__
+    #: the per-point arrays (the rest are per profile)
+    _SPILLED = ("xyz_mm", "valid")
 
-    def __init__(self, expected_profiles: int = 0) -> None:
+    def __init__(self, expected_profiles: int = 0, spill_dir: str | Path | None = None) -> None:
         self._reserve = max(int(expected_profiles), 0)
+        self._spill_dir = spill_dir
+        self._spills: dict[str, SpillArray] = {}
         self._arrays: dict[str, np.ndarray] | None = None
         self.n = 0
+        self._released = 0  # rows below this were released after they were written
         self._ends: list[int] = []  # the row after each appended batch
 
-    def _allocate(self, like: AssembledBatch, rows: int) -> dict[str, np.ndarray]:
-        return {
-            f: np.empty((rows, *getattr(like, f).shape[1:]), getattr(like, f).dtype) for f in self._FIELDS
-        }
+    def _allocate(
+        self, like: AssembledBatch, rows: int, old: dict[str, np.ndarray] | None = None
+    ) -> dict[str, np.ndarray]:
+        """Arrays of ``rows`` rows, the first :attr:`n` those of ``old`` (a spilled array grows in its
+        file: nothing is copied). A spill that cannot grow (a full disk: the raw files stop the scan
+        then) leaves that array in memory, logged, rather than failing the scan."""
+        out = {}
+        for f in self._FIELDS:
+            a = getattr(like, f)
+            if self._spill_dir is not None and f in self._SPILLED:
+                try:
+                    if f not in self._spills:
+                        self._spills[f] = SpillArray(self._spill_dir, a.shape[1:], a.dtype, rows)
+                    self._spills[f].reserve(rows)
+                    out[f] = self._spills[f].array
+                    continue
+                except OSError as exc:
+                    log.warning("scan_spill_failed", field=f, rows=rows, error=str(exc))
+                    self._spill_dir = None
+                    self._spills.pop(f, None)
+            out[f] = np.empty((rows, *a.shape[1:]), a.dtype)
+            if old is not None:
+                out[f][: self.n] = old[f][: self.n]
+        return out
 
     def append(self, batch: AssembledBatch) -> None:
         """Append one batch's rows (their width must be the scan's)."""
@@ -400,14 +461,14 @@ class ScanBuilder:
             )
         cap = len(a["t_ns"])
         if self.n + k > cap:
-            grown = self._allocate(batch, max(self.n + k, cap + cap // 2))
-            for f in self._FIELDS:
-                grown[f][: self.n] = a[f][: self.n]
-            self._arrays = a = grown
+            self._arrays = a = self._allocate(batch, max(self.n + k, cap + cap // 2), a)
         for f in self._FIELDS:
             a[f][self.n : self.n + k] = getattr(batch, f)
         self.n += k
         self._ends.append(self.n)
+        if self._spills and (self.n - self._released) * a["xyz_mm"][0].nbytes >= _RELEASE_BYTES:
+            release(*(a[f][self._released : self.n] for f in self._spills))
+            self._released = self.n
 
     def batches_since(self, k: int) -> list[AssembledBatch]:
         """The batches appended after the first ``k``, in order, as views of the rows (no copy)."""
@@ -425,4 +486,7 @@ class ScanBuilder:
         points per profile before the first batch)."""
         if self._arrays is None:
             return AssembledScan.concat([], width)
+        if self._spills:
+            release(*(self._arrays[f][self._released : self.n] for f in self._spills))
+            self._released = self.n
         return AssembledScan(*(self._arrays[f][: self.n] for f in self._FIELDS))

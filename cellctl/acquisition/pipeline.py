@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -217,6 +218,9 @@ class Acquisition:
             online fits (the final assembly after a scan, with fits over the whole scan; see
             :mod:`.reassemble`); ``frames`` is a :meth:`FrameTimeline.line` for the ms counter.
         clocks_only: only feed the clock estimators (the first pass of the final assembly).
+        spill_dir: where the whole scan's per-point arrays are kept in a file instead of memory
+            (:class:`ScanBuilder`, :mod:`.spill`); by default the raw writer's directory, with no
+            writer in memory. ``False``: in memory whatever the writer.
     """
 
     def __init__(
@@ -228,6 +232,7 @@ class Acquisition:
         fixed_fits: dict | None = None,
         clocks_only: bool = False,
         expected_profiles: int = 0,
+        spill_dir: str | Path | Literal[False] | None = None,
     ) -> None:
         self.settings = settings
         self.fixed_fits = dict(fixed_fits or {})
@@ -250,7 +255,9 @@ class Acquisition:
         self._unwrap = CounterUnwrapper()
         frames_line = self.fixed_fits.get("frames")
         self._timeline = FrameTimeline(line=frames_line) if frames_line is not None else FrameTimeline()
-        self._rows = ScanBuilder(expected_profiles)
+        if spill_dir is None and writer is not None:
+            spill_dir = writer.job_dir
+        self._rows = ScanBuilder(expected_profiles, spill_dir=spill_dir or None)
         self._next_profile = 0
         self._width = 0
 

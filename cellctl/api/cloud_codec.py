@@ -49,7 +49,7 @@ from __future__ import annotations
 import json
 import struct
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -204,15 +204,35 @@ def encode_cloud(cloud: Cloud) -> bytearray:
             arrays[name] = _check_array(name, arr, n)
     if "t_s" in arrays and not np.isfinite(arrays["t_s"]).all():
         raise CloudFormatError("non-finite times", field="t_s")
-    prefix, offsets, total = _encoded_prefix(
-        cloud.job_id, cloud.plate_id, cloud.meta, n, {name: (a.dtype, a.nbytes) for name, a in arrays.items()}
+    out, views = allocate_cloud(
+        cloud.job_id, cloud.plate_id, cloud.meta, n, {name: a.dtype for name, a in arrays.items()}
     )
+    for name, arr in arrays.items():
+        views[name][:] = arr
+    return out
+
+
+def allocate_cloud(
+    job_id: str, plate_id: str, meta: CloudMeta, n: int, fields: dict[str, np.dtype]
+) -> tuple[bytearray, dict[str, np.ndarray]]:
+    """A message of ``n`` points with ``fields`` (name -> dtype, in order; ``xyz_mm`` first), its
+    header, field table and metadata written, and each field's array as a view into it to be filled
+    (``(n, 3)`` for ``xyz_mm``): an encoder that writes the points where they go, without a whole
+    cloud first and its copy (:func:`cellctl.acquisition.publish.encode_scan`). The views are not
+    checked: :func:`encode_cloud` checks its arrays before it fills them."""
+    for name, dtype in fields.items():
+        if name not in FIELDS or np.dtype(dtype) != FIELDS[name][0]:
+            raise CloudFormatError(f"dtype {np.dtype(dtype)} is not the field's", field=name)
+    sizes = {name: (FIELDS[name][0], n * FIELDS[name][1] * FIELDS[name][0].itemsize) for name in fields}
+    prefix, offsets, total = _encoded_prefix(job_id, plate_id, meta, n, sizes)
     out = bytearray(total)
     out[: len(prefix)] = prefix
-    for name, arr in arrays.items():
-        dst = np.frombuffer(out, dtype=arr.dtype, count=arr.size, offset=offsets[name])
-        dst[:] = arr.reshape(-1)
-    return out
+    views = {}
+    for name in fields:
+        dtype, comps = FIELDS[name]
+        v = np.frombuffer(out, dtype=dtype, count=n * comps, offset=offsets[name])
+        views[name] = v.reshape(n, comps) if comps > 1 else v
+    return out, views
 
 
 def _encoded_prefix(
@@ -369,13 +389,25 @@ def concat_encoded(payloads: list[bytes | bytearray]) -> bytearray:
     return encode_cloud(Cloud(job_id=first.job_id, plate_id=first.plate_id, meta=first.meta, **arrays))
 
 
-def write_concatenated(path: str | Path, payloads: Sequence[bytes | bytearray]) -> int:
+def write_concatenated(
+    path: str | Path,
+    payloads: Sequence[bytes | bytearray | memoryview],
+    *,
+    read: Callable[[np.ndarray], None] | None = None,
+) -> int:
     """Write :func:`concat_encoded` of ``payloads`` to ``path``, the same bytes, without building it in
     memory: each array goes to the file straight from the chunks it is in (a streamed scan's cloud,
-    70 MB on the sail plate, written while its analysis runs). Returns the bytes written."""
+    70 MB on the sail plate, written while its analysis runs). Returns the bytes written.
+
+    read: called with each chunk's array once it has been read (checked or written): the daemon's
+    chunks are memory-mapped from a spill file, whose pages it then takes out of memory again."""
     if not payloads:
         raise CloudFormatError("no cloud to concatenate")
-    clouds = [decode_cloud(p) for p in payloads]
+    clouds = []
+    for p in payloads:
+        clouds.append(decode_cloud(p))
+        if read is not None:
+            read(clouds[-1].xyz_mm)  # read by the finiteness check
     first = clouds[0]
     names = [
         name for name in ("xyz_mm", *OPTIONAL_FIELDS) if all(getattr(c, name) is not None for c in clouds)
@@ -393,6 +425,8 @@ def write_concatenated(path: str | Path, payloads: Sequence[bytes | bytearray]) 
                 arr = getattr(c, name)
                 if arr.size:
                     f.write(memoryview(np.ascontiguousarray(arr).reshape(-1)).cast("B"))
+                    if read is not None:
+                        read(arr)
             f.write(bytes(_pad(f.tell()) - f.tell()))
         assert f.tell() == total
     return total

@@ -67,6 +67,7 @@ import zenoh
 from pydantic import ValidationError
 
 from analysis.contracts.job import AnalysisJob
+from cellctl.acquisition.spill import release
 from cellctl.api.cloud_codec import ENCODING as CLOUD_ENCODING
 from cellctl.api.cloud_codec import concat_encoded
 from cellctl.api.keys import Keys
@@ -164,7 +165,7 @@ class _Worker:
 class _Stream:
     """A streamed job's chunks (pass index, points, sha256, payload, last pass) as the daemon gave them."""
 
-    chunks: list[tuple[int, int, str, bytes | bytearray, bool]] = field(default_factory=list)
+    chunks: list[tuple[int, int, str, bytes | bytearray | memoryview, bool]] = field(default_factory=list)
     ended: bool = False
     ended_at: float = 0.0
     wake: asyncio.Event = field(default_factory=asyncio.Event)
@@ -287,7 +288,7 @@ class Dispatcher:
         self,
         job_id: str,
         pass_index: int,
-        payload: bytes | bytearray,
+        payload: bytes | bytearray | memoryview,
         points: int,
         *,
         last_pass: bool = False,
@@ -309,7 +310,7 @@ class Dispatcher:
         st.wake.set()
         log.info("stream_ended", job_id=job_id, chunks=len(st.chunks), points=st.points)
 
-    def stream_payloads(self, job_id: str) -> list[bytes | bytearray]:
+    def stream_payloads(self, job_id: str) -> list[bytes | bytearray | memoryview]:
         """The chunks of a pending streamed job so far, in order."""
         return [c[3] for c in self._stream(job_id).chunks]
 
@@ -439,7 +440,9 @@ class Dispatcher:
         self._sends.add(task)
         task.add_done_callback(self._sends.discard)
 
-    def _payload(self, cloud: bytes | bytearray) -> Any:
+    def _payload(self, cloud: bytes | bytearray | memoryview) -> Any:
+        if isinstance(cloud, memoryview):  # a spilled chunk (cellctl.acquisition.spill): Zenoh takes bytes
+            cloud = bytes(cloud)
         if self._shm is None or len(cloud) > self.settings.shm_pool_mb * 2**20:
             return cloud
         try:
@@ -743,6 +746,7 @@ class Dispatcher:
                                        points=points, sha256=sha, last_pass=last_pass)  # fmt: skip
                     key = self.keys.worker_stream(worker_id, job.job_id, attempt, sent)
                     await asyncio.to_thread(put, key, self._payload(data), head.to_json())
+                    release(data)  # a spilled chunk's pages out of memory again once sent
                     sent += 1
                 if st.ended:
                     end = StreamEnd(

@@ -24,6 +24,7 @@ import structlog
 
 from cellctl.acquisition.publish import PublishSettings, budget_steps, column_steps, encode_scan
 from cellctl.acquisition.reassemble import reassemble
+from cellctl.acquisition.spill import release
 from cellctl.analysis_job import analysis_job
 from cellctl.api import JobState, now_utc
 from cellctl.api.cloud_codec import CloudMeta, write_concatenated
@@ -182,7 +183,7 @@ class Handover:
         if scan_cloud is None:  # re-analysis: whole-scan clock fits from the raw files
             scan_cloud = (await asyncio.to_thread(reassemble, self.store.raw_dir(rec.job_id))).cloud
         steps = column_steps(scan_cloud.pass_id, self._first_edge(job), PublishSettings.from_config(self.cfg))
-        steps = budget_steps(steps, scan_cloud.valid.sum(axis=1), self.cfg.scan.publish_max_points)
+        steps = budget_steps(steps, scan_cloud.valid_per_profile(), self.cfg.scan.publish_max_points)
         # thinned and encoded in one pass off the loop: the only copy of the points is the payload
         payload, job.points = await asyncio.to_thread(
             encode_scan, scan_cloud, job_id=rec.job_id, plate_id=rec.plate_id, column_step=steps,
@@ -340,14 +341,14 @@ def _store_outputs(
 
 
 def _write_cloud(
-    path: Path, payload: bytes | bytearray | None, chunks: list[bytes | bytearray] | None
+    path: Path, payload: bytes | bytearray | None, chunks: list[bytes | bytearray | memoryview] | None
 ) -> None:
     """cloud.bin: the published bytes, or a streamed job's chunks as one cloud (written from the
     chunks, not built in memory first: it runs beside the analysis)."""
     if payload is not None:
         path.write_bytes(payload)
     else:
-        write_concatenated(path, chunks or [])
+        write_concatenated(path, chunks or [], read=release)  # spilled chunks: their pages released
 
 
 async def render_html(store: JobStore, job: ActiveJob) -> None:

@@ -32,6 +32,9 @@ _BYTES_PER_POINT = 8.125
 _BYTES_PER_PROFILE = 256
 #: one joint-feedback sample (host ns, controller us, 6 joints + spare axes as float64) and framing
 _BYTES_PER_FEEDBACK = 128
+#: the spilled scan's bytes a point (float32 xyz, bool valid) and a published point's on the wire
+_SPILL_BYTES_PER_POINT = 13
+_PUBLISHED_BYTES_PER_POINT = 28
 _PROBE_BYTES = 4096
 
 
@@ -101,6 +104,22 @@ def raw_bytes_estimate(
     per_profile = _BYTES_PER_PROFILE + _BYTES_PER_POINT * points_per_profile
     total = profiles * per_profile + t_s * egm_rate_hz * _BYTES_PER_FEEDBACK
     return RawEstimate(profiles=profiles, bytes=int(total))
+
+
+def expected_profiles(scan_time_s: float, *, rate_hz: float, settle_s: float = 0.0) -> int:
+    """Profiles the acquisition reserves its whole-scan arrays for: the plan's time, the settle and
+    10 s of margin at the sensor's rate, and a tenth more."""
+    return round((scan_time_s + settle_s + 10.0) * rate_hz * 1.1)
+
+
+def spill_bytes_estimate(profiles: int, *, points_per_profile: int, publish_step: int) -> int:
+    """Disk the daemon's spill files take while a scan is acquired and published (issue 42,
+    :mod:`cellctl.acquisition.spill`): the scan's ``xyz_mm`` float32 and ``valid`` (13 bytes a point,
+    reserved for ``profiles`` at the start) and its streamed chunks (28 bytes a published point,
+    every ``publish_step``-th point). Taken out of the free space the raw files need: the reserve is
+    allocated when the scan starts."""
+    points = profiles * points_per_profile
+    return int(points * _SPILL_BYTES_PER_POINT + points * _PUBLISHED_BYTES_PER_POINT / max(publish_step, 1))
 
 
 def probe_writable(directory: str | Path) -> None:

@@ -38,6 +38,7 @@ from analysis.design.plates import PlateError
 from analysis.register.locate import LocateError, LocateResult, locate_plate, placement_offset
 from cellctl.acquisition.assembly import AssembledScan
 from cellctl.acquisition.pipeline import Acquisition, AcquisitionSettings
+from cellctl.acquisition.publish import PublishSettings
 from cellctl.acquisition.session import AcquisitionSession, SessionSettings, pass_windows_s
 from cellctl.api import CellState, JobState
 from cellctl.config import CellConfig
@@ -49,7 +50,13 @@ from cellctl.daemon.locate import (
     locate_settings,
     next_locate_plans,
 )
-from cellctl.daemon.preflight import PreflightError, check_data_dir, raw_bytes_estimate
+from cellctl.daemon.preflight import (
+    PreflightError,
+    check_data_dir,
+    expected_profiles,
+    raw_bytes_estimate,
+    spill_bytes_estimate,
+)
 from cellctl.daemon.stream import ScanStream
 from cellctl.daemon.wiring import CellDrivers, laser_exposure_ns, laser_source
 from cellctl.jobstore.jobs import JobStore
@@ -206,12 +213,18 @@ class ScanRunner:
     async def _preflight(self, job: ActiveJob, plan: ScanPlan) -> bool:
         """Before motion: the raw files of this plan must fit (False: the job failed, nothing moved)."""
         d = self.cfg.daemon
+        las = self.cfg.laser
         est = raw_bytes_estimate(
-            plan.scan_time_s, rate_hz=self.cfg.laser.rate_hz,
-            points_per_profile=self.cfg.laser.points_per_profile, settle_s=d.settle_s,
+            plan.scan_time_s, rate_hz=las.rate_hz, points_per_profile=las.points_per_profile, settle_s=d.settle_s,
+        )  # fmt: skip
+        # and the spill files beside them while the scan runs (its arrays reserved when it starts)
+        pub = PublishSettings.from_config(self.cfg)
+        spill = spill_bytes_estimate(
+            expected_profiles(plan.scan_time_s, rate_hz=las.rate_hz, settle_s=d.settle_s),
+            points_per_profile=las.points_per_profile, publish_step=pub.step(min(pub.pitch_mm, pub.edge_pitch_mm)),
         )  # fmt: skip
         try:
-            await asyncio.to_thread(check_data_dir, self.store.root, est.bytes, d.min_free_mb)
+            await asyncio.to_thread(check_data_dir, self.store.root, est.bytes + spill, d.min_free_mb)
         except PreflightError as exc:
             self.host.job_state(job, JobState.FAILED, f"pre-flight: {exc}; nothing moved")
             return False
@@ -423,8 +436,10 @@ class ScanRunner:
                 },
             )
             # the whole scan's arrays reserved once at the plan's profile count (a 6 m plate: 340 000)
-            expected = (plan.scan_time_s + cfg.daemon.settle_s + 10.0) * cfg.laser.rate_hz * 1.1
-            acq = Acquisition(acq_settings, writer, keep_batches=True, expected_profiles=round(expected))
+            expected = expected_profiles(
+                plan.scan_time_s, rate_hz=cfg.laser.rate_hz, settle_s=cfg.daemon.settle_s
+            )
+            acq = Acquisition(acq_settings, writer, keep_batches=True, expected_profiles=expected)
             if phase == "scan":
                 # the analysis follows the scan: each pass's points go out once the pass is on disk
                 stream = await host.cloud_stream(job)

@@ -9,8 +9,10 @@ import pytest
 
 from cellctl.acquisition.assembly import AssembledBatch, AssembledScan
 from cellctl.acquisition.publish import PublishSettings, column_steps, encode_scan, pass_end_cut
-from cellctl.api.cloud_codec import CloudMeta, concat_encoded, decode_cloud
+from cellctl.acquisition.spill import release
+from cellctl.api.cloud_codec import CloudMeta, concat_encoded, decode_cloud, write_concatenated
 from cellctl.daemon.stream import ScanStream, _split
+from cellctl.jobstore.rawstore import RawWriter
 from tests.support.waits import wait_until
 
 W = 40  # points per profile
@@ -102,8 +104,12 @@ class _Dispatcher:
         self.abandoned = reason
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_the_chunks_concatenated_are_the_whole_cloud_byte_for_byte(seed: int) -> None:
+@pytest.mark.parametrize(("seed", "spilled"), [(0, False), (1, False), (2, False), (0, True)])
+def test_the_chunks_concatenated_are_the_whole_cloud_byte_for_byte(
+    seed: int, spilled: bool, tmp_path
+) -> None:
+    # spilled: the stream follows a scan with raw files, its chunks kept in a file beside them (issue 42)
+    writer = RawWriter(tmp_path / "raw", {}) if spilled else None
     settings = PublishSettings(native_pitch_mm=0.1, pitch_mm=0.2, edge_pitch_mm=0.4)
     batches = _scan_batches(seed)
     meta = CloudMeta(cell_id="cell-1")
@@ -113,7 +119,7 @@ def test_the_chunks_concatenated_are_the_whole_cloud_byte_for_byte(seed: int) ->
         fut = asyncio.get_running_loop().create_future()
         stream = ScanStream(disp, fut, job_id="J", plate_id="P", settings=settings, first_edge_pass=3,
                             meta=meta, poll_s=0.01, last_pass=3)  # fmt: skip
-        stream.follow(acq, None)
+        stream.follow(acq, writer)
         for b in batches:  # the scan goes on: batches arrive, the stream cuts behind them
             acq.batches.append(b)
             await asyncio.sleep(0.005)  # stays: pacing, batches arrive as a scan's do
@@ -135,6 +141,11 @@ def test_the_chunks_concatenated_are_the_whole_cloud_byte_for_byte(seed: int) ->
     expected, n = encode_scan(whole, job_id="J", plate_id="P", column_step=steps, meta=meta)
     got = concat_encoded([c[1] for c in disp.chunks])
     assert bytes(got) == bytes(expected)
+    assert all(isinstance(c[1], memoryview) for c in disp.chunks) == spilled
+    write_concatenated(tmp_path / "cloud.bin", [c[1] for c in disp.chunks], read=release)
+    assert (tmp_path / "cloud.bin").read_bytes() == bytes(expected)  # cloud.bin as the handover writes it
+    if writer is not None:
+        writer.close()
     assert decode_cloud(got).n_points == n
     # each chunk's rows: the transit before a pass and the pass, nothing of the next pass
     first = decode_cloud(disp.chunks[0][1])

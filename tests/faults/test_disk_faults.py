@@ -31,7 +31,14 @@ import numpy as np
 import pytest
 
 from cellctl.api import ApiCallError, TriggerAccepted, call
-from cellctl.daemon.preflight import PreflightError, check_data_dir, probe_writable, raw_bytes_estimate
+from cellctl.daemon.preflight import (
+    PreflightError,
+    check_data_dir,
+    expected_profiles,
+    probe_writable,
+    raw_bytes_estimate,
+    spill_bytes_estimate,
+)
 from tests.support.cellfaults import (
     FINAL,
     FaultCell,
@@ -79,6 +86,16 @@ def test_raw_estimate_covers_what_a_scan_stores():
     assert est.bytes / est.profiles >= 3870
     with pytest.raises(ValueError, match="rate_hz"):
         raw_bytes_estimate(30.0, rate_hz=0.0, points_per_profile=500)
+
+
+def test_spill_estimate_covers_the_scan_arrays_and_the_chunks_a_6_m_plate_spills():
+    # issue 42: 340 000 profiles planned (1776 s at 200 Hz), 13 B a raw point of xyz_mm + valid reserved
+    # in the spill file at the start, 28 B a published point (every 5th) of streamed chunks
+    profiles = expected_profiles(1776.0, rate_hz=200.0, settle_s=1.0)
+    assert profiles == round(1787.0 * 200.0 * 1.1)
+    spill = spill_bytes_estimate(profiles, points_per_profile=500, publish_step=5)
+    assert spill >= profiles * 500 * 13 + 0.93e9  # the spill file's reserve and the 6 m plate's chunks
+    assert spill < 4.0e9
 
 
 @pytest.mark.process  # mounts tmpfs with mount(8)

@@ -13,6 +13,7 @@ import secrets
 import numpy as np
 import pytest
 
+from cellctl.acquisition.spill import ByteSpill
 from cellctl.api import JobEvent, JobSpec, Keys, ReportEnvelope, StreamChunk, StreamEnd, list_workers
 from cellctl.api.cloud_codec import ENCODING, Cloud, concat_encoded, decode_cloud, encode_cloud
 from cellctl.api.session import (
@@ -44,8 +45,11 @@ def _chunks(job_id: str, n_chunks: int = 4, n: int = 500) -> tuple[list[bytearra
     return out, np.concatenate(xyz_all).mean(axis=0)
 
 
-def test_a_streamed_job_is_analysed_from_chunks_sent_before_and_after_the_worker_accepted(hub, start_worker):
+def test_a_streamed_job_is_analysed_from_chunks_sent_before_and_after_the_worker_accepted(
+    hub, start_worker, tmp_path
+):
     start_worker("w1")
+    spill = ByteSpill(tmp_path)  # two chunks memory-mapped from a file, as the daemon keeps them (issue 42)
 
     async def scenario(disp: Dispatcher):
         await _wait_for(lambda: disp.workers == ["w1"], 30, "worker")
@@ -54,7 +58,7 @@ def test_a_streamed_job_is_analysed_from_chunks_sent_before_and_after_the_worker
         disp.stream_chunk("jobS", 0, chunks[0], 500)  # before the worker has even been offered it
         await _wait_for(lambda: disp._jobs["jobS"].accepted, 30, "accepted")
         for k in (1, 2):
-            disp.stream_chunk("jobS", k, chunks[k], 500)
+            disp.stream_chunk("jobS", k, spill.keep(chunks[k]), 500)
         await asyncio.sleep(0.3)  # stays: pacing, the later chunks come apart from these as a scan's do
         with pytest.raises(ValueError, match="not a pending streamed job"):
             disp.stream_chunk("nojob", 0, chunks[0], 500)
