@@ -28,6 +28,7 @@ from analysis.contracts.job import Report
 from analysis.contracts.results import ReportError, ResultsArrays, read_report, read_results_arrays
 from analysis.forming.coefficients import DEFAULT_TABLE, Coefficients, inherent_deformation
 from analysis.forming.plan_file import (
+    DISABLED,
     HEATING_PLAN_FILE,
     HeatingPlanFile,
     PlanLine,
@@ -151,7 +152,7 @@ def plan_job(results_dir: str | Path, settings: PlanSettings, *, enabled: bool =
     except ReportError as exc:
         return _no_plan(f"the results cannot be read: {exc}")
     if not enabled:
-        return _no_plan("line-heating plans are off in cell.toml ([forming] enabled = false)", report)
+        return _no_plan(DISABLED, report)
     try:
         arrays = read_results_arrays(d / "results.npz", n_lines=len(report.lines))
     except ReportError as exc:

@@ -19,6 +19,7 @@ from analysis.forming.coefficients import Material, Process
 from analysis.forming.rules import HeatingRules
 
 __all__ = [
+    "DISABLED",
     "HEATING_PLAN_FILE",
     "HeatingPlanFile",
     "PlanLine",
@@ -30,6 +31,8 @@ __all__ = [
 
 #: the file's name in a results directory
 HEATING_PLAN_FILE = "heating-plan.json"
+#: the reason of a plan turned off
+DISABLED = "line-heating plans are off in cell.toml ([forming] enabled = false)"
 
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 

@@ -13,26 +13,10 @@ import json
 import sys
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict
-
 from cellctl.commands.report_cmd import resolve_results_dir
 from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, FormingSection, load_config, parse_config
 
-__all__ = ["HeatPlanAnswer", "register", "run"]
-
-
-class HeatPlanAnswer(BaseModel):
-    """What ``cellctl heat-plan --json`` prints as its one line of output (the daemon's plan child
-    reads it): the files written and the plan's status."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    json_path: str
-    dxf_path: str | None
-    status: str
-    reason: str | None = None
-    lines: int = 0
-    planning_s: float | None = None
+__all__ = ["register", "run"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -103,7 +87,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellctl heat-plan: {results_dir}: cannot write the plan: {exc}", file=sys.stderr)
         return 2
     plan = out.plan
-    if args.json:  # the daemon's plan child: its answer to the daemon
+    if args.json:  # the daemon's plan child: its answer to the daemon (cellctl.daemon.heat_plan)
+        from cellctl.daemon.heat_plan import HeatPlanAnswer
+
         print(
             HeatPlanAnswer(
                 json_path=str(out.json_path), dxf_path=str(out.dxf_path) if out.dxf_path else None,

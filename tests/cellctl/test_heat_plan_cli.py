@@ -13,7 +13,7 @@ import pytest
 from analysis.design.plates import FormingError, GaussianBump, plate_spec
 from analysis.forming.plan_file import read_heating_plan
 from cellctl.cli import main
-from cellctl.commands.heat_plan_cmd import HeatPlanAnswer
+from cellctl.daemon.heat_plan import HeatPlanAnswer
 from tests.support.results_fixture import CELL_LAYOUT, write_synthetic_results
 
 #: a coarse model and few lines: each plan takes about 2 s on the shared machine
