@@ -17,7 +17,6 @@ from analysis.forming.plan_file import HeatingPlanFile, read_heating_plan
 from analysis.forming.rules import PlanSettings
 from analysis.heating_plan import write_job_plan
 from cellctl.hmi.server import COOKIE
-from tests.support.chromium import chromium_context, watched_page
 from tests.support.hmi_server import USERS, LocalHmi
 from tests.support.results_fixture import CELL_LAYOUT, write_synthetic_results
 
@@ -75,22 +74,6 @@ def test_the_job_api_serves_the_plan_with_its_sentences_and_the_dxf_as_a_downloa
     assert bad["status"] == "no_plan" and "cannot be read" in bad["reason"]
     assert "/" not in bad["reason"]  # no server path on the crew's screen
     assert got[NONE]["heating_plan"] is None and "heating-plan.dxf" not in got[NONE]["files"]
-
-
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory):
-    # bypass_csp: Playwright's wait_for_function evaluates strings
-    with chromium_context(
-        tmp_path_factory.mktemp("chromium-profile"), viewport={"width": 1400, "height": 1000}, bypass_csp=True
-    ) as ctx:
-        yield ctx
-
-
-@pytest.fixture
-def page(browser):
-    with watched_page(browser) as (p, errors):
-        yield p
-    assert not errors, errors
 
 
 @pytest.mark.process  # Chromium is a process of its own
