@@ -32,6 +32,7 @@ from pydantic import (
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from analysis.contracts.placement import Placement
+from analysis.forming.rules import PlanSettings
 from drivers.abb_egm.limits import EGM_CYCLE_S, Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S, LinearTrack, RobotLimits
 from drivers.abb_egm.rws_protocol import AUTO, OpMode
 
@@ -636,6 +637,15 @@ class AnalysisSection(Section):
         return self
 
 
+class FormingSection(Section, PlanSettings):
+    """The line-heating plan made after every analysis (docs/forming.md, "The plan of a job"): the
+    crew's rules (least spacing, edge margin, lines per round, faces), the heat-input range, the
+    material of the coefficient table, the thickness when the report has none, the FE element."""
+
+    # false: no plan is made; heating-plan.json then says so (status no_plan)
+    enabled: bool = True
+
+
 class SimPlate(Section):
     kind: Literal["sail", "saddle", "twisted", "cylinder", "flat"] = "sail"
     length_mm: PositiveFloat = 1200.0
@@ -858,6 +868,7 @@ class CellConfig(BaseSettings):
     scan: ScanSection = ScanSection()
     zenoh: ZenohSection = ZenohSection()
     analysis: AnalysisSection = AnalysisSection()
+    forming: FormingSection = FormingSection()
     sim: SimSection = SimSection()
     daemon: DaemonSection = DaemonSection()
     worker: WorkerSection = WorkerSection()

@@ -89,7 +89,10 @@ def configure_logging(
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(max(level_no, logging.INFO) if level_no < logging.INFO else level_no)
-    logging.getLogger("toppra").setLevel(logging.WARNING)
+    # libraries that log every step at INFO (toppra's planner; scikit-fem's assembly and ezdxf's
+    # document set-up in the heating plan): their warnings only
+    for name in ("toppra", "skfem", "ezdxf"):
+        logging.getLogger(name).setLevel(logging.WARNING)
 
 
 _CURRENT: tuple[str, str] = ("json", "info")

@@ -206,9 +206,9 @@ ANALYSIS_GROUPS: dict[str, set[str]] = {
     "analysis.design": {"analysis.cloud_io"},
     "analysis.register": {"analysis.cloud_io", "analysis.contracts", "analysis.design"},
     "analysis.contracts": {"analysis.design", "analysis.metrics", "analysis.templates"},
-    "analysis.report": {"analysis.contracts", "analysis.rework"},
-    # the forming model and planner work on arrays in the plate frame; the report and the worker
-    # call them, never the other way (issue 47)
+    "analysis.report": {"analysis.contracts", "analysis.rework", "analysis.forming"},
+    # the forming model and planner work on arrays in the plate frame; the report (heating-plan.json)
+    # and the cell call them, never the other way (issue 47)
     "analysis.forming": set(),
 }
 

@@ -20,7 +20,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.optimize import nnls
 
 from analysis.forming.coefficients import (
@@ -31,25 +30,19 @@ from analysis.forming.coefficients import (
     torch_speed_mm_s,
 )
 from analysis.forming.plate_model import HeatingLine, PlateModel, remove_plane
+from analysis.forming.rules import HeatingRules
+
+__all__ = [
+    "HeatingPlan",
+    "HeatingRules",
+    "PlannedLine",
+    "in_plane_strain_given",
+    "in_plane_strain_needed",
+    "plan_heating",
+]
 
 #: deviation points the inverse solve fits (a regular subset of the scan's grid)
 FIT_POINTS = 3000
-
-
-class HeatingRules(BaseModel):
-    """The crew's rules for one round (to go into cell.toml's [forming] later)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    min_spacing_mm: float = Field(default=80.0, gt=0, description="least distance between two parallel lines")
-    edge_margin_mm: float = Field(default=30.0, ge=0, description="no line nearer an edge than this")
-    max_lines_per_round: int = Field(default=12, ge=1, le=100)
-    candidate_step_mm: float = Field(default=40.0, gt=0, description="grid of candidate positions")
-    allow_bottom_face: bool = Field(default=True, description="the crew may turn the plate over")
-    target_fraction: float = Field(
-        default=0.3, gt=0, lt=1, description="a round is enough when the predicted RMS falls below this share"
-    )
-    material: str = "mild_steel"
 
 
 @dataclass(frozen=True)

@@ -168,7 +168,15 @@ def _rework_html(regions: list[ReworkRegion], std: float) -> str:
     )
 
 
-EXPORTS = ("report.json", "report.csv", "report.pdf", "cloud.ply", "lines-ship.csv")
+EXPORTS = (
+    "report.json",
+    "report.csv",
+    "report.pdf",
+    "cloud.ply",
+    "lines-ship.csv",
+    "heating-plan.json",
+    "heating-plan.dxf",
+)
 
 
 def _export_links(results_dir: Path) -> str:
@@ -181,6 +189,39 @@ def _export_links(results_dir: Path) -> str:
         f'<a href="{name}">{name}</a>{notes.get(name, "")}'
         for name in EXPORTS
         if name == "report.pdf" or (results_dir / name).exists()
+    )
+
+
+def _heating_html(data: ResultsData) -> str:
+    """The heating plan's section: one sentence a line in the crew's order, the predicted round, the
+    planner's notes, or why there is no plan; nothing when the results hold no plan."""
+    plan = data.heating_plan
+    if plan is None:
+        return ""
+    if plan.status != "plan":
+        body = f"<p>No heating plan: {_e(plan.reason or '')}</p>"
+    else:
+        items = "".join(
+            f'<li data-heat="{_e(ln.id)}">{_e(ln.sentence())} · {ln.heat_input_j_mm:.0f} J/mm, '
+            f"bend {ln.bend_deg:.2f}°, shrink {ln.shrink_mm:.2f} mm</li>"
+            for ln in plan.lines
+        )
+        p = plan.predicted
+        after = (
+            f"<p>Predicted after this round: verdict {_e(p.verdict.upper())}, RMS {p.rms_before_mm:.2f} → "
+            f"{p.rms_after_mm:.2f} mm over the plate; Zmax per line: "
+            + _e(", ".join(f"{k} {v:.2f}" for k, v in p.zmax_mm.items() if v is not None))
+            + " mm.</p>"
+            if p
+            else ""
+        )
+        notes = "".join(f"<li>{_e(n)}</li>" for n in plan.notes)
+        body = f"<ol>{items}</ol>{after}" + (f'<ul class="muted">{notes}</ul>' if notes else "")
+    return (
+        '<section id="heating"><h2>Heating plan: the next round of line heating</h2>'
+        '<p class="muted">Lines in mm from the reference corner as the plate lies, numbered on the top view '
+        "in the order to heat them (orange: top face, cyan: bottom face); heating-plan.dxf marks them.</p>"
+        f"{body}</section>"
     )
 
 
@@ -249,10 +290,13 @@ def render_html(
 <figure class="plot" data-plot="top-view">{svgs["top"]}<figcaption>Deviation of the measured plate from the
 registered design, seen from above, from the reference corner (REF). Dashed contours: ±{std:g} mm (standard
 range); solid: ±{lim:g} mm (limit). Lines are labelled green (pass) or red (fail); × marks each line's Zmax;
-purple boxes are the regions to rework{_boxed_text(len(regions))}.</figcaption></figure></section>
+purple boxes are the regions to rework{_boxed_text(len(regions))}{
+        "; numbered solid lines are the heating plan" if data.heating_plan and data.heating_plan.lines else ""
+    }.</figcaption></figure></section>
 <section id="rework"><h2>Where to rework</h2>
 <p class="muted">Regions where the plate is more than {std:g} mm off the template, positions in mm from the
 reference corner (x along the length, y along the width).</p>{_rework_html(regions, std)}</section>
+{_heating_html(data)}
 <section id="tables"><h2>Detection lines (the paper's Tables 3–5)</h2>
 {"".join(_lines_table_html(rep, fam) for fam, _ in FAMILIES)}</section>
 {_previous_html(rep, previous)}

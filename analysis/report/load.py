@@ -4,6 +4,7 @@ same plate it is compared with (:class:`PreviousRound`).
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import numpy as np
 
 from analysis.contracts.job import LineReport, Report
 from analysis.contracts.results import LineSeries, ReportError, read_report, read_results_arrays
+from analysis.forming.plan_file import HEATING_PLAN_FILE, HeatingPlanFile, read_heating_plan
 
 
 @dataclass(frozen=True)
@@ -21,6 +23,7 @@ class ResultsData:
     plate_xy_mm: (n, 2) float64 positions from the reference corner; plate_deviation_mm: (n,) float64.
     plate_size_mm: (2,) length, width. lines: one :class:`LineSeries` per report line, or None where
     the results hold no section for it. holes_xy_mm: (h, 2) centres of unseen design cells.
+    heating_plan: heating-plan.json when the directory has one that reads (docs/forming.md).
     """
 
     results_dir: Path
@@ -30,6 +33,7 @@ class ResultsData:
     plate_size_mm: np.ndarray
     lines: list[LineSeries | None]
     holes_xy_mm: np.ndarray
+    heating_plan: HeatingPlanFile | None = None
 
 
 @dataclass(frozen=True)
@@ -64,7 +68,8 @@ def previous_by_line(report: Report, previous: PreviousRound) -> list[tuple[Line
 
 
 def load_results(results_dir: str | Path) -> ResultsData:
-    """Read and check ``report.json`` and ``results.npz`` of a results directory
+    """Read and check ``report.json`` and ``results.npz`` of a results directory, and its
+    ``heating-plan.json`` when there is one that reads
     (:func:`analysis.contracts.results.read_report`, :func:`analysis.contracts.results.read_results_arrays`).
 
     Raises :class:`ReportError` naming the file and the field or array at fault.
@@ -74,7 +79,11 @@ def load_results(results_dir: str | Path) -> ResultsData:
         raise ReportError(f"{d}: not a results directory (no such directory)")
     report = read_report(d / "report.json")
     arrays = read_results_arrays(d / "results.npz", n_lines=len(report.lines))
+    plan = None
+    if (d / HEATING_PLAN_FILE).is_file():
+        with contextlib.suppress(ValueError):  # a plan that does not read never costs the report
+            plan = read_heating_plan(d)
     return ResultsData(
         d, report, arrays.plate_xy_mm, arrays.plate_deviation_mm, arrays.plate_size_mm, arrays.lines,
-        arrays.holes_xy_mm,
+        arrays.holes_xy_mm, plan,
     )  # fmt: skip

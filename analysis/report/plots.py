@@ -56,6 +56,24 @@ def _display_cell_mm(data: ResultsData) -> float:
     return bounded_cell_mm(data.plate_size_mm, TOP_VIEW_MAX_CELLS, cell)
 
 
+#: the heating lines' colours on the top view: the face up, the face down
+HEATING_COLOURS = {"top": "#ff7f0e", "bottom": "#17becf"}
+
+
+def _draw_heating_lines(ax: Any, data: ResultsData) -> None:
+    """The heating plan's lines (heating-plan.json), solid, coloured by face, numbered in order at
+    their start; nothing without a plan."""
+    plan = data.heating_plan
+    if plan is None or plan.status != "plan":
+        return
+    for line in plan.lines:
+        (x0, y0), (x1, y1) = line.start_plate_mm, line.end_plate_mm
+        colour = HEATING_COLOURS[line.face]
+        ax.plot([x0, x1], [y0, y1], color=colour, linewidth=2.2, solid_capstyle="round", zorder=5)
+        ax.text(x0, y0, str(line.order), ha="center", va="center", fontsize=6.5, fontweight="bold", color="white",
+                zorder=7, bbox={"boxstyle": "circle,pad=0.2", "facecolor": colour, "edgecolor": "none"})  # fmt: skip
+
+
 def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: list[ReworkRegion]) -> Any:
     """Deviation colour map, detection lines with names and Zmax marks, rework regions, the reference corner."""
     std, lim, _ = _tolerances(data.report)
@@ -123,6 +141,7 @@ def _draw_top_view(ax: Any, data: ResultsData, field: GriddedField, regions: lis
         if chord > 0:
             p = a + (b - a) * min(max(float(line.zmax_at_mm) / chord, 0.0), 1.0)
             ax.plot(p[0], p[1], marker="x", color=colour, markersize=4, mew=1.0, zorder=5)
+    _draw_heating_lines(ax, data)
     for r in regions[:TOP_VIEW_MAX_REGIONS]:  # worst first: a rough plate's hundreds stay in the table
         x0, y0, x1, y1 = r.bbox_mm
         ax.add_patch(

@@ -5,6 +5,7 @@ from cellctl.commands import (
     config_cmd,
     demo_cmd,
     design_cmd,
+    heat_plan_cmd,
     hmi_cmd,
     inspect_cmd,
     plan_cmd,
@@ -31,6 +32,7 @@ COMMAND_MODULES = [
     design_cmd,
     synth_cmd,
     report_cmd,
+    heat_plan_cmd,
     acquire_cmd,  # reassemble, calibrate
     config_cmd,
 ]

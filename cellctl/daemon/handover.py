@@ -5,7 +5,7 @@ rebuilt from the raw files, is thinned and encoded off the loop, submitted to th
 :class:`~cellctl.daemon.dispatch.Dispatcher` with the job parameters, kept with the job as ``cloud.bin``,
 and the worker's report stored as ``report.json``. The job's states are told to the daemon through
 ``set_state``; any failure fails the job, it never leaves it hanging. The HTML / PDF render of the
-stored report is :mod:`cellctl.daemon.render`.
+stored report is :mod:`cellctl.daemon.render`, the line-heating plan after it :mod:`cellctl.daemon.heat_plan`.
 
 A live scan streams its cloud instead (:meth:`Handover.open_stream`, :mod:`cellctl.daemon.stream`):
 the job goes to a worker when the scan starts and the cloud follows pass by pass; after the last
@@ -33,6 +33,7 @@ from cellctl.api.transfer import TransferError, TransferSpec
 from cellctl.config import CellConfig
 from cellctl.daemon.active import ActiveJob
 from cellctl.daemon.dispatch import Dispatcher, JobFailed
+from cellctl.daemon.heat_plan import make_heating_plan
 from cellctl.daemon.render import render_report
 from cellctl.daemon.result_collector import store_results
 from cellctl.daemon.stream import ScanStream
@@ -123,12 +124,8 @@ class Handover:
                 except JobStoreError as exc:  # the results are on disk; the record's retry is the daemon's
                     log.warning("job_record_write_failed", job_id=job_id, error=str(exc))
                 log.info("results_stored_late", job_id=job_id, bytes=sum(map(len, files.values())))
-                if (
-                    self.cfg.daemon.write_html_report
-                    and (self.store.results_dir(job_id) / "report.json").exists()
-                ):
-                    with contextlib.suppress(Exception):
-                        await render_html(self.store, job)
+                with contextlib.suppress(Exception):
+                    await self._after_report(job)
 
     def _params(self, job: ActiveJob) -> Any:
         rec = job.record
@@ -297,17 +294,24 @@ class Handover:
             )  # fmt: skip
             self._keep_results(job, env, files, report_path)
             return
-        # The JSON report (per-line verdicts) completes the job; the HTML / PDF render follows.
+        # The JSON report (per-line verdicts) completes the job; the HTML / PDF render and the
+        # heating plan follow.
         self._job_state(
             job, JobState.DONE, str(report_path), verdict=env.report.verdict,
             report=str(report_path), worker_id=env.worker_id, analysis_timings_s=env.timings_s,
             report_utc_s=time.time(), results_bytes=nbytes,
         )  # fmt: skip
-        if (
-            self.cfg.daemon.write_html_report
-            and (self.store.results_dir(rec.job_id) / "report.json").exists()
-        ):
+        await self._after_report(job)
+
+    async def _after_report(self, job: ActiveJob) -> None:
+        """What follows a done job's report.json, each in a child process: the HTML / PDF render
+        (``[daemon] write_html_report``), then the line-heating plan (:mod:`.heat_plan`; the plan
+        never delays the report nor the HTML, and a failed one is only its file's reason)."""
+        if not (self.store.results_dir(job.record.job_id) / "report.json").exists():
+            return
+        if self.cfg.daemon.write_html_report:
             await render_html(self.store, job)
+        await make_heating_plan(self.cfg, self.store, job)
 
 
 def _streamed_worker(dispatcher: Dispatcher, job_id: str, fut: asyncio.Future[ReportEnvelope]) -> str | None:

@@ -31,6 +31,7 @@ from aiohttp import WSMsgType, web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from analysis.contracts.results import read_report, read_results_arrays
+from analysis.forming.plan_file import HEATING_PLAN_FILE, read_heating_plan
 from analysis.rework import bounded_cell_mm, grid_deviation
 from cellctl.api import DESIGN_SUFFIXES, MAX_TRIGGER_BYTES, ApiCallError
 from cellctl.config import CellConfig
@@ -67,6 +68,9 @@ DOWNLOADS = {
         n: (f"results/{n}", "application/octet-stream")
         for n in ("cloud.las", "cloud.e57", "cloud-ship.ply", "cloud-ship.las", "cloud-ship.e57")
     },
+    # the line-heating plan (docs/forming.md): the crew marks the plate from the DXF
+    "heating-plan.json": ("results/heating-plan.json", "application/json"),
+    "heating-plan.dxf": ("results/heating-plan.dxf", "application/dxf"),
 }
 MAX_BODY_BYTES = MAX_TRIGGER_BYTES  # a trigger is the largest body the HMI takes
 #: a log-in body: {"user": <= 64 characters, "password": ...}
@@ -486,7 +490,8 @@ class HmiServer:
             if (d / "cloud.bin").is_file():
                 files.append("cloud.bin")
             prev = self.history.previous_round(job_id) if self.history else None
-            return {"job": rec, "report": report, "files": files, "previous": prev}
+            return {"job": rec, "report": report, "files": files, "previous": prev,
+                    "heating_plan": _heating_plan(d / "results")}  # fmt: skip
 
         try:
             return web.json_response(await asyncio.to_thread(read))
@@ -634,3 +639,19 @@ async def serve(
         return 0
     finally:
         await runner.cleanup()
+
+
+def _heating_plan(results: Path) -> dict[str, Any] | None:
+    """heating-plan.json for the result page, each line with its sentence (the one the CLI prints);
+    None when the job has none (yet); a file that cannot be read is a plan-less answer saying so."""
+    if not (results / HEATING_PLAN_FILE).is_file():
+        return None
+    try:
+        plan = read_heating_plan(results)
+    except ValueError:  # the message names server paths, which the page never shows
+        return {"status": "no_plan", "reason": "heating-plan.json cannot be read: `cellctl heat-plan` makes it again",
+                "lines": []}  # fmt: skip
+    out = plan.model_dump(mode="json", include={"status", "reason", "lines", "notes", "predicted"})
+    for line, d in zip(plan.lines, out["lines"], strict=True):
+        d["sentence"] = line.sentence()
+    return out

@@ -107,6 +107,11 @@ class JobInfo(RunInfo):
     html_s: Seconds | None = None
     report_html: str | None = None
     html_after_last_profile_s: Seconds | None = None
+    # the line-heating plan made after the report (cellctl.daemon.heat_plan): heating-plan.json's
+    # path, whether it holds a plan or the reason there is none, the plan child's time
+    heating_plan: str | None = None
+    heating_plan_status: Literal["plan", "no_plan"] | None = None
+    heating_plan_s: Seconds | None = None
     # recovery
     interrupted_in: str | None = None
     cancelled_in: str | None = None

@@ -115,6 +115,23 @@ def test_config_is_frozen(repo_root: Path) -> None:
         ("daemon", {"settle_s": float("inf")}, "daemon.settle_s"),
         ("daemon", {"marker_period_s": 0.5}, "daemon.marker_period_s = 0.5"),
         ("daemon", {"write_html_report": "maybe"}, "daemon.write_html_report = 'maybe'"),
+        ("forming", {"min_spacing_mm": 0}, "forming.min_spacing_mm = 0"),
+        ("forming", {"edge_margin_mm": -5.0}, "forming.edge_margin_mm = -5.0"),
+        ("forming", {"max_lines_per_round": 0}, "forming.max_lines_per_round = 0"),
+        ("forming", {"max_lines_per_round": True}, "max_lines_per_round: expected a number"),
+        ("forming", {"element_mm": 1.0}, "forming.element_mm"),
+        ("forming", {"material": "wood"}, "material 'wood' is not in the coefficient table"),
+        (
+            "forming",
+            {"heat_input_min_j_per_mm": 900.0, "heat_input_max_j_per_mm": 600.0},
+            "heat_input_max_j_per_mm (600) must exceed heat_input_min_j_per_mm (900)",
+        ),
+        ("forming", {"heat_input_max_j_per_mm": 5000.0}, "not inside the coefficient table's 150-3000 J/mm"),
+        (
+            "forming",
+            {"coefficients_file": "/nonexistent/table.toml"},
+            "coefficients_file /nonexistent/table.toml: No such file or directory",
+        ),
     ],
 )
 def test_bad_value_is_reported_with_its_path(

@@ -22,7 +22,6 @@ from analysis.contracts.results import read_results_arrays
 from analysis.report.write import write_report
 from analysis.templates import DetectionLayout
 from cellctl.hmi.server import MAP_LINE_SAMPLES, MAP_MAX_CELLS
-from tests.support.chromium import chromium_context, watched_page
 from tests.support.hmi_server import USERS, LocalHmi
 from tests.support.results_fixture import SyntheticResults, write_plate_results
 
@@ -60,22 +59,6 @@ def hmi(tmp_path_factory, long_results: SyntheticResults) -> Iterator[LocalHmi]:
     h.add_done_job(JOB, long_results.results_dir, long_results.report.plate_id)
     with h:
         yield h
-
-
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory):
-    # bypass_csp: Playwright's wait_for_function evaluates strings
-    with chromium_context(
-        tmp_path_factory.mktemp("chromium-profile"), viewport={"width": 1400, "height": 1000}, bypass_csp=True
-    ) as ctx:
-        yield ctx
-
-
-@pytest.fixture
-def page(browser):
-    with watched_page(browser) as (p, errors):
-        yield p
-    assert not errors, errors
 
 
 def test_the_map_route_of_a_6_m_plate_stays_within_its_budget(page, hmi, long_results) -> None:

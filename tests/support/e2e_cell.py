@@ -69,6 +69,9 @@ def tiny_cell_config(
     # The HTML/PDF render (a child process of tens of CPU-seconds) has its own tests
     # (tests/zenoh/test_daemon_html_step.py); here it would only compete with the next scan.
     cfg["daemon"]["write_html_report"] = False
+    # The heating plan (a child process of seconds of FE after every job) has its own tests
+    # (tests/zenoh/test_daemon_heat_plan_step.py); here the daemon only writes that it is off.
+    cfg.setdefault("forming", {})["enabled"] = False
     # The locate run has its own e2e tests (tests/e2e/test_locate_e2e.py): here a given placement is
     # trusted, and every job starts its scan at once.
     cfg["locate"]["check_given"] = False

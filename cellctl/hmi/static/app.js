@@ -357,7 +357,7 @@ async function loadResult(jobId) {
   }
   const res = await api("GET", "/api/jobs/" + encodeURIComponent(jobId));
   if (!res.ok) { $("result-title").textContent = errText(res); return; }
-  const { job, report, files, previous } = res.data;
+  const { job, report, files, previous } = res.data, plan = res.data.heating_plan;
   document.body.dataset.resultJob = job.job_id;
   $("result-title").textContent = `Plate ${job.plate_id} · job ${job.job_id}`;
   $("result-meta").innerHTML = `state ${esc(job.state)} · design ${esc(job.design)} · ${esc(job.created_utc)}<br>${esc(noPaths((job.history.slice(-1)[0] || {}).message || ""))}`;
@@ -370,12 +370,14 @@ async function loadResult(jobId) {
   v.textContent = report ? report.verdict.toUpperCase() : job.state.toUpperCase();
   // a job without a report (aborted, failed, not analysed yet): no empty views, the reason in words
   for (const id of ["result-views", "result-lines-tile", "result-rework-tile", "result-plots-tile"]) $(id).classList.toggle("hidden", !report);
+  renderHeatingPlan(plan);
   if (!report) { $("result-lines").innerHTML = ""; $("result-plots").innerHTML = ""; $("result-rework").innerHTML = ""; return; }
   const tol = report.tolerances, stdMm = tol.deviation_standard_mm, limMm = tol.deviation_limit_mm;
   const prev = previous ? Object.fromEntries(previous.lines.map((l) => [l.name, l])) : {};
   const lname = (l) => l.name || `${l.family[0].toUpperCase()}${l.index}`;
-  $("result-lines").innerHTML = `<tr><th>line</th><th>pos mm</th><th>Sz avg mm</th><th>Zmax mm</th><th>at mm</th><th>CI</th><th>Sc avg 1/mm</th><th>Cmax 1/mm</th><th>length mm</th><th>grade</th><th>result</th>${previous ? "<th>prev. Zmax</th>" : ""}</tr>` +
-    report.lines.map((l) => `<tr class="${l.pass ? "" : "fail"}" data-line="${esc(lname(l))}"><td>${esc(lname(l))} ${esc(l.family)}</td><td>${fmt(l.position_mm, 0)}</td><td>${fmt(l.sz_avg_mm)}</td><td>${fmt(l.zmax_mm)}</td><td>${fmt(l.zmax_at_mm, 0)}</td><td>${fmt(l.ci, 3)}</td><td>${Number(l.sc_avg_per_mm).toExponential(2)}</td><td>${Number(l.cmax_per_mm).toExponential(2)}</td><td>${fmt(l.length_mm, 0)}</td><td>${esc(l.grade)}</td><td>${l.pass ? "pass" : "FAIL"}</td>${previous ? `<td>${prev[lname(l)] ? fmt(prev[lname(l)].zmax_mm) : "-"}</td>` : ""}</tr>`).join("");
+  const predicted = plan && plan.predicted ? plan.predicted.zmax_mm : null;
+  $("result-lines").innerHTML = `<tr><th>line</th><th>pos mm</th><th>Sz avg mm</th><th>Zmax mm</th><th>at mm</th><th>CI</th><th>Sc avg 1/mm</th><th>Cmax 1/mm</th><th>length mm</th><th>grade</th><th>result</th>${previous ? "<th>prev. Zmax</th>" : ""}${predicted ? "<th>Zmax after heating (predicted)</th>" : ""}</tr>` +
+    report.lines.map((l) => `<tr class="${l.pass ? "" : "fail"}" data-line="${esc(lname(l))}"><td>${esc(lname(l))} ${esc(l.family)}</td><td>${fmt(l.position_mm, 0)}</td><td>${fmt(l.sz_avg_mm)}</td><td>${fmt(l.zmax_mm)}</td><td>${fmt(l.zmax_at_mm, 0)}</td><td>${fmt(l.ci, 3)}</td><td>${Number(l.sc_avg_per_mm).toExponential(2)}</td><td>${Number(l.cmax_per_mm).toExponential(2)}</td><td>${fmt(l.length_mm, 0)}</td><td>${esc(l.grade)}</td><td>${l.pass ? "pass" : "FAIL"}</td>${previous ? `<td>${prev[lname(l)] ? fmt(prev[lname(l)].zmax_mm) : "-"}</td>` : ""}${predicted ? `<td>${predicted[lname(l)] == null ? "-" : fmt(predicted[lname(l)])}</td>` : ""}</tr>`).join("");
   $("result-legend").innerHTML = `<span style="background:rgb(${BAND.std})">|d| ≤ ${stdMm} mm</span><span style="background:rgb(${BAND.limit})">≤ ${limMm} mm</span><span style="background:rgb(${BAND.out})">&gt; ${limMm} mm</span>`;
   const mres = await api("GET", "/api/jobs/" + encodeURIComponent(job.job_id) + "/map");
   const map = mres.ok ? mres.data : null;
@@ -427,7 +429,19 @@ async function loadResult(jobId) {
     if (!found) rework.push(`<li>line ${esc(lname(l))}: Zmax ${fmt(l.zmax_mm)} mm at ${fmt(l.zmax_at_mm, 0)} mm along the line</li>`);
   });
   $("result-rework").innerHTML = rework.join("") || "<li>none: every line within the limit</li>";
-  if (map) drawPlateMap($("result-top"), map, report, regions, stdMm, limMm, lname);
+  if (map) drawPlateMap($("result-top"), map, report, regions, stdMm, limMm, lname, plan);
+}
+// the heating plan (heating-plan.json, made by the cell after the report): one sentence a line in
+// the crew's order, the predicted after-state, the planner's notes; or why there is none
+function renderHeatingPlan(plan) {
+  $("result-heating-tile").classList.toggle("hidden", !plan);
+  if (!plan) { $("result-heating").innerHTML = ""; $("result-heating-meta").textContent = ""; return; }
+  const p = plan.predicted;
+  const after = p ? `predicted after this round: verdict ${esc(p.verdict.toUpperCase())}, RMS ${fmt(p.rms_before_mm)} → ${fmt(p.rms_after_mm)} mm` : "";
+  $("result-heating-meta").innerHTML = plan.status === "plan"
+    ? [after, ...(plan.notes || []).map(esc)].filter(Boolean).join("<br>")
+    : `no heating plan: ${esc(noPaths(plan.reason || ""))}`;
+  $("result-heating").innerHTML = plan.lines.map((l) => `<li data-heat="${esc(l.id)}" class="face-${esc(l.face)}">${esc(l.sentence)} · ${fmt(l.heat_input_j_mm, 0)} J/mm, bend ${fmt(l.bend_deg)}°</li>`).join("");
 }
 // which way the plate must go, in the words of the shop floor (d = design - plate)
 const reworkWords = (worst) => (worst > 0
@@ -437,7 +451,7 @@ const reworkWords = (worst) => (worst > 0
 // the top view in the plate frame: mm from the reference corner (origin bottom left, x to the
 // right, y up), the deviation coloured by band, the detection lines drawn and named, the rework
 // regions numbered as in the list
-function drawPlateMap(c, map, report, regions, stdMm, limMm, lname) {
+function drawPlateMap(c, map, report, regions, stdMm, limMm, lname, plan) {
   const [lx, ly] = map.plate_size_mm, g = c.getContext("2d"), W = c.width, H = c.height;
   const L = 52, B = 36, T = 26, R = 40, k = Math.min((W - L - R) / lx, (H - T - B) / ly);
   const X = (x) => L + x * k, Y = (y) => H - B - y * k;
@@ -491,7 +505,18 @@ function drawPlateMap(c, map, report, regions, stdMm, limMm, lname) {
     g.fillStyle = "#a00000"; g.textAlign = "center"; g.font = "bold 13px system-ui"; g.fillText(String(r.no), mx + 14, my - 9.5);
     g.font = "13px system-ui"; g.textAlign = "left"; shown++;
   }
+  // the heating lines: solid, orange on the face up, cyan on the face down, numbered in order at their start
+  const heat = plan && plan.status === "plan" ? plan.lines : [];
+  for (const h of heat) {
+    const [a, b] = [h.start_plate_mm, h.end_plate_mm], top = h.face === "top";
+    g.strokeStyle = top ? "#ffa033" : "#33d6ff"; g.lineWidth = 4;
+    g.beginPath(); g.moveTo(X(a[0]), Y(a[1])); g.lineTo(X(b[0]), Y(b[1])); g.stroke();
+    g.fillStyle = top ? "#ffa033" : "#33d6ff"; g.beginPath(); g.arc(X(a[0]), Y(a[1]), 11, 0, 2 * Math.PI); g.fill();
+    g.fillStyle = "#06090b"; g.textAlign = "center"; g.font = "bold 12px system-ui"; g.fillText(String(h.order), X(a[0]), Y(a[1]) + 4);
+    g.font = "13px system-ui"; g.textAlign = "left";
+  }
   c.dataset.lines = drawn.join(","); c.dataset.regions = String(shown); c.dataset.scaleMmPerPx = (1 / k).toFixed(3);
+  c.dataset.heating = heat.map((h) => h.id).join(",");
 }
 $("btn-reanalyse").addEventListener("click", async () => {
   const res = await api("POST", "/api/control/reanalyse", { job_id: $("btn-reanalyse").dataset.job });
