@@ -90,6 +90,11 @@ def load_truth(truth_json: Path | str) -> PlateTruth:
     """The plate of ``sim-truth.json``."""
     truth = json.loads(Path(truth_json).read_text())
     plate = dict(truth["plate"])
+    if plate.get("kind") == "mesh":
+        raise ValueError(
+            f"{truth_json}: a plate from a mesh file ({plate.get('mesh_file')}): this check judges the analytic "
+            "plates (PlateSpec + FormingError) only; a mesh plate needs its resting fit on the mesh"
+        )
     plate["bow_mm"] = tuple(plate.get("bow_mm", (0.0, 0.0, 0.0, 0.0)))
     return PlateTruth(
         PlateSpec(**plate),
