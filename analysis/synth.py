@@ -64,8 +64,10 @@ __all__ = [
     "SupportBox",
     "SynthError",
     "SynthScan",
+    "formed_plate_mesh",
     "random_placement",
     "synthesize_scan",
+    "write_formed_mesh",
     "write_synth",
 ]
 
@@ -541,3 +543,35 @@ def write_synth(scan: SynthScan, out: str | Path, *, design_pitch_mm: float = 5.
     truth["design_pitch_mm"] = design_pitch_mm
     truth_path.write_text(json.dumps(truth, indent=2))
     return scan_path, design_path, truth_path
+
+
+def formed_plate_mesh(
+    spec: PlateSpec,
+    error: FormingError | None,
+    *,
+    pitch_mm: float = 4.0,
+    T_file_design: np.ndarray | None = None,
+) -> TriMesh:
+    """A formed plate's top surface (the design of ``spec`` plus ``error``; None: the design itself)
+    as a triangle mesh on a ``pitch_mm`` grid, in the design frame or, with ``T_file_design`` (4x4,
+    design frame -> file coordinates, mm: ship coordinates), in the file's coordinates as
+    :func:`analysis.design.cad_write.write_design` writes the design."""
+    mesh = design_mesh(spec, pitch_mm=pitch_mm, error=error)
+    return mesh if T_file_design is None else mesh.transformed(np.asarray(T_file_design, dtype=np.float64))
+
+
+def write_formed_mesh(
+    spec: PlateSpec,
+    error: FormingError | None,
+    path: str | Path,
+    *,
+    pitch_mm: float = 4.0,
+    T_file_design: np.ndarray | None = None,
+) -> Path:
+    """Write :func:`formed_plate_mesh` as PLY / STL / OBJ (by suffix; PLY keeps the vertices in
+    double precision): the ``mesh_file`` of ``[sim.plate] kind = "mesh"``. Returns the path."""
+    path = Path(path)
+    if path.suffix.lower() not in {".ply", ".stl", ".obj"}:
+        raise SynthError(f"formed mesh: write .ply, .stl or .obj, got {path.name!r}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return save_mesh(formed_plate_mesh(spec, error, pitch_mm=pitch_mm, T_file_design=T_file_design), path)

@@ -12,12 +12,14 @@ the offending value and what was expected.
 
 from __future__ import annotations
 
+import functools
 import json
+import math
 import os
 import re
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 from urllib.parse import urlsplit
 
 from pydantic import (
@@ -35,6 +37,9 @@ from analysis.contracts.placement import Placement
 from analysis.forming.rules import PlanSettings
 from drivers.abb_egm.limits import EGM_CYCLE_S, Q_MAX_DEG, Q_MIN_DEG, QD_MAX_DEG_S, LinearTrack, RobotLimits
 from drivers.abb_egm.rws_protocol import AUTO, OpMode
+
+if TYPE_CHECKING:  # read only for kind = "mesh" (the mesh readers load open3d)
+    from analysis.design.mesh import TriMesh
 
 ENV_PREFIX = "CELL_"
 ENV_DELIMITER = "__"
@@ -647,7 +652,12 @@ class FormingSection(Section, PlanSettings):
 
 
 class SimPlate(Section):
-    kind: Literal["sail", "saddle", "twisted", "cylinder", "flat"] = "sail"
+    """The simulated plate: a design of ``kind`` with radii and the seeded forming error, or
+    (``kind = "mesh"``) the formed plate's top surface from ``mesh_file`` (PLY / STL / OBJ, mm, in
+    the frame of ``design_file``, the design the trigger names: a mesh or IGES / STEP). A relative
+    path is resolved against the cell.toml's folder (:func:`load_config`). docs/simulator.md."""
+
+    kind: Literal["sail", "saddle", "twisted", "cylinder", "flat", "mesh"] = "sail"
     length_mm: PositiveFloat = 1200.0
     width_mm: PositiveFloat = 800.0
     thickness_mm: PositiveFloat = 15.0
@@ -655,6 +665,71 @@ class SimPlate(Section):
     radius_y_mm: PositiveFloat = 3000.0
     forming_error: Literal["none", "default"] = "default"
     seed: int = 7
+    mesh_file: Path | None = None
+    design_file: Path | None = None
+
+    @model_validator(mode="after")
+    def _mesh_files_usable(self) -> SimPlate:
+        if self.kind != "mesh":
+            for key in ("mesh_file", "design_file"):
+                if getattr(self, key) is not None:
+                    raise ValueError(f'{key} is read only with kind = "mesh" (kind is {self.kind!r})')
+            return self
+        from analysis.design.cad import CAD_SUFFIXES, DESIGN_SUFFIXES, MESH_SUFFIXES
+        from analysis.design.mesh import MeshError, surface_mismatch
+
+        for key in ("mesh_file", "design_file"):
+            if getattr(self, key) is None:
+                raise ValueError(f'kind = "mesh" needs {key}')
+        try:
+            mesh = sim_plate_mesh(self.mesh_file)
+        except MeshError as exc:
+            raise ValueError(f"mesh_file {exc}") from None
+        suffix = self.design_file.suffix.lower()
+        if suffix not in DESIGN_SUFFIXES:
+            raise ValueError(
+                f"design_file {self.design_file}: unsupported design format (use {', '.join(DESIGN_SUFFIXES)})"
+            )
+        if suffix in CAD_SUFFIXES:
+            try:  # read whole when the simulator starts (seconds): here only that it is there
+                with self.design_file.open("rb"):
+                    pass
+            except OSError as exc:
+                raise ValueError(
+                    f"design_file {self.design_file}: cannot read: {exc.strerror or exc}"
+                ) from None
+        elif suffix in MESH_SUFFIXES:
+            try:
+                design = sim_plate_mesh(self.design_file)
+            except MeshError as exc:
+                raise ValueError(f"design_file {exc}") from None
+            why = surface_mismatch(mesh, design)
+            if why:
+                raise ValueError(
+                    f"mesh_file {self.mesh_file} does not match design_file {self.design_file}: {why}"
+                )
+        return self
+
+
+def sim_plate_mesh(path: Path) -> TriMesh:
+    """The triangle mesh of a ``[sim.plate]`` file (read once per file version in a process: the
+    config is validated more than once). Raises ``analysis.design.mesh.MeshError`` naming the file."""
+    from analysis.design.mesh import MeshError
+
+    try:
+        st = Path(path).stat()
+    except OSError as exc:
+        raise MeshError(
+            f"{path}: {'no such file' if isinstance(exc, FileNotFoundError) else exc.strerror}"
+        ) from None
+    return _read_sim_plate_mesh(str(path), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_sim_plate_mesh(path: str, _mtime_ns: int, _size: int) -> TriMesh:
+    from analysis.design.mesh import load_mesh
+
+    return load_mesh(path)
 
 
 class SimPlacement(Section):
@@ -915,6 +990,23 @@ class CellConfig(BaseSettings):
             )
         return self
 
+    @model_validator(mode="after")
+    def _sim_mesh_plate_fits_the_bed(self) -> CellConfig:
+        sp = self.sim.plate
+        if sp.kind != "mesh":
+            return self
+        from analysis.design.mesh import principal_extents_mm
+
+        length = float(principal_extents_mm(sim_plate_mesh(sp.mesh_file).vertices_mm)[0])
+        (x0, y0), (x1, y1) = self.locate.bed_min_xy_mm, self.locate.bed_max_xy_mm
+        bed = math.hypot(x1 - x0, y1 - y0)
+        if length > 2.0 * bed:
+            raise ValueError(
+                f"sim.plate.mesh_file {sp.mesh_file}: the plate is {length:.0f} mm long, more than twice the "
+                f"bed's diagonal ({bed:.0f} mm, locate.bed_min_xy_mm .. bed_max_xy_mm): not in mm?"
+            )
+        return self
+
     @property
     def key_prefix(self) -> str:
         """The Zenoh key prefix with the cell id filled in."""
@@ -1022,7 +1114,18 @@ def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> CellConfig:
             str(path),
             ["the file is empty: required section [cell] (the cell's id, data_dir, designs_dir) is missing"],
         )
-    return parse_config(data, str(path))
+    return parse_config(_sim_plate_files_resolved(data, path.parent), str(path))
+
+
+def _sim_plate_files_resolved(data: dict[str, Any], folder: Path) -> dict[str, Any]:
+    """``[sim.plate] mesh_file`` / ``design_file`` given relative: against the cell.toml's folder."""
+    plate = data.get("sim", {}).get("plate") if isinstance(data.get("sim"), dict) else None
+    if not isinstance(plate, dict):
+        return data
+    for key in ("mesh_file", "design_file"):
+        if isinstance(plate.get(key), str) and not Path(plate[key]).is_absolute():
+            plate[key] = str(folder / plate[key])
+    return data
 
 
 def check_secret_file_mode(file: str | Path, *, what: str) -> None:

@@ -166,3 +166,32 @@ def save_mesh(mesh: TriMesh, path: str | Path) -> Path:
     if not o3d.io.write_triangle_mesh(str(path), m, write_ascii=False):
         raise MeshError(f"{path}: could not write mesh")
     return path
+
+
+def principal_extents_mm(vertices_mm: np.ndarray) -> np.ndarray:
+    """(3,) extents of a point set along its principal axes, largest first (mm): a plate's length,
+    width and rise whatever its pose (a plate in ship coordinates may stand on edge)."""
+    v = np.asarray(vertices_mm, dtype=np.float64)
+    c = v - v.mean(axis=0)
+    _, _, axes = np.linalg.svd(c[:: max(1, len(c) // 20000)], full_matrices=False)
+    return np.sort(np.ptp(c @ axes.T, axis=0))[::-1]
+
+
+def surface_mismatch(formed: TriMesh, design: TriMesh, tolerance: float = 0.1) -> str | None:
+    """Why a formed plate's surface is not the plate of ``design`` (both in the same frame, mm), or None.
+
+    The two must agree in length and width within ``tolerance`` (a share) + 20 mm, and their
+    bounding boxes' centres lie within ``tolerance`` of the design's length + 20 mm: a formed plate
+    departs from its design by millimetres, a wrong file or a file in other units or another frame
+    by far more.
+    """
+    ef, ed = principal_extents_mm(formed.vertices_mm), principal_extents_mm(design.vertices_mm)
+    for k, what in ((0, "length"), (1, "width")):
+        if abs(ef[k] - ed[k]) > tolerance * ed[k] + 20.0:
+            return f"the formed plate's {what} is {ef[k]:.1f} mm, the design's {ed[k]:.1f} mm"
+    cf = (formed.vertices_mm.min(axis=0) + formed.vertices_mm.max(axis=0)) / 2
+    cd = (design.vertices_mm.min(axis=0) + design.vertices_mm.max(axis=0)) / 2
+    gap = float(np.linalg.norm(cf - cd))
+    if gap > tolerance * ed[0] + 20.0:
+        return f"the formed plate lies {gap:.1f} mm from the design (not in the design file's frame?)"
+    return None

@@ -326,6 +326,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from analysis.design.cad import design_mesh_from_file
     from analysis.design.mesh import save_mesh
     from analysis.design.plates import design_mesh, plate_spec
     from cellctl.commands.tables import line_table
@@ -349,9 +350,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellctl demo: error: derived configuration invalid: {err.problems}", file=sys.stderr)
         return EXIT_ERROR
     sp = cfg.sim.plate
-    spec = plate_spec(sp.kind, length_mm=sp.length_mm, width_mm=sp.width_mm, thickness_mm=sp.thickness_mm,
-                      radius_x_mm=sp.radius_x_mm, radius_y_mm=sp.radius_y_mm)  # fmt: skip
-    save_mesh(design_mesh(spec, pitch_mm=5.0), out / "designs" / DEMO_DESIGN)
+    if sp.kind == "mesh":  # the design of the plate from a file: its mesh (a CAD design's tessellation)
+        design = design_mesh_from_file(sp.design_file)
+    else:
+        spec = plate_spec(sp.kind, length_mm=sp.length_mm, width_mm=sp.width_mm, thickness_mm=sp.thickness_mm,
+                          radius_x_mm=sp.radius_x_mm, radius_y_mm=sp.radius_y_mm)  # fmt: skip
+        design = design_mesh(spec, pitch_mm=5.0)
+    save_mesh(design, out / "designs" / DEMO_DESIGN)
     env = dict(os.environ)
     for env_name in {cfg.robot.rws_password_env, *cfg.sim.rws_users.values()}:
         env.setdefault(env_name, "robotics")  # ABB's published factory password of the simulated controller

@@ -81,6 +81,8 @@ def _design(arg: str, cfg):
     from analysis.design.cad import design_mesh_from_file
     from analysis.design.plates import design_mesh, plate_spec
 
+    if arg == "sim" and cfg.sim.plate.kind == "mesh":
+        return design_mesh_from_file(cfg.sim.plate.design_file)
     if arg == "sim":
         sp = cfg.sim.plate
         kind = "cylinder" if sp.kind == "cylindrical" else sp.kind

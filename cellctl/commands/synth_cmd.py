@@ -28,7 +28,14 @@ from analysis.design.plates import (
     outline_corners_xy,
     plate_spec,
 )
-from analysis.synth import ScanSettings, SynthError, random_placement, synthesize_scan, write_synth
+from analysis.synth import (
+    ScanSettings,
+    SynthError,
+    random_placement,
+    synthesize_scan,
+    write_formed_mesh,
+    write_synth,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -228,6 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also write the design as exact NURBS: <stem>-design.igs and <stem>-design.step (mm)",
     )
+    p.add_argument(
+        "--formed-mesh",
+        action="store_true",
+        help="also write the formed plate's top surface (design + forming error, 4 mm grid, design "
+        'frame): <stem>-formed.ply, the mesh_file of [sim.plate] kind = "mesh"',
+    )
     return p
 
 
@@ -272,6 +285,11 @@ def synth_main(argv: list[str] | None = None) -> int:
         if args.cad:
             stem = paths[1].with_suffix("")
             paths = (*paths, write_design(spec, f"{stem}.igs"), write_design(spec, f"{stem}.step"))
+        if args.formed_mesh:
+            paths = (
+                *paths,
+                write_formed_mesh(spec, error, paths[0].with_name(f"{paths[0].stem}-formed.ply")),
+            )
     except (PlateError, SynthError, CloudError) as exc:
         print(f"cellctl synth: {exc}", file=sys.stderr)
         return 2

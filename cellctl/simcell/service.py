@@ -5,8 +5,8 @@
 * the HD8 simulator (:class:`drivers.laser.sim.sensor.LaserSimulator`) on ``[laser] control_port`` /
   ``data_port``; its ``pose_at`` is the controller simulator's **true** trajectory composed with the
   mounting ``[robot.sensor_in_flange]``, so the daemon's acquisition is judged against the truth;
-* the scene: the formed plate of ``[sim.plate]`` (design + the default forming error) laid at
-  ``[sim.placement]``, with bed and supports (:meth:`cellctl.simcell.truth.PlateTruth.scene`).
+* the scene: the formed plate of ``[sim.plate]`` (design + the default forming error, or the
+  surface of its ``mesh_file``) laid at ``[sim.placement]``, with bed and supports (:meth:`cellctl.simcell.truth.PlateTruth.scene`).
 
 The truth (placement, plate, forming error) goes to ``<data_dir>/sim-truth.json``. With
 ``[sim] fault_control`` the process also serves the run-time fault knobs on ``<prefix>/sim/faults``
@@ -29,9 +29,10 @@ from typing import Any
 import numpy as np
 import structlog
 
+from analysis.design.mesh import MeshError
 from cellctl.acquisition.poses import T_from_pos_rpy
 from cellctl.config import CellConfig
-from cellctl.simcell.truth import PlateTruth, plate_truth
+from cellctl.simcell.truth import MeshPlateTruth, PlateTruth, mesh_plate_truth, plate_truth
 from drivers.runtime import stop_on_signals
 
 log = structlog.get_logger(__name__)
@@ -41,9 +42,22 @@ class SimCellError(Exception):
     """The simulated cell cannot start (port in use, bad [sim] values)."""
 
 
-def sim_plate_truth(cfg: CellConfig) -> PlateTruth:
-    """The formed plate of ``[sim.plate]`` at ``[sim.placement]`` (base frame, mm)."""
+def sim_plate_truth(cfg: CellConfig) -> PlateTruth | MeshPlateTruth:
+    """The formed plate of ``[sim.plate]`` at ``[sim.placement]`` (base frame, mm): a plate of
+    ``kind`` with its forming error, or (``kind = "mesh"``) the surface of ``mesh_file``.
+    Raises :class:`SimCellError` naming the key and file when the mesh plate cannot be used."""
     sp = cfg.sim.plate
+    if sp.kind == "mesh":
+        try:
+            return mesh_plate_truth(
+                sp.mesh_file,
+                sp.design_file,
+                thickness_mm=sp.thickness_mm,
+                pos_mm=tuple(cfg.sim.placement.pos_mm),
+                angle_deg=cfg.sim.placement.angle_deg,
+            )
+        except MeshError as exc:
+            raise SimCellError(f"[sim.plate] mesh_file / design_file: {exc}") from None
     return plate_truth(
         sp.kind,
         pos_mm=tuple(cfg.sim.placement.pos_mm),
@@ -57,12 +71,13 @@ def sim_plate_truth(cfg: CellConfig) -> PlateTruth:
     )
 
 
-def truth_dict(cfg: CellConfig, truth: PlateTruth) -> dict[str, Any]:
-    """What ``sim-truth.json`` holds: plate spec, forming error, placement and the true hand-eye."""
+def truth_dict(cfg: CellConfig, truth: PlateTruth | MeshPlateTruth) -> dict[str, Any]:
+    """What ``sim-truth.json`` holds: plate spec (a mesh plate: its files and the mesh's SHA-256),
+    forming error, placement and the true hand-eye."""
     return json.loads(
         json.dumps(
             {
-                "plate": asdict(truth.spec),
+                "plate": truth.record() if isinstance(truth, MeshPlateTruth) else asdict(truth.spec),
                 "forming_error": None if truth.error is None else asdict(truth.error),
                 "placement": {
                     "pos_mm": list(cfg.sim.placement.pos_mm),

@@ -161,7 +161,7 @@ def test_bad_scan_settings_name_the_field():
 def test_synth_main_writes_scan_design_and_truth_that_read_back(tmp_path):
     out = tmp_path / "scan.ply"
     argv = ["--plate", "saddle", "--deform", "dent:x=150,y=100,depth=3,sigma=50", "--out", str(out), "--seed", "2",
-            "--point-pitch-mm", "2", "--points-per-profile", "25", "--profile-step-mm", "4"]  # fmt: skip
+            "--point-pitch-mm", "2", "--points-per-profile", "25", "--profile-step-mm", "4", "--formed-mesh"]  # fmt: skip
     assert synth_main(argv) == 0
     cloud = read_cloud(out)
     assert cloud.organised and len(cloud) > 50_000
@@ -179,6 +179,11 @@ def test_synth_main_writes_scan_design_and_truth_that_read_back(tmp_path):
     r = q[inside, 2] - z[inside]
     # float32 storage and 0.02 mm noise: the written truth still places the cloud to a few hundredths.
     assert np.median(np.abs(r)) < 0.03
+    # --formed-mesh: the formed top surface (the mesh_file of [sim.plate] kind = "mesh"), design frame
+    formed = load_mesh(tmp_path / "scan-formed.ply")
+    v = formed.vertices_mm
+    np.testing.assert_allclose(v[:, 2], formed_height_mm(spec, err, v[:, 0], v[:, 1]), atol=1e-9)
+    assert np.ptp(v[:, 0]) == pytest.approx(1200.0) and np.ptp(v[:, 1]) == pytest.approx(800.0)
 
 
 def test_synth_main_returns_2_with_one_line_on_bad_input(tmp_path, capsys):

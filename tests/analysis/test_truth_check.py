@@ -160,3 +160,57 @@ def test_the_check_fails_when_the_registration_is_off_by_half_a_millimetre_or_a_
     report, results = _analyse(scan, tmp_path, PERTURBATIONS[name])
     check = check_measurement(truth, report, results, LAYOUT, figures=figures)
     assert not check.ok, check.summary()
+
+
+def _mesh_truth_file(tmp_path: Path, scan, pitch_mm: float = 2.0) -> Path:
+    """sim-truth.json of the scan's plate given as files (``[sim.plate] kind = "mesh"``, as
+    cellctl/simcell writes it): the formed top surface and the design, meshes in the design frame."""
+    import hashlib
+
+    from analysis.design.mesh import save_mesh
+    from analysis.synth import write_formed_mesh
+
+    formed = write_formed_mesh(scan.spec, scan.error, tmp_path / "formed.ply", pitch_mm=pitch_mm)
+    design = save_mesh(scan.design_mesh(5.0), tmp_path / "design.ply")
+    plate = {"kind": "mesh", "mesh_file": str(formed), "design_file": str(design), "thickness_mm": 15.0,
+             "mesh_sha256": hashlib.sha256(formed.read_bytes()).hexdigest(), "T_design_file": np.eye(4).tolist()}  # fmt: skip
+    path = tmp_path / "sim-truth.json"
+    path.write_text(
+        json.dumps({"plate": plate, "forming_error": None, "T_base_plate": scan.T_bed_design.tolist()})
+    )
+    return path
+
+
+@pytest.mark.slow  # the product's analysis of the scan and the fit on the mesh: 15 s at load 8
+def test_the_truth_of_a_plate_from_its_mesh_files_is_the_analytic_plates(
+    tmp_path: Path, scan, truth, figures
+):
+    """The same plate as a mesh (2 mm grid) and as PlateSpec + FormingError: the truth's rest and
+    figures agree to the mesh's chord, the verdict is the same, and the check built on the mesh
+    passes on the product's analysis as the analytic one does."""
+    mesh_truth = load_truth(_mesh_truth_file(tmp_path, scan))
+    assert mesh_truth.spec is None
+    np.testing.assert_allclose(
+        mesh_truth.surfaces.design_corners(), truth.surfaces.design_corners(), atol=1e-6
+    )
+    # both fits on a 4 mm grid (the mesh's ray casts: 4 s against 11 s on the 2 mm grid; the lowest
+    # contact, and so the rest, moves with the grid by 0.02 deg / 0.02 mm: compared on the same grid)
+    fig = truth_figures(mesh_truth, LAYOUT, Tolerances(), rest=truth_rest(mesh_truth, grid_mm=4.0))
+    rest, rest_a = fig.rest, truth_rest(truth, grid_mm=4.0)
+    assert abs(rest.rx_deg - rest_a.rx_deg) < 0.002 and abs(rest.ry_deg - rest_a.ry_deg) < 0.002
+    assert abs(rest.lift_mm - rest_a.lift_mm) < 0.02
+    assert fig.lines.keys() == figures.lines.keys()
+    fig_a = truth_figures(truth, LAYOUT, Tolerances(), rest=rest_a)
+    for name, (*_, m) in fig.lines.items():
+        assert abs(m.zmax_mm - fig_a.lines[name][4].zmax_mm) < 0.02, name
+    assert fig.verdict.verdict == fig_a.verdict.verdict == figures.verdict.verdict
+    report, results = _analyse(scan, tmp_path)
+    check = check_measurement(mesh_truth, report, results, LAYOUT, figures=fig)
+    assert check.ok, check.summary()
+
+
+def test_a_mesh_plates_truth_refuses_a_mesh_file_that_changed(tmp_path: Path, scan):
+    path = _mesh_truth_file(tmp_path, scan, pitch_mm=10.0)
+    (tmp_path / "formed.ply").write_bytes((tmp_path / "design.ply").read_bytes())
+    with pytest.raises(ValueError, match="is not the mesh the simulator scanned"):
+        load_truth(path)

@@ -4,11 +4,12 @@ simulated plates with known forming errors, judged against the simulator's truth
 surface, its own figures and verdict); the worker that did the first shares none of the daemon's
 files; and that job leaks no secret.
 
-Three plates, one cell each (the shared cell of test_cell_e2e.py runs a plate without forming error,
+Four plates, one cell each (the shared cell of test_cell_e2e.py runs a plate without forming error,
 against which a measurement proves nothing): the 300 x 200 sail with the trigger's placement 20 mm
-and 1 degree off the truth, a saddle turned -25 degrees found by the locate run (no placement), and
-a 340 x 220 cylinder turned 12 degrees, the placement 18 mm and 0.6 degree off, under tolerances
-that fail its dent. Each cell scans once (about a minute and a half of CI each) and is stopped
+and 1 degree off the truth, a saddle turned -25 degrees found by the locate run (no placement), a
+340 x 220 cylinder turned 12 degrees, the placement 18 mm and 0.6 degree off, under tolerances
+that fail its dent, and the sail designed in ship coordinates, given as IGES and scanned from its
+formed mesh (``[sim.plate] kind = "mesh"``). Each cell scans once (about a minute and a half of CI each) and is stopped
 before its cases read the results, so no case depends on another's order. The sail's job serves
 every case here:
 
@@ -43,7 +44,15 @@ from cellctl.api.session import close_session, subscribe
 from cellctl.commands.demo_cmd import DEMO_DESIGN, to_toml, wait_html_report
 from cellctl.commands.scan_cmd import StatusFollower
 from cellctl.config import load_config
-from tests.support.e2e_cell import Cell, open_client, tiny_cell_config, trigger_demo_plate, wait_status
+from tests.support.e2e_cell import (
+    IGES_DESIGN,
+    Cell,
+    iges_ship_plate,
+    open_client,
+    tiny_cell_config,
+    trigger_demo_plate,
+    wait_status,
+)
 from tests.support.isolated import hidden_mounts_command, start_hidden
 from tests.support.truth_check import CheckLimits, MeasurementCheck, check_measurement, load_truth
 
@@ -186,6 +195,7 @@ class Plate:
     yaw_deg: float | None
     placement_off: tuple[float, float, float] | None  # (dx mm, dy mm, dyaw deg) from the truth; None: none
     tolerances: dict[str, float]
+    iges_ship: bool = False  # designed in ship coordinates, given as IGES; the simulator scans its mesh
 
 
 PLATES = (
@@ -198,6 +208,13 @@ PLATES = (
     # 0.6 degree off, judged against tolerances that fail the dent's lines
     Plate("cylinder-off-fails", "cylinder", 340.0, 220.0, (2000.0, 3000.0), (1530.0, -30.0), 12.0,
           (-10.0, 15.0, -0.6), {"deviation_standard_mm": 1.0, "deviation_limit_mm": 2.0}),
+    # the first plate designed in ship coordinates (turned 90 degrees, 40 m aft, 3 m up) and given as
+    # IGES; the simulator scans its formed surface from a mesh file in the same coordinates
+    # ([sim.plate] kind = "mesh", 1 mm grid), the truth is that mesh; its pose and the trigger's error
+    # the first plate's (at -8 degrees and (1480, 20) the product rested this sail 0.122 mm low as a
+    # PLY design and a kind, 0.125 mm as this IGES plate: beyond the offset's 0.08 mm; docs/testing.md)
+    Plate("sail-iges-ship", "sail", 300.0, 200.0, (4000.0, 3000.0), None, None, (14.14, -14.14, 1.0), {},
+          iges_ship=True),
 )  # fmt: skip
 LOCATE = {"check_given": True, "bed_min_xy_mm": [1250.0, -250.0], "bed_max_xy_mm": [1750.0, 250.0],
           "pass_spacing_mm": 120.0, "across_within_deg": 45.0}  # fmt: skip
@@ -255,6 +272,8 @@ def measured(request, tmp_path_factory) -> Measured:
         radius_y_mm=plate.radii_mm[1], angle_deg=plate.yaw_deg, pos_xy_mm=plate.pos_xy_mm,
         tolerances=plate.tolerances,
     )  # fmt: skip
+    if plate.iges_ship:
+        iges_ship_plate(path)
     if plate.placement_off is None:
         raw = load_config(path).model_dump(mode="json")
         raw["locate"].update(LOCATE)
@@ -263,8 +282,9 @@ def measured(request, tmp_path_factory) -> Measured:
     c.start()
     try:
         acc, (state, message, _) = asyncio.run(
-            trigger_demo_plate(c.cfg, plate.name, placement=_off(c.cfg, plate))
-        )
+            trigger_demo_plate(c.cfg, plate.name, placement=_off(c.cfg, plate),
+                               design=IGES_DESIGN if plate.iges_ship else DEMO_DESIGN)
+        )  # fmt: skip
     finally:
         codes = c.stop()
     assert all(code == 0 for code in codes.values()), (codes, (out / "logs").as_posix())

@@ -157,12 +157,12 @@ async def wait_status(follower, pred, timeout_s: float = 90.0):
 
 
 async def trigger_demo_plate(
-    cfg, plate_id: str, timeout_s: float = 300.0, *, placement: Any = "sim"
+    cfg, plate_id: str, timeout_s: float = 300.0, *, placement: Any = "sim", design: str = DEMO_DESIGN
 ) -> tuple[Any, tuple[str, str, Any]]:
-    """Wait until the cell is idle with a worker, trigger the demo design (a typed TriggerRequest) and
-    follow the job: ``(TriggerAccepted, (state, message, report))``. ``placement``: ``"sim"`` the
-    simulated plate's exact placement, a :class:`~analysis.contracts.placement.Placement` that one, None none
-    (the cell locates the plate first)."""
+    """Wait until the cell is idle with a worker, trigger the demo design (or ``design``, a file in the
+    designs directory; a typed TriggerRequest) and follow the job: ``(TriggerAccepted, (state, message,
+    report))``. ``placement``: ``"sim"`` the simulated plate's exact placement, a
+    :class:`~analysis.contracts.placement.Placement` that one, None none (the cell locates the plate first)."""
     from analysis.contracts.placement import Placement
     from cellctl.api import Keys, TriggerAccepted, TriggerRequest, call
     from cellctl.api.session import close_session
@@ -176,9 +176,53 @@ async def trigger_demo_plate(
         if placement == "sim":
             pl = cfg.sim.placement
             placement = Placement(pos_mm=tuple(pl.pos_mm), rpy_deg=(0.0, 0.0, pl.angle_deg))
-        req = TriggerRequest(plate_id=plate_id, design=DEMO_DESIGN, placement=placement)
+        req = TriggerRequest(plate_id=plate_id, design=design, placement=placement)
         acc = await call(session, keys.trigger, req.model_dump_json(exclude_none=True), TriggerAccepted)
         return acc, await wait_for_job(follower, acc.job_id, timeout_s)
     finally:
         follower.close()
         await asyncio.to_thread(close_session, session)
+
+
+#: the ship-coordinates pose of the IGES plate's design (:func:`iges_ship_plate`): the design frame
+#: turned 90 degrees about z, 40 m aft, 2.5 m to port, 3 m up
+T_SHIP_DESIGN = (
+    (0.0, -1.0, 0.0, 40000.0),
+    (1.0, 0.0, 0.0, -2500.0),
+    (0.0, 0.0, 1.0, 3000.0),
+    (0.0, 0.0, 0.0, 1.0),
+)
+IGES_DESIGN = "plate-ship.igs"
+
+
+def iges_ship_plate(path: Path) -> Path:
+    """Make a tiny cell's plate (``tiny_cell_config``'s sail, its forming error) one from files, as a
+    plate designed in ship coordinates arrives: the design as IGES in ship coordinates
+    (``designs/plate-ship.igs``, what the trigger names) and the formed top surface as a mesh in the
+    same coordinates (``plates/formed.ply``), the simulator reading them (``[sim.plate] kind =
+    "mesh"``, paths relative to the cell.toml). Rewrites the cell.toml at ``path``; returns it."""
+    import numpy as np
+
+    from analysis.design.cad_write import write_design
+    from analysis.design.plates import default_forming_error
+    from analysis.synth import write_formed_mesh
+
+    raw = load_config(path).model_dump(mode="json")
+    sp = raw["sim"]["plate"]
+    if sp["forming_error"] != "default":
+        raise ValueError("iges_ship_plate: the tiny cell's plate with its default forming error only")
+    spec = plate_spec(sp["kind"], length_mm=sp["length_mm"], width_mm=sp["width_mm"], thickness_mm=sp["thickness_mm"],
+                      radius_x_mm=sp["radius_x_mm"], radius_y_mm=sp["radius_y_mm"])  # fmt: skip
+    T = np.array(T_SHIP_DESIGN)
+    out = path.parent
+    write_design(spec, out / "designs" / IGES_DESIGN, T_file_design=T)
+    # a 1 mm grid: on 4 mm facets the default error's bump (1.5 mm high, 20 mm wide) is a sharp peak
+    # the product's resting patches read low, and the design sank 0.12 mm into it (0.03-0.05 mm on the
+    # analytic plates: truth_check.CheckLimits)
+    write_formed_mesh(
+        spec, default_forming_error(spec), out / "plates" / "formed.ply", pitch_mm=1.0, T_file_design=T
+    )
+    raw["sim"]["plate"] = {"kind": "mesh", "mesh_file": "plates/formed.ply",
+                           "design_file": f"designs/{IGES_DESIGN}", "thickness_mm": sp["thickness_mm"], "seed": sp["seed"]}  # fmt: skip
+    path.write_text(to_toml(raw), encoding="utf-8")
+    return path

@@ -23,6 +23,10 @@ least-squares sense, held in its plane by the plate's corners. The truth does th
   regular grid over the footprint (``grid_mm``, 2 mm: equal weight per area, as the product's
   surface cells give). ``F`` is convex in the tilts to first order; Nelder-Mead on it to 1e-7 deg.
 
+A plate from a mesh file (``[sim.plate] kind = "mesh"``: ``sim-truth.json`` names the mesh and the
+design file) is judged the same way on its two meshes (:class:`MeshSurfaces`, :class:`MeshHeights`):
+the design frame is the one the product's reader finds for the design file (``T_design_file``).
+
 Heights on either surface over a base-frame (x, y) are exact: the analytic surface
 (``design_height_mm`` / ``formed_height_mm``) in its pose, its point over (x, y) found by
 fixed-point iteration on the pose's plan part (converges to 1e-9 mm in a few steps for tilts of a
@@ -51,6 +55,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
+from analysis.design.mesh import TriMesh
 from analysis.design.plates import (
     FormingError,
     PlateSpec,
@@ -77,25 +82,170 @@ __all__ = [
 ]
 
 
+class AnalyticSurfaces:
+    """The design and the formed plate of a :class:`PlateSpec` and its :class:`FormingError`: exact."""
+
+    def __init__(self, spec: PlateSpec, error: FormingError) -> None:
+        self.spec, self.error = spec, error
+
+    def design_h(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return design_height_mm(self.spec, u, v)
+
+    def formed_h(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return formed_height_mm(self.spec, self.error, u, v)
+
+    def grid(self, grid_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        n_u = int(np.ceil(self.spec.length_mm / grid_mm)) + 1
+        n_v = int(np.ceil(self.spec.width_mm / grid_mm)) + 1
+        U, V = footprint_grid(self.spec, n_u, n_v)
+        return U.ravel(), V.ravel()
+
+    def design_corners(self) -> np.ndarray:
+        return design_corners(self.spec)
+
+    def formed_corners(self) -> np.ndarray:
+        return formed_corners(self.spec, self.error)
+
+
+class MeshHeights:
+    """Heights of a triangle mesh over (x, y) of its frame (mm): the plane of the first triangle a
+    vertical ray from above meets (open3d's ray caster finds it; the plane through its three vertices
+    in float64: exact for the piecewise-linear surface). Off the mesh (a tilted design's edge a
+    hundredth of a millimetre beyond the plate) the plane of the nearest triangle, extended: the fits
+    and the lines' last samples need a height there, as the analytic surfaces give one."""
+
+    def __init__(self, mesh: TriMesh) -> None:
+        import open3d as o3d
+
+        self.mesh = mesh
+        v = mesh.vertices_mm
+        self.shift = (v.min(axis=0) + v.max(axis=0)) / 2
+        self.top = float(v[:, 2].max() - self.shift[2]) + 10.0
+        self._rc = o3d.t.geometry.RaycastingScene()
+        self._rc.add_triangles(
+            o3d.core.Tensor((v - self.shift).astype(np.float32)),
+            o3d.core.Tensor(mesh.triangles.astype(np.uint32)),
+        )
+
+    def _hits(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        import open3d as o3d
+
+        rays = np.zeros((x.size, 6), dtype=np.float32)
+        rays[:, 0], rays[:, 1] = x - self.shift[0], y - self.shift[1]
+        rays[:, 2], rays[:, 5] = self.top, -1.0
+        ids = self._rc.cast_rays(o3d.core.Tensor(rays))["primitive_ids"].numpy().astype(np.int64)
+        return np.where(ids == o3d.t.geometry.RaycastingScene.INVALID_ID, -1, ids)
+
+    def covers(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Whether the mesh lies over each (u, v)."""
+        x = np.asarray(u, dtype=np.float64)
+        y = np.broadcast_to(np.asarray(v, dtype=np.float64), x.shape)
+        return (self._hits(x.ravel(), y.ravel()) >= 0).reshape(x.shape)
+
+    def __call__(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        import open3d as o3d
+
+        x = np.asarray(u, dtype=np.float64)
+        y = np.broadcast_to(np.asarray(v, dtype=np.float64), x.shape)
+        px, py = x.ravel(), y.ravel()
+        ids = self._hits(px, py)
+        miss = ids < 0
+        if miss.any():
+            q = np.column_stack([px[miss] - self.shift[0], py[miss] - self.shift[1], np.zeros(miss.sum())])
+            near = self._rc.compute_closest_points(o3d.core.Tensor(q.astype(np.float32)))
+            ids[miss] = near["primitive_ids"].numpy().astype(np.int64)
+        tv = self.mesh.vertices_mm[self.mesh.triangles[ids]]
+        n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+        h = tv[:, 0, 2] - (n[:, 0] * (px - tv[:, 0, 0]) + n[:, 1] * (py - tv[:, 0, 1])) / n[:, 2]
+        return h.reshape(x.shape)
+
+
+class MeshSurfaces:
+    """A plate from a mesh file (``[sim.plate] kind = "mesh"``): the formed top surface as the
+    simulator scanned it and the design's surface, both in the design frame, heights from the
+    meshes (:class:`MeshHeights`; a CAD design's tessellation, 0.01 mm chord); the footprint grid
+    where both exist; the corners of each outline (``analysis.design.outline``)."""
+
+    def __init__(self, design: TriMesh, formed: TriMesh, design_corners_mm: np.ndarray | None = None) -> None:
+        from analysis.design.outline import design_corners_from_mesh
+
+        self.design_h, self.formed_h = MeshHeights(design), MeshHeights(formed)
+        self._design_corners = (
+            design_corners_from_mesh(design) if design_corners_mm is None else np.asarray(design_corners_mm)
+        )
+        self._formed_corners = design_corners_from_mesh(formed)
+
+    def grid(self, grid_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        # the outline's edges on the grid (1 um inside: the ray caster works in float32), as footprint_grid has them
+        lo, hi = (
+            self._design_corners[:, :2].min(axis=0) + 1e-3,
+            self._design_corners[:, :2].max(axis=0) - 1e-3,
+        )
+        n = np.ceil((hi - lo) / grid_mm).astype(int) + 1
+        U, V = np.meshgrid(np.linspace(lo[0], hi[0], n[0]), np.linspace(lo[1], hi[1], n[1]))
+        U, V = U.ravel(), V.ravel()
+        ok = self.design_h.covers(U, V) & self.formed_h.covers(U, V)
+        return U[ok], V[ok]
+
+    def design_corners(self) -> np.ndarray:
+        return self._design_corners
+
+    def formed_corners(self) -> np.ndarray:
+        return self._formed_corners
+
+
 @dataclass(frozen=True)
 class PlateTruth:
-    """The simulated plate: design spec, forming error, ``T_base_plate`` (4x4, plate -> base, mm)."""
+    """The simulated plate: design spec, forming error, ``T_base_plate`` (4x4, plate -> base, mm).
 
-    spec: PlateSpec
-    error: FormingError
+    A plate from a mesh file has no spec or error: ``surfaces`` (:class:`MeshSurfaces`) holds its
+    design and formed surface in the design frame, ``T_design_file`` the design file's coordinates
+    -> that frame (the identity for the analytic plates, designed in their own frame)."""
+
+    spec: PlateSpec | None
+    error: FormingError | None
     T_base_plate: np.ndarray
+    surfaces: AnalyticSurfaces | MeshSurfaces | None = None
+    T_design_file: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def __post_init__(self) -> None:
+        if self.surfaces is None:
+            object.__setattr__(self, "surfaces", AnalyticSurfaces(self.spec, self.error))
 
 
 def load_truth(truth_json: Path | str) -> PlateTruth:
-    """The plate of ``sim-truth.json``."""
+    """The plate of ``sim-truth.json`` (a mesh plate: its files read, the mesh's SHA-256 checked)."""
     truth = json.loads(Path(truth_json).read_text())
     plate = dict(truth["plate"])
+    T_base_plate = np.asarray(truth["T_base_plate"], dtype=np.float64)
+    if plate.get("kind") == "mesh":
+        return _load_mesh_truth(plate, T_base_plate, truth_json)
     plate["bow_mm"] = tuple(plate.get("bow_mm", (0.0, 0.0, 0.0, 0.0)))
-    return PlateTruth(
-        PlateSpec(**plate),
-        FormingError.from_dict(truth["forming_error"] or {}),
-        np.asarray(truth["T_base_plate"], dtype=np.float64),
-    )
+    return PlateTruth(PlateSpec(**plate), FormingError.from_dict(truth["forming_error"] or {}), T_base_plate)
+
+
+def _load_mesh_truth(plate: dict, T_base_plate: np.ndarray, source: Path | str) -> PlateTruth:
+    import hashlib
+
+    from analysis.design.cad import CAD_SUFFIXES, read_cad
+    from analysis.design.mesh import load_mesh
+    from analysis.design.outline import frame_design_mesh
+
+    mesh_file, design_file = Path(plate["mesh_file"]), Path(plate["design_file"])
+    if hashlib.sha256(mesh_file.read_bytes()).hexdigest() != plate["mesh_sha256"]:
+        raise ValueError(f"{source}: {mesh_file} is not the mesh the simulator scanned (its SHA-256 differs)")
+    T_design_file = np.asarray(plate["T_design_file"], dtype=np.float64)
+    corners = None
+    if design_file.suffix.lower() in CAD_SUFFIXES:
+        cad = read_cad(design_file)
+        design, corners, T_read = cad.mesh, cad.corners_mm, cad.T_design_file
+    else:
+        framed = frame_design_mesh(load_mesh(design_file))
+        design, corners, T_read = framed.mesh, framed.corners_mm, framed.T_design_file
+    if not np.allclose(T_read, T_design_file, atol=1e-6):
+        raise ValueError(f"{source}: {design_file} now frames differently from when the simulator read it")
+    formed = load_mesh(mesh_file).transformed(T_design_file)
+    return PlateTruth(None, None, T_base_plate, MeshSurfaces(design, formed, corners), T_design_file)
 
 
 def _rot_xy(rx_deg: float, ry_deg: float) -> np.ndarray:
@@ -148,18 +298,16 @@ class TruthRest:
 
 def truth_rest(truth: PlateTruth, grid_mm: float = 2.0) -> TruthRest:
     """The truth's resting pose of the design on the exact formed surface (module docstring)."""
-    spec, err, T0 = truth.spec, truth.error, truth.T_base_plate
-    L = max(spec.length_mm, spec.width_mm)
-    n_u = int(np.ceil(spec.length_mm / grid_mm)) + 1
-    n_v = int(np.ceil(spec.width_mm / grid_mm)) + 1
-    U, V = footprint_grid(spec, n_u, n_v)
+    surf, T0 = truth.surfaces, truth.T_base_plate
+    L = float(np.ptp(surf.design_corners()[:, :2], axis=0).max())
+    U, V = surf.grid(grid_mm)
     # the true surface's points over the footprint, in the base frame: where the gaps are measured
-    p = T0[:3, :3] @ np.stack([U.ravel(), V.ravel(), formed_height_mm(spec, err, U.ravel(), V.ravel())])
+    p = T0[:3, :3] @ np.stack([U, V, surf.formed_h(U, V)])
     p += T0[:3, 3:4]
     x, y, z_true = p
 
     def design_z(T: np.ndarray) -> np.ndarray:
-        return height_over(T, lambda u, v: design_height_mm(spec, u, v), x, y)
+        return height_over(T, surf.design_h, x, y)
 
     def gaps(angles: np.ndarray) -> np.ndarray:
         return design_z(T0 @ _rot_xy(*angles)) - z_true
@@ -200,15 +348,15 @@ def truth_figures(
     """The detection lines of ``layout`` on the true plate, their figures at the resting pose and the
     verdict under ``tolerances`` (analysis.metrics, the same rules as the product's)."""
     rest = rest or truth_rest(truth)
-    spec, err, T0 = truth.spec, truth.error, truth.T_base_plate
-    corners = formed_corners(spec, err) @ T0[:3, :3].T + T0[:3, 3]
+    surf, T0 = truth.surfaces, truth.T_base_plate
+    corners = surf.formed_corners() @ T0[:3, :3].T + T0[:3, 3]
     out: dict[str, tuple[DetectionLine, np.ndarray, np.ndarray, np.ndarray, LineMetrics]] = {}
     metrics: list[LineMetrics] = []
     for line in detection_lines(corners, layout):
         s = np.arange(0.0, line.chord_mm + 1e-9, step_mm)
         xy = line.start_mm[:2] + s[:, None] * line.direction[None, :2]
-        hd = height_over(rest.T_base_design, lambda u, v: design_height_mm(spec, u, v), xy[:, 0], xy[:, 1])
-        ht = height_over(T0, lambda u, v: formed_height_mm(spec, err, u, v), xy[:, 0], xy[:, 1])
+        hd = height_over(rest.T_base_design, surf.design_h, xy[:, 0], xy[:, 1])
+        ht = height_over(T0, surf.formed_h, xy[:, 0], xy[:, 1])
         m = line_metrics(s, hd, ht, noise_mm=0.0, family=line.family, index=line.index,
                          position_mm=line.position_mm)  # fmt: skip
         metrics.append(m)
@@ -331,21 +479,23 @@ class MeasurementCheck:
         }
 
 
-def _reported_T_base_spec(report: Mapping[str, Any]) -> np.ndarray:
-    """The reported registration as a pose of the design *file*'s frame (the spec's) in the base."""
+def _reported_T_base_spec(report: Mapping[str, Any], truth: PlateTruth) -> np.ndarray:
+    """The reported registration as a pose of the truth's design frame in the base: the design
+    *file*'s frame (the spec's) for the analytic plates, the design frame the reader found for a
+    mesh plate's design file (``truth.T_design_file``)."""
     T = np.asarray(report["registration"]["transform"], dtype=np.float64)
     T_design_file = (report.get("design") or {}).get("T_design_file")
     if T_design_file is not None:
         T = T @ np.asarray(T_design_file, dtype=np.float64)
-    return T
+    return T @ np.linalg.inv(truth.T_design_file)
 
 
-def _plate_to_base(T_base_spec: np.ndarray, T_plate_spec: np.ndarray, spec: PlateSpec, xy_plate: np.ndarray):
+def _plate_to_base(T_base_spec: np.ndarray, T_plate_spec: np.ndarray, design_h, xy_plate: np.ndarray):
     """Reported plate-frame (x, y) positions into base-frame (x, y), through the reported pose (the
     point on the design surface there)."""
     T_spec_plate = np.linalg.inv(T_plate_spec)
     xy = xy_plate @ T_spec_plate[:2, :2].T + T_spec_plate[:2, 3]
-    p = np.column_stack([xy, design_height_mm(spec, xy[:, 0], xy[:, 1])])
+    p = np.column_stack([xy, design_h(xy[:, 0], xy[:, 1])])
     b = p @ T_base_spec[:3, :3].T + T_base_spec[:3, 3]
     return b[:, 0], b[:, 1]
 
@@ -359,7 +509,7 @@ def check_measurement(
     figures: TruthFigures | None = None,
 ) -> MeasurementCheck:
     """A job's report and results against the truth alone (module docstring)."""
-    spec, err = truth.spec, truth.error
+    surf = truth.surfaces
     tol = report["tolerances"]
     tolerances = Tolerances(
         standard=tol["standard"], deviation_standard_mm=tol["deviation_standard_mm"],
@@ -368,16 +518,16 @@ def check_measurement(
     )  # fmt: skip
     fig = figures or truth_figures(truth, layout, tolerances)
     T_rest = fig.rest.T_base_design
-    T_rep = _reported_T_base_spec(report)
-    T_plate_spec = _plate_frame(spec)
+    T_rep = _reported_T_base_spec(report, truth)
+    T_plate_spec = _plate_frame(surf.design_corners())
     failures: list[str] = []
 
     def true_deviation(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        hd = height_over(T_rest, lambda u, v: design_height_mm(spec, u, v), x, y)
-        return hd - height_over(truth.T_base_plate, lambda u, v: formed_height_mm(spec, err, u, v), x, y)
+        hd = height_over(T_rest, surf.design_h, x, y)
+        return hd - height_over(truth.T_base_plate, surf.formed_h, x, y)
 
     # the pose in plane: the design's corners placed by either pose, and the turn about z
-    c = design_corners(spec)
+    c = surf.design_corners()
     moved = (c @ T_rep[:3, :3].T + T_rep[:3, 3]) - (c @ T_rest[:3, :3].T + T_rest[:3, 3])
     inplane = float(np.hypot(moved[:, 0], moved[:, 1]).max())
     height = float(np.abs(moved[:, 2]).max())
@@ -394,7 +544,7 @@ def check_measurement(
     # the deviation field: where the product measured (its positions), the truth's values there; the
     # common offset first (the other figures are judged with it taken out)
     xy_plate = np.asarray(results["plate_xy_mm"], dtype=np.float64)
-    bx, by = _plate_to_base(T_rep, T_plate_spec, spec, xy_plate)
+    bx, by = _plate_to_base(T_rep, T_plate_spec, surf.design_h, xy_plate)
     signed = np.asarray(results["plate_deviation_mm"], dtype=np.float64) - true_deviation(bx, by)
     signed = signed[np.isfinite(signed)]
     offset = float(np.median(signed)) if signed.size else float("nan")
@@ -430,7 +580,7 @@ def check_measurement(
             a = np.asarray(ln["start_plate_mm"], dtype=np.float64)
             b = np.asarray(ln["end_plate_mm"], dtype=np.float64)
             xy_plate = a[None, :] + s[ok][:, None] * ((b - a) / np.linalg.norm(b - a))[None, :]
-            bx, by = _plate_to_base(T_rep, T_plate_spec, spec, xy_plate)
+            bx, by = _plate_to_base(T_rep, T_plate_spec, surf.design_h, xy_plate)
             median = float(np.median(np.abs(dev[ok] - true_deviation(bx, by) - offset)))
         z_off = line_metrics(s_true, hd + offset, ht, noise_mm=0.0).zmax_mm if np.isfinite(offset) else np.inf
         lc = LineCheck(name, float(ln["zmax_mm"]), m_true.zmax_mm, z_off, ln.get("grade", ""), m_true.grade,
@@ -458,9 +608,10 @@ def check_measurement(
     )  # fmt: skip
 
 
-def _plate_frame(spec: PlateSpec) -> np.ndarray:
-    """4x4 design -> plate frame (the report's positions): origin at corner 0, x along edge 0->1."""
-    c = design_corners(spec)
+def _plate_frame(corners_mm: np.ndarray) -> np.ndarray:
+    """4x4 design -> plate frame (the report's positions) from the design's corners (4, 3): origin at
+    corner 0, x along edge 0->1."""
+    c = corners_mm
     x = np.array([*(c[1, :2] - c[0, :2]), 0.0])
     x /= np.linalg.norm(x)
     R = np.vstack([x, np.cross([0.0, 0.0, 1.0], x), [0.0, 0.0, 1.0]])
