@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from ruckig import InputParameter, Ruckig, Trajectory
 
+import cellctl.planning.coverage as coverage
 import cellctl.planning.joint_path as joint_path
 import cellctl.planning.timing as timing
 from analysis.design.plates import design_mesh, plate_spec
@@ -46,6 +47,24 @@ def test_culled_coverage_is_that_of_casting_every_ray_on_a_plan_with_a_gap(mesh,
         plan.segments, mesh, surface, SMALL_PLACEMENT, SMALL_SETTINGS, exhaustive=True
     )
     assert full.fraction == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("max_incidence_deg", [80.0, 5.0])
+def test_the_incidence_shortcut_counts_what_checking_every_rays_normal_counts(
+    mesh, plan, monkeypatch, max_incidence_deg
+):
+    # 5 deg: below the fans' own spread, so many rays are refused on the incidence and the exact
+    # check runs; 80: every ray is inside the shortcut's bound
+    surface = design_surface(mesh)
+    settings = SMALL_SETTINGS.with_(max_incidence_deg=max_incidence_deg)
+    shortcut = _predict_coverage(plan.segments, mesh, surface, SMALL_PLACEMENT, settings, exhaustive=True)
+    monkeypatch.setattr(coverage, "_steepest_facet_deg", lambda design: 90.0)  # no ray is sure
+    every = _predict_coverage(plan.segments, mesh, surface, SMALL_PLACEMENT, settings, exhaustive=True)
+    assert shortcut == every
+    if max_incidence_deg < 20.0:
+        assert every.fraction < 0.99  # the limit bites: the exact check did decide
+    else:
+        assert every.fraction == pytest.approx(1.0)
 
 
 def _solve(mesh, settings, monkeypatch, walk_only: bool):
