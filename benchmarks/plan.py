@@ -23,7 +23,9 @@ threads included), ``daemon_plan_s`` / ``daemon_plan_cpu_s`` (the plan the daemo
 the coverage prediction), ``cache`` (the plan cache's entry of that plan: ``write_s``, ``read_s``
 (the entry parsed and its header validated), ``hit_s`` (a hit: read and the envelope check),
 ``bytes``, ``loop_block_ms``: the longest an asyncio loop ticking every 1 ms was held up while the
-entry was stored / a hit was read and checked in a worker thread, as the daemon does) and ``load_avg``
+entry was stored / read / a hit was read and checked (the envelope check of its 431 k EGM samples
+included) in a worker thread, as the daemon does, and ``idle`` while that thread only slept: the
+machine's own delay) and ``load_avg``
 (the 1-minute load average before and after the large plan: the figures are under it).
 
 ``choices``: the planner's (for the sail: the axis its passes run along, ``pass_axis``, with each
@@ -114,10 +116,15 @@ def _daemon_and_cache(design, placement, settings) -> dict:
         # the daemon's loop beside the cache's work in its thread: the longest it was held up
         store_block_ms = _loop_block_ms(lambda: cache.store(key, plan))
         hit_block_ms = _loop_block_ms(lambda: cache.load(key, placement, settings))
+        read_block_ms = _loop_block_ms(lambda: _read_entry(cache.path(key).read_bytes()))
+        idle_block_ms = _loop_block_ms(lambda: time.sleep(0.5))  # the machine's own scheduling delay
     out["cache"] = {
         "write_s": round(write_s, 3), "read_s": round(read_s, 3), "hit_s": round(hit_s, 3),
         "bytes": len(data), "hit": hit is not None,
-        "loop_block_ms": {"store": round(store_block_ms, 1), "hit": round(hit_block_ms, 1)},
+        "loop_block_ms": {
+            "store": round(store_block_ms, 1), "read": round(read_block_ms, 1), "hit": round(hit_block_ms, 1),
+            "idle": round(idle_block_ms, 1),
+        },
     }  # fmt: skip
     return out
 

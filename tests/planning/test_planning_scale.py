@@ -14,6 +14,7 @@ from ruckig import InputParameter, Ruckig, Trajectory
 
 import cellctl.planning.coverage as coverage
 import cellctl.planning.joint_path as joint_path
+import cellctl.planning.planner as planner
 import cellctl.planning.timing as timing
 from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, plan_scan
@@ -130,9 +131,13 @@ def test_vectorised_law_states_are_ruckigs_at_time(v_in, v_out):
     assert np.array_equal(timing._law_states(law, t), reference)
 
 
-def test_envelope_positions_are_sample_manys(plan):
+@pytest.mark.parametrize("block", [None, 1000])
+def test_envelope_positions_are_sample_manys(plan, monkeypatch, block):
+    if block is not None:  # taken in blocks, as a long plan's are
+        monkeypatch.setattr(planner, "_POSITIONS_BLOCK", block)
     tr = plan.trajectory
     t = np.append(np.arange(0.0, tr.duration_s, 0.004032), tr.duration_s)
+    assert block is None or t.size > 2 * block
     assert np.array_equal(positions_at(tr, t), tr.sample_many(t)[0])
 
 
