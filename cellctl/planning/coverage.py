@@ -1021,18 +1021,26 @@ def _plate_xy(p: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return d0 * T[0, 0] + d1 * T[1, 0] + d2 * T[2, 0], d0 * T[0, 1] + d1 * T[1, 1] + d2 * T[2, 1]
 
 
-#: the margin (deg) of the incidence shortcut in :func:`_predict_coverage` (open3d's normals are float32)
+#: the margin (deg) of the incidence shortcut in :func:`_predict_coverage`, beyond the float32 error
+#: of open3d's normals (:func:`_steepest_facet_deg`)
 _INCIDENCE_PAD_DEG = 0.05
 
 
-def _steepest_facet_deg(design: TriMesh) -> float:
+def _steepest_facet_deg(design: TriMesh, reach_mm: float) -> float:
     """The largest angle (deg) between a facet's normal line and the vertical (90 for a degenerate
-    facet, whose normal is not defined)."""
+    facet, whose normal is not defined), plus a bound on the error of a normal computed from float32
+    vertices (as open3d's ray casting does) that lie within ``reach_mm`` of the origin: a few float32
+    roundings of the coordinates over the facet's smallest altitude."""
     v = design.vertices_mm[design.triangles]
     n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     norm = np.linalg.norm(n, axis=1)
-    cos_z = np.divide(np.abs(n[:, 2]), norm, out=np.zeros_like(norm), where=norm > 0)
-    return float(np.rad2deg(np.arccos(np.clip(cos_z.min(initial=1.0), 0.0, 1.0))))
+    if not design.triangles.shape[0] or not np.all(norm > 0):
+        return 90.0
+    cos_z = np.abs(n[:, 2]) / norm
+    longest = np.max(np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2), axis=1)
+    altitude = float(np.min(norm / longest))  # twice the area over the longest side
+    err_rad = 8.0 * float(np.finfo(np.float32).eps) * reach_mm / altitude
+    return float(np.rad2deg(np.arccos(np.clip(cos_z.min(), 0.0, 1.0)) + err_rad))
 
 
 def _plate_xy_columns(p: list[np.ndarray], T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1128,7 +1136,10 @@ def _predict_coverage(
     # a ray within (max_incidence - the design's steepest facet) of the vertical meets every facet
     # within max_incidence (the angles between lines obey the triangle inequality): its incidence
     # need not be looked at (on the plates planned so far: every ray)
-    steep_deg = _steepest_facet_deg(design)
+    reach = float(np.abs(design.vertices_mm).max()) + float(
+        np.linalg.norm(placement_transform(placement)[:3, 3])
+    )
+    steep_deg = _steepest_facet_deg(design, reach + 2.0 * _outline_drift_mm(surface, settings))
     cos_sure = np.cos(np.deg2rad(max(0.0, settings.max_incidence_deg - steep_deg - _INCIDENCE_PAD_DEG)))
 
     def cast(scene, T: np.ndarray, seen: np.ndarray, rays: _Rays) -> None:

@@ -16,6 +16,7 @@ import cellctl.planning.coverage as coverage
 import cellctl.planning.joint_path as joint_path
 import cellctl.planning.planner as planner
 import cellctl.planning.timing as timing
+from analysis.design.mesh import TriMesh
 from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.coverage import _predict_coverage, build_segments, design_surface, predict_coverage
@@ -59,13 +60,23 @@ def test_the_incidence_shortcut_counts_what_checking_every_rays_normal_counts(
     surface = design_surface(mesh)
     settings = SMALL_SETTINGS.with_(max_incidence_deg=max_incidence_deg)
     shortcut = _predict_coverage(plan.segments, mesh, surface, SMALL_PLACEMENT, settings, exhaustive=True)
-    monkeypatch.setattr(coverage, "_steepest_facet_deg", lambda design: 90.0)  # no ray is sure
+    monkeypatch.setattr(coverage, "_steepest_facet_deg", lambda design, reach_mm: 90.0)  # no ray is sure
     every = _predict_coverage(plan.segments, mesh, surface, SMALL_PLACEMENT, settings, exhaustive=True)
     assert shortcut == every
     if max_incidence_deg < 20.0:
         assert every.fraction < 0.99  # the limit bites: the exact check did decide
     else:
         assert every.fraction == pytest.approx(1.0)
+
+
+def test_the_incidence_shortcuts_bound_covers_flat_sliver_and_degenerate_facets():
+    square = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [10.0, 10.0, 0.0], [0.0, 10.0, 0.0]])
+    flat = TriMesh(square, np.array([[0, 1, 2], [0, 2, 3]]))
+    assert coverage._steepest_facet_deg(flat, 5000.0) < 0.1  # level, and float32's error at 5 m
+    sliver = TriMesh(np.vstack([square, [[5.0, 1e-4, 0.0]]]), np.array([[0, 1, 2], [0, 2, 3], [0, 4, 1]]))
+    assert coverage._steepest_facet_deg(sliver, 5000.0) > 1.0  # a normal float32 cannot resolve
+    degenerate = TriMesh(np.vstack([square, [[5.0, 0.0, 0.0]]]), np.array([[0, 1, 2], [0, 4, 1]]))
+    assert coverage._steepest_facet_deg(degenerate, 5000.0) == 90.0
 
 
 def _solve(mesh, settings, monkeypatch, walk_only: bool):
