@@ -21,7 +21,11 @@ or follow, edge tilts lowered, edge order), the stages' times and ``decide_s`` (
 took, coverage included; ``decide_cpu_s`` its CPU time, ``time.process_time``, open3d's ray-casting
 threads included), ``daemon_plan_s`` / ``daemon_plan_cpu_s`` (the plan the daemon makes: without
 the coverage prediction), ``cache`` (the plan cache's entry of that plan: ``write_s``, ``read_s``
-(the entry parsed), ``hit_s`` (a hit: read and the envelope check), ``bytes``) and ``load_avg``
+(the entry parsed and its header validated), ``hit_s`` (a hit: read and the envelope check),
+``bytes``, ``loop_block_ms``: the longest an asyncio loop ticking every 1 ms was held up while the
+entry was stored / read / a hit was read and checked (the envelope check of its 431 k EGM samples
+included) in a worker thread, as the daemon does, and ``idle`` while that thread only slept: the
+machine's own delay) and ``load_avg``
 (the 1-minute load average before and after the large plan: the figures are under it).
 
 ``choices``: the planner's (for the sail: the axis its passes run along, ``pass_axis``, with each
@@ -54,12 +58,40 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 
+def _loop_block_ms(work) -> float:
+    """The longest an asyncio loop went without running (ms, beyond its 1 ms tick) while ``work()``
+    ran in a worker thread, as the daemon runs the plan cache (``asyncio.to_thread``)."""
+    import asyncio
+
+    async def run() -> float:
+        worst = 0.0
+        done = asyncio.Event()
+
+        async def tick() -> None:
+            nonlocal worst
+            last = time.perf_counter()
+            while not done.is_set():
+                await asyncio.sleep(0.001)
+                now = time.perf_counter()
+                worst = max(worst, now - last - 0.001)
+                last = now
+
+        ticker = asyncio.create_task(tick())
+        await asyncio.sleep(0.01)
+        await asyncio.to_thread(work)
+        done.set()
+        await ticker
+        return worst * 1e3
+
+    return asyncio.run(run())
+
+
 def _daemon_and_cache(design, placement, settings) -> dict:
     """The daemon's plan of ``design`` (no coverage prediction) and its plan cache entry's costs."""
     import tempfile
 
     from cellctl.planning import plan_scan
-    from cellctl.planning.cache import PlanCache, _read_entry, plan_from_arrays, plan_key
+    from cellctl.planning.cache import EntryHeader, PlanCache, _read_entry, plan_from_arrays, plan_key
 
     t0, c0 = time.perf_counter(), time.process_time()
     plan = plan_scan(design, placement, settings, with_coverage=False)
@@ -76,14 +108,23 @@ def _daemon_and_cache(design, placement, settings) -> dict:
         data = cache.path(key).read_bytes()
         t0 = time.perf_counter()
         header, arrays = _read_entry(data)
-        plan_from_arrays(header["plan"], arrays)
+        plan_from_arrays(EntryHeader.model_validate(header).plan, arrays)
         read_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         hit = cache.load(key, placement, settings)
         hit_s = time.perf_counter() - t0
+        # the daemon's loop beside the cache's work in its thread: the longest it was held up
+        store_block_ms = _loop_block_ms(lambda: cache.store(key, plan))
+        hit_block_ms = _loop_block_ms(lambda: cache.load(key, placement, settings))
+        read_block_ms = _loop_block_ms(lambda: _read_entry(cache.path(key).read_bytes()))
+        idle_block_ms = _loop_block_ms(lambda: time.sleep(0.5))  # the machine's own scheduling delay
     out["cache"] = {
         "write_s": round(write_s, 3), "read_s": round(read_s, 3), "hit_s": round(hit_s, 3),
         "bytes": len(data), "hit": hit is not None,
+        "loop_block_ms": {
+            "store": round(store_block_ms, 1), "read": round(read_block_ms, 1), "hit": round(hit_block_ms, 1),
+            "idle": round(idle_block_ms, 1),
+        },
     }  # fmt: skip
     return out
 

@@ -6,7 +6,8 @@ keeps plans on disk (the daemon's ``<data_dir>/plan-cache/``), one ``<key>.npz``
 plan's arrays as they are (float64, bit for bit: the segments' waypoints, orientations and joints
 concatenated, the timed trajectory) and a small JSON header (version, key, placement, the figures
 and each segment's kind, label, times and length), an uncompressed numpy archive whose members
-carry a CRC-32 that is checked when read. The 6 m plate's plan (87 k trajectory samples) is
+carry a CRC-32 that is checked when read; the header is a pydantic model (:class:`EntryHeader`, no
+unknown fields) validated on every read. The 6 m plate's plan (87 k trajectory samples) is
 written in about 0.05 s and read in 0.02 s, where its JSON took 2-3 s (issue 42).
 
 The key (:func:`plan_key`) is a SHA-256 over everything the plan depends on: the design's content
@@ -18,7 +19,8 @@ A file on disk is never trusted: a hit is parsed, its key and placement must mat
 trajectory passes the same safety-envelope check at the EGM cycle as a fresh plan
 (:func:`~cellctl.planning.planner.check_plan_envelope`) against the *current* settings before it is
 returned. An entry that is unreadable, of another version, for another key or outside the envelope
-is ignored with a log line (``plan_cache_ignored`` and the reason), removed, and the plate planned
+is ignored with a log line (``plan_cache_ignored`` and the reason: ``corrupt``, ``foreign`` (an
+archive that is not an entry), ``stale``, another key, the envelope), removed, and the plate planned
 again. The cache holds at most ``max_entries`` plans; the least recently used go first. Entries of
 the JSON format (``<key>.json``, versions up to 7) are not read: they are removed when the cache
 prunes.
@@ -34,15 +36,16 @@ import os
 import zipfile
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import structlog
+from pydantic import BaseModel, ConfigDict
 
 from analysis.contracts.placement import Placement
 from analysis.design.mesh import TriMesh
 from cellctl.motion.trajectory import TimedTrajectory
-from cellctl.planning.plan import CoverageReport, PlanInputError, PlanRefused, ScanPlan, Segment
+from cellctl.planning.plan import CoverageReport, PlanInputError, PlanRefused, ScanPlan, Segment, SegmentKind
 from cellctl.planning.planner import check_plan_envelope, plan_scan
 from cellctl.planning.settings import PlannerSettings
 from drivers.abb_egm.limits import EGM_CYCLE_S
@@ -58,8 +61,9 @@ PLAN_CACHE_VERSION = (
     # at rest as lines in joint space timed along the line, the start corner; 7: the closed-form
     # IK (joints within 3e-5 deg of the damped solver's), toppra's bound on every other grid point;
     # 8: a binary entry (npz arrays and a JSON header; the JSON entries of 7 are not read), toppra's
-    # bound every 5th grid point on the sweeps
-    "cellctl.plan_cache/8+npz"
+    # bound every 5th grid point on the sweeps; 9: the design surface's own bicubic evaluation (heights
+    # within 2e-12 mm of FITPACK's), the header a validated model
+    "cellctl.plan_cache/9+npz"
 )
 #: the file name's suffix of an entry; older formats' entries (JSON) are removed when the cache prunes
 _SUFFIX = ".npz"
@@ -132,17 +136,21 @@ class PlanCache:
         except OSError as exc:
             return self._ignore(key, f"unreadable: {exc}")
         try:
-            header, arrays = _read_entry(data)
-            if header.get("version") != PLAN_CACHE_VERSION:
+            raw, arrays = _read_entry(data)
+            if raw.get("version") != PLAN_CACHE_VERSION:
                 return self._ignore(
-                    key, f"stale: version {header.get('version')!r}, expected {PLAN_CACHE_VERSION!r}"
+                    key, f"stale: version {raw.get('version')!r}, expected {PLAN_CACHE_VERSION!r}"
                 )
-            if header.get("key") != key:
+            header = EntryHeader.model_validate(raw)
+            if header.key != key:
                 return self._ignore(key, "the entry is for another key")
-            plan = plan_from_arrays(header["plan"], arrays)
+            plan = plan_from_arrays(header.plan, arrays)
+        except ForeignEntry as exc:
+            return self._ignore(key, f"foreign: {exc}")
         except (ValueError, KeyError, TypeError, OSError, zipfile.BadZipFile) as exc:
-            # PlanInputError and JSON errors are ValueErrors; a bad CRC or a cut archive BadZipFile
-            return self._ignore(key, f"corrupt: {type(exc).__name__}: {exc}")
+            # PlanInputError, JSON and pydantic's ValidationError are ValueErrors; a bad CRC or a cut
+            # archive BadZipFile
+            return self._ignore(key, f"corrupt: {type(exc).__name__}: {_first_line(exc)}")
         if plan.placement.model_dump() != placement.model_dump():
             return self._ignore(key, "the entry's placement differs from the requested one")
         try:
@@ -160,7 +168,8 @@ class PlanCache:
         tmp = path.with_suffix(".tmp")
         try:
             meta, arrays = plan_to_arrays(plan)
-            tmp.write_bytes(_entry_bytes({"version": PLAN_CACHE_VERSION, "key": key, "plan": meta}, arrays))
+            header = EntryHeader(version=PLAN_CACHE_VERSION, key=key, plan=meta)
+            tmp.write_bytes(_entry_bytes(header.model_dump(mode="json"), arrays))
             os.replace(tmp, path)
         except OSError as exc:
             log.warning("plan_cache_write_failed", key=key[:12], error=str(exc))
@@ -219,15 +228,60 @@ class PlanCache:
 _ARRAYS = ("seg_pos_mm", "seg_R", "seg_q_deg", "t_s", "q_deg", "qd_deg_s", "qdd_deg_s2", "segment")
 
 
-def plan_to_arrays(plan: ScanPlan) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """``plan`` as a JSON-ready header and its arrays (:data:`_ARRAYS`), float64 as they are."""
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class EntrySegment(_Strict):
+    """One segment of a cached plan in the entry's header; its waypoints (``n`` rows) are in the
+    arrays."""
+
+    kind: SegmentKind
+    label: str
+    n: int
+    solved: bool
+    t_start_s: float
+    duration_s: float
+    length_mm: float
+    flying: bool
+    joint_line: bool
+
+
+class EntryPlan(_Strict):
+    """Everything of a cached plan that is not an array."""
+
+    placement: Placement
+    footprint_mm: tuple[float, float, float, float]
+    coverage: CoverageReport
+    figures: dict[
+        Literal[
+            "scan_speed_mm_s", "sweep_length_mm", "sweep_time_s", "scan_time_s", "sweep_ratio", "margin_mm",
+            "scan_speed_deviation", "toppra_time_s",
+        ],
+        float,
+    ]  # fmt: skip
+    timings_s: dict[str, float]
+    choices: dict[str, Any]
+    segments: list[EntrySegment]
+
+
+class EntryHeader(_Strict):
+    """The JSON header of a cache entry (the ``header`` member of its npz), validated on every read."""
+
+    version: str
+    key: str
+    plan: EntryPlan
+
+
+def plan_to_arrays(plan: ScanPlan) -> tuple[EntryPlan, dict[str, np.ndarray]]:
+    """``plan`` as its header part and its arrays (:data:`_ARRAYS`), float64 as they are."""
     segs = plan.segments
     axes = plan.trajectory.q_deg.shape[1]
     q = [s.q_deg if s.q_deg is not None else np.full((s.pos_mm.shape[0], axes), np.nan) for s in segs]
     meta = {
-        "placement": plan.placement.model_dump(mode="json"),
+        "placement": plan.placement,
         "footprint_mm": [float(v) for v in plan.footprint_mm],
-        "coverage": plan.coverage.to_dict(),
+        "coverage": plan.coverage,
         "figures": {
             k: float(getattr(plan, k))
             for k in (
@@ -269,10 +323,10 @@ def plan_to_arrays(plan: ScanPlan) -> tuple[dict[str, Any], dict[str, np.ndarray
         "qdd_deg_s2": tr.qdd_deg_s2,
         "segment": tr.segment,
     }
-    return meta, {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+    return EntryPlan.model_validate(meta), {k: np.ascontiguousarray(v) for k, v in arrays.items()}
 
 
-def plan_from_arrays(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> ScanPlan:
+def plan_from_arrays(meta: EntryPlan, arrays: dict[str, np.ndarray]) -> ScanPlan:
     """Inverse of :func:`plan_to_arrays`.
 
     Raises:
@@ -283,7 +337,7 @@ def plan_from_arrays(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> Sca
         raise PlanInputError(f"plan cache entry: arrays {missing} missing")
     pos, R, q = arrays["seg_pos_mm"], arrays["seg_R"], arrays["seg_q_deg"]
     t, qt = arrays["t_s"], arrays["q_deg"]
-    n = sum(int(s["n"]) for s in meta["segments"])
+    n = sum(s.n for s in meta.segments)
     m = t.shape[0]
     axes = qt.shape[1] if qt.ndim == 2 else -1
     shapes_ok = (
@@ -303,27 +357,26 @@ def plan_from_arrays(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> Sca
         raise PlanInputError("plan cache entry: the arrays' shapes or types do not fit the header")
     segments = []
     start = 0
-    for s in meta["segments"]:
-        k = slice(start, start + int(s["n"]))
+    for s in meta.segments:
+        k = slice(start, start + s.n)
         start = k.stop
         segments.append(
             Segment(
-                kind=s["kind"],
-                label=s["label"],
+                kind=s.kind,
+                label=s.label,
                 pos_mm=pos[k],
                 R_base_sensor=R[k],
-                q_deg=q[k] if s["solved"] else None,
-                t_start_s=float(s["t_start_s"]),
-                duration_s=float(s["duration_s"]),
-                length_mm=float(s["length_mm"]),
-                flying=bool(s["flying"]),
-                joint_line=bool(s["joint_line"]),
+                q_deg=q[k] if s.solved else None,
+                t_start_s=s.t_start_s,
+                duration_s=s.duration_s,
+                length_mm=s.length_mm,
+                flying=s.flying,
+                joint_line=s.joint_line,
             )
         )
-    fig = meta["figures"]
     return ScanPlan(
-        placement=Placement.model_validate(meta["placement"]),
-        footprint_mm=tuple(float(v) for v in meta["footprint_mm"]),  # type: ignore[arg-type]
+        placement=meta.placement,
+        footprint_mm=meta.footprint_mm,
         segments=segments,
         trajectory=TimedTrajectory(
             t_s=t,
@@ -332,10 +385,10 @@ def plan_from_arrays(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> Sca
             qdd_deg_s2=arrays["qdd_deg_s2"],
             segment=arrays["segment"],
         ),
-        coverage=CoverageReport(**meta["coverage"]),
-        timings_s=dict(meta["timings_s"]),
-        choices=dict(meta["choices"]),
-        **{k: float(v) for k, v in fig.items()},
+        coverage=meta.coverage,
+        timings_s=dict(meta.timings_s),
+        choices=dict(meta.choices),
+        **meta.figures,
     )
 
 
@@ -349,13 +402,25 @@ def _entry_bytes(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> bytes
 
 def _read_entry(data: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """The header and arrays of an entry (no pickles; every member read whole, so its CRC-32 is
-    checked). Raises ValueError, zipfile.BadZipFile or OSError on a damaged entry."""
+    checked). Raises ValueError, zipfile.BadZipFile or OSError on a damaged entry, :class:`ForeignEntry`
+    on an archive that is not an entry."""
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     head = arrays.pop("header", None)
     if head is None or head.dtype != np.uint8 or head.ndim != 1:
-        raise ValueError("no header")
+        raise ForeignEntry(f"a numpy archive without a plan cache header (members {sorted(arrays)[:8]})")
     header = json.loads(head.tobytes().decode())
     if not isinstance(header, dict) or not isinstance(header.get("plan"), dict):
-        raise ValueError("the header is not an entry's")
+        raise ForeignEntry("the header is not a plan cache entry's")
     return header, arrays
+
+
+class ForeignEntry(ValueError):
+    """The file is a readable archive, but not a plan cache entry (no entry header)."""
+
+
+def _first_line(exc: Exception) -> str:
+    """An error's message cut to its first lines (pydantic lists every field it refused)."""
+    text = str(exc)
+    lines = text.splitlines()
+    return text if len(lines) <= 3 else " ".join(lines[:3]) + " ..."

@@ -168,6 +168,41 @@ def outline_in_plan(design: TriMesh) -> tuple[np.ndarray, np.ndarray] | None:
     return xy, idx
 
 
+_K4 = np.arange(4)
+
+
+def _cubic_basis(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cubic B-splines on knots ``t`` that are non-zero at ``x`` (n,): ``(span (n,), B (n, 4),
+    dB/dx (n, 4))``, B[:, a] the basis function span - 3 + a (Cox-de Boor as in FITPACK's fpbspl,
+    on all of a point's basis functions at once; ``x`` clamped to the spline's domain and the last
+    span closed, as its bispeu does)."""
+    x = np.clip(x, t[3], t[-4])
+    span = np.clip(np.searchsorted(t, x, side="right") - 1, 3, len(t) - 5)
+    knots = t[span[:, None] + _KNOT_OFFSETS[None, :]]  # t[span - 3] .. t[span + 4]
+    left = x[:, None] - knots[:, 3:0:-1]  # x - t[span + 1 - j], j = 1 .. 3
+    right = knots[:, 4:7] - x[:, None]  # t[span + j] - x, j = 1 .. 3
+    basis = np.ones((x.size, 1))
+    for j in range(1, 4):
+        if j == 3:
+            quad = basis  # B(span - 2, 2) .. B(span, 2): the cubic's derivative
+        # basis[:, r] / (t[span + r + 1] - t[span + r + 1 - j]), never zero inside a span
+        f = basis / (right[:, :j] + left[:, j - 1 :: -1])
+        grown = np.zeros((x.size, j + 1))
+        grown[:, :j] += right[:, :j] * f
+        grown[:, 1:] += left[:, j - 1 :: -1] * f
+        basis = grown
+    # d/dx B(i, 3) = 3 (B(i, 2) / (t[i+3] - t[i]) - B(i+1, 2) / (t[i+4] - t[i+1])), i = span - 3 .. span;
+    # B(span - 3, 2) and B(span + 1, 2) are zero at x, and so is a term over a zero-width span
+    q = np.zeros((x.size, 5))
+    q[:, 1:4] = quad
+    w = knots[:, 3:8] - knots[:, 0:5]  # t[i + 3] - t[i], i = span - 3 .. span + 1
+    qw = q / np.where(w > 0.0, w, 1.0)
+    return span, basis, 3.0 * (qw[:, :4] - qw[:, 1:])
+
+
+_KNOT_OFFSETS = np.arange(-3, 5)
+
+
 @dataclass(frozen=True)
 class DesignSurface:
     """A smooth height field z(x, y) fitted to a design's top surface (plate frame, mm).
@@ -203,10 +238,30 @@ class DesignSurface:
         y = np.asarray(y_mm, dtype=np.float64)
         xc = np.clip(x, self.x_min_mm, self.x_max_mm)
         yc = np.clip(y, self.y_min_mm, self.y_max_mm)
-        h = self.spline.ev(xc, yc)
-        gx = self.spline.ev(xc, yc, dx=1)
-        gy = self.spline.ev(xc, yc, dy=1)
+        tx, ty, c = self._bicubic
+        ix, bx, dbx = _cubic_basis(tx, xc.ravel())
+        iy, by, dby = _cubic_basis(ty, yc.ravel())
+        # the 4 x 4 coefficients under each point (one flat gather), weighted by the tensor products
+        # of the bases (and their derivatives) along x and y
+        ny = c.shape[1]
+        cc = np.take(c, ((ix - 3) * ny + (iy - 3))[:, None] + (_K4[:, None] * ny + _K4[None, :]).ravel())
+        cc = cc.reshape(-1, 4, 4)
+        wy = np.einsum("nab,nb->na", cc, by)
+        h = np.einsum("na,na->n", wy, bx).reshape(xc.shape)
+        gx = np.einsum("na,na->n", wy, dbx).reshape(xc.shape)
+        gy = np.einsum("nb,nb->n", np.einsum("nab,na->nb", cc, bx), dby).reshape(xc.shape)
         return h + gx * (x - xc) + gy * (y - yc), gx, gy
+
+    @cached_property
+    def _bicubic(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The spline's knots along x and y and its coefficients (nx, ny): what
+        :meth:`height_and_gradient` evaluates (the spline's own ``ev`` looks each point's knot span
+        up by a linear search: on the 6 m plate's 600 knots most of the planner's surface time)."""
+        tx, ty, c = self.spline.tck
+        kx, ky = self.spline.degrees
+        if (kx, ky) != (3, 3):
+            raise PlanInputError(f"design surface: a bicubic spline expected, got degrees {(kx, ky)}")
+        return tx, ty, np.asarray(c, dtype=np.float64).reshape(len(tx) - 4, len(ty) - 4)
 
     def inside(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
         """(n,) bool: the point lies over the design surface (a hit in the sampled grid)."""
@@ -436,15 +491,17 @@ def _sensor_frames(
 
 def _check_depth(
     surface: DesignSurface,
-    label: str,
-    pos: np.ndarray,
-    R: np.ndarray,
+    labels: list[str],
+    poss: list[np.ndarray],
+    Rs: list[np.ndarray],
     settings: PlannerSettings,
     margin_mm: float,
 ) -> None:
-    """Refuse when the laser line, at any waypoint, would leave the depth range on the curved surface
-    (plate-frame poses; the placement uncertainty moves the surface under the line by up to
-    |gradient| x margin)."""
+    """Refuse when the laser line, at any waypoint of the passes ``labels`` (their plate-frame poses
+    ``poss`` (n_i, 3), ``Rs`` (n_i, 3, 3)), would leave the depth range on the curved surface (the
+    placement uncertainty moves the surface under the line by up to |gradient| x margin); the
+    refusal names the first such pass in order and its first such waypoint."""
+    pos, R = np.concatenate(poss), np.concatenate(Rs)
     u = np.linspace(-settings.line_width_mm / 2, settings.line_width_mm / 2, _DEPTH_SAMPLES)
     x_s, z_s = R[:, :, 0], R[:, :, 2]
     # points of the laser line in the standoff plane, (n, k, 3)
@@ -459,12 +516,14 @@ def _check_depth(
     too_far = on_plate & (depth + spread > settings.depth_max_mm)
     bad = too_near | too_far
     if bad.any():
-        i, k = np.argwhere(bad)[0]
+        n, k = np.argwhere(bad)[0]
+        starts = np.cumsum([0] + [len(p) for p in poss])
+        j = int(np.searchsorted(starts, n, side="right") - 1)
         raise PlanRefused(
-            f"the laser line would leave the depth range: predicted depth {depth[i, k]:.1f} +/- "
-            f"{spread[i, k]:.1f} mm at {u[k]:+.1f} mm along the line",
-            pass_label=label,
-            point_index=int(i),
+            f"the laser line would leave the depth range: predicted depth {depth[n, k]:.1f} +/- "
+            f"{spread[n, k]:.1f} mm at {u[k]:+.1f} mm along the line",
+            pass_label=labels[j],
+            point_index=int(n - starts[j]),
             limit=f"depth range [{settings.depth_min_mm}, {settings.depth_max_mm}] mm",
         )
 
@@ -742,6 +801,7 @@ def build_segments(
         sweeps = [(k, lab, pos, R * _FLIP_XY) for k, lab, pos, R in mirrored]
     # how far any plate point can move at a corner of the uncertainty box (shift in x and y at once)
     drift = _outline_drift_mm(surface, settings)
+    pass_xy = []
     for i, c in enumerate(() if sweeps else centres):
         # the pass reaches as far as the plate does inside the strip it may see under the uncertainty,
         # never beyond the footprint's bounds plus the margin (a rectangle keeps its passes)
@@ -751,13 +811,24 @@ def build_segments(
             lo_i, hi_i = max(lo_i, reach[0] - drift), min(hi_i, reach[1] + drift)
         a0, a1 = (lo_i, hi_i) if (i + reversed_first) % 2 == 0 else (hi_i, lo_i)
         s = _samples(a0, a1, settings.waypoint_step_mm)
-        xy = s[:, None] * a2[None] + c * c2[None]
+        pass_xy.append(s[:, None] * a2[None] + c * c2[None])
+    if pass_xy:
+        # every pass's frames and depth check at once (the surface's evaluation costs per call)
         pos, R, _, _ = _sensor_frames(
-            surface, xy, a2, sign, settings.standoff_mm, pitch_deg=settings.sweep_pitch_deg
+            surface,
+            np.concatenate(pass_xy),
+            a2,
+            sign,
+            settings.standoff_mm,
+            pitch_deg=settings.sweep_pitch_deg,
         )
-        label = f"scan {i + 1}"
-        _check_depth(surface, label, pos, R, settings, margin)
-        sweeps.append(("scan", label, pos, R))
+        cut = np.cumsum([len(xy) for xy in pass_xy])[:-1]
+        labels = [f"scan {i + 1}" for i in range(len(pass_xy))]
+        _check_depth(surface, labels, np.split(pos, cut), np.split(R, cut), settings, margin)
+        sweeps.extend(
+            ("scan", lab, p, r)
+            for lab, p, r in zip(labels, np.split(pos, cut), np.split(R, cut), strict=True)
+        )
     if raster_cache is not None:
         raster_cache.setdefault(sign, tuple(sweeps))
 
@@ -950,6 +1021,60 @@ def _plate_xy(p: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return d0 * T[0, 0] + d1 * T[1, 0] + d2 * T[2, 0], d0 * T[0, 1] + d1 * T[1, 1] + d2 * T[2, 1]
 
 
+#: the margin (deg) of the incidence shortcut in :func:`_predict_coverage`, beyond the float32 error
+#: of open3d's normals (:func:`_steepest_facet_deg`)
+_INCIDENCE_PAD_DEG = 0.05
+
+
+def _steepest_facet_deg(design: TriMesh, reach_mm: float) -> float:
+    """The largest angle (deg) between a facet's normal line and the vertical (90 for a degenerate
+    facet, whose normal is not defined), plus a bound on the error of a normal computed from float32
+    vertices (as open3d's ray casting does) that lie within ``reach_mm`` of the origin: a few float32
+    roundings of the coordinates over the facet's smallest altitude."""
+    v = design.vertices_mm[design.triangles]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    if not design.triangles.shape[0] or not np.all(norm > 0):
+        return 90.0
+    cos_z = np.abs(n[:, 2]) / norm
+    longest = np.max(np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2), axis=1)
+    altitude = float(np.min(norm / longest))  # twice the area over the longest side
+    err_rad = 8.0 * float(np.finfo(np.float32).eps) * reach_mm / altitude
+    return float(np.rad2deg(np.arccos(np.clip(cos_z.min(), 0.0, 1.0)) + err_rad))
+
+
+def _plate_xy_columns(p: list[np.ndarray], T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_plate_xy` of points given as their three coordinate columns ``p`` (3 x (n,))."""
+    d0, d1, d2 = p[0] - T[0, 3], p[1] - T[1, 3], p[2] - T[2, 3]
+    return d0 * T[0, 0] + d1 * T[1, 0] + d2 * T[2, 0], d0 * T[0, 1] + d1 * T[1, 1] + d2 * T[2, 1]
+
+
+@dataclass(frozen=True)
+class _Rays:
+    """Rays to cast, by coordinate columns (contiguous (r,) arrays, base frame): ``origins``,
+    unit ``dirs``, ``depth_per_t`` (the depth along the sensor's view axis per unit of ray length),
+    and the (r, 6) float32 ``tensor`` open3d casts."""
+
+    origins: tuple[np.ndarray, np.ndarray, np.ndarray]
+    dirs: tuple[np.ndarray, np.ndarray, np.ndarray]
+    depth_per_t: np.ndarray
+    tensor: o3d.core.Tensor
+
+    @property
+    def n(self) -> int:
+        return int(self.depth_per_t.shape[0])
+
+    @classmethod
+    def of(cls, origins: np.ndarray, dirs: np.ndarray, zs: np.ndarray) -> _Rays:
+        """From (r, 3) origins, unit directions and view axes."""
+        return cls(
+            tuple(np.ascontiguousarray(origins[:, k]) for k in range(3)),  # type: ignore[arg-type]
+            tuple(np.ascontiguousarray(dirs[:, k]) for k in range(3)),  # type: ignore[arg-type]
+            _dot(dirs, zs),
+            _ray_tensor(origins, dirs),
+        )
+
+
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products of (n, 3) arrays."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
@@ -989,10 +1114,9 @@ def _predict_coverage(
         v = settings.standoff_mm * z[None] + u[ks][:, None, None] * x[None]
         return v / np.sqrt(v[..., 0] ** 2 + v[..., 1] ** 2 + v[..., 2] ** 2)[..., None]
 
-    def batch(origins: np.ndarray, dirs: np.ndarray, zs: np.ndarray) -> tuple:
-        """Rays to cast: origins, unit directions (r, 3), the depth per unit of ray length (r,), the
-        float32 tensor open3d casts."""
-        return origins, dirs, _dot(dirs, zs), _ray_tensor(origins, dirs)
+    def batch(origins: np.ndarray, dirs: np.ndarray, zs: np.ndarray) -> _Rays:
+        """Rays to cast from ``origins`` along unit ``dirs`` (r, 3), the view axes ``zs`` (r, 3)."""
+        return _Rays.of(origins, dirs, zs)
 
     # the first round's rays are the same for every placement: built once
     first = batch(np.tile(pos, (k_first.size, 1)), fan(k_first).reshape(-1, 3), np.tile(z, (k_first.size, 1)))
@@ -1009,18 +1133,40 @@ def _predict_coverage(
         iy = np.floor((ly - surface.y_min_mm) / (surface.y_max_mm - surface.y_min_mm) * ny)
         return ix.astype(np.int64), iy.astype(np.int64)
 
-    def cast(scene, T: np.ndarray, seen: np.ndarray, rays: tuple) -> None:
-        """Cast ``rays`` (:func:`batch`); mark the cells their counted returns land in."""
-        origins, dirs, depth_per_t, tensor = rays
-        if origins.shape[0] == 0:
+    # a ray within (max_incidence - the design's steepest facet) of the vertical meets every facet
+    # within max_incidence (the angles between lines obey the triangle inequality): its incidence
+    # need not be looked at (on the plates planned so far: every ray)
+    reach = float(np.abs(design.vertices_mm).max()) + float(
+        np.linalg.norm(placement_transform(placement)[:3, 3])
+    )
+    steep_deg = _steepest_facet_deg(design, reach + 2.0 * _outline_drift_mm(surface, settings))
+    cos_sure = np.cos(np.deg2rad(max(0.0, settings.max_incidence_deg - steep_deg - _INCIDENCE_PAD_DEG)))
+
+    def cast(scene, T: np.ndarray, seen: np.ndarray, rays: _Rays) -> None:
+        """Cast ``rays``; mark the cells their counted returns land in."""
+        if rays.n == 0:
             return
-        hit = scene.cast_rays(tensor)
-        t = hit["t_hit"].numpy().astype(np.float64)  # inf where the ray misses: never in range
-        nrm = hit["primitive_normals"].numpy().astype(np.float64)
-        depth = t * depth_per_t
-        ok = (depth >= settings.depth_min_mm) & (depth <= settings.depth_max_mm)
-        ok &= np.abs(_dot(nrm, dirs)) >= cos_max
-        ix, iy = cell_index(*_plate_xy(origins[ok] + t[ok, None] * dirs[ok], T))
+        hit = scene.cast_rays(rays.tensor)
+        # in range first (a miss is inf: never), on the rays' columns: the arithmetic of the (r, 3)
+        # rows it replaces (the same numbers), without their strided copies of every ray
+        t = hit["t_hit"].numpy().astype(np.float64)
+        depth = t * rays.depth_per_t
+        i = np.flatnonzero((depth >= settings.depth_min_mm) & (depth <= settings.depth_max_mm))
+        up = T[:3, 2]  # the plate's normal line: base z for a placement lying flat
+        if np.array_equal(up, [0.0, 0.0, 1.0]):
+            cos_up = np.abs(rays.dirs[2][i])
+        else:
+            cos_up = np.abs(sum(c[i] * up[k] for k, c in enumerate(rays.dirs)))
+        check = i[cos_up < cos_sure]
+        if check.size:
+            nrm = hit["primitive_normals"].numpy()[check].astype(np.float64)
+            d = [c[check] for c in rays.dirs]
+            steep = np.abs(nrm[:, 0] * d[0] + nrm[:, 1] * d[1] + nrm[:, 2] * d[2]) < cos_max
+            if steep.any():
+                i = np.setdiff1d(i, check[steep], assume_unique=True)
+        t = t[i]
+        p = [o[i] + t * c[i] for o, c in zip(rays.origins, rays.dirs, strict=True)]
+        ix, iy = cell_index(*_plate_xy_columns(p, T))
         keep = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
         seen[ix[keep], iy[keep]] = True
 
@@ -1031,17 +1177,31 @@ def _predict_coverage(
         cast(scene, T, seen, first)
         need = surface_cells & ~seen
         if need.any() and k_rest.size:
-            # the cells each remaining ray's stretch spans: cast those that span a cell still unseen
-            (ax, ay), (bx, by) = (_plate_xy(e, T) for e in ends)
-            ix0, iy0 = cell_index(np.minimum(ax, bx) - _CULL_PAD_MM, np.minimum(ay, by) - _CULL_PAD_MM)
-            ix1, iy1 = cell_index(np.maximum(ax, bx) + _CULL_PAD_MM, np.maximum(ay, by) + _CULL_PAD_MM)
-            on_grid = (ix1 >= 0) & (ix0 < nx) & (iy1 >= 0) & (iy0 < ny)
-            ix0, ix1 = np.clip(ix0, 0, nx - 1), np.clip(ix1, 0, nx - 1)
-            iy0, iy1 = np.clip(iy0, 0, ny - 1), np.clip(iy1, 0, ny - 1)
             S = np.zeros((nx + 1, ny + 1), dtype=np.int64)
             S[1:, 1:] = need.cumsum(axis=0).cumsum(axis=1)
-            unseen = S[ix1 + 1, iy1 + 1] - S[ix0, iy1 + 1] - S[ix1 + 1, iy0] + S[ix0, iy0]
-            kk, ii = np.nonzero(on_grid & (unseen > 0))
+
+            def unseen_in(xs: list[np.ndarray], ys: list[np.ndarray]) -> np.ndarray:
+                """Whether the box around points ``xs``, ``ys`` (plate frame) holds a cell still unseen."""
+                ix0, iy0 = cell_index(
+                    np.minimum.reduce(xs) - _CULL_PAD_MM, np.minimum.reduce(ys) - _CULL_PAD_MM
+                )
+                ix1, iy1 = cell_index(
+                    np.maximum.reduce(xs) + _CULL_PAD_MM, np.maximum.reduce(ys) + _CULL_PAD_MM
+                )
+                on_grid = (ix1 >= 0) & (ix0 < nx) & (iy1 >= 0) & (iy0 < ny)
+                ix0, ix1 = np.clip(ix0, 0, nx - 1), np.clip(ix1, 0, nx - 1)
+                iy0, iy1 = np.clip(iy0, 0, ny - 1), np.clip(iy1, 0, ny - 1)
+                return on_grid & (S[ix1 + 1, iy1 + 1] - S[ix0, iy1 + 1] - S[ix1 + 1, iy0] + S[ix0, iy0] > 0)
+
+            # the profiles whose remaining rays' stretches can reach an unseen cell: every such stretch
+            # lies in the quadrilateral of the outermost remaining rays' ends (the ends are affine in
+            # the ray's offset along the line and in the depth), so in its box
+            corners = [_plate_xy(e[j], T) for e in ends for j in (0, -1)]
+            ii = np.flatnonzero(unseen_in([c[0] for c in corners], [c[1] for c in corners]))
+            # of those, the rays whose own stretch spans a cell still unseen
+            (ax, ay), (bx, by) = (_plate_xy(e[:, ii], T) for e in ends)
+            kk, jj = np.nonzero(unseen_in([ax, bx], [ay, by]))
+            ii = ii[jj]
             cast(scene, T, seen, batch(pos[ii], dirs_rest[kk, ii], z[ii]))
         n_seen = int((seen & surface_cells).sum())
         return n_seen / total, n_seen

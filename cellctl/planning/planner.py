@@ -11,7 +11,7 @@ from a worker thread or process, never on the event loop.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import structlog
@@ -36,6 +36,7 @@ from cellctl.planning.joint_path import (
     in_base_frame,
     sensor_kinematics,
     solve_joint_path,
+    track_positions,
     wrist_distances_mm,
 )
 from cellctl.planning.plan import (
@@ -66,12 +67,26 @@ __all__ = [
 log = structlog.get_logger(__name__)
 
 
+#: samples :func:`positions_at` takes at once
+_POSITIONS_BLOCK = 32_768
+
+
 def positions_at(trajectory: TimedTrajectory, t_s: np.ndarray) -> np.ndarray:
     """The positions (m, n_axes) of :meth:`TimedTrajectory.sample_many` at times ``t_s`` (m,) s, the
     same numbers (its quintic Hermite's position term, written as it is), without the speeds and
     accelerations the envelope check does not read (they were 2/3 of the sampling's cost)."""
+    t_s = np.asarray(t_s, dtype=np.float64)
+    if t_s.size > _POSITIONS_BLOCK:
+        # in blocks (the same numbers, row by row): no single array operation of a 6 m plate's 431 k
+        # samples, which would hold the interpreter for tens of ms beside a daemon's event loop
+        return np.concatenate(
+            [
+                positions_at(trajectory, t_s[k : k + _POSITIONS_BLOCK])
+                for k in range(0, t_s.size, _POSITIONS_BLOCK)
+            ]
+        )
     ts = trajectory.t_s
-    t = np.clip(np.asarray(t_s, dtype=np.float64), ts[0], ts[-1])
+    t = np.clip(t_s, ts[0], ts[-1])
     i = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 2)
     h = ts[i + 1] - ts[i]
     hs = np.where(h > 0, h, 1.0)
@@ -124,16 +139,31 @@ EDGE_TILT_STEP_DEG = 5.0
 EDGE_TILT_MIN_DEG = 20.0
 
 
+def _in_base_frame_only(
+    segments: list[Segment], settings: PlannerSettings, which, *, hold_mm: float | None = None
+) -> list[Segment]:
+    """:func:`in_base_frame` (lead 0, or the carriage held at ``hold_mm``) of the segments for which
+    ``which(index, segment)`` is true, in order: the track's positions come from all of them, the
+    copies are made of these alone."""
+    s = track_positions(segments, settings, 0.0, hold_mm)
+    if s is None:
+        return [seg for k, seg in enumerate(segments) if which(k, seg)]
+    return [
+        replace(seg, pos_mm=seg.pos_mm - settings.track.base_pos_mm(s[k]))
+        for k, seg in enumerate(segments)
+        if which(k, seg)
+    ]
+
+
 def _lower_edge_tilts(segments: list, settings: PlannerSettings, tilts: dict[str, float]) -> bool:
     """Lower the tilt (in ``tilts``, by label) of every edge pass whose wrist centres come within
     ``EDGE_REACH_MARGIN_MM`` of the arm's reach, with the carriage following the passes; True when
     one was lowered (the segments must then be built again)."""
     if not settings.edge_passes:
         return False
-    base, _ = in_base_frame(segments, settings)
     lowered = False
-    for seg, dist in zip(base, wrist_distances_mm(base, settings), strict=True):
-        if seg.kind != "edge" or dist.max() <= REACH_MM - EDGE_REACH_MARGIN_MM:
+    for seg in _in_base_frame_only(segments, settings, lambda _, s: s.kind == "edge"):
+        if wrist_distances_mm([seg], settings)[0].max() <= REACH_MM - EDGE_REACH_MARGIN_MM:
             continue
         tilt = tilts.get(seg.label, settings.edge_tilt_deg)
         if tilt > EDGE_TILT_MIN_DEG:
@@ -286,7 +316,7 @@ def _by_wrist_roll(built: list[tuple], settings: PlannerSettings, kin, hold_mm: 
     carriage held at ``hold_mm`` (None: following the passes abreast)."""
     costs = []
     for option in built:
-        sweep = in_base_frame(option[1], settings, 0.0, hold_mm)[0][1]
+        sweep = _in_base_frame_only(option[1], settings, lambda k, _: k == 1, hold_mm=hold_mm)[0]
         q0 = first_configuration(kin, pose_matrix(sweep.pos_mm[:1], sweep.R_base_sensor[:1])[0], settings)
         costs.append((np.inf if q0 is None else abs(q0[3]) + abs(q0[5]), option))
     costs.sort(key=lambda c: c[0])

@@ -229,6 +229,10 @@ def _law_samples(law: Trajectory, path, s0: float, s1: float, dt_s: float):
     return t, q, qd, qdd
 
 
+#: the shares of the acceleration budget :func:`_time_law` tries at each cruise rate
+_ACC_SHARES = np.array([1.0, 0.5, 0.25, 0.1, 0.05, 0.02])
+
+
 def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -> tuple[float, float, float]:
     """Cruise rate V, acceleration A and jerk J of the path parameter that keep the joint limits and
     the TCP speed everywhere on the path.
@@ -246,25 +250,22 @@ def _time_law(path, v_tcp: float, settings: PlannerSettings, grid: np.ndarray) -
     v0 = min(v, float(np.min(np.sqrt(0.5 * amax / np.maximum(m2, 1e-12)))))
     # The acceleration budget and the jerk budget compete (3 q'' V A); a small grid search over the
     # cruise rate and the share of acceleration used picks the fastest feasible rest-to-rest law.
+    # (every candidate at once: the numbers of the loop over rates and shares it replaced, the first
+    # of equal durations in that order kept)
     length = float(grid[-1] - grid[0])
-    best: tuple[float, float, float, float] | None = None
-    for v in v0 * 0.85 ** np.arange(25):
-        a_max = float(np.min((amax - m2 * v * v) / m1))
-        if a_max <= 0:
-            continue
-        for frac in (1.0, 0.5, 0.25, 0.1, 0.05, 0.02):
-            a = a_max * frac
-            j = float(np.min((jmax - m3 * v**3 - 3 * m2 * v * a) / m1))
-            if j <= 0:
-                continue
-            duration = length / v + v / a + a / j  # rest to rest, a close upper estimate
-            if best is None or duration < best[0]:
-                best = (duration, float(v), a, j)
-    if best is None:
+    v = (v0 * 0.85 ** np.arange(25))[:, None]  # (25, 1) cruise rates
+    a_max = np.min((amax[None] - m2[None] * v * v) / m1[None], axis=1)[:, None]  # (25, 1)
+    a = a_max * _ACC_SHARES[None]  # (25, 6)
+    j = np.min((jmax - m3 * v[..., None] ** 3 - 3 * m2 * v[..., None] * a[..., None]) / m1, axis=2)
+    ok = (a_max > 0) & (j > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        duration = np.where(ok, length / v + v / a + a / j, np.inf)  # rest to rest, a close upper estimate
+    if not ok.any():
         raise PlanRefused(
             "no jerk-limited timing fits the joint limits", limit="joint acceleration / jerk limits"
         )
-    return best[1], best[2], best[3]
+    k, f = np.unravel_index(int(np.argmin(duration)), duration.shape)
+    return float(v[k, 0]), float(a[k, f]), float(j[k, f])
 
 
 def _flying_rate(

@@ -217,3 +217,37 @@ def test_an_entry_of_the_json_format_is_not_read_and_is_removed(cache, design):
     assert cache.load(first.key, SMALL_PLACEMENT, SMALL_SETTINGS) is None  # not read: a miss
     cache.store(first.key, first.plan)
     assert not old.exists() and cache.path(first.key).exists()
+
+
+def test_a_foreign_archive_or_file_is_refused_as_foreign_and_replanned(cache, design):
+    first = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
+    path = cache.path(first.key)
+    good = path.read_bytes()
+    np.savez(path.with_suffix(".tmp.npz"), points=np.zeros((4, 3)))  # another program's numpy archive
+    path.with_suffix(".tmp.npz").replace(path)
+    with capture_logs() as logs:
+        again = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
+    assert not again.hit
+    assert any(r.startswith("foreign") and "header" in r for r in _ignored(logs)), _ignored(logs)
+    path.write_text("not an archive at all\n")
+    with capture_logs() as logs:
+        assert cache.load(first.key, SMALL_PLACEMENT, SMALL_SETTINGS) is None
+    assert any(r.startswith("corrupt") for r in _ignored(logs)), _ignored(logs)
+    assert not path.exists()
+    path.write_bytes(good)
+    assert cache.load(first.key, SMALL_PLACEMENT, SMALL_SETTINGS) is not None
+
+
+def test_a_header_with_an_unknown_or_wrongly_typed_field_is_refused_as_corrupt(cache, design):
+    first = cache.plan(design, SMALL_PLACEMENT, SMALL_SETTINGS, with_coverage=False)
+    path = cache.path(first.key)
+    good = path.read_bytes()
+    _rewrite(path, lambda h, a: h["plan"]["segments"][0].update(extra_field=1))
+    with capture_logs() as logs:
+        assert cache.load(first.key, SMALL_PLACEMENT, SMALL_SETTINGS) is None
+    assert any(r.startswith("corrupt: ValidationError") for r in _ignored(logs)), _ignored(logs)
+    path.write_bytes(good)
+    _rewrite(path, lambda h, a: h["plan"]["segments"][0].update(n="many"))
+    with capture_logs() as logs:
+        assert cache.load(first.key, SMALL_PLACEMENT, SMALL_SETTINGS) is None
+    assert any(r.startswith("corrupt: ValidationError") for r in _ignored(logs)), _ignored(logs)

@@ -12,8 +12,11 @@ import numpy as np
 import pytest
 from ruckig import InputParameter, Ruckig, Trajectory
 
+import cellctl.planning.coverage as coverage
 import cellctl.planning.joint_path as joint_path
+import cellctl.planning.planner as planner
 import cellctl.planning.timing as timing
+from analysis.design.mesh import TriMesh
 from analysis.design.plates import design_mesh, plate_spec
 from cellctl.planning import PlannerSettings, plan_scan
 from cellctl.planning.coverage import _predict_coverage, build_segments, design_surface, predict_coverage
@@ -46,6 +49,34 @@ def test_culled_coverage_is_that_of_casting_every_ray_on_a_plan_with_a_gap(mesh,
         plan.segments, mesh, surface, SMALL_PLACEMENT, SMALL_SETTINGS, exhaustive=True
     )
     assert full.fraction == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("max_incidence_deg", [80.0, 5.0])
+def test_the_incidence_shortcut_counts_what_checking_every_rays_normal_counts(
+    mesh, plan, monkeypatch, max_incidence_deg
+):
+    # 5 deg: below the fans' own spread, so many rays are refused on the incidence and the exact
+    # check runs; 80: every ray is inside the shortcut's bound
+    surface = design_surface(mesh)
+    settings = SMALL_SETTINGS.with_(max_incidence_deg=max_incidence_deg)
+    shortcut = _predict_coverage(plan.segments, mesh, surface, SMALL_PLACEMENT, settings, exhaustive=True)
+    monkeypatch.setattr(coverage, "_steepest_facet_deg", lambda design, reach_mm: 90.0)  # no ray is sure
+    every = _predict_coverage(plan.segments, mesh, surface, SMALL_PLACEMENT, settings, exhaustive=True)
+    assert shortcut == every
+    if max_incidence_deg < 20.0:
+        assert every.fraction < 0.99  # the limit bites: the exact check did decide
+    else:
+        assert every.fraction == pytest.approx(1.0)
+
+
+def test_the_incidence_shortcuts_bound_covers_flat_sliver_and_degenerate_facets():
+    square = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [10.0, 10.0, 0.0], [0.0, 10.0, 0.0]])
+    flat = TriMesh(square, np.array([[0, 1, 2], [0, 2, 3]]))
+    assert coverage._steepest_facet_deg(flat, 5000.0) < 0.1  # level, and float32's error at 5 m
+    sliver = TriMesh(np.vstack([square, [[5.0, 1e-4, 0.0]]]), np.array([[0, 1, 2], [0, 2, 3], [0, 4, 1]]))
+    assert coverage._steepest_facet_deg(sliver, 5000.0) > 1.0  # a normal float32 cannot resolve
+    degenerate = TriMesh(np.vstack([square, [[5.0, 0.0, 0.0]]]), np.array([[0, 1, 2], [0, 4, 1]]))
+    assert coverage._steepest_facet_deg(degenerate, 5000.0) == 90.0
 
 
 def _solve(mesh, settings, monkeypatch, walk_only: bool):
@@ -111,9 +142,13 @@ def test_vectorised_law_states_are_ruckigs_at_time(v_in, v_out):
     assert np.array_equal(timing._law_states(law, t), reference)
 
 
-def test_envelope_positions_are_sample_manys(plan):
+@pytest.mark.parametrize("block", [None, 1000])
+def test_envelope_positions_are_sample_manys(plan, monkeypatch, block):
+    if block is not None:  # taken in blocks, as a long plan's are
+        monkeypatch.setattr(planner, "_POSITIONS_BLOCK", block)
     tr = plan.trajectory
     t = np.append(np.arange(0.0, tr.duration_s, 0.004032), tr.duration_s)
+    assert block is None or t.size > 2 * block
     assert np.array_equal(positions_at(tr, t), tr.sample_many(t)[0])
 
 
