@@ -256,7 +256,11 @@ def _measure(plate: Plate, cfg, data_dir: Path, job_id: str, state: str, message
     return Measured(plate, state, message, record, report, check, yaw)
 
 
-@pytest.fixture(scope="module", params=[p.name for p in PLATES])
+# the IGES plate runs with `make test-long` (80-100 s of its own cell: CI stands at 37 of its 40 minutes)
+@pytest.fixture(
+    scope="module",
+    params=[pytest.param(p.name, marks=pytest.mark.long) if p.iges_ship else p.name for p in PLATES],
+)
 def measured(request, tmp_path_factory) -> Measured:
     """Each plate's job, checked against the truth alone. The first plate's is the module's secrets
     cell's job; the others each start their own cell, scan once and stop it here (so that no case
