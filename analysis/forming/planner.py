@@ -292,9 +292,16 @@ def _words(
     width_mm: float,
 ) -> list[str]:
     notes: list[str] = []
-    if any(line.face == "bottom" for line in lines):
+    bottom = [f"H{line.order}" for line in lines if line.face == "bottom"]
+    if bottom and len(bottom) == len(lines):
+        notes.append("over-bent: every line is on the bottom face; turn the plate over and heat that face")
+    elif bottom:
+        # a few bottom-face lines beside top-face ones bend back where the plate, or the top-face
+        # lines next to them, bend past the design there: the plate as a whole is not over-bent
         notes.append(
-            "over-bent where bottom-face lines are planned: turn the plate over and heat the other face"
+            f"{', '.join(bottom)} on the bottom face bend{'s' if len(bottom) == 1 else ''} back where the plate "
+            "with the top-face lines goes past its design: turn the plate over for "
+            f"{'it' if len(bottom) == 1 else 'them'} once the top-face lines are done"
         )
     if not lines:
         notes.append(

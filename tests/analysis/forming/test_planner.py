@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from analysis.forming.coefficients import Coefficients, inherent_deformation
-from analysis.forming.planner import HeatingRules, in_plane_strain_needed, plan_heating
+from analysis.forming.planner import HeatingRules, PlannedLine, _words, in_plane_strain_needed, plan_heating
 from analysis.forming.plate_model import HeatingLine, PlateModel
 from tests.analysis.forming.conftest import H_MM, L_MM, W_MM
 
@@ -125,3 +125,27 @@ def test_every_planned_line_keeps_the_rules(
             if min(sa[1], sb[1]) - max(sa[0], sb[0]) > 0:
                 assert gap >= spacing - 1e-6
     assert plan.rms_after_mm <= plan.rms_before_mm * 1.05 or not plan.lines
+
+
+def test_the_words_name_bottom_face_lines_beside_top_face_ones_without_calling_the_plate_over_bent() -> None:
+    def line(order: int, face: str) -> PlannedLine:
+        return PlannedLine(order, (100.0 * order, 30.0), (100.0 * order, 370.0), face, 900.0, 6.0, 0.5, 0.05)
+
+    pts = _grid(600.0, 400.0)
+    flat = np.zeros(len(pts))
+    mixed = _words(
+        [line(1, "top"), line(2, "top"), line(3, "bottom")],
+        1.0,
+        0.05,
+        HeatingRules(),
+        pts,
+        flat,
+        600.0,
+        400.0,
+    )
+    assert any(
+        "H3 on the bottom face bends back" in n and "turn the plate over for it" in n for n in mixed
+    ), mixed
+    assert not any("over-bent" in n for n in mixed), mixed
+    every = _words([line(1, "bottom"), line(2, "bottom")], 1.0, 0.05, HeatingRules(), pts, flat, 600.0, 400.0)
+    assert any(n.startswith("over-bent: every line is on the bottom face") for n in every), every
