@@ -69,6 +69,7 @@ from analysis.design.cad_surface import CadDesign
 from analysis.design.mesh import MeshError, TriMesh
 from analysis.design.moulded import design_as_laid
 from analysis.design.outline import design_corners_from_mesh, frame_design_mesh
+from analysis.export import DESIGN_FRAME, write_lines_ship
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
 from analysis.register.fit import RegistrationResult, register, register_from_placement
 from analysis.register.height_field import HeightField, height_field_from_mesh
@@ -76,7 +77,6 @@ from analysis.register.onesided import deflection_gaps
 from analysis.register.rest_surface import RestSurface, rest_surface
 from analysis.register.transforms import RegistrationError, apply_transform, invert_transform
 from analysis.report.csv_table import write_csv
-from analysis.report.exports import DESIGN_FRAME, write_lines_ship
 from analysis.segment import PassCells, SegmentResult, pass_cells, segment_plate
 from analysis.template_fit import (
     LineFitResult,
@@ -690,7 +690,7 @@ def write_results(ins: Inspection, out_dir: str | Path) -> dict[str, Path]:
 
     cloud.ply holds the plate's points in the design frame (registered), with their deviation
     (``scalar_deviation``, float32 mm, NaN where off the design); lines-ship.csv the judged lines'
-    ends in the design file's frame (:mod:`analysis.report.exports`).
+    ends in the design file's frame (:mod:`analysis.export`).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,7 @@
 
 `cellctl export JOB_OR_DIR [--formats ply,las,e57] [--frames design,ship] [--out DIR]`: the registered
 cloud with its deviation as LAS / E57 / PLY for the metrology tools, in the design frame and in the
-design file's own frame (the ship's coordinates) (:func:`analysis.report.exports.export_results`)."""
+design file's own frame (the ship's coordinates) (:func:`analysis.export.export_results`)."""
 
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run_export(args: argparse.Namespace) -> int:
     from analysis.cloud_io import CloudError
     from analysis.contracts.results import ReportError
-    from analysis.report.exports import export_results
+    from analysis.export import export_results
 
     split = lambda text: tuple(v.strip() for v in text.split(",") if v.strip())  # noqa: E731
     try:

@@ -62,7 +62,7 @@ DOWNLOADS = {
     "report.csv": ("results/report.csv", "text/csv"),
     "report.json": ("results/report.json", "application/json"),
     "cloud.ply": ("results/cloud.ply", "application/octet-stream"),
-    # the design file's (ship) frame; and `cellctl export`'s files, once written (analysis.report.exports)
+    # the design file's (ship) frame; and `cellctl export`'s files, once written (analysis.export)
     "lines-ship.csv": ("results/lines-ship.csv", "text/csv"),
     **{
         n: (f"results/{n}", "application/octet-stream")

@@ -1,4 +1,4 @@
-"""Cloud files for the metrology tools (analysis.cloud_export, analysis.report.exports): LAS through
+"""Cloud files for the metrology tools (analysis.cloud_export, analysis.export): LAS through
 laspy, E57 through pye57, PLY with CloudCompare's scalar fields; each read back with its fields by
 the library the tools are built on (and CloudCompare's own command line for PLY), the design file's
 (ship) frame checked against a known transform, bad files refused by name."""
@@ -31,7 +31,7 @@ from analysis.cloud_export import (
 )
 from analysis.cloud_io import CloudError
 from analysis.contracts.results import read_report
-from analysis.report.exports import T_file_design, export_results, read_results_cloud, write_lines_ship
+from analysis.export import T_file_design, export_results, read_results_cloud, write_lines_ship
 from tests.support.results_fixture import write_synthetic_results
 
 FRAME = CloudFrame("test frame", "a frame of this test")

@@ -133,7 +133,9 @@ def test_ply_deviation_read_back_independently_matches_the_results(reported) -> 
         a, b = np.asarray(line.start_plate_mm), np.asarray(line.end_plate_mm)
         at = a + (b - a) * line.zmax_at_mm / np.linalg.norm(b - a)
         near = np.argsort(np.hypot(*(xy - at).T))[:5]
-        assert float(np.abs(v["scalar_deviation"][near]).max()) == pytest.approx(line.zmax_mm, abs=0.1), line.name
+        assert float(np.abs(v["scalar_deviation"][near]).max()) == pytest.approx(line.zmax_mm, abs=0.1), (
+            line.name
+        )
 
 
 @pytest.fixture(scope="module")
