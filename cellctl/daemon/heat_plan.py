@@ -46,15 +46,16 @@ class HeatPlanAnswer(BaseModel):
 
 async def make_heating_plan(
     cfg: CellConfig, store: JobStore, job: ActiveJob, *, kill_after_s: float = 5.0
-) -> None:
+) -> bool:
     """Make the plan of a done job (its results directory holds report.json) and record it with the
-    job. Never raises for a plan that fails (heating-plan.json says why, the log too); a
-    cancellation stops the child, records the reason and raises :class:`asyncio.CancelledError`."""
+    job; True when a plan (``status`` ``plan``) was written. Never raises for a plan that fails
+    (heating-plan.json says why, the log too); a cancellation stops the child, records the reason and
+    raises :class:`asyncio.CancelledError`."""
     rec = job.record
     results = store.results_dir(rec.job_id).resolve()
     if not cfg.forming.enabled:  # no child to start: the file only says so
         await _record(store, job, {"heating_plan_s": 0.0}, None, DISABLED)
-        return
+        return False
     argv = ["heat-plan", "--json", "--forming", cfg.forming.model_dump_json(), str(results)]
     run = await run_cellctl_child(argv, kill_after_s=kill_after_s)
     answer: HeatPlanAnswer | None = None
@@ -72,6 +73,7 @@ async def make_heating_plan(
     await _record(store, job, {"heating_plan_s": round(run.elapsed_s, 3)}, answer, reason)
     if run.stopped:
         raise asyncio.CancelledError
+    return answer is not None and answer.status == "plan"
 
 
 async def _record(

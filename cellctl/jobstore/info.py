@@ -112,6 +112,7 @@ class JobInfo(RunInfo):
     heating_plan: str | None = None
     heating_plan_status: Literal["plan", "no_plan"] | None = None
     heating_plan_s: Seconds | None = None
+    html_with_plan_s: Seconds | None = None  # report.html / .pdf rendered again with the plan drawn
     # recovery
     interrupted_in: str | None = None
     cancelled_in: str | None = None

@@ -14,6 +14,7 @@ from analysis.forming.coefficients import DEFAULT_TABLE
 from analysis.forming.plan_file import read_heating_plan
 from cellctl.config import CellConfig
 from cellctl.daemon.active import ActiveJob
+from cellctl.daemon.handover import render_html
 from cellctl.daemon.heat_plan import make_heating_plan
 from cellctl.jobstore.jobs import JobRecord, JobStore
 from tests.support.results_fixture import CELL_LAYOUT, write_synthetic_results
@@ -45,7 +46,7 @@ def test_the_plan_is_written_beside_the_report_and_recorded_with_the_job(tmp_pat
     cfg, store, job = _store_and_job(tmp_path)
     results = store.results_dir(job.record.job_id)
     report_before = (results / "report.json").read_bytes()
-    asyncio.run(make_heating_plan(cfg, store, job))
+    assert asyncio.run(make_heating_plan(cfg, store, job)) is True
     stored = store.load(job.record.job_id).info
     assert stored.heating_plan == str((results / "heating-plan.json").resolve())
     assert stored.heating_plan_status == "plan" and stored.heating_plan_s > 0
@@ -56,6 +57,13 @@ def test_the_plan_is_written_beside_the_report_and_recorded_with_the_job(tmp_pat
     )  # the daemon's [forming] reached the child
     assert (results / "heating-plan.dxf").is_file()
     assert (results / "report.json").read_bytes() == report_before
+    # the daemon renders report.html again once a plan is there: the plan drawn, the first render's
+    # time after the last profile left as it was
+    asyncio.run(render_html(store, job, with_plan=True))
+    info = store.load(job.record.job_id).info
+    assert info.html_with_plan_s > 0 and info.html_after_last_profile_s is None
+    html = (results / "report.html").read_text(encoding="utf-8")
+    assert "Heating plan" in html and "H1" in html
 
 
 def test_a_failed_plan_child_leaves_its_reason_and_the_report_untouched(tmp_path):
@@ -66,7 +74,7 @@ def test_a_failed_plan_child_leaves_its_reason_and_the_report_untouched(tmp_path
     table.unlink()
     results = store.results_dir(job.record.job_id)
     report_before = (results / "report.json").read_bytes()
-    asyncio.run(make_heating_plan(cfg, store, job))
+    assert asyncio.run(make_heating_plan(cfg, store, job)) is False
     stored = store.load(job.record.job_id).info
     assert stored.heating_plan_status == "no_plan"
     plan = read_heating_plan(results)
