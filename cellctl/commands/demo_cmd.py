@@ -245,6 +245,29 @@ def wait_html_report(data_dir: Path, job_id: str, timeout_s: float = 120.0) -> s
     return None
 
 
+def wait_heating_plan(data_dir: Path, job_id: str, timeout_s: float = 120.0) -> list[str]:
+    """Wait until the daemon has recorded the heating plan that follows a done job's report (and, for
+    a plan, report.html rendered again with it); returns what the crew reads of it (one sentence a
+    line, or why there is none), or one line saying it did not come within ``timeout_s``."""
+    from analysis.forming.plan_file import read_heating_plan
+    from cellctl.commands.heat_plan_cmd import plan_text
+
+    job_dir = Path(data_dir) / "jobs" / job_id
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with contextlib.suppress(JobStoreError):
+            info = read_job_record(job_dir).info
+            rendered = info.html_s is None or info.html_with_plan_s is not None
+            if info.heating_plan_status == "no_plan" or (info.heating_plan_status == "plan" and rendered):
+                try:
+                    plan = read_heating_plan(info.heating_plan or job_dir)
+                except ValueError as exc:
+                    return [f"heating plan: {exc}"]
+                return [*plan_text(plan), f"heating plan: {info.heating_plan}"]
+        time.sleep(0.2)
+    return [f"heating plan: none recorded within {timeout_s:.0f} s (`cellctl heat-plan {job_id}` makes it)"]
+
+
 async def drive_scan(
     cfg_dict: dict[str, Any], cfg: Any, procs: Processes, timeout_s: float, *, placement: bool = True
 ) -> tuple[str, Report | None, str]:
@@ -378,6 +401,9 @@ def run(args: argparse.Namespace) -> int:
             print(line_table(report))
         print(f"report: {message}")
         html = wait_html_report(cfg.cell.data_dir, job_id)
+        if report is not None:  # the line-heating plan the daemon makes after the report
+            for text in wait_heating_plan(cfg.cell.data_dir, job_id):
+                print(text)
         if html:
             print(f"html report: {html}")
         print(f"demo finished in {time.monotonic() - t0:.0f} s (job {job_id})", flush=True)

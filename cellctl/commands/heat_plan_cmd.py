@@ -12,9 +12,13 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cellctl.commands.report_cmd import resolve_results_dir
 from cellctl.config import DEFAULT_CONFIG_PATH, ConfigError, FormingSection, load_config, parse_config
+
+if TYPE_CHECKING:
+    from analysis.forming.plan_file import HeatingPlanFile
 
 __all__ = ["register", "run"]
 
@@ -97,18 +101,23 @@ def run(args: argparse.Namespace) -> int:
             ).model_dump_json()
         )  # fmt: skip
         return 0
-    if plan.status == "no_plan":
-        print(f"no heating plan: {plan.reason}")
-    else:
-        for line in plan.lines:
-            print(line.sentence())
-        if plan.predicted is not None:
-            worst = max((z for z in plan.predicted.zmax_mm.values() if z is not None), default=None)
-            after = f"largest Zmax {worst:.2f} mm, " if worst is not None else ""
-            print(f"predicted after the round: {after}verdict {plan.predicted.verdict}")
-        for note in plan.notes:
-            print(f"note: {note}")
+    for text in plan_text(plan):
+        print(text)
     print(out.json_path)
     if out.dxf_path is not None:
         print(out.dxf_path)
     return 0
+
+
+def plan_text(plan: HeatingPlanFile) -> list[str]:
+    """What the crew reads of a plan: one sentence a line, the predicted largest Zmax and verdict after
+    the round, the planner's notes; or why there is no plan."""
+    if plan.status == "no_plan":
+        return [f"no heating plan: {plan.reason}"]
+    out = [line.sentence() for line in plan.lines]
+    if plan.predicted is not None:
+        worst = max((z for z in plan.predicted.zmax_mm.values() if z is not None), default=None)
+        after = f"largest Zmax {worst:.2f} mm, " if worst is not None else ""
+        out.append(f"predicted after the round: {after}verdict {plan.predicted.verdict}")
+    out += [f"note: {note}" for note in plan.notes]
+    return out
