@@ -841,6 +841,21 @@ class LocateSection(Section):
         return self
 
 
+class OpcuaSection(Section):
+    """`cellctl opcua`: the cell's OPC UA server for the plant (OPC 40210 GMS; docs/opcua.md).
+
+    ``enabled``: the command refuses to start when false. ``bind`` / ``port``: where it listens
+    (loopback by default: a plant network is a choice made here). ``allow_insecure``: serve the
+    endpoint without security and anonymous clients; this slice has no secured endpoint yet, so
+    the server refuses to start unless this is true (for tests and a trusted loopback only).
+    """
+
+    enabled: bool = False
+    bind: str = "127.0.0.1"
+    port: Annotated[int, Field(ge=1, le=65535)] = 4840
+    allow_insecure: bool = False
+
+
 class CellConfig(BaseSettings):
     """The whole `cell.toml`."""
 
@@ -863,6 +878,7 @@ class CellConfig(BaseSettings):
     worker: WorkerSection = WorkerSection()
     router: RouterSection = RouterSection()
     locate: LocateSection = LocateSection()
+    opcua: OpcuaSection = OpcuaSection()
 
     @classmethod
     def settings_customise_sources(

@@ -7,6 +7,7 @@ from cellctl.commands import (
     design_cmd,
     hmi_cmd,
     inspect_cmd,
+    opcua_cmd,
     plan_cmd,
     report_cmd,
     router_cmd,
@@ -26,6 +27,7 @@ COMMAND_MODULES = [
     router_cmd,
     scan_cmd,  # scan, status, watch
     hmi_cmd,  # hmi, history
+    opcua_cmd,  # opcua
     plan_cmd,
     inspect_cmd,
     design_cmd,
