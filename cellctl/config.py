@@ -845,15 +845,30 @@ class OpcuaSection(Section):
     """`cellctl opcua`: the cell's OPC UA server for the plant (OPC 40210 GMS; docs/opcua.md).
 
     ``enabled``: the command refuses to start when false. ``bind`` / ``port``: where it listens
-    (loopback by default: a plant network is a choice made here). ``allow_insecure``: serve the
-    endpoint without security and anonymous clients; this slice has no secured endpoint yet, so
-    the server refuses to start unless this is true (for tests and a trusted loopback only).
+    (loopback by default: a plant network is a choice made here). The endpoint is Basic256Sha256
+    Sign & Encrypt with ``cert_file`` / ``key_file`` (the server's certificate, issued by the
+    cell's CA, and its private key, a secrets file), users and roles from the HMI's ``users_file``
+    (``cellctl hmi adduser``); anonymous is refused. ``allow_insecure``: instead, security None and
+    anonymous clients (tests, a trusted loopback only).
     """
 
     enabled: bool = False
     bind: str = "127.0.0.1"
     port: Annotated[int, Field(ge=1, le=65535)] = 4840
+    cert_file: Path | None = None
+    key_file: Path | None = None
+    users_file: Path | None = None
     allow_insecure: bool = False
+
+    @model_validator(mode="after")
+    def _secured_or_insecure_said(self) -> OpcuaSection:
+        if self.enabled and not self.allow_insecure:
+            missing = [k for k in ("cert_file", "key_file", "users_file") if getattr(self, k) is None]
+            if missing:
+                raise ValueError(
+                    f"the secured endpoint needs {', '.join(missing)} (or allow_insecure = true: no security)"
+                )
+        return self
 
 
 class CellConfig(BaseSettings):
@@ -1055,6 +1070,7 @@ def secret_files(cfg: CellConfig) -> list[tuple[str, Path]]:
         ("zenoh.access.password_file", access.password_file),
         ("zenoh.access.dictionary_file", access.dictionary_file),
         ("zenoh.access.tls_key_file", access.tls_key_file),
+        ("opcua.key_file", cfg.opcua.key_file),
     ]
     return [(what, Path(path)) for what, path in named if path is not None]
 

@@ -13,10 +13,13 @@ from typing import Any
 
 import structlog
 from asyncua import Server, ua
+from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.server.user_managers import UserManager
 
 from cellctl import __version__
 from cellctl.api import ReportEnvelope
-from cellctl.config import CellConfig
+from cellctl.config import CellConfig, ConfigError, check_secret_file_mode
+from cellctl.hmi.auth import Authenticator, AuthError, load_users
 from cellctl.hmi.link import CellLink
 from cellctl.opcua.address_space import GmsNodes, load_gms_model
 from cellctl.opcua.results import result_data
@@ -32,16 +35,54 @@ class OpcuaConfigError(Exception):
     """An [opcua] section this server cannot serve as asked."""
 
 
+def _format(path: Any) -> str:
+    with open(path, "rb") as f:
+        return "pem" if f.read(11) == b"-----BEGIN " else "der"
+
+
+class HmiUserManager(UserManager):
+    """OPC UA users are the HMI's: its users file (``cellctl hmi adduser``) checked by its
+    :class:`Authenticator`; anonymous and wrong passwords refused. The HMI role of a session's user
+    (:meth:`role`) is what method checks use; asyncua's own role is only User."""
+
+    def __init__(self, auth: Authenticator) -> None:
+        self.auth = auth
+
+    def get_user(
+        self, iserver: Any, username: str | None = None, password: str | None = None, certificate: Any = None
+    ) -> User | None:
+        if username is None or password is None:
+            log.info("opcua_login_refused", user=username, why="anonymous")
+            return None
+        user = self.auth.verify(username, password)
+        if user is None:
+            log.info("opcua_login_refused", user=username, why="wrong name or password")
+            return None
+        log.info("opcua_login", user=username, role=user.role)
+        return User(role=UserRole.User, name=username)
+
+    def role(self, name: str | None) -> str | None:
+        u = self.auth.users.get(name or "")
+        return u.role if u else None
+
+
 class CellOpcuaServer:
     def __init__(self, cfg: CellConfig) -> None:
-        if not cfg.opcua.allow_insecure:
-            raise OpcuaConfigError(
-                "[opcua] this version serves no secured endpoint yet (Basic256Sha256 with the cell CA's "
-                "certificate is the next step, docs/opcua.md): anonymous, unencrypted access is refused "
-                "unless [opcua] allow_insecure = true (tests, a trusted loopback)"
-            )
+        o = cfg.opcua
+        self.users: HmiUserManager | None = None
+        if not o.allow_insecure:
+            if o.cert_file is None or o.key_file is None or o.users_file is None:
+                raise OpcuaConfigError(
+                    "[opcua] the secured endpoint needs cert_file, key_file and users_file "
+                    "(or allow_insecure = true: no security, anonymous; tests and a trusted loopback only)"
+                )
+            try:
+                check_secret_file_mode(o.key_file, what="opcua.key_file")
+                self.users = HmiUserManager(Authenticator(load_users(o.users_file)))
+            except (AuthError, ConfigError, OSError) as exc:
+                raise OpcuaConfigError(f"[opcua] {exc}") from None
         self.cfg = cfg
-        self.server = Server()
+        self.server = Server(user_manager=self.users)
         self.nodes: GmsNodes | None = None
         self.latest: ReportEnvelope | None = None
         self._handles = itertools.count(1)
@@ -59,7 +100,18 @@ class CellOpcuaServer:
         s.set_endpoint(self.endpoint)
         s.set_server_name(f"cellctl cell {self.cfg.cell.id}")
         await s.set_application_uri(f"{APP_URI_PREFIX}{self.cfg.cell.id}")
-        s.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        o = self.cfg.opcua
+        if o.allow_insecure:
+            s.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+            security = "none (allow_insecure)"
+        else:
+            assert o.cert_file is not None and o.key_file is not None
+            # PEM or DER by content, not by the file's suffix (asyncua's default)
+            await s.load_certificate(str(o.cert_file), format=_format(o.cert_file))
+            await s.load_private_key(str(o.key_file), format=_format(o.key_file))
+            s.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+            s.set_security_IDs(["Username"])
+            security = "Basic256Sha256 SignAndEncrypt, users"
         await load_gms_model(s)
         await s.load_data_type_definitions()
         app_ns = await s.register_namespace(f"{APP_URI_PREFIX}{self.cfg.cell.id}")
@@ -68,7 +120,7 @@ class CellOpcuaServer:
         )
         s.link_method(self.nodes.get_latest_result, self._get_latest_result)
         await s.start()
-        log.info("opcua_listening", endpoint=self.endpoint, security="none (allow_insecure)")
+        log.info("opcua_listening", endpoint=self.endpoint, security=security)
         await self.link.start(timeout_s=link_timeout_s)
 
     async def stop(self) -> None:

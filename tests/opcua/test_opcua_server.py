@@ -8,14 +8,18 @@ import json
 
 import pytest
 from asyncua import Client, ua
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from asyncua.crypto.uacrypto import CertProperties
 
 from analysis.contracts.job import Report
 from cellctl.api import CellState, CellStatus, Keys, ReportEnvelope
 from cellctl.api.session import build_zenoh_config, close_session, open_session
-from cellctl.config import parse_config
+from cellctl.config import ConfigError, parse_config
+from cellctl.hmi.auth import add_user
 from cellctl.opcua.address_space import GMS_NS_URI, MACHINERY_ITEM_STATE
 from cellctl.opcua.results import CONTENT_FORMAT, report_characteristics
-from cellctl.opcua.server import CellOpcuaServer, OpcuaConfigError
+from cellctl.opcua.server import ERROR_NO_RESULT, CellOpcuaServer, OpcuaConfigError
+from tests.support.pki import Pki
 from tests.support.ports import free_port
 from tests.support.reports import report_dict
 from tests.support.waits import wait_subscribed, wait_until
@@ -36,10 +40,15 @@ def _config(tmp_path, zenoh_port: int, opcua_port: int, **opcua):
     })  # fmt: skip
 
 
-def test_refuses_an_unsecured_endpoint_unless_allowed(tmp_path):
-    cfg = _config(tmp_path, free_port(), free_port())
+def test_refuses_a_key_others_may_read_and_a_missing_users_file(tmp_path):
+    cfg, _ = _secured_config(tmp_path, free_port(), free_port())
     assert cfg.opcua.bind == "127.0.0.1" and not cfg.opcua.allow_insecure
-    with pytest.raises(OpcuaConfigError, match="allow_insecure"):
+    cfg.opcua.key_file.chmod(0o644)
+    with pytest.raises(OpcuaConfigError, match="chmod 600"):
+        CellOpcuaServer(cfg)
+    cfg.opcua.key_file.chmod(0o600)
+    cfg.opcua.users_file.unlink()
+    with pytest.raises(OpcuaConfigError, match="hmi-users"):
         CellOpcuaServer(cfg)
 
 
@@ -124,5 +133,83 @@ async def _client_reads(tmp_path) -> None:
         stop.set()
         if runner is not None:
             await runner
+        await srv.stop()
+        await asyncio.to_thread(close_session, daemon)
+
+
+def _secured_config(tmp_path, zenoh_port: int, opcua_port: int):
+    pki = Pki(tmp_path / "pki", rsa=True)
+    cert, key = pki.leaf("opcua-c7", uri="urn:cellctl:opcua:c7")
+    users = tmp_path / "hmi-users"
+    add_user(users, "olga", "operator", "operator-pass-1")
+    cfg = _config(
+        tmp_path, zenoh_port, opcua_port, cert_file=str(cert), key_file=str(key), users_file=str(users)
+    )
+    return cfg, pki
+
+
+def test_the_secured_endpoint_needs_its_files(tmp_path):
+    with pytest.raises(ConfigError, match="cert_file, key_file, users_file"):
+        _config(tmp_path, free_port(), free_port())
+
+
+@pytest.mark.slow
+def test_the_secured_endpoint_takes_an_hmi_user_and_refuses_anonymous_wrong_passwords_and_no_security(
+    tmp_path,
+):
+    asyncio.run(_secured(tmp_path))
+
+
+async def _secured(tmp_path) -> None:
+    cfg, pki = _secured_config(tmp_path, free_port(), free_port())
+    client_cert, client_key = pki.leaf("plant-mes", uri="urn:plant:mes")
+    daemon = await asyncio.to_thread(
+        open_session, build_zenoh_config(cfg.zenoh, role="serve"), what="test publisher"
+    )
+    srv = CellOpcuaServer(cfg)
+
+    def client(user: str | None, password: str | None) -> Client:
+        c = Client(srv.endpoint, timeout=10)
+        c.application_uri = "urn:plant:mes"
+        if user is not None:
+            c.set_user(user)
+            c.set_password(password or "")
+        return c
+
+    async def secure(c: Client) -> Client:
+        await c.set_security(
+            SecurityPolicyBasic256Sha256, certificate=str(client_cert),
+            private_key=CertProperties(client_key, extension="pem"),
+            mode=ua.MessageSecurityMode.SignAndEncrypt,
+        )  # fmt: skip
+        return c
+
+    try:
+        await srv.start(link_timeout_s=20.0)
+        async with await secure(client("olga", "operator-pass-1")) as c:
+            gms_ns = await c.get_namespace_index(GMS_NS_URI)
+            result_ns = await c.get_namespace_index("http://opcfoundation.org/UA/Machinery/Result/")
+            await c.load_data_type_definitions()
+            cell = await c.nodes.objects.get_child(
+                f"{await c.get_namespace_index('urn:cellctl:opcua:c7')}:Cell-c7"
+            )
+            rm = await cell.get_child(f"{gms_ns}:ResultManagement")
+            _, _, error = await rm.call_method(
+                await rm.get_child(f"{result_ns}:GetLatestResult"), ua.Variant(0, ua.VariantType.Int32)
+            )
+            assert error == ERROR_NO_RESULT  # no report has reached the server yet
+        refusals = [
+            ("olga", "wrong", ua.uaerrors.BadUserAccessDenied),
+            ("nobody", "operator-pass-1", ua.uaerrors.BadUserAccessDenied),
+            (None, None, ua.uaerrors.BadIdentityTokenRejected),  # anonymous
+        ]
+        for user, password, refusal in refusals:
+            with pytest.raises(refusal):
+                async with await secure(client(user, password)):
+                    pass
+        with pytest.raises(ua.UaError, match="No matching endpoints"):  # no endpoint without security
+            async with client("olga", "operator-pass-1"):
+                pass
+    finally:
         await srv.stop()
         await asyncio.to_thread(close_session, daemon)
