@@ -23,6 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
+    from cellctl.api.session import ZenohSetupError
     from cellctl.opcua.server import OpcuaConfigError, serve
     from drivers.runtime import stop_on_signals
 
@@ -43,6 +44,6 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         return asyncio.run(main())
-    except OpcuaConfigError as exc:
+    except (OpcuaConfigError, ZenohSetupError) as exc:
         print(f"cellctl opcua: error: {exc}", file=sys.stderr)
         return 2

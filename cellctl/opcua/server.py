@@ -8,7 +8,9 @@ that reached it answers ``GetLatestResult``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
+import logging
 from typing import Any
 
 import structlog
@@ -88,12 +90,16 @@ class CellOpcuaServer:
         self._handles = itertools.count(1)
         self._state_dirty = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._listening = False
         self.link = CellLink(cfg, self._on_event, live=False, who="opcua")
         self.link.on_report = self._on_report
         self.endpoint = f"opc.tcp://{cfg.opcua.bind}:{cfg.opcua.port}/cellctl/"
 
     # ---------------------------------------------------------------- set-up
     async def start(self, link_timeout_s: float = 60.0) -> None:
+        # asyncua's own log at INFO and below names every call and its parameters (a log-in's
+        # token among them): warnings and errors only
+        logging.getLogger("asyncua").setLevel(max(logging.WARNING, logging.getLogger("asyncua").level))
         self._loop = asyncio.get_running_loop()
         s = self.server
         await s.init()
@@ -120,12 +126,15 @@ class CellOpcuaServer:
         )
         s.link_method(self.nodes.get_latest_result, self._get_latest_result)
         await s.start()
+        self._listening = True
         log.info("opcua_listening", endpoint=self.endpoint, security=security)
         await self.link.start(timeout_s=link_timeout_s)
 
     async def stop(self) -> None:
         await self.link.close()
-        await self.server.stop()
+        if self._listening:
+            self._listening = False
+            await self.server.stop()
 
     async def run(self, stop: asyncio.Event) -> None:
         """Mirror the cell's state into the address space until ``stop`` is set."""
@@ -169,10 +178,20 @@ class CellOpcuaServer:
 
 
 async def serve(cfg: CellConfig, stop: asyncio.Event) -> int:
+    """Serve until ``stop``; a stop while the server still waits for the daemon ends it at once."""
     srv = CellOpcuaServer(cfg)
+    starting = asyncio.ensure_future(srv.start())
+    stopping = asyncio.ensure_future(stop.wait())
     try:
-        await srv.start()
+        await asyncio.wait({starting, stopping}, return_when=asyncio.FIRST_COMPLETED)
+        if not starting.done():
+            starting.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await starting
+            return 0
+        starting.result()  # its error, if it failed (the daemon never answered: ZenohSetupError)
         await srv.run(stop)
     finally:
+        stopping.cancel()
         await srv.stop()
     return 0
