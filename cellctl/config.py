@@ -848,8 +848,9 @@ class OpcuaSection(Section):
     (loopback by default: a plant network is a choice made here). The endpoint is Basic256Sha256
     Sign & Encrypt with ``cert_file`` / ``key_file`` (the server's certificate, issued by the
     cell's CA, and its private key, a secrets file), users and roles from the HMI's ``users_file``
-    (``cellctl hmi adduser``); anonymous is refused. ``allow_insecure``: instead, security None and
-    anonymous clients (tests, a trusted loopback only).
+    (``cellctl hmi adduser``); anonymous is refused. ``trusted_dir``: the certificates (PEM or DER)
+    a client's certificate must be issued by or be (the cell's CA): any other is refused.
+    ``allow_insecure``: instead, security None and anonymous clients (tests, a trusted loopback only).
     """
 
     enabled: bool = False
@@ -858,12 +859,15 @@ class OpcuaSection(Section):
     cert_file: Path | None = None
     key_file: Path | None = None
     users_file: Path | None = None
+    trusted_dir: Path | None = None
     allow_insecure: bool = False
 
     @model_validator(mode="after")
     def _secured_or_insecure_said(self) -> OpcuaSection:
         if self.enabled and not self.allow_insecure:
-            missing = [k for k in ("cert_file", "key_file", "users_file") if getattr(self, k) is None]
+            missing = [
+                k for k in ("cert_file", "key_file", "users_file", "trusted_dir") if getattr(self, k) is None
+            ]
             if missing:
                 raise ValueError(
                     f"the secured endpoint needs {', '.join(missing)} (or allow_insecure = true: no security)"

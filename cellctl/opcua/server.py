@@ -16,6 +16,9 @@ from typing import Any
 import structlog
 from asyncua import Server, ua
 from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator
+from asyncua.crypto.validator import CertificateValidatorOptions as V
 from asyncua.server.user_managers import UserManager
 
 from cellctl import __version__
@@ -73,9 +76,9 @@ class CellOpcuaServer:
         o = cfg.opcua
         self.users: HmiUserManager | None = None
         if not o.allow_insecure:
-            if o.cert_file is None or o.key_file is None or o.users_file is None:
+            if o.cert_file is None or o.key_file is None or o.users_file is None or o.trusted_dir is None:
                 raise OpcuaConfigError(
-                    "[opcua] the secured endpoint needs cert_file, key_file and users_file "
+                    "[opcua] the secured endpoint needs cert_file, key_file, users_file and trusted_dir "
                     "(or allow_insecure = true: no security, anonymous; tests and a trusted loopback only)"
                 )
             try:
@@ -83,6 +86,8 @@ class CellOpcuaServer:
                 self.users = HmiUserManager(Authenticator(load_users(o.users_file)))
             except (AuthError, ConfigError, OSError) as exc:
                 raise OpcuaConfigError(f"[opcua] {exc}") from None
+            if not o.trusted_dir.is_dir():
+                raise OpcuaConfigError(f"[opcua] trusted_dir {o.trusted_dir}: not a directory")
         self.cfg = cfg
         self.server = Server(user_manager=self.users)
         self.nodes: GmsNodes | None = None
@@ -117,6 +122,13 @@ class CellOpcuaServer:
             await s.load_private_key(str(o.key_file), format=_format(o.key_file))
             s.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
             s.set_security_IDs(["Username"])
+            assert o.trusted_dir is not None
+            trust = TrustStore([o.trusted_dir], [])
+            await trust.load()
+            # validity period, the application URI in the certificate, issued by (or being) a trusted
+            # certificate; key usage is not required (docs/opcua.md)
+            checks = V.TIME_RANGE | V.URI | V.TRUSTED | V.PEER_CLIENT
+            s.set_certificate_validator(CertificateValidator(checks, trust))
             security = "Basic256Sha256 SignAndEncrypt, users"
         await load_gms_model(s)
         await s.load_data_type_definitions()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
 
 import pytest
 from asyncua import Client, ua
@@ -142,14 +143,20 @@ def _secured_config(tmp_path, zenoh_port: int, opcua_port: int):
     cert, key = pki.leaf("opcua-c7", uri="urn:cellctl:opcua:c7")
     users = tmp_path / "hmi-users"
     add_user(users, "olga", "operator", "operator-pass-1")
-    cfg = _config(
-        tmp_path, zenoh_port, opcua_port, cert_file=str(cert), key_file=str(key), users_file=str(users)
-    )
-    return cfg, pki
+    trusted = tmp_path / "trusted"  # the clients' CA: the cell's
+    trusted.mkdir()
+    shutil.copy(pki.ca_file, trusted / "cell-ca.pem")
+    files = {
+        "cert_file": str(cert),
+        "key_file": str(key),
+        "users_file": str(users),
+        "trusted_dir": str(trusted),
+    }
+    return _config(tmp_path, zenoh_port, opcua_port, **files), pki
 
 
 def test_the_secured_endpoint_needs_its_files(tmp_path):
-    with pytest.raises(ConfigError, match="cert_file, key_file, users_file"):
+    with pytest.raises(ConfigError, match="cert_file, key_file, users_file, trusted_dir"):
         _config(tmp_path, free_port(), free_port())
 
 
@@ -163,6 +170,9 @@ def test_the_secured_endpoint_takes_an_hmi_user_and_refuses_anonymous_wrong_pass
 async def _secured(tmp_path) -> None:
     cfg, pki = _secured_config(tmp_path, free_port(), free_port())
     client_cert, client_key = pki.leaf("plant-mes", uri="urn:plant:mes")
+    foreign_cert, foreign_key = Pki(tmp_path / "foreign", ca_cn="someone-else", rsa=True).leaf(
+        "mes", uri="urn:plant:mes"
+    )
     daemon = await asyncio.to_thread(
         open_session, build_zenoh_config(cfg.zenoh, role="serve"), what="test publisher"
     )
@@ -176,10 +186,10 @@ async def _secured(tmp_path) -> None:
             c.set_password(password or "")
         return c
 
-    async def secure(c: Client) -> Client:
+    async def secure(c: Client, cert=client_cert, key=client_key) -> Client:
         await c.set_security(
-            SecurityPolicyBasic256Sha256, certificate=str(client_cert),
-            private_key=CertProperties(client_key, extension="pem"),
+            SecurityPolicyBasic256Sha256, certificate=str(cert),
+            private_key=CertProperties(key, extension="pem"),
             mode=ua.MessageSecurityMode.SignAndEncrypt,
         )  # fmt: skip
         return c
@@ -207,6 +217,9 @@ async def _secured(tmp_path) -> None:
             with pytest.raises(refusal):
                 async with await secure(client(user, password)):
                     pass
+        with pytest.raises(ua.uaerrors.BadCertificateUntrusted):  # a certificate from another CA
+            async with await secure(client("olga", "operator-pass-1"), foreign_cert, foreign_key):
+                pass
         with pytest.raises(ua.UaError, match="No matching endpoints"):  # no endpoint without security
             async with client("olga", "operator-pass-1"):
                 pass
