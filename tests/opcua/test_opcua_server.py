@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import shutil
+from pathlib import Path
 
 import pytest
 from asyncua import Client, ua
@@ -24,6 +25,8 @@ from tests.support.pki import Pki
 from tests.support.ports import free_port
 from tests.support.reports import report_dict
 from tests.support.waits import wait_subscribed, wait_until
+
+NODE_CLIENT = Path(__file__).parent / "node" / "client.mjs"
 
 LINES = [
     {"family": "transverse", "index": 1, "zmax_mm": 1.25, "sz_avg_mm": 0.4, "sz_mm2": 120.0, "ci": 0.013,
@@ -75,7 +78,39 @@ def test_a_client_reads_the_gms_object_the_state_and_the_latest_result(tmp_path)
     asyncio.run(_client_reads(tmp_path))
 
 
-async def _client_reads(tmp_path) -> None:
+@pytest.mark.slow
+@pytest.mark.process
+def test_node_opcua_reads_the_latest_result(tmp_path):
+    """An independent client (node-opcua, installed by scripts/setup.sh) finds the GMSType object and
+    calls GetLatestResult (Good, Error 0, the result's bytes; node-opcua does not decode the
+    Machinery/Result structure: docs/opcua.md)."""
+    asyncio.run(_client_reads(tmp_path, node=True))
+
+
+async def _node_client_reads(endpoint: str) -> None:
+    assert (NODE_CLIENT.parent / "node_modules" / "node-opcua").is_dir(), (
+        "node-opcua is not installed: run scripts/setup.sh (npm install in tests/opcua/node)"
+    )
+    proc = await asyncio.create_subprocess_exec(
+        "node",
+        str(NODE_CLIENT),
+        endpoint,
+        "c7",
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    out, err = await asyncio.wait_for(proc.communicate(), 60.0)
+    assert proc.returncode == 0, err.decode()
+    lines = [ln for ln in out.decode().splitlines() if ln.startswith("CELLCTL-RESULT ")]
+    assert len(lines) == 1, out.decode()[-2000:]  # node-opcua prints its own lines too
+    got = json.loads(lines[0].removeprefix("CELLCTL-RESULT "))
+    assert "failure" not in got, json.dumps(got)[:1500]
+    assert got["type"].endswith("GMSType") and got["status"] == "Good" and got["error"] == 0
+    # the Result arrives (an ExtensionObject as big as the report's content), undecoded by node-opcua
+    assert got["resultType"] == "OpaqueStructure" and got["resultBytes"] > 2000
+
+
+async def _client_reads(tmp_path, *, node: bool = False) -> None:
     cfg = _config(tmp_path, free_port(), free_port(), allow_insecure=True)
     keys = Keys(cfg.key_prefix)
     daemon = await asyncio.to_thread(
@@ -95,6 +130,9 @@ async def _client_reads(tmp_path) -> None:
         status = CellStatus(cell_id="c7", state="scanning", t_utc="2026-12-07T20:00:00Z")
         daemon.put(keys.state, status.model_dump_json())
         await wait_until(lambda: srv.latest is not None, 10.0, "the report reaching the server")
+        if node:
+            await _node_client_reads(srv.endpoint)
+            return
 
         async with Client(srv.endpoint, timeout=10) as client:
             await client.load_data_type_definitions()
