@@ -926,6 +926,40 @@ class LocateSection(Section):
         return self
 
 
+class OpcuaSection(Section):
+    """`cellctl opcua`: the cell's OPC UA server for the plant (OPC 40210 GMS; docs/opcua.md).
+
+    ``enabled``: the command refuses to start when false. ``bind`` / ``port``: where it listens
+    (loopback by default: a plant network is a choice made here). The endpoint is Basic256Sha256
+    Sign & Encrypt with ``cert_file`` / ``key_file`` (the server's certificate, issued by the
+    cell's CA, and its private key, a secrets file), users and roles from the HMI's ``users_file``
+    (``cellctl hmi adduser``); anonymous is refused. ``trusted_dir``: the certificates (PEM or DER)
+    a client's certificate must be issued by or be (the cell's CA): any other is refused.
+    ``allow_insecure``: instead, security None and anonymous clients (tests, a trusted loopback only).
+    """
+
+    enabled: bool = False
+    bind: str = "127.0.0.1"
+    port: Annotated[int, Field(ge=1, le=65535)] = 4840
+    cert_file: Path | None = None
+    key_file: Path | None = None
+    users_file: Path | None = None
+    trusted_dir: Path | None = None
+    allow_insecure: bool = False
+
+    @model_validator(mode="after")
+    def _secured_or_insecure_said(self) -> OpcuaSection:
+        if self.enabled and not self.allow_insecure:
+            missing = [
+                k for k in ("cert_file", "key_file", "users_file", "trusted_dir") if getattr(self, k) is None
+            ]
+            if missing:
+                raise ValueError(
+                    f"the secured endpoint needs {', '.join(missing)} (or allow_insecure = true: no security)"
+                )
+        return self
+
+
 class CellConfig(BaseSettings):
     """The whole `cell.toml`."""
 
@@ -949,6 +983,7 @@ class CellConfig(BaseSettings):
     worker: WorkerSection = WorkerSection()
     router: RouterSection = RouterSection()
     locate: LocateSection = LocateSection()
+    opcua: OpcuaSection = OpcuaSection()
 
     @classmethod
     def settings_customise_sources(
@@ -1153,6 +1188,7 @@ def secret_files(cfg: CellConfig) -> list[tuple[str, Path]]:
         ("zenoh.access.password_file", access.password_file),
         ("zenoh.access.dictionary_file", access.dictionary_file),
         ("zenoh.access.tls_key_file", access.tls_key_file),
+        ("opcua.key_file", cfg.opcua.key_file),
     ]
     return [(what, Path(path)) for what, path in named if path is not None]
 

@@ -15,6 +15,9 @@ SYSTEM_PACKAGES+=(gir1.2-aravis-0.8 aravis-tools-cli aravis-tools
 # CloudCompare's command line opens the exported clouds in a test (tests/analysis/test_cloud_export.py),
 # headless under Qt's offscreen platform
 SYSTEM_PACKAGES+=(cloudcompare)
+# node-opcua, the independent OPC UA client tests/opcua drives the server with (npm ci, below; npm
+# comes with NodeSource's nodejs, or Debian's npm package)
+SYSTEM_PACKAGES+=(nodejs)
 
 missing=()
 for pkg in "${SYSTEM_PACKAGES[@]}"; do
@@ -51,4 +54,12 @@ fi
 "$VENV/bin/python" -m pip install -q -c constraints.txt -e ".[dev]"
 "$VENV/bin/python" -c 'import open3d, pinocchio, zenoh, ruckig, toppra, gi; gi.require_version("Aravis", "0.8")' \
     || { echo "setup: the installed packages do not import (see above)" >&2; exit 1; }
+# Debian's nodejs ships npm apart (NodeSource's carries it): install it when it is missing
+if ! command -v npm >/dev/null && [[ $(id -u) -eq 0 ]]; then
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends npm >/dev/null \
+        || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends npm >/dev/null; }
+fi
+command -v npm >/dev/null || { echo "setup: npm missing (apt-get install npm, or NodeSource's nodejs)" >&2; exit 1; }
+npm ci --prefix tests/opcua/node --no-audit --no-fund --loglevel=error >/dev/null \
+    || { echo "setup: npm ci in tests/opcua/node failed (node-opcua for the OPC UA tests)" >&2; exit 1; }
 echo "setup: ok ($("$VENV/bin/cellctl" --version))"

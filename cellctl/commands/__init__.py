@@ -8,6 +8,7 @@ from cellctl.commands import (
     heat_plan_cmd,
     hmi_cmd,
     inspect_cmd,
+    opcua_cmd,
     plan_cmd,
     report_cmd,
     router_cmd,
@@ -27,6 +28,7 @@ COMMAND_MODULES = [
     router_cmd,
     scan_cmd,  # scan, status, watch
     hmi_cmd,  # hmi, history
+    opcua_cmd,  # opcua
     plan_cmd,
     inspect_cmd,
     design_cmd,

@@ -285,10 +285,16 @@ class Authenticator:
         # a hash to check against when the user is unknown: the same time either way
         self._dummy = hash_password(secrets.token_hex(8))
 
-    def login(self, name: str, password: str) -> Session | None:
+    def verify(self, name: str, password: str) -> User | None:
+        """The user when ``password`` is theirs, else None; an unknown name costs the same hash
+        (no timing oracle). The HMI's log-in and the OPC UA server's both check here."""
         user = self.users.get(name)
         ok = verify_password(password, user.password_hash if user else self._dummy)
-        if not (ok and user):
+        return user if ok and user else None
+
+    def login(self, name: str, password: str) -> Session | None:
+        user = self.verify(name, password)
+        if user is None:
             return None
         s = Session(
             secrets.token_urlsafe(32),

@@ -44,8 +44,19 @@ LIVE_KEEP_POINTS = 200_000
 
 
 class CellLink:
-    def __init__(self, cfg: CellConfig, on_event: Callable[[dict[str, Any]], None]) -> None:
+    def __init__(
+        self,
+        cfg: CellConfig,
+        on_event: Callable[[dict[str, Any]], None],
+        *,
+        live: bool = True,
+        who: str = "hmi",
+    ) -> None:
+        """``live``: follow the live cloud too (the HMI's scan page; the OPC UA server does not);
+        ``who``: the session's name in errors and logs."""
         self.cfg = cfg
+        self.follow_live = live
+        self.who = who
         self.keys = Keys(cfg.key_prefix)
         self.on_event = on_event
         self.session: Any = None
@@ -59,6 +70,8 @@ class CellLink:
         self.live_seq = -1
         self.ended: set[str] = set()
         self.on_job_end: Callable[[str], None] | None = None
+        #: every well-formed report publication, whole (the OPC UA server keeps the latest)
+        self.on_report: Callable[[ReportEnvelope], None] | None = None
         self._subs: list[Any] = []
 
     async def start(self, timeout_s: float = 60.0) -> None:
@@ -67,7 +80,7 @@ class CellLink:
         deadline = time.monotonic() + timeout_s
         while self.session is None:
             try:
-                self.session = await asyncio.to_thread(open_session, zcfg(), what="hmi session")
+                self.session = await asyncio.to_thread(open_session, zcfg(), what=f"{self.who} session")
             except ZenohSetupError:
                 if time.monotonic() > deadline:
                     raise
@@ -75,7 +88,7 @@ class CellLink:
         s = self.session
         self._subs = [
             subscribe(s, self.keys.state, self._on_state),
-            subscribe(s, self.keys.live_cloud("*"), self._on_live),
+            *([subscribe(s, self.keys.live_cloud("*"), self._on_live)] if self.follow_live else []),
             subscribe(s, self.keys.report("*"), self._on_report),
         ]
 
@@ -124,6 +137,8 @@ class CellLink:
             env = ReportEnvelope.model_validate_json(sample.payload.to_bytes())
         except ValidationError:
             return
+        if self.on_report is not None:
+            self.on_report(env)
         verdict = env.report.verdict if env.report else None
         self.on_event({"type": "report", "job_id": env.job_id, "plate_id": env.plate_id, "ok": env.ok,
                        "verdict": verdict, "error": env.error})  # fmt: skip

@@ -7,16 +7,9 @@ a certificate from another CA cannot connect at all, and a private key others ma
 from __future__ import annotations
 
 import asyncio
-import datetime
-import ipaddress
 import json
-from pathlib import Path
 
 import pytest
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
 
 from cellctl.api import Keys
 from cellctl.api.session import (
@@ -29,60 +22,12 @@ from cellctl.api.session import (
     open_session,
 )
 from cellctl.config import ZenohAccess, ZenohSection
+from tests.support.pki import Pki
 from tests.support.ports import free_port
 
 PREFIX = "cell/tls1"
 KEYS = Keys(PREFIX)
 ROLES = {"operator": ["alice"], "worker": ["w1"]}
-
-
-class Pki:
-    """A CA and leaf certificates (EC P-256) written as PEM files; keys chmod 600."""
-
-    def __init__(self, root: Path, ca_cn: str = "cell-ca") -> None:
-        self.root = root
-        root.mkdir(parents=True, exist_ok=True)
-        self.now = datetime.datetime.now(datetime.UTC)
-        self.ca_key = ec.generate_private_key(ec.SECP256R1())
-        self.ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, ca_cn)])
-        ca = self._builder(self.ca_name, self.ca_key.public_key()).add_extension(
-            x509.BasicConstraints(ca=True, path_length=None), critical=True
-        )
-        self.ca_file = self._write_cert(ca.sign(self.ca_key, hashes.SHA256()), "ca.pem")
-
-    def _builder(self, subject: x509.Name, public_key) -> x509.CertificateBuilder:
-        return (
-            x509.CertificateBuilder()
-            .subject_name(subject)
-            .issuer_name(self.ca_name)
-            .public_key(public_key)
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(self.now - datetime.timedelta(hours=1))
-            .not_valid_after(self.now + datetime.timedelta(days=1))
-        )
-
-    def _write_cert(self, cert: x509.Certificate, name: str) -> Path:
-        path = self.root / name
-        path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-        return path
-
-    def leaf(self, cn: str) -> tuple[Path, Path]:
-        key = ec.generate_private_key(ec.SECP256R1())
-        san = x509.SubjectAlternativeName(
-            [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
-        )
-        cert = self._builder(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)]), key.public_key())
-        cert_file = self._write_cert(
-            cert.add_extension(san, critical=False).sign(self.ca_key, hashes.SHA256()), f"{cn}.pem"
-        )
-        key_file = self.root / f"{cn}.key"
-        key_file.write_bytes(
-            key.private_bytes(
-                serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
-            )
-        )
-        key_file.chmod(0o600)
-        return cert_file, key_file
 
 
 def _section(port: int, pki: Pki, cn: str, roles: dict | None = None) -> ZenohSection:

@@ -19,8 +19,9 @@ from cellctl.daemon.heat_plan import make_heating_plan
 from cellctl.jobstore.jobs import JobRecord, JobStore
 from tests.support.results_fixture import CELL_LAYOUT, write_synthetic_results
 
-# the plan runs in a child process: an interpreter, cellctl and the FE model, 3-10 s on the shared machine
-pytestmark = pytest.mark.slow
+# the plan runs in a child process: an interpreter, cellctl and the FE model, 3-10 s on the shared
+# machine; no simulator, no Zenoh: it only computes, so make test runs it on both cores
+pytestmark = [pytest.mark.slow, pytest.mark.compute]
 
 
 def _store_and_job(tmp_path, **forming) -> tuple[CellConfig, JobStore, ActiveJob]:
