@@ -107,12 +107,31 @@ def _candidates(length_mm: float, width_mm: float, rules: HeatingRules) -> list[
     return out
 
 
-def _conflicts(a: _Candidate, b: _Candidate, spacing_mm: float) -> bool:
-    """Two parallel lines closer than the spacing whose extents overlap."""
-    if a.direction != b.direction:
-        return False
-    overlap = min(a.span[1], b.span[1]) - max(a.span[0], b.span[0])
-    return abs(a.offset_mm - b.offset_mm) < spacing_mm and overlap > 0
+def _conflicts_with(
+    cand_arrays: tuple[np.ndarray, np.ndarray, np.ndarray], i: int, spacing_mm: float
+) -> np.ndarray:
+    """Which candidates conflict with candidate ``i``: parallel, closer than the spacing, their
+    extents overlapping (the candidates as arrays of their direction, offset and span)."""
+    direction, offset, span = cand_arrays
+    overlap = np.minimum(span[:, 1], span[i, 1]) - np.maximum(span[:, 0], span[i, 0])
+    return (direction == direction[i]) & (np.abs(offset - offset[i]) < spacing_mm) & (overlap > 0)
+
+
+def _without_overshoot(g: np.ndarray, bend_rad: np.ndarray, target: np.ndarray) -> list[int]:
+    """The columns of ``g`` (n, k; per rad) to keep at ``bend_rad`` (k,): backward elimination of
+    the line whose removal most lowers the residual against ``target`` (n,), while one does."""
+    keep = list(range(len(bend_rad)))
+    residual = target - g @ bend_rad
+    while keep:
+        contrib = g[:, keep] * bend_rad[keep]
+        without = residual[:, None] + contrib
+        norms = np.einsum("ij,ij->j", without, without)
+        k = int(np.argmin(norms))
+        if norms[k] >= float(residual @ residual) * (1 - 1e-3):
+            break
+        residual = without[:, k]
+        del keep[k]
+    return keep
 
 
 def plan_heating(
@@ -169,18 +188,22 @@ def plan_heating(
     ).bend_across_rad
     theta_max = ref.bend_across_rad
 
+    cand_arrays = (
+        np.array([c.direction for c in cands]),
+        np.array([c.offset_mm for c in cands]),
+        np.array([c.span for c in cands]).reshape(-1, 2),
+    )
     chosen: list[int] = []
     amps = np.zeros(0)
     residual = target.copy()
     best_norm = float(np.linalg.norm(target))
     while len(chosen) < rules.max_lines_per_round:
-        allowed = [
-            j
-            for j in range(len(cands))
-            if j not in chosen
-            and not any(_conflicts(cands[j], cands[i], rules.min_spacing_mm) for i in chosen)
-        ]
-        if not allowed:
+        free = np.ones(len(cands), bool)
+        for i in chosen:
+            free &= ~_conflicts_with(cand_arrays, i, rules.min_spacing_mm)
+            free[i] = False
+        allowed = np.flatnonzero(free)
+        if not allowed.size:
             break
         # score: the drop in residual norm if the candidate alone were added at its best amplitude
         ga = g[:, allowed]
@@ -190,7 +213,7 @@ def plan_heating(
         k = int(np.argmax(gain))
         if gain[k] <= 1e-12 * best_norm**2:
             break
-        trial = [*chosen, allowed[k]]
+        trial = [*chosen, int(allowed[k])]
         trial_amps, rnorm = nnls(g[:, trial], target, maxiter=50 * len(trial))
         if rnorm >= best_norm * (1 - 1e-3):
             break
@@ -202,6 +225,7 @@ def plan_heating(
     # the bends the crew can give: clipped to the process's range; more needs another round
     notes: list[str] = []
     planned: list[HeatingLine] = []
+    planned_cols: list[int] = []
     for j, theta in zip(chosen, amps, strict=True):
         wanted = float(theta)
         if wanted < 0.5 * theta_min:
@@ -217,11 +241,23 @@ def plan_heating(
                 inherent_deformation(q, thickness_mm, material, process),
             )
         )
+        planned_cols.append(j)
         if wanted > theta_max * 1.05:
             notes.append(
                 f"a line at {cands[j].start}-{cands[j].end} needs {math.degrees(wanted):.2f} deg, more than one pass "
                 f"gives ({math.degrees(theta_max):.2f} deg at {q_ref:.0f} J/mm): heat it again next round"
             )
+    # a line raised to the least bend a pass gives can bend the plate past its design (a small
+    # deviation on a long plate): leave out, one at a time, the lines whose absence fits better
+    keep = _without_overshoot(
+        g[:, planned_cols], np.array([line.deformation.bend_across_rad for line in planned]), target
+    )
+    if len(keep) < len(planned):
+        notes.append(
+            f"{len(planned) - len(keep)} line(s) left out: the least bend one pass gives "
+            f"({math.degrees(theta_min):.2f} deg) would bend the plate past its design there"
+        )
+        planned = [planned[i] for i in keep]
 
     predicted_heat = (
         remove_plane(points_mm, model.deflection_mm(planned, points_mm))

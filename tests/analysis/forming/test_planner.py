@@ -9,7 +9,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from analysis.forming.coefficients import Coefficients, inherent_deformation
-from analysis.forming.planner import HeatingRules, PlannedLine, _words, in_plane_strain_needed, plan_heating
+from analysis.forming.planner import (
+    HeatingRules,
+    PlannedLine,
+    _without_overshoot,
+    _words,
+    in_plane_strain_needed,
+    plan_heating,
+)
 from analysis.forming.plate_model import HeatingLine, PlateModel
 from tests.analysis.forming.conftest import H_MM, L_MM, W_MM
 
@@ -149,3 +156,12 @@ def test_the_words_name_bottom_face_lines_beside_top_face_ones_without_calling_t
     assert not any("over-bent" in n for n in mixed), mixed
     every = _words([line(1, "bottom"), line(2, "bottom")], 1.0, 0.05, HeatingRules(), pts, flat, 600.0, 400.0)
     assert any(n.startswith("over-bent: every line is on the bottom face") for n in every), every
+
+
+def test_a_line_raised_to_the_least_bend_is_left_out_when_it_overshoots() -> None:
+    """Two lines at the least bend a pass gives: the first fits its part of the deviation, the
+    second's part needs a tenth of it, so heating it bends the plate past its design there."""
+    g = np.array([[1.0, 0.0], [0.0, 1.0], [0.2, 0.2]])
+    target = np.array([1.0, 0.1, 0.2])
+    assert _without_overshoot(g, np.array([1.0, 1.0]), target) == [0]
+    assert _without_overshoot(g, np.array([1.0, 0.1]), target) == [0, 1]
