@@ -68,7 +68,7 @@ from analysis.design.cad import read_design
 from analysis.design.cad_surface import CadDesign
 from analysis.design.mesh import MeshError, TriMesh
 from analysis.design.moulded import design_as_laid
-from analysis.design.outline import design_corners_from_mesh, frame_design_mesh
+from analysis.design.outline import design_corners_from_mesh, frame_design_mesh, plate_frame
 from analysis.export import DESIGN_FRAME, write_lines_ship
 from analysis.metrics import LineMetrics, Verdict, judge, line_metrics
 from analysis.register.fit import RegistrationResult, register, register_from_placement
@@ -199,19 +199,6 @@ def _line_coverage(cut: TemplateCut) -> float:
     step = float(np.median(np.diff(cut.s_mm)))
     seen = np.isfinite(cut.measured_h_mm) & np.isfinite(cut.design_h_mm)
     return min(1.0, float(np.count_nonzero(seen)) * step / length)
-
-
-def plate_frame(design_corners: np.ndarray) -> np.ndarray:
-    """4x4 transform design frame -> plate frame (origin corner 0, x along edge 0->1, z up)."""
-    x = design_corners[1, :2] - design_corners[0, :2]
-    x = np.array([x[0], x[1], 0.0]) / np.linalg.norm(x)
-    z = np.array([0.0, 0.0, 1.0])
-    y = np.cross(z, x)
-    R = np.vstack([x, y, z])  # rows: plate axes in design coordinates
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = -R @ np.array([*design_corners[0, :2], 0.0])
-    return T
 
 
 def _xy_cells(points_mm: np.ndarray, cell_mm: float) -> tuple[np.ndarray, int, int]:

@@ -36,6 +36,7 @@ __all__ = [
     "mesh_boundary_loops",
     "mesh_free_edges",
     "outline_corners",
+    "plate_frame",
     "plate_frame_from_surface",
 ]
 
@@ -302,3 +303,16 @@ def frame_design_mesh(mesh: TriMesh) -> FramedMesh:
                  origin_file_mm=np.round(np.linalg.inv(T)[:3, 3], 3).tolist())  # fmt: skip
     corners = corners_file @ T[:3, :3].T + T[:3, 3]
     return FramedMesh(framed, canonical_corner_order(corners), T)
+
+
+def plate_frame(design_corners: np.ndarray) -> np.ndarray:
+    """4x4 transform design frame -> plate frame (origin corner 0, x along edge 0->1, z up)."""
+    x = design_corners[1, :2] - design_corners[0, :2]
+    x = np.array([x[0], x[1], 0.0]) / np.linalg.norm(x)
+    z = np.array([0.0, 0.0, 1.0])
+    y = np.cross(z, x)
+    R = np.vstack([x, y, z])  # rows: plate axes in design coordinates
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ np.array([*design_corners[0, :2], 0.0])
+    return T

@@ -39,6 +39,7 @@ __all__ = [
     "EdgeSpringback",
     "FormingError",
     "GaussianBump",
+    "HeightGrid",
     "OutlineEdge",
     "PlateError",
     "PlateKind",
@@ -174,6 +175,74 @@ class EdgeSpringback:
             raise PlateError("amplitude_mm: must be finite")
 
 
+@dataclass(frozen=True, eq=False)
+class HeightGrid:
+    """A sampled height field ``dz`` (mm) on a regular grid of the design frame: ``values_mm[i, j]``
+    at ``(x0_mm + i * step_mm, y0_mm + j * step_mm)``, interpolated by a bicubic spline (a twist, or
+    what simulated heating rounds left, benchmarks/forming_loop.py). Outside the grid the spline's
+    end pieces go on (keep the grid a little larger than the footprint). Compared by identity."""
+
+    x0_mm: float
+    y0_mm: float
+    step_mm: float
+    values_mm: np.ndarray
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.values_mm, dtype=np.float64)
+        if v.ndim != 2 or min(v.shape) < 4 or not np.isfinite(v).all():
+            raise PlateError(f"values_mm: a finite (nx >= 4, ny >= 4) grid expected, got shape {v.shape}")
+        if not (np.isfinite(self.step_mm) and self.step_mm > 0):
+            raise PlateError(f"step_mm: must be positive, got {self.step_mm!r}")
+        object.__setattr__(self, "values_mm", v)
+        from scipy.interpolate import RectBivariateSpline
+
+        xs = self.x0_mm + self.step_mm * np.arange(v.shape[0])
+        ys = self.y0_mm + self.step_mm * np.arange(v.shape[1])
+        object.__setattr__(self, "_spline", RectBivariateSpline(xs, ys, v, kx=3, ky=3))
+
+    @classmethod
+    def sample(
+        cls, fn, x_range_mm: tuple[float, float], y_range_mm: tuple[float, float], step_mm: float
+    ) -> HeightGrid:
+        """``fn(x, y)`` (mm, design frame, arrays) sampled over the ranges."""
+        nx = max(4, int(np.ceil((x_range_mm[1] - x_range_mm[0]) / step_mm)) + 1)
+        ny = max(4, int(np.ceil((y_range_mm[1] - y_range_mm[0]) / step_mm)) + 1)
+        X, Y = np.meshgrid(
+            x_range_mm[0] + step_mm * np.arange(nx), y_range_mm[0] + step_mm * np.arange(ny), indexing="ij"
+        )
+        return cls(x_range_mm[0], y_range_mm[0], step_mm, np.asarray(fn(X, Y), dtype=np.float64))
+
+    def points_mm(self) -> np.ndarray:
+        """The grid's nodes (nx * ny, 2), in ``values_mm.ravel()`` order."""
+        nx, ny = self.values_mm.shape
+        X, Y = np.meshgrid(
+            self.x0_mm + self.step_mm * np.arange(nx),
+            self.y0_mm + self.step_mm * np.arange(ny),
+            indexing="ij",
+        )
+        return np.column_stack([X.ravel(), Y.ravel()])
+
+    def plus(self, dz_mm: np.ndarray) -> HeightGrid:
+        """The same grid with ``dz_mm`` (values at :meth:`points_mm`) added."""
+        return HeightGrid(
+            self.x0_mm, self.y0_mm, self.step_mm, self.values_mm + np.reshape(dz_mm, self.values_mm.shape)
+        )
+
+    def at(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(dz, d dz/dx, d dz/dy)`` at (x, y) (any matching shapes)."""
+        sp = self._spline  # type: ignore[attr-defined]
+        xf, yf = x.ravel(), y.ravel()
+        return tuple(sp.ev(xf, yf, dx=dx, dy=dy).reshape(x.shape) for dx, dy in ((0, 0), (1, 0), (0, 1)))  # type: ignore[return-value]
+
+    def to_dict(self) -> dict:
+        return {
+            "x0_mm": self.x0_mm,
+            "y0_mm": self.y0_mm,
+            "step_mm": self.step_mm,
+            "values_mm": self.values_mm.tolist(),
+        }
+
+
 @dataclass(frozen=True)
 class FormingError:
     """A forming-error field: ``dz(x, y)`` added to the design height (design frame, mm).
@@ -182,11 +251,13 @@ class FormingError:
     springback: optional edge spring-back.
     bend_fraction: global bend error, the fraction by which the design's height relative to its
         centre is over-bent (> 0) or under-bent (< 0): dz = bend_fraction * height(x, y).
+    grid: optional sampled field added on top (:class:`HeightGrid`: a twist, a heated round).
     """
 
     bumps: tuple[GaussianBump, ...] = ()
     springback: EdgeSpringback | None = None
     bend_fraction: float = 0.0
+    grid: HeightGrid | None = None
 
     def to_dict(self) -> dict:
         """Plain JSON-ready dict (the truth file's ``forming_error``)."""
@@ -194,6 +265,7 @@ class FormingError:
             "bumps": [asdict(b) for b in self.bumps],
             "springback": asdict(self.springback) if self.springback else None,
             "bend_fraction": self.bend_fraction,
+            "grid": self.grid.to_dict() if self.grid is not None else None,
         }
 
     @classmethod
@@ -204,6 +276,7 @@ class FormingError:
             bumps=tuple(GaussianBump(**b) for b in d.get("bumps", [])),
             springback=EdgeSpringback(**sb) if sb else None,
             bend_fraction=float(d.get("bend_fraction", 0.0)),
+            grid=HeightGrid(**d["grid"]) if d.get("grid") else None,
         )
 
     @property
@@ -213,6 +286,7 @@ class FormingError:
             all(b.amplitude_mm == 0 for b in self.bumps)
             and (self.springback is None or self.springback.amplitude_mm == 0)
             and self.bend_fraction == 0
+            and (self.grid is None or not np.any(self.grid.values_mm))
         )
 
 
@@ -298,6 +372,12 @@ def forming_dz_mm(
             hx, hy = _design_gradient(spec, x, y)
             gx += error.bend_fraction * hx
             gy += error.bend_fraction * hy
+    if error.grid is not None:
+        gz, ggx, ggy = error.grid.at(x, y)
+        dz += gz
+        if with_gradient:
+            gx += ggx
+            gy += ggy
     if with_gradient:
         return dz, gx, gy
     return dz
