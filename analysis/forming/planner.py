@@ -6,8 +6,9 @@ Output: straight heating lines (ends in plate mm, face, heat input and torch spe
 minimise the deviation the forming model predicts after the round, and words when one round, or
 heating at all, cannot do it.
 
-The inverse solve: candidate lines on the rules' grid (both directions, whole and half lengths, both
-faces); each candidate's influence on the deviation points from one factorised FE model (many
+The inverse solve: candidate lines on the rules' grid (across, along and both 45 deg diagonals, whole
+and half lengths, both faces; lines of different directions may cross, parallel ones keep the least
+spacing where their extents overlap); each candidate's influence on the deviation points from one factorised FE model (many
 right-hand sides); a greedy selection (the candidate that most reduces the residual, refitted by
 non-negative least squares over the chosen set) that keeps the least spacing, the edge margin and the
 maximum number of lines; then each line's bend turned into the heat input that gives it, and the
@@ -73,37 +74,86 @@ class HeatingPlan:
     notes: list[str] = field(default_factory=list)
 
 
+_R = math.sqrt(0.5)
+#: the candidates' directions as (unit tangent, unit normal): across the plate (constant x), along it
+#: (constant y), and the two diagonals at +-45 deg (a twist z = k x y has its principal curvatures
+#: there, on a plate of any aspect); a line's offset is its distance from the origin along the normal
+_DIRECTIONS = (
+    ((0.0, 1.0), (1.0, 0.0)),
+    ((1.0, 0.0), (0.0, 1.0)),
+    ((_R, _R), (-_R, _R)),
+    ((_R, -_R), (_R, _R)),
+)
+
+
 @dataclass(frozen=True)
 class _Candidate:
     start: tuple[float, float]
     end: tuple[float, float]
     face: str
-    direction: int  # 0: across the plate (constant x), 1: along (constant y)
-    offset_mm: float  # x for direction 0, y for direction 1
-    span: tuple[float, float]  # extent along the line
+    direction: int  # index into _DIRECTIONS
+    offset_mm: float  # the line's signed distance from the origin along its direction's normal
+    span: tuple[float, float]  # extent along the line (its tangent times the ends)
+
+
+def _clipped(
+    t: tuple[float, float], n: tuple[float, float], offset_mm: float, box: tuple[float, float, float, float]
+) -> tuple[float, float] | None:
+    """The extent (s0, s1) along tangent ``t`` of the line at ``offset_mm`` along normal ``n``
+    inside ``box`` (x0, y0, x1, y1), or None when it misses the box."""
+    base = (offset_mm * n[0], offset_mm * n[1])  # the line's point nearest the origin
+    lo, hi = -math.inf, math.inf
+    for k in (0, 1):
+        a, b = box[k], box[k + 2]
+        if abs(t[k]) < 1e-12:
+            if not a - 1e-9 <= base[k] <= b + 1e-9:
+                return None
+            continue
+        s0, s1 = (a - base[k]) / t[k], (b - base[k]) / t[k]
+        lo, hi = max(lo, min(s0, s1)), min(hi, max(s0, s1))
+    return (lo, hi) if hi > lo else None
 
 
 def _candidates(length_mm: float, width_mm: float, rules: HeatingRules) -> list[_Candidate]:
+    """Lines of every direction of ``_DIRECTIONS`` on the step from the edge margin, each whole
+    (clipped to the margin's rectangle) and its two halves, on each face the rules allow. A diagonal
+    shorter than the least spacing (a corner's stub) is left out."""
     m = rules.edge_margin_mm
+    x0, x1 = (m, length_mm - m) if length_mm > 2 * m else (length_mm / 2, length_mm / 2)
+    y0, y1 = (m, width_mm - m) if width_mm > 2 * m else (width_mm / 2, width_mm / 2)
+    box = (x0, y0, x1, y1)
     out: list[_Candidate] = []
     faces = ("top", "bottom") if rules.allow_bottom_face else ("top",)
-    for direction, (extent, across) in enumerate(((length_mm, width_mm), (width_mm, length_mm))):
-        # positions on the step from the margin (round numbers to chalk), and the last one inside it
-        offsets = (
-            np.arange(m, extent - m + 1e-6, rules.candidate_step_mm)
-            if extent > 2 * m
-            else np.array([extent / 2])
-        )
-        a0, a1 = m, across - m
-        spans = [(a0, a1), (a0, 0.5 * (a0 + a1)), (0.5 * (a0 + a1), a1)]
+    for direction, (t, n) in enumerate(_DIRECTIONS):
+        corners = [c[0] * n[0] + c[1] * n[1] for c in ((x0, y0), (x1, y0), (x0, y1), (x1, y1))]
+        lo, hi = min(corners), max(corners)
+        step = rules.candidate_step_mm
+        if direction < 2:  # positions on the step from the margin (round numbers to chalk)
+            offsets = np.arange(lo, hi + 1e-6, step) if hi > lo else np.array([lo])
+        else:  # the diagonals on the step either side of the one through the plate's centre
+            mid = 0.5 * (lo + hi)
+            k = math.floor((hi - mid) / step + 1e-9)
+            offsets = mid + step * np.arange(-k, k + 1)
         for off in offsets:
+            extent = _clipped(t, n, float(off), box)
+            if extent is None:
+                continue
+            a0, a1 = extent
+            if direction >= 2 and a1 - a0 < rules.min_spacing_mm:
+                continue
+            spans = [(a0, a1), (a0, 0.5 * (a0 + a1)), (0.5 * (a0 + a1), a1)]
             for s0, s1 in spans:
+                ends = [
+                    (
+                        float(np.clip(off * n[0] + s * t[0], x0, x1)),
+                        float(np.clip(off * n[1] + s * t[1], y0, y1)),
+                    )
+                    for s in (s0, s1)
+                ]
                 for face in faces:
-                    if direction == 0:
-                        start, end = (float(off), float(s0)), (float(off), float(s1))
-                    else:
-                        start, end = (float(s0), float(off)), (float(s1), float(off))
-                    out.append(_Candidate(start, end, face, direction, float(off), (float(s0), float(s1))))
+                    out.append(
+                        _Candidate(ends[0], ends[1], face, direction, float(off), (float(s0), float(s1)))
+                    )
     return out
 
 
@@ -111,7 +161,8 @@ def _conflicts_with(
     cand_arrays: tuple[np.ndarray, np.ndarray, np.ndarray], i: int, spacing_mm: float
 ) -> np.ndarray:
     """Which candidates conflict with candidate ``i``: parallel, closer than the spacing, their
-    extents overlapping (the candidates as arrays of their direction, offset and span)."""
+    extents overlapping (the candidates as arrays of their direction, offset and span). Lines of
+    different directions may cross: the rule of the least spacing is between parallel lines."""
     direction, offset, span = cand_arrays
     overlap = np.minimum(span[:, 1], span[i, 1]) - np.maximum(span[:, 0], span[i, 0])
     return (direction == direction[i]) & (np.abs(offset - offset[i]) < spacing_mm) & (overlap > 0)
@@ -309,11 +360,14 @@ def in_plane_strain_needed(
 
 
 def in_plane_strain_given(lines: list[PlannedLine], length_mm: float, width_mm: float) -> float:
-    """The larger of the mean shrinkage strains the lines give across and along the plate."""
-    across = (
-        sum(line.shrink_mm for line in lines if line.start_plate_mm[0] == line.end_plate_mm[0]) / length_mm
-    )
-    along = sum(line.shrink_mm for line in lines if line.start_plate_mm[0] != line.end_plate_mm[0]) / width_mm
+    """The larger of the mean shrinkage strains the lines give across and along the plate (a
+    diagonal line's shrinkage across it counted in x and y by its normal's squared components)."""
+    across = along = 0.0
+    for line in lines:
+        dx, dy = np.subtract(line.end_plate_mm, line.start_plate_mm)
+        nx2 = dy * dy / (dx * dx + dy * dy)  # the squared x component of the line's unit normal
+        across += line.shrink_mm * nx2 / length_mm
+        along += line.shrink_mm * (1.0 - nx2) / width_mm
     return max(across, along)
 
 
