@@ -35,13 +35,9 @@ a stated confidence:
    ``q_M = Phi^-1(confidence^(1/M))`` (the maximum of ``M`` independent normals). ``n`` is chosen so
    that bound is ``target_sigmas * sigma`` (0.25 sigma: the template's lift stays below 0.3 sigma);
    ``h`` holds about 1.5 ``n`` points at the scan's density, so patches cut by the plate's edge down
-   to ``n`` points are still used; smaller ones are not. A whole patch (its four neighbours present)
-   is kept down to ``SPARSE_SHARE`` of ``n``: the scan's density is not even (where passes overlap
-   it is about twice that of the stripes between them), and a sparse stripe's patches left out let
-   the design sink into a bump beneath it (0.12 mm on the e2e sail at (1480, 20) turned -8 degrees,
-   issue 46); their variance goes into the bound (``min_count``), so ``target_met`` says when they
-   made it wider. ``max_cell_mm`` caps ``h`` (the narrowest bump that must still carry the
-   template); a scan too sparse for the cap gets a larger bound, and the result says so.
+   to ``n`` points are still used; smaller ones are not. ``max_cell_mm`` caps ``h`` (the narrowest
+   bump that must still carry the template); a scan too sparse for the cap gets a larger bound, and
+   the result says so.
 
 4. **Edges.** A template on a raised (springback) edge touches the edge itself, not a patch's
    centroid inside it. Every patch on the plate's edge is also held at its outer extent by a local
@@ -125,8 +121,6 @@ class RestSurface:
 
 
 TRIM_SIGMAS = 3.0
-# an interior patch (all four neighbours present) is kept down to this share of n_min points
-SPARSE_SHARE = 0.5
 
 
 # the points are worked through in chunks of this many: the per-point temporaries of the sums (a dozen
@@ -648,12 +642,7 @@ def rest_surface(
     del i_cell, j_cell
     inv, count = grid.inv, grid.count
     m = len(count)
-    # a patch with all four neighbours is whole: fewer points than n_min there is the scan's density
-    # (the stripes between overlapping passes hold half the points of the overlaps), not the plate's
-    # edge, and it is kept down to SPARSE_SHARE of n_min with its own variance (the bound says so).
-    # Left out, a bump under a sparse stripe carried no patch: the design rested 0.12 mm into it.
-    n_keep = np.where(grid.missing.any(axis=1), n_min, max(int(SPARSE_SHARE * n_min), 1))
-    keep = count >= n_keep
+    keep = count >= n_min
     if keep.sum() < 6:
         xy = pts.take(np.arange(pts.n))[:, :2]
         raise RegistrationError(
@@ -679,7 +668,7 @@ def rest_surface(
             resid -= 0.5 * (hxx * (dx * dx - sxx) + hyy * (dy * dy - syy)) + hxy * (dx * dy - sxy)
             w[a:b] = np.abs(resid) <= TRIM_SIGMAS * sigma
     count = n_w.astype(np.int64)
-    keep &= count >= n_keep
+    keep &= count >= n_min
     # each patch at its contact point (the centroid, or the bump's top within reach), its gap there
     # from its mean and the block's slope and curvature (a patch mean alone reads a bump's top low)
     offset_xy, contact_gap, n_eff = _contact_values(quad, mean_gap, n_w, moments, cell)

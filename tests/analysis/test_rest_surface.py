@@ -165,25 +165,27 @@ def test_noise_from_gaps_given_the_callers_cells_is_the_same_figure():
     assert noise_from_gaps(xy, gap, 2.0, _cells(xy, 2.0)) == noise_from_gaps(xy, gap, 2.0)
 
 
-def _formed(bx: float, by: float, a: float = 1.5, s: float = 20.0):
-    """The default forming error's bump (height ``a``, sigma ``s``) at (bx, by) with 1 mm springback."""
+def test_the_design_rests_on_a_bumps_top_not_on_patch_means_that_cut_it(field):
+    # The default forming error's 1.5 mm bump (sigma 20 mm, curvature a / sigma^2 = 0.0037 /mm at its
+    # top) with 1 mm springback, at 2 points per mm^2 and 0.02 mm noise (the e2e scans' density:
+    # 14 mm patches). A patch mean reads the top a h^2 / (12 sigma^2) = 0.06 mm low and the centroids
+    # miss it by up to 0.7 h: on patch means the design sank 0.089 mm (median over the footprint;
+    # 0.169 at its lowest) below where it rests on the noise-free plate. With the block's curvature
+    # taken out of each mean and each patch read at its contact point: 0.034 (0.058).
+    noise, a, s, bx, by = 0.02, 1.5, 20.0, 60.0, -30.0
 
     def formed(x, y):
         hl, hw = L_MM / 2, W_MM / 2
         edges = np.exp(-(hl - x) / 60.0) + np.exp(-(hl + x) / 60.0) + np.exp(-(hw - y) / 60.0)
         return a * np.exp(-((x - bx) ** 2 + (y - by) ** 2) / (2 * s**2)) + edges + np.exp(-(hw + y) / 60.0)
 
-    return formed
-
-
-def _rest_offset(field, P: np.ndarray, formed) -> tuple[np.ndarray, object]:
-    """The design's height above its rest on the noise-free formed plate (every 1 mm of the footprint)
-    when it rests on the rest surface of ``P``, the corners holding it in its plane as in the pipeline."""
+    P, _ = _plate(noise, 2.0, seed=8, dz=formed)
     T_true = _pose()
     xy = np.stack(np.meshgrid(np.arange(-149.0, 149.5, 1.0), np.arange(-99.0, 99.5, 1.0)), -1).reshape(-1, 2)
     truth = apply_transform(
         T_true, np.column_stack([xy, sail(xy[:, 0], xy[:, 1]) + formed(xy[:, 0], xy[:, 1])])
     )
+    # the corners hold the design in its plane, as in the pipeline
     c = np.array([[-L_MM / 2, -W_MM / 2], [L_MM / 2, -W_MM / 2], [L_MM / 2, W_MM / 2], [-L_MM / 2, W_MM / 2]])
     c_design = np.column_stack([c, sail(c[:, 0], c[:, 1])])
     c_formed = c_design + np.outer(formed(c[:, 0], c[:, 1]), [0.0, 0.0, 1.0])
@@ -192,41 +194,9 @@ def _rest_offset(field, P: np.ndarray, formed) -> tuple[np.ndarray, object]:
     g0 = deflection_gaps(field, truth, clean.transform, geometry=False)[0]
     T0 = make_transform(np.eye(3), [0.2, -0.1, 0.15]) @ T_true
     rest = rest_surface(field, P, T0)
+    assert rest.cell_mm > 12.0 and rest.target_met
     fit = nonpenetrating_fit(field, rest.points_mm, T0, **corners)
     assert fit.penetrating_after == 0
-    return deflection_gaps(field, truth, fit.transform, geometry=False)[0] - g0, rest
-
-
-def test_the_design_rests_on_a_bumps_top_not_on_patch_means_that_cut_it(field):
-    # The default forming error's 1.5 mm bump (sigma 20 mm, curvature a / sigma^2 = 0.0037 /mm at its
-    # top) with 1 mm springback, at 2 points per mm^2 and 0.02 mm noise (the e2e scans' density:
-    # 14 mm patches). A patch mean reads the top a h^2 / (12 sigma^2) = 0.06 mm low and the centroids
-    # miss it by up to 0.7 h: on patch means the design sank 0.089 mm (median over the footprint;
-    # 0.169 at its lowest) below where it rests on the noise-free plate. With the block's curvature
-    # taken out of each mean and each patch read at its contact point: 0.034 (0.058).
-    formed = _formed(60.0, -30.0)
-    P, _ = _plate(0.02, 2.0, seed=8, dz=formed)
-    offset, rest = _rest_offset(field, P, formed)
-    assert rest.cell_mm > 12.0 and rest.target_met
+    offset = deflection_gaps(field, truth, fit.transform, geometry=False)[0] - g0
     assert -0.045 < np.median(offset) < 0.02, (np.median(offset), offset.min(), offset.max())
     assert offset.min() > -0.1, (np.median(offset), offset.min(), offset.max())
-
-
-def test_a_bump_under_the_sparse_stripe_between_passes_still_carries_the_template(field):
-    # The e2e cell's scans hold about twice the points where passes overlap as in the stripes between
-    # them (issue 46: the sail at (1480, 20) turned -8 degrees, 3.5 and 1.7 points per mm^2 in stripes
-    # about 20 mm wide). Patches sized on the mean density held too few points in a sparse stripe and
-    # were left out: with the bump's top under one the design rested 0.12 mm below the truth's rest
-    # (here 0.159 mm, median over the footprint; 0.318 at its lowest). Whole patches (all four
-    # neighbours present) kept down to half of n_min, with their own variance: 0.025 (0.037).
-    formed = _formed(-60.0, 40.0)
-    P, _ = _plate(0.02, 1.5, seed=9, dz=formed)
-    more, _ = _plate(0.02, 2.0, seed=10, dz=formed)
-    y_design = apply_transform(np.linalg.inv(_pose()), more)[:, 1]
-    dense = np.mod(y_design - 40.0 + 9.0, 36.0) >= 18.0  # sparse from 31 to 49 mm (the bump's top), ...
-    offset, rest = _rest_offset(field, np.vstack([P, more[dense]]), formed)
-    assert -0.045 < np.median(offset) < 0.02, (np.median(offset), offset.min(), offset.max())
-    assert offset.min() > -0.1, (np.median(offset), offset.min(), offset.max())
-    # the sparse stripe's patches carry the bump's top (the nearest patch was 14 mm from it before)
-    q = apply_transform(np.linalg.inv(_pose()), rest.points_mm)
-    assert np.hypot(q[:, 0] + 60.0, q[:, 1] - 40.0).min() < 10.0
