@@ -211,9 +211,8 @@ PLATES = (
     # the first plate designed in ship coordinates (turned 90 degrees, 40 m aft, 3 m up) and given as
     # IGES; the simulator scans its formed surface from a mesh file in the same coordinates
     # ([sim.plate] kind = "mesh", 1 mm grid), the truth is that mesh; its pose and the trigger's error
-    # the first plate's (at -8 degrees and (1480, 20) the product rested this sail 0.122 mm low, a
-    # sparse stripe between passes over its bump's top: fixed in rest_surface, -0.029 mm since;
-    # docs/testing.md)
+    # the first plate's (at -8 degrees and (1480, 20) the product rests this sail 0.122 mm low: a
+    # sparse stripe between passes over its bump's top; docs/testing.md)
     Plate("sail-iges-ship", "sail", 300.0, 200.0, (4000.0, 3000.0), None, None, (14.14, -14.14, 1.0), {},
           iges_ship=True),
 )  # fmt: skip
