@@ -149,10 +149,20 @@ async def _client_reads(tmp_path, *, node: bool = False) -> None:
             state = await cell.get_child(
                 [f"{mns}:MachineryBuildingBlocks", f"{mns}:MachineryItemState", "0:CurrentState"]
             )
-            for _ in range(100):  # the state publication is mirrored by the server's loop
-                if (await state.read_value()).Text == "Executing":
-                    break
-                await asyncio.sleep(0.05)
+            # the state publication is mirrored by the server's loop: wait on a subscription's change
+            executing = asyncio.Event()
+
+            class _OnChange:
+                def datachange_notification(self, node, val, data) -> None:
+                    if getattr(val, "Text", None) == "Executing":
+                        executing.set()
+
+            sub = await client.create_subscription(50, _OnChange())
+            try:
+                await sub.subscribe_data_change(state)
+                await asyncio.wait_for(executing.wait(), 10.0)
+            finally:
+                await sub.delete()
             assert (await state.read_value()).Text == "Executing"
 
             result_ns = await client.get_namespace_index("http://opcfoundation.org/UA/Machinery/Result/")
